@@ -1,0 +1,91 @@
+"""The board's pose in the camera frame from its corners, with a covariance from the residuals.
+
+IPPE on undistorted corners gives the start; Gauss-Newton on the pixel reprojection error through the
+full camera model (pinhole or fisheye) refines it. The pose covariance is ``s^2 (J^T J)^-1`` with
+``s^2`` the residual variance (2M - 6 degrees of freedom), in the right tangent of ``T_camera_board``.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+from geometry.planes import Plane
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, transform_points
+
+from .chessboard import CornerDetection
+from .errors import MeasurementError
+from .measurements import CameraBoardObservation
+
+
+def reprojection_residuals(T_camera_board: np.ndarray, board: BoardModel, camera: CameraModel,
+                           corners_px: np.ndarray) -> np.ndarray:
+    """Projected minus detected corners, flattened (2M,) pixels."""
+    uv = camera.project(transform_points(T_camera_board, board.inner_corners()))
+    return (uv - corners_px).ravel()
+
+
+def _pose_jacobian(T: np.ndarray, board: BoardModel, camera: CameraModel, corners: np.ndarray,
+                   eps: float = 1e-6) -> np.ndarray:
+    J = np.empty((corners.size, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        J[:, k] = (reprojection_residuals(T_retract(T, d), board, camera, corners)
+                   - reprojection_residuals(T_retract(T, -d), board, camera, corners)) / (2 * eps)
+    return J
+
+
+def _ippe_start(board: BoardModel, camera: CameraModel, corners: np.ndarray) -> np.ndarray:
+    xy = camera.normalized_from_pixels(corners)
+    ok, rvec, tvec = cv2.solvePnP(board.inner_corners(), xy.reshape(-1, 1, 2), np.eye(3), None,
+                                  flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise MeasurementError("PnP failed on the detected corners")
+    return T_from_Rt(R_from_rotvec(rvec.ravel()), tvec.ravel())
+
+
+def plane_jacobian(T_camera_board: np.ndarray) -> np.ndarray:
+    """d[n; d] / d xi (4x6) for the board plane ``n = R e3, d = n . t`` under ``T Exp(xi)``."""
+    R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    e3 = np.array([0.0, 0.0, 1.0])
+    dn_dw = -R @ skew(e3)
+    J = np.zeros((4, 6))
+    J[:3, :3] = dn_dw
+    J[3, :3] = t @ dn_dw
+    J[3, 3:] = e3
+    return J
+
+
+def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: CameraModel,
+                        iterations: int = 10) -> CameraBoardObservation:
+    corners = np.asarray(detection.corners_px, dtype=float)
+    T = _ippe_start(board, camera, corners)
+    if T[:3, 2] @ T[:3, 3] < 0:
+        # The detector ordered the grid mirror-wise (board z towards the camera): reverse its rows so
+        # that the board frame is right-handed with z pointing away from the camera, and solve again.
+        cols, rows = board.inner_corners_shape
+        corners = corners.reshape(rows, cols, 2)[::-1].reshape(-1, 2)
+        T = _ippe_start(board, camera, corners)
+    for _ in range(iterations):
+        r = reprojection_residuals(T, board, camera, corners)
+        J = _pose_jacobian(T, board, camera, corners)
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+        T = T_retract(T, step)
+        if np.linalg.norm(step) < 1e-10:
+            break
+    r = reprojection_residuals(T, board, camera, corners)
+    if not np.all(np.isfinite(r)):
+        raise MeasurementError("board pose puts corners behind the camera")
+    J = _pose_jacobian(T, board, camera, corners)
+    dof = max(r.size - 6, 1)
+    var_px = float(r @ r) / dof
+    pose_cov = var_px * np.linalg.inv(J.T @ J)
+    n = T[:3, 2]
+    plane = Plane(n, n @ T[:3, 3])
+    Jp = plane_jacobian(T)
+    return CameraBoardObservation(
+        corners_px=corners, T_camera_board=T, plane=plane, pose_covariance=pose_cov,
+        plane_covariance=Jp @ pose_cov @ Jp.T, reprojection_rms_px=float(np.sqrt(np.mean(r**2) * 2)),
+        detector=detection.method)

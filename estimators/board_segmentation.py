@@ -1,0 +1,250 @@
+"""Finding the board in a full LiDAR sweep, and fitting its plane robustly.
+
+1. Gate by range: the board's distance from the camera (from its PnP pose) bounds its distance from the
+   LiDAR, to within the sensors' separation (``max_sensor_separation_m``).
+2. Sequential RANSAC extracts planes; each plane's inliers are split into connected pieces.
+3. A piece is a board candidate when its extent fits the board: its minimum-area rectangle is no larger
+   than the board (plus a tolerance) and its hull covers enough of the board's area.
+4. Candidates are ranked by rotation-invariant agreement with the camera's view of the board: plane
+   distance, centre distance, and the angle between the normal and the line of sight. A frame with no
+   candidate, or two that agree equally well, is skipped with the reason.
+5. The chosen piece is refitted by PCA with a robust (median absolute deviation) inlier step, which drops
+   mixed edge returns and stand points that stray from the plane.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from geometry.board import BoardModel
+from geometry.planes import Plane, fit_plane_pca, moment_matrix, plane_basis
+
+from .errors import MeasurementError
+from .measurements import CameraBoardObservation, LidarBoardObservation
+
+
+@dataclass(frozen=True)
+class SegmentationParams:
+    max_sensor_separation_m: float = 1.0
+    plane_threshold_m: float = 0.06
+    min_points: int = 15
+    extent_tolerance_m: float = 0.10
+    min_area_fraction: float = 0.15
+    max_planes: int = 12
+    ransac_hypotheses: int = 400
+    neighbour_angle_rad: float = 0.06  # connection radius per metre of range (beam spacing allowance)
+    ambiguity_ratio: float = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    points: np.ndarray
+    plane: Plane
+    cost: float
+
+
+def _ransac_plane(P: np.ndarray, threshold: float, hypotheses: int, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Best plane (normal, d) by inlier count over random triples, evaluated in one batch."""
+    n = len(P)
+    if n < 3:
+        return None
+    idx = rng.integers(0, n, size=(hypotheses, 3))
+    a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norms = np.linalg.norm(normals, axis=1)
+    good = norms > 1e-9
+    if not good.any():
+        return None
+    normals = normals[good] / norms[good, None]
+    ds = np.einsum("ij,ij->i", normals, a[good])
+    counts = np.zeros(len(normals), dtype=np.int64)
+    for start in range(0, n, 20000):
+        chunk = P[start:start + 20000].astype(np.float32)
+        counts += (np.abs(chunk @ normals.T.astype(np.float32) - ds.astype(np.float32)) < threshold).sum(0)
+    k = int(np.argmax(counts))
+    return normals[k], ds[k]
+
+
+def _pieces(P: np.ndarray, radius_per_m: float) -> list[np.ndarray]:
+    """Index arrays of the connected pieces of a point set (range-adaptive neighbour radius)."""
+    if len(P) == 0:
+        return []
+    r = max(0.12, radius_per_m * float(np.median(np.linalg.norm(P, axis=1))))
+    pairs = cKDTree(P).query_pairs(r, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P)))
+    _, labels = connected_components(g, directed=False)
+    order = np.argsort(labels, kind="stable")
+    splits = np.nonzero(np.diff(labels[order]))[0] + 1
+    return np.split(order, splits)
+
+
+def _board_window(uv: np.ndarray, w: float, h: float, cell: float = 0.02) -> tuple[np.ndarray, float]:
+    """The board-sized (w x h) window, over in-plane rotations, that holds the most points.
+
+    Returns the mask of the points inside it. Used to cut a stand or a tripod head from a board piece.
+    """
+    best_mask, best_count = np.ones(len(uv), dtype=bool), -1
+    nw, nh = int(np.ceil(w / cell)), int(np.ceil(h / cell))
+    for theta in np.deg2rad(np.arange(0.0, 180.0, 3.0)):
+        c, s = np.cos(theta), np.sin(theta)
+        q = uv @ np.array([[c, -s], [s, c]])
+        ij = np.floor((q - q.min(0)) / cell).astype(int)
+        shape = (ij[:, 0].max() + 2, ij[:, 1].max() + 2)
+        hist = np.zeros(shape)
+        np.add.at(hist, (ij[:, 0], ij[:, 1]), 1.0)
+        integral = np.pad(hist.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        a, b = min(nw, shape[0]), min(nh, shape[1])
+        sums = integral[a:, b:] - integral[:-a, b:] - integral[a:, :-b] + integral[:-a, :-b]
+        k = np.unravel_index(int(np.argmax(sums)), sums.shape)
+        if sums[k] > best_count:
+            best_count = sums[k]
+            lo = np.array(k) * cell + q.min(0)
+            best_mask = np.all((q >= lo - cell) & (q <= lo + np.array([a, b]) * cell + cell), axis=1)
+    return best_mask, best_count
+
+
+def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: SegmentationParams
+                 ) -> tuple[np.ndarray | None, str]:
+    """The points of a planar piece that can be the board (trimmed of a stand), or None and why not."""
+    uv = (P - P.mean(0)) @ plane_basis(plane.normal)
+    (_, _), (w, h), _ = cv2.minAreaRect(uv.astype(np.float32))
+    big, small = max(w, h), min(w, h)
+    bw, bh = max(board.extent), min(board.extent)
+    tol = params.extent_tolerance_m
+    keep = np.ones(len(P), dtype=bool)
+    if board.size_known and (big > np.hypot(bw, bh) + tol or small > bw + tol):
+        # Larger than the board: a board on a stand, or a wall. Keep the best board-sized window when
+        # it holds most of the piece (a stand is thin); a wall spreads far beyond any window.
+        keep, _ = _board_window(uv, bw + 0.03, bh + 0.03)
+        if keep.mean() < 0.7:
+            return None, f"too large ({big:.2f} x {small:.2f} m)"
+        uv = uv[keep]
+    elif not board.size_known and big > 4.0 * np.hypot(bw, bh):
+        return None, f"too large ({big:.2f} x {small:.2f} m)"
+    area = cv2.contourArea(cv2.convexHull(uv.astype(np.float32)))
+    if area < params.min_area_fraction * bw * bh:
+        return None, f"too small ({area:.3f} m^2 of {bw * bh:.3f})"
+    return P[keep], ""
+
+
+def robust_plane_fit(P: np.ndarray, iterations: int = 4) -> tuple[Plane, np.ndarray]:
+    """PCA plane with an iterated 3-sigma inlier step (sigma from the median absolute deviation)."""
+    keep = np.ones(len(P), dtype=bool)
+    plane = fit_plane_pca(P)
+    for _ in range(iterations):
+        r = plane.signed_distances(P)
+        sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        new = np.abs(r) <= max(3.0 * sigma, 1e-6)
+        if new.sum() < 3:
+            break
+        plane = fit_plane_pca(P[new])
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return plane, keep
+
+
+def _camera_cue_cost(plane: Plane, P: np.ndarray, cam: CameraBoardObservation, board: BoardModel,
+                     sep: float) -> float:
+    """Disagreement with the camera's board in quantities that do not depend on the unknown rotation."""
+    c_cam = cam.T_camera_board[:3, :3] @ board.centre + cam.T_camera_board[:3, 3]
+    c_lid = P.mean(0)
+    r_cam, r_lid = np.linalg.norm(c_cam), np.linalg.norm(c_lid)
+    cos_cam = abs(cam.plane.normal @ c_cam) / r_cam
+    cos_lid = abs(plane.normal @ c_lid) / r_lid
+    return float(abs(plane.distance - cam.plane.distance) / sep + abs(r_lid - r_cam) / sep
+                 + abs(np.arccos(min(cos_lid, 1.0)) - np.arccos(min(cos_cam, 1.0))) / (0.1 + sep / r_cam))
+
+
+def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,
+               rng: np.random.Generator, params: SegmentationParams = SegmentationParams()
+               ) -> LidarBoardObservation:
+    """The board's points and plane in a full sweep, or :class:`MeasurementError` with the reason."""
+    rng_all = np.linalg.norm(points, axis=1)
+    sep = params.max_sensor_separation_m
+    if camera is not None:
+        outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
+        dist = np.linalg.norm(outline, axis=1)
+        lo, hi = dist.min() - sep, dist.max() + sep
+    else:
+        lo, hi = 0.3, 15.0
+    P = points[(rng_all >= lo) & (rng_all <= hi)]
+    if len(P) < params.min_points:
+        raise MeasurementError(f"only {len(P)} points within {lo:.1f}-{hi:.1f} m, where the camera puts the board")
+    candidates: list[_Candidate] = []
+    rejected: list[str] = []
+    remaining = P
+    for _ in range(params.max_planes):
+        if len(remaining) < params.min_points:
+            break
+        found = _ransac_plane(remaining, params.plane_threshold_m, params.ransac_hypotheses, rng)
+        if found is None:
+            break
+        n, d = found
+        inl = np.abs(remaining @ n - d) < params.plane_threshold_m
+        if inl.sum() < params.min_points:
+            break
+        plane_pts = remaining[inl]
+        remaining = remaining[~inl]
+        for piece in _pieces(plane_pts, params.neighbour_angle_rad):
+            Q = plane_pts[piece]
+            if len(Q) < params.min_points:
+                continue
+            plane, keep = robust_plane_fit(Q)
+            Q, why = _board_piece(Q[keep], plane, board, params)
+            if Q is None:
+                rejected.append(why)
+                continue
+            plane, _ = robust_plane_fit(Q)
+            cost = _camera_cue_cost(plane, Q, camera, board, sep) if camera is not None else 0.0
+            candidates.append(_Candidate(Q, plane, cost))
+    if camera is not None:
+        candidates = [c for c in candidates if c.cost < 3.0]
+    if not candidates:
+        raise MeasurementError(
+            f"no planar segment of the board's size {board.extent[0]:.2f} x {board.extent[1]:.2f} m "
+            f"between {lo:.1f} and {hi:.1f} m ({len(rejected)} planar pieces rejected)")
+    candidates.sort(key=lambda c: c.cost)
+    if len(candidates) > 1 and (camera is None
+                                or candidates[1].cost < params.ambiguity_ratio * candidates[0].cost + 0.05):
+        close = [c for c in candidates if camera is None or c.cost < params.ambiguity_ratio * candidates[0].cost + 0.05]
+        raise AmbiguousBoardError(
+            f"ambiguous: {len(close)} board-sized planes agree with the camera's board",
+            candidates=[_finish(c.points, P, len(candidates)) for c in close])
+    return _finish(candidates[0].points, P, len(candidates))
+
+
+def _finish(points: np.ndarray, P: np.ndarray, n_candidates: int) -> LidarBoardObservation:
+    # Gather again every gated point near the chosen piece and its plane (RANSAC's band was centred on a
+    # noisy three-point plane and cut the noise unevenly), then refit robustly.
+    near = cKDTree(points).query(P, distance_upper_bound=0.03)[0] < np.inf
+    plane, keep = robust_plane_fit(P[near])
+    Q = P[near][keep]
+    r = plane.signed_distances(Q)
+    return LidarBoardObservation(points=Q, plane=plane, moment=moment_matrix(Q),
+                                 plane_rms_m=float(np.sqrt(np.mean(r**2))), candidates=n_candidates)
+
+
+class AmbiguousBoardError(MeasurementError):
+    """Several planar pieces could be the board; ``candidates`` holds them for a later choice
+    (for example by agreement with an extrinsic estimated from the unambiguous frames)."""
+
+    def __init__(self, problem: str, candidates: list[LidarBoardObservation]):
+        super().__init__(problem)
+        self.candidates = candidates
+
+
+def choose_by_prediction(candidates: list[LidarBoardObservation], predicted: Plane,
+                         max_angle_rad: float = np.deg2rad(5.0), max_distance_m: float = 0.10
+                         ) -> LidarBoardObservation | None:
+    """The one candidate whose plane matches a predicted LiDAR-frame plane, or None if none or several do."""
+    fits = [c for c in candidates
+            if np.arccos(np.clip(c.plane.normal @ predicted.normal, -1, 1)) < max_angle_rad
+            and abs(c.plane.distance - predicted.distance) < max_distance_m]
+    return fits[0] if len(fits) == 1 else None

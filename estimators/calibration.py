@@ -1,0 +1,237 @@
+"""The calibration pipeline: dataset -> per-frame measurements -> solver -> result (and its JSON)."""
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import quat_xyzw_from_R
+
+from . import __version__
+from .board_pose import estimate_board_pose
+from .board_segmentation import AmbiguousBoardError, SegmentationParams, choose_by_prediction, find_board
+from .chessboard import CornerDetection, detect_corners
+from .closed_form import describe_direction, solve_closed_form
+from .dataset import Dataset
+from .errors import DatasetError, DegenerateLayoutError, MeasurementError
+from .image_io import read_gray
+from .intrinsics import calibrate_intrinsics
+from .measurements import FrameMeasurement
+from .output import write_json_atomic
+from .pointcloud_io import read_scan
+
+INITS = ("closed-form",)
+REFINES = ("none",)
+CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
+              "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """The estimate and everything a reader needs to judge it. Frames keep their measurements."""
+
+    T_camera_lidar: np.ndarray
+    init: str
+    refine: str
+    frames: tuple[FrameMeasurement, ...]
+    camera: CameraModel
+    normal_singular_values: np.ndarray
+    weakest_direction_camera: np.ndarray
+    dataset: str
+    warnings: tuple[str, ...] = ()
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def frames_used(self) -> int:
+        return sum(f.usable for f in self.frames)
+
+    @property
+    def condition_number(self) -> float:
+        s = self.normal_singular_values
+        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+    def to_dict(self) -> dict:
+        R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
+        axis, advice = describe_direction(self.weakest_direction_camera)
+        return {
+            "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
+            "convention": CONVENTION,
+            "T_camera_lidar": self.T_camera_lidar.tolist(),
+            "quaternion_xyzw": quat_xyzw_from_R(R).tolist(),
+            "translation_m": t.tolist(),
+            "init": self.init, "refine": self.refine,
+            "frames_used": self.frames_used, "frames_total": len(self.frames),
+            "frames": [_frame_dict(f) for f in self.frames],
+            "layout": {
+                "normal_singular_values": self.normal_singular_values.tolist(),
+                "condition_number": self.condition_number,
+                "weakest_direction_camera": self.weakest_direction_camera.tolist(),
+                "weakest_direction_words": f"{axis}: to constrain it further, {advice}",
+            },
+            "intrinsics": self.camera.as_dict(),
+            "warnings": list(self.warnings),
+            "timings_s": self.timings_s,
+        }
+
+
+def _frame_dict(f: FrameMeasurement) -> dict:
+    d = {"name": f.name, "used": f.usable, "reason": f.reason,
+         "board_points": f.lidar.n_points if f.lidar else 0,
+         "plane_rms_m": f.lidar.plane_rms_m if f.lidar else None,
+         "corner_rms_px": f.camera.reprojection_rms_px if f.camera else None,
+         "corner_detector": f.camera.detector if f.camera else None}
+    if f.camera is not None:
+        d["camera_plane"] = {"normal": f.camera.plane.normal.tolist(), "distance_m": f.camera.plane.distance}
+    if f.lidar is not None:
+        d["lidar_plane"] = {"normal": f.lidar.plane.normal.tolist(), "distance_m": f.lidar.plane.distance}
+    return d
+
+
+_TIMING_LOCK = threading.Lock()
+
+
+def _add_time(timings: dict, key: str, seconds: float) -> None:
+    with _TIMING_LOCK:
+        timings[key] = timings.get(key, 0.0) + seconds
+
+
+def _detect(frame, board, timings) -> tuple[tuple[int, int], CornerDetection | None]:
+    t0 = time.perf_counter()
+    gray = read_gray(frame.image)
+    t1 = time.perf_counter()
+    det = detect_corners(gray, board)
+    _add_time(timings, "load_images", t1 - t0)
+    _add_time(timings, "corners", time.perf_counter() - t1)
+    return (gray.shape[1], gray.shape[0]), det
+
+
+def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
+                   timings: dict | None = None, workers: int = 2
+                   ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+    """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason."""
+    timings = {} if timings is None else timings
+    warnings: list[str] = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        detections = list(pool.map(lambda f: _detect(f, dataset.board, timings), dataset.frames))
+    camera = dataset.camera
+    sizes = {s for s, _ in detections}
+    if camera is None:
+        found = [d.corners_px for _, d in detections if d is not None]
+        if len(sizes) != 1:
+            raise DatasetError(f"images have different sizes {sorted(sizes)}", path=dataset.root,
+                               hint="use one camera resolution for all frames")
+        if len(found) < 3:
+            raise DegenerateLayoutError(f"intrinsics cannot be calibrated from {len(found)} board view(s)",
+                                        path=dataset.yaml_path, hint="add camera: to dataset.yaml or more frames")
+        t0 = time.perf_counter()
+        camera, rms = calibrate_intrinsics(found, dataset.board, *sizes.pop())
+        _add_time(timings, "intrinsics", time.perf_counter() - t0)
+        warnings.append(f"no camera in dataset.yaml: intrinsics {camera.source}")
+    for frame, (size, _) in zip(dataset.frames, detections):
+        if size != (camera.width, camera.height):
+            raise DatasetError(f"image is {size[0]}x{size[1]} but the camera is {camera.width}x{camera.height}",
+                               path=frame.image, hint="fix camera width/height in dataset.yaml")
+
+    frame_rngs = rng.spawn(len(dataset.frames))
+    ambiguous: dict[str, list] = {}
+
+    def lidar_side(k: int) -> FrameMeasurement:
+        frame, (_, det) = dataset.frames[k], detections[k]
+        t0 = time.perf_counter()
+        points = read_scan(frame.scan)
+        _add_time(timings, "load_scans", time.perf_counter() - t0)
+        if det is None:
+            return FrameMeasurement(frame.name, None, None, "checkerboard not found in the image")
+        try:
+            cam_obs = estimate_board_pose(det, dataset.board, camera)
+        except MeasurementError as exc:
+            return FrameMeasurement(frame.name, None, None, f"board pose: {exc.message}")
+        t1 = time.perf_counter()
+        try:
+            lid_obs = find_board(points, dataset.board, cam_obs, frame_rngs[k], params)
+        except AmbiguousBoardError as exc:
+            ambiguous[frame.name] = exc.candidates
+            return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
+        except MeasurementError as exc:
+            return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
+        finally:
+            _add_time(timings, "segmentation", time.perf_counter() - t1)
+        return FrameMeasurement(frame.name, cam_obs, lid_obs)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        frames = list(pool.map(lidar_side, range(len(dataset.frames))))
+    if ambiguous:
+        frames = _resolve_ambiguous(frames, ambiguous, warnings)
+    return camera, frames, warnings
+
+
+def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings: list[str]
+                       ) -> list[FrameMeasurement]:
+    """Choose among a frame's candidate boards by agreement with the extrinsic of the clear frames.
+
+    Needs at least 3 unambiguous frames whose normals span 3D; otherwise those frames stay skipped.
+    """
+    clear = [f for f in frames if f.usable]
+    try:
+        prior = solve_closed_form([f.camera.plane for f in clear], [f.lidar.plane for f in clear])
+    except DegenerateLayoutError:
+        return frames
+    T_lidar_camera = np.linalg.inv(prior.T_camera_lidar)
+    out = []
+    for f in frames:
+        if f.name in ambiguous:
+            chosen = choose_by_prediction(ambiguous[f.name], f.camera.plane.transformed(T_lidar_camera))
+            if chosen is not None:
+                warnings.append(f"frame {f.name}: {len(ambiguous[f.name])} candidate boards; chose the one "
+                                f"matching the extrinsic of the {len(clear)} unambiguous frames")
+                f = FrameMeasurement(f.name, f.camera, chosen)
+        out.append(f)
+    return out
+
+
+def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "none",
+              rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
+              ) -> CalibrationResult:
+    """Estimate ``T_camera_lidar`` from a loaded dataset.
+
+    ``rng`` drives the RANSAC of the board segmentation (a fixed default seed when None, so runs repeat).
+    """
+    if init not in INITS:
+        raise ValueError(f"Expected init in {INITS}, got {init!r}")
+    if refine not in REFINES:
+        raise ValueError(f"Expected refine in {REFINES}, got {refine!r}")
+    if dataset.lidar != "3d":
+        raise DatasetError(f"lidar: {dataset.lidar} datasets are not supported yet", path=dataset.yaml_path,
+                           hint="only lidar: 3d can be calibrated in this version")
+    rng = np.random.default_rng(0) if rng is None else rng
+    timings: dict = {}
+    t_start = time.perf_counter()
+    camera, frames, warnings = measure_frames(dataset, rng, params, timings)
+    used = [f for f in frames if f.usable]
+    skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
+    t0 = time.perf_counter()
+    try:
+        sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used])
+    except DegenerateLayoutError as exc:
+        detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
+        raise DegenerateLayoutError(exc.problem + detail, path=dataset.root, hint=exc.hint) from exc
+    timings["solve"] = time.perf_counter() - t0
+    timings["total_wall"] = time.perf_counter() - t_start
+    if sol.condition_number > 10:
+        axis, advice = describe_direction(sol.weakest_direction_camera)
+        warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
+                        f"translation along {axis} is weakly constrained; {advice}")
+    warnings += [f"frame {s}" for s in skipped]
+    return CalibrationResult(sol.T_camera_lidar, init, refine, tuple(frames), camera,
+                             sol.normal_singular_values, sol.weakest_direction_camera, str(dataset.root),
+                             tuple(warnings), {k: round(v, 4) for k, v in timings.items()})
+
+
+def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
+    """Write ``OUT/calibration.json`` atomically."""
+    return write_json_atomic(Path(out_dir) / "calibration.json", result.to_dict())

@@ -1,0 +1,77 @@
+"""The planar method's closed form (Wei et al. 2015, eqs. 2-5; MATH.md section 1).
+
+Rotation: ``n_ci = R n_li`` for every board, solved by orthogonal Procrustes on
+``K = sum_i n_ci n_li^T`` with the determinant fixed to +1. Translation: ``n_ci . t = d_ci - d_li``,
+stacked and solved by least squares; it is determined only when the camera normals span 3D.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.planes import Plane
+from geometry.rotations import T_from_Rt, nearest_rotation
+
+from .errors import DegenerateLayoutError
+
+# Smallest singular value of N_c / sqrt(m) (the RMS normal component along the weakest direction)
+# below which translation along that direction is treated as undetermined.
+MIN_NORMAL_SPREAD = 0.05
+
+_AXIS_WORDS = ("camera x (right)", "camera y (down)", "camera z (forward)")
+_AXIS_ADVICE = (
+    "add a board turned about the vertical axis so that it faces left or right",
+    "add a board tilted about the horizontal axis, its top towards or away from the camera",
+    "add a board facing the camera",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class ClosedFormSolution:
+    T_camera_lidar: np.ndarray
+    normal_singular_values: np.ndarray  # of N_c / sqrt(m), descending
+    weakest_direction_camera: np.ndarray
+
+    @property
+    def condition_number(self) -> float:
+        s = self.normal_singular_values
+        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+
+def describe_direction(v: np.ndarray) -> tuple[str, str]:
+    """Words for a camera-frame direction: its dominant axis, and the board pose that constrains it."""
+    k = int(np.argmax(np.abs(v)))
+    return _AXIS_WORDS[k], _AXIS_ADVICE[k]
+
+
+def normal_spread(normals_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values of ``N_c / sqrt(m)`` (descending) and the weakest direction (camera frame)."""
+    N = np.asarray(normals_camera, dtype=float).reshape(-1, 3)
+    _, s, Vt = np.linalg.svd(N / np.sqrt(len(N)), full_matrices=True)
+    s = np.concatenate([s, np.zeros(3 - len(s))])
+    return s, Vt[-1]
+
+
+def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane]) -> ClosedFormSolution:
+    """``T_camera_lidar`` from corresponding board planes (both in canonical, distance >= 0 form)."""
+    m = len(camera_planes)
+    if m != len(lidar_planes):
+        raise ValueError(f"Expected as many LiDAR planes as camera planes, got {len(lidar_planes)} and {m}")
+    if m < 3:
+        raise DegenerateLayoutError(
+            f"only {m} usable frame(s); the closed form needs at least 3 boards whose normals span 3D",
+            hint="record more board poses, tilted in different directions")
+    Nc = np.array([p.normal for p in camera_planes])
+    Nl = np.array([p.normal for p in lidar_planes])
+    s, weak = normal_spread(Nc)
+    if s[-1] < MIN_NORMAL_SPREAD:
+        axis, advice = describe_direction(weak)
+        raise DegenerateLayoutError(
+            f"the {m} board normals do not span 3D (spread {s[-1]:.3f} along {axis}, "
+            f"direction {np.round(weak, 2).tolist()}), so translation along it is undetermined",
+            hint=advice)
+    R = nearest_rotation(Nc.T @ Nl)
+    delta = np.array([pc.distance - pl.distance for pc, pl in zip(camera_planes, lidar_planes)])
+    t = np.linalg.lstsq(Nc, delta, rcond=None)[0]
+    return ClosedFormSolution(T_from_Rt(R, t), s, weak)

@@ -1,0 +1,142 @@
+"""The dataset folder: ``dataset.yaml`` plus one image and one scan per frame, paired by file stem.
+
+See README "Dataset format" for the contract other tools write to.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from geometry.board import BoardModel
+from geometry.camera import FISHEYE, PINHOLE, CameraModel
+
+from .errors import DatasetError
+from .pointcloud_io import SCAN_SUFFIXES
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+LIDAR_KINDS = ("3d", "2d")
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    name: str
+    image: Path
+    scan: Path
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A loaded dataset description (files are read later, frame by frame)."""
+
+    root: Path
+    lidar: str
+    board: BoardModel
+    camera: CameraModel | None
+    frames: tuple[FrameFiles, ...]
+
+    @property
+    def yaml_path(self) -> Path:
+        return self.root / "dataset.yaml"
+
+    def ground_truth(self) -> np.ndarray | None:
+        """``T_camera_lidar`` from ``ground_truth.json`` when the simulator wrote one (evaluation only)."""
+        path = self.root / "ground_truth.json"
+        if not path.is_file():
+            return None
+        try:
+            T = np.asarray(json.loads(path.read_text())["T_camera_lidar"], dtype=float)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DatasetError(f"unreadable ground truth ({exc})", path=path,
+                               hint='expected {"T_camera_lidar": 4x4}') from exc
+        if T.shape != (4, 4):
+            raise DatasetError(f"T_camera_lidar has shape {T.shape}", path=path, hint="expected 4x4")
+        return T
+
+
+def load_dataset(path: str | os.PathLike) -> Dataset:
+    """Read ``dataset.yaml`` and pair the frames of a dataset folder."""
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
+    ypath = root / "dataset.yaml"
+    if not ypath.is_file():
+        raise DatasetError("no dataset.yaml", path=root, hint="create one (see README: Dataset format)")
+    try:
+        spec = yaml.safe_load(ypath.read_text())
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"invalid YAML ({str(exc).splitlines()[0]})", path=ypath,
+                           hint="fix the syntax") from exc
+    if not isinstance(spec, dict):
+        raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
+                           hint="see README: Dataset format")
+    lidar = str(spec.get("lidar", "3d")).lower()
+    if lidar not in LIDAR_KINDS:
+        raise DatasetError(f"lidar must be '3d' or '2d', got {spec.get('lidar')!r}", path=ypath,
+                           hint="set lidar: 3d or lidar: 2d")
+    board = parse_board(spec.get("board"), ypath)
+    camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
+    return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root))
+
+
+def parse_board(b: object, ypath: Path) -> BoardModel:
+    if not isinstance(b, dict) or "squares" not in b or "square_size" not in b:
+        raise DatasetError("board needs squares: [nx, ny] and square_size (m)", path=ypath,
+                           hint="see README: Dataset format")
+    try:
+        return BoardModel(squares=tuple(b["squares"]), square_size=float(b["square_size"]),
+                          size=tuple(b["size"]) if b.get("size") is not None else None,
+                          pattern_offset=tuple(b["pattern_offset"]) if b.get("pattern_offset") is not None
+                          else None)
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f"invalid board ({exc})", path=ypath, hint="fix the board entry") from exc
+
+
+def parse_camera(c: object, ypath: Path) -> CameraModel:
+    if not isinstance(c, dict):
+        raise DatasetError("camera must be a mapping", path=ypath, hint="see README: Dataset format")
+    missing = [k for k in ("K", "width", "height") if k not in c]
+    if missing:
+        raise DatasetError(f"camera lacks {', '.join(missing)}", path=ypath,
+                           hint="give K, width, height (and dist), or drop camera to calibrate intrinsics")
+    model = str(c.get("model", PINHOLE)).lower()
+    if model not in (PINHOLE, FISHEYE):
+        raise DatasetError(f"camera model must be pinhole or fisheye, got {model!r}", path=ypath,
+                           hint="use pinhole (radial-tangential) or fisheye (Kannala-Brandt)")
+    try:
+        return CameraModel(K=np.asarray(c["K"], dtype=float), dist=np.asarray(c.get("dist") or [], dtype=float),
+                           width=int(c["width"]), height=int(c["height"]), model=model, source="dataset.yaml")
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f"invalid camera ({exc})", path=ypath, hint="fix the camera entry") from exc
+
+
+def _pair_frames(root: Path) -> tuple[FrameFiles, ...]:
+    images: dict[str, Path] = {}
+    scans: dict[str, Path] = {}
+    for p in sorted(root.iterdir()):
+        if not p.is_file():
+            continue
+        suffix = p.suffix.lower()
+        table = images if suffix in IMAGE_SUFFIXES else scans if suffix in SCAN_SUFFIXES else None
+        if table is None:
+            continue
+        if p.stem in table:
+            raise DatasetError(f"two files for frame {p.stem!r} ({table[p.stem].name}, {p.name})", path=p,
+                               hint="keep one image and one scan per frame")
+        table[p.stem] = p
+    for stem, img in images.items():
+        if stem not in scans:
+            raise DatasetError(f"image has no scan {stem}{{{','.join(SCAN_SUFFIXES)}}}", path=img,
+                               hint="add the scan or remove the image")
+    for stem, scan in scans.items():
+        if stem not in images:
+            raise DatasetError(f"scan has no image {stem}{{{','.join(IMAGE_SUFFIXES)}}}", path=scan,
+                               hint="add the image or remove the scan")
+    if not images:
+        raise DatasetError("no frames (image + scan pairs with the same stem)", path=root,
+                           hint="add NNNN.png and NNNN.pcd files")
+    return tuple(FrameFiles(stem, images[stem], scans[stem]) for stem in sorted(images))

@@ -1,0 +1,37 @@
+"""lidarcam's exceptions. Each message is one line: the file, the problem, and what to do."""
+from __future__ import annotations
+
+
+class LidarcamError(Exception):
+    """Base of every error lidarcam raises on purpose; the CLI prints it as one line and exits 2."""
+
+    def __init__(self, problem: str, *, path: object | None = None, hint: str | None = None):
+        self.path = None if path is None else str(path)
+        self.problem = problem
+        self.hint = hint
+        super().__init__(self.message)
+
+    @property
+    def message(self) -> str:
+        text = f"{self.path}: {self.problem}" if self.path else self.problem
+        return f"{text}; {self.hint}" if self.hint else text
+
+
+class DatasetError(LidarcamError):
+    """A dataset folder, its ``dataset.yaml`` or one of its files is missing, corrupt or inconsistent."""
+
+
+class ScanReadError(DatasetError):
+    """A LiDAR scan file cannot be read or holds no valid points."""
+
+
+class ImageReadError(DatasetError):
+    """An image file cannot be read."""
+
+
+class MeasurementError(LidarcamError):
+    """A board could not be measured in one frame (the frame is skipped, with this reason)."""
+
+
+class DegenerateLayoutError(LidarcamError):
+    """The usable frames cannot determine the transform (too few, or normals that do not span 3D)."""

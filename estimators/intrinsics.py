@@ -1,0 +1,23 @@
+"""Intrinsics from the dataset's own images (Zhang's method via ``cv2.calibrateCamera``)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from geometry.board import BoardModel
+from geometry.camera import PINHOLE, CameraModel
+
+
+def calibrate_intrinsics(corner_sets: list[np.ndarray], board: BoardModel, width: int, height: int
+                         ) -> tuple[CameraModel, float]:
+    """Pinhole (radial-tangential, k1 k2 p1 p2 k3) intrinsics and the RMS reprojection error (px).
+
+    Needs at least 3 views of the board at different orientations.
+    """
+    obj = board.inner_corners().astype(np.float32)
+    objs = [obj for _ in corner_sets]
+    imgs = [c.reshape(-1, 1, 2).astype(np.float32) for c in corner_sets]
+    rms, K, dist, _, _ = cv2.calibrateCamera(objs, imgs, (width, height), None, None)
+    cam = CameraModel(K=K, dist=dist.ravel()[:5], width=width, height=height, model=PINHOLE,
+                      source=f"calibrated from {len(corner_sets)} images (Zhang), RMS {rms:.3f} px")
+    return cam, float(rms)

@@ -1,0 +1,43 @@
+"""Beam models of spinning LiDARs, for the simulator (elevations, azimuth step, range noise)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class BeamModel:
+    name: str
+    elevations_rad: np.ndarray  # one per laser
+    azimuth_step_rad: float
+    sigma_range_m: float
+    max_range_m: float
+
+    def directions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit beam directions (N, 3) in the LiDAR frame (x forward, y left, z up) and ring ids (N,)."""
+        az = np.arange(0.0, 2 * np.pi, self.azimuth_step_rad)
+        el, a = np.meshgrid(self.elevations_rad, az, indexing="ij")
+        d = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)], axis=-1).reshape(-1, 3)
+        ring = np.repeat(np.arange(len(self.elevations_rad)), len(az))
+        return d, ring
+
+    def with_noise(self, sigma_range_m: float) -> "BeamModel":
+        return BeamModel(self.name, self.elevations_rad, self.azimuth_step_rad, sigma_range_m, self.max_range_m)
+
+
+def hdl64e(sigma_range_m: float = 0.02) -> BeamModel:
+    """Velodyne HDL-64E-like: +2 to -24.8 degrees, 1/3 degree upper block and 1/2 degree lower block,
+    0.17 degree azimuth step (10 Hz)."""
+    upper = np.linspace(2.0, -8.33, 32)
+    lower = np.linspace(-8.83, -24.8, 32)
+    return BeamModel("HDL-64E", np.deg2rad(np.concatenate([upper, lower])), np.deg2rad(0.17),
+                     sigma_range_m, 120.0)
+
+
+def vlp16(sigma_range_m: float = 0.02) -> BeamModel:
+    """Velodyne VLP-16-like: -15 to +15 degrees every 2 degrees, 0.2 degree azimuth step."""
+    return BeamModel("VLP-16", np.deg2rad(np.arange(-15.0, 15.1, 2.0)), np.deg2rad(0.2), sigma_range_m, 100.0)
+
+
+BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16}

@@ -1,0 +1,123 @@
+"""Reading and writing LiDAR scans: PCD (ascii, binary, binary_compressed), PLY, KITTI .bin, .npy.
+
+Every reader returns an (N, 3) float64 array of finite points with the no-return (0, 0, 0) points
+of organised clouds removed.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ScanReadError
+
+SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
+
+
+def read_scan(path: str | os.PathLike) -> np.ndarray:
+    """Load a scan as (N, 3) metres in the LiDAR frame, dropping NaN/inf and (0, 0, 0) returns."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScanReadError("scan file not found", path=path, hint="check the dataset folder")
+    suffix = path.suffix.lower()
+    readers = {".pcd": _read_pcd, ".ply": _read_ply, ".bin": _read_kitti_bin, ".npy": _read_npy}
+    if suffix not in readers:
+        raise ScanReadError(f"unknown scan format {suffix!r}", path=path,
+                            hint=f"use one of {', '.join(SCAN_SUFFIXES)}")
+    try:
+        xyz = readers[suffix](path)
+    except ScanReadError:
+        raise
+    except Exception as exc:  # the readers raise many kinds on corrupt input; name the file instead
+        raise ScanReadError(f"corrupt or unreadable {suffix[1:].upper()} file ({type(exc).__name__}: "
+                            f"{_first_line(exc)})", path=path, hint="re-export the scan") from exc
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    keep = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
+    xyz = xyz[keep]
+    if len(xyz) == 0:
+        raise ScanReadError("scan holds no valid points (all NaN, inf or zero)", path=path,
+                            hint="check the recording")
+    return xyz
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:160] if text else "no detail"
+
+
+def _read_pcd(path: Path) -> np.ndarray:
+    from pypcd4 import PointCloud
+
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    if b"FIELDS" not in head or b"DATA" not in head:
+        raise ScanReadError("not a PCD file (no FIELDS/DATA header)", path=path, hint="re-export the scan")
+    pc = PointCloud.from_path(path)
+    missing = [f for f in ("x", "y", "z") if f not in pc.fields]
+    if missing:
+        raise ScanReadError(f"PCD has no field(s) {', '.join(missing)} (fields: {' '.join(pc.fields)})",
+                            path=path, hint="save x, y and z")
+    return pc.numpy(("x", "y", "z"))
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    if "vertex" not in ply:
+        raise ScanReadError("PLY has no vertex element", path=path, hint="save the points as vertices")
+    v = ply["vertex"].data
+    names = v.dtype.names or ()
+    missing = [f for f in ("x", "y", "z") if f not in names]
+    if missing:
+        raise ScanReadError(f"PLY vertices have no {', '.join(missing)}", path=path, hint="save x, y and z")
+    return np.column_stack([v["x"], v["y"], v["z"]])
+
+
+def _read_kitti_bin(path: Path) -> np.ndarray:
+    size = path.stat().st_size
+    if size == 0 or size % 16:
+        raise ScanReadError(f"KITTI .bin size {size} bytes is not a multiple of 16 (float32 x, y, z, i)",
+                            path=path, hint="the file is truncated or not a KITTI scan")
+    return np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    a = np.load(path, allow_pickle=False)
+    if a.ndim != 2 or a.shape[1] < 3 or a.dtype.kind not in "fiu":
+        raise ScanReadError(f"expected a numeric N x >=3 array, got shape {a.shape} dtype {a.dtype}",
+                            path=path, hint="save x, y, z as the first three columns")
+    return a[:, :3]
+
+
+def write_scan(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None,
+               ring: np.ndarray | None = None, pcd_encoding: str = "binary") -> None:
+    """Write (N, 3) points in the format named by the suffix (used by the simulator and tests)."""
+    path = Path(path)
+    P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    inten = np.zeros(len(P), np.float32) if intensity is None else np.asarray(intensity, np.float32)
+    suffix = path.suffix.lower()
+    if suffix == ".pcd":
+        from pypcd4 import Encoding, PointCloud
+
+        cols = [P[:, 0], P[:, 1], P[:, 2], inten]
+        fields, types = ["x", "y", "z", "intensity"], [np.float32] * 4
+        if ring is not None:
+            cols.append(np.asarray(ring, np.uint16))
+            fields.append("ring")
+            types.append(np.uint16)
+        pc = PointCloud.from_points(cols, fields, types)
+        pc.save(path, encoding=Encoding(pcd_encoding))
+    elif suffix == ".ply":
+        from plyfile import PlyData, PlyElement
+
+        v = np.empty(len(P), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4")])
+        v["x"], v["y"], v["z"], v["intensity"] = P[:, 0], P[:, 1], P[:, 2], inten
+        PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+    elif suffix == ".bin":
+        np.column_stack([P, inten]).astype("<f4").tofile(path)
+    elif suffix == ".npy":
+        np.save(path, P.astype(np.float64))
+    else:
+        raise ValueError(f"Expected a scan suffix in {SCAN_SUFFIXES}, got {suffix!r}")

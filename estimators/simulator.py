@@ -1,0 +1,216 @@
+"""Simulated calibration datasets with ground truth: rendered images and ray-cast LiDAR sweeps.
+
+The default rig follows the published planar method's setup: a 1024 x 768 camera with f ~ 940 px, a
+1 m x 1 m board with 9 x 7 squares of 10 cm, an HDL-64E-like LiDAR, the camera about 15 cm ahead of and
+20 cm below the LiDAR. The scene (LiDAR frame, z up) holds the board on a thin stand, the ground and
+four walls.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
+
+from .lidar_models import BEAM_MODELS, BeamModel
+from .output import atomic_directory
+from .pointcloud_io import write_scan
+from .rendering import render_image
+from .scene import Patch, cast, infinite_plane, rectangle
+
+# LiDAR (x forward, y left, z up) to camera (x right, y down, z forward) axes.
+R_CAMERA_LIDAR_NOMINAL = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    camera: CameraModel
+    beams: BeamModel
+    board: BoardModel
+    T_camera_lidar: np.ndarray
+    lidar_height_m: float = 1.8
+    pixel_noise: float = 2.0
+    min_distance_m: float = 2.0
+    max_distance_m: float = 5.0
+
+
+def default_camera() -> CameraModel:
+    K = np.array([[940.0, 0.0, 512.0], [0.0, 940.0, 384.0], [0.0, 0.0, 1.0]])
+    return CameraModel(K=K, dist=np.array([-0.10, 0.06, 0.0005, -0.0004, 0.0]), width=1024, height=768,
+                       source="simulator")
+
+
+def default_board() -> BoardModel:
+    return BoardModel(squares=(9, 7), square_size=0.10, size=(1.0, 1.0))
+
+
+def default_rig(rng: np.random.Generator, lidar: str = "hdl64e", sigma_range_m: float = 0.02) -> Rig:
+    """The published rig, with a small random deviation of the mounting from its nominal pose."""
+    if lidar not in BEAM_MODELS:
+        raise ValueError(f"Expected lidar in {sorted(BEAM_MODELS)}, got {lidar!r}")
+    R = R_CAMERA_LIDAR_NOMINAL @ R_from_rotvec(rng.normal(0.0, np.deg2rad(1.5), 3))
+    camera_in_lidar = np.array([0.15, 0.0, -0.20]) + rng.normal(0.0, 0.01, 3)
+    return Rig(camera=default_camera(), beams=BEAM_MODELS[lidar](sigma_range_m), board=default_board(),
+               T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar))
+
+
+def _board_rotation(ray: np.ndarray, tilt: float, azimuth: float, spin: float) -> np.ndarray:
+    """Board axes (columns x, y, z) in the camera frame: normal ``z`` tilted by ``tilt`` from the viewing ray
+    towards ``azimuth``, the board's x turned by ``spin`` about its normal from the camera's x."""
+    a = np.cross(ray, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(ray, a)
+    axis = np.cos(azimuth) * a + np.sin(azimuth) * b
+    n = R_from_rotvec(axis * tilt) @ ray
+    x0 = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    x0 /= np.linalg.norm(x0)
+    x = R_from_rotvec(n * spin) @ x0
+    return np.column_stack([x, np.cross(n, x), n])
+
+
+def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
+    outline_c = transform_points(T_camera_board, rig.board.outline())
+    uv = rig.camera.project(outline_c)
+    if not np.all(rig.camera.in_image(uv, margin_px=15.0)):
+        return False
+    outline_l = transform_points(T_inverse(rig.T_camera_lidar), outline_c)
+    el = np.arctan2(outline_l[:, 2], np.linalg.norm(outline_l[:, :2], axis=1))
+    margin = np.deg2rad(0.5)
+    if el.min() < rig.beams.elevations_rad.min() + margin or el.max() > rig.beams.elevations_rad.max() - margin:
+        return False
+    return bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.3)
+
+
+def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000) -> list[np.ndarray]:
+    """``n`` board poses (``T_camera_board``) 2-5 m away, fully seen by both sensors, with normals spread
+    round the viewing axis (stratified azimuths, 15-40 degree tilts), as the planar method advises."""
+    poses = []
+    cam = rig.camera
+    for k in range(n):
+        for _ in range(max_tries):
+            azimuth = 2 * np.pi * (k + rng.uniform()) / n
+            tilt = np.deg2rad(rng.uniform(15.0, 40.0))
+            spin = np.deg2rad(rng.uniform(-20.0, 20.0))
+            uv = np.array([[rng.uniform(0.1, 0.9) * cam.width, rng.uniform(0.1, 0.9) * cam.height]])
+            ray = cam.rays(uv)[0]
+            dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
+            R = _board_rotation(ray, tilt, azimuth, spin)
+            T = T_from_Rt(R, ray * dist - R @ rig.board.centre)
+            if _pose_fits(rig, T):
+                poses.append(T)
+                break
+        else:
+            raise RuntimeError(f"no feasible board pose found for pose {k} in {max_tries} tries")
+    return poses
+
+
+def scene_patches(rig: Rig, T_lidar_board: np.ndarray) -> tuple[list[Patch], int]:
+    """Scene pieces in the LiDAR frame and the index of the board among them."""
+    board = rig.board
+    R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
+    w, h = board.extent
+    patches = [rectangle(o, R[:, 0], R[:, 1], w, h, board.reflectance, "board")]
+    # A thin stand from the board's lowest point to the ground, a little behind the board.
+    outline = transform_points(T_lidar_board, board.outline())
+    low = outline[np.argmin(outline[:, 2])]
+    ground_z = -rig.lidar_height_m
+    to_sensor = -low[:2] / np.linalg.norm(low[:2])
+    side = np.array([-to_sensor[1], to_sensor[0], 0.0])
+    behind = np.append(-to_sensor, 0.0) * 0.05
+    if low[2] > ground_z:
+        patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
+                                 [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
+    patches += [
+        infinite_plane([0, 0, 1], ground_z, 0.3, "ground"),
+        infinite_plane([1, 0, 0], 12.0, 0.55, "wall"),
+        infinite_plane([1, 0, 0], -8.0, 0.55, "wall"),
+        infinite_plane([0, 1, 0], 8.0, 0.6, "wall"),
+        infinite_plane([0, 1, 0], -8.0, 0.6, "wall"),
+    ]
+    return patches, 0
+
+
+def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise, intensity, ring."""
+    dirs, ring = rig.beams.directions()
+    rng_m, which, refl = cast(np.zeros(3), dirs, patches, rig.beams.max_range_m)
+    hit = np.isfinite(rng_m)
+    r = rng_m[hit] + rng.normal(0.0, rig.beams.sigma_range_m, hit.sum())
+    return dirs[hit] * r[:, None], (refl[hit] * 100).astype(np.float32), ring[hit]
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedFrame:
+    name: str
+    image: np.ndarray
+    points: np.ndarray
+    intensity: np.ndarray
+    ring: np.ndarray
+    T_camera_board: np.ndarray
+
+
+def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator) -> list[SimulatedFrame]:
+    frames = []
+    T_lidar_camera = T_inverse(rig.T_camera_lidar)
+    for k, T_cb in enumerate(sample_board_poses(rig, n_poses, rng)):
+        T_lb = T_lidar_camera @ T_cb
+        patches, bi = scene_patches(rig, T_lb)
+        img = render_image(rig.camera, T_lidar_camera, patches, bi,
+                           transform_points(T_lb, rig.board.outline()), rng, pixel_noise=rig.pixel_noise)
+        pts, inten, ring = simulate_scan(rig, patches, rng)
+        frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb))
+    return frames
+
+
+def dataset_yaml(rig: Rig, lidar: str = "3d") -> dict:
+    b = rig.board
+    spec = {"lidar": lidar,
+            "board": {"squares": list(b.squares), "square_size": b.square_size}}
+    if b.size is not None:
+        spec["board"]["size"] = list(b.size)
+    if b.pattern_offset is not None:
+        spec["board"]["pattern_offset"] = list(b.pattern_offset)
+    c = rig.camera
+    spec["camera"] = {"model": c.model, "width": c.width, "height": c.height, "K": c.K.tolist(),
+                      "dist": c.dist.tolist()}
+    return spec
+
+
+def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_format: str = "pcd",
+                  include_camera: bool = True, overwrite: bool = False, meta: dict | None = None) -> Path:
+    """Write the dataset folder atomically (all of it, or nothing)."""
+    spec = dataset_yaml(rig)
+    if not include_camera:
+        spec.pop("camera")
+    truth = {"T_camera_lidar": rig.T_camera_lidar.tolist(),
+             "T_camera_board": {f.name: f.T_camera_board.tolist() for f in frames},
+             "lidar_model": rig.beams.name, "sigma_range_m": rig.beams.sigma_range_m,
+             "pixel_noise": rig.pixel_noise, **(meta or {})}
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        (tmp / "dataset.yaml").write_text(
+            "# simulated by lidarcam; ground_truth.json is for evaluation only\n"
+            + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+        (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
+        for f in frames:
+            cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
+            write_scan(tmp / f"{f.name}.{scan_format}", f.points, f.intensity, f.ring)
+    return Path(out)
+
+
+def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
+                     sigma_range_m: float = 0.02, pixel_noise: float = 2.0, scan_format: str = "pcd",
+                     include_camera: bool = True, overwrite: bool = False) -> Path:
+    """Simulate the default rig and write a dataset folder with ``ground_truth.json``."""
+    rng = np.random.default_rng(seed)
+    rig = replace(default_rig(rng, lidar, sigma_range_m), pixel_noise=pixel_noise)
+    frames = simulate_frames(rig, n_poses, rng)
+    return write_dataset(out, rig, frames, scan_format, include_camera, overwrite,
+                         meta={"seed": seed, "poses": n_poses})

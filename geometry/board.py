@@ -1,0 +1,108 @@
+"""The planar checkerboard target.
+
+Board frame: origin at one corner of the physical board, x along its width (``squares[0]`` squares),
+y along its height (``squares[1]`` squares), z = x cross y, the board's normal, pointing away from
+the printed side (into the board, away from a camera that sees the pattern).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BoardModel:
+    """A checkerboard of ``squares = (nx, ny)`` squares of ``square_size`` m, printed on a board.
+
+    ``size`` is the physical board ``(width, height)`` in m, or None when unknown (then the pattern's
+    extent is only a lower bound). ``pattern_offset`` is the board corner to pattern corner offset;
+    when None the pattern is centred.
+    """
+
+    squares: tuple[int, int]
+    square_size: float
+    size: tuple[float, float] | None = None
+    pattern_offset: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        nx, ny = (int(s) for s in self.squares)
+        if nx < 3 or ny < 3:
+            raise ValueError(f"Expected at least 3 x 3 squares, got {nx} x {ny}")
+        if not (self.square_size > 0 and np.isfinite(self.square_size)):
+            raise ValueError(f"Expected a positive square_size in metres, got {self.square_size}")
+        object.__setattr__(self, "squares", (nx, ny))
+        object.__setattr__(self, "square_size", float(self.square_size))
+        if self.size is not None:
+            w, h = (float(s) for s in self.size)
+            if w + 1e-9 < nx * self.square_size or h + 1e-9 < ny * self.square_size:
+                raise ValueError(
+                    f"Expected the board size {w} x {h} m to hold the {nx * self.square_size:.3f} x "
+                    f"{ny * self.square_size:.3f} m pattern")
+            object.__setattr__(self, "size", (w, h))
+        if self.pattern_offset is not None:
+            object.__setattr__(self, "pattern_offset", tuple(float(o) for o in self.pattern_offset))
+
+    @property
+    def inner_corners_shape(self) -> tuple[int, int]:
+        """OpenCV ``patternSize``: (columns, rows) of inner corners."""
+        return self.squares[0] - 1, self.squares[1] - 1
+
+    @property
+    def pattern_extent(self) -> tuple[float, float]:
+        return self.squares[0] * self.square_size, self.squares[1] * self.square_size
+
+    @property
+    def size_known(self) -> bool:
+        return self.size is not None
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """The board's (width, height): its given size, or the pattern's extent when unknown."""
+        return self.size if self.size is not None else self.pattern_extent
+
+    @property
+    def offset(self) -> np.ndarray:
+        """Board corner to pattern corner, in the board frame (m)."""
+        if self.pattern_offset is not None:
+            return np.array(self.pattern_offset)
+        pw, ph = self.pattern_extent
+        w, h = self.extent
+        return np.array([(w - pw) / 2.0, (h - ph) / 2.0])
+
+    def inner_corners(self) -> np.ndarray:
+        """(M, 3) inner corners in the board frame, row by row, as OpenCV's detector orders them."""
+        cols, rows = self.inner_corners_shape
+        s = self.square_size
+        i, j = np.meshgrid(np.arange(1, cols + 1), np.arange(1, rows + 1))
+        xy = np.column_stack([i.ravel() * s, j.ravel() * s]) + self.offset
+        return np.column_stack([xy, np.zeros(len(xy))])
+
+    def outline(self) -> np.ndarray:
+        """(4, 3) corners of the board's extent in the board frame, going round."""
+        w, h = self.extent
+        return np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], dtype=float)
+
+    @property
+    def centre(self) -> np.ndarray:
+        w, h = self.extent
+        return np.array([w / 2.0, h / 2.0, 0.0])
+
+    def reflectance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Reflectance in [0, 1] at board coordinates: black squares 0, white paper and margins 1.
+
+        Points outside the board get NaN.
+        """
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        w, h = self.extent
+        out = np.ones(np.broadcast(x, y).shape)
+        outside = (x < 0) | (x > w) | (y < 0) | (y > h)
+        px = (x - self.offset[0]) / self.square_size
+        py = (y - self.offset[1]) / self.square_size
+        nx, ny = self.squares
+        inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+        black = inside & ((np.floor(px) + np.floor(py)) % 2 == 0)
+        out[black] = 0.0
+        out[outside] = np.nan
+        return out

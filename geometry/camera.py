@@ -1,0 +1,88 @@
+"""Camera models: OpenCV's radial-tangential pinhole and its fisheye (Kannala-Brandt) model.
+
+Camera frame: x right, y down, z forward (OpenCV). Pixels ``(u, v)`` with the origin at the top-left
+pixel's centre, as OpenCV uses them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+PINHOLE = "pinhole"
+FISHEYE = "fisheye"
+_DIST_LENGTHS = {PINHOLE: (4, 5, 8, 12, 14), FISHEYE: (4,)}
+
+
+@dataclass(frozen=True, eq=False)
+class CameraModel:
+    """Intrinsics of one camera. ``dist`` is ``[k1, k2, p1, p2, k3...]`` (pinhole) or ``[k1..k4]`` (fisheye)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    width: int
+    height: int
+    model: str = PINHOLE
+    source: str = field(default="given")
+
+    def __post_init__(self):
+        K = np.asarray(self.K, dtype=float)
+        dist = np.asarray(self.dist if self.dist is not None else [], dtype=float).ravel()
+        if self.model not in _DIST_LENGTHS:
+            raise ValueError(f"Expected camera model 'pinhole' or 'fisheye', got {self.model!r}")
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"Expected K to be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
+        if dist.size == 0:
+            dist = np.zeros(4 if self.model == FISHEYE else 5)
+        if dist.size not in _DIST_LENGTHS[self.model]:
+            raise ValueError(
+                f"Expected {self.model} dist of length {' or '.join(map(str, _DIST_LENGTHS[self.model]))}, "
+                f"got {dist.size}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"Expected positive image size, got {self.width}x{self.height}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    def project(self, points_c: np.ndarray) -> np.ndarray:
+        """Pixels of (N, 3) camera-frame points; rows behind the camera (z <= 0) are NaN."""
+        P = np.asarray(points_c, dtype=float).reshape(-1, 3)
+        uv = np.full((len(P), 2), np.nan)
+        front = P[:, 2] > 1e-9
+        if front.any():
+            obj = P[front].reshape(-1, 1, 3)
+            zero = np.zeros(3)
+            if self.model == FISHEYE:
+                img, _ = cv2.fisheye.projectPoints(obj, zero, zero, self.K, self.dist)
+            else:
+                img, _ = cv2.projectPoints(obj, zero, zero, self.K, self.dist)
+            uv[front] = img.reshape(-1, 2)
+        return uv
+
+    def normalized_from_pixels(self, uv: np.ndarray) -> np.ndarray:
+        """Undistorted normalized coordinates ``(x/z, y/z)`` of (N, 2) pixels (the inverse of :meth:`project`)."""
+        pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+        if self.model == FISHEYE:
+            out = cv2.fisheye.undistortPoints(pts, self.K, self.dist, criteria=crit)
+        else:
+            out = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, crit)
+        return out.reshape(-1, 2)
+
+    def rays(self, uv: np.ndarray) -> np.ndarray:
+        """Unit viewing rays (camera frame) through (N, 2) pixels."""
+        xy = self.normalized_from_pixels(uv)
+        r = np.column_stack([xy, np.ones(len(xy))])
+        return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+    def in_image(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            return ((uv[:, 0] >= margin_px) & (uv[:, 0] <= self.width - 1 - margin_px)
+                    & (uv[:, 1] >= margin_px) & (uv[:, 1] <= self.height - 1 - margin_px))
+
+    def as_dict(self) -> dict:
+        return {"model": self.model, "width": self.width, "height": self.height,
+                "K": self.K.tolist(), "dist": self.dist.tolist(), "source": self.source}

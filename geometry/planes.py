@@ -1,0 +1,88 @@
+"""Planes ``n . x = d`` with a unit normal, and the point statistics that fit and score them."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane ``normal . x = distance`` with ``|normal| = 1``.
+
+    The canonical orientation (see :meth:`facing_away`) has ``distance >= 0``: the normal points away
+    from the frame's origin (from the sensor towards the board).
+    """
+
+    normal: np.ndarray
+    distance: float
+
+    def __post_init__(self):
+        n = np.asarray(self.normal, dtype=float).reshape(3)
+        norm = np.linalg.norm(n)
+        if not np.isfinite(norm) or norm < 1e-12:
+            raise ValueError(f"Expected a non-zero finite plane normal, got {n}")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "distance", float(self.distance) / norm)
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """``pi = [n; -d]`` so that ``pi . [x; 1]`` is the signed point-to-plane distance."""
+        return np.append(self.normal, -self.distance)
+
+    def facing_away(self) -> "Plane":
+        """The same plane with ``distance >= 0``."""
+        return self if self.distance >= 0 else Plane(-self.normal, -self.distance)
+
+    def signed_distances(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points) @ self.normal - self.distance
+
+    def transformed(self, T_b_a: np.ndarray) -> "Plane":
+        """This plane (given in frame a) expressed in frame b."""
+        R, t = T_b_a[:3, :3], T_b_a[:3, 3]
+        n_b = R @ self.normal
+        return Plane(n_b, self.distance + n_b @ t)
+
+
+def moment_matrix(points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """``M = sum_k w_k [p_k; 1][p_k; 1]^T`` (4x4): exact sufficient statistics for point-to-plane sums."""
+    P = np.hstack([np.asarray(points, dtype=float), np.ones((len(points), 1))])
+    if weights is None:
+        return P.T @ P
+    return (P * np.asarray(weights, dtype=float)[:, None]).T @ P
+
+
+def sum_squared_distances(plane_coefficients: np.ndarray, M: np.ndarray) -> float:
+    """``sum_k (pi . [p_k; 1])^2 = pi^T M pi`` for ``pi = [n; -d]``."""
+    pi = np.asarray(plane_coefficients, dtype=float)
+    return float(pi @ M @ pi)
+
+
+def fit_plane_pca(points: np.ndarray, weights: np.ndarray | None = None) -> Plane:
+    """Least-squares (total) plane through points: centroid and the smallest-eigenvalue eigenvector."""
+    P = np.asarray(points, dtype=float)
+    if len(P) < 3:
+        raise ValueError(f"Expected at least 3 points to fit a plane, got {len(P)}")
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, dtype=float)
+    c = (w[:, None] * P).sum(0) / w.sum()
+    Q = P - c
+    S = (Q * w[:, None]).T @ Q
+    _, vecs = np.linalg.eigh(S)
+    n = vecs[:, 0]
+    return Plane(n, n @ c).facing_away()
+
+
+def plane_spread(points: np.ndarray) -> np.ndarray:
+    """Square roots of the scatter eigenvalues (ascending), per point: thickness, then in-plane spreads."""
+    P = np.asarray(points, dtype=float)
+    Q = P - P.mean(0)
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(Q.T @ Q / len(P)), 0.0))
+
+
+def plane_basis(normal: np.ndarray) -> np.ndarray:
+    """A 3x2 orthonormal basis of the plane orthogonal to ``normal``."""
+    n = np.asarray(normal, dtype=float)
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    return np.column_stack([u, np.cross(n, u)])

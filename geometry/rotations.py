@@ -1,0 +1,111 @@
+"""Rotations and rigid transforms as numpy arrays (3x3 and 4x4), with GTSAM's tangent convention.
+
+Quaternions appear only at the boundary and always say their order (``_xyzw``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The 3x3 matrix ``[v]_x`` with ``[v]_x w = v x w``."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def R_from_rotvec(omega: np.ndarray) -> np.ndarray:
+    """SO(3) exponential of an axis-angle vector (radians)."""
+    return Rotation.from_rotvec(np.asarray(omega, dtype=float)).as_matrix()
+
+
+def rotvec_from_R(R: np.ndarray) -> np.ndarray:
+    """SO(3) logarithm: the axis-angle vector (radians) of a rotation matrix."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (radians) of a rotation matrix, in [0, pi]."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def rotation_error(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    """Angle (radians) of ``R_est R_true^T``."""
+    return rotation_angle(np.asarray(R_est) @ np.asarray(R_true).T)
+
+
+def quat_xyzw_from_R(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion, scalar last, with non-negative w."""
+    q = Rotation.from_matrix(R).as_quat()  # scipy: scalar last
+    return q if q[3] >= 0 else -q
+
+
+def R_from_quat_xyzw(q: np.ndarray) -> np.ndarray:
+    return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation drawn uniformly from SO(3)."""
+    return Rotation.random(random_state=rng).as_matrix()
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to M in Frobenius norm (SVD projection, det fixed to +1)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+# --- rigid transforms -----------------------------------------------------------------------------
+
+def T_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def T_inverse(T: np.ndarray) -> np.ndarray:
+    """``T_b_a`` from ``T_a_b``."""
+    R, t = T[:3, :3], T[:3, 3]
+    return T_from_Rt(R.T, -R.T @ t)
+
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Map an (N, 3) array of points from frame b into frame a."""
+    return np.asarray(points_b) @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(omega)
+    W = skew(omega)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * W
+    a = (1.0 - np.cos(theta)) / theta**2
+    b = (theta - np.sin(theta)) / theta**3
+    return np.eye(3) + a * W + b * W @ W
+
+
+def T_exp(xi: np.ndarray) -> np.ndarray:
+    """SE(3) exponential of ``xi = [omega; v]`` (GTSAM's ``Pose3.Expmap``)."""
+    xi = np.asarray(xi, dtype=float)
+    omega, v = xi[:3], xi[3:]
+    return T_from_Rt(R_from_rotvec(omega), _so3_left_jacobian(omega) @ v)
+
+
+def T_log(T: np.ndarray) -> np.ndarray:
+    """SE(3) logarithm, inverse of :func:`T_exp` (GTSAM's ``Pose3.Logmap``)."""
+    omega = rotvec_from_R(T[:3, :3])
+    v = np.linalg.solve(_so3_left_jacobian(omega), T[:3, 3])
+    return np.concatenate([omega, v])
+
+
+def T_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Right perturbation ``T Exp(xi)``, the tangent convention of every covariance in lidarcam."""
+    return T @ T_exp(xi)
+
+
+def T_local(T_hat: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The ``xi`` with ``T = T_hat Exp(xi)``."""
+    return T_log(T_inverse(T_hat) @ T)
