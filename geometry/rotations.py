@@ -26,8 +26,7 @@ def rotvec_from_R(R: np.ndarray) -> np.ndarray:
 
 def rotation_angle(R: np.ndarray) -> float:
     """Angle (radians) of a rotation matrix, in [0, pi]."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+    return float(Rotation.from_matrix(np.asarray(R, dtype=float)).magnitude())
 
 
 def rotation_error(R_est: np.ndarray, R_true: np.ndarray) -> float:

@@ -1,0 +1,23 @@
+"""Shared fixtures: small simulated datasets, made once per test session with fixed seeds."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from estimators.simulator import simulate_dataset
+
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+
+
+@pytest.fixture(scope="session")
+def sim_hdl64e(tmp_path_factory) -> Path:
+    """8 poses, HDL-64E-like, 2 cm range noise (the issue's acceptance setting)."""
+    return simulate_dataset(tmp_path_factory.mktemp("sim") / "hdl64e", n_poses=8, seed=11, lidar="hdl64e",
+                            sigma_range_m=0.02)
+
+
+@pytest.fixture(scope="session")
+def sim_vlp16(tmp_path_factory) -> Path:
+    return simulate_dataset(tmp_path_factory.mktemp("sim") / "vlp16", n_poses=8, seed=12, lidar="vlp16",
+                            sigma_range_m=0.02)

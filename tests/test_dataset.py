@@ -1,0 +1,77 @@
+"""The dataset folder contract: parsing, pairing and one-line errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.dataset import load_dataset
+from estimators.errors import DatasetError
+
+YAML = """lidar: 3d
+board: {squares: [9, 7], square_size: 0.1, size: [1.0, 1.0]}
+camera: {model: fisheye, width: 640, height: 480, K: [[400, 0, 320], [0, 400, 240], [0, 0, 1]],
+         dist: [0.01, 0.0, 0.0, 0.0]}
+"""
+
+
+def _make(tmp_path, yaml_text=YAML, stems=("0000", "0001"), scan=".npy"):
+    (tmp_path / "dataset.yaml").write_text(yaml_text)
+    for s in stems:
+        (tmp_path / f"{s}.png").write_bytes(b"")
+        np.save(tmp_path / f"{s}{scan}", np.ones((4, 3)))
+    return tmp_path
+
+
+def test_parses_board_camera_and_pairs_frames(tmp_path):
+    ds = load_dataset(_make(tmp_path))
+    assert ds.lidar == "3d" and ds.board.squares == (9, 7) and ds.board.size == (1.0, 1.0)
+    assert ds.camera.model == "fisheye" and ds.camera.dist.shape == (4,)
+    assert [f.name for f in ds.frames] == ["0000", "0001"]
+    assert ds.ground_truth() is None
+
+
+def test_camera_is_optional(tmp_path):
+    ds = load_dataset(_make(tmp_path, "lidar: 3d\nboard: {squares: [6, 8], square_size: 0.095}\n"))
+    assert ds.camera is None and not ds.board.size_known
+
+
+@pytest.mark.parametrize("text,match", [
+    ("lidar: 4d\nboard: {squares: [9, 7], square_size: 0.1}\n", "lidar must be"),
+    ("lidar: 3d\n", "board needs squares"),
+    ("lidar: 3d\nboard: {squares: [9, 7], square_size: -1}\n", "invalid board"),
+    ("lidar: [3d\n", "invalid YAML"),
+    ("- a\n- b\n", "expected a mapping"),
+    (YAML.replace("fisheye", "orthographic"), "pinhole or fisheye"),
+    (YAML.replace("dist: [0.01, 0.0, 0.0, 0.0]", "dist: [0.01]"), "invalid camera"),
+    ("lidar: 3d\nboard: {squares: [9, 7], square_size: 0.1}\ncamera: {width: 10}\n", "camera lacks K, height"),
+    ("!!python/object/apply:os.system ['echo hacked']\n", "invalid YAML"),
+])
+def test_bad_yaml_is_one_line_naming_the_file(tmp_path, text, match):
+    _make(tmp_path, text)
+    with pytest.raises(DatasetError, match=match) as info:
+        load_dataset(tmp_path)
+    assert "dataset.yaml" in info.value.message and "\n" not in info.value.message
+
+
+def test_unpaired_and_missing(tmp_path):
+    _make(tmp_path)
+    (tmp_path / "0002.png").write_bytes(b"")
+    with pytest.raises(DatasetError, match="0002.png: image has no scan"):
+        load_dataset(tmp_path)
+    (tmp_path / "0002.png").unlink()
+    np.save(tmp_path / "0003.npy", np.ones((4, 3)))
+    with pytest.raises(DatasetError, match="0003.npy: scan has no image"):
+        load_dataset(tmp_path)
+    with pytest.raises(DatasetError, match="dataset folder not found"):
+        load_dataset(tmp_path / "nope")
+    (tmp_path / "0003.npy").unlink()
+    (tmp_path / "dataset.yaml").unlink()
+    with pytest.raises(DatasetError, match="no dataset.yaml"):
+        load_dataset(tmp_path)
+
+
+def test_two_scans_for_one_frame(tmp_path):
+    _make(tmp_path)
+    np.ones((4, 4), np.float32).tofile(tmp_path / "0000.bin")
+    with pytest.raises(DatasetError, match="two files for frame '0000'"):
+        load_dataset(tmp_path)

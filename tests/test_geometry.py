@@ -1,0 +1,133 @@
+"""Geometry: rotations, planes, the closed form on exact data, camera models, board model."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from estimators.closed_form import normal_spread, solve_closed_form
+from estimators.errors import DegenerateLayoutError
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+from geometry.planes import Plane, fit_plane_pca, moment_matrix, sum_squared_distances
+from geometry.rotations import (R_from_quat_xyzw, T_exp, T_from_Rt, T_inverse, T_local, T_log, T_retract,
+                                quat_xyzw_from_R, random_rotation, rotation_error, transform_points)
+
+seeds = st.integers(min_value=0, max_value=2**32 - 1)
+
+
+@given(seeds)
+def test_se3_exp_matches_gtsam_and_log_inverts(seed):
+    rng = np.random.default_rng(seed)
+    xi = rng.normal(0, 1.0, 6)
+    xi[:3] *= rng.uniform(0.0, 3.0) / np.linalg.norm(xi[:3])  # stay inside the principal branch (< pi)
+    T = T_exp(xi)
+    np.testing.assert_allclose(T, gtsam.Pose3.Expmap(xi).matrix(), atol=1e-10)
+    np.testing.assert_allclose(T_log(T), xi, atol=1e-8)
+    T0 = T_from_Rt(random_rotation(rng), rng.normal(size=3))
+    np.testing.assert_allclose(T_local(T0, T_retract(T0, xi)), xi, atol=1e-8)
+    np.testing.assert_allclose(T_retract(T0, xi), gtsam.Pose3(T0).retract(xi).matrix(), atol=1e-9)
+
+
+@given(seeds)
+def test_quaternion_round_trip_is_scalar_last(seed):
+    R = random_rotation(np.random.default_rng(seed))
+    q = quat_xyzw_from_R(R)
+    assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+    np.testing.assert_allclose(R_from_quat_xyzw(q), R, atol=1e-12)
+    g = gtsam.Rot3(R).toQuaternion()  # gtsam reports w separately
+    np.testing.assert_allclose(abs(g.w()), q[3], atol=1e-9)
+
+
+@given(seeds)
+def test_plane_fit_and_moment_statistics(seed):
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    d = rng.uniform(0.5, 10)
+    basis = np.linalg.svd(n[None])[2][1:]
+    pts = d * n + rng.uniform(-1, 1, (200, 2)) @ basis
+    plane = fit_plane_pca(pts)
+    assert plane.distance >= 0
+    assert abs(abs(plane.normal @ n) - 1) < 1e-10 and abs(plane.distance - d) < 1e-9
+    noisy = pts + rng.normal(0, 0.01, pts.shape)
+    other = Plane(n + rng.normal(0, 0.1, 3), d + 0.05)
+    direct = np.sum(other.signed_distances(noisy) ** 2)
+    assert sum_squared_distances(other.coefficients, moment_matrix(noisy)) == pytest.approx(direct, rel=1e-9)
+
+
+@settings(deadline=None)
+@given(seeds, st.integers(min_value=3, max_value=12))
+def test_closed_form_recovers_exact_transform_from_noise_free_planes(seed, m):
+    rng = np.random.default_rng(seed)
+    T = T_from_Rt(random_rotation(rng), rng.normal(0, 0.5, 3))
+    cams, lids = [], []
+    T_lidar_camera = T_inverse(T)
+    while len(cams) < m:
+        n = rng.normal(size=3)
+        n[2] = abs(n[2]) + 0.5
+        pc = Plane(n, rng.uniform(1.5, 6.0))
+        pl = pc.transformed(T_lidar_camera)
+        if pl.distance > 0.1:  # both sensors on the board's front side, as in any real view
+            cams.append(pc)
+            lids.append(pl)
+    assume(normal_spread(np.array([p.normal for p in cams]))[0][-1] > 0.1)
+    sol = solve_closed_form(cams, lids)
+    assert rotation_error(sol.T_camera_lidar[:3, :3], T[:3, :3]) < 1e-8
+    np.testing.assert_allclose(sol.T_camera_lidar[:3, 3], T[:3, 3], atol=1e-7)
+
+
+def test_closed_form_rejects_too_few_and_coplanar_normals():
+    p = [Plane([0, 0, 1], 2.0), Plane([0.3, 0, 1], 3.0)]
+    with pytest.raises(DegenerateLayoutError, match="only 2 usable"):
+        solve_closed_form(p, p)
+    # Normals all in the camera's x-z plane: translation along camera y is undetermined.
+    flat = [Plane([np.sin(a), 0, np.cos(a)], 3.0) for a in (-0.5, 0.0, 0.4, 0.7)]
+    with pytest.raises(DegenerateLayoutError, match="camera y") as info:
+        solve_closed_form(flat, flat)
+    assert "tilted about the horizontal axis" in info.value.message
+
+
+@pytest.mark.parametrize("model,dist", [("pinhole", [-0.2, 0.1, 0.001, -0.001, 0.0]),
+                                        ("fisheye", [-0.05, -0.08, 0.09, -0.05])])
+def test_camera_project_and_unproject_are_inverse(model, dist):
+    cam = CameraModel(K=[[900, 0, 640], [0, 905, 400], [0, 0, 1]], dist=dist, width=1280, height=800, model=model)
+    rng = np.random.default_rng(4)
+    P = np.column_stack([rng.uniform(-1, 1, 500), rng.uniform(-0.6, 0.6, 500), rng.uniform(1, 5, 500)])
+    uv = cam.project(P)
+    ok = cam.in_image(uv)
+    assert ok.sum() > 300
+    np.testing.assert_allclose(cam.normalized_from_pixels(uv[ok]), P[ok, :2] / P[ok, 2:], atol=1e-8)
+    assert np.all(np.isnan(cam.project(np.array([[0.0, 0.0, -1.0]]))))
+
+
+def test_camera_rejects_bad_intrinsics():
+    with pytest.raises(ValueError, match="fisheye dist of length 4"):
+        CameraModel(K=np.eye(3), dist=[0.1, 0.2, 0.0], width=10, height=10, model="fisheye")
+    with pytest.raises(ValueError, match="positive focal"):
+        CameraModel(K=np.zeros((3, 3)), dist=[], width=10, height=10)
+
+
+def test_board_model_corners_and_extent():
+    b = BoardModel(squares=(9, 7), square_size=0.1, size=(1.0, 1.0))
+    c = b.inner_corners()
+    assert c.shape == (48, 3)
+    np.testing.assert_allclose(c[0], [0.15, 0.25, 0.0])  # centred 0.9 x 0.7 pattern on a 1 x 1 board
+    np.testing.assert_allclose(c[-1], [0.85, 0.75, 0.0])
+    assert b.reflectance(0.01, 0.01) == 1.0 and np.isnan(b.reflectance(-0.1, 0.5))
+    assert b.reflectance(0.1, 0.2) == 0.0  # first pattern square is black
+    unknown = BoardModel(squares=(9, 7), square_size=0.1)
+    assert not unknown.size_known and unknown.extent == pytest.approx((0.9, 0.7))
+    with pytest.raises(ValueError, match="hold"):
+        BoardModel(squares=(9, 7), square_size=0.1, size=(0.5, 1.0))
+    offset = BoardModel(squares=(9, 7), square_size=0.1, size=(1.0, 1.0), pattern_offset=(0.02, 0.03))
+    np.testing.assert_allclose(offset.inner_corners()[0], [0.12, 0.13, 0.0])
+
+
+def test_transform_points_and_inverse():
+    rng = np.random.default_rng(1)
+    T = T_from_Rt(random_rotation(rng), rng.normal(size=3))
+    P = rng.normal(size=(10, 3))
+    np.testing.assert_allclose(transform_points(T_inverse(T), transform_points(T, P)), P, atol=1e-12)

@@ -1,0 +1,81 @@
+"""Scan readers: every format round-trips; invalid points are dropped; corrupt files give a named error."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.errors import ScanReadError
+from estimators.pointcloud_io import read_scan, write_scan
+
+
+@pytest.fixture
+def points():
+    return np.random.default_rng(0).uniform(-20, 20, (500, 3)).astype(np.float32).astype(float)
+
+
+@pytest.mark.parametrize("name,kw", [("a.pcd", {"pcd_encoding": "ascii"}), ("b.pcd", {"pcd_encoding": "binary"}),
+                                     ("c.pcd", {"pcd_encoding": "binary_compressed"}), ("d.ply", {}),
+                                     ("e.bin", {}), ("f.npy", {})])
+def test_round_trip(tmp_path, points, name, kw):
+    path = tmp_path / name
+    write_scan(path, points, ring=np.arange(len(points)) % 16 if name.endswith(".pcd") else None, **kw)
+    np.testing.assert_allclose(read_scan(path), points, atol=1e-4)
+
+
+def test_pcd_with_extra_fields_nan_and_no_return_points(tmp_path, points):
+    from pypcd4 import Encoding, PointCloud
+
+    P = points.astype(np.float32).copy()
+    P[:10] = np.nan
+    P[10:20] = 0.0
+    P[20, 1] = np.inf
+    cols = [P[:, 0], P[:, 1], P[:, 2], np.ones(len(P), np.float32), np.arange(len(P), dtype=np.uint16),
+            np.zeros(len(P), np.float64)]
+    pc = PointCloud.from_points(cols, ["x", "y", "z", "intensity", "ring", "time"],
+                                [np.float32, np.float32, np.float32, np.float32, np.uint16, np.float64])
+    pc.save(tmp_path / "org.pcd", encoding=Encoding.BINARY_COMPRESSED)
+    got = read_scan(tmp_path / "org.pcd")
+    assert len(got) == len(P) - 21
+    np.testing.assert_allclose(got, P[21:], atol=1e-6)
+
+
+def test_recorded_pcd_header_is_read(tmp_path):
+    text = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity ring\nSIZE 4 4 4 4 2\nTYPE F F F F U\n"
+            "COUNT 1 1 1 1 1\nWIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n"
+            "1.5 -2.0 0.25 4 0\n0 0 0 0 1\nnan nan nan 0 2\n")
+    (tmp_path / "r.pcd").write_text(text)
+    np.testing.assert_allclose(read_scan(tmp_path / "r.pcd"), [[1.5, -2.0, 0.25]])
+
+
+@pytest.mark.parametrize("name,content,match", [
+    ("bad.pcd", b"this is not a point cloud", "not a PCD file"),
+    ("trunc.pcd", b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\n"
+                  b"POINTS 100\nDATA binary\n\x00\x01", "corrupt or unreadable PCD"),
+    ("bad.ply", b"ply\nformat nonsense\n", "corrupt or unreadable PLY"),
+    ("bad.bin", b"\x00" * 17, "not a multiple of 16"),
+    ("bad.npy", b"\x93NUMPY garbage", "corrupt or unreadable NPY"),
+    ("scan.xyz", b"1 2 3", "unknown scan format"),
+])
+def test_corrupt_files_name_the_file(tmp_path, name, content, match):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(ScanReadError, match=match) as info:
+        read_scan(path)
+    assert str(path) in info.value.message and "\n" not in info.value.message
+
+
+def test_npy_pickles_are_refused_and_shapes_checked(tmp_path):
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(ScanReadError, match="obj.npy"):
+        read_scan(tmp_path / "obj.npy")
+    np.save(tmp_path / "flat.npy", np.zeros((5, 2)))
+    with pytest.raises(ScanReadError, match="N x >=3"):
+        read_scan(tmp_path / "flat.npy")
+
+
+def test_all_invalid_and_missing(tmp_path):
+    np.save(tmp_path / "z.npy", np.zeros((5, 3)))
+    with pytest.raises(ScanReadError, match="no valid points"):
+        read_scan(tmp_path / "z.npy")
+    with pytest.raises(ScanReadError, match="not found"):
+        read_scan(tmp_path / "missing.pcd")
