@@ -17,8 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from geometry.board import BoardModel
@@ -71,14 +70,18 @@ def _ransac_plane(P: np.ndarray, threshold: float, hypotheses: int, rng: np.rand
     return normals[k], ds[k]
 
 
-def _pieces(P: np.ndarray, radius_per_m: float) -> list[np.ndarray]:
-    """Index arrays of the connected pieces of a point set (range-adaptive neighbour radius)."""
+def _pieces(P: np.ndarray, normal: np.ndarray, radius_per_m: float) -> list[np.ndarray]:
+    """Index arrays of the connected pieces of coplanar points: occupancy of a grid in the plane whose
+    cell follows the range (so ring gaps are bridged), labelled with 8-connectivity."""
     if len(P) == 0:
         return []
-    r = max(0.12, radius_per_m * float(np.median(np.linalg.norm(P, axis=1))))
-    pairs = cKDTree(P).query_pairs(r, output_type="ndarray")
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P)))
-    _, labels = connected_components(g, directed=False)
+    cell = max(0.08, radius_per_m * float(np.median(np.linalg.norm(P, axis=1)))) / 1.5
+    uv = P @ plane_basis(normal)
+    ij = np.floor((uv - uv.min(0)) / cell).astype(int)
+    grid = np.zeros(ij.max(0) + 1, dtype=bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    labels_grid, _ = ndimage.label(grid, structure=np.ones((3, 3)))
+    labels = labels_grid[ij[:, 0], ij[:, 1]]
     order = np.argsort(labels, kind="stable")
     splits = np.nonzero(np.diff(labels[order]))[0] + 1
     return np.split(order, splits)
@@ -96,8 +99,8 @@ def _board_window(uv: np.ndarray, w: float, h: float, cell: float = 0.02) -> tup
         q = uv @ np.array([[c, -s], [s, c]])
         ij = np.floor((q - q.min(0)) / cell).astype(int)
         shape = (ij[:, 0].max() + 2, ij[:, 1].max() + 2)
-        hist = np.zeros(shape)
-        np.add.at(hist, (ij[:, 0], ij[:, 1]), 1.0)
+        hist = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]
+                           ).reshape(shape).astype(float)
         integral = np.pad(hist.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
         a, b = min(nw, shape[0]), min(nh, shape[1])
         sums = integral[a:, b:] - integral[:-a, b:] - integral[a:, :-b] + integral[:-a, :-b]
@@ -121,7 +124,12 @@ def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: Segment
     if board.size_known and (big > np.hypot(bw, bh) + tol or small > bw + tol):
         # Larger than the board: a board on a stand, or a wall. Keep the best board-sized window when
         # it holds most of the piece (a stand is thin); a wall spreads far beyond any window.
-        keep, _ = _board_window(uv, bw + 0.03, bh + 0.03)
+        # Cheap necessary condition first: most points near the median point (a wall fails it at once).
+        near = np.linalg.norm(uv - np.median(uv, axis=0), axis=1) <= np.hypot(bw, bh) / 2 + 0.05
+        if near.mean() < 0.7:
+            return None, f"too large ({big:.2f} x {small:.2f} m)"
+        keep = np.zeros(len(uv), dtype=bool)
+        keep[near], _ = _board_window(uv[near], bw + 0.03, bh + 0.03)
         if keep.mean() < 0.7:
             return None, f"too large ({big:.2f} x {small:.2f} m)"
         uv = uv[keep]
@@ -192,7 +200,7 @@ def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObserva
             break
         plane_pts = remaining[inl]
         remaining = remaining[~inl]
-        for piece in _pieces(plane_pts, params.neighbour_angle_rad):
+        for piece in _pieces(plane_pts, n, params.neighbour_angle_rad):
             Q = plane_pts[piece]
             if len(Q) < params.min_points:
                 continue
