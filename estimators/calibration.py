@@ -45,6 +45,7 @@ class CalibrationResult:
     dataset: str
     warnings: tuple[str, ...] = ()
     timings_s: dict = field(default_factory=dict)
+    plane_residuals: dict = field(default_factory=dict)  # name -> (normal angle rad, distance m)
 
     @property
     def frames_used(self) -> int:
@@ -66,7 +67,7 @@ class CalibrationResult:
             "translation_m": t.tolist(),
             "init": self.init, "refine": self.refine,
             "frames_used": self.frames_used, "frames_total": len(self.frames),
-            "frames": [_frame_dict(f) for f in self.frames],
+            "frames": [_frame_dict(f, self.plane_residuals.get(f.name)) for f in self.frames],
             "layout": {
                 "normal_singular_values": self.normal_singular_values.tolist(),
                 "condition_number": self.condition_number,
@@ -79,12 +80,27 @@ class CalibrationResult:
         }
 
 
-def _frame_dict(f: FrameMeasurement) -> dict:
+def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) -> dict:
+    """Per used frame: angle (rad) between the camera normal and the mapped LiDAR normal, and the
+    difference of the plane distances (m), under ``T_camera_lidar``."""
+    out = {}
+    for f in frames:
+        if f.usable:
+            mapped = f.lidar.plane.transformed(T_camera_lidar)
+            angle = float(np.arccos(np.clip(mapped.normal @ f.camera.plane.normal, -1.0, 1.0)))
+            out[f.name] = (angle, float(mapped.distance - f.camera.plane.distance))
+    return out
+
+
+def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None) -> dict:
     d = {"name": f.name, "used": f.usable, "reason": f.reason,
          "board_points": f.lidar.n_points if f.lidar else 0,
          "plane_rms_m": f.lidar.plane_rms_m if f.lidar else None,
          "corner_rms_px": f.camera.reprojection_rms_px if f.camera else None,
          "corner_detector": f.camera.detector if f.camera else None}
+    if residual is not None:
+        d["normal_residual_deg"] = float(np.degrees(residual[0]))
+        d["distance_residual_m"] = residual[1]
     if f.camera is not None:
         d["camera_plane"] = {"normal": f.camera.plane.normal.tolist(), "distance_m": f.camera.plane.distance}
     if f.lidar is not None:
@@ -226,10 +242,15 @@ def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "none",
         axis, advice = describe_direction(sol.weakest_direction_camera)
         warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
                         f"translation along {axis} is weakly constrained; {advice}")
+    residuals = plane_residuals(sol.T_camera_lidar, used)
+    for name, (angle, dist) in residuals.items():
+        if angle > np.deg2rad(3.0) or abs(dist) > 0.05:
+            warnings.append(f"frame {name}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg and "
+                            f"{1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
     warnings += [f"frame {s}" for s in skipped]
     return CalibrationResult(sol.T_camera_lidar, init, refine, tuple(frames), camera,
                              sol.normal_singular_values, sol.weakest_direction_camera, str(dataset.root),
-                             tuple(warnings), {k: round(v, 4) for k, v in timings.items()})
+                             tuple(warnings), {k: round(v, 4) for k, v in timings.items()}, residuals)
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

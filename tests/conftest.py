@@ -4,6 +4,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# Property tests check correctness, not speed: no per-example deadline on a loaded 2-core CI machine.
+settings.register_profile("lidarcam", deadline=None, max_examples=100)
+settings.load_profile("lidarcam")
 
 from estimators.simulator import simulate_dataset
 
