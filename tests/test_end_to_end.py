@@ -105,3 +105,25 @@ def test_simulate_refuses_to_overwrite(tmp_path):
     r = _run_cli("simulate", "--poses", "3", "--out", str(out))
     assert r.returncode == 2 and "not empty" in r.stderr
     assert (out / "keep.txt").exists()
+
+
+@pytest.mark.parametrize("fmt", ["ply", "bin", "npy"])
+def test_every_scan_format_calibrates(tmp_path, fmt):
+    """The simulator writes each reader's format; 5 VLP-16 frames calibrate within the same tolerances."""
+    from estimators.simulator import simulate_dataset
+
+    path = simulate_dataset(tmp_path / fmt, n_poses=5, seed=30, lidar="vlp16", scan_format=fmt)
+    assert len(list(path.glob(f"*.{fmt}"))) == 5
+    ds = load_dataset(path)
+    result = calibrate(ds, rng=np.random.default_rng(0))
+    assert result.frames_used == 5
+    rot, trans = _errors(result.T_camera_lidar, ds.ground_truth())
+    assert rot < 2 * MAX_ROT_DEG and trans < 2 * MAX_TRANS_M, (rot, trans)  # 5 frames, not 8
+
+
+def test_2d_dataset_is_refused_clearly(tmp_path):
+    (tmp_path / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n")
+    (tmp_path / "0000.png").write_bytes(b"")
+    np.save(tmp_path / "0000.npy", np.ones((4, 3)))
+    r = _run_cli("calibrate", str(tmp_path), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "lidar: 2d datasets are not supported yet" in r.stderr
