@@ -174,7 +174,7 @@ def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObserva
                rng: np.random.Generator, params: SegmentationParams = SegmentationParams()
                ) -> LidarBoardObservation:
     """The board's points and plane in a full sweep, or :class:`MeasurementError` with the reason."""
-    rng_all = np.linalg.norm(points, axis=1)
+    ranges = np.linalg.norm(points, axis=1)
     sep = params.max_sensor_separation_m
     if camera is not None:
         outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
@@ -182,7 +182,7 @@ def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObserva
         lo, hi = dist.min() - sep, dist.max() + sep
     else:
         lo, hi = 0.3, 15.0
-    P = points[(rng_all >= lo) & (rng_all <= hi)]
+    P = points[(ranges >= lo) & (ranges <= hi)]
     if len(P) < params.min_points:
         raise MeasurementError(f"only {len(P)} points within {lo:.1f}-{hi:.1f} m, where the camera puts the board")
     candidates: list[_Candidate] = []

@@ -64,7 +64,7 @@ def render_image(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
         su = (pu.ravel()[:, None] + ou.ravel()[None, :]).ravel()
         sv = (pv.ravel()[:, None] + ov.ravel()[None, :]).ravel()
         dirs = _rays_world(_interp(grid, su, sv), T_world_camera)
-        rng_all, which, r_sub = cast(origin, dirs, patches)
+        _, which, r_sub = cast(origin, dirs, patches)
         base = np.repeat(refl[pv.ravel(), pu.ravel()], supersample * supersample)
         on_board = which == board_index
         r_sub = np.where(on_board, r_sub, base)
