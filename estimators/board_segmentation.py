@@ -21,7 +21,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from geometry.board import BoardModel
-from geometry.planes import Plane, fit_plane_pca, moment_matrix, plane_basis
+from geometry.planes import Plane, fit_plane_pca, moment_matrix, plane_basis, plane_difference
 
 from .errors import MeasurementError
 from .measurements import CameraBoardObservation, LidarBoardObservation
@@ -252,7 +252,6 @@ def choose_by_prediction(candidates: list[LidarBoardObservation], predicted: Pla
                          max_angle_rad: float = np.deg2rad(5.0), max_distance_m: float = 0.10
                          ) -> LidarBoardObservation | None:
     """The one candidate whose plane matches a predicted LiDAR-frame plane, or None if none or several do."""
-    fits = [c for c in candidates
-            if np.arccos(np.clip(c.plane.normal @ predicted.normal, -1, 1)) < max_angle_rad
-            and abs(c.plane.distance - predicted.distance) < max_distance_m]
+    diffs = [plane_difference(c.plane, predicted) for c in candidates]
+    fits = [c for c, (angle, dist) in zip(candidates, diffs) if angle < max_angle_rad and abs(dist) < max_distance_m]
     return fits[0] if len(fits) == 1 else None

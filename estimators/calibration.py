@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from geometry.camera import CameraModel
+from geometry.planes import plane_difference
 from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
@@ -86,9 +87,7 @@ def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) 
     out = {}
     for f in frames:
         if f.usable:
-            mapped = f.lidar.plane.transformed(T_camera_lidar)
-            angle = float(np.arccos(np.clip(mapped.normal @ f.camera.plane.normal, -1.0, 1.0)))
-            out[f.name] = (angle, float(mapped.distance - f.camera.plane.distance))
+            out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
     return out
 
 

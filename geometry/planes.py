@@ -44,6 +44,11 @@ class Plane:
         return Plane(n_b, self.distance + n_b @ t)
 
 
+def plane_difference(a: Plane, b: Plane) -> tuple[float, float]:
+    """Angle (rad) between the normals of two planes in one frame, and ``a.distance - b.distance`` (m)."""
+    return float(np.arccos(np.clip(a.normal @ b.normal, -1.0, 1.0))), float(a.distance - b.distance)
+
+
 def moment_matrix(points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """``M = sum_k w_k [p_k; 1][p_k; 1]^T`` (4x4): exact sufficient statistics for point-to-plane sums."""
     P = np.hstack([np.asarray(points, dtype=float), np.ones((len(points), 1))])
