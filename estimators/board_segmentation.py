@@ -24,7 +24,7 @@ from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, moment_matrix, plane_basis, plane_difference
 
 from .errors import MeasurementError
-from .measurements import CameraBoardObservation, LidarBoardObservation
+from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board
 
 
 @dataclass(frozen=True)
@@ -232,11 +232,8 @@ def _finish(points: np.ndarray, P: np.ndarray, n_candidates: int) -> LidarBoardO
     # Gather again every gated point near the chosen piece and its plane (RANSAC's band was centred on a
     # noisy three-point plane and cut the noise unevenly), then refit robustly.
     near = cKDTree(points).query(P, distance_upper_bound=0.03)[0] < np.inf
-    plane, keep = robust_plane_fit(P[near])
-    Q = P[near][keep]
-    r = plane.signed_distances(Q)
-    return LidarBoardObservation(points=Q, plane=plane, moment=moment_matrix(Q),
-                                 plane_rms_m=float(np.sqrt(np.mean(r**2))), candidates=n_candidates)
+    _, keep = robust_plane_fit(P[near])
+    return observe_lidar_board(P[near][keep], n_candidates)
 
 
 class AmbiguousBoardError(MeasurementError):

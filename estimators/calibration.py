@@ -4,7 +4,7 @@ from __future__ import annotations
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,11 +25,14 @@ from .intrinsics import calibrate_intrinsics
 from .measurements import FrameMeasurement
 from .output import write_json_atomic
 from .pointcloud_io import read_scan
+from .refinement import Refinement, RefinementOptions, refine as refine_graph
 
 INITS = ("closed-form",)
-REFINES = ("none",)
+REFINES = ("factor-graph", "none")
 CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
+COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m)] in GTSAM's Pose3 tangent: "
+                         "T_true = T_hat * Exp(xi), so both parts are along the LiDAR's axes")
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,18 +50,65 @@ class CalibrationResult:
     warnings: tuple[str, ...] = ()
     timings_s: dict = field(default_factory=dict)
     plane_residuals: dict = field(default_factory=dict)  # name -> (normal angle rad, distance m)
+    refinement: Refinement | None = None
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """6x6 covariance in GTSAM's right tangent (``T_true = T_hat Exp(xi)``, ``xi = [rot; trans]``)."""
+        return None if self.refinement is None else self.refinement.covariance
+
+    @property
+    def std_rotation_deg(self) -> np.ndarray | None:
+        """Standard deviations of the rotation about the LiDAR's x, y, z axes (degrees)."""
+        c = self.covariance
+        return None if c is None else np.degrees(np.sqrt(np.diag(c)[:3]))
+
+    @property
+    def std_translation_mm(self) -> np.ndarray | None:
+        """Standard deviations of the translation along the LiDAR's x, y, z axes (millimetres)."""
+        c = self.covariance
+        return None if c is None else 1000 * np.sqrt(np.diag(c)[3:])
+
+    @property
+    def std_translation_camera_mm(self) -> np.ndarray | None:
+        """Standard deviations of the entries of ``t`` in ``T_camera_lidar`` (camera axes, millimetres)."""
+        c = self.covariance
+        if c is None:
+            return None
+        R = self.T_camera_lidar[:3, :3]
+        return 1000 * np.sqrt(np.diag(R @ c[3:, 3:] @ R.T))
 
     @property
     def frames_used(self) -> int:
-        return sum(f.usable for f in self.frames)
+        dropped = {f.name for f in self.refinement.frames if f.dropped} if self.refinement else set()
+        return sum(f.usable and f.name not in dropped for f in self.frames)
 
     @property
     def condition_number(self) -> float:
         s = self.normal_singular_values
         return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
+    def _uncertainty_dict(self) -> dict:
+        ref = self.refinement
+        if ref is None:
+            return {"covariance": None,
+                    "covariance_note": "no covariance without refinement (refine: none)"}
+        return {
+            "covariance": ref.covariance.tolist(),
+            "covariance_convention": COVARIANCE_CONVENTION,
+            "std": {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
+                    "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist(),
+                    "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()},
+            "noise": {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
+                      "range_noise_m": ref.range_noise_m},
+            "consistency": {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
+                            "p_value": ref.consistency_p},
+            "iterations": ref.iterations,
+        }
+
     def to_dict(self) -> dict:
         R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
+        fits = {f.name: f for f in self.refinement.frames} if self.refinement else {}
         axis, advice = describe_direction(self.weakest_direction_camera)
         return {
             "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
@@ -68,7 +118,8 @@ class CalibrationResult:
             "translation_m": t.tolist(),
             "init": self.init, "refine": self.refine,
             "frames_used": self.frames_used, "frames_total": len(self.frames),
-            "frames": [_frame_dict(f, self.plane_residuals.get(f.name)) for f in self.frames],
+            **self._uncertainty_dict(),
+            "frames": [_frame_dict(f, self.plane_residuals.get(f.name), fits.get(f.name)) for f in self.frames],
             "layout": {
                 "normal_singular_values": self.normal_singular_values.tolist(),
                 "condition_number": self.condition_number,
@@ -91,8 +142,10 @@ def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) 
     return out
 
 
-def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None) -> dict:
-    d = {"name": f.name, "used": f.usable, "reason": f.reason,
+def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None, fit=None) -> dict:
+    used = f.usable and not (fit is not None and fit.dropped)
+    reason = f.reason if fit is None or not fit.dropped else f"dropped as an outlier: {fit.outlier}"
+    d = {"name": f.name, "used": used, "reason": reason,
          "board_points": f.lidar.n_points if f.lidar else 0,
          "plane_rms_m": f.lidar.plane_rms_m if f.lidar else None,
          "corner_rms_px": f.camera.reprojection_rms_px if f.camera else None,
@@ -100,6 +153,11 @@ def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None
     if residual is not None:
         d["normal_residual_deg"] = float(np.degrees(residual[0]))
         d["distance_residual_m"] = residual[1]
+    if fit is not None:
+        d["plane_chi2"] = fit.plane_chi2
+        d["plane_dof"] = fit.plane_dof
+        d["robust_weight"] = fit.weight
+        d["outlier"] = fit.outlier
     if f.camera is not None:
         d["camera_plane"] = {"normal": f.camera.plane.normal.tolist(), "distance_m": f.camera.plane.distance}
     if f.lidar is not None:
@@ -209,17 +267,14 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
     return out
 
 
-def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "none",
+def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor-graph",
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
-              ) -> CalibrationResult:
-    """Estimate ``T_camera_lidar`` from a loaded dataset.
+              options: RefinementOptions = RefinementOptions()) -> CalibrationResult:
+    """Estimate ``T_camera_lidar`` (and, refined, its covariance) from a loaded dataset.
 
     ``rng`` drives the RANSAC of the board segmentation (a fixed default seed when None, so runs repeat).
     """
-    if init not in INITS:
-        raise ValueError(f"Expected init in {INITS}, got {init!r}")
-    if refine not in REFINES:
-        raise ValueError(f"Expected refine in {REFINES}, got {refine!r}")
+    _check_methods(init, refine)
     if dataset.lidar != "3d":
         raise DatasetError(f"lidar: {dataset.lidar} datasets are not supported yet", path=dataset.yaml_path,
                            hint="only lidar: 3d can be calibrated in this version")
@@ -227,29 +282,56 @@ def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "none",
     timings: dict = {}
     t_start = time.perf_counter()
     camera, frames, warnings = measure_frames(dataset, rng, params, timings)
-    used = [f for f in frames if f.usable]
-    skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
-    t0 = time.perf_counter()
     try:
-        sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used])
+        result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
+                       warnings=warnings, timings=timings)
     except DegenerateLayoutError as exc:
+        skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
         raise DegenerateLayoutError(exc.problem + detail, path=dataset.root, hint=exc.hint) from exc
-    timings["solve"] = time.perf_counter() - t0
     timings["total_wall"] = time.perf_counter() - t_start
+    return replace(result, timings_s={k: round(v, 4) for k, v in timings.items()})
+
+
+def _check_methods(init: str, refine: str) -> None:
+    if init not in INITS:
+        raise ValueError(f"Expected init in {INITS}, got {init!r}")
+    if refine not in REFINES:
+        raise ValueError(f"Expected refine in {REFINES}, got {refine!r}")
+
+
+def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str = "closed-form",
+          refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(), name: str = "",
+          warnings: list[str] | None = None, timings: dict | None = None) -> CalibrationResult:
+    """The solver stage on measured frames: initial solution, then (optionally) the factor graph."""
+    _check_methods(init, refine)
+    warnings = list(warnings or [])
+    timings = {} if timings is None else timings
+    used = [f for f in frames if f.usable]
+    t0 = time.perf_counter()
+    sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used])
+    timings["solve"] = time.perf_counter() - t0
+    T, ref = sol.T_camera_lidar, None
+    if refine == "factor-graph":
+        t0 = time.perf_counter()
+        ref = refine_graph(used, board, camera, T, options)
+        timings["refine"] = time.perf_counter() - t0
+        T = ref.T_camera_lidar
+        warnings += ref.warnings
     if sol.condition_number > 10:
         axis, advice = describe_direction(sol.weakest_direction_camera)
         warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
                         f"translation along {axis} is weakly constrained; {advice}")
-    residuals = plane_residuals(sol.T_camera_lidar, used)
-    for name, (angle, dist) in residuals.items():
+    dropped = {f.name for f in ref.frames if f.dropped} if ref else set()
+    residuals = plane_residuals(T, [f for f in used if f.name not in dropped])
+    for fname, (angle, dist) in residuals.items():
         if angle > np.deg2rad(3.0) or abs(dist) > 0.05:
-            warnings.append(f"frame {name}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg and "
-                            f"{1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
-    warnings += [f"frame {s}" for s in skipped]
-    return CalibrationResult(sol.T_camera_lidar, init, refine, tuple(frames), camera,
-                             sol.normal_singular_values, sol.weakest_direction_camera, str(dataset.root),
-                             tuple(warnings), {k: round(v, 4) for k, v in timings.items()}, residuals)
+            warnings.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
+                            f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
+    warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
+    return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
+                             sol.weakest_direction_camera, name, tuple(warnings),
+                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref)
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

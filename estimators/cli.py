@@ -15,7 +15,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("dataset", help="folder with dataset.yaml, NNNN.png and NNNN.pcd|ply|bin|npy")
     c.add_argument("--out", required=True, help="output folder (calibration.json is written there)")
     c.add_argument("--init", default="closed-form", choices=["closed-form"])
-    c.add_argument("--refine", default="none", choices=["none"])
+    _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
                    help="upper bound on the camera-LiDAR distance, used to gate the board by range (m)")
@@ -37,7 +37,39 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"])
     d.add_argument("--poses", type=int, default=8)
     d.add_argument("--seed", type=int, default=0)
+    _solver_arguments(d)
     return p
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return v
+
+
+def _solver_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--refine", default="factor-graph", choices=["factor-graph", "none"],
+                   help="factor-graph: maximum likelihood with covariance (default); none: the closed form only")
+    p.add_argument("--robust", default="huber", choices=["huber", "cauchy", "none"],
+                   help="robust loss on each frame's plane residual (default huber)")
+    p.add_argument("--outliers", default="drop", choices=["drop", "downweight"],
+                   help="what to do with frames whose planes disagree beyond the noise (default drop)")
+    p.add_argument("--corner-noise-px", type=_positive, default=None, metavar="PX",
+                   help="effective per-corner pixel noise (default: corner residual x the detector's "
+                        "error-correlation factor)")
+    p.add_argument("--range-noise-m", type=_positive, default=None, metavar="M",
+                   help="LiDAR range noise (default: estimated from the board points)")
+
+
+def _options(args):
+    from .refinement import RefinementOptions
+
+    return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
+                             range_noise_m=args.range_noise_m)
 
 
 def _print_result(result, truth=None) -> None:
@@ -58,10 +90,26 @@ def _print_result(result, truth=None) -> None:
                   f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
         else:
             print(f"  {f.name}: skipped: {f.reason}")
+    if result.covariance is not None:
+        ref = result.refinement
+        print("standard deviations (GTSAM tangent, about/along the LiDAR's x y z):")
+        print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
+        print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
+        print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
+        print(f"noise: corners {ref.corner_noise_px:.3f} px effective ({ref.corner_residual_px:.3f} px residual), "
+              f"range {1000 * ref.range_noise_m:.1f} mm; plane consistency {ref.variance_factor:.2f} "
+              f"(chi-square/dof, {ref.consistency_dof} dof, p = {ref.consistency_p:.2f})")
     if truth is not None:
         rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
         tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
         print(f"error against ground truth: rotation {rot:.3f} deg, translation {tr:.1f} mm")
+        if result.covariance is not None:
+            from geometry.rotations import T_inverse, T_log
+
+            xi = T_log(T_inverse(T) @ truth)
+            d2 = float(xi @ np.linalg.solve(result.covariance, xi))
+            print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
+                  f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
     for w in result.warnings:
         print(f"warning: {w}")
 
@@ -75,7 +123,7 @@ def _calibrate(args) -> int:
 
     ds = load_dataset(args.dataset)
     result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
-                       SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
+                       SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args))
     path = write_calibration(result, args.out)
     _print_result(result)
     print(f"wrote {path}")
@@ -106,7 +154,7 @@ def _demo(args) -> int:
         print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) ...")
         simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
         ds = load_dataset(data)
-        result = calibrate(ds, rng=np.random.default_rng(args.seed))
+        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args))
         _print_result(result, ds.ground_truth())
         if args.out:
             print(f"wrote {write_calibration(result, base)}")

@@ -61,6 +61,19 @@ class CameraModel:
             uv[front] = img.reshape(-1, 2)
         return uv
 
+    def project_jacobian(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels of (N, 3) camera-frame points in front of the camera, and ``d uv / d point`` (N, 2, 3)."""
+        P = np.asarray(points_c, dtype=float).reshape(-1, 1, 3)
+        zero = np.zeros(3)
+        if self.model == FISHEYE:
+            img, jac = cv2.fisheye.projectPoints(P, zero, zero, self.K, self.dist)
+            dpoint = jac[:, 11:14]  # columns: f(2), c(2), k(4), rvec(3), tvec(3), alpha(1)
+        else:
+            img, jac = cv2.projectPoints(P, zero, zero, self.K, self.dist)
+            dpoint = jac[:, 3:6]  # columns: rvec(3), tvec(3), f(2), c(2), dist
+        # With zero rotation and translation, the derivative by tvec is the derivative by the point.
+        return img.reshape(-1, 2), dpoint.reshape(-1, 2, 3)
+
     def normalized_from_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Undistorted normalized coordinates ``(x/z, y/z)`` of (N, 2) pixels (the inverse of :meth:`project`)."""
         pts = np.asarray(uv, dtype=float).reshape(-1, 1, 2)

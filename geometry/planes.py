@@ -63,6 +63,30 @@ def sum_squared_distances(plane_coefficients: np.ndarray, M: np.ndarray) -> floa
     return float(pi @ M @ pi)
 
 
+def sqrt_excess_moment(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, float]:
+    """Square-root form of a point set's plane cost: ``W`` (k x 4) and ``floor`` with, for every plane
+    ``pi = [n; -d]`` with a unit normal, ``pi^T M pi = |W pi|^2 + floor`` exactly.
+
+    ``floor`` is the cost of the best-fitting plane (the smallest eigenvalue of the scatter, the
+    4x4 moment ``M`` being ``sum w [p; 1][p; 1]^T``), so ``|W pi|^2`` is the excess of ``pi`` over the
+    best fit: about chi-square with 3 degrees of freedom (times the noise variance) at the true plane.
+    Rank ``k`` is 3 for a board seen by a 3D LiDAR; for points on one line (a 2D scan without
+    noise) it drops to 2. ``floor`` may be negative for a noise-corrected moment. MATH.md section 2.
+    """
+    M = np.asarray(M, dtype=float)
+    n = M[3, 3]
+    if n <= 0:
+        raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
+    s = M[:3, 3]
+    scatter = M[:3, :3] - np.outer(s, s) / n
+    floor = float(np.linalg.eigvalsh(scatter)[0])
+    E = M.copy()
+    E[:3, :3] -= floor * np.eye(3)
+    vals, vecs = np.linalg.eigh(E)
+    keep = vals > rel_tol * vals[-1]
+    return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
+
+
 def fit_plane_pca(points: np.ndarray, weights: np.ndarray | None = None) -> Plane:
     """Least-squares (total) plane through points: centroid and the smallest-eigenvalue eigenvector."""
     P = np.asarray(points, dtype=float)

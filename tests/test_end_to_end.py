@@ -12,7 +12,7 @@ import pytest
 from estimators.calibration import calibrate
 from estimators.cli import main
 from estimators.dataset import load_dataset
-from geometry.rotations import rotation_error
+from geometry.rotations import T_inverse, T_log, rotation_error
 
 # Acceptance (issue 2): 8 frames, 2 cm range noise: rotation < 0.5 deg, translation < 3 cm, all boards found.
 MAX_ROT_DEG, MAX_TRANS_M = 0.5, 0.03
@@ -22,10 +22,11 @@ def _errors(T, T_true):
     return np.degrees(rotation_error(T[:3, :3], T_true[:3, :3])), np.linalg.norm(T[:3, 3] - T_true[:3, 3])
 
 
+@pytest.mark.parametrize("refine", ["none", "factor-graph"])
 @pytest.mark.parametrize("fixture", ["sim_hdl64e", "sim_vlp16"])
-def test_closed_form_meets_accuracy_targets(request, fixture):
+def test_calibration_meets_accuracy_targets(request, fixture, refine):
     ds = load_dataset(request.getfixturevalue(fixture))
-    result = calibrate(ds, rng=np.random.default_rng(0))
+    result = calibrate(ds, refine=refine, rng=np.random.default_rng(0))
     assert result.frames_used == len(ds.frames) == 8
     rot, trans = _errors(result.T_camera_lidar, ds.ground_truth())
     assert rot < MAX_ROT_DEG and trans < MAX_TRANS_M, (rot, trans)
@@ -38,9 +39,17 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     for key in ("T_camera_lidar", "quaternion_xyzw", "translation_m", "init", "refine", "frames", "intrinsics",
                 "version", "layout", "convention"):
         assert key in data
-    assert data["init"] == "closed-form" and data["refine"] == "none"
+    assert data["init"] == "closed-form" and data["refine"] == "factor-graph"
     T = np.array(data["T_camera_lidar"])
     np.testing.assert_allclose(T[:3, 3], data["translation_m"])
+    cov = np.array(data["covariance"])
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0
+    np.testing.assert_allclose(data["std"]["rotation_deg_about_lidar_xyz"], np.degrees(np.sqrt(np.diag(cov)[:3])))
+    np.testing.assert_allclose(data["std"]["translation_mm_along_lidar_xyz"], 1000 * np.sqrt(np.diag(cov)[3:]))
+    # The truth lies within the reported uncertainty (chi-square 6 dof, 99.9%: 22.5).
+    G = load_dataset(sim_hdl64e).ground_truth()
+    xi = T_log(T_inverse(T) @ G)
+    assert xi @ np.linalg.solve(cov, xi) < 22.5
     frame = data["frames"][0]
     assert {"name", "used", "reason", "board_points", "plane_rms_m", "corner_rms_px"} <= frame.keys()
     # 2 cm range noise over thousands of points: each board's planes agree to a fraction of a degree

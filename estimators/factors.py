@@ -1,0 +1,100 @@
+"""The factors of the calibration graph, as numpy residuals with analytic Jacobians and as GTSAM factors.
+
+Variables are ``gtsam.Pose3``: the extrinsic ``T_camera_lidar`` and one ``T_camera_board`` per frame.
+Jacobians are taken in GTSAM's right (body) tangent, ``T Exp(xi)`` with ``xi = [rot; trans]``
+(MATH.md sections 2, 3 and 6).
+
+- Corner factor (one per frame): projected minus detected board corners through the dataset's camera
+  model, ``2M`` residuals in pixels.
+- Plane factor (one per frame): ``W pi`` with ``pi = [R^T n; n . t - d]`` the camera's board plane
+  (``n = R_b e3``, ``d = n . t_b``) mapped into the LiDAR frame and ``W`` the square root of the board
+  points' excess moment (:func:`geometry.planes.sqrt_excess_moment`), so that ``|W pi|^2`` plus a
+  constant is exactly the sum of squared point-to-plane (or range) errors of all the board's points.
+  Serves 2D scans unchanged (``W`` then has rank 2 or 3).
+"""
+from __future__ import annotations
+
+from functools import partial
+
+import gtsam
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import skew
+
+_E3 = np.array([0.0, 0.0, 1.0])
+
+
+def corner_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, corners_px: np.ndarray,
+                     camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """Projected minus detected corners (2M,) in pixels, and their Jacobian (2M, 6) by the board pose."""
+    R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    X = np.asarray(corners_board, dtype=float)
+    uv, duv_dp = camera.project_jacobian(X @ R.T + t)
+    # d(point)/d xi for R Exp(w) X + t + R v: [-R [X]x, R].
+    dp = np.empty((len(X), 3, 6))
+    dp[:, :, :3] = -np.einsum("ij,kjl->kil", R, skew_batch(X))
+    dp[:, :, 3:] = R
+    H = np.einsum("kij,kjl->kil", duv_dp, dp).reshape(-1, 6)
+    return (uv - corners_px).ravel(), H
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` for each row of (N, 3) ``v``: (N, 3, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The board plane ``pi = [m; -d_l]`` in the LiDAR frame, and its Jacobians (4, 6) by the extrinsic
+    and by the board pose."""
+    R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
+    Rb, tb = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    n = Rb[:, 2]
+    m = R.T @ n
+    pi = np.append(m, n @ t - n @ tb)
+    H_x = np.zeros((4, 6))
+    H_x[:3, :3] = skew(m)
+    H_x[3, 3:] = m
+    dn = -Rb @ skew(_E3)  # d n / d w_b
+    H_b = np.zeros((4, 6))
+    H_b[:3, :3] = R.T @ dn
+    H_b[3, :3] = (t - tb) @ dn
+    H_b[3, 3:] = -_E3
+    return pi, H_x, H_b
+
+
+def _pose(values: gtsam.Values, key: int) -> np.ndarray:
+    return values.atPose3(key).matrix()
+
+
+def _corner_error(corners_board, corners_px, camera, this, values, H):
+    r, J = corner_residuals(_pose(values, this.keys()[0]), corners_board, corners_px, camera)
+    if H is not None:
+        H[0] = J
+    return r
+
+
+def _plane_error(W, this, values, H):
+    keys = this.keys()
+    pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
+    if H is not None:
+        H[0] = W @ H_x
+        H[1] = W @ H_b
+    return W @ pi
+
+
+def corner_factor(key_board: int, corners_board: np.ndarray, corners_px: np.ndarray, camera: CameraModel,
+                  noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    corners_px = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    return gtsam.CustomFactor(noise, [key_board], partial(_corner_error, np.asarray(corners_board, dtype=float),
+                                                          corners_px, camera))
+
+
+def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam.noiseModel.Base
+                 ) -> gtsam.CustomFactor:
+    return gtsam.CustomFactor(noise, [key_extrinsic, key_board], partial(_plane_error, np.asarray(W, dtype=float)))

@@ -1,0 +1,112 @@
+"""The generative measurement model of a calibration layout: its Fisher information, its Cramer-Rao
+bound, and measurement-level simulation drawn from exactly that model.
+
+A layout is the rig (camera, LiDAR beams, board) with the true extrinsic and the true board poses.
+Measurements are the board's corner pixels (independent Gaussian, ``corner_noise_px`` per axis) and
+the ranges of the LiDAR beams that hit the board (independent Gaussian along the beam,
+``range_noise_m``). The parameters are ``T_camera_lidar`` and every ``T_camera_board``, perturbed in
+GTSAM's right tangent; the bound on the extrinsic is the Schur complement of the full information.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+from geometry.rotations import T_inverse, transform_points
+
+from .board_pose import estimate_board_pose
+from .chessboard import CornerDetection
+from .factors import corner_residuals, lidar_plane
+from .lidar_models import BeamModel
+from .measurements import FrameMeasurement, observe_lidar_board
+from .scene import cast, rectangle
+
+
+@dataclass(frozen=True, eq=False)
+class Layout:
+    """A rig and a set of board poses: everything the bound and the measurement simulation need."""
+
+    camera: CameraModel
+    board: BoardModel
+    beams: BeamModel
+    T_camera_lidar: np.ndarray
+    T_camera_board: tuple[np.ndarray, ...]
+    corner_noise_px: float
+    range_noise_m: float
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.T_camera_board)
+
+
+def board_hits(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit beam directions (n, 3) of the LiDAR that hit board ``i`` and their true ranges (n,) (LiDAR
+    frame). The board is taken as unoccluded."""
+    T_lidar_board = T_inverse(layout.T_camera_lidar) @ layout.T_camera_board[i]
+    R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
+    w, h = layout.board.extent
+    dirs, _ = layout.beams.directions()
+    # Only beams within the board's angular box can hit it: cheap pre-selection before the exact cast.
+    outline = transform_points(T_lidar_board, layout.board.outline())
+    centre = outline.mean(0) / np.linalg.norm(outline.mean(0))
+    cos_min = float(np.min((outline / np.linalg.norm(outline, axis=1, keepdims=True)) @ centre))
+    near = dirs[dirs @ centre >= cos_min - 1e-9]
+    ranges, which, _ = cast(np.zeros(3), near, [rectangle(o, R[:, 0], R[:, 1], w, h, 0.5)], layout.beams.max_range_m)
+    hit = which == 0
+    return near[hit], ranges[hit]
+
+
+def corner_pixels(layout: Layout, i: int) -> np.ndarray:
+    """True pixels of board ``i``'s inner corners (M, 2), in the board model's row-major order."""
+    return layout.camera.project(transform_points(layout.T_camera_board[i], layout.board.inner_corners()))
+
+
+def fisher_information(layout: Layout) -> np.ndarray:
+    """Fisher information (6 + 6N square) of ``[xi_extrinsic, xi_board_1, ..., xi_board_N]``."""
+    N = layout.n_frames
+    F = np.zeros((6 + 6 * N, 6 + 6 * N))
+    corners_board = layout.board.inner_corners()
+    for i, T_cb in enumerate(layout.T_camera_board):
+        b = slice(6 + 6 * i, 12 + 6 * i)
+        _, Jc = corner_residuals(T_cb, corners_board, corner_pixels(layout, i), layout.camera)
+        F[b, b] += Jc.T @ Jc / layout.corner_noise_px**2
+        dirs, ranges = board_hits(layout, i)
+        if len(dirs) == 0:
+            continue
+        pi, H_x, H_b = lidar_plane(layout.T_camera_lidar, T_cb)
+        P1 = np.hstack([dirs * ranges[:, None], np.ones((len(dirs), 1))])
+        # A beam's range rho solves pi . [rho b; 1] = 0, so d rho = -[p; 1] . d pi / (m . b).
+        scale = -1.0 / (dirs @ pi[:3])
+        J = np.hstack([(P1 @ H_x) * scale[:, None], (P1 @ H_b) * scale[:, None]])
+        Fi = J.T @ J / layout.range_noise_m**2
+        idx = np.r_[0:6, 6 + 6 * i:12 + 6 * i]
+        F[np.ix_(idx, idx)] += Fi
+    return F
+
+
+def extrinsic_information(F: np.ndarray) -> np.ndarray:
+    """The 6x6 information on the extrinsic with the board poses marginalised (Schur complement)."""
+    A, B, C = F[:6, :6], F[:6, 6:], F[6:, 6:]
+    return A - B @ np.linalg.solve(C, B.T)
+
+
+def cramer_rao_bound(layout: Layout) -> np.ndarray:
+    """The Cramer-Rao bound (6x6 covariance, right tangent of ``T_camera_lidar``) of the layout."""
+    return np.linalg.inv(extrinsic_information(fisher_information(layout)))
+
+
+def simulate_measurements(layout: Layout, rng: np.random.Generator) -> list[FrameMeasurement]:
+    """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
+    board's beam returns with Gaussian range noise. No rendering, no segmentation."""
+    frames = []
+    for i in range(layout.n_frames):
+        uv = corner_pixels(layout, i)
+        uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
+        cam = estimate_board_pose(CornerDetection(uv, "simulated"), layout.board, layout.camera)
+        dirs, ranges = board_hits(layout, i)
+        points = dirs * (ranges + rng.normal(0.0, layout.range_noise_m, len(ranges)))[:, None]
+        frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_board(points)))
+    return frames
