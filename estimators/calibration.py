@@ -100,7 +100,7 @@ class CalibrationResult:
                     "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist(),
                     "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()},
             "noise": {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
-                      "range_noise_m": ref.range_noise_m},
+                      "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m},
             "consistency": {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
                             "p_value": ref.consistency_p},
             "iterations": ref.iterations,
@@ -155,6 +155,7 @@ def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None
         d["distance_residual_m"] = residual[1]
     if fit is not None:
         d["plane_chi2"] = fit.plane_chi2
+        d["consistency_chi2"] = fit.consistency_chi2
         d["plane_dof"] = fit.plane_dof
         d["robust_weight"] = fit.weight
         d["outlier"] = fit.outlier

@@ -78,7 +78,7 @@ def observe_lidar_board(points: np.ndarray, candidates: int = 1) -> LidarBoardOb
     dof = max(len(P) - 3, 1)
     return LidarBoardObservation(points=P, plane=plane, moment=moment_matrix(P), range_moment=range_moment,
                                  beam_moment=(beams * w[:, None]).T @ beams,
-                                 plane_rms_m=float(np.sqrt(np.mean(r**2))), range_rms_m=float(np.sqrt(floor / dof)),
+                                 plane_rms_m=float(np.sqrt(np.mean(r**2))), range_rms_m=float(np.sqrt(max(floor, 0.0) / dof)),
                                  candidates=candidates)
 
 
