@@ -31,21 +31,11 @@ def corner_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, corn
     R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
     X = np.asarray(corners_board, dtype=float)
     uv, duv_dp = camera.project_jacobian(X @ R.T + t)
-    # d(point)/d xi for R Exp(w) X + t + R v: [-R [X]x, R].
-    dp = np.empty((len(X), 3, 6))
-    dp[:, :, :3] = -np.einsum("ij,kjl->kil", R, skew_batch(X))
-    dp[:, :, 3:] = R
-    H = np.einsum("kij,kjl->kil", duv_dp, dp).reshape(-1, 6)
+    # d(point)/d xi for R Exp(w) X + t + R v is [-R [X]x, R]; with A = d uv/d point R, each row a of
+    # A [X]x is (a x X)^T, so the rotation block is -(a x X) row by row.
+    A = duv_dp @ R
+    H = np.concatenate([-np.cross(A, X[:, None, :]), A], axis=2).reshape(-1, 6)
     return (uv - corners_px).ravel(), H
-
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for each row of (N, 3) ``v``: (N, 3, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
 
 
 def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray

@@ -169,12 +169,15 @@ class _Problem:
     sigma_r: float
     options: RefinementOptions
     whiteners: list = field(default_factory=list)
+    pnp_chi2: list = field(default_factory=list)
 
     def __post_init__(self):
         # The moments' noise term is removed at the noise the data show (not at a given sigma_r, which
         # sets the weights only): a wrong given value must not bias the planes.
         measured = pooled_range_noise_m(self.frames)
         self.whiteners[:] = [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in self.frames]
+        object.__setattr__(self, "corners_board", self.board.inner_corners())
+        self.pnp_chi2[:] = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(self.frames)]
 
     def whitener(self, i: int) -> np.ndarray:
         return self.whiteners[i]
@@ -185,7 +188,7 @@ class _Problem:
 
     def graph(self, active: list[int], floor_m: float, robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
-        corners_board = self.board.inner_corners()
+        corners_board = self.corners_board
         for j, i in enumerate(active):
             f = self.frames[i]
             key = board_key(j)
@@ -202,14 +205,13 @@ class _Problem:
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
-        r, _ = corner_residuals(T_board, self.board.inner_corners(), f.camera.corners_px, self.camera)
+        r, _ = corner_residuals(T_board, self.corners_board, f.camera.corners_px, self.camera)
         return float(r @ r) / self.sigma_px**2
 
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         """The frame's share of the consistency statistic: its plane residual plus how far its board had
         to move from the camera's own fit (a cheap camera lets a bad LiDAR plane drag the board)."""
-        return (self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board)
-                - self.corner_chi2(i, self.frames[i].camera.T_camera_board))
+        return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
     def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
@@ -220,8 +222,8 @@ class _Problem:
         graph = self.graph(active, floor_m)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.options.max_iterations)
-        params.setRelativeErrorTol(1e-12)
-        params.setAbsoluteErrorTol(1e-12)
+        params.setRelativeErrorTol(1e-9)
+        params.setAbsoluteErrorTol(1e-9)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         result = opt.optimize()
         T = result.atPose3(EXTRINSIC).matrix()
@@ -338,11 +340,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
 
     fits = []
     for i, f in enumerate(frames):
-        r, _ = corner_residuals(boards[i], board.inner_corners(), f.camera.corners_px, camera)
         c2 = prob.plane_chi2(i, T, boards[i], floor)
+        corner = prob.corner_chi2(i, boards[i])
         why = dropped.get(i) or flagged.get(i)
-        fits.append(FrameFit(f.name, c2, prob.frame_chi2(i, T, boards[i], floor), int(prob.whitener(i).shape[0]),
-                             float(np.sqrt(np.mean(r**2))),
+        fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], int(prob.whitener(i).shape[0]),
+                             float(sigma_px * np.sqrt(corner / f.camera.corners_px.size)),
                              0.0 if i in dropped else _robust_weight(np.sqrt(c2), options), why, i in dropped))
         if why:
             action = "dropped" if i in dropped else "down-weighted"

@@ -157,10 +157,12 @@ class SimulatedFrame:
     T_camera_board: np.ndarray
 
 
-def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator) -> list[SimulatedFrame]:
+def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
+                    poses: list[np.ndarray] | None = None) -> list[SimulatedFrame]:
+    """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``)."""
     frames = []
     T_lidar_camera = T_inverse(rig.T_camera_lidar)
-    for k, T_cb in enumerate(sample_board_poses(rig, n_poses, rng)):
+    for k, T_cb in enumerate(sample_board_poses(rig, n_poses, rng) if poses is None else poses):
         T_lb = T_lidar_camera @ T_cb
         patches, bi = scene_patches(rig, T_lb)
         img = render_image(rig.camera, T_lidar_camera, patches, bi,
