@@ -19,6 +19,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py
+	$(PY) benchmarks/bench_refinement.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info

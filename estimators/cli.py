@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -165,6 +166,9 @@ def _demo(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    # The pipeline parallelises over frames itself; OpenBLAS's own threads would compete with it for the
+    # cores (and keep spinning after large products, slowing the small-matrix work that follows).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from .errors import LidarcamError
 
     handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo}

@@ -12,12 +12,15 @@ def calibrate_intrinsics(corner_sets: list[np.ndarray], board: BoardModel, width
                          ) -> tuple[CameraModel, float]:
     """Pinhole (radial-tangential, k1 k2 p1 p2 k3) intrinsics and the RMS reprojection error (px).
 
-    Needs at least 3 views of the board at different orientations.
+    Needs at least 3 views of the board at different orientations. ``param_std`` holds OpenCV's standard
+    deviations of ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]`` (from the corner residuals, so as optimistic as
+    they are; the refinement scales them with its corner-noise model).
     """
     obj = board.inner_corners().astype(np.float32)
     objs = [obj for _ in corner_sets]
     imgs = [c.reshape(-1, 1, 2).astype(np.float32) for c in corner_sets]
-    rms, K, dist, _, _ = cv2.calibrateCamera(objs, imgs, (width, height), None, None)
+    rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(objs, imgs, (width, height), None, None)
     cam = CameraModel(K=K, dist=dist.ravel()[:5], width=width, height=height, model=PINHOLE,
-                      source=f"calibrated from {len(corner_sets)} images (Zhang), RMS {rms:.3f} px")
+                      source=f"calibrated from {len(corner_sets)} images (Zhang), RMS {rms:.3f} px",
+                      param_std=np.asarray(std, dtype=float).ravel()[:9])
     return cam, float(rms)

@@ -34,6 +34,7 @@ from scipy.stats import chi2
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane, plane_difference, sqrt_excess_moment
+from geometry.rotations import T_log
 
 from .closed_form import describe_direction, solve_closed_form
 from .errors import DegenerateLayoutError
@@ -338,6 +339,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
 
+    if camera.param_std is not None:
+        cov = cov + _intrinsics_covariance(prob, active, T, boards, floor, options)
+        warnings.append("intrinsics were calibrated from the same images; their uncertainty is propagated "
+                        "into the covariance (first order, parameters taken as independent)")
+
     fits = []
     for i, f in enumerate(frames):
         c2 = prob.plane_chi2(i, T, boards[i], floor)
@@ -352,6 +358,26 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
                       tuple(warnings))
+
+
+def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
+                           options: RefinementOptions) -> np.ndarray:
+    """First-order covariance of the extrinsic due to uncertain intrinsics: re-solve with each parameter
+    moved by one standard deviation (OpenCV's, scaled like the corner noise by the correlation factor)
+    and sum the outer products of the shifts."""
+    cam = prob.camera
+    std = cam.param_std * (options.corner_error_correlation if options.corner_noise_px is None else 1.0)
+    out = np.zeros((6, 6))
+    for k, s in enumerate(std):
+        if not (np.isfinite(s) and s > 0):
+            continue
+        p = cam.params.copy()
+        p[k] += s
+        moved = _Problem(prob.frames, prob.board, cam.with_params(p), prob.sigma_px, prob.sigma_r, options)
+        _, result, _ = moved.solve(active, T, list(boards), floor)
+        xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())
+        out += np.outer(xi, xi)
+    return out
 
 
 def _flag_outliers(chi: dict, frames, T, boards, options) -> dict[int, str]:

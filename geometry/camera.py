@@ -25,6 +25,8 @@ class CameraModel:
     height: int
     model: str = PINHOLE
     source: str = field(default="given")
+    # Standard deviations of [fx, fy, cx, cy, dist...] when the intrinsics were estimated (else None).
+    param_std: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.K, dtype=float)
@@ -96,6 +98,22 @@ class CameraModel:
             return ((uv[:, 0] >= margin_px) & (uv[:, 0] <= self.width - 1 - margin_px)
                     & (uv[:, 1] >= margin_px) & (uv[:, 1] <= self.height - 1 - margin_px))
 
+    @property
+    def params(self) -> np.ndarray:
+        """``[fx, fy, cx, cy, dist...]``."""
+        return np.concatenate([[self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]], self.dist])
+
+    def with_params(self, params: np.ndarray) -> "CameraModel":
+        """The same model with ``[fx, fy, cx, cy, dist...]`` replaced (skew kept)."""
+        p = np.asarray(params, dtype=float)
+        K = self.K.copy()
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2] = p[:4]
+        return CameraModel(K, p[4:], self.width, self.height, self.model, self.source, self.param_std)
+
     def as_dict(self) -> dict:
-        return {"model": self.model, "width": self.width, "height": self.height,
-                "K": self.K.tolist(), "dist": self.dist.tolist(), "source": self.source}
+        d = {"model": self.model, "width": self.width, "height": self.height,
+             "K": self.K.tolist(), "dist": self.dist.tolist(), "source": self.source}
+        if self.param_std is not None:
+            d["param_std"] = self.param_std.tolist()
+            d["param_order"] = "fx fy cx cy " + " ".join(f"d{k}" for k in range(self.dist.size))
+        return d

@@ -68,6 +68,12 @@ def test_intrinsics_calibrated_when_camera_absent(sim_hdl64e, tmp_path):
     assert any("intrinsics" in w for w in result.warnings)
     rot, trans = _errors(result.T_camera_lidar, ds.ground_truth())
     assert rot < 1.0 and trans < 0.06, (rot, trans)  # intrinsics from 8 views: looser
+    # Their uncertainty is in the covariance: wider than with the given intrinsics, and covering the truth.
+    assert result.camera.param_std is not None and any("propagated" in w for w in result.warnings)
+    given = calibrate(load_dataset(sim_hdl64e), rng=np.random.default_rng(0))
+    assert np.all(np.diag(result.covariance) > np.diag(given.covariance))
+    xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
+    assert xi @ np.linalg.solve(result.covariance, xi) < 22.5
 
 
 def _run_cli(*args):
