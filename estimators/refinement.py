@@ -25,7 +25,7 @@ The covariance is ``gtsam.Marginals`` of the extrinsic, in GTSAM's right tangent
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -62,7 +62,9 @@ class RefinementOptions:
     corner_error_correlation: float = CORNER_ERROR_CORRELATION
     range_noise_m: float | None = None
     outliers: str = "drop"
-    outlier_p: float = 1e-3
+    # Gross outliers only (a wrong segment or a moved board is off by thousands): detected corners have
+    # heavy-tailed errors, and dropping a good frame for a 1-in-1000 residual costs more than it saves.
+    outlier_p: float = 1e-6
     # Per-board plane error (m): given, or estimated when the planes disagree beyond the noise.
     plane_floor_m: float | None = None
     estimate_plane_floor: bool = True
@@ -159,26 +161,19 @@ def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: flo
     return cov
 
 
-@dataclass(frozen=True, eq=False)
 class _Problem:
     """The data of one refinement: per frame its plane whitener, the plane noise, the corner noise."""
 
-    frames: list
-    board: BoardModel
-    camera: CameraModel
-    sigma_px: float
-    sigma_r: float
-    options: RefinementOptions
-    whiteners: list = field(default_factory=list)
-    pnp_chi2: list = field(default_factory=list)
-
-    def __post_init__(self):
+    def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, sigma_px: float,
+                 sigma_r: float, options: RefinementOptions):
+        self.frames, self.board, self.camera = frames, board, camera
+        self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
         # The moments' noise term is removed at the noise the data show (not at a given sigma_r, which
         # sets the weights only): a wrong given value must not bias the planes.
-        measured = pooled_range_noise_m(self.frames)
-        self.whiteners[:] = [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in self.frames]
-        object.__setattr__(self, "corners_board", self.board.inner_corners())
-        self.pnp_chi2[:] = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(self.frames)]
+        measured = pooled_range_noise_m(frames)
+        self.whiteners = [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in frames]
+        self.corners_board = board.inner_corners()
+        self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 
     def whitener(self, i: int) -> np.ndarray:
         return self.whiteners[i]
@@ -206,7 +201,7 @@ class _Problem:
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
-        r, _ = corner_residuals(T_board, self.corners_board, f.camera.corners_px, self.camera)
+        r, _ = corner_residuals(T_board, self.corners_board, f.camera.corners_px, self.camera, jacobian=False)
         return float(r @ r) / self.sigma_px**2
 
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
