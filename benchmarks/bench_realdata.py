@@ -1,0 +1,74 @@
+"""The recorded VLP-16 + fisheye set against its reference and against itself (make bench; skipped when
+../shared/realdata/acfr_vlp16_a is absent).
+
+Prints: closed form and factor graph against the source tool's reference extrinsic; the plane-consistency
+statistic; the squared Mahalanobis distance between estimates from two disjoint halves (interleaved, and
+first against last); and the consistency statistic with every range shifted by a constant offset.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI does (see bench_refinement.py)
+
+import numpy as np  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from estimators.calibration import measure_frames, solve  # noqa: E402
+from estimators.dataset import load_dataset  # noqa: E402
+from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
+from estimators.refinement import RefinementOptions  # noqa: E402
+from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "acfr_vlp16_a"
+
+
+def _halves_d2(frames, ds, camera, a, b, options=RefinementOptions()):
+    ra = solve([frames[i] for i in a], ds.board, camera, options=options)
+    rb = solve([frames[i] for i in b], ds.board, camera, options=options)
+    xi = T_log(T_inverse(ra.T_camera_lidar) @ rb.T_camera_lidar)
+    return float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
+
+
+def main() -> None:
+    if not (DATA / "dataset.yaml").is_file():
+        print(f"recorded data: {DATA} is absent; skipped")
+        return
+    ds = load_dataset(DATA)
+    camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
+    ref = np.array(json.loads((DATA / "reference.json").read_text())["T_camera_lidar"])
+    print(f"recorded data: {DATA.name}, {sum(f.usable for f in frames)}/{len(frames)} frames usable")
+    for method in ("none", "factor-graph"):
+        res = solve(frames, ds.board, camera, refine=method)
+        T = res.T_camera_lidar
+        print(f"  {method:13s} against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
+              f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm")
+    r = res.refinement
+    print(f"  consistency: chi-square {r.variance_factor * r.consistency_dof:.0f} on {r.consistency_dof} dof "
+          f"(p = {r.consistency_p:.1g}); per-board plane error estimated {1000 * r.plane_floor_m:.1f} mm")
+    n = len(frames)
+    limit = chi2.ppf(0.99, 6)
+    for label, a, b in (("interleaved", range(0, n, 2), range(1, n, 2)),
+                        ("first/last", range(n // 2), range(n // 2, n))):
+        d2 = _halves_d2(frames, ds, camera, list(a), list(b))
+        print(f"  halves {label:12s}: squared Mahalanobis distance {d2:5.1f} (p = {chi2.sf(d2, 6):.3f}; "
+              f"99% limit {limit:.1f})")
+    print("  consistency (chi-square/dof, no plane error) with every range shifted by an offset:")
+    plain = RefinementOptions(estimate_plane_floor=False)
+    for offset in (-0.02, 0.0, 0.02, 0.035, 0.05):
+        shifted = []
+        for f in frames:
+            P = f.lidar.points
+            beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+            shifted.append(FrameMeasurement(f.name, f.camera, observe_lidar_board(P + offset * beams)))
+        vf = solve(shifted, ds.board, camera, options=plain).refinement.variance_factor
+        print(f"    {100 * offset:+5.1f} cm: {vf:.2f}")
+
+
+if __name__ == "__main__":
+    main()
