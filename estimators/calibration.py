@@ -23,8 +23,9 @@ from .errors import DatasetError, DegenerateLayoutError, MeasurementError
 from .image_io import read_gray
 from .intrinsics import calibrate_intrinsics
 from .measurements import FrameMeasurement
-from .output import write_json_atomic
+from .output import write_json_atomic, write_npz_atomic
 from .pointcloud_io import read_scan
+from .posterior import Posterior, PosteriorOptions, sample_posterior
 from .refinement import Refinement, RefinementOptions, refine as refine_graph
 
 INITS = ("closed-form",)
@@ -51,10 +52,18 @@ class CalibrationResult:
     timings_s: dict = field(default_factory=dict)
     plane_residuals: dict = field(default_factory=dict)  # name -> (normal angle rad, distance m)
     refinement: Refinement | None = None
+    posterior: Posterior | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
-        """6x6 covariance in GTSAM's right tangent (``T_true = T_hat Exp(xi)``, ``xi = [rot; trans]``)."""
+        """6x6 covariance in GTSAM's right tangent (``T_true = T_hat Exp(xi)``, ``xi = [rot; trans]``): the
+        posterior samples' when sampled, else the Laplace one (the factor graph's marginal)."""
+        if self.posterior is not None:
+            return self.posterior.covariance
+        return self.covariance_laplace
+
+    @property
+    def covariance_laplace(self) -> np.ndarray | None:
         return None if self.refinement is None else self.refinement.covariance
 
     @property
@@ -93,9 +102,14 @@ class CalibrationResult:
         if ref is None:
             return {"covariance": None,
                     "covariance_note": "no covariance without refinement (refine: none)"}
+        post = self.posterior
+        sampled = {"covariance_laplace": ref.covariance.tolist(), "intervals": post.summary(),
+                   "posterior": {**post.diagnostics(), "file": "posterior.npz"}} if post is not None else {
+            "covariance_note": "Laplace approximation (no posterior samples were drawn)"}
         return {
-            "covariance": ref.covariance.tolist(),
+            "covariance": self.covariance.tolist(),
             "covariance_convention": COVARIANCE_CONVENTION,
+            **sampled,
             "std": {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
                     "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist(),
                     "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()},
@@ -270,10 +284,12 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
 
 def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor-graph",
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
-              options: RefinementOptions = RefinementOptions()) -> CalibrationResult:
-    """Estimate ``T_camera_lidar`` (and, refined, its covariance) from a loaded dataset.
+              options: RefinementOptions = RefinementOptions(),
+              posterior: PosteriorOptions | None = PosteriorOptions()) -> CalibrationResult:
+    """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a loaded dataset.
 
-    ``rng`` drives the RANSAC of the board segmentation (a fixed default seed when None, so runs repeat).
+    ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
+    so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
     """
     _check_methods(init, refine)
     if dataset.lidar != "3d":
@@ -285,7 +301,7 @@ def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor
     camera, frames, warnings = measure_frames(dataset, rng, params, timings)
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
-                       warnings=warnings, timings=timings)
+                       warnings=warnings, timings=timings, posterior=posterior, rng=rng)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -303,8 +319,10 @@ def _check_methods(init: str, refine: str) -> None:
 
 def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str = "closed-form",
           refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(), name: str = "",
-          warnings: list[str] | None = None, timings: dict | None = None) -> CalibrationResult:
-    """The solver stage on measured frames: initial solution, then (optionally) the factor graph."""
+          warnings: list[str] | None = None, timings: dict | None = None,
+          posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None) -> CalibrationResult:
+    """The solver stage on measured frames: initial solution, then (optionally) the factor graph and
+    posterior samples (``posterior`` options given; needs the factor graph)."""
     _check_methods(init, refine)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
@@ -319,6 +337,13 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
         timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings
+    post = None
+    if ref is not None and posterior is not None:
+        t0 = time.perf_counter()
+        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
+                                posterior)
+        timings["posterior"] = time.perf_counter() - t0
+        warnings += post.warnings
     if sol.condition_number > 10:
         axis, advice = describe_direction(sol.weakest_direction_camera)
         warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
@@ -332,9 +357,14 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
     warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
     return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                              sol.weakest_direction_camera, name, tuple(warnings),
-                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref)
+                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post)
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
-    """Write ``OUT/calibration.json`` atomically."""
-    return write_json_atomic(Path(out_dir) / "calibration.json", result.to_dict())
+    """Write ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each atomically."""
+    out = Path(out_dir)
+    if result.posterior is not None:
+        p = result.posterior
+        write_npz_atomic(out / "posterior.npz", xi=p.xi, noise_scale=p.scale, T_map=p.T_map,
+                         chain=p.run.chain, convention=np.array(COVARIANCE_CONVENTION))
+    return write_json_atomic(out / "calibration.json", result.to_dict())

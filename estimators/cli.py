@@ -64,6 +64,10 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                         "error-correlation factor)")
     p.add_argument("--range-noise-m", type=_positive, default=None, metavar="M",
                    help="LiDAR range noise (default: estimated from the board points)")
+    p.add_argument("--samples", type=int, default=2000, metavar="N",
+                   help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
+    p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
+                   help="posterior likelihood per frame (student-t: heavy tails)")
 
 
 def _options(args):
@@ -71,6 +75,16 @@ def _options(args):
 
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
                              range_noise_m=args.range_noise_m)
+
+
+def _posterior_options(args):
+    from .posterior import PosteriorOptions
+
+    if args.samples < 0:
+        raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
+    if args.samples == 0 or args.refine == "none":
+        return None
+    return PosteriorOptions(min_ess=args.samples, likelihood=args.likelihood, progress=sys.stderr.isatty())
 
 
 def _print_result(result, truth=None) -> None:
@@ -93,7 +107,8 @@ def _print_result(result, truth=None) -> None:
             print(f"  {f.name}: skipped: {f.reason}")
     if result.covariance is not None:
         ref = result.refinement
-        print("standard deviations (GTSAM tangent, about/along the LiDAR's x y z):")
+        kind = "posterior" if result.posterior is not None else "Laplace"
+        print(f"standard deviations ({kind}; GTSAM tangent, about/along the LiDAR's x y z):")
         print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
         print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
         print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
@@ -101,6 +116,16 @@ def _print_result(result, truth=None) -> None:
               f"range {1000 * ref.range_noise_m:.1f} mm; plane consistency {ref.variance_factor:.2f} "
               f"(chi-square/dof, {ref.consistency_dof} dof, p = {ref.consistency_p:.2g})"
               + (f"; per-board plane error {1000 * ref.plane_floor_m:.1f} mm" if ref.plane_floor_m else ""))
+    if result.posterior is not None:
+        post = result.posterior
+        d = post.diagnostics()
+        print(f"posterior ({d['likelihood']}): {d['effective_samples']:.0f} effective samples, tau "
+              f"{max(d['tau_steps']):.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s")
+        for level, iv in post.summary().items():
+            rot = iv["rotation_deg_about_lidar_xyz"]
+            tr = iv["translation_mm_along_lidar_xyz"]
+            print(f"  {level} intervals: rotation " + "  ".join(f"[{a:+.3f}, {b:+.3f}]" for a, b in rot) + " deg")
+            print(f"  {'':14s}translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in tr) + " mm")
     if truth is not None:
         rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
         tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
@@ -125,7 +150,8 @@ def _calibrate(args) -> int:
 
     ds = load_dataset(args.dataset)
     result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
-                       SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args))
+                       SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args),
+                       _posterior_options(args))
     path = write_calibration(result, args.out)
     _print_result(result)
     print(f"wrote {path}")
@@ -156,7 +182,8 @@ def _demo(args) -> int:
         print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) ...")
         simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
         ds = load_dataset(data)
-        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args))
+        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
+                           posterior=_posterior_options(args))
         _print_result(result, ds.ground_truth())
         if args.out:
             print(f"wrote {write_calibration(result, base)}")

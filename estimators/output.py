@@ -8,23 +8,37 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from .errors import LidarcamError
 
 
-def write_json_atomic(path: str | os.PathLike, data: object) -> Path:
+def write_atomic(path: str | os.PathLike, write, mode: str = "w") -> Path:
+    """Write ``path`` through ``write(file)`` into a temporary file beside it, then rename it into place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1)
-            fh.write("\n")
+        with os.fdopen(fd, mode) as fh:
+            write(fh)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
     return path
+
+
+def write_json_atomic(path: str | os.PathLike, data: object) -> Path:
+    def write(fh):
+        json.dump(data, fh, indent=1)
+        fh.write("\n")
+    return write_atomic(path, write)
+
+
+def write_npz_atomic(path: str | os.PathLike, **arrays) -> Path:
+    """A compressed ``.npz`` (loadable with ``allow_pickle=False``)."""
+    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays), mode="wb")
 
 
 @contextlib.contextmanager

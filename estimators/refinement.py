@@ -112,6 +112,8 @@ class Refinement:
     consistency_p: float
     iterations: int
     warnings: tuple[str, ...] = ()
+    # The part of ``covariance`` due to intrinsics calibrated from the same images (None when given).
+    intrinsics_covariance: np.ndarray | None = None
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
@@ -334,8 +336,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
 
+    cov_intrinsics = None
     if camera.param_std is not None:
-        cov = cov + _intrinsics_covariance(prob, active, T, boards, floor, options)
+        cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
+        cov = cov + cov_intrinsics
         warnings.append("intrinsics were calibrated from the same images; their uncertainty is propagated "
                         "into the covariance (first order, parameters taken as independent)")
 
@@ -352,7 +356,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
-                      tuple(warnings))
+                      tuple(warnings), cov_intrinsics)
 
 
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,

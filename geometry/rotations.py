@@ -100,6 +100,28 @@ def T_log(T: np.ndarray) -> np.ndarray:
     return np.concatenate([omega, v])
 
 
+def exp_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SE(3) exponential of each row of (n, 6) ``xi = [omega; v]``: rotations (n, 3, 3), translations (n, 3)."""
+    xi = np.asarray(xi, dtype=float).reshape(-1, 6)
+    omega, v = xi[:, :3], xi[:, 3:]
+    th2 = np.sum(omega**2, axis=1)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    safe = np.where(small, 1.0, th)
+    # sin(t)/t, (1 - cos t)/t^2, (t - sin t)/t^3 with their Taylor series near 0.
+    s1 = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
+    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    W = np.zeros((len(xi), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = omega[:, 2], -omega[:, 1], omega[:, 0]
+    WW = W @ W
+    eye = np.eye(3)
+    R = eye + s1[:, None, None] * W + a[:, None, None] * WW
+    J = eye + a[:, None, None] * W + b[:, None, None] * WW
+    return R, np.einsum("nij,nj->ni", J, v)
+
+
 def T_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """Right perturbation ``T Exp(xi)``, the tangent convention of every covariance in lidarcam."""
     return T @ T_exp(xi)

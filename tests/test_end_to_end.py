@@ -50,11 +50,29 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     G = load_dataset(sim_hdl64e).ground_truth()
     xi = T_log(T_inverse(T) @ G)
     assert xi @ np.linalg.solve(cov, xi) < 22.5
+    # The posterior: samples beside the JSON, intervals and the Laplace covariance kept.
+    with np.load(out / "posterior.npz", allow_pickle=False) as post:
+        assert post["xi"].shape[1] == 6 and len(post["xi"]) >= 2000
+        np.testing.assert_allclose(np.cov(post["xi"], rowvar=False), cov, rtol=1e-6, atol=1e-15)
+        np.testing.assert_allclose(post["T_map"], T)
+    assert data["posterior"]["effective_samples"] >= 2000 and data["posterior"]["converged"]
+    for level in ("68%", "95%"):
+        iv = np.array(data["intervals"][level]["translation_mm_along_lidar_xyz"])
+        assert iv.shape == (3, 2) and np.all(iv[:, 0] < iv[:, 1])
+    assert np.array(data["covariance_laplace"]).shape == (6, 6)
     frame = data["frames"][0]
     assert {"name", "used", "reason", "board_points", "plane_rms_m", "corner_rms_px"} <= frame.keys()
     # 2 cm range noise over thousands of points: each board's planes agree to a fraction of a degree
     assert all(f["normal_residual_deg"] < 1.0 and abs(f["distance_residual_m"]) < 0.02 for f in data["frames"])
     assert "frames used: 8 of 8" in capsys.readouterr().out
+
+
+def test_cli_samples_zero_skips_the_posterior(sim_hdl64e, tmp_path):
+    out = tmp_path / "out"
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0"]) == 0
+    data = json.loads((out / "calibration.json").read_text())
+    assert not (out / "posterior.npz").exists() and "posterior" not in data
+    assert data["covariance"] is not None and "covariance_laplace" not in data
 
 
 def test_intrinsics_calibrated_when_camera_absent(sim_hdl64e, tmp_path):

@@ -1,0 +1,102 @@
+"""The emcee posterior: the sampler on a known Gaussian, and the calibration posterior against the Laplace
+approximation on a linear-Gaussian-like layout (measurement level, fixed seeds)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.closed_form import solve_closed_form
+from estimators.observation_model import Layout, simulate_measurements
+from estimators.posterior import PlaneLikelihood, PosteriorOptions, run_ensemble, sample_posterior
+from estimators.refinement import RefinementOptions, refine
+from estimators.simulator import default_rig, sample_board_poses
+
+
+def _known_gaussian(seed=0, dim=7):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(dim, dim))
+    cov = A @ A.T + 0.5 * np.eye(dim)
+    mean = rng.normal(size=dim)
+    P = np.linalg.inv(cov)
+
+    def log_prob(x):
+        d = np.atleast_2d(x) - mean
+        return -0.5 * np.einsum("ni,ij,nj->n", d, P, d)
+
+    return mean, cov, log_prob
+
+
+def test_sampler_recovers_a_known_gaussian_and_repeats_with_its_seed():
+    mean, cov, log_prob = _known_gaussian()
+    rng = np.random.default_rng(1)
+    start = rng.multivariate_normal(mean, cov, 48)
+    run = run_ensemble(log_prob, start, np.random.default_rng(2), min_ess=4000)
+    assert run.converged and run.chain.shape[0] > 50 * np.max(run.tau) and run.ess >= 4000
+    sd = np.sqrt(np.diag(cov))
+    # ESS >= 4000: the mean's standard error is under 0.02 sd, the sd's under 2%.
+    np.testing.assert_allclose(run.samples.mean(0), mean, atol=0.1 * sd.max())
+    np.testing.assert_allclose(np.sqrt(np.diag(np.cov(run.samples, rowvar=False))), sd, rtol=0.08)
+    again = run_ensemble(log_prob, start, np.random.default_rng(2), min_ess=4000)
+    np.testing.assert_array_equal(again.samples, run.samples)
+
+
+def test_sampler_stops_with_a_warning_state_when_the_step_limit_is_reached():
+    mean, cov, log_prob = _known_gaussian(3)
+    start = np.random.default_rng(0).multivariate_normal(mean, cov, 32)
+    run = run_ensemble(log_prob, start, np.random.default_rng(0), min_ess=10**6, max_steps=600, chunk=300)
+    assert not run.converged and run.chain.shape[0] == 600
+
+
+@pytest.fixture(scope="module")
+def measured():
+    rng = np.random.default_rng(21)
+    rig = default_rig(rng)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 8, rng)),
+                    0.2, 0.02)
+    frames = simulate_measurements(layout, np.random.default_rng(22))
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
+    # Corners drawn independently: no correlation factor, so the Laplace covariance is the right one.
+    ref = refine(frames, layout.board, layout.camera, T0, RefinementOptions(corner_error_correlation=1.0))
+    return layout, frames, ref
+
+
+def test_posterior_log_density_peaks_at_the_map_with_the_laplace_curvature(measured):
+    layout, frames, ref = measured
+    model = PlaneLikelihood(frames, layout.board, layout.camera, ref)
+
+    def f(x):
+        return -model(np.append(x, 0.0)[None])[0]
+
+    h = 1e-5
+    E = np.eye(6) * h
+    H = np.array([[(f(E[a] + E[b]) - f(E[a] - E[b]) - f(-E[a] + E[b]) + f(-E[a] - E[b])) / (4 * h * h)
+                   for b in range(6)] for a in range(6)])
+    np.testing.assert_allclose(np.linalg.inv(H), ref.covariance, rtol=0.02, atol=0.02 * np.abs(ref.covariance).max())
+    grad = np.array([(f(e) - f(-e)) / (2 * 1e-7) for e in np.eye(6) * 1e-7])
+    # The mode is the MAP to within a few hundredths of a standard deviation on every axis.
+    assert np.abs(np.linalg.solve(H, grad) / np.sqrt(np.diag(ref.covariance))).max() < 0.05
+
+
+@pytest.mark.parametrize("likelihood", ["gaussian", "student-t"])
+def test_calibration_posterior_matches_the_laplace_approximation(measured, likelihood):
+    """Near-linear and Gaussian: centred on the MAP, with the Laplace covariance up to the sampled
+    camera-noise scale s (which scales part of each frame's noise, so the standard deviations lie between
+    the Laplace ones and s times them), within the sampling error."""
+    layout, frames, ref = measured
+    post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(3),
+                            PosteriorOptions(likelihood=likelihood))
+    assert post.xi.shape[1] == 6 and post.run.converged
+    sd = np.sqrt(np.diag(ref.covariance))
+    ratio = np.sqrt(np.diag(post.covariance)) / sd
+    s = float(np.median(post.scale))
+    assert 0.6 < s < 1.6, s  # the independent-corner model is the true one here
+    # Student-t (nu = 4) frames have variance nu / (nu - 2) times their scale: wider by up to sqrt(2).
+    widen = 1.0 if likelihood == "gaussian" else np.sqrt(4.0 / 2.0)
+    assert np.all((ratio > min(1.0, s) - 0.12) & (ratio < widen * max(1.0, s) + 0.12)), (ratio, s)
+    # The Gaussian posterior is centred on the (Gaussian) MAP; the Student-t one weighs frames differently,
+    # so its centre may move by a fraction of a standard deviation.
+    assert np.abs(post.xi.mean(0) / sd).max() < (0.2 if likelihood == "gaussian" else 0.6)
+    iv = post.intervals(0.95)
+    assert np.all(iv[:, 0] < 0) and np.all(iv[:, 1] > 0)
+    summary = post.summary()
+    assert set(summary) == {"68%", "95%"}
