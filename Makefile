@@ -20,6 +20,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py
 	$(PY) benchmarks/bench_refinement.py
+	$(PY) benchmarks/bench_posterior.py
 	$(PY) benchmarks/bench_realdata.py
 
 clean:

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 
@@ -16,6 +15,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("dataset", help="folder with dataset.yaml, NNNN.png and NNNN.pcd|ply|bin|npy")
     c.add_argument("--out", required=True, help="output folder (calibration.json is written there)")
     c.add_argument("--init", default="closed-form", choices=["closed-form"])
+    c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
@@ -33,8 +33,22 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true")
 
+    st = sub.add_parser("study", help="simulation studies")
+    studies = st.add_subparsers(dest="study", required=True)
+    cv = studies.add_parser("coverage", help="how often the reported intervals contain the truth")
+    cv.add_argument("--trials", type=int, default=200)
+    cv.add_argument("--out", required=True, help="folder for coverage.csv and coverage.json")
+    cv.add_argument("--mode", default="measurement", choices=["measurement", "end-to-end"],
+                    help="measurement: noise drawn from the model (fast); end-to-end: rendered images and sweeps")
+    cv.add_argument("--frames", type=int, default=8, help="board poses per trial")
+    cv.add_argument("--samples", type=int, default=1000, help="effective posterior samples per trial")
+    cv.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
+    cv.add_argument("--seed", type=int, default=0)
+
     d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result")
-    d.add_argument("--out", default=None, help="keep the dataset and calibration.json here")
+    d.add_argument("--out", default="lidarcam-demo",
+                   help="folder for the dataset, calibration.json, posterior.npz and report.html (default "
+                        "lidarcam-demo)")
     d.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"])
     d.add_argument("--poses", type=int, default=8)
     d.add_argument("--seed", type=int, default=0)
@@ -155,6 +169,10 @@ def _calibrate(args) -> int:
     path = write_calibration(result, args.out)
     _print_result(result)
     print(f"wrote {path}")
+    if not args.no_report and result.refinement is not None:
+        from .report import write_report
+
+        print(f"wrote {write_report(result, ds, args.out)} (and its figures)")
     return 0
 
 
@@ -169,6 +187,18 @@ def _simulate(args) -> int:
     return 0
 
 
+def _study(args) -> int:
+    from .coverage_study import format_summary, run_study
+
+    if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
+        raise SystemExit("lidarcam: error: --trials, --samples and --workers must be positive and --frames >= 3")
+    summary = run_study(args.trials, args.out, args.mode, args.seed, args.workers, args.frames, args.samples,
+                        progress=sys.stderr.isatty())
+    print(format_summary(summary))
+    print(f"wrote {Path(args.out) / 'coverage.csv'} and coverage.json")
+    return 0
+
+
 def _demo(args) -> int:
     import numpy as np
 
@@ -176,18 +206,20 @@ def _demo(args) -> int:
     from .dataset import load_dataset
     from .simulator import simulate_dataset
 
-    with tempfile.TemporaryDirectory() as tmp:
-        base = Path(args.out) if args.out else Path(tmp)
-        data = base / "dataset"
-        print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) ...")
-        simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
-        ds = load_dataset(data)
-        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
-                           posterior=_posterior_options(args))
-        _print_result(result, ds.ground_truth())
-        if args.out:
-            print(f"wrote {write_calibration(result, base)}")
-        print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
+    base = Path(args.out)
+    data = base / "dataset"
+    print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
+    simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
+    ds = load_dataset(data)
+    result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
+                       posterior=_posterior_options(args))
+    _print_result(result, ds.ground_truth())
+    print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
+    print(f"wrote {write_calibration(result, base)}")
+    if result.refinement is not None:
+        from .report import write_report
+
+        print(f"wrote {write_report(result, ds, base)} (open it in a browser)")
     return 0
 
 
@@ -198,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from .errors import LidarcamError
 
-    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo}
+    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study}
     try:
         return handlers[args.command](args)
     except LidarcamError as exc:

@@ -13,6 +13,10 @@ import numpy as np
 from .errors import LidarcamError
 
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
 def write_atomic(path: str | os.PathLike, write, mode: str = "w") -> Path:
     """Write ``path`` through ``write(file)`` into a temporary file beside it, then rename it into place."""
     path = Path(path)
@@ -21,6 +25,7 @@ def write_atomic(path: str | os.PathLike, write, mode: str = "w") -> Path:
     try:
         with os.fdopen(fd, mode) as fh:
             write(fh)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are ordinary files
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -60,6 +60,14 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
         iv = np.array(data["intervals"][level]["translation_mm_along_lidar_xyz"])
         assert iv.shape == (3, 2) and np.all(iv[:, 0] < iv[:, 1])
     assert np.array(data["covariance_laplace"]).shape == (6, 6)
+    # The report: self-contained (every figure embedded) with the PNGs beside it.
+    page = (out / "report.html").read_text()
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert {"corner.png", "residuals.png", "traces.png"} <= set(pngs)
+    assert sum(n.startswith("projection_") for n in pngs) == data["frames_used"]
+    assert page.count("src='data:image/png;base64,") == len(pngs)
+    assert all((out / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)
+    assert "Intervals" in page and "Warnings" in page and "Board outline offsets" in page
     frame = data["frames"][0]
     assert {"name", "used", "reason", "board_points", "plane_rms_m", "corner_rms_px"} <= frame.keys()
     # 2 cm range noise over thousands of points: each board's planes agree to a fraction of a degree
@@ -69,7 +77,7 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
 
 def test_cli_samples_zero_skips_the_posterior(sim_hdl64e, tmp_path):
     out = tmp_path / "out"
-    assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0"]) == 0
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0", "--no-report"]) == 0
     data = json.loads((out / "calibration.json").read_text())
     assert not (out / "posterior.npz").exists() and "posterior" not in data
     assert data["covariance"] is not None and "covariance_laplace" not in data

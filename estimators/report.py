@@ -1,0 +1,229 @@
+"""A self-contained uncertainty report: ``OUT/report.html`` (figures embedded) and the PNGs beside it.
+
+Numbers a reader needs first (estimate, standard deviations, intervals, frames, warnings), then: the
+posterior corner plot with the Laplace ellipses, per-frame residuals with outliers marked, LiDAR points
+projected into every image with the camera's and the LiDAR's board outlines and their pixel offset, the
+MCMC traces and diagnostics, and the layout's conditioning.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from geometry.rotations import quat_xyzw_from_R, transform_points  # noqa: E402
+
+from .closed_form import describe_direction  # noqa: E402
+from .dataset import Dataset  # noqa: E402
+from .image_io import read_gray  # noqa: E402
+from .output import write_atomic  # noqa: E402
+from .pointcloud_io import read_scan  # noqa: E402
+
+_LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
+_UNITS = np.array([np.degrees(1.0)] * 3 + [1000.0] * 3)
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def corner_figure(result) -> bytes:
+    """Posterior of the 6 tangent axes (deg, mm; LiDAR axes) with the Laplace 1- and 2-sigma ellipses."""
+    import corner
+
+    xi = result.posterior.xi * _UNITS
+    fig = corner.corner(xi, labels=_LABELS, quantiles=[0.025, 0.5, 0.975], show_titles=True, title_fmt=".3f",
+                        title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8})
+    C = result.covariance_laplace * np.outer(_UNITS, _UNITS)
+    axes = np.array(fig.axes).reshape(6, 6)
+    angles = np.linspace(0, 2 * np.pi, 100)
+    circle = np.stack([np.cos(angles), np.sin(angles)])
+    for i in range(6):
+        for j in range(i):
+            vals, vecs = np.linalg.eigh(C[np.ix_([j, i], [j, i])])
+            for k in (1, 2):
+                e = vecs @ (np.sqrt(np.maximum(vals, 0))[:, None] * circle) * k
+                axes[i, j].plot(e[0], e[1], color="tab:red", lw=0.8)
+    fig.suptitle("posterior (black) and Laplace 1/2-sigma ellipses (red); offsets from the estimate", fontsize=9)
+    return _png(fig)
+
+
+def residuals_figure(result) -> bytes:
+    fits = {f.name: f for f in result.refinement.frames} if result.refinement else {}
+    names = [f.name for f in result.frames if f.usable]
+    chi = [fits[n].consistency_chi2 if n in fits else np.nan for n in names]
+    out = [bool(fits[n].outlier) if n in fits else False for n in names]
+    rms = [f.camera.reprojection_rms_px for f in result.frames if f.usable]
+    angle = [np.degrees(result.plane_residuals[n][0]) if n in result.plane_residuals else np.nan for n in names]
+    dist = [1000 * result.plane_residuals[n][1] if n in result.plane_residuals else np.nan for n in names]
+    fig, ax = plt.subplots(2, 2, figsize=(11, 6))
+    colors = ["tab:red" if o else "tab:blue" for o in out]
+    x = np.arange(len(names))
+    ax[0, 0].bar(x, chi, color=colors)
+    ax[0, 0].axhline(3, color="k", lw=0.8, ls="--")
+    ax[0, 0].set_title("plane consistency chi-square per frame (3 dof; red: outlier)", fontsize=9)
+    ax[0, 1].bar(x, rms, color=colors)
+    ax[0, 1].set_title("corner reprojection RMS [px]", fontsize=9)
+    ax[1, 0].bar(x, angle, color=colors)
+    ax[1, 0].set_title("camera vs LiDAR plane: normal angle [deg]", fontsize=9)
+    ax[1, 1].bar(x, dist, color=colors)
+    ax[1, 1].set_title("camera vs LiDAR plane: distance [mm]", fontsize=9)
+    for a in ax.ravel():
+        a.set_xticks(x, names, rotation=90, fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The camera's board outline and the LiDAR's (pixels), and the pixel offset ``(du, dv)`` of the LiDAR's.
+
+    The LiDAR points, mapped by the estimate into the camera's board frame, span ``[x0, x1] x [y0, y1]``
+    (0.5% / 99.5% quantiles, so stray stand points do not count); the beams' spacing shrinks that span
+    alike on opposite sides, so its centre against the board's centre is the offset, which is then shown
+    as the board outline shifted by it and measured in pixels."""
+    cam = result.camera
+    T_board_lidar = np.linalg.inv(frame.camera.T_camera_board) @ result.T_camera_lidar
+    pb = transform_points(T_board_lidar, frame.lidar.points)
+    lo, hi = np.percentile(pb[:, :2], [0.5, 99.5], axis=0)
+    w, h = board.extent
+    shift = np.array([(lo[0] + hi[0] - w) / 2, (lo[1] + hi[1] - h) / 2, 0.0])
+    outline = board.outline()
+    board_px = cam.project(transform_points(frame.camera.T_camera_board, outline))
+    lidar_px = cam.project(transform_points(frame.camera.T_camera_board, outline + shift))
+    centre = cam.project(transform_points(frame.camera.T_camera_board, np.array([board.centre, board.centre + shift])))
+    return board_px, lidar_px, centre[1] - centre[0]
+
+
+def projection_figure(result, frame, board, image_path, scan_path) -> tuple[bytes, np.ndarray]:
+    cam = result.camera
+    gray = read_gray(image_path)
+    scan = read_scan(scan_path)
+    pc = transform_points(result.T_camera_lidar, scan)
+    front = pc[:, 2] > 0.3
+    uv = cam.project(pc[front])
+    inside = cam.in_image(uv)
+    uv, depth = uv[inside], pc[front][inside, 2]
+    keep = slice(None, None, max(1, len(uv) // 25000))  # a readable, light figure
+    uv, depth = uv[keep], depth[keep]
+    fig, ax = plt.subplots(figsize=(8, 8 * cam.height / cam.width))
+    ax.imshow(gray, cmap="gray")
+    sc = ax.scatter(uv[:, 0], uv[:, 1], c=depth, s=0.3, cmap="turbo", vmin=np.percentile(depth, 2),
+                    vmax=np.percentile(depth, 98))
+    board_px, lidar_px, offset = board_outline_offset(result, frame, board)
+    for poly, color, label in ((board_px, "lime", "board (camera)"), (lidar_px, "red", "board (LiDAR)")):
+        closed = np.vstack([poly, poly[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], color=color, lw=1.2, label=label)
+    ax.set_xlim(0, cam.width)
+    ax.set_ylim(cam.height, 0)
+    ax.legend(loc="lower right", fontsize=7)
+    fig.colorbar(sc, ax=ax, fraction=0.03, label="depth [m]")
+    ax.set_title(f"frame {frame.name}: LiDAR board offset du {offset[0]:+.1f} px, dv {offset[1]:+.1f} px",
+                 fontsize=9)
+    ax.axis("off")
+    return _png(fig), offset
+
+
+def traces_figure(result) -> bytes:
+    chain = result.posterior.run.chain
+    labels = _LABELS + ["log s (camera noise scale)"]
+    units = np.append(_UNITS, 1.0)
+    fig, ax = plt.subplots(7, 1, figsize=(10, 11), sharex=True)
+    step = max(1, chain.shape[1] // 12)
+    for k in range(7):
+        ax[k].plot(chain[:, ::step, k] * units[k], lw=0.4, alpha=0.6)
+        ax[k].axvline(result.posterior.run.burn, color="k", lw=0.8, ls="--")
+        ax[k].set_ylabel(labels[k], fontsize=7)
+    ax[-1].set_xlabel("step (dashed: end of burn-in)")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _table(rows: list[list[str]], head: list[str]) -> str:
+    h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
+    b = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{b}</table>"
+
+
+def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
+    """Write ``OUT/report.html`` and its PNGs (each file atomically). Needs the refinement; uses the
+    posterior when it was sampled."""
+    out = Path(out_dir)
+    figures: list[tuple[str, str, bytes]] = []
+    if result.posterior is not None:
+        figures.append(("corner.png", "Posterior of the extrinsic (tangent offsets from the estimate)",
+                        corner_figure(result)))
+    if result.refinement is not None:
+        figures.append(("residuals.png", "Per-frame residuals", residuals_figure(result)))
+    files = {f.name: f for f in dataset.frames}
+    offsets = []
+    for frame in result.frames:
+        if frame.usable and frame.name in files:
+            png, off = projection_figure(result, frame, dataset.board, files[frame.name].image,
+                                         files[frame.name].scan)
+            offsets.append((frame.name, off))
+            figures.append((f"projection_{frame.name}.png", f"Frame {frame.name}: LiDAR points in the image", png))
+    if result.posterior is not None:
+        figures.append(("traces.png", "MCMC traces", traces_figure(result)))
+    for name, _, png in figures:
+        write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+
+    T = result.T_camera_lidar
+    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>",
+             "<h2>Estimate</h2><p>T_camera_lidar maps LiDAR points into the camera frame: "
+             "p_camera = R p_lidar + t.</p><pre>" + "\n".join("  ".join(f"{v:+.6f}" for v in row) for row in T)
+             + "</pre>",
+             f"<p>quaternion (x, y, z, w): {np.round(quat_xyzw_from_R(T[:3, :3]), 6).tolist()}; translation "
+             f"{np.round(T[:3, 3], 4).tolist()} m; frames used {result.frames_used} of {len(result.frames)}; "
+             f"refine {result.refine}</p>"]
+    if result.covariance is not None:
+        kind = "posterior" if result.posterior is not None else "Laplace"
+        rows = [["rotation about LiDAR x/y/z [deg]"] + [f"{v:.4f}" for v in result.std_rotation_deg],
+                ["translation along LiDAR x/y/z [mm]"] + [f"{v:.2f}" for v in result.std_translation_mm],
+                ["t in camera x/y/z [mm]"] + [f"{v:.2f}" for v in result.std_translation_camera_mm]]
+        parts.append(f"<h2>Standard deviations ({kind})</h2>" + _table(rows, ["", "x", "y", "z"]))
+    if result.posterior is not None:
+        rows = []
+        for level, iv in result.posterior.summary().items():
+            for key, unit in (("rotation_deg_about_lidar_xyz", "deg"), ("translation_mm_along_lidar_xyz", "mm")):
+                rows.append([f"{level} {key.split('_')[0]} [{unit}]"]
+                            + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv[key]])
+        parts.append("<h2>Intervals (offsets from the estimate, GTSAM tangent)</h2>" + _table(rows, ["", "x", "y", "z"]))
+        d = result.posterior.diagnostics()
+        parts.append(f"<p>MCMC ({d['likelihood']}): {d['walkers']} walkers x {d['steps']} steps, burn-in "
+                     f"{d['burn_in']}, tau {max(d['tau_steps']):.1f} steps, acceptance "
+                     f"{d['acceptance_fraction']:.2f}, {d['effective_samples']:.0f} effective samples, "
+                     f"converged: {d['converged']}, {d['seconds']:.1f} s; camera-noise scale (median) "
+                     f"{d['noise_scale_median']:.2f}</p>")
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
+    parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
+    axis, advice = describe_direction(result.weakest_direction_camera)
+    parts.append("<h2>Layout</h2>" + f"<p>singular values of the board normals (per frame): "
+                 f"{np.round(result.normal_singular_values, 3).tolist()}, condition number "
+                 f"{result.condition_number:.2f}; weakest direction: {html.escape(axis)} (to constrain it "
+                 f"further, {html.escape(advice)})</p>")
+    if offsets:
+        rows = [[n, f"{o[0]:+.1f}", f"{o[1]:+.1f}"] for n, o in offsets]
+        parts.append("<h2>Board outline offsets (LiDAR board mapped into the image vs the camera's board)</h2>"
+                     "<p>Offset of the board as the LiDAR sees it (its points mapped by the estimate into the "
+                     "camera's board frame: the centre of their extent) from the camera's board, in pixels: the "
+                     "planar method's re-projection check, horizontal and vertical. Sparse rings leave a few "
+                     "pixels of sampling error even when the extrinsic is right.</p>"
+                     + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
+    for name, title, png in figures:
+        data = base64.b64encode(png).decode("ascii")
+        parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
+    page = ("<!doctype html><html><head><meta charset='utf-8'><title>lidarcam report</title><style>"
+            "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
+            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}img{max-width:100%}</style></head><body>"
+            + "".join(parts) + "</body></html>")
+    return write_atomic(out / "report.html", lambda fh: fh.write(page))
