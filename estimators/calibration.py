@@ -87,6 +87,13 @@ class CalibrationResult:
         R = self.T_camera_lidar[:3, :3]
         return 1000 * np.sqrt(np.diag(R @ c[3:, 3:] @ R.T))
 
+    def report(self, out_dir: str | Path) -> Path:
+        """Write ``OUT/report.html`` and its figures (needs the dataset folder this result came from)."""
+        from .dataset import load_dataset
+        from .report import write_report
+
+        return write_report(self, load_dataset(self.dataset), out_dir)
+
     @property
     def frames_used(self) -> int:
         dropped = {f.name for f in self.refinement.frames if f.dropped} if self.refinement else set()

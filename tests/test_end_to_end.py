@@ -1,10 +1,14 @@
 """simulate -> calibrate through the library and the CLI, and bad input through the CLI."""
 from __future__ import annotations
 
+import base64
 import json
+import re
 import shutil
 import subprocess
 import sys
+
+from html.parser import HTMLParser
 
 import numpy as np
 import pytest
@@ -65,7 +69,10 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert {"corner.png", "residuals.png", "traces.png"} <= set(pngs)
     assert sum(n.startswith("projection_") for n in pngs) == data["frames_used"]
-    assert page.count("src='data:image/png;base64,") == len(pngs)
+    embedded = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", page)
+    assert len(embedded) == len(pngs)
+    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in embedded)
+    HTMLParser().feed(page)  # well-formed enough to parse
     assert all((out / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)
     assert "Intervals" in page and "Warnings" in page and "Board outline offsets" in page
     frame = data["frames"][0]
