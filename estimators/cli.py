@@ -33,6 +33,15 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true")
 
+    la = sub.add_parser("layout", help="predicted uncertainty and conditioning of a dataset's or a plan's board "
+                                       "poses, and the poses to add")
+    la.add_argument("source", help="a dataset folder (measured frames) or a PLAN.yaml (planned poses)")
+    la.add_argument("--json", default=None, metavar="FILE", help="also write the analysis as JSON")
+    la.add_argument("--suggest", type=int, default=0, metavar="K", help="suggest K board poses to add, greedily")
+    la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16"],
+                    help="beam model for suggestions on a dataset (a plan names its own)")
+    la.add_argument("--seed", type=int, default=0)
+
     st = sub.add_parser("study", help="simulation studies")
     studies = st.add_subparsers(dest="study", required=True)
     cv = studies.add_parser("coverage", help="how often the reported intervals contain the truth")
@@ -187,6 +196,64 @@ def _simulate(args) -> int:
     return 0
 
 
+def _layout(args) -> int:
+    import numpy as np
+    import yaml
+
+    from .errors import DatasetError
+    from .layout_analysis import analyse, layout_from_plan, suggest_poses
+    from .output import write_json_atomic
+
+    src = Path(args.source)
+    if src.is_dir():
+        from .calibration import calibrate
+        from .dataset import load_dataset
+        from .lidar_models import BEAM_MODELS
+        from .observation_model import Layout
+        from .simulator import Rig
+
+        ds = load_dataset(src)
+        result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
+        ref = result.refinement
+        used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board]
+        hits = tuple((f.lidar.points / np.linalg.norm(f.lidar.points, axis=1, keepdims=True),
+                      np.linalg.norm(f.lidar.points, axis=1)) for f in used)
+        beams = BEAM_MODELS[args.lidar_model](ref.range_noise_m)
+        layout = Layout(result.camera, ds.board, beams, result.T_camera_lidar,
+                        tuple(ref.T_camera_board[f.name] for f in used), ref.corner_noise_px, ref.range_noise_m, hits)
+        rig = Rig(result.camera, beams, ds.board, result.T_camera_lidar)
+        names = [f.name for f in used]
+    elif src.is_file():
+        try:
+            plan = yaml.safe_load(src.read_text())
+        except yaml.YAMLError as exc:
+            raise DatasetError(f"not valid YAML ({exc})", path=src, hint="fix the plan file") from None
+        if not isinstance(plan, dict):
+            raise DatasetError("a plan must be a mapping", path=src, hint="see the PLAN.yaml format in the README")
+        layout, rig = layout_from_plan(plan, str(src))
+        names = [f"plan{i:02d}" for i in range(layout.n_frames)]
+    else:
+        raise DatasetError("no such dataset folder or plan file", path=src, hint="check the path")
+    analysis = analyse(layout, names)
+    print(analysis.format())
+    out = analysis.to_dict()
+    if args.suggest > 0:
+        print(f"suggested poses (greedy, D-optimal among sampled feasible poses, seed {args.seed}):")
+        out["suggestions"] = []
+        for k, (T, after) in enumerate(suggest_poses(layout, rig, args.suggest, np.random.default_rng(args.seed))):
+            c = T[:3, :3] @ layout.board.centre + T[:3, 3]
+            n = T[:3, 2]
+            print(f"  {k + 1}: board centre at camera ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:.2f}) m, normal "
+                  f"({n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f}); then std rotation "
+                  + " ".join(f"{v:.3f}" for v in after.std_rotation_deg) + " deg, translation "
+                  + " ".join(f"{v:.2f}" for v in after.std_translation_mm) + " mm")
+            out["suggestions"].append({"T_camera_board": T.tolist(), "centre_m": c.tolist(),
+                                       "std_after": after.to_dict()["predicted_std"]})
+    if args.json:
+        print(f"wrote {write_json_atomic(args.json, out)}")
+    return 0
+
+
 def _study(args) -> int:
     from .coverage_study import format_summary, run_study
 
@@ -230,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from .errors import LidarcamError
 
-    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study}
+    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study, "layout": _layout}
     try:
         return handlers[args.command](args)
     except LidarcamError as exc:

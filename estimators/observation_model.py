@@ -36,6 +36,8 @@ class Layout:
     T_camera_board: tuple[np.ndarray, ...]
     corner_noise_px: float
     range_noise_m: float
+    # Measured beams per frame ((dirs, ranges) in the LiDAR frame) instead of the beam model's cast.
+    hits: tuple | None = None
 
     @property
     def n_frames(self) -> int:
@@ -44,7 +46,9 @@ class Layout:
 
 def board_hits(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray]:
     """Unit beam directions (n, 3) of the LiDAR that hit board ``i`` and their true ranges (n,) (LiDAR
-    frame). The board is taken as unoccluded."""
+    frame). The board is taken as unoccluded. A layout with measured ``hits`` returns those."""
+    if layout.hits is not None:
+        return layout.hits[i]
     T_lidar_board = T_inverse(layout.T_camera_lidar) @ layout.T_camera_board[i]
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = layout.board.extent
@@ -64,26 +68,37 @@ def corner_pixels(layout: Layout, i: int) -> np.ndarray:
     return layout.camera.project(transform_points(layout.T_camera_board[i], layout.board.inner_corners()))
 
 
-def fisher_information(layout: Layout) -> np.ndarray:
-    """Fisher information (6 + 6N square) of ``[xi_extrinsic, xi_board_1, ..., xi_board_N]``."""
-    N = layout.n_frames
-    F = np.zeros((6 + 6 * N, 6 + 6 * N))
-    corners_board = layout.board.inner_corners()
-    for i, T_cb in enumerate(layout.T_camera_board):
-        b = slice(6 + 6 * i, 12 + 6 * i)
-        _, Jc = corner_residuals(T_cb, corners_board, corner_pixels(layout, i), layout.camera)
-        F[b, b] += Jc.T @ Jc / layout.corner_noise_px**2
-        dirs, ranges = board_hits(layout, i)
-        if len(dirs) == 0:
-            continue
+def frame_information(layout: Layout, i: int) -> np.ndarray:
+    """Fisher information (12 x 12) of frame ``i`` over ``[xi_extrinsic, xi_board_i]``."""
+    T_cb = layout.T_camera_board[i]
+    F = np.zeros((12, 12))
+    _, Jc = corner_residuals(T_cb, layout.board.inner_corners(), corner_pixels(layout, i), layout.camera)
+    F[6:, 6:] += Jc.T @ Jc / layout.corner_noise_px**2
+    dirs, ranges = board_hits(layout, i)
+    if len(dirs):
         pi, H_x, H_b = lidar_plane(layout.T_camera_lidar, T_cb)
         P1 = np.hstack([dirs * ranges[:, None], np.ones((len(dirs), 1))])
         # A beam's range rho solves pi . [rho b; 1] = 0, so d rho = -[p; 1] . d pi / (m . b).
         scale = -1.0 / (dirs @ pi[:3])
         J = np.hstack([(P1 @ H_x) * scale[:, None], (P1 @ H_b) * scale[:, None]])
-        Fi = J.T @ J / layout.range_noise_m**2
+        F += J.T @ J / layout.range_noise_m**2
+    return F
+
+
+def frame_contribution(F_frame: np.ndarray) -> np.ndarray:
+    """A frame's 6x6 share of the extrinsic's information: its board pose marginalised (Schur complement).
+    Frames have their own board poses, so the extrinsic's information is the sum of these shares."""
+    A, B, C = F_frame[:6, :6], F_frame[:6, 6:], F_frame[6:, 6:]
+    return A - B @ np.linalg.solve(C, B.T)
+
+
+def fisher_information(layout: Layout) -> np.ndarray:
+    """Fisher information (6 + 6N square) of ``[xi_extrinsic, xi_board_1, ..., xi_board_N]``."""
+    N = layout.n_frames
+    F = np.zeros((6 + 6 * N, 6 + 6 * N))
+    for i in range(N):
         idx = np.r_[0:6, 6 + 6 * i:12 + 6 * i]
-        F[np.ix_(idx, idx)] += Fi
+        F[np.ix_(idx, idx)] += frame_information(layout, i)
     return F
 
 

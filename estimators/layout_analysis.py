@@ -1,0 +1,193 @@
+"""How a layout of board poses conditions the calibration, and which pose to add next.
+
+From the Fisher information of the full model (corner pixels and beam ranges, board poses marginalised;
+:mod:`estimators.observation_model`): the predicted covariance (the Cramer-Rao bound) and standard
+deviations per axis, the condition number of the board normals, D- and E-optimality, the weakest
+direction in words, and each frame's leverage. Optimality is measured in scaled units, milliradians and
+millimetres, so that rotation and translation weigh alike: ``D = det(F)^(1/6)`` and ``E = lambda_min(F)``
+(information per mrad^2 or mm^2).
+
+A plan (``PLAN.yaml``) describes a rig and the board poses it will record::
+
+    camera: {model: pinhole, width: 1024, height: 768, K: [[940, 0, 512], [0, 940, 384], [0, 0, 1]],
+             dist: [-0.1, 0.06, 0, 0, 0]}
+    board: {squares: [9, 7], square_size: 0.1, size: [1.0, 1.0]}
+    lidar: {model: hdl64e, range_noise_m: 0.02}
+    corner_noise_px: 0.2                  # effective per-corner noise (px)
+    T_camera_lidar: 4x4                   # optional; default: the simulator's nominal mounting
+    poses:                                # board centre in the camera frame (m), normal tilted from the
+      - {centre_m: [0.3, -0.2, 3.0], tilt_deg: 30, azimuth_deg: 45, spin_deg: 0}   # line of sight
+      - {T_camera_board: 4x4}             # or a full pose
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from geometry.rotations import T_from_Rt
+
+from .closed_form import describe_direction, normal_spread
+from .errors import DatasetError
+from .lidar_models import BEAM_MODELS
+from .observation_model import Layout, board_hits, frame_contribution, frame_information
+from .simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _board_rotation, _pose_fits, sample_board_poses
+
+_SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
+MIN_BOARD_HITS = 50
+
+
+@dataclass(frozen=True, eq=False)
+class LayoutAnalysis:
+    names: tuple[str, ...]
+    covariance: np.ndarray  # predicted, GTSAM tangent of T_camera_lidar (inf where unobservable)
+    information: np.ndarray
+    normal_singular_values: np.ndarray
+    d_optimality: float
+    e_optimality: float
+    weakest_words: str
+    leverage: np.ndarray  # per frame: fraction of D-optimality lost without it
+
+    @property
+    def std_rotation_deg(self) -> np.ndarray:
+        return np.degrees(np.sqrt(np.diag(self.covariance)[:3]))
+
+    @property
+    def std_translation_mm(self) -> np.ndarray:
+        return 1000 * np.sqrt(np.diag(self.covariance)[3:])
+
+    @property
+    def condition_number(self) -> float:
+        s = self.normal_singular_values
+        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+    def to_dict(self) -> dict:
+        return {"frames": list(self.names),
+                "predicted_std": {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
+                                  "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist()},
+                "predicted_covariance": np.where(np.isfinite(self.covariance), self.covariance, None).tolist(),
+                "normal_singular_values": self.normal_singular_values.tolist(),
+                "condition_number": self.condition_number,
+                "d_optimality_per_mrad_mm": self.d_optimality, "e_optimality_per_mrad_mm": self.e_optimality,
+                "weakest_direction": self.weakest_words,
+                "leverage": dict(zip(self.names, self.leverage.tolist()))}
+
+    def format(self) -> str:
+        def fmt(v, unit, digits):
+            return "  ".join("unobservable" if not np.isfinite(x) else f"{x:.{digits}f}" for x in v) + f" {unit}"
+        lines = [f"{len(self.names)} frames; predicted standard deviations (about/along the LiDAR's x y z):",
+                 f"  rotation    {fmt(self.std_rotation_deg, 'deg', 3)}",
+                 f"  translation {fmt(self.std_translation_mm, 'mm', 2)}",
+                 f"board normals: singular values {np.round(self.normal_singular_values, 3).tolist()}, "
+                 f"condition number {self.condition_number:.2f}",
+                 f"D-optimality {self.d_optimality:.3g}, E-optimality {self.e_optimality:.3g} (per mrad^2, mm^2)",
+                 f"weakest: {self.weakest_words}",
+                 "leverage (share of D-optimality lost without the frame):"]
+        lines += [f"  {n}: {100 * v:5.1f}%" for n, v in zip(self.names, self.leverage)]
+        return "\n".join(lines)
+
+
+def _d_opt(F: np.ndarray) -> float:
+    vals = np.linalg.eigvalsh(F / np.outer(_SCALE, _SCALE))
+    return float(np.exp(np.mean(np.log(np.maximum(vals, 1e-300)))))
+
+
+def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
+    """The predicted uncertainty and conditioning of a layout (never raises on a degenerate one: its
+    unobservable directions get infinite standard deviations and are named)."""
+    names = tuple(names or [f"{i:04d}" for i in range(layout.n_frames)])
+    shares = [frame_contribution(frame_information(layout, i)) for i in range(layout.n_frames)]
+    F = np.sum(shares, axis=0) if shares else np.zeros((6, 6))
+    Fs = F / np.outer(_SCALE, _SCALE)
+    vals, vecs = np.linalg.eigh(Fs)
+    tiny = vals <= 1e-9 * max(vals[-1], 1e-300)
+    inv = np.where(tiny, np.inf, 1.0 / np.where(tiny, 1.0, vals))
+    cov_s = (vecs * inv) @ vecs.T if not tiny.any() else _cov_with_inf(vecs, inv)
+    cov = cov_s / np.outer(_SCALE, _SCALE)
+    normals = np.array([T[:3, 2] for T in layout.T_camera_board]).reshape(-1, 3)
+    s, _ = normal_spread(normals) if len(normals) else (np.zeros(3), None)
+    D = _d_opt(F)
+    leverage = np.array([1.0 - _d_opt(F - S) / D if D > 0 else 0.0 for S in shares])
+    return LayoutAnalysis(names, cov, F, s, D, float(vals[0]), _weakest_words(vecs[:, 0], layout, tiny[0]),
+                          leverage)
+
+
+def _cov_with_inf(vecs: np.ndarray, inv: np.ndarray) -> np.ndarray:
+    finite = np.isfinite(inv)
+    cov = (vecs[:, finite] * inv[finite]) @ vecs[:, finite].T
+    for k in np.nonzero(~finite)[0]:
+        cov[np.abs(vecs[:, k]) > 0.1, :] = np.inf
+        cov[:, np.abs(vecs[:, k]) > 0.1] = np.inf
+    return cov
+
+
+def _weakest_words(v: np.ndarray, layout: Layout, unobservable: bool) -> str:
+    R = layout.T_camera_lidar[:3, :3]
+    rot, trans = v[:3], v[3:]
+    state = "unobservable" if unobservable else "the least constrained"
+    if np.linalg.norm(trans) >= np.linalg.norm(rot):
+        axis, advice = describe_direction(R @ trans)
+        return f"translation along {axis} is {state}: {advice}"
+    axis, advice = describe_direction(R @ rot)
+    return f"rotation about {axis} is {state}: add boards spread further over the image and tilted more"
+
+
+def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
+    """A layout (and the rig, for pose suggestions) from a parsed ``PLAN.yaml``."""
+    from .dataset import parse_board, parse_camera
+
+    try:
+        camera = parse_camera(plan["camera"], source)
+        board = parse_board(plan["board"], source)
+        lidar = plan.get("lidar", {})
+        model = lidar.get("model", "hdl64e")
+        if model not in BEAM_MODELS:
+            raise DatasetError(f"unknown lidar model {model!r}", path=source, hint=f"use one of {sorted(BEAM_MODELS)}")
+        beams = BEAM_MODELS[model](float(lidar.get("range_noise_m", 0.02)))
+        T_cl = np.array(plan["T_camera_lidar"], dtype=float) if "T_camera_lidar" in plan else T_from_Rt(
+            R_CAMERA_LIDAR_NOMINAL, -R_CAMERA_LIDAR_NOMINAL @ np.array([0.15, 0.0, -0.20]))
+        poses = [_plan_pose(p, board) for p in plan.get("poses", [])]
+        corner_noise = float(plan.get("corner_noise_px", 0.2))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"invalid plan ({exc})", path=source,
+                           hint="see the PLAN.yaml format in the README (camera, board, lidar, poses)") from exc
+    rig = Rig(camera=camera, beams=beams, board=board, T_camera_lidar=T_cl)
+    return Layout(camera, board, beams, T_cl, tuple(poses), corner_noise, beams.sigma_range_m), rig
+
+
+def _plan_pose(p: dict, board) -> np.ndarray:
+    if "T_camera_board" in p:
+        T = np.array(p["T_camera_board"], dtype=float)
+        if T.shape != (4, 4):
+            raise ValueError("T_camera_board must be 4x4")
+        return T
+    c = np.array(p["centre_m"], dtype=float)
+    R = _board_rotation(c / np.linalg.norm(c), np.deg2rad(float(p.get("tilt_deg", 0.0))),
+                        np.deg2rad(float(p.get("azimuth_deg", 0.0))), np.deg2rad(float(p.get("spin_deg", 0.0))))
+    return T_from_Rt(R, c - R @ board.centre)
+
+
+def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, candidates: int = 150
+                  ) -> list[tuple[np.ndarray, LayoutAnalysis]]:
+    """Greedily, ``k`` board poses that most raise D-optimality, each from ``candidates`` feasible poses
+    (fully in the image, inside the LiDAR's field of view, 2-5 m away, hit by enough beams)."""
+    out = []
+    current = layout
+    for _ in range(k):
+        pool = [T for T in sample_board_poses(rig, candidates, rng) if _pose_fits(rig, T)]
+        F = analyse(current).information
+        best, best_d = None, -np.inf
+        for T in pool:
+            trial = replace(current, T_camera_board=(T,), hits=None)
+            if len(board_hits(trial, 0)[0]) < MIN_BOARD_HITS:
+                continue
+            d = _d_opt(F + frame_contribution(frame_information(trial, 0)))
+            if d > best_d:
+                best, best_d = T, d
+        if best is None:
+            break
+        hits = None if current.hits is None else current.hits + (board_hits(replace(current, T_camera_board=(best,),
+                                                                                   hits=None), 0),)
+        current = replace(current, T_camera_board=current.T_camera_board + (best,), hits=hits)
+        out.append((best, analyse(current)))
+    return out

@@ -1,0 +1,69 @@
+"""Layout analysis: predicted uncertainty from the Fisher information, degenerate plans explained, and
+suggested poses that help (measurement-level model; fixed seeds)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import yaml
+
+from estimators.cli import main
+from estimators.layout_analysis import analyse, layout_from_plan, suggest_poses
+from estimators.observation_model import cramer_rao_bound
+from geometry.rotations import R_from_rotvec, T_from_Rt
+
+PLAN = {
+    "camera": {"model": "pinhole", "width": 1024, "height": 768, "K": [[940, 0, 512], [0, 940, 384], [0, 0, 1]],
+               "dist": [-0.1, 0.06, 0, 0, 0]},
+    "board": {"squares": [9, 7], "square_size": 0.1, "size": [1.0, 1.0]},
+    "lidar": {"model": "hdl64e", "range_noise_m": 0.02},
+    "corner_noise_px": 0.2,
+    "poses": [{"centre_m": [-0.6, 0.0, 3.0], "tilt_deg": 30, "azimuth_deg": 0},
+              {"centre_m": [0.6, 0.0, 3.0], "tilt_deg": 30, "azimuth_deg": 120},
+              {"centre_m": [0.0, 0.3, 3.5], "tilt_deg": 30, "azimuth_deg": 240},
+              {"centre_m": [0.0, -0.2, 4.0], "tilt_deg": 20, "azimuth_deg": 60}],
+}
+
+
+def test_predicted_covariance_is_the_cramer_rao_bound_and_leverage_sums_sensibly():
+    layout, _ = layout_from_plan(PLAN)
+    a = analyse(layout)
+    np.testing.assert_allclose(a.covariance, cramer_rao_bound(layout), rtol=1e-6, atol=1e-15)
+    assert np.all(np.isfinite(a.std_translation_mm)) and a.condition_number < 10
+    assert np.all((a.leverage > 0) & (a.leverage <= 1))
+
+
+def test_degenerate_plan_is_explained_not_crashed_on():
+    """Boards turned only about the camera's vertical axis (normals in its x-z plane): translation along
+    camera y cannot be observed."""
+    poses = []
+    for x, yaw in ((-0.6, -30.0), (0.6, 25.0), (0.0, 5.0)):
+        R = R_from_rotvec([0.0, np.deg2rad(yaw), 0.0])
+        poses.append({"T_camera_board": T_from_Rt(R, np.array([x, 0.0, 3.0]) - R @ [0.5, 0.5, 0.0]).tolist()})
+    layout, _ = layout_from_plan(dict(PLAN, poses=poses))
+    a = analyse(layout)
+    assert "camera y" in a.weakest_words and "unobservable" in a.weakest_words
+    assert not np.all(np.isfinite(a.std_translation_mm))
+    assert "unobservable" in a.format()
+
+
+def test_suggested_pose_lowers_the_predicted_uncertainty():
+    layout, rig = layout_from_plan(dict(PLAN, poses=PLAN["poses"][:3]))
+    before = analyse(layout)
+    (T, after), = suggest_poses(layout, rig, 1, np.random.default_rng(0), candidates=40)
+    assert after.d_optimality > before.d_optimality
+    assert np.all(after.std_translation_mm <= before.std_translation_mm + 1e-9)
+    assert T.shape == (4, 4) and 2.0 <= np.linalg.norm(T[:3, :3] @ rig.board.centre + T[:3, 3]) <= 5.5
+
+
+def test_cli_layout_plan_writes_json_and_rejects_bad_plans(tmp_path, capsys):
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(yaml.safe_dump(PLAN))
+    assert main(["layout", str(plan), "--json", str(tmp_path / "a.json")]) == 0
+    data = json.loads((tmp_path / "a.json").read_text())
+    assert len(data["frames"]) == 4 and len(data["predicted_std"]["translation_mm_along_lidar_xyz"]) == 3
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"board": PLAN["board"]}))
+    assert main(["layout", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.yaml" in err[0] and "invalid plan" in err[0]
