@@ -21,6 +21,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py
 	$(PY) benchmarks/bench_refinement.py
 	$(PY) benchmarks/bench_posterior.py
+	$(PY) benchmarks/bench_layout.py
 	$(PY) benchmarks/bench_realdata.py
 
 clean:

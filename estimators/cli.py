@@ -38,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     la.add_argument("source", help="a dataset folder (measured frames) or a PLAN.yaml (planned poses)")
     la.add_argument("--json", default=None, metavar="FILE", help="also write the analysis as JSON")
     la.add_argument("--suggest", type=int, default=0, metavar="K", help="suggest K board poses to add, greedily")
+    la.add_argument("--target", nargs=2, type=_positive, default=None, metavar=("DEG", "MM"),
+                    help="add suggested poses until every axis's predicted std is within DEG and MM (up to 40)")
     la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16"],
                     help="beam model for suggestions on a dataset (a plan names its own)")
     la.add_argument("--seed", type=int, default=0)
@@ -237,10 +239,22 @@ def _layout(args) -> int:
     analysis = analyse(layout, names)
     print(analysis.format())
     out = analysis.to_dict()
-    if args.suggest > 0:
+    if args.suggest > 0 or args.target:
+        from .layout_analysis import meets
+
+        k_max = args.suggest if not args.target else max(args.suggest, 40)
+        target = tuple(args.target) if args.target else None
         print(f"suggested poses (greedy, D-optimal among sampled feasible poses, seed {args.seed}):")
         out["suggestions"] = []
-        for k, (T, after) in enumerate(suggest_poses(layout, rig, args.suggest, np.random.default_rng(args.seed))):
+        found = suggest_poses(layout, rig, k_max, np.random.default_rng(args.seed), target=target)
+        if target is not None:
+            final = found[-1][1] if found else analysis
+            if meets(final, *target):
+                print(f"the target ({target[0]} deg, {target[1]} mm per axis) is met with {len(found)} more pose(s): "
+                      f"{layout.n_frames + len(found)} in all")
+            else:
+                print(f"the target is not met even with {len(found)} more poses; the closest is below")
+        for k, (T, after) in enumerate(found):
             c = T[:3, :3] @ layout.board.centre + T[:3, 3]
             n = T[:3, 2]
             print(f"  {k + 1}: board centre at camera ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:.2f}) m, normal "

@@ -167,13 +167,21 @@ def _plan_pose(p: dict, board) -> np.ndarray:
     return T_from_Rt(R, c - R @ board.centre)
 
 
-def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, candidates: int = 150
-                  ) -> list[tuple[np.ndarray, LayoutAnalysis]]:
+def meets(analysis: LayoutAnalysis, max_rotation_deg: float, max_translation_mm: float) -> bool:
+    return bool(np.all(analysis.std_rotation_deg <= max_rotation_deg)
+                and np.all(analysis.std_translation_mm <= max_translation_mm))
+
+
+def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, candidates: int = 150,
+                  target: tuple[float, float] | None = None) -> list[tuple[np.ndarray, LayoutAnalysis]]:
     """Greedily, ``k`` board poses that most raise D-optimality, each from ``candidates`` feasible poses
-    (fully in the image, inside the LiDAR's field of view, 2-5 m away, hit by enough beams)."""
+    (fully in the image, inside the LiDAR's field of view, 2-5 m away, hit by enough beams). With
+    ``target = (max_rotation_deg, max_translation_mm)``, stop as soon as every axis meets it."""
     out = []
     current = layout
     for _ in range(k):
+        if target is not None and current.n_frames >= 3 and meets(analyse(current), *target):
+            break
         pool = [T for T in sample_board_poses(rig, candidates, rng) if _pose_fits(rig, T)]
         F = analyse(current).information
         best, best_d = None, -np.inf

@@ -122,6 +122,9 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator) -> list[Fram
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
         cam = estimate_board_pose(CornerDetection(uv, "simulated"), layout.board, layout.camera)
         dirs, ranges = board_hits(layout, i)
+        if len(dirs) < 3:
+            frames.append(FrameMeasurement(f"{i:04d}", cam, None, f"only {len(dirs)} LiDAR beams hit the board"))
+            continue
         points = dirs * (ranges + rng.normal(0.0, layout.range_noise_m, len(ranges)))[:, None]
         frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_board(points)))
     return frames
