@@ -15,6 +15,7 @@ import argparse
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI does (see bench_refinement.py)
@@ -26,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from estimators.calibration import solve  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.layout_analysis import analyse, suggest_poses  # noqa: E402
-from estimators.observation_model import Layout, simulate_measurements  # noqa: E402
+from estimators.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
 from estimators.refinement import RefinementOptions  # noqa: E402
 from estimators.simulator import _board_rotation, _pose_fits, default_rig, sample_board_poses  # noqa: E402
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
@@ -103,6 +104,8 @@ def _trial(args):
 
 
 def monte_carlo(layout, trials, workers, seed=0):
+    # The beams that hit each board do not change between noise draws: cast them once.
+    layout = replace(layout, hits=tuple(board_hits(layout, i) for i in range(layout.n_frames)))
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]
     with ProcessPoolExecutor(workers) as pool:
         out = [o for o in pool.map(_trial, [(s, layout) for s in seeds]) if o is not None]
