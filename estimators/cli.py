@@ -55,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     cv.add_argument("--samples", type=int, default=1000, help="effective posterior samples per trial")
     cv.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
     cv.add_argument("--seed", type=int, default=0)
+    cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"])
 
     d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result")
     d.add_argument("--out", default="lidarcam-demo",
@@ -274,7 +275,7 @@ def _study(args) -> int:
     if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
         raise SystemExit("lidarcam: error: --trials, --samples and --workers must be positive and --frames >= 3")
     summary = run_study(args.trials, args.out, args.mode, args.seed, args.workers, args.frames, args.samples,
-                        progress=sys.stderr.isatty())
+                        progress=sys.stderr.isatty(), likelihood=args.likelihood)
     print(format_summary(summary))
     print(f"wrote {Path(args.out) / 'coverage.csv'} and coverage.json")
     return 0

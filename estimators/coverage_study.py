@@ -36,7 +36,7 @@ LEVELS = (0.68, 0.95)
 
 
 def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: int = 1000,
-              corner_noise_px: float = 0.2, range_noise_m: float = 0.02) -> dict:
+              likelihood: str = "gaussian", corner_noise_px: float = 0.2, range_noise_m: float = 0.02) -> dict:
     """One simulated calibration scored against its truth (a flat dict: one CSV row)."""
     from .calibration import calibrate, solve
     from .dataset import load_dataset
@@ -48,7 +48,7 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, "hdl64e", range_noise_m)
     poses = sample_board_poses(rig, n_frames, rng)
-    post_opts = PosteriorOptions(min_ess=samples)
+    post_opts = PosteriorOptions(min_ess=samples, likelihood=likelihood)
     if mode == "measurement":
         layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner_noise_px,
                         range_noise_m)
@@ -92,19 +92,20 @@ def _trial(args):
 
 
 def run_study(trials: int, out: str | Path, mode: str = "measurement", seed: int = 0, workers: int = 2,
-              n_frames: int = 8, samples: int = 1000, progress: bool = False) -> dict:
+              n_frames: int = 8, samples: int = 1000, progress: bool = False, likelihood: str = "gaussian") -> dict:
     """Run ``trials`` trials on local processes; write ``OUT/coverage.csv`` and ``OUT/coverage.json``
     (each atomically) and return the summary."""
     if trials < 1:
         raise ValueError(f"Expected at least 1 trial, got {trials}")
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]
-    args = [(s, mode, n_frames, samples) for s in seeds]
+    args = [(s, mode, n_frames, samples, likelihood) for s in seeds]
     rows = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
         for row in tqdm(pool.map(_trial, args), total=trials, desc=f"coverage ({mode})", disable=not progress):
             rows.append(row)
     summary = summarize(rows)
-    summary.update({"mode": mode, "seed": seed, "frames_per_trial": n_frames, "samples_per_trial": samples})
+    summary.update({"mode": mode, "seed": seed, "frames_per_trial": n_frames, "samples_per_trial": samples,
+                    "likelihood": likelihood})
     out = Path(out)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
