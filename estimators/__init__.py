@@ -1,3 +1,3 @@
 """lidarcam estimators: measurement extraction, solvers, data I/O, simulator, CLI."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
