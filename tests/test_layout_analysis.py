@@ -67,3 +67,19 @@ def test_cli_layout_plan_writes_json_and_rejects_bad_plans(tmp_path, capsys):
     assert main(["layout", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.yaml" in err[0] and "invalid plan" in err[0]
+
+
+def test_cli_layout_on_a_measured_dataset_predicts_its_refined_covariance(sim_hdl64e, tmp_path):
+    """For measured frames the analysis uses the refinement's poses, noise levels and board points: its
+    prediction is the Laplace covariance of the same data (the same model, linearised alike)."""
+    from estimators.calibration import calibrate
+    from estimators.dataset import load_dataset
+
+    assert main(["layout", str(sim_hdl64e), "--json", str(tmp_path / "m.json")]) == 0
+    data = json.loads((tmp_path / "m.json").read_text())
+    assert len(data["frames"]) == 8
+    result = calibrate(load_dataset(sim_hdl64e), rng=np.random.default_rng(0), posterior=None)
+    np.testing.assert_allclose(data["predicted_std"]["translation_mm_along_lidar_xyz"], result.std_translation_mm,
+                               rtol=0.1)
+    np.testing.assert_allclose(data["predicted_std"]["rotation_deg_about_lidar_xyz"], result.std_rotation_deg,
+                               rtol=0.1)
