@@ -29,16 +29,14 @@ from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.layout_analysis import analyse, suggest_poses  # noqa: E402
 from estimators.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
 from estimators.refinement import RefinementOptions  # noqa: E402
-from estimators.simulator import _board_rotation, _pose_fits, default_rig, sample_board_poses  # noqa: E402
+from estimators.simulator import _board_rotation, _pose_fits, board_pose, default_rig, sample_board_poses  # noqa: E402
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
 
 CORNER_NOISE_PX, RANGE_NOISE_M = 0.2, 0.02
 
 
 def _pose(rig, centre, tilt_deg, azimuth_deg, spin_deg=0.0):
-    c = np.asarray(centre, float)
-    R = _board_rotation(c / np.linalg.norm(c), np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg), np.deg2rad(spin_deg))
-    return T_from_Rt(R, c - R @ rig.board.centre)
+    return board_pose(rig.board, centre, np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg), np.deg2rad(spin_deg))
 
 
 def _one_way(rig, rng, n, direction):

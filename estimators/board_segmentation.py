@@ -21,7 +21,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from geometry.board import BoardModel
-from geometry.planes import Plane, fit_plane_pca, moment_matrix, plane_basis, plane_difference
+from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
 
 from .errors import MeasurementError
 from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board

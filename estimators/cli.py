@@ -211,21 +211,11 @@ def _layout(args) -> int:
     if src.is_dir():
         from .calibration import calibrate
         from .dataset import load_dataset
-        from .lidar_models import BEAM_MODELS
-        from .observation_model import Layout
-        from .simulator import Rig
+        from .layout_analysis import layout_from_result
 
         ds = load_dataset(src)
         result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
-        ref = result.refinement
-        used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board]
-        hits = tuple((f.lidar.points / np.linalg.norm(f.lidar.points, axis=1, keepdims=True),
-                      np.linalg.norm(f.lidar.points, axis=1)) for f in used)
-        beams = BEAM_MODELS[args.lidar_model](ref.range_noise_m)
-        layout = Layout(result.camera, ds.board, beams, result.T_camera_lidar,
-                        tuple(ref.T_camera_board[f.name] for f in used), ref.corner_noise_px, ref.range_noise_m, hits)
-        rig = Rig(result.camera, beams, ds.board, result.T_camera_lidar)
-        names = [f.name for f in used]
+        layout, rig, names = layout_from_result(result, ds.board, args.lidar_model)
     elif src.is_file():
         try:
             plan = yaml.safe_load(src.read_text())

@@ -31,7 +31,7 @@ from .closed_form import describe_direction, normal_spread
 from .errors import DatasetError
 from .lidar_models import BEAM_MODELS
 from .observation_model import Layout, board_hits, frame_contribution, frame_information
-from .simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _board_rotation, _pose_fits, sample_board_poses
+from .simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
 MIN_BOARD_HITS = 50
@@ -132,6 +132,20 @@ def _weakest_words(v: np.ndarray, layout: Layout, unobservable: bool) -> str:
     return f"rotation about {axis} is {state}: add boards spread further over the image and tilted more"
 
 
+def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layout, Rig, list[str]]:
+    """A layout of measured frames (a refined :class:`CalibrationResult`): the estimate, the refined board
+    poses, the refinement's noise levels and the board points actually measured. ``beams_model`` only
+    serves pose suggestions."""
+    ref = result.refinement
+    used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board]
+    hits = tuple((f.lidar.points / np.linalg.norm(f.lidar.points, axis=1, keepdims=True),
+                  np.linalg.norm(f.lidar.points, axis=1)) for f in used)
+    beams = BEAM_MODELS[beams_model](ref.range_noise_m)
+    layout = Layout(result.camera, board, beams, result.T_camera_lidar,
+                    tuple(ref.T_camera_board[f.name] for f in used), ref.corner_noise_px, ref.range_noise_m, hits)
+    return layout, Rig(result.camera, beams, board, result.T_camera_lidar), [f.name for f in used]
+
+
 def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
     """A layout (and the rig, for pose suggestions) from a parsed ``PLAN.yaml``."""
     from .dataset import parse_board, parse_camera
@@ -161,10 +175,8 @@ def _plan_pose(p: dict, board) -> np.ndarray:
         if T.shape != (4, 4):
             raise ValueError("T_camera_board must be 4x4")
         return T
-    c = np.array(p["centre_m"], dtype=float)
-    R = _board_rotation(c / np.linalg.norm(c), np.deg2rad(float(p.get("tilt_deg", 0.0))),
-                        np.deg2rad(float(p.get("azimuth_deg", 0.0))), np.deg2rad(float(p.get("spin_deg", 0.0))))
-    return T_from_Rt(R, c - R @ board.centre)
+    return board_pose(board, np.array(p["centre_m"], dtype=float), np.deg2rad(float(p.get("tilt_deg", 0.0))),
+                      np.deg2rad(float(p.get("azimuth_deg", 0.0))), np.deg2rad(float(p.get("spin_deg", 0.0))))
 
 
 def meets(analysis: LayoutAnalysis, max_rotation_deg: float, max_translation_mm: float) -> bool:

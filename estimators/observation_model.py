@@ -88,8 +88,7 @@ def frame_information(layout: Layout, i: int) -> np.ndarray:
 def frame_contribution(F_frame: np.ndarray) -> np.ndarray:
     """A frame's 6x6 share of the extrinsic's information: its board pose marginalised (Schur complement).
     Frames have their own board poses, so the extrinsic's information is the sum of these shares."""
-    A, B, C = F_frame[:6, :6], F_frame[:6, 6:], F_frame[6:, 6:]
-    return A - B @ np.linalg.solve(C, B.T)
+    return extrinsic_information(F_frame)
 
 
 def fisher_information(layout: Layout) -> np.ndarray:

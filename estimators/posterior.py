@@ -35,8 +35,7 @@ from geometry.rotations import exp_batch
 from .errors import LidarcamError
 from .factors import corner_residuals, lidar_plane
 from .measurements import FrameMeasurement
-from .refinement import Refinement, _plane_noise, pooled_range_noise_m
-from geometry.planes import sqrt_excess_moment
+from .refinement import Refinement, _plane_noise, plane_whiteners
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -161,17 +160,15 @@ class PlaneLikelihood:
         fits = {f.name: f for f in ref.frames}
         self.T_map = ref.T_camera_lidar
         self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
-        measured = pooled_range_noise_m(frames)
         half = 0.5 * float(np.mean(board.extent))
-        rows, lams, normals, dists, weights = [], [], [], [], []
-        for f in frames:
+        rows, lams, normals, dists = [], [], [], []
+        for f, W in zip(frames, plane_whiteners(frames)):
             fit = fits.get(f.name)
             if fit is None or fit.dropped or fit.weight <= 0:
                 continue
             b = f.camera.T_camera_board
             _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
             cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
-            W, _ = sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))
             if W.shape[0] != 3:
                 raise LidarcamError(f"frame {f.name}: its board points do not span a plane; the 3D posterior needs "
                                     "every used board to")
@@ -187,7 +184,6 @@ class PlaneLikelihood:
             n = b[:3, 2]
             normals.append(n)
             dists.append(float(n @ b[:3, 3]))
-            weights.append(2 * float(np.sum(np.log(np.diag(L)))))
         if len(rows) < 3:
             raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")
         self.rows, self.lam = np.array(rows), np.array(lams)  # (F, 3, 4), (F, 3)

@@ -133,6 +133,14 @@ def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
     return float(np.sqrt(ss / dof))
 
 
+def plane_whiteners(frames: list[FrameMeasurement]) -> list[np.ndarray]:
+    """Each frame's ``W`` (square root of its excess range moment) with the moments' noise term removed at
+    the noise the data show (not at a given sigma_r, which sets the weights only: a wrong given value must
+    not bias the planes)."""
+    measured = pooled_range_noise_m(frames)
+    return [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in frames]
+
+
 def _robust(noise: gtsam.noiseModel.Base, options: RefinementOptions) -> gtsam.noiseModel.Base:
     if options.robust == "huber":
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(options.robust_threshold), noise)
@@ -170,10 +178,7 @@ class _Problem:
                  sigma_r: float, options: RefinementOptions):
         self.frames, self.board, self.camera = frames, board, camera
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
-        # The moments' noise term is removed at the noise the data show (not at a given sigma_r, which
-        # sets the weights only): a wrong given value must not bias the planes.
-        measured = pooled_range_noise_m(frames)
-        self.whiteners = [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in frames]
+        self.whiteners = plane_whiteners(frames)
         self.corners_board = board.inner_corners()
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 

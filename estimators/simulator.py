@@ -75,6 +75,14 @@ def _board_rotation(ray: np.ndarray, tilt: float, azimuth: float, spin: float) -
     return np.column_stack([x, np.cross(n, x), n])
 
 
+def board_pose(board: BoardModel, centre: np.ndarray, tilt: float, azimuth: float, spin: float) -> np.ndarray:
+    """``T_camera_board`` of a board whose centre is at ``centre`` (camera frame, m), its normal tilted by
+    ``tilt`` from the line of sight towards ``azimuth`` and turned by ``spin`` about itself (radians)."""
+    c = np.asarray(centre, dtype=float)
+    R = _board_rotation(c / np.linalg.norm(c), tilt, azimuth, spin)
+    return T_from_Rt(R, c - R @ board.centre)
+
+
 def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
     outline_c = transform_points(T_camera_board, rig.board.outline())
     uv = rig.camera.project(outline_c)
@@ -101,8 +109,7 @@ def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: in
             uv = np.array([[rng.uniform(0.1, 0.9) * cam.width, rng.uniform(0.1, 0.9) * cam.height]])
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
-            R = _board_rotation(ray, tilt, azimuth, spin)
-            T = T_from_Rt(R, ray * dist - R @ rig.board.centre)
+            T = board_pose(rig.board, ray * dist, tilt, azimuth, spin)
             if _pose_fits(rig, T):
                 poses.append(T)
                 break

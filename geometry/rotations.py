@@ -88,9 +88,8 @@ def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
 
 def T_exp(xi: np.ndarray) -> np.ndarray:
     """SE(3) exponential of ``xi = [omega; v]`` (GTSAM's ``Pose3.Expmap``)."""
-    xi = np.asarray(xi, dtype=float)
-    omega, v = xi[:3], xi[3:]
-    return T_from_Rt(R_from_rotvec(omega), _so3_left_jacobian(omega) @ v)
+    R, t = exp_batch(xi)
+    return T_from_Rt(R[0], t[0])
 
 
 def T_log(T: np.ndarray) -> np.ndarray:
