@@ -87,14 +87,14 @@ def _pieces(P: np.ndarray, normal: np.ndarray, radius_per_m: float) -> list[np.n
     return np.split(order, splits)
 
 
-def _board_window(uv: np.ndarray, w: float, h: float, cell: float = 0.02) -> tuple[np.ndarray, float]:
-    """The board-sized (w x h) window, over in-plane rotations, that holds the most points.
-
-    Returns the mask of the points inside it. Used to cut a stand or a tripod head from a board piece.
-    """
-    best_mask, best_count = np.ones(len(uv), dtype=bool), -1
-    nw, nh = int(np.ceil(w / cell)), int(np.ceil(h / cell))
-    for theta in np.deg2rad(np.arange(0.0, 180.0, 3.0)):
+def _best_window(uv: np.ndarray, w: float, h: float, thetas: np.ndarray, cell: float
+                 ) -> tuple[float, float, np.ndarray]:
+    """The in-plane rotation and lower corner of the ``w x h`` window (sides rounded to whole cells) that
+    holds the most points: (count, theta, corner in the rotated coordinates). Among equally full offsets
+    the middle one is taken."""
+    best = (-1.0, 0.0, np.zeros(2))
+    nw, nh = max(int(round(w / cell)), 1), max(int(round(h / cell)), 1)
+    for theta in thetas:
         c, s = np.cos(theta), np.sin(theta)
         q = uv @ np.array([[c, -s], [s, c]])
         ij = np.floor((q - q.min(0)) / cell).astype(int)
@@ -104,12 +104,33 @@ def _board_window(uv: np.ndarray, w: float, h: float, cell: float = 0.02) -> tup
         integral = np.pad(hist.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
         a, b = min(nw, shape[0]), min(nh, shape[1])
         sums = integral[a:, b:] - integral[:-a, b:] - integral[a:, :-b] + integral[:-a, :-b]
-        k = np.unravel_index(int(np.argmax(sums)), sums.shape)
-        if sums[k] > best_count:
-            best_count = sums[k]
-            lo = np.array(k) * cell + q.min(0)
-            best_mask = np.all((q >= lo - cell) & (q <= lo + np.array([a, b]) * cell + cell), axis=1)
-    return best_mask, best_count
+        top = sums.max()
+        if top > best[0]:
+            k = np.mean(np.argwhere(sums == top), axis=0)
+            best = (float(top), float(theta), k * cell + q.min(0))
+    return best
+
+
+def _rotate(uv: np.ndarray, theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return uv @ np.array([[c, -s], [s, c]])
+
+
+def _board_window(uv: np.ndarray, w: float, h: float, slack: float = 0.015) -> np.ndarray:
+    """Mask of the points inside the board's rectangle (``w x h``, grown by ``slack`` on every side).
+
+    The rectangle is the board-sized window that holds the most points: first over in-plane rotations
+    every 3 degrees on 2 cm cells, then within 3 degrees of that every 0.25 degree on 5 mm cells. A
+    board-sized window cannot grow towards a stand or a tripod head without losing a whole board edge,
+    so those points fall outside it; the slack keeps edge points that range noise moved sideways.
+    """
+    _, theta, _ = _best_window(uv, w + 0.03, h + 0.03, np.deg2rad(np.arange(0.0, 180.0, 3.0)), 0.02)
+    fine = theta + np.deg2rad(np.arange(-3.0, 3.01, 0.25))
+    cell = 0.005
+    _, theta, lo = _best_window(uv, w, h, fine, cell)
+    q = _rotate(uv, theta)
+    size = np.array([max(round(w / cell), 1), max(round(h / cell), 1)]) * cell
+    return np.all((q >= lo - slack) & (q <= lo + size + slack), axis=1)
 
 
 def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: SegmentationParams
@@ -129,7 +150,7 @@ def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: Segment
         if near.mean() < 0.7:
             return None, f"too large ({big:.2f} x {small:.2f} m)"
         keep = np.zeros(len(uv), dtype=bool)
-        keep[near], _ = _board_window(uv[near], bw + 0.03, bh + 0.03)
+        keep[near] = _board_window(uv[near], bw, bh, slack=0.03)
         if keep.mean() < 0.7:
             return None, f"too large ({big:.2f} x {small:.2f} m)"
         uv = uv[keep]
@@ -224,16 +245,26 @@ def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObserva
         close = [c for c in candidates if camera is None or c.cost < params.ambiguity_ratio * candidates[0].cost + 0.05]
         raise AmbiguousBoardError(
             f"ambiguous: {len(close)} board-sized planes agree with the camera's board",
-            candidates=[_finish(c.points, P, len(candidates)) for c in close])
-    return _finish(candidates[0].points, P, len(candidates))
+            candidates=[_finish(c.points, P, board, len(candidates)) for c in close])
+    return _finish(candidates[0].points, P, board, len(candidates))
 
 
-def _finish(points: np.ndarray, P: np.ndarray, n_candidates: int) -> LidarBoardObservation:
+def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: int) -> LidarBoardObservation:
     # Gather again every gated point near the chosen piece and its plane (RANSAC's band was centred on a
     # noisy three-point plane and cut the noise unevenly), then refit robustly.
     near = cKDTree(points).query(P, distance_upper_bound=0.03)[0] < np.inf
-    _, keep = robust_plane_fit(P[near])
-    return observe_lidar_board(P[near][keep], n_candidates)
+    Q = P[near]
+    plane, keep = robust_plane_fit(Q)
+    Q = Q[keep]
+    if board.size_known and len(Q) >= 3:
+        # Cut to the board's rectangle: the few centimetres of a stand or tripod head just outside the
+        # board lie within the noise band of its plane but tilt it (they sit at one edge, behind it).
+        uv = (Q - Q.mean(0)) @ plane_basis(plane.normal)
+        inside = _board_window(uv, *board.extent)
+        if inside.sum() >= 3:
+            _, keep = robust_plane_fit(Q[inside])
+            Q = Q[inside][keep]
+    return observe_lidar_board(Q, n_candidates)
 
 
 class AmbiguousBoardError(MeasurementError):
