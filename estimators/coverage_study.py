@@ -74,6 +74,10 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
            "d2_posterior": float(centred @ P @ centred),
            "d2_laplace": float(xi @ np.linalg.solve(result.covariance_laplace, xi)),
            "effective_samples": post.run.ess, "seconds": time.perf_counter() - t0}
+    # Signed error of the truth from the posterior mean in posterior standard deviations: a mean far
+    # from 0 over trials is a bias, a spread above 1 overconfidence.
+    for k, axis in enumerate(AXES):
+        row[f"z_{axis}"] = float(centred[k] / np.sqrt(post.covariance[k, k]))
     for level in LEVELS:
         iv = post.intervals(level)
         inside = (xi >= iv[:, 0]) & (xi <= iv[:, 1])
@@ -120,7 +124,12 @@ def summarize(rows: list[dict]) -> dict:
     """Fractions inside each interval (per axis and joint) with a 95% binomial (Wilson) range."""
     n = len(rows)
     out = {"trials": n, "mean_d2_posterior": float(np.mean([r["d2_posterior"] for r in rows])),
-           "mean_d2_laplace": float(np.mean([r["d2_laplace"] for r in rows])), "coverage": {}}
+           "mean_d2_laplace": float(np.mean([r["d2_laplace"] for r in rows])), "coverage": {},
+           }
+    if all(f"z_{a}" in r for r in rows for a in AXES):
+        out["z_mean"] = {a: float(np.mean([r[f"z_{a}"] for r in rows])) for a in AXES}
+        out["z_std"] = {a: float(np.std([r[f"z_{a}"] for r in rows], ddof=1)) if n > 1 else float("nan")
+                        for a in AXES}
     for level in LEVELS:
         key = f"{round(100 * level)}"
         out["coverage"][f"{key}%"] = {
@@ -143,4 +152,7 @@ def format_summary(summary: dict) -> str:
     for level, cov in summary["coverage"].items():
         lines.append(f"  {level:9s}" + "".join(f"{100 * cov[a]['fraction']:10.1f}%"
                                                 for a in (*AXES, "joint", "joint_chi2")))
+    if "z_mean" in summary:
+        lines.append(f"  {'z mean':9s}" + "".join(f"{summary['z_mean'][a]:11.2f}" for a in AXES))
+        lines.append(f"  {'z std':9s}" + "".join(f"{summary['z_std'][a]:11.2f}" for a in AXES))
     return "\n".join(lines)
