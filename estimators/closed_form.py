@@ -18,6 +18,9 @@ from .errors import DegenerateLayoutError
 # Smallest singular value of N_c / sqrt(m) (the RMS normal component along the weakest direction)
 # below which translation along that direction is treated as undetermined.
 MIN_NORMAL_SPREAD = 0.05
+# The limit when the closed form only starts the factor graph: between the two, the layout is weak (the
+# planar method's boards all tilted one way, spread about 0.02) but the full model still determines it.
+WEAK_NORMAL_SPREAD = 0.01
 
 _AXIS_WORDS = ("camera x (right)", "camera y (down)", "camera z (forward)")
 _AXIS_ADVICE = (
@@ -53,8 +56,14 @@ def normal_spread(normals_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, Vt[-1]
 
 
-def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane]) -> ClosedFormSolution:
-    """``T_camera_lidar`` from corresponding board planes (both in canonical, distance >= 0 form)."""
+def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane], allow_weak: bool = False
+                      ) -> ClosedFormSolution:
+    """``T_camera_lidar`` from corresponding board planes (both in canonical, distance >= 0 form).
+
+    Normals spread less than ``MIN_NORMAL_SPREAD`` along some direction raise
+    :class:`DegenerateLayoutError`; with ``allow_weak`` (the answer only starts a refinement, which
+    measures the full model's information itself) the limit is ``WEAK_NORMAL_SPREAD``.
+    """
     m = len(camera_planes)
     if m != len(lidar_planes):
         raise ValueError(f"Expected as many LiDAR planes as camera planes, got {len(lidar_planes)} and {m}")
@@ -65,7 +74,7 @@ def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane]) -> 
     Nc = np.array([p.normal for p in camera_planes])
     Nl = np.array([p.normal for p in lidar_planes])
     s, weak = normal_spread(Nc)
-    if s[-1] < MIN_NORMAL_SPREAD:
+    if s[-1] < (WEAK_NORMAL_SPREAD if allow_weak else MIN_NORMAL_SPREAD):
         axis, advice = describe_direction(weak)
         raise DegenerateLayoutError(
             f"the {m} board normals do not span 3D (spread {s[-1]:.3f} along {axis}, "

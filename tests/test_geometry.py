@@ -12,7 +12,7 @@ from estimators.errors import DegenerateLayoutError
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane, fit_plane_pca, moment_matrix, sum_squared_distances
-from geometry.rotations import (R_from_quat_xyzw, T_exp, T_from_Rt, T_inverse, T_local, T_log, T_retract,
+from geometry.rotations import (R_from_quat_xyzw, R_from_rotvec, T_exp, T_from_Rt, T_inverse, T_local, T_log, T_retract,
                                 quat_xyzw_from_R, random_rotation, rotation_error, transform_points)
 
 seeds = st.integers(min_value=0, max_value=2**32 - 1)
@@ -131,3 +131,22 @@ def test_transform_points_and_inverse():
     T = T_from_Rt(random_rotation(rng), rng.normal(size=3))
     P = rng.normal(size=(10, 3))
     np.testing.assert_allclose(transform_points(T_inverse(T), transform_points(T, P)), P, atol=1e-12)
+
+
+def test_weak_normal_spread_is_refused_alone_but_starts_a_refinement():
+    """Boards all tilted the same way (the planar method's one-way sets): spread about 0.02 along camera y.
+    The closed form alone refuses it; as a start for the factor graph it is allowed, with the exact answer
+    on noise-free planes."""
+    T = T_from_Rt(R_from_rotvec([0.02, -0.03, 0.01]), np.array([0.05, -0.1, 0.08]))
+    normals = [np.array([np.sin(a), -0.5, np.cos(a)]) for a in (-0.5, -0.2, 0.1, 0.4)]
+    normals = [n / np.linalg.norm(n) for n in normals]
+    normals[0] = normals[0] + np.array([0.0, 0.04, 0.0])
+    cam = [Plane(n, 3.0 + 0.2 * k) for k, n in enumerate(normals)]
+    T_lc = T_inverse(T)
+    lid = [Plane(T_lc[:3, :3] @ p.normal, p.distance - p.normal @ T[:3, 3]) for p in cam]
+    s = normal_spread(np.array([p.normal for p in cam]))[0][-1]
+    assert 0.01 < s < 0.05
+    with pytest.raises(DegenerateLayoutError, match="camera y"):
+        solve_closed_form(cam, lid)
+    sol = solve_closed_form(cam, lid, allow_weak=True)
+    np.testing.assert_allclose(sol.T_camera_lidar, T, atol=1e-9)
