@@ -129,3 +129,13 @@ def T_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
 def T_local(T_hat: np.ndarray, T: np.ndarray) -> np.ndarray:
     """The ``xi`` with ``T = T_hat Exp(xi)``."""
     return T_log(T_inverse(T_hat) @ T)
+
+
+def T_align(points_from: np.ndarray, points_to: np.ndarray) -> np.ndarray:
+    """The rigid transform ``T_to_from`` (det +1) that best maps ``points_from`` onto ``points_to``
+    (least squares; Kabsch). Needs 3 non-collinear points for a unique answer."""
+    A = np.asarray(points_from, dtype=float).reshape(-1, 3)
+    B = np.asarray(points_to, dtype=float).reshape(-1, 3)
+    ca, cb = A.mean(0), B.mean(0)
+    R = nearest_rotation((B - cb).T @ (A - ca))
+    return T_from_Rt(R, cb - R @ ca)
