@@ -23,6 +23,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_posterior.py
 	$(PY) benchmarks/bench_layout.py
 	$(PY) benchmarks/bench_realdata.py
+	$(PY) benchmarks/bench_2d.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info

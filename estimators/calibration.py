@@ -24,11 +24,13 @@ from .image_io import read_gray
 from .intrinsics import calibrate_intrinsics
 from .measurements import FrameMeasurement
 from .output import write_json_atomic, write_npz_atomic
-from .pointcloud_io import read_scan
+from .pointcloud_io import read_scan, read_scan_2d
+from .scan_segmentation import ScanSegmentationParams, find_board_in_scan
 from .posterior import Posterior, PosteriorOptions, sample_posterior
 from .refinement import Refinement, RefinementOptions, refine as refine_graph
+from .solution_selection import MinimalSelection, select_minimal, solution_distances
 
-INITS = ("closed-form",)
+INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 REFINES = ("factor-graph", "none")
 CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
@@ -53,6 +55,8 @@ class CalibrationResult:
     plane_residuals: dict = field(default_factory=dict)  # name -> (normal angle rad, distance m)
     refinement: Refinement | None = None
     posterior: Posterior | None = None
+    selection: MinimalSelection | None = None  # 2D LiDAR: how the minimal solutions were chosen
+    alternatives: tuple = ()  # 2D LiDAR: other refined minima that fit about as well (T, cost gap)
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -127,6 +131,18 @@ class CalibrationResult:
             "iterations": ref.iterations,
         }
 
+    def _minimal_dict(self) -> dict:
+        sel = self.selection
+        if sel is None:
+            return {}
+        return {"minimal_solutions": {
+            "method": sel.method, "triples": sel.n_triples, "solutions": sel.n_solutions,
+            "inside_board_extent": sel.n_inside_extent, "clusters": sel.n_clusters,
+            "candidates_refined": len(sel.candidates), "cost_threshold": sel.threshold,
+            "candidate_costs": [c.cost for c in sel.candidates], "degenerate_triples": list(sel.degenerate_triples),
+            "seconds": sel.seconds},
+            "alternatives": [{"T_camera_lidar": T.tolist(), "cost_gap": gap} for T, gap in self.alternatives]}
+
     def to_dict(self) -> dict:
         R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
         fits = {f.name: f for f in self.refinement.frames} if self.refinement else {}
@@ -147,6 +163,7 @@ class CalibrationResult:
                 "weakest_direction_camera": self.weakest_direction_camera.tolist(),
                 "weakest_direction_words": f"{axis}: to constrain it further, {advice}",
             },
+            **self._minimal_dict(),
             "intrinsics": self.camera.as_dict(),
             "warnings": list(self.warnings),
             "timings_s": self.timings_s,
@@ -158,7 +175,14 @@ def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) 
     difference of the plane distances (m), under ``T_camera_lidar``."""
     out = {}
     for f in frames:
-        if f.usable:
+        if f.usable and f.lidar.is_scan_line:
+            # A laser line: the angle by which it leaves the board's plane, and its points' mean distance to it.
+            R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
+            n, d = f.camera.plane.normal, f.camera.plane.distance
+            direction = R @ np.append(f.lidar.line.direction, 0.0)
+            dist = float(np.mean(f.lidar.points @ R.T @ n + t @ n - d))
+            out[f.name] = (float(np.arcsin(min(abs(direction @ n), 1.0))), dist)
+        elif f.usable:
             out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
     return out
 
@@ -234,11 +258,19 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
 
     frame_rngs = rng.spawn(len(dataset.frames))
     ambiguous: dict[str, list] = {}
+    trees: list = []
+    if dataset.lidar == "2d":
+        # Single-line scans are small: read them all once, so that each frame can tell the board (which
+        # moves between frames) from static background of the board's length.
+        from scipy.spatial import cKDTree
+
+        scans_2d = [read_scan_2d(f.scan) for f in dataset.frames]
+        trees = [cKDTree(xy) for xy in scans_2d]
 
     def lidar_side(k: int) -> FrameMeasurement:
         frame, (_, det) = dataset.frames[k], detections[k]
         t0 = time.perf_counter()
-        points = read_scan(frame.scan)
+        points = scans_2d[k] if dataset.lidar == "2d" else read_scan(frame.scan)
         _add_time(timings, "load_scans", time.perf_counter() - t0)
         if det is None:
             return FrameMeasurement(frame.name, None, None, "checkerboard not found in the image")
@@ -248,7 +280,13 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
             return FrameMeasurement(frame.name, None, None, f"board pose: {exc.message}")
         t1 = time.perf_counter()
         try:
-            lid_obs = find_board(points, dataset.board, cam_obs, frame_rngs[k], params)
+            if dataset.lidar == "2d":
+                lid_obs = find_board_in_scan(
+                    points, dataset.board, cam_obs,
+                    ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m),
+                    [t for j, t in enumerate(trees) if j != k])
+            else:
+                lid_obs = find_board(points, dataset.board, cam_obs, frame_rngs[k], params)
         except AmbiguousBoardError as exc:
             ambiguous[frame.name] = exc.candidates
             return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
@@ -299,9 +337,9 @@ def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor
     so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
     """
     _check_methods(init, refine)
-    if dataset.lidar != "3d":
-        raise DatasetError(f"lidar: {dataset.lidar} datasets are not supported yet", path=dataset.yaml_path,
-                           hint="only lidar: 3d can be calibrated in this version")
+    if dataset.lidar == "3d" and init != "closed-form":
+        raise DatasetError(f"init {init!r} is for 2D LiDAR datasets", path=dataset.yaml_path,
+                           hint="use --init closed-form for lidar: 3d")
     rng = np.random.default_rng(0) if rng is None else rng
     timings: dict = {}
     t_start = time.perf_counter()
@@ -334,8 +372,15 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
+    if any(f.lidar is not None and f.lidar.is_scan_line for f in frames) or init.startswith("minimal"):
+        return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng)
+    if init != "closed-form":
+        raise ValueError(f"init {init!r} is for 2D LiDAR datasets; a 3D LiDAR uses closed-form")
     t0 = time.perf_counter()
-    sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used])
+    # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
+    # what the full model determines (and names what it does not).
+    sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used],
+                            allow_weak=refine == "factor-graph")
     timings["solve"] = time.perf_counter() - t0
     T, ref = sol.T_camera_lidar, None
     if refine == "factor-graph":
@@ -365,6 +410,78 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
     return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                              sol.weakest_direction_camera, name, tuple(warnings),
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post)
+
+
+def refine_candidates(used: list[FrameMeasurement], board, camera: CameraModel, sel: MinimalSelection,
+                      options: RefinementOptions = RefinementOptions()) -> tuple[Refinement, tuple]:
+    """Refine every selected candidate; return the least-cost refinement and the distinct other minima
+    within chi2_6(0.95) of it (``(T, cost gap)``: the data do not decide between them)."""
+    from scipy.stats import chi2
+
+    refined = []
+    for cand in sel.candidates:
+        try:
+            r = refine_graph(used, board, camera, cand.T_camera_lidar, options)
+        except DegenerateLayoutError:
+            if len(sel.candidates) == 1:
+                raise
+            continue
+        refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
+    if not refined:
+        raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
+    refined.sort(key=lambda cr: cr[0])
+    best_cost, ref = refined[0]
+    alternatives, seen = [], [ref.T_camera_lidar]
+    for cost, r in refined[1:]:
+        far = solution_distances(np.array([*seen, r.T_camera_lidar]))[-len(seen):]
+        if np.all(far > 1.0):
+            seen.append(r.T_camera_lidar)
+            if cost - best_cost < chi2.ppf(0.95, 6):
+                alternatives.append((r.T_camera_lidar, float(cost - best_cost)))
+    return ref, tuple(alternatives)
+
+
+def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
+              options: RefinementOptions, name: str, warnings: list[str], timings: dict,
+              posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None) -> CalibrationResult:
+    """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
+    refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
+    from .closed_form import normal_spread
+
+    used = [f for f in frames if f.usable]
+    method = "minimal-lower-bound" if init == "closed-form" else init
+    t0 = time.perf_counter()
+    sel = select_minimal(used, board, method)
+    timings["solve"] = time.perf_counter() - t0
+    if sel.degenerate_triples:
+        warnings.append(f"{len(sel.degenerate_triples)} of {sel.n_triples} board triples are degenerate "
+                        f"(first: {sel.degenerate_triples[0]})")
+    spread, weak = normal_spread(np.array([f.camera.plane.normal for f in used]))
+    if refine == "none":
+        T = sel.candidates[0].T_camera_lidar
+        ref, alternatives = None, ()
+    else:
+        t0 = time.perf_counter()
+        ref, alternatives = refine_candidates(used, board, camera, sel, options)
+        timings["refine"] = time.perf_counter() - t0
+        T = ref.T_camera_lidar
+        warnings += ref.warnings
+        if alternatives:
+            warnings.append(f"ambiguous: {len(alternatives) + 1} distinct solutions fit the boards about equally well "
+                            f"(cost gaps {', '.join(f'{g:.1f}' for _, g in alternatives)}); add boards tilted in "
+                            "other directions to decide")
+    post = None
+    if ref is not None and posterior is not None:
+        t0 = time.perf_counter()
+        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
+                                posterior, tuple(T_alt for T_alt, _ in alternatives))
+        timings["posterior"] = time.perf_counter() - t0
+        warnings += post.warnings
+    residuals = plane_residuals(T, used)
+    warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
+    return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings),
+                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post, sel,
+                             tuple(alternatives))
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

@@ -12,9 +12,12 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     c = sub.add_parser("calibrate", help="estimate T_camera_lidar from a dataset folder")
-    c.add_argument("dataset", help="folder with dataset.yaml, NNNN.png and NNNN.pcd|ply|bin|npy")
+    c.add_argument("dataset", help="folder with dataset.yaml, NNNN.png and NNNN.pcd|ply|bin|npy (2D: csv|npy|pcd)")
     c.add_argument("--out", required=True, help="output folder (calibration.json is written there)")
-    c.add_argument("--init", default="closed-form", choices=["closed-form"])
+    c.add_argument("--init", default="closed-form",
+                   choices=["closed-form", "minimal-lower-bound", "minimal-min-residual"],
+                   help="initial solution: closed-form (3D LiDAR; for a 2D LiDAR it means minimal-lower-bound), "
+                        "or the 2D minimal-solution selections")
     c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
@@ -22,13 +25,16 @@ def _parser() -> argparse.ArgumentParser:
                    help="upper bound on the camera-LiDAR distance, used to gate the board by range (m)")
 
     s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json")
-    s.add_argument("--lidar", default="3d", choices=["3d"])
-    s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"], help="LiDAR beam model")
+    s.add_argument("--lidar", default="3d", choices=["3d", "2d"],
+                   help="3d: a spinning LiDAR (--model); 2d: a 270-degree single-line scanner, 0.25-degree steps")
+    s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"], help="3D LiDAR beam model")
     s.add_argument("--poses", type=int, default=8)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--range-noise", type=float, default=0.02, metavar="M", help="LiDAR range sigma (m)")
+    s.add_argument("--range-noise", type=float, default=None, metavar="M",
+                   help="LiDAR range sigma (m; default 0.02 for 3d, 0.01 for 2d)")
     s.add_argument("--pixel-noise", type=float, default=2.0, metavar="GREY", help="image noise sigma (grey levels)")
-    s.add_argument("--scan-format", default="pcd", choices=["pcd", "ply", "bin", "npy"])
+    s.add_argument("--scan-format", default=None, choices=["pcd", "ply", "bin", "npy", "csv"],
+                   help="default pcd (3d) or csv (2d: angle,range)")
     s.add_argument("--no-camera", action="store_true", help="omit intrinsics (to test self-calibration)")
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true")
@@ -193,9 +199,17 @@ def _simulate(args) -> int:
 
     if args.poses < 1:
         raise SystemExit("lidarcam: error: --poses must be at least 1")
-    out = simulate_dataset(args.out, args.poses, args.seed, args.model, args.range_noise, args.pixel_noise,
-                           args.scan_format, include_camera=not args.no_camera, overwrite=args.overwrite)
-    print(f"wrote {args.poses} frames ({args.model}) to {out}")
+    two_d = args.lidar == "2d"
+    fmt = args.scan_format or ("csv" if two_d else "pcd")
+    allowed = ("csv", "npy", "pcd") if two_d else ("pcd", "ply", "bin", "npy")
+    if fmt not in allowed:
+        raise SystemExit(f"lidarcam: error: --scan-format {fmt} is not a {args.lidar} scan format (use one of "
+                         f"{', '.join(allowed)})")
+    noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
+    model = "2d" if two_d else args.model
+    out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
+                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite)
+    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}) to {out}")
     return 0
 
 

@@ -16,7 +16,7 @@ from geometry.board import BoardModel
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from .errors import DatasetError
-from .pointcloud_io import SCAN_SUFFIXES
+from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 LIDAR_KINDS = ("3d", "2d")
@@ -80,7 +80,8 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
                            hint="set lidar: 3d or lidar: 2d")
     board = parse_board(spec.get("board"), ypath)
     camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
-    return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root))
+    suffixes = SCAN_2D_SUFFIXES if lidar == "2d" else SCAN_SUFFIXES
+    return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root, suffixes))
 
 
 def parse_board(b: object, ypath: Path) -> BoardModel:
@@ -114,14 +115,14 @@ def parse_camera(c: object, ypath: Path) -> CameraModel:
         raise DatasetError(f"invalid camera ({exc})", path=ypath, hint="fix the camera entry") from exc
 
 
-def _pair_frames(root: Path) -> tuple[FrameFiles, ...]:
+def _pair_frames(root: Path, scan_suffixes: tuple[str, ...] = SCAN_SUFFIXES) -> tuple[FrameFiles, ...]:
     images: dict[str, Path] = {}
     scans: dict[str, Path] = {}
     for p in sorted(root.iterdir()):
         if not p.is_file():
             continue
         suffix = p.suffix.lower()
-        table = images if suffix in IMAGE_SUFFIXES else scans if suffix in SCAN_SUFFIXES else None
+        table = images if suffix in IMAGE_SUFFIXES else scans if suffix in scan_suffixes else None
         if table is None:
             continue
         if p.stem in table:
@@ -130,7 +131,7 @@ def _pair_frames(root: Path) -> tuple[FrameFiles, ...]:
         table[p.stem] = p
     for stem, img in images.items():
         if stem not in scans:
-            raise DatasetError(f"image has no scan {stem}{{{','.join(SCAN_SUFFIXES)}}}", path=img,
+            raise DatasetError(f"image has no scan {stem}{{{','.join(scan_suffixes)}}}", path=img,
                                hint="add the scan or remove the image")
     for stem, scan in scans.items():
         if stem not in images:

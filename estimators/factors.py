@@ -67,6 +67,18 @@ def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
     return pi, H_x, H_b
 
 
+def lidar_residual(W: np.ndarray, pi: np.ndarray, scan_line: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The whitened LiDAR residual of plane ``pi`` and its Jacobian by ``pi``: ``W pi`` for a board's
+    points on a plane; ``W pi / |n_xy|`` for a 2D scan line (in-scan-plane residuals; see
+    ``geometry.planes.sqrt_excess_moment_scan``)."""
+    e = W @ pi
+    if not scan_line:
+        return e, W
+    g = float(np.hypot(pi[0], pi[1]))
+    dg = np.array([pi[0], pi[1], 0.0, 0.0]) / g
+    return e / g, W / g - np.outer(e, dg) / g**2
+
+
 def _pose(values: gtsam.Values, key: int) -> np.ndarray:
     return values.atPose3(key).matrix()
 
@@ -78,13 +90,14 @@ def _corner_error(corners_board, corners_px, camera, this, values, H):
     return r
 
 
-def _plane_error(W, this, values, H):
+def _plane_error(W, scan_line, this, values, H):
     keys = this.keys()
     pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
+    e, de = lidar_residual(W, pi, scan_line)
     if H is not None:
-        H[0] = W @ H_x
-        H[1] = W @ H_b
-    return W @ pi
+        H[0] = de @ H_x
+        H[1] = de @ H_b
+    return e
 
 
 def corner_factor(key_board: int, corners_board: np.ndarray, corners_px: np.ndarray, camera: CameraModel,
@@ -94,6 +107,7 @@ def corner_factor(key_board: int, corners_board: np.ndarray, corners_px: np.ndar
                                                           corners_px, camera))
 
 
-def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam.noiseModel.Base
-                 ) -> gtsam.CustomFactor:
-    return gtsam.CustomFactor(noise, [key_extrinsic, key_board], partial(_plane_error, np.asarray(W, dtype=float)))
+def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam.noiseModel.Base,
+                 scan_line: bool = False) -> gtsam.CustomFactor:
+    return gtsam.CustomFactor(noise, [key_extrinsic, key_board],
+                              partial(_plane_error, np.asarray(W, dtype=float), scan_line))

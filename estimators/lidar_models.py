@@ -13,17 +13,31 @@ class BeamModel:
     azimuth_step_rad: float
     sigma_range_m: float
     max_range_m: float
+    # Field of view in azimuth (from, to), radians; None for a full turn.
+    azimuth_limits_rad: tuple[float, float] | None = None
+
+    @property
+    def is_2d(self) -> bool:
+        """A single-line scanner (its one beam plane is the LiDAR's x-y plane)."""
+        return len(self.elevations_rad) == 1 and abs(float(self.elevations_rad[0])) < 1e-12
+
+    def azimuths(self) -> np.ndarray:
+        if self.azimuth_limits_rad is None:
+            return np.arange(0.0, 2 * np.pi, self.azimuth_step_rad)
+        lo, hi = self.azimuth_limits_rad
+        return np.arange(lo, hi + 0.5 * self.azimuth_step_rad, self.azimuth_step_rad)
 
     def directions(self) -> tuple[np.ndarray, np.ndarray]:
         """Unit beam directions (N, 3) in the LiDAR frame (x forward, y left, z up) and ring ids (N,)."""
-        az = np.arange(0.0, 2 * np.pi, self.azimuth_step_rad)
+        az = self.azimuths()
         el, a = np.meshgrid(self.elevations_rad, az, indexing="ij")
         d = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)], axis=-1).reshape(-1, 3)
         ring = np.repeat(np.arange(len(self.elevations_rad)), len(az))
         return d, ring
 
     def with_noise(self, sigma_range_m: float) -> "BeamModel":
-        return BeamModel(self.name, self.elevations_rad, self.azimuth_step_rad, sigma_range_m, self.max_range_m)
+        return BeamModel(self.name, self.elevations_rad, self.azimuth_step_rad, sigma_range_m, self.max_range_m,
+                         self.azimuth_limits_rad)
 
 
 def hdl64e(sigma_range_m: float = 0.02) -> BeamModel:
@@ -40,4 +54,10 @@ def vlp16(sigma_range_m: float = 0.02) -> BeamModel:
     return BeamModel("VLP-16", np.deg2rad(np.arange(-15.0, 15.1, 2.0)), np.deg2rad(0.2), sigma_range_m, 100.0)
 
 
-BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16}
+def scanner2d(sigma_range_m: float = 0.01) -> BeamModel:
+    """A Hokuyo/SICK-like single-line scanner: 270 degrees in 0.25 degree steps, 30 m."""
+    return BeamModel("2D scanner", np.array([0.0]), np.deg2rad(0.25), sigma_range_m, 30.0,
+                     (-np.deg2rad(135.0), np.deg2rad(135.0)))
+
+
+BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "2d": scanner2d}

@@ -5,7 +5,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.planes import Plane, fit_plane_pca, moment_matrix, sqrt_excess_moment
+from geometry.lines import Line2D
+from geometry.planes import (Plane, fit_plane_pca, moment_matrix, plane_from_moment, sqrt_excess_moment,
+                             sqrt_excess_moment_scan)
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,10 +51,17 @@ class LidarBoardObservation:
     plane_rms_m: float
     range_rms_m: float
     candidates: int
+    # 2D LiDAR: the board's laser line in the scan plane (z = 0). ``plane`` is then the vertical plane
+    # through it (a stand-in: one line does not fix a plane) and ``plane_rms_m`` the line fit's RMS.
+    line: Line2D | None = None
 
     @property
     def n_points(self) -> int:
         return int(len(self.points))
+
+    @property
+    def is_scan_line(self) -> bool:
+        return self.line is not None
 
     def unbiased_range_moment(self, sigma_range_m: float) -> np.ndarray:
         """``range_moment`` less its expected noise term for range noise ``sigma_range_m``."""
@@ -66,20 +75,71 @@ MIN_INCIDENCE_COS = 0.1
 
 
 def observe_lidar_board(points: np.ndarray, candidates: int = 1) -> LidarBoardObservation:
-    """The observation record of a board's inlier points (LiDAR frame, the sensor at the origin)."""
+    """The observation record of a board's inlier points (LiDAR frame, the sensor at the origin).
+
+    Range noise lies along the beams, not along the normal, so a plain PCA plane of an oblique board is
+    tilted (by up to a few milliradians, centimetres at the board's range). The plane recorded here
+    minimises the 1/cos^2-weighted moment less its expected noise term at the noise the points show.
+    """
     P = np.asarray(points, dtype=float)
     plane = fit_plane_pca(P)
-    r = plane.signed_distances(P)
     beams = P / np.linalg.norm(P, axis=1, keepdims=True)
-    cos = np.maximum(np.abs(beams @ plane.normal), MIN_INCIDENCE_COS)
-    w = 1.0 / cos**2
-    range_moment = moment_matrix(P, w)
-    _, floor = sqrt_excess_moment(range_moment)
-    dof = max(len(P) - 3, 1)
+    for _ in range(2):  # the weights depend on the plane's normal, weakly
+        cos = np.maximum(np.abs(beams @ plane.normal), MIN_INCIDENCE_COS)
+        w = 1.0 / cos**2
+        range_moment = moment_matrix(P, w)
+        beam_moment = (beams * w[:, None]).T @ beams
+        _, floor = sqrt_excess_moment(range_moment)
+        dof = max(len(P) - 3, 1)
+        range_rms = float(np.sqrt(max(floor, 0.0) / dof))
+        corrected = range_moment.copy()
+        corrected[:3, :3] -= range_rms**2 * beam_moment
+        plane = plane_from_moment(corrected)
+    r = plane.signed_distances(P)
     return LidarBoardObservation(points=P, plane=plane, moment=moment_matrix(P), range_moment=range_moment,
-                                 beam_moment=(beams * w[:, None]).T @ beams,
-                                 plane_rms_m=float(np.sqrt(np.mean(r**2))), range_rms_m=float(np.sqrt(max(floor, 0.0) / dof)),
-                                 candidates=candidates)
+                                 beam_moment=beam_moment, plane_rms_m=float(np.sqrt(np.mean(r**2))),
+                                 range_rms_m=range_rms, candidates=candidates)
+
+
+def observe_lidar_line(points: np.ndarray, candidates: int = 1) -> LidarBoardObservation:
+    """The observation record of a board's points on a 2D LiDAR's scan plane ((N, 2) or (N, 3), z = 0).
+
+    As for a plane, the weights are ``1 / cos^2`` of each beam's incidence on the fitted line, the line
+    minimises the weighted moment less its expected range-noise term, and ``range_rms_m`` is the range
+    noise the best line leaves (``n - 2`` degrees of freedom).
+    """
+    P2 = np.asarray(points, dtype=float)
+    P2 = P2[:, :2] if P2.ndim == 2 and P2.shape[1] >= 2 else P2.reshape(-1, 2)
+    if len(P2) < 3:
+        raise ValueError(f"Expected at least 3 scan points on a board, got {len(P2)}")
+    P = np.column_stack([P2, np.zeros(len(P2))])
+    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    c = P2.mean(0)
+    normal2 = np.linalg.eigh((P2 - c).T @ (P2 - c))[1][:, 0]
+    for _ in range(2):  # the weights depend on the line's normal, weakly
+        cos = np.maximum(np.abs(beams[:, :2] @ normal2), MIN_INCIDENCE_COS)
+        w = 1.0 / cos**2
+        range_moment = moment_matrix(P, w)
+        beam_moment = (beams * w[:, None]).T @ beams
+        _, floor = sqrt_excess_moment_scan(range_moment)
+        range_rms = float(np.sqrt(max(floor, 0.0) / max(len(P) - 2, 1)))
+        corrected = range_moment[np.ix_([0, 1, 3], [0, 1, 3])].copy()
+        corrected[:2, :2] -= range_rms**2 * beam_moment[:2, :2]
+        c = corrected[:2, 2] / corrected[2, 2]
+        normal2 = np.linalg.eigh(corrected[:2, :2] - corrected[2, 2] * np.outer(c, c))[1][:, 0]
+    line = Line2D(c, [-normal2[1], normal2[0]])
+    r = line.signed_distances(P2)
+    plane = Plane(np.append(normal2, 0.0), float(normal2 @ c)).facing_away()
+    return LidarBoardObservation(points=P, plane=plane, moment=moment_matrix(P), range_moment=range_moment,
+                                 beam_moment=beam_moment, plane_rms_m=float(np.sqrt(np.mean(r**2))),
+                                 range_rms_m=range_rms, candidates=candidates, line=line)
+
+
+def lidar_whitener(obs: LidarBoardObservation, sigma_range_m: float) -> np.ndarray:
+    """``W`` of the observation's noise-corrected range moment: 3 x 4 for a board's plane, 2 x 4 for a
+    scan line (whose residual is ``W pi / |n_xy|``, see ``factors.lidar_residual``)."""
+    M = obs.unbiased_range_moment(sigma_range_m)
+    return (sqrt_excess_moment_scan(M) if obs.is_scan_line else sqrt_excess_moment(M))[0]
 
 
 @dataclass(frozen=True, eq=False)

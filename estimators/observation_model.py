@@ -21,7 +21,7 @@ from .board_pose import estimate_board_pose
 from .chessboard import CornerDetection
 from .factors import corner_residuals, lidar_plane
 from .lidar_models import BeamModel
-from .measurements import FrameMeasurement, observe_lidar_board
+from .measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
 from .scene import cast, rectangle
 
 
@@ -125,5 +125,6 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator) -> list[Fram
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, f"only {len(dirs)} LiDAR beams hit the board"))
             continue
         points = dirs * (ranges + rng.normal(0.0, layout.range_noise_m, len(ranges)))[:, None]
-        frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_board(points)))
+        observe = observe_lidar_line if layout.beams.is_2d else observe_lidar_board
+        frames.append(FrameMeasurement(f"{i:04d}", cam, observe(points)))
     return frames

@@ -13,6 +13,9 @@ import numpy as np
 from .errors import ScanReadError
 
 SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
+SCAN_2D_SUFFIXES = (".csv", ".npy", ".pcd")
+# Returns outside these ranges are invalid in a 2D scan (no-return codes, the sensor's own housing).
+MIN_RANGE_2D_M, MAX_RANGE_2D_M = 0.02, 80.0
 
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
@@ -39,6 +42,87 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
         raise ScanReadError("scan holds no valid points (all NaN, inf or zero)", path=path,
                             hint="check the recording")
     return xyz
+
+
+def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
+                 max_range_m: float = MAX_RANGE_2D_M) -> np.ndarray:
+    """Load a single-line scan as (N, 2) metres in its scan plane (the LiDAR's x-y plane).
+
+    Formats: ``.csv`` with a header ``angle,range`` (radians, metres) or ``x,y`` (metres); ``.npy``
+    (N x 2, or N x 3 with z = 0); ``.pcd`` with z = 0 (as ROS tools save scans). Non-finite, zero and
+    out-of-range returns are dropped.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ScanReadError("scan file not found", path=path, hint="check the dataset folder")
+    suffix = path.suffix.lower()
+    if suffix not in SCAN_2D_SUFFIXES:
+        raise ScanReadError(f"unknown 2D scan format {suffix!r}", path=path,
+                            hint=f"use one of {', '.join(SCAN_2D_SUFFIXES)}")
+    try:
+        if suffix == ".csv":
+            xy = _read_csv_2d(path)
+        elif suffix == ".npy":
+            a = np.load(path, allow_pickle=False)
+            if a.ndim != 2 or a.shape[1] not in (2, 3) or a.dtype.kind not in "fiu":
+                raise ScanReadError(f"expected a numeric N x 2 (or N x 3) array, got shape {a.shape} dtype {a.dtype}",
+                                    path=path, hint="save the scan's x, y as two columns")
+            xy = _planar(a.astype(float), path)
+        else:
+            xy = _planar(_read_pcd(path), path)
+    except ScanReadError:
+        raise
+    except Exception as exc:
+        raise ScanReadError(f"corrupt or unreadable {suffix[1:].upper()} file ({type(exc).__name__}: "
+                            f"{_first_line(exc)})", path=path, hint="re-export the scan") from exc
+    r = np.linalg.norm(xy, axis=1)
+    keep = np.all(np.isfinite(xy), axis=1) & (r >= min_range_m) & (r <= max_range_m)
+    if not keep.any():
+        raise ScanReadError("scan holds no valid returns (all NaN, zero or out of range)", path=path,
+                            hint="check the recording")
+    return xy[keep]
+
+
+def _planar(xyz: np.ndarray, path: Path) -> np.ndarray:
+    if xyz.shape[1] == 3:
+        z = np.abs(xyz[:, 2][np.isfinite(xyz[:, 2])])
+        if z.size and z.max() > 1e-3:
+            raise ScanReadError(f"not a 2D scan: z reaches {z.max():.3f} m", path=path,
+                                hint="use lidar: 3d for a 3D LiDAR, or save the scan plane's x, y")
+    return xyz[:, :2]
+
+
+def _read_csv_2d(path: Path) -> np.ndarray:
+    with open(path, encoding="utf-8") as fh:
+        header = [h.strip().lower() for h in fh.readline().split(",")]
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if data.size == 0:
+        return np.zeros((0, 2))
+    cols = {name: i for i, name in enumerate(header)}
+    if {"angle", "range"} <= cols.keys():
+        a, r = data[:, cols["angle"]], data[:, cols["range"]]
+        return np.column_stack([r * np.cos(a), r * np.sin(a)])
+    if {"x", "y"} <= cols.keys():
+        return data[:, [cols["x"], cols["y"]]]
+    raise ScanReadError(f"CSV header {','.join(header)!r} has neither angle,range nor x,y", path=path,
+                        hint="write a header line: angle,range (radians, metres) or x,y (metres)")
+
+
+def write_scan_2d(path: str | os.PathLike, angles: np.ndarray, ranges: np.ndarray) -> None:
+    """Write a 2D scan as ``angle,range`` CSV (invalid returns as range 0), ``.npy`` or z = 0 ``.pcd``."""
+    path = Path(path)
+    a, r = np.asarray(angles, dtype=float), np.asarray(ranges, dtype=float)
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        np.savetxt(path, np.column_stack([a, r]), delimiter=",", header="angle,range", comments="", fmt="%.6f")
+    elif suffix in (".npy", ".pcd"):
+        xy = np.column_stack([r * np.cos(a), r * np.sin(a)])
+        if suffix == ".npy":
+            np.save(path, xy)
+        else:
+            write_scan(path, np.column_stack([xy, np.zeros(len(xy))]))
+    else:
+        raise ValueError(f"Expected a 2D scan suffix in {SCAN_2D_SUFFIXES}, got {suffix!r}")
 
 
 def _first_line(exc: Exception) -> str:

@@ -33,7 +33,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import exp_batch
 
 from .errors import LidarcamError
-from .factors import corner_residuals, lidar_plane
+from .factors import corner_residuals, lidar_plane, lidar_residual
 from .measurements import FrameMeasurement
 from .refinement import Refinement, _plane_noise, plane_whiteners
 
@@ -161,7 +161,7 @@ class PlaneLikelihood:
         self.T_map = ref.T_camera_lidar
         self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
         half = 0.5 * float(np.mean(board.extent))
-        rows, lams, normals, dists = [], [], [], []
+        rows, lams, normals, dists, dims, scan = [], [], [], [], [], []
         for f, W in zip(frames, plane_whiteners(frames)):
             fit = fits.get(f.name)
             if fit is None or fit.dropped or fit.weight <= 0:
@@ -169,26 +169,37 @@ class PlaneLikelihood:
             b = f.camera.T_camera_board
             _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
             cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
-            if W.shape[0] != 3:
-                raise LidarcamError(f"frame {f.name}: its board points do not span a plane; the 3D posterior needs "
-                                    "every used board to")
-            _, _, H_b = lidar_plane(self.T_map, b)
-            A = ref.range_noise_m**2 * np.eye(3)
-            B = _plane_noise(W, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half) + W @ H_b @ cov_b @ H_b.T @ W.T
+            k = W.shape[0]
+            if k != (2 if f.lidar.is_scan_line else 3):
+                raise LidarcamError(f"frame {f.name}: its board points do not span a "
+                                    f"{'line' if f.lidar.is_scan_line else 'plane'}; the posterior needs every "
+                                    "used board to")
+            pi_map, _, H_b = lidar_plane(self.T_map, b)
+            # A scan line's residual is W pi / |n_xy|: its camera part is linearised at the MAP.
+            g = float(np.hypot(pi_map[0], pi_map[1])) if f.lidar.is_scan_line else 1.0
+            _, D = lidar_residual(W, pi_map, f.lidar.is_scan_line)
+            A = ref.range_noise_m**2 * np.eye(k)
+            B = _plane_noise(W, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half) / g**2 + D @ H_b @ cov_b @ H_b.T @ D.T
             A, B = A / fit.weight, B / fit.weight
             L = np.linalg.cholesky(A)
             Li = np.linalg.inv(L)
             lam, V = np.linalg.eigh(Li @ B @ Li.T)
-            rows.append(V.T @ Li @ W)  # z = rows @ pi
-            lams.append(np.maximum(lam, 0.0))
+            row = np.zeros((3, 4))
+            row[:k] = V.T @ Li @ W  # z = row @ pi (divided by |n_xy| for a scan line)
+            lam3 = np.zeros(3)
+            lam3[:k] = np.maximum(lam, 0.0)
+            rows.append(row)
+            lams.append(lam3)
             n = b[:3, 2]
             normals.append(n)
             dists.append(float(n @ b[:3, 3]))
+            dims.append(k)
+            scan.append(f.lidar.is_scan_line)
         if len(rows) < 3:
             raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")
-        self.rows, self.lam = np.array(rows), np.array(lams)  # (F, 3, 4), (F, 3)
+        self.rows, self.lam = np.array(rows), np.array(lams)  # (F, 3, 4), (F, 3); zero rows pad a scan line's 2
         self.normals, self.dists = np.array(normals), np.array(dists)
-        self.k = 3
+        self.dims, self.scan = np.array(dims, dtype=float), np.array(scan, dtype=bool)
 
     @property
     def n_frames(self) -> int:
@@ -204,23 +215,35 @@ class PlaneLikelihood:
         pi[:, :3, :] = np.matmul(R.transpose(0, 2, 1), self.normals.T).transpose(2, 1, 0)  # R^T n per frame
         pi[:, 3, :] = (t @ self.normals.T - self.dists).T
         z = np.matmul(self.rows, pi).transpose(2, 0, 1)  # (w, F, 3)
+        if self.scan.any():
+            gxy = np.hypot(pi[:, 0, :], pi[:, 1, :]).T  # (w, F)
+            z = np.where(self.scan[None, :, None], z / gxy[:, :, None], z)
         g = 1.0 + np.exp(2 * log_s)[:, None, None] * self.lam  # (w, F, 3)
         logdet = np.sum(np.log(g), axis=(1, 2))
         if self.likelihood == "gaussian":
             loglik = -0.5 * np.sum(z * z / g, axis=(1, 2))
         else:
             q = np.sum(z * z / g, axis=2)
-            loglik = -0.5 * (self.nu + self.k) * np.sum(np.log1p(q / self.nu), axis=1)
+            loglik = -0.5 * np.sum((self.nu + self.dims) * np.log1p(q / self.nu), axis=1)
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
 
 
 def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
-                     rng: np.random.Generator, options: PosteriorOptions = PosteriorOptions()) -> Posterior:
-    """Sample the posterior of ``T_camera_lidar`` around the refinement's MAP."""
+                     rng: np.random.Generator, options: PosteriorOptions = PosteriorOptions(),
+                     other_modes: tuple[np.ndarray, ...] = ()) -> Posterior:
+    """Sample the posterior of ``T_camera_lidar`` around the refinement's MAP. ``other_modes``: other
+    refined minima (``T_camera_lidar``) that fit about as well; walkers start in every mode, so that the
+    samples show them all."""
     model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu)
-    # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
+    # Walkers start in the Laplace approximation (already the typical set: no long burn-in), shared out
+    # among the modes.
     start = np.empty((options.walkers, 7))
     start[:, :6] = rng.multivariate_normal(np.zeros(6), ref.covariance, options.walkers)
+    for m, T_mode in enumerate(other_modes):
+        from geometry.rotations import T_log
+
+        share = slice(m + 1, None, len(other_modes) + 1)
+        start[share, :6] += T_log(np.linalg.inv(ref.T_camera_lidar) @ T_mode)
     start[:, 6] = rng.normal(0.0, 0.05, options.walkers)
     run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
     warnings = []

@@ -33,19 +33,19 @@ from scipy.stats import chi2
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.planes import Plane, plane_difference, sqrt_excess_moment
+from geometry.planes import Plane, plane_difference
 from geometry.rotations import T_log
 
 from .closed_form import describe_direction, solve_closed_form
 from .errors import DegenerateLayoutError
-from .factors import corner_factor, corner_residuals, lidar_plane, plane_factor
-from .measurements import FrameMeasurement
+from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
+from .measurements import FrameMeasurement, lidar_whitener
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")
 # Effective per-corner noise over the corner residual on rendered images (see the module docstring;
 # `make bench` prints the value it measures).
-CORNER_ERROR_CORRELATION = 4.0
+CORNER_ERROR_CORRELATION = 1.4
 EXTRINSIC = gtsam.symbol("x", 0)
 
 
@@ -128,8 +128,9 @@ def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera
 
 def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
     """Range noise pooled over the frames' best-fit plane residuals (``n - 3`` dof per frame)."""
-    ss = sum(f.lidar.range_rms_m**2 * max(f.lidar.n_points - 3, 1) for f in frames)
-    dof = sum(max(f.lidar.n_points - 3, 1) for f in frames)
+    fitted = [2 if f.lidar.is_scan_line else 3 for f in frames]
+    ss = sum(f.lidar.range_rms_m**2 * max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
+    dof = sum(max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
     return float(np.sqrt(ss / dof))
 
 
@@ -138,7 +139,7 @@ def plane_whiteners(frames: list[FrameMeasurement]) -> list[np.ndarray]:
     the noise the data show (not at a given sigma_r, which sets the weights only: a wrong given value must
     not bias the planes)."""
     measured = pooled_range_noise_m(frames)
-    return [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in frames]
+    return [lidar_whitener(f.lidar, measured) for f in frames]
 
 
 def _robust(noise: gtsam.noiseModel.Base, options: RefinementOptions) -> gtsam.noiseModel.Base:
@@ -198,12 +199,13 @@ class _Problem:
             graph.add(corner_factor(key, corners_board, f.camera.corners_px, self.camera,
                                     gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
             noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
-            graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), _robust(noise, self.options) if robust else noise))
+            graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), _robust(noise, self.options) if robust else noise,
+                                   f.lidar.is_scan_line))
         return graph
 
     def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         pi, _, _ = lidar_plane(T, T_board)
-        e = self.whitener(i) @ pi
+        e, _ = lidar_residual(self.whitener(i), pi, self.frames[i].lidar.is_scan_line)
         return float(e @ np.linalg.solve(self.plane_cov(i, floor_m), e))
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
@@ -304,7 +306,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         # previous solution, and from there a robust loss can hold on to a wrong minimum.
         kept = [frames[i] for i in active]
         try:
-            T = solve_closed_form([f.camera.plane for f in kept], [f.lidar.plane for f in kept]).T_camera_lidar
+            T = solve_closed_form([f.camera.plane for f in kept], [f.lidar.plane for f in kept],
+                                  allow_weak=True).T_camera_lidar
         except DegenerateLayoutError:
             T = T_init
         boards = [f.camera.T_camera_board for f in frames]
@@ -385,18 +388,23 @@ def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boa
 
 
 def _flag_outliers(chi: dict, frames, T, boards, options) -> dict[int, str]:
-    """Frames whose plane residual is extreme for chi-square(3), relative to the typical frame (so that
-    a rig whose noise is underestimated overall does not flag every frame)."""
-    values = np.array(list(chi.values()))
-    typical = max(1.0, float(np.median(values)) / chi2.median(3))
-    limit = chi2.isf(options.outlier_p, 3) * typical
+    """Frames whose plane residual is extreme for chi-square (3 dof for a plane, 2 for a scan line),
+    relative to the typical frame (so that a rig whose noise is underestimated overall does not flag
+    every frame)."""
+    dof = {i: 2 if frames[i].lidar.is_scan_line else 3 for i in chi}
+    typical = max(1.0, float(np.median([c / chi2.median(dof[i]) for i, c in chi.items()])))
     out = {}
     for i, c in chi.items():
+        limit = chi2.isf(options.outlier_p, dof[i]) * typical
         if c > limit:
             f = frames[i]
             n = boards[i][:3, 2]
-            angle, dist = plane_difference(f.lidar.plane.transformed(T), Plane(n, n @ boards[i][:3, 3]))
-            out[i] = (f"its LiDAR plane disagrees with the camera's board by {np.degrees(angle):.2f} deg and "
-                      f"{1000 * dist:.0f} mm (consistency chi-square {c:.0f} on 3 dof, limit {limit:.0f}): a wrong LiDAR "
+            if f.lidar.is_scan_line:
+                what = "its laser line is off the camera's board"
+            else:
+                angle, dist = plane_difference(f.lidar.plane.transformed(T), Plane(n, n @ boards[i][:3, 3]))
+                what = (f"its LiDAR plane disagrees with the camera's board by {np.degrees(angle):.2f} deg and "
+                        f"{1000 * dist:.0f} mm")
+            out[i] = (f"{what} (consistency chi-square {c:.0f} on {dof[i]} dof, limit {limit:.0f}): a wrong LiDAR "
                       "segment, or the board moved between image and scan")
     return out

@@ -24,7 +24,7 @@ from .closed_form import describe_direction  # noqa: E402
 from .dataset import Dataset  # noqa: E402
 from .image_io import read_gray  # noqa: E402
 from .output import write_atomic  # noqa: E402
-from .pointcloud_io import read_scan  # noqa: E402
+from .pointcloud_io import read_scan, read_scan_2d  # noqa: E402
 
 _LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
 _UNITS = np.array([np.degrees(1.0)] * 3 + [1000.0] * 3)
@@ -107,7 +107,11 @@ def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, 
 def projection_figure(result, frame, board, image_path, scan_path) -> tuple[bytes, np.ndarray]:
     cam = result.camera
     gray = read_gray(image_path)
-    scan = read_scan(scan_path)
+    if frame.lidar.is_scan_line:
+        xy = read_scan_2d(scan_path)
+        scan = np.column_stack([xy, np.zeros(len(xy))])
+    else:
+        scan = read_scan(scan_path)
     pc = transform_points(result.T_camera_lidar, scan)
     front = pc[:, 2] > 0.3
     uv = cam.project(pc[front])
@@ -117,17 +121,25 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
     uv, depth = uv[keep], depth[keep]
     fig, ax = plt.subplots(figsize=(8, 8 * cam.height / cam.width))
     ax.imshow(gray, cmap="gray")
-    sc = ax.scatter(uv[:, 0], uv[:, 1], c=depth, s=0.3, cmap="turbo", vmin=np.percentile(depth, 2),
+    sc = ax.scatter(uv[:, 0], uv[:, 1], c=depth, s=4.0 if frame.lidar.is_scan_line else 0.3, cmap="turbo", vmin=np.percentile(depth, 2),
                     vmax=np.percentile(depth, 98))
-    board_px, lidar_px, offset = board_outline_offset(result, frame, board)
-    for poly, color, label in ((board_px, "lime", "board (camera)"), (lidar_px, "red", "board (LiDAR)")):
+    if frame.lidar.is_scan_line:
+        # One scan line fixes no board outline: show the camera's outline and the line only.
+        board_px = cam.project(transform_points(frame.camera.T_camera_board, board.outline()))
+        outlines, offset = ((board_px, "lime", "board (camera)"),), np.full(2, np.nan)
+    else:
+        board_px, lidar_px, offset = board_outline_offset(result, frame, board)
+        outlines = ((board_px, "lime", "board (camera)"), (lidar_px, "red", "board (LiDAR)"))
+    for poly, color, label in outlines:
         closed = np.vstack([poly, poly[:1]])
         ax.plot(closed[:, 0], closed[:, 1], color=color, lw=1.2, label=label)
     ax.set_xlim(0, cam.width)
     ax.set_ylim(cam.height, 0)
     ax.legend(loc="lower right", fontsize=7)
     fig.colorbar(sc, ax=ax, fraction=0.03, label="depth [m]")
-    ax.set_title(f"frame {frame.name}: LiDAR board offset du {offset[0]:+.1f} px, dv {offset[1]:+.1f} px",
+    title = (f"frame {frame.name}: laser line on the board" if frame.lidar.is_scan_line else
+             f"frame {frame.name}: LiDAR board offset du {offset[0]:+.1f} px, dv {offset[1]:+.1f} px")
+    ax.set_title(title,
                  fontsize=9)
     ax.axis("off")
     return _png(fig), offset
@@ -170,7 +182,8 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
         if frame.usable and frame.name in files:
             png, off = projection_figure(result, frame, dataset.board, files[frame.name].image,
                                          files[frame.name].scan)
-            offsets.append((frame.name, off))
+            if np.all(np.isfinite(off)):
+                offsets.append((frame.name, off))
             figures.append((f"projection_{frame.name}.png", f"Frame {frame.name}: LiDAR points in the image", png))
     if result.posterior is not None:
         figures.append(("traces.png", "MCMC traces", traces_figure(result)))

@@ -21,7 +21,7 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_po
 
 from .lidar_models import BEAM_MODELS, BeamModel
 from .output import atomic_directory
-from .pointcloud_io import write_scan
+from .pointcloud_io import write_scan, write_scan_2d
 from .rendering import render_image
 from .scene import Patch, cast, infinite_plane, rectangle
 
@@ -61,6 +61,16 @@ def default_rig(rng: np.random.Generator, lidar: str = "hdl64e", sigma_range_m: 
                T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar))
 
 
+def default_rig_2d(rng: np.random.Generator, sigma_range_m: float = 0.01) -> Rig:
+    """A 2D scanner 60 cm above the floor and the camera about 10 cm above its scan plane, boards 1.5-4 m
+    away (the scan plane must cut them), with a small random deviation of the mounting."""
+    R = R_CAMERA_LIDAR_NOMINAL @ R_from_rotvec(rng.normal(0.0, np.deg2rad(1.5), 3))
+    camera_in_lidar = np.array([0.05, 0.0, 0.10]) + rng.normal(0.0, 0.01, 3)
+    return Rig(camera=default_camera(), beams=BEAM_MODELS["2d"](sigma_range_m), board=default_board(),
+               T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar), lidar_height_m=0.6, min_distance_m=1.5,
+               max_distance_m=4.0)
+
+
 def _board_rotation(ray: np.ndarray, tilt: float, azimuth: float, spin: float) -> np.ndarray:
     """Board axes (columns x, y, z) in the camera frame: normal ``z`` tilted by ``tilt`` from the viewing ray
     towards ``azimuth``, the board's x turned by ``spin`` about its normal from the camera's x."""
@@ -83,12 +93,39 @@ def board_pose(board: BoardModel, centre: np.ndarray, tilt: float, azimuth: floa
     return T_from_Rt(R, c - R @ board.centre)
 
 
+def scan_crossing_length(board: BoardModel, T_lidar_board: np.ndarray) -> float:
+    """Length (m) of the board's cut by a 2D LiDAR's scan plane (the LiDAR's z = 0)."""
+    w, h = board.extent
+    o, a, b = T_lidar_board[:3, 3], T_lidar_board[:3, 0], T_lidar_board[:3, 1]
+    # z(u, v) = o_z + u a_z + v b_z = 0 over the rectangle [0, w] x [0, h]: clip that line to it.
+    pts = []
+    for u in (0.0, w):
+        if abs(b[2]) > 1e-12:
+            v = -(o[2] + u * a[2]) / b[2]
+            if 0.0 <= v <= h:
+                pts.append((u, v))
+    for v in (0.0, h):
+        if abs(a[2]) > 1e-12:
+            u = -(o[2] + v * b[2]) / a[2]
+            if 0.0 <= u <= w:
+                pts.append((u, v))
+    if len(pts) < 2:
+        return 0.0
+    pts = np.array(pts)
+    return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2)))
+
+
 def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
     outline_c = transform_points(T_camera_board, rig.board.outline())
     uv = rig.camera.project(outline_c)
     if not np.all(rig.camera.in_image(uv, margin_px=15.0)):
         return False
     outline_l = transform_points(T_inverse(rig.T_camera_lidar), outline_c)
+    if rig.beams.is_2d:
+        # The scan plane must cut well across the board (and the board stand on the ground).
+        T_lb = T_inverse(rig.T_camera_lidar) @ T_camera_board
+        return (scan_crossing_length(rig.board, T_lb) >= 0.4 * min(rig.board.extent)
+                and bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.1))
     el = np.arctan2(outline_l[:, 2], np.linalg.norm(outline_l[:, :2], axis=1))
     margin = np.deg2rad(0.5)
     if el.min() < rig.beams.elevations_rad.min() + margin or el.max() > rig.beams.elevations_rad.max() - margin:
@@ -179,7 +216,8 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
     return frames
 
 
-def dataset_yaml(rig: Rig, lidar: str = "3d") -> dict:
+def dataset_yaml(rig: Rig, lidar: str | None = None) -> dict:
+    lidar = lidar or ("2d" if rig.beams.is_2d else "3d")
     b = rig.board
     spec = {"lidar": lidar,
             "board": {"squares": list(b.squares), "square_size": b.square_size}}
@@ -210,7 +248,15 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
         for f in frames:
             cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
-            write_scan(tmp / f"{f.name}.{scan_format}", f.points, f.intensity, f.ring)
+            if rig.beams.is_2d:
+                # Every beam of the sweep, the ones with no return at range 0 (as scanners report them).
+                az = rig.beams.azimuths()
+                ranges = np.zeros(len(az))
+                k = np.rint((np.arctan2(f.points[:, 1], f.points[:, 0]) - az[0]) / rig.beams.azimuth_step_rad)
+                ranges[k.astype(int)] = np.linalg.norm(f.points[:, :2], axis=1)
+                write_scan_2d(tmp / f"{f.name}.{scan_format}", az, ranges)
+            else:
+                write_scan(tmp / f"{f.name}.{scan_format}", f.points, f.intensity, f.ring)
     return Path(out)
 
 
@@ -219,7 +265,8 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
                      include_camera: bool = True, overwrite: bool = False) -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``."""
     rng = np.random.default_rng(seed)
-    rig = replace(default_rig(rng, lidar, sigma_range_m), pixel_noise=pixel_noise)
+    base = default_rig_2d(rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
+    rig = replace(base, pixel_noise=pixel_noise)
     frames = simulate_frames(rig, n_poses, rng)
     return write_dataset(out, rig, frames, scan_format, include_camera, overwrite,
                          meta={"seed": seed, "poses": n_poses})

@@ -87,6 +87,36 @@ def sqrt_excess_moment(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarra
     return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
 
 
+def sqrt_excess_moment_scan(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, float]:
+    """The scan-line form of :func:`sqrt_excess_moment` for points on a 2D LiDAR's scan plane (z = 0):
+    ``W`` (2 x 4) and ``floor`` with ``pi^T M pi = |W pi|^2 + floor |n_xy|^2`` for every plane
+    ``pi = [n; -d]``. ``floor`` is the cost of the best-fitting line; dividing ``|W pi|^2`` by
+    ``|n_xy|^2`` gives the excess of the plane's trace (a line) over that best line, in the units of the
+    points' in-scan-plane residuals. MATH.md section 4."""
+    M = np.asarray(M, dtype=float)
+    n = M[3, 3]
+    if n <= 0:
+        raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
+    s = M[:2, 3]
+    scatter = M[:2, :2] - np.outer(s, s) / n
+    floor = float(np.linalg.eigvalsh(scatter)[0])
+    E = M.copy()
+    E[:2, :2] -= floor * np.eye(2)
+    vals, vecs = np.linalg.eigh(E)
+    keep = vals > rel_tol * vals[-1]
+    return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
+
+
+def plane_from_moment(M: np.ndarray) -> Plane:
+    """The plane minimising ``pi^T M pi`` over unit normals (weighted centroid, smallest scatter direction);
+    ``M`` may be noise-corrected (see ``LidarBoardObservation.unbiased_range_moment``)."""
+    M = np.asarray(M, dtype=float)
+    c = M[:3, 3] / M[3, 3]
+    scatter = M[:3, :3] - M[3, 3] * np.outer(c, c)
+    n = np.linalg.eigh(scatter)[1][:, 0]
+    return Plane(n, n @ c).facing_away()
+
+
 def fit_plane_pca(points: np.ndarray, weights: np.ndarray | None = None) -> Plane:
     """Least-squares (total) plane through points: centroid and the smallest-eigenvalue eigenvector."""
     P = np.asarray(points, dtype=float)

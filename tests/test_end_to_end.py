@@ -169,9 +169,13 @@ def test_every_scan_format_calibrates(tmp_path, fmt):
     assert rot < 2 * MAX_ROT_DEG and trans < 2 * MAX_TRANS_M, (rot, trans)  # 5 frames, not 8
 
 
-def test_2d_dataset_is_refused_clearly(tmp_path):
-    (tmp_path / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n")
-    (tmp_path / "0000.png").write_bytes(b"")
-    np.save(tmp_path / "0000.npy", np.ones((4, 3)))
+def test_3d_scan_in_a_2d_dataset_is_refused_clearly(tmp_path):
+    import cv2
+
+    (tmp_path / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n"
+                                           "camera: {width: 64, height: 48, K: [[50, 0, 32], [0, 50, 24], [0, 0, 1]]}\n")
+    cv2.imwrite(str(tmp_path / "0000.png"), np.zeros((48, 64), np.uint8))
+    np.save(tmp_path / "0000.npy", np.array([[1.0, 0.0, 0.4], [2.0, 0.5, -0.2], [3.0, 1.0, 0.1]]))
     r = _run_cli("calibrate", str(tmp_path), "--out", str(tmp_path / "out"))
-    assert r.returncode == 2 and "lidar: 2d datasets are not supported yet" in r.stderr
+    assert r.returncode == 2 and "0000.npy" in r.stderr and "not a 2D scan" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
