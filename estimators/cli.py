@@ -47,7 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     la.add_argument("--target", nargs=2, type=_positive, default=None, metavar=("DEG", "MM"),
                     help="add suggested poses until every axis's predicted std is within DEG and MM (up to 40)")
     la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16"],
-                    help="beam model for suggestions on a dataset (a plan names its own)")
+                    help="beam model for suggestions on a 3D dataset (a 2D dataset uses the 2D scanner model; a plan "
+                         "names its own)")
     la.add_argument("--seed", type=int, default=0)
 
     st = sub.add_parser("study", help="simulation studies")
@@ -229,7 +230,8 @@ def _layout(args) -> int:
 
         ds = load_dataset(src)
         result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
-        layout, rig, names = layout_from_result(result, ds.board, args.lidar_model)
+        model = "2d" if ds.lidar == "2d" else args.lidar_model
+        layout, rig, names = layout_from_result(result, ds.board, model)
     elif src.is_file():
         try:
             plan = yaml.safe_load(src.read_text())

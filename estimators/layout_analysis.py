@@ -35,6 +35,7 @@ from .simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, samp
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
 MIN_BOARD_HITS = 50
+MIN_BOARD_HITS_2D = 15  # one scan line crosses a board
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,7 +144,10 @@ def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layo
     beams = BEAM_MODELS[beams_model](ref.range_noise_m)
     layout = Layout(result.camera, board, beams, result.T_camera_lidar,
                     tuple(ref.T_camera_board[f.name] for f in used), ref.corner_noise_px, ref.range_noise_m, hits)
-    return layout, Rig(result.camera, beams, board, result.T_camera_lidar), [f.name for f in used]
+    rig = Rig(result.camera, beams, board, result.T_camera_lidar)
+    if beams.is_2d:  # boards near a 2D scanner's plane, as the 2D simulator places them
+        rig = replace(rig, lidar_height_m=0.6, min_distance_m=1.5, max_distance_m=4.0)
+    return layout, rig, [f.name for f in used]
 
 
 def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
@@ -199,7 +203,7 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
         best, best_d = None, -np.inf
         for T in pool:
             trial = replace(current, T_camera_board=(T,), hits=None)
-            if len(board_hits(trial, 0)[0]) < MIN_BOARD_HITS:
+            if len(board_hits(trial, 0)[0]) < (MIN_BOARD_HITS_2D if rig.beams.is_2d else MIN_BOARD_HITS):
                 continue
             d = _d_opt(F + frame_contribution(frame_information(trial, 0)))
             if d > best_d:

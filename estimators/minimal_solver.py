@@ -106,7 +106,7 @@ def solve_p3p_edges(c: np.ndarray, D2: np.ndarray, near_tol: float = 0.01) -> li
     if len(br):
         lo, hi, sg = x[k], x[k + 1], signs[br]
         f_lo = f[br, k]
-        for _ in range(45):
+        for _ in range(22):  # then Gauss-Newton finishes the root
             mid = 0.5 * (lo + hi)
             fm = branches(mid, sg)[2]
             left = np.sign(fm) == np.sign(f_lo)

@@ -136,3 +136,21 @@ def test_recorded_vertical_boards_give_a_clear_error_not_a_6dof_answer(tmp_path)
         calibrate(ds, params=SegmentationParams(max_sensor_separation_m=0.3), posterior=None)
     text = exc.value.message
     assert "unobservable" in text or "usable" in text
+
+
+def test_layout_analysis_of_a_2d_result_predicts_its_covariance():
+    """Issue 5 for a 2D LiDAR: the Fisher information of the measured layout (its laser points as beams)
+    predicts the refinement's own standard deviations to 15% per axis, and suggestions respect the scan plane."""
+    from estimators.layout_analysis import analyse, layout_from_result, suggest_poses
+    from estimators.simulator import scan_crossing_length
+
+    rig, frames = _measured_2d(7, 6)
+    result = solve(frames, rig.board, rig.camera)
+    layout, rig2, names = layout_from_result(result, rig.board, "2d")
+    a = analyse(layout, names)
+    np.testing.assert_allclose(np.sqrt(np.diag(a.covariance)), np.sqrt(np.diag(result.covariance)), rtol=0.15)
+    found = suggest_poses(layout, rig2, 1, np.random.default_rng(0), candidates=40)
+    assert len(found) == 1
+    T_lb = T_inverse(result.T_camera_lidar) @ found[0][0]
+    assert scan_crossing_length(rig.board, T_lb) >= 0.4 * min(rig.board.extent)
+    assert np.all(np.diag(found[0][1].covariance) <= np.diag(a.covariance) * 1.0001)
