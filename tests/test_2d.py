@@ -154,3 +154,16 @@ def test_layout_analysis_of_a_2d_result_predicts_its_covariance():
     T_lb = T_inverse(result.T_camera_lidar) @ found[0][0]
     assert scan_crossing_length(rig.board, T_lb) >= 0.4 * min(rig.board.extent)
     assert np.all(np.diag(found[0][1].covariance) <= np.diag(a.covariance) * 1.0001)
+
+
+def test_2d_posterior_agrees_with_the_laplace_covariance():
+    """The sampled posterior of a well-determined 2D calibration is close to Gaussian: its standard deviations
+    are within 20% of the factor graph's Laplace ones on every axis."""
+    from estimators.posterior import PosteriorOptions
+    from estimators.refinement import RefinementOptions
+
+    rig, frames = _measured_2d(0, 6)
+    result = solve(frames, rig.board, rig.camera, options=RefinementOptions(corner_error_correlation=1.0),
+                   posterior=PosteriorOptions(min_ess=800), rng=np.random.default_rng(1))
+    ratio = np.sqrt(np.diag(np.cov(result.posterior.xi.T)) / np.diag(result.refinement.covariance))
+    assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
