@@ -1,3 +1,53 @@
-"""lidarcam estimators: measurement extraction, solvers, data I/O, simulator, CLI."""
+"""lidarcam: camera-LiDAR extrinsic calibration from planar boards, with honest uncertainty.
 
-__version__ = "0.2.0"
+The Python API (the CLI is a thin shell over it). Frames and units: ``T_camera_lidar`` maps LiDAR points
+into the camera frame, ``p_camera = R p_lidar + t``, metres and radians; covariances are 6x6 in GTSAM's
+Pose3 tangent (``T_true = T_hat Exp(xi)``, ``xi = [rotation; translation]``, along the LiDAR's axes)::
+
+    from estimators import simulate, load_dataset, calibrate
+    path = simulate("/tmp/sim", n_poses=8, seed=1)           # or lidar="2d"
+    result = calibrate(load_dataset(path), samples=2000)     # frozen CalibrationResult
+    result.T_camera_lidar, result.covariance, result.samples, result.diagnostics
+    result.report("/tmp/sim-out")                            # report.html and its figures
+    write_calibration(result, "/tmp/sim-out")                # calibration.json (+ posterior.npz)
+
+Layout: ``analyse``, ``layout_from_plan``, ``layout_from_result``, ``suggest_poses``, ``cramer_rao_bound``.
+Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``run_coverage_study``.
+Names are imported on first use, so that ``import estimators`` stays light.
+"""
+
+__version__ = "0.3.0"
+
+_API = {
+    "load_dataset": ("dataset", "load_dataset"),
+    "Dataset": ("dataset", "Dataset"),
+    "calibrate": ("calibration", "calibrate"),
+    "solve": ("calibration", "solve"),
+    "write_calibration": ("calibration", "write_calibration"),
+    "CalibrationResult": ("calibration", "CalibrationResult"),
+    "RefinementOptions": ("refinement", "RefinementOptions"),
+    "PosteriorOptions": ("posterior", "PosteriorOptions"),
+    "simulate": ("simulator", "simulate_dataset"),
+    "analyse": ("layout_analysis", "analyse"),
+    "layout_from_plan": ("layout_analysis", "layout_from_plan"),
+    "layout_from_result": ("layout_analysis", "layout_from_result"),
+    "suggest_poses": ("layout_analysis", "suggest_poses"),
+    "Layout": ("observation_model", "Layout"),
+    "cramer_rao_bound": ("observation_model", "cramer_rao_bound"),
+    "simulate_measurements": ("observation_model", "simulate_measurements"),
+    "parse_spec": ("study", "parse_spec"),
+    "run_study": ("study", "run_study"),
+    "run_coverage_study": ("coverage_study", "run_study"),
+}
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        import importlib
+
+        module, attr = _API[name]
+        value = getattr(importlib.import_module(f".{module}", __name__), attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

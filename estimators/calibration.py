@@ -18,7 +18,7 @@ from .board_pose import estimate_board_pose
 from .board_segmentation import AmbiguousBoardError, SegmentationParams, choose_by_prediction, find_board
 from .chessboard import CornerDetection, detect_corners
 from .closed_form import describe_direction, solve_closed_form
-from .dataset import Dataset
+from .dataset import Dataset, load_dataset
 from .errors import DatasetError, DegenerateLayoutError, MeasurementError
 from .image_io import read_gray
 from .intrinsics import calibrate_intrinsics
@@ -65,6 +65,17 @@ class CalibrationResult:
         if self.posterior is not None:
             return self.posterior.covariance
         return self.covariance_laplace
+
+    @property
+    def samples(self) -> np.ndarray | None:
+        """Posterior samples (M x 6) of the tangent offset ``xi`` (``T_true = T_hat Exp(xi)``), or None."""
+        return None if self.posterior is None else self.posterior.xi
+
+    @property
+    def diagnostics(self) -> dict:
+        """Noise levels, consistency test, MCMC diagnostics and timings, as written to calibration.json."""
+        d = self.to_dict()
+        return {k: d[k] for k in ("noise", "consistency", "posterior", "timings_s", "warnings") if k in d}
 
     @property
     def covariance_laplace(self) -> np.ndarray | None:
@@ -327,16 +338,26 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
     return out
 
 
-def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor-graph",
+def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
-              posterior: PosteriorOptions | None = PosteriorOptions()) -> CalibrationResult:
-    """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a loaded dataset.
+              posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
+              samples: int | None = None) -> CalibrationResult:
+    """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a dataset (loaded, or
+    its folder).
+
+    ``init``: ``closed-form`` (3D; for a 2D LiDAR it means ``minimal-lower-bound``), ``minimal-lower-bound``
+    or ``minimal-min-residual`` (2D). ``refine``: ``factor-graph`` or ``none``. ``samples``: effective
+    posterior samples to draw (0: none; overrides ``posterior``).
 
     ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
     so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
     """
     _check_methods(init, refine)
+    if not isinstance(dataset, Dataset):
+        dataset = load_dataset(dataset)
+    if samples is not None:
+        posterior = None if samples <= 0 else replace(posterior or PosteriorOptions(), min_ess=int(samples))
     if dataset.lidar == "3d" and init != "closed-form":
         raise DatasetError(f"init {init!r} is for 2D LiDAR datasets", path=dataset.yaml_path,
                            hint="use --init closed-form for lidar: 3d")
@@ -346,7 +367,7 @@ def calibrate(dataset: Dataset, init: str = "closed-form", refine: str = "factor
     camera, frames, warnings = measure_frames(dataset, rng, params, timings)
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
-                       warnings=warnings, timings=timings, posterior=posterior, rng=rng)
+                       warnings=warnings, timings=timings, posterior=posterior, rng=rng, use_extent=use_extent)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -365,15 +386,19 @@ def _check_methods(init: str, refine: str) -> None:
 def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str = "closed-form",
           refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(), name: str = "",
           warnings: list[str] | None = None, timings: dict | None = None,
-          posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None) -> CalibrationResult:
+          posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
+          use_extent: bool | None = None) -> CalibrationResult:
     """The solver stage on measured frames: initial solution, then (optionally) the factor graph and
-    posterior samples (``posterior`` options given; needs the factor graph)."""
+    posterior samples (``posterior`` options given; needs the factor graph). ``use_extent`` (2D only):
+    whether the minimal-solution selection drops solutions whose laser segments leave the boards'
+    outlines (default: when the board size is known)."""
     _check_methods(init, refine)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
     if any(f.lidar is not None and f.lidar.is_scan_line for f in frames) or init.startswith("minimal"):
-        return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng)
+        return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng,
+                         use_extent)
     if init != "closed-form":
         raise ValueError(f"init {init!r} is for 2D LiDAR datasets; a 3D LiDAR uses closed-form")
     t0 = time.perf_counter()
@@ -443,7 +468,8 @@ def refine_candidates(used: list[FrameMeasurement], board, camera: CameraModel, 
 
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
               options: RefinementOptions, name: str, warnings: list[str], timings: dict,
-              posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None) -> CalibrationResult:
+              posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
+              use_extent: bool | None = None) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
     from .closed_form import normal_spread
@@ -451,7 +477,7 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     used = [f for f in frames if f.usable]
     method = "minimal-lower-bound" if init == "closed-form" else init
     t0 = time.perf_counter()
-    sel = select_minimal(used, board, method)
+    sel = select_minimal(used, board, method, use_extent)
     timings["solve"] = time.perf_counter() - t0
     if sel.degenerate_triples:
         warnings.append(f"{len(sel.degenerate_triples)} of {sel.n_triples} board triples are degenerate "

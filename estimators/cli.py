@@ -51,7 +51,8 @@ def _parser() -> argparse.ArgumentParser:
                          "names its own)")
     la.add_argument("--seed", type=int, default=0)
 
-    st = sub.add_parser("study", help="simulation studies")
+    st = sub.add_parser("study", help="simulation studies: `study SPEC.yaml --out DIR [--scheduler tcp://H:P]` "
+                                      "(solver comparison) or `study coverage`")
     studies = st.add_subparsers(dest="study", required=True)
     cv = studies.add_parser("coverage", help="how often the reported intervals contain the truth")
     cv.add_argument("--trials", type=int, default=200)
@@ -287,6 +288,42 @@ def _study(args) -> int:
     return 0
 
 
+def _study_spec_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lidarcam study",
+                                description="run a solver-comparison study (a grid of simulated calibrations)")
+    p.add_argument("spec", help="SPEC.yaml: solvers x frames x noise levels x trials (see the README)")
+    p.add_argument("--out", required=True, help="folder for study.csv, summary.json and the summary plots")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run on this Dask distributed scheduler instead of local processes (same results)")
+    return p
+
+
+def _study_spec(argv: list[str]) -> int:
+    import yaml
+
+    from .errors import DatasetError
+    from .study import format_summary, parse_spec, run_study, summarize
+
+    args = _study_spec_parser().parse_args(argv)
+    path = Path(args.spec)
+    if not path.is_file():
+        raise DatasetError("no such study spec", path=path, hint="give a SPEC.yaml (see the README)")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"not valid YAML ({str(exc).splitlines()[0]})", path=path, hint="fix the spec") from None
+    spec = parse_spec(raw, str(path))
+    if args.workers < 1:
+        raise SystemExit("lidarcam: error: --workers must be positive")
+    where = args.scheduler or f"{args.workers} local process(es)"
+    print(f"{spec.name}: {spec.n_trials} trials x {len(spec.solvers)} solvers on {where}")
+    rows = run_study(spec, args.out, args.workers, args.scheduler, progress=sys.stderr.isatty())
+    print(format_summary(summarize(rows)))
+    print(f"wrote {Path(args.out) / 'study.csv'}, summary.json and the plots")
+    return 0
+
+
 def _demo(args) -> int:
     import numpy as np
 
@@ -312,7 +349,9 @@ def _demo(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    spec_study = len(argv) >= 2 and argv[0] == "study" and argv[1] not in ("coverage", "-h", "--help")
+    args = None if spec_study else _parser().parse_args(argv)
     # The pipeline parallelises over frames itself; OpenBLAS's own threads would compete with it for the
     # cores (and keep spinning after large products, slowing the small-matrix work that follows).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -320,6 +359,8 @@ def main(argv: list[str] | None = None) -> int:
 
     handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study, "layout": _layout}
     try:
+        if spec_study:
+            return _study_spec(argv[1:])
         return handlers[args.command](args)
     except LidarcamError as exc:
         print(f"lidarcam: error: {exc.message}", file=sys.stderr)

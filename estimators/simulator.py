@@ -261,9 +261,18 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
 
 
 def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
-                     sigma_range_m: float = 0.02, pixel_noise: float = 2.0, scan_format: str = "pcd",
+                     sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
                      include_camera: bool = True, overwrite: bool = False) -> Path:
-    """Simulate the default rig and write a dataset folder with ``ground_truth.json``."""
+    """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
+
+    ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
+    ``sigma_range_m``: range noise (default 0.02 m in 3D, 0.01 m in 2D); ``scan_format``: pcd, ply, bin or
+    npy in 3D (default pcd), csv, npy or pcd in 2D (default csv).
+    """
+    if sigma_range_m is None:
+        sigma_range_m = 0.01 if lidar == "2d" else 0.02
+    if scan_format is None:
+        scan_format = "csv" if lidar == "2d" else "pcd"
     rng = np.random.default_rng(seed)
     base = default_rig_2d(rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
     rig = replace(base, pixel_noise=pixel_noise)

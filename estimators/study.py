@@ -1,0 +1,337 @@
+"""Solver-comparison studies: a grid of simulated calibrations, each scored against its ground truth and
+the Cramer-Rao bound of its layout, run on local processes or on a Dask cluster with the same results.
+
+A study is given as a mapping (``SPEC.yaml``)::
+
+    name: closed form vs factor graph        # optional
+    lidar: 3d                                # 3d | 2d
+    model: hdl64e                            # 3D beam model (hdl64e | vlp16); ignored for 2d
+    solvers: [closed-form, factor-graph]     # 3d: closed-form, factor-graph
+                                             # 2d: minimal-min-residual, minimal-lower-bound,
+                                             #     minimal-lower-bound-no-extent
+    frames: [4, 8, 16]                       # board poses per calibration
+    range_noise_m: [0.01, 0.02]              # LiDAR range sigma
+    corner_noise_px: [0.2]                   # corner sigma (measurement level)
+    trials: 20                               # per cell of frames x range noise x corner noise
+    seed: 0
+    mode: measurement                        # measurement (noise drawn from the model) | end-to-end
+
+Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is
+one (trial, solver): the cell, the rotation and translation errors, the errors per axis over the bound,
+the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D whether the
+estimate is the minimum that refinement from the truth reaches (``hit``), the time, and a failure reason.
+Trials are seeded from ``(seed, cell, trial)``, so the same spec gives the same rows on any scheduler.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import os
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .errors import DatasetError
+from .output import write_atomic, write_json_atomic
+
+SOLVERS_3D = ("closed-form", "factor-graph")
+SOLVERS_2D = ("minimal-min-residual", "minimal-lower-bound", "minimal-lower-bound-no-extent")
+AXES = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    name: str
+    lidar: str
+    model: str
+    solvers: tuple[str, ...]
+    frames: tuple[int, ...]
+    range_noise_m: tuple[float, ...]
+    corner_noise_px: tuple[float, ...]
+    trials: int
+    seed: int
+    mode: str
+
+    @property
+    def cells(self) -> list[tuple[int, float, float]]:
+        return list(itertools.product(self.frames, self.range_noise_m, self.corner_noise_px))
+
+    @property
+    def n_trials(self) -> int:
+        return len(self.cells) * self.trials
+
+
+def _list(v, kind, key, source):
+    values = v if isinstance(v, (list, tuple)) else [v]
+    try:
+        out = tuple(kind(x) for x in values)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{key} must be a number or a list of numbers, got {v!r}", path=source,
+                           hint="see the SPEC.yaml format in the README") from None
+    if not out:
+        raise DatasetError(f"{key} is empty", path=source, hint="give at least one value")
+    return out
+
+
+def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
+    """Validate a parsed ``SPEC.yaml`` (errors name the key and what to write)."""
+    if not isinstance(spec, dict):
+        raise DatasetError("a study spec must be a mapping", path=source, hint="see the SPEC.yaml format in the README")
+    lidar = str(spec.get("lidar", "3d")).lower()
+    if lidar not in ("3d", "2d"):
+        raise DatasetError(f"lidar must be 3d or 2d, got {lidar!r}", path=source, hint="set lidar: 3d or lidar: 2d")
+    allowed = SOLVERS_2D if lidar == "2d" else SOLVERS_3D
+    solvers = tuple(spec.get("solvers", allowed))
+    bad = [s for s in solvers if s not in allowed]
+    if bad or not solvers:
+        raise DatasetError(f"unknown solver(s) {bad} for lidar {lidar}", path=source, hint=f"use some of {list(allowed)}")
+    model = str(spec.get("model", "hdl64e"))
+    if lidar == "3d" and model not in ("hdl64e", "vlp16"):
+        raise DatasetError(f"unknown model {model!r}", path=source, hint="use hdl64e or vlp16")
+    mode = str(spec.get("mode", "measurement"))
+    if mode not in ("measurement", "end-to-end"):
+        raise DatasetError(f"mode must be measurement or end-to-end, got {mode!r}", path=source,
+                           hint="measurement draws noise from the model; end-to-end renders images and scans")
+    frames = _list(spec.get("frames", [8]), int, "frames", source)
+    if min(frames) < 3:
+        raise DatasetError(f"every calibration needs at least 3 frames, got {min(frames)}", path=source,
+                           hint="use frames >= 3")
+    trials = int(spec.get("trials", 10))
+    if trials < 1:
+        raise DatasetError(f"trials must be at least 1, got {trials}", path=source, hint="set trials: 10")
+    default_noise = 0.01 if lidar == "2d" else 0.02
+    return StudySpec(name=str(spec.get("name", "study")), lidar=lidar, model="2d" if lidar == "2d" else model,
+                     solvers=solvers, frames=frames,
+                     range_noise_m=_list(spec.get("range_noise_m", [default_noise]), float, "range_noise_m", source),
+                     corner_noise_px=_list(spec.get("corner_noise_px", [0.2]), float, "corner_noise_px", source),
+                     trials=trials, seed=int(spec.get("seed", 0)), mode=mode)
+
+
+def trial_arguments(spec: StudySpec) -> list[tuple]:
+    """One argument tuple per trial, in a fixed order, each with its own seed from (seed, cell, trial)."""
+    args = []
+    for c, (n, noise, corner) in enumerate(spec.cells):
+        for k in range(spec.trials):
+            seed = int(np.random.SeedSequence([spec.seed, c, k]).generate_state(1)[0])
+            args.append((spec, c, k, seed, n, noise, corner))
+    return args
+
+
+def run_trial(args: tuple) -> list[dict]:
+    """Simulate one calibration and score every solver of the spec on it (rows of ``study.csv``)."""
+    from geometry.rotations import T_inverse, T_log
+
+    from .calibration import calibrate, solve
+    from .dataset import load_dataset
+    from .observation_model import Layout, cramer_rao_bound, simulate_measurements
+    from .refinement import RefinementOptions, refine
+    from .simulator import default_rig, default_rig_2d, sample_board_poses, simulate_frames, write_dataset
+    from .solution_selection import solution_distances
+
+    spec, cell, k, seed, n, noise, corner = args
+    rng = np.random.default_rng(seed)
+    rig = default_rig_2d(rng, noise) if spec.lidar == "2d" else default_rig(rng, spec.model, noise)
+    poses = sample_board_poses(rig, n, rng)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner, noise)
+    bound = np.sqrt(np.diag(cramer_rao_bound(layout)))
+    base = {"cell": cell, "trial": k, "seed": seed, "lidar": spec.lidar, "frames": n, "range_noise_m": noise,
+            "corner_noise_px": corner, "mode": spec.mode}
+    options = RefinementOptions(corner_error_correlation=1.0) if spec.mode == "measurement" else RefinementOptions()
+    tmp = None
+    if spec.mode == "measurement":
+        frames = simulate_measurements(layout, rng)
+    else:
+        tmp = tempfile.TemporaryDirectory()
+        ds = load_dataset(write_dataset(Path(tmp.name) / "ds", rig, simulate_frames(rig, n, rng, poses=poses)))
+    truth_basin = None
+    rows = []
+    for solver in spec.solvers:
+        row = dict(base, solver=solver)
+        t0 = time.perf_counter()
+        try:
+            if spec.lidar == "2d":
+                init = solver.replace("-no-extent", "")
+                extent = False if solver.endswith("-no-extent") else None
+                if spec.mode == "measurement":
+                    result = solve(frames, rig.board, rig.camera, init=init, options=options, use_extent=extent)
+                else:
+                    result = calibrate(ds, init=init, options=options, posterior=None, use_extent=extent)
+            else:
+                refine_mode = "none" if solver == "closed-form" else "factor-graph"
+                if spec.mode == "measurement":
+                    result = solve(frames, rig.board, rig.camera, refine=refine_mode, options=options)
+                else:
+                    result = calibrate(ds, refine=refine_mode, options=options, posterior=None)
+            T = result.T_camera_lidar
+            xi = T_log(T_inverse(T) @ rig.T_camera_lidar)
+            row.update({"ok": 1, "reason": "", "frames_used": result.frames_used,
+                        "rot_err_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
+                        "trans_err_mm": float(1000 * np.linalg.norm(xi[3:]))})
+            for a, v, b in zip(AXES, xi, bound):
+                row[f"err_{a}"] = float(v)
+                row[f"err_over_bound_{a}"] = float(abs(v) / b)
+            cov = result.covariance
+            row["d2"] = float(xi @ np.linalg.solve(cov, xi)) if cov is not None else float("nan")
+            if spec.lidar == "2d":
+                if truth_basin is None:
+                    used = [f for f in (frames if spec.mode == "measurement" else result.frames) if f.usable]
+                    truth_basin = refine(used, rig.board, rig.camera, rig.T_camera_lidar, options).T_camera_lidar
+                row["hit"] = int(solution_distances(np.array([T, truth_basin]))[0] < 0.05)
+                row["ambiguous"] = int(bool(result.alternatives))
+        except Exception as exc:  # a failed calibration is a result of the study, recorded with its reason
+            row.update({"ok": 0, "reason": f"{type(exc).__name__}: {getattr(exc, 'message', str(exc))}"[:200]})
+        row["seconds"] = time.perf_counter() - t0
+        rows.append(row)
+    if tmp is not None:
+        tmp.cleanup()
+    return rows
+
+
+COLUMNS = ("cell", "trial", "seed", "lidar", "mode", "frames", "range_noise_m", "corner_noise_px", "solver", "ok",
+           "reason", "frames_used", "rot_err_deg", "trans_err_mm", *[f"err_{a}" for a in AXES],
+           *[f"err_over_bound_{a}" for a in AXES], "d2", "hit", "ambiguous", "seconds")
+
+
+def run_study(spec: StudySpec, out: str | Path, workers: int | None = None, scheduler: str | None = None,
+              progress: bool = True) -> list[dict]:
+    """Run every trial of ``spec`` on local processes (``workers``, default every core) or on the Dask
+    scheduler at ``scheduler`` (``tcp://host:port``, or a ``distributed.Client``); write ``OUT/study.csv``,
+    ``OUT/summary.json`` and the summary plots, each atomically; return the rows."""
+    args = trial_arguments(spec)
+    results: list[list[dict]] = []
+    bar = tqdm(total=len(args), desc=spec.name, disable=not progress)
+    if scheduler is None:
+        with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+            for rows in pool.map(run_trial, args, chunksize=max(1, len(args) // (8 * (workers or 2)))):
+                results.append(rows)
+                bar.update()
+    else:
+        from distributed import Client, as_completed
+
+        client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+        try:
+            futures = client.map(run_trial, args, pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            slots: list = [None] * len(args)
+            for fut in as_completed(futures):
+                slots[index[fut.key]] = fut.result()
+                bar.update()
+            results = slots
+        finally:
+            if not isinstance(scheduler, Client):
+                client.close()
+    bar.close()
+    rows = [r for rs in results for r in rs]
+    write_outputs(spec, rows, Path(out))
+    return rows
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Per (solver, frames, range noise, corner noise): trials, failures, RMS errors, median error over
+    the bound, mean d2, hit rate (2D), mean time."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["solver"], r["frames"], r["range_noise_m"], r["corner_noise_px"]), []).append(r)
+    out = []
+    for (solver, n, noise, corner), g in sorted(groups.items()):
+        ok = [r for r in g if r["ok"]]
+        s = {"solver": solver, "frames": n, "range_noise_m": noise, "corner_noise_px": corner, "trials": len(g),
+             "failed": len(g) - len(ok), "mean_seconds": float(np.mean([r["seconds"] for r in g]))}
+        if ok:
+            s["rms_rot_err_deg"] = float(np.sqrt(np.mean([r["rot_err_deg"] ** 2 for r in ok])))
+            s["rms_trans_err_mm"] = float(np.sqrt(np.mean([r["trans_err_mm"] ** 2 for r in ok])))
+            s["median_err_over_bound"] = float(np.median([[r[f"err_over_bound_{a}"] for a in AXES] for r in ok]))
+            d2 = [r["d2"] for r in ok if np.isfinite(r.get("d2", np.nan))]
+            s["mean_d2"] = float(np.mean(d2)) if d2 else None
+            if "hit" in ok[0]:
+                s["hit_rate"] = float(np.mean([r["hit"] for r in ok]))
+        out.append(s)
+    return out
+
+
+def write_outputs(spec: StudySpec, rows: list[dict], out: Path) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(COLUMNS), extrasaction="ignore")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({c: r.get(c, "") for c in COLUMNS})
+    write_atomic(out / "study.csv", lambda fh: fh.write(buf.getvalue()))
+    summary = summarize(rows)
+    write_json_atomic(out / "summary.json", {"spec": spec.__dict__ | {"solvers": list(spec.solvers)},
+                                             "rows": len(rows), "summary": summary})
+    for name, png in summary_plots(spec, summary):
+        write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+
+
+def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes]]:
+    """Error against frames and against range noise, hit rate (2D), time: one PNG each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def png(fig) -> bytes:
+        b = io.BytesIO()
+        fig.savefig(b, format="png", dpi=100, bbox_inches="tight")
+        plt.close(fig)
+        return b.getvalue()
+
+    figures = []
+    noise0, corner0 = spec.range_noise_m[0], spec.corner_noise_px[0]
+    frames0 = spec.frames[len(spec.frames) // 2]
+    panels = [("errors_vs_frames.png", "frames", lambda s: s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0,
+               f"range noise {1000 * noise0:.0f} mm"),
+              ("errors_vs_noise.png", "range_noise_m", lambda s: s["frames"] == frames0 and s["corner_noise_px"] == corner0,
+               f"{frames0} frames")]
+    for name, xkey, sel, title in panels:
+        fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+        for solver in spec.solvers:
+            pts = sorted((s[xkey], s.get("rms_rot_err_deg", np.nan), s.get("rms_trans_err_mm", np.nan))
+                         for s in summary if s["solver"] == solver and sel(s))
+            if pts:
+                x, rot, tr = map(np.array, zip(*pts))
+                ax[0].plot(x, rot, "o-", label=solver)
+                ax[1].plot(x, tr, "o-", label=solver)
+        ax[0].set(xlabel=xkey, ylabel="RMS rotation error [deg]", title=title, yscale="log")
+        ax[1].set(xlabel=xkey, ylabel="RMS translation error [mm]", title=title, yscale="log")
+        ax[0].legend(fontsize=8)
+        figures.append((name, png(fig)))
+    if spec.lidar == "2d":
+        fig, ax = plt.subplots(figsize=(5, 3.6))
+        for solver in spec.solvers:
+            pts = sorted((s["frames"], 100 * s.get("hit_rate", np.nan)) for s in summary
+                         if s["solver"] == solver and s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0)
+            if pts:
+                ax.plot(*zip(*pts), "o-", label=solver)
+        ax.set(xlabel="frames", ylabel="true-solution hit rate [%]")
+        ax.legend(fontsize=8)
+        figures.append(("hit_rate.png", png(fig)))
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    for solver in spec.solvers:
+        pts = sorted((s["frames"], s["mean_seconds"]) for s in summary
+                     if s["solver"] == solver and s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0)
+        if pts:
+            ax.plot(*zip(*pts), "o-", label=solver)
+    ax.set(xlabel="frames", ylabel="mean time per calibration [s]")
+    ax.legend(fontsize=8)
+    figures.append(("time.png", png(fig)))
+    return figures
+
+
+def format_summary(summary: list[dict]) -> str:
+    lines = [f"  {'solver':32s}{'frames':>7s}{'noise mm':>9s}{'corner px':>10s}{'trials':>7s}{'failed':>7s}"
+             f"{'rot deg':>9s}{'trans mm':>9s}{'err/bound':>10s}{'d2':>6s}{'hit %':>7s}{'s':>7s}"]
+    for s in summary:
+        hit = f"{100 * s['hit_rate']:7.1f}" if "hit_rate" in s else f"{'':>7s}"
+        d2 = f"{s['mean_d2']:6.2f}" if s.get("mean_d2") is not None else f"{'-':>6s}"
+        lines.append(f"  {s['solver']:32s}{s['frames']:7d}{1000 * s['range_noise_m']:9.1f}{s['corner_noise_px']:10.2f}"
+                     f"{s['trials']:7d}{s['failed']:7d}{s.get('rms_rot_err_deg', np.nan):9.3f}"
+                     f"{s.get('rms_trans_err_mm', np.nan):9.2f}{s.get('median_err_over_bound', np.nan):10.2f}{d2}"
+                     f"{hit}{s['mean_seconds']:7.3f}")
+    return "\n".join(lines)

@@ -1,0 +1,81 @@
+"""Solver-comparison studies: spec validation, a tidy CSV scored against the truth and the bound, and the
+same rows from local processes and from a Dask LocalCluster."""
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimators.errors import DatasetError
+from estimators.study import COLUMNS, parse_spec, run_study
+
+SPEC = {"name": "tiny", "lidar": "3d", "solvers": ["closed-form", "factor-graph"], "frames": [4, 6],
+        "range_noise_m": [0.02], "trials": 2, "seed": 3}
+
+
+def _read(path: Path) -> list[dict]:
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_spec_errors_name_the_key():
+    with pytest.raises(DatasetError, match="unknown solver"):
+        parse_spec({"solvers": ["magic"]})
+    with pytest.raises(DatasetError, match="at least 3 frames"):
+        parse_spec({"frames": [2]})
+    with pytest.raises(DatasetError, match="range_noise_m"):
+        parse_spec({"range_noise_m": ["loud"]})
+    spec = parse_spec({"lidar": "2d", "frames": 5})
+    assert spec.solvers == ("minimal-min-residual", "minimal-lower-bound", "minimal-lower-bound-no-extent")
+    assert spec.range_noise_m == (0.01,) and spec.frames == (5,)
+
+
+def test_local_and_dask_runs_give_identical_rows(tmp_path):
+    """2 cells x 2 trials x 2 solvers: every row scored, errors against the truth consistent with the bound,
+    the factor graph at least as accurate as the closed form on average, and a Dask LocalCluster returns
+    exactly the local rows (times aside)."""
+    distributed = pytest.importorskip("distributed")
+    spec = parse_spec(SPEC)
+    local = run_study(spec, tmp_path / "local", workers=1, progress=False)
+    assert len(local) == spec.n_trials * 2 == 8
+    rows = _read(tmp_path / "local" / "study.csv")
+    assert list(rows[0]) == list(COLUMNS) and len(rows) == 8
+    assert all(r["ok"] == "1" for r in rows)
+    for name in ("summary.json", "errors_vs_frames.png", "errors_vs_noise.png", "time.png"):
+        assert (tmp_path / "local" / name).stat().st_size > 0
+    fg = [r for r in local if r["solver"] == "factor-graph"]
+    cf = [r for r in local if r["solver"] == "closed-form"]
+    # Errors over the bound: a few sigma at most; the refinement's d2 is finite and not absurd.
+    assert max(r[f"err_over_bound_{a}"] for r in fg for a in ("rot_x", "trans_z")) < 5.0
+    assert all(0.0 <= r["d2"] < 40.0 for r in fg) and all(np.isnan(r["d2"]) for r in cf)
+    assert np.mean([r["trans_err_mm"] for r in fg]) <= np.mean([r["trans_err_mm"] for r in cf]) * 1.2
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        remote = run_study(spec, tmp_path / "dask", scheduler=client, progress=False)
+    def strip(rows):  # repr: NaN (no covariance) must compare equal to NaN
+        return [{k: repr(v) for k, v in r.items() if k != "seconds"} for r in rows]
+
+    assert strip(local) == strip(remote)
+
+
+def test_cli_study_runs_a_spec_and_refuses_a_bad_one(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("lidar: 2d\nframes: [4]\ntrials: 1\n")
+    r = subprocess.run([sys.executable, "-m", "estimators", "study", str(spec), "--out", str(tmp_path / "o"),
+                        "--workers", "1"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = _read(tmp_path / "o" / "study.csv")
+    assert {row["solver"] for row in rows} == {"minimal-min-residual", "minimal-lower-bound",
+                                               "minimal-lower-bound-no-extent"}
+    assert all(row["hit"] in ("0", "1") for row in rows if row["ok"] == "1")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("lidar: 4d\n")
+    r = subprocess.run([sys.executable, "-m", "estimators", "study", str(bad), "--out", str(tmp_path / "b")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "bad.yaml" in r.stderr and "lidar must be 3d or 2d" in r.stderr
+    assert not (tmp_path / "b").exists()
