@@ -28,7 +28,7 @@ from estimators.calibration import solve  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.layout_analysis import analyse, suggest_poses  # noqa: E402
 from estimators.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
-from estimators.refinement import RefinementOptions  # noqa: E402
+from estimators.refinement import measurement_model_options  # noqa: E402
 from estimators.simulator import _board_rotation, _pose_fits, board_pose, default_rig, sample_board_poses  # noqa: E402
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
 
@@ -86,7 +86,7 @@ def _trial(args):
     rng = np.random.default_rng(seed)
     frames = simulate_measurements(layout, rng)
     try:
-        res = solve(frames, layout.board, layout.camera, options=RefinementOptions(corner_error_correlation=1.0))
+        res = solve(frames, layout.board, layout.camera, options=measurement_model_options())
     except DegenerateLayoutError:
         return None
     T = res.T_camera_lidar

@@ -37,7 +37,7 @@ from estimators.dataset import load_dataset  # noqa: E402
 from estimators.factors import corner_residuals  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
 from estimators.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
-from estimators.refinement import (CORNER_ERROR_CORRELATION, RefinementOptions, corner_residual_px,  # noqa: E402
+from estimators.refinement import (CORNER_ERROR_CORRELATION, RefinementOptions, corner_residual_px, measurement_model_options,  # noqa: E402
                                    refine)
 from estimators.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset  # noqa: E402
 from geometry.rotations import T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
@@ -64,7 +64,7 @@ def _trial_a(args):
     rng = np.random.default_rng(seed)
     frames = simulate_measurements(layout, rng)
     cf = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
-    ref = refine(frames, layout.board, layout.camera, cf, RefinementOptions(corner_error_correlation=1.0))
+    ref = refine(frames, layout.board, layout.camera, cf, measurement_model_options())
     xi = _xi(ref.T_camera_lidar, layout.T_camera_lidar)
     return _xi(cf, layout.T_camera_lidar), xi, float(xi @ np.linalg.solve(ref.covariance, xi))
 

@@ -41,7 +41,7 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
     from .calibration import calibrate, solve
     from .dataset import load_dataset
     from .observation_model import Layout, simulate_measurements
-    from .refinement import RefinementOptions
+    from .refinement import measurement_model_options
     from .simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
 
     t0 = time.perf_counter()
@@ -53,7 +53,7 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
         layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner_noise_px,
                         range_noise_m)
         frames = simulate_measurements(layout, rng)
-        result = solve(frames, rig.board, rig.camera, options=RefinementOptions(corner_error_correlation=1.0),
+        result = solve(frames, rig.board, rig.camera, options=measurement_model_options(),
                        posterior=post_opts, rng=rng)
     elif mode == "end-to-end":
         with tempfile.TemporaryDirectory() as tmp:

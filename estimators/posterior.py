@@ -179,7 +179,8 @@ class PlaneLikelihood:
             g = float(np.hypot(pi_map[0], pi_map[1])) if f.lidar.is_scan_line else 1.0
             _, D = lidar_residual(W, pi_map, f.lidar.is_scan_line)
             A = ref.range_noise_m**2 * np.eye(k)
-            B = _plane_noise(W, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half) / g**2 + D @ H_b @ cov_b @ H_b.T @ D.T
+            B = (_plane_noise(W, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half,
+                              ref.corner_scale_sd * f.camera.plane.distance) / g**2 + D @ H_b @ cov_b @ H_b.T @ D.T)
             A, B = A / fit.weight, B / fit.weight
             L = np.linalg.cholesky(A)
             Li = np.linalg.inv(L)

@@ -130,7 +130,7 @@ def run_trial(args: tuple) -> list[dict]:
     from .calibration import calibrate, solve
     from .dataset import load_dataset
     from .observation_model import Layout, cramer_rao_bound, simulate_measurements
-    from .refinement import RefinementOptions, refine
+    from .refinement import RefinementOptions, measurement_model_options, refine
     from .simulator import default_rig, default_rig_2d, sample_board_poses, simulate_frames, write_dataset
     from .solution_selection import solution_distances
 
@@ -142,7 +142,7 @@ def run_trial(args: tuple) -> list[dict]:
     bound = np.sqrt(np.diag(cramer_rao_bound(layout)))
     base = {"cell": cell, "trial": k, "seed": seed, "lidar": spec.lidar, "frames": n, "range_noise_m": noise,
             "corner_noise_px": corner, "mode": spec.mode}
-    options = RefinementOptions(corner_error_correlation=1.0) if spec.mode == "measurement" else RefinementOptions()
+    options = measurement_model_options() if spec.mode == "measurement" else RefinementOptions()
     tmp = None
     if spec.mode == "measurement":
         frames = simulate_measurements(layout, rng)

@@ -160,10 +160,10 @@ def test_2d_posterior_agrees_with_the_laplace_covariance():
     """The sampled posterior of a well-determined 2D calibration is close to Gaussian: its standard deviations
     are within 20% of the factor graph's Laplace ones on every axis."""
     from estimators.posterior import PosteriorOptions
-    from estimators.refinement import RefinementOptions
+    from estimators.refinement import measurement_model_options
 
     rig, frames = _measured_2d(0, 6)
-    result = solve(frames, rig.board, rig.camera, options=RefinementOptions(corner_error_correlation=1.0),
+    result = solve(frames, rig.board, rig.camera, options=measurement_model_options(),
                    posterior=PosteriorOptions(min_ess=800), rng=np.random.default_rng(1))
     ratio = np.sqrt(np.diag(np.cov(result.posterior.xi.T)) / np.diag(result.refinement.covariance))
     assert np.all(np.abs(ratio - 1.0) < 0.2), ratio

@@ -8,7 +8,7 @@ import pytest
 from estimators.closed_form import solve_closed_form
 from estimators.observation_model import Layout, simulate_measurements
 from estimators.posterior import PlaneLikelihood, PosteriorOptions, run_ensemble, sample_posterior
-from estimators.refinement import RefinementOptions, refine
+from estimators.refinement import RefinementOptions, measurement_model_options, refine
 from estimators.simulator import default_rig, sample_board_poses
 
 
@@ -56,7 +56,7 @@ def measured():
     frames = simulate_measurements(layout, np.random.default_rng(22))
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
     # Corners drawn independently: no correlation factor, so the Laplace covariance is the right one.
-    ref = refine(frames, layout.board, layout.camera, T0, RefinementOptions(corner_error_correlation=1.0))
+    ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options())
     return layout, frames, ref
 
 

@@ -116,7 +116,7 @@ def test_covariance_is_the_inverse_hessian_of_the_cost_and_matches_the_bound():
     layout = _layout(6, n=4)
     frames = simulate_measurements(layout, np.random.default_rng(1))
     opts = RefinementOptions(corner_noise_px=layout.corner_noise_px, range_noise_m=layout.range_noise_m,
-                             robust="none")
+                             robust="none", corner_scale_sd=0.0)
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
     ref = refine(frames, layout.board, layout.camera, T0, opts)
     boards = [ref.T_camera_board[f.name] for f in frames]
