@@ -129,7 +129,10 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
     t0 = time.perf_counter()
     frames = [f for f in frames if f.usable]
     if len(frames) < 3:
-        raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); a 2D LiDAR needs at least 3 boards")
+        raise DegenerateLayoutError(
+            f"only {len(frames)} usable frame(s); a 2D LiDAR needs at least 3 boards",
+            hint="record more boards; if frames were skipped as ambiguous, a tighter --max-sensor-separation "
+                 "(the camera-LiDAR distance bound) leaves fewer scan segments where the camera puts the board")
     sigma_r = max(pooled_range_noise_m(frames), 1e-5)
     planes = [f.camera.plane for f in frames]
     lines = [f.lidar.line for f in frames]
@@ -148,7 +151,7 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
             raise DegenerateLayoutError(
                 f"the {len(frames)} board normals all lie in one plane (spread {spread[-1]:.3f} along {axis}): "
                 f"with one scan line per board, translation along {axis} and rotation about the two axes "
-                "across it are unobservable", hint=advice)
+                "perpendicular to it are unobservable", hint=advice)
         raise DegenerateLayoutError(
             f"no minimal solution from {len(triples)} triple(s) of boards"
             + (f" ({degenerate[0]})" if degenerate else ""),
