@@ -24,6 +24,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_layout.py
 	$(PY) benchmarks/bench_realdata.py
 	$(PY) benchmarks/bench_2d.py
+	$(PY) benchmarks/bench_study.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info
