@@ -302,24 +302,24 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
         ax[1].set(xlabel=xkey, ylabel="RMS translation error [mm]", title=title, yscale="log")
         ax[0].legend(fontsize=8)
         figures.append((name, png(fig)))
-    if spec.lidar == "2d":
-        fig, ax = plt.subplots(figsize=(5, 3.6))
+
+    def by_frames(ax, value) -> None:
+        """One line per solver of ``value(summary row)`` against frames, at the first noise levels."""
         for solver in spec.solvers:
-            pts = sorted((s["frames"], 100 * s.get("hit_rate", np.nan)) for s in summary
+            pts = sorted((s["frames"], value(s)) for s in summary
                          if s["solver"] == solver and s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0)
             if pts:
                 ax.plot(*zip(*pts), "o-", label=solver)
-        ax.set(xlabel="frames", ylabel="true-solution hit rate [%]")
         ax.legend(fontsize=8)
+
+    if spec.lidar == "2d":
+        fig, ax = plt.subplots(figsize=(5, 3.6))
+        by_frames(ax, lambda s: 100 * s.get("hit_rate", np.nan))
+        ax.set(xlabel="frames", ylabel="true-solution hit rate [%]")
         figures.append(("hit_rate.png", png(fig)))
     fig, ax = plt.subplots(figsize=(5, 3.6))
-    for solver in spec.solvers:
-        pts = sorted((s["frames"], s["mean_seconds"]) for s in summary
-                     if s["solver"] == solver and s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0)
-        if pts:
-            ax.plot(*zip(*pts), "o-", label=solver)
+    by_frames(ax, lambda s: s["mean_seconds"])
     ax.set(xlabel="frames", ylabel="mean time per calibration [s]")
-    ax.legend(fontsize=8)
     figures.append(("time.png", png(fig)))
     return figures
 

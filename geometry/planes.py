@@ -63,6 +63,21 @@ def sum_squared_distances(plane_coefficients: np.ndarray, M: np.ndarray) -> floa
     return float(pi @ M @ pi)
 
 
+def _sqrt_excess(M: np.ndarray, k: int, rel_tol: float) -> tuple[np.ndarray, float]:
+    """``W`` and ``floor`` of a moment matrix, the floor taken over the first ``k`` coordinates' scatter."""
+    M = np.asarray(M, dtype=float)
+    n = M[3, 3]
+    if n <= 0:
+        raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
+    s = M[:k, 3]
+    floor = float(np.linalg.eigvalsh(M[:k, :k] - np.outer(s, s) / n)[0])
+    E = M.copy()
+    E[:k, :k] -= floor * np.eye(k)
+    vals, vecs = np.linalg.eigh(E)
+    keep = vals > rel_tol * vals[-1]
+    return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
+
+
 def sqrt_excess_moment(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, float]:
     """Square-root form of a point set's plane cost: ``W`` (k x 4) and ``floor`` with, for every plane
     ``pi = [n; -d]`` with a unit normal, ``pi^T M pi = |W pi|^2 + floor`` exactly.
@@ -73,18 +88,7 @@ def sqrt_excess_moment(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarra
     Rank ``k`` is 3 for a board seen by a 3D LiDAR; for points on one line (a 2D scan without
     noise) it drops to 2. ``floor`` may be negative for a noise-corrected moment. MATH.md section 2.
     """
-    M = np.asarray(M, dtype=float)
-    n = M[3, 3]
-    if n <= 0:
-        raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
-    s = M[:3, 3]
-    scatter = M[:3, :3] - np.outer(s, s) / n
-    floor = float(np.linalg.eigvalsh(scatter)[0])
-    E = M.copy()
-    E[:3, :3] -= floor * np.eye(3)
-    vals, vecs = np.linalg.eigh(E)
-    keep = vals > rel_tol * vals[-1]
-    return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
+    return _sqrt_excess(M, 3, rel_tol)
 
 
 def sqrt_excess_moment_scan(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, float]:
@@ -93,18 +97,7 @@ def sqrt_excess_moment_scan(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.n
     ``pi = [n; -d]``. ``floor`` is the cost of the best-fitting line; dividing ``|W pi|^2`` by
     ``|n_xy|^2`` gives the excess of the plane's trace (a line) over that best line, in the units of the
     points' in-scan-plane residuals. MATH.md section 4."""
-    M = np.asarray(M, dtype=float)
-    n = M[3, 3]
-    if n <= 0:
-        raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
-    s = M[:2, 3]
-    scatter = M[:2, :2] - np.outer(s, s) / n
-    floor = float(np.linalg.eigvalsh(scatter)[0])
-    E = M.copy()
-    E[:2, :2] -= floor * np.eye(2)
-    vals, vecs = np.linalg.eigh(E)
-    keep = vals > rel_tol * vals[-1]
-    return np.sqrt(vals[keep])[:, None] * vecs[:, keep].T, floor
+    return _sqrt_excess(M, 2, rel_tol)
 
 
 def plane_from_moment(M: np.ndarray) -> Plane:
