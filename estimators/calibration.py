@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import chi2
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
@@ -17,7 +18,7 @@ from . import __version__
 from .board_pose import estimate_board_pose
 from .board_segmentation import AmbiguousBoardError, SegmentationParams, choose_by_prediction, find_board
 from .chessboard import CornerDetection, detect_corners
-from .closed_form import describe_direction, solve_closed_form
+from .closed_form import describe_direction, normal_spread, solve_closed_form
 from .dataset import Dataset, load_dataset
 from .errors import DatasetError, DegenerateLayoutError, MeasurementError
 from .image_io import read_gray
@@ -441,8 +442,6 @@ def refine_candidates(used: list[FrameMeasurement], board, camera: CameraModel, 
                       options: RefinementOptions = RefinementOptions()) -> tuple[Refinement, tuple]:
     """Refine every selected candidate; return the least-cost refinement and the distinct other minima
     within chi2_6(0.95) of it (``(T, cost gap)``: the data do not decide between them)."""
-    from scipy.stats import chi2
-
     refined = []
     for cand in sel.candidates:
         try:
@@ -472,8 +471,6 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
               use_extent: bool | None = None) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
-    from .closed_form import normal_spread
-
     used = [f for f in frames if f.usable]
     method = "minimal-lower-bound" if init == "closed-form" else init
     t0 = time.perf_counter()

@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import exp_batch
+from geometry.rotations import T_log, exp_batch
 
 from .errors import LidarcamError
 from .factors import corner_residuals, lidar_plane, lidar_residual
@@ -241,8 +241,6 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     start = np.empty((options.walkers, 7))
     start[:, :6] = rng.multivariate_normal(np.zeros(6), ref.covariance, options.walkers)
     for m, T_mode in enumerate(other_modes):
-        from geometry.rotations import T_log
-
         share = slice(m + 1, None, len(other_modes) + 1)
         start[share, :6] += T_log(np.linalg.inv(ref.T_camera_lidar) @ T_mode)
     start[:, 6] = rng.normal(0.0, 0.05, options.walkers)
