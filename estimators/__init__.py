@@ -13,10 +13,12 @@ Pose3 tangent (``T_true = T_hat Exp(xi)``, ``xi = [rotation; translation]``, alo
 
 Layout: ``analyse``, ``layout_from_plan``, ``layout_from_result``, ``suggest_poses``, ``cramer_rao_bound``.
 Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``run_coverage_study``.
+Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export_calibration`` and
+``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _API = {
     "load_dataset": ("dataset", "load_dataset"),
@@ -38,6 +40,11 @@ _API = {
     "parse_spec": ("study", "parse_spec"),
     "run_study": ("study", "run_study"),
     "run_coverage_study": ("coverage_study", "run_study"),
+    "extract_bag": ("bag_extract", "extract_bag"),
+    "ExtractOptions": ("bag_extract", "ExtractOptions"),
+    "export_calibration": ("export", "export_calibration"),
+    "write_export": ("export", "write_export"),
+    "load_calibration": ("export", "load_calibration"),
 }
 __all__ = ["__version__", *_API]
 

@@ -65,6 +65,44 @@ def _parser() -> argparse.ArgumentParser:
     cv.add_argument("--seed", type=int, default=0)
     cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"])
 
+    x = sub.add_parser("extract", help="write a dataset folder from a ROS 1 or ROS 2 (sqlite3, MCAP) bag: one frame "
+                                       "per still board pose")
+    x.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag folder (with metadata.yaml)")
+    x.add_argument("--image-topic", required=True, help="sensor_msgs/Image or CompressedImage topic")
+    lt = x.add_mutually_exclusive_group(required=True)
+    lt.add_argument("--cloud-topic", help="sensor_msgs/PointCloud2 topic (3D LiDAR)")
+    lt.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (2D LiDAR)")
+    x.add_argument("--camera-info-topic", default=None,
+                   help="sensor_msgs/CameraInfo topic (default: the one beside the image topic, if any)")
+    x.add_argument("--no-camera-info", action="store_true",
+                   help="ignore CameraInfo; calibrate will estimate the intrinsics from the board views")
+    x.add_argument("--board", required=True, metavar="NXxNY:SQUARE[:WxH]",
+                   help="the board: squares across x down, square size (m), optionally the board's outer size "
+                        "(m), e.g. 9x7:0.1:1.0x0.8; or a YAML file with a board: mapping (e.g. a dataset.yaml)")
+    x.add_argument("--out", required=True, help="the dataset folder to write")
+    x.add_argument("--max-dt", type=_positive, default=0.05, metavar="S",
+                   help="pair an image with the nearest scan within this many seconds (header stamps)")
+    x.add_argument("--still-s", type=_positive, default=1.0, metavar="S",
+                   help="the board must stay still this long to give a frame")
+    x.add_argument("--still-px", type=_positive, default=2.0, metavar="PX",
+                   help="largest corner motion between examined images that still counts as still")
+    x.add_argument("--check-hz", type=_positive, default=5.0, metavar="HZ",
+                   help="examine at most this many images per second")
+    x.add_argument("--scan-format", default=None, choices=["pcd", "ply", "npy", "csv"],
+                   help="default pcd (3D) or csv (2D: angle,range)")
+    x.add_argument("--overwrite", action="store_true")
+
+    e = sub.add_parser("export", help="T_camera_lidar for ROS tf, URDF, KITTI, OpenCV YAML or JSON, with its "
+                                      "direction written beside the numbers")
+    e.add_argument("calibration", help="calibration.json (or the folder holding it)")
+    e.add_argument("--format", required=True, choices=["ros-tf", "urdf", "kitti", "opencv-yaml", "json"])
+    e.add_argument("--camera-frame", default="camera", help="the camera's frame name (default camera)")
+    e.add_argument("--lidar-frame", default="lidar", help="the LiDAR's frame name (default lidar)")
+    e.add_argument("--parent", default="camera", choices=["camera", "lidar"],
+                   help="ros-tf and urdf: which frame is the parent (default camera: the numbers are "
+                        "T_camera_lidar's; lidar: its inverse)")
+    e.add_argument("--out", default=None, help="write to this file (atomically) instead of printing")
+
     d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result")
     d.add_argument("--out", default="lidarcam-demo",
                    help="folder for the dataset, calibration.json, posterior.npz and report.html (default "
@@ -324,6 +362,64 @@ def _study_spec(argv: list[str]) -> int:
     return 0
 
 
+def _board_argument(text: str):
+    """``NXxNY:SQUARE[:WxH]`` or a YAML file with a ``board:`` mapping (or the mapping itself)."""
+    import yaml
+
+    from .dataset import parse_board
+    from .errors import LidarcamError
+
+    path = Path(text)
+    if path.suffix.lower() in (".yaml", ".yml"):
+        if not path.is_file():
+            raise LidarcamError("board file not found", path=path, hint="give NXxNY:SQUARE or a YAML file")
+        try:
+            spec = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise LidarcamError(f"invalid YAML ({str(exc).splitlines()[0]})", path=path, hint="fix the syntax")
+        return parse_board(spec.get("board", spec) if isinstance(spec, dict) else spec, path)
+    parts = text.lower().split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError(text)
+        squares = tuple(int(v) for v in parts[0].split("x"))
+        spec = {"squares": squares, "square_size": float(parts[1])}
+        if len(parts) == 3:
+            spec["size"] = tuple(float(v) for v in parts[2].split("x"))
+    except ValueError:
+        raise LidarcamError(f"cannot read --board {text!r}", hint="write squares and square size in metres, "
+                            "e.g. --board 9x7:0.1 or 9x7:0.1:1.0x0.8 (outer size), or give a YAML file") from None
+    return parse_board(spec, Path("--board"))
+
+
+def _extract(args) -> int:
+    from .bag_extract import ExtractOptions, extract_bag
+
+    options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
+                             check_hz=args.check_hz, scan_format=args.scan_format)
+    summary = extract_bag(args.bag, args.out, _board_argument(args.board), args.image_topic,
+                          cloud_topic=args.cloud_topic, scan_topic=args.scan_topic,
+                          camera_info_topic=args.camera_info_topic, use_camera_info=not args.no_camera_info,
+                          options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite)
+    print("\n".join(summary.lines()))
+    if summary.frames < 4:
+        print(f"warning: only {summary.frames} frames; a 3D calibration needs 3 or more spread poses, 4+ "
+              "are advised", file=sys.stderr)
+    print(f"wrote {summary.out} (next: lidarcam calibrate {summary.out} --out OUT)")
+    return 0
+
+
+def _export(args) -> int:
+    from .export import export_calibration, write_export
+
+    frames = {"camera_frame": args.camera_frame, "lidar_frame": args.lidar_frame, "parent": args.parent}
+    if args.out is None:
+        sys.stdout.write(export_calibration(args.calibration, args.format, **frames))
+    else:
+        print(f"wrote {write_export(args.calibration, args.format, args.out, **frames)}")
+    return 0
+
+
 def _demo(args) -> int:
     import numpy as np
 
@@ -357,7 +453,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from .errors import LidarcamError
 
-    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study, "layout": _layout}
+    handlers = {"calibrate": _calibrate, "simulate": _simulate, "demo": _demo, "study": _study, "layout": _layout,
+                "extract": _extract, "export": _export}
     try:
         if spec_study:
             return _study_spec(argv[1:])

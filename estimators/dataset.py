@@ -84,6 +84,19 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root, suffixes))
 
 
+def dataset_spec(lidar: str, board: BoardModel, camera: CameraModel | None) -> dict:
+    """The ``dataset.yaml`` mapping for a LiDAR kind, a board and (optionally) the camera intrinsics."""
+    spec = {"lidar": lidar, "board": {"squares": list(board.squares), "square_size": board.square_size}}
+    if board.size is not None:
+        spec["board"]["size"] = list(board.size)
+    if board.pattern_offset is not None:
+        spec["board"]["pattern_offset"] = list(board.pattern_offset)
+    if camera is not None:
+        spec["camera"] = {"model": camera.model, "width": camera.width, "height": camera.height,
+                          "K": camera.K.tolist(), "dist": camera.dist.tolist()}
+    return spec
+
+
 def parse_board(b: object, ypath: Path) -> BoardModel:
     if not isinstance(b, dict) or "squares" not in b or "square_size" not in b:
         raise DatasetError("board needs squares: [nx, ny] and square_size (m)", path=ypath,

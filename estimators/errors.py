@@ -35,3 +35,7 @@ class MeasurementError(LidarcamError):
 
 class DegenerateLayoutError(LidarcamError):
     """The usable frames cannot determine the transform (too few, or normals that do not span 3D)."""
+
+
+class BagError(LidarcamError):
+    """A ROS bag, one of its topics or messages cannot be used (missing topic, unknown encoding, no overlap)."""

@@ -19,6 +19,7 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
+from .dataset import dataset_spec
 from .lidar_models import BEAM_MODELS, BeamModel
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
@@ -217,18 +218,7 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
 
 
 def dataset_yaml(rig: Rig, lidar: str | None = None) -> dict:
-    lidar = lidar or ("2d" if rig.beams.is_2d else "3d")
-    b = rig.board
-    spec = {"lidar": lidar,
-            "board": {"squares": list(b.squares), "square_size": b.square_size}}
-    if b.size is not None:
-        spec["board"]["size"] = list(b.size)
-    if b.pattern_offset is not None:
-        spec["board"]["pattern_offset"] = list(b.pattern_offset)
-    c = rig.camera
-    spec["camera"] = {"model": c.model, "width": c.width, "height": c.height, "K": c.K.tolist(),
-                      "dist": c.dist.tolist()}
-    return spec
+    return dataset_spec(lidar or ("2d" if rig.beams.is_2d else "3d"), rig.board, rig.camera)
 
 
 def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_format: str = "pcd",

@@ -44,6 +44,17 @@ def R_from_quat_xyzw(q: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
 
 
+def rpy_from_R(R: np.ndarray) -> np.ndarray:
+    """``[roll, pitch, yaw]`` (radians) with ``R = Rz(yaw) Ry(pitch) Rx(roll)``: URDF's ``rpy`` and the
+    ``yaw pitch roll`` of ROS's ``static_transform_publisher`` (fixed axes x, y, z in that order)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
+
+
+def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
+    """Inverse of ``rpy_from_R``."""
+    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
+
+
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A rotation drawn uniformly from SO(3)."""
     return Rotation.random(random_state=rng).as_matrix()

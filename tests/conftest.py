@@ -26,3 +26,10 @@ def sim_hdl64e(tmp_path_factory) -> Path:
 def sim_vlp16(tmp_path_factory) -> Path:
     return simulate_dataset(tmp_path_factory.mktemp("sim") / "vlp16", n_poses=8, seed=12, lidar="vlp16",
                             sigma_range_m=0.02)
+
+
+@pytest.fixture(scope="session")
+def sim_2d(tmp_path_factory) -> Path:
+    """6 poses, 270-degree single-line scanner, 1 cm range noise, CSV scans (invalid returns as 0)."""
+    return simulate_dataset(tmp_path_factory.mktemp("sim") / "scan2d", n_poses=6, seed=5, lidar="2d",
+                            sigma_range_m=0.01, scan_format="csv")

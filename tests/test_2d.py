@@ -15,7 +15,7 @@ from estimators.errors import DegenerateLayoutError, LidarcamError, ScanReadErro
 from estimators.observation_model import Layout, simulate_measurements
 from estimators.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
 from estimators.refinement import refine
-from estimators.simulator import default_rig_2d, sample_board_poses, simulate_dataset
+from estimators.simulator import default_rig_2d, sample_board_poses
 from estimators.solution_selection import select_minimal, solution_distances
 from geometry.rotations import T_from_Rt, T_inverse, T_log
 
@@ -104,11 +104,10 @@ def test_vertical_boards_are_an_error_that_names_what_is_unobservable():
     assert "unobservable" in exc.value.problem or "coplanar" in exc.value.problem
 
 
-def test_simulated_2d_dataset_calibrates_end_to_end(tmp_path):
+def test_simulated_2d_dataset_calibrates_end_to_end(sim_2d):
     """Rendered images and a 270-degree scan (CSV, invalid returns as 0): every board found, the estimate
     within its own 99.9% region of the truth and within 1 deg / 5 cm."""
-    path = simulate_dataset(tmp_path / "ds", n_poses=6, seed=5, lidar="2d", sigma_range_m=0.01, scan_format="csv")
-    ds = load_dataset(path)
+    ds = load_dataset(sim_2d)
     assert ds.lidar == "2d"
     result = calibrate(ds, posterior=None)
     assert result.frames_used == 6 and result.init == "minimal-lower-bound"

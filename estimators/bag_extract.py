@@ -1,0 +1,346 @@
+"""A dataset folder from a ROS 1 bag or a ROS 2 bag (sqlite3 or MCAP), read with ``rosbags`` (no ROS install).
+
+One pass over the bag, streaming: images are examined at up to ``check_hz``; each examined image is paired
+with the scan nearest in header time (within ``max_dt_s``); the board's inner corners are found in a reduced
+copy of the image, and consecutive examinations whose corners moved less than ``still_px`` form a *still
+segment*. A segment that lasts ``still_s`` or longer gives one frame: its steadiest interior image (the one
+whose corners moved least towards both neighbours) with its scan, so a hand-held or tripod board yields one
+frame per pose. A pose already kept is not kept again. Every image not kept is counted under its reason.
+
+Memory stays bounded: at most a few scans (those within the pairing window), the images awaiting their scan,
+and two candidate frames are held; kept frames go to disk as they are found.
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+
+from .dataset import dataset_spec
+from .errors import BagError
+from .output import atomic_directory
+from .pointcloud_io import write_scan, write_scan_2d
+from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns,
+                           to_gray8)
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+# Board detection for the stillness test runs on a copy whose longer side is at most this (pixels).
+DETECT_MAX_SIDE = 960
+MAX_PENDING_IMAGES = 64
+
+REASONS = {
+    "kept": "kept (one per still pose)",
+    "between_checks": "not examined (between checks at --check-hz)",
+    "no_board": "no board found in the image",
+    "moving": "board moving (still for less than --still-s)",
+    "same_pose": "same still pose as the kept frame",
+    "repeat_pose": "repeats a pose already kept",
+    "no_scan": "no scan within --max-dt",
+}
+
+
+@dataclass(frozen=True)
+class ExtractOptions:
+    """Pairing and stillness settings (seconds, pixels of the full image)."""
+
+    max_dt_s: float = 0.05
+    still_s: float = 1.0
+    still_px: float = 2.0
+    check_hz: float = 5.0
+    scan_format: str | None = None  # default: pcd for a 3D LiDAR, csv (angle,range) for a 2D one
+
+    def __post_init__(self):
+        for name in ("max_dt_s", "still_s", "still_px", "check_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"Expected {name} > 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class ExtractSummary:
+    """What an extraction kept and why it dropped the rest (counts of image messages)."""
+
+    out: Path
+    lidar: str
+    frames: int
+    images: int
+    counts: dict = field(default_factory=dict)
+    camera_source: str | None = None
+
+    def lines(self) -> list[str]:
+        out = [f"{self.images} images: {self.frames} frames kept (one per still board pose)"]
+        out += [f"  {n:6d}  {REASONS[k]}" for k, n in self.counts.items() if k != "kept" and n]
+        out.append(f"intrinsics: {self.camera_source}" if self.camera_source else
+                   "intrinsics: none in the bag (calibrate estimates them from the board views)")
+        return out
+
+
+@dataclass
+class _Check:
+    stamp: int
+    image: np.ndarray
+    corners: np.ndarray | None
+    scan: object = None  # the scan message paired with this image, or None
+    scan_stamp: int | None = None
+
+
+def _detect(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
+    """Inner corners (N, 2) in full-image pixels, found on a reduced copy, or None."""
+    scale = min(1.0, DETECT_MAX_SIDE / max(gray.shape))
+    small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else gray
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    found, corners = cv2.findChessboardCorners(small, pattern, flags=flags)
+    if not found:
+        return None
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+    corners = cv2.cornerSubPix(small, corners, (4, 4), (-1, -1), criteria)
+    return corners.reshape(-1, 2).astype(float) / scale
+
+
+def corner_motion(a: np.ndarray | None, b: np.ndarray | None) -> float:
+    """Largest corner displacement (px) between two detections, allowing the detector's reversed order."""
+    if a is None or b is None or a.shape != b.shape:
+        return float("inf")
+    return float(min(np.max(np.linalg.norm(a - b, axis=1)), np.max(np.linalg.norm(a - b[::-1], axis=1))))
+
+
+class _StillSegments:
+    """Groups examined images into still segments and emits one frame per segment that lasts long enough."""
+
+    def __init__(self, options: ExtractOptions, emit):
+        self.o, self.emit = options, emit
+        self.counts: Counter = Counter()
+        self.kept_corners: list[np.ndarray] = []
+        self._reset()
+
+    def _reset(self):
+        self.first: _Check | None = None
+        self.prev: _Check | None = None
+        self.prev_motion = float("inf")  # motion from the check before prev to prev
+        self.best: _Check | None = None
+        self.best_score = float("inf")
+        self.n = 0
+
+    def add(self, c: _Check) -> None:
+        if c.corners is None:
+            self.close()
+            self.counts["no_board"] += 1
+            return
+        motion = corner_motion(self.prev.corners, c.corners) if self.prev is not None else float("inf")
+        if motion > self.o.still_px:
+            self.close()
+            self.first, self.n = c, 0
+        elif self.prev is not None and self.prev is not self.first and self.prev.scan is not None:
+            # prev is interior: score it by its motion towards both neighbours.
+            score = max(self.prev_motion, motion)
+            if score < self.best_score:
+                self.best, self.best_score = self.prev, score
+        self.prev, self.prev_motion = c, motion
+        self.n += 1
+
+    def close(self) -> None:
+        if self.first is None:
+            return
+        duration = (self.prev.stamp - self.first.stamp) * 1e-9
+        n, best = self.n, self.best
+        if duration < self.o.still_s or n < 3:
+            self.counts["moving"] += n
+        elif best is None:
+            self.counts["no_scan"] += n
+        elif any(corner_motion(k, best.corners) <= self.o.still_px for k in self.kept_corners):
+            self.counts["repeat_pose"] += n
+        else:
+            self.kept_corners.append(best.corners)
+            self.emit(best)
+            self.counts["kept"] += 1
+            self.counts["same_pose"] += n - 1
+        self._reset()
+
+
+def _open_reader(bag: Path):
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if not bag.exists():
+        raise BagError("bag not found", path=bag, hint="give a ROS 1 .bag file or a ROS 2 bag folder")
+    try:
+        reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as exc:  # rosbags raises several kinds for files that are not bags
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+        raise BagError(f"not a readable ROS 1 or ROS 2 bag ({first})", path=bag,
+                       hint="give a .bag file (ROS 1) or the folder holding metadata.yaml (ROS 2)") from exc
+    return reader
+
+
+def _topic(reader, bag: Path, topic: str, types: tuple[str, ...], flag: str):
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        present = sorted({c.topic for c in reader.connections if c.msgtype in types})
+        listing = ", ".join(present) if present else "none"
+        raise BagError(f"no topic {topic!r} ({' or '.join(t.split('/')[-1] for t in types)} topics in the bag: "
+                       f"{listing})", path=bag, hint=f"set {flag} to one of them")
+    wrong = [c.msgtype for c in conns if c.msgtype not in types]
+    if wrong:
+        raise BagError(f"topic {topic!r} holds {wrong[0]}, not {' or '.join(types)}", path=bag,
+                       hint=f"set {flag} to a topic of that type")
+    return conns
+
+
+def _camera_info_topic(reader, image_topic: str) -> str | None:
+    infos = sorted({c.topic for c in reader.connections if c.msgtype == INFO_TYPE})
+    namespace = image_topic.rsplit("/", 1)[0]
+    same = [t for t in infos if t.rsplit("/", 1)[0] == namespace]
+    if same:
+        return same[0]
+    return infos[0] if len(infos) == 1 else None
+
+
+def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardModel, image_topic: str,
+                cloud_topic: str | None = None, scan_topic: str | None = None,
+                camera_info_topic: str | None = None, use_camera_info: bool = True,
+                options: ExtractOptions = ExtractOptions(), progress: bool = False,
+                overwrite: bool = False) -> ExtractSummary:
+    """Write a dataset folder (``dataset.yaml``, ``NNNN.png`` and ``NNNN.pcd|csv``, ``extract.json``) from a bag.
+
+    Give ``cloud_topic`` (PointCloud2, a 3D LiDAR) or ``scan_topic`` (LaserScan, a 2D LiDAR). The camera
+    intrinsics come from ``camera_info_topic``, or a CameraInfo topic beside the image topic, unless
+    ``use_camera_info`` is False. The folder appears complete or not at all.
+    """
+    from tqdm.auto import tqdm
+
+    bag = Path(bag)
+    if (cloud_topic is None) == (scan_topic is None):
+        raise BagError("give exactly one of a cloud topic (3D LiDAR) and a scan topic (2D LiDAR)", path=bag,
+                       hint="pass --cloud-topic T or --scan-topic T")
+    lidar = "3d" if cloud_topic else "2d"
+    scan_format = options.scan_format or ("pcd" if lidar == "3d" else "csv")
+    reader = _open_reader(bag)
+    try:
+        img_conns = _topic(reader, bag, image_topic, IMAGE_TYPES, "--image-topic")
+        lidar_conns = (_topic(reader, bag, cloud_topic, (CLOUD_TYPE,), "--cloud-topic") if cloud_topic else
+                       _topic(reader, bag, scan_topic, (SCAN_TYPE,), "--scan-topic"))
+        info_topic = camera_info_topic
+        if info_topic is None and use_camera_info:
+            info_topic = _camera_info_topic(reader, image_topic)
+        info_conns = _topic(reader, bag, info_topic, (INFO_TYPE,), "--camera-info-topic") \
+            if info_topic and use_camera_info else []
+        lidar_topic = cloud_topic or scan_topic
+        conns = img_conns + lidar_conns + info_conns
+        total = sum(c.msgcount for c in conns)
+        with atomic_directory(out, overwrite=overwrite) as tmp:
+            records: list[dict] = []
+
+            def emit(c: _Check) -> None:
+                name = f"{len(records):04d}"
+                cv2.imwrite(str(tmp / f"{name}.png"), c.image)
+                if lidar == "3d":
+                    xyz, inten = decode_point_cloud(c.scan, lidar_topic)
+                    write_scan(tmp / f"{name}.{scan_format}", xyz, inten)
+                else:
+                    write_scan_2d(tmp / f"{name}.{scan_format}", *decode_laser_scan(c.scan))
+                records.append({"name": name, "image_stamp_ns": c.stamp, "scan_stamp_ns": c.scan_stamp,
+                                "dt_ms": round((c.scan_stamp - c.stamp) * 1e-6, 3)})
+
+            segments = _StillSegments(options, emit)
+            pattern = board.inner_corners_shape
+            scans: deque = deque()  # (stamp, msg) in arrival order
+            pending: deque = deque()  # examined images awaiting a later scan
+            camera: CameraModel | None = None
+            n_images, last_checked = 0, None
+            img_span, scan_span = [None, None], [None, None]
+            peak = {"scans": 0, "images_awaiting_a_scan": 0}
+            max_dt = int(options.max_dt_s * 1e9)
+
+            def resolve(c: _Check) -> None:
+                if scans:
+                    stamp, msg = min(scans, key=lambda s: abs(s[0] - c.stamp))
+                    if abs(stamp - c.stamp) <= max_dt:
+                        c.scan, c.scan_stamp = msg, stamp
+                segments.add(c)
+
+            def span(s, t):
+                s[0] = t if s[0] is None else min(s[0], t)
+                s[1] = t if s[1] is None else max(s[1], t)
+
+            bar = tqdm(total=total, desc=f"reading {bag.name}", unit="msg", disable=not progress)
+            for conn, t_bag, raw in reader.messages(connections=conns):
+                bar.update(1)
+                msg = reader.deserialize(raw, conn.msgtype)
+                stamp = stamp_ns(msg, t_bag)
+                if conn.topic == info_topic:
+                    if camera is None:
+                        camera = camera_from_info(msg, info_topic)
+                    continue
+                if conn.topic == lidar_topic:
+                    span(scan_span, stamp)
+                    scans.append((stamp, msg))
+                    while pending and stamp > pending[0].stamp + max_dt:
+                        resolve(pending.popleft())
+                else:
+                    n_images += 1
+                    span(img_span, stamp)
+                    if last_checked is not None and abs(stamp - last_checked) < 1e9 / options.check_hz:
+                        segments.counts["between_checks"] += 1
+                        continue
+                    last_checked = stamp
+                    image = decode_image(msg, image_topic)
+                    pending.append(_Check(stamp, image, _detect(to_gray8(image), pattern)))
+                    if len(pending) > MAX_PENDING_IMAGES:
+                        resolve(pending.popleft())
+                # A scan followed by one no later than every image still to come can never be the nearest
+                # again (images still to come: the pending ones, or ones stamped after now less a second's lag).
+                horizon = pending[0].stamp if pending else stamp - 1_000_000_000
+                while len(scans) > 1 and scans[1][0] <= horizon:
+                    scans.popleft()
+                peak["scans"] = max(peak["scans"], len(scans))
+                peak["images_awaiting_a_scan"] = max(peak["images_awaiting_a_scan"], len(pending))
+            bar.close()
+            while pending:
+                resolve(pending.popleft())
+            segments.close()
+            _check_overlap(bag, image_topic, lidar_topic, img_span, scan_span, n_images, options)
+            if not records:
+                counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
+                raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,
+                               hint="hold the board still for --still-s seconds per pose, or raise --still-px "
+                                    "for a hand-held board")
+            spec = dataset_spec(lidar, board, camera)
+            (tmp / "dataset.yaml").write_text(
+                f"# extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}\n"
+                + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+            counts = {k: int(segments.counts.get(k, 0)) for k in REASONS}
+            (tmp / "extract.json").write_text(json.dumps({
+                "bag": str(bag), "image_topic": image_topic, "lidar_topic": lidar_topic,
+                "camera_info_topic": info_topic if camera is not None else None,
+                "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
+                            "still_px": options.still_px, "check_hz": options.check_hz},
+                "images": n_images, "counts": counts, "peak_buffered_messages": peak,
+                "frames": records}, indent=1) + "\n")
+    finally:
+        reader.close()
+    return ExtractSummary(Path(out), lidar, len(records), n_images, counts,
+                          camera.source if camera is not None else None)
+
+
+def _check_overlap(bag, image_topic, lidar_topic, img_span, scan_span, n_images, options) -> None:
+    if n_images == 0:
+        raise BagError(f"topic {image_topic!r} has no messages", path=bag, hint="check the recording")
+    if scan_span[0] is None:
+        raise BagError(f"topic {lidar_topic!r} has no messages", path=bag, hint="check the recording")
+    slack = options.max_dt_s * 1e9
+    if img_span[0] > scan_span[1] + slack or scan_span[0] > img_span[1] + slack:
+        raise BagError(f"{image_topic} ({img_span[0] * 1e-9:.3f}-{img_span[1] * 1e-9:.3f} s) and {lidar_topic} "
+                       f"({scan_span[0] * 1e-9:.3f}-{scan_span[1] * 1e-9:.3f} s) do not overlap in time",
+                       path=bag, hint="check that both sensors stamp with the same clock")

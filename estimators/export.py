@@ -1,0 +1,201 @@
+"""``T_camera_lidar`` in the forms robotics stacks load, each with the transform's direction written beside it.
+
+Formats (``FORMATS``):
+
+- ``ros-tf``: ``static_transform_publisher`` command lines for ROS 1 (quaternion and yaw-pitch-roll forms)
+  and ROS 2 (named arguments). tf's order: ``x y z qx qy qz qw parent child``, the pose of ``child`` in
+  ``parent``;
+- ``urdf``: a fixed joint (with its two links) whose ``origin`` is the child's pose in the parent;
+- ``kitti``: ``calib_velo_to_cam.txt`` lines ``R:`` (row-major) and ``T:`` with ``x_cam = R x_velo + T``, and
+  ``Tr_velo_to_cam:`` (the 3x4 ``[R | T]``, row-major) as the object benchmark writes it;
+- ``opencv-yaml``: an OpenCV FileStorage YAML with both directions, the covariance and the intrinsics;
+- ``json``: lidarcam's ``calibration.json`` with the frame names and the inverse transform added.
+
+``parent`` picks the tree direction for tf and URDF: ``camera`` (default; the numbers are
+``T_camera_lidar``'s, the LiDAR a child of the camera) or ``lidar`` (the inverse, the camera a child of the LiDAR).
+KITTI, OpenCV YAML and JSON always hold ``T_camera_lidar`` (YAML and JSON also its inverse).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from geometry.rotations import T_inverse, quat_xyzw_from_R, rpy_from_R
+
+from .errors import LidarcamError
+from .output import write_atomic
+
+FORMATS = ("ros-tf", "urdf", "kitti", "opencv-yaml", "json")
+
+
+def _num(x: float) -> str:
+    return f"{float(x):.9g}"
+
+
+def _nums(a) -> str:
+    return " ".join(_num(x) for x in np.ravel(a))
+
+
+def load_calibration(path: str | os.PathLike) -> dict:
+    """Read a ``calibration.json`` and check that it holds a rigid 4x4 ``T_camera_lidar``."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "calibration.json"
+    if not path.is_file():
+        raise LidarcamError("calibration file not found", path=path,
+                            hint="give the calibration.json written by lidarcam calibrate")
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise LidarcamError(f"not valid JSON ({exc})", path=path, hint="re-run lidarcam calibrate") from exc
+    if not isinstance(data, dict) or "T_camera_lidar" not in data:
+        raise LidarcamError("no T_camera_lidar in the file", path=path,
+                            hint="give the calibration.json written by lidarcam calibrate")
+    try:
+        _check_rigid(np.asarray(data["T_camera_lidar"], dtype=float))
+    except (ValueError, TypeError) as exc:
+        raise LidarcamError(f"T_camera_lidar is not a rigid transform ({exc})", path=path,
+                            hint="re-run lidarcam calibrate") from exc
+    return data
+
+
+def _check_rigid(T: np.ndarray) -> np.ndarray:
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"expected a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0 or \
+            np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-12:
+        raise ValueError("R is not a rotation or the last row is not 0 0 0 1")
+    return T
+
+
+def _as_calibration(calibration) -> dict:
+    if isinstance(calibration, dict):
+        return calibration
+    if hasattr(calibration, "to_dict"):
+        return calibration.to_dict()
+    if isinstance(calibration, (str, os.PathLike)):
+        return load_calibration(calibration)
+    return {"T_camera_lidar": np.asarray(calibration, dtype=float).tolist()}
+
+
+def _tree(T_camera_lidar: np.ndarray, camera_frame: str, lidar_frame: str, parent: str):
+    if parent == "camera":
+        return (T_camera_lidar, camera_frame, lidar_frame, "T_camera_lidar",
+                f"p_{camera_frame} = R p_{lidar_frame} + t")
+    if parent == "lidar":
+        return (T_inverse(T_camera_lidar), lidar_frame, camera_frame, "T_lidar_camera",
+                f"p_{lidar_frame} = R p_{camera_frame} + t")
+    raise ValueError(f"Expected parent 'camera' or 'lidar', got {parent!r}")
+
+
+def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lidar_frame: str = "lidar",
+                       parent: str = "camera") -> str:
+    """The text of ``fmt`` (one of ``FORMATS``) for a result, a ``calibration.json`` path or dict, or a 4x4
+    ``T_camera_lidar``."""
+    if fmt not in FORMATS:
+        raise ValueError(f"Expected a format in {FORMATS}, got {fmt!r}")
+    if camera_frame == lidar_frame or any(not f or any(c.isspace() for c in f) for f in (camera_frame, lidar_frame)):
+        raise LidarcamError(f"frame names must be distinct and without spaces, got camera {camera_frame!r} and "
+                            f"lidar {lidar_frame!r}", hint="set --camera-frame and --lidar-frame")
+    cal = _as_calibration(calibration)
+    try:
+        T = _check_rigid(np.asarray(cal["T_camera_lidar"], dtype=float))
+    except (ValueError, TypeError, KeyError) as exc:
+        raise LidarcamError(f"T_camera_lidar is not a rigid transform ({exc})",
+                            hint="give a 4x4 [R t; 0 0 0 1] with R a rotation") from exc
+    origin = f"lidarcam {cal.get('version', '?')} calibration of {cal.get('dataset', 'an unnamed dataset')}"
+    writers = {"ros-tf": _ros_tf, "urdf": _urdf, "kitti": _kitti, "opencv-yaml": _opencv_yaml, "json": _json}
+    return writers[fmt](T, cal, camera_frame, lidar_frame, parent, origin)
+
+
+def write_export(calibration, fmt: str, path: str | os.PathLike, **frames) -> Path:
+    """Write ``export_calibration(calibration, fmt, ...)`` to ``path`` atomically."""
+    text = export_calibration(calibration, fmt, **frames)
+    return write_atomic(path, lambda fh: fh.write(text))
+
+
+def _ros_tf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
+    Tp, par, child, name, maps = _tree(T, camera_frame, lidar_frame, parent)
+    t, q, rpy = Tp[:3, 3], quat_xyzw_from_R(Tp[:3, :3]), rpy_from_R(Tp[:3, :3])
+    return "\n".join([
+        f"# {origin}",
+        f"# The pose of child frame '{child}' in parent frame '{par}' ({name}): {maps}.",
+        "# Argument order: x y z (m), then qx qy qz qw (or yaw pitch roll, rad, R = Rz(yaw) Ry(pitch) Rx(roll)),",
+        "# then the parent frame, then the child frame.",
+        "# ROS 1:",
+        f"rosrun tf2_ros static_transform_publisher {_nums(t)} {_nums(q)} {par} {child}",
+        "# ROS 1, yaw pitch roll form:",
+        f"rosrun tf2_ros static_transform_publisher {_nums(t)} {_nums(rpy[::-1])} {par} {child}",
+        "# ROS 2 (Humble and later, named arguments):",
+        f"ros2 run tf2_ros static_transform_publisher --x {_num(t[0])} --y {_num(t[1])} --z {_num(t[2])} "
+        f"--qx {_num(q[0])} --qy {_num(q[1])} --qz {_num(q[2])} --qw {_num(q[3])} "
+        f"--frame-id {par} --child-frame-id {child}",
+        ""])
+
+
+def _urdf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
+    Tp, par, child, name, maps = _tree(T, camera_frame, lidar_frame, parent)
+    return "\n".join([
+        '<?xml version="1.0"?>',
+        f"<!-- {origin}. -->",
+        f"<!-- The joint origin is the pose of child link '{child}' in parent link '{par}' ({name}): {maps};",
+        "     rpy are fixed-axis roll, pitch, yaw in radians: R = Rz(yaw) Ry(pitch) Rx(roll). -->",
+        '<robot name="lidarcam_calibration">',
+        f'  <link name="{par}"/>',
+        f'  <link name="{child}"/>',
+        f'  <joint name="{par}_to_{child}" type="fixed">',
+        f'    <parent link="{par}"/>',
+        f'    <child link="{child}"/>',
+        f'    <origin xyz="{_nums(Tp[:3, 3])}" rpy="{_nums(rpy_from_R(Tp[:3, :3]))}"/>',
+        "  </joint>",
+        "</robot>",
+        ""])
+
+
+def _kitti(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
+    when = _dt.datetime.now().strftime("%d-%b-%Y %H:%M:%S")
+    return "\n".join([
+        f"calib_time: {when}",
+        f"R: {_nums(T[:3, :3])}",
+        f"T: {_nums(T[:3, 3])}",
+        f"Tr_velo_to_cam: {_nums(T[:3, :])}",
+        f"direction: x_{camera_frame} = R x_{lidar_frame} + T, metres (velo to cam: lidarcam's T_camera_lidar; "
+        f"Tr_velo_to_cam is [R | T] row-major); {origin}",
+        ""])
+
+
+def _opencv_yaml(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
+    fs = cv2.FileStorage("export.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("source", origin)
+    fs.write("camera_frame", camera_frame)
+    fs.write("lidar_frame", lidar_frame)
+    fs.write("direction", f"T_camera_lidar maps {lidar_frame} points into {camera_frame}: "
+                          f"p_{camera_frame} = R p_{lidar_frame} + t (metres); T_lidar_camera is its inverse")
+    fs.write("T_camera_lidar", T)
+    fs.write("T_lidar_camera", T_inverse(T))
+    if cal.get("covariance") is not None:
+        fs.write("covariance", np.asarray(cal["covariance"], dtype=float))
+        fs.write("covariance_convention", str(cal.get("covariance_convention", "")))
+    intr = cal.get("intrinsics")
+    if intr:
+        fs.write("camera_model", str(intr["model"]))
+        fs.write("image_width", int(intr["width"]))
+        fs.write("image_height", int(intr["height"]))
+        fs.write("camera_matrix", np.asarray(intr["K"], dtype=float))
+        fs.write("distortion_coefficients", np.asarray(intr["dist"], dtype=float).reshape(1, -1))
+    return fs.releaseAndGetString()
+
+
+def _json(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
+    out = dict(cal)
+    out["frame_names"] = {"camera": camera_frame, "lidar": lidar_frame}
+    out["direction"] = (f"T_camera_lidar maps {lidar_frame} points into {camera_frame}: "
+                        f"p_{camera_frame} = R p_{lidar_frame} + t (metres); T_lidar_camera is its inverse")
+    out["T_lidar_camera"] = T_inverse(T).tolist()
+    return json.dumps(out, indent=1) + "\n"

@@ -1,0 +1,185 @@
+"""Decoding ROS sensor messages into arrays, without ROS: images, point clouds, laser scans, camera info.
+
+The functions take the message objects ``rosbags`` deserialises (ROS 1 and ROS 2 alike: they read fields by
+name, so ROS 1's upper-case ``K``/``D`` and ROS 2's ``k``/``d`` both work) and raise ``BagError`` with a
+one-line reason for anything they cannot decode.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from geometry.camera import FISHEYE, PINHOLE, CameraModel
+
+from .errors import BagError
+
+# sensor_msgs/PointField datatypes.
+_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_INTENSITY_FIELDS = ("intensity", "intensities", "i", "reflectivity")
+
+# ROS's Bayer names give the colour of the first two pixels of the first row; OpenCV names its conversion
+# codes after the second row's second and third pixels, so ROS rggb is OpenCV's "BG" (as cv_bridge maps them).
+_BAYER = {"rggb": cv2.COLOR_BayerBG2BGR, "bggr": cv2.COLOR_BayerRG2BGR,
+          "gbrg": cv2.COLOR_BayerGR2BGR, "grbg": cv2.COLOR_BayerGB2BGR}
+_CHANNELS = {"mono": 1, "rgb": 3, "bgr": 3, "rgba": 4, "bgra": 4}
+IMAGE_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8", "rgb16", "bgr16", "8UC1", "8UC3",
+                   "16UC1", *(f"bayer_{p}{b}" for p in _BAYER for b in (8, 16)))
+
+
+def stamp_ns(msg, fallback_ns: int) -> int:
+    """The message's header stamp in ns, or the bag's receive time when the stamp is zero or absent."""
+    header = getattr(msg, "header", None)
+    stamp = getattr(header, "stamp", None)
+    if stamp is None:
+        return int(fallback_ns)
+    sec = getattr(stamp, "sec", getattr(stamp, "secs", 0))
+    nsec = getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0))
+    ns = int(sec) * 1_000_000_000 + int(nsec)
+    return ns if ns > 0 else int(fallback_ns)
+
+
+def decode_image(msg, topic: str = "") -> np.ndarray:
+    """A ``sensor_msgs/Image`` or ``CompressedImage`` as an 8- or 16-bit array, colour in OpenCV's BGR order."""
+    if hasattr(msg, "format") and not hasattr(msg, "encoding"):
+        return _decode_compressed(msg, topic)
+    enc = str(msg.encoding)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    kind = enc.lower()
+    depth = 16 if kind.endswith("16") or kind == "16uc1" else 8
+    if kind.startswith("bayer_"):
+        pattern = kind[len("bayer_"):-len(str(depth))]
+        if pattern not in _BAYER or kind[-len(str(depth)):] != str(depth):
+            raise BagError(f"unknown Bayer encoding {enc!r}", path=topic,
+                           hint=f"supported: {', '.join(e for e in IMAGE_ENCODINGS if e.startswith('bayer'))}")
+        channels, code = 1, _BAYER[pattern]
+    elif kind in ("8uc1", "16uc1"):
+        channels, code = 1, None
+    elif kind == "8uc3":
+        channels, code = 3, None
+    else:
+        base = kind.rstrip("0123456789")
+        if base not in _CHANNELS or kind[len(base):] not in ("8", "16"):
+            raise BagError(f"unknown image encoding {enc!r}", path=topic,
+                           hint=f"supported: {', '.join(IMAGE_ENCODINGS)}")
+        channels, code = _CHANNELS[base], {"rgb": cv2.COLOR_RGB2BGR, "rgba": cv2.COLOR_RGBA2BGR,
+                                           "bgra": cv2.COLOR_BGRA2BGR}.get(base)
+    itemsize = depth // 8
+    row = w * channels * itemsize
+    if h <= 0 or w <= 0 or step < row or data.size < step * (h - 1) + row:
+        raise BagError(f"image message of {data.size} bytes does not hold {w}x{h} {enc} (step {step})",
+                       path=topic, hint="the recording is truncated or its header is wrong")
+    rows = np.lib.stride_tricks.as_strided(data, shape=(h, row), strides=(step, 1))
+    dtype = np.dtype(np.uint16 if depth == 16 else np.uint8).newbyteorder(">" if msg.is_bigendian else "<")
+    img = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
+    img = img.reshape(h, w, channels) if channels > 1 else img.reshape(h, w)
+    if code is not None:
+        img = cv2.cvtColor(img, code)
+    return img
+
+
+def _decode_compressed(msg, topic: str) -> np.ndarray:
+    fmt = str(msg.format).lower()
+    if "compresseddepth" in fmt:
+        raise BagError(f"compressed depth image ({msg.format!r}) is not a camera image", path=topic,
+                       hint="give the colour or mono image topic")
+    img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BagError(f"cannot decode compressed image (format {msg.format!r})", path=topic,
+                       hint="expected JPEG or PNG data")
+    # "rgb8; jpeg compressed bgr8": the codec returns BGR, which is what the rest of lidarcam expects.
+    return img
+
+
+def to_gray8(img: np.ndarray) -> np.ndarray:
+    """8-bit greyscale of a decoded image (16-bit scaled to its range)."""
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        img = cv2.normalize(img.astype(np.float64), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return img
+
+
+def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | None]:
+    """``sensor_msgs/PointCloud2`` as (N, 3) float64 points and an (N,) intensity (or None).
+
+    Any field layout (offsets, padding, float32 or float64 coordinates, extra fields such as ``ring`` or
+    ``t``), organised or not; NaN/inf and (0, 0, 0) no-returns are dropped.
+    """
+    fields = {f.name: f for f in msg.fields}
+    missing = [c for c in "xyz" if c not in fields]
+    if missing:
+        raise BagError(f"point cloud has no {', '.join(missing)} field (fields: {', '.join(fields) or 'none'})",
+                       path=topic, hint="give a PointCloud2 topic with x, y, z")
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for name in ("x", "y", "z", *[n for n in _INTENSITY_FIELDS if n in fields][:1]):
+        f = fields[name]
+        if int(f.datatype) not in _POINT_FIELD_TYPES:
+            raise BagError(f"field {name!r} has unknown PointField datatype {f.datatype}", path=topic,
+                           hint="expected datatypes 1-8 (INT8 ... FLOAT64)")
+        names.append(name)
+        formats.append(order + _POINT_FIELD_TYPES[int(f.datatype)])
+        offsets.append(int(f.offset))
+    step, width, height, row_step = int(msg.point_step), int(msg.width), int(msg.height), int(msg.row_step)
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if width * height == 0:
+        return np.zeros((0, 3)), None
+    if step < dtype.itemsize or row_step < width * step or data.size < row_step * (height - 1) + width * step:
+        raise BagError(f"point cloud of {data.size} bytes does not hold {height}x{width} points of "
+                       f"{step} bytes (row_step {row_step})", path=topic,
+                       hint="the recording is truncated or its header is wrong")
+    rows = [data[r * row_step: r * row_step + width * step] for r in range(height)]
+    pts = np.frombuffer(np.concatenate(rows).tobytes(), dtype=dtype)
+    xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(float)
+    inten = pts[names[3]].astype(float) if len(names) > 3 else None
+    keep = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
+    return xyz[keep], None if inten is None else inten[keep]
+
+
+def decode_laser_scan(msg) -> tuple[np.ndarray, np.ndarray]:
+    """``sensor_msgs/LaserScan`` as (angles, ranges) in radians and metres; invalid returns as range 0."""
+    ranges = np.asarray(msg.ranges, dtype=float)
+    angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(len(ranges))
+    valid = np.isfinite(ranges) & (ranges >= float(msg.range_min)) & (ranges <= float(msg.range_max))
+    return angles, np.where(valid, ranges, 0.0)
+
+
+def _field(msg, *names):
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    raise AttributeError(names[0])
+
+
+def camera_from_info(msg, topic: str = "") -> CameraModel:
+    """``sensor_msgs/CameraInfo`` as the dataset's camera model.
+
+    plumb_bob (5 coefficients) and rational_polynomial (8) become OpenCV's pinhole model; equidistant
+    (k1..k4) becomes the fisheye model. ``K`` and ``D`` describe the raw (unrectified) image.
+    """
+    K = np.asarray(_field(msg, "k", "K"), dtype=float).reshape(3, 3)
+    D = np.asarray(_field(msg, "d", "D"), dtype=float).ravel()
+    model_name = str(msg.distortion_model).lower()
+    if model_name in ("plumb_bob", "rational_polynomial", ""):
+        model = PINHOLE
+        if D.size not in (0, 4, 5, 8, 12, 14):
+            raise BagError(f"{model_name} camera info has {D.size} distortion coefficients", path=topic,
+                           hint="expected 5 (plumb_bob) or 8 (rational_polynomial)")
+    elif model_name in ("equidistant", "fisheye"):
+        model = FISHEYE
+        D = D[:4] if D.size >= 4 else D
+    else:
+        raise BagError(f"unknown distortion model {msg.distortion_model!r}", path=topic,
+                       hint="supported: plumb_bob, rational_polynomial, equidistant; or put the camera in "
+                            "dataset.yaml yourself")
+    if not np.any(K):
+        raise BagError("camera info has an all-zero K (the camera is uncalibrated)", path=topic,
+                       hint="drop --camera-info-topic to estimate intrinsics from the board views")
+    try:
+        return CameraModel(K=K, dist=D, width=int(msg.width), height=int(msg.height), model=model,
+                           source=f"CameraInfo {topic}".strip())
+    except ValueError as exc:
+        raise BagError(f"invalid camera info ({exc})", path=topic, hint="check the recording's calibration") \
+            from exc

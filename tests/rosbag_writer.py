@@ -1,0 +1,172 @@
+"""Test support: ROS 1, ROS 2 sqlite3 and ROS 2 MCAP bags recorded from a simulated dataset folder.
+
+Each of the dataset's board poses is held still for ``still_s`` (images at ``image_hz`` with fresh pixel noise,
+scans at ``scan_hz`` offset from the images by ``scan_offset_s``), then the board moves for ``move_s`` (the
+image slides sideways, and one image shows no board). Written with ``rosbags`` only: no ROS install.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from estimators.dataset import load_dataset
+from estimators.pointcloud_io import read_scan
+
+T0_NS = 1_700_000_000 * 1_000_000_000
+
+
+def _stores(kind: str):
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+
+
+class _Bag:
+    def __init__(self, path: Path, kind: str):
+        from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+
+        self.kind, self.ts = kind, _stores(kind)
+        if kind == "ros1":
+            self.writer = Writer1(path)
+        else:
+            plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+            self.writer = Writer2(path, version=9, storage_plugin=plugin)
+        self.conns: dict = {}
+
+    def __enter__(self):
+        self.writer.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.writer.close()
+
+    def header(self, t_ns: int, frame: str):
+        T = self.ts.types
+        stamp = T["builtin_interfaces/msg/Time"](sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        if self.kind == "ros1":
+            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def write(self, topic: str, msg, t_ns: int) -> None:
+        msgtype = msg.__msgtype__
+        if topic not in self.conns:
+            self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts)
+        data = self.ts.serialize_ros1(msg, msgtype) if self.kind == "ros1" else self.ts.serialize_cdr(msg, msgtype)
+        self.writer.write(self.conns[topic], t_ns, data)
+
+
+def image_message(bag: _Bag, img: np.ndarray, t_ns: int, encoding: str = "mono8"):
+    T = bag.ts.types
+    if encoding == "jpeg":
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 97])
+        return T["sensor_msgs/msg/CompressedImage"](header=bag.header(t_ns, "camera"), format="jpeg",
+                                                     data=np.frombuffer(buf.tobytes(), np.uint8))
+    if encoding == "rgb8":
+        data = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    elif encoding == "bayer_rggb8":
+        rgb = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+        data = bayer_mosaic_rggb(rgb)
+    else:
+        data = img
+    channels = 1 if data.ndim == 2 else data.shape[2]
+    return T["sensor_msgs/msg/Image"](header=bag.header(t_ns, "camera"), height=data.shape[0],
+                                      width=data.shape[1], encoding=encoding, is_bigendian=0,
+                                      step=data.shape[1] * channels, data=np.ascontiguousarray(data).ravel())
+
+
+def bayer_mosaic_rggb(rgb: np.ndarray) -> np.ndarray:
+    """The single-channel RGGB mosaic a Bayer sensor records of an RGB image."""
+    m = np.empty(rgb.shape[:2], rgb.dtype)
+    m[0::2, 0::2] = rgb[0::2, 0::2, 0]
+    m[0::2, 1::2] = rgb[0::2, 1::2, 1]
+    m[1::2, 0::2] = rgb[1::2, 0::2, 1]
+    m[1::2, 1::2] = rgb[1::2, 1::2, 2]
+    return m
+
+
+def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int):
+    """x, y, z, intensity float32 and ring uint16 in a padded 32-byte point, as Velodyne drivers publish."""
+    T = bag.ts.types
+    PF = T["sensor_msgs/msg/PointField"]
+    dtype = np.dtype({"names": ["x", "y", "z", "intensity", "ring"], "formats": ["<f4"] * 4 + ["<u2"],
+                      "offsets": [0, 4, 8, 16, 20], "itemsize": 32})
+    pts = np.zeros(len(xyz), dtype)
+    pts["x"], pts["y"], pts["z"] = xyz.T
+    pts["intensity"] = 100.0
+    fields = [PF(name="x", offset=0, datatype=7, count=1), PF(name="y", offset=4, datatype=7, count=1),
+              PF(name="z", offset=8, datatype=7, count=1), PF(name="intensity", offset=16, datatype=7, count=1),
+              PF(name="ring", offset=20, datatype=4, count=1)]
+    return T["sensor_msgs/msg/PointCloud2"](header=bag.header(t_ns, "lidar"), height=1, width=len(pts),
+                                            fields=fields, is_bigendian=False, point_step=32,
+                                            row_step=32 * len(pts), data=pts.view(np.uint8).ravel(),
+                                            is_dense=True)
+
+
+def scan_message(bag: _Bag, angles: np.ndarray, ranges: np.ndarray, t_ns: int):
+    T = bag.ts.types
+    r = np.where(ranges > 0, ranges, np.inf).astype(np.float32)
+    return T["sensor_msgs/msg/LaserScan"](
+        header=bag.header(t_ns, "laser"), angle_min=float(angles[0]), angle_max=float(angles[-1]),
+        angle_increment=float((angles[-1] - angles[0]) / (len(angles) - 1)), time_increment=0.0, scan_time=0.025, range_min=0.02,
+        range_max=80.0, ranges=r, intensities=np.zeros(0, np.float32))
+
+
+def info_message(bag: _Bag, camera, t_ns: int):
+    T = bag.ts.types
+    upper = bag.kind == "ros1"
+    K, D = camera.K.ravel().astype(float), camera.dist.astype(float)
+    P = np.hstack([camera.K, np.zeros((3, 1))]).ravel()
+    kw = {"D" if upper else "d": D, "K" if upper else "k": K, "R" if upper else "r": np.eye(3).ravel(),
+          "P" if upper else "p": P}
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return T["sensor_msgs/msg/CameraInfo"](
+        header=bag.header(t_ns, "camera"), height=camera.height, width=camera.width,
+        distortion_model="equidistant" if camera.model == "fisheye" else "plumb_bob",
+        binning_x=0, binning_y=0, roi=roi, **kw)
+
+
+def _read_scan_2d_raw(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    return data[:, 0], data[:, 1]
+
+
+def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding: str = "mono8",
+                           image_hz: float = 10.0, scan_hz: float = 10.0, still_s: float = 1.5,
+                           move_s: float = 0.6, scan_offset_s: float = 0.013, camera_info: bool = True,
+                           seed: int = 0, image_topic: str = "/camera/image_raw",
+                           lidar_topic: str | None = None) -> Path:
+    """Record the dataset's poses as a bag of ``kind`` ros1 | sqlite3 | mcap; returns the bag's path."""
+    ds = load_dataset(dataset)
+    rng = np.random.default_rng(seed)
+    is2d = ds.lidar == "2d"
+    lidar_topic = lidar_topic or ("/scan" if is2d else "/velodyne_points")
+    t = T0_NS
+    dt_img, dt_scan = int(1e9 / image_hz), int(1e9 / scan_hz)
+    with _Bag(bag_path, kind) as bag:
+        for f in ds.frames:
+            img = cv2.imread(str(f.image), cv2.IMREAD_GRAYSCALE)
+            scan = _read_scan_2d_raw(f.scan) if is2d else read_scan(f.scan)
+            end = t + int(still_s * 1e9)
+            events = [(s, "img") for s in range(t, end, dt_img)]
+            events += [(s + int(scan_offset_s * 1e9), "scan") for s in range(t, end, dt_scan)]
+            if camera_info and ds.camera is not None:
+                events.append((t, "info"))
+            for s, what in sorted(events):
+                if what == "img":
+                    noisy = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+                    bag.write(image_topic, image_message(bag, noisy, s, encoding), s)
+                elif what == "scan":
+                    msg = scan_message(bag, *scan, s) if is2d else cloud_message(bag, scan, s)
+                    bag.write(lidar_topic, msg, s)
+                else:
+                    bag.write(image_topic.rsplit("/", 1)[0] + "/camera_info", info_message(bag, ds.camera, s), s)
+            # The board moves to the next pose: it slides across the image, and is out of view once.
+            moves = list(range(end, end + int(move_s * 1e9), dt_img))
+            for k, s in enumerate(moves):
+                moved = np.zeros_like(img) if k == len(moves) // 2 else np.roll(img, 25 * (k + 1), axis=1)
+                bag.write(image_topic, image_message(bag, moved, s, encoding), s)
+            t = end + int(move_s * 1e9)
+    return bag_path
