@@ -29,31 +29,14 @@ from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.layout_analysis import analyse, suggest_poses  # noqa: E402
 from estimators.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
 from estimators.refinement import measurement_model_options  # noqa: E402
-from estimators.simulator import _board_rotation, _pose_fits, board_pose, default_rig, sample_board_poses  # noqa: E402
-from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
+from estimators.simulator import _pose_fits, board_pose, default_rig, one_way_poses, sample_board_poses  # noqa: E402
+from geometry.rotations import T_inverse, T_log, transform_points  # noqa: E402
 
 CORNER_NOISE_PX, RANGE_NOISE_M = 0.2, 0.02
 
 
 def _pose(rig, centre, tilt_deg, azimuth_deg, spin_deg=0.0):
     return board_pose(rig.board, centre, np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg), np.deg2rad(spin_deg))
-
-
-def _one_way(rig, rng, n, direction):
-    """``n`` feasible poses spread over the image, every normal tilted 30 degrees the same way."""
-    poses = []
-    while len(poses) < n:
-        z = rng.uniform(2.5, 4.5)
-        c = np.array([rng.uniform(-0.35, 0.35) * z, rng.uniform(-0.25, 0.25) * z, z])
-        ray = c / np.linalg.norm(c)
-        target = {"up": np.array([0.0, -1.0, 0.0]), "right": np.array([1.0, 0.0, 0.0])}[direction]
-        axis = np.cross(ray, target)
-        R0 = _board_rotation(ray, 0.0, 0.0, rng.uniform(-0.3, 0.3))
-        R = R_from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(30.0)) @ R0
-        T = T_from_Rt(R, c - R @ rig.board.centre)
-        if _pose_fits(rig, T):
-            poses.append(T)
-    return poses
 
 
 def layouts(seed: int = 7):
@@ -72,8 +55,8 @@ def layouts(seed: int = 7):
                 quads.append(T)
                 break
     out["4 quadrants"] = quads
-    out["8 upward"] = _one_way(rig, rng, 8, "up")
-    out["8 right"] = _one_way(rig, rng, 8, "right")
+    out["8 upward"] = one_way_poses(rig, 8, rng, "up", depth_m=(2.5, 4.5))
+    out["8 right"] = one_way_poses(rig, 8, rng, "right", depth_m=(2.5, 4.5))
     return rig, out
 
 

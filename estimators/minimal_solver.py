@@ -46,38 +46,49 @@ class TripleSolutions:
 
 
 def _edge_equations(lam: np.ndarray, c: np.ndarray, D2: np.ndarray) -> np.ndarray:
-    a, b, e = lam
-    return np.array([a * a + b * b - 2 * a * b * c[0] - D2[0],
-                     a * a + e * e - 2 * a * e * c[1] - D2[1],
-                     b * b + e * e - 2 * b * e * c[2] - D2[2]])
+    """The three distance equations at ``lam`` (..., 3) for cosines ``c`` and distances ``D2`` (..., 3)."""
+    a, b, e = np.moveaxis(np.asarray(lam), -1, 0)
+    c, D2 = np.asarray(c), np.asarray(D2)
+    return np.stack([a * a + b * b - 2 * a * b * c[..., 0] - D2[..., 0],
+                     a * a + e * e - 2 * a * e * c[..., 1] - D2[..., 1],
+                     b * b + e * e - 2 * b * e * c[..., 2] - D2[..., 2]], axis=-1)
 
 
 def _edge_jacobian(lam: np.ndarray, c: np.ndarray) -> np.ndarray:
-    a, b, e = lam
-    return np.array([[2 * a - 2 * b * c[0], 2 * b - 2 * a * c[0], 0.0],
-                     [2 * a - 2 * e * c[1], 0.0, 2 * e - 2 * a * c[1]],
-                     [0.0, 2 * b - 2 * e * c[2], 2 * e - 2 * b * c[2]]])
+    a, b, e = np.moveaxis(np.asarray(lam), -1, 0)
+    c = np.asarray(c)
+    zero = np.zeros_like(a)
+    rows = [[2 * a - 2 * b * c[..., 0], 2 * b - 2 * a * c[..., 0], zero],
+            [2 * a - 2 * e * c[..., 1], zero, 2 * e - 2 * a * c[..., 1]],
+            [zero, 2 * b - 2 * e * c[..., 2], 2 * e - 2 * b * c[..., 2]]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def edge_conditioning(lam: np.ndarray, c: np.ndarray) -> float:
-    """Reciprocal condition number of the edge system's Jacobian at ``lam``."""
+def edge_conditioning(lam: np.ndarray, c: np.ndarray) -> np.ndarray | float:
+    """Reciprocal condition number of the edge system's Jacobian at ``lam`` (one or a stack)."""
     sv = np.linalg.svd(_edge_jacobian(lam, c), compute_uv=False)
-    return float(sv[-1] / sv[0]) if sv[0] > 0 else 0.0
+    out = np.where(sv[..., 0] > 0, sv[..., -1] / np.where(sv[..., 0] > 0, sv[..., 0], 1.0), 0.0)
+    return float(out) if out.ndim == 0 else out
 
 
-def _polish(lam: np.ndarray, c: np.ndarray, D2: np.ndarray, steps: int = 8) -> tuple[np.ndarray, float]:
-    """Gauss-Newton on the three distance equations; returns the point and its residual norm."""
+def _polish(lam: np.ndarray, c: np.ndarray, D2: np.ndarray, steps: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the three distance equations for a stack of starts (K, 3), each with its own ``c``
+    and ``D2`` (K, 3); a start stops moving once its step is negligible. Returns the points and their
+    residual norms."""
+    lam = np.array(lam, dtype=float)
+    active = np.ones(len(lam), dtype=bool)
     for _ in range(steps):
-        J = _edge_jacobian(lam, c)
-        r = _edge_equations(lam, c, D2)
-        try:
-            step = np.linalg.solve(J, -r)
-        except np.linalg.LinAlgError:
-            step = np.linalg.lstsq(J, -r, rcond=None)[0]
-        lam = lam + step
-        if np.linalg.norm(step) < 1e-13 * (1 + np.linalg.norm(lam)):
+        if not active.any():
             break
-    return lam, float(np.linalg.norm(_edge_equations(lam, c, D2)))
+        J, r = _edge_jacobian(lam[active], c[active]), _edge_equations(lam[active], c[active], D2[active])
+        try:
+            step = np.linalg.solve(J, -r[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # a singular Jacobian (a double root): least squares for each
+            step = np.array([np.linalg.lstsq(Jk, -rk, rcond=None)[0] for Jk, rk in zip(J, r)])
+        lam[active] += step
+        idx = np.nonzero(active)[0]
+        active[idx] = np.linalg.norm(step, axis=1) >= 1e-13 * (1 + np.linalg.norm(lam[idx], axis=1))
+    return lam, np.linalg.norm(_edge_equations(lam, c, D2), axis=-1)
 
 
 def solve_p3p_edges(c: np.ndarray, D2: np.ndarray, near_tol: float = 0.01) -> list[np.ndarray]:
@@ -85,48 +96,65 @@ def solve_p3p_edges(c: np.ndarray, D2: np.ndarray, near_tol: float = 0.01) -> li
     (01,02), (01,12), (02,12) and ``D2`` the squared distances between the corresponding crossing points.
 
     ``near_tol`` (relative to the distances) admits near-tangent minima that Gauss-Newton then closes."""
-    s0, s1 = np.sqrt(max(1 - c[0] ** 2, 1e-15)), np.sqrt(max(1 - c[1] ** 2, 1e-15))
-    L = min(np.sqrt(D2[0]) / s0, np.sqrt(D2[1]) / s1)
+    return solve_p3p_edges_batch(np.asarray(c, dtype=float)[None], np.asarray(D2, dtype=float)[None], near_tol)[0]
+
+
+def solve_p3p_edges_batch(c: np.ndarray, D2: np.ndarray, near_tol: float = 0.01) -> list[list[np.ndarray]]:
+    """``solve_p3p_edges`` for M systems at once (``c``, ``D2``: (M, 3)): one vectorised scan, bisection and
+    Gauss-Newton over all of them, so that all C(N, 3) triples of a 2D calibration cost a few array passes."""
+    c, D2 = np.asarray(c, dtype=float), np.asarray(D2, dtype=float)
+    M = len(c)
+    s0 = np.sqrt(np.maximum(1 - c[:, 0] ** 2, 1e-15))
+    s1 = np.sqrt(np.maximum(1 - c[:, 1] ** 2, 1e-15))
+    L = np.minimum(np.sqrt(D2[:, 0]) / s0, np.sqrt(D2[:, 1]) / s1)
     # Cosine spacing resolves the ends of the range, where the branches meet with infinite slope.
-    x = L * np.cos(np.linspace(np.pi, 0.0, _SCAN_SAMPLES))
+    x = L[:, None] * np.cos(np.linspace(np.pi, 0.0, _SCAN_SAMPLES))[None, :]  # (M, S)
     signs = np.array([(-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)])
 
-    def branches(xv, sg):
-        rb = np.sqrt(np.maximum(D2[0] - xv * xv * (1 - c[0] ** 2), 0.0))
-        re = np.sqrt(np.maximum(D2[1] - xv * xv * (1 - c[1] ** 2), 0.0))
-        bv = xv * c[0] + sg[..., 0] * rb
-        ev = xv * c[1] + sg[..., 1] * re
-        return bv, ev, bv * bv + ev * ev - 2 * bv * ev * c[2] - D2[2]
+    def branches(xv, cc, dd, sg):
+        """Values along the four sign branches; every argument broadcasts (cosines and distances last-axis 3)."""
+        rb = np.sqrt(np.maximum(dd[..., 0] - xv * xv * (1 - cc[..., 0] ** 2), 0.0))
+        re = np.sqrt(np.maximum(dd[..., 1] - xv * xv * (1 - cc[..., 1] ** 2), 0.0))
+        bv = xv * cc[..., 0] + sg[..., 0] * rb
+        ev = xv * cc[..., 1] + sg[..., 1] * re
+        return bv, ev, bv * bv + ev * ev - 2 * bv * ev * cc[..., 2] - dd[..., 2]
 
-    b, e, f = branches(x[None, :], signs[:, None, :])  # (4, S): the four sign branches at once
-    scale = float(np.max(D2))
-    starts = []
+    # (M, 4, S): every system's four sign branches at once.
+    b, e, f = branches(x[:, None, :], c[:, None, None, :], D2[:, None, None, :], signs[None, :, None, :])
+    scale = np.max(D2, axis=1)
+    owner, starts = [], []
     # Sign changes: vectorised bisection inside every bracket (close roots stay apart), then Gauss-Newton.
-    br, k = np.nonzero(np.sign(f[:, :-1]) * np.sign(f[:, 1:]) < 0)
-    if len(br):
-        lo, hi, sg = x[k], x[k + 1], signs[br]
-        f_lo = f[br, k]
+    m, br, k = np.nonzero(np.sign(f[..., :-1]) * np.sign(f[..., 1:]) < 0)
+    if len(m):
+        lo, hi, sg, cc, dd = x[m, k], x[m, k + 1], signs[br], c[m], D2[m]
+        f_lo = f[m, br, k]
         for _ in range(22):  # then Gauss-Newton finishes the root
             mid = 0.5 * (lo + hi)
-            fm = branches(mid, sg)[2]
+            fm = branches(mid, cc, dd, sg)[2]
             left = np.sign(fm) == np.sign(f_lo)
             lo, f_lo = np.where(left, mid, lo), np.where(left, fm, f_lo)
             hi = np.where(left, hi, mid)
         root = 0.5 * (lo + hi)
-        rb_, re_, _ = branches(root, sg)
-        starts += [np.array(v) for v in zip(root, rb_, re_)]
+        rb_, re_, _ = branches(root, cc, dd, sg)
+        owner.append(m)
+        starts.append(np.column_stack([root, rb_, re_]))
     # Near-tangent local minima of |f| with no sign change beside them (a double root that noise pushed
     # just off the real line).
     af = np.abs(f)
-    same = (np.sign(f[:, :-2]) == np.sign(f[:, 1:-1])) & (np.sign(f[:, 1:-1]) == np.sign(f[:, 2:]))
-    br, k = np.nonzero(same & (af[:, 1:-1] < af[:, :-2]) & (af[:, 1:-1] <= af[:, 2:])
-                       & (af[:, 1:-1] < near_tol * scale))
-    starts += [np.array([x[kk + 1], b[j, kk + 1], e[j, kk + 1]]) for j, kk in zip(br, k)]
-    found: list[np.ndarray] = []
-    for lam0 in starts:
-        lam, res = _polish(lam0, c, D2, steps=12)
-        if res < 1e-9 * scale and not any(np.linalg.norm(lam - g) < 1e-7 * (1 + L) for g in found):
-            found.append(lam)
+    same = (np.sign(f[..., :-2]) == np.sign(f[..., 1:-1])) & (np.sign(f[..., 1:-1]) == np.sign(f[..., 2:]))
+    m, br, k = np.nonzero(same & (af[..., 1:-1] < af[..., :-2]) & (af[..., 1:-1] <= af[..., 2:])
+                          & (af[..., 1:-1] < near_tol * scale[:, None, None]))
+    owner.append(m)
+    starts.append(np.column_stack([x[m, k + 1], b[m, br, k + 1], e[m, br, k + 1]]))
+    owner, starts = np.concatenate(owner), np.concatenate(starts)
+    # Per system: its sign-change roots first, then its near-tangent ones (a stable sort keeps that order).
+    order = np.argsort(owner, kind="stable")
+    owner, starts = owner[order], starts[order]
+    lam, res = _polish(starts, c[owner], D2[owner], steps=12)
+    found: list[list[np.ndarray]] = [[] for _ in range(M)]
+    for j, (i, ok) in enumerate(zip(owner, res < 1e-9 * scale[owner])):
+        if ok and not any(np.linalg.norm(lam[j] - g) < 1e-7 * (1 + L[i]) for g in found[i]):
+            found[i].append(lam[j])
     return found
 
 
@@ -134,38 +162,65 @@ def solve_three_boards(camera_planes: list[Plane], lidar_lines: list[Line2D],
                        triple: tuple[int, int, int] = (0, 1, 2)) -> TripleSolutions:
     """Every ``T_camera_lidar`` that puts the three laser lines (LiDAR scan plane, z = 0) on the three
     board planes (camera frame, ``normal . x = distance``), with the LiDAR in front of every board."""
-    N = np.array([p.normal for p in camera_planes])
-    d = np.array([p.distance for p in camera_planes])
+    return solve_triples(camera_planes, lidar_lines, [tuple(triple)], local=True)[0]
+
+
+def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int, int]):
+    """The vertex, edges, crossing points, cosines and distances of one triple, or the reason it is degenerate."""
+    N = np.array([p.normal for p in planes])
+    d = np.array([p.distance for p in planes])
     det = abs(np.linalg.det(N))
     if det < MIN_NORMAL_DET:
-        return TripleSolutions(triple, (), f"board normals nearly coplanar (|det| {det:.3f})")
+        return f"board normals nearly coplanar (|det| {det:.3f})"
     V = np.linalg.solve(N, d)
     pairs = ((0, 1), (0, 2), (1, 2))
     edges, q = [], []
     for a, b in pairs:
         e = np.cross(N[a], N[b])
         edges.append(e / np.linalg.norm(e))
-        u, v = lidar_lines[a].direction, lidar_lines[b].direction
+        u, v = lines[a].direction, lines[b].direction
         sin = abs(u[0] * v[1] - u[1] * v[0])
         if sin < MIN_LINE_SIN:
-            return TripleSolutions(triple, (), f"laser lines {triple[a]} and {triple[b]} nearly parallel")
-        q.append(np.append(intersect(lidar_lines[a], lidar_lines[b]), 0.0))
+            return f"laser lines {triple[a]} and {triple[b]} nearly parallel"
+        q.append(np.append(intersect(lines[a], lines[b]), 0.0))
     q = np.array(q)
     # Points 0, 1, 2 sit on edges 01, 02, 12; distances between them pair the edges as (01,02), (01,12), (02,12).
     D2 = np.array([np.sum((q[0] - q[1]) ** 2), np.sum((q[0] - q[2]) ** 2), np.sum((q[1] - q[2]) ** 2)])
     spread = np.sqrt(D2.max())
     area = 0.5 * np.linalg.norm(np.cross(q[1] - q[0], q[2] - q[0]))
     if area < 1e-4 * spread**2 or spread < 1e-6:
-        return TripleSolutions(triple, (), "the laser lines cross in (nearly) one point: the scan plane runs through "
-                                           "the boards' common vertex")
+        return "the laser lines cross in (nearly) one point: the scan plane runs through the boards' common vertex"
+    edges = np.array(edges)
     c = np.array([edges[0] @ edges[1], edges[0] @ edges[2], edges[1] @ edges[2]])
-    solutions, conditioning = [], []
-    for lam in solve_p3p_edges(c, D2):
-        P = V + lam[:, None] * np.array(edges)
-        T = T_align(q, P)
-        t = T[:3, 3]
-        # The LiDAR sits on the camera's side of every board (the camera at the origin has n . 0 - d < 0).
-        if np.all(N @ t - d < 0):
-            solutions.append(T)
-            conditioning.append(edge_conditioning(lam, c))
-    return TripleSolutions(triple, tuple(solutions), None, tuple(conditioning))
+    return N, d, V, edges, q, c, D2
+
+
+def solve_triples(planes: list[Plane], lines: list[Line2D], triples: list[tuple[int, int, int]],
+                  local: bool = False) -> list[TripleSolutions]:
+    """``solve_three_boards`` for many triples of one calibration's boards at once (the edge systems of all of
+    them are solved in one batch). ``local``: ``planes`` and ``lines`` are already the one triple's."""
+    geo = [_trihedron(planes if local else [planes[i] for i in tri], lines if local else [lines[i] for i in tri],
+                      tri) for tri in triples]
+    good = [i for i, g in enumerate(geo) if not isinstance(g, str)]
+    roots = solve_p3p_edges_batch(np.array([geo[i][5] for i in good]).reshape(-1, 3),
+                                  np.array([geo[i][6] for i in good]).reshape(-1, 3)) if good else []
+    out = [TripleSolutions(tri, (), g) if isinstance(g, str) else None for tri, g in zip(triples, geo)]
+    # Every solution's rigid transform in one batched Kabsch: crossing points (LiDAR) onto edge points (camera).
+    owner = [i for i, r in zip(good, roots) for _ in r]
+    lams = [lam for r in roots for lam in r]
+    if lams:
+        lam = np.array(lams)
+        Q = np.array([geo[i][4] for i in owner])
+        P = np.array([geo[i][2] for i in owner])[:, None, :] + lam[:, :, None] * np.array([geo[i][3] for i in owner])
+        Ts = T_align(Q, P)
+        cond = np.atleast_1d(edge_conditioning(lam, np.array([geo[i][5] for i in owner])))
+    for i in good:
+        N, d = geo[i][0], geo[i][1]
+        sols, conds = [], []
+        for j in (j for j, o in enumerate(owner) if o == i):
+            # The LiDAR sits on the camera's side of every board (the camera at the origin has n . 0 - d < 0).
+            if np.all(N @ Ts[j][:3, 3] - d < 0):
+                sols.append(Ts[j])
+                conds.append(float(cond[j]))
+        out[i] = TripleSolutions(triples[i], tuple(sols), None, tuple(conds))
+    return out

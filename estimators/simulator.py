@@ -137,12 +137,18 @@ def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
 def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000) -> list[np.ndarray]:
     """``n`` board poses (``T_camera_board``) 2-5 m away, fully seen by both sensors, with normals spread
     round the viewing axis (stratified azimuths, 15-40 degree tilts), as the planar method advises."""
+    return _sample_poses(rig, n, rng, lambda k: (2 * np.pi * (k + rng.uniform()) / n,
+                                                 np.deg2rad(rng.uniform(15.0, 40.0))), max_tries)
+
+
+def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries: int = 20000) -> list[np.ndarray]:
+    """``n`` feasible poses at random image positions and distances; ``normal(k)`` draws the k-th pose's
+    (azimuth, tilt) in radians."""
     poses = []
     cam = rig.camera
     for k in range(n):
         for _ in range(max_tries):
-            azimuth = 2 * np.pi * (k + rng.uniform()) / n
-            tilt = np.deg2rad(rng.uniform(15.0, 40.0))
+            azimuth, tilt = normal(k)
             spin = np.deg2rad(rng.uniform(-20.0, 20.0))
             uv = np.array([[rng.uniform(0.1, 0.9) * cam.width, rng.uniform(0.1, 0.9) * cam.height]])
             ray = cam.rays(uv)[0]
@@ -154,6 +160,46 @@ def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: in
         else:
             raise RuntimeError(f"no feasible board pose found for pose {k} in {max_tries} tries")
     return poses
+
+
+def one_way_poses(rig: Rig, n: int, rng: np.random.Generator, direction: str, tilt_deg: float = 30.0,
+                  depth_m: tuple[float, float] | None = None, max_tries: int = 20000) -> list[np.ndarray]:
+    """``n`` feasible poses over the image, every normal tilted ``tilt_deg`` the same way (``up`` or ``right``
+    in the image): the planar method's badly conditioned sets."""
+    target = {"up": np.array([0.0, -1.0, 0.0]), "right": np.array([1.0, 0.0, 0.0])}[direction]
+    lo, hi = depth_m or (rig.min_distance_m, rig.max_distance_m)
+    poses = []
+    for _ in range(max_tries * n):
+        z = rng.uniform(lo, hi)
+        c = np.array([rng.uniform(-0.35, 0.35) * z, rng.uniform(-0.25, 0.25) * z, z])
+        ray = c / np.linalg.norm(c)
+        axis = np.cross(ray, target)
+        R0 = _board_rotation(ray, 0.0, 0.0, rng.uniform(-0.3, 0.3))
+        R = R_from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(tilt_deg)) @ R0
+        T = T_from_Rt(R, c - R @ rig.board.centre)
+        if _pose_fits(rig, T):
+            poses.append(T)
+            if len(poses) == n:
+                return poses
+    raise RuntimeError(f"no feasible {direction}-tilted board pose found in {max_tries * n} tries")
+
+
+LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal")
+
+
+def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """``n`` board poses of a named family: ``spread`` (normals round the viewing axis, 15-40 degrees),
+    ``quadrants`` (normals 30 degrees into the four image quadrants in turn), ``upward`` / ``rightward`` (all
+    30 degrees one way), ``frontal`` (tilts under 8 degrees: the rotation is barely observable)."""
+    if family == "spread":
+        return sample_board_poses(rig, n, rng)
+    if family == "quadrants":
+        return _sample_poses(rig, n, rng, lambda k: (np.pi / 4 + np.pi / 2 * (k % 4), np.deg2rad(30.0)))
+    if family in ("upward", "rightward"):
+        return one_way_poses(rig, n, rng, {"upward": "up", "rightward": "right"}[family])
+    if family == "frontal":
+        return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(0, 8.0))))
+    raise ValueError(f"Expected a layout family in {LAYOUT_FAMILIES}, got {family!r}")
 
 
 def scene_patches(rig: Rig, T_lidar_board: np.ndarray) -> tuple[list[Patch], int]:

@@ -37,7 +37,7 @@ from .closed_form import MIN_NORMAL_SPREAD, describe_direction, normal_spread
 from .errors import DegenerateLayoutError
 from .factors import lidar_residual
 from .measurements import FrameMeasurement, lidar_whitener
-from .minimal_solver import solve_three_boards
+from .minimal_solver import solve_triples
 from .refinement import pooled_range_noise_m
 
 THETA0_RAD = np.deg2rad(2.0)
@@ -138,8 +138,7 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
     lines = [f.lidar.line for f in frames]
     Ts, degenerate = [], []
     triples = list(itertools.combinations(range(len(frames)), 3))
-    for tri in triples:
-        res = solve_three_boards([planes[i] for i in tri], [lines[i] for i in tri], tri)
+    for tri, res in zip(triples, solve_triples(planes, lines, triples)):
         if res.degenerate:
             degenerate.append(f"boards {', '.join(frames[i].name for i in tri)}: {res.degenerate}")
         Ts.extend(res.T_camera_lidar)

@@ -9,16 +9,20 @@ A study is given as a mapping (``SPEC.yaml``)::
     solvers: [closed-form, factor-graph]     # 3d: closed-form, factor-graph
                                              # 2d: minimal-min-residual, minimal-lower-bound,
                                              #     minimal-lower-bound-no-extent
+    layouts: [spread, quadrants]             # board-pose families: spread, quadrants, upward, rightward,
+                                             # frontal (see simulator.sample_layout)
     frames: [4, 8, 16]                       # board poses per calibration
     range_noise_m: [0.01, 0.02]              # LiDAR range sigma
     corner_noise_px: [0.2]                   # corner sigma (measurement level)
-    trials: 20                               # per cell of frames x range noise x corner noise
+    trials: 20                               # per cell of layouts x frames x range noise x corner noise
     seed: 0
     mode: measurement                        # measurement (noise drawn from the model) | end-to-end
 
 Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is
 one (trial, solver): the cell, the rotation and translation errors, the errors per axis over the bound,
-the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D whether the
+the layout's bound itself (``bound_rot_deg``, ``bound_trans_mm``: the norms of the per-axis Cramer-Rao
+standard deviations), the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D
+whether the
 estimate is the minimum that refinement from the truth reaches (``hit``), the time, and a failure reason.
 Trials are seeded from ``(seed, cell, trial)``, so the same spec gives the same rows on any scheduler.
 """
@@ -39,6 +43,7 @@ from tqdm.auto import tqdm
 
 from .errors import DatasetError
 from .output import write_atomic, write_json_atomic
+from .simulator import LAYOUT_FAMILIES
 
 SOLVERS_3D = ("closed-form", "factor-graph")
 SOLVERS_2D = ("minimal-min-residual", "minimal-lower-bound", "minimal-lower-bound-no-extent")
@@ -51,6 +56,7 @@ class StudySpec:
     lidar: str
     model: str
     solvers: tuple[str, ...]
+    layouts: tuple[str, ...]
     frames: tuple[int, ...]
     range_noise_m: tuple[float, ...]
     corner_noise_px: tuple[float, ...]
@@ -59,8 +65,8 @@ class StudySpec:
     mode: str
 
     @property
-    def cells(self) -> list[tuple[int, float, float]]:
-        return list(itertools.product(self.frames, self.range_noise_m, self.corner_noise_px))
+    def cells(self) -> list[tuple[str, int, float, float]]:
+        return list(itertools.product(self.layouts, self.frames, self.range_noise_m, self.corner_noise_px))
 
     @property
     def n_trials(self) -> int:
@@ -98,6 +104,11 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     if mode not in ("measurement", "end-to-end"):
         raise DatasetError(f"mode must be measurement or end-to-end, got {mode!r}", path=source,
                            hint="measurement draws noise from the model; end-to-end renders images and scans")
+    raw = spec.get("layouts", ["spread"])
+    layouts = tuple(str(v) for v in (raw if isinstance(raw, (list, tuple)) else [raw]))
+    bad = [v for v in layouts if v not in LAYOUT_FAMILIES]
+    if bad or not layouts:
+        raise DatasetError(f"unknown layout(s) {bad}", path=source, hint=f"use some of {list(LAYOUT_FAMILIES)}")
     frames = _list(spec.get("frames", [8]), int, "frames", source)
     if min(frames) < 3:
         raise DatasetError(f"every calibration needs at least 3 frames, got {min(frames)}", path=source,
@@ -107,7 +118,7 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
         raise DatasetError(f"trials must be at least 1, got {trials}", path=source, hint="set trials: 10")
     default_noise = 0.01 if lidar == "2d" else 0.02
     return StudySpec(name=str(spec.get("name", "study")), lidar=lidar, model="2d" if lidar == "2d" else model,
-                     solvers=solvers, frames=frames,
+                     solvers=solvers, layouts=layouts, frames=frames,
                      range_noise_m=_list(spec.get("range_noise_m", [default_noise]), float, "range_noise_m", source),
                      corner_noise_px=_list(spec.get("corner_noise_px", [0.2]), float, "corner_noise_px", source),
                      trials=trials, seed=int(spec.get("seed", 0)), mode=mode)
@@ -116,10 +127,10 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
 def trial_arguments(spec: StudySpec) -> list[tuple]:
     """One argument tuple per trial, in a fixed order, each with its own seed from (seed, cell, trial)."""
     args = []
-    for c, (n, noise, corner) in enumerate(spec.cells):
+    for c, (family, n, noise, corner) in enumerate(spec.cells):
         for k in range(spec.trials):
             seed = int(np.random.SeedSequence([spec.seed, c, k]).generate_state(1)[0])
-            args.append((spec, c, k, seed, n, noise, corner))
+            args.append((spec, c, k, seed, family, n, noise, corner))
     return args
 
 
@@ -131,17 +142,19 @@ def run_trial(args: tuple) -> list[dict]:
     from .dataset import load_dataset
     from .observation_model import Layout, cramer_rao_bound, simulate_measurements
     from .refinement import RefinementOptions, measurement_model_options, refine
-    from .simulator import default_rig, default_rig_2d, sample_board_poses, simulate_frames, write_dataset
+    from .simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
     from .solution_selection import solution_distances
 
-    spec, cell, k, seed, n, noise, corner = args
+    spec, cell, k, seed, family, n, noise, corner = args
     rng = np.random.default_rng(seed)
     rig = default_rig_2d(rng, noise) if spec.lidar == "2d" else default_rig(rng, spec.model, noise)
-    poses = sample_board_poses(rig, n, rng)
+    poses = sample_layout(rig, family, n, rng)
     layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner, noise)
     bound = np.sqrt(np.diag(cramer_rao_bound(layout)))
-    base = {"cell": cell, "trial": k, "seed": seed, "lidar": spec.lidar, "frames": n, "range_noise_m": noise,
-            "corner_noise_px": corner, "mode": spec.mode}
+    base = {"cell": cell, "trial": k, "seed": seed, "lidar": spec.lidar, "layout": family, "frames": n,
+            "range_noise_m": noise, "corner_noise_px": corner, "mode": spec.mode,
+            "bound_rot_deg": float(np.degrees(np.linalg.norm(bound[:3]))),
+            "bound_trans_mm": float(1000 * np.linalg.norm(bound[3:]))}
     options = measurement_model_options() if spec.mode == "measurement" else RefinementOptions()
     tmp = None
     if spec.mode == "measurement":
@@ -193,8 +206,9 @@ def run_trial(args: tuple) -> list[dict]:
     return rows
 
 
-COLUMNS = ("cell", "trial", "seed", "lidar", "mode", "frames", "range_noise_m", "corner_noise_px", "solver", "ok",
-           "reason", "frames_used", "rot_err_deg", "trans_err_mm", *[f"err_{a}" for a in AXES],
+COLUMNS = ("cell", "trial", "seed", "lidar", "mode", "layout", "frames", "range_noise_m", "corner_noise_px", "solver",
+           "ok", "reason", "frames_used", "rot_err_deg", "trans_err_mm", "bound_rot_deg", "bound_trans_mm",
+           *[f"err_{a}" for a in AXES],
            *[f"err_over_bound_{a}" for a in AXES], "d2", "hit", "ambiguous", "seconds")
 
 
@@ -233,16 +247,20 @@ def run_study(spec: StudySpec, out: str | Path, workers: int | None = None, sche
 
 
 def summarize(rows: list[dict]) -> list[dict]:
-    """Per (solver, frames, range noise, corner noise): trials, failures, RMS errors, median error over
-    the bound, mean d2, hit rate (2D), mean time."""
+    """Per (solver, layout, frames, range noise, corner noise): trials, failures, RMS errors, the RMS of the
+    bound's norms, median error over the bound, mean d2, hit rate (2D), mean time."""
     groups: dict = {}
     for r in rows:
-        groups.setdefault((r["solver"], r["frames"], r["range_noise_m"], r["corner_noise_px"]), []).append(r)
+        key = (r["solver"], r.get("layout", "spread"), r["frames"], r["range_noise_m"], r["corner_noise_px"])
+        groups.setdefault(key, []).append(r)
     out = []
-    for (solver, n, noise, corner), g in sorted(groups.items()):
+    for (solver, family, n, noise, corner), g in sorted(groups.items()):
         ok = [r for r in g if r["ok"]]
-        s = {"solver": solver, "frames": n, "range_noise_m": noise, "corner_noise_px": corner, "trials": len(g),
-             "failed": len(g) - len(ok), "mean_seconds": float(np.mean([r["seconds"] for r in g]))}
+        s = {"solver": solver, "layout": family, "frames": n, "range_noise_m": noise, "corner_noise_px": corner,
+             "trials": len(g), "failed": len(g) - len(ok), "mean_seconds": float(np.mean([r["seconds"] for r in g]))}
+        if "bound_rot_deg" in g[0]:
+            s["rms_bound_rot_deg"] = float(np.sqrt(np.mean([r["bound_rot_deg"] ** 2 for r in g])))
+            s["rms_bound_trans_mm"] = float(np.sqrt(np.mean([r["bound_trans_mm"] ** 2 for r in g])))
         if ok:
             s["rms_rot_err_deg"] = float(np.sqrt(np.mean([r["rot_err_deg"] ** 2 for r in ok])))
             s["rms_trans_err_mm"] = float(np.sqrt(np.mean([r["trans_err_mm"] ** 2 for r in ok])))
@@ -269,8 +287,29 @@ def write_outputs(spec: StudySpec, rows: list[dict], out: Path) -> None:
         write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
 
 
+def _layout_figure(plt, spec: StudySpec, summary: list[dict], frames0: int, noise0: float, corner0: float):
+    """RMS errors of each solver per layout family, beside the family's bound (RMS of its norms)."""
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    x = np.arange(len(spec.layouts))
+    width = 0.8 / (len(spec.solvers) + 1)
+    pick = {(s["solver"], s["layout"]): s for s in summary
+            if s["frames"] == frames0 and s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0}
+    for a, (key, bkey, label) in zip(ax, [("rms_rot_err_deg", "rms_bound_rot_deg", "RMS rotation error [deg]"),
+                                          ("rms_trans_err_mm", "rms_bound_trans_mm", "RMS translation error [mm]")]):
+        first = [pick.get((spec.solvers[0], f), {}) for f in spec.layouts]
+        a.bar(x, [s.get(bkey, np.nan) for s in first], width, color="0.7", label="Cramer-Rao bound")
+        for i, solver in enumerate(spec.solvers):
+            a.bar(x + (i + 1) * width, [pick.get((solver, f), {}).get(key, np.nan) for f in spec.layouts], width,
+                  label=solver)
+        a.set_xticks(x + width * len(spec.solvers) / 2, spec.layouts)
+        a.set(ylabel=label, yscale="log", title=f"{frames0} frames, range noise {1000 * noise0:.0f} mm")
+    ax[0].legend(fontsize=8)
+    return fig
+
+
 def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes]]:
-    """Error against frames and against range noise, hit rate (2D), time: one PNG each."""
+    """Errors per layout family (when there are several), error against frames and against range noise (first
+    layout), hit rate (2D), time: one PNG each."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -283,12 +322,15 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
         return b.getvalue()
 
     figures = []
-    noise0, corner0 = spec.range_noise_m[0], spec.corner_noise_px[0]
+    noise0, corner0, layout0 = spec.range_noise_m[0], spec.corner_noise_px[0], spec.layouts[0]
     frames0 = spec.frames[len(spec.frames) // 2]
+    if len(spec.layouts) > 1:
+        figures.append(("errors_vs_layout.png", png(_layout_figure(plt, spec, summary, frames0, noise0, corner0))))
+        summary = [s for s in summary if s["layout"] == layout0]
     panels = [("errors_vs_frames.png", "frames", lambda s: s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0,
-               f"range noise {1000 * noise0:.0f} mm"),
+               f"{layout0}, range noise {1000 * noise0:.0f} mm"),
               ("errors_vs_noise.png", "range_noise_m", lambda s: s["frames"] == frames0 and s["corner_noise_px"] == corner0,
-               f"{frames0} frames")]
+               f"{layout0}, {frames0} frames")]
     for name, xkey, sel, title in panels:
         fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
         for solver in spec.solvers:
@@ -325,12 +367,13 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
 
 
 def format_summary(summary: list[dict]) -> str:
-    lines = [f"  {'solver':32s}{'frames':>7s}{'noise mm':>9s}{'corner px':>10s}{'trials':>7s}{'failed':>7s}"
-             f"{'rot deg':>9s}{'trans mm':>9s}{'err/bound':>10s}{'d2':>6s}{'hit %':>7s}{'s':>7s}"]
+    lines = [f"  {'solver':32s}{'layout':>10s}{'frames':>7s}{'noise mm':>9s}{'corner px':>10s}{'trials':>7s}"
+             f"{'failed':>7s}{'rot deg':>9s}{'trans mm':>9s}{'err/bound':>10s}{'d2':>6s}{'hit %':>7s}{'s':>7s}"]
     for s in summary:
         hit = f"{100 * s['hit_rate']:7.1f}" if "hit_rate" in s else f"{'':>7s}"
         d2 = f"{s['mean_d2']:6.2f}" if s.get("mean_d2") is not None else f"{'-':>6s}"
-        lines.append(f"  {s['solver']:32s}{s['frames']:7d}{1000 * s['range_noise_m']:9.1f}{s['corner_noise_px']:10.2f}"
+        lines.append(f"  {s['solver']:32s}{s.get('layout', 'spread'):>10s}{s['frames']:7d}"
+                     f"{1000 * s['range_noise_m']:9.1f}{s['corner_noise_px']:10.2f}"
                      f"{s['trials']:7d}{s['failed']:7d}{s.get('rms_rot_err_deg', np.nan):9.3f}"
                      f"{s.get('rms_trans_err_mm', np.nan):9.2f}{s.get('median_err_over_bound', np.nan):10.2f}{d2}"
                      f"{hit}{s['mean_seconds']:7.3f}")

@@ -61,10 +61,11 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation closest to M in Frobenius norm (SVD projection, det fixed to +1)."""
+    """The rotation closest to M in Frobenius norm (SVD projection, det fixed to +1); M may be a stack."""
     U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    U = U.copy()
+    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
+    return U @ Vt
 
 
 # --- rigid transforms -----------------------------------------------------------------------------
@@ -144,9 +145,13 @@ def T_local(T_hat: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 def T_align(points_from: np.ndarray, points_to: np.ndarray) -> np.ndarray:
     """The rigid transform ``T_to_from`` (det +1) that best maps ``points_from`` onto ``points_to``
-    (least squares; Kabsch). Needs 3 non-collinear points for a unique answer."""
-    A = np.asarray(points_from, dtype=float).reshape(-1, 3)
-    B = np.asarray(points_to, dtype=float).reshape(-1, 3)
-    ca, cb = A.mean(0), B.mean(0)
-    R = nearest_rotation((B - cb).T @ (A - ca))
-    return T_from_Rt(R, cb - R @ ca)
+    (least squares; Kabsch). Needs 3 non-collinear points for a unique answer. Stacks of point sets
+    (..., N, 3) give a stack of transforms."""
+    A, B = np.asarray(points_from, dtype=float), np.asarray(points_to, dtype=float)
+    ca, cb = A.mean(-2, keepdims=True), B.mean(-2, keepdims=True)
+    R = nearest_rotation(np.swapaxes(B - cb, -1, -2) @ (A - ca))
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = cb[..., 0, :] - (R @ np.swapaxes(ca, -1, -2))[..., 0]
+    T[..., 3, 3] = 1.0
+    return T

@@ -79,3 +79,37 @@ def test_cli_study_runs_a_spec_and_refuses_a_bad_one(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "bad.yaml" in r.stderr and "lidar must be 3d or 2d" in r.stderr
     assert not (tmp_path / "b").exists()
+
+
+def test_layout_families_are_an_axis_and_their_bounds_rank_as_expected(tmp_path):
+    """Measurement level, 8 frames, 3 trials per family: the one-way and frontal families' bounds are far
+    above the spread family's (the planar method's point), errors stay within a few bounds, and the layout
+    figure is written."""
+    spec = parse_spec({"lidar": "3d", "solvers": ["factor-graph"], "layouts": ["spread", "upward", "frontal"],
+                       "frames": [8], "trials": 3, "seed": 1})
+    assert [c[0] for c in spec.cells] == ["spread", "upward", "frontal"]
+    rows = run_study(spec, tmp_path, workers=1, progress=False)
+    bound = {f: np.mean([r["bound_trans_mm"] for r in rows if r["layout"] == f]) for f in spec.layouts}
+    rot = {f: np.mean([r["bound_rot_deg"] for r in rows if r["layout"] == f]) for f in spec.layouts}
+    assert bound["upward"] > 2 * bound["spread"] and bound["frontal"] > 2 * bound["spread"], bound
+    assert rot["frontal"] > 3 * rot["spread"], rot
+    assert all(r["ok"] and max(r[f"err_over_bound_{a}"] for a in ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y",
+                                                                   "trans_z")) < 5.0 for r in rows)
+    assert (tmp_path / "errors_vs_layout.png").stat().st_size > 0
+    with pytest.raises(DatasetError, match="unknown layout"):
+        parse_spec({"layouts": ["zigzag"]})
+
+
+def test_end_to_end_mode_renders_scans_and_images(tmp_path):
+    """One end-to-end trial (4 rendered images and VLP-16 sweeps): both solvers calibrate from the files, within
+    1 deg / 5 cm of the truth and a few bounds (the bound is the measurement model's)."""
+    spec = parse_spec({"lidar": "3d", "model": "vlp16", "solvers": ["closed-form", "factor-graph"], "frames": [4],
+                       "trials": 1, "seed": 2, "mode": "end-to-end"})
+    rows = run_study(spec, tmp_path, workers=1, progress=False)
+    assert [r["solver"] for r in rows] == ["closed-form", "factor-graph"]
+    for r in rows:
+        assert r["ok"] == 1 and r["mode"] == "end-to-end" and r["frames_used"] == 4, r
+        assert r["rot_err_deg"] < 1.0 and r["trans_err_mm"] < 50.0, r
+    assert max(rows[1][f"err_over_bound_{a}"] for a in ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y",
+                                                        "trans_z")) < 6.0
+    assert 0.0 <= rows[1]["d2"] < 30.0
