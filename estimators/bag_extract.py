@@ -199,11 +199,17 @@ def _topic(reader, bag: Path, topic: str, types: tuple[str, ...], flag: str):
 
 
 def _camera_info_topic(reader, image_topic: str) -> str | None:
+    """The CameraInfo topic nearest the image topic: in its namespace or a parent one (``/cam/image_raw/compressed``
+    finds ``/cam/image_raw/camera_info``, then ``/cam/camera_info``); else the bag's only one, if any."""
     infos = sorted({c.topic for c in reader.connections if c.msgtype == INFO_TYPE})
     namespace = image_topic.rsplit("/", 1)[0]
-    same = [t for t in infos if t.rsplit("/", 1)[0] == namespace]
-    if same:
-        return same[0]
+    while True:
+        same = [t for t in infos if t.rsplit("/", 1)[0] == namespace]
+        if same:
+            return same[0]
+        if not namespace:
+            break
+        namespace = namespace.rsplit("/", 1)[0]
     return infos[0] if len(infos) == 1 else None
 
 

@@ -138,9 +138,10 @@ def run_trial(args: tuple) -> list[dict]:
     """Simulate one calibration and score every solver of the spec on it (rows of ``study.csv``)."""
     from geometry.rotations import T_inverse, T_log
 
-    from .calibration import calibrate, solve
+    from .calibration import measure_frames, solve
     from .dataset import load_dataset
     from .observation_model import Layout, cramer_rao_bound, simulate_measurements
+    from .board_segmentation import SegmentationParams
     from .refinement import RefinementOptions, measurement_model_options, refine
     from .simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
     from .solution_selection import solution_distances
@@ -156,12 +157,19 @@ def run_trial(args: tuple) -> list[dict]:
             "bound_rot_deg": float(np.degrees(np.linalg.norm(bound[:3]))),
             "bound_trans_mm": float(1000 * np.linalg.norm(bound[3:]))}
     options = measurement_model_options() if spec.mode == "measurement" else RefinementOptions()
-    tmp = None
+    camera = rig.camera
     if spec.mode == "measurement":
         frames = simulate_measurements(layout, rng)
     else:
-        tmp = tempfile.TemporaryDirectory()
-        ds = load_dataset(write_dataset(Path(tmp.name) / "ds", rig, simulate_frames(rig, n, rng, poses=poses)))
+        # Rendered images and full sweeps, measured once: every solver starts from the same measured frames.
+        with tempfile.TemporaryDirectory() as tmp:
+            ds = load_dataset(write_dataset(Path(tmp) / "ds", rig, simulate_frames(rig, n, rng, poses=poses)))
+            try:
+                camera, frames, _ = measure_frames(ds, np.random.default_rng(seed), SegmentationParams(), {},
+                                                   workers=1)
+            except Exception as exc:  # a failed measurement fails every solver of the trial, with its reason
+                reason = f"{type(exc).__name__}: {getattr(exc, 'message', str(exc))}"[:200]
+                return [dict(base, solver=s, ok=0, reason=reason, seconds=0.0) for s in spec.solvers]
     truth_basin = None
     rows = []
     for solver in spec.solvers:
@@ -171,16 +179,10 @@ def run_trial(args: tuple) -> list[dict]:
             if spec.lidar == "2d":
                 init = solver.replace("-no-extent", "")
                 extent = False if solver.endswith("-no-extent") else None
-                if spec.mode == "measurement":
-                    result = solve(frames, rig.board, rig.camera, init=init, options=options, use_extent=extent)
-                else:
-                    result = calibrate(ds, init=init, options=options, posterior=None, use_extent=extent)
+                result = solve(frames, rig.board, camera, init=init, options=options, use_extent=extent)
             else:
                 refine_mode = "none" if solver == "closed-form" else "factor-graph"
-                if spec.mode == "measurement":
-                    result = solve(frames, rig.board, rig.camera, refine=refine_mode, options=options)
-                else:
-                    result = calibrate(ds, refine=refine_mode, options=options, posterior=None)
+                result = solve(frames, rig.board, camera, refine=refine_mode, options=options)
             T = result.T_camera_lidar
             xi = T_log(T_inverse(T) @ rig.T_camera_lidar)
             row.update({"ok": 1, "reason": "", "frames_used": result.frames_used,
@@ -193,16 +195,14 @@ def run_trial(args: tuple) -> list[dict]:
             row["d2"] = float(xi @ np.linalg.solve(cov, xi)) if cov is not None else float("nan")
             if spec.lidar == "2d":
                 if truth_basin is None:
-                    used = [f for f in (frames if spec.mode == "measurement" else result.frames) if f.usable]
-                    truth_basin = refine(used, rig.board, rig.camera, rig.T_camera_lidar, options).T_camera_lidar
+                    used = [f for f in frames if f.usable]
+                    truth_basin = refine(used, rig.board, camera, rig.T_camera_lidar, options).T_camera_lidar
                 row["hit"] = int(solution_distances(np.array([T, truth_basin]))[0] < 0.05)
                 row["ambiguous"] = int(bool(result.alternatives))
         except Exception as exc:  # a failed calibration is a result of the study, recorded with its reason
             row.update({"ok": 0, "reason": f"{type(exc).__name__}: {getattr(exc, 'message', str(exc))}"[:200]})
         row["seconds"] = time.perf_counter() - t0
         rows.append(row)
-    if tmp is not None:
-        tmp.cleanup()
     return rows
 
 

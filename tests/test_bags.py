@@ -262,3 +262,19 @@ def test_bag_to_tf_line_from_the_command_line(sim5, tmp_path, capsys):
     T_lidar_cam = parse_ros_tf(text, "ros2", parent="velodyne", child="cam_optical")
     T = np.asarray(json.loads((tmp_path / "cal" / "calibration.json").read_text())["T_camera_lidar"])
     np.testing.assert_allclose(T_lidar_cam @ T, np.eye(4), atol=1e-7)
+
+
+def test_camera_info_topic_is_found_beside_or_above_the_image_topic():
+    from types import SimpleNamespace
+
+    from estimators.bag_extract import _camera_info_topic
+
+    def reader(*topics):
+        return SimpleNamespace(connections=[SimpleNamespace(topic=t, msgtype="sensor_msgs/msg/CameraInfo")
+                                            for t in topics])
+
+    two = reader("/cam/camera_info", "/other/camera_info")
+    assert _camera_info_topic(two, "/cam/image_raw/compressed") == "/cam/camera_info"
+    assert _camera_info_topic(two, "/cam/image_raw") == "/cam/camera_info"
+    assert _camera_info_topic(two, "/x/image") is None  # two candidates, neither beside it: none is guessed
+    assert _camera_info_topic(reader("/only/camera_info"), "/x/image") == "/only/camera_info"
