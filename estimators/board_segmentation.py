@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
 
-from .errors import MeasurementError
+from .errors import AmbiguousBoardError, MeasurementError
 from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board
 
 
@@ -265,15 +265,6 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
             _, keep = robust_plane_fit(Q[inside])
             Q = Q[inside][keep]
     return observe_lidar_board(Q, n_candidates)
-
-
-class AmbiguousBoardError(MeasurementError):
-    """Several planar pieces could be the board; ``candidates`` holds them for a later choice
-    (for example by agreement with an extrinsic estimated from the unambiguous frames)."""
-
-    def __init__(self, problem: str, candidates: list[LidarBoardObservation]):
-        super().__init__(problem)
-        self.candidates = candidates
 
 
 def choose_by_prediction(candidates: list[LidarBoardObservation], predicted: Plane,

@@ -16,11 +16,11 @@ from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
 from .board_pose import estimate_board_pose
-from .board_segmentation import AmbiguousBoardError, SegmentationParams, choose_by_prediction, find_board
+from .board_segmentation import SegmentationParams, choose_by_prediction, find_board
 from .chessboard import CornerDetection, detect_corners
 from .closed_form import describe_direction, normal_spread, solve_closed_form
 from .dataset import Dataset, load_dataset
-from .errors import DatasetError, DegenerateLayoutError, MeasurementError
+from .errors import AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError
 from .image_io import read_gray
 from .intrinsics import calibrate_intrinsics
 from .measurements import FrameMeasurement
@@ -311,32 +311,60 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     with ThreadPoolExecutor(max_workers=workers) as pool:
         frames = list(pool.map(lidar_side, range(len(dataset.frames))))
     if ambiguous:
-        frames = _resolve_ambiguous(frames, ambiguous, warnings)
+        frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return camera, frames, warnings
 
 
-def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings: list[str]
-                       ) -> list[FrameMeasurement]:
+# A 2D frame's ambiguous scan segment is chosen when exactly one lies within this RMS distance (m) of the
+# camera's board plane under the clear frames' extrinsic.
+SEGMENT_FIT_M = 0.05
+
+
+def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings: list[str], board,
+                       camera: CameraModel) -> list[FrameMeasurement]:
     """Choose among a frame's candidate boards by agreement with the extrinsic of the clear frames.
 
-    Needs at least 3 unambiguous frames whose normals span 3D; otherwise those frames stay skipped.
+    3D: needs at least 3 unambiguous frames whose normals span 3D. 2D: needs unambiguous frames whose
+    minimal-solution selection keeps a single candidate (refined by the factor graph). Otherwise those
+    frames stay skipped.
     """
     clear = [f for f in frames if f.usable]
+    scan_lines = bool(clear) and clear[0].lidar.is_scan_line
     try:
-        prior = solve_closed_form([f.camera.plane for f in clear], [f.lidar.plane for f in clear])
+        if scan_lines:
+            sel = select_minimal(clear, board)
+            if len(sel.candidates) != 1:
+                return frames
+            T_camera_lidar = refine_graph(clear, board, camera, sel.candidates[0].T_camera_lidar,
+                                          RefinementOptions()).T_camera_lidar
+        else:
+            T_camera_lidar = solve_closed_form([f.camera.plane for f in clear],
+                                               [f.lidar.plane for f in clear]).T_camera_lidar
     except DegenerateLayoutError:
         return frames
-    T_lidar_camera = np.linalg.inv(prior.T_camera_lidar)
+    T_lidar_camera = np.linalg.inv(T_camera_lidar)
     out = []
     for f in frames:
         if f.name in ambiguous:
-            chosen = choose_by_prediction(ambiguous[f.name], f.camera.plane.transformed(T_lidar_camera))
+            if scan_lines:
+                chosen = _choose_segment(ambiguous[f.name], f.camera.plane, T_camera_lidar)
+            else:
+                chosen = choose_by_prediction(ambiguous[f.name], f.camera.plane.transformed(T_lidar_camera))
             if chosen is not None:
                 warnings.append(f"frame {f.name}: {len(ambiguous[f.name])} candidate boards; chose the one "
                                 f"matching the extrinsic of the {len(clear)} unambiguous frames")
                 f = FrameMeasurement(f.name, f.camera, chosen)
         out.append(f)
     return out
+
+
+def _choose_segment(candidates: list, plane, T_camera_lidar: np.ndarray):
+    """The one scan segment whose points lie on the camera's board plane under ``T_camera_lidar`` (RMS within
+    ``SEGMENT_FIT_M``), or None if none or several do."""
+    R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
+    fits = [c for c in candidates
+            if np.sqrt(np.mean(((c.points @ R.T + t) @ plane.normal - plane.distance) ** 2)) < SEGMENT_FIT_M]
+    return fits[0] if len(fits) == 1 else None
 
 
 def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",

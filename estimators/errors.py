@@ -33,6 +33,15 @@ class MeasurementError(LidarcamError):
     """A board could not be measured in one frame (the frame is skipped, with this reason)."""
 
 
+class AmbiguousBoardError(MeasurementError):
+    """Several scan pieces could be the board; ``candidates`` holds their observations for a later choice
+    (by agreement with an extrinsic estimated from the unambiguous frames)."""
+
+    def __init__(self, problem: str, candidates: list):
+        super().__init__(problem)
+        self.candidates = candidates
+
+
 class DegenerateLayoutError(LidarcamError):
     """The usable frames cannot determine the transform (too few, or normals that do not span 3D)."""
 

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from geometry.board import BoardModel
 from geometry.lines import fit_line_tls
 
-from .errors import MeasurementError
+from .errors import AmbiguousBoardError, MeasurementError
 from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_line
 
 
@@ -38,6 +38,7 @@ class ScanSegmentationParams:
     length_tolerance_m: float = 0.08
     ambiguity_ratio: float = 2.0
     static_radius_m: float = 0.03
+    bridge_fraction: float = 0.25  # join straight pieces across a gap up to this fraction of the board side
 
 
 def _runs(P: np.ndarray, params: ScanSegmentationParams) -> list[np.ndarray]:
@@ -74,18 +75,23 @@ def _split(P: np.ndarray, idx: np.ndarray, threshold: float, out: list[np.ndarra
 
 
 def _merge(P: np.ndarray, pieces: list[np.ndarray], threshold: float) -> list[np.ndarray]:
-    """Split-and-merge (the merge half): neighbouring pieces are joined while every point of the union
-    stays within ``threshold`` of its fitted line (range noise can split one surface)."""
+    """Split-and-merge (the merge half): neighbouring pieces are joined while every point of the union but
+    one stays within ``threshold`` of its fitted line (range noise, or one stray return, can split one
+    surface; the line fit drops the stray return later)."""
     out: list[np.ndarray] = []
     for idx in pieces:
         if out and len(out[-1]) + len(idx) >= 3:
-            joint = np.concatenate([out[-1], idx])
-            Q = P[joint]
-            if np.max(np.abs(fit_line_tls(Q).signed_distances(Q))) <= threshold:
+            joint = np.union1d(out[-1], idx)
+            if _straight(P[joint], threshold):
                 out[-1] = joint
                 continue
         out.append(idx)
     return out
+
+
+def _straight(Q: np.ndarray, threshold: float) -> bool:
+    """Whether all points of ``Q`` but at most one lie within ``threshold`` of their fitted line."""
+    return int(np.sum(np.abs(fit_line_tls(Q).signed_distances(Q)) > threshold)) <= 1
 
 
 def scan_noise(P: np.ndarray) -> float:
@@ -144,10 +150,20 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
     # Split at corners, not at range noise: the threshold grows with the noise the scan shows.
     threshold = max(params.line_threshold_m, 5.0 * scan_noise(P))
     pieces: list[np.ndarray] = []
+    max_gap = params.bridge_fraction * min(w, h)
     for run in _runs(P, params):
         split: list[np.ndarray] = []
         _split(P, run, threshold, split)
-        pieces += _merge(P, split, threshold)
+        merged = _merge(P, split, threshold)
+        # A few missing returns cut a board into two runs: join the pieces either side of a short gap when
+        # they are one straight segment no longer than the board.
+        if pieces and merged and np.linalg.norm(P[merged[0][0]] - P[pieces[-1][-1]]) <= max_gap:
+            joint = np.concatenate([pieces[-1], merged[0]])
+            Q = P[joint]
+            if np.linalg.norm(Q[-1] - Q[0]) <= max_len and _straight(Q, threshold):
+                pieces[-1] = joint
+                merged = merged[1:]
+        pieces += merged
     candidates, rejected, static = [], 0, 0
     for idx in pieces:
         if len(idx) < params.min_points:
@@ -172,6 +188,7 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
                                "static in the other frames' scans)")
     candidates.sort(key=lambda c: c[0])
     if len(candidates) > 1 and candidates[1][0] < params.ambiguity_ratio * candidates[0][0] + 0.05:
-        raise MeasurementError(f"ambiguous: {len(candidates)} board-length scan segments lie where the camera "
-                               "puts the board")
+        raise AmbiguousBoardError(f"ambiguous: {len(candidates)} board-length scan segments lie where the camera "
+                                  "puts the board",
+                                  [observe_lidar_line(_robust_line_points(Q), len(candidates)) for _, Q in candidates])
     return observe_lidar_line(_robust_line_points(candidates[0][1]), len(candidates))

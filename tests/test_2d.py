@@ -63,6 +63,56 @@ def _measured_2d(seed: int, n: int, noise_m: float = 0.01):
     return rig, simulate_measurements(layout, rng)
 
 
+def _scan_with_board(frame, wall_m: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    """A 270-degree scan: the frame's board points, and a wall behind wherever the board is not."""
+    board = frame.lidar.points[:, :2]
+    ang = np.arctan2(board[:, 1], board[:, 0])
+    a = np.deg2rad(np.arange(-60.0, 60.0, 0.25))
+    a = a[(a < ang.min() - 0.01) | (a > ang.max() + 0.01)]
+    wall = np.column_stack([np.full(len(a), wall_m), wall_m * np.tan(a)])
+    return np.vstack([wall, board]), board
+
+
+@pytest.mark.parametrize("defect", ["stray return", "missing returns"])
+def test_board_segment_survives_a_stray_return_and_a_short_gap(defect):
+    """One return 10 cm off the board in its middle, or 6 missing returns there (a gap that ends a run of
+    neighbouring returns), must not cut the board into two board-length pieces (two candidate boards)."""
+    from estimators.scan_segmentation import find_board_in_scan
+
+    rig, frames = _measured_2d(4, 4)
+    f = frames[0]
+    scan, board = _scan_with_board(f)
+    order = np.argsort(np.arctan2(board[:, 1], board[:, 0]))
+    mid = order[len(order) // 2 - 3: len(order) // 2 + 3]
+    keep = np.ones(len(scan), dtype=bool)
+    if defect == "stray return":
+        scan[len(scan) - len(board) + mid[3]] *= 1 + 0.1 / np.linalg.norm(board[mid[3]])
+    else:
+        keep[len(scan) - len(board) + mid] = False
+    found = find_board_in_scan(scan[keep], rig.board, f.camera)
+    assert found.n_points >= len(board) - 6
+    np.testing.assert_allclose(found.line.direction @ f.lidar.line.normal, 0.0, atol=0.01)
+
+
+def test_an_ambiguous_2d_frame_is_resolved_by_the_clear_frames():
+    """Frame 0 offers its true segment and one 30 cm behind it: the clear frames' extrinsic picks the true one;
+    offered two wrong segments, the frame stays skipped."""
+    from estimators.calibration import _resolve_ambiguous
+    from estimators.measurements import FrameMeasurement, observe_lidar_line
+
+    rig, frames = _measured_2d(6, 6)
+    true = frames[0].lidar
+    P = true.points[:, :2]
+    behind = observe_lidar_line(P * (1 + 0.3 / np.linalg.norm(P, axis=1))[:, None])
+    further = observe_lidar_line(P * (1 + 0.6 / np.linalg.norm(P, axis=1))[:, None])
+    skipped = [FrameMeasurement(frames[0].name, frames[0].camera, None, "ambiguous")] + frames[1:]
+    warnings: list[str] = []
+    out = _resolve_ambiguous(skipped, {frames[0].name: [behind, true]}, warnings, rig.board, rig.camera)
+    assert out[0].usable and out[0].lidar is true and "chose" in warnings[0]
+    out = _resolve_ambiguous(skipped, {frames[0].name: [behind, further]}, [], rig.board, rig.camera)
+    assert not out[0].usable
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_lower_bound_selection_reaches_the_true_basin(seed):
     """6 boards, 1 cm noise: the selected and refined estimate is the minimum that refinement started
