@@ -88,7 +88,7 @@ def summarise(rows, key_fn):
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--trials", type=int, default=100)
+    ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     a = ap.parse_args()
     t0 = time.perf_counter()

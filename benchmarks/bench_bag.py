@@ -31,17 +31,20 @@ def _size(path: Path) -> int:
 def _extract_in_child(bag: Path, out: Path) -> dict:
     """Run one extraction in a fresh interpreter and report its time and peak memory."""
     code = f"""
-import json, resource, time
+import json, time
 from pathlib import Path
 from estimators.bag_extract import _open_reader, extract_bag
 from estimators.simulator import default_board
+def peak_mb():  # VmHWM: this process's own peak (ru_maxrss would include the parent's pages before exec)
+    line = next(l for l in open("/proc/self/status") if l.startswith("VmHWM"))
+    return int(line.split()[1]) / 1024
 reader = _open_reader(Path({str(bag)!r}))
 messages = reader.message_count
 reader.close()
 t = time.perf_counter()
 s = extract_bag({str(bag)!r}, {str(out)!r}, default_board(), "/camera/image_raw", cloud_topic="/velodyne_points")
 print(json.dumps({{"seconds": time.perf_counter() - t, "frames": s.frames, "messages": messages,
-                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+                  "rss_mb": peak_mb()}}))
 """
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -71,8 +74,9 @@ def main() -> None:
                       f"{messages / stats['seconds']:7.0f} {stats['frames']:7d} {stats['rss_mb']:12.0f}")
                 shutil.rmtree(bag, ignore_errors=True) if bag.is_dir() else bag.unlink()
                 shutil.rmtree(tmp / f"out_{n}_{kind}", ignore_errors=True)
-    base = subprocess.run([sys.executable, "-c", "import resource, estimators.bag_extract, rosbags.highlevel; "
-                           "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"],
+    base = subprocess.run([sys.executable, "-c", "import estimators.bag_extract, rosbags.highlevel; "
+                           "print(next(int(l.split()[1]) for l in open('/proc/self/status') "
+                           "if l.startswith('VmHWM')) / 1024)"],
                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
     print(f"  (a fresh interpreter that only imports the extractor peaks at {float(base):.0f} MB)")
 

@@ -368,10 +368,10 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
 
 def format_summary(summary: list[dict]) -> str:
     lines = [f"  {'solver':32s}{'layout':>10s}{'frames':>7s}{'noise mm':>9s}{'corner px':>10s}{'trials':>7s}"
-             f"{'failed':>7s}{'rot deg':>9s}{'trans mm':>9s}{'err/bound':>10s}{'d2':>6s}{'hit %':>7s}{'s':>7s}"]
+             f"{'failed':>7s}{'rot deg':>9s}{'trans mm':>9s}{'err/bound':>10s}{'d2':>9s}{'hit %':>7s}{'s':>7s}"]
     for s in summary:
         hit = f"{100 * s['hit_rate']:7.1f}" if "hit_rate" in s else f"{'':>7s}"
-        d2 = f"{s['mean_d2']:6.2f}" if s.get("mean_d2") is not None else f"{'-':>6s}"
+        d2 = f"{s['mean_d2']:9.3g}" if s.get("mean_d2") is not None else f"{'-':>9s}"
         lines.append(f"  {s['solver']:32s}{s.get('layout', 'spread'):>10s}{s['frames']:7d}"
                      f"{1000 * s['range_noise_m']:9.1f}{s['corner_noise_px']:10.2f}"
                      f"{s['trials']:7d}{s['failed']:7d}{s.get('rms_rot_err_deg', np.nan):9.3f}"
