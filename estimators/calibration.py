@@ -189,11 +189,9 @@ def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) 
     for f in frames:
         if f.usable and f.lidar.is_scan_line:
             # A laser line: the angle by which it leaves the board's plane, and its points' mean distance to it.
-            R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
-            n, d = f.camera.plane.normal, f.camera.plane.distance
-            direction = R @ np.append(f.lidar.line.direction, 0.0)
-            dist = float(np.mean(f.lidar.points @ R.T @ n + t @ n - d))
-            out[f.name] = (float(np.arcsin(min(abs(direction @ n), 1.0))), dist)
+            direction = T_camera_lidar[:3, :3] @ np.append(f.lidar.line.direction, 0.0)
+            dist = float(np.mean(_plane_distances(f.lidar.points, f.camera.plane, T_camera_lidar)))
+            out[f.name] = (float(np.arcsin(min(abs(direction @ f.camera.plane.normal), 1.0))), dist)
         elif f.usable:
             out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
     return out
@@ -361,10 +359,14 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
 def _choose_segment(candidates: list, plane, T_camera_lidar: np.ndarray):
     """The one scan segment whose points lie on the camera's board plane under ``T_camera_lidar`` (RMS within
     ``SEGMENT_FIT_M``), or None if none or several do."""
-    R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
     fits = [c for c in candidates
-            if np.sqrt(np.mean(((c.points @ R.T + t) @ plane.normal - plane.distance) ** 2)) < SEGMENT_FIT_M]
+            if np.sqrt(np.mean(_plane_distances(c.points, plane, T_camera_lidar) ** 2)) < SEGMENT_FIT_M]
     return fits[0] if len(fits) == 1 else None
+
+
+def _plane_distances(points_lidar: np.ndarray, plane, T_camera_lidar: np.ndarray) -> np.ndarray:
+    """Signed distances (m) of LiDAR-frame points, mapped into the camera frame, from a camera-frame plane."""
+    return (points_lidar @ T_camera_lidar[:3, :3].T + T_camera_lidar[:3, 3]) @ plane.normal - plane.distance
 
 
 def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
