@@ -231,7 +231,12 @@ def _calibrate(args) -> int:
         from .report import write_report
 
         print(f"wrote {write_report(result, ds, args.out)} (and its figures)")
+    _export_hint(path)
     return 0
+
+
+def _export_hint(path) -> None:
+    print(f"for ROS tf, URDF, KITTI or OpenCV: lidarcam export {path} --format ros-tf|urdf|kitti|opencv-yaml")
 
 
 def _simulate(args) -> int:
@@ -436,11 +441,13 @@ def _demo(args) -> int:
                        posterior=_posterior_options(args))
     _print_result(result, ds.ground_truth())
     print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
-    print(f"wrote {write_calibration(result, base)}")
+    path = write_calibration(result, base)
+    print(f"wrote {path}")
     if result.refinement is not None:
         from .report import write_report
 
         print(f"wrote {write_report(result, ds, base)} (open it in a browser)")
+    _export_hint(path)
     return 0
 
 
