@@ -20,17 +20,16 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
-from .dataset import dataset_spec
+from .dataset import dataset_spec, write_dataset_yaml
 from .errors import BagError
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
-from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns,
-                           to_gray8)
+from .image_io import to_gray8
+from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -322,10 +321,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,
                                hint="hold the board still for --still-s seconds per pose, or raise --still-px "
                                     "for a hand-held board")
-            spec = dataset_spec(lidar, board, camera)
-            (tmp / "dataset.yaml").write_text(
-                f"# extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}\n"
-                + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+            write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
+                               f"extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}")
             counts = {k: int(segments.counts.get(k, 0)) for k in REASONS}
             (tmp / "extract.json").write_text(json.dumps({
                 "bag": str(bag), "image_topic": image_topic, "lidar_topic": lidar_topic,

@@ -97,6 +97,13 @@ def dataset_spec(lidar: str, board: BoardModel, camera: CameraModel | None) -> d
     return spec
 
 
+def write_dataset_yaml(folder: Path, spec: dict, comment: str) -> Path:
+    """``folder/dataset.yaml`` holding ``spec`` under a one-line ``# comment`` (the caller makes it atomic)."""
+    path = Path(folder) / "dataset.yaml"
+    path.write_text(f"# {comment}\n" + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+    return path
+
+
 def parse_board(b: object, ypath: Path) -> BoardModel:
     if not isinstance(b, dict) or "squares" not in b or "square_size" not in b:
         raise DatasetError("board needs squares: [nx, ny] and square_size (m)", path=ypath,

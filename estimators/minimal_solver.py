@@ -162,7 +162,8 @@ def solve_three_boards(camera_planes: list[Plane], lidar_lines: list[Line2D],
                        triple: tuple[int, int, int] = (0, 1, 2)) -> TripleSolutions:
     """Every ``T_camera_lidar`` that puts the three laser lines (LiDAR scan plane, z = 0) on the three
     board planes (camera frame, ``normal . x = distance``), with the LiDAR in front of every board."""
-    return solve_triples(camera_planes, lidar_lines, [tuple(triple)], local=True)[0]
+    triple = tuple(triple)
+    return _solve_trihedra([_trihedron(camera_planes, lidar_lines, triple)], [triple])[0]
 
 
 def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int, int]):
@@ -195,12 +196,16 @@ def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int,
     return N, d, V, edges, q, c, D2
 
 
-def solve_triples(planes: list[Plane], lines: list[Line2D], triples: list[tuple[int, int, int]],
-                  local: bool = False) -> list[TripleSolutions]:
+def solve_triples(planes: list[Plane], lines: list[Line2D], triples: list[tuple[int, int, int]]
+                  ) -> list[TripleSolutions]:
     """``solve_three_boards`` for many triples of one calibration's boards at once (the edge systems of all of
-    them are solved in one batch). ``local``: ``planes`` and ``lines`` are already the one triple's."""
-    geo = [_trihedron(planes if local else [planes[i] for i in tri], lines if local else [lines[i] for i in tri],
-                      tri) for tri in triples]
+    them are solved in one batch)."""
+    return _solve_trihedra([_trihedron([planes[i] for i in tri], [lines[i] for i in tri], tri) for tri in triples],
+                           triples)
+
+
+def _solve_trihedra(geo: list, triples: list[tuple[int, int, int]]) -> list[TripleSolutions]:
+    """The solutions of each triple's trihedron (``_trihedron``'s result, or the reason it is degenerate)."""
     good = [i for i, g in enumerate(geo) if not isinstance(g, str)]
     roots = solve_p3p_edges_batch(np.array([geo[i][5] for i in good]).reshape(-1, 3),
                                   np.array([geo[i][6] for i in good]).reshape(-1, 3)) if good else []

@@ -91,15 +91,6 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     return img
 
 
-def to_gray8(img: np.ndarray) -> np.ndarray:
-    """8-bit greyscale of a decoded image (16-bit scaled to its range)."""
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype != np.uint8:
-        img = cv2.normalize(img.astype(np.float64), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    return img
-
-
 def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | None]:
     """``sensor_msgs/PointCloud2`` as (N, 3) float64 points and an (N,) intensity (or None).
 

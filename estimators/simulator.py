@@ -13,13 +13,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
-from .dataset import dataset_spec
+from .dataset import dataset_spec, write_dataset_yaml
 from .lidar_models import BEAM_MODELS, BeamModel
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
@@ -278,9 +277,7 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
              "lidar_model": rig.beams.name, "sigma_range_m": rig.beams.sigma_range_m,
              "pixel_noise": rig.pixel_noise, **(meta or {})}
     with atomic_directory(out, overwrite=overwrite) as tmp:
-        (tmp / "dataset.yaml").write_text(
-            "# simulated by lidarcam; ground_truth.json is for evaluation only\n"
-            + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+        write_dataset_yaml(tmp, spec, "simulated by lidarcam; ground_truth.json is for evaluation only")
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
         for f in frames:
             cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
