@@ -33,8 +33,8 @@ def _extract_in_child(bag: Path, out: Path) -> dict:
     code = f"""
 import json, time
 from pathlib import Path
-from estimators.bag_extract import _open_reader, extract_bag
-from estimators.simulator import default_board
+from estimators.io.bag_extract import _open_reader, extract_bag
+from estimators.simulation.simulator import default_board
 def peak_mb():  # VmHWM: this process's own peak (ru_maxrss would include the parent's pages before exec)
     line = next(l for l in open("/proc/self/status") if l.startswith("VmHWM"))
     return int(line.split()[1]) / 1024
@@ -55,7 +55,7 @@ def main() -> None:
     ap.add_argument("--poses", type=int, nargs="+", default=[8, 16])
     args = ap.parse_args()
 
-    from estimators.simulator import simulate_dataset
+    from estimators.simulation.simulator import simulate_dataset
     from tests.rosbag_writer import write_bag_from_dataset
 
     print("bag extraction (HDL-64E sweeps, 1024 x 768 mono8 images at 10 Hz, 2 s still per pose)")
@@ -74,7 +74,7 @@ def main() -> None:
                       f"{messages / stats['seconds']:7.0f} {stats['frames']:7d} {stats['rss_mb']:12.0f}")
                 shutil.rmtree(bag, ignore_errors=True) if bag.is_dir() else bag.unlink()
                 shutil.rmtree(tmp / f"out_{n}_{kind}", ignore_errors=True)
-    base = subprocess.run([sys.executable, "-c", "import estimators.bag_extract, rosbags.highlevel; "
+    base = subprocess.run([sys.executable, "-c", "import estimators.io.bag_extract, rosbags.highlevel; "
                            "print(next(int(l.split()[1]) for l in open('/proc/self/status') "
                            "if l.startswith('VmHWM')) / 1024)"],
                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()

@@ -17,8 +17,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate, solve  # noqa: E402
-from estimators.dataset import load_dataset  # noqa: E402
-from estimators.simulator import simulate_dataset  # noqa: E402
+from estimators.io.dataset import load_dataset  # noqa: E402
+from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
 
 CASES = [("HDL-64E", "hdl64e", 16, 0), ("HDL-64E", "hdl64e", 8, 1), ("VLP-16", "vlp16", 8, 2)]

@@ -20,9 +20,9 @@ from scipy.stats import chi2  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import measure_frames, solve  # noqa: E402
-from estimators.dataset import load_dataset  # noqa: E402
+from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
-from estimators.refinement import RefinementOptions  # noqa: E402
+from estimators.solvers.refinement import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "acfr_vlp16_a"

@@ -14,7 +14,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.study import format_summary, parse_spec, run_study, summarize  # noqa: E402
+from estimators.analysis.study import format_summary, parse_spec, run_study, summarize  # noqa: E402
 
 
 def main() -> None:

@@ -15,21 +15,21 @@ from geometry.planes import plane_difference
 from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
-from .board_pose import estimate_board_pose
-from .board_segmentation import SegmentationParams, choose_by_prediction, find_board
-from .chessboard import CornerDetection, detect_corners
-from .closed_form import describe_direction, normal_spread, solve_closed_form
-from .dataset import Dataset, load_dataset
+from .camera.board_pose import estimate_board_pose
+from .lidar.board_segmentation import SegmentationParams, choose_by_prediction, find_board
+from .camera.chessboard import CornerDetection, detect_corners
+from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
+from .io.dataset import Dataset, load_dataset
 from .errors import AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError
-from .image_io import read_gray
-from .intrinsics import calibrate_intrinsics
+from .io.image_io import read_gray
+from .camera.intrinsics import calibrate_intrinsics
 from .measurements import FrameMeasurement
-from .output import write_json_atomic, write_npz_atomic
-from .pointcloud_io import read_scan, read_scan_2d
-from .scan_segmentation import ScanSegmentationParams, find_board_in_scan
-from .posterior import Posterior, PosteriorOptions, sample_posterior
-from .refinement import Refinement, RefinementOptions, refine as refine_graph
-from .solution_selection import MinimalSelection, select_minimal, solution_distances
+from .io.output import write_json_atomic, write_npz_atomic
+from .io.pointcloud_io import read_scan, read_scan_2d
+from .lidar.scan_segmentation import ScanSegmentationParams, find_board_in_scan
+from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
+from .solvers.refinement import Refinement, RefinementOptions, refine as refine_graph
+from .solvers.solution_selection import MinimalSelection, select_minimal, solution_distances
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 REFINES = ("factor-graph", "none")
@@ -105,8 +105,8 @@ class CalibrationResult:
 
     def report(self, out_dir: str | Path) -> Path:
         """Write ``OUT/report.html`` and its figures (needs the dataset folder this result came from)."""
-        from .dataset import load_dataset
-        from .report import write_report
+        from .io.dataset import load_dataset
+        from .analysis.report import write_report
 
         return write_report(self, load_dataset(self.dataset), out_dir)
 

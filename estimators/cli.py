@@ -143,14 +143,14 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _options(args):
-    from .refinement import RefinementOptions
+    from .solvers.refinement import RefinementOptions
 
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
                              range_noise_m=args.range_noise_m)
 
 
 def _posterior_options(args):
-    from .posterior import PosteriorOptions
+    from .solvers.posterior import PosteriorOptions
 
     if args.samples < 0:
         raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
@@ -216,9 +216,9 @@ def _print_result(result, truth=None) -> None:
 def _calibrate(args) -> int:
     import numpy as np
 
-    from .board_segmentation import SegmentationParams
+    from .lidar.board_segmentation import SegmentationParams
     from .calibration import calibrate, write_calibration
-    from .dataset import load_dataset
+    from .io.dataset import load_dataset
 
     ds = load_dataset(args.dataset)
     result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
@@ -228,7 +228,7 @@ def _calibrate(args) -> int:
     _print_result(result)
     print(f"wrote {path}")
     if not args.no_report and result.refinement is not None:
-        from .report import write_report
+        from .analysis.report import write_report
 
         print(f"wrote {write_report(result, ds, args.out)} (and its figures)")
     _export_hint(path)
@@ -240,7 +240,7 @@ def _export_hint(path) -> None:
 
 
 def _simulate(args) -> int:
-    from .simulator import simulate_dataset
+    from .simulation.simulator import simulate_dataset
 
     if args.poses < 1:
         raise SystemExit("lidarcam: error: --poses must be at least 1")
@@ -263,14 +263,14 @@ def _layout(args) -> int:
     import yaml
 
     from .errors import DatasetError
-    from .layout_analysis import analyse, layout_from_plan, suggest_poses
-    from .output import write_json_atomic
+    from .analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+    from .io.output import write_json_atomic
 
     src = Path(args.source)
     if src.is_dir():
         from .calibration import calibrate
-        from .dataset import load_dataset
-        from .layout_analysis import layout_from_result
+        from .io.dataset import load_dataset
+        from .analysis.layout_analysis import layout_from_result
 
         ds = load_dataset(src)
         result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
@@ -291,7 +291,7 @@ def _layout(args) -> int:
     print(analysis.format())
     out = analysis.to_dict()
     if args.suggest > 0 or args.target:
-        from .layout_analysis import meets
+        from .analysis.layout_analysis import meets
 
         k_max = args.suggest if not args.target else max(args.suggest, 40)
         target = tuple(args.target) if args.target else None
@@ -320,7 +320,7 @@ def _layout(args) -> int:
 
 
 def _study(args) -> int:
-    from .coverage_study import format_summary, run_study
+    from .analysis.coverage_study import format_summary, run_study
 
     if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
         raise SystemExit("lidarcam: error: --trials, --samples and --workers must be positive and --frames >= 3")
@@ -346,7 +346,7 @@ def _study_spec(argv: list[str]) -> int:
     import yaml
 
     from .errors import DatasetError
-    from .study import format_summary, parse_spec, run_study, summarize
+    from .analysis.study import format_summary, parse_spec, run_study, summarize
 
     args = _study_spec_parser().parse_args(argv)
     path = Path(args.spec)
@@ -371,7 +371,7 @@ def _board_argument(text: str):
     """``NXxNY:SQUARE[:WxH]`` or a YAML file with a ``board:`` mapping (or the mapping itself)."""
     import yaml
 
-    from .dataset import parse_board
+    from .io.dataset import parse_board
     from .errors import LidarcamError
 
     path = Path(text)
@@ -398,7 +398,7 @@ def _board_argument(text: str):
 
 
 def _extract(args) -> int:
-    from .bag_extract import ExtractOptions, extract_bag
+    from .io.bag_extract import ExtractOptions, extract_bag
 
     options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
                              check_hz=args.check_hz, scan_format=args.scan_format)
@@ -415,7 +415,7 @@ def _extract(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export_calibration, write_export
+    from .io.export import export_calibration, write_export
 
     frames = {"camera_frame": args.camera_frame, "lidar_frame": args.lidar_frame, "parent": args.parent}
     if args.out is None:
@@ -429,8 +429,8 @@ def _demo(args) -> int:
     import numpy as np
 
     from .calibration import calibrate, write_calibration
-    from .dataset import load_dataset
-    from .simulator import simulate_dataset
+    from .io.dataset import load_dataset
+    from .simulation.simulator import simulate_dataset
 
     base = Path(args.out)
     data = base / "dataset"
@@ -444,7 +444,7 @@ def _demo(args) -> int:
     path = write_calibration(result, base)
     print(f"wrote {path}")
     if result.refinement is not None:
-        from .report import write_report
+        from .analysis.report import write_report
 
         print(f"wrote {write_report(result, ds, base)} (open it in a browser)")
     _export_hint(path)

@@ -10,7 +10,7 @@ from hypothesis import settings
 settings.register_profile("lidarcam", deadline=None, max_examples=100)
 settings.load_profile("lidarcam")
 
-from estimators.simulator import simulate_dataset
+from estimators.simulation.simulator import simulate_dataset
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimators.dataset import load_dataset
-from estimators.pointcloud_io import read_scan
+from estimators.io.dataset import load_dataset
+from estimators.io.pointcloud_io import read_scan
 
 T0_NS = 1_700_000_000 * 1_000_000_000
 

@@ -10,13 +10,13 @@ import pytest
 from scipy.stats import chi2
 
 from estimators.calibration import calibrate, refine_candidates, solve
-from estimators.dataset import load_dataset
+from estimators.io.dataset import load_dataset
 from estimators.errors import DegenerateLayoutError, LidarcamError, ScanReadError
-from estimators.observation_model import Layout, simulate_measurements
-from estimators.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
-from estimators.refinement import refine
-from estimators.simulator import default_rig_2d, sample_board_poses
-from estimators.solution_selection import select_minimal, solution_distances
+from estimators.solvers.observation_model import Layout, simulate_measurements
+from estimators.io.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
+from estimators.solvers.refinement import refine
+from estimators.simulation.simulator import default_rig_2d, sample_board_poses
+from estimators.solvers.solution_selection import select_minimal, solution_distances
 from geometry.rotations import T_from_Rt, T_inverse, T_log
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "acfr_rpg_2d"
@@ -77,7 +77,7 @@ def _scan_with_board(frame, wall_m: float = 6.0) -> tuple[np.ndarray, np.ndarray
 def test_board_segment_survives_a_stray_return_and_a_short_gap(defect):
     """One return 10 cm off the board in its middle, or 6 missing returns there (a gap that ends a run of
     neighbouring returns), must not cut the board into two board-length pieces (two candidate boards)."""
-    from estimators.scan_segmentation import find_board_in_scan
+    from estimators.lidar.scan_segmentation import find_board_in_scan
 
     rig, frames = _measured_2d(4, 4)
     f = frames[0]
@@ -178,7 +178,7 @@ def test_3d_init_on_a_2d_dataset_and_back_are_refused(tmp_path):
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata/acfr_rpg_2d is absent")
 def test_recorded_vertical_boards_give_a_clear_error_not_a_6dof_answer(tmp_path):
-    from estimators.board_segmentation import SegmentationParams
+    from estimators.lidar.board_segmentation import SegmentationParams
 
     ds = load_dataset(REALDATA)
     with pytest.raises(LidarcamError) as exc:
@@ -190,8 +190,8 @@ def test_recorded_vertical_boards_give_a_clear_error_not_a_6dof_answer(tmp_path)
 def test_layout_analysis_of_a_2d_result_predicts_its_covariance():
     """Issue 5 for a 2D LiDAR: the Fisher information of the measured layout (its laser points as beams)
     predicts the refinement's own standard deviations to 15% per axis, and suggestions respect the scan plane."""
-    from estimators.layout_analysis import analyse, layout_from_result, suggest_poses
-    from estimators.simulator import scan_crossing_length
+    from estimators.analysis.layout_analysis import analyse, layout_from_result, suggest_poses
+    from estimators.simulation.simulator import scan_crossing_length
 
     rig, frames = _measured_2d(7, 6)
     result = solve(frames, rig.board, rig.camera)
@@ -208,8 +208,8 @@ def test_layout_analysis_of_a_2d_result_predicts_its_covariance():
 def test_2d_posterior_agrees_with_the_laplace_covariance():
     """The sampled posterior of a well-determined 2D calibration is close to Gaussian: its standard deviations
     are within 20% of the factor graph's Laplace ones on every axis."""
-    from estimators.posterior import PosteriorOptions
-    from estimators.refinement import measurement_model_options
+    from estimators.solvers.posterior import PosteriorOptions
+    from estimators.solvers.refinement import measurement_model_options
 
     rig, frames = _measured_2d(0, 6)
     result = solve(frames, rig.board, rig.camera, options=measurement_model_options(),

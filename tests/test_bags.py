@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from estimators.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
+from estimators.io.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
 from estimators.calibration import calibrate
 from estimators.cli import main
-from estimators.dataset import load_dataset
+from estimators.io.dataset import load_dataset
 from estimators.errors import BagError
-from estimators.ros_messages import camera_from_info, decode_image, decode_point_cloud
-from estimators.simulator import simulate_dataset
+from estimators.io.ros_messages import camera_from_info, decode_image, decode_point_cloud
+from estimators.simulation.simulator import simulate_dataset
 from geometry.rotations import rotation_error
 
 from .rosbag_writer import _Bag, bayer_mosaic_rggb, image_message, write_bag_from_dataset
@@ -267,7 +267,7 @@ def test_bag_to_tf_line_from_the_command_line(sim5, tmp_path, capsys):
 def test_camera_info_topic_is_found_beside_or_above_the_image_topic():
     from types import SimpleNamespace
 
-    from estimators.bag_extract import _camera_info_topic
+    from estimators.io.bag_extract import _camera_info_topic
 
     def reader(*topics):
         return SimpleNamespace(connections=[SimpleNamespace(topic=t, msgtype="sensor_msgs/msg/CameraInfo")

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.dataset import load_dataset
+from estimators.io.dataset import load_dataset
 from estimators.errors import DatasetError
 
 YAML = """lidar: 3d

@@ -15,7 +15,7 @@ import pytest
 
 from estimators.calibration import calibrate
 from estimators.cli import main
-from estimators.dataset import load_dataset
+from estimators.io.dataset import load_dataset
 from geometry.rotations import T_inverse, T_log, rotation_error
 
 # Acceptance (issue 2): 8 frames, 2 cm range noise: rotation < 0.5 deg, translation < 3 cm, all boards found.
@@ -158,7 +158,7 @@ def test_simulate_refuses_to_overwrite(tmp_path):
 @pytest.mark.parametrize("fmt", ["ply", "bin", "npy"])
 def test_every_scan_format_calibrates(tmp_path, fmt):
     """The simulator writes each reader's format; 5 VLP-16 frames calibrate within the same tolerances."""
-    from estimators.simulator import simulate_dataset
+    from estimators.simulation.simulator import simulate_dataset
 
     path = simulate_dataset(tmp_path / fmt, n_poses=5, seed=30, lidar="vlp16", scan_format=fmt)
     assert len(list(path.glob(f"*.{fmt}"))) == 5

@@ -12,7 +12,7 @@ import pytest
 
 from estimators.cli import main
 from estimators.errors import LidarcamError
-from estimators.export import FORMATS, export_calibration, write_export
+from estimators.io.export import FORMATS, export_calibration, write_export
 from geometry.rotations import R_from_quat_xyzw, R_from_rpy, T_from_Rt, T_inverse, random_rotation
 
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from estimators.closed_form import normal_spread, solve_closed_form
+from estimators.solvers.closed_form import normal_spread, solve_closed_form
 from estimators.errors import DegenerateLayoutError
 from geometry.board import BoardModel
 from geometry.camera import CameraModel

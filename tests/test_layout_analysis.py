@@ -8,8 +8,8 @@ import numpy as np
 import yaml
 
 from estimators.cli import main
-from estimators.layout_analysis import analyse, layout_from_plan, suggest_poses
-from estimators.observation_model import cramer_rao_bound
+from estimators.analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+from estimators.solvers.observation_model import cramer_rao_bound
 from geometry.rotations import R_from_rotvec, T_from_Rt
 
 PLAN = {
@@ -73,7 +73,7 @@ def test_cli_layout_on_a_measured_dataset_predicts_its_refined_covariance(sim_hd
     """For measured frames the analysis uses the refinement's poses, noise levels and board points: its
     prediction is the Laplace covariance of the same data (the same model, linearised alike)."""
     from estimators.calibration import calibrate
-    from estimators.dataset import load_dataset
+    from estimators.io.dataset import load_dataset
 
     assert main(["layout", str(sim_hdl64e), "--json", str(tmp_path / "m.json")]) == 0
     data = json.loads((tmp_path / "m.json").read_text())

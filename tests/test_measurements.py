@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from estimators.board_pose import estimate_board_pose, plane_jacobian
-from estimators.board_segmentation import SegmentationParams, find_board
-from estimators.chessboard import detect_corners
-from estimators.dataset import load_dataset
+from estimators.camera.board_pose import estimate_board_pose, plane_jacobian
+from estimators.lidar.board_segmentation import SegmentationParams, find_board
+from estimators.camera.chessboard import detect_corners
+from estimators.io.dataset import load_dataset
 from estimators.errors import MeasurementError
-from estimators.image_io import read_gray
-from estimators.pointcloud_io import read_scan
-from estimators.rendering import render_image
-from estimators.simulator import default_rig, sample_board_poses, scene_patches
+from estimators.io.image_io import read_gray
+from estimators.io.pointcloud_io import read_scan
+from estimators.simulation.rendering import render_image
+from estimators.simulation.simulator import default_rig, sample_board_poses, scene_patches
 from geometry.camera import CameraModel
 from geometry.planes import Plane
 from geometry.rotations import T_inverse, T_retract, transform_points

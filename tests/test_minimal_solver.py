@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.minimal_solver import edge_conditioning, solve_p3p_edges, solve_three_boards
+from estimators.solvers.minimal_solver import edge_conditioning, solve_p3p_edges, solve_three_boards
 from geometry.lines import Line2D, fit_line_tls, intersect, line_from_plane
 from geometry.planes import Plane
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, rotation_error

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from estimators.errors import ScanReadError
-from estimators.pointcloud_io import read_scan, write_scan
+from estimators.io.pointcloud_io import read_scan, write_scan
 
 
 @pytest.fixture

@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 from estimators.calibration import measure_frames, solve
-from estimators.dataset import load_dataset
+from estimators.io.dataset import load_dataset
 from geometry.rotations import T_inverse, T_log, rotation_error
 
 from .conftest import REALDATA

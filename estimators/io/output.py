@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LidarcamError
+from ..errors import LidarcamError
 
 
 _UMASK = os.umask(0)

@@ -23,8 +23,8 @@ from scipy.spatial import cKDTree
 from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
 
-from .errors import AmbiguousBoardError, MeasurementError
-from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board
+from ..errors import AmbiguousBoardError, MeasurementError
+from ..measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board
 
 
 @dataclass(frozen=True)

@@ -34,9 +34,9 @@ from geometry.board import BoardModel
 from geometry.rotations import T_inverse
 
 from .closed_form import MIN_NORMAL_SPREAD, describe_direction, normal_spread
-from .errors import DegenerateLayoutError
+from ..errors import DegenerateLayoutError
 from .factors import lidar_residual
-from .measurements import FrameMeasurement, lidar_whitener
+from ..measurements import FrameMeasurement, lidar_whitener
 from .minimal_solver import solve_triples
 from .refinement import pooled_range_noise_m
 

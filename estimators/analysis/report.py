@@ -9,32 +9,26 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from geometry.rotations import quat_xyzw_from_R, transform_points
 
-from geometry.rotations import quat_xyzw_from_R, transform_points  # noqa: E402
-
-from .closed_form import describe_direction  # noqa: E402
-from .dataset import Dataset  # noqa: E402
-from .image_io import read_gray  # noqa: E402
-from .output import write_atomic  # noqa: E402
-from .pointcloud_io import read_scan, read_scan_2d  # noqa: E402
+from ..io.dataset import Dataset
+from ..io.image_io import read_gray
+from ..io.output import write_atomic
+from ..io.pointcloud_io import read_scan, read_scan_2d
+from ..solvers.closed_form import describe_direction
+from .figures import new_figure, png_bytes
 
 _LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
 _UNITS = np.array([np.degrees(1.0)] * 3 + [1000.0] * 3)
 
 
 def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return buf.getvalue()
+    return png_bytes(fig, dpi=90)
 
 
 def corner_figure(result) -> bytes:
@@ -42,8 +36,9 @@ def corner_figure(result) -> bytes:
     import corner
 
     xi = result.posterior.xi * _UNITS
-    fig = corner.corner(xi, labels=_LABELS, quantiles=[0.025, 0.5, 0.975], show_titles=True, title_fmt=".3f",
-                        title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8})
+    # corner's own size for 6 axes (2 in per panel, margins), on a figure outside pyplot
+    fig = corner.corner(xi, fig=Figure(figsize=(13.9, 13.9)), labels=_LABELS, quantiles=[0.025, 0.5, 0.975],
+                        show_titles=True, title_fmt=".3f", title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8})
     C = result.covariance_laplace * np.outer(_UNITS, _UNITS)
     axes = np.array(fig.axes).reshape(6, 6)
     angles = np.linspace(0, 2 * np.pi, 100)
@@ -66,7 +61,7 @@ def residuals_figure(result) -> bytes:
     rms = [f.camera.reprojection_rms_px for f in result.frames if f.usable]
     angle = [np.degrees(result.plane_residuals[n][0]) if n in result.plane_residuals else np.nan for n in names]
     dist = [1000 * result.plane_residuals[n][1] if n in result.plane_residuals else np.nan for n in names]
-    fig, ax = plt.subplots(2, 2, figsize=(11, 6))
+    fig, ax = new_figure(2, 2, figsize=(11, 6))
     colors = ["tab:red" if o else "tab:blue" for o in out]
     x = np.arange(len(names))
     ax[0, 0].bar(x, chi, color=colors)
@@ -119,7 +114,7 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
     uv, depth = uv[inside], pc[front][inside, 2]
     keep = slice(None, None, max(1, len(uv) // 25000))  # a readable, light figure
     uv, depth = uv[keep], depth[keep]
-    fig, ax = plt.subplots(figsize=(8, 8 * cam.height / cam.width))
+    fig, ax = new_figure(figsize=(8, 8 * cam.height / cam.width))
     ax.imshow(gray, cmap="gray")
     sc = ax.scatter(uv[:, 0], uv[:, 1], c=depth, s=4.0 if frame.lidar.is_scan_line else 0.3, cmap="turbo", vmin=np.percentile(depth, 2),
                     vmax=np.percentile(depth, 98))
@@ -149,7 +144,7 @@ def traces_figure(result) -> bytes:
     chain = result.posterior.run.chain
     labels = _LABELS + ["log s (camera noise scale)"]
     units = np.append(_UNITS, 1.0)
-    fig, ax = plt.subplots(7, 1, figsize=(10, 11), sharex=True)
+    fig, ax = new_figure(7, 1, figsize=(10, 11), sharex=True)
     step = max(1, chain.shape[1] // 12)
     for k in range(7):
         ax[k].plot(chain[:, ::step, k] * units[k], lw=0.4, alpha=0.6)

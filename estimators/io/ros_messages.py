@@ -11,7 +11,7 @@ import numpy as np
 
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
-from .errors import BagError
+from ..errors import BagError
 
 # sensor_msgs/PointField datatypes.
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

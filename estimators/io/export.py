@@ -27,7 +27,7 @@ import numpy as np
 
 from geometry.rotations import T_inverse, quat_xyzw_from_R, rpy_from_R
 
-from .errors import LidarcamError
+from ..errors import LidarcamError
 from .output import write_atomic
 
 FORMATS = ("ros-tf", "urdf", "kitti", "opencv-yaml", "json")

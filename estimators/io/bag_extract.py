@@ -25,7 +25,7 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
 from .dataset import dataset_spec, write_dataset_yaml
-from .errors import BagError
+from ..errors import BagError
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .image_io import to_gray8

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ScanReadError
+from ..errors import ScanReadError
 
 SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
 SCAN_2D_SUFFIXES = (".csv", ".npy", ".pcd")

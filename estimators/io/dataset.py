@@ -15,7 +15,7 @@ import yaml
 from geometry.board import BoardModel
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
-from .errors import DatasetError
+from ..errors import DatasetError
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

@@ -1,7 +1,7 @@
 """How a layout of board poses conditions the calibration, and which pose to add next.
 
 From the Fisher information of the full model (corner pixels and beam ranges, board poses marginalised;
-:mod:`estimators.observation_model`): the predicted covariance (the Cramer-Rao bound) and standard
+:mod:`estimators.solvers.observation_model`): the predicted covariance (the Cramer-Rao bound) and standard
 deviations per axis, the condition number of the board normals, D- and E-optimality, the weakest
 direction in words, and each frame's leverage. Optimality is measured in scaled units, milliradians and
 millimetres, so that rotation and translation weigh alike: ``D = det(F)^(1/6)`` and ``E = lambda_min(F)``
@@ -27,11 +27,11 @@ import numpy as np
 
 from geometry.rotations import T_from_Rt
 
-from .closed_form import describe_direction, normal_spread
-from .errors import DatasetError
-from .lidar_models import BEAM_MODELS
-from .observation_model import Layout, board_hits, frame_contribution, frame_information
-from .simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
+from ..solvers.closed_form import describe_direction, normal_spread
+from ..errors import DatasetError
+from ..lidar.lidar_models import BEAM_MODELS
+from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
+from ..simulation.simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
 MIN_BOARD_HITS = 50
@@ -152,7 +152,7 @@ def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layo
 
 def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
     """A layout (and the rig, for pose suggestions) from a parsed ``PLAN.yaml``."""
-    from .dataset import parse_board, parse_camera
+    from ..io.dataset import parse_board, parse_camera
 
     try:
         camera = parse_camera(plan["camera"], source)

@@ -17,12 +17,12 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, transform_points
 
-from .board_pose import estimate_board_pose
-from .chessboard import CornerDetection
+from ..camera.board_pose import estimate_board_pose
+from ..camera.chessboard import CornerDetection
 from .factors import corner_residuals, lidar_plane
-from .lidar_models import BeamModel
-from .measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
-from .scene import cast, rectangle
+from ..lidar.lidar_models import BeamModel
+from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
+from ..simulation.scene import cast, rectangle
 
 
 @dataclass(frozen=True, eq=False)

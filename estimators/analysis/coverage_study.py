@@ -27,8 +27,8 @@ from tqdm.auto import tqdm
 
 from geometry.rotations import T_inverse, T_log, rotation_error
 
-from .output import write_atomic, write_json_atomic
-from .posterior import PosteriorOptions
+from ..io.output import write_atomic, write_json_atomic
+from ..solvers.posterior import PosteriorOptions
 
 MODES = ("measurement", "end-to-end")
 AXES = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
@@ -38,11 +38,11 @@ LEVELS = (0.68, 0.95)
 def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: int = 1000,
               likelihood: str = "gaussian", corner_noise_px: float = 0.2, range_noise_m: float = 0.02) -> dict:
     """One simulated calibration scored against its truth (a flat dict: one CSV row)."""
-    from .calibration import calibrate, solve
-    from .dataset import load_dataset
-    from .observation_model import Layout, simulate_measurements
-    from .refinement import measurement_model_options
-    from .simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
+    from ..calibration import calibrate, solve
+    from ..io.dataset import load_dataset
+    from ..solvers.observation_model import Layout, simulate_measurements
+    from ..solvers.refinement import measurement_model_options
+    from ..simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)

@@ -32,9 +32,9 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import T_log, exp_batch
 
-from .errors import LidarcamError
+from ..errors import LidarcamError
 from .factors import corner_residuals, lidar_plane, lidar_residual
-from .measurements import FrameMeasurement
+from ..measurements import FrameMeasurement
 from .refinement import Refinement, _plane_noise, plane_whiteners
 
 LIKELIHOODS = ("gaussian", "student-t")

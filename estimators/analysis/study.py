@@ -41,9 +41,10 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from .errors import DatasetError
-from .output import write_atomic, write_json_atomic
-from .simulator import LAYOUT_FAMILIES
+from ..errors import DatasetError
+from ..io.output import write_atomic, write_json_atomic
+from ..simulation.simulator import LAYOUT_FAMILIES
+from .figures import new_figure, png_bytes
 
 SOLVERS_3D = ("closed-form", "factor-graph")
 SOLVERS_2D = ("minimal-min-residual", "minimal-lower-bound", "minimal-lower-bound-no-extent")
@@ -138,13 +139,13 @@ def run_trial(args: tuple) -> list[dict]:
     """Simulate one calibration and score every solver of the spec on it (rows of ``study.csv``)."""
     from geometry.rotations import T_inverse, T_log
 
-    from .calibration import measure_frames, solve
-    from .dataset import load_dataset
-    from .observation_model import Layout, cramer_rao_bound, simulate_measurements
-    from .board_segmentation import SegmentationParams
-    from .refinement import RefinementOptions, measurement_model_options, refine
-    from .simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
-    from .solution_selection import solution_distances
+    from ..calibration import measure_frames, solve
+    from ..io.dataset import load_dataset
+    from ..solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements
+    from ..lidar.board_segmentation import SegmentationParams
+    from ..solvers.refinement import RefinementOptions, measurement_model_options, refine
+    from ..simulation.simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
+    from ..solvers.solution_selection import solution_distances
 
     spec, cell, k, seed, family, n, noise, corner = args
     rng = np.random.default_rng(seed)
@@ -287,9 +288,9 @@ def write_outputs(spec: StudySpec, rows: list[dict], out: Path) -> None:
         write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
 
 
-def _layout_figure(plt, spec: StudySpec, summary: list[dict], frames0: int, noise0: float, corner0: float):
+def _layout_figure(spec: StudySpec, summary: list[dict], frames0: int, noise0: float, corner0: float):
     """RMS errors of each solver per layout family, beside the family's bound (RMS of its norms)."""
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, ax = new_figure(1, 2, figsize=(10, 3.6))
     x = np.arange(len(spec.layouts))
     width = 0.8 / (len(spec.solvers) + 1)
     pick = {(s["solver"], s["layout"]): s for s in summary
@@ -310,29 +311,18 @@ def _layout_figure(plt, spec: StudySpec, summary: list[dict], frames0: int, nois
 def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes]]:
     """Errors per layout family (when there are several), error against frames and against range noise (first
     layout), hit rate (2D), time: one PNG each."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    def png(fig) -> bytes:
-        b = io.BytesIO()
-        fig.savefig(b, format="png", dpi=100, bbox_inches="tight")
-        plt.close(fig)
-        return b.getvalue()
-
     figures = []
     noise0, corner0, layout0 = spec.range_noise_m[0], spec.corner_noise_px[0], spec.layouts[0]
     frames0 = spec.frames[len(spec.frames) // 2]
     if len(spec.layouts) > 1:
-        figures.append(("errors_vs_layout.png", png(_layout_figure(plt, spec, summary, frames0, noise0, corner0))))
+        figures.append(("errors_vs_layout.png", png_bytes(_layout_figure(spec, summary, frames0, noise0, corner0))))
         summary = [s for s in summary if s["layout"] == layout0]
     panels = [("errors_vs_frames.png", "frames", lambda s: s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0,
                f"{layout0}, range noise {1000 * noise0:.0f} mm"),
               ("errors_vs_noise.png", "range_noise_m", lambda s: s["frames"] == frames0 and s["corner_noise_px"] == corner0,
                f"{layout0}, {frames0} frames")]
     for name, xkey, sel, title in panels:
-        fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+        fig, ax = new_figure(1, 2, figsize=(10, 3.6))
         for solver in spec.solvers:
             pts = sorted((s[xkey], s.get("rms_rot_err_deg", np.nan), s.get("rms_trans_err_mm", np.nan))
                          for s in summary if s["solver"] == solver and sel(s))
@@ -343,7 +333,7 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
         ax[0].set(xlabel=xkey, ylabel="RMS rotation error [deg]", title=title, yscale="log")
         ax[1].set(xlabel=xkey, ylabel="RMS translation error [mm]", title=title, yscale="log")
         ax[0].legend(fontsize=8)
-        figures.append((name, png(fig)))
+        figures.append((name, png_bytes(fig)))
 
     def by_frames(ax, value) -> None:
         """One line per solver of ``value(summary row)`` against frames, at the first noise levels."""
@@ -355,14 +345,14 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
         ax.legend(fontsize=8)
 
     if spec.lidar == "2d":
-        fig, ax = plt.subplots(figsize=(5, 3.6))
+        fig, ax = new_figure(figsize=(5, 3.6))
         by_frames(ax, lambda s: 100 * s.get("hit_rate", np.nan))
         ax.set(xlabel="frames", ylabel="true-solution hit rate [%]")
-        figures.append(("hit_rate.png", png(fig)))
-    fig, ax = plt.subplots(figsize=(5, 3.6))
+        figures.append(("hit_rate.png", png_bytes(fig)))
+    fig, ax = new_figure(figsize=(5, 3.6))
     by_frames(ax, lambda s: s["mean_seconds"])
     ax.set(xlabel="frames", ylabel="mean time per calibration [s]")
-    figures.append(("time.png", png(fig)))
+    figures.append(("time.png", png_bytes(fig)))
     return figures
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import ImageReadError
+from ..errors import ImageReadError
 
 
 def read_gray(path: str | os.PathLike) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 from geometry.planes import Plane
 from geometry.rotations import T_from_Rt, nearest_rotation
 
-from .errors import DegenerateLayoutError
+from ..errors import DegenerateLayoutError
 
 # Smallest singular value of N_c / sqrt(m) (the RMS normal component along the weakest direction)
 # below which translation along that direction is treated as undetermined.

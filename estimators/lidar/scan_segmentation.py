@@ -23,8 +23,8 @@ from scipy.spatial import cKDTree
 from geometry.board import BoardModel
 from geometry.lines import fit_line_tls
 
-from .errors import AmbiguousBoardError, MeasurementError
-from .measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_line
+from ..errors import AmbiguousBoardError, MeasurementError
+from ..measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_line
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,151 @@
+"""The package layout's dependency rules, read from the source (an AST scan of every import, deferred ones
+included), so that they hold as the code grows. DEVELOPERS.md states the same rules in words."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SUBPACKAGES = ("io", "camera", "lidar", "solvers", "simulation", "analysis")
+PIPELINE = {"estimators.calibration"}
+CLI = {"estimators.cli"}
+
+# What each subpackage may never import (prefix match on the imported module).
+FORBIDDEN = {
+    "io": ("estimators.solvers", "estimators.analysis", "estimators.simulation", "estimators.calibration",
+           "estimators.cli"),
+    "camera": ("estimators.io", "estimators.solvers", "estimators.analysis", "estimators.simulation",
+               "estimators.calibration", "estimators.cli"),
+    "lidar": ("estimators.io", "estimators.solvers", "estimators.analysis", "estimators.simulation",
+              "estimators.calibration", "estimators.cli"),
+    "solvers": ("estimators.io", "estimators.analysis", "estimators.calibration", "estimators.cli"),
+    "simulation": ("estimators.solvers", "estimators.analysis", "estimators.calibration", "estimators.cli"),
+    "analysis": ("estimators.cli",),
+}
+# The one upward edge: ``CalibrationResult.report()`` is a convenience of the result record that draws the
+# report; it imports it inside the method, so importing the pipeline never loads ``analysis``.
+DEFERRED_UPWARD = {("estimators.calibration", "estimators.analysis.report")}
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def imports_of(path: Path) -> list[tuple[str, bool]]:
+    """(imported module, at module level?) for every import in ``path``; relative imports resolved. For
+    ``from pkg import name`` both ``pkg`` and ``pkg.name`` are listed (``name`` may be a module)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    me = module_name(path)
+    package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    top_level = {id(node) for node in tree.body}
+    for node in tree.body:  # imports under a module-level ``if``/``try`` still run at import time
+        if isinstance(node, (ast.If, ast.Try)):
+            top_level |= {id(n) for n in ast.walk(node)}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(a.name, id(node) in top_level) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module
+            found.append((target, id(node) in top_level))
+            found += [(f"{target}.{a.name}", id(node) in top_level) for a in node.names]
+    return found
+
+
+def sources(folder: str) -> list[Path]:
+    return sorted((ROOT / folder).rglob("*.py"))
+
+
+def existing(module: str) -> bool:
+    path = ROOT / module.replace(".", "/")
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
+def edges() -> list[tuple[str, str, bool]]:
+    """(importer, imported, at module level) for every import between modules of the project."""
+    return [(module_name(p), target, level) for folder in ("estimators", "geometry") for p in sources(folder)
+            for target, level in imports_of(p)
+            if target.split(".")[0] in ("estimators", "geometry") and existing(target)]
+
+
+def subpackage(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 2 and parts[0] == "estimators" and parts[1] in SUBPACKAGES else None
+
+
+def test_the_scan_sees_the_imports():
+    """The scanner resolves relative imports (a rule over an empty edge list could never fail)."""
+    found = edges()
+    assert ("estimators.calibration", "estimators.solvers.refinement", True) in found
+    assert ("estimators.solvers.posterior", "estimators.solvers.refinement", True) in found
+    assert ("estimators.analysis.study", "estimators.calibration", False) in found
+    assert len(found) > 100
+
+
+def test_every_module_lives_in_a_subpackage_or_is_a_top_level_role():
+    top = {module_name(p) for p in (ROOT / "estimators").glob("*.py")}
+    assert top == {"estimators", "estimators.__main__", "estimators.cli", "estimators.calibration",
+                   "estimators.measurements", "estimators.errors"}
+    for sub in SUBPACKAGES:
+        init = ROOT / "estimators" / sub / "__init__.py"
+        doc = ast.get_docstring(ast.parse(init.read_text()))
+        assert doc and "May import" in doc, f"{init} needs a docstring saying what it holds and may import"
+
+
+def test_geometry_imports_nothing_from_estimators():
+    bad = [(a, b) for a, b, _ in edges() if a.startswith("geometry") and b.startswith("estimators")]
+    assert not bad
+
+
+@pytest.mark.parametrize("sub", SUBPACKAGES)
+def test_subpackage_imports_only_downwards(sub):
+    bad = [(a, b) for a, b, _ in edges() if subpackage(a) == sub and b.startswith(FORBIDDEN[sub])]
+    assert not bad, f"{sub} must not import these: {bad}"
+
+
+def test_nothing_imports_the_cli():
+    bad = [(a, b) for a, b, _ in edges() if b in CLI and a != "estimators.__main__"]
+    assert not bad
+
+
+def test_records_and_errors_import_no_subpackage():
+    bad = [(a, b) for a, b, _ in edges() if a in ("estimators.errors", "estimators.measurements")
+           and subpackage(b)]
+    assert not bad
+
+
+def test_the_pipeline_reaches_analysis_only_through_the_deferred_report():
+    upward = {(a, b) for a, b, _ in edges() if a in PIPELINE and subpackage(b) == "analysis"}
+    assert upward <= DEFERRED_UPWARD
+    assert not [(a, b) for a, b, level in edges() if (a, b) in DEFERRED_UPWARD and level]
+
+
+def test_no_import_cycle_between_subpackages():
+    graph = {s: set() for s in SUBPACKAGES}
+    for a, b, _ in edges():
+        if subpackage(a) and subpackage(b) and subpackage(a) != subpackage(b):
+            graph[subpackage(a)].add(subpackage(b))
+    state: dict[str, int] = {}
+
+    def visit(node, path):
+        state[node] = 1
+        for nxt in graph[node]:
+            assert state.get(nxt) != 1, f"import cycle: {' -> '.join(path + [nxt])}"
+            if nxt not in state:
+                visit(nxt, path + [nxt])
+        state[node] = 2
+
+    for s in SUBPACKAGES:
+        if s not in state:
+            visit(s, [s])
+    assert graph["analysis"] and graph["solvers"]  # the graph is not empty: the check above has edges to walk
