@@ -28,9 +28,9 @@ import numpy as np  # noqa: E402
 
 from estimators.calibration import refine_candidates  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
+from estimators.simulation.simulator import default_rig_2d, sample_board_poses  # noqa: E402
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
-from estimators.simulation.simulator import default_rig_2d, sample_board_poses  # noqa: E402
 from estimators.solvers.solution_selection import select_minimal, solution_distances  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 

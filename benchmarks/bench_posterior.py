@@ -21,13 +21,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
+from bench_refinement import fixed_layout  # noqa: E402
+
 from estimators.analysis.coverage_study import format_summary, run_study  # noqa: E402
+from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
 from estimators.solvers.observation_model import simulate_measurements  # noqa: E402
 from estimators.solvers.posterior import PosteriorOptions, sample_posterior  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
-
-from bench_refinement import fixed_layout  # noqa: E402
 
 
 def table_d(repeats: int = 3) -> None:

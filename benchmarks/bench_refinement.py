@@ -32,14 +32,18 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate, solve  # noqa: E402
-from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
-from estimators.solvers.factors import corner_residuals  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
-from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
-from estimators.solvers.refinement import (CORNER_ERROR_CORRELATION, RefinementOptions, corner_residual_px, measurement_model_options,  # noqa: E402
-                                   refine)
 from estimators.simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset  # noqa: E402
+from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
+from estimators.solvers.factors import corner_residuals  # noqa: E402
+from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
+from estimators.solvers.refinement import (  # noqa: E402
+    CORNER_ERROR_CORRELATION,
+    corner_residual_px,
+    measurement_model_options,
+    refine,
+)
 from geometry.rotations import T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
 
 LAYOUT_SEED = 3

@@ -16,19 +16,20 @@ from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
 from .camera.board_pose import estimate_board_pose
-from .lidar.board_segmentation import SegmentationParams, choose_by_prediction, find_board
 from .camera.chessboard import CornerDetection, detect_corners
-from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
-from .io.dataset import Dataset, load_dataset
-from .errors import AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError
-from .io.image_io import read_gray
 from .camera.intrinsics import calibrate_intrinsics
-from .measurements import FrameMeasurement
+from .errors import AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError
+from .io.dataset import Dataset, load_dataset
+from .io.image_io import read_gray
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan, read_scan_2d
+from .lidar.board_segmentation import SegmentationParams, choose_by_prediction, find_board
 from .lidar.scan_segmentation import ScanSegmentationParams, find_board_in_scan
+from .measurements import FrameMeasurement
+from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
-from .solvers.refinement import Refinement, RefinementOptions, refine as refine_graph
+from .solvers.refinement import Refinement, RefinementOptions
+from .solvers.refinement import refine as refine_graph
 from .solvers.solution_selection import MinimalSelection, select_minimal, solution_distances
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
@@ -105,8 +106,8 @@ class CalibrationResult:
 
     def report(self, out_dir: str | Path) -> Path:
         """Write ``OUT/report.html`` and its figures (needs the dataset folder this result came from)."""
-        from .io.dataset import load_dataset
         from .analysis.report import write_report
+        from .io.dataset import load_dataset
 
         return write_report(self, load_dataset(self.dataset), out_dir)
 

@@ -216,9 +216,9 @@ def _print_result(result, truth=None) -> None:
 def _calibrate(args) -> int:
     import numpy as np
 
-    from .lidar.board_segmentation import SegmentationParams
     from .calibration import calibrate, write_calibration
     from .io.dataset import load_dataset
+    from .lidar.board_segmentation import SegmentationParams
 
     ds = load_dataset(args.dataset)
     result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
@@ -262,15 +262,15 @@ def _layout(args) -> int:
     import numpy as np
     import yaml
 
-    from .errors import DatasetError
     from .analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+    from .errors import DatasetError
     from .io.output import write_json_atomic
 
     src = Path(args.source)
     if src.is_dir():
+        from .analysis.layout_analysis import layout_from_result
         from .calibration import calibrate
         from .io.dataset import load_dataset
-        from .analysis.layout_analysis import layout_from_result
 
         ds = load_dataset(src)
         result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
@@ -345,8 +345,8 @@ def _study_spec_parser() -> argparse.ArgumentParser:
 def _study_spec(argv: list[str]) -> int:
     import yaml
 
-    from .errors import DatasetError
     from .analysis.study import format_summary, parse_spec, run_study, summarize
+    from .errors import DatasetError
 
     args = _study_spec_parser().parse_args(argv)
     path = Path(args.spec)
@@ -371,8 +371,8 @@ def _board_argument(text: str):
     """``NXxNY:SQUARE[:WxH]`` or a YAML file with a ``board:`` mapping (or the mapping itself)."""
     import yaml
 
-    from .io.dataset import parse_board
     from .errors import LidarcamError
+    from .io.dataset import parse_board
 
     path = Path(text)
     if path.suffix.lower() in (".yaml", ".yml"):

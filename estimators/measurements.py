@@ -6,8 +6,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from geometry.lines import Line2D
-from geometry.planes import (Plane, fit_plane_pca, moment_matrix, plane_from_moment, sqrt_excess_moment,
-                             sqrt_excess_moment_scan)
+from geometry.planes import (
+    Plane,
+    fit_plane_pca,
+    moment_matrix,
+    plane_from_moment,
+    sqrt_excess_moment,
+    sqrt_excess_moment_scan,
+)
 
 
 @dataclass(frozen=True, eq=False)

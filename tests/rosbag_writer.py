@@ -26,7 +26,8 @@ def _stores(kind: str):
 class _Bag:
     def __init__(self, path: Path, kind: str):
         from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
 
         self.kind, self.ts = kind, _stores(kind)
         if kind == "ros1":

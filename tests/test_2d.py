@@ -10,12 +10,12 @@ import pytest
 from scipy.stats import chi2
 
 from estimators.calibration import calibrate, refine_candidates, solve
-from estimators.io.dataset import load_dataset
 from estimators.errors import DegenerateLayoutError, LidarcamError, ScanReadError
-from estimators.solvers.observation_model import Layout, simulate_measurements
+from estimators.io.dataset import load_dataset
 from estimators.io.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
-from estimators.solvers.refinement import refine
 from estimators.simulation.simulator import default_rig_2d, sample_board_poses
+from estimators.solvers.observation_model import Layout, simulate_measurements
+from estimators.solvers.refinement import refine
 from estimators.solvers.solution_selection import select_minimal, solution_distances
 from geometry.rotations import T_from_Rt, T_inverse, T_log
 

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from estimators.io.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
 from estimators.calibration import calibrate
 from estimators.cli import main
-from estimators.io.dataset import load_dataset
 from estimators.errors import BagError
+from estimators.io.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
+from estimators.io.dataset import load_dataset
 from estimators.io.ros_messages import camera_from_info, decode_image, decode_point_cloud
 from estimators.simulation.simulator import simulate_dataset
 from geometry.rotations import rotation_error

@@ -7,8 +7,8 @@ import json
 import numpy as np
 from scipy.stats import chi2
 
-from estimators.cli import main
 from estimators.analysis.coverage_study import AXES, summarize
+from estimators.cli import main
 
 
 def test_study_coverage_writes_one_row_per_trial_and_a_consistent_summary(tmp_path, capsys):

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.io.dataset import load_dataset
 from estimators.errors import DatasetError
+from estimators.io.dataset import load_dataset
 
 YAML = """lidar: 3d
 board: {squares: [9, 7], square_size: 0.1, size: [1.0, 1.0]}

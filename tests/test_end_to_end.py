@@ -7,7 +7,6 @@ import re
 import shutil
 import subprocess
 import sys
-
 from html.parser import HTMLParser
 
 import numpy as np

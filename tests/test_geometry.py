@@ -7,13 +7,25 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from estimators.solvers.closed_form import normal_spread, solve_closed_form
 from estimators.errors import DegenerateLayoutError
+from estimators.solvers.closed_form import normal_spread, solve_closed_form
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane, fit_plane_pca, moment_matrix, sum_squared_distances
-from geometry.rotations import (R_from_quat_xyzw, R_from_rotvec, T_exp, T_from_Rt, T_inverse, T_local, T_log, T_retract,
-                                quat_xyzw_from_R, random_rotation, rotation_error, transform_points)
+from geometry.rotations import (
+    R_from_quat_xyzw,
+    R_from_rotvec,
+    T_exp,
+    T_from_Rt,
+    T_inverse,
+    T_local,
+    T_log,
+    T_retract,
+    quat_xyzw_from_R,
+    random_rotation,
+    rotation_error,
+    transform_points,
+)
 
 seeds = st.integers(min_value=0, max_value=2**32 - 1)
 

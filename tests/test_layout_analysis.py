@@ -7,8 +7,8 @@ import json
 import numpy as np
 import yaml
 
-from estimators.cli import main
 from estimators.analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+from estimators.cli import main
 from estimators.solvers.observation_model import cramer_rao_bound
 from geometry.rotations import R_from_rotvec, T_from_Rt
 

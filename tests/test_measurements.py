@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from estimators.camera.board_pose import estimate_board_pose, plane_jacobian
-from estimators.lidar.board_segmentation import SegmentationParams, find_board
 from estimators.camera.chessboard import detect_corners
-from estimators.io.dataset import load_dataset
 from estimators.errors import MeasurementError
+from estimators.io.dataset import load_dataset
 from estimators.io.image_io import read_gray
 from estimators.io.pointcloud_io import read_scan
+from estimators.lidar.board_segmentation import SegmentationParams, find_board
 from estimators.simulation.rendering import render_image
 from estimators.simulation.simulator import default_rig, sample_board_poses, scene_patches
 from geometry.camera import CameraModel

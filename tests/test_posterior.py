@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from estimators.simulation.simulator import default_rig, sample_board_poses
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
 from estimators.solvers.posterior import PlaneLikelihood, PosteriorOptions, run_ensemble, sample_posterior
-from estimators.solvers.refinement import RefinementOptions, measurement_model_options, refine
-from estimators.simulation.simulator import default_rig, sample_board_poses
+from estimators.solvers.refinement import measurement_model_options, refine
 
 
 def _known_gaussian(seed=0, dim=7):

@@ -9,14 +9,20 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from estimators.solvers.closed_form import solve_closed_form
 from estimators.errors import DegenerateLayoutError
-from estimators.solvers.factors import corner_residuals, lidar_plane
 from estimators.measurements import FrameMeasurement, observe_lidar_board
-from estimators.solvers.observation_model import (Layout, board_hits, corner_pixels, cramer_rao_bound, fisher_information,
-                                          simulate_measurements)
-from estimators.solvers.refinement import RefinementOptions, pooled_range_noise_m, refine
 from estimators.simulation.simulator import default_camera, default_rig, sample_board_poses
+from estimators.solvers.closed_form import solve_closed_form
+from estimators.solvers.factors import corner_residuals, lidar_plane
+from estimators.solvers.observation_model import (
+    Layout,
+    board_hits,
+    corner_pixels,
+    cramer_rao_bound,
+    fisher_information,
+    simulate_measurements,
+)
+from estimators.solvers.refinement import RefinementOptions, pooled_range_noise_m, refine
 from geometry.camera import CameraModel
 from geometry.planes import Plane, moment_matrix, sqrt_excess_moment
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, T_retract, random_rotation

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimators.errors import DatasetError
 from estimators.analysis.study import COLUMNS, parse_spec, run_study
+from estimators.errors import DatasetError
 
 SPEC = {"name": "tiny", "lidar": "3d", "solvers": ["closed-form", "factor-graph"], "frames": [4, 6],
         "range_noise_m": [0.02], "trials": 2, "seed": 3}

@@ -40,9 +40,9 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
     """One simulated calibration scored against its truth (a flat dict: one CSV row)."""
     from ..calibration import calibrate, solve
     from ..io.dataset import load_dataset
+    from ..simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
     from ..solvers.observation_model import Layout, simulate_measurements
     from ..solvers.refinement import measurement_model_options
-    from ..simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)

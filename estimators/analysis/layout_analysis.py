@@ -27,11 +27,11 @@ import numpy as np
 
 from geometry.rotations import T_from_Rt
 
-from ..solvers.closed_form import describe_direction, normal_spread
 from ..errors import DatasetError
 from ..lidar.lidar_models import BEAM_MODELS
-from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
 from ..simulation.simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
+from ..solvers.closed_form import describe_direction, normal_spread
+from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
 MIN_BOARD_HITS = 50

@@ -141,10 +141,10 @@ def run_trial(args: tuple) -> list[dict]:
 
     from ..calibration import measure_frames, solve
     from ..io.dataset import load_dataset
-    from ..solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements
     from ..lidar.board_segmentation import SegmentationParams
-    from ..solvers.refinement import RefinementOptions, measurement_model_options, refine
     from ..simulation.simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
+    from ..solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements
+    from ..solvers.refinement import RefinementOptions, measurement_model_options, refine
     from ..solvers.solution_selection import solution_distances
 
     spec, cell, k, seed, family, n, noise, corner = args

@@ -14,9 +14,9 @@ from geometry.camera import CameraModel
 from geometry.planes import Plane
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, transform_points
 
-from .chessboard import CornerDetection
 from ..errors import MeasurementError
 from ..measurements import CameraBoardObservation
+from .chessboard import CornerDetection
 
 
 def reprojection_residuals(T_camera_board: np.ndarray, board: BoardModel, camera: CameraModel,

@@ -24,11 +24,11 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
-from .dataset import dataset_spec, write_dataset_yaml
 from ..errors import BagError
+from .dataset import dataset_spec, write_dataset_yaml
+from .image_io import to_gray8
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
-from .image_io import to_gray8
 from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")

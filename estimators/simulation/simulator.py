@@ -19,9 +19,9 @@ from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
 from ..io.dataset import dataset_spec, write_dataset_yaml
-from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from ..io.output import atomic_directory
 from ..io.pointcloud_io import write_scan, write_scan_2d
+from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from .rendering import render_image
 from .scene import Patch, cast, infinite_plane, rectangle
 

@@ -22,6 +22,7 @@ import numpy as np
 from geometry.camera import CameraModel
 from geometry.rotations import skew
 
+
 def corner_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, corners_px: np.ndarray,
                      camera: CameraModel, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Projected minus detected corners (2M,) in pixels, and their Jacobian (2M, 6) by the board pose

@@ -19,10 +19,10 @@ from geometry.rotations import T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
-from .factors import corner_residuals, lidar_plane
 from ..lidar.lidar_models import BeamModel
 from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
 from ..simulation.scene import cast, rectangle
+from .factors import corner_residuals, lidar_plane
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,8 +33,8 @@ from geometry.camera import CameraModel
 from geometry.rotations import T_log, exp_batch
 
 from ..errors import LidarcamError
-from .factors import corner_residuals, lidar_plane, lidar_residual
 from ..measurements import FrameMeasurement
+from .factors import corner_residuals, lidar_plane, lidar_residual
 from .refinement import Refinement, _plane_noise, plane_whiteners
 
 LIKELIHOODS = ("gaussian", "student-t")

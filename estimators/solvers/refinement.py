@@ -36,10 +36,10 @@ from geometry.camera import CameraModel
 from geometry.planes import Plane, plane_difference
 from geometry.rotations import T_log
 
-from .closed_form import describe_direction, solve_closed_form
 from ..errors import DegenerateLayoutError
-from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
 from ..measurements import FrameMeasurement, lidar_whitener
+from .closed_form import describe_direction, solve_closed_form
+from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")

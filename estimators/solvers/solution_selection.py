@@ -33,10 +33,9 @@ from scipy.stats import chi2
 from geometry.board import BoardModel
 from geometry.rotations import T_inverse
 
-from .closed_form import MIN_NORMAL_SPREAD, describe_direction, normal_spread
 from ..errors import DegenerateLayoutError
-from .factors import lidar_residual
 from ..measurements import FrameMeasurement, lidar_whitener
+from .closed_form import MIN_NORMAL_SPREAD, describe_direction, normal_spread
 from .minimal_solver import solve_triples
 from .refinement import pooled_range_noise_m
 
