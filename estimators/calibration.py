@@ -12,20 +12,24 @@ from scipy.stats import chi2
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
-from geometry.rotations import quat_xyzw_from_R
+from geometry.rotations import T_inverse, quat_xyzw_from_R, transform_points
 
 from . import __version__
 from .camera.board_pose import estimate_board_pose
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
-from .errors import AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError
+from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError,
+                     PosteriorSkippedError)
 from .io.dataset import Dataset, load_dataset
 from .io.image_io import read_gray
 from .io.output import write_json_atomic, write_npz_atomic
-from .io.pointcloud_io import read_scan, read_scan_2d
-from .lidar.board_segmentation import SegmentationParams, choose_by_prediction, find_board
+from .io.pointcloud_io import read_scan_2d, read_sweep
+from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, choose_by_prediction,
+                                       decide_alone, robust_plane_fit)
 from .lidar.scan_segmentation import ScanSegmentationParams, find_board_in_scan
-from .measurements import FrameMeasurement
+from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
+from .measurements import BoardDecision, FrameMeasurement, observe_lidar_board
+from .solvers.association import Association, AssociationParams, associate, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
@@ -39,6 +43,76 @@ CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera 
 COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m)] in GTSAM's Pose3 tangent: "
                          "T_true = T_hat * Exp(xi), so both parts are along the LiDAR's axes")
 
+
+@dataclass(frozen=True, eq=False)
+class Hints:
+    """Optional help for scenes beyond automation; never a factor, only a gate on the LiDAR candidates.
+
+    ``initial_guess``: a rough ``T_camera_lidar``; a candidate whose plane, mapped through it, differs from the
+    camera's board plane by more than ``guess_angle_rad`` or ``guess_distance_m`` is rejected.
+    ``roi_min`` / ``roi_max``: a box in the LiDAR frame (m) outside which points are ignored.
+    ``static_scene``: build the background model from all frames (default) or judge each frame alone."""
+
+    initial_guess: np.ndarray | None = None
+    guess_angle_rad: float = float(np.deg2rad(10.0))
+    guess_distance_m: float = 0.30
+    roi_min: np.ndarray | None = None
+    roi_max: np.ndarray | None = None
+    static_scene: bool = True
+
+    def in_roi(self, points: np.ndarray) -> np.ndarray:
+        keep = np.ones(len(points), dtype=bool)
+        if self.roi_min is not None:
+            keep &= np.all(points >= np.asarray(self.roi_min), axis=1)
+        if self.roi_max is not None:
+            keep &= np.all(points <= np.asarray(self.roi_max), axis=1)
+        return keep
+
+
+def parse_initial_guess(values: list[str]) -> np.ndarray:
+    """A rough ``T_camera_lidar`` from the command line: six numbers ``x y z roll pitch yaw`` (m, degrees;
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``), or one file: a ``calibration.json`` (its ``T_camera_lidar``) or a 4x4
+    matrix as JSON, text or ``.npy``."""
+    import json
+
+    from scipy.spatial.transform import Rotation
+
+    from geometry.rotations import T_from_Rt
+
+    if len(values) == 6:
+        try:
+            x, y, z, roll, pitch, yaw = (float(v) for v in values)
+        except ValueError:
+            raise DatasetError(f"--initial-guess {' '.join(values)!r} is not six numbers",
+                               hint="give x y z roll pitch yaw (m, degrees) or a file") from None
+        R = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
+        return T_from_Rt(R, np.array([x, y, z]))
+    if len(values) != 1:
+        raise DatasetError(f"--initial-guess takes six numbers or one file, got {len(values)} value(s)",
+                           hint="give x y z roll pitch yaw (m, degrees) or a file")
+    path = Path(values[0])
+    if not path.is_file():
+        raise DatasetError("initial guess file not found", path=path, hint="give a calibration.json or a 4x4 matrix")
+    try:
+        if path.suffix.lower() == ".npy":
+            T = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            T = data["T_camera_lidar"] if isinstance(data, dict) else data
+        else:
+            T = np.loadtxt(path)
+        T = np.asarray(T, dtype=float)
+    except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
+                           hint="give a calibration.json or a 4x4 matrix") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DatasetError(f"initial guess is not a finite 4x4 matrix (shape {T.shape})", path=path,
+                           hint="give a calibration.json or a 4x4 matrix")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+        raise DatasetError("initial guess is not a rigid transform (its rotation is not orthonormal)", path=path,
+                           hint="give T_camera_lidar as a 4x4 rigid transform")
+    return T
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
@@ -219,6 +293,8 @@ def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None
         d["camera_plane"] = {"normal": f.camera.plane.normal.tolist(), "distance_m": f.camera.plane.distance}
     if f.lidar is not None:
         d["lidar_plane"] = {"normal": f.lidar.plane.normal.tolist(), "distance_m": f.lidar.plane.distance}
+    if f.decision is not None:
+        d["lidar_board_choice"] = f.decision.to_dict()
     return d
 
 
@@ -241,9 +317,13 @@ def _detect(frame, board, timings) -> tuple[tuple[int, int], CornerDetection | N
 
 
 def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
-                   timings: dict | None = None, workers: int = 2
+                   timings: dict | None = None, workers: int = 2, hints: Hints = Hints()
                    ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
-    """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason."""
+    """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason.
+
+    3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
+    candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
+    board segment, with the other scans as the static background."""
     timings = {} if timings is None else timings
     warnings: list[str] = []
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -267,37 +347,46 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
             raise DatasetError(f"image is {size[0]}x{size[1]} but the camera is {camera.width}x{camera.height}",
                                path=frame.image, hint="fix camera width/height in dataset.yaml")
 
-    frame_rngs = rng.spawn(len(dataset.frames))
-    ambiguous: dict[str, list] = {}
-    trees: list = []
-    if dataset.lidar == "2d":
-        # Single-line scans are small: read them all once, so that each frame can tell the board (which
-        # moves between frames) from static background of the board's length.
-        from scipy.spatial import cKDTree
+    def camera_side(det) -> tuple:
+        if det is None:
+            return None, "checkerboard not found in the image"
+        try:
+            return estimate_board_pose(det, dataset.board, camera), None
+        except MeasurementError as exc:
+            return None, f"board pose: {exc.message}"
 
-        scans_2d = [read_scan_2d(f.scan) for f in dataset.frames]
-        trees = [cKDTree(xy) for xy in scans_2d]
+    cams = [camera_side(det) for _, det in detections]
+    frame_rngs = rng.spawn(len(dataset.frames) + 1)
+    if dataset.lidar == "2d":
+        frames = _measure_scans_2d(dataset, cams, camera, params, timings, warnings, workers)
+    else:
+        frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers)
+    return camera, frames, warnings
+
+
+def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, params: SegmentationParams,
+                      timings: dict,
+                      warnings: list[str], workers: int) -> list[FrameMeasurement]:
+    """Each scan's board segment; single-line scans are small, so all are read once and each frame tells the
+    board (which moves between frames) from static background of the board's length."""
+    from scipy.spatial import cKDTree
+
+    t0 = time.perf_counter()
+    scans_2d = [read_scan_2d(f.scan) for f in dataset.frames]
+    _add_time(timings, "load_scans", time.perf_counter() - t0)
+    trees = [cKDTree(xy) for xy in scans_2d]
+    ambiguous: dict[str, list] = {}
 
     def lidar_side(k: int) -> FrameMeasurement:
-        frame, (_, det) = dataset.frames[k], detections[k]
-        t0 = time.perf_counter()
-        points = scans_2d[k] if dataset.lidar == "2d" else read_scan(frame.scan)
-        _add_time(timings, "load_scans", time.perf_counter() - t0)
-        if det is None:
-            return FrameMeasurement(frame.name, None, None, "checkerboard not found in the image")
-        try:
-            cam_obs = estimate_board_pose(det, dataset.board, camera)
-        except MeasurementError as exc:
-            return FrameMeasurement(frame.name, None, None, f"board pose: {exc.message}")
+        frame, (cam_obs, why) = dataset.frames[k], cams[k]
+        if cam_obs is None:
+            return FrameMeasurement(frame.name, None, None, why)
         t1 = time.perf_counter()
         try:
-            if dataset.lidar == "2d":
-                lid_obs = find_board_in_scan(
-                    points, dataset.board, cam_obs,
-                    ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m),
-                    [t for j, t in enumerate(trees) if j != k])
-            else:
-                lid_obs = find_board(points, dataset.board, cam_obs, frame_rngs[k], params)
+            lid_obs = find_board_in_scan(
+                scans_2d[k], dataset.board, cam_obs,
+                ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m),
+                [t for j, t in enumerate(trees) if j != k])
         except AmbiguousBoardError as exc:
             ambiguous[frame.name] = exc.candidates
             return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
@@ -311,7 +400,177 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
         frames = list(pool.map(lidar_side, range(len(dataset.frames))))
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
-    return camera, frames, warnings
+    return frames
+
+
+def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],
+                       params: SegmentationParams, hints: Hints, timings: dict, warnings: list[str],
+                       workers: int) -> list[FrameMeasurement]:
+    """Static scene, candidates per frame, and the joint choice (module docstring of ``solvers.association``);
+    without a consensus (fewer than 3 frames with candidates spanning 3D), each frame decides alone."""
+    n = len(dataset.frames)
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        sweeps = list(pool.map(lambda f: read_sweep(f.scan), dataset.frames))
+    if hints.roi_min is not None or hints.roi_max is not None:
+        sweeps = [_cropped(s, hints.in_roi(s.points)) for s in sweeps]
+    _add_time(timings, "load_scans", time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    if hints.static_scene:
+        scene = build_static_scene([s.points for s in sweeps], [s.ring for s in sweeps])
+        if scene.note:
+            warnings.append(f"static scene: {scene.note}")
+    else:
+        scene = StaticScene("none", StaticSceneParams(), note="not used (each frame judged alone)")
+    _add_time(timings, "static_scene", time.perf_counter() - t0)
+
+    def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
+        cam_obs = cams[k][0]
+        if cam_obs is None:
+            return [], [], None
+        t1 = time.perf_counter()
+        s = sweeps[k]
+        fg = scene.foreground(s.points, s.ring) if scene.usable else None
+        try:
+            cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
+        except MeasurementError as exc:
+            return [], [], exc.message
+        finally:
+            _add_time(timings, "segmentation", time.perf_counter() - t1)
+        if fg is not None:
+            cands = [replace(c, foreground=float(np.mean(scene.foreground(c.observation.points)))) for c in cands]
+        if hints.initial_guess is not None:
+            cands, off = _gate_by_guess(cands, cam_obs, hints)
+            rejected = rejected + off
+        return cands, rejected, None
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        found = list(pool.map(search, range(n)))
+    t0 = time.perf_counter()
+    with_cam = [k for k in range(n) if cams[k][0] is not None]
+    assoc = None
+    if sum(1 for k in with_cam if found[k][0]) >= 3:
+        try:
+            assoc = associate([cams[k][0].plane for k in with_cam], [cams[k][0].T_camera_board for k in with_cam],
+                              [[c.observation for c in found[k][0]] for k in with_cam], dataset.board, rngs[-1],
+                              AssociationParams(), [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found[k][0]]
+                                                    for k in with_cam])
+        except DegenerateLayoutError as exc:
+            warnings.append(f"no extrinsic that enough frames agree on ({exc.problem}); each frame's board is "
+                            "chosen from its own cues")
+    _add_time(timings, "association", time.perf_counter() - t0)
+    choice = dict(zip(with_cam, assoc.choices)) if assoc is not None else {}
+    frames, ambiguous = [], {}
+    for k, frame in enumerate(dataset.frames):
+        cam_obs, why = cams[k]
+        cands, rejected, error = found[k]
+        if cam_obs is None:
+            frames.append(FrameMeasurement(frame.name, None, None, why))
+        elif assoc is not None:
+            frames.append(_consensus_frame(frame.name, cam_obs, cands, rejected, error, choice[k], assoc,
+                                           dataset.board, params))
+        else:
+            frames.append(_alone_frame(frame.name, cam_obs, cands, rejected, error, dataset.board, params,
+                                       ambiguous))
+    if ambiguous:
+        frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
+    return frames
+
+
+def _cropped(sweep, keep: np.ndarray):
+    return type(sweep)(sweep.points[keep], None if sweep.ring is None else sweep.ring[keep])
+
+
+def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:
+    """The candidates whose planes, mapped through the initial guess, lie within its tolerance of the camera's
+    board plane; the others with their reason."""
+    kept, off = [], []
+    for c in cands:
+        angle, dist = plane_difference(c.observation.plane.transformed(hints.initial_guess), cam_obs.plane)
+        if angle <= hints.guess_angle_rad and abs(dist) <= hints.guess_distance_m:
+            kept.append(c)
+        else:
+            off.append(f"outside the initial guess's tolerance ({np.degrees(angle):.1f} deg, {1000 * dist:+.0f} mm)")
+    return kept, off
+
+
+def _no_candidate_reason(board, rejected: list[str], error: str | None) -> str:
+    if error is not None:
+        return f"LiDAR board: {error}"
+    counts: dict[str, int] = {}
+    for why in rejected:
+        key = why.split(" (")[0]
+        counts[key] = counts.get(key, 0) + 1
+    detail = "; ".join(f"{n} {key}" for key, n in sorted(counts.items(), key=lambda kv: -kv[1])) or "none found"
+    return (f"LiDAR board: no planar segment that fits inside the board's {board.extent[0]:.2f} x "
+            f"{board.extent[1]:.2f} m where the camera puts it (planar pieces rejected: {detail})")
+
+
+def _candidate_dicts(cands: list[BoardCandidate], residuals=(), chosen: int | None = None) -> tuple[dict, ...]:
+    out = []
+    for i, c in enumerate(cands):
+        d = c.to_dict()
+        if i < len(residuals):
+            angle, dist, inside = residuals[i]
+            d.update({"normal_residual_deg": round(float(np.degrees(angle)), 3),
+                      "distance_residual_mm": round(1000 * dist, 1), "inside_board": round(inside, 3)})
+        d["status"] = "chosen" if i == chosen else "rejected"
+        out.append(d)
+    return tuple(out)
+
+
+def _consensus_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None,
+                     choice, assoc: Association, board, params: SegmentationParams) -> FrameMeasurement:
+    points = tuple(c.observation.points for c in cands)
+    method = f"consensus of {assoc.agreeing} frames"
+    if not cands:
+        reason = _no_candidate_reason(board, rejected, error)
+        return FrameMeasurement(name, cam_obs, None, reason, BoardDecision(method, (), None, reason, tuple(rejected)))
+    decision = BoardDecision(method, _candidate_dicts(cands, choice.residuals, choice.chosen), choice.chosen,
+                             choice.reason, tuple(rejected), points)
+    if choice.chosen is None:
+        return FrameMeasurement(name, cam_obs, None, f"LiDAR board: {choice.reason}", decision)
+    obs = _trim_to_outline(cands[choice.chosen].observation, assoc.T_camera_lidar, cam_obs.T_camera_board, board,
+                           len(cands), params)
+    return FrameMeasurement(name, cam_obs, obs, None, decision)
+
+
+def _alone_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None, board,
+                 params: SegmentationParams, ambiguous: dict) -> FrameMeasurement:
+    points = tuple(c.observation.points for c in cands)
+    if not cands:
+        reason = _no_candidate_reason(board, rejected, error)
+        return FrameMeasurement(name, cam_obs, None, reason,
+                                BoardDecision("this frame alone", (), None, reason, tuple(rejected)))
+    try:
+        obs = decide_alone(cands, True, params)
+    except AmbiguousBoardError as exc:
+        ambiguous[name] = exc.candidates
+        decision = BoardDecision("this frame alone", _candidate_dicts(cands), None, exc.message, tuple(rejected),
+                                 points)
+        return FrameMeasurement(name, cam_obs, None, f"LiDAR board: {exc.message}", decision)
+    decision = BoardDecision("this frame alone", _candidate_dicts(cands, chosen=0), 0,
+                             "the only candidate that agrees with the camera's board", tuple(rejected), points)
+    return FrameMeasurement(name, cam_obs, obs, None, decision)
+
+
+# Points of a chosen board farther than this outside the camera's board outline (under the consensus
+# extrinsic) are the holder's hands and arms, or a stand: trimmed.
+OUTLINE_TRIM_M = 0.05
+OUTLINE_BAND_M = 0.10  # and this far from the camera's board plane
+
+
+def _trim_to_outline(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board, n_candidates: int,
+                     params: SegmentationParams):
+    """The observation cut to the camera's board outline (grown by ``OUTLINE_TRIM_M``) under the extrinsic,
+    and refitted robustly (the holder's points left in the plane band are outliers)."""
+    if not board.size_known:
+        return obs
+    inside = inside_outline(obs.points, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M, OUTLINE_BAND_M)
+    if inside.all() or inside.sum() < params.min_points:
+        return obs
+    _, keep = robust_plane_fit(obs.points[inside])
+    return observe_lidar_board(obs.points[inside][keep], n_candidates)
 
 
 # A 2D frame's ambiguous scan segment is chosen when exactly one lies within this RMS distance (m) of the
@@ -352,7 +611,7 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
             if chosen is not None:
                 warnings.append(f"frame {f.name}: {len(ambiguous[f.name])} candidate boards; chose the one "
                                 f"matching the extrinsic of the {len(clear)} unambiguous frames")
-                f = FrameMeasurement(f.name, f.camera, chosen)
+                f = replace(f, lidar=chosen, reason=None)
         out.append(f)
     return out
 
@@ -374,7 +633,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
-              samples: int | None = None) -> CalibrationResult:
+              samples: int | None = None, hints: Hints = Hints()) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a dataset (loaded, or
     its folder).
 
@@ -384,6 +643,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
 
     ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
     so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
+    ``hints``: an optional initial guess and region of interest for scenes beyond automation (:class:`Hints`).
     """
     _check_methods(init, refine)
     if not isinstance(dataset, Dataset):
@@ -396,7 +656,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     rng = np.random.default_rng(0) if rng is None else rng
     timings: dict = {}
     t_start = time.perf_counter()
-    camera, frames, warnings = measure_frames(dataset, rng, params, timings)
+    camera, frames, warnings = measure_frames(dataset, rng, params, timings, hints=hints)
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                        warnings=warnings, timings=timings, posterior=posterior, rng=rng, use_extent=use_extent)
@@ -449,10 +709,8 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
     post = None
     if ref is not None and posterior is not None:
         t0 = time.perf_counter()
-        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
-                                posterior)
+        post = _posterior_or_warning(used, board, camera, ref, rng, posterior, (), warnings)
         timings["posterior"] = time.perf_counter() - t0
-        warnings += post.warnings
     if sol.condition_number > 10:
         axis, advice = describe_direction(sol.weakest_direction_camera)
         warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
@@ -467,6 +725,19 @@ def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str 
     return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                              sol.weakest_direction_camera, name, tuple(warnings),
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post)
+
+
+def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng, options: PosteriorOptions,
+                          modes: tuple, warnings: list[str]) -> Posterior | None:
+    """Posterior samples, or None with the reason among the warnings (a nearly degenerate problem)."""
+    try:
+        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
+                                options, modes)
+    except PosteriorSkippedError as exc:
+        warnings.append(f"posterior not sampled: {exc.message}")
+        return None
+    warnings.extend(post.warnings)
+    return post
 
 
 def refine_candidates(used: list[FrameMeasurement], board, camera: CameraModel, sel: MinimalSelection,
@@ -527,10 +798,9 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     post = None
     if ref is not None and posterior is not None:
         t0 = time.perf_counter()
-        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
-                                posterior, tuple(T_alt for T_alt, _ in alternatives))
+        post = _posterior_or_warning(used, board, camera, ref, rng, posterior,
+                                     tuple(T_alt for T_alt, _ in alternatives), warnings)
         timings["posterior"] = time.perf_counter() - t0
-        warnings += post.warnings
     residuals = plane_residuals(T, used)
     warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
     return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings),

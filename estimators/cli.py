@@ -23,6 +23,17 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
                    help="upper bound on the camera-LiDAR distance, used to gate the board by range (m)")
+    c.add_argument("--initial-guess", nargs="+", default=None, metavar="V",
+                   help="optional hint for scenes beyond automation: a rough T_camera_lidar as 'x y z roll pitch "
+                        "yaw' (m, deg; R = Rz(yaw) Ry(pitch) Rx(roll)) or a file (calibration.json, or a 4x4 "
+                        "matrix as .json/.txt/.npy); LiDAR candidates farther than --guess-tolerance from it are "
+                        "rejected (it is never a factor)")
+    c.add_argument("--guess-tolerance", nargs=2, type=float, default=(10.0, 0.30), metavar=("DEG", "M"),
+                   help="plane angle and distance a candidate may differ by under --initial-guess (10 deg 0.30 m)")
+    c.add_argument("--roi", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="optional hint: only LiDAR points inside this box (LiDAR frame, m) are searched")
+    c.add_argument("--no-static-scene", action="store_true",
+                   help="judge each frame's board alone instead of against the static scene of all frames")
 
     s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json")
     s.add_argument("--lidar", default="3d", choices=["3d", "2d"],
@@ -38,6 +49,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--no-camera", action="store_true", help="omit intrinsics (to test self-calibration)")
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--scene", default="default", choices=["default", "office", "hall"],
+                   help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
+                        "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
+                        "outside the vertical field of view); hall: an open hall")
 
     la = sub.add_parser("layout", help="predicted uncertainty and conditioning of a dataset's or a plan's board "
                                        "poses, and the poses to add")
@@ -223,7 +238,7 @@ def _calibrate(args) -> int:
     ds = load_dataset(args.dataset)
     result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
                        SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args),
-                       _posterior_options(args))
+                       _posterior_options(args), hints=_hints(args))
     path = write_calibration(result, args.out)
     _print_result(result)
     print(f"wrote {path}")
@@ -233,6 +248,23 @@ def _calibrate(args) -> int:
         print(f"wrote {write_report(result, ds, args.out)} (and its figures)")
     _export_hint(path)
     return 0
+
+
+def _hints(args):
+    import numpy as np
+
+    from .calibration import Hints, parse_initial_guess
+
+    guess = None if args.initial_guess is None else parse_initial_guess(args.initial_guess)
+    roi = (None, None) if args.roi is None else (np.array(args.roi[:3]), np.array(args.roi[3:]))
+    if args.roi is not None and np.any(roi[0] >= roi[1]):
+        from .errors import LidarcamError
+
+        raise LidarcamError(f"--roi box is empty ({args.roi})", hint="give XMIN YMIN ZMIN XMAX YMAX ZMAX with each "
+                                                                    "minimum below its maximum")
+    return Hints(initial_guess=guess, guess_angle_rad=float(np.deg2rad(args.guess_tolerance[0])),
+                 guess_distance_m=float(args.guess_tolerance[1]), roi_min=roi[0], roi_max=roi[1],
+                 static_scene=not args.no_static_scene)
 
 
 def _export_hint(path) -> None:
@@ -253,8 +285,8 @@ def _simulate(args) -> int:
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
-                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite)
-    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}) to {out}")
+                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene)
+    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene) to {out}")
     return 0
 
 

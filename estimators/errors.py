@@ -48,3 +48,8 @@ class DegenerateLayoutError(LidarcamError):
 
 class BagError(LidarcamError):
     """A ROS bag, one of its topics or messages cannot be used (missing topic, unknown encoding, no overlap)."""
+
+
+class PosteriorSkippedError(LidarcamError):
+    """The posterior cannot be sampled (a nearly degenerate problem: directions the data do not determine);
+    the calibration goes on with the Laplace covariance and says why."""

@@ -149,11 +149,35 @@ def lidar_whitener(obs: LidarBoardObservation, sigma_range_m: float) -> np.ndarr
 
 
 @dataclass(frozen=True, eq=False)
+class BoardDecision:
+    """How a frame's LiDAR board was chosen: the method (``consensus`` of the frames under one extrinsic, or
+    ``this frame alone`` from its own cues), every candidate with its features and verdict (dicts, as written
+    to calibration.json), the index of the chosen one (None: none), why, the pieces rejected before they
+    became candidates (reasons), and the candidates' points (LiDAR frame, for the report's top view)."""
+
+    method: str
+    candidates: tuple[dict, ...]
+    chosen: int | None
+    reason: str
+    rejected: tuple[str, ...] = ()
+    candidate_points: tuple[np.ndarray, ...] = ()
+
+    def to_dict(self) -> dict:
+        counts: dict[str, int] = {}
+        for why in self.rejected:
+            key = why.split(" (")[0]
+            counts[key] = counts.get(key, 0) + 1
+        return {"method": self.method, "chosen": self.chosen, "reason": self.reason,
+                "candidates": list(self.candidates), "pieces_rejected": counts}
+
+
+@dataclass(frozen=True, eq=False)
 class FrameMeasurement:
     name: str
     camera: CameraBoardObservation | None
     lidar: LidarBoardObservation | None
     reason: str | None = None
+    decision: BoardDecision | None = None
 
     @property
     def usable(self) -> bool:

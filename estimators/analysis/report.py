@@ -140,6 +140,32 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
     return _png(fig), offset
 
 
+def board_choice_figure(frame, scan_path) -> bytes:
+    """Top view of a frame's sweep (LiDAR x forward, y left): every return grey, the board candidates
+    coloured and numbered, the chosen one outlined in black."""
+    dec = frame.decision
+    scan = read_scan(scan_path)
+    fig, ax = new_figure(figsize=(6, 6))
+    ax.scatter(scan[:, 0], scan[:, 1], s=0.2, c="0.75", lw=0)
+    centres = [P.mean(0) for P in dec.candidate_points]
+    for i, P in enumerate(dec.candidate_points):
+        chosen = i == dec.chosen
+        ax.scatter(P[:, 0], P[:, 1], s=6 if chosen else 3, color=f"C{i % 10}", edgecolors="k" if chosen else "none",
+                   linewidths=0.3, label=f"{i}: {'chosen' if chosen else 'rejected'} ({len(P)} points)")
+        ax.annotate(str(i), centres[i][:2], fontsize=8, weight="bold" if chosen else "normal")
+    if centres:
+        c = np.mean(centres, axis=0)
+        reach = max(4.0, 1.5 * max(np.linalg.norm(x[:2] - c[:2]) for x in centres))
+        ax.set_xlim(c[0] - reach, c[0] + reach)
+        ax.set_ylim(c[1] - reach, c[1] + reach)
+        ax.legend(loc="upper right", fontsize=6, markerscale=2)
+    ax.plot(0, 0, "k^")
+    ax.set_aspect("equal")
+    ax.set(xlabel="LiDAR x [m]", ylabel="LiDAR y [m]")
+    ax.set_title(f"frame {frame.name}: {dec.method}", fontsize=9)
+    return _png(fig)
+
+
 def traces_figure(result) -> bytes:
     chain = result.posterior.run.chain
     labels = _LABELS + ["log s (camera noise scale)"]
@@ -180,6 +206,12 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
             if np.all(np.isfinite(off)):
                 offsets.append((frame.name, off))
             figures.append((f"projection_{frame.name}.png", f"Frame {frame.name}: LiDAR points in the image", png))
+    choices = [f for f in result.frames if f.decision is not None and f.decision.candidate_points
+               and f.name in files]
+    for frame in choices:
+        figures.append((f"board_choice_{frame.name}.png",
+                        f"Frame {frame.name}: LiDAR board candidates (top view)",
+                        board_choice_figure(frame, files[frame.name].scan)))
     if result.posterior is not None:
         figures.append(("traces.png", "MCMC traces", traces_figure(result)))
     for name, _, png in figures:
@@ -227,6 +259,15 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
                      "planar method's re-projection check, horizontal and vertical. Sparse rings leave a few "
                      "pixels of sampling error even when the extrinsic is right.</p>"
                      + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
+    decided = [f for f in result.frames if f.decision is not None]
+    if decided:
+        rows = [[f.name, f.decision.method, len(f.decision.candidates),
+                 "-" if f.decision.chosen is None else f.decision.chosen, f.decision.reason] for f in decided]
+        parts.append("<h2>Which LiDAR points are the board</h2><p>Each frame's candidates are planar pieces in "
+                     "front of the static scene that fit inside the board; one per frame is chosen by the "
+                     "extrinsic most frames agree with (or, without enough frames, by the frame's own cues). "
+                     "calibration.json lists every candidate with its residuals.</p>"
+                     + _table(rows, ["frame", "method", "candidates", "chosen", "why"]))
     for name, title, png in figures:
         data = base64.b64encode(png).decode("ascii")
         parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")

@@ -6,6 +6,7 @@ of organised clouds removed.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,20 @@ MIN_RANGE_2D_M, MAX_RANGE_2D_M = 0.02, 80.0
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
     """Load a scan as (N, 3) metres in the LiDAR frame, dropping NaN/inf and (0, 0, 0) returns."""
+    return read_sweep(path).points
+
+
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """A 3D scan's valid points and, when the file tells it, each point's beam (laser) index: the ``ring``
+    field, or the row of an organised cloud. ``ring`` is None for an unorganised cloud without one."""
+
+    points: np.ndarray
+    ring: np.ndarray | None = None
+
+
+def read_sweep(path: str | os.PathLike) -> Sweep:
+    """Load a scan's valid points (NaN/inf and (0, 0, 0) returns dropped) with their beam index if known."""
     path = Path(path)
     if not path.is_file():
         raise ScanReadError("scan file not found", path=path, hint="check the dataset folder")
@@ -29,7 +44,7 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
         raise ScanReadError(f"unknown scan format {suffix!r}", path=path,
                             hint=f"use one of {', '.join(SCAN_SUFFIXES)}")
     try:
-        xyz = readers[suffix](path)
+        xyz, ring = readers[suffix](path, rings=True)
     except ScanReadError:
         raise
     except Exception as exc:  # the readers raise many kinds on corrupt input; name the file instead
@@ -41,7 +56,10 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
     if len(xyz) == 0:
         raise ScanReadError("scan holds no valid points (all NaN, inf or zero)", path=path,
                             hint="check the recording")
-    return xyz
+    if ring is not None:
+        ring = np.asarray(ring).reshape(-1)
+        ring = ring[keep].astype(np.int64) if len(ring) == len(keep) and np.all(np.isfinite(ring)) else None
+    return Sweep(xyz, ring)
 
 
 def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
@@ -130,7 +148,7 @@ def _first_line(exc: Exception) -> str:
     return text[0][:160] if text else "no detail"
 
 
-def _read_pcd(path: Path) -> np.ndarray:
+def _read_pcd(path: Path, rings: bool = False):
     from pypcd4 import PointCloud
 
     with open(path, "rb") as fh:
@@ -142,10 +160,18 @@ def _read_pcd(path: Path) -> np.ndarray:
     if missing:
         raise ScanReadError(f"PCD has no field(s) {', '.join(missing)} (fields: {' '.join(pc.fields)})",
                             path=path, hint="save x, y and z")
-    return pc.numpy(("x", "y", "z"))
+    xyz = pc.numpy(("x", "y", "z"))
+    if not rings:
+        return xyz
+    if "ring" in pc.fields:
+        return xyz, pc.numpy(("ring",))[:, 0]
+    height = int(pc.metadata.height)
+    if height > 1 and height * int(pc.metadata.width) == len(xyz):  # organised: one row per beam
+        return xyz, np.repeat(np.arange(height), int(pc.metadata.width))
+    return xyz, None
 
 
-def _read_ply(path: Path) -> np.ndarray:
+def _read_ply(path: Path, rings: bool = False):
     from plyfile import PlyData
 
     ply = PlyData.read(str(path))
@@ -156,23 +182,25 @@ def _read_ply(path: Path) -> np.ndarray:
     missing = [f for f in ("x", "y", "z") if f not in names]
     if missing:
         raise ScanReadError(f"PLY vertices have no {', '.join(missing)}", path=path, hint="save x, y and z")
-    return np.column_stack([v["x"], v["y"], v["z"]])
+    xyz = np.column_stack([v["x"], v["y"], v["z"]])
+    return (xyz, np.asarray(v["ring"]) if "ring" in names else None) if rings else xyz
 
 
-def _read_kitti_bin(path: Path) -> np.ndarray:
+def _read_kitti_bin(path: Path, rings: bool = False):
     size = path.stat().st_size
     if size == 0 or size % 16:
         raise ScanReadError(f"KITTI .bin size {size} bytes is not a multiple of 16 (float32 x, y, z, i)",
                             path=path, hint="the file is truncated or not a KITTI scan")
-    return np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
+    xyz = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
+    return (xyz, None) if rings else xyz
 
 
-def _read_npy(path: Path) -> np.ndarray:
+def _read_npy(path: Path, rings: bool = False):
     a = np.load(path, allow_pickle=False)
     if a.ndim != 2 or a.shape[1] < 3 or a.dtype.kind not in "fiu":
         raise ScanReadError(f"expected a numeric N x >=3 array, got shape {a.shape} dtype {a.dtype}",
                             path=path, hint="save x, y, z as the first three columns")
-    return a[:, :3]
+    return (a[:, :3], None) if rings else a[:, :3]
 
 
 def write_scan(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None,

@@ -191,22 +191,53 @@ def _camera_cue_cost(plane: Plane, P: np.ndarray, cam: CameraBoardObservation, b
                  + abs(np.arccos(min(cos_lid, 1.0)) - np.arccos(min(cos_cam, 1.0))) / (0.1 + sep / r_cam))
 
 
-def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,
-               rng: np.random.Generator, params: SegmentationParams = SegmentationParams()
-               ) -> LidarBoardObservation:
-    """The board's points and plane in a full sweep, or :class:`MeasurementError` with the reason."""
+@dataclass(frozen=True, eq=False)
+class BoardCandidate:
+    """A planar piece of a sweep that can be the board: its observation (points gathered and trimmed), its
+    rotation-invariant disagreement with the camera's board (``cue_cost``, 0 is perfect), and the share of
+    its points in front of the static scene (``foreground``; 1.0 when only foreground points were searched)."""
+
+    observation: LidarBoardObservation
+    cue_cost: float
+    foreground: float = 1.0
+
+    def to_dict(self) -> dict:
+        obs = self.observation
+        return {"points": obs.n_points, "centre_lidar_m": np.round(obs.points.mean(0), 4).tolist(),
+                "normal_lidar": np.round(obs.plane.normal, 5).tolist(), "distance_m": round(obs.plane.distance, 4),
+                "camera_cue_cost": round(self.cue_cost, 3), "foreground": round(self.foreground, 3)}
+
+
+def range_gate(board: BoardModel, camera: CameraBoardObservation | None, sep: float) -> tuple[float, float]:
+    """Ranges (m) from the LiDAR where the camera puts the board, to within the sensors' separation."""
+    if camera is None:
+        return 0.3, 15.0
+    outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
+    dist = np.linalg.norm(outline, axis=1)
+    return float(dist.min() - sep), float(dist.max() + sep)
+
+
+def board_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,
+                     rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
+                     foreground: np.ndarray | None = None) -> tuple[list[BoardCandidate], list[str]]:
+    """Every planar piece of the sweep that fits inside the board and covers enough of it, where the camera
+    puts the board (``cue_cost`` below 3), with the reasons the other pieces were rejected.
+
+    ``foreground``: mask of the points in front of the static scene; only those are searched (a board is
+    never background), so the board's plane is found even in a room full of larger planes.
+    """
     ranges = np.linalg.norm(points, axis=1)
     sep = params.max_sensor_separation_m
-    if camera is not None:
-        outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
-        dist = np.linalg.norm(outline, axis=1)
-        lo, hi = dist.min() - sep, dist.max() + sep
-    else:
-        lo, hi = 0.3, 15.0
-    P = points[(ranges >= lo) & (ranges <= hi)]
+    lo, hi = range_gate(board, camera, sep)
+    keep = (ranges >= lo) & (ranges <= hi)
+    if foreground is not None:
+        keep &= foreground
+    P = points[keep]
     if len(P) < params.min_points:
-        raise MeasurementError(f"only {len(P)} points within {lo:.1f}-{hi:.1f} m, where the camera puts the board")
-    candidates: list[_Candidate] = []
+        where = "in front of the static scene " if foreground is not None else ""
+        raise MeasurementError(f"only {len(P)} points {where}within {lo:.1f}-{hi:.1f} m, where the camera puts "
+                               "the board")
+    pieces: list[tuple[np.ndarray, Plane, float]] = []
     rejected: list[str] = []
     remaining = P
     for _ in range(params.max_planes):
@@ -225,28 +256,45 @@ def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObserva
             Q = plane_pts[piece]
             if len(Q) < params.min_points:
                 continue
-            plane, keep = robust_plane_fit(Q)
-            Q, why = _board_piece(Q[keep], plane, board, params)
+            plane, keep_q = robust_plane_fit(Q)
+            Q, why = _board_piece(Q[keep_q], plane, board, params)
             if Q is None:
                 rejected.append(why)
                 continue
             plane, _ = robust_plane_fit(Q)
             cost = _camera_cue_cost(plane, Q, camera, board, sep) if camera is not None else 0.0
-            candidates.append(_Candidate(Q, plane, cost))
-    if camera is not None:
-        candidates = [c for c in candidates if c.cost < 3.0]
+            if camera is not None and cost >= 3.0:
+                rejected.append(f"where the camera does not put the board (cue cost {cost:.1f})")
+                continue
+            pieces.append((Q, plane, cost))
+    pieces.sort(key=lambda c: c[2])
+    return [BoardCandidate(_finish(Q, P, board, len(pieces)), cost) for Q, _, cost in pieces], rejected
+
+
+def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,
+               rng: np.random.Generator, params: SegmentationParams = SegmentationParams()
+               ) -> LidarBoardObservation:
+    """The board's points and plane in a full sweep, decided from this frame alone, or
+    :class:`MeasurementError` with the reason (:class:`AmbiguousBoardError` with the candidates when several
+    pieces agree with the camera's board about equally well)."""
+    candidates, rejected = board_candidates(points, board, camera, rng, params)
     if not candidates:
+        lo, hi = range_gate(board, camera, params.max_sensor_separation_m)
         raise MeasurementError(
             f"no planar segment of the board's size {board.extent[0]:.2f} x {board.extent[1]:.2f} m "
             f"between {lo:.1f} and {hi:.1f} m ({len(rejected)} planar pieces rejected)")
-    candidates.sort(key=lambda c: c.cost)
-    if len(candidates) > 1 and (camera is None
-                                or candidates[1].cost < params.ambiguity_ratio * candidates[0].cost + 0.05):
-        close = [c for c in candidates if camera is None or c.cost < params.ambiguity_ratio * candidates[0].cost + 0.05]
-        raise AmbiguousBoardError(
-            f"ambiguous: {len(close)} board-sized planes agree with the camera's board",
-            candidates=[_finish(c.points, P, board, len(candidates)) for c in close])
-    return _finish(candidates[0].points, P, board, len(candidates))
+    return decide_alone(candidates, camera is not None, params)
+
+
+def decide_alone(candidates: list[BoardCandidate], with_camera: bool, params: SegmentationParams
+                 ) -> LidarBoardObservation:
+    """The one candidate whose camera cue is clearly the best, or :class:`AmbiguousBoardError`."""
+    best = candidates[0].cue_cost
+    close = [c for c in candidates if not with_camera or c.cue_cost < params.ambiguity_ratio * best + 0.05]
+    if len(close) > 1:
+        raise AmbiguousBoardError(f"ambiguous: {len(close)} board-sized planes agree with the camera's board",
+                                  candidates=[c.observation for c in close])
+    return candidates[0].observation
 
 
 def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: int) -> LidarBoardObservation:

@@ -22,6 +22,7 @@ from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory
 from ..io.pointcloud_io import write_scan, write_scan_2d
 from ..lidar.lidar_models import BEAM_MODELS, BeamModel
+from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
 from .rendering import render_image
 from .scene import Patch, cast, infinite_plane, rectangle
 
@@ -115,7 +116,7 @@ def scan_crossing_length(board: BoardModel, T_lidar_board: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2)))
 
 
-def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
+def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0) -> bool:
     outline_c = transform_points(T_camera_board, rig.board.outline())
     uv = rig.camera.project(outline_c)
     if not np.all(rig.camera.in_image(uv, margin_px=15.0)):
@@ -128,24 +129,34 @@ def _pose_fits(rig: Rig, T_camera_board: np.ndarray) -> bool:
                 and bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.1))
     el = np.arctan2(outline_l[:, 2], np.linalg.norm(outline_l[:, :2], axis=1))
     margin = np.deg2rad(0.5)
-    if el.min() < rig.beams.elevations_rad.min() + margin or el.max() > rig.beams.elevations_rad.max() - margin:
+    if min_in_fov < 1.0:
+        # Partly outside the LiDAR's vertical field of view, by design: at least min_in_fov of its area seen.
+        if board_fraction_in_fov(outline_l, rig.beams.elevations_rad) < min_in_fov:
+            return False
+    elif el.min() < rig.beams.elevations_rad.min() + margin or el.max() > rig.beams.elevations_rad.max() - margin:
         return False
     return bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.3)
 
 
-def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000) -> list[np.ndarray]:
+def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000,
+                       partial_share: float = 0.0) -> list[np.ndarray]:
     """``n`` board poses (``T_camera_board``) 2-5 m away, fully seen by both sensors, with normals spread
-    round the viewing axis (stratified azimuths, 15-40 degree tilts), as the planar method advises."""
+    round the viewing axis (stratified azimuths, 15-40 degree tilts), as the planar method advises.
+    ``partial_share``: that share of the poses (3D LiDAR) may leave up to 60% of the board outside the LiDAR's
+    vertical field of view."""
     return _sample_poses(rig, n, rng, lambda k: (2 * np.pi * (k + rng.uniform()) / n,
-                                                 np.deg2rad(rng.uniform(15.0, 40.0))), max_tries)
+                                                 np.deg2rad(rng.uniform(15.0, 40.0))), max_tries, partial_share)
 
 
-def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries: int = 20000) -> list[np.ndarray]:
+def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries: int = 20000,
+                  partial_share: float = 0.0) -> list[np.ndarray]:
     """``n`` feasible poses at random image positions and distances; ``normal(k)`` draws the k-th pose's
     (azimuth, tilt) in radians."""
     poses = []
     cam = rig.camera
+    partial = set() if partial_share <= 0 else set(np.nonzero(rng.uniform(size=n) < partial_share)[0].tolist())
     for k in range(n):
+        min_in_fov = 0.4 if k in partial else 1.0
         for _ in range(max_tries):
             azimuth, tilt = normal(k)
             spin = np.deg2rad(rng.uniform(-20.0, 20.0))
@@ -153,7 +164,7 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
             T = board_pose(rig.board, ray * dist, tilt, azimuth, spin)
-            if _pose_fits(rig, T):
+            if _pose_fits(rig, T, min_in_fov):
                 poses.append(T)
                 break
         else:
@@ -201,22 +212,28 @@ def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> li
     raise ValueError(f"Expected a layout family in {LAYOUT_FAMILIES}, got {family!r}")
 
 
-def scene_patches(rig: Rig, T_lidar_board: np.ndarray) -> tuple[list[Patch], int]:
-    """Scene pieces in the LiDAR frame and the index of the board among them."""
+def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | None = None,
+                  held: bool = False) -> tuple[list[Patch], int]:
+    """Scene pieces in the LiDAR frame and the index of the board among them: the board, its stand (or the
+    person holding it, ``held``), and the static scene (``static``; default: the ground and four walls)."""
     board = rig.board
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = board.extent
     patches = [rectangle(o, R[:, 0], R[:, 1], w, h, board.reflectance, "board")]
+    ground_z = -rig.lidar_height_m
+    if held:
+        return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z) + list(static or []), 0
     # A thin stand from the board's lowest point to the ground, a little behind the board.
     outline = transform_points(T_lidar_board, board.outline())
     low = outline[np.argmin(outline[:, 2])]
-    ground_z = -rig.lidar_height_m
     to_sensor = -low[:2] / np.linalg.norm(low[:2])
     side = np.array([-to_sensor[1], to_sensor[0], 0.0])
     behind = np.append(-to_sensor, 0.0) * 0.05
     if low[2] > ground_z:
         patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
                                  [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
+    if static is not None:
+        return patches + list(static), 0
     patches += [
         infinite_plane([0, 0, 1], ground_z, 0.3, "ground"),
         infinite_plane([1, 0, 0], 12.0, 0.55, "wall"),
@@ -227,14 +244,16 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray) -> tuple[list[Patch], int
     return patches, 0
 
 
-def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise, intensity, ring."""
+def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator, board_index: int | None = None
+                  ) -> tuple[np.ndarray, ...]:
+    """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise, intensity, ring (and, given
+    ``board_index``, the mask of the points that hit the board)."""
     dirs, ring = rig.beams.directions()
     rng_m, which, refl = cast(np.zeros(3), dirs, patches, rig.beams.max_range_m)
     hit = np.isfinite(rng_m)
     r = rng_m[hit] + rng.normal(0.0, rig.beams.sigma_range_m, hit.sum())
-    return dirs[hit] * r[:, None], (refl[hit] * 100).astype(np.float32), ring[hit]
+    out = dirs[hit] * r[:, None], (refl[hit] * 100).astype(np.float32), ring[hit]
+    return out if board_index is None else (*out, which[hit] == board_index)
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,20 +264,36 @@ class SimulatedFrame:
     intensity: np.ndarray
     ring: np.ndarray
     T_camera_board: np.ndarray
+    board_mask: np.ndarray | None = None  # which points hit the board (ground truth)
 
 
 def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
-                    poses: list[np.ndarray] | None = None) -> list[SimulatedFrame]:
-    """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``)."""
+                    poses: list[np.ndarray] | None = None, scene: str = "default") -> list[SimulatedFrame]:
+    """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``).
+
+    ``scene``: ``default`` (the ground, four walls, the board on a stand), ``office`` or ``hall``
+    (``simulation.office``: a static scene drawn once, the board held by a person in 70% of the frames, and
+    in 3D a quarter of the boards partly above or below the LiDAR's vertical field of view)."""
+    if scene not in SCENES:
+        raise ValueError(f"Expected scene in {SCENES}, got {scene!r}")
     frames = []
     T_lidar_camera = T_inverse(rig.T_camera_lidar)
-    for k, T_cb in enumerate(sample_board_poses(rig, n_poses, rng) if poses is None else poses):
+    static = None
+    if scene == "office":
+        static = office_layout(-rig.lidar_height_m, rng)
+    elif scene == "hall":
+        static = hall_layout(-rig.lidar_height_m)
+    if poses is None:
+        partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
+        poses = sample_board_poses(rig, n_poses, rng, partial_share=partial)
+    for k, T_cb in enumerate(poses):
         T_lb = T_lidar_camera @ T_cb
-        patches, bi = scene_patches(rig, T_lb)
+        held = scene != "default" and bool(rng.uniform() < 0.7)
+        patches, bi = scene_patches(rig, T_lb, static, held)
         img = render_image(rig.camera, T_lidar_camera, patches, bi,
                            transform_points(T_lb, rig.board.outline()), rng, pixel_noise=rig.pixel_noise)
-        pts, inten, ring = simulate_scan(rig, patches, rng)
-        frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb))
+        pts, inten, ring, on_board = simulate_scan(rig, patches, rng, bi)
+        frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
     return frames
 
 
@@ -279,6 +314,9 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_dataset_yaml(tmp, spec, "simulated by lidarcam; ground_truth.json is for evaluation only")
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
+        masks = {f.name: f.board_mask for f in frames if f.board_mask is not None}
+        if masks:  # which returns hit the board, in the order of each scan file's valid returns
+            np.savez_compressed(tmp / "ground_truth_board_points.npz", **masks)
         for f in frames:
             cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
             if rig.beams.is_2d:
@@ -295,12 +333,13 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
 
 def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
                      sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
-                     include_camera: bool = True, overwrite: bool = False) -> Path:
+                     include_camera: bool = True, overwrite: bool = False, scene: str = "default") -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
 
     ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
     ``sigma_range_m``: range noise (default 0.02 m in 3D, 0.01 m in 2D); ``scan_format``: pcd, ply, bin or
-    npy in 3D (default pcd), csv, npy or pcd in 2D (default csv).
+    npy in 3D (default pcd), csv, npy or pcd in 2D (default csv). ``scene``: ``default``, ``office`` or
+    ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
     """
     if sigma_range_m is None:
         sigma_range_m = 0.01 if lidar == "2d" else 0.02
@@ -309,6 +348,6 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     rng = np.random.default_rng(seed)
     base = default_rig_2d(rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
     rig = replace(base, pixel_noise=pixel_noise)
-    frames = simulate_frames(rig, n_poses, rng)
+    frames = simulate_frames(rig, n_poses, rng, scene=scene)
     return write_dataset(out, rig, frames, scan_format, include_camera, overwrite,
-                         meta={"seed": seed, "poses": n_poses})
+                         meta={"seed": seed, "poses": n_poses, "scene": scene})

@@ -32,7 +32,7 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import T_log, exp_batch
 
-from ..errors import LidarcamError
+from ..errors import LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .refinement import Refinement, _plane_noise, plane_whiteners
@@ -229,12 +229,40 @@ class PlaneLikelihood:
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
 
 
+# A Laplace covariance beyond these limits does not describe a posterior worth sampling: some direction is
+# not determined by the data (an ensemble started there is degenerate, and emcee refuses it).
+MAX_SAMPLED_ROTATION_SD_RAD = float(np.deg2rad(10.0))
+MAX_SAMPLED_TRANSLATION_SD_M = 0.5
+MAX_SAMPLED_CONDITION = 1e12
+
+
+def unsampled_reason(covariance: np.ndarray) -> str | None:
+    """Why a posterior with this Laplace covariance (GTSAM tangent) should not be sampled, or None."""
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return "the Laplace covariance is not finite"
+    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+    w = np.linalg.eigvalsh(0.5 * (C + C.T))
+    if sd[:3].max() > MAX_SAMPLED_ROTATION_SD_RAD or sd[3:].max() > MAX_SAMPLED_TRANSLATION_SD_M:
+        return (f"the problem is nearly degenerate (Laplace standard deviations up to {np.degrees(sd[:3].max()):.1f} "
+                f"deg and {1000 * sd[3:].max():.0f} mm): the data do not determine every direction")
+    if w[0] <= 0 or w[-1] / w[0] > MAX_SAMPLED_CONDITION:
+        return (f"the Laplace covariance is nearly singular (condition number {w[-1] / max(w[0], 1e-300):.1e}): "
+                "some direction is determined far better than the others can be sampled together")
+    return None
+
+
 def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
                      rng: np.random.Generator, options: PosteriorOptions = PosteriorOptions(),
                      other_modes: tuple[np.ndarray, ...] = ()) -> Posterior:
     """Sample the posterior of ``T_camera_lidar`` around the refinement's MAP. ``other_modes``: other
     refined minima (``T_camera_lidar``) that fit about as well; walkers start in every mode, so that the
-    samples show them all."""
+    samples show them all. A nearly degenerate problem raises :class:`PosteriorSkippedError` with the reason
+    (``unsampled_reason``) instead of sampling."""
+    reason = unsampled_reason(ref.covariance)
+    if reason is not None:
+        raise PosteriorSkippedError(reason, hint="the covariance is the Laplace one; add board poses that "
+                                                 "constrain the weak direction")
     model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu)
     # Walkers start in the Laplace approximation (already the typical set: no long burn-in), shared out
     # among the modes.
@@ -244,7 +272,11 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
         share = slice(m + 1, None, len(other_modes) + 1)
         start[share, :6] += T_log(np.linalg.inv(ref.T_camera_lidar) @ T_mode)
     start[:, 6] = rng.normal(0.0, 0.05, options.walkers)
-    run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
+    try:
+        run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
+    except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability
+        raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
+                                    hint="the covariance is the Laplace one") from exc
     warnings = []
     if not run.converged:
         warnings.append(f"the posterior chain stopped at {run.chain.shape[0]} steps, before 50 autocorrelation times "

@@ -1,0 +1,225 @@
+"""The static scene behind the board: what every frame of a dataset sees while only the board (and whoever
+holds it) moves.
+
+The rig stands still during a calibration, so walls, doors, furniture and the ground return at the same place
+in most frames, while the board is somewhere else in each. A board candidate must be mostly in front of that
+background (foreground). Three forms, by what the recording tells:
+
+- **Range image** (3D sweeps whose points carry a beam index, from a ``ring`` field or an organised cloud's row):
+  per beam and azimuth column, the background range is the farthest range that a quarter of the frames (at
+  least two) return within half the margin of each other (each frame's farthest return within one column
+  either side, as returns wander by a column between sweeps). A point nearer than that was seen through by
+  those frames: something that moves (the board, the person holding it), even when the boards of most frames
+  cover that cell; boards held at one place in a few frames do not make a surface. Over a window of neighbouring
+  cells (rig vibration of a few centimetres, column jitter, depth edges), a point is foreground when it
+  matches no background range within ``margin_m`` and lies nearer than some of them (or the window has none).
+- **Voxel occupancy** (unorganised 3D clouds with no beam index): counts of the frames that occupy each voxel;
+  a voxel held by half the frames or more is background, and a point is background when its voxel or a
+  neighbour is.
+- **Per-beam ranges** (2D scans): the range image with one beam row.
+
+The rig moved between frames when a frame's returns match the static scene less than ``moved_fraction`` of the
+time (a static scene has almost no return behind its own background, and few in front of it). The model then
+says so and is not used: each frame falls back to the cues it holds alone.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class StaticSceneParams:
+    margin_m: float = 0.12          # nearer than the background by this much: foreground
+    ring_window: int = 1            # neighbouring beams compared (each side)
+    column_window: int = 2          # neighbouring azimuth columns compared (each side)
+    voxel_m: float = 0.10           # voxel side for unorganised clouds
+    seen_through: int = 2           # range image: a background surface is returned by this many frames at least
+    support_share: float = 0.25     # ... and by this share of the frames
+    min_frames: int = 3             # fewer frames: no model
+    moved_fraction: float = 0.6     # a frame matching the static scene less than this: the rig moved
+
+
+@dataclass(frozen=True, eq=False)
+class StaticScene:
+    """Background model of a dataset's sweeps. ``kind``: ``range-image``, ``voxels`` or ``none`` (too few
+    frames, or the rig moved); ``match`` is each frame's share of returns consistent with the static scene."""
+
+    kind: str
+    params: StaticSceneParams
+    match: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    note: str = ""
+    _background: np.ndarray | None = None  # range image: background range per beam and column (nan: none)
+    _column_rad: float = 0.0
+    _rows: np.ndarray | None = None      # range image: the beam ids, in row order
+    _voxels: np.ndarray | None = None    # voxels: sorted keys of background voxels
+
+    @property
+    def usable(self) -> bool:
+        return self.kind != "none"
+
+    def foreground(self, points: np.ndarray, ring: np.ndarray | None = None) -> np.ndarray:
+        """Mask of the points in front of the static scene (all True when there is no model)."""
+        if not self.usable or len(points) == 0:
+            return np.ones(len(points), dtype=bool)
+        if self.kind == "voxels":
+            return ~self._in_background_voxel(points)
+        return self._classify(points, ring)[0]
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "note": self.note,
+                "frames_matching_static_scene": [round(float(m), 3) for m in self.match]}
+
+    # -- range image -------------------------------------------------------------------------------------
+    def _classify(self, points: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(foreground, static) masks: ``static`` when the range matches a background range of the window."""
+        row, col = _cells(points, ring, self._rows, self._column_rad)
+        window = _window_values(self._background, row, col, self.params.ring_window, self.params.column_window)
+        r = _ranges(points)[:, None]
+        margin = self.params.margin_m
+        with np.errstate(invalid="ignore"):
+            static = np.any(np.abs(window - r) <= margin, axis=1)
+            behind = np.any(window > r + margin, axis=1) | np.all(np.isnan(window), axis=1)
+        return ~static & behind, static
+
+    # -- voxels ------------------------------------------------------------------------------------------
+    def _in_background_voxel(self, points: np.ndarray) -> np.ndarray:
+        keys = _voxel_keys(points, self.params.voxel_m)
+        hit = np.zeros(len(points), dtype=bool)
+        for off in _NEIGHBOURS:
+            k = keys + off
+            pos = np.clip(np.searchsorted(self._voxels, k), 0, max(len(self._voxels) - 1, 0))
+            hit |= self._voxels[pos] == k if len(self._voxels) else False
+        return hit
+
+
+_SHIFT = 2 ** 20
+_NEIGHBOURS = np.array([(i * _SHIFT + j) * _SHIFT + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
+                       dtype=np.int64)
+
+
+def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
+    ijk = np.floor(points / size).astype(np.int64) + _SHIFT // 2
+    ijk = np.clip(ijk, 1, _SHIFT - 2)
+    return (ijk[:, 0] * _SHIFT + ijk[:, 1]) * _SHIFT + ijk[:, 2]
+
+
+def _ranges(points: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(points, axis=1)
+
+
+def _azimuth(points: np.ndarray) -> np.ndarray:
+    return np.mod(np.arctan2(points[:, 1], points[:, 0]), 2 * np.pi)
+
+
+def _cells(points: np.ndarray, ring: np.ndarray | None, rows: np.ndarray, column_rad: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of each point in the range image; row -1 for a beam the model does not hold."""
+    n_cols = int(np.ceil(2 * np.pi / column_rad))
+    col = np.minimum((_azimuth(points) / column_rad).astype(np.int64), n_cols - 1)
+    beams = np.zeros(len(points), dtype=np.int64) if ring is None else np.asarray(ring, dtype=np.int64)
+    pos = np.clip(np.searchsorted(rows, beams), 0, len(rows) - 1)
+    row = np.where(rows[pos] == beams, pos, -1)
+    return row, col
+
+
+def _window_values(image: np.ndarray, row: np.ndarray, col: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """(N, (2 dr + 1) (2 dc + 1)) values of the image around each (row, col); nan off the image or for row -1."""
+    n_rows, n_cols = image.shape
+    out = []
+    for i in range(-dr, dr + 1):
+        r = row + i
+        ok = (row >= 0) & (r >= 0) & (r < n_rows)
+        for j in range(-dc, dc + 1):
+            v = np.full(len(row), np.nan)
+            v[ok] = image[r[ok], (col[ok] + j) % n_cols]
+            out.append(v)
+    return np.column_stack(out)
+
+
+def _column_width(points: list[np.ndarray], rings: list[np.ndarray | None]) -> float:
+    """The sensor's azimuth step: the median gap between successive returns of one beam (clamped to
+    0.05-2 degrees), from the first frame."""
+    P, ring = points[0], rings[0]
+    beams = np.zeros(len(P), dtype=np.int64) if ring is None else ring
+    gaps = []
+    for b in np.unique(beams)[:64]:
+        az = np.sort(_azimuth(P[beams == b]))
+        d = np.diff(az)
+        d = d[d > 1e-5]
+        if len(d) > 10:
+            gaps.append(np.median(d))
+    step = float(np.median(gaps)) if gaps else np.deg2rad(0.2)
+    return float(np.clip(step, np.deg2rad(0.05), np.deg2rad(2.0)))
+
+
+def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None], params: StaticSceneParams
+                       ) -> StaticScene:
+    rows = np.unique(np.concatenate([np.zeros(1, np.int64) if r is None else np.unique(r) for r in rings]))
+    column = _column_width(points, rings)
+    n_cols = int(np.ceil(2 * np.pi / column))
+    F = len(points)
+    stack = np.full((F, len(rows), n_cols), np.nan)
+    for k, (P, ring) in enumerate(zip(points, rings)):
+        row, col = _cells(P, ring, rows, column)
+        r = _ranges(P)
+        ok = row >= 0
+        img = np.full(len(rows) * n_cols, np.inf)
+        np.minimum.at(img, row[ok] * n_cols + col[ok], r[ok])  # the nearest return of the cell
+        img[np.isinf(img)] = -np.inf
+        # Each frame's farthest return within one column either side: returns of one surface wander by a
+        # column between sweeps, and a board held at one place in several frames must not hide the wall
+        # that the other frames see through it.
+        far = ndimage.maximum_filter(img.reshape(len(rows), n_cols), size=(1, 3), mode="wrap")
+        stack[k] = np.where(np.isfinite(far), far, np.nan)
+    m = min(F, max(params.seen_through, int(np.ceil(params.support_share * F))))
+    ordered = -np.sort(-np.nan_to_num(stack, nan=-np.inf), axis=0)  # farthest first; no return last
+    # The farthest range that m frames return within half the margin of each other: a surface that stays.
+    background = np.full(ordered.shape[1:], np.nan)
+    with np.errstate(invalid="ignore"):  # -inf - -inf where no frame returns
+        spans = [ordered[i] - ordered[i + m - 1] for i in range(F - m + 1)]
+    for i in range(F - m, -1, -1):  # nearest first, so the farthest qualifying cluster is written last
+        ok = (spans[i] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
+        background[ok] = ordered[i][ok]
+    scene = StaticScene("range-image", params, _background=background, _column_rad=column, _rows=rows)
+    match = [float(np.mean(scene._classify(P, ring)[1])) for P, ring in zip(points, rings)]
+    return _checked(scene, np.array(match))
+
+
+def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> StaticScene:
+    per_frame = [np.unique(_voxel_keys(P, params.voxel_m)) for P in points]
+    keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
+    need = max(2, int(np.ceil(0.5 * len(points))))
+    scene = StaticScene("voxels", params, _voxels=keys[counts >= need])
+    match = np.array([float(np.mean(scene._in_background_voxel(P))) for P in points])
+    return _checked(scene, match)
+
+
+def _checked(scene: StaticScene, match: np.ndarray) -> StaticScene:
+    moved = np.nonzero(match < scene.params.moved_fraction)[0]
+    if len(moved):
+        names = ", ".join(str(int(k)) for k in moved[:8])
+        return StaticScene("none", scene.params, match,
+                           f"the rig seems to have moved: frame(s) {names} match the static scene for only "
+                           f"{100 * match[moved].min():.0f}% of their returns; each frame's board is found from "
+                           "its own cues")
+    return StaticScene(scene.kind, scene.params, match, scene.note, scene._background, scene._column_rad,
+                       scene._rows, scene._voxels)
+
+
+def build_static_scene(points: list[np.ndarray], rings: list[np.ndarray | None] | None = None,
+                       params: StaticSceneParams = StaticSceneParams()) -> StaticScene:
+    """The static scene of a dataset's frames: points (N_k, 3) or, for 2D scans, (N_k, 2) in the LiDAR frame,
+    and each frame's beam indices when known (None: unorganised). 2D scans use one beam row."""
+    if len(points) < params.min_frames:
+        return StaticScene("none", params, note=f"{len(points)} frame(s): a static scene needs "
+                                                f"{params.min_frames} or more")
+    points = [np.column_stack([P[:, :2], np.zeros(len(P))]) if P.shape[1] == 2 else P for P in points]
+    rings = rings or [None] * len(points)
+    planar = all(np.allclose(P[:, 2], 0.0) for P in points)
+    if planar or all(r is not None for r in rings):
+        rings = [None] * len(points) if planar else rings
+        return _build_range_image(points, rings, params)
+    return _build_voxels(points, params)

@@ -1,0 +1,272 @@
+"""Which LiDAR candidate is each frame's board: chosen jointly, by the extrinsic that most frames agree with.
+
+Each frame keeps every plausible board candidate (a planar piece in front of the static scene that fits inside
+the board). One extrinsic explains the true board of every frame, while a wrong piece (a door, a monitor, a
+picture, a patch of ground) agrees with it only by chance. So (MSAC over triples of (frame, candidate)):
+
+1. Hypotheses: three frames whose camera normals span 3D, one candidate of each; the closed form of the three
+   plane pairs (MATH.md section 1) is exact for them. All combinations when few, else a weighted sample
+   (candidates that agree better with the camera's rotation-invariant cues are drawn more often).
+2. Score: under a hypothesis every candidate maps into the camera frame; its normal's angle from the frame's
+   camera plane normal and its centroid's distance from that plane (not the plane's distance from the origin,
+   whose error grows with range), over ``sigma_angle_rad`` and ``sigma_distance_m``, give a
+   2-dof statistic, gated at its 99% point. A frame agrees when one of its candidates passes the gate; the
+   cost is the truncated sum over frames (MSAC), so the hypothesis most frames agree with wins.
+3. Refit: the closed form of all agreeing frames, then the choice again, until it no longer changes. Now that
+   the extrinsic is known, each candidate is judged by its points inside the camera's board outline and near
+   its plane (refitted robustly: a holder's arm or body joined to the board's piece neither tilts it nor
+   counts); at least half of a candidate's points must be inside, and the best statistic within the gate wins.
+
+A frame whose candidates all disagree is skipped with the reason. It works when every frame is ambiguous, and
+needs at least three frames whose boards' normals span 3D.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.board import BoardModel
+from geometry.planes import Plane
+from geometry.rotations import T_from_Rt, transform_points
+
+from ..errors import DegenerateLayoutError
+from ..lidar.board_segmentation import robust_plane_fit
+from .closed_form import MIN_NORMAL_SPREAD, solve_closed_form
+
+GATE_CHI2_2DOF = 9.21  # 99% point of chi-square with 2 dof
+
+
+@dataclass(frozen=True)
+class AssociationParams:
+    sigma_angle_rad: float = np.deg2rad(1.5)   # plane normal residual scale (noise and a triple's error)
+    sigma_distance_m: float = 0.04             # plane distance residual scale
+    max_hypotheses: int = 6000
+    min_frames: int = 3
+    outline_margin_m: float = 0.10             # points this far outside the board still count as inside
+    min_inside: float = 0.5                    # share of a candidate's points inside the outline (the rest:
+                                               # the holder's arms or body joined to the board's piece)
+    refit_band_m: float = 0.10                 # refit a candidate's plane to its points this near the camera's
+
+
+@dataclass(frozen=True, eq=False)
+class FrameChoice:
+    """One frame's decision: the chosen candidate (index or None), each candidate's residuals under the
+    consensus extrinsic (normal angle rad, distance of its centroid from the camera's board plane m, share of
+    points inside the camera's board outline), and why."""
+
+    chosen: int | None
+    residuals: tuple[tuple[float, float, float], ...]
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class Association:
+    T_camera_lidar: np.ndarray
+    choices: tuple[FrameChoice, ...]
+    agreeing: int
+    hypotheses: int
+    seconds: float
+
+
+def _batch_closed_form(nc: np.ndarray, dc: np.ndarray, nl: np.ndarray, dl: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed form of many plane triples at once: nc, nl (H, 3, 3) normals by row, dc, dl (H, 3). Returns R
+    (H, 3, 3), t (H, 3) and a validity mask (normals that span 3D)."""
+    K = np.einsum("hki,hkj->hij", nc, nl)
+    U, _, Vt = np.linalg.svd(K)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=1)[:, None, :]
+    R = U @ Vt
+    s = np.linalg.svd(nc, compute_uv=False)
+    ok = s[:, -1] / np.sqrt(3.0) > MIN_NORMAL_SPREAD
+    t = np.zeros((len(nc), 3))
+    if ok.any():
+        t[ok] = np.linalg.solve(nc[ok], (dc - dl)[ok][:, :, None])[:, :, 0]
+    return R, t, ok
+
+
+def _residuals(R: np.ndarray, t: np.ndarray, nl: np.ndarray, cl: np.ndarray, nc: np.ndarray, dc: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of LiDAR board candidates (normals nl (C, 3), centroids cl (C, 3)) against their frames'
+    camera planes (nc (C, 3), dc (C,)) under each of H hypotheses: the angle between the normals (rad) and the
+    distance of the mapped centroid from the camera plane (m), two (H, C) arrays. The centroid, not the
+    plane's distance from the origin, so that a candidate's normal error does not grow with its range."""
+    n_map = np.einsum("hij,cj->hci", R, nl)
+    cos = np.clip(np.einsum("hci,ci->hc", n_map, nc), -1.0, 1.0)
+    c_map = np.einsum("hij,cj->hci", R, cl) + t[:, None, :]
+    dist = np.einsum("hci,ci->hc", c_map, nc) - dc[None, :]
+    return np.arccos(cos), dist
+
+
+def inside_outline(points: np.ndarray, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray,
+                   board: BoardModel, margin: float, band: float = np.inf) -> np.ndarray:
+    """Mask of the LiDAR points that fall inside the board's outline (grown by ``margin``) and within ``band``
+    of its plane, mapped into the board frame through the extrinsic and the camera's board pose."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    q = transform_points(np.linalg.inv(T_camera_board) @ T_camera_lidar, points)
+    corners = board.outline()[:, :2]
+    return (np.all((q[:, :2] >= corners.min(0) - margin) & (q[:, :2] <= corners.max(0) + margin), axis=1)
+            & (np.abs(q[:, 2]) <= band))
+
+
+def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candidates: list[list],
+              board: BoardModel, rng: np.random.Generator, params: AssociationParams = AssociationParams(),
+              weights: list[list[float]] | None = None) -> Association:
+    """Choose one candidate (or none) per frame. ``candidates[k]``: frame k's LiDAR board observations (each
+    with ``plane`` and ``points``); ``weights[k]``: relative sampling weights of its candidates.
+
+    Raises :class:`DegenerateLayoutError` when fewer than ``min_frames`` frames with candidates span 3D or no
+    hypothesis is supported by that many frames."""
+    t0 = time.perf_counter()
+    frames = [k for k, c in enumerate(candidates) if c]
+    if len(frames) < params.min_frames:
+        raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a board candidate; choosing among them "
+                                    f"needs {params.min_frames}")
+    cand_frame = np.array([k for k in frames for _ in candidates[k]])
+    cand_index = np.array([i for k in frames for i in range(len(candidates[k]))])
+    nl = np.array([c.plane.normal for k in frames for c in candidates[k]])
+    dl = np.array([c.plane.distance for k in frames for c in candidates[k]])
+    cl = np.array([c.points.mean(0) for k in frames for c in candidates[k]])
+    ncam = np.array([p.normal for p in camera_planes])
+    dcam = np.array([p.distance for p in camera_planes])
+    hyps = _hypotheses(frames, candidates, ncam, rng, params, weights)
+    if not hyps:
+        raise DegenerateLayoutError(f"no three of the {len(frames)} frames with board candidates have camera "
+                                    "normals that span 3D")
+    H = np.array(hyps)  # (H, 3, 2): (frame, candidate) per row
+    offsets = {k: int(np.nonzero(cand_frame == k)[0][0]) for k in frames}
+    flat = np.vectorize(lambda k, i: offsets[k] + i)(H[:, :, 0], H[:, :, 1])
+    R, t, ok = _batch_closed_form(ncam[H[:, :, 0]], dcam[H[:, :, 0]], nl[flat], dl[flat])
+    R, t = R[ok], t[ok]
+    if len(R) == 0:
+        raise DegenerateLayoutError("no triple of frames with board candidates has normals that span 3D")
+    cost, agree = _score(R, t, nl, cl, ncam[cand_frame], dcam[cand_frame], cand_frame, frames, params)
+    best = int(np.argmin(cost))
+    if agree[best] < params.min_frames:
+        raise DegenerateLayoutError(f"no extrinsic is supported by {params.min_frames} frames' candidates "
+                                    f"(best: {int(agree[best])})")
+    T = T_from_Rt(R[best], t[best])
+    chosen = _choose(T, candidates, camera_planes, camera_poses, board, params)
+    for _ in range(5):
+        if len(chosen) < params.min_frames:
+            raise DegenerateLayoutError(f"the best extrinsic keeps only {len(chosen)} frame(s) whose board lies "
+                                        "inside the camera's outline")
+        try:
+            T = solve_closed_form([camera_planes[k] for k in chosen],
+                                  [candidates[k][i].plane for k, i in chosen.items()]).T_camera_lidar
+        except DegenerateLayoutError:
+            break
+        new = _choose(T, candidates, camera_planes, camera_poses, board, params)
+        if new == chosen:
+            break
+        chosen = new
+    choices = _explain(T, candidates, camera_planes, camera_poses, board, params, chosen)
+    return Association(T, tuple(choices), len(chosen), len(R), time.perf_counter() - t0)
+
+
+def _hypotheses(frames: list[int], candidates: list[list], ncam: np.ndarray, rng: np.random.Generator,
+                params: AssociationParams, weights) -> list:
+    """(frame, candidate) triples from frames whose camera normals span 3D: all when they fit the budget,
+    else a sample weighted by the candidates' weights."""
+    triples = [tr for tr in itertools.combinations(frames, 3)
+               if np.linalg.svd(ncam[list(tr)], compute_uv=False)[-1] / np.sqrt(3.0) > MIN_NORMAL_SPREAD]
+    if not triples:
+        return []
+    counts = np.array([np.prod([len(candidates[k]) for k in tr]) for tr in triples])
+    if counts.sum() <= params.max_hypotheses:
+        return [list(zip(tr, combo)) for tr in triples
+                for combo in itertools.product(*[range(len(candidates[k])) for k in tr])]
+    probs = {}
+    for k in frames:
+        w = np.ones(len(candidates[k])) if weights is None else np.asarray(weights[k], dtype=float)
+        probs[k] = w / w.sum()
+    out, seen = [], set()
+    picks = rng.integers(0, len(triples), size=params.max_hypotheses)
+    for j in picks:
+        tr = triples[j]
+        combo = tuple(int(rng.choice(len(probs[k]), p=probs[k])) for k in tr)
+        if (tr, combo) not in seen:
+            seen.add((tr, combo))
+            out.append(list(zip(tr, combo)))
+    return out
+
+
+def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, chunk: int = 1024):
+    """MSAC cost (truncated sum over frames of each frame's best gated statistic) and the number of agreeing
+    frames, per hypothesis."""
+    cost = np.empty(len(R))
+    agree = np.empty(len(R), dtype=int)
+    order = np.searchsorted(frames, cand_frame)
+    for s in range(0, len(R), chunk):
+        ang, dist = _residuals(R[s:s + chunk], t[s:s + chunk], nl, cl, nc, dc)
+        e2 = np.minimum((ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2,
+                        GATE_CHI2_2DOF)
+        best = np.full((len(e2), len(frames)), GATE_CHI2_2DOF)
+        for j in range(e2.shape[1]):  # per-frame minimum over candidates
+            best[:, order[j]] = np.minimum(best[:, order[j]], e2[:, j])
+        cost[s:s + chunk] = best.sum(1)
+        agree[s:s + chunk] = (best < GATE_CHI2_2DOF).sum(1)
+    return cost, agree
+
+
+def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
+    """Per candidate of frame k: (angle, distance, inside share, gated statistic, points judged). The plane is
+    refitted to
+    the points inside the camera's board outline, so that a holder's arm or body joined to the board's piece
+    does not tilt it."""
+    out = []
+    for c in candidates[k]:
+        inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m)
+        plane = c.plane
+        near = inside & inside_outline(c.points, T, camera_poses[k], board, np.inf, params.refit_band_m)
+        P = c.points
+        if board.size_known and 10 <= near.sum() < len(near):
+            plane, keep = robust_plane_fit(P[near])
+            P = P[near][keep]
+        ang, dist = (float(v[0, 0]) for v in _residuals(T[None, :3, :3], T[None, :3, 3], plane.normal[None],
+                                                        P.mean(0)[None], camera_planes[k].normal[None],
+                                                        np.array([camera_planes[k].distance])))
+        e2 = (ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2
+        out.append((ang, dist, float(np.mean(inside)) if len(inside) else 0.0, e2, len(P)))
+    return out
+
+
+def _choose(T, candidates, camera_planes, camera_poses, board, params) -> dict[int, int]:
+    """Frame -> candidate: among candidates within the gate and inside the outline, the best statistic."""
+    chosen = {}
+    for k, cands in enumerate(candidates):
+        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k)
+        ok = [(-n, e2, i) for i, (_, _, inside, e2, n) in enumerate(stats)
+              if e2 < GATE_CHI2_2DOF and inside >= params.min_inside]
+        if ok:  # the fullest piece that agrees: pieces of the board itself agree too, but hold fewer points
+            chosen[k] = min(ok)[2]
+    return chosen
+
+
+def _explain(T, candidates, camera_planes, camera_poses, board, params, chosen: dict[int, int]) -> list[FrameChoice]:
+    out = []
+    n = len(chosen)
+    for k, cands in enumerate(candidates):
+        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k)
+        res = tuple((a, d, inside) for a, d, inside, _, _ in stats)
+        if not cands:
+            out.append(FrameChoice(None, res, "no board candidate"))
+        elif k in chosen:
+            a, d, inside, _, _ = stats[chosen[k]]
+            others = len(cands) - 1
+            out.append(FrameChoice(chosen[k], res,
+                                   f"agrees with the extrinsic of {n} frames ({np.degrees(a):.1f} deg, "
+                                   f"{1000 * d:+.0f} mm, {100 * inside:.0f}% inside the board)"
+                                   + (f"; {others} other candidate(s) disagree" if others else "")))
+        else:
+            j = int(np.argmin([s[3] for s in stats]))
+            a, d, inside, _, _ = stats[j]
+            out.append(FrameChoice(None, res,
+                                   f"its {len(cands)} candidate(s) all disagree with the extrinsic of {n} frames "
+                                   f"(closest: {np.degrees(a):.1f} deg, {1000 * d:+.0f} mm, {100 * inside:.0f}% "
+                                   "inside the board)"))
+    return out
