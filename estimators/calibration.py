@@ -28,7 +28,7 @@ from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board
                                        decide_alone, robust_plane_fit)
 from .lidar.scan_segmentation import ScanSegmentationParams, find_board_in_scan
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
-from .measurements import BoardDecision, FrameMeasurement, observe_lidar_board
+from .measurements import BoardDecision, FrameMeasurement, observe_lidar_board, observe_lidar_line
 from .solvers.association import Association, AssociationParams, associate, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
@@ -375,6 +375,9 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     scans_2d = [read_scan_2d(f.scan) for f in dataset.frames]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     trees = [cKDTree(xy) for xy in scans_2d]
+    scene = build_static_scene(scans_2d)
+    if scene.note and len(scans_2d) >= scene.params.min_frames:
+        warnings.append(f"static scene: {scene.note}")
     ambiguous: dict[str, list] = {}
 
     def lidar_side(k: int) -> FrameMeasurement:
@@ -386,7 +389,8 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
             lid_obs = find_board_in_scan(
                 scans_2d[k], dataset.board, cam_obs,
                 ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m),
-                [t for j, t in enumerate(trees) if j != k])
+                [t for j, t in enumerate(trees) if j != k],
+                scene.foreground(scans_2d[k]) if scene.usable else None)
         except AmbiguousBoardError as exc:
             ambiguous[frame.name] = exc.candidates
             return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
@@ -400,7 +404,32 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         frames = list(pool.map(lidar_side, range(len(dataset.frames))))
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
-    return frames
+    return _trim_scan_lines(frames, dataset.board)
+
+
+def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasurement]:
+    """Cut each frame's laser segment to the camera's board outline under the extrinsic the frames agree on
+    (the minimal-solution selection, when it keeps a single candidate): the holder's hands and arms, in line
+    with the board, leave the segment. Without a single candidate the segments stay as found."""
+    used = [f for f in frames if f.usable]
+    if len(used) < 3 or not board.size_known:
+        return frames
+    try:
+        sel = select_minimal(used, board)
+    except DegenerateLayoutError:
+        return frames
+    if len(sel.candidates) != 1:
+        return frames
+    T = sel.candidates[0].T_camera_lidar
+    out = []
+    for f in frames:
+        if f.usable:
+            P = np.column_stack([f.lidar.points[:, :2], np.zeros(len(f.lidar.points))])
+            inside = inside_outline(P, T, f.camera.T_camera_board, board, OUTLINE_TRIM_M, OUTLINE_BAND_M)
+            if 5 <= inside.sum() < len(inside) and inside.mean() >= 0.4:
+                f = replace(f, lidar=observe_lidar_line(P[inside], f.lidar.candidates))
+        out.append(f)
+    return out
 
 
 def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],

@@ -7,8 +7,9 @@
    farthest from the chord while it is farther than ``line_threshold_m``).
 3. A piece is a board candidate when its length fits the board (no longer than its diagonal, no shorter
    than ``min_length_fraction`` of its smaller side) and its middle lies where the camera puts the board.
-4. With the other frames' scans given, a piece that most of them also hold (points within
-   ``static_radius_m``) is static background (a wall, furniture), not the board that moves between frames.
+4. A piece that is mostly static background (a wall, furniture) is not the board, which moves between
+   frames: by the static scene's per-beam ranges when given, else when most other scans hold its points
+   (within ``static_radius_m``).
 5. One candidate: refitted robustly (3-sigma MAD trimming) and recorded; none, or two that fit about as
    well: the frame is skipped with the reason.
 """
@@ -128,19 +129,26 @@ def is_static(Q: np.ndarray, others: list[cKDTree], radius: float) -> bool:
 
 def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation,
                        params: ScanSegmentationParams = ScanSegmentationParams(),
-                       others: list[cKDTree] | None = None) -> LidarBoardObservation:
+                       others: list[cKDTree] | None = None, foreground: np.ndarray | None = None
+                       ) -> LidarBoardObservation:
     """The board's laser segment in a 2D scan ((N, 2) scan-plane points), or :class:`MeasurementError`.
-    ``others``: KD-trees of the other frames' scans, to tell static background from the board."""
+    ``foreground``: mask of the returns in front of the static scene (``lidar.static_scene``); a segment
+    must be mostly foreground. Without it, ``others`` (KD-trees of the other frames' scans) tell static
+    background from the board."""
     P = np.asarray(points, dtype=float)[:, :2]
     sep = params.max_sensor_separation_m
     outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
     dist = np.linalg.norm(outline, axis=1)
     lo, hi = dist.min() - sep, dist.max() + sep
     r = np.linalg.norm(P, axis=1)
-    P = P[(r >= lo) & (r <= hi)]
+    gate = (r >= lo) & (r <= hi)
+    fg = None if foreground is None else np.asarray(foreground, dtype=bool)[gate]
+    P = P[gate]
     if len(P) < params.min_points:
         raise MeasurementError(f"only {len(P)} returns within {lo:.1f}-{hi:.1f} m, where the camera puts the board")
-    P = P[np.argsort(np.arctan2(P[:, 1], P[:, 0]))]
+    order = np.argsort(np.arctan2(P[:, 1], P[:, 0]))
+    P = P[order]
+    fg = None if fg is None else fg[order]
     w, h = board.extent
     max_len = float(np.hypot(w, h)) + params.length_tolerance_m
     min_len = params.min_length_fraction * min(w, h)
@@ -177,7 +185,7 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
         cost = abs(float(np.linalg.norm(Q.mean(0))) - r_cam) / (sep + 0.5 * max_len)
         if cost >= 1.0:
             continue
-        if is_static(Q, others or [], params.static_radius_m):
+        if (np.mean(fg[idx]) < 0.5) if fg is not None else is_static(Q, others or [], params.static_radius_m):
             static += 1
             continue
         candidates.append((cost, Q))

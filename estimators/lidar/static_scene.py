@@ -19,7 +19,8 @@ background (foreground). Three forms, by what the recording tells:
 - **Per-beam ranges** (2D scans): the range image with one beam row.
 
 The rig moved between frames when a frame's returns match the static scene less than ``moved_fraction`` of the
-time (a static scene has almost no return behind its own background, and few in front of it). The model then
+time, or ``moved_drop`` less often than the typical frame's do (in a static scene almost every return matches a
+background range; only the board, its holder and what they hide do not). The model then
 says so and is not used: each frame falls back to the cues it holds alone.
 """
 from __future__ import annotations
@@ -40,6 +41,7 @@ class StaticSceneParams:
     support_share: float = 0.25     # ... and by this share of the frames
     min_frames: int = 3             # fewer frames: no model
     moved_fraction: float = 0.6     # a frame matching the static scene less than this: the rig moved
+    moved_drop: float = 0.08        # ... or matching it this much less than the typical frame does
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,7 +200,8 @@ def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> Static
 
 
 def _checked(scene: StaticScene, match: np.ndarray) -> StaticScene:
-    moved = np.nonzero(match < scene.params.moved_fraction)[0]
+    limit = max(scene.params.moved_fraction, float(np.median(match)) - scene.params.moved_drop)
+    moved = np.nonzero(match < limit)[0]
     if len(moved):
         names = ", ".join(str(int(k)) for k in moved[:8])
         return StaticScene("none", scene.params, match,

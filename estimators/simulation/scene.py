@@ -40,31 +40,69 @@ def infinite_plane(normal, distance, reflectance, label="") -> Patch:
     return Patch(n / np.linalg.norm(n), float(distance) / np.linalg.norm(n), reflectance, label=label)
 
 
+def _cone(origin: np.ndarray, p: Patch) -> tuple[np.ndarray, float]:
+    """Axis and half-angle of a cone from ``origin`` that holds the bounded patch ``p``."""
+    corners = np.array([p.origin, p.origin + p.width * p.u, p.origin + p.height * p.v,
+                        p.origin + p.width * p.u + p.height * p.v]) - origin
+    centre = corners.mean(0)
+    norm = np.linalg.norm(centre)
+    if norm < 1e-9:
+        return np.array([1.0, 0.0, 0.0]), np.pi
+    axis = centre / norm
+    cos = (corners @ axis) / np.maximum(np.linalg.norm(corners, axis=1), 1e-12)
+    # A convex quad lies in the cone of its corners (their angular hull) only when seen from in front of its
+    # plane at some distance; pad, and give up (whole sphere) when the origin is close to the patch.
+    half = float(np.arccos(np.clip(cos.min(), -1.0, 1.0)))
+    if norm < 0.5 * np.hypot(p.width, p.height):
+        return axis, np.pi
+    return axis, min(half + 1e-3, np.pi)
+
+
 def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: float = np.inf
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest hit of rays ``origin + s dirs`` (unit dirs): range (inf if none), patch index (-1), reflectance."""
+    """Nearest hit of rays ``origin + s dirs`` (unit dirs): range (inf if none), patch index (-1), reflectance.
+
+    A bounded patch is tested only against the rays inside the cone that holds it (and skipped when that cone
+    misses the bundle of rays altogether): the same hits, far fewer intersections in a cluttered scene."""
     origin = np.asarray(origin, float)
     n_rays = len(dirs)
     best = np.full(n_rays, np.inf)
     which = np.full(n_rays, -1)
     refl = np.full(n_rays, np.nan)
+    bundle_axis = dirs.mean(0) if n_rays else np.zeros(3)
+    spread = np.pi
+    if np.linalg.norm(bundle_axis) > 0.5:
+        bundle_axis = bundle_axis / np.linalg.norm(bundle_axis)
+        spread = float(np.arccos(np.clip((dirs @ bundle_axis).min(), -1.0, 1.0)))
+    everything = np.arange(n_rays)
     for k, p in enumerate(patches):
-        denom = dirs @ p.normal
+        rays = everything
+        if p.origin is not None:
+            axis, half = _cone(origin, p)
+            if half < np.pi:
+                if np.arccos(np.clip(axis @ bundle_axis, -1.0, 1.0)) > half + spread + 1e-6 and spread < np.pi:
+                    continue
+                rays = np.nonzero(dirs @ axis >= np.cos(half))[0]
+                if len(rays) == 0:
+                    continue
+        d = dirs[rays]
+        denom = d @ p.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (p.distance - origin @ p.normal) / denom
-        ok = np.isfinite(s) & (s > 1e-6) & (s < best) & (s <= max_range)
+        ok = np.isfinite(s) & (s > 1e-6) & (s < best[rays]) & (s <= max_range)
         if not ok.any():
             continue
-        idx = np.nonzero(ok)[0]
+        sel = np.nonzero(ok)[0]
+        idx, s = rays[sel], s[sel]
         if p.origin is not None:
-            hit = origin + s[idx, None] * dirs[idx]
+            hit = origin + s[:, None] * dirs[idx]
             rel = hit - p.origin
             a, b = rel @ p.u, rel @ p.v
             inside = (a >= 0) & (a <= p.width) & (b >= 0) & (b <= p.height)
-            idx, a, b = idx[inside], a[inside], b[inside]
+            idx, s, a, b = idx[inside], s[inside], a[inside], b[inside]
         else:
             a = b = None
-        best[idx] = s[idx]
+        best[idx] = s
         which[idx] = k
         refl[idx] = p.reflectance(a, b) if callable(p.reflectance) else p.reflectance
     return best, which, refl
