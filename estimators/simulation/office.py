@@ -109,7 +109,16 @@ def holder(board_outline_lidar: np.ndarray, ground_z: float) -> list[Patch]:
     centre = o.mean(0)
     away = np.append(centre[:2] / np.linalg.norm(centre[:2]), 0.0)  # horizontal, from the LiDAR through the board
     side = np.array([-away[1], away[0], 0.0])
+    normal = np.cross(o[1] - o[0], o[3] - o[0])
+    normal /= np.linalg.norm(normal)
+    normal = normal if normal @ centre > 0 else -normal  # from the sensor through the board
     body_c = centre + 0.35 * away
+    # The person stands behind the board: every part of the body at least 20 cm behind its plane.
+    corners_body = np.array([[*(body_c[:2] + dx * away[:2] + dy * side[:2]), z]
+                             for dx in (-0.13, 0.13) for dy in (-0.25, 0.25) for z in (ground_z, ground_z + 1.75)])
+    behind = float(np.min((corners_body - centre) @ normal))
+    if behind < 0.2:
+        body_c = body_c + (0.2 - behind) / max(away @ normal, 0.3) * away
     patches = _box([body_c[0], body_c[1], ground_z], (0.25, 0.45, 1.45), float(np.arctan2(away[1], away[0])), 0.25,
                    "holder")
     patches += _box([body_c[0], body_c[1], ground_z + 1.5], (0.2, 0.18, 0.25), float(np.arctan2(away[1], away[0])),
@@ -117,8 +126,6 @@ def holder(board_outline_lidar: np.ndarray, ground_z: float) -> list[Patch]:
     # The board's side edges: the two edges whose direction is closest to vertical.
     edges = [(o[i], o[(i + 1) % 4]) for i in range(4)]
     vertical = sorted(edges, key=lambda e: -abs((e[1] - e[0])[2]) / np.linalg.norm(e[1] - e[0]))[:2]
-    normal = np.cross(o[1] - o[0], o[3] - o[0])
-    normal /= np.linalg.norm(normal)
     for a, b in vertical:
         mid = 0.5 * (a + b)
         along = (b - a) / np.linalg.norm(b - a)

@@ -94,10 +94,10 @@ def _residuals(R: np.ndarray, t: np.ndarray, nl: np.ndarray, cl: np.ndarray, nc:
     camera planes (nc (C, 3), dc (C,)) under each of H hypotheses: the angle between the normals (rad) and the
     distance of the mapped centroid from the camera plane (m), two (H, C) arrays. The centroid, not the
     plane's distance from the origin, so that a candidate's normal error does not grow with its range."""
-    n_map = np.einsum("hij,cj->hci", R, nl)
-    cos = np.clip(np.einsum("hci,ci->hc", n_map, nc), -1.0, 1.0)
-    c_map = np.einsum("hij,cj->hci", R, cl) + t[:, None, :]
-    dist = np.einsum("hci,ci->hc", c_map, nc) - dc[None, :]
+    # nc . (R x) = sum_ij R_ij nc_i x_j: one matrix product over all hypotheses and candidates.
+    Rf = R.reshape(len(R), 9)
+    cos = np.clip(Rf @ np.einsum("ci,cj->cij", nc, nl).reshape(-1, 9).T, -1.0, 1.0)
+    dist = Rf @ np.einsum("ci,cj->cij", nc, cl).reshape(-1, 9).T + t @ nc.T - dc[None, :]
     return np.arccos(cos), dist
 
 
@@ -127,19 +127,18 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
         raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a board candidate; choosing among them "
                                     f"needs {params.min_frames}")
     cand_frame = np.array([k for k in frames for _ in candidates[k]])
-    cand_index = np.array([i for k in frames for i in range(len(candidates[k]))])
     nl = np.array([c.plane.normal for k in frames for c in candidates[k]])
     dl = np.array([c.plane.distance for k in frames for c in candidates[k]])
     cl = np.array([c.points.mean(0) for k in frames for c in candidates[k]])
     ncam = np.array([p.normal for p in camera_planes])
     dcam = np.array([p.distance for p in camera_planes])
-    hyps = _hypotheses(frames, candidates, ncam, rng, params, weights)
-    if not hyps:
+    H = _hypotheses(frames, candidates, ncam, rng, params, weights)  # (H, 3, 2): (frame, candidate) per row
+    if len(H) == 0:
         raise DegenerateLayoutError(f"no three of the {len(frames)} frames with board candidates have camera "
                                     "normals that span 3D")
-    H = np.array(hyps)  # (H, 3, 2): (frame, candidate) per row
-    offsets = {k: int(np.nonzero(cand_frame == k)[0][0]) for k in frames}
-    flat = np.vectorize(lambda k, i: offsets[k] + i)(H[:, :, 0], H[:, :, 1])
+    first = np.zeros(max(frames) + 1, dtype=int)
+    first[frames] = np.searchsorted(cand_frame, frames)
+    flat = first[H[:, :, 0]] + H[:, :, 1]
     R, t, ok = _batch_closed_form(ncam[H[:, :, 0]], dcam[H[:, :, 0]], nl[flat], dl[flat])
     R, t = R[ok], t[ok]
     if len(R) == 0:
@@ -169,30 +168,32 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
 
 
 def _hypotheses(frames: list[int], candidates: list[list], ncam: np.ndarray, rng: np.random.Generator,
-                params: AssociationParams, weights) -> list:
-    """(frame, candidate) triples from frames whose camera normals span 3D: all when they fit the budget,
-    else a sample weighted by the candidates' weights."""
-    triples = [tr for tr in itertools.combinations(frames, 3)
-               if np.linalg.svd(ncam[list(tr)], compute_uv=False)[-1] / np.sqrt(3.0) > MIN_NORMAL_SPREAD]
-    if not triples:
-        return []
-    counts = np.array([np.prod([len(candidates[k]) for k in tr]) for tr in triples])
-    if counts.sum() <= params.max_hypotheses:
-        return [list(zip(tr, combo)) for tr in triples
-                for combo in itertools.product(*[range(len(candidates[k])) for k in tr])]
-    probs = {}
+                params: AssociationParams, weights) -> np.ndarray:
+    """(frame, candidate) triples, (H, 3, 2), from frames whose camera normals span 3D: all when they fit the
+    budget, else a sample (without repeats) weighted by the candidates' weights."""
+    tri = np.array(list(itertools.combinations(frames, 3)), dtype=int).reshape(-1, 3)
+    if len(tri) == 0:
+        return np.zeros((0, 3, 2), dtype=int)
+    spread = np.linalg.svd(ncam[tri], compute_uv=False)[:, -1] / np.sqrt(3.0)
+    tri = tri[spread > MIN_NORMAL_SPREAD]
+    sizes = np.zeros(len(ncam), dtype=int)
+    sizes[frames] = [len(candidates[k]) for k in frames]
+    if len(tri) == 0:
+        return np.zeros((0, 3, 2), dtype=int)
+    if np.prod(sizes[tri], axis=1).sum() <= params.max_hypotheses:
+        rows = [[(a, i), (b, j), (c, m)] for a, b, c in tri for i in range(sizes[a]) for j in range(sizes[b])
+                for m in range(sizes[c])]
+        return np.array(rows, dtype=int)
+    # Cumulative sampling weights per frame, padded with 1 beyond each frame's candidates.
+    cum = np.ones((len(ncam), sizes.max()))
     for k in frames:
-        w = np.ones(len(candidates[k])) if weights is None else np.asarray(weights[k], dtype=float)
-        probs[k] = w / w.sum()
-    out, seen = [], set()
-    picks = rng.integers(0, len(triples), size=params.max_hypotheses)
-    for j in picks:
-        tr = triples[j]
-        combo = tuple(int(rng.choice(len(probs[k]), p=probs[k])) for k in tr)
-        if (tr, combo) not in seen:
-            seen.add((tr, combo))
-            out.append(list(zip(tr, combo)))
-    return out
+        w = np.ones(sizes[k]) if weights is None else np.asarray(weights[k], dtype=float)
+        cum[k, :sizes[k]] = np.cumsum(w / w.sum())
+    picks = tri[rng.integers(0, len(tri), size=params.max_hypotheses)]
+    u = rng.random(picks.shape)
+    idx = np.minimum((u[:, :, None] > cum[picks]).sum(2), sizes[picks] - 1)
+    H = np.unique(np.stack([picks, idx], axis=2).reshape(len(picks), 6), axis=0)
+    return H.reshape(-1, 3, 2)
 
 
 def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, chunk: int = 1024):
@@ -200,14 +201,12 @@ def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, 
     frames, per hypothesis."""
     cost = np.empty(len(R))
     agree = np.empty(len(R), dtype=int)
-    order = np.searchsorted(frames, cand_frame)
+    starts = np.searchsorted(cand_frame, frames)  # candidates are stored frame by frame
     for s in range(0, len(R), chunk):
         ang, dist = _residuals(R[s:s + chunk], t[s:s + chunk], nl, cl, nc, dc)
         e2 = np.minimum((ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2,
                         GATE_CHI2_2DOF)
-        best = np.full((len(e2), len(frames)), GATE_CHI2_2DOF)
-        for j in range(e2.shape[1]):  # per-frame minimum over candidates
-            best[:, order[j]] = np.minimum(best[:, order[j]], e2[:, j])
+        best = np.minimum.reduceat(e2, starts, axis=1)  # each frame's best candidate
         cost[s:s + chunk] = best.sum(1)
         agree[s:s + chunk] = (best < GATE_CHI2_2DOF).sum(1)
     return cost, agree
@@ -221,6 +220,13 @@ def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
     out = []
     for c in candidates[k]:
         inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m)
+        if len(inside) == 0 or inside.mean() < params.min_inside:  # cannot be chosen: no refit needed
+            ang, dist = (float(v[0, 0]) for v in _residuals(T[None, :3, :3], T[None, :3, 3], c.plane.normal[None],
+                                                            c.points.mean(0)[None], camera_planes[k].normal[None],
+                                                            np.array([camera_planes[k].distance])))
+            e2 = (ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2
+            out.append((ang, dist, float(np.mean(inside)) if len(inside) else 0.0, e2, len(c.points)))
+            continue
         plane = c.plane
         near = inside & inside_outline(c.points, T, camera_poses[k], board, np.inf, params.refit_band_m)
         P = c.points
