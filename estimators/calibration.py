@@ -26,10 +26,10 @@ from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan_2d, read_sweep
 from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, choose_by_prediction,
                                        decide_alone, robust_plane_fit)
-from .lidar.scan_segmentation import ScanSegmentationParams, find_board_in_scan
+from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from .measurements import BoardDecision, FrameMeasurement, observe_lidar_board, observe_lidar_line
-from .solvers.association import Association, AssociationParams, associate, inside_outline
+from .solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
@@ -358,17 +358,19 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     cams = [camera_side(det) for _, det in detections]
     frame_rngs = rng.spawn(len(dataset.frames) + 1)
     if dataset.lidar == "2d":
-        frames = _measure_scans_2d(dataset, cams, camera, params, timings, warnings, workers)
+        frames = _measure_scans_2d(dataset, cams, camera, frame_rngs[-1], params, timings, warnings, workers)
     else:
         frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers)
     return camera, frames, warnings
 
 
-def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, params: SegmentationParams,
-                      timings: dict,
-                      warnings: list[str], workers: int) -> list[FrameMeasurement]:
-    """Each scan's board segment; single-line scans are small, so all are read once and each frame tells the
-    board (which moves between frames) from static background of the board's length."""
+def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rng: np.random.Generator,
+                      params: SegmentationParams, timings: dict, warnings: list[str], workers: int
+                      ) -> list[FrameMeasurement]:
+    """Each scan's board segment. Single-line scans are small, so all are read once: the static scene's
+    per-beam ranges tell the board (which moves between frames) from background of the board's length, and
+    every frame's candidate segments are chosen jointly by the minimal solution most frames agree with
+    (``solvers.association.associate_lines``); without one, each frame decides alone."""
     from scipy.spatial import cKDTree
 
     t0 = time.perf_counter()
@@ -378,33 +380,95 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     scene = build_static_scene(scans_2d)
     if scene.note and len(scans_2d) >= scene.params.min_frames:
         warnings.append(f"static scene: {scene.note}")
-    ambiguous: dict[str, list] = {}
+    seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
 
-    def lidar_side(k: int) -> FrameMeasurement:
-        frame, (cam_obs, why) = dataset.frames[k], cams[k]
+    def search(k: int) -> tuple[list, str | None]:
+        cam_obs = cams[k][0]
         if cam_obs is None:
-            return FrameMeasurement(frame.name, None, None, why)
+            return [], None
         t1 = time.perf_counter()
         try:
-            lid_obs = find_board_in_scan(
-                scans_2d[k], dataset.board, cam_obs,
-                ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m),
-                [t for j, t in enumerate(trees) if j != k],
-                scene.foreground(scans_2d[k]) if scene.usable else None)
-        except AmbiguousBoardError as exc:
-            ambiguous[frame.name] = exc.candidates
-            return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
+            return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
+                                   [t for j, t in enumerate(trees) if j != k],
+                                   scene.foreground(scans_2d[k]) if scene.usable else None), None
         except MeasurementError as exc:
-            return FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {exc.message}")
+            return [], exc.message
         finally:
             _add_time(timings, "segmentation", time.perf_counter() - t1)
-        return FrameMeasurement(frame.name, cam_obs, lid_obs)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        frames = list(pool.map(lidar_side, range(len(dataset.frames))))
+        found = list(pool.map(search, range(len(dataset.frames))))
+    with_cam = [k for k, (c, _) in enumerate(cams) if c is not None]
+    assoc = None
+    t0 = time.perf_counter()
+    if sum(1 for k in with_cam if found[k][0]) >= 3:
+        try:
+            assoc = associate_lines([cams[k][0].plane for k in with_cam], [cams[k][0].T_camera_board for k in with_cam],
+                                    [[obs for _, obs in found[k][0]] for k in with_cam], dataset.board, rng)
+        except DegenerateLayoutError as exc:
+            warnings.append(f"no extrinsic that enough frames' scan segments agree on ({exc.problem}); each "
+                            "frame's segment is chosen from its own cues")
+    _add_time(timings, "association", time.perf_counter() - t0)
+    choice = dict(zip(with_cam, assoc.choices)) if assoc is not None else {}
+    frames, ambiguous = [], {}
+    for k, frame in enumerate(dataset.frames):
+        (cam_obs, why), (cands, error) = cams[k], found[k]
+        if cam_obs is None:
+            frames.append(FrameMeasurement(frame.name, None, None, why))
+            continue
+        if not cands:
+            frames.append(FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {error}"))
+            continue
+        points = tuple(obs.points for _, obs in cands)
+        if assoc is not None:
+            c = choice[k]
+            decision = BoardDecision(f"consensus of {assoc.agreeing} frames", _segment_dicts(cands, c.residuals,
+                                                                                            c.chosen),
+                                     c.chosen, c.reason, (), points)
+            lid = None if c.chosen is None else _trim_line(cands[c.chosen][1], assoc.T_camera_lidar,
+                                                           cam_obs.T_camera_board, dataset.board)
+            frames.append(FrameMeasurement(frame.name, cam_obs, lid, None if lid else f"LiDAR board: {c.reason}",
+                                           decision))
+            continue
+        if len(cands) > 1 and cands[1][0] < seg_params.ambiguity_ratio * cands[0][0] + 0.05:
+            reason = f"ambiguous: {len(cands)} board-length scan segments lie where the camera puts the board"
+            ambiguous[frame.name] = [obs for _, obs in cands]
+            frames.append(FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {reason}",
+                                           BoardDecision("this frame alone", _segment_dicts(cands), None, reason,
+                                                         (), points)))
+            continue
+        frames.append(FrameMeasurement(frame.name, cam_obs, cands[0][1], None,
+                                       BoardDecision("this frame alone", _segment_dicts(cands, chosen=0), 0,
+                                                     "the only segment that agrees with the camera's board", (),
+                                                     points)))
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return _trim_scan_lines(frames, dataset.board)
+
+
+def _segment_dicts(cands: list, residuals=(), chosen: int | None = None) -> tuple[dict, ...]:
+    out = []
+    for i, (cost, obs) in enumerate(cands):
+        d = {"points": obs.n_points, "centre_lidar_m": np.round(obs.points.mean(0), 4).tolist(),
+             "length_m": round(float(np.ptp(obs.line.coordinates(obs.points[:, :2]))), 3),
+             "camera_cue_cost": round(float(cost), 3)}
+        if i < len(residuals):
+            d.update({"rms_from_board_plane_mm": round(1000 * residuals[i][1], 1),
+                      "inside_board": round(residuals[i][2], 3)})
+        d["status"] = "chosen" if i == chosen else "rejected"
+        out.append(d)
+    return tuple(out)
+
+
+def _trim_line(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board):
+    """A laser segment cut to the camera's board outline (and its plane's band) under the extrinsic."""
+    if not board.size_known:
+        return obs
+    P = np.column_stack([obs.points[:, :2], np.zeros(len(obs.points))])
+    inside = inside_outline(P, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M, OUTLINE_BAND_M)
+    if inside.all() or inside.sum() < 5:
+        return obs
+    return observe_lidar_line(P[inside], obs.candidates)
 
 
 def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasurement]:
@@ -424,10 +488,7 @@ def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasure
     out = []
     for f in frames:
         if f.usable:
-            P = np.column_stack([f.lidar.points[:, :2], np.zeros(len(f.lidar.points))])
-            inside = inside_outline(P, T, f.camera.T_camera_board, board, OUTLINE_TRIM_M, OUTLINE_BAND_M)
-            if 5 <= inside.sum() < len(inside) and inside.mean() >= 0.4:
-                f = replace(f, lidar=observe_lidar_line(P[inside], f.lidar.candidates))
+            f = replace(f, lidar=_trim_line(f.lidar, T, f.camera.T_camera_board, board))
         out.append(f)
     return out
 

@@ -131,7 +131,22 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
                        params: ScanSegmentationParams = ScanSegmentationParams(),
                        others: list[cKDTree] | None = None, foreground: np.ndarray | None = None
                        ) -> LidarBoardObservation:
-    """The board's laser segment in a 2D scan ((N, 2) scan-plane points), or :class:`MeasurementError`.
+    """The board's laser segment in a 2D scan ((N, 2) scan-plane points), decided from this frame alone, or
+    :class:`MeasurementError` (:class:`AmbiguousBoardError` with the candidates when several segments agree
+    with the camera about equally well). Arguments as :func:`scan_candidates`."""
+    candidates = scan_candidates(points, board, camera, params, others, foreground)
+    if len(candidates) > 1 and candidates[1][0] < params.ambiguity_ratio * candidates[0][0] + 0.05:
+        raise AmbiguousBoardError(f"ambiguous: {len(candidates)} board-length scan segments lie where the camera "
+                                  "puts the board", [obs for _, obs in candidates])
+    return candidates[0][1]
+
+
+def scan_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation,
+                    params: ScanSegmentationParams = ScanSegmentationParams(),
+                    others: list[cKDTree] | None = None, foreground: np.ndarray | None = None
+                    ) -> list[tuple[float, LidarBoardObservation]]:
+    """Every straight segment of a 2D scan ((N, 2) scan-plane points) that can be the board, as (camera cue
+    cost, observation), best first; :class:`MeasurementError` when there is none.
     ``foreground``: mask of the returns in front of the static scene (``lidar.static_scene``); a segment
     must be mostly foreground. Without it, ``others`` (KD-trees of the other frames' scans) tell static
     background from the board."""
@@ -194,8 +209,4 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
                                f"between {lo:.1f} and {hi:.1f} m ({rejected} segments of other lengths, {static} "
                                "static in the other frames' scans)")
     candidates.sort(key=lambda c: c[0])
-    if len(candidates) > 1 and candidates[1][0] < params.ambiguity_ratio * candidates[0][0] + 0.05:
-        raise AmbiguousBoardError(f"ambiguous: {len(candidates)} board-length scan segments lie where the camera "
-                                  "puts the board",
-                                  [observe_lidar_line(_robust_line_points(Q), len(candidates)) for _, Q in candidates])
-    return observe_lidar_line(_robust_line_points(candidates[0][1]), len(candidates))
+    return [(cost, observe_lidar_line(_robust_line_points(Q), len(candidates))) for cost, Q in candidates]

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -276,3 +276,107 @@ def _explain(T, candidates, camera_planes, camera_poses, board, params, chosen: 
                                    f"(closest: {np.degrees(a):.1f} deg, {1000 * d:+.0f} mm, {100 * inside:.0f}% "
                                    "inside the board)"))
     return out
+
+
+def associate_lines(camera_planes: list[Plane], camera_poses: list[np.ndarray], candidates: list[list],
+                    board: BoardModel, rng: np.random.Generator, params: AssociationParams = AssociationParams(),
+                    max_triples: int = 1500, sigma_line_m: float = 0.03, points_per_segment: int = 40
+                    ) -> Association:
+    """The 2D form of :func:`associate`: ``candidates[k]`` are frame k's laser segments (observations with
+    ``line`` and ``points``). Hypotheses are the minimal solutions (MATH.md section 4) of triples of
+    (frame, segment) from frames whose camera normals span 3D; a segment agrees with one when its points,
+    mapped into the camera frame, lie on the frame's board plane (RMS distance within ``3 sigma_line_m``) and
+    inside its outline. The hypothesis most frames agree with chooses each frame's segment (the fullest that
+    agrees); a frame whose segments all disagree is skipped with the reason. Raises
+    :class:`DegenerateLayoutError` when no hypothesis has ``min_frames`` frames agreeing."""
+    from .minimal_solver import solve_triples
+
+    t0 = time.perf_counter()
+    frames = [k for k, c in enumerate(candidates) if c]
+    if len(frames) < params.min_frames:
+        raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a scan segment; choosing among them "
+                                    f"needs {params.min_frames}")
+    ncam = np.array([p.normal for p in camera_planes])
+    H = _hypotheses(frames, candidates, ncam, rng, replace(params, max_hypotheses=max_triples), None)
+    if len(H) == 0:
+        raise DegenerateLayoutError(f"no three of the {len(frames)} frames with scan segments have camera normals "
+                                    "that span 3D")
+    flat = [(k, i) for k in frames for i in range(len(candidates[k]))]
+    where = {fc: j for j, fc in enumerate(flat)}
+    planes = [camera_planes[k] for k, _ in flat]
+    lines = [candidates[k][i].line for k, i in flat]
+    triples = [tuple(where[(int(k), int(i))] for k, i in row) for row in H]
+    Ts = [T for sol in solve_triples(planes, lines, triples) for T in sol.T_camera_lidar]
+    if not Ts:
+        raise DegenerateLayoutError(f"no minimal solution from {len(triples)} triple(s) of scan segments")
+    Ts = np.array(Ts)
+    # Each segment's points (a subsample), with its frame's camera plane and board pose.
+    seg_pts, seg_of = [], []
+    for j, (k, i) in enumerate(flat):
+        P = candidates[k][i].points
+        P = P[np.linspace(0, len(P) - 1, min(points_per_segment, len(P))).astype(int)]
+        seg_pts.append(P)
+        seg_of += [j] * len(P)
+    Pm, seg_of = np.vstack(seg_pts), np.array(seg_of)
+    starts = np.searchsorted(seg_of, np.arange(len(flat)))
+    counts = np.diff(np.append(starts, len(seg_of)))
+    frame_of_seg = np.array([k for k, _ in flat])
+    seg_frame_starts = np.searchsorted(frame_of_seg, frames)
+    cost = np.empty(len(Ts))
+    agree = np.empty(len(Ts), dtype=int)
+    for s in range(0, len(Ts), 512):
+        rms, inside = _line_stats(Ts[s:s + 512], Pm, seg_of, starts, counts, flat, camera_planes, camera_poses,
+                                  board, params)
+        e2 = np.where(inside >= params.min_inside, np.minimum((rms / sigma_line_m) ** 2, GATE_CHI2_2DOF),
+                      GATE_CHI2_2DOF)
+        best = np.minimum.reduceat(e2, seg_frame_starts, axis=1)
+        cost[s:s + 512] = best.sum(1)
+        agree[s:s + 512] = (best < GATE_CHI2_2DOF).sum(1)
+    b = int(np.argmin(cost))
+    if agree[b] < params.min_frames:
+        raise DegenerateLayoutError(f"no minimal solution is supported by {params.min_frames} frames' scan segments "
+                                    f"(best: {int(agree[b])})")
+    T = Ts[b]
+    rms, inside = (v[0] for v in _line_stats(T[None], Pm, seg_of, starts, counts, flat, camera_planes, camera_poses,
+                                             board, params))
+    ok = (rms < 3 * sigma_line_m) & (inside >= params.min_inside)
+    chosen = {}
+    for j, (k, i) in enumerate(flat):
+        if ok[j] and (k not in chosen or len(candidates[k][i].points) > len(candidates[k][chosen[k]].points)):
+            chosen[k] = i
+    choices = []
+    for k, cands in enumerate(candidates):
+        res = tuple((float("nan"), float(rms[where[(k, i)]]), float(inside[where[(k, i)]]))
+                    for i in range(len(cands)))
+        if not cands:
+            choices.append(FrameChoice(None, res, "no scan segment"))
+        elif k in chosen:
+            _, d, share = res[chosen[k]]
+            choices.append(FrameChoice(chosen[k], res, f"lies on the board under the minimal solution of "
+                                                       f"{len(chosen)} frames (RMS {1000 * d:.0f} mm from the "
+                                                       f"camera's board plane, {100 * share:.0f}% inside it)"
+                                       + (f"; {len(cands) - 1} other segment(s) do not" if len(cands) > 1 else "")))
+        else:
+            j = min(range(len(cands)), key=lambda i: res[i][1])
+            choices.append(FrameChoice(None, res, f"its {len(cands)} segment(s) are off the board under the minimal "
+                                                  f"solution of {len(chosen)} frames (closest: RMS "
+                                                  f"{1000 * res[j][1]:.0f} mm, {100 * res[j][2]:.0f}% inside)"))
+    return Association(T, tuple(choices), len(chosen), len(Ts), time.perf_counter() - t0)
+
+
+def _line_stats(Ts, Pm, seg_of, starts, counts, flat, camera_planes, camera_poses, board, params):
+    """Per hypothesis and segment: RMS distance (m) of its points from its frame's camera board plane, and the
+    share of them inside the board's outline (grown by ``outline_margin_m``), two (H, S) arrays."""
+    frame_of_pt = np.array([flat[j][0] for j in seg_of])
+    n = np.array([camera_planes[k].normal for k in frame_of_pt])
+    d = np.array([camera_planes[k].distance for k in frame_of_pt])
+    pc = np.einsum("hij,mj->hmi", Ts[:, :3, :3], Pm) + Ts[:, None, :3, 3]  # (H, M, 3) in the camera frame
+    r = np.einsum("hmi,mi->hm", pc, n) - d
+    rms = np.sqrt(np.add.reduceat(r * r, starts, axis=1) / counts)
+    T_bc = np.array([np.linalg.inv(camera_poses[k]) for k in frame_of_pt])  # (M, 4, 4)
+    pb = np.einsum("mij,hmj->hmi", T_bc[:, :3, :3], pc) + T_bc[:, :3, 3]
+    corners = board.outline()[:, :2]
+    m = params.outline_margin_m
+    inside = np.all((pb[..., :2] >= corners.min(0) - m) & (pb[..., :2] <= corners.max(0) + m), axis=2)
+    share = np.add.reduceat(inside.astype(float), starts, axis=1) / counts
+    return rms, share
