@@ -398,18 +398,11 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         found = list(pool.map(search, range(len(dataset.frames))))
-    with_cam = [k for k, (c, _) in enumerate(cams) if c is not None]
-    assoc = None
     t0 = time.perf_counter()
-    if sum(1 for k in with_cam if found[k][0]) >= 3:
-        try:
-            assoc = associate_lines([cams[k][0].plane for k in with_cam], [cams[k][0].T_camera_board for k in with_cam],
-                                    [[obs for _, obs in found[k][0]] for k in with_cam], dataset.board, rng)
-        except DegenerateLayoutError as exc:
-            warnings.append(f"no extrinsic that enough frames' scan segments agree on ({exc.problem}); each "
-                            "frame's segment is chosen from its own cues")
+    assoc, choice = _consensus(cams, [[obs for _, obs in f[0]] for f in found], warnings, "scan segments",
+                               lambda planes, poses, cands, _: associate_lines(planes, poses, cands, dataset.board,
+                                                                                rng))
     _add_time(timings, "association", time.perf_counter() - t0)
-    choice = dict(zip(with_cam, assoc.choices)) if assoc is not None else {}
     frames, ambiguous = [], {}
     for k, frame in enumerate(dataset.frames):
         (cam_obs, why), (cands, error) = cams[k], found[k]
@@ -537,19 +530,11 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     with ThreadPoolExecutor(max_workers=workers) as pool:
         found = list(pool.map(search, range(n)))
     t0 = time.perf_counter()
-    with_cam = [k for k in range(n) if cams[k][0] is not None]
-    assoc = None
-    if sum(1 for k in with_cam if found[k][0]) >= 3:
-        try:
-            assoc = associate([cams[k][0].plane for k in with_cam], [cams[k][0].T_camera_board for k in with_cam],
-                              [[c.observation for c in found[k][0]] for k in with_cam], dataset.board, rngs[-1],
-                              AssociationParams(), [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found[k][0]]
-                                                    for k in with_cam])
-        except DegenerateLayoutError as exc:
-            warnings.append(f"no extrinsic that enough frames agree on ({exc.problem}); each frame's board is "
-                            "chosen from its own cues")
+    assoc, choice = _consensus(
+        cams, [[c.observation for c in f[0]] for f in found], warnings, "board candidates",
+        lambda planes, poses, cands, ks: associate(planes, poses, cands, dataset.board, rngs[-1], AssociationParams(),
+                                                   [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found[k][0]] for k in ks]))
     _add_time(timings, "association", time.perf_counter() - t0)
-    choice = dict(zip(with_cam, assoc.choices)) if assoc is not None else {}
     frames, ambiguous = [], {}
     for k, frame in enumerate(dataset.frames):
         cam_obs, why = cams[k]
@@ -565,6 +550,22 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return frames
+
+
+def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], what: str, choose):
+    """The joint choice over the frames with a camera board (``choose(planes, poses, candidates, frame ids)``),
+    and each such frame's :class:`FrameChoice`; (None, {}) with a warning when there is no consensus."""
+    ks = [k for k, (c, _) in enumerate(cams) if c is not None]
+    if sum(1 for k in ks if candidates[k]) < 3:
+        return None, {}
+    try:
+        assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
+                       [candidates[k] for k in ks], ks)
+    except DegenerateLayoutError as exc:
+        warnings.append(f"no extrinsic that enough frames' {what} agree on ({exc.problem}); each frame's is "
+                        "chosen from its own cues")
+        return None, {}
+    return assoc, dict(zip(ks, assoc.choices))
 
 
 def _cropped(sweep, keep: np.ndarray):

@@ -15,17 +15,28 @@ from geometry.rotations import T_inverse, T_log, rotation_error
 from .conftest import REALDATA
 
 VLP16 = REALDATA / "acfr_vlp16_a"
+OUSTER = REALDATA / "acfr_ouster64_b"
+RPG = REALDATA / "acfr_rpg_2d"
 
+
+def _measured(path):
+    """A recorded dataset and its per-frame measurements (measured once per module: corner detection
+    dominates); the test skips when the set is absent."""
+    if not (path / "dataset.yaml").is_file():
+        pytest.skip(f"shared/realdata/{path.name} is absent")
+    ds = load_dataset(path)
+    camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
+    return ds, camera, frames
 
 
 @pytest.fixture(scope="module")
 def vlp16():
-    """The dataset and its per-frame measurements (measured once: corner detection dominates)."""
-    if not (VLP16 / "dataset.yaml").is_file():
-        pytest.skip("shared/realdata/acfr_vlp16_a is absent")
-    ds = load_dataset(VLP16)
-    camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-    return ds, camera, frames
+    return _measured(VLP16)
+
+
+@pytest.fixture(scope="module")
+def ouster():
+    return _measured(OUSTER)
 
 
 @pytest.mark.parametrize("refine", ["none", "factor-graph"])
@@ -56,26 +67,13 @@ def test_recorded_vlp16_halves_agree_within_their_covariances(vlp16):
     assert d2 < chi2.ppf(0.99, 6), d2
 
 
-OUSTER = REALDATA / "acfr_ouster64_b"
-RPG = REALDATA / "acfr_rpg_2d"
-
-
-@pytest.fixture(scope="module")
-def ouster():
-    if not (OUSTER / "dataset.yaml").is_file():
-        pytest.skip("shared/realdata/acfr_ouster64_b is absent")
-    ds = load_dataset(OUSTER)
-    camera, frames, warnings = measure_frames(ds, np.random.default_rng(0))
-    return ds, camera, frames, warnings
-
-
 def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(ouster):
     """An office full of board-sized planes (every frame ambiguous on its own cues): the static scene and
     the cross-frame choice find all 11 boards, each wholly inside the camera's board outline under the
     estimate; the result is within 1 degree and 80 mm of the source tool's reference (its own subset spread:
     about 10/20/34 mm), and the reference lies inside the estimate's 99% region (squared Mahalanobis distance
     below the chi-square 6-dof 99% quantile): the layout constrains camera y weakly (about 30 mm)."""
-    ds, camera, frames, _ = ouster
+    ds, camera, frames = ouster
     result = solve(frames, ds.board, camera, posterior=PosteriorOptions(min_ess=500), name=str(OUSTER))
     assert result.frames_used == len(ds.frames) == 11, [f.reason for f in frames if not f.usable]
     for f in frames:
@@ -95,7 +93,7 @@ def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, v
     calibration.json holds each frame's board choice."""
     from estimators.calibration import write_calibration
 
-    ds, camera, frames = (vlp16 if which == "vlp16" else ouster)[:3]
+    ds, camera, frames = vlp16 if which == "vlp16" else ouster
     result = solve(frames, ds.board, camera, posterior=PosteriorOptions(min_ess=300), name=str(ds.root))
     assert result.posterior is not None and np.all(np.isfinite(result.covariance))
     write_calibration(result, tmp_path)
