@@ -390,7 +390,7 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         try:
             return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
                                    [t for j, t in enumerate(trees) if j != k],
-                                   scene.foreground(scans_2d[k]) if scene.usable else None), None
+                                   scene.frame_foreground(k)), None
         except MeasurementError as exc:
             return [], exc.message
         finally:
@@ -513,15 +513,13 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
             return [], [], None
         t1 = time.perf_counter()
         s = sweeps[k]
-        fg = scene.foreground(s.points, s.ring) if scene.usable else None
+        fg = scene.frame_foreground(k)
         try:
             cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
         except MeasurementError as exc:
             return [], [], exc.message
         finally:
             _add_time(timings, "segmentation", time.perf_counter() - t1)
-        if fg is not None:
-            cands = [replace(c, foreground=float(np.mean(scene.foreground(c.observation.points)))) for c in cands]
         if hints.initial_guess is not None:
             cands, off = _gate_by_guess(cands, cam_obs, hints)
             rejected = rejected + off

@@ -194,18 +194,19 @@ def _camera_cue_cost(plane: Plane, P: np.ndarray, cam: CameraBoardObservation, b
 @dataclass(frozen=True, eq=False)
 class BoardCandidate:
     """A planar piece of a sweep that can be the board: its observation (points gathered and trimmed), its
-    rotation-invariant disagreement with the camera's board (``cue_cost``, 0 is perfect), and the share of
-    its points in front of the static scene (``foreground``; 1.0 when only foreground points were searched)."""
+    rotation-invariant disagreement with the camera's board (``cue_cost``, 0 is perfect), and whether it was
+    searched among the points in front of the static scene only (``in_foreground``; False when the frame was
+    judged alone)."""
 
     observation: LidarBoardObservation
     cue_cost: float
-    foreground: float = 1.0
+    in_foreground: bool = False
 
     def to_dict(self) -> dict:
         obs = self.observation
         return {"points": obs.n_points, "centre_lidar_m": np.round(obs.points.mean(0), 4).tolist(),
                 "normal_lidar": np.round(obs.plane.normal, 5).tolist(), "distance_m": round(obs.plane.distance, 4),
-                "camera_cue_cost": round(self.cue_cost, 3), "foreground": round(self.foreground, 3)}
+                "camera_cue_cost": round(self.cue_cost, 3), "in_front_of_static_scene": self.in_foreground}
 
 
 def range_gate(board: BoardModel, camera: CameraBoardObservation | None, sep: float) -> tuple[float, float]:
@@ -268,7 +269,8 @@ def board_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardO
                 continue
             pieces.append((Q, plane, cost))
     pieces.sort(key=lambda c: c[2])
-    return [BoardCandidate(_finish(Q, P, board, len(pieces)), cost) for Q, _, cost in pieces], rejected
+    return [BoardCandidate(_finish(Q, P, board, len(pieces)), cost, foreground is not None)
+            for Q, _, cost in pieces], rejected
 
 
 def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,

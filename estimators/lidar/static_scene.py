@@ -57,6 +57,7 @@ class StaticScene:
     _column_rad: float = 0.0
     _rows: np.ndarray | None = None      # range image: the beam ids, in row order
     _voxels: np.ndarray | None = None    # voxels: sorted keys of background voxels
+    _frames: tuple = ()                  # the foreground mask of each frame the model was built from
 
     @property
     def usable(self) -> bool:
@@ -69,6 +70,11 @@ class StaticScene:
         if self.kind == "voxels":
             return ~self._in_background_voxel(points)
         return self._classify(points, ring)[0]
+
+    def frame_foreground(self, k: int) -> np.ndarray | None:
+        """The foreground mask of the k-th frame the model was built from (computed once, at the build), or
+        None when the model is not usable."""
+        return self._frames[k] if self.usable and k < len(self._frames) else None
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "note": self.note,
@@ -186,8 +192,8 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
         ok = (spans[i] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
         background[ok] = ordered[i][ok]
     scene = StaticScene("range-image", params, _background=background, _column_rad=column, _rows=rows)
-    match = [float(np.mean(scene._classify(P, ring)[1])) for P, ring in zip(points, rings)]
-    return _checked(scene, np.array(match))
+    classified = [scene._classify(P, ring) for P, ring in zip(points, rings)]
+    return _checked(scene, np.array([float(np.mean(s)) for _, s in classified]), tuple(f for f, _ in classified))
 
 
 def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> StaticScene:
@@ -195,11 +201,11 @@ def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> Static
     keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
     need = max(2, int(np.ceil(0.5 * len(points))))
     scene = StaticScene("voxels", params, _voxels=keys[counts >= need])
-    match = np.array([float(np.mean(scene._in_background_voxel(P))) for P in points])
-    return _checked(scene, match)
+    background = [scene._in_background_voxel(P) for P in points]
+    return _checked(scene, np.array([float(np.mean(b)) for b in background]), tuple(~b for b in background))
 
 
-def _checked(scene: StaticScene, match: np.ndarray) -> StaticScene:
+def _checked(scene: StaticScene, match: np.ndarray, foreground: tuple = ()) -> StaticScene:
     limit = max(scene.params.moved_fraction, float(np.median(match)) - scene.params.moved_drop)
     moved = np.nonzero(match < limit)[0]
     if len(moved):
@@ -209,7 +215,7 @@ def _checked(scene: StaticScene, match: np.ndarray) -> StaticScene:
                            f"{100 * match[moved].min():.0f}% of their returns; each frame's board is found from "
                            "its own cues")
     return StaticScene(scene.kind, scene.params, match, scene.note, scene._background, scene._column_rad,
-                       scene._rows, scene._voxels)
+                       scene._rows, scene._voxels, foreground)
 
 
 def build_static_scene(points: list[np.ndarray], rings: list[np.ndarray | None] | None = None,
