@@ -185,8 +185,9 @@ def test_open_hall_with_3cm_noise_uses_every_frame(tmp_path):
 
 
 def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(tmp_path):
-    """A 2D office recording with a person holding each board: the whole pipeline, posterior included, runs;
-    the estimate is within 4 standard deviations of the truth."""
+    """A 2D office recording with a person holding each board: the whole pipeline, posterior and report
+    included, runs; the segments are chosen by the frames' consensus; the estimate is within 4 standard
+    deviations of the truth."""
     path = simulate_dataset(tmp_path / "h2d", n_poses=8, seed=1, lidar="2d", scene="office")
     ds = load_dataset(path)
     result = calibrate(ds, samples=300)
@@ -194,6 +195,9 @@ def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(t
     assert result.posterior is not None and result.frames_used >= 6
     xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
     assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
+    assert all(f.decision.method.startswith("consensus") for f in result.frames if f.decision is not None)
+    report = result.report(tmp_path / "out")
+    assert (tmp_path / "out" / "board_choice_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 
 
 def test_initial_guess_gates_candidates_and_roi_crops(tmp_path):

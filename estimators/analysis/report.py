@@ -140,11 +140,11 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
     return _png(fig), offset
 
 
-def board_choice_figure(frame, scan_path) -> bytes:
-    """Top view of a frame's sweep (LiDAR x forward, y left): every return grey, the board candidates
+def board_choice_figure(frame, scan_path, two_d: bool = False) -> bytes:
+    """Top view of a frame's sweep or scan (LiDAR x forward, y left): every return grey, the board candidates
     coloured and numbered, the chosen one outlined in black."""
     dec = frame.decision
-    scan = read_scan(scan_path)
+    scan = read_scan_2d(scan_path) if two_d else read_scan(scan_path)
     fig, ax = new_figure(figsize=(6, 6))
     ax.scatter(scan[:, 0], scan[:, 1], s=0.2, c="0.75", lw=0)
     centres = [P.mean(0) for P in dec.candidate_points]
@@ -211,7 +211,7 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
     for frame in choices:
         figures.append((f"board_choice_{frame.name}.png",
                         f"Frame {frame.name}: LiDAR board candidates (top view)",
-                        board_choice_figure(frame, files[frame.name].scan)))
+                        board_choice_figure(frame, files[frame.name].scan, dataset.lidar == "2d")))
     if result.posterior is not None:
         figures.append(("traces.png", "MCMC traces", traces_figure(result)))
     for name, _, png in figures:
