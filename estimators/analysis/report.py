@@ -146,7 +146,7 @@ def board_choice_figure(frame, scan_path, two_d: bool = False) -> bytes:
     dec = frame.decision
     scan = read_scan_2d(scan_path) if two_d else read_scan(scan_path)
     fig, ax = new_figure(figsize=(6, 6))
-    ax.scatter(scan[:, 0], scan[:, 1], s=0.2, c="0.75", lw=0)
+    ax.scatter(scan[:, 0], scan[:, 1], s=3.0 if two_d else 0.2, c="0.6" if two_d else "0.75", lw=0)
     centres = [P.mean(0) for P in dec.candidate_points]
     for i, P in enumerate(dec.candidate_points):
         chosen = i == dec.chosen
