@@ -161,12 +161,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--datasets", type=int, default=13, help="datasets of 8 poses per configuration")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--only", default=None, metavar="TEXT", help="run only the configurations whose label holds TEXT")
     args = ap.parse_args()
     print(f"Real scenes: {args.datasets} datasets x {POSES} poses per configuration (seeds 0..{args.datasets - 1})")
     print(f"{'configuration':22s}{'frames':>7s}{'>=40% hit':>10s}{'used':>7s}{'used %':>8s}{'wrong':>7s}"
           f"{'refused':>8s}{'rot deg':>9s}{'trans mm':>9s}{'err/CRB':>13s}{'default err/CRB':>17s}{'d2':>6s}")
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(args.workers) as pool:
         for label, lidar, scene, noise in CONFIGS:
+            if args.only and args.only not in label:
+                continue
             rows = list(pool.map(_trial, [(lidar, scene, noise, s, tmp) for s in range(args.datasets)]))
             tot = {k: sum(r[k] for r in rows) for k in ("frames", "eligible", "used_eligible", "used", "wrong")}
             ok = [r["errors"] for r in rows if r["errors"].get(scene) and r["errors"].get("default")]
