@@ -382,27 +382,35 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         warnings.append(f"static scene: {scene.note}")
     seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
 
-    def search(k: int) -> tuple[list, str | None]:
+    def search(k: int) -> tuple[list, str | None, list]:
         cam_obs = cams[k][0]
         if cam_obs is None:
-            return [], None
+            return [], None, []
         t1 = time.perf_counter()
+        static: list = []
         try:
             return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
                                    [t for j, t in enumerate(trees) if j != k],
-                                   scene.frame_foreground(k)), None
+                                   scene.frame_foreground(k), static), None, static
         except MeasurementError as exc:
-            return [], exc.message
+            return [], exc.message, []
         finally:
             _add_time(timings, "segmentation", time.perf_counter() - t1)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        found = list(pool.map(search, range(len(dataset.frames))))
+        searched = list(pool.map(search, range(len(dataset.frames))))
     t0 = time.perf_counter()
-    assoc, choice = _consensus(cams, [[obs for _, obs in f[0]] for f in found], warnings, "scan segments",
+    # The consensus also sees the segments judged static (boards held at one place in several frames look
+    # static); without a consensus each frame decides from its moving segments alone.
+    joint = [cands + sorted(static, key=lambda c: c[0]) for cands, _, static in searched]
+    assoc, choice = _consensus(cams, [[obs for _, obs in c] for c in joint], warnings, "scan segments",
                                lambda planes, poses, cands, _: associate_lines(planes, poses, cands, dataset.board,
                                                                                 rng))
     _add_time(timings, "association", time.perf_counter() - t0)
+    found = [(joint[k], error) if assoc is not None else (cands, error)
+             for k, (cands, error, _) in enumerate(searched)]
+    found = [(c, e if c else (e or "no straight scan segment of the board's length that moves between frames"))
+             for c, e in found]
     frames, ambiguous = [], {}
     for k, frame in enumerate(dataset.frames):
         (cam_obs, why), (cands, error) = cams[k], found[k]

@@ -143,13 +143,15 @@ def find_board_in_scan(points: np.ndarray, board: BoardModel, camera: CameraBoar
 
 def scan_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation,
                     params: ScanSegmentationParams = ScanSegmentationParams(),
-                    others: list[cKDTree] | None = None, foreground: np.ndarray | None = None
-                    ) -> list[tuple[float, LidarBoardObservation]]:
+                    others: list[cKDTree] | None = None, foreground: np.ndarray | None = None,
+                    static_out: list | None = None) -> list[tuple[float, LidarBoardObservation]]:
     """Every straight segment of a 2D scan ((N, 2) scan-plane points) that can be the board, as (camera cue
     cost, observation), best first; :class:`MeasurementError` when there is none.
     ``foreground``: mask of the returns in front of the static scene (``lidar.static_scene``); a segment
     must be mostly foreground. Without it, ``others`` (KD-trees of the other frames' scans) tell static
-    background from the board."""
+    background from the board. ``static_out``: a list that receives the segments judged static, in the same
+    form (a board held at one place in several frames can look static; a cross-frame choice may still take
+    it), and then no error is raised when only static segments were found."""
     P = np.asarray(points, dtype=float)[:, :2]
     sep = params.max_sensor_separation_m
     outline = (camera.T_camera_board[:3, :3] @ board.outline().T).T + camera.T_camera_board[:3, 3]
@@ -202,9 +204,11 @@ def scan_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardOb
             continue
         if (np.mean(fg[idx]) < 0.5) if fg is not None else is_static(Q, others or [], params.static_radius_m):
             static += 1
+            if static_out is not None:
+                static_out.append((cost, observe_lidar_line(_robust_line_points(Q))))
             continue
         candidates.append((cost, Q))
-    if not candidates:
+    if not candidates and not static_out:
         raise MeasurementError(f"no straight scan segment of the board's length ({min_len:.2f}-{max_len:.2f} m) "
                                f"between {lo:.1f} and {hi:.1f} m ({rejected} segments of other lengths, {static} "
                                "static in the other frames' scans)")
