@@ -12,7 +12,7 @@ from scipy.stats import chi2
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
-from geometry.rotations import T_inverse, quat_xyzw_from_R, transform_points
+from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
 from .camera.board_pose import estimate_board_pose
