@@ -28,7 +28,8 @@ from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board
                                        decide_alone, robust_plane_fit)
 from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
-from .measurements import BoardDecision, FrameMeasurement, observe_lidar_board, observe_lidar_line
+from .measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
+                           observe_lidar_line)
 from .solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
@@ -594,11 +595,7 @@ def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[
 def _no_candidate_reason(board, rejected: list[str], error: str | None) -> str:
     if error is not None:
         return f"LiDAR board: {error}"
-    counts: dict[str, int] = {}
-    for why in rejected:
-        key = why.split(" (")[0]
-        counts[key] = counts.get(key, 0) + 1
-    detail = "; ".join(f"{n} {key}" for key, n in sorted(counts.items(), key=lambda kv: -kv[1])) or "none found"
+    detail = "; ".join(f"{n} {key}" for key, n in count_reasons(rejected).items()) or "none found"
     return (f"LiDAR board: no planar segment that fits inside the board's {board.extent[0]:.2f} x "
             f"{board.extent[1]:.2f} m where the camera puts it (planar pieces rejected: {detail})")
 

@@ -163,12 +163,18 @@ class BoardDecision:
     candidate_points: tuple[np.ndarray, ...] = ()
 
     def to_dict(self) -> dict:
-        counts: dict[str, int] = {}
-        for why in self.rejected:
-            key = why.split(" (")[0]
-            counts[key] = counts.get(key, 0) + 1
         return {"method": self.method, "chosen": self.chosen, "reason": self.reason,
-                "candidates": list(self.candidates), "pieces_rejected": counts}
+                "candidates": list(self.candidates), "pieces_rejected": count_reasons(self.rejected)}
+
+
+def count_reasons(reasons) -> dict[str, int]:
+    """How many times each kind of reason occurs (a reason's kind: its text before any parenthesised detail),
+    most frequent first."""
+    counts: dict[str, int] = {}
+    for why in reasons:
+        key = why.split(" (")[0]
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 @dataclass(frozen=True, eq=False)

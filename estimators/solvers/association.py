@@ -213,31 +213,25 @@ def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, 
 
 
 def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
-    """Per candidate of frame k: (angle, distance, inside share, gated statistic, points judged). The plane is
-    refitted to
-    the points inside the camera's board outline, so that a holder's arm or body joined to the board's piece
+    """Per candidate of frame k: (angle, distance, inside share, gated statistic, points judged). A candidate
+    that can be chosen (enough of it inside the camera's board outline) is judged by its points inside the
+    outline and near the plane, refitted robustly, so that a holder's arm or body joined to the board's piece
     does not tilt it."""
     out = []
+    cam = camera_planes[k]
     for c in candidates[k]:
         inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m)
-        if len(inside) == 0 or inside.mean() < params.min_inside:  # cannot be chosen: no refit needed
-            ang, dist = (float(v[0, 0]) for v in _residuals(T[None, :3, :3], T[None, :3, 3], c.plane.normal[None],
-                                                            c.points.mean(0)[None], camera_planes[k].normal[None],
-                                                            np.array([camera_planes[k].distance])))
-            e2 = (ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2
-            out.append((ang, dist, float(np.mean(inside)) if len(inside) else 0.0, e2, len(c.points)))
-            continue
-        plane = c.plane
-        near = inside & inside_outline(c.points, T, camera_poses[k], board, np.inf, params.refit_band_m)
-        P = c.points
-        if board.size_known and 10 <= near.sum() < len(near):
-            plane, keep = robust_plane_fit(P[near])
-            P = P[near][keep]
+        share = float(np.mean(inside)) if len(inside) else 0.0
+        plane, P = c.plane, c.points
+        if share >= params.min_inside and board.size_known:
+            near = inside & inside_outline(P, T, camera_poses[k], board, np.inf, params.refit_band_m)
+            if 10 <= near.sum() < len(near):
+                plane, keep = robust_plane_fit(P[near])
+                P = P[near][keep]
         ang, dist = (float(v[0, 0]) for v in _residuals(T[None, :3, :3], T[None, :3, 3], plane.normal[None],
-                                                        P.mean(0)[None], camera_planes[k].normal[None],
-                                                        np.array([camera_planes[k].distance])))
+                                                        P.mean(0)[None], cam.normal[None], np.array([cam.distance])))
         e2 = (ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2
-        out.append((ang, dist, float(np.mean(inside)) if len(inside) else 0.0, e2, len(P)))
+        out.append((ang, dist, share, e2, len(P)))
     return out
 
 
