@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from geometry.camera import CameraModel
@@ -217,6 +218,8 @@ class CalibrationResult:
             "consistency": {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
                             "p_value": ref.consistency_p},
             "iterations": ref.iterations,
+            "lidar_range_model": (ref.range_model.to_dict() if ref.range_model is not None else
+                                  {"requested": "none", "chosen": "none", "reason": "not requested", "terms": []}),
         }
 
     def _minimal_dict(self) -> dict:
@@ -556,7 +559,20 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
                                        ambiguous))
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
-    return frames
+    return [_with_beam_fields(f, sweeps[k]) for k, f in enumerate(frames)]
+
+
+def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
+    """The frame with its board points' ring and intensity looked up in the sweep they came from (exact
+    coordinates), for the range model's per-ring and reflectivity terms."""
+    if not frame.usable or (sweep.ring is None and sweep.intensity is None):
+        return frame
+    dist, idx = cKDTree(sweep.points).query(frame.lidar.points, distance_upper_bound=1e-6)
+    if not np.all(np.isfinite(dist)):
+        return frame
+    lidar = replace(frame.lidar, rings=None if sweep.ring is None else sweep.ring[idx],
+                    intensity=None if sweep.intensity is None else sweep.intensity[idx])
+    return replace(frame, lidar=lidar)
 
 
 def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], what: str, choose):
@@ -576,7 +592,8 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
 
 
 def _cropped(sweep, keep: np.ndarray):
-    return type(sweep)(sweep.points[keep], None if sweep.ring is None else sweep.ring[keep])
+    return type(sweep)(sweep.points[keep], None if sweep.ring is None else sweep.ring[keep],
+                       None if sweep.intensity is None else sweep.intensity[keep])
 
 
 def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:

@@ -60,6 +60,10 @@ class LidarBoardObservation:
     # 2D LiDAR: the board's laser line in the scan plane (z = 0). ``plane`` is then the vertical plane
     # through it (a stand-in: one line does not fix a plane) and ``plane_rms_m`` the line fit's RMS.
     line: Line2D | None = None
+    # Per point, when the scan tells them: the beam (laser) index and the return's intensity. The range
+    # model's per-ring and reflectivity terms use them (``solvers.range_model``).
+    rings: np.ndarray | None = None
+    intensity: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:

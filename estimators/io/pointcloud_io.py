@@ -27,10 +27,12 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class Sweep:
     """A 3D scan's valid points and, when the file tells it, each point's beam (laser) index: the ``ring``
-    field, or the row of an organised cloud. ``ring`` is None for an unorganised cloud without one."""
+    field, or the row of an organised cloud. ``ring`` is None for an unorganised cloud without one;
+    ``intensity`` None for a file without an intensity (reflectivity) field."""
 
     points: np.ndarray
     ring: np.ndarray | None = None
+    intensity: np.ndarray | None = None
 
 
 def read_sweep(path: str | os.PathLike) -> Sweep:
@@ -44,7 +46,7 @@ def read_sweep(path: str | os.PathLike) -> Sweep:
         raise ScanReadError(f"unknown scan format {suffix!r}", path=path,
                             hint=f"use one of {', '.join(SCAN_SUFFIXES)}")
     try:
-        xyz, ring = readers[suffix](path, rings=True)
+        xyz, ring, intensity = readers[suffix](path, rings=True)
     except ScanReadError:
         raise
     except Exception as exc:  # the readers raise many kinds on corrupt input; name the file instead
@@ -59,7 +61,12 @@ def read_sweep(path: str | os.PathLike) -> Sweep:
     if ring is not None:
         ring = np.asarray(ring).reshape(-1)
         ring = ring[keep].astype(np.int64) if len(ring) == len(keep) and np.all(np.isfinite(ring)) else None
-    return Sweep(xyz, ring)
+    if intensity is not None:
+        intensity = np.asarray(intensity, dtype=float).reshape(-1)
+        intensity = intensity[keep] if len(intensity) == len(keep) else None
+        if intensity is not None and not np.all(np.isfinite(intensity)):
+            intensity = None
+    return Sweep(xyz, ring, intensity)
 
 
 def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
@@ -163,12 +170,13 @@ def _read_pcd(path: Path, rings: bool = False):
     xyz = pc.numpy(("x", "y", "z"))
     if not rings:
         return xyz
+    intensity = pc.numpy(("intensity",))[:, 0] if "intensity" in pc.fields else None
     if "ring" in pc.fields:
-        return xyz, pc.numpy(("ring",))[:, 0]
+        return xyz, pc.numpy(("ring",))[:, 0], intensity
     height = int(pc.metadata.height)
     if height > 1 and height * int(pc.metadata.width) == len(xyz):  # organised: one row per beam
-        return xyz, np.repeat(np.arange(height), int(pc.metadata.width))
-    return xyz, None
+        return xyz, np.repeat(np.arange(height), int(pc.metadata.width)), intensity
+    return xyz, None, intensity
 
 
 def _read_ply(path: Path, rings: bool = False):
@@ -183,7 +191,10 @@ def _read_ply(path: Path, rings: bool = False):
     if missing:
         raise ScanReadError(f"PLY vertices have no {', '.join(missing)}", path=path, hint="save x, y and z")
     xyz = np.column_stack([v["x"], v["y"], v["z"]])
-    return (xyz, np.asarray(v["ring"]) if "ring" in names else None) if rings else xyz
+    if not rings:
+        return xyz
+    return (xyz, np.asarray(v["ring"]) if "ring" in names else None,
+            np.asarray(v["intensity"]) if "intensity" in names else None)
 
 
 def _read_kitti_bin(path: Path, rings: bool = False):
@@ -191,8 +202,8 @@ def _read_kitti_bin(path: Path, rings: bool = False):
     if size == 0 or size % 16:
         raise ScanReadError(f"KITTI .bin size {size} bytes is not a multiple of 16 (float32 x, y, z, i)",
                             path=path, hint="the file is truncated or not a KITTI scan")
-    xyz = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
-    return (xyz, None) if rings else xyz
+    data = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    return (data[:, :3], None, data[:, 3]) if rings else data[:, :3]
 
 
 def _read_npy(path: Path, rings: bool = False):
@@ -200,7 +211,7 @@ def _read_npy(path: Path, rings: bool = False):
     if a.ndim != 2 or a.shape[1] < 3 or a.dtype.kind not in "fiu":
         raise ScanReadError(f"expected a numeric N x >=3 array, got shape {a.shape} dtype {a.dtype}",
                             path=path, hint="save x, y, z as the first three columns")
-    return (a[:, :3], None) if rings else a[:, :3]
+    return (a[:, :3], None, a[:, 3] if a.shape[1] >= 4 else None) if rings else a[:, :3]
 
 
 def write_scan(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None,

@@ -11,6 +11,8 @@ Jacobians are taken in GTSAM's right (body) tangent, ``T Exp(xi)`` with ``xi = [
   points' excess moment (:func:`geometry.planes.sqrt_excess_moment`), so that ``|W pi|^2`` plus a
   constant is exactly the sum of squared point-to-plane (or range) errors of all the board's points.
   Serves 2D scans unchanged (``W`` then has rank 2 or 3).
+- Plane factor with range terms: the same over ``[pi; beta]``, ``beta`` the LiDAR range model's nuisance
+  vector (a third variable; ``solvers.range_model``).
 """
 from __future__ import annotations
 
@@ -80,6 +82,19 @@ def lidar_residual(W: np.ndarray, pi: np.ndarray, scan_line: bool = False) -> tu
     return e / g, W / g - np.outer(e, dg) / g**2
 
 
+def nuisance_residual(W: np.ndarray, cols: np.ndarray, m_away: np.ndarray, pi: np.ndarray, beta: np.ndarray,
+                      scan_line: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The whitened LiDAR residual with range nuisance terms (``solvers.range_model``):
+    ``W [s pi (/ |n_xy|); beta[cols]]`` with ``s`` orienting the plane like the fitted one, and its
+    Jacobians by ``pi`` (k x 4) and by the whole ``beta`` (k x K)."""
+    e, de = lidar_residual(W[:, :4], pi, scan_line)
+    s = 1.0 if float(pi[:3] @ m_away) >= 0 else -1.0
+    Wb = W[:, 4:]
+    H_beta = np.zeros((W.shape[0], len(beta)))
+    H_beta[:, cols] = Wb
+    return s * e + Wb @ beta[cols], s * de, H_beta
+
+
 def _pose(values: gtsam.Values, key: int) -> np.ndarray:
     return values.atPose3(key).matrix()
 
@@ -101,6 +116,17 @@ def _plane_error(W, scan_line, this, values, H):
     return e
 
 
+def _nuisance_plane_error(W, cols, m_away, scan_line, this, values, H):
+    keys = this.keys()
+    pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
+    e, de, H_beta = nuisance_residual(W, cols, m_away, pi, values.atVector(keys[2]), scan_line)
+    if H is not None:
+        H[0] = de @ H_x
+        H[1] = de @ H_b
+        H[2] = H_beta
+    return e
+
+
 def corner_factor(key_board: int, corners_board: np.ndarray, corners_px: np.ndarray, camera: CameraModel,
                   noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
     corners_px = np.asarray(corners_px, dtype=float).reshape(-1, 2)
@@ -112,3 +138,12 @@ def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam
                  scan_line: bool = False) -> gtsam.CustomFactor:
     return gtsam.CustomFactor(noise, [key_extrinsic, key_board],
                               partial(_plane_error, np.asarray(W, dtype=float), scan_line))
+
+
+def nuisance_plane_factor(key_extrinsic: int, key_board: int, key_range: int, W: np.ndarray, cols: np.ndarray,
+                          m_away: np.ndarray, noise: gtsam.noiseModel.Base, scan_line: bool = False
+                          ) -> gtsam.CustomFactor:
+    """The plane (or scan-line) factor with the range model's nuisance vector as a third variable."""
+    return gtsam.CustomFactor(noise, [key_extrinsic, key_board, key_range],
+                              partial(_nuisance_plane_error, np.asarray(W, dtype=float), np.asarray(cols, dtype=int),
+                                      np.asarray(m_away, dtype=float), scan_line))

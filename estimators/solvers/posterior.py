@@ -35,7 +35,8 @@ from geometry.rotations import T_log, exp_batch
 from ..errors import LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
 from .factors import corner_residuals, lidar_plane, lidar_residual
-from .refinement import Refinement, _plane_noise, plane_whiteners
+from .range_model import frame_whiteners
+from .refinement import Refinement, _plane_noise, pooled_range_noise_m
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -161,8 +162,16 @@ class PlaneLikelihood:
         self.T_map = ref.T_camera_lidar
         self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
         half = 0.5 * float(np.mean(board.extent))
-        rows, lams, normals, dists, dims, scan = [], [], [], [], [], []
-        for f, W in zip(frames, plane_whiteners(frames)):
+        rows, lams, normals, dists, dims, scan, signs, consts = [], [], [], [], [], [], [], []
+        # With a range model, its terms are held at the MAP here and their uncertainty is convolved into the
+        # samples afterwards (``Refinement.range_model.extrinsic_share``; first order, like the intrinsics').
+        rm = ref.range_model
+        terms = rm.terms if rm is not None else None
+        beta = np.asarray(rm.values_m) if terms is not None else np.zeros(0)
+        fws = frame_whiteners(frames, pooled_range_noise_m(frames), terms)
+        width = max(fw.W.shape[0] for fw in fws) if fws else 3
+        for f, fw in zip(frames, fws):
+            W = fw.W_plane
             fit = fits.get(f.name)
             if fit is None or fit.dropped or fit.weight <= 0:
                 continue
@@ -170,7 +179,7 @@ class PlaneLikelihood:
             _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
             cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
             k = W.shape[0]
-            if k != (2 if f.lidar.is_scan_line else 3):
+            if k < (2 if f.lidar.is_scan_line else 3):
                 raise LidarcamError(f"frame {f.name}: its board points do not span a "
                                     f"{'line' if f.lidar.is_scan_line else 'plane'}; the posterior needs every "
                                     "used board to")
@@ -185,12 +194,17 @@ class PlaneLikelihood:
             L = np.linalg.cholesky(A)
             Li = np.linalg.inv(L)
             lam, V = np.linalg.eigh(Li @ B @ Li.T)
-            row = np.zeros((3, 4))
-            row[:k] = V.T @ Li @ W  # z = row @ pi (divided by |n_xy| for a scan line)
-            lam3 = np.zeros(3)
+            row = np.zeros((width, 4))
+            row[:k] = V.T @ Li @ W  # z = s row @ pi (divided by |n_xy| for a scan line) + const
+            lam3 = np.zeros(width)
             lam3[:k] = np.maximum(lam, 0.0)
+            const = np.zeros(width)
+            if terms is not None:
+                const[:k] = V.T @ Li @ fw.W_nuisance @ beta[fw.cols]
             rows.append(row)
             lams.append(lam3)
+            consts.append(const)
+            signs.append(1.0 if terms is None or pi_map[:3] @ fw.m_away >= 0 else -1.0)
             n = b[:3, 2]
             normals.append(n)
             dists.append(float(n @ b[:3, 3]))
@@ -198,7 +212,9 @@ class PlaneLikelihood:
             scan.append(f.lidar.is_scan_line)
         if len(rows) < 3:
             raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")
-        self.rows, self.lam = np.array(rows), np.array(lams)  # (F, 3, 4), (F, 3); zero rows pad a scan line's 2
+        # (F, k, 4), (F, k): zero rows pad a scan line's 2 and frames with fewer range terms
+        self.rows, self.lam = np.array(rows), np.array(lams)
+        self.signs, self.consts = np.array(signs), np.array(consts)
         self.normals, self.dists = np.array(normals), np.array(dists)
         self.dims, self.scan = np.array(dims, dtype=float), np.array(scan, dtype=bool)
 
@@ -219,6 +235,7 @@ class PlaneLikelihood:
         if self.scan.any():
             gxy = np.hypot(pi[:, 0, :], pi[:, 1, :]).T  # (w, F)
             z = np.where(self.scan[None, :, None], z / gxy[:, :, None], z)
+        z = z * self.signs[None, :, None] + self.consts[None, :, :]
         g = 1.0 + np.exp(2 * log_s)[:, None, None] * self.lam  # (w, F, 3)
         logdet = np.sum(np.log(g), axis=(1, 2))
         if self.likelihood == "gaussian":
@@ -286,4 +303,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     if ref.intrinsics_covariance is not None:
         # Intrinsics calibrated from the same images: their (first-order, Gaussian) effect is convolved in.
         xi = xi + rng.multivariate_normal(np.zeros(6), ref.intrinsics_covariance, len(xi))
+    if ref.range_model is not None and ref.range_model.terms is not None:
+        # The range terms were held at the MAP: their uncertainty's share is convolved in (marginal intervals).
+        xi = xi + rng.multivariate_normal(np.zeros(6), ref.range_model.extrinsic_share, len(xi))
     return Posterior(ref.T_camera_lidar, xi, np.exp(run.samples[:, 6]), run, options.likelihood, tuple(warnings))

@@ -25,7 +25,7 @@ The covariance is ``gtsam.Marginals`` of the extrinsic, in GTSAM's right tangent
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -37,9 +37,27 @@ from geometry.planes import Plane, plane_difference
 from geometry.rotations import T_log
 
 from ..errors import DegenerateLayoutError
-from ..measurements import FrameMeasurement, lidar_whitener
+from ..measurements import FrameMeasurement
 from .closed_form import describe_direction, solve_closed_form
-from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
+from .factors import (
+    corner_factor,
+    corner_residuals,
+    lidar_plane,
+    lidar_residual,
+    nuisance_plane_factor,
+    nuisance_residual,
+    plane_factor,
+)
+from .range_model import (
+    MODEL_TEST_P,
+    RANGE_MODELS,
+    FrameLabels,
+    RangeModelFit,
+    RangeTerms,
+    frame_labels,
+    frame_whiteners,
+    terms_for,
+)
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")
@@ -51,6 +69,7 @@ CORNER_ERROR_CORRELATION = 1.4
 # represent. Measured on this toolkit's rendered images after cornerSubPix (rms 1.1e-4; `make bench`).
 CORNER_SCALE_SD = 1.0e-4
 EXTRINSIC = gtsam.symbol("x", 0)
+RANGE = gtsam.symbol("r", 0)  # the LiDAR range model's nuisance vector
 
 
 def board_key(i: int) -> int:
@@ -74,12 +93,16 @@ class RefinementOptions:
     estimate_plane_floor: bool = True
     max_iterations: int = 100
     corner_scale_sd: float = CORNER_SCALE_SD
+    # The LiDAR range model (``solvers.range_model``): none, offset, per-ring, full, or auto (chosen by test).
+    range_model: str = "none"
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
             raise ValueError(f"Expected robust in {ROBUST_LOSSES}, got {self.robust!r}")
         if self.outliers not in OUTLIER_POLICIES:
             raise ValueError(f"Expected outliers in {OUTLIER_POLICIES}, got {self.outliers!r}")
+        if self.range_model not in RANGE_MODELS:
+            raise ValueError(f"Expected range_model in {RANGE_MODELS}, got {self.range_model!r}")
         for name in ("corner_noise_px", "range_noise_m", "plane_floor_m"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -126,6 +149,7 @@ class Refinement:
     # The part of ``covariance`` due to intrinsics calibrated from the same images (None when given).
     intrinsics_covariance: np.ndarray | None = None
     corner_scale_sd: float = 0.0
+    range_model: RangeModelFit | None = None
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
@@ -144,14 +168,6 @@ def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
     ss = sum(f.lidar.range_rms_m**2 * max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
     dof = sum(max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
     return float(np.sqrt(ss / dof))
-
-
-def plane_whiteners(frames: list[FrameMeasurement]) -> list[np.ndarray]:
-    """Each frame's ``W`` (square root of its excess range moment) with the moments' noise term removed at
-    the noise the data show (not at a given sigma_r, which sets the weights only: a wrong given value must
-    not bias the planes)."""
-    measured = pooled_range_noise_m(frames)
-    return [lidar_whitener(f.lidar, measured) for f in frames]
 
 
 def _robust(noise: gtsam.noiseModel.Base, options: RefinementOptions) -> gtsam.noiseModel.Base:
@@ -186,42 +202,112 @@ def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: flo
 
 
 class _Problem:
-    """The data of one refinement: per frame its plane whitener, the plane noise, the corner noise."""
+    """The data of one refinement: per frame its plane whitener, the plane noise, the corner noise, and the
+    range model's terms (None: none) with their current values ``beta``."""
 
     def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, sigma_px: float,
-                 sigma_r: float, options: RefinementOptions):
+                 sigma_r: float, options: RefinementOptions, terms: RangeTerms | None = None,
+                 labels: FrameLabels | None = None):
         self.frames, self.board, self.camera = frames, board, camera
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
-        self.whiteners = plane_whiteners(frames)
+        self.terms, self.labels = terms, labels
+        # Noise-corrected at the noise the data show (not at a given sigma_r, which sets the weights only).
+        self.fw = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
+        self.whiteners = [w.W for w in self.fw]
+        self.beta = np.zeros(terms.size if terms else 0)
         self.corners_board = board.inner_corners()
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 
     def whitener(self, i: int) -> np.ndarray:
         return self.whiteners[i]
 
+    def nuisance_rank(self, frames: list[int]) -> int:
+        """How many combinations of the nuisance terms the frames' points determine."""
+        if self.terms is None:
+            return 0
+        rows = []
+        for i in frames:
+            G = np.zeros((self.whiteners[i].shape[0], self.terms.size))
+            G[:, self.fw[i].cols] = self.fw[i].W_nuisance
+            rows.append(G)
+        return _rank(np.vstack(rows))
+
+    def residual(self, i: int, T: np.ndarray, T_board: np.ndarray) -> np.ndarray:
+        pi, _, _ = lidar_plane(T, T_board)
+        scan = self.frames[i].lidar.is_scan_line
+        if self.terms is None:
+            return lidar_residual(self.whitener(i), pi, scan)[0]
+        fw = self.fw[i]
+        return nuisance_residual(fw.W, fw.cols, fw.m_away, pi, self.beta, scan)[0]
+
     def plane_cov(self, i: int, floor_m: float) -> np.ndarray:
         f = self.frames[i]
-        return _plane_noise(self.whitener(i), f.lidar.plane.normal, self.sigma_r, floor_m,
-                            0.5 * float(np.mean(self.board.extent)),
-                            self.options.corner_scale_sd * f.camera.plane.distance)
+        cov = _plane_noise(self.whitener(i)[:, :4], f.lidar.plane.normal, self.sigma_r, floor_m,
+                           0.5 * float(np.mean(self.board.extent)),
+                           self.options.corner_scale_sd * f.camera.plane.distance)
+        return cov
 
     def graph(self, active: list[int], floor_m: float, robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         corners_board = self.corners_board
+        if self.terms is not None:
+            graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
+                                              gtsam.noiseModel.Diagonal.Sigmas(np.array(self.terms.prior_sd))))
         for j, i in enumerate(active):
             f = self.frames[i]
             key = board_key(j)
             graph.add(corner_factor(key, corners_board, f.camera.corners_px, self.camera,
                                     gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
             noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
-            graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), _robust(noise, self.options) if robust else noise,
-                                   f.lidar.is_scan_line))
+            noise = _robust(noise, self.options) if robust else noise
+            if self.terms is None:
+                graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), noise, f.lidar.is_scan_line))
+            else:
+                fw = self.fw[i]
+                graph.add(nuisance_plane_factor(EXTRINSIC, key, RANGE, fw.W, fw.cols, fw.m_away, noise,
+                                                f.lidar.is_scan_line))
         return graph
 
-    def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
-        pi, _, _ = lidar_plane(T, T_board)
-        e, _ = lidar_residual(self.whitener(i), pi, self.frames[i].lidar.is_scan_line)
+    def full_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
+        """The frame's whole whitened LiDAR residual (its plane and, with range terms, how far its own best
+        range offsets are from the shared ones)."""
+        e = self.residual(i, T, T_board)
         return float(e @ np.linalg.solve(self.plane_cov(i, floor_m), e))
+
+    def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
+        """The part of the frame's LiDAR residual that no range offsets of its own could explain: how far its
+        camera and LiDAR planes disagree (``plane_dof`` degrees of freedom). Without range terms, all of it."""
+        e = self.residual(i, T, T_board)
+        L = np.linalg.cholesky(self.plane_cov(i, floor_m))
+        z = np.linalg.solve(L, e)
+        if self.terms is not None and self.fw[i].W_nuisance.size:
+            G = np.linalg.solve(L, self.fw[i].W_nuisance)
+            z = z - G @ np.linalg.lstsq(G, z, rcond=None)[0]
+        return float(z @ z)
+
+    def plane_dof(self, i: int) -> int:
+        Wb = self.fw[i].W_nuisance
+        return int(self.whitener(i).shape[0] - (_rank(Wb) if Wb.size else 0))
+
+    def range_consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
+        """How far the frames' own best range offsets disagree with the shared terms (chi-square, dof), or
+        (0, 0) without range terms."""
+        if self.terms is None:
+            return 0.0, 0
+        stat = sum(self.full_chi2(i, T, boards[i], floor_m) - self.plane_chi2(i, T, boards[i], floor_m)
+                   for i in frames)
+        dof = sum(self.whitener(i).shape[0] - self.plane_dof(i) for i in frames) - self.nuisance_rank(frames)
+        return float(stat), int(max(dof, 1))
+
+    def total_cost(self, active: list[int], T: np.ndarray, boards: list) -> float:
+        """The whole (non-robust, no plane error) cost of the frames at the estimate: corners, every board
+        point's squared range error (the best fits' floors included, so that models with other terms
+        compare), and the nuisance prior."""
+        cost = sum(self.full_chi2(i, T, boards[i], 0.0) + self.corner_chi2(i, boards[i])
+                   + self.fw[i].floor / self.sigma_r**2 for i in active)
+        if self.terms is not None:
+            cost += float(np.sum((self.beta / np.array(self.terms.prior_sd)) ** 2))
+        return float(cost)
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
@@ -231,7 +317,7 @@ class _Problem:
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         """The frame's share of the consistency statistic: its plane residual plus how far its board had
         to move from the camera's own fit (a cheap camera lets a bad LiDAR plane drag the board)."""
-        return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
+        return self.full_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
     def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
@@ -239,6 +325,8 @@ class _Problem:
         values.insert(EXTRINSIC, gtsam.Pose3(T))
         for j, i in enumerate(active):
             values.insert(board_key(j), gtsam.Pose3(boards[i]))
+        if self.terms is not None:
+            values.insert(RANGE, self.beta.copy())
         graph = self.graph(active, floor_m)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.options.max_iterations)
@@ -249,13 +337,22 @@ class _Problem:
         T = result.atPose3(EXTRINSIC).matrix()
         for j, i in enumerate(active):
             boards[i] = result.atPose3(board_key(j)).matrix()
+        if self.terms is not None:
+            self.beta = np.asarray(result.atVector(RANGE), dtype=float)
         return graph, result, int(opt.iterations())
 
     def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
         """The cost the camera alone cannot explain, summed over ``frames`` (chi-square with ``3 N - 6``
         dof under the model)."""
         stat = sum(self.frame_chi2(i, T, boards[i], floor_m) for i in frames)
-        return stat, max(sum(self.whitener(i).shape[0] for i in frames) - 6, 1)
+        return stat, max(sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames), 1)
+
+
+def _rank(A: np.ndarray) -> int:
+    """Numerical rank, relative tolerance 1e-8 (the range regressors' exact collinearities, a global offset
+    and the per-ring offsets, survive the square root only to about 1e-10)."""
+    sv = np.linalg.svd(A, compute_uv=False)
+    return int(np.sum(sv > 1e-8 * sv[0])) if sv.size and sv[0] > 0 else 0
 
 
 def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
@@ -264,6 +361,8 @@ def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
     ordering.push_back(EXTRINSIC)
     for j in range(n_frames):
         ordering.push_back(board_key(j))
+    if values.exists(RANGE):
+        ordering.push_back(RANGE)
     H, _ = graph.linearize(values).hessian(ordering)
     A, B, C = H[:6, :6], H[:6, 6:], H[6:, 6:]
     info = A - B @ np.linalg.pinv(C) @ B.T
@@ -328,6 +427,23 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         boards = [f.camera.T_camera_board for f in frames]
 
     inliers = [i for i in active if i not in flagged]
+    prob0, start = prob, (T, list(boards))
+    prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options)
+    if prob.terms is not None and prob.terms.model != "offset" and options.plane_floor_m is None:
+        stat, dof = prob.consistency(inliers, T, boards, floor)
+        if chi2.sf(stat, dof) < 0.01:
+            # Per-ring and reflectivity terms read structure within each board; when that structure differs
+            # from board to board beyond the noise, a shared term cannot hold it (and the plane error cannot
+            # absorb it): fall back to the global offset, which only the camera informs.
+            why = (f"{model_fit.chosen} terms left the boards inconsistent (chi-square {stat:.0f} on {dof} dof): their "
+                   "within-board structure differs from board to board; fell back to the global offset")
+            prob, T, boards, model_fit = _choose_range_model(prob0, active, inliers, start[0], start[1], floor,
+                                                             replace(options, range_model="offset"))
+            model_fit = replace(model_fit, requested=options.range_model, reason=why)
+            warnings.append(f"range model: {why}")
+    if prob.terms is not None:
+        graph, result, its = prob.solve(active, T, boards, floor)
+        iterations += its
     stat, dof = prob.consistency(inliers, T, boards, floor)
     variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
     if p_value < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor:
@@ -335,9 +451,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
         # consistency statistic equals its degrees of freedom (method of moments), then solve again.
         lo, hi = 1e-5, 0.5
+        start = (T, list(boards), prob.beta.copy())  # every trial starts from the fit without the error
         for _ in range(14):
             floor = float(np.sqrt(lo * hi))
-            graph, result, its = prob.solve(active, T, boards, floor)
+            boards, prob.beta = list(start[1]), start[2].copy()
+            graph, result, its = prob.solve(active, start[0], boards, floor)
             iterations += its
             T = result.atPose3(EXTRINSIC).matrix()
             if prob.consistency(inliers, T, boards, floor)[0] > dof:
@@ -345,20 +463,29 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             else:
                 hi = floor
         floor = hi
-        graph, result, its = prob.solve(active, T, boards, floor)
+        boards, prob.beta = list(start[1]), start[2].copy()
+        graph, result, its = prob.solve(active, start[0], boards, floor)
         T = result.atPose3(EXTRINSIC).matrix()
         warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise explain "
                         f"(chi-square {stat:.0f} on {dof} dof, p = {p_value:.1g}); a per-board plane error of "
                         f"{1000 * floor:.1f} mm, estimated from the data, is included in the covariance")
 
     try:
-        cov = gtsam.Marginals(graph, result).marginalCovariance(EXTRINSIC)
+        marginals = gtsam.Marginals(graph, result)
+        cov = marginals.marginalCovariance(EXTRINSIC)
+        if model_fit is not None and prob.terms is not None:
+            model_fit = _with_uncertainty(model_fit, prob, marginals)
     except RuntimeError as exc:
         raise _degenerate(graph, result, len(active)) from exc
     ev = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0, 1.0])
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
 
+    if model_fit is not None and prob.terms is not None:
+        r_stat, r_dof = prob.range_consistency(inliers, T, boards, floor)
+        model_fit = replace(model_fit, range_consistency={
+            "chi2": r_stat, "dof": r_dof, "p_value": float(chi2.sf(r_stat, r_dof)),
+            "meaning": "how far each board's own best range offsets are from the shared terms"})
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -371,7 +498,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         c2 = prob.plane_chi2(i, T, boards[i], floor)
         corner = prob.corner_chi2(i, boards[i])
         why = dropped.get(i) or flagged.get(i)
-        fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], int(prob.whitener(i).shape[0]),
+        fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], prob.plane_dof(i),
                              float(sigma_px * np.sqrt(corner / f.camera.corners_px.size)),
                              0.0 if i in dropped else _robust_weight(np.sqrt(c2), options), why, i in dropped))
         if why:
@@ -379,7 +506,71 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
-                      tuple(warnings), cov_intrinsics, options.corner_scale_sd)
+                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit)
+
+
+def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
+                        floor: float, options: RefinementOptions) -> tuple:
+    """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
+    terms that the data support, added in order while each passes a likelihood-ratio test at 1% on the whole
+    cost of the inlier frames. Returns the problem (solved at its estimate), the estimate and the record."""
+    if options.range_model == "none":
+        return prob, T, boards, None
+    labels = frame_labels(prob.frames)
+    order = ["none", "offset", "per-ring", "full"]
+    wanted = options.range_model
+    models = order if wanted == "auto" else ["none", wanted]
+    tests, fits, seen = [], {}, set()
+    for model in models:
+        terms = terms_for(model, labels)
+        key = terms.names if terms is not None else ()
+        if key in seen:  # per-ring without rings, full without black/white labels: nothing new to test
+            continue
+        seen.add(key)
+        p = prob if model == "none" else _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r,
+                                                  options, terms, labels)
+        b, T_m = list(boards), T
+        if model != "none":
+            T_m = p.solve(active, T, b, floor)[1].atPose3(EXTRINSIC).matrix()
+        cost = p.total_cost(inliers, T_m, b)
+        dof = p.nuisance_rank(inliers)
+        fits[model] = (p, T_m, b, cost, dof)
+    chosen, why = "none", "no range term tested"
+    for model in [m for m in models if m in fits and m != "none"]:
+        base = fits[chosen]
+        p, T_m, b, cost, dof = fits[model]
+        delta, ddof = base[3] - cost, max(dof - base[4], 1)
+        p_value = float(chi2.sf(max(delta, 0.0), ddof))
+        accept = wanted != "auto" or p_value < MODEL_TEST_P
+        tests.append({"model": model, "against": chosen, "cost_decrease": float(delta), "added_dof": int(ddof),
+                      "p_value": p_value, "included": bool(accept)})
+        if accept:
+            chosen = model
+            why = (f"requested ({model})" if wanted != "auto" else
+                   f"the {model} terms lower the cost by {delta:.1f} on {ddof} dof (p = {p_value:.2g} < {MODEL_TEST_P})")
+        elif wanted == "auto":
+            break
+    if chosen == "none":
+        if wanted == "auto":
+            why = (f"no range term is supported by the data (likelihood-ratio test at {MODEL_TEST_P}: "
+                   f"p = {tests[0]['p_value']:.2g} for a global offset)" if tests else "no range term could be tested")
+        return prob, T, boards, RangeModelFit(wanted, "none", why, tests=tuple(tests))
+    p, T_m, b, _, _ = fits[chosen]
+    return p, T_m, b, RangeModelFit(wanted, chosen, why, p.terms.names, tuple(p.beta.tolist()), tests=tuple(tests),
+                                    terms=p.terms)
+
+
+def _with_uncertainty(fit: RangeModelFit, prob: _Problem, marginals: gtsam.Marginals) -> RangeModelFit:
+    """The record with the terms' final values, their marginal standard deviations, the share of the
+    extrinsic's covariance due to them, and the global offset's correlation with the translation."""
+    keys = gtsam.KeyVector([EXTRINSIC, RANGE])
+    J = marginals.jointMarginalCovariance(keys).fullMatrix()
+    Cxx, Cxb, Cbb = J[:6, :6], J[:6, 6:], J[6:, 6:]
+    share = Cxb @ np.linalg.solve(Cbb, Cxb.T)
+    sd_b = np.sqrt(np.maximum(np.diag(Cbb), 0.0))
+    corr = Cxb[3:, 0] / np.sqrt(np.maximum(np.diag(Cxx)[3:], 1e-300)) / max(sd_b[0], 1e-300)
+    return replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(sd_b.tolist()),
+                   extrinsic_share=0.5 * (share + share.T), offset_translation_correlation=tuple(corr.tolist()))
 
 
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
@@ -395,7 +586,9 @@ def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boa
             continue
         p = cam.params.copy()
         p[k] += s
-        moved = _Problem(prob.frames, prob.board, cam.with_params(p), prob.sigma_px, prob.sigma_r, options)
+        moved = _Problem(prob.frames, prob.board, cam.with_params(p), prob.sigma_px, prob.sigma_r, options,
+                         prob.terms, prob.labels)
+        moved.beta = prob.beta.copy()
         _, result, _ = moved.solve(active, T, list(boards), floor)
         xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())
         out += np.outer(xi, xi)

@@ -1,0 +1,154 @@
+"""Validation without ground truth: score frames a calibration did not use, K-fold over frames, and two
+disjoint halves.
+
+A held-out frame's score is its whitened plane residual under the calibration: ``e = W pi(T, b)`` with
+``b`` the camera's own board pose (PnP), ``W`` the board points' range-moment square root, and covariance
+``C = sigma_r^2 I + W H_b Sigma_b H_b^T W^T + W H_x Sigma_T H_x^T W^T`` (+ the calibration's per-board plane
+error): the point noise, the camera's board-pose uncertainty and the calibration's own covariance. Under a
+right calibration ``e^T C^-1 e`` is chi-square with ``k`` (3 for a plane, 2 for a scan line) degrees of
+freedom; the verdict tests their sum. Each frame also gets its plane residual in mm at the board's centre
+and the offset (px) of its LiDAR board points' centroid from the camera's board centre, projected into
+the image (the outline check a user does by eye).
+
+Two halves: the first and last halves of the frames (in name order) calibrated apart; their difference
+``xi = Log(T_1^-1 T_2)`` should be explained by the two covariances, ``xi^T (S_1 + S_2)^-1 xi`` being
+chi-square with 6 dof. If it is not, the model misses an error (the README's recorded-data section).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from geometry.rotations import T_inverse, T_log, transform_points
+
+from ..errors import DegenerateLayoutError, LidarcamError
+from ..measurements import FrameMeasurement
+from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual
+from ..solvers.range_model import frame_whitener
+from ..solvers.refinement import _plane_noise, pooled_range_noise_m
+
+SIGNIFICANCE = 0.01
+
+
+@dataclass(frozen=True)
+class FrameScore:
+    name: str
+    chi2: float
+    dof: int
+    p_value: float
+    plane_offset_mm: float
+    predicted_offset_sd_mm: float
+    outline_offset_px: float
+    flagged: bool
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: np.ndarray, covariance: np.ndarray,
+                 corner_noise_px: float, range_noise_m: float | None = None, plane_floor_m: float = 0.0
+                 ) -> list[FrameScore]:
+    """Each usable frame's agreement with a calibration (``T_camera_lidar`` and its 6x6 covariance)."""
+    usable = [f for f in frames if f.usable]
+    if not usable:
+        return []
+    sigma_r = range_noise_m or pooled_range_noise_m(usable)
+    half = 0.5 * float(np.mean(board.extent))
+    out = []
+    for f in usable:
+        b = f.camera.T_camera_board
+        _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
+        cov_b = corner_noise_px**2 * np.linalg.pinv(J.T @ J)
+        W = frame_whitener(f.lidar, pooled_range_noise_m(usable), None).W
+        pi, H_x, H_b = lidar_plane(T_camera_lidar, b)
+        e, D = lidar_residual(W, pi, f.lidar.is_scan_line)
+        C = (_plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half)
+             + D @ (H_b @ cov_b @ H_b.T + H_x @ covariance @ H_x.T) @ D.T)
+        c2 = float(e @ np.linalg.solve(C, e))
+        k = int(W.shape[0])
+        # The plane's distance at the board centre: the LiDAR points' centroid against the camera's plane.
+        centre_l = f.lidar.points.mean(0) if not f.lidar.is_scan_line else np.append(f.lidar.points.mean(0)[:2], 0.0)
+        centre_c = transform_points(T_camera_lidar, centre_l[None])[0]
+        n = b[:3, 2]
+        offset = float(n @ (centre_c - b[:3, 3]))
+        g = np.concatenate([n @ T_camera_lidar[:3, :3] @ -_skew(centre_l), n @ T_camera_lidar[:3, :3]])
+        sd = float(np.sqrt(g @ covariance @ g + sigma_r**2 / max(f.lidar.n_points, 1)))
+        board_centre = transform_points(b, board.outline()).mean(0)
+        px = np.linalg.norm(camera.project(centre_c[None])[0] - camera.project(board_centre[None])[0])
+        p = float(chi2.sf(c2, k))
+        out.append(FrameScore(f.name, c2, k, p, 1000 * offset, 1000 * sd, float(px), p < SIGNIFICANCE))
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def verdict(scores: list[FrameScore]) -> dict:
+    """One verdict over the scored frames: the sum of their chi-squares against its degrees of freedom."""
+    if not scores:
+        return {"frames": 0, "verdict": "no frame to score"}
+    stat, dof = sum(s.chi2 for s in scores), sum(s.dof for s in scores)
+    p = float(chi2.sf(stat, dof))
+    return {"frames": len(scores), "chi2": stat, "dof": dof, "p_value": p,
+            "flagged": [s.name for s in scores if s.flagged],
+            "verdict": ("consistent with the covariance and the noise" if p >= SIGNIFICANCE else
+                        "NOT consistent: the held-out frames disagree with the calibration beyond its covariance "
+                        "and the noise (an unmodelled error, or wrong segments)")}
+
+
+def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve) -> dict:
+    """K-fold over the usable frames (in name order, round robin): each fold scored under the calibration
+    of the others. ``solve(frames)`` calibrates a subset (the pipeline's solver stage with its options)."""
+    usable = [f for f in frames if f.usable]
+    if k < 2 or k > len(usable):
+        raise LidarcamError(f"--cross-validate {k}: needs 2 <= K <= the {len(usable)} usable frames",
+                            hint="choose a smaller K")
+    folds, scores = [], []
+    for j in range(k):
+        held = [f for i, f in enumerate(usable) if i % k == j]
+        rest = [f for i, f in enumerate(usable) if i % k != j]
+        try:
+            res = solve(rest)
+        except DegenerateLayoutError as exc:
+            folds.append({"fold": j, "held_out": [f.name for f in held], "error": exc.message})
+            continue
+        ref = res.refinement
+        s = score_frames(held, board, camera, res.T_camera_lidar, ref.covariance, ref.corner_noise_px,
+                         ref.range_noise_m, ref.plane_floor_m)
+        scores += s
+        folds.append({"fold": j, "held_out": [f.name for f in held], "scores": [x.to_dict() for x in s]})
+    return {"k": k, "folds": folds, **verdict(scores)}
+
+
+def split_halves(frames: list[FrameMeasurement], solve) -> dict:
+    """Calibrate the first and last halves of the usable frames apart and test their difference against the
+    sum of their covariances (chi-square, 6 dof)."""
+    usable = sorted([f for f in frames if f.usable], key=lambda f: f.name)
+    if len(usable) < 6:
+        raise LidarcamError(f"--split halves needs at least 6 usable frames (3 per half), got {len(usable)}",
+                            hint="record more board poses")
+    h = len(usable) // 2
+    halves = [usable[:h], usable[h:]]
+    res = []
+    for part in halves:
+        try:
+            res.append(solve(part))
+        except DegenerateLayoutError as exc:
+            return {"halves": [[f.name for f in p] for p in halves],
+                    "verdict": f"a half could not be calibrated alone ({exc.message})"}
+    xi = T_log(T_inverse(res[0].T_camera_lidar) @ res[1].T_camera_lidar)
+    S = res[0].refinement.covariance + res[1].refinement.covariance
+    d2 = float(xi @ np.linalg.solve(S, xi))
+    limit = float(chi2.ppf(1 - SIGNIFICANCE, 6))
+    p = float(chi2.sf(d2, 6))
+    return {"halves": [[f.name for f in p_] for p_ in halves],
+            "T_camera_lidar": [r.T_camera_lidar.tolist() for r in res],
+            "difference_rotation_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
+            "difference_translation_mm": float(1000 * np.linalg.norm(xi[3:])),
+            "mahalanobis_d2": d2, "limit_99": limit, "p_value": p,
+            "verdict": ("the halves agree within their covariances" if d2 <= limit else
+                        "the halves disagree beyond their covariances: an error the model does not hold "
+                        "(range biases, intrinsics, a moved sensor)")}
