@@ -17,7 +17,9 @@ LiDAR points in O(1), and ``C_i(s) = A_i + s^2 B_i`` (LiDAR part, camera part). 
 ``-e^T C^-1 e / 2 - log det C / 2``; Student-t with ``nu`` degrees of freedom:
 ``-(nu + k)/2 log(1 + e^T C^-1 e / nu) - log det C / 2`` (heavy tails for frames that the Gaussian would let
 dominate). A frame the robust loss down-weighted keeps that weight. When the intrinsics were calibrated
-from the same images, their first-order effect (from the refinement) is convolved into the samples.
+from the same images, their first-order effect (from the refinement) is convolved into the samples. With a
+LiDAR range model (``solvers.range_model``) its terms are held at the MAP in the likelihood and their share of
+the extrinsic's covariance is convolved in the same way, so the intervals are marginal over them.
 """
 from __future__ import annotations
 

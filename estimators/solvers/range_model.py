@@ -28,12 +28,7 @@ import numpy as np
 
 from geometry.planes import sqrt_excess_moment_nuisance
 
-from ..measurements import (
-    MIN_INCIDENCE_COS,
-    FrameMeasurement,
-    LidarBoardObservation,
-    lidar_whitener,
-)
+from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObservation
 
 RANGE_MODELS = ("none", "offset", "per-ring", "full", "auto")
 OFFSET_PRIOR_SD_M = 0.05

@@ -20,6 +20,12 @@ Noise levels:
   plane factor, its size estimated so that the statistic equals its degrees of freedom, and the graph
   is solved again: the estimate weighs the boards accordingly and the covariance includes the error.
 
+LiDAR range model (``RefinementOptions.range_model``; ``solvers.range_model``): nuisance terms of the plane
+factors (a global offset, per-ring offsets, a black-square offset) in one vector variable with a prior; under
+``auto`` each is added while a likelihood-ratio test at 1% supports it. Per-ring and black-square terms that
+leave the boards inconsistent fall back to the global offset (their within-board structure then differs from
+board to board, which a shared term cannot hold).
+
 The covariance is ``gtsam.Marginals`` of the extrinsic, in GTSAM's right tangent: ``T_true = T_hat Exp(xi)``,
 ``xi = [rot; trans]``.
 """
@@ -39,25 +45,10 @@ from geometry.rotations import T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from .closed_form import describe_direction, solve_closed_form
-from .factors import (
-    corner_factor,
-    corner_residuals,
-    lidar_plane,
-    lidar_residual,
-    nuisance_plane_factor,
-    nuisance_residual,
-    plane_factor,
-)
-from .range_model import (
-    MODEL_TEST_P,
-    RANGE_MODELS,
-    FrameLabels,
-    RangeModelFit,
-    RangeTerms,
-    frame_labels,
-    frame_whiteners,
-    terms_for,
-)
+from .factors import (corner_factor, corner_residuals, lidar_plane, lidar_residual, nuisance_plane_factor,
+                      nuisance_residual, plane_factor)
+from .range_model import (MODEL_TEST_P, RANGE_MODELS, FrameLabels, RangeModelFit, RangeTerms, frame_labels,
+                          frame_whiteners, terms_for)
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")
