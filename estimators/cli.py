@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--no-camera", action="store_true", help="omit intrinsics (to test self-calibration)")
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
+                   help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
+                        "an offset on the board's black squares")
     s.add_argument("--scene", default="default", choices=["default", "office", "hall"],
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
                         "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
@@ -76,6 +79,9 @@ def _parser() -> argparse.ArgumentParser:
     la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16"],
                     help="beam model for suggestions on a 3D dataset (a 2D dataset uses the 2D scanner model; a plan "
                          "names its own)")
+    la.add_argument("--range-offset", action="store_true",
+                    help="suggest poses for the extrinsic with a LiDAR range offset estimated too (they separate the "
+                         "offset from the translation)")
     la.add_argument("--seed", type=int, default=0)
 
     st = sub.add_parser("study", help="simulation studies: `study SPEC.yaml --out DIR [--scheduler tcp://H:P]` "
@@ -163,11 +169,10 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                         "error-correlation factor)")
     p.add_argument("--range-noise-m", type=_positive, default=None, metavar="M",
                    help="LiDAR range noise (default: estimated from the board points)")
-    p.add_argument("--range-model", default="none", choices=["none", "offset", "per-ring", "full", "auto"],
-                   help="experimental: LiDAR range errors estimated with the extrinsic: a global offset, per-ring "
-                        "offsets, a black-square offset (full); auto adds each term the data support (likelihood-"
-                        "ratio test at 1%%). Default none (see the README: on recorded sets whose planes disagree "
-                        "beyond the noise the terms are not yet trustworthy)")
+    p.add_argument("--range-model", default="auto", choices=["none", "offset", "per-ring", "full", "auto"],
+                   help="LiDAR range errors estimated with the extrinsic: a global offset, per-ring offsets, a "
+                        "black-square offset (full); auto (default) adds each term the data support (likelihood-"
+                        "ratio test at 1%%)")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
@@ -324,7 +329,7 @@ def _validate(args) -> int:
 
     import numpy as np
 
-    from .analysis.validation import score_frames, verdict
+    from .analysis.validation import score_frames, terms_from_json, verdict
     from .calibration import measure_frames
     from .errors import DatasetError
     from .io.dataset import load_dataset
@@ -354,7 +359,8 @@ def _validate(args) -> int:
         held = [f for f in frames if f.usable]
         note = "every frame was used by the calibration: these scores are NOT held out (optimistic)"
     scores = score_frames(held, ds.board, camera, T, cov, float(noise["corner_noise_px"]),
-                          float(noise["range_noise_m"]), float(noise.get("plane_floor_m") or 0.0))
+                          float(noise["range_noise_m"]), float(noise.get("plane_floor_m") or 0.0),
+                          *terms_from_json(cal.get("lidar_range_model")))
     v = verdict(scores)
     print(f"validate: {len(scores)} frame(s) scored ({note})")
     for s_ in scores:
@@ -409,7 +415,8 @@ def _simulate(args) -> int:
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
-                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene)
+                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene,
+                           range_bias=None if args.range_bias is None else tuple(args.range_bias))
     print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene) to {out}")
     return 0
 
@@ -453,7 +460,8 @@ def _layout(args) -> int:
         target = tuple(args.target) if args.target else None
         print(f"suggested poses (greedy, D-optimal among sampled feasible poses, seed {args.seed}):")
         out["suggestions"] = []
-        found = suggest_poses(layout, rig, k_max, np.random.default_rng(args.seed), target=target)
+        found = suggest_poses(layout, rig, k_max, np.random.default_rng(args.seed), target=target,
+                              range_offset=args.range_offset)
         if target is not None:
             final = found[-1][1] if found else analysis
             if meets(final, *target):

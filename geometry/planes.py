@@ -66,12 +66,11 @@ def sum_squared_distances(plane_coefficients: np.ndarray, M: np.ndarray) -> floa
 def _sqrt_excess(M: np.ndarray, k: int, rel_tol: float) -> tuple[np.ndarray, float]:
     """``W`` and ``floor`` of a moment matrix, the floor taken over the first ``k`` coordinates' scatter."""
     M = np.asarray(M, dtype=float)
-    if M[3, 3] <= 0:
+    n = M[3, 3]
+    if n <= 0:
         raise ValueError("Expected a moment matrix of at least one point (M[3, 3] > 0)")
-    # The floor is the least cost over unit normals with every other coordinate (the plane's offset, and any
-    # nuisance terms after it) at its best: the smallest eigenvalue of the Schur complement on the normal.
-    B = M[:k, k:]
-    floor = float(np.linalg.eigvalsh(M[:k, :k] - B @ np.linalg.pinv(M[k:, k:], hermitian=True) @ B.T)[0])
+    s = M[:k, 3]
+    floor = float(np.linalg.eigvalsh(M[:k, :k] - np.outer(s, s) / n)[0])
     E = M.copy()
     E[:k, :k] -= floor * np.eye(k)
     vals, vecs = np.linalg.eigh(E)
@@ -99,16 +98,6 @@ def sqrt_excess_moment_scan(M: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.n
     ``|n_xy|^2`` gives the excess of the plane's trace (a line) over that best line, in the units of the
     points' in-scan-plane residuals. MATH.md section 4."""
     return _sqrt_excess(M, 2, rel_tol)
-
-
-def sqrt_excess_moment_nuisance(M: np.ndarray, scan_line: bool = False, rel_tol: float = 1e-10
-                                ) -> tuple[np.ndarray, float]:
-    """:func:`sqrt_excess_moment` (or its scan-line form) of a moment over ``[p; 1; a]``, ``a`` a point's
-    regressors of nuisance terms (a range offset, ...): ``W`` (k x (4 + K)) and ``floor`` with
-    ``theta^T M theta = |W theta|^2 + floor`` for ``theta = [n; -d; beta]`` with a unit normal. ``floor`` is
-    the cost of the best plane with the best nuisance values, so ``|W theta|^2`` at the truth is about
-    chi-square with 3 (2 for a scan line) plus the rank of the regressors' degrees of freedom."""
-    return _sqrt_excess(M, 2 if scan_line else 3, rel_tol)
 
 
 def plane_from_moment(M: np.ndarray) -> Plane:

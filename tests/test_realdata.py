@@ -67,6 +67,20 @@ def test_recorded_vlp16_halves_agree_within_their_covariances(vlp16):
     assert d2 < chi2.ppf(0.99, 6), d2
 
 
+def test_recorded_vlp16_range_offset_agrees_with_the_source_tools_correction(vlp16):
+    """The range model (auto) keeps a global offset on the VLP-16 set, and its estimate lies within 3 standard
+    deviations of the -30 mm that the recording's source tool applies by hand (`distance_offset_mm`). The
+    held-out frames of a 4-fold cross-validation are consistent with the covariance (p > 0.01)."""
+    from estimators.analysis.validation import cross_validate
+
+    ds, camera, frames = vlp16
+    fit = solve(frames, ds.board, camera).refinement.range_model
+    assert fit.chosen == "offset", fit.reason
+    assert abs(fit.values_m[0] + 0.030) < 3 * fit.std_m[0], (fit.values_m, fit.std_m)
+    cv = cross_validate(frames, ds.board, camera, 4, lambda fs: solve(fs, ds.board, camera))
+    assert cv["p_value"] > 0.01, cv["verdict"]
+
+
 def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(ouster):
     """An office full of board-sized planes (every frame ambiguous on its own cues): the static scene and
     the cross-frame choice find all 11 boards, each wholly inside the camera's board outline under the

@@ -31,7 +31,9 @@ from ..errors import DatasetError
 from ..lidar.lidar_models import BEAM_MODELS
 from ..simulation.simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
 from ..solvers.closed_form import describe_direction, normal_spread
-from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
+from ..solvers.observation_model import (Layout, board_hits, frame_contribution, frame_information,
+                                        range_model_information)
+from ..solvers.range_model import OFFSET_PRIOR_SD_M, RangeTerms
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
 MIN_BOARD_HITS = 50
@@ -48,6 +50,9 @@ class LayoutAnalysis:
     e_optimality: float
     weakest_words: str
     leverage: np.ndarray  # per frame: fraction of D-optimality lost without it
+    # With a global LiDAR range offset estimated too (prior OFFSET_PRIOR_SD_M): the translation's standard
+    # deviations (mm), the offset's (mm), and its correlation with the translation along the LiDAR's x y z.
+    offset: dict | None = None
 
     @property
     def std_rotation_deg(self) -> np.ndarray:
@@ -71,7 +76,8 @@ class LayoutAnalysis:
                 "condition_number": self.condition_number,
                 "d_optimality_per_mrad_mm": self.d_optimality, "e_optimality_per_mrad_mm": self.e_optimality,
                 "weakest_direction": self.weakest_words,
-                "leverage": dict(zip(self.names, self.leverage.tolist()))}
+                "leverage": dict(zip(self.names, self.leverage.tolist())),
+                "with_range_offset": self.offset}
 
     def format(self) -> str:
         def fmt(v, unit, digits):
@@ -85,6 +91,12 @@ class LayoutAnalysis:
                  f"weakest: {self.weakest_words}",
                  "leverage (share of D-optimality lost without the frame):"]
         lines += [f"  {n}: {100 * v:5.1f}%" for n, v in zip(self.names, self.leverage)]
+        if self.offset is not None:
+            o = self.offset
+            lines += [f"with a LiDAR range offset estimated too (prior {o['prior_sd_mm']:.0f} mm): translation "
+                      + "  ".join(f"{v:.2f}" for v in o["translation_std_mm"]) + f" mm; offset {o['offset_std_mm']:.1f}"
+                      " mm; its correlation with the translation along x y z "
+                      + "  ".join(f"{c:+.2f}" for c in o["translation_correlation"])]
         return "\n".join(lines)
 
 
@@ -110,7 +122,28 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
     D = _d_opt(F)
     leverage = np.array([1.0 - _d_opt(F - S) / D if D > 0 else 0.0 for S in shares])
     return LayoutAnalysis(names, cov, F, s, D, float(vals[0]), _weakest_words(vecs[:, 0], layout, tiny[0]),
-                          leverage)
+                          leverage, _with_offset(layout) if not tiny.any() else None)
+
+
+OFFSET_TERMS = RangeTerms(("offset",), (OFFSET_PRIOR_SD_M,))
+
+
+def offset_information(layout: Layout) -> np.ndarray:
+    """The 7x7 information on ``[xi_extrinsic; range offset]`` (board poses marginalised, the offset's prior
+    included)."""
+    return range_model_information(layout, OFFSET_TERMS)
+
+
+def _marginal(I7: np.ndarray) -> np.ndarray:
+    """The extrinsic's 6x6 information with the offset marginalised."""
+    return I7[:6, :6] - np.outer(I7[:6, 6], I7[6, :6]) / I7[6, 6]
+
+
+def _with_offset(layout: Layout) -> dict:
+    C = np.linalg.inv(offset_information(layout))
+    sd = np.sqrt(np.diag(C))
+    return {"prior_sd_mm": 1000 * OFFSET_PRIOR_SD_M, "translation_std_mm": (1000 * sd[3:6]).tolist(),
+            "offset_std_mm": float(1000 * sd[6]), "translation_correlation": (C[3:6, 6] / sd[3:6] / sd[6]).tolist()}
 
 
 def _cov_with_inf(vecs: np.ndarray, inv: np.ndarray) -> np.ndarray:
@@ -189,10 +222,13 @@ def meets(analysis: LayoutAnalysis, max_rotation_deg: float, max_translation_mm:
 
 
 def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, candidates: int = 150,
-                  target: tuple[float, float] | None = None) -> list[tuple[np.ndarray, LayoutAnalysis]]:
+                  target: tuple[float, float] | None = None, range_offset: bool = False
+                  ) -> list[tuple[np.ndarray, LayoutAnalysis]]:
     """Greedily, ``k`` board poses that most raise D-optimality, each from ``candidates`` feasible poses
     (fully in the image, inside the LiDAR's field of view, 2-5 m away, hit by enough beams). With
-    ``target = (max_rotation_deg, max_translation_mm)``, stop as soon as every axis meets it."""
+    ``target = (max_rotation_deg, max_translation_mm)``, stop as soon as every axis meets it. With
+    ``range_offset``, D-optimality is that of the extrinsic with a LiDAR range offset estimated too (poses
+    that separate the offset from the translation score higher)."""
     out = []
     current = layout
     for _ in range(k):
@@ -200,12 +236,18 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
             break
         pool = [T for T in sample_board_poses(rig, candidates, rng) if _pose_fits(rig, T)]
         F = analyse(current).information
+        I7 = offset_information(current) if range_offset else None
         best, best_d = None, -np.inf
         for T in pool:
             trial = replace(current, T_camera_board=(T,), hits=None)
             if len(board_hits(trial, 0)[0]) < (MIN_BOARD_HITS_2D if rig.beams.is_2d else MIN_BOARD_HITS):
                 continue
-            d = _d_opt(F + frame_contribution(frame_information(trial, 0)))
+            if range_offset:
+                share = frame_information(trial, 0, OFFSET_TERMS)
+                d = _d_opt(_marginal(I7 + share[:7, :7] - share[:7, 7:] @ np.linalg.solve(share[7:, 7:],
+                                                                                        share[7:, :7])))
+            else:
+                d = _d_opt(F + frame_contribution(frame_information(trial, 0)))
             if d > best_d:
                 best, best_d = T, d
         if best is None:

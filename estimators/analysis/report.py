@@ -21,6 +21,8 @@ from ..io.image_io import read_gray
 from ..io.output import write_atomic
 from ..io.pointcloud_io import read_scan, read_scan_2d
 from ..solvers.closed_form import describe_direction
+from ..solvers.factors import lidar_plane
+from ..solvers.range_model import frame_labels, point_residuals
 from .figures import new_figure, png_bytes
 
 _LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
@@ -187,6 +189,58 @@ def _table(rows: list[list[str]], head: list[str]) -> str:
     return f"<table><tr>{h}</tr>{b}</table>"
 
 
+def range_residuals_figure(result) -> bytes | None:
+    """Board points' range residuals (the refined board planes) against range, ring and square colour, without
+    the LiDAR range terms (before) and with the chosen ones (after); None for a 2D LiDAR."""
+    ref = result.refinement
+    used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board and not f.lidar.is_scan_line]
+    if not used:
+        return None
+    fit = ref.range_model
+    terms = fit.terms if fit is not None else None
+    beta = np.asarray(fit.values_m) if terms is not None else None
+    labels = frame_labels(used)
+    rows = {"range": [], "ring": [], "dark": [], "before": [], "after": []}
+    for k, f in enumerate(used):
+        pi, _, _ = lidar_plane(result.T_camera_lidar, ref.T_camera_board[f.name])
+        before = point_residuals(f.lidar, pi, None, None)
+        after = point_residuals(f.lidar, pi, terms, beta, labels.rings[k], labels.dark[k])
+        n = f.lidar.n_points
+        rows["range"].append(np.linalg.norm(f.lidar.points, axis=1))
+        rows["ring"].append(labels.rings[k] if labels.rings[k] is not None else np.full(n, -1))
+        rows["dark"].append(labels.dark[k] if labels.dark[k] is not None else np.zeros(n, dtype=bool))
+        rows["before"].append(before)
+        rows["after"].append(after)
+    a = {k: np.concatenate(v) for k, v in rows.items()}
+    fig, ax = new_figure(1, 3, figsize=(13, 3.6))
+    edges = np.linspace(a["range"].min(), a["range"].max() + 1e-9, 11)
+    centre = 0.5 * (edges[1:] + edges[:-1])
+    which = np.digitize(a["range"], edges) - 1
+    for key, style in (("before", "o--"), ("after", "s-")):
+        mean = [1000 * np.mean(a[key][which == j]) if np.any(which == j) else np.nan for j in range(10)]
+        ax[0].plot(centre, mean, style, label=key)
+    ax[0].set_xlabel("range [m]")
+    ax[0].set_ylabel("mean range residual [mm]")
+    rings = np.unique(a["ring"][a["ring"] >= 0])
+    for key, style in (("before", "o--"), ("after", "s-")):
+        ax[1].plot(rings, [1000 * np.mean(a[key][a["ring"] == r]) for r in rings], style, label=key)
+    ax[1].set_xlabel("ring")
+    x = np.arange(2)
+    for j, key in enumerate(("before", "after")):
+        means = [1000 * np.mean(a[key][~a["dark"]]) if np.any(~a["dark"]) else np.nan,
+                 1000 * np.mean(a[key][a["dark"]]) if np.any(a["dark"]) else np.nan]
+        ax[2].bar(x + 0.35 * j, means, 0.35, label=key)
+    ax[2].set_xticks(x + 0.175, ["white", "black"])
+    ax[2].set_xlabel("square colour (from intensity)")
+    for axis in ax:
+        axis.axhline(0, color="k", lw=0.6)
+        axis.legend(fontsize=8)
+    fig.suptitle("board points' range residuals: without the range terms (before) and with the chosen ones "
+                 f"(after: {fit.chosen if fit is not None else 'none'})", fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
 def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
     """Write ``OUT/report.html`` and its PNGs (each file atomically). Needs the refinement; uses the
     posterior when it was sampled."""
@@ -197,6 +251,9 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
                         corner_figure(result)))
     if result.refinement is not None:
         figures.append(("residuals.png", "Per-frame residuals", residuals_figure(result)))
+        png = range_residuals_figure(result)
+        if png is not None:
+            figures.append(("range_residuals.png", "LiDAR range residuals by range, ring and square colour", png))
     files = {f.name: f for f in dataset.frames}
     offsets = []
     for frame in result.frames:
@@ -244,6 +301,11 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
                      f"{d['acceptance_fraction']:.2f}, {d['effective_samples']:.0f} effective samples, "
                      f"converged: {d['converged']}, {d['seconds']:.1f} s; camera-noise scale (median) "
                      f"{d['noise_scale_median']:.2f}</p>")
+    fit = result.refinement.range_model if result.refinement is not None else None
+    if fit is not None:
+        rows = [[n, f"{1000 * v:+.1f}", f"{1000 * sd:.1f}"] for n, v, sd in zip(fit.names, fit.values_m, fit.std_m)]
+        parts.append(f"<h2>LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
+                     + (_table(rows, ["term", "value [mm]", "std [mm]"]) if rows else ""))
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
     axis, advice = describe_direction(result.weakest_direction_camera)

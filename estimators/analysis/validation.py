@@ -25,9 +25,9 @@ from geometry.rotations import T_inverse, T_log, transform_points
 
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
-from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual
-from ..solvers.range_model import frame_whitener
-from ..solvers.refinement import _plane_noise, pooled_range_noise_m
+from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
+from ..solvers.range_model import RangeTerms, frame_whiteners
+from ..solvers.refinement import _plane_noise, frame_noise, pooled_range_noise_m
 
 SIGNIFICANCE = 0.01
 
@@ -48,24 +48,34 @@ class FrameScore:
 
 
 def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: np.ndarray, covariance: np.ndarray,
-                 corner_noise_px: float, range_noise_m: float | None = None, plane_floor_m: float = 0.0
-                 ) -> list[FrameScore]:
-    """Each usable frame's agreement with a calibration (``T_camera_lidar`` and its 6x6 covariance)."""
+                 corner_noise_px: float, range_noise_m: float | None = None, plane_floor_m: float = 0.0,
+                 range_terms: RangeTerms | None = None, range_values_m=None, range_cov=None,
+                 range_scatter_m: float = 0.0) -> list[FrameScore]:
+    """Each usable frame's agreement with a calibration (``T_camera_lidar`` and its 6x6 covariance, and its
+    LiDAR range terms with their values and covariance when it has them)."""
     usable = [f for f in frames if f.usable]
     if not usable:
         return []
     sigma_r = range_noise_m or pooled_range_noise_m(usable)
     half = 0.5 * float(np.mean(board.extent))
+    beta = None if range_terms is None else np.asarray(range_values_m, dtype=float)
+    fws = frame_whiteners(usable, pooled_range_noise_m(usable), range_terms)
     out = []
-    for f in usable:
+    for f, fw in zip(usable, fws):
         b = f.camera.T_camera_board
         _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
         cov_b = corner_noise_px**2 * np.linalg.pinv(J.T @ J)
-        W = frame_whitener(f.lidar, pooled_range_noise_m(usable), None).W
+        W = fw.W
         pi, H_x, H_b = lidar_plane(T_camera_lidar, b)
-        e, D = lidar_residual(W, pi, f.lidar.is_scan_line)
-        C = (_plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half)
-             + D @ (H_b @ cov_b @ H_b.T + H_x @ covariance @ H_x.T) @ D.T)
+        if range_terms is None:
+            e, D = lidar_residual(W, pi, f.lidar.is_scan_line)
+            C = _plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half)
+        else:
+            e, D, H_beta = nuisance_residual(W, fw.S, fw.m_away, pi, beta, f.lidar.is_scan_line, fw.e0)
+            C = frame_noise(fw, f.lidar.plane.normal, sigma_r, plane_floor_m, half, tau_m=range_scatter_m)
+            if range_cov is not None:
+                C = C + H_beta @ np.asarray(range_cov) @ H_beta.T
+        C = C + D @ (H_b @ cov_b @ H_b.T + H_x @ covariance @ H_x.T) @ D.T
         c2 = float(e @ np.linalg.solve(C, e))
         k = int(W.shape[0])
         # The plane's distance at the board centre: the LiDAR points' centroid against the camera's plane.
@@ -84,6 +94,26 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def range_arguments(fit) -> tuple:
+    """``score_frames``'s range-model arguments from a refinement's :class:`RangeModelFit` (or None)."""
+    if fit is None or fit.terms is None:
+        return None, None, None, 0.0
+    return fit.terms, fit.values_m, fit.terms_covariance, float(fit.term_consistency.get("board_scatter_m", 0.0))
+
+
+def terms_from_json(section: dict | None) -> tuple:
+    """``score_frames``'s range-model arguments from calibration.json's ``lidar_range_model`` section."""
+    terms = (section or {}).get("terms") or []
+    if not terms:
+        return None, None, None, 0.0
+    names = tuple(str(t["term"]) for t in terms)
+    rings = tuple(int(n.split()[1]) for n in names if n.startswith("ring "))
+    values = np.array([float(t["value_mm"]) for t in terms]) / 1000.0
+    sd = np.array([float(t["std_mm"]) for t in terms]) / 1000.0
+    scatter = float(((section or {}).get("board_terms_consistency") or {}).get("board_scatter_m", 0.0))
+    return RangeTerms(names, tuple(sd.tolist()), rings), values, np.diag(sd**2), scatter
 
 
 def verdict(scores: list[FrameScore]) -> dict:
@@ -117,7 +147,7 @@ def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve)
             continue
         ref = res.refinement
         s = score_frames(held, board, camera, res.T_camera_lidar, ref.covariance, ref.corner_noise_px,
-                         ref.range_noise_m, ref.plane_floor_m)
+                         ref.range_noise_m, ref.plane_floor_m, *range_arguments(ref.range_model))
         scores += s
         folds.append({"fold": j, "held_out": [f.name for f in held], "scores": [x.to_dict() for x in s]})
     return {"k": k, "folds": folds, **verdict(scores)}

@@ -23,6 +23,7 @@ from ..io.output import atomic_directory
 from ..io.pointcloud_io import write_scan, write_scan_2d
 from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
+from .range_bias import RangeBias
 from .rendering import render_image
 from .scene import Patch, cast, infinite_plane, rectangle
 
@@ -244,14 +245,18 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     return patches, 0
 
 
-def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator, board_index: int | None = None
-                  ) -> tuple[np.ndarray, ...]:
-    """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise, intensity, ring (and, given
+def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator, board_index: int | None = None,
+                  bias: RangeBias | None = None) -> tuple[np.ndarray, ...]:
+    """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise (and ``bias``: systematic
+    range errors, the black-square term on the board's black squares), intensity, ring (and, given
     ``board_index``, the mask of the points that hit the board)."""
     dirs, ring = rig.beams.directions()
     rng_m, which, refl = cast(np.zeros(3), dirs, patches, rig.beams.max_range_m)
     hit = np.isfinite(rng_m)
     r = rng_m[hit] + rng.normal(0.0, rig.beams.sigma_range_m, hit.sum())
+    if bias is not None and not bias.is_zero:
+        dark = (which[hit] == board_index) & (refl[hit] < 0.5) if board_index is not None else np.zeros(hit.sum(), bool)
+        r = r + bias.of(ring[hit], dark)
     out = dirs[hit] * r[:, None], (refl[hit] * 100).astype(np.float32), ring[hit]
     return out if board_index is None else (*out, which[hit] == board_index)
 
@@ -268,7 +273,8 @@ class SimulatedFrame:
 
 
 def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
-                    poses: list[np.ndarray] | None = None, scene: str = "default") -> list[SimulatedFrame]:
+                    poses: list[np.ndarray] | None = None, scene: str = "default",
+                    bias: RangeBias | None = None) -> list[SimulatedFrame]:
     """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``).
 
     ``scene``: ``default`` (the ground, four walls, the board on a stand), ``office`` or ``hall``
@@ -292,7 +298,7 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
         patches, bi = scene_patches(rig, T_lb, static, held)
         img = render_image(rig.camera, T_lidar_camera, patches, bi,
                            transform_points(T_lb, rig.board.outline()), rng, pixel_noise=rig.pixel_noise)
-        pts, inten, ring, on_board = simulate_scan(rig, patches, rng, bi)
+        pts, inten, ring, on_board = simulate_scan(rig, patches, rng, bi, bias)
         frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
     return frames
 
@@ -333,13 +339,16 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
 
 def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
                      sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
-                     include_camera: bool = True, overwrite: bool = False, scene: str = "default") -> Path:
+                     include_camera: bool = True, overwrite: bool = False, scene: str = "default",
+                     range_bias: tuple[float, float, float] | None = None) -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
 
     ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
     ``sigma_range_m``: range noise (default 0.02 m in 3D, 0.01 m in 2D); ``scan_format``: pcd, ply, bin or
     npy in 3D (default pcd), csv, npy or pcd in 2D (default csv). ``scene``: ``default``, ``office`` or
     ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
+    ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
+    every return (the drawn values go to ground_truth.json).
     """
     if sigma_range_m is None:
         sigma_range_m = 0.01 if lidar == "2d" else 0.02
@@ -348,6 +357,12 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     rng = np.random.default_rng(seed)
     base = default_rig_2d(rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
     rig = replace(base, pixel_noise=pixel_noise)
-    frames = simulate_frames(rig, n_poses, rng, scene=scene)
-    return write_dataset(out, rig, frames, scan_format, include_camera, overwrite,
-                         meta={"seed": seed, "poses": n_poses, "scene": scene})
+    bias = None
+    meta = {"seed": seed, "poses": n_poses, "scene": scene}
+    if range_bias is not None:
+        # Drawn from a generator of its own, so that the rest of the simulation stays as without a bias.
+        bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
+        meta["range_bias"] = {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
+                              "dark_m": bias.dark_m}
+    frames = simulate_frames(rig, n_poses, rng, scene=scene, bias=bias)
+    return write_dataset(out, rig, frames, scan_format, include_camera, overwrite, meta=meta)

@@ -12,7 +12,7 @@ Jacobians are taken in GTSAM's right (body) tangent, ``T Exp(xi)`` with ``xi = [
   constant is exactly the sum of squared point-to-plane (or range) errors of all the board's points.
   Serves 2D scans unchanged (``W`` then has rank 2 or 3).
 - Plane factor with range terms: the same over ``[pi; beta]``, ``beta`` the LiDAR range model's nuisance
-  vector (a third variable; ``solvers.range_model``).
+  vector (a third variable; ``solvers.range_model``): ``W [s pi; S beta] + e0``.
 """
 from __future__ import annotations
 
@@ -82,17 +82,17 @@ def lidar_residual(W: np.ndarray, pi: np.ndarray, scan_line: bool = False) -> tu
     return e / g, W / g - np.outer(e, dg) / g**2
 
 
-def nuisance_residual(W: np.ndarray, cols: np.ndarray, m_away: np.ndarray, pi: np.ndarray, beta: np.ndarray,
-                      scan_line: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nuisance_residual(W: np.ndarray, S: np.ndarray, m_away: np.ndarray, pi: np.ndarray, beta: np.ndarray,
+                      scan_line: bool = False, e0: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The whitened LiDAR residual with range nuisance terms (``solvers.range_model``):
-    ``W [s pi (/ |n_xy|); beta[cols]]`` with ``s`` orienting the plane like the fitted one, and its
-    Jacobians by ``pi`` (k x 4) and by the whole ``beta`` (k x K)."""
+    ``W [s pi (/ |n_xy|); S beta] + e0`` with ``s`` orienting the plane like the fitted one and ``S`` the
+    frame's own terms from the shared ones, and its Jacobians by ``pi`` (k x 4) and by ``beta`` (k x K)."""
     e, de = lidar_residual(W[:, :4], pi, scan_line)
     s = 1.0 if float(pi[:3] @ m_away) >= 0 else -1.0
-    Wb = W[:, 4:]
-    H_beta = np.zeros((W.shape[0], len(beta)))
-    H_beta[:, cols] = Wb
-    return s * e + Wb @ beta[cols], s * de, H_beta
+    H_beta = W[:, 4:] @ S if S.size else np.zeros((W.shape[0], len(beta)))
+    r = s * e + H_beta @ beta
+    return (r if e0 is None else r + e0), s * de, H_beta
 
 
 def _pose(values: gtsam.Values, key: int) -> np.ndarray:
@@ -116,14 +116,24 @@ def _plane_error(W, scan_line, this, values, H):
     return e
 
 
-def _nuisance_plane_error(W, cols, m_away, scan_line, this, values, H):
+def _nuisance_plane_error(W, S, m_away, e0, scan_line, this, values, H):
     keys = this.keys()
     pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
-    e, de, H_beta = nuisance_residual(W, cols, m_away, pi, values.atVector(keys[2]), scan_line)
+    e, de, H_beta = nuisance_residual(W, S, m_away, pi, values.atVector(keys[2]), scan_line, e0)
     if H is not None:
         H[0] = de @ H_x
         H[1] = de @ H_b
         H[2] = H_beta
+    return e
+
+
+def _affine_plane_error(W, m_away, e0, scan_line, this, values, H):
+    keys = this.keys()
+    pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
+    e, de, _ = nuisance_residual(W, np.zeros((0, 0)), m_away, pi, np.zeros(0), scan_line, e0)
+    if H is not None:
+        H[0] = de @ H_x
+        H[1] = de @ H_b
     return e
 
 
@@ -140,10 +150,18 @@ def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam
                               partial(_plane_error, np.asarray(W, dtype=float), scan_line))
 
 
-def nuisance_plane_factor(key_extrinsic: int, key_board: int, key_range: int, W: np.ndarray, cols: np.ndarray,
-                          m_away: np.ndarray, noise: gtsam.noiseModel.Base, scan_line: bool = False
+def nuisance_plane_factor(key_extrinsic: int, key_board: int, key_range: int, W: np.ndarray, S: np.ndarray,
+                          m_away: np.ndarray, e0: np.ndarray, noise: gtsam.noiseModel.Base, scan_line: bool = False
                           ) -> gtsam.CustomFactor:
     """The plane (or scan-line) factor with the range model's nuisance vector as a third variable."""
     return gtsam.CustomFactor(noise, [key_extrinsic, key_board, key_range],
-                              partial(_nuisance_plane_error, np.asarray(W, dtype=float), np.asarray(cols, dtype=int),
-                                      np.asarray(m_away, dtype=float), scan_line))
+                              partial(_nuisance_plane_error, np.asarray(W, dtype=float), np.asarray(S, dtype=float),
+                                      np.asarray(m_away, dtype=float), np.asarray(e0, dtype=float), scan_line))
+
+
+def affine_plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, m_away: np.ndarray, e0: np.ndarray,
+                        noise: gtsam.noiseModel.Base, scan_line: bool = False) -> gtsam.CustomFactor:
+    """The plane (or scan-line) factor in the range model's form without terms: ``W s pi + e0``."""
+    return gtsam.CustomFactor(noise, [key_extrinsic, key_board],
+                              partial(_affine_plane_error, np.asarray(W, dtype=float), np.asarray(m_away, dtype=float),
+                                      np.asarray(e0, dtype=float), scan_line))

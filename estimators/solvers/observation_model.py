@@ -9,7 +9,7 @@ GTSAM's right tangent; the bound on the extrinsic is the Schur complement of the
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -21,8 +21,10 @@ from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
 from ..lidar.lidar_models import BeamModel
 from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
+from ..simulation.range_bias import RangeBias
 from ..simulation.scene import cast, rectangle
 from .factors import corner_residuals, lidar_plane
+from .range_model import FrameLabels, RangeTerms, regressors, terms_for
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,20 +49,28 @@ class Layout:
 def board_hits(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray]:
     """Unit beam directions (n, 3) of the LiDAR that hit board ``i`` and their true ranges (n,) (LiDAR
     frame). The board is taken as unoccluded. A layout with measured ``hits`` returns those."""
+    return board_returns(layout, i)[:2]
+
+
+def board_returns(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`board_hits` with each return's ring id and whether it lies on a black square (both None for a
+    layout with measured ``hits``)."""
     if layout.hits is not None:
-        return layout.hits[i]
+        return (*layout.hits[i], None, None)
     T_lidar_board = T_inverse(layout.T_camera_lidar) @ layout.T_camera_board[i]
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = layout.board.extent
-    dirs, _ = layout.beams.directions()
+    dirs, rings = layout.beams.directions()
     # Only beams within the board's angular box can hit it: cheap pre-selection before the exact cast.
     outline = transform_points(T_lidar_board, layout.board.outline())
     centre = outline.mean(0) / np.linalg.norm(outline.mean(0))
     cos_min = float(np.min((outline / np.linalg.norm(outline, axis=1, keepdims=True)) @ centre))
-    near = dirs[dirs @ centre >= cos_min - 1e-9]
-    ranges, which, _ = cast(np.zeros(3), near, [rectangle(o, R[:, 0], R[:, 1], w, h, 0.5)], layout.beams.max_range_m)
+    keep = dirs @ centre >= cos_min - 1e-9
+    near, rings = dirs[keep], rings[keep]
+    ranges, which, refl = cast(np.zeros(3), near, [rectangle(o, R[:, 0], R[:, 1], w, h, layout.board.reflectance)],
+                               layout.beams.max_range_m)
     hit = which == 0
-    return near[hit], ranges[hit]
+    return near[hit], ranges[hit], rings[hit], refl[hit] < 0.5
 
 
 def corner_pixels(layout: Layout, i: int) -> np.ndarray:
@@ -68,19 +78,26 @@ def corner_pixels(layout: Layout, i: int) -> np.ndarray:
     return layout.camera.project(transform_points(layout.T_camera_board[i], layout.board.inner_corners()))
 
 
-def frame_information(layout: Layout, i: int) -> np.ndarray:
-    """Fisher information (12 x 12) of frame ``i`` over ``[xi_extrinsic, xi_board_i]``."""
+def frame_information(layout: Layout, i: int, terms: RangeTerms | None = None) -> np.ndarray:
+    """Fisher information of frame ``i`` over ``[xi_extrinsic, xi_board_i]`` (12 x 12), or with range terms
+    over ``[xi_extrinsic, beta, xi_board_i]`` (12 + K square; their priors not included)."""
     T_cb = layout.T_camera_board[i]
-    F = np.zeros((12, 12))
+    K = terms.size if terms is not None else 0
+    F = np.zeros((12 + K, 12 + K))
     _, Jc = corner_residuals(T_cb, layout.board.inner_corners(), corner_pixels(layout, i), layout.camera)
-    F[6:, 6:] += Jc.T @ Jc / layout.corner_noise_px**2
-    dirs, ranges = board_hits(layout, i)
+    F[6 + K:, 6 + K:] += Jc.T @ Jc / layout.corner_noise_px**2
+    dirs, ranges, rings, dark = board_returns(layout, i)
     if len(dirs):
         pi, H_x, H_b = lidar_plane(layout.T_camera_lidar, T_cb)
         P1 = np.hstack([dirs * ranges[:, None], np.ones((len(dirs), 1))])
-        # A beam's range rho solves pi . [rho b; 1] = 0, so d rho = -[p; 1] . d pi / (m . b).
+        # A beam's range rho solves pi . [rho b; 1] = 0, so d rho = -[p; 1] . d pi / (m . b); the range terms
+        # add a . beta to every measured range.
         scale = -1.0 / (dirs @ pi[:3])
-        J = np.hstack([(P1 @ H_x) * scale[:, None], (P1 @ H_b) * scale[:, None]])
+        blocks = [(P1 @ H_x) * scale[:, None]]
+        if terms is not None:
+            blocks.append(regressors(len(dirs), terms, rings, dark))
+        blocks.append((P1 @ H_b) * scale[:, None])
+        J = np.hstack(blocks)
         F += J.T @ J / layout.range_noise_m**2
     return F
 
@@ -107,24 +124,60 @@ def extrinsic_information(F: np.ndarray) -> np.ndarray:
     return A - B @ np.linalg.solve(C, B.T)
 
 
-def cramer_rao_bound(layout: Layout) -> np.ndarray:
-    """The Cramer-Rao bound (6x6 covariance, right tangent of ``T_camera_lidar``) of the layout."""
-    return np.linalg.inv(extrinsic_information(fisher_information(layout)))
+def cramer_rao_bound(layout: Layout, terms: RangeTerms | None = None) -> np.ndarray:
+    """The Cramer-Rao bound (6x6 covariance, right tangent of ``T_camera_lidar``) of the layout; with range
+    terms, of the model that estimates them too (their priors included), marginal over them."""
+    if terms is None:
+        return np.linalg.inv(extrinsic_information(fisher_information(layout)))
+    return np.linalg.inv(range_model_information(layout, terms))[:6, :6]
 
 
-def simulate_measurements(layout: Layout, rng: np.random.Generator) -> list[FrameMeasurement]:
+def range_model_information(layout: Layout, terms: RangeTerms) -> np.ndarray:
+    """The (6 + K) square information on ``[xi_extrinsic, beta]`` with the board poses marginalised and the
+    terms' priors added (Bayesian Cramer-Rao bound of the range model)."""
+    K = terms.size
+    A = np.diag(1.0 / np.asarray(terms.prior_sd, dtype=float) ** 2)
+    info = np.zeros((6 + K, 6 + K))
+    info[6:, 6:] = A
+    for i in range(layout.n_frames):
+        F = frame_information(layout, i, terms)
+        n = 6 + K
+        info += F[:n, :n] - F[:n, n:] @ np.linalg.solve(F[n:, n:], F[n:, :n])
+    return info
+
+
+def layout_range_terms(layout: Layout, model: str) -> RangeTerms | None:
+    """The range terms of ``model`` for the rings and squares this layout's boards are hit on."""
+    rets = [board_returns(layout, i) for i in range(layout.n_frames)]
+    labels = FrameLabels(tuple(r[2] if not layout.beams.is_2d else None for r in rets),
+                         tuple(r[3] if not layout.beams.is_2d else None for r in rets))
+    return terms_for(model, labels)
+
+
+def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None
+                          ) -> list[FrameMeasurement]:
     """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
-    board's beam returns with Gaussian range noise. No rendering, no segmentation."""
+    board's beam returns with Gaussian range noise, plus ``bias`` (systematic range errors) when given; the
+    returns carry their ring ids and an intensity (0 on black squares, 100 elsewhere). No rendering, no
+    segmentation."""
     frames = []
     for i in range(layout.n_frames):
         uv = corner_pixels(layout, i)
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
         cam = estimate_board_pose(CornerDetection(uv, "simulated"), layout.board, layout.camera)
-        dirs, ranges = board_hits(layout, i)
+        dirs, ranges, rings, dark = board_returns(layout, i)
         if len(dirs) < 3:
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, f"only {len(dirs)} LiDAR beams hit the board"))
             continue
-        points = dirs * (ranges + rng.normal(0.0, layout.range_noise_m, len(ranges)))[:, None]
-        observe = observe_lidar_line if layout.beams.is_2d else observe_lidar_board
-        frames.append(FrameMeasurement(f"{i:04d}", cam, observe(points)))
+        measured = ranges + rng.normal(0.0, layout.range_noise_m, len(ranges))
+        if bias is not None and rings is not None:
+            measured = measured + bias.of(rings, dark)
+        points = dirs * measured[:, None]
+        if layout.beams.is_2d:
+            frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points)))
+            continue
+        obs = observe_lidar_board(points)
+        if rings is not None:
+            obs = replace(obs, rings=rings, intensity=np.where(dark, 0.0, 100.0))
+        frames.append(FrameMeasurement(f"{i:04d}", cam, obs))
     return frames

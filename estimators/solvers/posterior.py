@@ -38,7 +38,7 @@ from ..errors import LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
-from .refinement import Refinement, _plane_noise, pooled_range_noise_m
+from .refinement import Refinement, frame_noise, pooled_range_noise_m
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -170,6 +170,7 @@ class PlaneLikelihood:
         rm = ref.range_model
         terms = rm.terms if rm is not None else None
         beta = np.asarray(rm.values_m) if terms is not None else np.zeros(0)
+        tau = float(rm.term_consistency.get("board_scatter_m", 0.0)) if terms is not None else 0.0
         fws = frame_whiteners(frames, pooled_range_noise_m(frames), terms)
         width = max(fw.W.shape[0] for fw in fws) if fws else 3
         for f, fw in zip(frames, fws):
@@ -189,9 +190,12 @@ class PlaneLikelihood:
             # A scan line's residual is W pi / |n_xy|: its camera part is linearised at the MAP.
             g = float(np.hypot(pi_map[0], pi_map[1])) if f.lidar.is_scan_line else 1.0
             _, D = lidar_residual(W, pi_map, f.lidar.is_scan_line)
-            A = ref.range_noise_m**2 * np.eye(k)
-            B = (_plane_noise(W, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half,
-                              ref.corner_scale_sd * f.camera.plane.distance) / g**2 + D @ H_b @ cov_b @ H_b.T @ D.T)
+            # The LiDAR part: the range noise (and, with range terms, the boards' scatter along their weak
+            # direction); the camera part (scaled by s^2): the board pose and the per-board plane error.
+            A = frame_noise(fw, f.lidar.plane.normal, ref.range_noise_m, 0.0, half, 0.0, tau)
+            B = (frame_noise(fw, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half,
+                             ref.corner_scale_sd * f.camera.plane.distance) / (g**2 if fw.R is None else 1.0)
+                 + D @ H_b @ cov_b @ H_b.T @ D.T)
             A, B = A / fit.weight, B / fit.weight
             L = np.linalg.cholesky(A)
             Li = np.linalg.inv(L)
@@ -202,7 +206,7 @@ class PlaneLikelihood:
             lam3[:k] = np.maximum(lam, 0.0)
             const = np.zeros(width)
             if terms is not None:
-                const[:k] = V.T @ Li @ fw.W_nuisance @ beta[fw.cols]
+                const[:k] = V.T @ Li @ (fw.W_nuisance @ beta + fw.e0)
             rows.append(row)
             lams.append(lam3)
             consts.append(const)

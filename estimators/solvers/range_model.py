@@ -10,11 +10,11 @@ A return's measured range is ``rho = rho_true + a . beta + noise``, with ``a`` t
   Black and white returns are told apart by their intensity (two clusters, Otsu's threshold) where the scan
   has an intensity field and the board's intensities are clearly bimodal.
 
-The range residual of a board point on plane ``pi = [m; -d]`` is ``pi . [p; 1] / (m . b) - a . beta``
-(``b`` its unit beam; MATH.md section 2). With the incidence taken at the fitted plane, a frame's cost is a
-quadratic form in ``theta = [s pi; beta]`` over the moment of ``z = [[p; 1] / |m_hat . b|; -a]``, so the
-factor keeps O(1) sufficient statistics per frame (``geometry.planes.sqrt_excess_moment_nuisance``);
-``s = sign(m . m_away)`` orients the camera's plane like the fitted one (facing away from the sensor).
+Each return is modelled as ``rho = d / (m . b) + a . beta + noise`` (``b`` its unit beam, ``[m; -d]`` the
+board's plane; MATH.md section 2). Each frame is compressed once to its own maximum-likelihood plane and
+terms with their information (Gauss-Newton on the ranges, :func:`_range_fit`), so the factor keeps O(1)
+statistics per frame, exact to second order about the frame's fit: the residual is ``W [s pi; beta] + e0``
+with ``s = sign(m . m_away)`` orienting the camera's plane like the fitted one (facing away from the sensor).
 
 Model choice (``auto``): the terms are added in order (offset, per-ring, dark) while the data support them:
 a likelihood-ratio test at 1% on the refined cost, points' whole cost included, against the degrees of
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geometry.planes import sqrt_excess_moment_nuisance
+from geometry.planes import sqrt_excess_moment, sqrt_excess_moment_scan
 
 from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObservation
 
@@ -73,13 +73,22 @@ class FrameLabels:
 
 @dataclass(frozen=True, eq=False)
 class FrameWhitener:
-    """A frame's plane factor data: ``W`` (k x (4 + len(cols))), the indices ``cols`` of ``beta`` its points
-    touch, the fitted plane's normal facing away from the sensor, and the best fit's cost ``floor`` (m^2)."""
+    """A frame's plane-factor data: the residual ``W [s pi; S beta] + e0`` (``W`` k x (4 + K_f)), ``S``
+    (K_f x K) the frame's own terms from the shared ``beta`` (a ring's term is the global offset plus the
+    ring's own), the fitted plane's normal facing away from the sensor, the best fit's cost ``floor`` (m^2),
+    and with terms ``R`` (``W = R P``: the square root of the information on ``x = [tangent part of the
+    normal; d; frame terms]``, ``nt`` tangent coordinates)."""
 
     W: np.ndarray
-    cols: np.ndarray
+    S: np.ndarray
     m_away: np.ndarray
     floor: float
+    e0: np.ndarray
+    R: np.ndarray | None = None
+    nt: int = 0
+    # The board's weak direction in x: its distance and its offsets trading (d up by mean incidence x eps,
+    # every offset down by eps), told apart only by how incidence varies across the board (unit vector).
+    weak: np.ndarray | None = None
 
     @property
     def W_plane(self) -> np.ndarray:
@@ -87,7 +96,8 @@ class FrameWhitener:
 
     @property
     def W_nuisance(self) -> np.ndarray:
-        return self.W[:, 4:]
+        """``dW/dbeta``: the residual's Jacobian by the shared terms (k x K)."""
+        return self.W[:, 4:] @ self.S
 
 
 @dataclass(frozen=True)
@@ -103,11 +113,13 @@ class RangeModelFit:
     std_m: tuple[float, ...] = ()
     tests: tuple[dict, ...] = ()
     terms: RangeTerms | None = None
+    terms_covariance: np.ndarray | None = None  # K x K, marginal
     # The part of the extrinsic's covariance due to the nuisance terms' uncertainty (6x6; zeros for none).
     extrinsic_share: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     # Correlation of the global offset with the translation along the LiDAR's x, y, z.
     offset_translation_correlation: tuple[float, ...] = ()
-    range_consistency: dict = field(default_factory=dict)
+    # How far the boards' own terms are from the shared ones (chi-square, dof, p) and the per-board scatter.
+    term_consistency: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         terms = [{"term": n, "value_mm": 1000 * v, "std_mm": 1000 * s}
@@ -115,7 +127,7 @@ class RangeModelFit:
         return {"requested": self.requested, "chosen": self.chosen, "reason": self.reason, "terms": terms,
                 "tests": list(self.tests), "test": f"likelihood-ratio test at p < {MODEL_TEST_P} per added term",
                 "offset_translation_correlation_lidar_xyz": list(self.offset_translation_correlation),
-                "range_consistency": self.range_consistency}
+                "board_terms_consistency": self.term_consistency}
 
     def value(self, name: str) -> float | None:
         return self.values_m[self.names.index(name)] if name in self.names else None
@@ -193,32 +205,112 @@ def regressors(n_points: int, terms: RangeTerms, rings: np.ndarray | None, dark:
     return A
 
 
+def frame_design(n_points: int, terms: RangeTerms, rings: np.ndarray | None, dark: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's own terms: each point's regressors ``A`` (n x K_f, independent columns) and ``S`` (K_f x K)
+    mapping the shared ``beta`` to them. With rings: one column per ring seen (its term: the global offset
+    plus the ring's own); without: the global offset; then the black squares' term when both colours are
+    seen."""
+    if not terms.size:
+        return np.zeros((n_points, 0)), np.zeros((0, 0))
+    cols, rows = [], []
+    if terms.rings and rings is not None:
+        index = {r: 1 + j for j, r in enumerate(terms.rings)}
+        for r in np.unique(rings):
+            if int(r) in index:
+                cols.append((rings == r).astype(float))
+                row = np.zeros(terms.size)
+                row[0], row[index[int(r)]] = 1.0, 1.0
+                rows.append(row)
+        covered = np.sum(cols, axis=0) if cols else np.zeros(n_points)
+        if np.any(covered == 0):  # returns of rings the terms do not hold: the global offset alone
+            cols.append((covered == 0).astype(float))
+            rows.append(np.eye(terms.size)[0])
+    else:
+        cols.append(np.ones(n_points))
+        rows.append(np.eye(terms.size)[0])
+    if "dark" in terms.names and dark is not None and dark.any() and not dark.all():
+        cols.append(np.asarray(dark, dtype=float))
+        rows.append(np.eye(terms.size)[terms.names.index("dark")])
+    return np.column_stack(cols), np.array(rows)
+
+
 def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: RangeTerms | None,
                    rings: np.ndarray | None = None, dark: np.ndarray | None = None) -> FrameWhitener:
-    """The frame's plane-factor data at range noise ``sigma_range_m`` (the moments' noise term removed):
-    the range moment of :func:`~estimators.measurements.lidar_whitener`, weighed at the recorded plane and
-    extended by the terms' regressors."""
+    """The frame's plane-factor data. Without terms (None): the square root of the board points' range
+    moment with its noise term removed at ``sigma_range_m`` (:func:`~estimators.measurements.lidar_whitener`,
+    weighed at the recorded plane). With terms (an empty :class:`RangeTerms` included): the frame's own
+    plane and terms from its ranges, and their information (:func:`_range_fit`)."""
     m = obs.plane.normal
     P = obs.points if not obs.is_scan_line else np.column_stack([obs.points[:, :2], np.zeros(obs.n_points)])
     beams = P / np.linalg.norm(P, axis=1, keepdims=True)
     m_away = m if float(np.mean(beams @ m)) >= 0 else -m
     if terms is None:
-        A, cols = np.zeros((len(P), 0)), np.zeros(0, dtype=int)
-    else:
-        A = regressors(len(P), terms, rings, dark)
-        cols = np.flatnonzero(np.any(A != 0, axis=0))
-        A = A[:, cols]
-    c = np.maximum(np.abs(beams @ m), MIN_INCIDENCE_COS)
-    # Each term moves its points' plane distance by (term) x (the board's mean incidence cosine): a global
-    # offset is then, within one board, exactly a shift of the board's plane, and is told from the plane
-    # only by the camera across boards. (Read from the incidence of each point instead, it would lean on
-    # how ranges vary with incidence within a board, which real sensors bias in other ways.)
-    A = A * (float(np.mean(c)) / c)[:, None]
-    Z = np.hstack([np.column_stack([P, np.ones(len(P))]) / c[:, None], -A])
-    M = Z.T @ Z
-    M[:3, :3] -= sigma_range_m**2 * (beams / c[:, None] ** 2).T @ beams
-    W, floor = sqrt_excess_moment_nuisance(M, obs.is_scan_line)
-    return FrameWhitener(W, cols, m_away, floor)
+        c = np.maximum(np.abs(beams @ m), MIN_INCIDENCE_COS)
+        Z = np.column_stack([P, np.ones(len(P))]) / c[:, None]
+        M = Z.T @ Z
+        M[:3, :3] -= sigma_range_m**2 * (beams / c[:, None] ** 2).T @ beams
+        W, floor = (sqrt_excess_moment_scan if obs.is_scan_line else sqrt_excess_moment)(M)
+        return FrameWhitener(W, np.zeros((0, 0)), m_away, floor, np.zeros(W.shape[0]))
+    A, S = frame_design(len(P), terms, rings, dark)
+    W, e0, floor, R = _range_fit(np.linalg.norm(P, axis=1), beams, A, m_away, obs.is_scan_line)
+    nt = 1 if obs.is_scan_line else 2
+    vals, vecs = np.linalg.eigh(R.T @ R)
+    weak = vecs[:, 0]
+    return FrameWhitener(W, S, m_away, floor, e0, R, nt, weak)
+
+
+def _tangent(m: np.ndarray, scan_line: bool) -> np.ndarray:
+    """Unit vectors (3 x 2, or 3 x 1 in the scan plane for a scan line) orthogonal to the normal ``m``."""
+    if scan_line:
+        return np.array([[-m[1], m[0], 0.0]]).T / max(np.hypot(m[0], m[1]), 1e-12)
+    return np.linalg.svd(m[None, :])[2][1:].T
+
+
+def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray, scan_line: bool,
+               iterations: int = 8) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """One board's plane and range terms from its ranges, compressed to a residual.
+
+    The model of each return is ``rho = d / (m . b) + a . beta + noise``: the ranges are the observations and
+    the beams are known, so Gauss-Newton on it is plain least squares (no errors in the variables, and no
+    spurious minimum where an offset mimics a rescaled normal, as it does in a moment's quadratic form).
+    The plane alone is fitted first (``beta = 0``); about that point, with ``x = [tangent part of the
+    normal; d; beta]``, the cost is ``floor + |R (x - x*)|^2`` to second order (Gauss-Newton; ``beta`` stays
+    near 0, while within one board an offset and the plane's distance can trade far along a flat valley).
+    Returned as ``W = R P`` and ``e0`` with ``x = P theta`` read from ``theta = [n; -d; beta]`` (the normal's
+    tangent part), the floor, and ``R``.
+    """
+    m = m0 / np.linalg.norm(m0)
+    mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
+    d = float(np.sum(rho / mb) / np.sum(1.0 / mb**2))  # least squares d for the initial normal
+
+    def jacobian(m, d):
+        T = _tangent(m, scan_line)
+        mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
+        return T, rho - d / mb, np.hstack([(d / mb**2)[:, None] * (beams @ T), -(1.0 / mb)[:, None], -A])
+
+    nt = 1 if scan_line else 2
+    for _ in range(iterations):
+        T, r, J = jacobian(m, d)
+        step = np.linalg.lstsq(J[:, :nt + 1], -r, rcond=None)[0]
+        m = m + T @ step[:nt]
+        m /= np.linalg.norm(m)
+        d += step[nt]
+        if np.max(np.abs(step)) < 1e-10:
+            break
+    T, r, J = jacobian(m, d)
+    vals, vecs = np.linalg.eigh(J.T @ J)
+    keep = vals > 1e-10 * vals[-1]
+    g = J.T @ r
+    Hg = (vecs[:, keep] / vals[keep]) @ (vecs[:, keep].T @ g)
+    K = A.shape[1]
+    x_star = np.concatenate([np.zeros(nt), [d], np.zeros(K)]) - Hg
+    R = np.sqrt(vals[keep])[:, None] * vecs[:, keep].T
+    Pm = np.zeros((nt + 1 + K, 4 + K))  # x = Pm theta
+    Pm[:nt, :3] = T.T
+    Pm[nt, 3] = -1.0
+    Pm[nt + 1:, 4:] = np.eye(K)
+    return R @ Pm, -R @ x_star, float(r @ r - g @ Hg), R
 
 
 def frame_whiteners(frames: list[FrameMeasurement], sigma_range_m: float, terms: RangeTerms | None,

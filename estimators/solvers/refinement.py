@@ -45,10 +45,10 @@ from geometry.rotations import T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from .closed_form import describe_direction, solve_closed_form
-from .factors import (corner_factor, corner_residuals, lidar_plane, lidar_residual, nuisance_plane_factor,
-                      nuisance_residual, plane_factor)
-from .range_model import (MODEL_TEST_P, RANGE_MODELS, FrameLabels, RangeModelFit, RangeTerms, frame_labels,
-                          frame_whiteners, terms_for)
+from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
+                      nuisance_plane_factor, nuisance_residual, plane_factor)
+from .range_model import (MODEL_TEST_P, RANGE_MODELS, FrameLabels, FrameWhitener, RangeModelFit, RangeTerms,
+                          frame_labels, frame_whiteners, terms_for)
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")
@@ -85,7 +85,7 @@ class RefinementOptions:
     max_iterations: int = 100
     corner_scale_sd: float = CORNER_SCALE_SD
     # The LiDAR range model (``solvers.range_model``): none, offset, per-ring, full, or auto (chosen by test).
-    range_model: str = "none"
+    range_model: str = "auto"
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -161,16 +161,23 @@ def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
     return float(np.sqrt(ss / dof))
 
 
-def _robust(noise: gtsam.noiseModel.Base, options: RefinementOptions) -> gtsam.noiseModel.Base:
+def _threshold(options: RefinementOptions, dof: int) -> float:
+    """The robust loss's threshold for a residual of ``dof`` dimensions: ``robust_threshold`` is set for a
+    plane's 3 (a range model's factors have more, and would be cut at their typical size otherwise)."""
+    return options.robust_threshold * float(np.sqrt(chi2.ppf(0.99, max(dof, 3)) / chi2.ppf(0.99, 3)))
+
+
+def _robust(noise: gtsam.noiseModel.Base, options: RefinementOptions, dof: int = 3) -> gtsam.noiseModel.Base:
+    k = _threshold(options, dof)
     if options.robust == "huber":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(options.robust_threshold), noise)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), noise)
     if options.robust == "cauchy":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(options.robust_threshold), noise)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), noise)
     return noise
 
 
-def _robust_weight(e_norm: float, options: RefinementOptions) -> float:
-    k = options.robust_threshold
+def _robust_weight(e_norm: float, options: RefinementOptions, dof: int = 3) -> float:
+    k = _threshold(options, dof)
     if options.robust == "huber":
         return 1.0 if e_norm <= k else k / e_norm
     if options.robust == "cauchy":
@@ -192,6 +199,20 @@ def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: flo
     return cov
 
 
+def frame_noise(fw: FrameWhitener, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
+                scale_m: float = 0.0, tau_m: float = 0.0) -> np.ndarray:
+    """Covariance of a frame's whitened LiDAR residual (:func:`_plane_noise`). In the range model's form
+    (``fw.R`` set) the per-board plane error acts on the board's own plane (its tilt, ``floor_m`` at the
+    board's edge, and its distance), and ``tau_m`` is the scatter along the board's weak direction
+    (``fw.weak``: its distance and offsets trading, told apart only by incidence across the board)."""
+    if fw.R is None:
+        return _plane_noise(fw.W, normal, sigma_r, floor_m, half_size_m, scale_m)
+    var = np.concatenate([np.full(fw.nt, (floor_m / half_size_m) ** 2), [floor_m**2 + scale_m**2],
+                          np.zeros(fw.R.shape[1] - fw.nt - 1)])
+    Rv = fw.R @ fw.weak
+    return sigma_r**2 * np.eye(fw.R.shape[0]) + (fw.R * var) @ fw.R.T + tau_m**2 * np.outer(Rv, Rv)
+
+
 class _Problem:
     """The data of one refinement: per frame its plane whitener, the plane noise, the corner noise, and the
     range model's terms (None: none) with their current values ``beta``."""
@@ -206,6 +227,10 @@ class _Problem:
         self.fw = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
         self.whiteners = [w.W for w in self.fw]
         self.beta = np.zeros(terms.size if terms else 0)
+        self.has_beta = bool(terms is not None and terms.size)
+        # Scatter (m) of each board's own range terms about the shared ones: estimated when they disagree
+        # beyond the noise (biases that vary with range, incidence or temperature, or terms the model lacks).
+        self.tau = 0.0
         self.corners_board = board.inner_corners()
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 
@@ -218,9 +243,8 @@ class _Problem:
             return 0
         rows = []
         for i in frames:
-            G = np.zeros((self.whiteners[i].shape[0], self.terms.size))
-            G[:, self.fw[i].cols] = self.fw[i].W_nuisance
-            rows.append(G)
+            rows.append(self.fw[i].W_nuisance if self.fw[i].S.size else np.zeros((self.whiteners[i].shape[0],
+                                                                                  self.terms.size)))
         return _rank(np.vstack(rows))
 
     def residual(self, i: int, T: np.ndarray, T_board: np.ndarray) -> np.ndarray:
@@ -229,19 +253,34 @@ class _Problem:
         if self.terms is None:
             return lidar_residual(self.whitener(i), pi, scan)[0]
         fw = self.fw[i]
-        return nuisance_residual(fw.W, fw.cols, fw.m_away, pi, self.beta, scan)[0]
+        return nuisance_residual(fw.W, fw.S, fw.m_away, pi, self.beta, scan, fw.e0)[0]
 
     def plane_cov(self, i: int, floor_m: float) -> np.ndarray:
         f = self.frames[i]
-        cov = _plane_noise(self.whitener(i)[:, :4], f.lidar.plane.normal, self.sigma_r, floor_m,
+        return frame_noise(self.fw[i], f.lidar.plane.normal, self.sigma_r, floor_m,
                            0.5 * float(np.mean(self.board.extent)),
-                           self.options.corner_scale_sd * f.camera.plane.distance)
-        return cov
+                           self.options.corner_scale_sd * f.camera.plane.distance, self.tau)
+
+    def term_consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
+        """How far each board's residual lies along its weak direction (its distance against its offsets, told
+        apart only by incidence across the board), in units of its noise: chi-square, one dof per board. Real
+        sensors' incidence-dependent biases show here first."""
+        stat, dof = 0.0, 0
+        for i in frames:
+            fw = self.fw[i]
+            if fw.R is None or fw.weak is None:
+                continue
+            Rv = fw.R @ fw.weak
+            u = Rv / np.linalg.norm(Rv)
+            e = self.residual(i, T, boards[i])
+            stat += float(u @ e) ** 2 / float(u @ self.plane_cov(i, floor_m) @ u)
+            dof += 1
+        return stat, max(dof, 1)
 
     def graph(self, active: list[int], floor_m: float, robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         corners_board = self.corners_board
-        if self.terms is not None:
+        if self.has_beta:
             graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array(self.terms.prior_sd))))
         for j, i in enumerate(active):
@@ -250,55 +289,21 @@ class _Problem:
             graph.add(corner_factor(key, corners_board, f.camera.corners_px, self.camera,
                                     gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
             noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
-            noise = _robust(noise, self.options) if robust else noise
+            noise = _robust(noise, self.options, self.whitener(i).shape[0]) if robust else noise
             if self.terms is None:
                 graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), noise, f.lidar.is_scan_line))
+            elif not self.has_beta:
+                fw = self.fw[i]
+                graph.add(affine_plane_factor(EXTRINSIC, key, fw.W, fw.m_away, fw.e0, noise, f.lidar.is_scan_line))
             else:
                 fw = self.fw[i]
-                graph.add(nuisance_plane_factor(EXTRINSIC, key, RANGE, fw.W, fw.cols, fw.m_away, noise,
+                graph.add(nuisance_plane_factor(EXTRINSIC, key, RANGE, fw.W, fw.S, fw.m_away, fw.e0, noise,
                                                 f.lidar.is_scan_line))
         return graph
 
-    def full_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
-        """The frame's whole whitened LiDAR residual (its plane and, with range terms, how far its own best
-        range offsets are from the shared ones)."""
+    def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         e = self.residual(i, T, T_board)
         return float(e @ np.linalg.solve(self.plane_cov(i, floor_m), e))
-
-    def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
-        """The part of the frame's LiDAR residual that no range offsets of its own could explain: how far its
-        camera and LiDAR planes disagree (``plane_dof`` degrees of freedom). Without range terms, all of it."""
-        e = self.residual(i, T, T_board)
-        L = np.linalg.cholesky(self.plane_cov(i, floor_m))
-        z = np.linalg.solve(L, e)
-        if self.terms is not None and self.fw[i].W_nuisance.size:
-            G = np.linalg.solve(L, self.fw[i].W_nuisance)
-            z = z - G @ np.linalg.lstsq(G, z, rcond=None)[0]
-        return float(z @ z)
-
-    def plane_dof(self, i: int) -> int:
-        Wb = self.fw[i].W_nuisance
-        return int(self.whitener(i).shape[0] - (_rank(Wb) if Wb.size else 0))
-
-    def range_consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
-        """How far the frames' own best range offsets disagree with the shared terms (chi-square, dof), or
-        (0, 0) without range terms."""
-        if self.terms is None:
-            return 0.0, 0
-        stat = sum(self.full_chi2(i, T, boards[i], floor_m) - self.plane_chi2(i, T, boards[i], floor_m)
-                   for i in frames)
-        dof = sum(self.whitener(i).shape[0] - self.plane_dof(i) for i in frames) - self.nuisance_rank(frames)
-        return float(stat), int(max(dof, 1))
-
-    def total_cost(self, active: list[int], T: np.ndarray, boards: list) -> float:
-        """The whole (non-robust, no plane error) cost of the frames at the estimate: corners, every board
-        point's squared range error (the best fits' floors included, so that models with other terms
-        compare), and the nuisance prior."""
-        cost = sum(self.full_chi2(i, T, boards[i], 0.0) + self.corner_chi2(i, boards[i])
-                   + self.fw[i].floor / self.sigma_r**2 for i in active)
-        if self.terms is not None:
-            cost += float(np.sum((self.beta / np.array(self.terms.prior_sd)) ** 2))
-        return float(cost)
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
@@ -308,7 +313,7 @@ class _Problem:
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         """The frame's share of the consistency statistic: its plane residual plus how far its board had
         to move from the camera's own fit (a cheap camera lets a bad LiDAR plane drag the board)."""
-        return self.full_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
+        return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
     def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
@@ -316,7 +321,7 @@ class _Problem:
         values.insert(EXTRINSIC, gtsam.Pose3(T))
         for j, i in enumerate(active):
             values.insert(board_key(j), gtsam.Pose3(boards[i]))
-        if self.terms is not None:
+        if self.has_beta:
             values.insert(RANGE, self.beta.copy())
         graph = self.graph(active, floor_m)
         params = gtsam.LevenbergMarquardtParams()
@@ -328,7 +333,7 @@ class _Problem:
         T = result.atPose3(EXTRINSIC).matrix()
         for j, i in enumerate(active):
             boards[i] = result.atPose3(board_key(j)).matrix()
-        if self.terms is not None:
+        if self.has_beta:
             self.beta = np.asarray(result.atVector(RANGE), dtype=float)
         return graph, result, int(opt.iterations())
 
@@ -423,18 +428,30 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if prob.terms is not None and prob.terms.model != "offset" and options.plane_floor_m is None:
         stat, dof = prob.consistency(inliers, T, boards, floor)
         if chi2.sf(stat, dof) < 0.01:
-            # Per-ring and reflectivity terms read structure within each board; when that structure differs
-            # from board to board beyond the noise, a shared term cannot hold it (and the plane error cannot
-            # absorb it): fall back to the global offset, which only the camera informs.
-            why = (f"{model_fit.chosen} terms left the boards inconsistent (chi-square {stat:.0f} on {dof} dof): their "
-                   "within-board structure differs from board to board; fell back to the global offset")
-            prob, T, boards, model_fit = _choose_range_model(prob0, active, inliers, start[0], start[1], floor,
-                                                             replace(options, range_model="offset"))
-            model_fit = replace(model_fit, requested=options.range_model, reason=why)
+            # Per-ring and black-square terms read structure within each board; when that structure differs
+            # from board to board beyond the noise, shared terms cannot hold it (and a per-board plane error
+            # cannot absorb it): fall back to the global offset.
+            why = (f"the {model_fit.chosen} terms left the boards inconsistent (chi-square {stat:.0f} on {dof} dof): "
+                   "their within-board structure differs from board to board; fell back to at most a global offset")
+            tests = model_fit.tests
+            prob, T, boards, model_fit = _choose_range_model(
+                prob0, active, inliers, start[0], start[1], floor,
+                options if options.range_model == "auto" else replace(options, range_model="offset"), upto="offset")
+            why += f"; then {model_fit.chosen}: {model_fit.reason}" if options.range_model == "auto" else ""
+            model_fit = replace(model_fit, requested=options.range_model, reason=why, tests=tests)
             warnings.append(f"range model: {why}")
     if prob.terms is not None:
-        graph, result, its = prob.solve(active, T, boards, floor)
-        iterations += its
+        graph, result = prob.solved
+        t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
+        if chi2.sf(t_stat, t_dof) < 0.01 and options.estimate_plane_floor:
+            T, boards, graph, result, its = _estimate_tau(prob, active, inliers, T, boards, floor, t_dof)
+            iterations += its
+            warnings.append(f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
+                            f"{t_dof} dof): the offset is taken from the camera across boards only (a per-board "
+                            f"scatter of {1000 * prob.tau:.0f} mm along distance-against-offset)")
+        model_fit = replace(model_fit, term_consistency={"chi2": t_stat, "dof": t_dof,
+                                                         "p_value": float(chi2.sf(t_stat, t_dof)),
+                                                         "board_scatter_m": prob.tau})
     stat, dof = prob.consistency(inliers, T, boards, floor)
     variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
     if p_value < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor:
@@ -472,11 +489,6 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
 
-    if model_fit is not None and prob.terms is not None:
-        r_stat, r_dof = prob.range_consistency(inliers, T, boards, floor)
-        model_fit = replace(model_fit, range_consistency={
-            "chi2": r_stat, "dof": r_dof, "p_value": float(chi2.sf(r_stat, r_dof)),
-            "meaning": "how far each board's own best range offsets are from the shared terms"})
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -489,9 +501,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         c2 = prob.plane_chi2(i, T, boards[i], floor)
         corner = prob.corner_chi2(i, boards[i])
         why = dropped.get(i) or flagged.get(i)
-        fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], prob.plane_dof(i),
+        fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], int(prob.whitener(i).shape[0]),
                              float(sigma_px * np.sqrt(corner / f.camera.corners_px.size)),
-                             0.0 if i in dropped else _robust_weight(np.sqrt(c2), options), why, i in dropped))
+                             0.0 if i in dropped else _robust_weight(np.sqrt(c2), options, prob.whitener(i).shape[0]),
+                             why, i in dropped))
         if why:
             action = "dropped" if i in dropped else "down-weighted"
             warnings.append(f"frame {f.name}: {why}; {action}")
@@ -500,8 +513,30 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                       tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit)
 
 
+def _estimate_tau(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list, floor: float,
+                  dof: int) -> tuple:
+    """The per-board scatter along the boards' weak directions (``_Problem.tau``, up to 10 m) by the method of
+    moments: their consistency statistic equals its degrees of freedom. Each trial starts from the fit
+    without it."""
+    start = (T, list(boards), prob.beta.copy())
+    lo, hi, its = 1e-4, 10.0, 0
+    for _ in range(16):
+        prob.tau = float(np.sqrt(lo * hi))
+        b, prob.beta = list(start[1]), start[2].copy()
+        _, result, n = prob.solve(active, start[0], b, floor)
+        its += n
+        if prob.term_consistency(inliers, result.atPose3(EXTRINSIC).matrix(), b, floor)[0] > dof:
+            lo = prob.tau
+        else:
+            hi = prob.tau
+    prob.tau = hi
+    boards, prob.beta = list(start[1]), start[2].copy()
+    graph, result, n = prob.solve(active, start[0], boards, floor)
+    return result.atPose3(EXTRINSIC).matrix(), boards, graph, result, its + n
+
+
 def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                        floor: float, options: RefinementOptions) -> tuple:
+                        floor: float, options: RefinementOptions, upto: str = "full") -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
     terms that the data support, added in order while each passes a likelihood-ratio test at 1% on the whole
     cost of the inlier frames. Returns the problem (solved at its estimate), the estimate and the record."""
@@ -509,8 +544,9 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
         return prob, T, boards, None
     labels = frame_labels(prob.frames)
     order = ["none", "offset", "per-ring", "full"]
+    order = order[:order.index(upto) + 1]
     wanted = options.range_model
-    models = order if wanted == "auto" else ["none", wanted]
+    models = order if wanted == "auto" else [wanted]  # a requested model is fitted, not tested
     tests, fits, seen = [], {}, set()
     for model in models:
         terms = terms_for(model, labels)
@@ -518,33 +554,40 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
         if key in seen:  # per-ring without rings, full without black/white labels: nothing new to test
             continue
         seen.add(key)
-        p = prob if model == "none" else _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r,
-                                                  options, terms, labels)
-        b, T_m = list(boards), T
-        if model != "none":
-            T_m = p.solve(active, T, b, floor)[1].atPose3(EXTRINSIC).matrix()
-        cost = p.total_cost(inliers, T_m, b)
+        # The baseline without terms in the same (range) form, so that the costs compare.
+        p = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
+                     terms if terms is not None else RangeTerms((), ()), labels)
+        b = list(boards)
+        graph_m, result_m, _ = p.solve(active, T, b, floor)
+        p.solved = (graph_m, result_m)  # the refinement goes on from this solution
+        T_m = result_m.atPose3(EXTRINSIC).matrix()
+        # The objective each solve minimised (robust loss, priors) with the boards' best-fit floors: nested
+        # models then compare (the floors differ with the terms each board holds).
+        cost = 2.0 * graph_m.error(result_m) + sum(p.fw[i].floor for i in active) / p.sigma_r**2
         dof = p.nuisance_rank(inliers)
         fits[model] = (p, T_m, b, cost, dof)
+    if wanted != "auto":
+        p, T_m, b, _, _ = fits[wanted]
+        got = p.terms.model
+        why = f"requested ({wanted})" + ("" if got == wanted else f"; the data allow only the {got} terms")
+        return p, T_m, b, RangeModelFit(wanted, got, why, p.terms.names, tuple(p.beta.tolist()), terms=p.terms)
     chosen, why = "none", "no range term tested"
     for model in [m for m in models if m in fits and m != "none"]:
         base = fits[chosen]
         p, T_m, b, cost, dof = fits[model]
         delta, ddof = base[3] - cost, max(dof - base[4], 1)
         p_value = float(chi2.sf(max(delta, 0.0), ddof))
-        accept = wanted != "auto" or p_value < MODEL_TEST_P
+        accept = p_value < MODEL_TEST_P
         tests.append({"model": model, "against": chosen, "cost_decrease": float(delta), "added_dof": int(ddof),
                       "p_value": p_value, "included": bool(accept)})
         if accept:
             chosen = model
-            why = (f"requested ({model})" if wanted != "auto" else
-                   f"the {model} terms lower the cost by {delta:.1f} on {ddof} dof (p = {p_value:.2g} < {MODEL_TEST_P})")
-        elif wanted == "auto":
+            why = f"the {model} terms lower the cost by {delta:.1f} on {ddof} dof (p = {p_value:.2g} < {MODEL_TEST_P})"
+        else:
             break
     if chosen == "none":
-        if wanted == "auto":
-            why = (f"no range term is supported by the data (likelihood-ratio test at {MODEL_TEST_P}: "
-                   f"p = {tests[0]['p_value']:.2g} for a global offset)" if tests else "no range term could be tested")
+        why = (f"no range term is supported by the data (likelihood-ratio test at {MODEL_TEST_P}: "
+               f"p = {tests[0]['p_value']:.2g} for a global offset)" if tests else "no range term could be tested")
         return prob, T, boards, RangeModelFit(wanted, "none", why, tests=tuple(tests))
     p, T_m, b, _, _ = fits[chosen]
     return p, T_m, b, RangeModelFit(wanted, chosen, why, p.terms.names, tuple(p.beta.tolist()), tests=tuple(tests),
@@ -560,7 +603,7 @@ def _with_uncertainty(fit: RangeModelFit, prob: _Problem, marginals: gtsam.Margi
     share = Cxb @ np.linalg.solve(Cbb, Cxb.T)
     sd_b = np.sqrt(np.maximum(np.diag(Cbb), 0.0))
     corr = Cxb[3:, 0] / np.sqrt(np.maximum(np.diag(Cxx)[3:], 1e-300)) / max(sd_b[0], 1e-300)
-    return replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(sd_b.tolist()),
+    return replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(sd_b.tolist()), terms_covariance=Cbb,
                    extrinsic_share=0.5 * (share + share.T), offset_translation_correlation=tuple(corr.tolist()))
 
 
