@@ -140,7 +140,7 @@ def main() -> None:
                       f"{100 * keep:9.0f}%{ea / en:12.3f}")
     t_none, t_full = _timing()
     print(f"refinement of 16 VLP-16 frames without injected errors (median of 5, one process): none "
-          f"{1000 * t_none:.0f} ms, full range model with its model test {1000 * t_full:.0f} ms "
+          f"{1000 * t_none:.0f} ms, full range model {1000 * t_full:.0f} ms "
           f"({t_full / t_none:.1f}x)")
     print("rot/CRB, tr/CRB: RMS error over the RMS Cramer-Rao bound of the model with the injected terms (their priors "
           "included); d2: mean squared Mahalanobis distance of the truth (6 ideal); in 95%: share of injected terms "

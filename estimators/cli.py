@@ -172,7 +172,7 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-model", default="auto", choices=["none", "offset", "per-ring", "full", "auto"],
                    help="LiDAR range errors estimated with the extrinsic: a global offset, per-ring offsets, a "
                         "black-square offset (full); auto (default) adds each term the data support (likelihood-"
-                        "ratio test at 1%%)")
+                        "ratio test at 0.1%%)")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],

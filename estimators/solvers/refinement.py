@@ -22,7 +22,7 @@ Noise levels:
 
 LiDAR range model (``RefinementOptions.range_model``; ``solvers.range_model``): nuisance terms of the plane
 factors (a global offset, per-ring offsets, a black-square offset) in one vector variable with a prior; under
-``auto`` each is added while a likelihood-ratio test at 1% supports it. Per-ring and black-square terms that
+``auto`` each is added while a likelihood-ratio test at 0.1% supports it. Per-ring and black-square terms that
 leave the boards inconsistent fall back to the global offset (their within-board structure then differs from
 board to board, which a shared term cannot hold).
 
@@ -538,7 +538,7 @@ def _estimate_tau(prob: _Problem, active: list[int], inliers: list[int], T: np.n
 def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
                         floor: float, options: RefinementOptions, upto: str = "full") -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
-    terms that the data support, added in order while each passes a likelihood-ratio test at 1% on the whole
+    terms that the data support, added in order while each passes a likelihood-ratio test at 0.1% on the whole
     cost of the inlier frames. Returns the problem (solved at its estimate), the estimate and the record."""
     if options.range_model == "none":
         return prob, T, boards, None
