@@ -444,7 +444,13 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         graph, result = prob.solved
         t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
         if chi2.sf(t_stat, t_dof) < 0.01 and options.estimate_plane_floor:
-            T, boards, graph, result, its = _estimate_tau(prob, active, inliers, T, boards, floor, t_dof)
+            def with_tau(v):
+                prob.tau = v
+                return floor
+
+            prob.tau, (T, boards, graph, result, its) = _match_moments(
+                prob, active, T, boards, (1e-4, 10.0), 16, with_tau,
+                lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] > t_dof)
             iterations += its
             warnings.append(f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
                             f"{t_dof} dof): the offset is taken from the camera across boards only (a per-board "
@@ -458,22 +464,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         # The planes disagree beyond the point and corner noise (real sensors: range biases per laser,
         # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
         # consistency statistic equals its degrees of freedom (method of moments), then solve again.
-        lo, hi = 1e-5, 0.5
-        start = (T, list(boards), prob.beta.copy())  # every trial starts from the fit without the error
-        for _ in range(14):
-            floor = float(np.sqrt(lo * hi))
-            boards, prob.beta = list(start[1]), start[2].copy()
-            graph, result, its = prob.solve(active, start[0], boards, floor)
-            iterations += its
-            T = result.atPose3(EXTRINSIC).matrix()
-            if prob.consistency(inliers, T, boards, floor)[0] > dof:
-                lo = floor
-            else:
-                hi = floor
-        floor = hi
-        boards, prob.beta = list(start[1]), start[2].copy()
-        graph, result, its = prob.solve(active, start[0], boards, floor)
-        T = result.atPose3(EXTRINSIC).matrix()
+        floor, (T, boards, graph, result, its) = _match_moments(
+            prob, active, T, boards, (1e-5, 0.5), 14, lambda v: v,
+            lambda v, T_v, b_v: prob.consistency(inliers, T_v, b_v, v)[0] > dof)
+        iterations += its
         warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise explain "
                         f"(chi-square {stat:.0f} on {dof} dof, p = {p_value:.1g}); a per-board plane error of "
                         f"{1000 * floor:.1f} mm, estimated from the data, is included in the covariance")
@@ -513,26 +507,31 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                       tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit)
 
 
-def _estimate_tau(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list, floor: float,
-                  dof: int) -> tuple:
-    """The per-board scatter along the boards' weak directions (``_Problem.tau``, up to 10 m) by the method of
-    moments: their consistency statistic equals its degrees of freedom. Each trial starts from the fit
-    without it."""
+def _match_moments(prob: _Problem, active: list[int], T: np.ndarray, boards: list, bounds: tuple[float, float],
+                   steps: int, floor_for, too_small) -> tuple:
+    """A noise parameter by the method of moments, bisected geometrically within ``bounds``: ``floor_for(v)``
+    sets it (returning the per-board plane error to solve with) and ``too_small(v, T, boards)`` says whether
+    the consistency statistic is still above its degrees of freedom. Each trial starts from the fit without
+    it. Returns the value and the final solve ``(T, boards, graph, result, iterations)``."""
     start = (T, list(boards), prob.beta.copy())
-    lo, hi, its = 1e-4, 10.0, 0
-    for _ in range(16):
-        prob.tau = float(np.sqrt(lo * hi))
+    lo, hi = bounds
+    its = 0
+
+    def solve_at(v):
         b, prob.beta = list(start[1]), start[2].copy()
-        _, result, n = prob.solve(active, start[0], b, floor)
+        graph, result, n = prob.solve(active, start[0], b, floor_for(v))
+        return result.atPose3(EXTRINSIC).matrix(), b, graph, result, n
+
+    for _ in range(steps):
+        v = float(np.sqrt(lo * hi))
+        T_v, b_v, _, _, n = solve_at(v)
         its += n
-        if prob.term_consistency(inliers, result.atPose3(EXTRINSIC).matrix(), b, floor)[0] > dof:
-            lo = prob.tau
+        if too_small(v, T_v, b_v):
+            lo = v
         else:
-            hi = prob.tau
-    prob.tau = hi
-    boards, prob.beta = list(start[1]), start[2].copy()
-    graph, result, n = prob.solve(active, start[0], boards, floor)
-    return result.atPose3(EXTRINSIC).matrix(), boards, graph, result, its + n
+            hi = v
+    T_v, b_v, graph, result, n = solve_at(hi)
+    return hi, (T_v, b_v, graph, result, its + n)
 
 
 def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
