@@ -19,6 +19,8 @@ from estimators.solvers.range_model import RangeTerms, frame_whitener, terms_for
 from estimators.solvers.refinement import measurement_model_options, refine
 from geometry.rotations import T_inverse, T_log
 
+from .numeric import likelihood_hessian
+
 
 def _frames(seed: int, offset_m: float, n: int = 10):
     """Measurement-level frames whose ranges are all lengthened by ``offset_m`` (measured = true + offset)."""
@@ -195,14 +197,6 @@ def test_posterior_with_a_range_offset_has_the_marginal_laplace_covariance():
 
     layout, frames = _frames(800, 0.03)
     ref = _refine(layout, frames, "offset")
-    model = PlaneLikelihood(frames, layout.board, layout.camera, ref)
-
-    def f(x):
-        return -model(np.append(x, 0.0)[None])[0]
-
-    h = 1e-5
-    E = np.eye(6) * h
-    H = np.array([[(f(E[a] + E[b]) - f(E[a] - E[b]) - f(-E[a] + E[b]) + f(-E[a] - E[b])) / (4 * h * h)
-                   for b in range(6)] for a in range(6)])
+    H = likelihood_hessian(PlaneLikelihood(frames, layout.board, layout.camera, ref))
     np.testing.assert_allclose(np.linalg.inv(H) + ref.range_model.extrinsic_share, ref.covariance, rtol=0.03,
                                atol=0.03 * np.abs(ref.covariance).max())
