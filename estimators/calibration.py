@@ -22,6 +22,7 @@ from .camera.intrinsics import calibrate_intrinsics
 from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError,
                      PosteriorSkippedError)
 from .io.dataset import Dataset, load_dataset
+from .io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from .io.image_io import read_gray
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan_2d, read_sweep
@@ -135,6 +136,8 @@ class CalibrationResult:
     posterior: Posterior | None = None
     selection: MinimalSelection | None = None  # 2D LiDAR: how the minimal solutions were chosen
     alternatives: tuple = ()  # 2D LiDAR: other refined minima that fit about as well (T, cost gap)
+    # Where the measurements came from: "measured" (images and scans read now), "cache" or a measurements file.
+    measurements_source: str = "measured"
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -257,6 +260,7 @@ class CalibrationResult:
             **self._minimal_dict(),
             "intrinsics": self.camera.as_dict(),
             "warnings": list(self.warnings),
+            "measurements_source": self.measurements_source,
             "timings_s": self.timings_s,
         }
 
@@ -744,7 +748,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
-              samples: int | None = None, hints: Hints = Hints()) -> CalibrationResult:
+              samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a dataset (loaded, or
     its folder).
 
@@ -755,6 +759,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
     so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
     ``hints``: an optional initial guess and region of interest for scenes beyond automation (:class:`Hints`).
+    ``cache``: keep and reuse the measurements (:func:`measure`).
     """
     _check_methods(init, refine)
     if not isinstance(dataset, Dataset):
@@ -767,7 +772,11 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     rng = np.random.default_rng(0) if rng is None else rng
     timings: dict = {}
     t_start = time.perf_counter()
-    camera, frames, warnings = measure_frames(dataset, rng, params, timings, hints=hints)
+    m = measure(dataset, rng, params, hints, cache=cache, timings=timings)
+    camera, frames, warnings = m.camera, list(m.frames), list(m.warnings)
+    if m.source == "cache":
+        warnings.append(f"measurements taken from the cache ({cache_dir() / m.key[:16]}...): images and scans were "
+                        "not read again")
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                        warnings=warnings, timings=timings, posterior=posterior, rng=rng, use_extent=use_extent)
@@ -776,7 +785,43 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
         raise DegenerateLayoutError(exc.problem + detail, path=dataset.root, hint=exc.hint) from exc
     timings["total_wall"] = time.perf_counter() - t_start
-    return replace(result, timings_s={k: round(v, 4) for k, v in timings.items()})
+    return replace(result, timings_s={k: round(v, 4) for k, v in timings.items()}, measurements_source=m.source)
+
+
+def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = None,
+            params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(), cache: bool = False,
+            timings: dict | None = None) -> Measurements:
+    """Measure every frame of a dataset once (:func:`measure_frames`) into a :class:`Measurements` that
+    :func:`solve` takes any number of times. With ``cache``, the measurements are kept under
+    :func:`~estimators.io.measurement_store.cache_dir`, keyed by the dataset files' content, the options and
+    the generator's state: a second call with the same inputs reads them back (``source`` is ``cache``)."""
+    if not isinstance(dataset, Dataset):
+        dataset = load_dataset(dataset)
+    rng = np.random.default_rng(0) if rng is None else rng
+    key, folder = "", None
+    if cache:
+        ss = rng.bit_generator.seed_seq
+        options = {"params": params, "hints": hints, "version": __version__, "rng": rng.bit_generator.state,
+                   "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
+                            getattr(ss, "n_children_spawned", None)]}
+        key = dataset_key(dataset.root, [p for f in dataset.frames for p in (f.image, f.scan)], options)
+        folder = cache_dir() / key
+        if (folder / "measurements.json").is_file():
+            try:
+                m = load_measurements(folder)
+                rng.spawn(len(dataset.frames) + 1)  # as measuring would have: later draws stay the same
+                return replace(m, source="cache", dataset=str(dataset.root), key=key)
+            except DatasetError:
+                pass  # a damaged cache entry is measured again (and overwritten)
+    camera, frames, warnings = measure_frames(dataset, rng, params, timings, hints=hints)
+    m = Measurements(camera, dataset.board, dataset.lidar, tuple(frames), tuple(warnings), str(dataset.root),
+                     "measured", key)
+    if folder is not None:
+        try:
+            save_measurements(folder, m)
+        except OSError as exc:
+            m = replace(m, warnings=m.warnings + (f"the measurement cache {folder} is not writable ({exc})",))
+    return m
 
 
 def _check_methods(init: str, refine: str) -> None:
@@ -786,15 +831,25 @@ def _check_methods(init: str, refine: str) -> None:
         raise ValueError(f"Expected refine in {REFINES}, got {refine!r}")
 
 
-def solve(frames: list[FrameMeasurement], board, camera: CameraModel, init: str = "closed-form",
-          refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(), name: str = "",
-          warnings: list[str] | None = None, timings: dict | None = None,
+def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: CameraModel | None = None,
+          init: str = "closed-form", refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(),
+          name: str = "", warnings: list[str] | None = None, timings: dict | None = None,
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-          use_extent: bool | None = None) -> CalibrationResult:
-    """The solver stage on measured frames: initial solution, then (optionally) the factor graph and
-    posterior samples (``posterior`` options given; needs the factor graph). ``use_extent`` (2D only):
-    whether the minimal-solution selection drops solutions whose laser segments leave the boards'
-    outlines (default: when the board size is known)."""
+          use_extent: bool | None = None, samples: int | None = None) -> CalibrationResult:
+    """The solver stage on measured frames (a list with ``board`` and ``camera``, or :class:`Measurements`):
+    initial solution, then (optionally) the factor graph and posterior samples (``posterior`` options, or
+    ``samples`` effective samples; needs the factor graph). ``use_extent`` (2D only): whether the
+    minimal-solution selection drops solutions whose laser segments leave the boards' outlines (default:
+    when the board size is known)."""
+    if isinstance(frames, Measurements):
+        m = frames
+        result = solve(list(m.frames), m.board, m.camera, init, refine, options, name or m.dataset,
+                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples)
+        return replace(result, measurements_source=m.source)
+    if board is None or camera is None:
+        raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
+    if samples is not None:
+        posterior = None if samples <= 0 else replace(posterior or PosteriorOptions(), min_ess=int(samples))
     _check_methods(init, refine)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings

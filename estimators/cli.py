@@ -32,6 +32,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="plane angle and distance a candidate may differ by under --initial-guess (10 deg 0.30 m)")
     c.add_argument("--roi", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                    help="optional hint: only LiDAR points inside this box (LiDAR frame, m) are searched")
+    c.add_argument("--measurements", default=None, metavar="FILE",
+                   help="solve from a measurements.npz that an earlier calibrate wrote (images and scans are not "
+                        "read)")
+    c.add_argument("--no-cache", action="store_true",
+                   help="measure again even when the measurement cache holds this dataset (see the README)")
     c.add_argument("--cross-validate", type=int, default=0, metavar="K",
                    help="also score K folds of frames, each under the calibration of the others (validation.json)")
     c.add_argument("--split", default=None, choices=["halves"],
@@ -275,16 +280,31 @@ def _print_range_model(fit) -> None:
 def _calibrate(args) -> int:
     import numpy as np
 
-    from .calibration import calibrate, write_calibration
+    from .calibration import calibrate, solve, write_calibration
+    from .errors import DatasetError
     from .io.dataset import load_dataset
+    from .io.measurement_store import Measurements, load_measurements, save_measurements
     from .lidar.board_segmentation import SegmentationParams
 
     ds = load_dataset(args.dataset)
-    result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
-                       SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args),
-                       _posterior_options(args), hints=_hints(args))
+    if args.measurements:
+        m = load_measurements(args.measurements)
+        if m.board != ds.board or m.lidar != ds.lidar:
+            raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
+                               path=args.measurements, hint="give the dataset the measurements came from")
+        result = solve(m, init=args.init, refine=args.refine, options=_options(args),
+                       posterior=_posterior_options(args), rng=np.random.default_rng(args.seed))
+    else:
+        result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
+                           SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args),
+                           _posterior_options(args), hints=_hints(args), cache=not args.no_cache)
+        m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
+                         result.measurements_source)
     path = write_calibration(result, args.out)
     _print_result(result)
+    save_measurements(args.out, m)
+    print(f"measurements: {_source_words(result.measurements_source)}; wrote "
+          f"{Path(args.out) / 'measurements.npz'} (and .json)")
     print(f"wrote {path}")
     if not args.no_report and result.refinement is not None:
         from .analysis.report import write_report
@@ -294,6 +314,14 @@ def _calibrate(args) -> int:
         _validation_runs(args, ds, result)
     _export_hint(path)
     return 0
+
+
+def _source_words(source: str) -> str:
+    if source == "measured":
+        return "measured from the images and scans"
+    if source == "cache":
+        return "read from the measurement cache (same files and options as an earlier run; --no-cache measures again)"
+    return f"read from {source}"
 
 
 def _validation_runs(args, ds, result) -> None:

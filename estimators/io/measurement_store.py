@@ -1,0 +1,198 @@
+"""Measurements on disk: ``measurements.npz`` (arrays) + ``measurements.json`` (everything else), no pickles.
+
+A dataset is measured once (corners, board poses and planes in the images; the LiDAR board points of each
+frame with their rings and intensities, and how they were chosen) and solved many times. The LiDAR planes and
+moments are recomputed from the stored points on load (deterministic), so the store holds only what was
+measured. :func:`dataset_key` names a dataset's content and the measurement options, for the cache.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from geometry.board import BoardModel
+from geometry.camera import CameraModel
+from geometry.planes import Plane
+
+from ..errors import DatasetError
+from ..measurements import (BoardDecision, CameraBoardObservation, FrameMeasurement, observe_lidar_board,
+                            observe_lidar_line)
+from .output import write_json_atomic, write_npz_atomic
+
+FORMAT = "lidarcam-measurements-1"
+CACHE_ENV = "LIDARCAM_CACHE_DIR"
+
+
+@dataclass(frozen=True, eq=False)
+class Measurements:
+    """A dataset's measured frames, ready to solve: the camera model, the board, the LiDAR kind, the frames,
+    the measurement's warnings, where they came from (``measured``, ``cache`` or a file) and the key of the
+    dataset content and options they were measured from."""
+
+    camera: CameraModel
+    board: BoardModel
+    lidar: str
+    frames: tuple[FrameMeasurement, ...]
+    warnings: tuple[str, ...] = ()
+    dataset: str = ""
+    source: str = "measured"
+    key: str = ""
+
+
+def dataset_key(root: Path, files: list[Path], options: dict) -> str:
+    """SHA-256 over ``dataset.yaml``, every frame file's bytes (in order) and the measurement options."""
+    h = hashlib.sha256()
+    h.update(FORMAT.encode())
+    h.update(json.dumps(options, sort_keys=True, default=_plain).encode())
+    for path in [root / "dataset.yaml", *files]:
+        h.update(path.name.encode())
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def _plain(x):
+    """JSON stand-ins for option values: arrays as lists, dataclasses as dicts, anything else as text."""
+    if hasattr(x, "__dataclass_fields__"):
+        return {k: getattr(x, k) for k in x.__dataclass_fields__}
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def cache_dir() -> Path:
+    """The measurement cache: ``$LIDARCAM_CACHE_DIR``, else ``$XDG_CACHE_HOME/lidarcam``, else
+    ``~/.cache/lidarcam``."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "lidarcam"
+
+
+def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
+    """Write ``OUT/measurements.npz`` and then ``OUT/measurements.json`` (each atomically)."""
+    out = Path(out_dir)
+    arrays: dict[str, np.ndarray] = {}
+    frames = []
+    for k, f in enumerate(m.frames):
+        d: dict = {"name": f.name, "reason": f.reason}
+        if f.camera is not None:
+            c = f.camera
+            p = f"f{k}_camera_"
+            arrays.update({p + "corners_px": c.corners_px, p + "T_camera_board": c.T_camera_board,
+                           p + "plane": np.append(c.plane.normal, c.plane.distance),
+                           p + "pose_covariance": c.pose_covariance, p + "plane_covariance": c.plane_covariance})
+            d["camera"] = {"reprojection_rms_px": c.reprojection_rms_px, "detector": c.detector}
+        if f.lidar is not None:
+            o = f.lidar
+            p = f"f{k}_lidar_"
+            arrays[p + "points"] = o.points
+            if o.rings is not None:
+                arrays[p + "rings"] = np.asarray(o.rings)
+            if o.intensity is not None:
+                arrays[p + "intensity"] = np.asarray(o.intensity, dtype=float)
+            d["lidar"] = {"scan_line": o.is_scan_line, "candidates": o.candidates}
+        if f.decision is not None:
+            dd = f.decision
+            d["decision"] = {"method": dd.method, "candidates": list(dd.candidates), "chosen": dd.chosen,
+                             "reason": dd.reason, "rejected": list(dd.rejected),
+                             "candidate_points": len(dd.candidate_points)}
+            for j, pts in enumerate(dd.candidate_points):
+                arrays[f"f{k}_decision_points_{j}"] = np.asarray(pts, dtype=float)
+        frames.append(d)
+    board = {"squares": list(m.board.squares), "square_size": m.board.square_size,
+             "size": None if m.board.size is None else list(m.board.size),
+             "pattern_offset": None if m.board.pattern_offset is None else list(m.board.pattern_offset)}
+    meta = {"format": FORMAT, "dataset": m.dataset, "key": m.key, "lidar": m.lidar, "board": board,
+            "camera": m.camera.as_dict(), "warnings": list(m.warnings), "frames": frames}
+    write_npz_atomic(out / "measurements.npz", **arrays)
+    return write_json_atomic(out / "measurements.json", _jsonable(meta))
+
+
+def load_measurements(path: str | Path) -> Measurements:
+    """Read ``measurements.npz`` (or its folder, or ``measurements.json``) with its ``measurements.json``."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "measurements.npz"
+    npz, meta_path = path.with_suffix(".npz"), path.with_suffix(".json")
+    for p in (npz, meta_path):
+        if not p.is_file():
+            raise DatasetError("measurements file not found", path=p,
+                               hint="give the measurements.npz that `lidarcam calibrate` wrote (beside its .json)")
+    try:
+        meta = json.loads(meta_path.read_text())
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"format {meta.get('format')!r}, expected {FORMAT!r}")
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        camera = _camera(meta["camera"])
+        b = meta["board"]
+        board = BoardModel(tuple(b["squares"]), float(b["square_size"]),
+                           None if b["size"] is None else tuple(b["size"]),
+                           None if b["pattern_offset"] is None else tuple(b["pattern_offset"]))
+        frames = tuple(_frame(k, d, arrays) for k, d in enumerate(meta["frames"]))
+    except DatasetError:
+        raise
+    except Exception as exc:  # a damaged or foreign file: name it
+        raise DatasetError(f"not a readable lidarcam measurements file ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=npz,
+                           hint="measure again: `lidarcam calibrate DATASET --out OUT` writes it") from None
+    return Measurements(camera, board, str(meta["lidar"]), frames, tuple(meta.get("warnings", ())),
+                        str(meta.get("dataset", "")), str(npz), str(meta.get("key", "")))
+
+
+def _camera(d: dict) -> CameraModel:
+    std = d.get("param_std")
+    return CameraModel(np.array(d["K"], dtype=float), np.array(d["dist"], dtype=float), int(d["width"]),
+                       int(d["height"]), d["model"], d.get("source", "given"),
+                       None if std is None else np.array(std, dtype=float))
+
+
+def _finite(a: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(a)
+    if a.dtype.kind not in "fiu" or not np.all(np.isfinite(a)):
+        raise ValueError(f"array {name} is not finite numbers")
+    return a
+
+
+def _frame(k: int, d: dict, arrays: dict) -> FrameMeasurement:
+    cam = lid = dec = None
+    if "camera" in d:
+        p = f"f{k}_camera_"
+        plane = _finite(arrays[p + "plane"], p + "plane")
+        cam = CameraBoardObservation(_finite(arrays[p + "corners_px"], p + "corners_px"),
+                                     _finite(arrays[p + "T_camera_board"], p + "T_camera_board"),
+                                     Plane(plane[:3], float(plane[3])),
+                                     _finite(arrays[p + "pose_covariance"], p + "pose_covariance"),
+                                     _finite(arrays[p + "plane_covariance"], p + "plane_covariance"),
+                                     float(d["camera"]["reprojection_rms_px"]), str(d["camera"]["detector"]))
+    if "lidar" in d:
+        p = f"f{k}_lidar_"
+        points = _finite(arrays[p + "points"], p + "points").astype(float)
+        observe = observe_lidar_line if d["lidar"]["scan_line"] else observe_lidar_board
+        lid = observe(points, int(d["lidar"]["candidates"]))
+        lid = replace(lid, rings=arrays.get(p + "rings"), intensity=arrays.get(p + "intensity"))
+    if "decision" in d:
+        dd = d["decision"]
+        pts = tuple(arrays[f"f{k}_decision_points_{j}"] for j in range(int(dd["candidate_points"])))
+        dec = BoardDecision(dd["method"], tuple(dd["candidates"]), dd["chosen"], dd["reason"],
+                            tuple(dd["rejected"]), pts)
+    return FrameMeasurement(str(d["name"]), cam, lid, d.get("reason"), dec)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x

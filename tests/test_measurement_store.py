@@ -1,0 +1,78 @@
+"""Measure once, solve many times: measurements.npz/.json round trips, the measurement cache (and a stale
+entry after a file changed), and `calibrate --measurements`."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from estimators.calibration import calibrate, measure, solve
+from estimators.cli import main
+from estimators.io.measurement_store import load_measurements, save_measurements
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("LIDARCAM_CACHE_DIR", str(folder))
+    return folder
+
+
+@pytest.mark.parametrize("which", ["sim_vlp16", "sim_2d"])
+def test_saved_measurements_solve_to_the_same_extrinsic(which, request, tmp_path):
+    path = request.getfixturevalue(which)
+    m = measure(path, np.random.default_rng(0))
+    save_measurements(tmp_path, m)
+    back = load_measurements(tmp_path / "measurements.npz")
+    assert [f.name for f in back.frames] == [f.name for f in m.frames]
+    assert [f.usable for f in back.frames] == [f.usable for f in m.frames]
+    assert back.board == m.board and back.lidar == m.lidar
+    a = solve(m, rng=np.random.default_rng(1))
+    b = solve(back, rng=np.random.default_rng(1))
+    np.testing.assert_allclose(b.T_camera_lidar, a.T_camera_lidar, atol=1e-10)
+    np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-14)
+    assert b.measurements_source.endswith("measurements.npz")
+
+
+def test_cache_is_used_for_the_same_files_and_options_and_not_after_a_file_changed(sim_vlp16, tmp_path, cache):
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_vlp16, ds)
+    first = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    second = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    assert (first.measurements_source, second.measurements_source) == ("measured", "cache")
+    np.testing.assert_allclose(second.T_camera_lidar, first.T_camera_lidar, atol=1e-12)
+    # Other segmentation seed: another key.
+    other = calibrate(ds, rng=np.random.default_rng(5), posterior=None, cache=True)
+    assert other.measurements_source == "measured"
+    # A scan rewritten (one point moved by 1 mm): the entry is stale and the dataset is measured again.
+    from estimators.io.pointcloud_io import read_sweep, write_scan
+
+    scan = sorted(ds.glob("*.pcd"))[0]
+    sweep = read_sweep(scan)
+    pts = sweep.points.copy()
+    pts[0] += 0.001
+    write_scan(scan, pts, sweep.intensity, sweep.ring)
+    third = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    assert third.measurements_source == "measured"
+
+
+def test_cli_writes_measurements_and_solves_from_them(sim_vlp16, tmp_path, cache, capsys):
+    out1, out2 = tmp_path / "a", tmp_path / "b"
+    assert main(["calibrate", str(sim_vlp16), "--out", str(out1), "--samples", "0", "--no-report",
+                 "--no-cache"]) == 0
+    assert (out1 / "measurements.npz").is_file() and (out1 / "measurements.json").is_file()
+    assert main(["calibrate", str(sim_vlp16), "--out", str(out2), "--samples", "0", "--no-report",
+                 "--measurements", str(out1 / "measurements.npz")]) == 0
+    a, b = (json.loads((o / "calibration.json").read_text()) for o in (out1, out2))
+    np.testing.assert_allclose(b["T_camera_lidar"], a["T_camera_lidar"], atol=1e-10)
+    assert b["measurements_source"].endswith("measurements.npz")
+    capsys.readouterr()
+    (out1 / "measurements.json").write_text("{not json")
+    assert main(["calibrate", str(sim_vlp16), "--out", str(tmp_path / "c"), "--samples", "0", "--no-report",
+                 "--measurements", str(out1 / "measurements.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "measurements.npz" in err and "not a readable lidarcam measurements file" in err
+    assert not (tmp_path / "c" / "calibration.json").exists()
