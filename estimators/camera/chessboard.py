@@ -1,7 +1,8 @@
 """Finding the checkerboard's inner corners in an image.
 
 Recorded images defeat any single detector setting, so several are tried in turn: the sector-based
-detector (``findChessboardCornersSB``) with and without its accuracy and normalisation flags, then the
+detector (``findChessboardCornersSB``) on reduced copies of a large image (corners refined at full
+resolution), then at full resolution with and without its accuracy and normalisation flags, then the
 classic detector with sub-pixel refinement.
 """
 from __future__ import annotations
@@ -28,26 +29,73 @@ class CornerDetection:
     method: str
 
 
-def _subpixel(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int]) -> tuple[np.ndarray, int]:
+def _subpixel(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int], max_half: int = 5
+              ) -> tuple[np.ndarray, int]:
     """Corners moved to the saddle point of the image gradient (``cornerSubPix``) in a window that stays
-    inside the neighbouring squares (half-size 40% of the smallest square side seen, 2-5 px)."""
+    inside the neighbouring squares (half-size 40% of the smallest square side seen, 2 to ``max_half`` px)."""
     grid = corners.reshape(pattern[1], pattern[0], 2)
     sides = np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel(),
                             np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel()])
-    half = int(np.clip(np.floor(0.4 * sides.min()), 2, 5))
+    half = int(np.clip(np.floor(0.4 * sides.min()), 2, max_half))
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     out = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit)
     return out.reshape(-1, 2).astype(float), half
 
 
+# Reduced copies are searched first: the detector's cost grows with the pixel count, while the pattern is
+# found as well once its squares are this many pixels wide or more.
+MIN_SQUARE_PX_REDUCED = 12.0
+# Flag sets for a reduced copy, most often successful first (the full-resolution chain follows on failure).
+_REDUCED_ATTEMPTS = (
+    ("SB exhaustive", cv2.CALIB_CB_EXHAUSTIVE),
+    ("SB normalize+exhaustive", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
+)
+
+
 def detect_corners(gray: np.ndarray, board: BoardModel) -> CornerDetection | None:
     """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all.
 
-    The sector-based detector's corners carry a systematic, board-wide error (in simulation a scale
-    error of about 4e-4 that moves each board's depth by millimetres, the same way on every board);
-    a final ``cornerSubPix`` step on the image gradient removes most of it.
+    First on reduced copies (halved while the image is larger than about 1000 px), the corners then
+    refined at full resolution; then at full resolution with every setting. The sector-based detector's
+    corners carry a systematic, board-wide error (in simulation a scale error of about 4e-4 that moves each
+    board's depth by millimetres, the same way on every board); the final ``cornerSubPix`` step on the full
+    image's gradient removes most of it, whichever copy the pattern was found in.
     """
     pattern = board.inner_corners_shape
+    found = _detect_reduced(gray, pattern)
+    if found is not None:
+        return found
+    return _detect_full(gray, pattern)
+
+
+def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
+    copies, level = [], gray
+    while max(level.shape) > 1100:
+        level = cv2.pyrDown(level)
+        copies.append(level)
+    for level in reversed(copies):  # coarsest first
+        scale = gray.shape[1] / level.shape[1]
+        for name, flags in _REDUCED_ATTEMPTS:
+            ok, corners = cv2.findChessboardCornersSB(level, pattern, flags=flags)
+            if not ok or corners is None or len(corners) != pattern[0] * pattern[1]:
+                continue
+            c = corners.reshape(-1, 2).astype(float)
+            grid = c.reshape(pattern[1], pattern[0], 2)
+            side = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+                       np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
+            if side < MIN_SQUARE_PX_REDUCED:
+                break  # too small here to trust: try a finer copy
+            # Pixel centres: x_full = (x_reduced + 0.5) * scale - 0.5.
+            full = (c + 0.5) * scale - 0.5
+            # Two refinements at full resolution: a wide window pulls the corners in from the reduced copy's
+            # sampling, then the usual window settles them on the saddle point.
+            full, _ = _subpixel(gray, full, pattern, max_half=int(np.clip(0.4 * side * scale, 2, 12)))
+            refined, half = _subpixel(gray, full, pattern)
+            return CornerDetection(refined, f"{name} at 1/{scale:.0f}+subpix{half}")
+    return None
+
+
+def _detect_full(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
     for name, flags in _SB_ATTEMPTS:
         found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=flags)
         if found and corners is not None and len(corners) == pattern[0] * pattern[1]:
