@@ -314,11 +314,14 @@ def _add_time(timings: dict, key: str, seconds: float) -> None:
         timings[key] = timings.get(key, 0.0) + seconds
 
 
-def _detect(frame, board, timings) -> tuple[tuple[int, int], CornerDetection | None]:
+def _detect(frame, board, timings) -> tuple[tuple[int, int], CornerDetection | str | None]:
     t0 = time.perf_counter()
     gray = read_gray(frame.image)
     t1 = time.perf_counter()
-    det = detect_corners(gray, board)
+    try:
+        det = detect_corners(gray, board)
+    except MeasurementError as exc:  # past the time budget: the frame is skipped with the reason
+        det = exc.message
     _add_time(timings, "load_images", t1 - t0)
     _add_time(timings, "corners", time.perf_counter() - t1)
     return (gray.shape[1], gray.shape[0]), det
@@ -339,7 +342,7 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     camera = dataset.camera
     sizes = {s for s, _ in detections}
     if camera is None:
-        found = [d.corners_px for _, d in detections if d is not None]
+        found = [d.corners_px for _, d in detections if isinstance(d, CornerDetection)]
         if len(sizes) != 1:
             raise DatasetError(f"images have different sizes {sorted(sizes)}", path=dataset.root,
                                hint="use one camera resolution for all frames")
@@ -358,6 +361,8 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     def camera_side(det) -> tuple:
         if det is None:
             return None, "checkerboard not found in the image"
+        if isinstance(det, str):
+            return None, det
         try:
             return estimate_board_pose(det, dataset.board, camera), None
         except MeasurementError as exc:

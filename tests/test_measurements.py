@@ -110,3 +110,14 @@ def test_board_not_found_is_a_reason_not_a_guess(sim_vlp16):
         find_board(without_board, ds.board, obs, np.random.default_rng(0))
     with pytest.raises(MeasurementError):
         find_board(pts, ds.board, obs, np.random.default_rng(0), SegmentationParams(max_sensor_separation_m=-3.0))
+
+
+def test_classic_detector_runs_within_its_time_budget():
+    """Where the sector detector finds no board, the classic detector runs last, in a child process stopped
+    after the budget: a slow image costs the budget, not minutes, and the frame gets that reason."""
+    board = default_rig(np.random.default_rng(0)).board
+    noise = np.random.default_rng(1).integers(0, 256, (768, 1024), dtype=np.uint8)
+    with pytest.raises(MeasurementError, match="time budget of 0.001 s"):
+        detect_corners(noise, board, budget_s=0.001)
+    # Within a budget it can keep, a blank image is simply "not found".
+    assert detect_corners(np.full((480, 640), 128, np.uint8), board, budget_s=10.0) is None

@@ -7,12 +7,15 @@ classic detector with sub-pixel refinement.
 """
 from __future__ import annotations
 
+import multiprocessing
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from geometry.board import BoardModel
+
+from ..errors import MeasurementError
 
 _SB_ATTEMPTS = (
     ("SB exhaustive+accuracy", cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY),
@@ -42,6 +45,8 @@ def _subpixel(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int], m
     return out.reshape(-1, 2).astype(float), half
 
 
+# Seconds the classic detector (the last resort) may run on one image.
+CLASSIC_BUDGET_S = 20.0
 # Reduced copies are searched first: the detector's cost grows with the pixel count, while the pattern is
 # found as well once its squares are this many pixels wide or more.
 MIN_SQUARE_PX_REDUCED = 12.0
@@ -52,20 +57,23 @@ _REDUCED_ATTEMPTS = (
 )
 
 
-def detect_corners(gray: np.ndarray, board: BoardModel) -> CornerDetection | None:
+def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None = CLASSIC_BUDGET_S
+                   ) -> CornerDetection | None:
     """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all.
 
     First on reduced copies (halved while the image is larger than about 1000 px), the corners then
     refined at full resolution; then at full resolution with every setting. The sector-based detector's
     corners carry a systematic, board-wide error (in simulation a scale error of about 4e-4 that moves each
     board's depth by millimetres, the same way on every board); the final ``cornerSubPix`` step on the full
-    image's gradient removes most of it, whichever copy the pattern was found in.
+    image's gradient removes most of it, whichever copy the pattern was found in. The classic detector, last,
+    runs within ``budget_s`` seconds; past it, :class:`MeasurementError` (the frame is skipped with that
+    reason).
     """
     pattern = board.inner_corners_shape
     found = _detect_reduced(gray, pattern)
     if found is not None:
         return found
-    return _detect_full(gray, pattern)
+    return _detect_full(gray, pattern, budget_s)
 
 
 def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
@@ -95,16 +103,60 @@ def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetecti
     return None
 
 
-def _detect_full(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
+def _detect_full(gray: np.ndarray, pattern: tuple[int, int], budget_s: float | None = None
+                 ) -> CornerDetection | None:
     for name, flags in _SB_ATTEMPTS:
         found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=flags)
         if found and corners is not None and len(corners) == pattern[0] * pattern[1]:
             refined, half = _subpixel(gray, corners.reshape(-1, 2), pattern)
             return CornerDetection(refined, f"{name}+subpix{half}")
+    corners = _classic_bounded(gray, pattern, budget_s) if budget_s is not None else _classic(gray, pattern)
+    if corners is not None:
+        return CornerDetection(corners, "classic+subpix")
+    return None
+
+
+def _classic(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
     found, corners = cv2.findChessboardCorners(
         gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-    if found and corners is not None:
-        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
-        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (5, 5), (-1, -1), crit)
-        return CornerDetection(corners.reshape(-1, 2).astype(float), "classic+subpix")
-    return None
+    if not found or corners is None:
+        return None
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+    corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (5, 5), (-1, -1), crit)
+    return corners.reshape(-1, 2).astype(float)
+
+
+def _classic_child(gray, pattern, conn) -> None:
+    cv2.setNumThreads(1)
+    conn.send(_classic(gray, pattern))
+    conn.close()
+
+
+def _classic_bounded(gray: np.ndarray, pattern: tuple[int, int], budget_s: float) -> np.ndarray | None:
+    """The classic detector in a child process that is stopped after ``budget_s`` seconds (it can run for
+    minutes on some dark or noisy images, and a native call cannot be interrupted otherwise)."""
+    # A fork server: a clean process (forked children of a process whose OpenCV thread pool is running can
+    # deadlock), started once and forked from for each image that needs it.
+    try:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["cv2", "estimators.camera.chessboard"])
+    except ValueError:  # no fork server on this platform: spawn (slower to start)
+        ctx = multiprocessing.get_context("spawn")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_classic_child, args=(gray, pattern, send), daemon=True)
+    child.start()
+    send.close()
+    try:
+        if not receive.poll(budget_s):
+            raise MeasurementError(f"corner detection ran past its time budget of {budget_s:g} s (the classic "
+                                   "detector on an image where the sector detector found no board)",
+                                   hint="check the image's exposure, or that the board is in it")
+        try:
+            return receive.recv()
+        except EOFError:  # the child died
+            return None
+    finally:
+        if child.is_alive():
+            child.kill()
+        child.join()
+        receive.close()
