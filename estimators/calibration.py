@@ -7,6 +7,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
@@ -337,8 +338,15 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     board segment, with the other scans as the static background."""
     timings = {} if timings is None else timings
     warnings: list[str] = []
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        detections = list(pool.map(lambda f: _detect(f, dataset.board, timings), dataset.frames))
+    # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread (OpenCV's own pool
+    # on top of ours would oversubscribe the cores).
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1 if workers > 1 else cv_threads)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            detections = list(pool.map(lambda f: _detect(f, dataset.board, timings), dataset.frames))
+    finally:
+        cv2.setNumThreads(cv_threads)
     camera = dataset.camera
     sizes = {s for s, _ in detections}
     if camera is None:
