@@ -11,10 +11,13 @@ A return's measured range is ``rho = rho_true + a . beta + noise``, with ``a`` t
   has an intensity field and the board's intensities are clearly bimodal.
 
 Each return is modelled as ``rho = d / (m . b) + a . beta + noise`` (``b`` its unit beam, ``[m; -d]`` the
-board's plane; MATH.md section 2). Each frame is compressed once to its own maximum-likelihood plane and
-terms with their information (Gauss-Newton on the ranges, :func:`_range_fit`), so the factor keeps O(1)
-statistics per frame, exact to second order about the frame's fit: the residual is ``W [s pi; beta] + e0``
-with ``s = sign(m . m_away)`` orienting the camera's plane like the fitted one (facing away from the sensor).
+board's plane; MATH.md section 2). Each frame is compressed once: its plane fitted to its ranges, and the
+cost's second-order expansion there in the plane and the frame's own terms (Gauss-Newton, :func:`_range_fit`),
+so the factor keeps O(1) statistics per frame. The residual is ``W [s pi; S beta] + e0``, with ``S`` the
+frame's own terms from the shared ones (:func:`frame_design`) and ``s = sign(m . m_away)`` orienting the
+camera's plane like the fitted one (facing away from the sensor). Within one board a distance and an offset
+trade along a weak direction (``FrameWhitener.weak``); the refinement estimates a per-board scatter along it
+when the boards disagree there beyond the noise.
 
 Model choice (``auto``): the terms are added in order (offset, per-ring, dark) while the data support them:
 a likelihood-ratio test at 0.1% on the refined objective, the boards' best-fit floors included, against the
