@@ -26,6 +26,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_scenes.py
 	$(PY) benchmarks/bench_range_model.py
 	$(PY) benchmarks/bench_corners.py
+	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(PY) benchmarks/bench_study.py

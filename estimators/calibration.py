@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
@@ -33,6 +33,7 @@ from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from .measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
                            observe_lidar_line)
+from .solvers import chi_square as chi2
 from .solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
@@ -336,10 +337,16 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
     candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
     board segment, with the other scans as the static background."""
+    # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
+    # (their own pools on top of ours would oversubscribe the cores).
+    with threadpool_limits(1 if workers > 1 else None):
+        return _measure_frames(dataset, rng, params, timings, workers, hints)
+
+
+def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
+                    workers: int, hints: Hints) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     timings = {} if timings is None else timings
     warnings: list[str] = []
-    # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread (OpenCV's own pool
-    # on top of ours would oversubscribe the cores).
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
     try:

@@ -22,12 +22,12 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 from tqdm.auto import tqdm
 
 from geometry.rotations import T_inverse, T_log, rotation_error
 
 from ..io.output import write_atomic, write_json_atomic
+from ..solvers import chi_square as chi2
 from ..solvers.posterior import PosteriorOptions
 
 MODES = ("measurement", "end-to-end")

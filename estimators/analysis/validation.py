@@ -19,12 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from geometry.rotations import T_inverse, T_log, transform_points
 
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
+from ..solvers import chi_square as chi2
 from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
 from ..solvers.range_model import RangeTerms, frame_whiteners
 from ..solvers.refinement import _plane_noise, frame_noise, pooled_range_noise_m

@@ -61,7 +61,7 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
                    ) -> CornerDetection | None:
     """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all.
 
-    First on reduced copies (halved while the image is larger than about 1000 px), the corners then
+    First on reduced copies (halved while the image is 1000 px or larger), the corners then
     refined at full resolution; then at full resolution with every setting. The sector-based detector's
     corners carry a systematic, board-wide error (in simulation a scale error of about 4e-4 that moves each
     board's depth by millimetres, the same way on every board); the final ``cornerSubPix`` step on the full
@@ -78,7 +78,7 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
 
 def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
     copies, level = [], gray
-    while max(level.shape) > 1100:
+    while max(level.shape) >= 1000:
         level = cv2.pyrDown(level)
         copies.append(level)
     for level in reversed(copies):  # coarsest first

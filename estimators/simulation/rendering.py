@@ -48,27 +48,38 @@ def render_image(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
     H, W = camera.height, camera.width
     origin = T_world_camera[:3, 3]
     xy = grid[:H, :W].reshape(-1, 2)
-    _, _, refl = cast(origin, _rays_world(xy, T_world_camera), patches)
+    _, which, refl = cast(origin, _rays_world(xy, T_world_camera), patches)
     refl = np.where(np.isnan(refl), SKY_REFLECTANCE, refl).reshape(H, W)
+    which = which.reshape(H, W)
 
-    # Anti-aliasing over the board: average supersample x supersample rays inside each pixel.
+    # Anti-aliasing over the board: average supersample x supersample rays inside each pixel, where that can
+    # change the pixel. A pixel's rays all see what its centre sees unless an edge (of a square, or of the
+    # board) passes within the pixel, and then a neighbour's centre lies across it: only pixels within two
+    # of such a change (a margin for the squares' corners) are supersampled.
     T_camera_world = np.linalg.inv(T_world_camera)
     uv = camera.project(transform_points(T_camera_world, board_outline_world))
     u_lo, v_lo = np.floor(np.nanmin(uv, axis=0)).astype(int) - 2
     u_hi, v_hi = np.ceil(np.nanmax(uv, axis=0)).astype(int) + 2
     u_lo, v_lo, u_hi, v_hi = max(u_lo, 0), max(v_lo, 0), min(u_hi, W - 1), min(v_hi, H - 1)
     if u_hi > u_lo and v_hi > v_lo:
-        pu, pv = np.meshgrid(np.arange(u_lo, u_hi + 1), np.arange(v_lo, v_hi + 1))
+        box = (slice(v_lo, v_hi + 1), slice(u_lo, u_hi + 1))
+        r_box, w_box = refl[box], which[box]
+        change = np.zeros(r_box.shape, np.uint8)
+        change[:, 1:] |= (r_box[:, 1:] != r_box[:, :-1]) | (w_box[:, 1:] != w_box[:, :-1])
+        change[1:, :] |= (r_box[1:, :] != r_box[:-1, :]) | (w_box[1:, :] != w_box[:-1, :])
+        near = cv2.dilate(change, np.ones((5, 5), np.uint8)) > 0
+        near &= cv2.dilate((w_box == board_index).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        pv, pu = np.nonzero(near)
+        pv, pu = pv + v_lo, pu + u_lo
         offs = (np.arange(supersample) + 0.5) / supersample - 0.5
         ou, ov = np.meshgrid(offs, offs)
-        su = (pu.ravel()[:, None] + ou.ravel()[None, :]).ravel()
-        sv = (pv.ravel()[:, None] + ov.ravel()[None, :]).ravel()
+        su = (pu[:, None] + ou.ravel()[None, :]).ravel()
+        sv = (pv[:, None] + ov.ravel()[None, :]).ravel()
         dirs = _rays_world(_interp(grid, su, sv), T_world_camera)
-        _, which, r_sub = cast(origin, dirs, patches)
-        base = np.repeat(refl[pv.ravel(), pu.ravel()], supersample * supersample)
-        on_board = which == board_index
-        r_sub = np.where(on_board, r_sub, base)
-        refl[v_lo:v_hi + 1, u_lo:u_hi + 1] = r_sub.reshape(-1, supersample * supersample).mean(1).reshape(pu.shape)
+        _, hit, r_sub = cast(origin, dirs, patches)
+        base = np.repeat(refl[pv, pu], supersample * supersample)
+        r_sub = np.where(hit == board_index, r_sub, base)
+        refl[pv, pu] = r_sub.reshape(-1, supersample * supersample).mean(1)
 
     img = 20.0 + 210.0 * refl
     if blur_sigma_px > 0:

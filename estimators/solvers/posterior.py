@@ -26,7 +26,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import emcee
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -125,6 +124,8 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
     # Differential-evolution moves mix about three times faster than the stretch move alone on these
     # near-Gaussian targets. (emcee's DE snooker move is left out: with it, the samples of the calibration
     # posterior came out 10% too narrow against the analytic Gaussian.)
+    import emcee  # imported when sampling: it loads scipy.stats, about 0.7 s
+
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.StretchMove(), 0.2)]
     sampler = emcee.EnsembleSampler(nwalkers, ndim, log_prob, vectorize=True, moves=moves)
     state = emcee.State(initial, random_state=np.random.RandomState(int(rng.integers(2**32))).get_state())

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
+from . import chi_square as chi2
 
 from geometry.board import BoardModel
 from geometry.rotations import T_inverse

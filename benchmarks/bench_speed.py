@@ -1,0 +1,101 @@
+"""Wall time and peak memory of whole CLI runs (make bench; `python benchmarks/bench_speed.py`).
+
+Each row is one `lidarcam` process, timed from outside (imports included), its peak resident memory read
+from the kernel's accounting of the finished child. The sets:
+  - sim28: 28 frames of the simulated VLP-16 rig with a 1920x1208 camera (the simulator's camera, its focal
+    length scaled with the image), written once into bench-out/speed/;
+  - the recorded VLP-16 set from ../shared/realdata when present;
+  - `lidarcam demo` (simulate + calibrate + report on 8 frames; the venv exists).
+Rows: measured (--no-cache), from the measurement cache, and with the default posterior and report.
+Targets (issue 17): 28 frames at most 10 s measured, 1.5 s cached, 20 s with posterior and report; the demo
+at most 5 s; peak memory at most 1.5 GB.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from estimators.simulation.simulator import default_rig, simulate_frames, write_dataset  # noqa: E402
+from geometry.camera import CameraModel  # noqa: E402
+
+REALDATA = ROOT.parent / "shared" / "realdata" / "acfr_vlp16_a"
+OUT = ROOT / "bench-out" / "speed"
+
+
+def sim28() -> Path:
+    """The 28-frame 1920x1208 set (made once; its seed fixed)."""
+    path = OUT / "sim28"
+    if (path / "dataset.yaml").is_file():
+        return path
+    rng = np.random.default_rng(28)
+    base = default_rig(rng, "vlp16")
+    w, h = 1920, 1208
+    K = base.camera.K.copy()
+    K[:2, :2] *= w / 1024.0
+    K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+    rig = replace(base, camera=CameraModel(K, base.camera.dist, w, h, base.camera.model, "bench"))
+    frames = simulate_frames(rig, 28, rng)
+    return write_dataset(path, rig, frames, "pcd", overwrite=True)
+
+
+# The CLI run in a fresh interpreter that reports its own high-water mark at exit. (The kernel's per-child
+# figure from wait4 is no use here: it keeps the parent's high-water mark across fork and exec.)
+_LAUNCH = ("import atexit, sys\n"
+           "from estimators.cli import main\n"
+           "def hwm():\n"
+           "    for line in open('/proc/self/status'):\n"
+           "        if line.startswith('VmHWM:'):\n"
+           "            sys.stderr.write('\\nVmHWM ' + line.split()[1] + '\\n')\n"
+           "atexit.register(hwm)\n"
+           "sys.exit(main(sys.argv[1:]))\n")
+
+
+def _run(args: list[str], env: dict) -> tuple[float, float, int]:
+    """Wall seconds, peak resident MB and exit code of one lidarcam process."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", _LAUNCH, *args], env=env, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    lines = proc.stderr.strip().splitlines()
+    peak = [float(x.split()[1]) / 1024.0 for x in lines if x.startswith("VmHWM ")]
+    if proc.returncode != 0:
+        print([x for x in lines if not x.startswith("VmHWM ")][-1:] or "(no message)")
+    return wall, peak[0] if peak else float("nan"), proc.returncode
+
+
+def main() -> None:
+    sets = [("sim28 1920x1208", sim28())]
+    if (REALDATA / "dataset.yaml").is_file():
+        sets.append(("recorded VLP-16", REALDATA))
+    else:
+        print(f"{REALDATA} is absent: the recorded row is skipped")
+    print(f"{'set':18s}{'run':34s}{'wall s':>8s}{'target s':>9s}{'peak MB':>9s}{'exit':>5s}")
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, LIDARCAM_CACHE_DIR=str(Path(tmp) / "cache"))
+        for name, path in sets:
+            out = str(Path(tmp) / name.split()[0])
+            runs = (("measured, --samples 0 --no-report", ["--samples", "0", "--no-report", "--no-cache"], 10.0),
+                    ("first cached run (fills the cache)", ["--samples", "0", "--no-report"], None),
+                    ("from the cache", ["--samples", "0", "--no-report"], 1.5),
+                    ("measured, posterior and report", ["--no-cache"], 20.0))
+            for label, extra, target in runs:
+                wall, peak, code = _run(["calibrate", str(path), "--out", out, *extra], env)
+                t = f"{target:9.1f}" if target is not None else f"{'':9s}"
+                print(f"{name:18s}{label:34s}{wall:8.2f}{t}{peak:9.0f}{code:5d}")
+        wall, peak, code = _run(["demo", "--out", str(Path(tmp) / "demo")], env)
+        print(f"{'demo (8 frames)':18s}{'simulate + calibrate + report':34s}{wall:8.2f}{5.0:9.1f}{peak:9.0f}{code:5d}")
+    print("peak MB: the process's maximum resident set (target at most 1500)")
+
+
+if __name__ == "__main__":
+    main()
