@@ -20,11 +20,12 @@ from . import __version__
 from .camera.board_pose import estimate_board_pose
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
-from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, MeasurementError,
-                     PosteriorSkippedError)
+from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, ImageReadError, MeasurementError,
+                     PosteriorSkippedError, ScanReadError)
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from .io.image_io import read_gray
+from .io.input_files import load_json, regular_file
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan_2d, read_sweep
 from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, choose_by_prediction,
@@ -78,8 +79,6 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
     """A rough ``T_camera_lidar`` from the command line: six numbers ``x y z roll pitch yaw`` (m, degrees;
     ``R = Rz(yaw) Ry(pitch) Rx(roll)``), or one file: a ``calibration.json`` (its ``T_camera_lidar``) or a 4x4
     matrix as JSON, text or ``.npy``."""
-    import json
-
     from scipy.spatial.transform import Rotation
 
     from geometry.rotations import T_from_Rt
@@ -95,14 +94,12 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
     if len(values) != 1:
         raise DatasetError(f"--initial-guess takes six numbers or one file, got {len(values)} value(s)",
                            hint="give x y z roll pitch yaw (m, degrees) or a file")
-    path = Path(values[0])
-    if not path.is_file():
-        raise DatasetError("initial guess file not found", path=path, hint="give a calibration.json or a 4x4 matrix")
+    path = regular_file(values[0], "initial guess file", hint="give a calibration.json or a 4x4 matrix")
     try:
         if path.suffix.lower() == ".npy":
             T = np.load(path, allow_pickle=False)
         elif path.suffix.lower() == ".json":
-            data = json.loads(path.read_text())
+            data = load_json(path, "initial guess file")
             T = data["T_camera_lidar"] if isinstance(data, dict) else data
         else:
             T = np.loadtxt(path)
@@ -316,9 +313,14 @@ def _add_time(timings: dict, key: str, seconds: float) -> None:
         timings[key] = timings.get(key, 0.0) + seconds
 
 
-def _detect(frame, board, timings) -> tuple[tuple[int, int], CornerDetection | str | None]:
+def _detect(frame, board, timings) -> tuple[tuple[int, int] | None, CornerDetection | str | None]:
+    """The image's size and the corners found in it (None: no board; a string: why the frame is skipped)."""
     t0 = time.perf_counter()
-    gray = read_gray(frame.image)
+    try:
+        gray = read_gray(frame.image)
+    except ImageReadError as exc:  # a damaged frame is skipped with its reason; the rest calibrate
+        _add_time(timings, "load_images", time.perf_counter() - t0)
+        return None, f"image: {exc.message}"
     t1 = time.perf_counter()
     try:
         det = detect_corners(gray, board)
@@ -355,7 +357,7 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
     finally:
         cv2.setNumThreads(cv_threads)
     camera = dataset.camera
-    sizes = {s for s, _ in detections}
+    sizes = {s for s, _ in detections if s is not None}
     if camera is None:
         found = [d.corners_px for _, d in detections if isinstance(d, CornerDetection)]
         if len(sizes) != 1:
@@ -368,10 +370,12 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
         camera, rms = calibrate_intrinsics(found, dataset.board, *sizes.pop())
         _add_time(timings, "intrinsics", time.perf_counter() - t0)
         warnings.append(f"no camera in dataset.yaml: intrinsics {camera.source}")
-    for frame, (size, _) in zip(dataset.frames, detections):
-        if size != (camera.width, camera.height):
-            raise DatasetError(f"image is {size[0]}x{size[1]} but the camera is {camera.width}x{camera.height}",
-                               path=frame.image, hint="fix camera width/height in dataset.yaml")
+    # An image of another size than the camera entry's is refused for its frame: the intrinsics are for
+    # another resolution.
+    detections = [(size, f"image is {size[0]}x{size[1]} but the camera entry is {camera.width}x{camera.height} "
+                         "(its intrinsics are for another resolution; fix camera width/height in dataset.yaml)")
+                  if size is not None and size != (camera.width, camera.height) else (size, det)
+                  for size, det in detections]
 
     def camera_side(det) -> tuple:
         if det is None:
@@ -402,10 +406,12 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     from scipy.spatial import cKDTree
 
     t0 = time.perf_counter()
-    scans_2d = [read_scan_2d(f.scan) for f in dataset.frames]
+    read = [_read_or_reason(read_scan_2d, f.scan) for f in dataset.frames]
+    cams, good = _without_damaged_scans(cams, read)
+    scans_2d = [xy if not isinstance(xy, str) else np.zeros((0, 2)) for xy in read]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
-    trees = [cKDTree(xy) for xy in scans_2d]
-    scene = build_static_scene(scans_2d)
+    trees = {k: cKDTree(scans_2d[k]) for k in good}
+    scene = build_static_scene([scans_2d[k] for k in good])
     if scene.note and len(scans_2d) >= scene.params.min_frames:
         warnings.append(f"static scene: {scene.note}")
     seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
@@ -418,8 +424,8 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         static: list = []
         try:
             return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
-                                   [t for j, t in enumerate(trees) if j != k],
-                                   scene.frame_foreground(k), static), None, static
+                                   [t for j, t in trees.items() if j != k],
+                                   scene.frame_foreground(good.index(k)), static), None, static
         except MeasurementError as exc:
             return [], exc.message, []
         finally:
@@ -530,13 +536,14 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     n = len(dataset.frames)
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        sweeps = list(pool.map(lambda f: read_sweep(f.scan), dataset.frames))
+        sweeps = list(pool.map(lambda f: _read_or_reason(read_sweep, f.scan), dataset.frames))
     if hints.roi_min is not None or hints.roi_max is not None:
-        sweeps = [_cropped(s, hints.in_roi(s.points)) for s in sweeps]
+        sweeps = [_cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for s in sweeps]
+    cams, good = _without_damaged_scans(cams, sweeps)
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     t0 = time.perf_counter()
     if hints.static_scene:
-        scene = build_static_scene([s.points for s in sweeps], [s.ring for s in sweeps])
+        scene = build_static_scene([sweeps[k].points for k in good], [sweeps[k].ring for k in good])
         if scene.note:
             warnings.append(f"static scene: {scene.note}")
     else:
@@ -549,7 +556,7 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
             return [], [], None
         t1 = time.perf_counter()
         s = sweeps[k]
-        fg = scene.frame_foreground(k)
+        fg = scene.frame_foreground(good.index(k))
         try:
             cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
         except MeasurementError as exc:
@@ -584,6 +591,21 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return [_with_beam_fields(f, sweeps[k]) for k, f in enumerate(frames)]
+
+
+def _read_or_reason(reader, path):
+    """What ``reader`` reads from ``path``, or the reason it cannot (a damaged scan skips its frame)."""
+    try:
+        return reader(path)
+    except ScanReadError as exc:
+        return f"scan: {exc.message}"
+
+
+def _without_damaged_scans(cams: list[tuple], scans: list) -> tuple[list[tuple], list[int]]:
+    """The camera observations with frames whose scan could not be read made unusable (with the reason), and
+    the indices of the frames whose scan was read."""
+    cams = [(None, s) if isinstance(s, str) else c for c, s in zip(cams, scans)]
+    return cams, [k for k, s in enumerate(scans) if not isinstance(s, str)]
 
 
 def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:

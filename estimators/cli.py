@@ -353,26 +353,25 @@ def _validation_runs(args, ds, result) -> None:
 
 
 def _validate(args) -> int:
-    import json
-
     import numpy as np
 
     from .analysis.validation import score_frames, terms_from_json, verdict
     from .calibration import measure_frames
     from .errors import DatasetError
     from .io.dataset import load_dataset
+    from .io.input_files import load_json
     from .io.output import write_json_atomic
 
     cal_path = Path(args.calibration)
     if cal_path.is_dir():
         cal_path = cal_path / "calibration.json"
+    cal = load_json(cal_path, "calibration file", "give the calibration.json that lidarcam calibrate wrote")
     try:
-        cal = json.loads(cal_path.read_text())
         T = np.array(cal["T_camera_lidar"], dtype=float).reshape(4, 4)
         cov = np.array(cal["covariance"], dtype=float).reshape(6, 6)
         noise = cal["noise"]
         used = {f["name"] for f in cal.get("frames", []) if f.get("used")}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise DatasetError(f"not a calibration.json with a covariance ({type(exc).__name__}: {exc})", path=cal_path,
                            hint="give the calibration.json written by `lidarcam calibrate` (refined)") from None
     if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
@@ -451,10 +450,10 @@ def _simulate(args) -> int:
 
 def _layout(args) -> int:
     import numpy as np
-    import yaml
 
     from .analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
     from .errors import DatasetError
+    from .io.input_files import load_yaml
     from .io.output import write_json_atomic
 
     src = Path(args.source)
@@ -468,10 +467,7 @@ def _layout(args) -> int:
         model = "2d" if ds.lidar == "2d" else args.lidar_model
         layout, rig, names = layout_from_result(result, ds.board, model)
     elif src.is_file():
-        try:
-            plan = yaml.safe_load(src.read_text())
-        except yaml.YAMLError as exc:
-            raise DatasetError(f"not valid YAML ({exc})", path=src, hint="fix the plan file") from None
+        plan = load_yaml(src, "plan", "fix the plan file")
         if not isinstance(plan, dict):
             raise DatasetError("a plan must be a mapping", path=src, hint="see the PLAN.yaml format in the README")
         layout, rig = layout_from_plan(plan, str(src))
@@ -535,19 +531,12 @@ def _study_spec_parser() -> argparse.ArgumentParser:
 
 
 def _study_spec(argv: list[str]) -> int:
-    import yaml
-
     from .analysis.study import format_summary, parse_spec, run_study, summarize
-    from .errors import DatasetError
+    from .io.input_files import load_yaml
 
     args = _study_spec_parser().parse_args(argv)
     path = Path(args.spec)
-    if not path.is_file():
-        raise DatasetError("no such study spec", path=path, hint="give a SPEC.yaml (see the README)")
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"not valid YAML ({str(exc).splitlines()[0]})", path=path, hint="fix the spec") from None
+    raw = load_yaml(path, "study spec", "fix the spec (see the README)")
     spec = parse_spec(raw, str(path))
     if args.workers < 1:
         raise SystemExit("lidarcam: error: --workers must be positive")
@@ -561,19 +550,13 @@ def _study_spec(argv: list[str]) -> int:
 
 def _board_argument(text: str):
     """``NXxNY:SQUARE[:WxH]`` or a YAML file with a ``board:`` mapping (or the mapping itself)."""
-    import yaml
-
     from .errors import LidarcamError
     from .io.dataset import parse_board
+    from .io.input_files import load_yaml
 
     path = Path(text)
     if path.suffix.lower() in (".yaml", ".yml"):
-        if not path.is_file():
-            raise LidarcamError("board file not found", path=path, hint="give NXxNY:SQUARE or a YAML file")
-        try:
-            spec = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as exc:
-            raise LidarcamError(f"invalid YAML ({str(exc).splitlines()[0]})", path=path, hint="fix the syntax")
+        spec = load_yaml(path, "board file", "give NXxNY:SQUARE or a YAML file with a board: mapping")
         return parse_board(spec.get("board", spec) if isinstance(spec, dict) else spec, path)
     parts = text.lower().split(":")
     try:

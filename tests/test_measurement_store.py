@@ -74,5 +74,5 @@ def test_cli_writes_measurements_and_solves_from_them(sim_vlp16, tmp_path, cache
     assert main(["calibrate", str(sim_vlp16), "--out", str(tmp_path / "c"), "--samples", "0", "--no-report",
                  "--measurements", str(out1 / "measurements.npz")]) == 2
     err = capsys.readouterr().err
-    assert "measurements.npz" in err and "not a readable lidarcam measurements file" in err
+    assert "measurements.json: not valid JSON" in err and "lidarcam calibrate" in err
     assert not (tmp_path / "c" / "calibration.json").exists()

@@ -50,10 +50,10 @@ def test_recorded_pcd_header_is_read(tmp_path):
 @pytest.mark.parametrize("name,content,match", [
     ("bad.pcd", b"this is not a point cloud", "not a PCD file"),
     ("trunc.pcd", b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\n"
-                  b"POINTS 100\nDATA binary\n\x00\x01", "corrupt or unreadable PCD"),
-    ("bad.ply", b"ply\nformat nonsense\n", "corrupt or unreadable PLY"),
+                  b"POINTS 100\nDATA binary\n\x00\x01", "declares 100 points .1200 bytes. but the file holds 2 bytes"),
+    ("bad.ply", b"ply\nformat nonsense\n", "not a PLY file"),
     ("bad.bin", b"\x00" * 17, "not a multiple of 16"),
-    ("bad.npy", b"\x93NUMPY garbage", "corrupt or unreadable NPY"),
+    ("bad.npy", b"\x93NUMPY garbage", "not a plain numeric .npy array"),
     ("scan.xyz", b"1 2 3", "unknown scan format"),
 ])
 def test_corrupt_files_name_the_file(tmp_path, name, content, match):

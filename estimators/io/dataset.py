@@ -4,7 +4,6 @@ See README "Dataset format" for the contract other tools write to.
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from geometry.board import BoardModel
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import DatasetError
+from .input_files import load_json, load_yaml
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -46,10 +46,10 @@ class Dataset:
     def ground_truth(self) -> np.ndarray | None:
         """``T_camera_lidar`` from ``ground_truth.json`` when the simulator wrote one (evaluation only)."""
         path = self.root / "ground_truth.json"
-        if not path.is_file():
+        if not path.exists():
             return None
         try:
-            T = np.asarray(json.loads(path.read_text())["T_camera_lidar"], dtype=float)
+            T = np.asarray(load_json(path, "ground truth")["T_camera_lidar"], dtype=float)
         except (ValueError, KeyError, TypeError) as exc:
             raise DatasetError(f"unreadable ground truth ({exc})", path=path,
                                hint='expected {"T_camera_lidar": 4x4}') from exc
@@ -64,13 +64,9 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     if not root.is_dir():
         raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
     ypath = root / "dataset.yaml"
-    if not ypath.is_file():
+    if not ypath.exists():
         raise DatasetError("no dataset.yaml", path=root, hint="create one (see README: Dataset format)")
-    try:
-        spec = yaml.safe_load(ypath.read_text())
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"invalid YAML ({str(exc).splitlines()[0]})", path=ypath,
-                           hint="fix the syntax") from exc
+    spec = load_yaml(ypath, "dataset.yaml")
     if not isinstance(spec, dict):
         raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
                            hint="see README: Dataset format")

@@ -28,6 +28,7 @@ import numpy as np
 from geometry.rotations import T_inverse, quat_xyzw_from_R, rpy_from_R
 
 from ..errors import LidarcamError
+from .input_files import load_json
 from .output import write_atomic
 
 FORMATS = ("ros-tf", "urdf", "kitti", "opencv-yaml", "json")
@@ -46,13 +47,8 @@ def load_calibration(path: str | os.PathLike) -> dict:
     path = Path(path)
     if path.is_dir():
         path = path / "calibration.json"
-    if not path.is_file():
-        raise LidarcamError("calibration file not found", path=path,
-                            hint="give the calibration.json written by lidarcam calibrate")
-    try:
-        data = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise LidarcamError(f"not valid JSON ({exc})", path=path, hint="re-run lidarcam calibrate") from exc
+    data = load_json(path, "calibration file", "give the calibration.json written by lidarcam calibrate",
+                     LidarcamError)
     if not isinstance(data, dict) or "T_camera_lidar" not in data:
         raise LidarcamError("no T_camera_lidar in the file", path=path,
                             hint="give the calibration.json written by lidarcam calibrate")

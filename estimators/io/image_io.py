@@ -1,23 +1,64 @@
-"""Reading images as 8-bit greyscale (colour, palette and 16-bit PNGs, JPEGs)."""
+"""Reading images as 8-bit greyscale (colour, palette and 16-bit PNGs, JPEGs).
+
+The declared size is read from the file's header (Pillow, which parses headers without decoding) and checked
+before anything is decoded: a header that claims gigapixels is refused, not allocated.
+"""
 from __future__ import annotations
 
+import io
 import os
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ..errors import ImageReadError
+from ..errors import ImageReadError, LidarcamError
+from .input_files import read_bytes
+
+# Far above any calibration camera (an 8K sensor has 33 megapixels), far below what would exhaust memory.
+MAX_IMAGE_PIXELS = 100_000_000
+# An image file larger than this is not a camera frame.
+MAX_IMAGE_BYTES = 512 * 1024 * 1024
 
 
 def read_gray(path: str | os.PathLike) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise ImageReadError("image file not found", path=path, hint="check the dataset folder")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """An image file as 8-bit greyscale."""
+    data = read_bytes(path, "image", MAX_IMAGE_BYTES, ImageReadError)
+    return to_gray8(decode_image_bytes(data, path, ImageReadError))
+
+
+def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] = ImageReadError) -> np.ndarray:
+    """Decode encoded image bytes (as OpenCV's ``imdecode``, unchanged channels and depth) after checking the
+    format and the declared size; ``source`` names the file or topic in the error."""
+    from PIL import Image, UnidentifiedImageError
+
+    if len(data) == 0:
+        raise error("empty image file", path=source, hint="re-export it as PNG or JPEG")
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            width, height, fmt = int(im.size[0]), int(im.size[1]), im.format
+    except UnidentifiedImageError:
+        raise error("not an image file (no known image header)", path=source,
+                    hint="re-export it as PNG or JPEG") from None
+    except Image.DecompressionBombError:
+        raise error(f"image header declares more than {MAX_IMAGE_PIXELS} pixels", path=source,
+                    hint="the file is corrupt or not a camera frame") from None
+    except Exception as exc:  # Pillow's header parsers raise many kinds on damaged headers
+        raise error(f"damaged image header ({type(exc).__name__})", path=source,
+                    hint="re-export it as PNG or JPEG") from None
+    if width <= 0 or height <= 0 or width * height > MAX_IMAGE_PIXELS:
+        raise error(f"{fmt} header declares {width}x{height} pixels (at most {MAX_IMAGE_PIXELS} are read)",
+                    path=source, hint="the file is corrupt or not a camera frame")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise error(f"{fmt} image cannot be decoded ({str(exc).strip().splitlines()[-1][:120]})", path=source,
+                    hint="re-export it as PNG or JPEG") from None
     if img is None or img.size == 0:
-        raise ImageReadError("corrupt or unreadable image", path=path, hint="re-export it as PNG or JPEG")
-    return to_gray8(img)
+        raise error(f"corrupt or unreadable {fmt} image", path=source, hint="re-export it as PNG or JPEG")
+    if img.shape[0] != height or img.shape[1] != width:
+        raise error(f"{fmt} header declares {width}x{height} but {img.shape[1]}x{img.shape[0]} decoded",
+                    path=source, hint="the file is corrupt; re-export it")
+    return img
 
 
 def to_gray8(img: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ from geometry.planes import Plane
 from ..errors import DatasetError
 from ..measurements import (BoardDecision, CameraBoardObservation, FrameMeasurement, observe_lidar_board,
                             observe_lidar_line)
+from .input_files import load_json
 from .output import write_json_atomic, write_npz_atomic
 
 FORMAT = "lidarcam-measurements-1"
@@ -126,7 +127,8 @@ def load_measurements(path: str | Path) -> Measurements:
             raise DatasetError("measurements file not found", path=p,
                                hint="give the measurements.npz that `lidarcam calibrate` wrote (beside its .json)")
     try:
-        meta = json.loads(meta_path.read_text())
+        meta = load_json(meta_path, "measurements file",
+                         "give the measurements.npz (and .json) that `lidarcam calibrate` wrote")
         if meta.get("format") != FORMAT:
             raise ValueError(f"format {meta.get('format')!r}, expected {FORMAT!r}")
         with np.load(npz, allow_pickle=False) as z:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ScanReadError
+from .input_files import regular_file
 
 SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
 SCAN_2D_SUFFIXES = (".csv", ".npy", ".pcd")
@@ -37,9 +38,7 @@ class Sweep:
 
 def read_sweep(path: str | os.PathLike) -> Sweep:
     """Load a scan's valid points (NaN/inf and (0, 0, 0) returns dropped) with their beam index if known."""
-    path = Path(path)
-    if not path.is_file():
-        raise ScanReadError("scan file not found", path=path, hint="check the dataset folder")
+    path = regular_file(path, "scan file", ScanReadError, "check the dataset folder")
     suffix = path.suffix.lower()
     readers = {".pcd": _read_pcd, ".ply": _read_ply, ".bin": _read_kitti_bin, ".npy": _read_npy}
     if suffix not in readers:
@@ -77,9 +76,7 @@ def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
     (N x 2, or N x 3 with z = 0); ``.pcd`` with z = 0 (as ROS tools save scans). Non-finite, zero and
     out-of-range returns are dropped.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ScanReadError("scan file not found", path=path, hint="check the dataset folder")
+    path = regular_file(path, "scan file", ScanReadError, "check the dataset folder")
     suffix = path.suffix.lower()
     if suffix not in SCAN_2D_SUFFIXES:
         raise ScanReadError(f"unknown 2D scan format {suffix!r}", path=path,
@@ -88,7 +85,7 @@ def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
         if suffix == ".csv":
             xy = _read_csv_2d(path)
         elif suffix == ".npy":
-            a = np.load(path, allow_pickle=False)
+            a = load_npy(path)
             if a.ndim != 2 or a.shape[1] not in (2, 3) or a.dtype.kind not in "fiu":
                 raise ScanReadError(f"expected a numeric N x 2 (or N x 3) array, got shape {a.shape} dtype {a.dtype}",
                                     path=path, hint="save the scan's x, y as two columns")
@@ -155,19 +152,99 @@ def _first_line(exc: Exception) -> str:
     return text[0][:160] if text else "no detail"
 
 
+# Far above any LiDAR sweep (a 128-beam sensor gives about 260,000 points), far below what exhausts memory.
+MAX_SCAN_POINTS = 20_000_000
+_PCD_TYPES = {("F", 4), ("F", 8), ("I", 1), ("I", 2), ("I", 4), ("I", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8)}
+
+
+def _pcd_header(path: Path) -> tuple[str, int, int, int]:
+    """The PCD header checked against itself and against the file: ``(data, points, point_bytes,
+    data_offset)``. Nothing is allocated from a count before it is checked against the file's length."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(min(size, 65536))
+    keys, offset = {}, 0
+    for raw in head.split(b"\n"):
+        offset += len(raw) + 1
+        line = raw.decode("ascii", errors="replace").strip()
+        if not line or line.startswith("#"):
+            continue
+        key, _, value = line.partition(" ")
+        keys[key.upper()] = value.split()
+        if key.upper() == "DATA":
+            break
+    else:
+        raise ScanReadError("not a PCD file (no DATA line in its header)", path=path, hint="re-export the scan")
+    missing = [k for k in ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "DATA") if k not in keys]
+    if missing:
+        raise ScanReadError(f"PCD header lacks {', '.join(missing)}", path=path, hint="re-export the scan")
+    fields, n = keys["FIELDS"], len(keys["FIELDS"])
+    try:
+        sizes = [int(v) for v in keys["SIZE"]]
+        counts = [int(v) for v in keys.get("COUNT", ["1"] * n)]
+        width, height = int(keys["WIDTH"][0]), int(keys["HEIGHT"][0])
+        points = int(keys["POINTS"][0]) if "POINTS" in keys else width * height
+    except (ValueError, IndexError):
+        raise ScanReadError("PCD header has a non-integer SIZE, COUNT, WIDTH, HEIGHT or POINTS", path=path,
+                            hint="re-export the scan") from None
+    types = [t.upper() for t in keys["TYPE"]]
+    if not (len(sizes) == len(types) == len(counts) == n) or n == 0:
+        raise ScanReadError(f"PCD header lists {n} FIELDS but {len(sizes)} SIZE, {len(types)} TYPE and "
+                            f"{len(counts)} COUNT values", path=path, hint="re-export the scan")
+    if any((t, z) not in _PCD_TYPES for t, z in zip(types, sizes)) or any(c < 1 or c > 4096 for c in counts):
+        raise ScanReadError(f"PCD header has an unknown TYPE/SIZE/COUNT ({' '.join(types)} / "
+                            f"{' '.join(map(str, sizes))} / {' '.join(map(str, counts))})", path=path,
+                            hint="re-export the scan")
+    if width < 0 or height < 0 or points < 0 or points != width * height:
+        raise ScanReadError(f"PCD header says POINTS {points} but WIDTH x HEIGHT = {width} x {height}", path=path,
+                            hint="the header is damaged; re-export the scan")
+    if points > MAX_SCAN_POINTS:
+        raise ScanReadError(f"PCD header declares {points} points (at most {MAX_SCAN_POINTS} are read)", path=path,
+                            hint="the header is damaged or this is not one sweep")
+    data = keys["DATA"][0].lower() if keys["DATA"] else ""
+    point_bytes = sum(z * c for z, c in zip(sizes, counts))
+    remaining = size - offset
+    if data == "binary":
+        if remaining < points * point_bytes:
+            raise ScanReadError(f"PCD header declares {points} points ({points * point_bytes} bytes) but the file "
+                                f"holds {max(remaining, 0)} bytes of data", path=path,
+                                hint="the file is truncated; re-export the scan")
+    elif data == "binary_compressed":
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            sizes8 = fh.read(8)
+        if len(sizes8) < 8:
+            raise ScanReadError("PCD binary_compressed data is cut off before its sizes", path=path,
+                                hint="the file is truncated; re-export the scan")
+        compressed, uncompressed = np.frombuffer(sizes8, "<u4").tolist()
+        if uncompressed != points * point_bytes or compressed > remaining - 8:
+            raise ScanReadError(f"PCD binary_compressed sizes ({compressed} compressed, {uncompressed} "
+                                f"uncompressed) disagree with the header ({points} points of {point_bytes} "
+                                f"bytes) or the file ({remaining - 8} bytes of data)", path=path,
+                                hint="the file is truncated or damaged; re-export the scan")
+    elif data == "ascii":
+        if remaining < 2 * points:  # every point takes at least one digit and a line end
+            raise ScanReadError(f"PCD header declares {points} points but the file holds {max(remaining, 0)} "
+                                "bytes of ASCII data", path=path, hint="the file is truncated; re-export the scan")
+    else:
+        raise ScanReadError(f"PCD DATA {data!r} is not ascii, binary or binary_compressed", path=path,
+                            hint="re-export the scan")
+    if not {"x", "y", "z"} <= set(fields):
+        missing_xyz = [f for f in ("x", "y", "z") if f not in fields]
+        raise ScanReadError(f"PCD has no field(s) {', '.join(missing_xyz)} (fields: {' '.join(fields)})",
+                            path=path, hint="save x, y and z")
+    return data, points, point_bytes, offset
+
+
 def _read_pcd(path: Path, rings: bool = False):
     from pypcd4 import PointCloud
 
-    with open(path, "rb") as fh:
-        head = fh.read(4096)
-    if b"FIELDS" not in head or b"DATA" not in head:
-        raise ScanReadError("not a PCD file (no FIELDS/DATA header)", path=path, hint="re-export the scan")
+    data, points, _, _ = _pcd_header(path)
     pc = PointCloud.from_path(path)
-    missing = [f for f in ("x", "y", "z") if f not in pc.fields]
-    if missing:
-        raise ScanReadError(f"PCD has no field(s) {', '.join(missing)} (fields: {' '.join(pc.fields)})",
-                            path=path, hint="save x, y and z")
     xyz = pc.numpy(("x", "y", "z"))
+    if len(xyz) != points:
+        raise ScanReadError(f"PCD header declares {points} points but its {data} data holds {len(xyz)}",
+                            path=path, hint="the header and the data disagree; re-export the scan")
     if not rings:
         return xyz
     intensity = pc.numpy(("intensity",))[:, 0] if "intensity" in pc.fields else None
@@ -179,9 +256,53 @@ def _read_pcd(path: Path, rings: bool = False):
     return xyz, None, intensity
 
 
+_PLY_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_ply_header(path: Path) -> None:
+    """The PLY header's element counts checked against the file's length before anything is read (the
+    reader would allocate what the header claims)."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(min(size, 65536))
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise ScanReadError("not a PLY file (no 'ply' ... 'end_header' header)", path=path, hint="re-export the scan")
+    lines = head[:end].decode("ascii", errors="replace").splitlines()
+    data_start = end + len(b"end_header") + 1
+    fmt, elements = "", []
+    for line in lines:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            try:
+                elements.append([words[1], int(words[2]), 0])
+            except ValueError:
+                raise ScanReadError(f"PLY element {words[1]!r} has a non-integer count", path=path,
+                                    hint="the header is damaged; re-export the scan") from None
+        elif words[0] == "property" and elements and len(words) >= 3:
+            # a list property takes at least its count's bytes
+            elements[-1][2] += _PLY_BYTES.get(words[2] if words[1] == "list" else words[1], 1)
+    total = 0
+    for name, count, row in elements:
+        if count < 0 or count > MAX_SCAN_POINTS:
+            raise ScanReadError(f"PLY header declares {count} {name} elements (at most {MAX_SCAN_POINTS} are read)",
+                                path=path, hint="the header is damaged or this is not one sweep")
+        total += count * (max(row, 1) if fmt.startswith("binary") else 2)
+    if total > size - data_start:
+        raise ScanReadError(f"PLY header declares {sum(e[1] for e in elements)} elements (at least {total} bytes) "
+                            f"but the file holds {max(size - data_start, 0)} bytes of data", path=path,
+                            hint="the file is truncated or its header is damaged; re-export the scan")
+
+
 def _read_ply(path: Path, rings: bool = False):
     from plyfile import PlyData
 
+    _check_ply_header(path)
     ply = PlyData.read(str(path))
     if "vertex" not in ply:
         raise ScanReadError("PLY has no vertex element", path=path, hint="save the points as vertices")
@@ -206,8 +327,22 @@ def _read_kitti_bin(path: Path, rings: bool = False):
     return (data[:, :3], None, data[:, 3]) if rings else data[:, :3]
 
 
+def load_npy(path: Path) -> np.ndarray:
+    """A ``.npy`` array, never a pickle, its declared size checked against the file's length first (memory
+    mapped, then copied: what is allocated is what the file holds)."""
+    try:
+        a = np.load(path, allow_pickle=False, mmap_mode="r")
+    except ValueError as exc:
+        raise ScanReadError(f"not a plain numeric .npy array ({_first_line(exc)})", path=path,
+                            hint="save it with numpy.save, without pickling") from None
+    if a.size > 4 * MAX_SCAN_POINTS:
+        raise ScanReadError(f".npy array of shape {a.shape} is too large for a scan", path=path,
+                            hint="save one sweep per file")
+    return np.array(a)
+
+
 def _read_npy(path: Path, rings: bool = False):
-    a = np.load(path, allow_pickle=False)
+    a = load_npy(path)
     if a.ndim != 2 or a.shape[1] < 3 or a.dtype.kind not in "fiu":
         raise ScanReadError(f"expected a numeric N x >=3 array, got shape {a.shape} dtype {a.dtype}",
                             path=path, hint="save x, y, z as the first three columns")

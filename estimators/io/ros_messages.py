@@ -12,6 +12,7 @@ import numpy as np
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import BagError
+from .image_io import decode_image_bytes
 
 # sensor_msgs/PointField datatypes.
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -83,10 +84,7 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     if "compresseddepth" in fmt:
         raise BagError(f"compressed depth image ({msg.format!r}) is not a camera image", path=topic,
                        hint="give the colour or mono image topic")
-    img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise BagError(f"cannot decode compressed image (format {msg.format!r})", path=topic,
-                       hint="expected JPEG or PNG data")
+    img = decode_image_bytes(np.asarray(msg.data, dtype=np.uint8).tobytes(), topic, BagError)
     # "rgb8; jpeg compressed bgr8": the codec returns BGR, which is what the rest of lidarcam expects.
     return img
 
