@@ -138,8 +138,9 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
                            image_hz: float = 10.0, scan_hz: float = 10.0, still_s: float = 1.5,
                            move_s: float = 0.6, scan_offset_s: float = 0.013, camera_info: bool = True,
                            seed: int = 0, image_topic: str = "/camera/image_raw",
-                           lidar_topic: str | None = None) -> Path:
-    """Record the dataset's poses as a bag of ``kind`` ros1 | sqlite3 | mcap; returns the bag's path."""
+                           lidar_topic: str | None = None, stamp_jitter_s: float = 0.0) -> Path:
+    """Record the dataset's poses as a bag of ``kind`` ros1 | sqlite3 | mcap; returns the bag's path.
+    ``stamp_jitter_s``: the sd of a Gaussian jitter on every image's stamp (as a camera driver's)."""
     ds = load_dataset(dataset)
     rng = np.random.default_rng(seed)
     is2d = ds.lidar == "2d"
@@ -158,6 +159,7 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
             for s, what in sorted(events):
                 if what == "img":
                     noisy = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+                    s = s + int(rng.normal(0.0, stamp_jitter_s) * 1e9) if stamp_jitter_s > 0 else s
                     bag.write(image_topic, image_message(bag, noisy, s, encoding), s)
                 elif what == "scan":
                     msg = scan_message(bag, *scan, s) if is2d else cloud_message(bag, scan, s)
@@ -167,6 +169,7 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
             # The board moves to the next pose: it slides across the image, and is out of view once.
             moves = list(range(end, end + int(move_s * 1e9), dt_img))
             for k, s in enumerate(moves):
+                s = s + int(rng.normal(0.0, stamp_jitter_s) * 1e9) if stamp_jitter_s > 0 else s
                 moved = np.zeros_like(img) if k == len(moves) // 2 else np.roll(img, 25 * (k + 1), axis=1)
                 bag.write(image_topic, image_message(bag, moved, s, encoding), s)
             t = end + int(move_s * 1e9)

@@ -1,9 +1,11 @@
 """A dataset folder from a ROS 1 bag or a ROS 2 bag (sqlite3 or MCAP), read with ``rosbags`` (no ROS install).
 
-One pass over the bag, streaming: images are examined at up to ``check_hz``; each examined image is paired
-with the scan nearest in header time (within ``max_dt_s``); the board's inner corners are found in a reduced
-copy of the image, and consecutive examinations whose corners moved less than ``still_px`` form a *still
-segment*. A segment that lasts ``still_s`` or longer gives one frame: its steadiest interior image (the one
+One pass over the bag, streaming: images are examined on a fixed time grid of ``1/check_hz`` (the first image in
+each cell, so stamp jitter never skips a cell); each examined image is paired with the scan nearest in header
+time (within ``max_dt_s``); the board's inner corners are found in a reduced copy of the image, and consecutive
+examinations whose corners moved less than ``still_px`` form a *still segment*. A segment that lasts
+``still_s`` or longer (from its first to its last examined image, plus one grid cell and one camera period,
+which those images stand for) gives one frame: its steadiest interior image (the one
 whose corners moved least towards both neighbours) with its scan, so a hand-held or tripod board yields one
 frame per pose. A pose already kept is not kept again. Every image not kept is counted under its reason.
 
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,6 +122,10 @@ class _StillSegments:
 
     def __init__(self, options: ExtractOptions, emit):
         self.o, self.emit = options, emit
+        # Each examined image stands for its grid cell and its camera period: a segment's duration is the time
+        # from its first to its last examined image plus this (so that a board held for still_s plus one
+        # camera period is kept whatever the grid's phase).
+        self.credit_s = 1.0 / options.check_hz
         self.counts: Counter = Counter()
         self.kept_corners: list[np.ndarray] = []
         self._reset()
@@ -151,7 +158,7 @@ class _StillSegments:
     def close(self) -> None:
         if self.first is None:
             return
-        duration = (self.prev.stamp - self.first.stamp) * 1e-9
+        duration = (self.prev.stamp - self.first.stamp) * 1e-9 + self.credit_s
         n, best = self.n, self.best
         if duration < self.o.still_s or n < 3:
             self.counts["moving"] += n
@@ -177,10 +184,39 @@ def _open_reader(bag: Path):
         reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except Exception as exc:  # rosbags raises several kinds for files that are not bags
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
-        raise BagError(f"not a readable ROS 1 or ROS 2 bag ({first})", path=bag,
-                       hint="give a .bag file (ROS 1) or the folder holding metadata.yaml (ROS 2)") from exc
+        raise _unreadable_bag(bag, exc) from exc
     return reader
+
+
+def _messages(reader, bag: Path, conns):
+    """``(connection, bag time, message)`` in bag order; a damaged chunk or message is one :class:`BagError`."""
+    stream = reader.messages(connections=conns)
+    while True:
+        try:
+            conn, t_bag, raw = next(stream)
+            msg = reader.deserialize(raw, conn.msgtype)
+        except StopIteration:
+            return
+        except Exception as exc:  # rosbags raises several kinds on damaged chunks and messages
+            raise _unreadable_bag(bag, exc) from exc
+        yield conn, t_bag, msg
+
+
+def _plain(exc: BaseException) -> str:
+    """An exception's message as plain words: rosbags nests messages as tuples (``"index damaged: ('x',)"``)."""
+    text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    text = re.sub(r"[(\[]?'([^']*)',?[)\]]?", r"\1", text)
+    return text.strip(" .")[:160]
+
+
+def _unreadable_bag(bag: Path, exc: BaseException) -> BagError:
+    """One plain sentence for a bag that rosbags cannot open, with what to try."""
+    detail = _plain(exc)
+    if "index" in detail.lower() or "header" in detail.lower() or "could not read" in detail.lower():
+        return BagError(f"the bag is damaged or cut short ({detail.lower()})", path=bag,
+                        hint="reindex it (ROS 1: rosbag reindex; ROS 2: ros2 bag reindex) or copy it again")
+    return BagError(f"not a readable ROS 1 or ROS 2 bag ({detail})", path=bag,
+                    hint="give a .bag file (ROS 1) or the folder holding metadata.yaml (ROS 2)")
 
 
 def _topic(reader, bag: Path, topic: str, types: tuple[str, ...], flag: str):
@@ -263,7 +299,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             scans: deque = deque()  # (stamp, msg) in arrival order
             pending: deque = deque()  # examined images awaiting a later scan
             camera: CameraModel | None = None
-            n_images, last_checked = 0, None
+            n_images, origin, last_cell, last_stamp = 0, None, None, None
+            intervals: deque = deque(maxlen=16)  # recent image intervals (ns), for the camera's period
             img_span, scan_span = [None, None], [None, None]
             peak = {"scans": 0, "images_awaiting_a_scan": 0}
             max_dt = int(options.max_dt_s * 1e9)
@@ -280,9 +317,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 s[1] = t if s[1] is None else max(s[1], t)
 
             bar = tqdm(total=total, desc=f"reading {bag.name}", unit="msg", disable=not progress)
-            for conn, t_bag, raw in reader.messages(connections=conns):
+            for conn, t_bag, msg in _messages(reader, bag, conns):
                 bar.update(1)
-                msg = reader.deserialize(raw, conn.msgtype)
                 stamp = stamp_ns(msg, t_bag)
                 if conn.topic == info_topic:
                     if camera is None:
@@ -296,10 +332,18 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 else:
                     n_images += 1
                     span(img_span, stamp)
-                    if last_checked is not None and abs(stamp - last_checked) < 1e9 / options.check_hz:
+                    if last_stamp is not None and stamp > last_stamp:
+                        intervals.append(stamp - last_stamp)
+                        segments.credit_s = 1.0 / options.check_hz + float(np.median(intervals)) * 1e-9
+                    last_stamp = stamp
+                    # A fixed time grid: the first image in each cell of 1/check_hz is examined, so examined
+                    # images are one cell apart whatever the stamps' jitter.
+                    origin = stamp if origin is None else origin
+                    cell = (stamp - origin) * options.check_hz // 1_000_000_000
+                    if cell == last_cell:
                         segments.counts["between_checks"] += 1
                         continue
-                    last_checked = stamp
+                    last_cell = cell
                     image = decode_image(msg, image_topic)
                     pending.append(_Check(stamp, image, _detect(to_gray8(image), pattern)))
                     if len(pending) > MAX_PENDING_IMAGES:

@@ -6,6 +6,8 @@ one-line reason for anything they cannot decode.
 """
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -27,6 +29,25 @@ IMAGE_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8", "rgb16",
                    "16UC1", *(f"bayer_{p}{b}" for p in _BAYER for b in (8, 16)))
 
 
+def _guarded(kind: str):
+    """A decoder whose failures on malformed fields (wrong types, sizes or shapes, absurd values) are one
+    :class:`BagError` naming the topic, never a traceback."""
+    def wrap(fn):
+        @functools.wraps(fn)
+        def decoder(msg, topic: str = "", *args, **kwargs):
+            try:
+                return fn(msg, topic, *args, **kwargs)
+            except BagError:
+                raise
+            except (ValueError, TypeError, AttributeError, OverflowError, IndexError, KeyError, MemoryError,
+                    cv2.error) as exc:
+                text = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:120]
+                raise BagError(f"malformed {kind} message ({type(exc).__name__}: {text})", path=topic or None,
+                               hint="the recording is damaged, or the topic holds another message type") from None
+        return decoder
+    return wrap
+
+
 def stamp_ns(msg, fallback_ns: int) -> int:
     """The message's header stamp in ns, or the bag's receive time when the stamp is zero or absent."""
     header = getattr(msg, "header", None)
@@ -39,6 +60,7 @@ def stamp_ns(msg, fallback_ns: int) -> int:
     return ns if ns > 0 else int(fallback_ns)
 
 
+@_guarded("image")
 def decode_image(msg, topic: str = "") -> np.ndarray:
     """A ``sensor_msgs/Image`` or ``CompressedImage`` as an 8- or 16-bit array, colour in OpenCV's BGR order."""
     if hasattr(msg, "format") and not hasattr(msg, "encoding"):
@@ -89,6 +111,7 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     return img
 
 
+@_guarded("PointCloud2")
 def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | None]:
     """``sensor_msgs/PointCloud2`` as (N, 3) float64 points and an (N,) intensity (or None).
 
@@ -127,7 +150,8 @@ def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | N
     return xyz[keep], None if inten is None else inten[keep]
 
 
-def decode_laser_scan(msg) -> tuple[np.ndarray, np.ndarray]:
+@_guarded("LaserScan")
+def decode_laser_scan(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray]:
     """``sensor_msgs/LaserScan`` as (angles, ranges) in radians and metres; invalid returns as range 0."""
     ranges = np.asarray(msg.ranges, dtype=float)
     angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(len(ranges))
@@ -142,6 +166,7 @@ def _field(msg, *names):
     raise AttributeError(names[0])
 
 
+@_guarded("CameraInfo")
 def camera_from_info(msg, topic: str = "") -> CameraModel:
     """``sensor_msgs/CameraInfo`` as the dataset's camera model.
 
