@@ -5,6 +5,7 @@ from the kernel's accounting of the finished child. The sets:
   - sim28: 28 frames of the simulated VLP-16 rig with a 1920x1208 camera (the simulator's camera, its focal
     length scaled with the image), written once into bench-out/speed/;
   - the recorded VLP-16 set from ../shared/realdata when present;
+  - large: 4 frames of 3840x2160 images and 2-million-point scans (resource bounds);
   - `lidarcam demo` (simulate + calibrate + report on 8 frames; the venv exists).
 Rows: measured (--no-cache), from the measurement cache, and with the default posterior and report.
 Targets (issue 17): 28 frames at most 10 s measured, 1.5 s cached, 20 s with posterior and report; the demo
@@ -60,6 +61,32 @@ _LAUNCH = ("import atexit, sys\n"
            "sys.exit(main(sys.argv[1:]))\n")
 
 
+def large_frames() -> Path:
+    """4 frames of 3840x2160 images and 2-million-point scans (the simulator's HDL-64 sweeps with returns
+    added far behind the board, on a wall 40 m away), for the README's resource bounds."""
+    path = OUT / "large"
+    if (path / "dataset.yaml").is_file():
+        return path
+    rng = np.random.default_rng(4)
+    base = default_rig(rng, "hdl64e")
+    w, h = 3840, 2160
+    K = base.camera.K.copy()
+    K[:2, :2] *= w / 1024.0
+    K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+    rig = replace(base, camera=CameraModel(K, base.camera.dist, w, h, base.camera.model, "bench"))
+    frames = simulate_frames(rig, 4, rng)
+    grown = []
+    for f in frames:
+        extra = 2_000_000 - len(f.points)
+        wall = np.column_stack([np.full(extra, 40.0), rng.uniform(-40, 40, extra), rng.uniform(-5, 15, extra)])
+        grown.append(replace(f, points=np.vstack([f.points, wall]),
+                             intensity=np.concatenate([f.intensity, np.zeros(extra)]),
+                             ring=np.concatenate([f.ring, np.zeros(extra, f.ring.dtype)]),
+                             board_mask=None if f.board_mask is None else np.concatenate(
+                                 [f.board_mask, np.zeros(extra, bool)])))
+    return write_dataset(path, rig, grown, "pcd", overwrite=True)
+
+
 def _run(args: list[str], env: dict) -> tuple[float, float, int]:
     """Wall seconds, peak resident MB and exit code of one lidarcam process."""
     t0 = time.perf_counter()
@@ -74,7 +101,7 @@ def _run(args: list[str], env: dict) -> tuple[float, float, int]:
 
 
 def main() -> None:
-    sets = [("sim28 1920x1208", sim28())]
+    sets = [("sim28 1920x1208", sim28()), ("large 4K + 2M pts", large_frames())]
     if (REALDATA / "dataset.yaml").is_file():
         sets.append(("recorded VLP-16", REALDATA))
     else:

@@ -35,6 +35,8 @@ class CameraModel:
             raise ValueError(f"Expected camera model 'pinhole' or 'fisheye', got {self.model!r}")
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"Expected K to be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
+        if not np.all(np.isfinite(dist)):
+            raise ValueError(f"Expected finite distortion coefficients, got {dist.tolist()}")
         if dist.size == 0:
             dist = np.zeros(4 if self.model == FISHEYE else 5)
         if dist.size not in _DIST_LENGTHS[self.model]:

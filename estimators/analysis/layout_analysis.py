@@ -199,7 +199,14 @@ def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
             R_CAMERA_LIDAR_NOMINAL, -R_CAMERA_LIDAR_NOMINAL @ np.array([0.15, 0.0, -0.20]))
         poses = [_plan_pose(p, board) for p in plan.get("poses", [])]
         corner_noise = float(plan.get("corner_noise_px", 0.2))
-    except (KeyError, TypeError, ValueError) as exc:
+        if not (np.all(np.isfinite(T_cl)) and T_cl.shape == (4, 4)):
+            raise ValueError("T_camera_lidar must be a finite 4x4 matrix")
+        if not all(np.all(np.isfinite(T)) for T in poses):
+            raise ValueError("every pose must be finite")
+        if not (np.isfinite(corner_noise) and corner_noise > 0 and np.isfinite(beams.sigma_range_m)
+                and beams.sigma_range_m > 0):
+            raise ValueError("corner_noise_px and range_noise_m must be positive and finite")
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise DatasetError(f"invalid plan ({exc})", path=source,
                            hint="see the PLAN.yaml format in the README (camera, board, lidar, poses)") from exc
     rig = Rig(camera=camera, beams=beams, board=board, T_camera_lidar=T_cl)
@@ -212,7 +219,10 @@ def _plan_pose(p: dict, board) -> np.ndarray:
         if T.shape != (4, 4):
             raise ValueError("T_camera_board must be 4x4")
         return T
-    return board_pose(board, np.array(p["centre_m"], dtype=float), np.deg2rad(float(p.get("tilt_deg", 0.0))),
+    centre = np.array(p["centre_m"], dtype=float)
+    if centre.shape != (3,) or not np.all(np.isfinite(centre)) or centre[2] <= 0:
+        raise ValueError("centre_m must be 3 finite numbers, the board in front of the camera (z > 0)")
+    return board_pose(board, centre, np.deg2rad(float(p.get("tilt_deg", 0.0))),
                       np.deg2rad(float(p.get("azimuth_deg", 0.0))), np.deg2rad(float(p.get("spin_deg", 0.0))))
 
 

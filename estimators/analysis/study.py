@@ -86,6 +86,16 @@ def _list(v, kind, key, source):
     return out
 
 
+def _scalar(v, kind, key, source):
+    try:
+        if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+            raise TypeError
+        return kind(v)
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{key} must be a number, got {v!r}", path=source,
+                           hint="see the SPEC.yaml format in the README") from None
+
+
 def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     """Validate a parsed ``SPEC.yaml`` (errors name the key and what to write)."""
     if not isinstance(spec, dict):
@@ -94,7 +104,8 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     if lidar not in ("3d", "2d"):
         raise DatasetError(f"lidar must be 3d or 2d, got {lidar!r}", path=source, hint="set lidar: 3d or lidar: 2d")
     allowed = SOLVERS_2D if lidar == "2d" else SOLVERS_3D
-    solvers = tuple(spec.get("solvers", allowed))
+    raw_solvers = spec.get("solvers", allowed)
+    solvers = tuple(str(v) for v in (raw_solvers if isinstance(raw_solvers, (list, tuple)) else [raw_solvers]))
     bad = [s for s in solvers if s not in allowed]
     if bad or not solvers:
         raise DatasetError(f"unknown solver(s) {bad} for lidar {lidar}", path=source, hint=f"use some of {list(allowed)}")
@@ -114,7 +125,7 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     if min(frames) < 3:
         raise DatasetError(f"every calibration needs at least 3 frames, got {min(frames)}", path=source,
                            hint="use frames >= 3")
-    trials = int(spec.get("trials", 10))
+    trials = _scalar(spec.get("trials", 10), int, "trials", source)
     if trials < 1:
         raise DatasetError(f"trials must be at least 1, got {trials}", path=source, hint="set trials: 10")
     default_noise = 0.01 if lidar == "2d" else 0.02
@@ -122,7 +133,7 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
                      solvers=solvers, layouts=layouts, frames=frames,
                      range_noise_m=_list(spec.get("range_noise_m", [default_noise]), float, "range_noise_m", source),
                      corner_noise_px=_list(spec.get("corner_noise_px", [0.2]), float, "corner_noise_px", source),
-                     trials=trials, seed=int(spec.get("seed", 0)), mode=mode)
+                     trials=trials, seed=_scalar(spec.get("seed", 0), int, "seed", source), mode=mode)
 
 
 def trial_arguments(spec: StudySpec) -> list[tuple]:

@@ -109,7 +109,7 @@ def parse_board(b: object, ypath: Path) -> BoardModel:
                           size=tuple(b["size"]) if b.get("size") is not None else None,
                           pattern_offset=tuple(b["pattern_offset"]) if b.get("pattern_offset") is not None
                           else None)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise DatasetError(f"invalid board ({exc})", path=ypath, hint="fix the board entry") from exc
 
 
@@ -127,7 +127,7 @@ def parse_camera(c: object, ypath: Path) -> CameraModel:
     try:
         return CameraModel(K=np.asarray(c["K"], dtype=float), dist=np.asarray(c.get("dist") or [], dtype=float),
                            width=int(c["width"]), height=int(c["height"]), model=model, source="dataset.yaml")
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise DatasetError(f"invalid camera ({exc})", path=ypath, hint="fix the camera entry") from exc
 
 
