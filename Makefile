@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(PY) benchmarks/bench_study.py
 	$(PY) benchmarks/bench_bag.py
+	$(PY) benchmarks/bench_fuzz.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info

@@ -33,6 +33,7 @@ class Tally:
         self.cases = self.read = self.refused = 0
         self.bugs: list[tuple] = []
         self.slowest = 0.0
+        self.peak_mb = 0.0
 
     def run(self, fn, case) -> None:
         t0 = time.perf_counter()
@@ -105,12 +106,20 @@ def _extra_targets(folder: Path, with_bag: bool) -> list:
     return out
 
 
+def _peak(tally: Tally) -> Tally:
+    """The process's peak memory once this reader's cases have run (it only grows: a reader that needed
+    more than the ones before it shows as a step)."""
+    tally.peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return tally
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=10_000, help="cases per reader (bags: a tenth)")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    print(f"{'reader':26s}{'cases':>7s}{'read':>7s}{'refused':>8s}{'bugs':>6s}{'slowest s':>10s}")
+    print(f"{'reader':26s}{'cases':>7s}{'read':>7s}{'refused':>8s}{'bugs':>6s}{'slowest s':>10s}"
+          f"{'peak MB so far':>15s}")
     total_bugs = 0
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -119,12 +128,13 @@ def main() -> None:
             folder = tmp / target.name
             folder.mkdir()
             n = max(1, args.cases // 10) if target.name.endswith("bag") else args.cases
-            rows.append((target.name, fuzz_file(target, n, folder)))
+            rows.append((target.name, _peak(fuzz_file(target, n, folder))))
         for name, strategy, decode in MESSAGE_TARGETS:
-            rows.append((name, fuzz_message(strategy, decode, args.cases)))
+            rows.append((name, _peak(fuzz_message(strategy, decode, args.cases))))
         for name, t in rows:
             total_bugs += len(t.bugs)
-            print(f"{name:26s}{t.cases:7d}{t.read:7d}{t.refused:8d}{len(t.bugs):6d}{t.slowest:10.2f}")
+            print(f"{name:26s}{t.cases:7d}{t.read:7d}{t.refused:8d}{len(t.bugs):6d}{t.slowest:10.2f}"
+                  f"{t.peak_mb:15.0f}")
         for name, t in rows:
             for kind, text, case in t.bugs[:1]:
                 print(f"  {name}: {kind}: {text}\n    input: {case!r}"[:600])

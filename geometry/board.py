@@ -11,6 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 
+# A checkerboard has at most this many squares along a side (far more than any printable board).
+MAX_SQUARES = 100
+
+
 @dataclass(frozen=True)
 class BoardModel:
     """A checkerboard of ``squares = (nx, ny)`` squares of ``square_size`` m, printed on a board.
@@ -27,21 +31,26 @@ class BoardModel:
 
     def __post_init__(self):
         nx, ny = (int(s) for s in self.squares)
-        if nx < 3 or ny < 3:
-            raise ValueError(f"Expected at least 3 x 3 squares, got {nx} x {ny}")
+        if nx < 3 or ny < 3 or nx > MAX_SQUARES or ny > MAX_SQUARES:
+            raise ValueError(f"Expected 3 to {MAX_SQUARES} squares along each side, got {nx} x {ny}")
         if not (self.square_size > 0 and np.isfinite(self.square_size)):
             raise ValueError(f"Expected a positive square_size in metres, got {self.square_size}")
         object.__setattr__(self, "squares", (nx, ny))
         object.__setattr__(self, "square_size", float(self.square_size))
         if self.size is not None:
             w, h = (float(s) for s in self.size)
+            if not (np.isfinite(w) and np.isfinite(h)):
+                raise ValueError(f"Expected a finite board size, got {w} x {h}")
             if w + 1e-9 < nx * self.square_size or h + 1e-9 < ny * self.square_size:
                 raise ValueError(
                     f"Expected the board size {w} x {h} m to hold the {nx * self.square_size:.3f} x "
                     f"{ny * self.square_size:.3f} m pattern")
             object.__setattr__(self, "size", (w, h))
         if self.pattern_offset is not None:
-            object.__setattr__(self, "pattern_offset", tuple(float(o) for o in self.pattern_offset))
+            offset = tuple(float(o) for o in self.pattern_offset)
+            if len(offset) != 2 or not np.all(np.isfinite(offset)):
+                raise ValueError(f"Expected pattern_offset as two finite numbers (m), got {self.pattern_offset}")
+            object.__setattr__(self, "pattern_offset", offset)
 
     @property
     def inner_corners_shape(self) -> tuple[int, int]:

@@ -57,6 +57,20 @@ def load_calibration(path: str | os.PathLike) -> dict:
     except (ValueError, TypeError) as exc:
         raise LidarcamError(f"T_camera_lidar is not a rigid transform ({exc})", path=path,
                             hint="re-run lidarcam calibrate") from exc
+    try:
+        if data.get("covariance") is not None:
+            C = np.asarray(data["covariance"], dtype=float)
+            if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+                raise ValueError(f"covariance must be a finite 6x6 matrix, got shape {C.shape}")
+        intr = data.get("intrinsics")
+        if intr:
+            from geometry.camera import CameraModel
+
+            CameraModel(K=np.asarray(intr["K"], dtype=float), dist=np.asarray(intr["dist"], dtype=float),
+                        width=int(intr["width"]), height=int(intr["height"]), model=str(intr["model"]))
+    except (ValueError, TypeError, KeyError, OverflowError, AttributeError) as exc:
+        raise LidarcamError(f"malformed calibration file ({exc})", path=path,
+                            hint="give the calibration.json written by lidarcam calibrate") from None
     return data
 
 

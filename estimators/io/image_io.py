@@ -14,8 +14,9 @@ import numpy as np
 from ..errors import ImageReadError, LidarcamError
 from .input_files import read_bytes
 
-# Far above any calibration camera (an 8K sensor has 33 megapixels), far below what would exhaust memory.
-MAX_IMAGE_PIXELS = 100_000_000
+# Far above any calibration camera (an 8K sensor has 33 megapixels), far below what would exhaust memory
+# (decoded as colour: 192 MB).
+MAX_IMAGE_PIXELS = 64_000_000
 # An image file larger than this is not a camera frame.
 MAX_IMAGE_BYTES = 512 * 1024 * 1024
 

@@ -45,15 +45,21 @@ def write_npz_atomic(path: str | os.PathLike, **arrays) -> Path:
     return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays), mode="wb")
 
 
-@contextlib.contextmanager
-def atomic_directory(out: str | os.PathLike, overwrite: bool = False):
-    """Yield a temporary folder beside ``out``; on success it becomes ``out``, on failure it vanishes."""
+def check_output_folder(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """``out`` as a folder that may be written (absent, empty, or ``overwrite``); checked before any work."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise LidarcamError("exists and is not a folder", path=out, hint="choose another --out")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise LidarcamError("output folder exists and is not empty", path=out,
                             hint="choose another --out or pass --overwrite")
+    return out
+
+
+@contextlib.contextmanager
+def atomic_directory(out: str | os.PathLike, overwrite: bool = False):
+    """Yield a temporary folder beside ``out``; on success it becomes ``out``, on failure it vanishes."""
+    out = check_output_folder(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:

@@ -19,7 +19,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
 from ..io.dataset import dataset_spec, write_dataset_yaml
-from ..io.output import atomic_directory
+from ..io.output import atomic_directory, check_output_folder
 from ..io.pointcloud_io import write_scan, write_scan_2d
 from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
@@ -350,6 +350,7 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
     every return (the drawn values go to ground_truth.json).
     """
+    check_output_folder(out, overwrite)  # before minutes of rendering
     if sigma_range_m is None:
         sigma_range_m = 0.01 if lidar == "2d" else 0.02
     if scan_format is None:
