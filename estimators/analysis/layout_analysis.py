@@ -121,8 +121,12 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
     s, _ = normal_spread(normals) if len(normals) else (np.zeros(3), None)
     D = _d_opt(F)
     leverage = np.array([1.0 - _d_opt(F - S) / D if D > 0 else 0.0 for S in shares])
+    try:
+        offset = _with_offset(layout) if not tiny.any() else None
+    except np.linalg.LinAlgError:  # a board's own information is singular (absurd board sizes): no offset view
+        offset = None
     return LayoutAnalysis(names, cov, F, s, D, float(vals[0]), _weakest_words(vecs[:, 0], layout, tiny[0]),
-                          leverage, _with_offset(layout) if not tiny.any() else None)
+                          leverage, offset)
 
 
 OFFSET_TERMS = RangeTerms(("offset",), (OFFSET_PRIOR_SD_M,))

@@ -17,6 +17,8 @@ from .input_files import read_bytes
 # Far above any calibration camera (an 8K sensor has 33 megapixels), far below what would exhaust memory
 # (decoded as colour: 192 MB).
 MAX_IMAGE_PIXELS = 64_000_000
+# At most this many bytes are decoded (a 64-megapixel 8-bit colour image takes 192 MB).
+MAX_DECODED_BYTES = 256 * 1024 * 1024
 # An image file larger than this is not a camera frame.
 MAX_IMAGE_BYTES = 512 * 1024 * 1024
 
@@ -37,6 +39,8 @@ def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] =
     try:
         with Image.open(io.BytesIO(data)) as im:
             width, height, fmt = int(im.size[0]), int(im.size[1]), im.format
+            bands = len(im.getbands())
+            sample_bytes = 2 if im.mode.startswith("I;16") or im.mode in ("I", "F") or "16" in im.mode else 1
     except UnidentifiedImageError:
         raise error("not an image file (no known image header)", path=source,
                     hint="re-export it as PNG or JPEG") from None
@@ -49,6 +53,10 @@ def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] =
     if width <= 0 or height <= 0 or width * height > MAX_IMAGE_PIXELS:
         raise error(f"{fmt} header declares {width}x{height} pixels (at most {MAX_IMAGE_PIXELS} are read)",
                     path=source, hint="the file is corrupt or not a camera frame")
+    if width * height * bands * sample_bytes > MAX_DECODED_BYTES:
+        raise error(f"{fmt} header declares {width}x{height} pixels of {bands} {8 * sample_bytes}-bit channels "
+                    f"(more than {MAX_DECODED_BYTES >> 20} MB decoded)", path=source,
+                    hint="the file is corrupt or not a camera frame; save it as 8-bit")
     try:
         img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
