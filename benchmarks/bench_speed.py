@@ -33,18 +33,22 @@ REALDATA = ROOT.parent / "shared" / "realdata" / "acfr_vlp16_a"
 OUT = ROOT / "bench-out" / "speed"
 
 
+def _rig(rng: np.random.Generator, lidar: str, w: int, h: int):
+    """The default rig with its camera at ``w`` x ``h`` (focal length scaled with the width)."""
+    base = default_rig(rng, lidar)
+    K = base.camera.K.copy()
+    K[:2, :2] *= w / 1024.0
+    K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+    return replace(base, camera=CameraModel(K, base.camera.dist, w, h, base.camera.model, "bench"))
+
+
 def sim28() -> Path:
     """The 28-frame 1920x1208 set (made once; its seed fixed)."""
     path = OUT / "sim28"
     if (path / "dataset.yaml").is_file():
         return path
     rng = np.random.default_rng(28)
-    base = default_rig(rng, "vlp16")
-    w, h = 1920, 1208
-    K = base.camera.K.copy()
-    K[:2, :2] *= w / 1024.0
-    K[0, 2], K[1, 2] = w / 2.0, h / 2.0
-    rig = replace(base, camera=CameraModel(K, base.camera.dist, w, h, base.camera.model, "bench"))
+    rig = _rig(rng, "vlp16", 1920, 1208)
     frames = simulate_frames(rig, 28, rng)
     return write_dataset(path, rig, frames, "pcd", overwrite=True)
 
@@ -68,12 +72,7 @@ def large_frames() -> Path:
     if (path / "dataset.yaml").is_file():
         return path
     rng = np.random.default_rng(4)
-    base = default_rig(rng, "hdl64e")
-    w, h = 3840, 2160
-    K = base.camera.K.copy()
-    K[:2, :2] *= w / 1024.0
-    K[0, 2], K[1, 2] = w / 2.0, h / 2.0
-    rig = replace(base, camera=CameraModel(K, base.camera.dist, w, h, base.camera.model, "bench"))
+    rig = _rig(rng, "hdl64e", 3840, 2160)
     frames = simulate_frames(rig, 4, rng)
     grown = []
     for f in frames:
