@@ -67,7 +67,6 @@ def main() -> None:
             ds = simulate_dataset(tmp / f"sim{n}", n_poses=n, seed=40 + n, lidar="hdl64e")
             for kind, name in BAG_NAMES.items():
                 bag = write_bag_from_dataset(ds, tmp / f"{n}_{name}", kind, image_hz=10, still_s=2.0)
-                t0 = time.perf_counter()
                 stats = _extract_in_child(bag, tmp / f"out_{n}_{kind}")
                 messages = stats["messages"]
                 print(f"  {n:5d} {kind:>8s} {_size(bag) / 1e6:8.0f} {messages:9d} {stats['seconds']:7.1f} "
