@@ -44,7 +44,7 @@ TOKENS = ("x", "y", "z", "ring", "intensity", "F", "U", "I", "ascii", "binary", 
 HEADER_BYTES = 700
 
 
-def _mutate(seed: bytes, ops: list[tuple]) -> bytes:
+def mutate(seed: bytes, ops: list[tuple]) -> bytes:
     """Apply drawn operations: byte flips, truncation, insertion, deletion, numbers and words of the header
     replaced by lies, and 32-bit words of a binary header overwritten."""
     data = bytearray(seed)
@@ -86,10 +86,6 @@ def mutations() -> st.SearchStrategy:
         st.tuples(st.just("word"), st.integers(0, HEADER_BYTES), st.sampled_from(LIE_WORDS), st.booleans()),
     )
     return st.lists(op, min_size=1, max_size=4)
-
-
-def mutate(seed: bytes, ops: list[tuple]) -> bytes:
-    return _mutate(seed, ops)
 
 
 # --- seed inputs ---------------------------------------------------------------------------------------------
@@ -285,7 +281,7 @@ def image_messages() -> st.SearchStrategy:
     compressed = st.builds(SimpleNamespace, format=st.sampled_from(["jpeg", "png", "rgb8; jpeg compressed bgr8",
                                                                     "compressedDepth", ""]),
                            data=st.one_of(_blob(), mutations().map(lambda ops: np.frombuffer(
-                               _mutate(good, ops), np.uint8))))
+                               mutate(good, ops), np.uint8))))
     return st.one_of(raw, compressed)
 
 
