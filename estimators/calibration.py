@@ -34,13 +34,12 @@ from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from .measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
                            observe_lidar_line)
-from .solvers import chi_square as chi2
 from .solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
 from .solvers.refinement import refine as refine_graph
-from .solvers.solution_selection import MinimalSelection, select_minimal, solution_distances
+from .solvers.solution_selection import MinimalSelection, refine_candidates, select_minimal
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 REFINES = ("factor-graph", "none")
@@ -134,7 +133,9 @@ class CalibrationResult:
     refinement: Refinement | None = None
     posterior: Posterior | None = None
     selection: MinimalSelection | None = None  # 2D LiDAR: how the minimal solutions were chosen
-    alternatives: tuple = ()  # 2D LiDAR: other refined minima that fit about as well (T, cost gap)
+    # 2D LiDAR: the refined minima that hold posterior mass (``solution_selection.Mode``), the chosen one first;
+    # more than one means the data do not decide between them.
+    modes: tuple = ()
     # Where the measurements came from: "measured" (images and scans read now), "cache" or a measurements file.
     measurements_source: str = "measured"
 
@@ -224,6 +225,11 @@ class CalibrationResult:
                                   {"requested": "none", "chosen": "none", "reason": "not requested", "terms": []}),
         }
 
+    @property
+    def alternatives(self) -> tuple:
+        """2D LiDAR: the other minima that hold posterior mass (empty when the answer is unambiguous)."""
+        return tuple(self.modes[1:])
+
     def _minimal_dict(self) -> dict:
         sel = self.selection
         if sel is None:
@@ -233,8 +239,10 @@ class CalibrationResult:
             "inside_board_extent": sel.n_inside_extent, "clusters": sel.n_clusters,
             "candidates_refined": len(sel.candidates), "cost_threshold": sel.threshold,
             "candidate_costs": [c.cost for c in sel.candidates], "degenerate_triples": list(sel.degenerate_triples),
-            "seconds": sel.seconds},
-            "alternatives": [{"T_camera_lidar": T.tolist(), "cost_gap": gap} for T, gap in self.alternatives]}
+            "weak_triples": list(sel.weak_triples), "multistart_fallback": sel.fallback, "seconds": sel.seconds},
+            "modes": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
+                       "refined_cost": m.cost, "outline_cost": m.outline_cost} for m in self.modes],
+            "ambiguous": len(self.modes) > 1}
 
     def to_dict(self) -> dict:
         R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
@@ -740,18 +748,17 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
     """Choose among a frame's candidate boards by agreement with the extrinsic of the clear frames.
 
     3D: needs at least 3 unambiguous frames whose normals span 3D. 2D: needs unambiguous frames whose
-    minimal-solution selection keeps a single candidate (refined by the factor graph). Otherwise those
+    minimal-solution selection leaves a single refined minimum. Otherwise those
     frames stay skipped.
     """
     clear = [f for f in frames if f.usable]
     scan_lines = bool(clear) and clear[0].lidar.is_scan_line
     try:
         if scan_lines:
-            sel = select_minimal(clear, board)
-            if len(sel.candidates) != 1:
+            ref, modes = refine_candidates(clear, board, camera, select_minimal(clear, board))
+            if len(modes) != 1:
                 return frames
-            T_camera_lidar = refine_graph(clear, board, camera, sel.candidates[0].T_camera_lidar,
-                                          RefinementOptions()).T_camera_lidar
+            T_camera_lidar = ref.T_camera_lidar
         else:
             T_camera_lidar = solve_closed_form([f.camera.plane for f in clear],
                                                [f.lidar.plane for f in clear]).T_camera_lidar
@@ -948,33 +955,6 @@ def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng
     return post
 
 
-def refine_candidates(used: list[FrameMeasurement], board, camera: CameraModel, sel: MinimalSelection,
-                      options: RefinementOptions = RefinementOptions()) -> tuple[Refinement, tuple]:
-    """Refine every selected candidate; return the least-cost refinement and the distinct other minima
-    within chi2_6(0.95) of it (``(T, cost gap)``: the data do not decide between them)."""
-    refined = []
-    for cand in sel.candidates:
-        try:
-            r = refine_graph(used, board, camera, cand.T_camera_lidar, options)
-        except DegenerateLayoutError:
-            if len(sel.candidates) == 1:
-                raise
-            continue
-        refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
-    if not refined:
-        raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
-    refined.sort(key=lambda cr: cr[0])
-    best_cost, ref = refined[0]
-    alternatives, seen = [], [ref.T_camera_lidar]
-    for cost, r in refined[1:]:
-        far = solution_distances(np.array([*seen, r.T_camera_lidar]))[-len(seen):]
-        if np.all(far > 1.0):
-            seen.append(r.T_camera_lidar)
-            if cost - best_cost < chi2.ppf(0.95, 6):
-                alternatives.append((r.T_camera_lidar, float(cost - best_cost)))
-    return ref, tuple(alternatives)
-
-
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
               options: RefinementOptions, name: str, warnings: list[str], timings: dict,
               posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
@@ -987,33 +967,39 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     sel = select_minimal(used, board, method, use_extent)
     timings["solve"] = time.perf_counter() - t0
     if sel.degenerate_triples:
-        warnings.append(f"{len(sel.degenerate_triples)} of {sel.n_triples} board triples are degenerate "
-                        f"(first: {sel.degenerate_triples[0]})")
+        warnings.append(f"{len(sel.degenerate_triples)} of {sel.n_triples} board triples are degenerate and give "
+                        f"no solution (first: {sel.degenerate_triples[0]})")
+    if sel.weak_triples:
+        warnings.append(f"{len(sel.weak_triples)} of {sel.n_triples} board triples are ill-conditioned and were "
+                        f"solved anyway (first: {sel.weak_triples[0]})")
+    if sel.fallback:
+        warnings.append("no board triple gave a minimal solution: the candidates come from a multi-start search "
+                        "over rotations seeded by the camera's board planes")
     spread, weak = normal_spread(np.array([f.camera.plane.normal for f in used]))
     if refine == "none":
         T = sel.candidates[0].T_camera_lidar
-        ref, alternatives = None, ()
+        ref, modes = None, ()
     else:
         t0 = time.perf_counter()
-        ref, alternatives = refine_candidates(used, board, camera, sel, options)
+        ref, modes = refine_candidates(used, board, camera, sel, options, use_extent)
         timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings
-        if alternatives:
-            warnings.append(f"ambiguous: {len(alternatives) + 1} distinct solutions fit the boards about equally well "
-                            f"(cost gaps {', '.join(f'{g:.1f}' for _, g in alternatives)}); add boards tilted in "
-                            "other directions to decide")
+        if len(modes) > 1:
+            warnings.append(f"ambiguous: {len(modes)} distinct solutions fit the boards (posterior mass "
+                            f"{', '.join(f'{m.mass:.0%}' for m in modes)}; the first is reported, all are in "
+                            "calibration.json); add boards tilted in other directions to decide")
     post = None
     if ref is not None and posterior is not None:
         t0 = time.perf_counter()
         post = _posterior_or_warning(used, board, camera, ref, rng, posterior,
-                                     tuple(T_alt for T_alt, _ in alternatives), warnings)
+                                     tuple(m.T_camera_lidar for m in modes[1:]), warnings)
         timings["posterior"] = time.perf_counter() - t0
     residuals = plane_residuals(T, used)
     warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
     return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings),
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post, sel,
-                             tuple(alternatives))
+                             tuple(modes))
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

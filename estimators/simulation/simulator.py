@@ -41,6 +41,8 @@ class Rig:
     pixel_noise: float = 2.0
     min_distance_m: float = 2.0
     max_distance_m: float = 5.0
+    # 2D: the scan plane must cut the board over at least this share of its smaller side.
+    min_crossing: float = 0.4
 
 
 def default_camera() -> CameraModel:
@@ -71,6 +73,46 @@ def default_rig_2d(rng: np.random.Generator, sigma_range_m: float = 0.01) -> Rig
     return Rig(camera=default_camera(), beams=BEAM_MODELS["2d"](sigma_range_m), board=default_board(),
                T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar), lidar_height_m=0.6, min_distance_m=1.5,
                max_distance_m=4.0)
+
+
+RIGS_2D = ("default", "varied")
+
+
+def varied_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
+    """A second, independent 2D configuration, drawn per rig (to check that nothing is tuned to the default):
+    the scanner 0.3-1.5 m above the floor with its scan plane tilted up to 12 degrees about either horizontal
+    axis against the camera; the camera 0-30 cm from the scanner in any direction; a 1024x768 (f 940 px) or
+    wide 1280x800 (f 640 px) camera; boards 0.5-1.5 m wide with aspect ratios 0.6-1.6 and 6-15 cm squares;
+    boards 0.5-8 m away, cut anywhere from a quarter of their height; 0.25 or 0.5 degree steps; range noise
+    0.5-3 cm unless given."""
+    tilt = np.deg2rad(rng.uniform(-12.0, 12.0, 2))
+    R = R_CAMERA_LIDAR_NOMINAL @ R_from_rotvec([tilt[0], tilt[1], rng.normal(0.0, np.deg2rad(3.0))])
+    camera_in_lidar = np.array([rng.uniform(-0.1, 0.2), rng.uniform(-0.3, 0.3), rng.uniform(-0.25, 0.3)])
+    if rng.uniform() < 0.5:
+        camera = default_camera()
+    else:
+        K = np.array([[640.0, 0.0, 640.0], [0.0, 640.0, 400.0], [0.0, 0.0, 1.0]])
+        camera = CameraModel(K=K, dist=np.array([-0.25, 0.08, 0.0, 0.0, -0.01]), width=1280, height=800,
+                             source="simulator")
+    width = rng.uniform(0.5, 1.5)
+    height = float(np.clip(width * rng.uniform(0.6, 1.6), 0.4, 1.8))
+    square = rng.uniform(0.06, 0.15)
+    squares = (int(np.clip((width - 0.06) // square, 4, 12)), int(np.clip((height - 0.06) // square, 4, 12)))
+    square = min(square, (width - 0.05) / squares[0], (height - 0.05) / squares[1])
+    board = BoardModel(squares=squares, square_size=square, size=(width, height))
+    sigma = rng.uniform(0.005, 0.03) if sigma_range_m is None else sigma_range_m
+    beams = replace(BEAM_MODELS["2d"](sigma), azimuth_step_rad=np.deg2rad(rng.choice([0.25, 0.5])))
+    return Rig(camera=camera, beams=beams, board=board, T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar),
+               lidar_height_m=rng.uniform(0.3, 1.5), min_distance_m=0.5, max_distance_m=8.0, min_crossing=0.25)
+
+
+def rig_2d(config: str, rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
+    """The 2D rig of simulator configuration ``config`` (``RIGS_2D``)."""
+    if config == "default":
+        return default_rig_2d(rng, 0.01 if sigma_range_m is None else sigma_range_m)
+    if config == "varied":
+        return varied_rig_2d(rng, sigma_range_m)
+    raise ValueError(f"Expected config in {RIGS_2D}, got {config!r}")
 
 
 def _board_rotation(ray: np.ndarray, tilt: float, azimuth: float, spin: float) -> np.ndarray:
@@ -126,7 +168,7 @@ def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0) ->
     if rig.beams.is_2d:
         # The scan plane must cut well across the board (and the board stand on the ground).
         T_lb = T_inverse(rig.T_camera_lidar) @ T_camera_board
-        return (scan_crossing_length(rig.board, T_lb) >= 0.4 * min(rig.board.extent)
+        return (scan_crossing_length(rig.board, T_lb) >= rig.min_crossing * min(rig.board.extent)
                 and bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.1))
     el = np.arctan2(outline_l[:, 2], np.linalg.norm(outline_l[:, :2], axis=1))
     margin = np.deg2rad(0.5)

@@ -25,11 +25,15 @@ from geometry.lines import Line2D, intersect
 from geometry.planes import Plane
 from geometry.rotations import T_align
 
-# |det N| of the three unit normals below which the trihedron vertex is ill-defined (the normals nearly
-# coplanar: boards that all turn about one axis).
+# |det N| of the three unit normals below which the trihedron vertex is ill-conditioned (the normals nearly
+# coplanar: boards that all turn about one axis), and |sin| of the angle between two laser lines below which
+# their crossing point is. Such a triple is still solved and reported as weak: its solutions compete on their
+# laser cost over all boards, so they win only where they fit (the conditioning weighs, it does not veto).
 MIN_NORMAL_DET = 0.02
-# |sin| of the angle between two laser lines below which their crossing point is ill-defined.
 MIN_LINE_SIN = 0.05
+# Below these the triple carries no solution at all (the vertex or a crossing point is at infinity).
+DEGENERATE_NORMAL_DET = 1e-6
+DEGENERATE_LINE_SIN = 1e-4
 _SCAN_SAMPLES = 800
 
 
@@ -40,6 +44,8 @@ class TripleSolutions:
     triple: tuple[int, int, int]
     T_camera_lidar: tuple[np.ndarray, ...]
     degenerate: str | None = None
+    # Why the triple is ill-conditioned though solved (normals nearly coplanar, laser lines nearly parallel).
+    weak: str | None = None
     # Per solution: smallest over largest singular value of the edge system's Jacobian there. Near 0 the
     # solution sits on the P3P danger surface (two roots merging) and is ill-conditioned.
     conditioning: tuple[float, ...] = ()
@@ -171,8 +177,9 @@ def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int,
     N = np.array([p.normal for p in planes])
     d = np.array([p.distance for p in planes])
     det = abs(np.linalg.det(N))
-    if det < MIN_NORMAL_DET:
-        return f"board normals nearly coplanar (|det| {det:.3f})"
+    if det < DEGENERATE_NORMAL_DET:
+        return f"board normals coplanar (|det| {det:.1e})"
+    weak = [f"board normals nearly coplanar (|det| {det:.3f})"] if det < MIN_NORMAL_DET else []
     V = np.linalg.solve(N, d)
     pairs = ((0, 1), (0, 2), (1, 2))
     edges, q = [], []
@@ -181,8 +188,10 @@ def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int,
         edges.append(e / np.linalg.norm(e))
         u, v = lines[a].direction, lines[b].direction
         sin = abs(u[0] * v[1] - u[1] * v[0])
+        if sin < DEGENERATE_LINE_SIN:
+            return f"laser lines {triple[a]} and {triple[b]} parallel"
         if sin < MIN_LINE_SIN:
-            return f"laser lines {triple[a]} and {triple[b]} nearly parallel"
+            weak.append(f"laser lines {triple[a]} and {triple[b]} nearly parallel (angle {np.degrees(np.arcsin(sin)):.1f} deg)")
         q.append(np.append(intersect(lines[a], lines[b]), 0.0))
     q = np.array(q)
     # Points 0, 1, 2 sit on edges 01, 02, 12; distances between them pair the edges as (01,02), (01,12), (02,12).
@@ -193,7 +202,7 @@ def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int,
         return "the laser lines cross in (nearly) one point: the scan plane runs through the boards' common vertex"
     edges = np.array(edges)
     c = np.array([edges[0] @ edges[1], edges[0] @ edges[2], edges[1] @ edges[2]])
-    return N, d, V, edges, q, c, D2
+    return N, d, V, edges, q, c, D2, "; ".join(weak) or None
 
 
 def solve_triples(planes: list[Plane], lines: list[Line2D], triples: list[tuple[int, int, int]]
@@ -227,5 +236,5 @@ def _solve_trihedra(geo: list, triples: list[tuple[int, int, int]]) -> list[Trip
             if np.all(N @ Ts[j][:3, 3] - d < 0):
                 sols.append(Ts[j])
                 conds.append(float(cond[j]))
-        out[i] = TripleSolutions(triples[i], tuple(sols), None, tuple(conds))
+        out[i] = TripleSolutions(triples[i], tuple(sols), None, geo[i][7], tuple(conds))
     return out

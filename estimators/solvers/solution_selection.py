@@ -26,18 +26,20 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.optimize import least_squares, minimize
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 from . import chi_square as chi2
 
 from geometry.board import BoardModel
-from geometry.rotations import T_inverse
+from geometry.rotations import T_inverse, exp_batch
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement, lidar_whitener
-from .closed_form import MIN_NORMAL_SPREAD, describe_direction, normal_spread
+from .closed_form import describe_direction, normal_spread
 from .minimal_solver import solve_triples
-from .refinement import pooled_range_noise_m
+from .refinement import Refinement, RefinementOptions, pooled_range_noise_m
+from .refinement import refine as refine_graph
 
 THETA0_RAD = np.deg2rad(2.0)
 T0_M = 0.05
@@ -45,6 +47,20 @@ ALPHA = 0.01
 # Laser segment end points may leave the board's outline by this much (beyond 3 sigma of range noise).
 EXTENT_TOLERANCE_M = 0.03
 METHODS = ("minimal-lower-bound", "minimal-min-residual")
+# Other minima holding at least this share of the posterior mass are reported: the answer is ambiguous.
+MIN_MODE_MASS = 0.01
+# Board normals whose spread (``closed_form.normal_spread``) is below this lie in one plane: refused at once.
+# Between this and ``MIN_NORMAL_SPREAD`` the layout is weak but is tried: the factor graph's own
+# observability test decides.
+MIN_SCAN_NORMAL_SPREAD = 0.01
+# Cluster representatives held in reserve beyond the lower bound, and the board count up to which they are
+# always refined (with 3-4 boards a wrong root can fit as well as the true one, and the true one can score
+# worse before refinement).
+MAX_RESERVE = 16
+REFINE_ALL_UP_TO = 4
+# A refined fit whose cost exceeds the chi-square quantile at this tail probability is implausible: the
+# reserve and the multi-start search are then tried as well.
+IMPLAUSIBLE_P = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,6 +83,31 @@ class MinimalSelection:
     threshold: float
     degenerate_triples: tuple[str, ...]
     seconds: float
+    # Triples solved though ill-conditioned, and why (``minimal_solver.MIN_NORMAL_DET``, ``MIN_LINE_SIN``).
+    weak_triples: tuple[str, ...] = ()
+    # True when no triple gave a solution and the candidates come from the multi-start search instead.
+    fallback: bool = False
+    # The other cluster representatives (beyond the lower bound), best first: refined when few boards leave
+    # the minima close in cost, or when the kept candidates refine to an implausible fit.
+    reserve: tuple[Candidate, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Mode:
+    """One refined minimum of a 2D calibration and its evidence. ``cost``: the factor graph's chi-square;
+    ``outline_cost``: the least ``-2 log`` likelihood of the segment ends against the board outlines over the
+    minimum's basin (0 when the board size is unknown); ``mass``: its share of the posterior mass among the
+    minima found, from ``exp(-(cost + outline_cost) / 2)`` (the basins' widths are taken as equal)."""
+
+    T_camera_lidar: np.ndarray
+    cost: float
+    outline_cost: float
+    mass: float
+    refinement: Refinement
+
+    @property
+    def evidence(self) -> float:
+        return self.cost + self.outline_cost
 
 
 def _board_data(frames: list[FrameMeasurement], sigma_r: float):
@@ -79,9 +120,14 @@ def _board_data(frames: list[FrameMeasurement], sigma_r: float):
 def laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
     """``S(T)`` for each of (K, 4, 4) ``T_camera_lidar``: the boards' camera planes (from their PnP poses)
     mapped into the LiDAR frame, scored by every laser point's range residual."""
+    return np.sum(laser_residuals(Ts, frames, sigma_r) ** 2, axis=1)
+
+
+def laser_residuals(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
+    """The whitened residuals (K, M) behind ``laser_costs``: ``S(T)`` is the sum of their squares."""
     normals, dists, Ws = _board_data(frames, sigma_r)
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
-    S = np.zeros(len(Ts))
+    blocks = []
     for n, d, W, f in zip(normals, dists, Ws, frames):
         pi = np.empty((len(Ts), 4))
         pi[:, :3] = np.einsum("kji,j->ki", R, n)  # R^T n
@@ -89,8 +135,8 @@ def laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) 
         e = pi @ W.T
         if f.lidar.is_scan_line:
             e = e / np.hypot(pi[:, 0], pi[:, 1])[:, None]
-        S += np.sum(e * e, axis=1)
-    return S / sigma_r**2
+        blocks.append(e / sigma_r)
+    return np.concatenate(blocks, axis=1)
 
 
 def extent_violation(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel) -> np.ndarray:
@@ -109,6 +155,73 @@ def extent_violation(Ts: np.ndarray, frames: list[FrameMeasurement], board: Boar
         out = np.maximum.reduce([-pb[..., 0], pb[..., 0] - w, -pb[..., 1], pb[..., 1] - h, np.zeros(pb.shape[:2])])
         worst = np.maximum(worst, out.max(axis=1))
     return worst
+
+
+# A laser segment's end is the last return on the board: it lies inside the board's edge by up to one beam
+# spacing. Beyond that, edge effects (mixed returns, a rounded or dark margin) blur it by about this much.
+EDGE_BLUR_M = 0.01
+# Share of segment ends that are not at the board's edge (occluded by a hand or a stand, cut by a stray
+# return, outside the scanner's field of view): they cost at most -2 log(EDGE_OUTLIER) each.
+EDGE_OUTLIER = 0.05
+
+
+def _segment_ends(f: FrameMeasurement) -> tuple[np.ndarray, np.ndarray]:
+    """A scan segment's two end points (LiDAR frame) and the beam spacing (m) next to each."""
+    P = f.lidar.points
+    order = np.argsort(f.lidar.line.coordinates(P[:, :2]))
+    P = P[order]
+    gaps = np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1)
+    k = min(3, len(gaps))
+    spacing = np.array([np.median(gaps[:k]), np.median(gaps[-k:])]) if k else np.zeros(2)
+    return P[[0, -1]], spacing
+
+
+def outline_costs(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float) -> np.ndarray:
+    """Where each laser segment ends against where the scan plane leaves its board, for each of (K, 4, 4)
+    ``T_camera_lidar``: ``-2 log`` of the end points' likelihood, summed over boards.
+
+    Mapped into the board's frame, a segment lies on the chord that the scan plane cuts through the board's
+    outline; its end points are the last returns inside the outline, so each lies between 0 and one beam
+    spacing ``s`` inside its end of the chord (uniform, approximated by a Gaussian of mean ``s / 2`` and
+    variance ``s^2 / 12`` plus edge blur and range noise), or anywhere (share ``EDGE_OUTLIER``) when the
+    board's edge was hidden. Among the up to 8 solutions of 3 boards, which fit the planes alike, this
+    tells the true one: a wrong solution slides or turns the chord against the segment."""
+    w, h = board.extent
+    K = len(Ts)
+    total = np.zeros(K)
+    for f in frames:
+        ends, spacing = _segment_ends(f)
+        T_bc = T_inverse(f.camera.T_camera_board)
+        pc = np.einsum("kij,mj->kmi", Ts[:, :3, :3], ends) + Ts[:, None, :3, 3]
+        pb = (pc @ T_bc[:3, :3].T + T_bc[:3, 3])[..., :2]  # (K, 2, 2) end points on the board
+        d = pb[:, 1] - pb[:, 0]
+        length = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(length, 1e-12)[:, None]
+        # The chord: the segment's line clipped to [0, w] x [0, h] (slabs), as positions s from end 0.
+        lo, hi = np.full(K, -np.inf), np.full(K, np.inf)
+        for axis, size in ((0, w), (1, h)):
+            dk, ok = d[:, axis], np.abs(d[:, axis]) > 1e-12
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a = np.where(ok, (0.0 - pb[:, 0, axis]) / dk, -np.inf)
+                b = np.where(ok, (size - pb[:, 0, axis]) / dk, np.inf)
+            inside = (pb[:, 0, axis] >= 0) & (pb[:, 0, axis] <= size)
+            a = np.where(ok, a, np.where(inside, -np.inf, np.inf))
+            b = np.where(ok, b, np.where(inside, np.inf, -np.inf))
+            lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
+        missed = ~(hi > lo)
+        # Depth of each end inside its end of the chord (negative: the end lies beyond the outline).
+        depth = np.stack([0.0 - lo, hi - length], axis=1)
+        depth = np.where(missed[:, None] | ~np.isfinite(depth), -np.maximum(w, h), depth)
+        var = spacing**2 / 12 + EDGE_BLUR_M**2 + sigma_r**2
+        z2 = (depth - spacing / 2) ** 2 / var
+        chord = np.maximum(np.where(missed, 0.0, hi - lo), 1e-3)[:, None]
+        # -2 log of the mixture, relative to its value at the mode of the Gaussian part. A hidden edge leaves
+        # the end anywhere on the chord, never beyond the outline.
+        log_gauss = np.log(1 - EDGE_OUTLIER) - 0.5 * z2 - 0.5 * np.log(2 * np.pi * var)
+        log_uniform = np.where(depth >= -EXTENT_TOLERANCE_M, np.log(EDGE_OUTLIER / chord), -np.inf)
+        log_peak = np.logaddexp(np.log(1 - EDGE_OUTLIER) - 0.5 * np.log(2 * np.pi * var), np.log(EDGE_OUTLIER / chord))
+        total += np.sum(-2 * (np.logaddexp(log_gauss, log_uniform) - log_peak), axis=1)
+    return total
 
 
 def solution_distances(Ts: np.ndarray) -> np.ndarray:
@@ -135,39 +248,63 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
     sigma_r = max(pooled_range_noise_m(frames), 1e-5)
     planes = [f.camera.plane for f in frames]
     lines = [f.lidar.line for f in frames]
-    Ts, degenerate = [], []
+    spread, weak = normal_spread(np.array([p.normal for p in planes]))
+    if spread[-1] < MIN_SCAN_NORMAL_SPREAD:
+        axis, advice = describe_direction(weak)
+        raise DegenerateLayoutError(
+            f"the {len(frames)} board normals all lie in one plane (spread {spread[-1]:.3f} along {axis}): "
+            f"with one scan line per board, translation along {axis} and rotation about the two axes "
+            "perpendicular to it are unobservable", hint=advice)
+    Ts, degenerate, weak_triples = [], [], []
     triples = list(itertools.combinations(range(len(frames)), 3))
     for tri, res in zip(triples, solve_triples(planes, lines, triples)):
+        names = ', '.join(frames[i].name for i in tri)
         if res.degenerate:
-            degenerate.append(f"boards {', '.join(frames[i].name for i in tri)}: {res.degenerate}")
+            degenerate.append(f"boards {names}: {res.degenerate}")
+        elif res.weak:
+            weak_triples.append(f"boards {names}: {res.weak}")
         Ts.extend(res.T_camera_lidar)
     n_solutions = len(Ts)
-    if not Ts:
-        spread, weak = normal_spread(np.array([p.normal for p in planes]))
-        if spread[-1] < MIN_NORMAL_SPREAD:
-            axis, advice = describe_direction(weak)
+    fallback = not Ts
+    if fallback:
+        Ts = list(multistart_candidates(frames, sigma_r))
+        if not Ts:
             raise DegenerateLayoutError(
-                f"the {len(frames)} board normals all lie in one plane (spread {spread[-1]:.3f} along {axis}): "
-                f"with one scan line per board, translation along {axis} and rotation about the two axes "
-                "perpendicular to it are unobservable", hint=advice)
-        raise DegenerateLayoutError(
-            f"no minimal solution from {len(triples)} triple(s) of boards"
-            + (f" ({degenerate[0]})" if degenerate else ""),
-            hint="tilt the boards in different directions (about both horizontal and vertical axes)")
+                f"no minimal solution from {len(triples)} triple(s) of boards"
+                + (f" ({degenerate[0]})" if degenerate else "") + ", and no start of the multi-start search "
+                "puts the laser segments on their boards",
+                hint="tilt the boards in different directions (about both horizontal and vertical axes)")
     Ts = np.array(Ts)
     S = laser_costs(Ts, frames, sigma_r)
+    info = dict(degenerate_triples=tuple(degenerate), weak_triples=tuple(weak_triples), fallback=fallback)
     if method == "minimal-min-residual":
         k = int(np.argmin(S))
         return MinimalSelection(method, (Candidate(Ts[k], float(S[k]), 1),), len(triples), n_solutions,
-                                n_solutions, 1, 0.0, tuple(degenerate), time.perf_counter() - t0)
+                                n_solutions, 1, 0.0, seconds=time.perf_counter() - t0, **info)
     if use_extent is None:
         use_extent = board.size_known
     n_inside = n_solutions
+    outside_reps: list[Candidate] = []
     if use_extent:
         inside = extent_violation(Ts, frames, board) <= EXTENT_TOLERANCE_M + 3 * sigma_r
         n_inside = int(inside.sum())
         if n_inside:
+            # Roots outside the outlines go to the reserve: a noisy root of few boards can leave the outline
+            # although its refined minimum is the true one.
+            if n_inside < len(Ts):
+                outside_reps = _representatives(Ts[~inside], S[~inside])
             Ts, S = Ts[inside], S[inside]
+    reps = _representatives(Ts, S)
+    threshold = float(chi2.ppf(1 - ALPHA, 6) * max(1.0, len(frames) / 3.0))
+    kept = tuple(c for c in reps if c.cost - reps[0].cost <= threshold)
+    reserve = tuple((reps[len(kept):] + outside_reps)[:MAX_RESERVE])
+    return MinimalSelection(method, kept, len(triples), n_solutions, n_inside, len(reps) + len(outside_reps),
+                            threshold, seconds=time.perf_counter() - t0, reserve=reserve, **info)
+
+
+def _representatives(Ts: np.ndarray, S: np.ndarray) -> list[Candidate]:
+    """Solutions clustered (average linkage, ``solution_distances`` cut at 1), each cluster represented by its
+    least-cost member; best first."""
     if len(Ts) > 1:
         labels = fcluster(linkage(solution_distances(Ts), method="average"), t=1.0, criterion="distance")
     else:
@@ -178,7 +315,147 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
         best = idx[np.argmin(S[idx])]
         reps.append(Candidate(Ts[best], float(S[best]), len(idx)))
     reps.sort(key=lambda c: c.cost)
-    threshold = float(chi2.ppf(1 - ALPHA, 6) * max(1.0, len(frames) / 3.0))
-    kept = tuple(c for c in reps if c.cost - reps[0].cost <= threshold)
-    return MinimalSelection(method, kept, len(triples), n_solutions, n_inside, len(reps), threshold,
-                            tuple(degenerate), time.perf_counter() - t0)
+    return reps
+
+
+def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_starts: int = 4096,
+                          n_polish: int = 12) -> list[np.ndarray]:
+    """``T_camera_lidar`` candidates without the minimal solver, from the camera's geometry alone: for each of
+    ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
+    segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
+    board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost.
+    For layouts where every triple is degenerate although the normals span 3D."""
+    normals = np.array([f.camera.T_camera_board[:3, 2] for f in frames])
+    dists = np.array([n @ f.camera.T_camera_board[:3, 3] for n, f in zip(normals, frames)])
+    # Three points per segment: its ends and its centroid.
+    pts, owner = [], []
+    for i, f in enumerate(frames):
+        ends, _ = _segment_ends(f)
+        pts += [ends[0], ends[1], f.lidar.points.mean(0)]
+        owner += [i, i, i]
+    pts, owner = np.array(pts), np.array(owner)
+    A = normals[owner]  # rows n_i^T t = d_i - n_i^T R p
+    pinv = np.linalg.pinv(A)
+    Rs = Rotation.from_quat(_quasi_uniform_quaternions(n_starts)).as_matrix()
+    rhs = dists[owner][None, :] - np.einsum("mi,kij,mj->km", A, Rs, pts)
+    ts = rhs @ pinv.T
+    Ts = np.tile(np.eye(4), (n_starts, 1, 1))
+    Ts[:, :3, :3], Ts[:, :3, 3] = Rs, ts
+    front = np.all(ts @ normals.T - dists < 0, axis=1)
+    if not front.any():
+        return []
+    Ts = Ts[front]
+    S = laser_costs(Ts, frames, sigma_r)
+    out: list[np.ndarray] = []
+    for k in np.argsort(S)[:n_polish]:
+        T0 = Ts[k]
+
+        def moved(xi, T0=T0):
+            R, t = exp_batch(xi)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = T0[:3, :3] @ R[0], T0[:3, :3] @ t[0] + T0[:3, 3]
+            return T
+
+        res = least_squares(lambda xi: laser_residuals(moved(xi)[None], frames, sigma_r)[0], np.zeros(6),
+                            method="lm", max_nfev=600)
+        T = moved(res.x)
+        if np.all(np.isfinite(T)) and np.all(normals @ T[:3, 3] - dists < 0):
+            out.append(T)
+    return out
+
+
+def _quasi_uniform_quaternions(n: int) -> np.ndarray:
+    """``n`` unit quaternions spread evenly over SO(3) (Shoemake's map of a Halton-like low-discrepancy set)."""
+    k = np.arange(1, n + 1)
+    u = np.column_stack([(k * g) % 1.0 for g in (0.5 * (np.sqrt(5) - 1), np.sqrt(2) - 1, np.sqrt(3) - 1)])
+    a, b = np.sqrt(1 - u[:, 0]), np.sqrt(u[:, 0])
+    return np.column_stack([a * np.sin(2 * np.pi * u[:, 1]), a * np.cos(2 * np.pi * u[:, 1]),
+                            b * np.sin(2 * np.pi * u[:, 2]), b * np.cos(2 * np.pi * u[:, 2])])
+
+
+def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float,
+                     rng: np.random.Generator | None = None) -> float:
+    """The least of ``xi^T C^-1 xi + outline_costs(T Exp(xi))`` over the refined minimum's basin (``C`` its
+    covariance, the factor graph's cost near the minimum): the outline cue's evidence for this minimum.
+
+    At 3 boards the factor graph fits every minimum exactly and leaves the translation along the boards loose;
+    the segment ends pin it. Found by 512 draws from the basin and a Powell polish of the best."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    w, V = np.linalg.eigh(0.5 * (ref.covariance + ref.covariance.T))
+    L = V * np.sqrt(np.maximum(w, 0.0))
+    T = ref.T_camera_lidar
+
+    def cost(Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        R, t = exp_batch(Z @ L.T)
+        Ts = np.tile(np.eye(4), (len(Z), 1, 1))
+        Ts[:, :3, :3] = T[:3, :3] @ R
+        Ts[:, :3, 3] = t @ T[:3, :3].T + T[:3, 3]
+        return np.sum(Z**2, axis=1) + outline_costs(Ts, frames, board, sigma_r)
+
+    Z = np.vstack([np.zeros(6), rng.normal(0.0, 1.5, (512, 6))])
+    values = cost(Z)
+    best = float(values.min())
+    if best > 1e-6:
+        res = minimize(lambda z: float(cost(z)[0]), Z[int(np.argmin(values))], method="Powell",
+                       options={"xtol": 1e-3, "ftol": 1e-4, "maxfev": 3000})
+        best = min(best, float(res.fun))
+    return best
+
+
+def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, sel: MinimalSelection,
+                      options: RefinementOptions = RefinementOptions(),
+                      use_extent: bool | None = None) -> tuple[Refinement, tuple[Mode, ...]]:
+    """Refine every selected candidate; return the refinement of the most probable minimum and every distinct
+    minimum holding at least ``MIN_MODE_MASS`` of the posterior mass, most probable first.
+
+    A minimum's evidence is its refined cost plus, when the board size is known, the outline cue
+    (``outline_evidence``). More than one mode returned means the data do not decide between them."""
+    usable = [f for f in used if f.usable]
+    sigma_r = max(pooled_range_noise_m(usable), 1e-5)
+    refined: list = []
+    error: list = []
+
+    def refine_all(starts) -> None:
+        for T0 in starts:
+            try:
+                r = refine_graph(used, board, camera, T0, options)
+            except DegenerateLayoutError as exc:
+                error.append(exc)
+                continue
+            refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
+
+    def plausible() -> bool:
+        if not refined:
+            return False
+        cost, r = min(refined, key=lambda cr: cr[0])
+        return cost <= chi2.isf(IMPLAUSIBLE_P, max(sum(fr.plane_dof for fr in r.frames) - 6, 1))
+
+    refine_all([c.T_camera_lidar for c in sel.candidates])
+    if len(usable) <= REFINE_ALL_UP_TO or not plausible():
+        refine_all([c.T_camera_lidar for c in sel.reserve])
+    if not plausible() and not sel.fallback:
+        refine_all(multistart_candidates(usable, sigma_r))
+    if not refined:
+        if error:
+            raise error[0]
+        raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
+    # Distinct minima only: candidates that refine into one basin count once (its least cost).
+    refined.sort(key=lambda cr: cr[0])
+    distinct = []
+    for cost, r in refined:
+        if not distinct or np.all(solution_distances(np.array([*[d[1].T_camera_lidar for d in distinct],
+                                                                r.T_camera_lidar]))[-len(distinct):] > 1.0):
+            distinct.append((cost, r))
+    if use_extent is None:
+        use_extent = board.size_known
+    outline = [outline_evidence(r, usable, board, sigma_r) if use_extent and len(distinct) > 1 else 0.0
+               for _, r in distinct]
+    evidence = np.array([c for c, _ in distinct]) + np.array(outline)
+    mass = np.exp(-0.5 * (evidence - evidence.min()))
+    mass /= mass.sum()
+    order = np.argsort(-mass)
+    modes = tuple(Mode(distinct[k][1].T_camera_lidar, float(distinct[k][0]), float(outline[k]), float(mass[k]),
+                       distinct[k][1]) for k in order)
+    kept = (modes[0],) + tuple(m for m in modes[1:] if m.mass >= MIN_MODE_MASS)
+    return kept[0].refinement, kept
