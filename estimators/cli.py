@@ -69,6 +69,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
                    help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
                         "an offset on the board's black squares")
+    s.add_argument("--rig", default="default", choices=["default", "varied"],
+                   help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
+                        "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
+                        "another camera, 0.25 or 0.5 degree steps)")
     s.add_argument("--scene", default="default", choices=["default", "office", "hall"],
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
                         "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
@@ -439,11 +443,14 @@ def _simulate(args) -> int:
     if fmt not in allowed:
         raise SystemExit(f"lidarcam: error: --scan-format {fmt} is not a {args.lidar} scan format (use one of "
                          f"{', '.join(allowed)})")
+    if args.rig != "default" and not two_d:
+        raise SystemExit("lidarcam: error: --rig varied is a 2D rig (add --lidar 2d)")
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
                            fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene,
-                           range_bias=None if args.range_bias is None else tuple(args.range_bias))
+                           range_bias=None if args.range_bias is None else tuple(args.range_bias),
+                           rig_config=args.rig)
     print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene) to {out}")
     return 0
 

@@ -64,6 +64,7 @@ class StudySpec:
     trials: int
     seed: int
     mode: str
+    rig: str = "default"  # 2D: the simulator configuration (simulation.simulator.RIGS_2D)
 
     @property
     def cells(self) -> list[tuple[str, int, float, float]]:
@@ -128,12 +129,16 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     trials = _scalar(spec.get("trials", 10), int, "trials", source)
     if trials < 1:
         raise DatasetError(f"trials must be at least 1, got {trials}", path=source, hint="set trials: 10")
+    rig = str(spec.get("rig", "default"))
+    if rig not in ("default", "varied") or (rig == "varied" and lidar != "2d"):
+        raise DatasetError(f"rig must be default or varied (varied: 2d only), got {rig!r}", path=source,
+                           hint="set rig: default, or rig: varied with lidar: 2d")
     default_noise = 0.01 if lidar == "2d" else 0.02
     return StudySpec(name=str(spec.get("name", "study")), lidar=lidar, model="2d" if lidar == "2d" else model,
                      solvers=solvers, layouts=layouts, frames=frames,
                      range_noise_m=_list(spec.get("range_noise_m", [default_noise]), float, "range_noise_m", source),
                      corner_noise_px=_list(spec.get("corner_noise_px", [0.2]), float, "corner_noise_px", source),
-                     trials=trials, seed=_scalar(spec.get("seed", 0), int, "seed", source), mode=mode)
+                     trials=trials, seed=_scalar(spec.get("seed", 0), int, "seed", source), mode=mode, rig=rig)
 
 
 def trial_arguments(spec: StudySpec) -> list[tuple]:
@@ -153,14 +158,14 @@ def run_trial(args: tuple) -> list[dict]:
     from ..calibration import measure_frames, solve
     from ..io.dataset import load_dataset
     from ..lidar.board_segmentation import SegmentationParams
-    from ..simulation.simulator import default_rig, default_rig_2d, sample_layout, simulate_frames, write_dataset
+    from ..simulation.simulator import default_rig, rig_2d, sample_layout, simulate_frames, write_dataset
     from ..solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements
     from ..solvers.refinement import RefinementOptions, measurement_model_options, refine
     from ..solvers.solution_selection import solution_distances
 
     spec, cell, k, seed, family, n, noise, corner = args
     rng = np.random.default_rng(seed)
-    rig = default_rig_2d(rng, noise) if spec.lidar == "2d" else default_rig(rng, spec.model, noise)
+    rig = rig_2d(spec.rig, rng, noise) if spec.lidar == "2d" else default_rig(rng, spec.model, noise)
     poses = sample_layout(rig, family, n, rng)
     layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner, noise)
     bound = np.sqrt(np.diag(cramer_rao_bound(layout)))

@@ -382,7 +382,7 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
 def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
                      sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
                      include_camera: bool = True, overwrite: bool = False, scene: str = "default",
-                     range_bias: tuple[float, float, float] | None = None) -> Path:
+                     range_bias: tuple[float, float, float] | None = None, rig_config: str = "default") -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
 
     ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
@@ -390,7 +390,8 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     npy in 3D (default pcd), csv, npy or pcd in 2D (default csv). ``scene``: ``default``, ``office`` or
     ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
     ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
-    every return (the drawn values go to ground_truth.json).
+    every return (the drawn values go to ground_truth.json). ``rig_config`` (2D only): ``default`` or
+    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration).
     """
     check_output_folder(out, overwrite)  # before minutes of rendering
     if sigma_range_m is None:
@@ -398,10 +399,12 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     if scan_format is None:
         scan_format = "csv" if lidar == "2d" else "pcd"
     rng = np.random.default_rng(seed)
-    base = default_rig_2d(rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
+    if rig_config not in RIGS_2D or (rig_config != "default" and lidar != "2d"):
+        raise ValueError(f"Expected rig_config in {RIGS_2D} (varied only for 2d), got {rig_config!r}")
+    base = rig_2d(rig_config, rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
     rig = replace(base, pixel_noise=pixel_noise)
     bias = None
-    meta = {"seed": seed, "poses": n_poses, "scene": scene}
+    meta = {"seed": seed, "poses": n_poses, "scene": scene, "rig": rig_config}
     if range_bias is not None:
         # Drawn from a generator of its own, so that the rest of the simulation stays as without a bias.
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
