@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
+	$(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
 	$(PY) benchmarks/bench_study.py
 	$(PY) benchmarks/bench_bag.py
 	$(PY) benchmarks/bench_fuzz.py

@@ -440,6 +440,13 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
         if error:
             raise error[0]
         raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
+    # A refined minimum that puts the LiDAR behind a board (on the side the camera does not see) is not physical.
+    normals, dists, _ = _board_data(usable, sigma_r)
+    front = [cr for cr in refined if np.all(normals @ cr[1].T_camera_lidar[:3, 3] - dists < 0)]
+    if not front:
+        raise DegenerateLayoutError("every refined minimum puts the LiDAR behind one of the boards",
+                                    hint="check that the camera and the LiDAR see the same side of each board")
+    refined = front
     # Distinct minima only: candidates that refine into one basin count once (its least cost).
     refined.sort(key=lambda cr: cr[0])
     distinct = []
