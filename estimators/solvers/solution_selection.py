@@ -302,6 +302,16 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
                             threshold, seconds=time.perf_counter() - t0, reserve=reserve, **info)
 
 
+def _distinct(refined: list) -> list:
+    """``(cost, Refinement)`` pairs, least cost first, keeping one per basin (``solution_distances`` > 1)."""
+    out: list = []
+    for cost, r in sorted(refined, key=lambda cr: cr[0]):
+        if not out or np.all(solution_distances(np.array([*[d[1].T_camera_lidar for d in out],
+                                                           r.T_camera_lidar]))[-len(out):] > 1.0):
+            out.append((cost, r))
+    return out
+
+
 def _representatives(Ts: np.ndarray, S: np.ndarray) -> list[Candidate]:
     """Solutions clustered (average linkage, ``solution_distances`` cut at 1), each cluster represented by its
     least-cost member; best first."""
@@ -447,13 +457,18 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
         raise DegenerateLayoutError("every refined minimum puts the LiDAR behind one of the boards",
                                     hint="check that the camera and the LiDAR see the same side of each board")
     refined = front
-    # Distinct minima only: candidates that refine into one basin count once (its least cost).
-    refined.sort(key=lambda cr: cr[0])
-    distinct = []
-    for cost, r in refined:
-        if not distinct or np.all(solution_distances(np.array([*[d[1].T_camera_lidar for d in distinct],
-                                                                r.T_camera_lidar]))[-len(distinct):] > 1.0):
-            distinct.append((cost, r))
+    distinct = _distinct(refined)
+    # The factor graph estimates its noise terms (the per-board plane error) from where it starts, so a
+    # minimum reached from a far start is refined once more from itself: then every minimum's cost is taken
+    # under noise estimated at that minimum, and the answer does not depend on the start.
+    polished = []
+    for _, r in distinct:
+        try:
+            r = refine_graph(used, board, camera, r.T_camera_lidar, options)
+        except DegenerateLayoutError:
+            pass
+        polished.append((sum(fr.consistency_chi2 for fr in r.frames), r))
+    distinct = _distinct(polished)
     if use_extent is None:
         use_extent = board.size_known
     outline = [outline_evidence(r, usable, board, sigma_r) if use_extent and len(distinct) > 1 else 0.0
