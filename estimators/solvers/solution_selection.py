@@ -110,11 +110,29 @@ class Mode:
         return self.cost + self.outline_cost
 
 
-def _board_data(frames: list[FrameMeasurement], sigma_r: float):
+def _camera_planes(frames: list[FrameMeasurement]) -> tuple[np.ndarray, np.ndarray]:
+    """The boards' planes in the camera (``normal . x = distance``) from their PnP poses: (N, 3), (N,)."""
     normals = np.array([f.camera.T_camera_board[:3, 2] for f in frames])
-    dists = np.array([n @ f.camera.T_camera_board[:3, 3] for n, f in zip(normals, frames)])
-    Ws = [lidar_whitener(f.lidar, sigma_r) for f in frames]
-    return normals, dists, Ws
+    return normals, np.array([n @ f.camera.T_camera_board[:3, 3] for n, f in zip(normals, frames)])
+
+
+def _in_front(Ts: np.ndarray, normals: np.ndarray, dists: np.ndarray) -> np.ndarray:
+    """For (K, 4, 4) ``T_camera_lidar``: the LiDAR on the camera's side of every board (K,) bool."""
+    return np.all(Ts[:, :3, 3] @ normals.T - dists < 0, axis=1)
+
+
+def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``T Exp(xi)`` for each row of (K, 6) ``xi``: (K, 4, 4)."""
+    R, t = exp_batch(xi)
+    Ts = np.tile(np.eye(4), (len(R), 1, 1))
+    Ts[:, :3, :3] = T[:3, :3] @ R
+    Ts[:, :3, 3] = t @ T[:3, :3].T + T[:3, 3]
+    return Ts
+
+
+def _board_data(frames: list[FrameMeasurement], sigma_r: float):
+    normals, dists = _camera_planes(frames)
+    return normals, dists, [lidar_whitener(f.lidar, sigma_r) for f in frames]
 
 
 def laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
@@ -146,8 +164,7 @@ def extent_violation(Ts: np.ndarray, frames: list[FrameMeasurement], board: Boar
     worst = np.zeros(len(Ts))
     for f in frames:
         P = f.lidar.points
-        s = f.lidar.line.coordinates(P[:, :2]) if f.lidar.is_scan_line else None
-        ends = P[[int(np.argmin(s)), int(np.argmax(s))]] if s is not None else P[:2]
+        ends = _segment_ends(f)[0] if f.lidar.is_scan_line else P[:2]
         T_bc = T_inverse(f.camera.T_camera_board)
         # End points in the board frame for every candidate: T_bc (R p + t).
         pc = np.einsum("kij,mj->kmi", Ts[:, :3, :3], ends) + Ts[:, None, :3, 3]
@@ -335,8 +352,7 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
     board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost.
     For layouts where every triple is degenerate although the normals span 3D."""
-    normals = np.array([f.camera.T_camera_board[:3, 2] for f in frames])
-    dists = np.array([n @ f.camera.T_camera_board[:3, 3] for n, f in zip(normals, frames)])
+    normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
     pts, owner = [], []
     for i, f in enumerate(frames):
@@ -351,26 +367,18 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     ts = rhs @ pinv.T
     Ts = np.tile(np.eye(4), (n_starts, 1, 1))
     Ts[:, :3, :3], Ts[:, :3, 3] = Rs, ts
-    front = np.all(ts @ normals.T - dists < 0, axis=1)
+    front = _in_front(Ts, normals, dists)
     if not front.any():
         return []
     Ts = Ts[front]
     S = laser_costs(Ts, frames, sigma_r)
     out: list[np.ndarray] = []
     for k in np.argsort(S)[:n_polish]:
-        T0 = Ts[k]
-
-        def moved(xi, T0=T0):
-            R, t = exp_batch(xi)
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = T0[:3, :3] @ R[0], T0[:3, :3] @ t[0] + T0[:3, 3]
-            return T
-
-        res = least_squares(lambda xi: laser_residuals(moved(xi)[None], frames, sigma_r)[0], np.zeros(6),
-                            method="lm", max_nfev=600)
-        T = moved(res.x)
-        if np.all(np.isfinite(T)) and np.all(normals @ T[:3, 3] - dists < 0):
-            out.append(T)
+        res = least_squares(lambda xi, T0=Ts[k]: laser_residuals(_retract(T0, xi[None]), frames, sigma_r)[0],
+                            np.zeros(6), method="lm", max_nfev=600)
+        T = _retract(Ts[k], res.x[None])
+        if np.all(np.isfinite(T)) and _in_front(T, normals, dists)[0]:
+            out.append(T[0])
     return out
 
 
@@ -397,11 +405,7 @@ def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: Boa
 
     def cost(Z: np.ndarray) -> np.ndarray:
         Z = np.atleast_2d(Z)
-        R, t = exp_batch(Z @ L.T)
-        Ts = np.tile(np.eye(4), (len(Z), 1, 1))
-        Ts[:, :3, :3] = T[:3, :3] @ R
-        Ts[:, :3, 3] = t @ T[:3, :3].T + T[:3, 3]
-        return np.sum(Z**2, axis=1) + outline_costs(Ts, frames, board, sigma_r)
+        return np.sum(Z**2, axis=1) + outline_costs(_retract(T, Z @ L.T), frames, board, sigma_r)
 
     Z = np.vstack([np.zeros(6), rng.normal(0.0, 1.5, (512, 6))])
     values = cost(Z)
@@ -451,8 +455,8 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
             raise error[0]
         raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
     # A refined minimum that puts the LiDAR behind a board (on the side the camera does not see) is not physical.
-    normals, dists, _ = _board_data(usable, sigma_r)
-    front = [cr for cr in refined if np.all(normals @ cr[1].T_camera_lidar[:3, 3] - dists < 0)]
+    normals, dists = _camera_planes(usable)
+    front = [cr for cr in refined if _in_front(cr[1].T_camera_lidar[None], normals, dists)[0]]
     if not front:
         raise DegenerateLayoutError("every refined minimum puts the LiDAR behind one of the boards",
                                     hint="check that the camera and the LiDAR see the same side of each board")
