@@ -113,6 +113,12 @@ def _peak(tally: Tally) -> Tally:
     return tally
 
 
+def _print_row(name: str, t: Tally) -> None:
+    """One reader's row, printed as soon as it is done (the whole run takes a while)."""
+    print(f"{name:26s}{t.cases:7d}{t.read:7d}{t.refused:8d}{len(t.bugs):6d}{t.slowest:10.2f}"
+          f"{t.peak_mb:15.0f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=10_000, help="cases per reader (bags: a tenth)")
@@ -120,7 +126,6 @@ def main() -> None:
     warnings.simplefilter("ignore")
     print(f"{'reader':26s}{'cases':>7s}{'read':>7s}{'refused':>8s}{'bugs':>6s}{'slowest s':>10s}"
           f"{'peak MB so far':>15s}")
-    total_bugs = 0
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         rows = []
@@ -129,12 +134,11 @@ def main() -> None:
             folder.mkdir()
             n = max(1, args.cases // 10) if target.name.endswith("bag") else args.cases
             rows.append((target.name, _peak(fuzz_file(target, n, folder))))
+            _print_row(*rows[-1])
         for name, strategy, decode in MESSAGE_TARGETS:
             rows.append((name, _peak(fuzz_message(strategy, decode, args.cases))))
-        for name, t in rows:
-            total_bugs += len(t.bugs)
-            print(f"{name:26s}{t.cases:7d}{t.read:7d}{t.refused:8d}{len(t.bugs):6d}{t.slowest:10.2f}"
-                  f"{t.peak_mb:15.0f}")
+            _print_row(*rows[-1])
+        total_bugs = sum(len(t.bugs) for _, t in rows)
         for name, t in rows:
             for kind, text, case in t.bugs[:1]:
                 print(f"  {name}: {kind}: {text}\n    input: {case!r}"[:600])

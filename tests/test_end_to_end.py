@@ -9,6 +9,7 @@ import subprocess
 import sys
 from html.parser import HTMLParser
 
+import cv2
 import numpy as np
 import pytest
 
@@ -73,6 +74,15 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in embedded)
     HTMLParser().feed(page)  # well-formed enough to parse
     assert all((out / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)
+    # A projection: the grey image at the report's width under a caption strip, with the LiDAR's points
+    # painted in colour (a grey image has equal channels everywhere else).
+    cam = data["intrinsics"]
+    proj = cv2.imread(str(out / next(n for n in pngs if n.startswith("projection_"))), cv2.IMREAD_COLOR)
+    scale = min(1.0, 1200 / cam["width"])
+    assert proj.shape[1] == round(cam["width"] * scale) and proj.shape[0] == 48 + round(cam["height"] * scale)
+    body = proj[48:].astype(int)
+    coloured = (np.abs(body[..., 0] - body[..., 1]) + np.abs(body[..., 1] - body[..., 2])) > 30
+    assert coloured.mean() > 0.01
     assert "Intervals" in page and "Warnings" in page and "Board outline offsets" in page
     frame = data["frames"][0]
     assert {"name", "used", "reason", "board_points", "plane_rms_m", "corner_rms_px"} <= frame.keys()
@@ -137,7 +147,6 @@ def test_too_few_frames_and_corrupt_scan_leave_no_output(sim_hdl64e, tmp_path):
 def test_frame_without_board_is_skipped_with_reason(sim_hdl64e, tmp_path):
     data = tmp_path / "blank"
     shutil.copytree(sim_hdl64e, data)
-    import cv2
     cv2.imwrite(str(data / "0003.png"), np.full((768, 1024), 128, np.uint8))
     result = calibrate(load_dataset(data), rng=np.random.default_rng(0))
     skipped = [f for f in result.frames if not f.usable]
@@ -169,7 +178,6 @@ def test_every_scan_format_calibrates(tmp_path, fmt):
 
 
 def test_3d_scan_in_a_2d_dataset_is_refused_clearly(tmp_path):
-    import cv2
 
     (tmp_path / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n"
                                            "camera: {width: 64, height: 48, K: [[50, 0, 32], [0, 50, 24], [0, 0, 1]]}\n")

@@ -19,7 +19,7 @@ from estimators.calibration import calibrate
 from estimators.cli import main
 from estimators.errors import LidarcamError
 from estimators.io.dataset import load_dataset
-from estimators.io.image_io import read_gray
+from estimators.io.image_io import read_gray, to_gray8
 from estimators.io.input_files import load_yaml
 from estimators.io.pointcloud_io import read_sweep
 
@@ -131,6 +131,17 @@ def test_png_declaring_gigapixels_is_refused_before_decoding(tmp_path):
     with pytest.raises(LidarcamError, match="declares|more than") as info:
         read_gray(path)
     assert str(path) in info.value.message
+
+
+def test_16_bit_images_are_scaled_to_8_bits_by_their_range_without_a_wide_copy():
+    # min -> 0, max -> 255, linear between (OpenCV rounds); the long fuzz run's 1 GB bound depends on the
+    # conversion not making a float64 copy of a 64-megapixel 16-bit image (512 MB).
+    img = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000 + 500)
+    expected = np.rint(255 * (img.astype(float) - 500) / 11000).astype(np.uint8)
+    out = to_gray8(img)
+    assert out.dtype == np.uint8 and np.array_equal(out, expected)
+    colour = np.stack([img, img, img], axis=2)
+    assert np.array_equal(to_gray8(colour), expected)
 
 
 def test_ascii_pcd_claiming_more_points_than_it_holds_is_an_error(tmp_path):

@@ -39,7 +39,7 @@ def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] =
     try:
         with Image.open(io.BytesIO(data)) as im:
             width, height, fmt = int(im.size[0]), int(im.size[1]), im.format
-            bands = len(im.getbands())
+            bands = 3 if im.mode in ("P", "PA") else len(im.getbands())  # a palette decodes to colour
             sample_bytes = 2 if im.mode.startswith("I;16") or im.mode in ("I", "F") or "16" in im.mode else 1
     except UnidentifiedImageError:
         raise error("not an image file (no known image header)", path=source,
@@ -75,5 +75,8 @@ def to_gray8(img: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
-        img = cv2.normalize(img.astype(np.float64), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        # straight to 8 bits: a float64 copy of a 64-megapixel 16-bit image would take 512 MB
+        if img.dtype not in (np.uint16, np.int16, np.float32):
+            img = img.astype(np.float32)
+        img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
     return img
