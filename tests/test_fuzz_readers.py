@@ -7,10 +7,12 @@ its reason while the rest calibrate, and every CLI command refusing a malformed 
 from __future__ import annotations
 
 import os
+import resource
 import struct
 import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -131,6 +133,25 @@ def test_png_declaring_gigapixels_is_refused_before_decoding(tmp_path):
     with pytest.raises(LidarcamError, match="declares|more than") as info:
         read_gray(path)
     assert str(path) in info.value.message
+
+
+def test_png_chunk_claiming_gigabytes_is_refused_before_decoding(tmp_path):
+    # The long fuzz run found it: OpenCV's PNG reader allocates a chunk's declared length before reading
+    # it, so one damaged length word of an 800-byte file cost 4 GB.
+    ok, buf = cv2.imencode(".png", np.arange(24 * 32, dtype=np.uint8).reshape(24, 32))
+    honest = tmp_path / "honest.png"
+    honest.write_bytes(buf.tobytes())
+    assert read_gray(honest).shape == (24, 32)
+    data = bytearray(buf.tobytes())
+    idat = data.index(b"IDAT") - 4
+    data[idat:idat + 4] = (4_000_000_000).to_bytes(4, "big")
+    path = tmp_path / "lying_chunk.png"
+    path.write_bytes(bytes(data))
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(LidarcamError, match="chunk IDAT declares 4000000000 bytes") as info:
+        read_gray(path)
+    assert str(path) in info.value.message
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before < 100_000  # kB: nothing allocated
 
 
 def test_16_bit_images_are_scaled_to_8_bits_by_their_range_without_a_wide_copy():

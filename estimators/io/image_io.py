@@ -57,6 +57,8 @@ def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] =
         raise error(f"{fmt} header declares {width}x{height} pixels of {bands} {8 * sample_bytes}-bit channels "
                     f"(more than {MAX_DECODED_BYTES >> 20} MB decoded)", path=source,
                     hint="the file is corrupt or not a camera frame; save it as 8-bit")
+    if fmt == "PNG":
+        _check_png_chunks(data, source, error)
     try:
         img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
@@ -68,6 +70,23 @@ def decode_image_bytes(data: bytes, source: object, error: type[LidarcamError] =
         raise error(f"{fmt} header declares {width}x{height} but {img.shape[1]}x{img.shape[0]} decoded",
                     path=source, hint="the file is corrupt; re-export it")
     return img
+
+
+def _check_png_chunks(data: bytes, source: object, error: type[LidarcamError]) -> None:
+    """Every PNG chunk's declared length fits in the file. OpenCV's PNG reader allocates a chunk's declared
+    length before reading it: a damaged length word (an IDAT of "4 GB" in an 800-byte file) cost the
+    long fuzz run 4 GB of memory for one image."""
+    pos = 8  # the signature
+    while pos + 8 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        if length > len(data) - pos - 12:
+            name = kind.decode("latin-1") if kind.isalpha() else kind.hex()
+            raise error(f"PNG chunk {name} declares {length} bytes but the file has {len(data) - pos - 12} left "
+                        "(truncated or corrupt)", path=source, hint="re-export it as PNG or JPEG")
+        if kind == b"IEND":
+            return
+        pos += 12 + length
 
 
 def to_gray8(img: np.ndarray) -> np.ndarray:
