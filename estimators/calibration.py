@@ -18,6 +18,7 @@ from geometry.rotations import quat_xyzw_from_R
 
 from . import __version__
 from .camera.board_pose import estimate_board_pose
+from .camera.charuco import MIN_CHARUCO_CORNERS
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
 from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, ImageReadError, MeasurementError,
@@ -367,7 +368,7 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
     camera = dataset.camera
     sizes = {s for s, _ in detections if s is not None}
     if camera is None:
-        found = [d.corners_px for _, d in detections if isinstance(d, CornerDetection)]
+        found = [d for _, d in detections if isinstance(d, CornerDetection)]
         if len(sizes) != 1:
             raise DatasetError(f"images have different sizes {sorted(sizes)}", path=dataset.root,
                                hint="use one camera resolution for all frames")
@@ -375,7 +376,8 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
             raise DegenerateLayoutError(f"intrinsics cannot be calibrated from {len(found)} board view(s)",
                                         path=dataset.yaml_path, hint="add camera: to dataset.yaml or more frames")
         t0 = time.perf_counter()
-        camera, rms = calibrate_intrinsics(found, dataset.board, *sizes.pop())
+        camera, rms = calibrate_intrinsics([d.corners_px for d in found], dataset.board, *sizes.pop(),
+                                           corner_ids=[d.corner_ids for d in found])
         _add_time(timings, "intrinsics", time.perf_counter() - t0)
         warnings.append(f"no camera in dataset.yaml: intrinsics {camera.source}")
     # An image of another size than the camera entry's is refused for its frame: the intrinsics are for
@@ -387,7 +389,8 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
 
     def camera_side(det) -> tuple:
         if det is None:
-            return None, "checkerboard not found in the image"
+            return None, (f"fewer than {MIN_CHARUCO_CORNERS} ChArUco corners spanning the board seen in the image"
+                          if dataset.board.is_charuco else "checkerboard not found in the image")
         if isinstance(det, str):
             return None, det
         try:

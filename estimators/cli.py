@@ -73,6 +73,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
                         "another camera, 0.25 or 0.5 degree steps)")
+    s.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"],
+                   help="the board's pattern: charuco prints the same board with DICT_5X5_100 markers in its "
+                        "white squares (then some poses are cut by the image's edge)")
+    s.add_argument("--outside-image-share", type=float, default=None, metavar="SHARE",
+                   help="charuco only: the share of poses cut by the image's edge (default 0.3)")
     s.add_argument("--scene", default="default", choices=["default", "office", "hall"],
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
                         "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
@@ -445,13 +450,17 @@ def _simulate(args) -> int:
                          f"{', '.join(allowed)})")
     if args.rig != "default" and not two_d:
         raise SystemExit("lidarcam: error: --rig varied is a 2D rig (add --lidar 2d)")
+    if args.outside_image_share is not None and (args.pattern != "charuco" or not 0 <= args.outside_image_share <= 1):
+        raise SystemExit("lidarcam: error: --outside-image-share is a share (0 to 1) of the poses of a charuco board "
+                         "(a checkerboard must be seen whole)")
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
                            fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene,
                            range_bias=None if args.range_bias is None else tuple(args.range_bias),
-                           rig_config=args.rig)
-    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene) to {out}")
+                           rig_config=args.rig, pattern=args.pattern, outside_image_share=args.outside_image_share)
+    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene, {args.pattern}) "
+          f"to {out}")
     return 0
 
 

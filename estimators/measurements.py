@@ -31,6 +31,14 @@ class CameraBoardObservation:
     plane_covariance: np.ndarray
     reprojection_rms_px: float
     detector: str
+    # Which of the board's inner corners ``corners_px`` are (ChArUco ids, ascending), None: all of them in
+    # ``BoardModel.inner_corners()`` order.
+    corner_ids: np.ndarray | None = None
+
+    def corners_board(self, board) -> np.ndarray:
+        """The seen corners in the board frame, (M, 3), in the order of ``corners_px``."""
+        corners = board.inner_corners()
+        return corners if self.corner_ids is None else corners[self.corner_ids]
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,8 +1,11 @@
-"""The planar checkerboard target.
+"""The planar target: a checkerboard, or a ChArUco board (a checkerboard with ArUco markers in its white
+squares, so that every inner corner carries an id and a partial view still gives the board's pose).
 
 Board frame: origin at one corner of the physical board, x along its width (``squares[0]`` squares),
 y along its height (``squares[1]`` squares), z = x cross y, the board's normal, pointing away from
-the printed side (into the board, away from a camera that sees the pattern).
+the printed side (into the board, away from a camera that sees the pattern). For a ChArUco board this is
+OpenCV's board frame (origin at the pattern's top-left corner as printed, y down the printed page) shifted
+by the pattern offset; inner corner ``k`` is ChArUco corner id ``k``.
 """
 from __future__ import annotations
 
@@ -13,6 +16,19 @@ import numpy as np
 
 # A checkerboard has at most this many squares along a side (far more than any printable board).
 MAX_SQUARES = 100
+CHECKERBOARD, CHARUCO = "checkerboard", "charuco"
+PATTERNS = (CHECKERBOARD, CHARUCO)
+
+
+def aruco_dictionary_size(name: object) -> int:
+    """Markers in OpenCV's predefined ArUco dictionary ``name`` (e.g. ``DICT_5X5_100``); ValueError naming
+    the known ones when there is no such dictionary."""
+    import cv2
+
+    known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_") and isinstance(getattr(cv2.aruco, k), int))
+    if not isinstance(name, str) or name not in known:
+        raise ValueError(f"Expected dictionary as one of OpenCV's ({', '.join(known)}), got {name!r}")
+    return int(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0])
 
 
 @dataclass(frozen=True)
@@ -28,6 +44,12 @@ class BoardModel:
     square_size: float
     size: tuple[float, float] | None = None
     pattern_offset: tuple[float, float] | None = None
+    # ChArUco only: the pattern, the markers' side (m), OpenCV's dictionary name, and OpenCV's legacy layout
+    # (before 4.6, boards with an even number of rows started with a white square)
+    pattern: str = CHECKERBOARD
+    marker_size: float | None = None
+    dictionary: str | None = None
+    legacy_pattern: bool = False
 
     def __post_init__(self):
         nx, ny = (int(s) for s in self.squares)
@@ -51,6 +73,37 @@ class BoardModel:
             if len(offset) != 2 or not np.all(np.isfinite(offset)):
                 raise ValueError(f"Expected pattern_offset as two finite numbers (m), got {self.pattern_offset}")
             object.__setattr__(self, "pattern_offset", offset)
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"Expected pattern in {PATTERNS}, got {self.pattern!r}")
+        if self.pattern == CHARUCO:
+            if self.marker_size is None or self.dictionary is None:
+                raise ValueError("Expected marker_size (m) and dictionary for a charuco board")
+            m = float(self.marker_size)
+            if not (np.isfinite(m) and 0 < m < self.square_size):
+                raise ValueError(f"Expected marker_size between 0 and the square size {self.square_size} m, "
+                                 f"got {self.marker_size}")
+            object.__setattr__(self, "marker_size", m)
+            object.__setattr__(self, "legacy_pattern", bool(self.legacy_pattern))
+            size = aruco_dictionary_size(self.dictionary)
+            if size < self.n_markers:
+                raise ValueError(f"Expected a dictionary of at least {self.n_markers} markers for "
+                                 f"{nx} x {ny} squares, got {self.dictionary} ({size} markers)")
+
+    @property
+    def is_charuco(self) -> bool:
+        return self.pattern == CHARUCO
+
+    @property
+    def n_markers(self) -> int:
+        """ChArUco markers on the board: one in each white square."""
+        nx, ny = self.squares
+        return nx * ny // 2 if self.is_charuco else 0
+
+    @property
+    def first_square_black(self) -> bool:
+        """Whether the pattern's square (0, 0) is black (OpenCV's legacy ChArUco layout flips it for an
+        even number of rows)."""
+        return not (self.is_charuco and self.legacy_pattern and self.squares[1] % 2 == 0)
 
     @property
     def inner_corners_shape(self) -> tuple[int, int]:
@@ -98,7 +151,8 @@ class BoardModel:
         return np.array([w / 2.0, h / 2.0, 0.0])
 
     def reflectance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Reflectance in [0, 1] at board coordinates: black squares 0, white paper and margins 1.
+        """Reflectance in [0, 1] at board coordinates: black squares 0, white paper and margins 1 (a
+        ChArUco board's markers are not drawn here: see ``simulation.rendering``'s texture).
 
         Points outside the board get NaN.
         """
@@ -111,7 +165,7 @@ class BoardModel:
         py = (y - self.offset[1]) / self.square_size
         nx, ny = self.squares
         inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
-        black = inside & ((np.floor(px) + np.floor(py)) % 2 == 0)
+        black = inside & ((np.floor(px) + np.floor(py)) % 2 == (0 if self.first_square_black else 1))
         out[black] = 0.0
         out[outside] = np.nan
         return out

@@ -154,18 +154,30 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
     else:
         board_px, lidar_px, offset = board_outline_offset(result, frame, board)
         outlines = ((board_px, _LIME, "board (camera)"), (lidar_px, _RED, "board (LiDAR)"))
+    # The board's inner corners: the ones the detector saw as small circles, the others (a ChArUco board
+    # cut by the image's edge or hidden) in grey where the board pose puts them inside the image.
+    all_uv = cam.project(transform_points(frame.camera.T_camera_board, board.inner_corners()))
+    seen = np.zeros(len(all_uv), bool)
+    seen[frame.camera.corner_ids if frame.camera.corner_ids is not None else slice(None)] = True
+    for k, (u, v) in enumerate(all_uv):
+        if np.isfinite(u) and np.isfinite(v) and 0 <= u < cam.width and 0 <= v < cam.height:
+            centre = (int(round((u + 0.5) * scale * 16 - 8)), int(round((v + 0.5) * scale * 16 - 8)))
+            cv2.circle(bgr, centre, 3 * 16, _LIME if seen[k] else _GREY, 1, cv2.LINE_AA, shift=4)
     for poly, colour, _ in outlines:
         pts = np.rint((np.asarray(poly) + 0.5) * scale * 16 - 8).astype(np.int32)  # 4 fractional bits
         if np.all(np.abs(pts) < 2**28):
             cv2.polylines(bgr, [pts.reshape(-1, 1, 2)], True, colour, 2, cv2.LINE_AA, shift=4)
     title = (f"frame {frame.name}: laser line on the board" if frame.lidar.is_scan_line else
              f"frame {frame.name}: LiDAR board offset du {offset[0]:+.1f} px, dv {offset[1]:+.1f} px")
-    caption = _caption(w, title, [(c, label) for _, c, label in outlines], lo_hi, cmap)
+    legend = [(c, label) for _, c, label in outlines]
+    if not seen.all():
+        legend.append((_GREY, f"corners not seen ({int((~seen).sum())})"))
+    caption = _caption(w, title, legend, lo_hi, cmap)
     ok, png = cv2.imencode(".png", np.vstack([caption, bgr]))
     return png.tobytes(), offset
 
 
-_LIME, _RED = (0, 255, 0), (0, 0, 255)  # BGR
+_LIME, _RED, _GREY = (0, 255, 0), (0, 0, 255), (150, 150, 150)  # BGR
 
 
 def _caption(width: int, title: str, legend: list[tuple[tuple[int, int, int], str]], depth_range, cmap) -> np.ndarray:

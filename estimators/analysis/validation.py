@@ -63,7 +63,7 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
     out = []
     for f, fw in zip(usable, fws):
         b = f.camera.T_camera_board
-        _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
+        _, J = corner_residuals(b, f.camera.corners_board(board), f.camera.corners_px, camera)
         cov_b = corner_noise_px**2 * np.linalg.pinv(J.T @ J)
         W = fw.W
         pi, H_x, H_b = lidar_plane(T_camera_lidar, b)

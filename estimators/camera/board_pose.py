@@ -16,30 +16,31 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, transf
 
 from ..errors import MeasurementError
 from ..measurements import CameraBoardObservation
+from .charuco import spans_plane
 from .chessboard import CornerDetection
 
 
-def reprojection_residuals(T_camera_board: np.ndarray, board: BoardModel, camera: CameraModel,
+def reprojection_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, camera: CameraModel,
                            corners_px: np.ndarray) -> np.ndarray:
     """Projected minus detected corners, flattened (2M,) pixels."""
-    uv = camera.project(transform_points(T_camera_board, board.inner_corners()))
+    uv = camera.project(transform_points(T_camera_board, corners_board))
     return (uv - corners_px).ravel()
 
 
-def _pose_jacobian(T: np.ndarray, board: BoardModel, camera: CameraModel, corners: np.ndarray,
+def _pose_jacobian(T: np.ndarray, corners_board: np.ndarray, camera: CameraModel, corners: np.ndarray,
                    eps: float = 1e-6) -> np.ndarray:
     J = np.empty((corners.size, 6))
     for k in range(6):
         d = np.zeros(6)
         d[k] = eps
-        J[:, k] = (reprojection_residuals(T_retract(T, d), board, camera, corners)
-                   - reprojection_residuals(T_retract(T, -d), board, camera, corners)) / (2 * eps)
+        J[:, k] = (reprojection_residuals(T_retract(T, d), corners_board, camera, corners)
+                   - reprojection_residuals(T_retract(T, -d), corners_board, camera, corners)) / (2 * eps)
     return J
 
 
-def _ippe_start(board: BoardModel, camera: CameraModel, corners: np.ndarray) -> np.ndarray:
+def _ippe_start(corners_board: np.ndarray, camera: CameraModel, corners: np.ndarray) -> np.ndarray:
     xy = camera.normalized_from_pixels(corners)
-    ok, rvec, tvec = cv2.solvePnP(board.inner_corners(), xy.reshape(-1, 1, 2), np.eye(3), None,
+    ok, rvec, tvec = cv2.solvePnP(corners_board, xy.reshape(-1, 1, 2), np.eye(3), None,
                                   flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         raise MeasurementError("PnP failed on the detected corners")
@@ -58,27 +59,50 @@ def plane_jacobian(T_camera_board: np.ndarray) -> np.ndarray:
     return J
 
 
-def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: CameraModel,
-                        iterations: int = 10) -> CameraBoardObservation:
-    corners = np.asarray(detection.corners_px, dtype=float)
-    T = _ippe_start(board, camera, corners)
-    if T[:3, 2] @ T[:3, 3] < 0:
-        # The detector ordered the grid mirror-wise (board z towards the camera): reverse its rows so
-        # that the board frame is right-handed with z pointing away from the camera, and solve again.
-        cols, rows = board.inner_corners_shape
-        corners = corners.reshape(rows, cols, 2)[::-1].reshape(-1, 2)
-        T = _ippe_start(board, camera, corners)
+def _gauss_newton(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.ndarray, iterations: int
+                  ) -> np.ndarray:
     for _ in range(iterations):
-        r = reprojection_residuals(T, board, camera, corners)
-        J = _pose_jacobian(T, board, camera, corners)
+        r = reprojection_residuals(T, X, camera, corners)
+        J = _pose_jacobian(T, X, camera, corners)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
         T = T_retract(T, step)
         if np.linalg.norm(step) < 1e-10:
             break
-    r = reprojection_residuals(T, board, camera, corners)
+    return T
+
+
+def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: CameraModel,
+                        iterations: int = 10) -> CameraBoardObservation:
+    corners = np.asarray(detection.corners_px, dtype=float)
+    ids = detection.corner_ids
+    X = board.inner_corners() if ids is None else board.inner_corners()[ids]
+    T = _ippe_start(X, camera, corners)
+    if T[:3, 2] @ T[:3, 3] < 0:
+        if ids is not None:  # ids fix the board frame: seen from behind is a wrong detection
+            raise MeasurementError("the ChArUco corners put the board's printed side away from the camera")
+        # The detector ordered the grid mirror-wise (board z towards the camera): reverse its rows so
+        # that the board frame is right-handed with z pointing away from the camera, and solve again.
+        cols, rows = board.inner_corners_shape
+        corners = corners.reshape(rows, cols, 2)[::-1].reshape(-1, 2)
+        T = _ippe_start(X, camera, corners)
+    T = _gauss_newton(T, X, camera, corners, iterations)
+    method = detection.method
+    if ids is not None:
+        # A ChArUco corner is interpolated from the markers near it, so a wrongly decoded or half-hidden
+        # marker can put a corner pixels away from the grid the others agree on: such corners are dropped
+        # (beyond 4x the median residual and 1 px) while enough remain to span the board.
+        for _ in range(3):
+            norms = np.linalg.norm(reprojection_residuals(T, X, camera, corners).reshape(-1, 2), axis=1)
+            keep = norms <= max(1.0, 4.0 * float(np.median(norms)))
+            if keep.all() or not spans_plane(board, ids[keep]):
+                break
+            ids, X, corners = ids[keep], X[keep], corners[keep]
+            method += f", {int((~keep).sum())} outlying corner(s) dropped"
+            T = _gauss_newton(T, X, camera, corners, iterations)
+    r = reprojection_residuals(T, X, camera, corners)
     if not np.all(np.isfinite(r)):
         raise MeasurementError("board pose puts corners behind the camera")
-    J = _pose_jacobian(T, board, camera, corners)
+    J = _pose_jacobian(T, X, camera, corners)
     dof = max(r.size - 6, 1)
     var_px = float(r @ r) / dof
     pose_cov = var_px * np.linalg.inv(J.T @ J)
@@ -88,4 +112,4 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     return CameraBoardObservation(
         corners_px=corners, T_camera_board=T, plane=plane, pose_covariance=pose_cov,
         plane_covariance=Jp @ pose_cov @ Jp.T, reprojection_rms_px=float(np.sqrt(np.mean(r**2) * 2)),
-        detector=detection.method)
+        detector=method, corner_ids=ids)

@@ -28,21 +28,29 @@ _SB_ATTEMPTS = (
 
 @dataclass(frozen=True, eq=False)
 class CornerDetection:
-    corners_px: np.ndarray  # (M, 2), ordered as BoardModel.inner_corners()
+    corners_px: np.ndarray  # (M, 2), ordered as BoardModel.inner_corners() (or as corner_ids)
     method: str
+    corner_ids: np.ndarray | None = None  # ChArUco: which inner corners were seen (ascending); None: all
+
+
+def subpixel_refine(gray: np.ndarray, corners: np.ndarray, half_px: float, max_half: int = 5
+                    ) -> tuple[np.ndarray, int]:
+    """Corners moved to the saddle point of the image gradient (``cornerSubPix``) in a window of half-size
+    ``half_px`` (rounded down, 2 to ``max_half`` px), which the caller keeps inside the neighbouring squares."""
+    half = int(np.clip(np.floor(half_px), 2, max_half))
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    out = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit)
+    return out.reshape(-1, 2).astype(float), half
 
 
 def _subpixel(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int], max_half: int = 5
               ) -> tuple[np.ndarray, int]:
-    """Corners moved to the saddle point of the image gradient (``cornerSubPix``) in a window that stays
-    inside the neighbouring squares (half-size 40% of the smallest square side seen, 2 to ``max_half`` px)."""
+    """``subpixel_refine`` of a whole grid of corners, the window's half-size 40% of the smallest square side
+    read from the grid."""
     grid = corners.reshape(pattern[1], pattern[0], 2)
     sides = np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel(),
                             np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel()])
-    half = int(np.clip(np.floor(0.4 * sides.min()), 2, max_half))
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-    out = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit)
-    return out.reshape(-1, 2).astype(float), half
+    return subpixel_refine(gray, corners, 0.4 * float(sides.min()), max_half)
 
 
 # Seconds the classic detector (the last resort) may run on one image.
@@ -59,7 +67,8 @@ _REDUCED_ATTEMPTS = (
 
 def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None = CLASSIC_BUDGET_S
                    ) -> CornerDetection | None:
-    """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all.
+    """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all (a
+    ChArUco board: the corners seen, with their ids, by ``charuco.detect_charuco``).
 
     First on reduced copies (halved while the image is 1000 px or larger), the corners then
     refined at full resolution; then at full resolution with every setting. The sector-based detector's
@@ -69,6 +78,10 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
     runs within ``budget_s`` seconds; past it, :class:`MeasurementError` (the frame is skipped with that
     reason).
     """
+    if board.is_charuco:
+        from .charuco import detect_charuco  # it builds on this module
+
+        return detect_charuco(gray, board)
     pattern = board.inner_corners_shape
     found = _detect_reduced(gray, pattern)
     if found is not None:

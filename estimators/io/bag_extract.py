@@ -27,6 +27,7 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
+from ..camera.charuco import MIN_CHARUCO_CORNERS, detect_charuco
 from ..errors import BagError
 from .dataset import dataset_spec, write_dataset_yaml
 from .image_io import to_gray8
@@ -97,10 +98,19 @@ class _Check:
     scan_stamp: int | None = None
 
 
-def _detect(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
-    """Inner corners (N, 2) in full-image pixels, found on a reduced copy, or None."""
+def _detect(gray: np.ndarray, board: BoardModel) -> np.ndarray | None:
+    """Inner corners (N, 2) in full-image pixels, found on a reduced copy, or None. A ChArUco board: every
+    inner corner's row, NaN for the ones not seen (None when too few are seen to fix the board)."""
     scale = min(1.0, DETECT_MAX_SIDE / max(gray.shape))
     small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else gray
+    if board.is_charuco:
+        det = detect_charuco(small, board)
+        if det is None:
+            return None
+        out = np.full((len(board.inner_corners()), 2), np.nan)
+        out[det.corner_ids] = det.corners_px / scale
+        return out
+    pattern = board.inner_corners_shape
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
     found, corners = cv2.findChessboardCorners(small, pattern, flags=flags)
     if not found:
@@ -111,10 +121,17 @@ def _detect(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
 
 
 def corner_motion(a: np.ndarray | None, b: np.ndarray | None) -> float:
-    """Largest corner displacement (px) between two detections, allowing the detector's reversed order."""
+    """Largest corner displacement (px) between two detections, allowing the detector's reversed order; over
+    the corners seen in both (ChArUco: NaN rows are corners not seen), at least ``MIN_CHARUCO_CORNERS``."""
     if a is None or b is None or a.shape != b.shape:
         return float("inf")
-    return float(min(np.max(np.linalg.norm(a - b, axis=1)), np.max(np.linalg.norm(a - b[::-1], axis=1))))
+    out = float("inf")
+    for other in (b, b[::-1]):
+        d = np.linalg.norm(a - other, axis=1)
+        d = d[np.isfinite(d)]
+        if len(d) >= min(MIN_CHARUCO_CORNERS, len(a)):
+            out = min(out, float(d.max()))
+    return out
 
 
 class _StillSegments:
@@ -295,7 +312,6 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                                 "dt_ms": round((c.scan_stamp - c.stamp) * 1e-6, 3)})
 
             segments = _StillSegments(options, emit)
-            pattern = board.inner_corners_shape
             scans: deque = deque()  # (stamp, msg) in arrival order
             pending: deque = deque()  # examined images awaiting a later scan
             camera: CameraModel | None = None
@@ -345,7 +361,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                         continue
                     last_cell = cell
                     image = decode_image(msg, image_topic)
-                    pending.append(_Check(stamp, image, _detect(to_gray8(image), pattern)))
+                    pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
                     if len(pending) > MAX_PENDING_IMAGES:
                         resolve(pending.popleft())
                 # A scan followed by one no later than every image still to come can never be the nearest

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from geometry.board import BoardModel
+from geometry.board import CHARUCO, CHECKERBOARD, PATTERNS, BoardModel
 from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import DatasetError
@@ -19,6 +19,8 @@ from .input_files import load_json, load_yaml
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+# The ArUco dictionary of a ChArUco board whose entry names none (the one OpenCV's examples print).
+DEFAULT_DICTIONARY = "DICT_5X5_100"
 LIDAR_KINDS = ("3d", "2d")
 
 
@@ -87,6 +89,9 @@ def dataset_spec(lidar: str, board: BoardModel, camera: CameraModel | None) -> d
         spec["board"]["size"] = list(board.size)
     if board.pattern_offset is not None:
         spec["board"]["pattern_offset"] = list(board.pattern_offset)
+    if board.is_charuco:
+        spec["board"].update({"pattern": CHARUCO, "marker_size": board.marker_size, "dictionary": board.dictionary,
+                              "legacy_pattern": board.legacy_pattern})
     if camera is not None:
         spec["camera"] = {"model": camera.model, "width": camera.width, "height": camera.height,
                           "K": camera.K.tolist(), "dist": camera.dist.tolist()}
@@ -100,15 +105,37 @@ def write_dataset_yaml(folder: Path, spec: dict, comment: str) -> Path:
     return path
 
 
+def _number(value: object, key: str, ypath: Path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DatasetError(f"board {key} must be a number (m), got {value!r}", path=ypath,
+                           hint="see README: Dataset format")
+    return float(value)
+
+
 def parse_board(b: object, ypath: Path) -> BoardModel:
     if not isinstance(b, dict) or "squares" not in b or "square_size" not in b:
         raise DatasetError("board needs squares: [nx, ny] and square_size (m)", path=ypath,
                            hint="see README: Dataset format")
+    pattern = b.get("pattern", CHECKERBOARD)
+    if pattern not in PATTERNS:
+        raise DatasetError(f"board pattern must be one of {', '.join(PATTERNS)}, got {pattern!r}", path=ypath,
+                           hint="see README: Dataset format")
+    extra = {}
+    if pattern == CHARUCO:
+        if b.get("marker_size") is None:
+            raise DatasetError("a charuco board needs marker_size (m, the markers' side)", path=ypath,
+                               hint="see README: ChArUco boards")
+        legacy = b.get("legacy_pattern", False)
+        if not isinstance(legacy, bool):
+            raise DatasetError(f"board legacy_pattern must be true or false, got {legacy!r}", path=ypath,
+                               hint="true only for boards printed by OpenCV before 4.6")
+        extra = {"pattern": CHARUCO, "marker_size": _number(b["marker_size"], "marker_size", ypath),
+                 "dictionary": b.get("dictionary", DEFAULT_DICTIONARY), "legacy_pattern": legacy}
     try:
         return BoardModel(squares=tuple(b["squares"]), square_size=float(b["square_size"]),
                           size=tuple(b["size"]) if b.get("size") is not None else None,
                           pattern_offset=tuple(b["pattern_offset"]) if b.get("pattern_offset") is not None
-                          else None)
+                          else None, **extra)
     except (ValueError, TypeError, OverflowError) as exc:
         raise DatasetError(f"invalid board ({exc})", path=ypath, hint="fix the board entry") from exc
 

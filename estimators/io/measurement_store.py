@@ -22,6 +22,7 @@ from geometry.planes import Plane
 from ..errors import DatasetError
 from ..measurements import (BoardDecision, CameraBoardObservation, FrameMeasurement, observe_lidar_board,
                             observe_lidar_line)
+from .dataset import dataset_spec, parse_board
 from .input_files import load_json
 from .output import write_json_atomic, write_npz_atomic
 
@@ -89,6 +90,8 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
             arrays.update({p + "corners_px": c.corners_px, p + "T_camera_board": c.T_camera_board,
                            p + "plane": np.append(c.plane.normal, c.plane.distance),
                            p + "pose_covariance": c.pose_covariance, p + "plane_covariance": c.plane_covariance})
+            if c.corner_ids is not None:
+                arrays[p + "corner_ids"] = np.asarray(c.corner_ids, dtype=np.int64)
             d["camera"] = {"reprojection_rms_px": c.reprojection_rms_px, "detector": c.detector}
         if f.lidar is not None:
             o = f.lidar
@@ -107,9 +110,7 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
             for j, pts in enumerate(dd.candidate_points):
                 arrays[f"f{k}_decision_points_{j}"] = np.asarray(pts, dtype=float)
         frames.append(d)
-    board = {"squares": list(m.board.squares), "square_size": m.board.square_size,
-             "size": None if m.board.size is None else list(m.board.size),
-             "pattern_offset": None if m.board.pattern_offset is None else list(m.board.pattern_offset)}
+    board = dataset_spec(m.lidar, m.board, None)["board"]  # the dataset.yaml board entry
     meta = {"format": FORMAT, "dataset": m.dataset, "key": m.key, "lidar": m.lidar, "board": board,
             "camera": m.camera.as_dict(), "warnings": list(m.warnings), "frames": frames}
     write_npz_atomic(out / "measurements.npz", **arrays)
@@ -133,11 +134,8 @@ def load_measurements(path: str | Path) -> Measurements:
             raise ValueError(f"format {meta.get('format')!r}, expected {FORMAT!r}")
         arrays = _load_npz(npz)
         camera = _camera(meta["camera"])
-        b = meta["board"]
-        board = BoardModel(tuple(b["squares"]), float(b["square_size"]),
-                           None if b["size"] is None else tuple(b["size"]),
-                           None if b["pattern_offset"] is None else tuple(b["pattern_offset"]))
-        frames = tuple(_frame(k, d, arrays) for k, d in enumerate(meta["frames"]))
+        board = parse_board(meta["board"], meta_path)
+        frames = tuple(_frame(k, d, arrays, board) for k, d in enumerate(meta["frames"]))
         return Measurements(camera, board, str(meta["lidar"]), frames, tuple(meta.get("warnings", ())),
                             str(meta.get("dataset", "")), str(npz), str(meta.get("key", "")))
     except DatasetError:
@@ -184,17 +182,32 @@ def _finite(a: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
-def _frame(k: int, d: dict, arrays: dict) -> FrameMeasurement:
+def _corner_ids(arrays: dict, p: str, n_corners: int, board: BoardModel) -> np.ndarray | None:
+    ids = arrays.get(p + "corner_ids")
+    if ids is None:
+        if n_corners != len(board.inner_corners()):
+            raise ValueError(f"{p}corners_px holds {n_corners} corners, the board has {len(board.inner_corners())}")
+        return None
+    ids = np.asarray(ids)
+    if (ids.dtype.kind not in "iu" or ids.shape != (n_corners,) or np.any(ids < 0)
+            or np.any(ids >= len(board.inner_corners())) or np.any(np.diff(ids) <= 0)):
+        raise ValueError(f"array {p}corner_ids is not {n_corners} ascending ids of the board's corners")
+    return ids.astype(int)
+
+
+def _frame(k: int, d: dict, arrays: dict, board: BoardModel) -> FrameMeasurement:
     cam = lid = dec = None
     if "camera" in d:
         p = f"f{k}_camera_"
         plane = _finite(arrays[p + "plane"], p + "plane")
-        cam = CameraBoardObservation(_finite(arrays[p + "corners_px"], p + "corners_px"),
+        corners = _finite(arrays[p + "corners_px"], p + "corners_px").reshape(-1, 2)
+        cam = CameraBoardObservation(corners,
                                      _finite(arrays[p + "T_camera_board"], p + "T_camera_board"),
                                      Plane(plane[:3], float(plane[3])),
                                      _finite(arrays[p + "pose_covariance"], p + "pose_covariance"),
                                      _finite(arrays[p + "plane_covariance"], p + "plane_covariance"),
-                                     float(d["camera"]["reprojection_rms_px"]), str(d["camera"]["detector"]))
+                                     float(d["camera"]["reprojection_rms_px"]), str(d["camera"]["detector"]),
+                                     _corner_ids(arrays, p, len(corners), board))
     if "lidar" in d:
         p = f"f{k}_lidar_"
         points = _finite(arrays[p + "points"], p + "points").astype(float)

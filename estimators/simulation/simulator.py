@@ -14,10 +14,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from geometry.board import BoardModel
+from geometry.board import CHARUCO, PATTERNS, BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
+from ..camera.charuco import pattern_image
 from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory, check_output_folder
 from ..io.pointcloud_io import write_scan, write_scan_2d
@@ -53,6 +54,34 @@ def default_camera() -> CameraModel:
 
 def default_board() -> BoardModel:
     return BoardModel(squares=(9, 7), square_size=0.10, size=(1.0, 1.0))
+
+
+def as_charuco(board: BoardModel, dictionary: str = "DICT_5X5_100") -> BoardModel:
+    """The same board printed as ChArUco: markers of 70% of the square in the white squares."""
+    return replace(board, pattern=CHARUCO, marker_size=0.7 * board.square_size, dictionary=dictionary)
+
+
+def board_reflectance(board: BoardModel):
+    """The board's reflectance as a function of board coordinates (NaN outside): the checkerboard's own, or
+    for a ChArUco board OpenCV's printed pattern (its markers included), sampled at the nearest texel."""
+    if not board.is_charuco:
+        return board.reflectance
+    texels = 96  # per square: a marker bit (a seventh of 70% of a square) spans about 10 texels
+    img = pattern_image(board, texels).astype(float) / 255.0
+    ox, oy = board.offset
+    w, h = board.extent
+
+    def reflectance(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        col = np.floor((x - ox) / board.square_size * texels).astype(int)
+        row = np.floor((y - oy) / board.square_size * texels).astype(int)
+        inside = (col >= 0) & (col < img.shape[1]) & (row >= 0) & (row < img.shape[0])
+        out = np.ones(np.broadcast(x, y).shape)
+        out[inside] = img[row[inside], col[inside]]
+        out[(x < 0) | (x > w) | (y < 0) | (y > h)] = np.nan
+        return out
+
+    return reflectance
 
 
 def default_rig(rng: np.random.Generator, lidar: str = "hdl64e", sigma_range_m: float = 0.02) -> Rig:
@@ -159,10 +188,17 @@ def scan_crossing_length(board: BoardModel, T_lidar_board: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2)))
 
 
-def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0) -> bool:
+def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0, min_in_image: float = 1.0) -> bool:
     outline_c = transform_points(T_camera_board, rig.board.outline())
     uv = rig.camera.project(outline_c)
-    if not np.all(rig.camera.in_image(uv, margin_px=15.0)):
+    if min_in_image < 1.0:
+        # Partly outside the image, by design (ChArUco): at least min_in_image of the inner corners in it,
+        # and the board really cut by the image's edge.
+        corners = rig.camera.project(transform_points(T_camera_board, rig.board.inner_corners()))
+        seen = float(np.mean(rig.camera.in_image(corners, margin_px=15.0)))
+        if np.all(rig.camera.in_image(uv)) or not min_in_image <= seen <= 0.9:
+            return False
+    elif not np.all(rig.camera.in_image(uv, margin_px=15.0)):
         return False
     outline_l = transform_points(T_inverse(rig.T_camera_lidar), outline_c)
     if rig.beams.is_2d:
@@ -182,32 +218,39 @@ def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0) ->
 
 
 def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000,
-                       partial_share: float = 0.0) -> list[np.ndarray]:
+                       partial_share: float = 0.0, outside_image_share: float = 0.0) -> list[np.ndarray]:
     """``n`` board poses (``T_camera_board``) 2-5 m away, fully seen by both sensors, with normals spread
     round the viewing axis (stratified azimuths, 15-40 degree tilts), as the planar method advises.
     ``partial_share``: that share of the poses (3D LiDAR) may leave up to 60% of the board outside the LiDAR's
-    vertical field of view."""
+    vertical field of view. ``outside_image_share``: that share of the poses is cut by the image's edge, with
+    30-90% of the inner corners in the image (for ChArUco boards)."""
     return _sample_poses(rig, n, rng, lambda k: (2 * np.pi * (k + rng.uniform()) / n,
-                                                 np.deg2rad(rng.uniform(15.0, 40.0))), max_tries, partial_share)
+                                                 np.deg2rad(rng.uniform(15.0, 40.0))), max_tries, partial_share,
+                         outside_image_share)
 
 
 def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries: int = 20000,
-                  partial_share: float = 0.0) -> list[np.ndarray]:
+                  partial_share: float = 0.0, outside_image_share: float = 0.0) -> list[np.ndarray]:
     """``n`` feasible poses at random image positions and distances; ``normal(k)`` draws the k-th pose's
     (azimuth, tilt) in radians."""
     poses = []
     cam = rig.camera
     partial = set() if partial_share <= 0 else set(np.nonzero(rng.uniform(size=n) < partial_share)[0].tolist())
+    # Drawn from a generator of its own, so that datasets without such poses stay as they were.
+    cut_rng = np.random.default_rng(rng.integers(2**63)) if outside_image_share > 0 else None
+    cut = set() if cut_rng is None else set(np.nonzero(cut_rng.uniform(size=n) < outside_image_share)[0].tolist())
     for k in range(n):
         min_in_fov = 0.4 if k in partial else 1.0
+        min_in_image = 0.3 if k in cut else 1.0
+        lo, hi = (-0.1, 1.1) if k in cut else (0.1, 0.9)
         for _ in range(max_tries):
             azimuth, tilt = normal(k)
             spin = np.deg2rad(rng.uniform(-20.0, 20.0))
-            uv = np.array([[rng.uniform(0.1, 0.9) * cam.width, rng.uniform(0.1, 0.9) * cam.height]])
+            uv = np.array([[rng.uniform(lo, hi) * cam.width, rng.uniform(lo, hi) * cam.height]])
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
             T = board_pose(rig.board, ray * dist, tilt, azimuth, spin)
-            if _pose_fits(rig, T, min_in_fov):
+            if _pose_fits(rig, T, min_in_fov, min_in_image):
                 poses.append(T)
                 break
         else:
@@ -262,7 +305,7 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     board = rig.board
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = board.extent
-    patches = [rectangle(o, R[:, 0], R[:, 1], w, h, board.reflectance, "board")]
+    patches = [rectangle(o, R[:, 0], R[:, 1], w, h, board_reflectance(board), "board")]
     ground_z = -rig.lidar_height_m
     if held:
         return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z) + list(static or []), 0
@@ -316,12 +359,13 @@ class SimulatedFrame:
 
 def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
                     poses: list[np.ndarray] | None = None, scene: str = "default",
-                    bias: RangeBias | None = None) -> list[SimulatedFrame]:
+                    bias: RangeBias | None = None, outside_image_share: float = 0.0) -> list[SimulatedFrame]:
     """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``).
 
     ``scene``: ``default`` (the ground, four walls, the board on a stand), ``office`` or ``hall``
     (``simulation.office``: a static scene drawn once, the board held by a person in 70% of the frames, and
-    in 3D a quarter of the boards partly above or below the LiDAR's vertical field of view)."""
+    in 3D a quarter of the boards partly above or below the LiDAR's vertical field of view).
+    ``outside_image_share``: that share of the sampled poses is cut by the image's edge (ChArUco)."""
     if scene not in SCENES:
         raise ValueError(f"Expected scene in {SCENES}, got {scene!r}")
     frames = []
@@ -333,7 +377,7 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
         static = hall_layout(-rig.lidar_height_m)
     if poses is None:
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
-        poses = sample_board_poses(rig, n_poses, rng, partial_share=partial)
+        poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
     for k, T_cb in enumerate(poses):
         T_lb = T_lidar_camera @ T_cb
         held = scene != "default" and bool(rng.uniform() < 0.7)
@@ -382,7 +426,8 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
 def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: str = "hdl64e",
                      sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
                      include_camera: bool = True, overwrite: bool = False, scene: str = "default",
-                     range_bias: tuple[float, float, float] | None = None, rig_config: str = "default") -> Path:
+                     range_bias: tuple[float, float, float] | None = None, rig_config: str = "default",
+                     pattern: str = "checkerboard", outside_image_share: float | None = None) -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
 
     ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
@@ -391,7 +436,9 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
     ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
     every return (the drawn values go to ground_truth.json). ``rig_config`` (2D only): ``default`` or
-    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration).
+    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration). ``pattern``:
+    ``checkerboard`` or ``charuco`` (the same board with DICT_5X5_100 markers, :func:`as_charuco`);
+    ``outside_image_share``: the share of poses cut by the image's edge (default 0.3 for ChArUco, else 0).
     """
     check_output_folder(out, overwrite)  # before minutes of rendering
     if sigma_range_m is None:
@@ -402,13 +449,20 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     if rig_config not in RIGS_2D or (rig_config != "default" and lidar != "2d"):
         raise ValueError(f"Expected rig_config in {RIGS_2D} (varied only for 2d), got {rig_config!r}")
     base = rig_2d(rig_config, rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
-    rig = replace(base, pixel_noise=pixel_noise)
+    if pattern not in PATTERNS:
+        raise ValueError(f"Expected pattern in {PATTERNS}, got {pattern!r}")
+    rig = replace(base, pixel_noise=pixel_noise, board=as_charuco(base.board) if pattern == CHARUCO else base.board)
+    if outside_image_share is None:
+        outside_image_share = 0.3 if pattern == CHARUCO else 0.0
+    if outside_image_share > 0 and pattern != CHARUCO:
+        raise ValueError("Expected outside_image_share 0 for a checkerboard (it must be seen whole)")
     bias = None
-    meta = {"seed": seed, "poses": n_poses, "scene": scene, "rig": rig_config}
+    meta = {"seed": seed, "poses": n_poses, "scene": scene, "rig": rig_config, "pattern": pattern,
+            "outside_image_share": outside_image_share}
     if range_bias is not None:
         # Drawn from a generator of its own, so that the rest of the simulation stays as without a bias.
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
         meta["range_bias"] = {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
                               "dark_m": bias.dark_m}
-    frames = simulate_frames(rig, n_poses, rng, scene=scene, bias=bias)
+    frames = simulate_frames(rig, n_poses, rng, scene=scene, bias=bias, outside_image_share=outside_image_share)
     return write_dataset(out, rig, frames, scan_format, include_camera, overwrite, meta=meta)

@@ -180,7 +180,7 @@ class PlaneLikelihood:
             if fit is None or fit.dropped or fit.weight <= 0:
                 continue
             b = f.camera.T_camera_board
-            _, J = corner_residuals(b, board.inner_corners(), f.camera.corners_px, camera)
+            _, J = corner_residuals(b, f.camera.corners_board(board), f.camera.corners_px, camera)
             cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
             k = W.shape[0]
             if k < (2 if f.lidar.is_scan_line else 3):

@@ -148,7 +148,8 @@ def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera
     """Pooled per-axis corner residual of the per-frame board poses (``2M - 6`` dof per frame)."""
     ss, dof = 0.0, 0
     for f in frames:
-        r, _ = corner_residuals(f.camera.T_camera_board, board.inner_corners(), f.camera.corners_px, camera)
+        r, _ = corner_residuals(f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px,
+                                camera)
         ss += float(r @ r)
         dof += r.size - 6
     return float(np.sqrt(ss / max(dof, 1)))
@@ -232,7 +233,7 @@ class _Problem:
         # Scatter (m) of each board's own range terms about the shared ones: estimated when they disagree
         # beyond the noise (biases that vary with range, incidence or temperature, or terms the model lacks).
         self.tau = 0.0
-        self.corners_board = board.inner_corners()
+        self.corners_board = [f.camera.corners_board(board) for f in frames]  # the corners each frame saw
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 
     def whitener(self, i: int) -> np.ndarray:
@@ -280,14 +281,13 @@ class _Problem:
 
     def graph(self, active: list[int], floor_m: float, robust: bool = True) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
-        corners_board = self.corners_board
         if self.has_beta:
             graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array(self.terms.prior_sd))))
         for j, i in enumerate(active):
             f = self.frames[i]
             key = board_key(j)
-            graph.add(corner_factor(key, corners_board, f.camera.corners_px, self.camera,
+            graph.add(corner_factor(key, self.corners_board[i], f.camera.corners_px, self.camera,
                                     gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
             noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
             noise = _robust(noise, self.options, self.whitener(i).shape[0]) if robust else noise
@@ -308,7 +308,7 @@ class _Problem:
 
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
-        r, _ = corner_residuals(T_board, self.corners_board, f.camera.corners_px, self.camera, jacobian=False)
+        r, _ = corner_residuals(T_board, self.corners_board[i], f.camera.corners_px, self.camera, jacobian=False)
         return float(r @ r) / self.sigma_px**2
 
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
