@@ -28,6 +28,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_corners.py
 	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
+	$(PY) benchmarks/bench_2d.py --pattern charuco
+	$(PY) benchmarks/bench_charuco.py
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
 	$(PY) benchmarks/bench_study.py

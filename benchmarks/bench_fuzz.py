@@ -106,6 +106,9 @@ def _extra_targets(folder: Path, with_bag: bool) -> list:
     return out
 
 
+EXTRA_NAMES = {"measurements_npz", "measurements_json", "ros1_bag"}
+
+
 def _peak(tally: Tally) -> Tally:
     """The process's peak memory once this reader's cases have run (it only grows: a reader that needed
     more than the ones before it shows as a step)."""
@@ -122,20 +125,27 @@ def _print_row(name: str, t: Tally) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=10_000, help="cases per reader (bags: a tenth)")
+    ap.add_argument("--readers", default=None, metavar="NAME,...", help="only these readers (default: all)")
     args = ap.parse_args()
+    only = None if args.readers is None else set(args.readers.split(","))
     warnings.simplefilter("ignore")
     print(f"{'reader':26s}{'cases':>7s}{'read':>7s}{'refused':>8s}{'bugs':>6s}{'slowest s':>10s}"
           f"{'peak MB so far':>15s}")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         rows = []
-        for target in [*FILE_TARGETS, *_extra_targets(tmp / "extra", with_bag=True)]:
+        extra = _extra_targets(tmp / "extra", with_bag=True) if only is None or only & EXTRA_NAMES else []
+        for target in [*FILE_TARGETS, *extra]:
+            if only is not None and target.name not in only:
+                continue
             folder = tmp / target.name
             folder.mkdir()
             n = max(1, args.cases // 10) if target.name.endswith("bag") else args.cases
             rows.append((target.name, _peak(fuzz_file(target, n, folder))))
             _print_row(*rows[-1])
         for name, strategy, decode in MESSAGE_TARGETS:
+            if only is not None and name not in only:
+                continue
             rows.append((name, _peak(fuzz_message(strategy, decode, args.cases))))
             _print_row(*rows[-1])
         total_bugs = sum(len(t.bugs) for _, t in rows)

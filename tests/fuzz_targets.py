@@ -134,9 +134,11 @@ def _image(kind: str) -> bytes:
     return buf.tobytes()
 
 
-def _dataset_yaml() -> bytes:
-    spec = {"lidar": "3d", "board": {"squares": [9, 7], "square_size": 0.1, "size": [1.0, 1.0]},
-            "camera": _camera_entry()}
+def _dataset_yaml(charuco: bool = False) -> bytes:
+    board = {"squares": [9, 7], "square_size": 0.1, "size": [1.0, 1.0]}
+    if charuco:
+        board.update(pattern="charuco", marker_size=0.07, dictionary="DICT_5X5_100", legacy_pattern=False)
+    spec = {"lidar": "3d", "board": board, "camera": _camera_entry()}
     return yaml.safe_dump(spec, default_flow_style=None).encode()
 
 
@@ -230,6 +232,7 @@ FILE_TARGETS = (
     FileTarget("png_palette", ".png", lambda t: _image("palette"), read_gray),
     FileTarget("jpeg", ".jpg", lambda t: _image("jpeg"), read_gray),
     FileTarget("dataset_yaml", ".yaml", lambda t: _dataset_yaml(), _read_dataset),
+    FileTarget("dataset_yaml_charuco", ".yaml", lambda t: _dataset_yaml(charuco=True), _read_dataset),
     FileTarget("plan_yaml", ".yaml", lambda t: _plan_yaml(), _read_plan),
     FileTarget("study_yaml", ".yaml", lambda t: _study_yaml(), _read_study),
     FileTarget("calibration_json", ".json", lambda t: _calibration_json(), _read_calibration),

@@ -29,7 +29,8 @@ from geometry.rotations import T_from_Rt
 
 from ..errors import DatasetError
 from ..lidar.lidar_models import BEAM_MODELS
-from ..simulation.simulator import R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, sample_board_poses
+from ..simulation.simulator import (R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, min_in_image,
+                                    sample_board_poses)
 from ..solvers.closed_form import describe_direction, normal_spread
 from ..solvers.observation_model import (Layout, board_hits, frame_contribution, frame_information,
                                         range_model_information)
@@ -239,7 +240,8 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
                   target: tuple[float, float] | None = None, range_offset: bool = False
                   ) -> list[tuple[np.ndarray, LayoutAnalysis]]:
     """Greedily, ``k`` board poses that most raise D-optimality, each from ``candidates`` feasible poses
-    (fully in the image, inside the LiDAR's field of view, 2-5 m away, hit by enough beams). With
+    (fully in the image, or for a ChArUco board partly, inside the LiDAR's field of view, 2-5 m away, hit by
+    enough beams). With
     ``target = (max_rotation_deg, max_translation_mm)``, stop as soon as every axis meets it. With
     ``range_offset``, D-optimality is that of the extrinsic with a LiDAR range offset estimated too (poses
     that separate the offset from the translation score higher)."""
@@ -248,7 +250,10 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
     for _ in range(k):
         if target is not None and current.n_frames >= 3 and meets(analyse(current), *target):
             break
-        pool = [T for T in sample_board_poses(rig, candidates, rng) if _pose_fits(rig, T)]
+        # A ChArUco board may be cut by the image's edge (the poses the layout most often lacks are there).
+        cut_share = 0.3 if rig.board.is_charuco else 0.0
+        pool = [T for T in sample_board_poses(rig, candidates, rng, outside_image_share=cut_share)
+                if _pose_fits(rig, T, min_in_image=min_in_image(rig.board))]
         F = analyse(current).information
         I7 = offset_information(current) if range_offset else None
         best, best_d = None, -np.inf

@@ -188,15 +188,24 @@ def scan_crossing_length(board: BoardModel, T_lidar_board: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2)))
 
 
+def corners_in_image_share(rig: Rig, T_camera_board: np.ndarray) -> float:
+    """The share of the board's inner corners inside the image (15 px from its edge)."""
+    corners = rig.camera.project(transform_points(T_camera_board, rig.board.inner_corners()))
+    return float(np.mean(rig.camera.in_image(corners, margin_px=15.0)))
+
+
+def min_in_image(board: BoardModel) -> float:
+    """The share of a board's inner corners that must be in the image: all of a checkerboard's; 30% of a
+    ChArUco board's (and at least its 6 corners)."""
+    return 1.0 if not board.is_charuco else max(0.3, 6 / len(board.inner_corners()))
+
+
 def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0, min_in_image: float = 1.0) -> bool:
     outline_c = transform_points(T_camera_board, rig.board.outline())
     uv = rig.camera.project(outline_c)
     if min_in_image < 1.0:
-        # Partly outside the image, by design (ChArUco): at least min_in_image of the inner corners in it,
-        # and the board really cut by the image's edge.
-        corners = rig.camera.project(transform_points(T_camera_board, rig.board.inner_corners()))
-        seen = float(np.mean(rig.camera.in_image(corners, margin_px=15.0)))
-        if np.all(rig.camera.in_image(uv)) or not min_in_image <= seen <= 0.9:
+        # Possibly partly outside the image (ChArUco): at least min_in_image of the inner corners in it.
+        if corners_in_image_share(rig, T_camera_board) < min_in_image:
             return False
     elif not np.all(rig.camera.in_image(uv, margin_px=15.0)):
         return False
@@ -241,7 +250,7 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
     cut = set() if cut_rng is None else set(np.nonzero(cut_rng.uniform(size=n) < outside_image_share)[0].tolist())
     for k in range(n):
         min_in_fov = 0.4 if k in partial else 1.0
-        min_in_image = 0.3 if k in cut else 1.0
+        min_share = min_in_image(rig.board) if k in cut else 1.0
         lo, hi = (-0.1, 1.1) if k in cut else (0.1, 0.9)
         for _ in range(max_tries):
             azimuth, tilt = normal(k)
@@ -250,7 +259,10 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
             T = board_pose(rig.board, ray * dist, tilt, azimuth, spin)
-            if _pose_fits(rig, T, min_in_fov, min_in_image):
+            if k in cut and not (np.any(~rig.camera.in_image(rig.camera.project(transform_points(
+                    T, rig.board.outline())))) and corners_in_image_share(rig, T) <= 0.9):
+                continue  # a cut pose must be cut: part of the board and of its corners outside the image
+            if _pose_fits(rig, T, min_in_fov, min_share):
                 poses.append(T)
                 break
         else:

@@ -78,13 +78,23 @@ def corner_pixels(layout: Layout, i: int) -> np.ndarray:
     return layout.camera.project(transform_points(layout.T_camera_board[i], layout.board.inner_corners()))
 
 
+def seen_corners(layout: Layout, i: int) -> np.ndarray:
+    """Which of board ``i``'s inner corners the camera sees: all of a checkerboard's (it is seen whole or
+    not at all), the ones inside the image of a ChArUco board."""
+    uv = corner_pixels(layout, i)
+    if not layout.board.is_charuco:
+        return np.arange(len(uv))
+    return np.nonzero(layout.camera.in_image(uv))[0]
+
+
 def frame_information(layout: Layout, i: int, terms: RangeTerms | None = None) -> np.ndarray:
     """Fisher information of frame ``i`` over ``[xi_extrinsic, xi_board_i]`` (12 x 12), or with range terms
     over ``[xi_extrinsic, beta, xi_board_i]`` (12 + K square; their priors not included)."""
     T_cb = layout.T_camera_board[i]
     K = terms.size if terms is not None else 0
     F = np.zeros((12 + K, 12 + K))
-    _, Jc = corner_residuals(T_cb, layout.board.inner_corners(), corner_pixels(layout, i), layout.camera)
+    seen = seen_corners(layout, i)
+    _, Jc = corner_residuals(T_cb, layout.board.inner_corners()[seen], corner_pixels(layout, i)[seen], layout.camera)
     F[6 + K:, 6 + K:] += Jc.T @ Jc / layout.corner_noise_px**2
     dirs, ranges, rings, dark = board_returns(layout, i)
     if len(dirs):
@@ -164,7 +174,12 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
     for i in range(layout.n_frames):
         uv = corner_pixels(layout, i)
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
-        cam = estimate_board_pose(CornerDetection(uv, "simulated"), layout.board, layout.camera)
+        if layout.board.is_charuco:  # the corners in the image, with their ids
+            seen = seen_corners(layout, i)
+            det = CornerDetection(uv[seen], "simulated", corner_ids=seen)
+        else:
+            det = CornerDetection(uv, "simulated")
+        cam = estimate_board_pose(det, layout.board, layout.camera)
         dirs, ranges, rings, dark = board_returns(layout, i)
         if len(dirs) < 3:
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, f"only {len(dirs)} LiDAR beams hit the board"))
