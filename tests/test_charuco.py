@@ -3,6 +3,7 @@ views with ids, and calibration end to end (3D and 2D) through the CLI and the A
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -16,7 +17,10 @@ from estimators.errors import DatasetError
 from estimators.io.bag_extract import corner_motion
 from estimators.io.dataset import load_dataset, parse_board
 from estimators.io.measurement_store import load_measurements, save_measurements
-from estimators.simulation.simulator import as_charuco, board_reflectance, default_board, simulate_dataset
+from estimators.simulation.simulator import (as_charuco, board_reflectance, default_board, default_rig,
+                                             sample_board_poses, simulate_dataset)
+from estimators.solvers.observation_model import (Layout, corner_pixels, cramer_rao_bound, seen_corners,
+                                                  simulate_measurements)
 from geometry.rotations import T_inverse, T_log, transform_points
 
 
@@ -153,3 +157,22 @@ def test_stillness_compares_the_charuco_corners_both_views_saw():
     assert corner_motion(a, b) == pytest.approx(np.hypot(0.5, 0.5))
     b[3:] = np.nan
     assert corner_motion(a, b) == float("inf")  # too few corners in common to judge
+
+
+def test_the_layout_model_counts_the_corners_in_the_image_of_a_cut_charuco_board():
+    rng = np.random.default_rng(24)
+    rig = default_rig(rng, "vlp16")
+    rig = replace(rig, board=as_charuco(rig.board))
+    poses = sample_board_poses(rig, 4, rng, outside_image_share=1.0)  # every pose cut by the image's edge
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.02)
+    for i in range(4):
+        seen = seen_corners(layout, i)
+        assert 0.3 * 48 <= len(seen) < 48
+        assert np.all(rig.camera.in_image(corner_pixels(layout, i)[seen]))
+    crb = cramer_rao_bound(layout)
+    assert np.all(np.isfinite(crb)) and np.linalg.eigvalsh(crb)[0] > 0
+    # Simulated measurements carry the ids of the corners in the image; their board poses are near the truth.
+    frames = simulate_measurements(layout, np.random.default_rng(0))
+    for i, f in enumerate(frames):
+        assert np.array_equal(f.camera.corner_ids, seen_corners(layout, i))
+        assert np.linalg.norm(f.camera.T_camera_board[:3, 3] - poses[i][:3, 3]) < 0.05

@@ -1,4 +1,5 @@
-"""The camera side of a frame: checkerboard corner detection (``chessboard``), the board pose and its plane
+"""The camera side of a frame: checkerboard corner detection (``chessboard``), ChArUco corners with their ids,
+whole or partly seen (``charuco``), the board pose and its plane
 with their covariances (``board_pose``), and intrinsics from the boards when the dataset has none
 (``intrinsics``). Works on pixel arrays; reading image files is ``io``'s job.
 
