@@ -1,6 +1,7 @@
 """The calibration pipeline: dataset -> per-frame measurements -> solver -> result (and its JSON)."""
 from __future__ import annotations
 
+import importlib
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -796,6 +797,14 @@ def _plane_distances(points_lidar: np.ndarray, plane, T_camera_lidar: np.ndarray
     return (points_lidar @ T_camera_lidar[:3, :3].T + T_camera_lidar[:3, 3]) @ plane.normal - plane.distance
 
 
+def _import_quietly(module: str) -> None:
+    """Import ``module`` ahead of its use; a failure is left to the real import to report."""
+    try:
+        importlib.import_module(module)
+    except Exception:  # noqa: BLE001 - reported where the module is used
+        pass
+
+
 def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
@@ -824,6 +833,10 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     rng = np.random.default_rng(0) if rng is None else rng
     timings: dict = {}
     t_start = time.perf_counter()
+    if posterior is not None and refine != "none":
+        # emcee's import (it loads scipy.stats: about a second) runs while the frames are measured, most of
+        # which waits on OpenCV and numpy with the interpreter free; the sampler's own import then finds it.
+        threading.Thread(target=_import_quietly, args=("emcee",), daemon=True, name="import emcee").start()
     m = measure(dataset, rng, params, hints, cache=cache, timings=timings)
     camera, frames, warnings = m.camera, list(m.frames), list(m.warnings)
     if m.source == "cache":

@@ -154,6 +154,23 @@ def test_png_chunk_claiming_gigabytes_is_refused_before_decoding(tmp_path):
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before < 100_000  # kB: nothing allocated
 
 
+def test_a_plan_whose_board_is_out_of_reach_is_refused_and_a_far_one_analysed(tmp_path):
+    # The long fuzz run found it: a pose 2^31 m away made the board-pose information singular (LinAlgError).
+    import yaml
+
+    from estimators.analysis.layout_analysis import analyse, layout_from_plan
+
+    from .fuzz_targets import _plan_yaml
+
+    plan = yaml.safe_load(_plan_yaml())
+    plan["poses"][-1]["centre_m"][2] = 2**31
+    with pytest.raises(LidarcamError, match="centre_m must be within 1000 m"):
+        layout_from_plan(plan, str(tmp_path / "PLAN.yaml"))
+    plan["poses"][-1]["centre_m"][2] = 999.0  # allowed, and it adds almost nothing
+    analysis = analyse(layout_from_plan(plan, "PLAN.yaml")[0])
+    assert np.all(np.isfinite(analysis.covariance)) and np.linalg.eigvalsh(analysis.covariance)[0] > 0
+
+
 def test_16_bit_images_are_scaled_to_8_bits_by_their_range_without_a_wide_copy():
     # min -> 0, max -> 255, linear between (OpenCV rounds); the long fuzz run's 1 GB bound depends on the
     # conversion not making a float64 copy of a 64-megapixel 16-bit image (512 MB).

@@ -218,15 +218,23 @@ def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
     return Layout(camera, board, beams, T_cl, tuple(poses), corner_noise, beams.sigma_range_m), rig
 
 
+# A planned board further than this from the camera is a typo (no camera resolves a board there).
+MAX_PLAN_DISTANCE_M = 1000.0
+
+
 def _plan_pose(p: dict, board) -> np.ndarray:
     if "T_camera_board" in p:
         T = np.array(p["T_camera_board"], dtype=float)
         if T.shape != (4, 4):
             raise ValueError("T_camera_board must be 4x4")
+        if np.all(np.isfinite(T)) and np.linalg.norm(T[:3, 3]) > MAX_PLAN_DISTANCE_M:
+            raise ValueError(f"a pose's board is more than {MAX_PLAN_DISTANCE_M:g} m from the camera")
         return T
     centre = np.array(p["centre_m"], dtype=float)
     if centre.shape != (3,) or not np.all(np.isfinite(centre)) or centre[2] <= 0:
         raise ValueError("centre_m must be 3 finite numbers, the board in front of the camera (z > 0)")
+    if np.linalg.norm(centre) > MAX_PLAN_DISTANCE_M:
+        raise ValueError(f"centre_m must be within {MAX_PLAN_DISTANCE_M:g} m of the camera")
     return board_pose(board, centre, np.deg2rad(float(p.get("tilt_deg", 0.0))),
                       np.deg2rad(float(p.get("azimuth_deg", 0.0))), np.deg2rad(float(p.get("spin_deg", 0.0))))
 

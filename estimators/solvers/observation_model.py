@@ -131,7 +131,10 @@ def fisher_information(layout: Layout) -> np.ndarray:
 def extrinsic_information(F: np.ndarray) -> np.ndarray:
     """The 6x6 information on the extrinsic with the board poses marginalised (Schur complement)."""
     A, B, C = F[:6, :6], F[:6, 6:], F[6:, 6:]
-    return A - B @ np.linalg.solve(C, B.T)
+    try:
+        return A - B @ np.linalg.solve(C, B.T)
+    except np.linalg.LinAlgError:  # board poses the corners do not fix (a board far away): what is fixed
+        return A - B @ np.linalg.pinv(C, hermitian=True) @ B.T
 
 
 def cramer_rao_bound(layout: Layout, terms: RangeTerms | None = None) -> np.ndarray:
