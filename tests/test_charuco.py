@@ -14,7 +14,7 @@ from estimators.camera.board_pose import estimate_board_pose
 from estimators.camera.charuco import MIN_CHARUCO_CORNERS, detect_charuco, opencv_board, spans_plane
 from estimators.cli import main
 from estimators.errors import DatasetError
-from estimators.io.bag_extract import corner_motion
+from estimators.io.bag_extract import corner_motion, extract_bag
 from estimators.io.dataset import load_dataset, parse_board
 from estimators.io.measurement_store import load_measurements, save_measurements
 from estimators.simulation.simulator import (as_charuco, board_reflectance, default_board, default_rig,
@@ -22,6 +22,8 @@ from estimators.simulation.simulator import (as_charuco, board_reflectance, defa
 from estimators.solvers.observation_model import (Layout, corner_pixels, cramer_rao_bound, seen_corners,
                                                   simulate_measurements)
 from geometry.rotations import T_inverse, T_log, transform_points
+
+from .rosbag_writer import write_bag_from_dataset
 
 
 @pytest.fixture(scope="module")
@@ -176,3 +178,12 @@ def test_the_layout_model_counts_the_corners_in_the_image_of_a_cut_charuco_board
     for i, f in enumerate(frames):
         assert np.array_equal(f.camera.corner_ids, seen_corners(layout, i))
         assert np.linalg.norm(f.camera.T_camera_board[:3, 3] - poses[i][:3, 3]) < 0.05
+
+
+def test_a_charuco_bag_extracts_one_frame_per_still_pose(charuco_3d, tmp_path):
+    """The bag's stillness check compares the ChArUco corners two images share, cut boards included."""
+    bag = write_bag_from_dataset(charuco_3d, tmp_path / "rig.bag", "ros1", image_hz=5)
+    board = load_dataset(charuco_3d).board
+    summary = extract_bag(bag, tmp_path / "ds", board, "/camera/image_raw", cloud_topic="/velodyne_points")
+    assert summary.frames == 8 and summary.counts["kept"] == 8
+    assert load_dataset(tmp_path / "ds").board == board  # the board entry, ChArUco keys included
