@@ -100,6 +100,19 @@ class CameraModel:
             return ((uv[:, 0] >= margin_px) & (uv[:, 0] <= self.width - 1 - margin_px)
                     & (uv[:, 1] >= margin_px) & (uv[:, 1] <= self.height - 1 - margin_px))
 
+    def sees(self, points_c: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        """Which (N, 3) camera-frame points the camera images: in front of it, projected inside the image,
+        and truly there. A distortion polynomial folds back far outside its calibrated field, so a point well
+        outside the field of view can project into the image; such a point's pixel does not undistort back to
+        its own direction and is not seen."""
+        P = np.asarray(points_c, dtype=float).reshape(-1, 3)
+        uv = self.project(P)
+        ok = self.in_image(uv, margin_px)
+        if ok.any():
+            back = self.normalized_from_pixels(uv[ok])
+            ok[np.nonzero(ok)[0]] = np.linalg.norm(back - P[ok, :2] / P[ok, 2:], axis=1) < 1e-4
+        return ok
+
     @property
     def params(self) -> np.ndarray:
         """``[fx, fy, cx, cy, dist...]``."""

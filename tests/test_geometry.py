@@ -162,3 +162,14 @@ def test_weak_normal_spread_is_refused_alone_but_starts_a_refinement():
         solve_closed_form(cam, lid)
     sol = solve_closed_form(cam, lid, allow_weak=True)
     np.testing.assert_allclose(sol.T_camera_lidar, T, atol=1e-9)
+
+
+def test_a_point_far_outside_the_field_that_distortion_folds_into_the_image_is_not_seen():
+    # A wide lens (k1 -0.25, k2 0.08, k3 -0.01): its polynomial returns to zero near 69 degrees off axis, so a
+    # point there projects near the image's centre. The bench of ChArUco cut poses met it (NaN board poses).
+    cam = CameraModel(K=np.array([[640.0, 0, 640], [0, 640, 400], [0, 0, 1]]),
+                      dist=np.array([-0.25, 0.08, 0.0, 0.0, -0.01]), width=1280, height=800)
+    folded, near, behind = np.array([2.55, 0.0, 1.0]), np.array([0.3, -0.2, 1.0]), np.array([0.0, 0.0, -1.0])
+    uv = cam.project(np.array([folded, near]))
+    assert np.all(cam.in_image(uv))  # both land in the image...
+    assert cam.sees(np.array([folded, near, behind])).tolist() == [False, True, False]  # ...one is really there

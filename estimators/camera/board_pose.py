@@ -64,6 +64,8 @@ def _gauss_newton(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np
     for _ in range(iterations):
         r = reprojection_residuals(T, X, camera, corners)
         J = _pose_jacobian(T, X, camera, corners)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+            raise MeasurementError("the board pose does not converge (corners project behind the camera)")
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
         T = T_retract(T, step)
         if np.linalg.norm(step) < 1e-10:

@@ -190,8 +190,7 @@ def scan_crossing_length(board: BoardModel, T_lidar_board: np.ndarray) -> float:
 
 def corners_in_image_share(rig: Rig, T_camera_board: np.ndarray) -> float:
     """The share of the board's inner corners inside the image (15 px from its edge)."""
-    corners = rig.camera.project(transform_points(T_camera_board, rig.board.inner_corners()))
-    return float(np.mean(rig.camera.in_image(corners, margin_px=15.0)))
+    return float(np.mean(rig.camera.sees(transform_points(T_camera_board, rig.board.inner_corners()), margin_px=15.0)))
 
 
 def min_in_image(board: BoardModel) -> float:

@@ -81,10 +81,10 @@ def corner_pixels(layout: Layout, i: int) -> np.ndarray:
 def seen_corners(layout: Layout, i: int) -> np.ndarray:
     """Which of board ``i``'s inner corners the camera sees: all of a checkerboard's (it is seen whole or
     not at all), the ones inside the image of a ChArUco board."""
-    uv = corner_pixels(layout, i)
+    n = len(layout.board.inner_corners())
     if not layout.board.is_charuco:
-        return np.arange(len(uv))
-    return np.nonzero(layout.camera.in_image(uv))[0]
+        return np.arange(n)
+    return np.nonzero(layout.camera.sees(transform_points(layout.T_camera_board[i], layout.board.inner_corners())))[0]
 
 
 def frame_information(layout: Layout, i: int, terms: RangeTerms | None = None) -> np.ndarray:
