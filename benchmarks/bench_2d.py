@@ -152,7 +152,7 @@ def main() -> None:
 
     table("(i) true-solution hit rate vs number of boards (1 cm range noise); a refusal counts as a miss",
           by_boards, "boards")
-    if by_noise:
+    if a.pattern == "checkerboard":
         table("(ii) true-solution hit rate vs range noise (4 boards)", by_noise, "noise")
 
     print("\n(iii) accuracy of the default selection's hits against the Cramer-Rao bound (RMS error / mean bound)")
