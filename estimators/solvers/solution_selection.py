@@ -448,7 +448,10 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     refine_all([c.T_camera_lidar for c in sel.candidates])
     if len(usable) <= REFINE_ALL_UP_TO or not plausible():
         refine_all([c.T_camera_lidar for c in sel.reserve])
-    if not plausible() and not sel.fallback:
+    if not sel.fallback and (not plausible() or (len(usable) <= REFINE_ALL_UP_TO and len(_distinct(refined)) < 2)):
+        # An implausible best fit, or with few boards a single minimum: that no other root was found is no
+        # proof that there is none (a root the minimal solver lost to noise), so the multi-start search looks
+        # for others, whose evidence is then weighed against it.
         refine_all(multistart_candidates(usable, sigma_r))
     if not refined:
         if error:
