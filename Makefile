@@ -30,6 +30,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
 	$(PY) benchmarks/bench_2d.py --pattern charuco
+	$(PY) benchmarks/bench_2d_honesty.py varied 300
+	$(PY) benchmarks/bench_2d_honesty.py default 200
 	$(PY) benchmarks/bench_charuco.py
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
