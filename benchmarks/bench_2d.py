@@ -61,8 +61,10 @@ def occlude_ends(frames, rng, share=0.2):
     return out
 
 
-def trial(args) -> dict:
-    seed, config, n_boards, noise_m, pattern = args
+def trial_setup(seed: int, config: str, n_boards: int, noise_m: float, pattern: str = "checkerboard"):
+    """One trial's rig, layout, measured frames and the truth's basin (the minimum the factor graph reaches
+    from the truth, refined twice so that its noise terms are estimated there; None when that refinement is
+    itself degenerate)."""
     rng = np.random.default_rng(seed)
     rig = rig_2d(config, rng, noise_m)
     if pattern == "charuco":  # the same board printed as ChArUco, 30% of the poses cut by the image's edge
@@ -72,13 +74,20 @@ def trial(args) -> dict:
     frames = simulate_measurements(layout, rng)
     if config == "varied":
         frames = occlude_ends(frames, rng)
-    out = {"config": config, "boards": n_boards, "noise_m": noise_m,
-           "crb": np.sqrt(np.diag(cramer_rao_bound(layout)))}
     try:
-        # Refined twice: the second pass estimates the noise terms at the minimum rather than at the truth.
         truth_basin = refine(frames, rig.board, rig.camera, rig.T_camera_lidar).T_camera_lidar
         truth_basin = refine(frames, rig.board, rig.camera, truth_basin).T_camera_lidar
     except DegenerateLayoutError:
+        truth_basin = None
+    return rig, layout, frames, truth_basin
+
+
+def trial(args) -> dict:
+    seed, config, n_boards, noise_m, pattern = args
+    rig, layout, frames, truth_basin = trial_setup(seed, config, n_boards, noise_m, pattern)
+    out = {"config": config, "boards": n_boards, "noise_m": noise_m,
+           "crb": np.sqrt(np.diag(cramer_rao_bound(layout)))}
+    if truth_basin is None:
         out["skipped"] = True
         return out
     for label, method, extent in SELECTIONS:

@@ -17,24 +17,12 @@ S.MIN_MODE_MASS = 0.0  # keep every minimum: thresholds applied here
 import bench_2d as B
 from estimators.calibration import refine_candidates
 from estimators.errors import DegenerateLayoutError
-from estimators.simulation.simulator import rig_2d, sample_board_poses
-from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.refinement import refine
 from estimators.solvers.solution_selection import select_minimal, solution_distances
 
 def one(args):
     seed, config = args
-    rng = np.random.default_rng(seed)
-    rig = rig_2d(config, rng, 0.01)
-    poses = sample_board_poses(rig, 3, rng)
-    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.01)
-    frames = simulate_measurements(layout, rng)
-    if config == "varied":
-        frames = B.occlude_ends(frames, rng)
-    try:
-        tb = refine(frames, rig.board, rig.camera, rig.T_camera_lidar).T_camera_lidar
-        tb = refine(frames, rig.board, rig.camera, tb).T_camera_lidar
-    except DegenerateLayoutError:
+    rig, _, frames, tb = B.trial_setup(seed, config, 3, 0.01)
+    if tb is None:
         return None
     try:
         sel = select_minimal(frames, rig.board, "minimal-lower-bound", use_extent=True)
@@ -45,6 +33,7 @@ def one(args):
     truth = [k for k, m in enumerate(modes) if solution_distances(np.array([m.T_camera_lidar, tb]))[0] < 0.05]
     return {"refused": False, "masses": masses, "truth": truth[0] if truth else -1,
             "costs": [(m.cost, m.outline_cost) for m in modes]}
+
 
 def main() -> None:
     config = sys.argv[1]; n = int(sys.argv[2])

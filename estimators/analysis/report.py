@@ -156,15 +156,14 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
         outlines = ((board_px, _LIME, "board (camera)"), (lidar_px, _RED, "board (LiDAR)"))
     # The board's inner corners: the ones the detector saw as small circles, the others (a ChArUco board
     # cut by the image's edge or hidden) in grey where the board pose puts them inside the image.
-    all_uv = cam.project(transform_points(frame.camera.T_camera_board, board.inner_corners()))
-    seen = np.zeros(len(all_uv), bool)
+    corners_c = transform_points(frame.camera.T_camera_board, board.inner_corners())
+    seen = np.zeros(len(corners_c), bool)
     seen[frame.camera.corner_ids if frame.camera.corner_ids is not None else slice(None)] = True
-    for k, (u, v) in enumerate(all_uv):
-        if np.isfinite(u) and np.isfinite(v) and 0 <= u < cam.width and 0 <= v < cam.height:
-            centre = (int(round((u + 0.5) * scale * 16 - 8)), int(round((v + 0.5) * scale * 16 - 8)))
-            cv2.circle(bgr, centre, 3 * 16, _LIME if seen[k] else _GREY, 1, cv2.LINE_AA, shift=4)
+    inside = cam.sees(corners_c)
+    for k, (cu, cv) in zip(np.nonzero(inside)[0], _subpixel_points(cam.project(corners_c[inside]), scale)):
+        cv2.circle(bgr, (int(cu), int(cv)), 3 * 16, _LIME if seen[k] else _GREY, 1, cv2.LINE_AA, shift=4)
     for poly, colour, _ in outlines:
-        pts = np.rint((np.asarray(poly) + 0.5) * scale * 16 - 8).astype(np.int32)  # 4 fractional bits
+        pts = _subpixel_points(poly, scale)
         if np.all(np.abs(pts) < 2**28):
             cv2.polylines(bgr, [pts.reshape(-1, 1, 2)], True, colour, 2, cv2.LINE_AA, shift=4)
     title = (f"frame {frame.name}: laser line on the board" if frame.lidar.is_scan_line else
@@ -178,6 +177,11 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
 
 
 _LIME, _RED, _GREY = (0, 255, 0), (0, 0, 255), (150, 150, 150)  # BGR
+
+
+def _subpixel_points(uv, scale: float) -> np.ndarray:
+    """Camera pixels as OpenCV drawing coordinates in the reduced image, with 4 fractional bits (``shift=4``)."""
+    return np.rint((np.asarray(uv, dtype=float) + 0.5) * scale * 16 - 8).astype(np.int32)
 
 
 def _caption(width: int, title: str, legend: list[tuple[tuple[int, int, int], str]], depth_range, cmap) -> np.ndarray:
