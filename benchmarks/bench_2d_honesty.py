@@ -32,7 +32,7 @@ def one(args):
     masses = [m.mass for m in modes]
     truth = [k for k, m in enumerate(modes) if solution_distances(np.array([m.T_camera_lidar, tb]))[0] < 0.05]
     return {"refused": False, "masses": masses, "truth": truth[0] if truth else -1,
-            "costs": [(m.cost, m.outline_cost) for m in modes]}
+            "costs": [(m.cost, m.outline_cost, m.evidence) for m in modes]}
 
 
 def main() -> None:

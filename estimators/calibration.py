@@ -243,7 +243,8 @@ class CalibrationResult:
             "candidate_costs": [c.cost for c in sel.candidates], "degenerate_triples": list(sel.degenerate_triples),
             "weak_triples": list(sel.weak_triples), "multistart_fallback": sel.fallback, "seconds": sel.seconds},
             "modes": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
-                       "refined_cost": m.cost, "outline_cost": m.outline_cost} for m in self.modes],
+                       "refined_cost": m.cost, "outline_cost": m.outline_cost,
+                       "evidence": m.evidence} for m in self.modes],
             "ambiguous": len(self.modes) > 1}
 
     def to_dict(self) -> dict:

@@ -3,6 +3,9 @@ mass), ill-conditioned triples solved instead of refused, the multi-start fallba
 configuration (simulated ground truth, fixed seeds)."""
 from __future__ import annotations
 
+from dataclasses import replace
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -11,8 +14,10 @@ from estimators.simulation.simulator import default_rig_2d, rig_2d, sample_board
 from estimators.solvers.minimal_solver import MIN_LINE_SIN, solve_three_boards
 from estimators.solvers.observation_model import Layout, simulate_measurements
 from estimators.solvers.refinement import pooled_range_noise_m, refine
-from estimators.solvers.solution_selection import (MIN_MODE_MASS, multistart_candidates, outline_costs,
-                                                   refine_candidates, select_minimal, solution_distances)
+from estimators.solvers.solution_selection import (MIN_MODE_MASS, SHARED_OPTIMUM_RATIO, _merge_by_joint_optimum,
+                                                   laser_costs, marginal_laser_costs, multistart_candidates,
+                                                   outline_costs, refine_candidates, select_minimal,
+                                                   solution_distances)
 from geometry.lines import fit_line_tls
 from geometry.planes import Plane
 from geometry.rotations import T_exp, T_inverse, transform_points
@@ -45,6 +50,45 @@ def test_outline_cost_is_small_at_the_truth_and_grows_when_the_chord_slides():
     assert at_truth < 4 * len(frames)  # each of 2N ends within about 1.4 sd of its expected depth
     slid = T @ T_exp(np.array([0, 0, 0, 0.0, 0.10, 0.0]))  # 10 cm along the LiDAR's y (along the scan)
     assert outline_costs(slid[None], frames, rig.board, sigma)[0] > at_truth + 50
+
+
+@pytest.mark.parametrize("n_boards", [3, 4])
+def test_laser_cost_with_uncertain_camera_planes_is_chi_square_at_the_truth(n_boards):
+    """At the true extrinsic each board's 2 whitened line residuals, scored against the range noise and the
+    camera plane's own covariance, are chi-square(2): over 30 layouts the mean is 2N within 20% (the mean's
+    statistical sd is under 10%), where treating the camera planes as exact overstates it. With a zero plane
+    covariance the two costs are the same."""
+    marginal, exact = [], []
+    for seed in range(30):
+        rig, frames = _frames("default", n_boards, seed)
+        T = rig.T_camera_lidar[None]
+        marginal.append(marginal_laser_costs(T, frames, 0.01)[0])
+        exact.append(laser_costs(T, frames, 0.01)[0])
+    assert abs(np.mean(marginal) / (2 * n_boards) - 1) < 0.2
+    assert np.mean(exact) > 1.3 * np.mean(marginal)
+    rig, frames = _frames("default", n_boards, 0)
+    frames = [replace(f, camera=replace(f.camera, plane_covariance=np.zeros((4, 4)))) for f in frames]
+    Ts = np.stack([rig.T_camera_lidar, rig.T_camera_lidar @ T_exp(np.array([0.01, 0, 0, 0, 0.02, 0]))])
+    np.testing.assert_allclose(marginal_laser_costs(Ts, frames, 0.01), laser_costs(Ts, frames, 0.01), rtol=1e-9)
+
+
+def test_minima_sharing_one_joint_optimum_are_weighted_by_their_distance_to_it():
+    """Two minima whose joint optima coincide share the better evidence; the one nearer the optimum keeps
+    weight 1, the other, ``1 / SHARED_OPTIMUM_RATIO`` times as far, gets 1%. A minimum with its own optimum
+    is its own mode with its own evidence."""
+    def pose(dx):  # a transform dx metres along x: solution distance 20 * dx
+        T = np.eye(4)
+        T[0, 3] = dx
+        return T
+    d_near = 0.2
+    optimum = pose(d_near)
+    refs = [SimpleNamespace(T_camera_lidar=T) for T in (pose(0.0), pose(d_near + d_near / SHARED_OPTIMUM_RATIO),
+                                                         pose(5.0))]
+    evidence = np.array([2.0, 1.5, 7.0])
+    optima = np.stack([optimum, optimum, pose(5.0)])
+    shared, log_w = _merge_by_joint_optimum(evidence, optima, refs)
+    np.testing.assert_allclose(shared, [1.5, 1.5, 7.0])
+    assert log_w[0] == 0.0 and np.exp(log_w[1]) == pytest.approx(0.01, rel=1e-6) and log_w[2] == 0.0
 
 
 def test_three_boards_choose_the_true_root_and_are_honest_when_they_cannot():

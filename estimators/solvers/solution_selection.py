@@ -95,19 +95,19 @@ class MinimalSelection:
 @dataclass(frozen=True, eq=False)
 class Mode:
     """One refined minimum of a 2D calibration and its evidence. ``cost``: the factor graph's chi-square;
-    ``outline_cost``: the least ``-2 log`` likelihood of the segment ends against the board outlines over the
-    minimum's basin (0 when the board size is unknown); ``mass``: its share of the posterior mass among the
-    minima found, from ``exp(-(cost + outline_cost) / 2)`` (the basins' widths are taken as equal)."""
+    ``evidence``: ``-2 log`` of the minimum's likelihood, from which ``mass``, its share of the posterior mass
+    among the minima found, is ``exp(-evidence / 2)`` normalised (the basins' widths taken as equal). When the
+    board size is known the evidence is the least joint cost of the laser points and the segment ends near
+    the minimum (``outline_evidence``), and ``outline_cost`` the segment ends' share of it; minima whose joint
+    optima coincide share that optimum's evidence, weighted by their distance to it
+    (``_merge_by_joint_optimum``). Otherwise the evidence is ``cost`` and ``outline_cost`` 0."""
 
     T_camera_lidar: np.ndarray
     cost: float
     outline_cost: float
+    evidence: float
     mass: float
     refinement: Refinement
-
-    @property
-    def evidence(self) -> float:
-        return self.cost + self.outline_cost
 
 
 def _camera_planes(frames: list[FrameMeasurement]) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +155,31 @@ def laser_residuals(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: flo
             e = e / np.hypot(pi[:, 0], pi[:, 1])[:, None]
         blocks.append(e / sigma_r)
     return np.concatenate(blocks, axis=1)
+
+
+def marginal_laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
+    """``laser_costs`` with each board's camera plane uncertain: per board, the whitened laser residual ``e``
+    (linear in the camera plane ``(n, d)``) is scored against ``I + J C J^T``, ``C`` the plane's covariance
+    from its corners and ``J = de / d(n, d)`` at each ``T``. With 3 boards every root fits the camera planes
+    exactly, and the true extrinsic lies off them by about the planes' own error: this cost sees it as
+    such, where ``laser_costs`` (planes exact) cannot."""
+    normals, dists, Ws = _board_data(frames, sigma_r)
+    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+    total = np.zeros(len(Ts))
+    for n, d, W, f in zip(normals, dists, Ws, frames):
+        pi = np.empty((len(Ts), 4))
+        pi[:, :3] = np.einsum("kji,j->ki", R, n)  # R^T n
+        pi[:, 3] = t @ n - d
+        scale = sigma_r * (np.hypot(pi[:, 0], pi[:, 1]) if f.lidar.is_scan_line else np.ones(len(Ts)))
+        e = (pi @ W.T) / scale[:, None]
+        D = np.zeros((len(Ts), 4, 4))  # d pi / d (n, d)
+        D[:, :3, :3] = np.transpose(R, (0, 2, 1))
+        D[:, 3, :3] = t
+        D[:, 3, 3] = -1.0
+        J = np.einsum("ij,kjl->kil", W, D) / scale[:, None, None]
+        S = np.eye(len(W))[None] + J @ f.camera.plane_covariance @ np.transpose(J, (0, 2, 1))
+        total += np.einsum("ki,ki->k", e, np.linalg.solve(S, e[..., None])[..., 0])
+    return total
 
 
 def extent_violation(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel) -> np.ndarray:
@@ -392,29 +417,70 @@ def _quasi_uniform_quaternions(n: int) -> np.ndarray:
 
 
 def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float,
-                     rng: np.random.Generator | None = None) -> float:
-    """The least of ``xi^T C^-1 xi + outline_costs(T Exp(xi))`` over the refined minimum's basin (``C`` its
-    covariance, the factor graph's cost near the minimum): the outline cue's evidence for this minimum.
+                     rng: np.random.Generator | None = None, n_polish: int = 2) -> tuple[float, float, np.ndarray]:
+    """The least joint cost ``J(T) = M(T) + outline_costs(T)`` near the refined minimum (``M``:
+    ``marginal_laser_costs``, the laser points against the camera planes with their uncertainty), the
+    outline's share of it, and the ``T`` where it is reached.
 
-    At 3 boards the factor graph fits every minimum exactly and leaves the translation along the boards loose;
-    the segment ends pin it. Found by 512 draws from the basin and a Powell polish of the best."""
+    At 3 boards the factor graph fits every minimum exactly and leaves a direction along the boards loose
+    (standard deviations of tens of centimetres), and the true extrinsic can lie far along that curved valley,
+    where a quadratic model of the basin puts it at tens of sigma; the segment ends pin it. With more boards
+    the factor graph's cost is not comparable between minima (its per-board plane error, estimated at each
+    minimum, absorbs a wrong minimum's misfit); ``J`` takes the same noise at every minimum. Searched in the
+    minimum's whitened coordinates (its covariance): 2 x 1024 draws at 1.5 and 4 sigma, then a Powell polish
+    of the ``n_polish`` best."""
     rng = np.random.default_rng(0) if rng is None else rng
     w, V = np.linalg.eigh(0.5 * (ref.covariance + ref.covariance.T))
     L = V * np.sqrt(np.maximum(w, 0.0))
     T = ref.T_camera_lidar
 
     def cost(Z: np.ndarray) -> np.ndarray:
-        Z = np.atleast_2d(Z)
-        return np.sum(Z**2, axis=1) + outline_costs(_retract(T, Z @ L.T), frames, board, sigma_r)
+        Ts = _retract(T, np.atleast_2d(Z) @ L.T)
+        return marginal_laser_costs(Ts, frames, sigma_r) + outline_costs(Ts, frames, board, sigma_r)
 
-    Z = np.vstack([np.zeros(6), rng.normal(0.0, 1.5, (512, 6))])
+    Z = np.vstack([np.zeros(6), rng.normal(0.0, 1.5, (1024, 6)), rng.normal(0.0, 4.0, (1024, 6))])
     values = cost(Z)
-    best = float(values.min())
-    if best > 1e-6:
-        res = minimize(lambda z: float(cost(z)[0]), Z[int(np.argmin(values))], method="Powell",
+    k = int(np.argmin(values))
+    best, z_best = float(values[k]), Z[k]
+    for k in np.argsort(values)[:n_polish]:
+        res = minimize(lambda z: float(cost(z)[0]), Z[k], method="Powell",
                        options={"xtol": 1e-3, "ftol": 1e-4, "maxfev": 3000})
-        best = min(best, float(res.fun))
-    return best
+        if res.fun < best:
+            best, z_best = float(res.fun), res.x
+    T_best = _retract(T, (z_best @ L.T)[None])
+    return best, float(outline_costs(T_best, frames, board, sigma_r)[0]), T_best[0]
+
+
+# Two minima that share one joint optimum (``_merge_by_joint_optimum``): the nearer one to that optimum is the
+# truth's when its distance is under this share of the next one's; around and above it either can be (measured
+# on simulated 3-board layouts, ``benchmarks/bench_2d_honesty.py``). A member at this distance ratio gets 1% of
+# the nearest member's weight, and less the farther it lies.
+SHARED_OPTIMUM_RATIO = 0.38
+
+
+def _merge_by_joint_optimum(evidence: np.ndarray, optima: np.ndarray, refs: list) -> tuple[np.ndarray, np.ndarray]:
+    """Minima whose joint optima (laser and outline cue, ``outline_evidence``) coincide are one mode of the
+    posterior: roots at the ends of one shallow valley of the laser cost, the segment ends pinning a point
+    between them. A group's members share its best evidence, weighted by how near each lies to that point
+    (the nearest 1, one at ``1 / SHARED_OPTIMUM_RATIO`` times its distance 0.01). Returns each minimum's
+    evidence and log weight."""
+    groups: list[list[int]] = []
+    for k in np.argsort(evidence):
+        for g in groups:
+            if solution_distances(np.array([optima[g[0]], optima[k]]))[0] < 1.0:
+                g.append(k)
+                break
+        else:
+            groups.append([k])
+    c = np.log(100.0) / (SHARED_OPTIMUM_RATIO**-2 - 1.0)
+    shared, log_weight = np.array(evidence, dtype=float), np.zeros(len(evidence))
+    for g in groups:
+        point = optima[g[0]]  # the least evidence: the group's optimum
+        d = np.array([solution_distances(np.array([refs[k].T_camera_lidar, point]))[0] for k in g])
+        nearest = max(d.min(), 0.05)
+        shared[g] = evidence[g[0]]
+        log_weight[g] = -c * ((np.maximum(d, nearest) / nearest) ** 2 - 1.0)
+    return shared, log_weight
 
 
 def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, sel: MinimalSelection,
@@ -423,8 +489,9 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     """Refine every selected candidate; return the refinement of the most probable minimum and every distinct
     minimum holding at least ``MIN_MODE_MASS`` of the posterior mass, most probable first.
 
-    A minimum's evidence is its refined cost plus, when the board size is known, the outline cue
-    (``outline_evidence``). More than one mode returned means the data do not decide between them."""
+    A minimum's evidence (``Mode``) is its refined cost or, when the board size is known, the joint cost of
+    the laser points and the segment ends near it (``outline_evidence``). More than one mode returned means
+    the data do not decide between them."""
     usable = [f for f in used if f.usable]
     sigma_r = max(pooled_range_noise_m(usable), 1e-5)
     refined: list = []
@@ -478,13 +545,19 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     distinct = _distinct(polished)
     if use_extent is None:
         use_extent = board.size_known
-    outline = [outline_evidence(r, usable, board, sigma_r) if use_extent and len(distinct) > 1 else 0.0
-               for _, r in distinct]
-    evidence = np.array([c for c, _ in distinct]) + np.array(outline)
-    mass = np.exp(-0.5 * (evidence - evidence.min()))
+    costs = np.array([c for c, _ in distinct])
+    refs = [r for _, r in distinct]
+    if use_extent and len(distinct) > 1:
+        evidence, outline, optima = (np.array(v) for v in zip(*(outline_evidence(r, usable, board, sigma_r)
+                                                                 for r in refs)))
+        evidence, log_weight = _merge_by_joint_optimum(evidence, optima, refs)
+    else:
+        evidence, outline, log_weight = costs, np.zeros(len(refs)), np.zeros(len(refs))
+    log_mass = log_weight - 0.5 * evidence
+    mass = np.exp(log_mass - log_mass.max())
     mass /= mass.sum()
     order = np.argsort(-mass)
-    modes = tuple(Mode(distinct[k][1].T_camera_lidar, float(distinct[k][0]), float(outline[k]), float(mass[k]),
-                       distinct[k][1]) for k in order)
+    modes = tuple(Mode(refs[k].T_camera_lidar, float(costs[k]), float(outline[k]), float(evidence[k]),
+                       float(mass[k]), refs[k]) for k in order)
     kept = (modes[0],) + tuple(m for m in modes[1:] if m.mass >= MIN_MODE_MASS)
     return kept[0].refinement, kept
