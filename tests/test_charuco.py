@@ -141,13 +141,19 @@ def test_intrinsics_from_partial_charuco_views(tmp_path):
             assert np.array_equal(a.camera.corner_ids, b.camera.corner_ids)
 
 
-def test_charuco_2d_calibrates_through_the_api(tmp_path):
+def test_charuco_2d_calibrates_through_the_api_and_the_cli(tmp_path):
     data = simulate_dataset(tmp_path / "scan2d", n_poses=6, seed=23, lidar="2d", pattern="charuco")
     ds = load_dataset(data)
     result = calibrate(ds, rng=np.random.default_rng(0), posterior=None)
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert result.frames_used == 6
     assert np.degrees(np.linalg.norm(xi[:3])) < 1.0 and np.linalg.norm(xi[3:]) < 0.05
+    # and through the CLI, to the same answer
+    out = tmp_path / "out"
+    assert main(["calibrate", str(data), "--out", str(out), "--samples", "0", "--no-report", "--no-cache"]) == 0
+    cli = json.loads((out / "calibration.json").read_text())
+    assert cli["frames_used"] == 6
+    np.testing.assert_allclose(np.array(cli["T_camera_lidar"]), result.T_camera_lidar, atol=1e-6)
 
 
 def test_stillness_compares_the_charuco_corners_both_views_saw():
