@@ -15,8 +15,10 @@ of every triple is scored by the laser cost over all boards and the least one is
    chi-square(6); a triple's solution carries the error of 3 boards' data, which costs about
    ``N / 3`` times more under all N boards. Representatives with
    ``S - min S <= chi2_6(1 - ALPHA) * max(1, N / 3)`` are kept (the effective lower bound on the
-   probability), each is refined by the factor graph, and the least refined cost wins. Distinct refined
-   minima within ``chi2_6(0.95)`` of the best make the answer ambiguous, which is reported.
+   probability), and each is refined by the factor graph.
+5. Each distinct refined minimum gets its evidence (``Mode``: with the board size known, the joint cost near it
+   of the laser points on the uncertain camera planes and of the segment ends) and its share of the posterior
+   mass; every other minimum holding at least ``MIN_MODE_MASS`` makes the answer ambiguous, which is reported.
 """
 from __future__ import annotations
 
