@@ -137,6 +137,15 @@ def _board_data(frames: list[FrameMeasurement], sigma_r: float):
     return normals, dists, [lidar_whitener(f.lidar, sigma_r) for f in frames]
 
 
+def _plane_in_lidar(Ts: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    """The camera plane ``n . x = d`` in the LiDAR frame for each of (K, 4, 4) ``T_camera_lidar``:
+    ``[R^T n; t . n - d]``, (K, 4)."""
+    pi = np.empty((len(Ts), 4))
+    pi[:, :3] = np.einsum("kji,j->ki", Ts[:, :3, :3], n)
+    pi[:, 3] = Ts[:, :3, 3] @ n - d
+    return pi
+
+
 def laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
     """``S(T)`` for each of (K, 4, 4) ``T_camera_lidar``: the boards' camera planes (from their PnP poses)
     mapped into the LiDAR frame, scored by every laser point's range residual."""
@@ -146,12 +155,9 @@ def laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) 
 def laser_residuals(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r: float) -> np.ndarray:
     """The whitened residuals (K, M) behind ``laser_costs``: ``S(T)`` is the sum of their squares."""
     normals, dists, Ws = _board_data(frames, sigma_r)
-    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
     blocks = []
     for n, d, W, f in zip(normals, dists, Ws, frames):
-        pi = np.empty((len(Ts), 4))
-        pi[:, :3] = np.einsum("kji,j->ki", R, n)  # R^T n
-        pi[:, 3] = t @ n - d
+        pi = _plane_in_lidar(Ts, n, d)
         e = pi @ W.T
         if f.lidar.is_scan_line:
             e = e / np.hypot(pi[:, 0], pi[:, 1])[:, None]
@@ -169,9 +175,7 @@ def marginal_laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
     total = np.zeros(len(Ts))
     for n, d, W, f in zip(normals, dists, Ws, frames):
-        pi = np.empty((len(Ts), 4))
-        pi[:, :3] = np.einsum("kji,j->ki", R, n)  # R^T n
-        pi[:, 3] = t @ n - d
+        pi = _plane_in_lidar(Ts, n, d)
         scale = sigma_r * (np.hypot(pi[:, 0], pi[:, 1]) if f.lidar.is_scan_line else np.ones(len(Ts)))
         e = (pi @ W.T) / scale[:, None]
         D = np.zeros((len(Ts), 4, 4))  # d pi / d (n, d)
