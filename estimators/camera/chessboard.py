@@ -1,9 +1,9 @@
 """Finding the checkerboard's inner corners in an image.
 
 Recorded images defeat any single detector setting, so several are tried in turn: the sector-based
-detector (``findChessboardCornersSB``) on reduced copies of a large image (corners refined at full
-resolution), then at full resolution with and without its accuracy and normalisation flags, then the
-classic detector with sub-pixel refinement.
+detector (``findChessboardCornersSB``) on an image pyramid, the reduced copies of a large image first and the
+full image last, with the fast flags (corners refined at full resolution); then at full resolution with its
+accuracy and normalisation flags; then the classic detector with sub-pixel refinement.
 """
 from __future__ import annotations
 
@@ -58,8 +58,10 @@ CLASSIC_BUDGET_S = 20.0
 # Reduced copies are searched first: the detector's cost grows with the pixel count, while the pattern is
 # found as well once its squares are this many pixels wide or more.
 MIN_SQUARE_PX_REDUCED = 12.0
-# Flag sets for a reduced copy, most often successful first (the full-resolution chain follows on failure).
-_REDUCED_ATTEMPTS = (
+# Flag sets for each level of the pyramid, most often successful first. Without the accuracy flag (which
+# makes the detector 4x slower) and with the two ``cornerSubPix`` passes that follow, the corners are as
+# accurate: 0.053 px RMS against the truth either way on 30 rendered 1024x768 boards, 0.057 px at 1920x1208.
+_PYRAMID_ATTEMPTS = (
     ("SB exhaustive", cv2.CALIB_CB_EXHAUSTIVE),
     ("SB normalize+exhaustive", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
 )
@@ -70,8 +72,9 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
     """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all (a
     ChArUco board: the corners seen, with their ids, by ``charuco.detect_charuco``).
 
-    First on reduced copies (halved while the image is 1000 px or larger), the corners then
-    refined at full resolution; then at full resolution with every setting. The sector-based detector's
+    First on a pyramid with the fast flags: reduced copies (halved while the image is 1000 px or larger),
+    then the full image, the corners refined at full resolution; then at full resolution with every
+    setting. The sector-based detector's
     corners carry a systematic, board-wide error (in simulation a scale error of about 4e-4 that moves each
     board's depth by millimetres, the same way on every board); the final ``cornerSubPix`` step on the full
     image's gradient removes most of it, whichever copy the pattern was found in. The classic detector, last,
@@ -83,20 +86,20 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
 
         return detect_charuco(gray, board)
     pattern = board.inner_corners_shape
-    found = _detect_reduced(gray, pattern)
+    found = _detect_pyramid(gray, pattern)
     if found is not None:
         return found
     return _detect_full(gray, pattern, budget_s)
 
 
-def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
-    copies, level = [], gray
+def _detect_pyramid(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
+    copies, level = [gray], gray
     while max(level.shape) >= 1000:
         level = cv2.pyrDown(level)
         copies.append(level)
-    for level in reversed(copies):  # coarsest first
+    for level in reversed(copies):  # coarsest first, the full image last
         scale = gray.shape[1] / level.shape[1]
-        for name, flags in _REDUCED_ATTEMPTS:
+        for name, flags in _PYRAMID_ATTEMPTS:
             ok, corners = cv2.findChessboardCornersSB(level, pattern, flags=flags)
             if not ok or corners is None or len(corners) != pattern[0] * pattern[1]:
                 continue
@@ -104,7 +107,7 @@ def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetecti
             grid = c.reshape(pattern[1], pattern[0], 2)
             side = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
                        np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
-            if side < MIN_SQUARE_PX_REDUCED:
+            if side < MIN_SQUARE_PX_REDUCED and level is not gray:
                 break  # too small here to trust: try a finer copy
             # Pixel centres: x_full = (x_reduced + 0.5) * scale - 0.5.
             full = (c + 0.5) * scale - 0.5
@@ -112,7 +115,8 @@ def _detect_reduced(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetecti
             # sampling, then the usual window settles them on the saddle point.
             full, _ = _subpixel(gray, full, pattern, max_half=int(np.clip(0.4 * side * scale, 2, 12)))
             refined, half = _subpixel(gray, full, pattern)
-            return CornerDetection(refined, f"{name} at 1/{scale:.0f}+subpix{half}")
+            at = f" at 1/{scale:.0f}" if level is not gray else ""
+            return CornerDetection(refined, f"{name}{at}+subpix{half}")
     return None
 
 
