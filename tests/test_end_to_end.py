@@ -186,3 +186,17 @@ def test_3d_scan_in_a_2d_dataset_is_refused_clearly(tmp_path):
     r = _run_cli("calibrate", str(tmp_path), "--out", str(tmp_path / "out"))
     assert r.returncode == 2 and "0000.npy" in r.stderr and "not a 2D scan" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+def test_posterior_figures_from_the_child_match_in_process(monkeypatch):
+    """The report's posterior figures drawn in a child process are the very PNGs drawn in this one, and when
+    no child can be started they are drawn here."""
+    from estimators.analysis import posterior_figures as pf
+
+    rng = np.random.default_rng(4)
+    xi, chain = 1e-3 * rng.normal(size=(3000, 6)), 1e-3 * rng.normal(size=(120, 16, 7))
+    cov = 1e-6 * np.eye(6)
+    here = pf.posterior_pngs(xi, cov, chain, 20)
+    assert all(png[:8] == b"\x89PNG\r\n\x1a\n" for png in here)
+    assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
+    monkeypatch.setattr(sys, "executable", "/nonexistent/python")
+    assert pf.start_posterior_figures(xi, cov, chain, 20)() == here

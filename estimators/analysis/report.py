@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import Normalize
-from matplotlib.figure import Figure
 
 from geometry.rotations import quat_xyzw_from_R, transform_points
 
@@ -27,40 +26,13 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.factors import lidar_plane
 from ..solvers.range_model import frame_labels, point_residuals
 from .figures import new_figure, png_bytes
+from .posterior_figures import DPI, start_posterior_figures
 
-_LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
-_UNITS = np.array([np.degrees(1.0)] * 3 + [1000.0] * 3)
 _PROJECTION_WIDTH_PX = 1200  # the projection figures' image width: 8 in at 90 dpi is 720 px, with room to zoom
 
 
 def _png(fig, tight: bool = True) -> bytes:
-    return png_bytes(fig, dpi=90, tight=tight)
-
-
-def corner_figure(result) -> bytes:
-    """Posterior of the 6 tangent axes (deg, mm; LiDAR axes) with the Laplace 1- and 2-sigma ellipses."""
-    import corner
-
-    xi = result.posterior.xi * _UNITS
-    # corner's own size for 6 axes (2 in per panel, margins), on a figure outside pyplot
-    # Density shading and contours, without corner's marker per sample outside the outer contour: those
-    # tens of thousands of markers were a quarter of the whole report's drawing time and add nothing the
-    # contours do not show.
-    fig = corner.corner(xi, fig=Figure(figsize=(13.9, 13.9)), labels=_LABELS, quantiles=[0.025, 0.5, 0.975],
-                        show_titles=True, title_fmt=".3f", title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8},
-                        plot_datapoints=False)
-    C = result.covariance_laplace * np.outer(_UNITS, _UNITS)
-    axes = np.array(fig.axes).reshape(6, 6)
-    angles = np.linspace(0, 2 * np.pi, 100)
-    circle = np.stack([np.cos(angles), np.sin(angles)])
-    for i in range(6):
-        for j in range(i):
-            vals, vecs = np.linalg.eigh(C[np.ix_([j, i], [j, i])])
-            for k in (1, 2):
-                e = vecs @ (np.sqrt(np.maximum(vals, 0))[:, None] * circle) * k
-                axes[i, j].plot(e[0], e[1], color="tab:red", lw=0.8)
-    fig.suptitle("posterior (black) and Laplace 1/2-sigma ellipses (red); offsets from the estimate", fontsize=9)
-    return _png(fig)
+    return png_bytes(fig, dpi=DPI, tight=tight)
 
 
 def residuals_figure(result) -> bytes:
@@ -86,7 +58,7 @@ def residuals_figure(result) -> bytes:
     for a in ax.ravel():
         a.set_xticks(x, names, rotation=90, fontsize=7)
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, tight=False)  # tight_layout fitted the labels already
 
 
 def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -232,21 +204,6 @@ def board_choice_figure(frame, scan_path, two_d: bool = False) -> bytes:
     return _png(fig, tight=False)  # one per frame, and the default margins fit this single square plot
 
 
-def traces_figure(result) -> bytes:
-    chain = result.posterior.run.chain
-    labels = _LABELS + ["log s (camera noise scale)"]
-    units = np.append(_UNITS, 1.0)
-    fig, ax = new_figure(7, 1, figsize=(10, 11), sharex=True)
-    step = max(1, chain.shape[1] // 12)
-    for k in range(7):
-        ax[k].plot(chain[:, ::step, k] * units[k], lw=0.4, alpha=0.6)
-        ax[k].axvline(result.posterior.run.burn, color="k", lw=0.8, ls="--")
-        ax[k].set_ylabel(labels[k], fontsize=7)
-    ax[-1].set_xlabel("step (dashed: end of burn-in)")
-    fig.tight_layout()
-    return _png(fig)
-
-
 def _table(rows: list[list[str]], head: list[str]) -> str:
     h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
     b = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
@@ -302,7 +259,7 @@ def range_residuals_figure(result) -> bytes | None:
     fig.suptitle("board points' range residuals: without the range terms (before) and with the chosen ones "
                  f"(after: {fit.chosen if fit is not None else 'none'})", fontsize=9)
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, tight=False)  # tight_layout fitted the labels already
 
 
 def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
@@ -310,9 +267,10 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
     posterior when it was sampled."""
     out = Path(out_dir)
     figures: list[tuple[str, str, bytes]] = []
-    if result.posterior is not None:
-        figures.append(("corner.png", "Posterior of the extrinsic (tangent offsets from the estimate)",
-                        corner_figure(result)))
+    posterior_pngs = None
+    if result.posterior is not None:  # the two slowest figures, drawn in a second process meanwhile
+        posterior_pngs = start_posterior_figures(result.posterior.xi, result.covariance_laplace,
+                                                 result.posterior.run.chain, result.posterior.run.burn)
     if result.refinement is not None:
         figures.append(("residuals.png", "Per-frame residuals", residuals_figure(result)))
         png = range_residuals_figure(result)
@@ -331,8 +289,10 @@ def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
     for frame in choices:
         figures.append((f"board_choice_{frame.name}.png", f"Frame {frame.name}: LiDAR board candidates (top view)",
                         board_choice_figure(frame, files[frame.name].scan, dataset.lidar == "2d")))
-    if result.posterior is not None:
-        figures.append(("traces.png", "MCMC traces", traces_figure(result)))
+    if posterior_pngs is not None:
+        corner_png, traces_png = posterior_pngs()
+        figures.insert(0, ("corner.png", "Posterior of the extrinsic (tangent offsets from the estimate)", corner_png))
+        figures.append(("traces.png", "MCMC traces", traces_png))
     for name, _, png in figures:
         write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
 

@@ -42,8 +42,23 @@ def _rays_world(xy: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
 def render_image(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], board_index: int,
                  board_outline_world: np.ndarray, rng: np.random.Generator, supersample: int = 4,
                  pixel_noise: float = 2.0, blur_sigma_px: float = 0.5) -> np.ndarray:
-    """An 8-bit greyscale image: one ray per pixel for the scene, ``supersample^2`` rays per pixel over
-    the board's bounding box (anti-aliased squares), optical blur, then Gaussian pixel noise."""
+    """An 8-bit greyscale image: :func:`render_clean`, then Gaussian pixel noise (:func:`add_pixel_noise`)."""
+    clean = render_clean(camera, T_world_camera, patches, board_index, board_outline_world, supersample,
+                         blur_sigma_px)
+    return add_pixel_noise(clean, rng, pixel_noise)
+
+
+def add_pixel_noise(clean: np.ndarray, rng: np.random.Generator, pixel_noise: float = 2.0) -> np.ndarray:
+    """A noise-free rendering as an 8-bit image with Gaussian pixel noise of ``pixel_noise`` grey levels."""
+    img = clean + rng.normal(0.0, pixel_noise, clean.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], board_index: int,
+                 board_outline_world: np.ndarray, supersample: int = 4, blur_sigma_px: float = 0.5) -> np.ndarray:
+    """The noise-free image (grey levels, float): one ray per pixel for the scene, ``supersample^2`` rays per
+    pixel over the board's edges (anti-aliased squares), then optical blur. It draws no random numbers, so
+    frames can be rendered in parallel and their noise added in order."""
     grid = _normalized_grid(camera)
     H, W = camera.height, camera.width
     origin = T_world_camera[:3, 3]
@@ -84,5 +99,4 @@ def render_image(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
     img = 20.0 + 210.0 * refl
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-    img = img + rng.normal(0.0, pixel_noise, img.shape)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return img

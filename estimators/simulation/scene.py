@@ -74,9 +74,8 @@ def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: 
     if np.linalg.norm(bundle_axis) > 0.5:
         bundle_axis = bundle_axis / np.linalg.norm(bundle_axis)
         spread = float(np.arccos(np.clip((dirs @ bundle_axis).min(), -1.0, 1.0)))
-    everything = np.arange(n_rays)
     for k, p in enumerate(patches):
-        rays = everything
+        rays = None  # every ray (no index: the full arrays are used as they are)
         if p.origin is not None:
             axis, half = _cone(origin, p)
             if half < np.pi:
@@ -85,15 +84,14 @@ def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: 
                 rays = np.nonzero(dirs @ axis >= np.cos(half))[0]
                 if len(rays) == 0:
                     continue
-        d = dirs[rays]
-        denom = d @ p.normal
+        denom = (dirs if rays is None else dirs[rays]) @ p.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (p.distance - origin @ p.normal) / denom
-        ok = np.isfinite(s) & (s > 1e-6) & (s < best[rays]) & (s <= max_range)
-        if not ok.any():
+        ok = np.isfinite(s) & (s > 1e-6) & (s < (best if rays is None else best[rays])) & (s <= max_range)
+        sel = np.flatnonzero(ok)
+        if len(sel) == 0:
             continue
-        sel = np.nonzero(ok)[0]
-        idx, s = rays[sel], s[sel]
+        idx, s = (sel if rays is None else rays[sel]), s[sel]
         if p.origin is not None:
             hit = origin + s[:, None] * dirs[idx]
             rel = hit - p.origin

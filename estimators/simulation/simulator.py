@@ -8,6 +8,7 @@ four walls.
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from ..io.pointcloud_io import write_scan, write_scan_2d
 from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
 from .range_bias import RangeBias
-from .rendering import render_image
+from .rendering import add_pixel_noise, render_clean
 from .scene import Patch, cast, infinite_plane, rectangle
 
 # LiDAR (x forward, y left, z up) to camera (x right, y down, z forward) axes.
@@ -341,13 +342,21 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     return patches, 0
 
 
+def cast_sweep(rig: Rig, patches: list[Patch]) -> tuple[np.ndarray, ...]:
+    """The noise-free sweep: every beam's direction and ring, and its range, patch and reflectance
+    (``scene.cast``); no random numbers."""
+    dirs, ring = rig.beams.directions()
+    return (dirs, ring, *cast(np.zeros(3), dirs, patches, rig.beams.max_range_m))
+
+
 def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator, board_index: int | None = None,
-                  bias: RangeBias | None = None) -> tuple[np.ndarray, ...]:
+                  bias: RangeBias | None = None, sweep: tuple[np.ndarray, ...] | None = None
+                  ) -> tuple[np.ndarray, ...]:
     """A full sweep: points (N, 3) in the LiDAR frame with Gaussian range noise (and ``bias``: systematic
     range errors, the black-square term on the board's black squares), intensity, ring (and, given
-    ``board_index``, the mask of the points that hit the board)."""
-    dirs, ring = rig.beams.directions()
-    rng_m, which, refl = cast(np.zeros(3), dirs, patches, rig.beams.max_range_m)
+    ``board_index``, the mask of the points that hit the board). ``sweep``: :func:`cast_sweep` of these
+    patches when it was cast already."""
+    dirs, ring, rng_m, which, refl = cast_sweep(rig, patches) if sweep is None else sweep
     hit = np.isfinite(rng_m)
     r = rng_m[hit] + rng.normal(0.0, rig.beams.sigma_range_m, hit.sum())
     if bias is not None and not bias.is_zero:
@@ -370,13 +379,15 @@ class SimulatedFrame:
 
 def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
                     poses: list[np.ndarray] | None = None, scene: str = "default",
-                    bias: RangeBias | None = None, outside_image_share: float = 0.0) -> list[SimulatedFrame]:
+                    bias: RangeBias | None = None, outside_image_share: float = 0.0, workers: int = 2
+                    ) -> list[SimulatedFrame]:
     """Rendered images and ray-cast sweeps of ``n_poses`` sampled board poses (or of the given ``poses``).
 
     ``scene``: ``default`` (the ground, four walls, the board on a stand), ``office`` or ``hall``
     (``simulation.office``: a static scene drawn once, the board held by a person in 70% of the frames, and
     in 3D a quarter of the boards partly above or below the LiDAR's vertical field of view).
-    ``outside_image_share``: that share of the sampled poses is cut by the image's edge (ChArUco)."""
+    ``outside_image_share``: that share of the sampled poses is cut by the image's edge (ChArUco).
+    ``workers``: threads that cast the frames of the default scene (the result does not depend on it)."""
     if scene not in SCENES:
         raise ValueError(f"Expected scene in {SCENES}, got {scene!r}")
     frames = []
@@ -389,13 +400,26 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
     if poses is None:
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
-    for k, T_cb in enumerate(poses):
+
+    def cast_frame(T_cb: np.ndarray, held: bool):
+        """Everything of one frame that draws no random numbers: its scene, image and sweep, noise-free."""
         T_lb = T_lidar_camera @ T_cb
-        held = scene != "default" and bool(rng.uniform() < 0.7)
         patches, bi = scene_patches(rig, T_lb, static, held)
-        img = render_image(rig.camera, T_lidar_camera, patches, bi,
-                           transform_points(T_lb, rig.board.outline()), rng, pixel_noise=rig.pixel_noise)
-        pts, inten, ring, on_board = simulate_scan(rig, patches, rng, bi, bias)
+        clean = render_clean(rig.camera, T_lidar_camera, patches, bi, transform_points(T_lb, rig.board.outline()))
+        return bi, clean, cast_sweep(rig, patches)
+
+    cast_frames = None
+    if scene == "default" and workers > 1:
+        # The default scene draws nothing before a frame is cast: cast every frame in parallel (numpy releases
+        # the interpreter in its large array operations), then add the noise in the original order, so that
+        # a seed gives the same dataset for any number of workers.
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            cast_frames = list(pool.map(lambda T: cast_frame(T, False), poses))
+    for k, T_cb in enumerate(poses):
+        held = scene != "default" and bool(rng.uniform() < 0.7)
+        bi, clean, sweep = cast_frames[k] if cast_frames is not None else cast_frame(T_cb, held)
+        img = add_pixel_noise(clean, rng, rig.pixel_noise)
+        pts, inten, ring, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
         frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
     return frames
 
