@@ -626,9 +626,15 @@ def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
     coordinates), for the range model's per-ring and reflectivity terms."""
     if not frame.usable or (sweep.ring is None and sweep.intensity is None):
         return frame
-    dist, idx = cKDTree(sweep.points).query(frame.lidar.points, distance_upper_bound=1e-6)
+    # Only the sweep's points in the board points' bounding box can match: a tree over those, not the sweep.
+    lo, hi = frame.lidar.points.min(axis=0) - 1e-6, frame.lidar.points.max(axis=0) + 1e-6
+    near = np.flatnonzero(np.all((sweep.points >= lo) & (sweep.points <= hi), axis=1))
+    if len(near) == 0:
+        return frame
+    dist, found = cKDTree(sweep.points[near]).query(frame.lidar.points, distance_upper_bound=1e-6)
     if not np.all(np.isfinite(dist)):
         return frame
+    idx = near[found]
     lidar = replace(frame.lidar, rings=None if sweep.ring is None else sweep.ring[idx],
                     intensity=None if sweep.intensity is None else sweep.intensity[idx])
     return replace(frame, lidar=lidar)
