@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from estimators.camera.board_pose import estimate_board_pose, plane_jacobian
-from estimators.camera.chessboard import detect_corners
+from estimators.camera.chessboard import CornerDetection, detect_corners
 from estimators.errors import MeasurementError
 from estimators.io.dataset import load_dataset
 from estimators.io.image_io import read_gray
@@ -121,3 +121,39 @@ def test_classic_detector_runs_within_its_time_budget():
         detect_corners(noise, board, budget_s=0.001)
     # Within a budget it can keep, a blank image is simply "not found".
     assert detect_corners(np.full((480, 640), 128, np.uint8), board, budget_s=10.0) is None
+
+
+def test_ambiguous_board_orientation_is_refused_not_guessed():
+    """A small board far away is foreshortened alike by two tilts (IPPE's two poses): its corners cannot say
+    which, and a plane from the wrong one is tens of degrees off under a covariance of a fraction of a degree.
+    Such a board is refused with the reason; the same board near the camera is measured as usual."""
+    from geometry.board import BoardModel
+    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    board = BoardModel((4, 4), 0.1)  # 3 x 3 inner corners
+    camera = default_rig(np.random.default_rng(0)).camera
+    centre = np.array([0.15, 0.15, 0.0])
+
+    def observe(distance, seed):
+        R = R_from_rotvec([0.0, np.radians(35.0), 0.0])
+        T = T_from_Rt(R, np.array([0.0, 0.0, distance]) - R @ centre)
+        uv = camera.project(transform_points(T, board.inner_corners()))
+        uv = uv + np.random.default_rng(seed).normal(0.0, 0.2, uv.shape)
+        return T, CornerDetection(uv, "simulated")
+
+    refused = 0
+    for seed in range(20):
+        T, det = observe(8.0, seed)
+        try:
+            obs = estimate_board_pose(det, board, camera)
+        except MeasurementError as exc:
+            assert "orientation is ambiguous" in exc.message
+            refused += 1
+            continue
+        # Kept only when the other tilt fits clearly worse: then the kept plane is the true one.
+        assert np.degrees(np.arccos(min(1.0, obs.plane.normal @ T[:3, 2]))) < 10.0
+    assert refused >= 10  # at 8 m, 0.2 px noise: the two tilts are usually indistinguishable
+    for seed in range(5):
+        T, det = observe(1.5, seed)
+        obs = estimate_board_pose(det, board, camera)
+        assert np.degrees(np.arccos(min(1.0, obs.plane.normal @ T[:3, 2]))) < 2.0

@@ -19,6 +19,7 @@ from geometry.rotations import T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
+from ..errors import MeasurementError
 from ..lidar.lidar_models import BeamModel
 from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
 from ..simulation.range_bias import RangeBias
@@ -182,20 +183,23 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
             det = CornerDetection(uv[seen], "simulated", corner_ids=seen)
         else:
             det = CornerDetection(uv, "simulated")
-        cam = estimate_board_pose(det, layout.board, layout.camera)
+        try:
+            cam, why = estimate_board_pose(det, layout.board, layout.camera), None
+        except MeasurementError as exc:  # as the pipeline does: the frame is kept, unusable, with the reason
+            cam, why = None, f"board pose: {exc.message}"
         dirs, ranges, rings, dark = board_returns(layout, i)
         if len(dirs) < 3:
-            frames.append(FrameMeasurement(f"{i:04d}", cam, None, f"only {len(dirs)} LiDAR beams hit the board"))
+            frames.append(FrameMeasurement(f"{i:04d}", cam, None, why or f"only {len(dirs)} LiDAR beams hit the board"))
             continue
         measured = ranges + rng.normal(0.0, layout.range_noise_m, len(ranges))
         if bias is not None and rings is not None:
             measured = measured + bias.of(rings, dark)
         points = dirs * measured[:, None]
         if layout.beams.is_2d:
-            frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points)))
+            frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points), why))
             continue
         obs = observe_lidar_board(points)
         if rings is not None:
             obs = replace(obs, rings=rings, intensity=np.where(dark, 0.0, 100.0))
-        frames.append(FrameMeasurement(f"{i:04d}", cam, obs))
+        frames.append(FrameMeasurement(f"{i:04d}", cam, obs, why))
     return frames
