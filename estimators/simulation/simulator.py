@@ -7,6 +7,7 @@ four walls.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -408,19 +409,24 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
         clean = render_clean(rig.camera, T_lidar_camera, patches, bi, transform_points(T_lb, rig.board.outline()))
         return bi, clean, cast_sweep(rig, patches)
 
-    cast_frames = None
-    if scene == "default" and workers > 1:
-        # The default scene draws nothing before a frame is cast: cast every frame in parallel (numpy releases
-        # the interpreter in its large array operations), then add the noise in the original order, so that
-        # a seed gives the same dataset for any number of workers.
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            cast_frames = list(pool.map(lambda T: cast_frame(T, False), poses))
-    for k, T_cb in enumerate(poses):
-        held = scene != "default" and bool(rng.uniform() < 0.7)
-        bi, clean, sweep = cast_frames[k] if cast_frames is not None else cast_frame(T_cb, held)
-        img = add_pixel_noise(clean, rng, rig.pixel_noise)
-        pts, inten, ring, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
-        frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
+    # The default scene draws nothing before a frame is cast: ``workers`` frames at a time are cast in parallel
+    # (numpy releases the interpreter in its large array operations), then their noise is added in the
+    # original order, so that a seed gives the same dataset for any number of workers (and no more than
+    # ``workers`` noise-free images are held at once).
+    parallel = scene == "default" and workers > 1
+    with ThreadPoolExecutor(max_workers=workers) if parallel else contextlib.nullcontext() as pool:
+        batch: list = []
+        for k, T_cb in enumerate(poses):
+            if parallel:
+                if k % workers == 0:
+                    batch = list(pool.map(lambda T: cast_frame(T, False), poses[k:k + workers]))
+                bi, clean, sweep = batch[k % workers]
+            else:
+                held = scene != "default" and bool(rng.uniform() < 0.7)
+                bi, clean, sweep = cast_frame(T_cb, held)
+            img = add_pixel_noise(clean, rng, rig.pixel_noise)
+            pts, inten, ring, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
+            frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
     return frames
 
 
