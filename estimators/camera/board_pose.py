@@ -52,10 +52,6 @@ def _ippe_starts(corners_board: np.ndarray, camera: CameraModel, corners: np.nda
     return [T_from_Rt(R_from_rotvec(np.asarray(r).ravel()), np.asarray(t).ravel()) for r, t in zip(rvecs, tvecs)]
 
 
-def _ippe_start(corners_board: np.ndarray, camera: CameraModel, corners: np.ndarray) -> np.ndarray:
-    return _ippe_starts(corners_board, camera, corners)[0]
-
-
 # The board's other IPPE pose, refined, is a second explanation of its corners. When its chi-square exceeds the
 # best pose's by less than this (its likelihood more than 1% of the best's), the corners do not say which way
 # the board is tilted: a board small or far in the image. Measured on simulated 2D layouts (boards of 3x3 to
@@ -95,7 +91,7 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     corners = np.asarray(detection.corners_px, dtype=float)
     ids = detection.corner_ids
     X = board.inner_corners() if ids is None else board.inner_corners()[ids]
-    T = _ippe_start(X, camera, corners)
+    T = _ippe_starts(X, camera, corners)[0]
     if T[:3, 2] @ T[:3, 3] < 0:
         if ids is not None:  # ids fix the board frame: seen from behind is a wrong detection
             raise MeasurementError("the ChArUco corners put the board's printed side away from the camera")
@@ -103,7 +99,7 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
         # that the board frame is right-handed with z pointing away from the camera, and solve again.
         cols, rows = board.inner_corners_shape
         corners = corners.reshape(rows, cols, 2)[::-1].reshape(-1, 2)
-        T = _ippe_start(X, camera, corners)
+        T = _ippe_starts(X, camera, corners)[0]
     T = _gauss_newton(T, X, camera, corners, iterations)
     method = detection.method
     if ids is not None:
@@ -145,23 +141,22 @@ def _unambiguous_orientation(T: np.ndarray, X: np.ndarray, camera: CameraModel, 
         r = reprojection_residuals(pose, X, camera, corners)
         return float(r @ r) if np.all(np.isfinite(r)) else np.inf
 
-    best, best_rss = T, rss(T)
-    others = []
+    def tilt_deg(a, b):
+        return float(np.degrees(np.arccos(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))))
+
+    poses = [T]
     for start in _ippe_starts(X, camera, corners):
         try:
             other = _gauss_newton(start, X, camera, corners, iterations)
         except MeasurementError:
             continue
-        angle = float(np.degrees(np.arccos(np.clip(other[:3, 2] @ T[:3, 2], -1.0, 1.0))))
-        if angle >= 1.0 and other[:3, 2] @ other[:3, 3] > 0 and np.isfinite(rss(other)):
-            others.append(other)  # a distinct pose with the board facing the camera
-    for other in others:
-        if rss(other) < best_rss:
-            best, best_rss = other, rss(other)
+        if tilt_deg(other, T) >= 1.0 and other[:3, 2] @ other[:3, 3] > 0:  # distinct, facing the camera
+            poses.append(other)
+    costs = np.array([rss(p) for p in poses])
+    best, best_rss = poses[int(np.argmin(costs))], float(costs.min())
     var_px = max(best_rss / max(corners.size - 6, 1), 1e-12)
-    for other in [T] + others:
-        angle = float(np.degrees(np.arccos(np.clip(other[:3, 2] @ best[:3, 2], -1.0, 1.0))))
-        excess = (rss(other) - best_rss) / var_px
+    for other, cost in zip(poses, costs):
+        angle, excess = tilt_deg(other, best), (cost - best_rss) / var_px
         if angle >= 1.0 and excess < POSE_AMBIGUITY_CHI2:
             raise MeasurementError(
                 f"the board's orientation is ambiguous: a pose tilted {angle:.0f} degrees from the best fits its "
