@@ -251,3 +251,29 @@ def test_posterior_is_skipped_with_its_reason_on_a_nearly_degenerate_problem():
     flat[0, 0] = 1e-22
     assert "singular" in unsampled_reason(flat)
     assert "not finite" in unsampled_reason(np.full((6, 6), np.nan))
+
+
+def test_cast_over_a_cached_static_background_is_the_single_pass_cast():
+    """The simulator casts the static scene once per dataset and each frame's own patches over it: on the
+    office (bounded furniture) and the default room (unbounded walls), with a held board, the ranges, patch
+    indices and reflectances are exactly those of casting the whole scene in one pass."""
+    from estimators.simulation.office import office_layout
+    from estimators.simulation.scene import cast, cast_background
+    from estimators.simulation.simulator import default_room, sample_board_poses, scene_patches
+
+    rng = np.random.default_rng(3)
+    rig = default_rig(rng, "vlp16", 0.02)
+    dirs = rng.normal(size=(40000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origin = np.array([0.1, -0.05, 0.02])
+    for static in (office_layout(-rig.lidar_height_m, rng), default_room(-rig.lidar_height_m)):
+        bg = cast_background(origin, dirs, static, 30.0)
+        for T_cb, held in zip(sample_board_poses(rig, 4, rng), (True, False, True, False)):
+            patches, _ = scene_patches(rig, T_inverse(rig.T_camera_lidar) @ T_cb, static, held)
+            one_pass = cast(origin, dirs, patches, 30.0)
+            over = cast(origin, dirs, patches, 30.0, bg)
+            assert (one_pass[1] == 0).sum() > 0  # the board is in the bundle
+            for a, b in zip(one_pass, over):
+                np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="other rays"):
+        cast(origin, dirs[:10], patches, 30.0, bg)

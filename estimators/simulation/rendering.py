@@ -7,7 +7,7 @@ import numpy as np
 from geometry.camera import CameraModel
 from geometry.rotations import transform_points
 
-from .scene import Patch, cast
+from .scene import Background, Patch, cast
 
 _GRID_CACHE: dict[tuple, np.ndarray] = {}
 SKY_REFLECTANCE = 0.85
@@ -54,16 +54,23 @@ def add_pixel_noise(clean: np.ndarray, rng: np.random.Generator, pixel_noise: fl
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
+def pixel_rays(camera: CameraModel, T_world_camera: np.ndarray) -> np.ndarray:
+    """Unit rays in the world frame through every pixel centre, row by row: (H W, 3)."""
+    return _rays_world(_normalized_grid(camera)[:camera.height, :camera.width].reshape(-1, 2), T_world_camera)
+
+
 def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], board_index: int,
-                 board_outline_world: np.ndarray, supersample: int = 4, blur_sigma_px: float = 0.5) -> np.ndarray:
+                 board_outline_world: np.ndarray, supersample: int = 4, blur_sigma_px: float = 0.5,
+                 background: Background | None = None) -> np.ndarray:
     """The noise-free image (grey levels, float): one ray per pixel for the scene, ``supersample^2`` rays per
     pixel over the board's edges (anti-aliased squares), then optical blur. It draws no random numbers, so
-    frames can be rendered in parallel and their noise added in order."""
+    frames can be rendered in parallel and their noise added in order. ``background``: the static scene's cast
+    of this camera's :func:`pixel_rays` (``scene.cast_background``), reused across frames."""
     grid = _normalized_grid(camera)
     H, W = camera.height, camera.width
     origin = T_world_camera[:3, 3]
-    xy = grid[:H, :W].reshape(-1, 2)
-    _, which, refl = cast(origin, _rays_world(xy, T_world_camera), patches)
+    rays = pixel_rays(camera, T_world_camera) if background is None else background.dirs
+    _, which, refl = cast(origin, rays, patches, background=background)
     refl = np.where(np.isnan(refl), SKY_REFLECTANCE, refl).reshape(H, W)
     which = which.reshape(H, W)
 
@@ -91,7 +98,14 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
         su = (pu[:, None] + ou.ravel()[None, :]).ravel()
         sv = (pv[:, None] + ov.ravel()[None, :]).ravel()
         dirs = _rays_world(_interp(grid, su, sv), T_world_camera)
-        _, hit, r_sub = cast(origin, dirs, patches)
+        if background is None:
+            _, hit, r_sub = cast(origin, dirs, patches)
+        else:  # the frame's own patches, then the static scene only where it could hide the board
+            n_own = len(patches) - background.n_patches
+            s_own, hit, r_sub = cast(origin, dirs, patches[:n_own])
+            on = np.flatnonzero(hit == board_index)
+            s_static = cast(origin, dirs[on], patches[n_own:])[0]
+            hit[on[s_static < s_own[on]]] = -1
         base = np.repeat(refl[pv, pu], supersample * supersample)
         r_sub = np.where(hit == board_index, r_sub, base)
         refl[pv, pu] = r_sub.reshape(-1, supersample * supersample).mean(1)

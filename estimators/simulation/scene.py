@@ -58,12 +58,54 @@ def _cone(origin: np.ndarray, p: Patch) -> tuple[np.ndarray, float]:
     return axis, min(half + 1e-3, np.pi)
 
 
-def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: float = np.inf
-         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+@dataclass(frozen=True, eq=False)
+class Background:
+    """The cast of one bundle of rays (``dirs``) from one origin against the static part of a scene: the
+    patches that end every frame's list (ground, walls, furniture). Frames that only move the board cast just
+    their own patches and lay them over it (:func:`cast` with ``background``)."""
+
+    dirs: np.ndarray
+    n_patches: int
+    ranges: np.ndarray
+    which: np.ndarray
+    refl: np.ndarray
+
+
+def cast_background(origin: np.ndarray, dirs: np.ndarray, static: list[Patch], max_range: float = np.inf
+                    ) -> Background:
+    return Background(dirs, len(static), *cast(origin, dirs, static, max_range))
+
+
+def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: float = np.inf,
+         background: Background | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest hit of rays ``origin + s dirs`` (unit dirs): range (inf if none), patch index (-1), reflectance.
 
     A bounded patch is tested only against the rays inside the cone that holds it (and skipped when that cone
-    misses the bundle of rays altogether): the same hits, far fewer intersections in a cluttered scene."""
+    misses the bundle of rays altogether): the same hits, far fewer intersections in a cluttered scene.
+    ``background``: the cast of these rays (same origin and ``max_range``) against the last
+    ``background.n_patches`` of ``patches``, which are then not cast again; the others are cast only on the
+    rays inside their cones. The result is the same: an earlier patch keeps a tie, as in a single pass."""
+    if background is not None:
+        if background.dirs is not dirs or background.n_patches > len(patches):
+            raise ValueError("the background was cast for other rays or another scene")
+        n_own = len(patches) - background.n_patches
+        ranges = background.ranges.copy()
+        which = np.where(background.which >= 0, background.which + n_own, -1)
+        refl = background.refl.copy()
+        rays = np.zeros(len(dirs), bool)
+        for p in patches[:n_own]:
+            axis, half = _cone(origin, p) if p.origin is not None else (None, np.pi)
+            if half >= np.pi:
+                rays[:] = True
+                break
+            rays |= dirs @ axis >= np.cos(half)
+        rays = np.flatnonzero(rays)
+        best, own, own_refl = cast(origin, dirs[rays], patches[:n_own], max_range)
+        front = best <= ranges[rays]  # the frame's own patches come first: they keep a tie
+        front &= own >= 0
+        rays, best, own, own_refl = rays[front], best[front], own[front], own_refl[front]
+        ranges[rays], which[rays], refl[rays] = best, own, own_refl
+        return ranges, which, refl
     origin = np.asarray(origin, float)
     n_rays = len(dirs)
     best = np.full(n_rays, np.inf)

@@ -27,8 +27,8 @@ from ..io.pointcloud_io import write_scan, write_scan_2d
 from ..lidar.lidar_models import BEAM_MODELS, BeamModel
 from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
 from .range_bias import RangeBias
-from .rendering import add_pixel_noise, render_clean
-from .scene import Patch, cast, infinite_plane, rectangle
+from .rendering import add_pixel_noise, pixel_rays, render_clean
+from .scene import Background, Patch, cast, cast_background, infinite_plane, rectangle
 
 # LiDAR (x forward, y left, z up) to camera (x right, y down, z forward) axes.
 R_CAMERA_LIDAR_NOMINAL = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
@@ -331,23 +331,27 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     if low[2] > ground_z:
         patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
                                  [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
-    if static is not None:
-        return patches + list(static), 0
-    patches += [
-        infinite_plane([0, 0, 1], ground_z, 0.3, "ground"),
-        infinite_plane([1, 0, 0], 12.0, 0.55, "wall"),
-        infinite_plane([1, 0, 0], -8.0, 0.55, "wall"),
-        infinite_plane([0, 1, 0], 8.0, 0.6, "wall"),
-        infinite_plane([0, 1, 0], -8.0, 0.6, "wall"),
-    ]
-    return patches, 0
+    return patches + list(default_room(ground_z) if static is None else static), 0
 
 
-def cast_sweep(rig: Rig, patches: list[Patch]) -> tuple[np.ndarray, ...]:
+def default_room(ground_z: float) -> list[Patch]:
+    """The default scene's static part: the ground and four walls."""
+    return [infinite_plane([0, 0, 1], ground_z, 0.3, "ground"),
+            infinite_plane([1, 0, 0], 12.0, 0.55, "wall"),
+            infinite_plane([1, 0, 0], -8.0, 0.55, "wall"),
+            infinite_plane([0, 1, 0], 8.0, 0.6, "wall"),
+            infinite_plane([0, 1, 0], -8.0, 0.6, "wall")]
+
+
+def cast_sweep(rig: Rig, patches: list[Patch], background: tuple[Background, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, ...]:
     """The noise-free sweep: every beam's direction and ring, and its range, patch and reflectance
-    (``scene.cast``); no random numbers."""
-    dirs, ring = rig.beams.directions()
-    return (dirs, ring, *cast(np.zeros(3), dirs, patches, rig.beams.max_range_m))
+    (``scene.cast``); no random numbers. ``background``: the static scene's cast of the beams, and the rings."""
+    if background is None:
+        dirs, ring = rig.beams.directions()
+        return (dirs, ring, *cast(np.zeros(3), dirs, patches, rig.beams.max_range_m))
+    bg, ring = background
+    return (bg.dirs, ring, *cast(np.zeros(3), bg.dirs, patches, rig.beams.max_range_m, bg))
 
 
 def simulate_scan(rig: Rig, patches: list[Patch], rng: np.random.Generator, board_index: int | None = None,
@@ -402,12 +406,20 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
 
+    # The static scene is cast once, for the camera's pixels and the LiDAR's beams; each frame casts only the
+    # board and its stand or holder over it (the same images and sweeps as casting the whole scene).
+    static = default_room(-rig.lidar_height_m) if static is None else static
+    image_background = cast_background(T_lidar_camera[:3, 3], pixel_rays(rig.camera, T_lidar_camera), static)
+    dirs, ring = rig.beams.directions()
+    sweep_background = cast_background(np.zeros(3), dirs, static, rig.beams.max_range_m)
+
     def cast_frame(T_cb: np.ndarray, held: bool):
         """Everything of one frame that draws no random numbers: its scene, image and sweep, noise-free."""
         T_lb = T_lidar_camera @ T_cb
         patches, bi = scene_patches(rig, T_lb, static, held)
-        clean = render_clean(rig.camera, T_lidar_camera, patches, bi, transform_points(T_lb, rig.board.outline()))
-        return bi, clean, cast_sweep(rig, patches)
+        clean = render_clean(rig.camera, T_lidar_camera, patches, bi, transform_points(T_lb, rig.board.outline()),
+                             background=image_background)
+        return bi, clean, cast_sweep(rig, patches, (sweep_background, ring))
 
     # The default scene draws nothing before a frame is cast: ``workers`` frames at a time are cast in parallel
     # (numpy releases the interpreter in its large array operations), then their noise is added in the
