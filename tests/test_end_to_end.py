@@ -200,3 +200,30 @@ def test_posterior_figures_from_the_child_match_in_process(monkeypatch):
     assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
     monkeypatch.setattr(sys, "executable", "/nonexistent/python")
     assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
+
+
+def test_top_view_draws_points_where_they_lie():
+    """The report's top view (OpenCV): a candidate's points at its place in the metric grid, in its colour,
+    the chosen one ringed in black; the background sweep grey; the rest white."""
+    from estimators.analysis.top_view import _LEFT, _TOP, PLOT_PX, top_view_png
+
+    rng = np.random.default_rng(0)
+    sweep = np.column_stack([rng.uniform(-20, 20, 5000), rng.uniform(-20, 20, 5000), np.zeros(5000)])
+    board = np.column_stack([np.full(50, 3.0), np.linspace(-0.5, 0.5, 50)])
+    other = np.column_stack([np.full(50, 5.0), np.linspace(1.5, 2.5, 50)])
+    png = top_view_png(sweep, [board, other], 0, "frame 0000: consensus")
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (_TOP + PLOT_PX + 44, _LEFT + PLOT_PX + 16, 3)
+    # the view is centred on the candidates' mean (4, 1) and 8 m wide: 65 px per metre
+    scale = PLOT_PX / 8.0
+
+    def px(x, y):
+        return int(round(_TOP + (1.0 + 4.0 - y) * scale)), int(round(_LEFT + (x - 0.0) * scale))
+
+    v, u = px(3.0, 0.0)
+    assert tuple(img[v, u]) == (180, 119, 31)  # C0 (tab:blue) in BGR, the chosen board
+    assert tuple(img[v, u - 2]) == (0, 0, 0) and tuple(img[v, u - 3]) != (0, 0, 0)  # its black ring: 1 px wider
+    v, u = px(5.0, 2.0)
+    assert tuple(img[v, u]) == (14, 127, 255)  # C1 (tab:orange)
+    plot = img[_TOP + 1:_TOP + PLOT_PX, _LEFT + 1:_LEFT + PLOT_PX]
+    assert 150 < np.all(plot == 170, axis=2).sum() < 260  # the sweep in view: about 5000 * (8/40)^2 = 200 returns

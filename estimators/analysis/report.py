@@ -27,6 +27,7 @@ from ..solvers.factors import lidar_plane
 from ..solvers.range_model import frame_labels, point_residuals
 from .figures import new_figure, png_bytes
 from .posterior_figures import DPI, start_posterior_figures
+from .top_view import top_view_png
 
 _PROJECTION_WIDTH_PX = 1200  # the projection figures' image width: 8 in at 90 dpi is 720 px, with room to zoom
 
@@ -179,29 +180,11 @@ def _caption(width: int, title: str, legend: list[tuple[tuple[int, int, int], st
 
 def board_choice_figure(frame, scan_path, two_d: bool = False) -> bytes:
     """Top view of a frame's sweep or scan (LiDAR x forward, y left): every return grey, the board candidates
-    coloured and numbered, the chosen one outlined in black."""
+    coloured and numbered, the chosen one ringed in black (``top_view``)."""
     dec = frame.decision
     scan = read_scan_2d(scan_path) if two_d else read_scan(scan_path)
-    fig, ax = new_figure(figsize=(6, 6))
-    # markers of one size and colour (plot, not scatter): drawn as one stamped path, fast for a whole sweep
-    ax.plot(scan[:, 0], scan[:, 1], ".", ms=2.0 if two_d else 1.0, color="0.6" if two_d else "0.7", mew=0)
-    centres = [P.mean(0) for P in dec.candidate_points]
-    for i, P in enumerate(dec.candidate_points):
-        chosen = i == dec.chosen
-        ax.scatter(P[:, 0], P[:, 1], s=6 if chosen else 3, color=f"C{i % 10}", edgecolors="k" if chosen else "none",
-                   linewidths=0.3, label=f"{i}: {'chosen' if chosen else 'rejected'} ({len(P)} points)")
-        ax.annotate(str(i), centres[i][:2], fontsize=8, weight="bold" if chosen else "normal")
-    if centres:
-        c = np.mean(centres, axis=0)
-        reach = max(4.0, 1.5 * max(np.linalg.norm(x[:2] - c[:2]) for x in centres))
-        ax.set_xlim(c[0] - reach, c[0] + reach)
-        ax.set_ylim(c[1] - reach, c[1] + reach)
-        ax.legend(loc="upper right", fontsize=6, markerscale=2)
-    ax.plot(0, 0, "k^")
-    ax.set_aspect("equal")
-    ax.set(xlabel="LiDAR x [m]", ylabel="LiDAR y [m]")
-    ax.set_title(f"frame {frame.name}: {dec.method}", fontsize=9)
-    return _png(fig, tight=False)  # one per frame, and the default margins fit this single square plot
+    return top_view_png(scan, list(dec.candidate_points), dec.chosen, f"frame {frame.name}: {dec.method}",
+                        dot_px=2 if two_d else 1)
 
 
 def _table(rows: list[list[str]], head: list[str]) -> str:
