@@ -84,13 +84,25 @@ class StaticScene:
     def _classify(self, points: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(foreground, static) masks: ``static`` when the range matches a background range of the window."""
         row, col = _cells(points, ring, self._rows, self._column_rad)
-        window = _window_values(self._background, row, col, self.params.ring_window, self.params.column_window)
-        r = _ranges(points)[:, None]
+        dr, dc = self.params.ring_window, self.params.column_window
+        padded = _padded(self._background, dr, dc).ravel()
+        width = self._background.shape[1] + 2 * dc
+        held = row >= 0  # a beam the model does not hold has no background: foreground
+        at = (np.where(held, row, 0) + dr) * width + col + dc  # the cell in the padded image
+        r = _ranges(points)
         margin = self.params.margin_m
+        static = np.zeros(len(r), dtype=bool)
+        behind = np.zeros(len(r), dtype=bool)
+        seen = np.zeros(len(r), dtype=bool)
         with np.errstate(invalid="ignore"):
-            static = np.any(np.abs(window - r) <= margin, axis=1)
-            behind = np.any(window > r + margin, axis=1) | np.all(np.isnan(window), axis=1)
-        return ~static & behind, static
+            for i in range(-dr, dr + 1):
+                for j in range(-dc, dc + 1):
+                    v = padded[at + i * width + j]
+                    static |= np.abs(v - r) <= margin
+                    behind |= v > r + margin
+                    seen |= ~np.isnan(v)
+        static &= held
+        return ~static & (behind | ~seen | ~held), static
 
     # -- voxels ------------------------------------------------------------------------------------------
     def _in_background_voxel(self, points: np.ndarray) -> np.ndarray:
@@ -133,18 +145,12 @@ def _cells(points: np.ndarray, ring: np.ndarray | None, rows: np.ndarray, column
     return row, col
 
 
-def _window_values(image: np.ndarray, row: np.ndarray, col: np.ndarray, dr: int, dc: int) -> np.ndarray:
-    """(N, (2 dr + 1) (2 dc + 1)) values of the image around each (row, col); nan off the image or for row -1."""
-    n_rows, n_cols = image.shape
-    out = []
-    for i in range(-dr, dr + 1):
-        r = row + i
-        ok = (row >= 0) & (r >= 0) & (r < n_rows)
-        for j in range(-dc, dc + 1):
-            v = np.full(len(row), np.nan)
-            v[ok] = image[r[ok], (col[ok] + j) % n_cols]
-            out.append(v)
-    return np.column_stack(out)
+def _padded(image: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """The range image with ``dr`` rows of nan above and below (no beam there) and its columns wrapped ``dc``
+    either side (azimuth is periodic)."""
+    wrapped = np.concatenate([image[:, image.shape[1] - dc:], image, image[:, :dc]], axis=1) if dc else image
+    nan = np.full((dr, wrapped.shape[1]), np.nan)
+    return np.concatenate([nan, wrapped, nan], axis=0)
 
 
 def _column_width(points: list[np.ndarray], rings: list[np.ndarray | None]) -> float:
