@@ -129,10 +129,10 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.StretchMove(), 0.2)]
     sampler = emcee.EnsembleSampler(nwalkers, ndim, log_prob, vectorize=True, moves=moves)
     state = emcee.State(initial, random_state=np.random.RandomState(int(rng.integers(2**32))).get_state())
-    steps, converged = 0, False
+    steps, converged, n = 0, False, chunk
     with tqdm(total=max_steps, desc=label, unit="step", disable=not progress, leave=False) as bar:
         while steps < max_steps:
-            n = min(chunk, max_steps - steps)
+            n = min(n, max_steps - steps)
             state = sampler.run_mcmc(state, n, progress=False)
             steps += n
             bar.update(n)
@@ -144,6 +144,10 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
             if steps > 50 * t_max and ess >= min_ess:
                 converged = True
                 break
+            # The next check where the current autocorrelation time says both could hold (10% more, at
+            # least 50 steps, at most ``chunk``): the same rule, checked without overshooting by a chunk.
+            short = max(50 * t_max - steps, min_ess * t_max / nwalkers + 2 * t_max - steps)
+            n = int(np.clip(np.ceil(1.1 * short), 50, chunk))
     chain = sampler.get_chain()
     return ChainResult(samples=chain[burn:].reshape(-1, ndim), chain=chain, tau=np.asarray(tau, dtype=float),
                        acceptance=float(np.mean(sampler.acceptance_fraction)), ess=float(ess), burn=burn,
