@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -287,15 +288,31 @@ def _print_range_model(fit) -> None:
 
 
 def _calibrate(args) -> int:
+    from .io.dataset import load_dataset
+
+    ds = load_dataset(args.dataset)
+    with _figure_process(args, not args.no_report) as figures:
+        return _calibrate_with(args, ds, figures)
+
+
+def _figure_process(args, report: bool):
+    """A child that loads the posterior figures' modules during the calibration, when a report with a
+    posterior will be drawn (``analysis.posterior_figures.FigureProcess``); else nothing to start."""
+    if report and args.refine != "none" and args.samples > 0:
+        from .analysis.posterior_figures import FigureProcess
+
+        return FigureProcess()
+    return contextlib.nullcontext()
+
+
+def _calibrate_with(args, ds, figures) -> int:
     import numpy as np
 
     from .calibration import calibrate, solve, write_calibration
     from .errors import DatasetError
-    from .io.dataset import load_dataset
     from .io.measurement_store import Measurements, load_measurements, save_measurements
     from .lidar.board_segmentation import SegmentationParams
 
-    ds = load_dataset(args.dataset)
     if args.measurements:
         m = load_measurements(args.measurements)
         if m.board != ds.board or m.lidar != ds.lidar:
@@ -318,7 +335,7 @@ def _calibrate(args) -> int:
     if not args.no_report and result.refinement is not None:
         from .analysis.report import write_report
 
-        print(f"wrote {write_report(result, ds, args.out)} (and its figures)")
+        print(f"wrote {write_report(result, ds, args.out, figures)} (and its figures)")
     if args.cross_validate or args.split:
         _validation_runs(args, ds, result)
     _export_hint(path)
@@ -626,18 +643,19 @@ def _demo(args) -> int:
     base = Path(args.out)
     data = base / "dataset"
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
-    simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
-    ds = load_dataset(data)
-    result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
-                       posterior=_posterior_options(args))
-    _print_result(result, ds.ground_truth())
-    print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
-    path = write_calibration(result, base)
-    print(f"wrote {path}")
-    if result.refinement is not None:
-        from .analysis.report import write_report
+    with _figure_process(args, True) as figures:
+        simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
+        ds = load_dataset(data)
+        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
+                           posterior=_posterior_options(args))
+        _print_result(result, ds.ground_truth())
+        print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
+        path = write_calibration(result, base)
+        print(f"wrote {path}")
+        if result.refinement is not None:
+            from .analysis.report import write_report
 
-        print(f"wrote {write_report(result, ds, base)} (open it in a browser)")
+            print(f"wrote {write_report(result, ds, base, figures)} (open it in a browser)")
     _export_hint(path)
     return 0
 

@@ -197,9 +197,23 @@ def test_posterior_figures_from_the_child_match_in_process(monkeypatch):
     cov = 1e-6 * np.eye(6)
     here = pf.posterior_pngs(xi, cov, chain, 20)
     assert all(png[:8] == b"\x89PNG\r\n\x1a\n" for png in here)
-    assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
+
+    def not_here(*args):
+        raise AssertionError("drawn in the parent, not in the child")
+
+    with monkeypatch.context() as m:
+        m.setattr(pf, "posterior_pngs", not_here)
+        assert pf.start_posterior_figures(xi, cov, chain, 20)() == here  # a child started for them
+        with pf.FigureProcess() as waiting:  # a child started ahead, then given the arrays
+            assert pf.start_posterior_figures(xi, cov, chain, 20, waiting)() == here
+        unused = pf.FigureProcess()
+        child = unused.child
+        unused.close()  # an unused child ends when its input closes
+        assert child.returncode == 0
     monkeypatch.setattr(sys, "executable", "/nonexistent/python")
     assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
+    with pf.FigureProcess() as none_started:
+        assert none_started.child is None and pf.start_posterior_figures(xi, cov, chain, 20, none_started)() == here
 
 
 def test_top_view_draws_points_where_they_lie():

@@ -76,22 +76,73 @@ def posterior_pngs(xi: np.ndarray, covariance_laplace: np.ndarray, chain: np.nda
 CHILD_TIMEOUT_S = 300.0
 
 
-def start_posterior_figures(xi: np.ndarray, covariance_laplace: np.ndarray, chain: np.ndarray, burn: int
-                            ) -> Callable[[], tuple[bytes, bytes]]:
-    """Start drawing :func:`posterior_pngs` in a child process; the returned function waits for the PNGs.
+def _child_env() -> dict:
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+
+
+class FigureProcess:
+    """A child interpreter started ahead of the report: it loads numpy, matplotlib and corner while the
+    calibration runs (the sampler uses one core), then waits for the posterior's arrays. Closing it unused
+    ends it (its input closes). Use as a context manager, or :func:`start_posterior_figures` takes it over."""
+
+    def __init__(self) -> None:
+        self.child: subprocess.Popen | None = None
+        try:
+            self.child = subprocess.Popen([sys.executable, "-m", __name__, "--wait"], stdin=subprocess.PIPE,
+                                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=_child_env())
+        except OSError:
+            self.child = None
+
+    def take(self) -> subprocess.Popen | None:
+        """The waiting child (None if it could not start or has ended), handed over once."""
+        child, self.child = self.child, None
+        if child is not None and child.poll() is not None:
+            child.wait()
+            return None
+        return child
+
+    def close(self) -> None:
+        child, self.child = self.child, None
+        if child is not None:
+            try:
+                child.stdin.close()
+                child.wait(timeout=10)
+            except (OSError, subprocess.TimeoutExpired):
+                child.kill()
+                child.wait()
+            child.stdout.close()
+
+    def __enter__(self) -> "FigureProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def start_posterior_figures(xi: np.ndarray, covariance_laplace: np.ndarray, chain: np.ndarray, burn: int,
+                            process: FigureProcess | None = None) -> Callable[[], tuple[bytes, bytes]]:
+    """Start drawing :func:`posterior_pngs` in a child process (``process``'s waiting one, or a new one); the
+    returned function waits for the PNGs.
 
     Where the child cannot be started, fails or runs past ``CHILD_TIMEOUT_S``, the figures are drawn in this
     process instead: the same figures, only later."""
     args = (xi, covariance_laplace, chain, burn)
     tmp = tempfile.TemporaryDirectory(prefix="lidarcam-figures-")
+    child = process.take() if process is not None else None
     try:
         src = Path(tmp.name) / "posterior.npz"
         np.savez(src, xi=xi, covariance_laplace=covariance_laplace, chain=chain, burn=burn)
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
-        child = subprocess.Popen([sys.executable, "-m", __name__, str(src)], stdout=subprocess.PIPE,
-                                 stderr=subprocess.DEVNULL, env=env)
+        if child is not None:
+            child.stdin.write(str(src).encode() + b"\n")
+            child.stdin.flush()  # (communicate() below closes it)
+        else:
+            child = subprocess.Popen([sys.executable, "-m", __name__, str(src)], stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, env=_child_env())
     except OSError:
+        if child is not None:
+            child.kill()
+            child.wait()
         tmp.cleanup()
         return lambda: posterior_pngs(*args)
 
@@ -112,7 +163,15 @@ def start_posterior_figures(xi: np.ndarray, covariance_laplace: np.ndarray, chai
 
 
 def _main(path: str) -> None:
-    """The child: the arrays from ``path`` in, the two PNGs as an ``.npz`` on stdout."""
+    """The child: the arrays from ``path`` in, the two PNGs as an ``.npz`` on stdout. With ``--wait``, it
+    loads the drawing modules first and then reads the path from its input (none: it ends)."""
+    if path == "--wait":
+        import corner as _  # noqa: F401  (loaded now, and a first figure drawn, while nothing waits for them)
+
+        png_bytes(new_figure(figsize=(1, 1))[0], dpi=DPI, tight=False)
+        path = sys.stdin.readline().strip()
+        if not path:
+            return
     with np.load(path, allow_pickle=False) as z:
         corner, traces = posterior_pngs(z["xi"], z["covariance_laplace"], z["chain"], int(z["burn"]))
     buf = io.BytesIO()

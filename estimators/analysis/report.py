@@ -26,7 +26,7 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.factors import lidar_plane
 from ..solvers.range_model import frame_labels, point_residuals
 from .figures import new_figure, png_bytes
-from .posterior_figures import DPI, start_posterior_figures
+from .posterior_figures import DPI, FigureProcess, start_posterior_figures
 from .top_view import top_view_png
 
 _PROJECTION_WIDTH_PX = 1200  # the projection figures' image width: 8 in at 90 dpi is 720 px, with room to zoom
@@ -245,15 +245,18 @@ def range_residuals_figure(result) -> bytes | None:
     return _png(fig, tight=False)  # tight_layout fitted the labels already
 
 
-def write_report(result, dataset: Dataset, out_dir: str | Path) -> Path:
+def write_report(result, dataset: Dataset, out_dir: str | Path, figure_process: FigureProcess | None = None
+                 ) -> Path:
     """Write ``OUT/report.html`` and its PNGs (each file atomically). Needs the refinement; uses the
-    posterior when it was sampled."""
+    posterior when it was sampled. ``figure_process``: a child started ahead to draw the posterior's figures
+    (:class:`~estimators.analysis.posterior_figures.FigureProcess`; without one, one is started here)."""
     out = Path(out_dir)
     figures: list[tuple[str, str, bytes]] = []
     posterior_pngs = None
     if result.posterior is not None:  # the two slowest figures, drawn in a second process meanwhile
         posterior_pngs = start_posterior_figures(result.posterior.xi, result.covariance_laplace,
-                                                 result.posterior.run.chain, result.posterior.run.burn)
+                                                 result.posterior.run.chain, result.posterior.run.burn,
+                                                 figure_process)
     if result.refinement is not None:
         figures.append(("residuals.png", "Per-frame residuals", residuals_figure(result)))
         png = range_residuals_figure(result)
