@@ -643,9 +643,9 @@ def _demo(args) -> int:
     base = Path(args.out)
     data = base / "dataset"
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
+    simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
+    ds = load_dataset(data)
     with _figure_process(args, True) as figures:
-        simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
-        ds = load_dataset(data)
         result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
                            posterior=_posterior_options(args))
         _print_result(result, ds.ground_truth())
