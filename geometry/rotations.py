@@ -10,8 +10,16 @@ from scipy.spatial.transform import Rotation
 
 def skew(v: np.ndarray) -> np.ndarray:
     """The 3x3 matrix ``[v]_x`` with ``[v]_x w = v x w``."""
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return skew_batch(np.asarray(v, dtype=float).reshape(1, 3))[0]
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """``[v]_x`` of each row of (n, 3) ``v``: (n, 3, 3)."""
+    v = np.asarray(v, dtype=float).reshape(-1, 3)
+    W = np.zeros((len(v), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return W
 
 
 def R_from_rotvec(omega: np.ndarray) -> np.ndarray:
@@ -123,9 +131,7 @@ def exp_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     s1 = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
     a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
     b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (safe - np.sin(safe)) / safe**3)
-    W = np.zeros((len(xi), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = omega[:, 2], -omega[:, 1], omega[:, 0]
+    W = skew_batch(omega)
     WW = W @ W
     eye = np.eye(3)
     R = eye + s1[:, None, None] * W + a[:, None, None] * WW

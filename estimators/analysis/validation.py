@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.rotations import T_inverse, T_log, transform_points
+from geometry.rotations import T_inverse, T_log, skew, transform_points
 
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
@@ -83,17 +83,13 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
         centre_c = transform_points(T_camera_lidar, centre_l[None])[0]
         n = b[:3, 2]
         offset = float(n @ (centre_c - b[:3, 3]))
-        g = np.concatenate([n @ T_camera_lidar[:3, :3] @ -_skew(centre_l), n @ T_camera_lidar[:3, :3]])
+        g = np.concatenate([n @ T_camera_lidar[:3, :3] @ -skew(centre_l), n @ T_camera_lidar[:3, :3]])
         sd = float(np.sqrt(g @ covariance @ g + sigma_r**2 / max(f.lidar.n_points, 1)))
         board_centre = transform_points(b, board.outline()).mean(0)
         px = np.linalg.norm(camera.project(centre_c[None])[0] - camera.project(board_centre[None])[0])
         p = float(chi2.sf(c2, k))
         out.append(FrameScore(f.name, c2, k, p, 1000 * offset, 1000 * sd, float(px), p < SIGNIFICANCE))
     return out
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
 def range_arguments(fit) -> tuple:

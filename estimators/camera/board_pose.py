@@ -12,7 +12,7 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane
-from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, transform_points
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, skew_batch, transform_points
 
 from ..errors import MeasurementError
 from ..measurements import CameraBoardObservation
@@ -27,15 +27,15 @@ def reprojection_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray
     return (uv - corners_px).ravel()
 
 
-def _pose_jacobian(T: np.ndarray, corners_board: np.ndarray, camera: CameraModel, corners: np.ndarray,
-                   eps: float = 1e-6) -> np.ndarray:
-    J = np.empty((corners.size, 6))
-    for k in range(6):
-        d = np.zeros(6)
-        d[k] = eps
-        J[:, k] = (reprojection_residuals(T_retract(T, d), corners_board, camera, corners)
-                   - reprojection_residuals(T_retract(T, -d), corners_board, camera, corners)) / (2 * eps)
-    return J
+def _pose_jacobian(T: np.ndarray, corners_board: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """d residuals / d xi (2M x 6) under ``T Exp(xi)``: the camera model's own projection derivative (OpenCV's)
+    times d point / d xi = [-R [X]x, R]."""
+    R = T[:3, :3]
+    _, d_uv = camera.project_jacobian(transform_points(T, corners_board))  # (M, 2, 3)
+    d_point = np.empty((len(corners_board), 3, 6))
+    d_point[:, :, :3] = -R @ skew_batch(corners_board)
+    d_point[:, :, 3:] = R
+    return (d_uv @ d_point).reshape(-1, 6)
 
 
 def _ippe_starts(corners_board: np.ndarray, camera: CameraModel, corners: np.ndarray) -> list[np.ndarray]:
@@ -76,7 +76,7 @@ def _gauss_newton(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np
                   ) -> np.ndarray:
     for _ in range(iterations):
         r = reprojection_residuals(T, X, camera, corners)
-        J = _pose_jacobian(T, X, camera, corners)
+        J = _pose_jacobian(T, X, camera)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
             raise MeasurementError("the board pose does not converge (corners project behind the camera)")
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
@@ -118,7 +118,7 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     r = reprojection_residuals(T, X, camera, corners)
     if not np.all(np.isfinite(r)):
         raise MeasurementError("board pose puts corners behind the camera")
-    J = _pose_jacobian(T, X, camera, corners)
+    J = _pose_jacobian(T, X, camera)
     dof = max(r.size - 6, 1)
     var_px = float(r @ r) / dof
     pose_cov = var_px * np.linalg.inv(J.T @ J)
