@@ -32,13 +32,12 @@ from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from estimators.calibration import refine_candidates  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.measurements import observe_lidar_line  # noqa: E402
 from estimators.simulation.simulator import RIGS_2D, as_charuco, rig_2d, sample_board_poses  # noqa: E402
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
-from estimators.solvers.solution_selection import select_minimal, solution_distances  # noqa: E402
+from estimators.solvers.solution_selection import select_and_refine, solution_distances  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 
 SELECTIONS = (("min-residual", "minimal-min-residual", False), ("lower-bound", "minimal-lower-bound", False),
@@ -91,11 +90,9 @@ def trial(args) -> dict:
         out["skipped"] = True
         return out
     for label, method, extent in SELECTIONS:
-        try:
-            t0 = time.perf_counter()
-            sel = select_minimal(frames, rig.board, method, use_extent=extent)
-            seconds = time.perf_counter() - t0
-            ref, modes = refine_candidates(frames, rig.board, rig.camera, sel, use_extent=extent)
+        try:  # as the pipeline: boards ambiguous in their orientation are tried when the others are degenerate
+            _, sel, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera, method, use_extent=extent)
+            seconds = sel.seconds
         except DegenerateLayoutError:
             out[label] = {"hit": False, "refused": True, "ambiguous": False, "seconds": np.nan}
             continue

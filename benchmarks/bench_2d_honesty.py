@@ -15,9 +15,8 @@ from concurrent.futures import ProcessPoolExecutor
 import estimators.solvers.solution_selection as S
 S.MIN_MODE_MASS = 0.0  # keep every minimum: thresholds applied here
 import bench_2d as B
-from estimators.calibration import refine_candidates
 from estimators.errors import DegenerateLayoutError
-from estimators.solvers.solution_selection import select_minimal, solution_distances
+from estimators.solvers.solution_selection import select_and_refine, solution_distances
 
 def one(args):
     seed, config = args
@@ -25,8 +24,7 @@ def one(args):
     if tb is None:
         return None
     try:
-        sel = select_minimal(frames, rig.board, "minimal-lower-bound", use_extent=True)
-        ref, modes = refine_candidates(frames, rig.board, rig.camera, sel, use_extent=True)
+        _, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera, use_extent=True)
     except DegenerateLayoutError:
         return {"refused": True}
     masses = [m.mass for m in modes]

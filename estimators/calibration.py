@@ -22,8 +22,8 @@ from .camera.board_pose import estimate_board_pose
 from .camera.charuco import MIN_CHARUCO_CORNERS
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
-from .errors import (AmbiguousBoardError, DatasetError, DegenerateLayoutError, ImageReadError, MeasurementError,
-                     PosteriorSkippedError, ScanReadError)
+from .errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
+                     ImageReadError, MeasurementError, PosteriorSkippedError, ScanReadError)
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from .io.image_io import read_gray
@@ -41,9 +41,12 @@ from .solvers.closed_form import describe_direction, normal_spread, solve_closed
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
 from .solvers.refinement import refine as refine_graph
-from .solvers.solution_selection import MinimalSelection, refine_candidates, select_minimal
+from .solvers.solution_selection import MinimalSelection, refine_candidates, select_and_refine, select_minimal
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
+# Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
+# cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation).
+MEASUREMENT_REVISION = 2
 REFINES = ("factor-graph", "none")
 CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
@@ -389,7 +392,9 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
                   if size is not None and size != (camera.width, camera.height) else (size, det)
                   for size, det in detections]
 
-    def camera_side(det) -> tuple:
+    alternatives: dict[int, tuple] = {}  # both tilts of each board ambiguous in its orientation
+
+    def camera_side(k: int, det) -> tuple:
         if det is None:
             return None, (f"fewer than {MIN_CHARUCO_CORNERS} ChArUco corners spanning the board seen in the image"
                           if dataset.board.is_charuco else "checkerboard not found in the image")
@@ -397,25 +402,32 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
             return None, det
         try:
             return estimate_board_pose(det, dataset.board, camera), None
+        except AmbiguousOrientationError as exc:
+            alternatives[k] = exc.observations
+            return None, f"board pose: {exc.message}"
         except MeasurementError as exc:
             return None, f"board pose: {exc.message}"
 
-    cams = [camera_side(det) for _, det in detections]
+    cams = [camera_side(k, det) for k, (_, det) in enumerate(detections)]
     frame_rngs = rng.spawn(len(dataset.frames) + 1)
     if dataset.lidar == "2d":
-        frames = _measure_scans_2d(dataset, cams, camera, frame_rngs[-1], params, timings, warnings, workers)
+        frames = _measure_scans_2d(dataset, cams, camera, frame_rngs[-1], params, timings, warnings, workers,
+                                   alternatives)
     else:
         frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers)
     return camera, frames, warnings
 
 
 def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rng: np.random.Generator,
-                      params: SegmentationParams, timings: dict, warnings: list[str], workers: int
-                      ) -> list[FrameMeasurement]:
+                      params: SegmentationParams, timings: dict, warnings: list[str], workers: int,
+                      alternatives: dict[int, tuple] | None = None) -> list[FrameMeasurement]:
     """Each scan's board segment. Single-line scans are small, so all are read once: the static scene's
     per-beam ranges tell the board (which moves between frames) from background of the board's length, and
     every frame's candidate segments are chosen jointly by the minimal solution most frames agree with
-    (``solvers.association.associate_lines``); without one, each frame decides alone."""
+    (``solvers.association.associate_lines``); without one, each frame decides alone. A board ambiguous in
+    its orientation (``alternatives``: both tilts) keeps its segment when it is the only one where the camera
+    puts the board, for the solver to try its tilts (``solution_selection.select_and_refine``)."""
+    alternatives = alternatives or {}
     from scipy.spatial import cKDTree
 
     t0 = time.perf_counter()
@@ -430,7 +442,8 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
 
     def search(k: int) -> tuple[list, str | None, list]:
-        cam_obs = cams[k][0]
+        # an ambiguous board's tilts put it at one place: either finds its segments (outside the consensus)
+        cam_obs = cams[k][0] if k not in alternatives or k not in good else alternatives[k][0]
         if cam_obs is None:
             return [], None, []
         t1 = time.perf_counter()
@@ -461,6 +474,14 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     frames, ambiguous = [], {}
     for k, frame in enumerate(dataset.frames):
         (cam_obs, why), (cands, error) = cams[k], found[k]
+        if cam_obs is None and k in alternatives and len(searched[k][0]) == 1:
+            cost, seg = searched[k][0][0]
+            frames.append(FrameMeasurement(
+                frame.name, None, seg, why, BoardDecision(
+                    "this frame alone", _segment_dicts(searched[k][0], chosen=0), 0,
+                    "the only segment where the camera puts the board (its tilt is left to the solver)", (),
+                    (seg.points,)), alternatives[k]))
+            continue
         if cam_obs is None:
             frames.append(FrameMeasurement(frame.name, None, None, why))
             continue
@@ -873,7 +894,8 @@ def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = Non
     key, folder = "", None
     if cache:
         ss = rng.bit_generator.seed_seq
-        options = {"params": params, "hints": hints, "version": __version__, "rng": rng.bit_generator.state,
+        options = {"params": params, "hints": hints, "version": __version__, "revision": MEASUREMENT_REVISION,
+                   "rng": rng.bit_generator.state,
                    "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
                             getattr(ss, "n_children_spawned", None)]}
         key = dataset_key(dataset.root, [p for f in dataset.frames for p in (f.image, f.scan)], options)
@@ -984,11 +1006,17 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
               use_extent: bool | None = None) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
-    used = [f for f in frames if f.usable]
     method = "minimal-lower-bound" if init == "closed-form" else init
     t0 = time.perf_counter()
-    sel = select_minimal(used, board, method, use_extent)
-    timings["solve"] = time.perf_counter() - t0
+    if refine == "none":
+        sel = select_minimal([f for f in frames if f.usable], board, method, use_extent)
+        timings["solve"] = time.perf_counter() - t0
+    else:  # the boards skipped as ambiguous in their orientation may be used with the tilt the laser decides
+        frames, sel, ref, modes, notes = select_and_refine(frames, board, camera, method, options, use_extent)
+        warnings += notes
+        timings["solve"] = sel.seconds
+        timings["refine"] = time.perf_counter() - t0 - sel.seconds
+    used = [f for f in frames if f.usable]
     if sel.degenerate_triples:
         warnings.append(f"{len(sel.degenerate_triples)} of {sel.n_triples} board triples are degenerate and give "
                         f"no solution (first: {sel.degenerate_triples[0]})")
@@ -1003,9 +1031,6 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
         T = sel.candidates[0].T_camera_lidar
         ref, modes = None, ()
     else:
-        t0 = time.perf_counter()
-        ref, modes = refine_candidates(used, board, camera, sel, options, use_extent)
-        timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings
         if len(modes) > 1:

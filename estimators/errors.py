@@ -42,6 +42,15 @@ class AmbiguousBoardError(MeasurementError):
         self.candidates = candidates
 
 
+class AmbiguousOrientationError(MeasurementError):
+    """The board's corners fit two tilts of it alike; ``observations`` holds the camera observation of each
+    (best first, each with its corner chi-square above the best), for a choice by the laser (2D)."""
+
+    def __init__(self, problem: str, observations: tuple, hint: str | None = None):
+        super().__init__(problem, hint=hint)
+        self.observations = observations
+
+
 class DegenerateLayoutError(LidarcamError):
     """The usable frames cannot determine the transform (too few, or normals that do not span 3D)."""
 

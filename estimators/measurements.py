@@ -34,6 +34,9 @@ class CameraBoardObservation:
     # Which of the board's inner corners ``corners_px`` are (ChArUco ids, ascending), None: all of them in
     # ``BoardModel.inner_corners()`` order.
     corner_ids: np.ndarray | None = None
+    # One of two tilts that fit the corners alike (``FrameMeasurement.camera_alternatives``): its corner
+    # chi-square above the better one's (0 for the better one, and for every unambiguous board).
+    orientation_excess_chi2: float = 0.0
 
     def corners_board(self, board) -> np.ndarray:
         """The seen corners in the board frame, (M, 3), in the order of ``corners_px``."""
@@ -196,6 +199,9 @@ class FrameMeasurement:
     lidar: LidarBoardObservation | None
     reason: str | None = None
     decision: BoardDecision | None = None
+    # A board whose orientation the corners leave ambiguous (``camera`` is then None): the observation of each
+    # tilt, for a choice by the laser line (2D, ``solution_selection.select_and_refine``).
+    camera_alternatives: tuple[CameraBoardObservation, ...] = ()
 
     @property
     def usable(self) -> bool:

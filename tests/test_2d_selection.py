@@ -210,3 +210,44 @@ def test_the_varied_rig_is_refused_where_it_does_not_apply(tmp_path):
     assert parse_spec({"lidar": "2d", "rig": "varied", "solvers": ["minimal-lower-bound"]}).rig == "varied"
     with pytest.raises(ValueError, match="rig_config"):
         simulate_dataset(tmp_path / "x", n_poses=3, lidar="hdl64e", rig_config="varied")
+
+
+def _tilted(obs, angle_rad: float, board):
+    """The observation of the board turned by ``angle_rad`` about its own x axis through its centre: the other
+    tilt of an ambiguous board (the same covariances)."""
+    from estimators.camera.board_pose import plane_jacobian
+
+    c = board.centre
+    T = obs.T_camera_board @ T_exp(np.array([angle_rad, 0, 0, 0, 0, 0]))
+    T[:3, 3] += obs.T_camera_board[:3, :3] @ c - T[:3, :3] @ c  # the centre stays where it was
+    n = T[:3, 2]
+    Jp = plane_jacobian(T)
+    return replace(obs, T_camera_board=T, plane=Plane(n, n @ T[:3, 3]),
+                   plane_covariance=Jp @ obs.pose_covariance @ Jp.T)
+
+
+def test_boards_ambiguous_in_their_tilt_are_decided_by_the_laser_when_the_rest_cannot_be_solved():
+    """Two usable boards and two whose corners fit two tilts alike (the second tilt 35 degrees off): the two
+    alone cannot be solved, so every combination of the tilts is solved, and the one the laser lines agree with
+    is used: the true tilts, an answer at the truth's basin. When a board's two tilts are the same plane
+    (nothing to decide by), the calibration is refused as before, with why."""
+    from estimators.solvers.solution_selection import select_and_refine
+
+    rig, frames = _frames("default", 4, 5)
+    truth = _truth_basin(rig, frames)
+    assert truth is not None and all(f.usable for f in frames)
+    amb = list(frames)
+    for k, order in ((2, 0), (3, 1)):  # the true tilt listed first for one board, second for the other
+        alts = [replace(frames[k].camera, orientation_excess_chi2=0.0),
+                replace(_tilted(frames[k].camera, np.radians(35), rig.board), orientation_excess_chi2=3.0)]
+        amb[k] = replace(frames[k], camera=None, reason="board pose: ambiguous", camera_alternatives=tuple(
+            alts if order == 0 else alts[::-1]))
+    used, sel, ref, modes, notes = select_and_refine(amb, rig.board, rig.camera)
+    assert used[2].camera is amb[2].camera_alternatives[0] and used[3].camera is amb[3].camera_alternatives[1]
+    assert solution_distances(np.array([ref.T_camera_lidar, truth]))[0] < 0.05
+    assert len(notes) == 2 and "the tilt the laser line agrees with is used" in notes[0]
+    same = list(amb)
+    same[2] = replace(amb[2], camera_alternatives=(amb[2].camera_alternatives[0],) * 2)
+    same[3] = replace(amb[3], camera_alternatives=(amb[3].camera_alternatives[1],) * 2)
+    with pytest.raises(DegenerateLayoutError, match="do not decide it either"):
+        select_and_refine(same, rig.board, rig.camera)

@@ -76,3 +76,24 @@ def test_cli_writes_measurements_and_solves_from_them(sim_vlp16, tmp_path, cache
     err = capsys.readouterr().err
     assert "measurements.json: not valid JSON" in err and "lidarcam calibrate" in err
     assert not (tmp_path / "c" / "calibration.json").exists()
+
+
+def test_a_board_ambiguous_in_its_tilt_keeps_both_tilts_on_disk(sim_2d, tmp_path):
+    """A 2D frame whose board's corners fit two tilts alike is stored with both camera observations and their
+    corner chi-square excess, so that a re-solve can still try them."""
+    from dataclasses import replace
+
+    m = measure(sim_2d, np.random.default_rng(0))
+    k = next(i for i, f in enumerate(m.frames) if f.usable)
+    cam = m.frames[k].camera
+    other = replace(cam, T_camera_board=cam.T_camera_board @ np.diag([1.0, -1.0, -1.0, 1.0]),
+                    orientation_excess_chi2=4.5)
+    frames = list(m.frames)
+    frames[k] = replace(frames[k], camera=None, reason="board pose: ambiguous", camera_alternatives=(cam, other))
+    save_measurements(tmp_path, replace(m, frames=tuple(frames)))
+    back = load_measurements(tmp_path / "measurements.npz").frames[k]
+    assert back.camera is None and len(back.camera_alternatives) == 2
+    for a, b in zip(back.camera_alternatives, (cam, other)):
+        np.testing.assert_array_equal(a.T_camera_board, b.T_camera_board)
+        np.testing.assert_array_equal(a.plane_covariance, b.plane_covariance)
+        assert a.orientation_excess_chi2 == b.orientation_excess_chi2

@@ -126,7 +126,8 @@ def test_classic_detector_runs_within_its_time_budget():
 def test_ambiguous_board_orientation_is_refused_not_guessed():
     """A small board far away is foreshortened alike by two tilts (IPPE's two poses): its corners cannot say
     which, and a plane from the wrong one is tens of degrees off under a covariance of a fraction of a degree.
-    Such a board is refused with the reason; the same board near the camera is measured as usual."""
+    Such a board is refused with the reason and both tilts (for a 2D solver to decide by the laser); the same
+    board near the camera is measured as usual."""
     from geometry.board import BoardModel
     from geometry.rotations import R_from_rotvec, T_from_Rt
 
@@ -148,6 +149,11 @@ def test_ambiguous_board_orientation_is_refused_not_guessed():
             obs = estimate_board_pose(det, board, camera)
         except MeasurementError as exc:
             assert "orientation is ambiguous" in exc.message
+            # both tilts come with it (for the 2D solver to try), one of them the true one, best first
+            tilts = [np.degrees(np.arccos(min(1.0, o.plane.normal @ T[:3, 2]))) for o in exc.observations]
+            excess = [o.orientation_excess_chi2 for o in exc.observations]
+            assert len(tilts) == 2 and min(tilts) < 10.0 and max(tilts) > 20.0
+            assert excess[0] == 0.0 and 0.0 <= excess[1] < 9.0
             refused += 1
             continue
         # Kept only when the other tilt fits clearly worse: then the kept plane is the true one.

@@ -14,7 +14,7 @@ from geometry.camera import CameraModel
 from geometry.planes import Plane
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, skew_batch, transform_points
 
-from ..errors import MeasurementError
+from ..errors import AmbiguousOrientationError, MeasurementError
 from ..measurements import CameraBoardObservation
 from .charuco import spans_plane
 from .chessboard import CornerDetection
@@ -114,7 +114,21 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
             ids, X, corners = ids[keep], X[keep], corners[keep]
             method += f", {int((~keep).sum())} outlying corner(s) dropped"
             T = _gauss_newton(T, X, camera, corners, iterations)
-    T = _unambiguous_orientation(T, X, camera, corners, iterations)
+    poses = _orientations(T, X, camera, corners, iterations)
+    if len(poses) > 1:
+        (best, _), (other, excess) = poses[0], poses[1]
+        angle = float(np.degrees(np.arccos(np.clip(best[:3, 2] @ other[:3, 2], -1.0, 1.0))))
+        raise AmbiguousOrientationError(
+            f"the board's orientation is ambiguous: a pose tilted {angle:.0f} degrees from the best fits its "
+            f"corners nearly as well (chi-square {excess:.1f} worse; the board is small or far in the image)",
+            tuple(_observation(P, X, camera, corners, method, ids, e) for P, e in poses),
+            hint="hold the board closer to the camera, or use a board with more squares")
+    return _observation(poses[0][0], X, camera, corners, method, ids, 0.0)
+
+
+def _observation(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.ndarray, method: str,
+                 ids: np.ndarray | None, excess: float) -> CameraBoardObservation:
+    """The observation of pose ``T``: its plane, and their covariances from the corner residuals."""
     r = reprojection_residuals(T, X, camera, corners)
     if not np.all(np.isfinite(r)):
         raise MeasurementError("board pose puts corners behind the camera")
@@ -128,15 +142,15 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     return CameraBoardObservation(
         corners_px=corners, T_camera_board=T, plane=plane, pose_covariance=pose_cov,
         plane_covariance=Jp @ pose_cov @ Jp.T, reprojection_rms_px=float(np.sqrt(np.mean(r**2) * 2)),
-        detector=method, corner_ids=ids)
+        detector=method, corner_ids=ids, orientation_excess_chi2=float(excess))
 
 
-def _unambiguous_orientation(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.ndarray,
-                             iterations: int) -> np.ndarray:
-    """The better of ``T`` and the board's other IPPE pose (refined), or :class:`MeasurementError` when they
-    fit the corners alike: chi-squares within ``POSE_AMBIGUITY_CHI2`` of each other, in units of the
-    corners' residual variance at the better one. A plane from the wrong one would be tens of degrees off
-    while its covariance claims a fraction of a degree."""
+def _orientations(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.ndarray, iterations: int
+                  ) -> list[tuple[np.ndarray, float]]:
+    """The poses that explain the corners, with their chi-square above the best (in units of the corners'
+    residual variance at the best), best first: ``T`` or the board's other IPPE pose (refined), whichever fits
+    better, and the other too when it is within ``POSE_AMBIGUITY_CHI2`` and tilted at least a degree away. A
+    plane from the wrong one would be tens of degrees off while its covariance claims a fraction of a degree."""
     def rss(pose):
         r = reprojection_residuals(pose, X, camera, corners)
         return float(r @ r) if np.all(np.isfinite(r)) else np.inf
@@ -153,13 +167,12 @@ def _unambiguous_orientation(T: np.ndarray, X: np.ndarray, camera: CameraModel, 
         if tilt_deg(other, T) >= 1.0 and other[:3, 2] @ other[:3, 3] > 0:  # distinct, facing the camera
             poses.append(other)
     costs = np.array([rss(p) for p in poses])
-    best, best_rss = poses[int(np.argmin(costs))], float(costs.min())
+    order = np.argsort(costs, kind="stable")
+    best, best_rss = poses[order[0]], float(costs[order[0]])
     var_px = max(best_rss / max(corners.size - 6, 1), 1e-12)
-    for other, cost in zip(poses, costs):
-        angle, excess = tilt_deg(other, best), (cost - best_rss) / var_px
-        if angle >= 1.0 and excess < POSE_AMBIGUITY_CHI2:
-            raise MeasurementError(
-                f"the board's orientation is ambiguous: a pose tilted {angle:.0f} degrees from the best fits its "
-                f"corners nearly as well (chi-square {excess:.1f} worse; the board is small or far in the "
-                "image)", hint="hold the board closer to the camera, or use a board with more squares")
-    return best
+    out = [(best, 0.0)]
+    for k in order[1:]:
+        excess = (costs[k] - best_rss) / var_px
+        if tilt_deg(poses[k], best) >= 1.0 and excess < POSE_AMBIGUITY_CHI2 and len(out) < 2:
+            out.append((poses[k], float(excess)))
+    return out

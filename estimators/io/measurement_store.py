@@ -85,14 +85,10 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
     for k, f in enumerate(m.frames):
         d: dict = {"name": f.name, "reason": f.reason}
         if f.camera is not None:
-            c = f.camera
-            p = f"f{k}_camera_"
-            arrays.update({p + "corners_px": c.corners_px, p + "T_camera_board": c.T_camera_board,
-                           p + "plane": np.append(c.plane.normal, c.plane.distance),
-                           p + "pose_covariance": c.pose_covariance, p + "plane_covariance": c.plane_covariance})
-            if c.corner_ids is not None:
-                arrays[p + "corner_ids"] = np.asarray(c.corner_ids, dtype=np.int64)
-            d["camera"] = {"reprojection_rms_px": c.reprojection_rms_px, "detector": c.detector}
+            d["camera"] = _save_camera(f.camera, f"f{k}_camera_", arrays)
+        if f.camera_alternatives:  # both tilts of a board ambiguous in its orientation
+            d["camera_alternatives"] = [_save_camera(c, f"f{k}_alternative{j}_camera_", arrays)
+                                        for j, c in enumerate(f.camera_alternatives)]
         if f.lidar is not None:
             o = f.lidar
             p = f"f{k}_lidar_"
@@ -195,19 +191,36 @@ def _corner_ids(arrays: dict, p: str, n_corners: int, board: BoardModel) -> np.n
     return ids.astype(int)
 
 
+def _save_camera(c: CameraBoardObservation, p: str, arrays: dict) -> dict:
+    """A camera observation's arrays into ``arrays`` under prefix ``p``; the rest as a JSON dict."""
+    arrays.update({p + "corners_px": c.corners_px, p + "T_camera_board": c.T_camera_board,
+                   p + "plane": np.append(c.plane.normal, c.plane.distance),
+                   p + "pose_covariance": c.pose_covariance, p + "plane_covariance": c.plane_covariance})
+    if c.corner_ids is not None:
+        arrays[p + "corner_ids"] = np.asarray(c.corner_ids, dtype=np.int64)
+    return {"reprojection_rms_px": c.reprojection_rms_px, "detector": c.detector,
+            "orientation_excess_chi2": c.orientation_excess_chi2}
+
+
+def _load_camera(d: dict, p: str, arrays: dict, board: BoardModel) -> CameraBoardObservation:
+    plane = _finite(arrays[p + "plane"], p + "plane")
+    corners = _finite(arrays[p + "corners_px"], p + "corners_px").reshape(-1, 2)
+    return CameraBoardObservation(corners,
+                                  _finite(arrays[p + "T_camera_board"], p + "T_camera_board"),
+                                  Plane(plane[:3], float(plane[3])),
+                                  _finite(arrays[p + "pose_covariance"], p + "pose_covariance"),
+                                  _finite(arrays[p + "plane_covariance"], p + "plane_covariance"),
+                                  float(d["reprojection_rms_px"]), str(d["detector"]),
+                                  _corner_ids(arrays, p, len(corners), board),
+                                  float(d.get("orientation_excess_chi2", 0.0)))
+
+
 def _frame(k: int, d: dict, arrays: dict, board: BoardModel) -> FrameMeasurement:
     cam = lid = dec = None
     if "camera" in d:
-        p = f"f{k}_camera_"
-        plane = _finite(arrays[p + "plane"], p + "plane")
-        corners = _finite(arrays[p + "corners_px"], p + "corners_px").reshape(-1, 2)
-        cam = CameraBoardObservation(corners,
-                                     _finite(arrays[p + "T_camera_board"], p + "T_camera_board"),
-                                     Plane(plane[:3], float(plane[3])),
-                                     _finite(arrays[p + "pose_covariance"], p + "pose_covariance"),
-                                     _finite(arrays[p + "plane_covariance"], p + "plane_covariance"),
-                                     float(d["camera"]["reprojection_rms_px"]), str(d["camera"]["detector"]),
-                                     _corner_ids(arrays, p, len(corners), board))
+        cam = _load_camera(d["camera"], f"f{k}_camera_", arrays, board)
+    alternatives = tuple(_load_camera(c, f"f{k}_alternative{j}_camera_", arrays, board)
+                         for j, c in enumerate(d.get("camera_alternatives", ())))
     if "lidar" in d:
         p = f"f{k}_lidar_"
         points = _finite(arrays[p + "points"], p + "points").astype(float)
@@ -219,7 +232,7 @@ def _frame(k: int, d: dict, arrays: dict, board: BoardModel) -> FrameMeasurement
         pts = tuple(arrays[f"f{k}_decision_points_{j}"] for j in range(int(dd["candidate_points"])))
         dec = BoardDecision(dd["method"], tuple(dd["candidates"]), dd["chosen"], dd["reason"],
                             tuple(dd["rejected"]), pts)
-    return FrameMeasurement(str(d["name"]), cam, lid, d.get("reason"), dec)
+    return FrameMeasurement(str(d["name"]), cam, lid, d.get("reason"), dec, alternatives)
 
 
 def _jsonable(x):

@@ -19,7 +19,7 @@ from geometry.rotations import T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
-from ..errors import MeasurementError
+from ..errors import AmbiguousOrientationError, MeasurementError
 from ..lidar.lidar_models import BeamModel
 from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
 from ..simulation.range_bias import RangeBias
@@ -183,8 +183,11 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
             det = CornerDetection(uv[seen], "simulated", corner_ids=seen)
         else:
             det = CornerDetection(uv, "simulated")
+        alternatives: tuple = ()
         try:
             cam, why = estimate_board_pose(det, layout.board, layout.camera), None
+        except AmbiguousOrientationError as exc:  # kept with both tilts, for a choice by the laser (2D)
+            cam, why, alternatives = None, f"board pose: {exc.message}", exc.observations
         except MeasurementError as exc:  # as the pipeline does: the frame is kept, unusable, with the reason
             cam, why = None, f"board pose: {exc.message}"
         dirs, ranges, rings, dark = board_returns(layout, i)
@@ -196,7 +199,8 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
             measured = measured + bias.of(rings, dark)
         points = dirs * measured[:, None]
         if layout.beams.is_2d:
-            frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points), why))
+            frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points), why,
+                                           camera_alternatives=alternatives))
             continue
         obs = observe_lidar_board(points)
         if rings is not None:

@@ -567,3 +567,72 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
                        float(mass[k]), refs[k]) for k in order)
     kept = (modes[0],) + tuple(m for m in modes[1:] if m.mass >= MIN_MODE_MASS)
     return kept[0].refinement, kept
+
+
+# A board whose corners fit two tilts alike (``FrameMeasurement.camera_alternatives``) is skipped, unless the
+# other boards alone cannot be solved: then each combination of the ambiguous boards' tilts (at most
+# ``MAX_AMBIGUOUS_BOARDS`` boards) is solved, and the one whose best minimum fits the laser points (and the
+# segment ends, with a known board size) with a joint cost lower than every other combination's by at least
+# this is used (a likelihood ratio of 90; the corners' own preference is added to each tilt's cost).
+TILT_MARGIN_CHI2 = 9.0
+MAX_AMBIGUOUS_BOARDS = 3
+
+
+def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
+                      method: str = "minimal-lower-bound", options: RefinementOptions = RefinementOptions(),
+                      use_extent: bool | None = None
+                      ) -> tuple[list[FrameMeasurement], MinimalSelection, Refinement, tuple[Mode, ...], tuple[str, ...]]:
+    """:func:`select_minimal` and :func:`refine_candidates` over the usable frames. Where they are degenerate
+    and some boards were skipped as ambiguous in their orientation, the tilts of those boards are tried
+    (``TILT_MARGIN_CHI2``). Returns the frames (an ambiguous board made usable with its chosen tilt), the
+    selection, the refinement, the modes and notes on the tilts chosen."""
+    try:
+        return _select_and_refine(frames, board, camera, method, options, use_extent) + ((),)
+    except DegenerateLayoutError as exc:
+        degenerate = exc
+    ambiguous = [k for k, f in enumerate(frames)
+                 if not f.usable and f.lidar is not None and len(f.camera_alternatives) > 1][:MAX_AMBIGUOUS_BOARDS]
+    if not ambiguous:
+        raise degenerate
+    use_extent = board.size_known if use_extent is None else use_extent
+    tried = []
+    for tilts in itertools.product(*(range(len(frames[k].camera_alternatives)) for k in ambiguous)):
+        trial = list(frames)
+        for k, c in zip(ambiguous, tilts):
+            trial[k] = FrameMeasurement(frames[k].name, frames[k].camera_alternatives[c], frames[k].lidar, None,
+                                        frames[k].decision, frames[k].camera_alternatives)
+        try:
+            out = _select_and_refine(trial, board, camera, method, options, use_extent)
+        except DegenerateLayoutError:
+            continue
+        used = [f for f in out[0] if f.usable]
+        sigma_r = max(pooled_range_noise_m(used), 1e-5)
+        Ts = np.array([m.T_camera_lidar for m in out[3]])
+        joint = marginal_laser_costs(Ts, used, sigma_r)
+        if use_extent:
+            joint = joint + outline_costs(Ts, used, board, sigma_r)
+        corners = sum(frames[k].camera_alternatives[c].orientation_excess_chi2 for k, c in zip(ambiguous, tilts))
+        tried.append((float(joint.min()) + corners, tilts, out))
+    if not tried:
+        raise degenerate
+    tried.sort(key=lambda t: t[0])
+    margin = tried[1][0] - tried[0][0] if len(tried) > 1 else np.inf
+    if margin < TILT_MARGIN_CHI2:
+        raise DegenerateLayoutError(
+            f"{degenerate.problem}; the boards skipped as ambiguous in their orientation do not decide it either "
+            f"(their tilts fit the laser points alike: joint costs {tried[0][0]:.1f} and {tried[1][0]:.1f})",
+            hint=degenerate.hint)
+    cost, tilts, out = tried[0]
+    notes = tuple(f"frame {frames[k].name}: the board's orientation is ambiguous in the image; the tilt the laser "
+                  f"line agrees with is used (joint cost {cost:.1f}, the next combination of tilts "
+                  f"{tried[1][0]:.1f})" if len(tried) > 1 else
+                  f"frame {frames[k].name}: the board's orientation is ambiguous in the image; the only tilt that "
+                  "gives a solution is used" for k in ambiguous)
+    return out + (notes,)
+
+
+def _select_and_refine(frames, board, camera, method, options, use_extent):
+    used = [f for f in frames if f.usable]
+    sel = select_minimal(used, board, method, use_extent)
+    ref, modes = refine_candidates(used, board, camera, sel, options, use_extent)
+    return frames, sel, ref, modes
