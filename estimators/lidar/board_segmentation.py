@@ -24,7 +24,7 @@ from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
 
 from ..errors import AmbiguousBoardError, MeasurementError
-from ..measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_board
+from ..measurements import MIN_INCIDENCE_COS, CameraBoardObservation, LidarBoardObservation, observe_lidar_board
 
 
 @dataclass(frozen=True)
@@ -124,12 +124,23 @@ def _board_window(uv: np.ndarray, w: float, h: float, slack: float = 0.015) -> n
     board-sized window cannot grow towards a stand or a tripod head without losing a whole board edge,
     so those points fall outside it; the slack keeps edge points that range noise moved sideways.
     """
+    return _in_rectangle(uv, _board_rectangle(uv, w, h), slack)
+
+
+def _board_rectangle(uv: np.ndarray, w: float, h: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """The board-sized window that holds the most points (:func:`_board_window`): its in-plane rotation,
+    lower corner in the rotated coordinates and size."""
     _, theta, _ = _best_window(uv, w + 0.03, h + 0.03, np.deg2rad(np.arange(0.0, 180.0, 3.0)), 0.02)
     fine = theta + np.deg2rad(np.arange(-3.0, 3.01, 0.25))
     cell = 0.005
     _, theta, lo = _best_window(uv, w, h, fine, cell)
-    q = _rotate(uv, theta)
     size = np.array([max(round(w / cell), 1), max(round(h / cell), 1)]) * cell
+    return theta, lo, size
+
+
+def _in_rectangle(uv: np.ndarray, rect: tuple[float, np.ndarray, np.ndarray], slack: float) -> np.ndarray:
+    theta, lo, size = rect
+    q = _rotate(uv, theta)
     return np.all((q >= lo - slack) & (q <= lo + size + slack), axis=1)
 
 
@@ -309,12 +320,38 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
     if board.size_known and len(Q) >= 3:
         # Cut to the board's rectangle: the few centimetres of a stand or tripod head just outside the
         # board lie within the noise band of its plane but tilt it (they sit at one edge, behind it).
-        uv = (Q - Q.mean(0)) @ plane_basis(plane.normal)
-        inside = _board_window(uv, *board.extent)
+        origin, basis = Q.mean(0), plane_basis(plane.normal)
+        uv = (Q - origin) @ basis
+        rect = _board_rectangle(uv, *board.extent)
+        inside = _in_rectangle(uv, rect, 0.015)
         if inside.sum() >= 3:
-            _, keep = robust_plane_fit(Q[inside])
+            plane, keep = robust_plane_fit(Q[inside])
             Q = Q[inside][keep]
+            # Then every gated point in the rectangle and in the board's noise band around this plane: the
+            # steps above cut the noise's tails at about 2.3 sigma around noisy fits, keeping the points
+            # that agree with each fit's own error. On simulated VLP-16 boards at 3 cm noise that made planes
+            # up to 1.8x as far off as all the board's returns give, a range noise 7% low, and planes that
+            # disagreed beyond it (errors 1.3x the Cramer-Rao bound over 40 layouts; now 1.0-1.06).
+            R = P[_in_rectangle((P - origin) @ basis, rect, 0.015) & (np.abs(plane.signed_distances(P)) < 0.3)]
+            band = _noise_band(R, plane)
+            if band.sum() >= len(Q):
+                Q = R[band]
     return observe_lidar_board(Q, n_candidates)
+
+
+# The board's returns kept: within this many (robust) standard deviations of its plane along their beams. At 3
+# the simulated results equal 4's within their noise, and recorded boards (heavier tails) fit a little better.
+NOISE_BAND_SIGMA = 3.0
+
+
+def _noise_band(P: np.ndarray, plane: Plane) -> np.ndarray:
+    """Points within ``NOISE_BAND_SIGMA`` range-noise standard deviations of ``plane`` along their beams, the
+    deviation from their median absolute residual (the points of the board's rectangle: mostly the board)."""
+    beams = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-9)
+    cos = np.maximum(np.abs(beams @ plane.normal), MIN_INCIDENCE_COS)
+    r = plane.signed_distances(P) / cos  # along the beam
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return np.abs(r) <= max(NOISE_BAND_SIGMA * sigma, 1e-3)
 
 
 def choose_by_prediction(candidates: list[LidarBoardObservation], predicted: Plane,
