@@ -612,17 +612,24 @@ def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
         if use_extent:
             joint = joint + outline_costs(Ts, used, board, sigma_r)
         corners = sum(frames[k].camera_alternatives[c].orientation_excess_chi2 for k, c in zip(ambiguous, tilts))
-        tried.append((float(joint.min()) + corners, tilts, out))
+        tried.append((float(joint.min()) + corners, tilts, out, (4 if use_extent else 2) * len(used)))
     if not tried:
         raise degenerate
     tried.sort(key=lambda t: t[0])
+    # The joint cost is about chi-square (2 laser and, with the outline, 2 segment-end terms per board) where the
+    # answer is right: a best combination far above it was not solved (the layout is still too weak for the
+    # factor graph's minimum to be the data's), and the refusal stands.
+    if tried[0][0] > chi2.isf(IMPLAUSIBLE_P, tried[0][3]):
+        raise DegenerateLayoutError(
+            f"{degenerate.problem}; with the boards skipped as ambiguous in their orientation the best fit is "
+            f"implausible (joint cost {tried[0][0]:.0f} on {tried[0][3]} degrees of freedom)", hint=degenerate.hint)
     margin = tried[1][0] - tried[0][0] if len(tried) > 1 else np.inf
     if margin < TILT_MARGIN_CHI2:
         raise DegenerateLayoutError(
             f"{degenerate.problem}; the boards skipped as ambiguous in their orientation do not decide it either "
             f"(their tilts fit the laser points alike: joint costs {tried[0][0]:.1f} and {tried[1][0]:.1f})",
             hint=degenerate.hint)
-    cost, tilts, out = tried[0]
+    cost, tilts, out, _ = tried[0]
     notes = tuple(f"frame {frames[k].name}: the board's orientation is ambiguous in the image; the tilt the laser "
                   f"line agrees with is used (joint cost {cost:.1f}, the next combination of tilts "
                   f"{tried[1][0]:.1f})" if len(tried) > 1 else
