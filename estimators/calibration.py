@@ -427,8 +427,9 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     (``solvers.association.associate_lines``); without one, each frame decides alone. A board ambiguous in
     its orientation (``alternatives``: both tilts) keeps its segment when it is the only one where the camera
     puts the board, for the solver to try its tilts (``solution_selection.select_and_refine``)."""
-    alternatives = alternatives or {}
     from scipy.spatial import cKDTree
+
+    alternatives = alternatives or {}
 
     t0 = time.perf_counter()
     read = [_read_or_reason(read_scan_2d, f.scan) for f in dataset.frames]
@@ -443,7 +444,7 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
 
     def search(k: int) -> tuple[list, str | None, list]:
         # an ambiguous board's tilts put it at one place: either finds its segments (outside the consensus)
-        cam_obs = cams[k][0] if k not in alternatives or k not in good else alternatives[k][0]
+        cam_obs = alternatives[k][0] if k in alternatives and k in good else cams[k][0]
         if cam_obs is None:
             return [], None, []
         t1 = time.perf_counter()
@@ -475,7 +476,7 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     for k, frame in enumerate(dataset.frames):
         (cam_obs, why), (cands, error) = cams[k], found[k]
         if cam_obs is None and k in alternatives and len(searched[k][0]) == 1:
-            cost, seg = searched[k][0][0]
+            _, seg = searched[k][0][0]
             frames.append(FrameMeasurement(
                 frame.name, None, seg, why, BoardDecision(
                     "this frame alone", _segment_dicts(searched[k][0], chosen=0), 0,

@@ -334,7 +334,7 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
             # disagreed beyond it (errors 1.3x the Cramer-Rao bound over 40 layouts; now 1.0-1.06).
             R = P[_in_rectangle((P - origin) @ basis, rect, 0.015) & (np.abs(plane.signed_distances(P)) < 0.3)]
             band = _noise_band(R, plane)
-            if band.sum() >= len(Q):
+            if band.sum() >= len(Q):  # (never fewer points than the trims left)
                 Q = R[band]
     return observe_lidar_board(Q, n_candidates)
 

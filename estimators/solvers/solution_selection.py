@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
@@ -599,8 +599,7 @@ def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
     for tilts in itertools.product(*(range(len(frames[k].camera_alternatives)) for k in ambiguous)):
         trial = list(frames)
         for k, c in zip(ambiguous, tilts):
-            trial[k] = FrameMeasurement(frames[k].name, frames[k].camera_alternatives[c], frames[k].lidar, None,
-                                        frames[k].decision, frames[k].camera_alternatives)
+            trial[k] = replace(frames[k], camera=frames[k].camera_alternatives[c], reason=None)
         try:
             out = _select_and_refine(trial, board, camera, method, options, use_extent)
         except DegenerateLayoutError:
