@@ -7,6 +7,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -843,7 +844,8 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
-              samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
+              samples: int | None = None, hints: Hints = Hints(), cache: bool = False,
+              on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a dataset (loaded, or
     its folder).
 
@@ -854,7 +856,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
     so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
     ``hints``: an optional initial guess and region of interest for scenes beyond automation (:class:`Hints`).
-    ``cache``: keep and reuse the measurements (:func:`measure`).
+    ``cache``: keep and reuse the measurements (:func:`measure`). ``on_refined``: see :func:`solve`.
     """
     _check_methods(init, refine)
     if not isinstance(dataset, Dataset):
@@ -878,7 +880,8 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
                         "not read again")
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
-                       warnings=warnings, timings=timings, posterior=posterior, rng=rng, use_extent=use_extent)
+                       warnings=warnings, timings=timings, posterior=posterior, rng=rng, use_extent=use_extent,
+                       on_refined=on_refined)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -935,16 +938,20 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
           init: str = "closed-form", refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(),
           name: str = "", warnings: list[str] | None = None, timings: dict | None = None,
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-          use_extent: bool | None = None, samples: int | None = None) -> CalibrationResult:
+          use_extent: bool | None = None, samples: int | None = None,
+          on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
     """The solver stage on measured frames (a list with ``board`` and ``camera``, or :class:`Measurements`):
     initial solution, then (optionally) the factor graph and posterior samples (``posterior`` options, or
     ``samples`` effective samples; needs the factor graph). ``use_extent`` (2D only): whether the
     minimal-solution selection drops solutions whose laser segments leave the boards' outlines (default:
-    when the board size is known)."""
+    when the board size is known). ``on_refined``: called with the refined result just before the posterior
+    is sampled (the same result without the posterior, its warnings and its time), e.g. to start drawing
+    the report's other figures meanwhile (``analysis.report.draw_ahead``)."""
     if isinstance(frames, Measurements):
         m = frames
         result = solve(list(m.frames), m.board, m.camera, init, refine, options, name or m.dataset,
-                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples)
+                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples,
+                       on_refined)
         return replace(result, measurements_source=m.source)
     if board is None or camera is None:
         raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
@@ -956,7 +963,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     used = [f for f in frames if f.usable]
     if any(f.lidar is not None and f.lidar.is_scan_line for f in frames) or init.startswith("minimal"):
         return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng,
-                         use_extent)
+                         use_extent, on_refined)
     if init != "closed-form":
         raise ValueError(f"init {init!r} is for 2D LiDAR datasets; a 3D LiDAR uses closed-form")
     t0 = time.perf_counter()
@@ -972,25 +979,39 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings
-    post = None
-    if ref is not None and posterior is not None:
-        t0 = time.perf_counter()
-        post = _posterior_or_warning(used, board, camera, ref, rng, posterior, (), warnings)
-        timings["posterior"] = time.perf_counter() - t0
+    tail = []  # the warnings that follow the posterior's
     if sol.condition_number > 10:
         axis, advice = describe_direction(sol.weakest_direction_camera)
-        warnings.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
-                        f"translation along {axis} is weakly constrained; {advice}")
+        tail.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
+                    f"translation along {axis} is weakly constrained; {advice}")
     dropped = {f.name for f in ref.frames if f.dropped} if ref else set()
     residuals = plane_residuals(T, [f for f in used if f.name not in dropped])
     for fname, (angle, dist) in residuals.items():
         if angle > np.deg2rad(3.0) or abs(dist) > 0.05:
-            warnings.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
-                            f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
-    warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
-    return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
-                             sol.weakest_direction_camera, name, tuple(warnings),
-                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post)
+            tail.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
+                        f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
+    tail += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
+    result = CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
+                               sol.weakest_direction_camera, name, tuple(warnings + tail),
+                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None)
+    return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings, on_refined)
+
+
+def _with_posterior(result: CalibrationResult, used, board, camera: CameraModel, rng, options: PosteriorOptions | None,
+                    modes: tuple, head: list[str], tail: list[str], timings: dict,
+                    on_refined: Callable[[CalibrationResult], None] | None) -> CalibrationResult:
+    """``result`` with its posterior sampled (when refined and ``options`` are given), the posterior's warnings
+    between ``head`` and ``tail``; ``on_refined`` sees ``result`` first."""
+    if result.refinement is None or options is None:
+        return result
+    if on_refined is not None:
+        on_refined(result)
+    t0 = time.perf_counter()
+    notes: list[str] = []
+    post = _posterior_or_warning(used, board, camera, result.refinement, rng, options, modes, notes)
+    timings["posterior"] = time.perf_counter() - t0
+    return replace(result, posterior=post, warnings=tuple(head + notes + tail),
+                   timings_s={k: round(v, 4) for k, v in timings.items()})
 
 
 def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng, options: PosteriorOptions,
@@ -1009,7 +1030,8 @@ def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
               options: RefinementOptions, name: str, warnings: list[str], timings: dict,
               posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-              use_extent: bool | None = None) -> CalibrationResult:
+              use_extent: bool | None = None, on_refined: Callable[[CalibrationResult], None] | None = None
+              ) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
     method = "minimal-lower-bound" if init == "closed-form" else init
@@ -1043,17 +1065,13 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
             warnings.append(f"ambiguous: {len(modes)} distinct solutions fit the boards (posterior mass "
                             f"{', '.join(f'{m.mass:.0%}' for m in modes)}; the first is reported, all are in "
                             "calibration.json); add boards tilted in other directions to decide")
-    post = None
-    if ref is not None and posterior is not None:
-        t0 = time.perf_counter()
-        post = _posterior_or_warning(used, board, camera, ref, rng, posterior,
-                                     tuple(m.T_camera_lidar for m in modes[1:]), warnings)
-        timings["posterior"] = time.perf_counter() - t0
     residuals = plane_residuals(T, used)
-    warnings += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
-    return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings),
-                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, post, sel,
-                             tuple(modes))
+    tail = [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
+    result = CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
+                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None, sel,
+                               tuple(modes))
+    return _with_posterior(result, used, board, camera, rng, posterior, tuple(m.T_camera_lidar for m in modes[1:]),
+                           warnings, tail, timings, on_refined)
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

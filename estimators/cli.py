@@ -296,13 +296,23 @@ def _calibrate(args) -> int:
 
 
 def _figure_process(args, report: bool):
-    """A child that loads the posterior figures' modules during the calibration, when a report with a
-    posterior will be drawn (``analysis.posterior_figures.FigureProcess``); else nothing to start."""
-    if report and args.refine != "none" and args.samples > 0:
-        from .analysis.posterior_figures import FigureProcess
+    """A child that loads matplotlib during the calibration and then draws the report's figures
+    (``analysis.figure_process.FigureProcess``), when a report will be drawn; else nothing to start."""
+    if report and args.refine != "none":
+        from .analysis.figure_process import FigureProcess
 
         return FigureProcess()
     return contextlib.nullcontext()
+
+
+def _draw_ahead(figures):
+    """The pipeline's ``on_refined`` hook: the report's figures that need no posterior are drawn by the
+    figure process while the posterior is sampled (None without a figure process)."""
+    if figures is None:
+        return None
+    from .analysis.report import draw_ahead
+
+    return lambda result: draw_ahead(result, figures)
 
 
 def _calibrate_with(args, ds, figures) -> int:
@@ -319,13 +329,17 @@ def _calibrate_with(args, ds, figures) -> int:
             raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
                                path=args.measurements, hint="give the dataset the measurements came from")
         result = solve(m, init=args.init, refine=args.refine, options=_options(args),
-                       posterior=_posterior_options(args), rng=np.random.default_rng(args.seed))
+                       posterior=_posterior_options(args), rng=np.random.default_rng(args.seed),
+                       on_refined=_draw_ahead(figures))
     else:
         result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
                            SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), _options(args),
-                           _posterior_options(args), hints=_hints(args), cache=not args.no_cache)
+                           _posterior_options(args), hints=_hints(args), cache=not args.no_cache,
+                           on_refined=_draw_ahead(figures))
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
                          result.measurements_source)
+    if figures is not None:  # the posterior's figures, started before the files are written
+        _draw_ahead(figures)(result)
     path = write_calibration(result, args.out)
     _print_result(result)
     save_measurements(args.out, m)
@@ -647,7 +661,9 @@ def _demo(args) -> int:
     ds = load_dataset(data)
     with _figure_process(args, True) as figures:
         result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
-                           posterior=_posterior_options(args))
+                           posterior=_posterior_options(args), on_refined=_draw_ahead(figures))
+        if figures is not None:  # the posterior's figures, started before anything is printed or written
+            _draw_ahead(figures)(result)
         _print_result(result, ds.ground_truth())
         print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
         path = write_calibration(result, base)

@@ -187,33 +187,42 @@ def test_3d_scan_in_a_2d_dataset_is_refused_clearly(tmp_path):
     assert r.returncode == 2 and "0000.npy" in r.stderr and "not a 2D scan" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
-def test_posterior_figures_from_the_child_match_in_process(monkeypatch):
-    """The report's posterior figures drawn in a child process are the very PNGs drawn in this one, and when
-    no child can be started they are drawn here."""
-    from estimators.analysis import posterior_figures as pf
+def test_report_figures_from_the_child_match_in_process(monkeypatch):
+    """The report's matplotlib figures drawn in the child process are the very PNGs drawn in this one; the
+    same figure of the same arrays is drawn once; and where no child can be started, or it was closed before
+    a figure was collected, the figures are drawn here."""
+    from estimators.analysis import figure_process as fp
+    from estimators.analysis import report_figures as rf
 
     rng = np.random.default_rng(4)
-    xi, chain = 1e-3 * rng.normal(size=(3000, 6)), 1e-3 * rng.normal(size=(120, 16, 7))
-    cov = 1e-6 * np.eye(6)
-    here = pf.posterior_pngs(xi, cov, chain, 20)
-    assert all(png[:8] == b"\x89PNG\r\n\x1a\n" for png in here)
+    posterior = {"xi": 1e-3 * rng.normal(size=(3000, 6)), "covariance_laplace": 1e-6 * np.eye(6),
+                 "chain": 1e-3 * rng.normal(size=(120, 16, 7)), "burn": np.array(20)}
+    residuals = {"names": np.array(["0000", "0001", "0002"]), "chi2": np.array([1.0, np.nan, 7.5]),
+                 "outlier": np.array([False, False, True]), "corner_rms_px": np.array([0.1, 0.2, 0.1]),
+                 "angle_deg": np.array([0.1, 0.3, 2.0]), "distance_mm": np.array([1.0, -2.0, 30.0])}
+    here = {**rf.DRAWERS["posterior"](**posterior), **rf.DRAWERS["residuals"](**residuals)}
+    assert sorted(here) == ["corner.png", "residuals.png", "traces.png"]
+    assert all(png[:8] == b"\x89PNG\r\n\x1a\n" for png in here.values())
 
-    def not_here(*args):
+    def not_here(kind, arrays):
         raise AssertionError("drawn in the parent, not in the child")
 
     with monkeypatch.context() as m:
-        m.setattr(pf, "posterior_pngs", not_here)
-        assert pf.start_posterior_figures(xi, cov, chain, 20)() == here  # a child started for them
-        with pf.FigureProcess() as waiting:  # a child started ahead, then given the arrays
-            assert pf.start_posterior_figures(xi, cov, chain, 20, waiting)() == here
-        unused = pf.FigureProcess()
-        child = unused.child
-        unused.close()  # an unused child ends when its input closes
-        assert child.returncode == 0
+        m.setattr(fp, "_draw_here", not_here)
+        with fp.FigureProcess() as figures:
+            first = figures.draw("posterior", **posterior)
+            second = figures.draw("residuals", **residuals)
+            assert figures.draw("posterior", **dict(posterior)) is first  # the same job
+            assert {**second(), **first()} == here  # collected out of order
+            child = figures.child
+        assert child.poll() is not None  # closing ends the child
+    with fp.FigureProcess() as figures:
+        late = figures.draw("residuals", **residuals)
+    assert late() == {"residuals.png": here["residuals.png"]}  # closed first: drawn here
     monkeypatch.setattr(sys, "executable", "/nonexistent/python")
-    assert pf.start_posterior_figures(xi, cov, chain, 20)() == here
-    with pf.FigureProcess() as none_started:
-        assert none_started.child is None and pf.start_posterior_figures(xi, cov, chain, 20, none_started)() == here
+    with fp.FigureProcess() as none_started:
+        assert none_started.child is None
+        assert none_started.draw("posterior", **posterior)() == {k: here[k] for k in ("corner.png", "traces.png")}
 
 
 def test_top_view_draws_points_where_they_lie():
