@@ -54,6 +54,15 @@ def add_pixel_noise(clean: np.ndarray, rng: np.random.Generator, pixel_noise: fl
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
+def _may_hide(origin: np.ndarray, patch: Patch, board_outline: np.ndarray, margin_m: float = 1e-6) -> bool:
+    """Whether ``patch`` could lie between ``origin`` and the board (its outline's corners): not when the
+    origin and every corner lie on the same side of the patch's plane (by ``margin_m``), since the segment
+    from the origin to any point of the (convex) board then stays on that side."""
+    side = board_outline @ patch.normal - patch.distance
+    own = float(origin @ patch.normal - patch.distance)
+    return not (abs(own) > margin_m and np.all(side * np.sign(own) > margin_m))
+
+
 def pixel_rays(camera: CameraModel, T_world_camera: np.ndarray) -> np.ndarray:
     """Unit rays in the world frame through every pixel centre, row by row: (H W, 3)."""
     return _rays_world(_normalized_grid(camera)[:camera.height, :camera.width].reshape(-1, 2), T_world_camera)
@@ -100,12 +109,14 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
         dirs = _rays_world(_interp(grid, su, sv), T_world_camera)
         if background is None:
             _, hit, r_sub = cast(origin, dirs, patches)
-        else:  # the frame's own patches, then the static scene only where it could hide the board
+        else:  # the frame's own patches, then the static pieces that could hide the board, where they could
             n_own = len(patches) - background.n_patches
             s_own, hit, r_sub = cast(origin, dirs, patches[:n_own])
-            on = np.flatnonzero(hit == board_index)
-            s_static = cast(origin, dirs[on], patches[n_own:])[0]
-            hit[on[s_static < s_own[on]]] = -1
+            hiding = [q for q in patches[n_own:] if _may_hide(origin, q, board_outline_world)]
+            if hiding:
+                on = np.flatnonzero(hit == board_index)
+                s_static = cast(origin, dirs[on], hiding)[0]
+                hit[on[s_static < s_own[on]]] = -1
         base = np.repeat(refl[pv, pu], supersample * supersample)
         r_sub = np.where(hit == board_index, r_sub, base)
         refl[pv, pu] = r_sub.reshape(-1, supersample * supersample).mean(1)
