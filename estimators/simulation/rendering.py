@@ -29,8 +29,10 @@ def _interp(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     u0 = np.clip(np.floor(u).astype(int), 0, grid.shape[1] - 2)
     v0 = np.clip(np.floor(v).astype(int), 0, grid.shape[0] - 2)
     fu, fv = (u - u0)[:, None], (v - v0)[:, None]
-    return ((1 - fu) * (1 - fv) * grid[v0, u0] + fu * (1 - fv) * grid[v0, u0 + 1]
-            + (1 - fu) * fv * grid[v0 + 1, u0] + fu * fv * grid[v0 + 1, u0 + 1])
+    flat, k = grid.reshape(-1, 2), v0 * grid.shape[1] + u0  # one flat index: cheaper than 2D fancy indexing
+    below = k + grid.shape[1]
+    return ((1 - fu) * (1 - fv) * flat[k] + fu * (1 - fv) * flat[k + 1]
+            + (1 - fu) * fv * flat[below] + fu * fv * flat[below + 1])
 
 
 def _rays_world(xy: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:

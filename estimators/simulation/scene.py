@@ -126,6 +126,8 @@ def cast(origin: np.ndarray, dirs: np.ndarray, patches: list[Patch], max_range: 
                 rays = np.nonzero(dirs @ axis >= np.cos(half))[0]
                 if len(rays) == 0:
                     continue
+                if len(rays) == n_rays:  # the cone holds every ray: no copies of the arrays by index
+                    rays = None
         denom = (dirs if rays is None else dirs[rays]) @ p.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (p.distance - origin @ p.normal) / denom
