@@ -1,6 +1,4 @@
-import sys
-
-from .cli import main
+from .cli import run
 
 if __name__ == "__main__":  # not when a child process re-imports the main module (multiprocessing)
-    sys.exit(main())
+    run()

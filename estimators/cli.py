@@ -676,6 +676,16 @@ def _demo(args) -> int:
     return 0
 
 
+def run() -> None:
+    """The ``lidarcam`` console script: :func:`main`, then the process ends at once with its exit code. Every
+    file is written and closed by then; skipping the interpreter's orderly teardown of GTSAM, OpenCV, scipy
+    and the rest saves a quarter of a second per command."""
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     spec_study = len(argv) >= 2 and argv[0] == "study" and argv[1] not in ("coverage", "-h", "--help")
@@ -700,4 +710,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -122,6 +122,15 @@ def _run_cli(*args):
     return subprocess.run([sys.executable, "-m", "estimators", *args], capture_output=True, text=True)
 
 
+def test_the_console_entry_flushes_its_output_before_it_ends_the_process(tmp_path):
+    """``run`` ends the process without the interpreter's teardown: what was printed to a pipe still arrives,
+    and the exit code is main's."""
+    r = _run_cli("simulate", "--lidar", "2d", "--poses", "3", "--out", str(tmp_path / "s"))
+    assert r.returncode == 0 and r.stdout == f"wrote 3 frames (2D scanner, default scene, checkerboard) to {tmp_path / 's'}\n"
+    r = _run_cli("simulate", "--lidar", "2d", "--poses", "3", "--out", str(tmp_path / "s"))  # exists: refused
+    assert r.returncode == 2 and r.stderr.startswith("lidarcam: error:") and r.stdout == ""
+
+
 def test_missing_dataset_is_one_line_exit_2(tmp_path):
     r = _run_cli("calibrate", str(tmp_path / "nope"), "--out", str(tmp_path / "out"))
     assert r.returncode == 2
