@@ -152,7 +152,12 @@ class FigureProcess:
 
 
 def _serve() -> None:
-    """The child: load the drawing modules, then draw each job of the input until it closes."""
+    """The child: load the drawing modules, then draw each job of the input until it closes. Its answers go
+    to the original standard output, which nothing else may write to: anything a library prints there goes
+    to standard error instead."""
+    answers = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
     from .report_figures import DRAWERS, warm_up
 
     warm_up()
@@ -168,8 +173,8 @@ def _serve() -> None:
             status = "ok"
         except Exception:  # noqa: BLE001 (the parent draws the figure itself and meets the error there)
             pass
-        sys.stdout.write(f"{number} {status}\n")
-        sys.stdout.flush()
+        answers.write(f"{number} {status}\n")
+        answers.flush()
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--serve"]:
