@@ -5,10 +5,13 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: demo test bench clean
 
+# pip compiles the dependencies' bytecode; an editable install leaves the project's own to the first import,
+# which cannot keep it where writing bytecode is switched off (PYTHONDONTWRITEBYTECODE): compiled here.
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m compileall -q estimators geometry
 	touch $(STAMP)
 
 demo: $(STAMP)
