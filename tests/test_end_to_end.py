@@ -212,6 +212,9 @@ def test_report_figures_from_the_child_match_in_process(monkeypatch):
     here = {**rf.DRAWERS["posterior"](**posterior), **rf.DRAWERS["residuals"](**residuals)}
     assert sorted(here) == ["corner.png", "residuals.png", "traces.png"]
     assert all(png[:8] == b"\x89PNG\r\n\x1a\n" for png in here.values())
+    rf.prepare()  # on axes built ahead (as the child does between jobs): the same figures
+    assert rf.DRAWERS["posterior"](**posterior) == {k: here[k] for k in ("corner.png", "traces.png")}
+    assert not rf._SPARE  # taken
 
     def not_here(kind, arrays):
         raise AssertionError("drawn in the parent, not in the child")
@@ -223,6 +226,9 @@ def test_report_figures_from_the_child_match_in_process(monkeypatch):
             second = figures.draw("residuals", **residuals)
             assert figures.draw("posterior", **dict(posterior)) is first  # the same job
             assert {**second(), **first()} == here  # collected out of order
+            # A posterior after a job: the child may have built its axes ahead meanwhile.
+            again = figures.draw("posterior", **{**posterior, "burn": np.array(30)})
+            assert again()["corner.png"] == here["corner.png"]
             child = figures.child
         assert child.poll() is not None  # closing ends the child
     with fp.FigureProcess() as figures:

@@ -6,7 +6,8 @@ loads matplotlib and corner as soon as it starts, then takes jobs in order from 
 job number, a figure's name in ``report_figures.DRAWERS`` and two ``.npz`` paths, the arrays in and the PNGs
 out (never pickles). It answers each with a line, ``<number> ok`` or ``<number> failed``. A job is submitted
 once per content: asking again for the same figure of the same arrays returns the same job, so a figure can
-be started ahead (``report.draw_ahead``) and asked for later by the report as if it were new.
+be started ahead (``report.draw_ahead``) and asked for later by the report as if it were new. Between jobs,
+while none waits, it builds the corner plot's and traces' empty axes (much of their cost).
 
 Where the child cannot be started, fails, or runs past ``CHILD_TIMEOUT_S``, the figures are drawn in this
 process instead: the same figures, only later.
@@ -152,17 +153,27 @@ class FigureProcess:
 
 
 def _serve() -> None:
-    """The child: load the drawing modules, then draw each job of the input until it closes. Its answers go
-    to the original standard output, which nothing else may write to: anything a library prints there goes
-    to standard error instead."""
+    """The child: load the drawing modules, then draw each job of the input until it closes; whenever no job
+    waits after the first (the calibration has reached its refinement, and the caller samples the posterior),
+    build the next figures' empty axes (``report_figures.prepare``). Its answers go to the original
+    standard output, which nothing else may write to: anything a library prints there goes to standard error
+    instead."""
     answers = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
     sys.stdout = sys.stderr
-    from .report_figures import DRAWERS, warm_up
+    jobs = os.fdopen(os.dup(0), "rb", buffering=0)  # unbuffered: a line waiting is a line the fd still holds
+    from .report_figures import DRAWERS, prepare, warm_up
 
     warm_up()
-    for line in sys.stdin:
-        number, kind, src, dst = line.rstrip("\n").split("\t")
+    started = False
+    while True:
+        if started and not select.select([jobs], [], [], 0)[0]:
+            prepare()
+        started = True
+        line = jobs.readline()
+        if not line:
+            return
+        number, kind, src, dst = line.decode().rstrip("\n").split("\t")
         status = "failed"
         try:
             with np.load(src, allow_pickle=False) as z:

@@ -16,6 +16,30 @@ from .figures import new_figure, png_bytes
 LABELS = ["rot x [deg]", "rot y [deg]", "rot z [deg]", "trans x [mm]", "trans y [mm]", "trans z [mm]"]
 UNITS = np.array([np.degrees(1.0)] * 3 + [1000.0] * 3)  # tangent (rad, m) to the figures' deg and mm
 DPI = 90
+CORNER_INCHES = 13.9  # corner's own size for 6 axes: 2 in per panel and its margins
+
+# Empty figures built ahead by :func:`prepare` (a drawing process builds them while it waits for samples): a
+# figure's axes and ticks are most of the corner plot's cost, and they do not depend on the data.
+_SPARE: dict[str, tuple] = {}
+
+
+def _corner_figure() -> Figure:
+    fig = Figure(figsize=(CORNER_INCHES, CORNER_INCHES))
+    fig.subplots(6, 6)  # as corner would make them
+    return fig
+
+
+def _traces_figure() -> tuple:
+    return new_figure(7, 1, figsize=(10, 11), sharex=True)
+
+
+def prepare() -> None:
+    """Build the next corner plot's and traces' empty figures now, while nothing waits for them; the figures
+    drawn on them are the same, byte for byte."""
+    if "corner" not in _SPARE:
+        _SPARE["corner"] = (_corner_figure(),)
+    if "traces" not in _SPARE:
+        _SPARE["traces"] = _traces_figure()
 
 
 def corner_png(xi: np.ndarray, covariance_laplace: np.ndarray) -> bytes:
@@ -23,12 +47,17 @@ def corner_png(xi: np.ndarray, covariance_laplace: np.ndarray) -> bytes:
     covariance's 1- and 2-sigma ellipses."""
     import corner
 
-    # corner's own size for 6 axes (2 in per panel, margins), on a figure outside pyplot. Density shading and
-    # contours, without corner's marker per sample outside the outer contour: those tens of thousands of
-    # markers were a quarter of the whole report's drawing time and add nothing the contours do not show.
-    fig = corner.corner(xi * UNITS, fig=Figure(figsize=(13.9, 13.9)), labels=LABELS, quantiles=[0.025, 0.5, 0.975],
-                        show_titles=True, title_fmt=".3f", title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8},
-                        plot_datapoints=False)
+    # A figure outside pyplot. Density shading and contours, without corner's marker per sample outside the
+    # outer contour: those tens of thousands of markers were a quarter of the whole report's drawing time and
+    # add nothing the contours do not show. On a figure with its axes made already, corner keeps their
+    # limits unless given the ranges: the samples' extent, which is corner's own default.
+    data = xi * UNITS
+    lo, hi = data.min(0), data.max(0)
+    fig = _SPARE.pop("corner", (None,))[0] if np.all(hi > lo) else None
+    fig = corner.corner(data, fig=fig if fig is not None else Figure(figsize=(CORNER_INCHES, CORNER_INCHES)),
+                        range=list(zip(lo, hi)) if fig is not None else None, labels=LABELS,
+                        quantiles=[0.025, 0.5, 0.975], show_titles=True, title_fmt=".3f",
+                        title_kwargs={"fontsize": 8}, label_kwargs={"fontsize": 8}, plot_datapoints=False)
     C = covariance_laplace * np.outer(UNITS, UNITS)
     axes = np.array(fig.axes).reshape(6, 6)
     angles = np.linspace(0, 2 * np.pi, 100)
@@ -48,7 +77,7 @@ def traces_png(chain: np.ndarray, burn: int) -> bytes:
     walkers drawn, with the end of burn-in dashed."""
     labels = LABELS + ["log s (camera noise scale)"]
     units = np.append(UNITS, 1.0)
-    fig, ax = new_figure(7, 1, figsize=(10, 11), sharex=True)
+    fig, ax = _SPARE.pop("traces", None) or _traces_figure()
     step = max(1, chain.shape[1] // 12)
     for k in range(7):
         ax[k].plot(chain[:, ::step, k] * units[k], lw=0.4, alpha=0.6)
