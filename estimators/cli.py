@@ -315,6 +315,15 @@ def _draw_ahead(figures):
     return lambda result: draw_ahead(result, figures)
 
 
+def _draw_posterior_ahead(result, figures) -> None:
+    """Start the posterior's figures (and any other not started yet) as soon as the calibration returns,
+    before anything is printed or written."""
+    if figures is not None:
+        from .analysis.report import draw_ahead
+
+        draw_ahead(result, figures)
+
+
 def _calibrate_with(args, ds, figures) -> int:
     import numpy as np
 
@@ -338,8 +347,7 @@ def _calibrate_with(args, ds, figures) -> int:
                            on_refined=_draw_ahead(figures))
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
                          result.measurements_source)
-    if figures is not None:  # the posterior's figures, started before the files are written
-        _draw_ahead(figures)(result)
+    _draw_posterior_ahead(result, figures)
     path = write_calibration(result, args.out)
     _print_result(result)
     save_measurements(args.out, m)
@@ -662,8 +670,7 @@ def _demo(args) -> int:
     with _figure_process(args, True) as figures:
         result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
                            posterior=_posterior_options(args), on_refined=_draw_ahead(figures))
-        if figures is not None:  # the posterior's figures, started before anything is printed or written
-            _draw_ahead(figures)(result)
+        _draw_posterior_ahead(result, figures)
         _print_result(result, ds.ground_truth())
         print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
         path = write_calibration(result, base)
