@@ -277,3 +277,47 @@ def test_cast_over_a_cached_static_background_is_the_single_pass_cast():
                 np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="other rays"):
         cast(origin, dirs[:10], patches, 30.0, bg)
+
+
+def test_rendering_over_the_cached_background_is_the_single_pass_rendering():
+    """The camera's image of a frame rendered over the static scene's cached cast (the static pieces that
+    cannot hide the board skipped when its edges are anti-aliased) is exactly the image of the whole scene
+    rendered in one pass: the default room and the office, held boards and boards on stands."""
+    from estimators.simulation.office import office_layout
+    from estimators.simulation.rendering import pixel_rays, render_clean
+    from estimators.simulation.scene import cast_background, rectangle
+    from estimators.simulation.simulator import default_room, sample_board_poses, scene_patches
+
+    rng = np.random.default_rng(5)
+    rig = default_rig(rng, "vlp16", 0.02)
+    T_lc = T_inverse(rig.T_camera_lidar)
+    poses = sample_board_poses(rig, 2, rng)
+    # A static post between the camera and the first board, over part of it: it must hide that part.
+    T_lb = T_lc @ poses[0]
+    near = 0.5 * (T_lc[:3, 3] + T_lb[:3, 3])
+    post = rectangle(near - [0.0, 0.05, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], 0.1, 1.0, 0.2, "post")
+    room = default_room(-rig.lidar_height_m)
+    for static in (office_layout(-rig.lidar_height_m, rng), room, room + [post]):
+        bg = cast_background(T_lc[:3, 3], pixel_rays(rig.camera, T_lc), static)
+        for T_cb, held in zip(poses, (True, False)):
+            T_lb = T_lc @ T_cb
+            patches, bi = scene_patches(rig, T_lb, static, held)
+            outline = transform_points(T_lb, rig.board.outline())
+            image = render_clean(rig.camera, T_lc, patches, bi, outline, background=bg)
+            np.testing.assert_array_equal(image, render_clean(rig.camera, T_lc, patches, bi, outline))
+            if static[-1] is post and T_cb is poses[0]:
+                clear = render_clean(rig.camera, T_lc, *scene_patches(rig, T_lb, room, held), outline)
+                assert np.count_nonzero(image != clear) > 1000  # the post does hide part of the board
+
+
+def test_simulated_frames_do_not_depend_on_the_number_of_threads():
+    """Frames cast ahead in threads, their noise added in order: the same images and sweeps for 1 or 3
+    workers."""
+    frames = {}
+    for workers in (1, 3):
+        rng = np.random.default_rng(9)
+        frames[workers] = simulate_frames(default_rig(rng, "vlp16", 0.02), 4, rng, workers=workers)
+    for a, b in zip(frames[1], frames[3]):
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.board_mask, b.board_mask)

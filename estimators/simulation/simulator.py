@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -421,18 +422,18 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
                              background=image_background)
         return bi, clean, cast_sweep(rig, patches, (sweep_background, ring))
 
-    # The default scene draws nothing before a frame is cast: ``workers`` frames at a time are cast in parallel
-    # (numpy releases the interpreter in its large array operations), then their noise is added in the
-    # original order, so that a seed gives the same dataset for any number of workers (and no more than
-    # ``workers`` noise-free images are held at once).
+    # The default scene draws nothing before a frame is cast: frames are cast in ``workers`` threads (numpy
+    # releases the interpreter in its large array operations), ``workers`` of them ahead of the one whose noise
+    # is being added, in the original order, so that a seed gives the same dataset for any number of workers
+    # (and no more than ``workers + 1`` noise-free images are held at once).
     parallel = scene == "default" and workers > 1
     with ThreadPoolExecutor(max_workers=workers) if parallel else contextlib.nullcontext() as pool:
-        batch: list = []
+        ahead: deque = deque()
         for k, T_cb in enumerate(poses):
             if parallel:
-                if k % workers == 0:
-                    batch = list(pool.map(lambda T: cast_frame(T, False), poses[k:k + workers]))
-                bi, clean, sweep = batch[k % workers]
+                while len(ahead) <= workers and k + len(ahead) < len(poses):
+                    ahead.append(pool.submit(cast_frame, poses[k + len(ahead)], False))
+                bi, clean, sweep = ahead.popleft().result()
             else:
                 held = scene != "default" and bool(rng.uniform() < 0.7)
                 bi, clean, sweep = cast_frame(T_cb, held)
