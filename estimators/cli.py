@@ -318,10 +318,9 @@ def _draw_ahead(figures):
 def _draw_posterior_ahead(result, figures) -> None:
     """Start the posterior's figures (and any other not started yet) as soon as the calibration returns,
     before anything is printed or written."""
-    if figures is not None:
-        from .analysis.report import draw_ahead
-
-        draw_ahead(result, figures)
+    hook = _draw_ahead(figures)
+    if hook is not None:
+        hook(result)
 
 
 def _calibrate_with(args, ds, figures) -> int:

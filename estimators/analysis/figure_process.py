@@ -51,22 +51,21 @@ def _draw_here(kind: str, arrays: dict[str, np.ndarray]) -> dict[str, bytes]:
 
 
 class FigureProcess:
-    """The drawing child, started at construction (``start=False``: none; every figure is drawn here). Use it
-    as a context manager; closing it ends the child."""
+    """The drawing child, started at construction (where it cannot be, every figure is drawn here). Use it as
+    a context manager; closing it ends the child."""
 
-    def __init__(self, start: bool = True) -> None:
+    def __init__(self) -> None:
         self.child: subprocess.Popen | None = None
         self._tmp = tempfile.TemporaryDirectory(prefix="lidarcam-figures-")
         self._jobs: dict[str, Callable[[], dict[str, bytes]]] = {}
         self._answers: dict[int, bool] = {}
         self._sent = 0
-        if start:
-            try:
-                self.child = subprocess.Popen([sys.executable, "-m", __name__, "--serve"], stdin=subprocess.PIPE,
-                                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
-                                              env=_child_env())
-            except OSError:
-                self.child = None
+        try:
+            self.child = subprocess.Popen([sys.executable, "-m", __name__, "--serve"], stdin=subprocess.PIPE,
+                                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
+                                          env=_child_env())
+        except OSError:
+            self.child = None
 
     @property
     def running(self) -> bool:
