@@ -14,6 +14,7 @@ process instead: the same figures, only later.
 """
 from __future__ import annotations
 
+import gc
 import hashlib
 import os
 import select
@@ -154,9 +155,9 @@ class FigureProcess:
 def _serve() -> None:
     """The child: load the drawing modules, then draw each job of the input until it closes; whenever no job
     waits after the first (the calibration has reached its refinement, and the caller samples the posterior),
-    build the next figures' empty axes (``report_figures.prepare``). Its answers go to the original
-    standard output, which nothing else may write to: anything a library prints there goes to standard error
-    instead."""
+    collect its garbage and build the next figures' empty axes (``report_figures.prepare``). Its answers go
+    to the original standard output, which nothing else may write to: anything a library prints there goes
+    to standard error instead."""
     answers = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
     sys.stdout = sys.stderr
@@ -164,9 +165,13 @@ def _serve() -> None:
     from .report_figures import DRAWERS, prepare, warm_up
 
     warm_up()
+    # The cyclic garbage collector runs only while no job waits: during a figure its passes over the
+    # figure's tens of thousands of fresh objects cost a sixth of the drawing time, for nothing freed.
+    gc.disable()
     started = False
     while True:
         if started and not select.select([jobs], [], [], 0)[0]:
+            gc.collect()
             prepare()
         started = True
         line = jobs.readline()
