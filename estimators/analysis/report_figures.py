@@ -30,7 +30,11 @@ def _corner_figure() -> Figure:
 
 
 def _traces_figure() -> tuple:
-    return new_figure(7, 1, figsize=(10, 11), sharex=True)
+    fig, ax = new_figure(7, 1, figsize=(10, 11), sharex=True)
+    for a in ax:  # tick objects for the ticks drawn later (a tick's making is half of this figure's drawing)
+        a.xaxis.get_major_ticks(12)
+        a.yaxis.get_major_ticks(12)
+    return fig, ax
 
 
 def prepare() -> None:
