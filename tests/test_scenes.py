@@ -321,3 +321,30 @@ def test_simulated_frames_do_not_depend_on_the_number_of_threads():
         np.testing.assert_array_equal(a.image, b.image)
         np.testing.assert_array_equal(a.points, b.points)
         np.testing.assert_array_equal(a.board_mask, b.board_mask)
+
+
+def test_subpixel_interpolation_is_the_per_ray_interpolation_bit_for_bit():
+    """The anti-aliasing rays' undistorted coordinates, gathered once per pixel and neighbour, equal the
+    per-ray bilinear interpolation exactly: at the grid's first and last rows and columns too, and for
+    offsets that are not multiples of 1/1024 (the per-ray path). The pixel rays shared by a pool's threads
+    equal those of one thread."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from estimators.simulation import rendering
+
+    rng = np.random.default_rng(3)
+    grid = rng.normal(size=(61, 81, 2))
+    pu, pv = rng.integers(0, 80, 500), rng.integers(0, 60, 500)
+    pu[:20], pv[20:40], pu[40:60], pv[60:80] = 0, 0, 79, 59
+    for S in (1, 2, 3, 4, 5):
+        offs = (np.arange(S) + 0.5) / S - 0.5
+        ou, ov = np.meshgrid(offs, offs)
+        u, v = (pu[:, None] + ou.ravel()).ravel(), (pv[:, None] + ov.ravel()).ravel()
+        np.testing.assert_array_equal(rendering._interp_subpixels(grid, pu, pv, offs),
+                                      rendering._interp(grid, u, v))
+    rig = default_rig(np.random.default_rng(4), "vlp16", 0.02)
+    T_lc = T_inverse(rig.T_camera_lidar)
+    one = rendering.pixel_rays(rig.camera, T_lc)
+    rendering._GRID_CACHE.clear()
+    with ThreadPoolExecutor(2) as pool:
+        np.testing.assert_array_equal(rendering.pixel_rays(rig.camera, T_lc, pool), one)

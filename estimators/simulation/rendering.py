@@ -1,6 +1,8 @@
 """Rendering anti-aliased camera images of a simulated scene through a distorted camera model."""
 from __future__ import annotations
 
+from concurrent.futures import Executor
+
 import cv2
 import numpy as np
 
@@ -10,15 +12,24 @@ from geometry.rotations import transform_points
 from .scene import Background, Patch, cast
 
 _GRID_CACHE: dict[tuple, np.ndarray] = {}
+_PARTS = 4  # blocks of rows for a pool's threads (fixed: the result never depends on the pool)
 SKY_REFLECTANCE = 0.85
 
 
-def _normalized_grid(camera: CameraModel) -> np.ndarray:
+def _in_parts(f, rows: np.ndarray, pool: Executor | None) -> np.ndarray:
+    """``f`` of ``rows`` (row by row independent) in ``_PARTS`` blocks of rows, on the threads of ``pool``
+    (OpenCV and numpy release the interpreter) or here: always the same blocks, so that not even a BLAS
+    kernel's handling of a block's last rows can make the result depend on the pool."""
+    parts = np.array_split(rows, _PARTS)
+    return np.concatenate(list(map(f, parts) if pool is None else pool.map(f, parts)))
+
+
+def _normalized_grid(camera: CameraModel, pool: Executor | None = None) -> np.ndarray:
     """Undistorted normalized coordinates of every pixel centre, (H+1, W+1, 2) (one extra row/column)."""
     key = (camera.model, camera.K.tobytes(), camera.dist.tobytes(), camera.width, camera.height)
     if key not in _GRID_CACHE:
         u, v = np.meshgrid(np.arange(camera.width + 1, dtype=float), np.arange(camera.height + 1, dtype=float))
-        xy = camera.normalized_from_pixels(np.column_stack([u.ravel(), v.ravel()]))
+        xy = _in_parts(camera.normalized_from_pixels, np.column_stack([u.ravel(), v.ravel()]), pool)
         _GRID_CACHE.clear()
         _GRID_CACHE[key] = xy.reshape(camera.height + 1, camera.width + 1, 2)
     return _GRID_CACHE[key]
@@ -33,6 +44,44 @@ def _interp(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     below = k + grid.shape[1]
     return ((1 - fu) * (1 - fv) * flat[k] + fu * (1 - fv) * flat[k + 1]
             + (1 - fu) * fv * flat[below] + fu * fv * flat[below + 1])
+
+
+def _interp_subpixels(grid: np.ndarray, pu: np.ndarray, pv: np.ndarray, offs: np.ndarray) -> np.ndarray:
+    """:func:`_interp` at every sub-pixel ``(pu + offs[j], pv + offs[i])`` of the pixels ``(pu, pv)``, pixel by
+    pixel and ``i`` by ``j`` within it, as one (N S^2, 2) array: the same values, bit for bit. Away from the
+    grid's edges, each sub-pixel's four grid points and weights are the same for every pixel,
+    so each neighbour is gathered once per pixel rather than once per sub-pixel. (That holds when every
+    offset is a multiple of 1/1024: ``pu + o - floor(pu + o)`` is then ``o - floor(o)`` exactly.)"""
+    S = len(offs)
+    ou, ov = np.meshgrid(offs, offs)
+
+    def general(pu: np.ndarray, pv: np.ndarray) -> np.ndarray:
+        return _interp(grid, (pu[:, None] + ou.ravel()[None, :]).ravel(),
+                       (pv[:, None] + ov.ravel()[None, :]).ravel())
+
+    if not np.all(offs * 1024 == np.round(offs * 1024)):
+        return general(pu, pv)
+    out = np.empty((len(pu), S * S, 2))
+    floor = np.floor(offs).astype(int)
+    inner = (pu + floor.min() >= 0) & (pv + floor.min() >= 0) & (pu + floor.max() <= grid.shape[1] - 2) \
+        & (pv + floor.max() <= grid.shape[0] - 2)
+    flat, width = grid.reshape(-1, 2), grid.shape[1]
+    k = pv[inner] * width + pu[inner]
+    near: dict[int, np.ndarray] = {}
+
+    def at(step: int) -> np.ndarray:
+        if step not in near:
+            near[step] = flat[k + step]
+        return near[step]
+
+    for i, (dv, fv) in enumerate(zip(floor, offs - floor)):
+        for j, (du, fu) in enumerate(zip(floor, offs - floor)):
+            corner = dv * width + du
+            out[inner, i * S + j] = ((1 - fu) * (1 - fv) * at(corner) + fu * (1 - fv) * at(corner + 1)
+                                     + (1 - fu) * fv * at(corner + width) + fu * fv * at(corner + width + 1))
+    if not inner.all():
+        out[~inner] = general(pu[~inner], pv[~inner]).reshape(-1, S * S, 2)
+    return out.reshape(-1, 2)
 
 
 def _rays_world(xy: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
@@ -65,9 +114,11 @@ def _may_hide(origin: np.ndarray, patch: Patch, board_outline: np.ndarray, margi
     return not (abs(own) > margin_m and np.all(side * np.sign(own) > margin_m))
 
 
-def pixel_rays(camera: CameraModel, T_world_camera: np.ndarray) -> np.ndarray:
-    """Unit rays in the world frame through every pixel centre, row by row: (H W, 3)."""
-    return _rays_world(_normalized_grid(camera)[:camera.height, :camera.width].reshape(-1, 2), T_world_camera)
+def pixel_rays(camera: CameraModel, T_world_camera: np.ndarray, pool: Executor | None = None) -> np.ndarray:
+    """Unit rays in the world frame through every pixel centre, row by row: (H W, 3); ``pool``: threads
+    that share the work (the same rays)."""
+    grid = _normalized_grid(camera, pool)[:camera.height, :camera.width].reshape(-1, 2)
+    return _in_parts(lambda xy: _rays_world(xy, T_world_camera), grid, pool)
 
 
 def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], board_index: int,
@@ -105,10 +156,7 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
         pv, pu = np.nonzero(near)
         pv, pu = pv + v_lo, pu + u_lo
         offs = (np.arange(supersample) + 0.5) / supersample - 0.5
-        ou, ov = np.meshgrid(offs, offs)
-        su = (pu[:, None] + ou.ravel()[None, :]).ravel()
-        sv = (pv[:, None] + ov.ravel()[None, :]).ravel()
-        dirs = _rays_world(_interp(grid, su, sv), T_world_camera)
+        dirs = _rays_world(_interp_subpixels(grid, pu, pv, offs), T_world_camera)
         if background is None:
             _, hit, r_sub = cast(origin, dirs, patches)
         else:  # the frame's own patches, then the static pieces that could hide the board, where they could

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 from collections import deque
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -394,9 +395,16 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
     in 3D a quarter of the boards partly above or below the LiDAR's vertical field of view).
     ``outside_image_share``: that share of the sampled poses is cut by the image's edge (ChArUco).
     ``workers``: threads that cast the frames of the default scene (the result does not depend on it)."""
+    return list(iter_frames(rig, n_poses, rng, poses, scene, bias, outside_image_share, workers))
+
+
+def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np.ndarray] | None = None,
+                scene: str = "default", bias: RangeBias | None = None, outside_image_share: float = 0.0,
+                workers: int = 2) -> Iterator[SimulatedFrame]:
+    """:func:`simulate_frames` one frame at a time, each as soon as it is made (later frames are cast
+    meanwhile), so that a caller can write it while the next ones are cast."""
     if scene not in SCENES:
         raise ValueError(f"Expected scene in {SCENES}, got {scene!r}")
-    frames = []
     T_lidar_camera = T_inverse(rig.T_camera_lidar)
     static = None
     if scene == "office":
@@ -407,27 +415,29 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
 
-    # The static scene is cast once, for the camera's pixels and the LiDAR's beams; each frame casts only the
-    # board and its stand or holder over it (the same images and sweeps as casting the whole scene).
-    static = default_room(-rig.lidar_height_m) if static is None else static
-    image_background = cast_background(T_lidar_camera[:3, 3], pixel_rays(rig.camera, T_lidar_camera), static)
-    dirs, ring = rig.beams.directions()
-    sweep_background = cast_background(np.zeros(3), dirs, static, rig.beams.max_range_m)
-
-    def cast_frame(T_cb: np.ndarray, held: bool):
-        """Everything of one frame that draws no random numbers: its scene, image and sweep, noise-free."""
-        T_lb = T_lidar_camera @ T_cb
-        patches, bi = scene_patches(rig, T_lb, static, held)
-        clean = render_clean(rig.camera, T_lidar_camera, patches, bi, transform_points(T_lb, rig.board.outline()),
-                             background=image_background)
-        return bi, clean, cast_sweep(rig, patches, (sweep_background, ring))
-
     # The default scene draws nothing before a frame is cast: frames are cast in ``workers`` threads (numpy
     # releases the interpreter in its large array operations), ``workers`` of them ahead of the one whose noise
     # is being added, in the original order, so that a seed gives the same dataset for any number of workers
-    # (and no more than ``workers + 1`` noise-free images are held at once).
+    # (and no more than ``workers + 1`` noise-free images are held at once). The threads also share the
+    # camera's pixel rays, for any scene.
     parallel = scene == "default" and workers > 1
-    with ThreadPoolExecutor(max_workers=workers) if parallel else contextlib.nullcontext() as pool:
+    with ThreadPoolExecutor(max_workers=workers) if workers > 1 else contextlib.nullcontext() as pool:
+        # The static scene is cast once, for the camera's pixels and the LiDAR's beams; each frame casts only
+        # the board and its stand or holder over it (the same images and sweeps as casting the whole scene).
+        static = default_room(-rig.lidar_height_m) if static is None else static
+        image_background = cast_background(T_lidar_camera[:3, 3], pixel_rays(rig.camera, T_lidar_camera, pool),
+                                           static)
+        dirs, ring = rig.beams.directions()
+        sweep_background = cast_background(np.zeros(3), dirs, static, rig.beams.max_range_m)
+
+        def cast_frame(T_cb: np.ndarray, held: bool):
+            """Everything of one frame that draws no random numbers: its scene, image and sweep, noise-free."""
+            T_lb = T_lidar_camera @ T_cb
+            patches, bi = scene_patches(rig, T_lb, static, held)
+            clean = render_clean(rig.camera, T_lidar_camera, patches, bi,
+                                 transform_points(T_lb, rig.board.outline()), background=image_background)
+            return bi, clean, cast_sweep(rig, patches, (sweep_background, ring))
+
         ahead: deque = deque()
         for k, T_cb in enumerate(poses):
             if parallel:
@@ -438,32 +448,28 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
                 held = scene != "default" and bool(rng.uniform() < 0.7)
                 bi, clean, sweep = cast_frame(T_cb, held)
             img = add_pixel_noise(clean, rng, rig.pixel_noise)
-            pts, inten, ring, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
-            frames.append(SimulatedFrame(f"{k:04d}", img, pts, inten, ring, T_cb, on_board))
-    return frames
+            pts, inten, ring_k, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
+            yield SimulatedFrame(f"{k:04d}", img, pts, inten, ring_k, T_cb, on_board)
 
 
 def dataset_yaml(rig: Rig, lidar: str | None = None) -> dict:
     return dataset_spec(lidar or ("2d" if rig.beams.is_2d else "3d"), rig.board, rig.camera)
 
 
-def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_format: str = "pcd",
+def write_dataset(out: str | Path, rig: Rig, frames: Iterable[SimulatedFrame], scan_format: str = "pcd",
                   include_camera: bool = True, overwrite: bool = False, meta: dict | None = None) -> Path:
-    """Write the dataset folder atomically (all of it, or nothing)."""
+    """Write the dataset folder atomically (all of it, or nothing). ``frames`` may be an iterator
+    (:func:`iter_frames`): each frame's files are written as it comes."""
     spec = dataset_yaml(rig)
     if not include_camera:
         spec.pop("camera")
-    truth = {"T_camera_lidar": rig.T_camera_lidar.tolist(),
-             "T_camera_board": {f.name: f.T_camera_board.tolist() for f in frames},
-             "lidar_model": rig.beams.name, "sigma_range_m": rig.beams.sigma_range_m,
-             "pixel_noise": rig.pixel_noise, **(meta or {})}
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_dataset_yaml(tmp, spec, "simulated by lidarcam; ground_truth.json is for evaluation only")
-        (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
-        masks = {f.name: f.board_mask for f in frames if f.board_mask is not None}
-        if masks:  # which returns hit the board, in the order of each scan file's valid returns
-            np.savez_compressed(tmp / "ground_truth_board_points.npz", **masks)
+        poses, masks = {}, {}
         for f in frames:
+            poses[f.name] = f.T_camera_board.tolist()
+            if f.board_mask is not None:
+                masks[f.name] = f.board_mask
             cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
             if rig.beams.is_2d:
                 # Every beam of the sweep, the ones with no return at range 0 (as scanners report them).
@@ -474,6 +480,12 @@ def write_dataset(out: str | Path, rig: Rig, frames: list[SimulatedFrame], scan_
                 write_scan_2d(tmp / f"{f.name}.{scan_format}", az, ranges)
             else:
                 write_scan(tmp / f"{f.name}.{scan_format}", f.points, f.intensity, f.ring)
+        truth = {"T_camera_lidar": rig.T_camera_lidar.tolist(), "T_camera_board": poses,
+                 "lidar_model": rig.beams.name, "sigma_range_m": rig.beams.sigma_range_m,
+                 "pixel_noise": rig.pixel_noise, **(meta or {})}
+        (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
+        if masks:  # which returns hit the board, in the order of each scan file's valid returns
+            np.savez_compressed(tmp / "ground_truth_board_points.npz", **masks)
     return Path(out)
 
 
@@ -518,5 +530,6 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
         meta["range_bias"] = {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
                               "dark_m": bias.dark_m}
-    frames = simulate_frames(rig, n_poses, rng, scene=scene, bias=bias, outside_image_share=outside_image_share)
+    # Each frame is written while the next ones are cast.
+    frames = iter_frames(rig, n_poses, rng, scene=scene, bias=bias, outside_image_share=outside_image_share)
     return write_dataset(out, rig, frames, scan_format, include_camera, overwrite, meta=meta)
