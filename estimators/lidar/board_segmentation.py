@@ -97,17 +97,21 @@ def _best_window(uv: np.ndarray, w: float, h: float, thetas: np.ndarray, cell: f
     for theta in thetas:
         c, s = np.cos(theta), np.sin(theta)
         q = uv @ np.array([[c, -s], [s, c]])
-        ij = np.floor((q - q.min(0)) / cell).astype(int)
+        lo = q.min(0)
+        ij = np.floor((q - lo) / cell).astype(int)
         shape = (ij[:, 0].max() + 2, ij[:, 1].max() + 2)
-        hist = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]
-                           ).reshape(shape).astype(float)
-        integral = np.pad(hist.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        hist = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
+        # The integral image of the counts, in integers, written into its zero-padded array in place.
+        integral = np.zeros((shape[0] + 1, shape[1] + 1), np.int64)
+        inner = integral[1:, 1:]
+        np.cumsum(hist, 0, out=inner)
+        np.cumsum(inner, 1, out=inner)
         a, b = min(nw, shape[0]), min(nh, shape[1])
         sums = integral[a:, b:] - integral[:-a, b:] - integral[a:, :-b] + integral[:-a, :-b]
         top = sums.max()
         if top > best[0]:
             k = np.mean(np.argwhere(sums == top), axis=0)
-            best = (float(top), float(theta), k * cell + q.min(0))
+            best = (float(top), float(theta), k * cell + lo)
     return best
 
 
