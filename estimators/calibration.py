@@ -363,6 +363,16 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
 def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
                     workers: int, hints: Hints) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     timings = {} if timings is None else timings
+    with ThreadPoolExecutor(max_workers=1) as ahead:
+        # A 3D dataset's sweeps are read and its static scene built (they need no camera) while the images
+        # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
+        # stage that keeps one core idle.
+        scene = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
+        return _measure_frames_with(dataset, rng, params, timings, workers, hints, scene)
+
+
+def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
+                         workers: int, hints: Hints, scene) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     warnings: list[str] = []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
@@ -415,7 +425,8 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
         frames = _measure_scans_2d(dataset, cams, camera, frame_rngs[-1], params, timings, warnings, workers,
                                    alternatives)
     else:
-        frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers)
+        frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers,
+                                    scene.result())
     return camera, frames, warnings
 
 
@@ -564,27 +575,35 @@ def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasure
     return out
 
 
-def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],
-                       params: SegmentationParams, hints: Hints, timings: dict, warnings: list[str],
-                       workers: int) -> list[FrameMeasurement]:
-    """Static scene, candidates per frame, and the joint choice (module docstring of ``solvers.association``);
-    without a consensus (fewer than 3 frames with candidates spanning 3D), each frame decides alone."""
-    n = len(dataset.frames)
+def _sweeps_and_scene(dataset: Dataset, hints: Hints, timings: dict) -> tuple[list, StaticScene]:
+    """A 3D dataset's sweeps (or, for each one that cannot be read, the reason) and the static scene of those
+    read (``hints``: the region of interest, and whether to build the scene at all)."""
     t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        sweeps = list(pool.map(lambda f: _read_or_reason(read_sweep, f.scan), dataset.frames))
+    sweeps = [_read_or_reason(read_sweep, f.scan) for f in dataset.frames]
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = [_cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for s in sweeps]
-    cams, good = _without_damaged_scans(cams, sweeps)
+    good = [s for s in sweeps if not isinstance(s, str)]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     t0 = time.perf_counter()
     if hints.static_scene:
-        scene = build_static_scene([sweeps[k].points for k in good], [sweeps[k].ring for k in good])
-        if scene.note:
-            warnings.append(f"static scene: {scene.note}")
+        scene = build_static_scene([s.points for s in good], [s.ring for s in good])
     else:
         scene = StaticScene("none", StaticSceneParams(), note="not used (each frame judged alone)")
     _add_time(timings, "static_scene", time.perf_counter() - t0)
+    return sweeps, scene
+
+
+def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],
+                       params: SegmentationParams, hints: Hints, timings: dict, warnings: list[str],
+                       workers: int, sweeps_and_scene: tuple[list, StaticScene]) -> list[FrameMeasurement]:
+    """Candidates per frame in its sweep, over the static scene (:func:`_sweeps_and_scene`), and the joint
+    choice (module docstring of ``solvers.association``); without a consensus (fewer than 3 frames with
+    candidates spanning 3D), each frame decides alone."""
+    n = len(dataset.frames)
+    sweeps, scene = sweeps_and_scene
+    cams, good = _without_damaged_scans(cams, sweeps)
+    if hints.static_scene and scene.note:
+        warnings.append(f"static scene: {scene.note}")
 
     def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
         cam_obs = cams[k][0]

@@ -81,15 +81,17 @@ class StaticScene:
                 "frames_matching_static_scene": [round(float(m), 3) for m in self.match]}
 
     # -- range image -------------------------------------------------------------------------------------
-    def _classify(self, points: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """(foreground, static) masks: ``static`` when the range matches a background range of the window."""
-        row, col = _cells(points, ring, self._rows, self._column_rad)
+    def _classify(self, points: np.ndarray, ring: np.ndarray | None, cells: tuple | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(foreground, static) masks: ``static`` when the range matches a background range of the window.
+        ``cells``: the points' ``(row, column, range)`` when known already."""
+        row, col, r = cells if cells is not None else (*_cells(points, ring, self._rows, self._column_rad),
+                                                       _ranges(points))
         dr, dc = self.params.ring_window, self.params.column_window
         padded = _padded(self._background, dr, dc).ravel()
         width = self._background.shape[1] + 2 * dc
         held = row >= 0  # a beam the model does not hold has no background: foreground
         at = (np.where(held, row, 0) + dr) * width + col + dc  # the cell in the padded image
-        r = _ranges(points)
         margin = self.params.margin_m
         static = np.zeros(len(r), dtype=bool)
         behind = np.zeros(len(r), dtype=bool)
@@ -176,9 +178,11 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
     n_cols = int(np.ceil(2 * np.pi / column))
     F = len(points)
     stack = np.full((F, len(rows), n_cols), np.nan)
+    cells = []  # each frame's (row, column, range), for its classification below
     for k, (P, ring) in enumerate(zip(points, rings)):
         row, col = _cells(P, ring, rows, column)
         r = _ranges(P)
+        cells.append((row, col, r))
         ok = row >= 0
         img = np.full(len(rows) * n_cols, np.inf)
         np.minimum.at(img, row[ok] * n_cols + col[ok], r[ok])  # the nearest return of the cell
@@ -198,7 +202,7 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
         ok = (spans[i] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
         background[ok] = ordered[i][ok]
     scene = StaticScene("range-image", params, _background=background, _column_rad=column, _rows=rows)
-    classified = [scene._classify(P, ring) for P, ring in zip(points, rings)]
+    classified = [scene._classify(P, ring, c) for P, ring, c in zip(points, rings, cells)]
     return _checked(scene, np.array([float(np.mean(s)) for _, s in classified]), tuple(f for f, _ in classified))
 
 
