@@ -655,6 +655,12 @@ def _export(args) -> int:
 
 
 def _demo(args) -> int:
+    # The figure process starts first: it loads matplotlib while this process loads the pipeline.
+    with _figure_process(args, True) as figures:
+        return _demo_with(args, figures)
+
+
+def _demo_with(args, figures) -> int:
     import numpy as np
 
     from .calibration import calibrate, write_calibration
@@ -666,18 +672,17 @@ def _demo(args) -> int:
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
     simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
     ds = load_dataset(data)
-    with _figure_process(args, True) as figures:
-        result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
-                           posterior=_posterior_options(args), on_refined=_draw_ahead(figures))
-        _draw_posterior_ahead(result, figures)
-        _print_result(result, ds.ground_truth())
-        print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
-        path = write_calibration(result, base)
-        print(f"wrote {path}")
-        if result.refinement is not None:
-            from .analysis.report import write_report
+    result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
+                       posterior=_posterior_options(args), on_refined=_draw_ahead(figures))
+    _draw_posterior_ahead(result, figures)
+    _print_result(result, ds.ground_truth())
+    print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
+    path = write_calibration(result, base)
+    print(f"wrote {path}")
+    if result.refinement is not None:
+        from .analysis.report import write_report
 
-            print(f"wrote {write_report(result, ds, base, figures)} (open it in a browser)")
+        print(f"wrote {write_report(result, ds, base, figures)} (open it in a browser)")
     _export_hint(path)
     return 0
 

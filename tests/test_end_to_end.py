@@ -131,6 +131,20 @@ def test_the_console_entry_flushes_its_output_before_it_ends_the_process(tmp_pat
     assert r.returncode == 2 and r.stderr.startswith("lidarcam: error:") and r.stdout == ""
 
 
+def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
+    """``lidarcam demo`` (what ``make demo`` runs): the dataset, calibration.json and a report with its
+    figures, and the truth within the printed posterior (squared Mahalanobis distance under the 0.1% tail
+    of a chi-square with 6 dof, 22.5; the error itself under 0.5 deg and 1 cm)."""
+    r = _run_cli("demo", "--out", str(tmp_path / "demo"))
+    assert r.returncode == 0, r.stderr
+    for name in ("dataset/dataset.yaml", "calibration.json", "report.html", "corner.png", "traces.png",
+                 "residuals.png", "projection_0000.png"):
+        assert (tmp_path / "demo" / name).is_file(), name
+    rot, tr = map(float, re.search(r"rotation ([\d.]+) deg, translation ([\d.]+) mm", r.stdout).groups())
+    d2 = float(re.search(r"squared Mahalanobis distance of the truth under the covariance: ([\d.]+)", r.stdout)[1])
+    assert rot < 0.5 and tr < 10.0 and d2 < 22.5, r.stdout
+
+
 def test_missing_dataset_is_one_line_exit_2(tmp_path):
     r = _run_cli("calibrate", str(tmp_path / "nope"), "--out", str(tmp_path / "out"))
     assert r.returncode == 2
