@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -851,6 +852,14 @@ def _plane_distances(points_lidar: np.ndarray, plane, T_camera_lidar: np.ndarray
     return (points_lidar @ T_camera_lidar[:3, :3].T + T_camera_lidar[:3, 3]) @ plane.normal - plane.distance
 
 
+def import_sampler_ahead() -> None:
+    """Start importing the posterior's sampler in a thread: emcee loads scipy.stats, about 0.4 s of
+    interpreter time, which then overlaps work that mostly waits on OpenCV and numpy with the interpreter
+    free (measuring frames, simulating them); the sampler's own import finds it done or waits for it."""
+    if "emcee" not in sys.modules:
+        threading.Thread(target=_import_quietly, args=("emcee",), daemon=True, name="import emcee").start()
+
+
 def _import_quietly(module: str) -> None:
     """Import ``module`` ahead of its use; a failure is left to the real import to report."""
     try:
@@ -889,9 +898,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     timings: dict = {}
     t_start = time.perf_counter()
     if posterior is not None and refine != "none":
-        # emcee's import (it loads scipy.stats: about a second) runs while the frames are measured, most of
-        # which waits on OpenCV and numpy with the interpreter free; the sampler's own import then finds it.
-        threading.Thread(target=_import_quietly, args=("emcee",), daemon=True, name="import emcee").start()
+        import_sampler_ahead()  # while the frames are measured
     m = measure(dataset, rng, params, hints, cache=cache, timings=timings)
     camera, frames, warnings = m.camera, list(m.frames), list(m.warnings)
     if m.source == "cache":

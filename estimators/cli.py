@@ -663,13 +663,14 @@ def _demo(args) -> int:
 def _demo_with(args, figures) -> int:
     import numpy as np
 
-    from .calibration import calibrate, write_calibration
+    from .calibration import calibrate, import_sampler_ahead, write_calibration
     from .io.dataset import load_dataset
     from .simulation.simulator import simulate_dataset
 
     base = Path(args.out)
     data = base / "dataset"
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
+    import_sampler_ahead()  # while the frames are simulated
     simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
     ds = load_dataset(data)
     result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=_options(args),
