@@ -13,6 +13,7 @@ import numpy as np
 PINHOLE = "pinhole"
 FISHEYE = "fisheye"
 _DIST_LENGTHS = {PINHOLE: (4, 5, 8, 12, 14), FISHEYE: (4,)}
+_PROJECT_BLOCK = 1 << 16  # points per OpenCV projection call (bounds the Jacobian it computes alongside)
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,11 +59,16 @@ class CameraModel:
         if front.any():
             obj = P[front].reshape(-1, 1, 3)
             zero = np.zeros(3)
-            if self.model == FISHEYE:
-                img, _ = cv2.fisheye.projectPoints(obj, zero, zero, self.K, self.dist)
-            else:
-                img, _ = cv2.projectPoints(obj, zero, zero, self.K, self.dist)
-            uv[front] = img.reshape(-1, 2)
+            # OpenCV's binding always computes the projection's Jacobian too (2 rows of 10-20 doubles per
+            # point): in blocks, a sweep of millions of points needs tens of MB for it, not gigabytes.
+            img = np.empty((len(obj), 2))
+            for lo in range(0, len(obj), _PROJECT_BLOCK):
+                part = obj[lo:lo + _PROJECT_BLOCK]
+                if self.model == FISHEYE:
+                    img[lo:lo + len(part)] = cv2.fisheye.projectPoints(part, zero, zero, self.K, self.dist)[0][:, 0]
+                else:
+                    img[lo:lo + len(part)] = cv2.projectPoints(part, zero, zero, self.K, self.dist)[0][:, 0]
+            uv[front] = img
         return uv
 
     def project_jacobian(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

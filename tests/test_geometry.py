@@ -115,6 +115,26 @@ def test_camera_project_and_unproject_are_inverse(model, dist):
     assert np.all(np.isnan(cam.project(np.array([[0.0, 0.0, -1.0]]))))
 
 
+@pytest.mark.parametrize("model,dist", [("pinhole", [-0.2, 0.1, 0.001, -0.001, 0.0]),
+                                        ("fisheye", [-0.05, -0.08, 0.09, -0.05])])
+def test_camera_projects_a_large_sweep_in_blocks_as_in_one_call(model, dist):
+    """More points than one OpenCV call takes (blocks bound the Jacobian OpenCV computes alongside), some
+    behind the camera: the pixels of one call over the points in front, bit for bit."""
+    import cv2
+
+    from geometry import camera as camera_module
+
+    cam = CameraModel(K=[[900, 0, 640], [0, 905, 400], [0, 0, 1]], dist=dist, width=1280, height=800, model=model)
+    n = 2 * camera_module._PROJECT_BLOCK + 123
+    P = np.random.default_rng(5).normal(size=(n, 3)) + [0.0, 0.0, 0.5]
+    front = P[:, 2] > 1e-9
+    project = cv2.fisheye.projectPoints if model == "fisheye" else cv2.projectPoints
+    whole = project(P[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)[0].reshape(-1, 2)
+    uv = cam.project(P)
+    assert np.all(np.isnan(uv[~front])) and 0 < (~front).sum() < n
+    np.testing.assert_array_equal(uv[front], whole)
+
+
 def test_camera_rejects_bad_intrinsics():
     with pytest.raises(ValueError, match="fisheye dist of length 4"):
         CameraModel(K=np.eye(3), dist=[0.1, 0.2, 0.0], width=10, height=10, model="fisheye")

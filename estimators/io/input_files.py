@@ -52,7 +52,9 @@ def read_bytes(path: str | os.PathLike, what: str = "file", max_bytes: int = MAX
                     hint="check that this is the right file")
     try:
         with open(path, "rb") as fh:
-            return fh.read(max_bytes + 1)[:max_bytes]
+            # As many bytes as the file had (and one more, so that a file still growing stays bounded):
+            # read(n) allocates n bytes first, so n is not the bound of hundreds of MB.
+            return fh.read(min(size, max_bytes) + 1)[:max_bytes]
     except OSError as exc:
         raise error(f"{what} cannot be read ({exc.strerror or exc})", path=path, hint="check the file") from None
 
