@@ -8,7 +8,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
@@ -43,7 +43,9 @@ from .solvers.closed_form import describe_direction, normal_spread, solve_closed
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
 from .solvers.refinement import refine as refine_graph
-from .solvers.solution_selection import MinimalSelection, refine_candidates, select_and_refine, select_minimal
+
+if TYPE_CHECKING:  # the 2D solvers are imported where they are used (they load scipy.optimize)
+    from .solvers.solution_selection import MinimalSelection
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
@@ -558,6 +560,8 @@ def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasure
     """Cut each frame's laser segment to the camera's board outline under the extrinsic the frames agree on
     (the minimal-solution selection, when it keeps a single candidate): the holder's hands and arms, in line
     with the board, leave the segment. Without a single candidate the segments stay as found."""
+    from .solvers.solution_selection import select_minimal  # 2D only (it loads scipy.optimize)
+
     used = [f for f in frames if f.usable]
     if len(used) < 3 or not board.size_known:
         return frames
@@ -814,6 +818,8 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
     scan_lines = bool(clear) and clear[0].lidar.is_scan_line
     try:
         if scan_lines:
+            from .solvers.solution_selection import refine_candidates, select_minimal
+
             ref, modes = refine_candidates(clear, board, camera, select_minimal(clear, board))
             if len(modes) != 1:
                 return frames
@@ -1060,6 +1066,8 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
               ) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
+    from .solvers.solution_selection import select_and_refine, select_minimal  # 2D only
+
     method = "minimal-lower-bound" if init == "closed-form" else init
     t0 = time.perf_counter()
     if refine == "none":

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimators.calibration import calibrate, refine_candidates, solve
+from estimators.calibration import calibrate, solve
 from estimators.errors import DegenerateLayoutError, LidarcamError, ScanReadError
 from estimators.io.dataset import load_dataset
 from estimators.io.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
 from estimators.simulation.simulator import default_rig_2d, sample_board_poses
 from estimators.solvers.observation_model import Layout, simulate_measurements
 from estimators.solvers.refinement import refine
-from estimators.solvers.solution_selection import select_minimal, solution_distances
+from estimators.solvers.solution_selection import refine_candidates, select_minimal, solution_distances
 from geometry.rotations import T_from_Rt, T_inverse, T_log
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "acfr_rpg_2d"

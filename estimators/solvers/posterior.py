@@ -27,7 +27,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
@@ -111,6 +110,31 @@ class Posterior:
                 "noise_scale_median": float(np.median(self.scale))}
 
 
+class _NoBar:
+    """What :func:`run_ensemble` asks of a progress bar, doing nothing."""
+
+    def __enter__(self) -> "_NoBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def update(self, n: int) -> None:
+        pass
+
+    def set_postfix(self, **values) -> None:
+        pass
+
+
+def _progress_bar(progress: bool, total: int, label: str):
+    """A tqdm bar when ``progress``; else nothing (tqdm.auto loads asyncio: 25 ms of every run's start)."""
+    if not progress:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=label, unit="step", leave=False)
+
+
 def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_ess: int = 2000,
                  max_steps: int = 40000, chunk: int = 500, progress: bool = False, label: str = "posterior"
                  ) -> ChainResult:
@@ -130,7 +154,7 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
     sampler = emcee.EnsembleSampler(nwalkers, ndim, log_prob, vectorize=True, moves=moves)
     state = emcee.State(initial, random_state=np.random.RandomState(int(rng.integers(2**32))).get_state())
     steps, converged, n = 0, False, chunk
-    with tqdm(total=max_steps, desc=label, unit="step", disable=not progress, leave=False) as bar:
+    with _progress_bar(progress, max_steps, label) as bar:
         while steps < max_steps:
             n = min(n, max_steps - steps)
             state = sampler.run_mcmc(state, n, progress=False)

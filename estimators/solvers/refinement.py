@@ -35,7 +35,6 @@ from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
-from scipy.optimize import brentq
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
@@ -536,6 +535,8 @@ def _match_moments(prob: _Problem, active: list[int], T: np.ndarray, boards: lis
     elif log_excess(lo) <= 0:
         u = lo
     else:
+        from scipy.optimize import brentq  # here: scipy.optimize takes 0.08 s to import, rarely needed
+
         u = float(brentq(log_excess, lo, hi, xtol=1e-3))
     T_u, b_u, graph, result, _, beta, _ = solve_at(u)
     floor_for(float(np.exp(u)))
