@@ -3,7 +3,8 @@
 
 Prints: closed form and factor graph against the source tool's reference extrinsic; the plane-consistency
 statistic; the squared Mahalanobis distance between estimates from two disjoint halves (interleaved, and
-first against last); and the consistency statistic with every range shifted by a constant offset.
+first against last); the consistency statistic with every range shifted by a constant offset; and, on both
+sets, each LiDAR plane's tilt from the camera's about the board's axes against what the points' noise allows.
 """
 from __future__ import annotations
 
@@ -36,6 +37,29 @@ def _halves_d2(frames, ds, camera, a, b, options=RefinementOptions()):
     return float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
 
 
+def _tilts(res, frames) -> None:
+    """Per used frame, the LiDAR plane's tilt from the camera's board plane (under the estimate) about the
+    board's horizontal (x) and vertical (y) axes, each against the standard deviation that the board points'
+    noise and spread allow (the camera's normal is far more precise). A range error shared by the boards
+    moves their planes along the normals; a warped board tilts them the same way in the board's frame."""
+    R = res.T_camera_lidar[:3, :3]
+    ratios = []
+    for f in frames:
+        if not f.usable:
+            continue
+        n_c, n_l = f.camera.plane.normal, R @ f.lidar.plane.normal
+        n_l = n_l if n_l @ n_c > 0 else -n_l
+        R_cb = f.camera.T_camera_board[:3, :3]
+        tilt = R_cb.T @ np.cross(n_c, n_l)  # small rotation taking the camera's normal to the LiDAR's
+        q = (R_cb.T @ (R @ f.lidar.points.T)).T[:, :2]  # the points in the board's axes (in-plane part)
+        q -= q.mean(0)
+        sd = f.lidar.plane_rms_m / np.sqrt(np.sum(q[:, ::-1] ** 2, axis=0))  # about x: spread along y
+        ratios += list(np.abs(tilt[:2]) / sd)
+        print(f"    {f.name}: tilt about board x {np.degrees(tilt[0]):+.2f} deg (sd {np.degrees(sd[0]):.2f}), "
+              f"about board y {np.degrees(tilt[1]):+.2f} deg (sd {np.degrees(sd[1]):.2f})")
+    print(f"    tilt / sd: median {np.median(ratios):.1f}, largest {np.max(ratios):.1f}")
+
+
 def main() -> None:
     if not (DATA / "dataset.yaml").is_file():
         print(f"recorded data: {DATA} is absent; skipped")
@@ -50,6 +74,8 @@ def main() -> None:
         T = res.T_camera_lidar
         print(f"  {label:24s} against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
               f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm")
+    print("  the LiDAR planes' tilts from the camera's (range model auto):")
+    _tilts(res, frames)
     r = res.refinement
     fit = r.range_model
     print(f"  range model: {fit.chosen}" + "".join(f"; {n} {1000 * v:+.1f} +- {1000 * sd:.1f} mm"
@@ -98,6 +124,8 @@ def office() -> None:
     print(f"  factor-graph  against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
           f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm; reference's squared Mahalanobis distance under "
           f"the estimate {d2:.1f} (99% limit {chi2.ppf(0.99, 6):.1f})")
+    print("  the LiDAR planes' tilts from the camera's:")
+    _tilts(res, frames)
     print(f"  std of t in camera x/y/z: {np.round(res.std_translation_camera_mm, 1).tolist()} mm; LiDAR side "
           f"{sum(timings.get(k, 0.0) for k in ('load_scans', 'static_scene', 'segmentation', 'association')):.2f} s "
           f"CPU for {len(frames)} frames")
