@@ -370,12 +370,14 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
         # A 3D dataset's sweeps are read and its static scene built (they need no camera) while the images
         # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
         # stage that keeps one core idle.
-        scene = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
-        return _measure_frames_with(dataset, rng, params, timings, workers, hints, scene)
+        sweeps = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
+        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps)
 
 
 def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
-                         workers: int, hints: Hints, scene) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                         workers: int, hints: Hints, sweeps_ahead
+                         ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+    """:func:`_measure_frames` given the future of :func:`_sweeps_and_scene` (None for a 2D dataset)."""
     warnings: list[str] = []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
@@ -429,7 +431,7 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
                                    alternatives)
     else:
         frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers,
-                                    scene.result())
+                                    sweeps_ahead.result())
     return camera, frames, warnings
 
 
