@@ -7,7 +7,8 @@ the whitened norm of the frame's 3-vector); frames whose planes disagree with th
 noise are flagged, and dropped or down-weighted.
 
 Noise levels:
-- ``range_noise_m``: given, or pooled from the board points' residuals about their best planes.
+- ``range_noise_m``: given, or pooled from the board points' residuals about their best planes (with range
+  terms in the model, about each board's best plane and terms: the structure they explain is not noise).
 - ``corner_noise_px``: given, or the pooled corner residual times ``corner_error_correlation``.
   Detected corners err together within a board (blur, perspective and sampling bias the whole
   pattern alike), so the board pose is less certain than the corner scatter suggests; the factor is
@@ -440,6 +441,19 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             why += f"; then {model_fit.chosen}: {model_fit.reason}" if options.range_model == "auto" else ""
             model_fit = replace(model_fit, requested=options.range_model, reason=why, tests=tests)
             warnings.append(f"range model: {why}")
+    if prob.has_beta and options.range_noise_m is None:
+        # With range terms, the range noise is the points' scatter about each board's own plane and terms: the
+        # plane-only residuals pooled above also hold the within-board structure the terms explain (rings,
+        # black squares), and taken as noise it would widen every variance (by half, for black squares 5 cm
+        # off). Each board's fit spends as many degrees of freedom as its terms span.
+        ss = sum(prob.fw[i].floor for i in inliers)
+        dof_r = sum(prob.frames[i].lidar.n_points - prob.fw[i].R.shape[0] for i in inliers)
+        sigma_terms = float(np.sqrt(ss / max(dof_r, 1)))
+        if 1e-5 < sigma_terms < 0.99 * prob.sigma_r:
+            prob.sigma_r = sigma_r = sigma_terms
+            b = list(boards)
+            prob.solved = prob.solve(active, T, b, floor)[:2]
+            T, boards = prob.solved[1].atPose3(EXTRINSIC).matrix(), b
     if prob.terms is not None:
         graph, result = prob.solved
         t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
