@@ -126,33 +126,36 @@ def main() -> None:
     print(f"{'row':44s}{'rot/CRB':>8s}{'tr/CRB':>8s}{'d2':>6s}{'offset in 95%':>14s}{'rings in 95%':>13s}"
           f"{'dark in 95%':>12s}{'auto none':>10s}{'err vs none':>12s}")
     with ProcessPoolExecutor(args.workers) as pool:
+
+        def full_model_row(lidar: str, inject, label: str) -> None:
+            rows = list(pool.map(_trial, [(lidar, inject, "full", s) for s in range(args.trials)]))
+            r = [x["full"] for x in rows if "crb" in x["full"]]
+            e = np.array([[x["rot"], x["trans"]] for x in r])
+            c = np.array([x["crb"] for x in r])
+            ratio = np.sqrt(np.mean(e**2, axis=0)) / np.sqrt(np.mean(c**2, axis=0))
+
+            def share(key):
+                h = [v for x in r for v in x["hits"].get(key, [])]
+                return f"{100 * np.mean(h):.1f}%" if h else "-"
+
+            print(f"{label:44s}{ratio[0]:8.2f}{ratio[1]:8.2f}"
+                  f"{np.mean([x['d2'] for x in r]):6.1f}{share('offset'):>14s}{share('ring totals'):>13s}"
+                  f"{share('dark'):>12s}{'':>10s}{'':>12s}")
+
+        def auto_row(lidar: str) -> None:
+            rows = list(pool.map(_trial, [(lidar, False, "auto", 10**5 + s) for s in range(args.trials)]))
+            keep = np.mean([x["auto"]["chosen"] == "none" for x in rows])
+            ea = np.sqrt(np.mean([x["auto"]["trans"] ** 2 for x in rows]))
+            en = np.sqrt(np.mean([x["none"]["trans"] ** 2 for x in rows]))
+            print(f"{f'{lidar} not injected, auto':44s}{'':8s}{'':8s}"
+                  f"{np.mean([x['auto']['d2'] for x in rows]):6.1f}{'':>14s}{'':>13s}{'':>12s}"
+                  f"{100 * keep:9.0f}%{ea / en:12.3f}")
+
         for lidar in ("vlp16", "hdl64e"):
-            for inject, label in ((True, f"{lidar} injected, full model"),
-                                  ("prior", f"{lidar} drawn from the priors, full model")):
-                if inject == "prior" and lidar != "vlp16":
-                    continue
-                rows = list(pool.map(_trial, [(lidar, inject, "full", s) for s in range(args.trials)]))
-                r = [x["full"] for x in rows if "crb" in x["full"]]
-                e = np.array([[x["rot"], x["trans"]] for x in r])
-                c = np.array([x["crb"] for x in r])
-                ratio = np.sqrt(np.mean(e**2, axis=0)) / np.sqrt(np.mean(c**2, axis=0))
-
-                def share(key):
-                    h = [v for x in r for v in x["hits"].get(key, [])]
-                    return f"{100 * np.mean(h):.1f}%" if h else "-"
-
-                print(f"{label:44s}{ratio[0]:8.2f}{ratio[1]:8.2f}"
-                      f"{np.mean([x['d2'] for x in r]):6.1f}{share('offset'):>14s}{share('ring totals'):>13s}"
-                      f"{share('dark'):>12s}{'':>10s}{'':>12s}")
-                if inject == "prior":
-                    continue
-                rows = list(pool.map(_trial, [(lidar, False, "auto", 10**5 + s) for s in range(args.trials)]))
-                keep = np.mean([x["auto"]["chosen"] == "none" for x in rows])
-                ea = np.sqrt(np.mean([x["auto"]["trans"] ** 2 for x in rows]))
-                en = np.sqrt(np.mean([x["none"]["trans"] ** 2 for x in rows]))
-                print(f"{f'{lidar} not injected, auto':44s}{'':8s}{'':8s}"
-                      f"{np.mean([x['auto']['d2'] for x in rows]):6.1f}{'':>14s}{'':>13s}{'':>12s}"
-                      f"{100 * keep:9.0f}%{ea / en:12.3f}")
+            full_model_row(lidar, True, f"{lidar} injected, full model")
+            auto_row(lidar)
+            if lidar == "vlp16":
+                full_model_row(lidar, "prior", f"{lidar} drawn from the priors, full model")
     t_none, t_full = _timing()
     print(f"refinement of 16 VLP-16 frames without injected errors (median of 5, one process): none "
           f"{1000 * t_none:.0f} ms, full range model {1000 * t_full:.0f} ms "

@@ -61,14 +61,9 @@ class CameraModel:
             zero = np.zeros(3)
             # OpenCV's binding always computes the projection's Jacobian too (2 rows of 10-20 doubles per
             # point): in blocks, a sweep of millions of points needs tens of MB for it, not gigabytes.
-            img = np.empty((len(obj), 2))
-            for lo in range(0, len(obj), _PROJECT_BLOCK):
-                part = obj[lo:lo + _PROJECT_BLOCK]
-                if self.model == FISHEYE:
-                    img[lo:lo + len(part)] = cv2.fisheye.projectPoints(part, zero, zero, self.K, self.dist)[0][:, 0]
-                else:
-                    img[lo:lo + len(part)] = cv2.projectPoints(part, zero, zero, self.K, self.dist)[0][:, 0]
-            uv[front] = img
+            project = cv2.fisheye.projectPoints if self.model == FISHEYE else cv2.projectPoints
+            uv[front] = np.concatenate([project(obj[lo:lo + _PROJECT_BLOCK], zero, zero, self.K, self.dist)[0]
+                                        for lo in range(0, len(obj), _PROJECT_BLOCK)]).reshape(-1, 2)
         return uv
 
     def project_jacobian(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -163,6 +163,14 @@ def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
     return float(np.sqrt(ss / dof))
 
 
+def pooled_range_noise_with_terms_m(prob: "_Problem", frames: list[int]) -> float:
+    """Range noise pooled over the frames' best fits of their planes and range terms (``prob.fw``): each
+    board spends as many degrees of freedom as its plane and terms span (the rank of its fit)."""
+    ss = sum(prob.fw[i].floor for i in frames)
+    dof = sum(prob.frames[i].lidar.n_points - prob.fw[i].R.shape[0] for i in frames)
+    return float(np.sqrt(ss / max(dof, 1)))
+
+
 def _threshold(options: RefinementOptions, dof: int) -> float:
     """The robust loss's threshold for a residual of ``dof`` dimensions: ``robust_threshold`` is set for a
     plane's 3 (a range model's factors have more, and would be cut at their typical size otherwise)."""
@@ -445,10 +453,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         # With range terms, the range noise is the points' scatter about each board's own plane and terms: the
         # plane-only residuals pooled above also hold the within-board structure the terms explain (rings,
         # black squares), and taken as noise it would widen every variance (by half, for black squares 5 cm
-        # off). Each board's fit spends as many degrees of freedom as its terms span.
-        ss = sum(prob.fw[i].floor for i in inliers)
-        dof_r = sum(prob.frames[i].lidar.n_points - prob.fw[i].R.shape[0] for i in inliers)
-        sigma_terms = float(np.sqrt(ss / max(dof_r, 1)))
+        # off).
+        sigma_terms = pooled_range_noise_with_terms_m(prob, inliers)
         if 1e-5 < sigma_terms < 0.99 * prob.sigma_r:
             prob.sigma_r = sigma_r = sigma_terms
             b = list(boards)
