@@ -903,6 +903,8 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
         raise DatasetError(f"init {init!r} is for 2D LiDAR datasets", path=dataset.yaml_path,
                            hint="use --init closed-form for lidar: 3d")
     rng = np.random.default_rng(0) if rng is None else rng
+    if options.range_accuracy_m is None:  # the dataset's, or its LiDAR family's (an explicit option wins)
+        options = replace(options, range_accuracy_m=dataset_range_accuracy(dataset))
     timings: dict = {}
     t_start = time.perf_counter()
     if posterior is not None and refine != "none":
@@ -922,6 +924,15 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
         raise DegenerateLayoutError(exc.problem + detail, path=dataset.root, hint=exc.hint) from exc
     timings["total_wall"] = time.perf_counter() - t_start
     return replace(result, timings_s={k: round(v, 4) for k, v in timings.items()}, measurements_source=m.source)
+
+
+def dataset_range_accuracy(dataset: Dataset) -> float:
+    """The LiDAR's range accuracy (m) for the range model's priors: dataset.yaml's ``lidar.range_accuracy_m``,
+    else its family's default (``solvers.range_model.RANGE_ACCURACY_M``), else the conservative default."""
+    from .solvers.range_model import range_accuracy_for
+
+    return dataset.range_accuracy_m if dataset.range_accuracy_m is not None else range_accuracy_for(
+        dataset.lidar_family)
 
 
 def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = None,

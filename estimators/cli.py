@@ -184,10 +184,15 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                         "error-correlation factor)")
     p.add_argument("--range-noise-m", type=_positive, default=None, metavar="M",
                    help="LiDAR range noise (default: estimated from the board points)")
-    p.add_argument("--range-model", default="auto", choices=["none", "offset", "per-ring", "full", "auto"],
+    p.add_argument("--range-model", default="auto",
+                   choices=["none", "offset", "per-ring", "offset+dark", "full", "auto"],
                    help="LiDAR range errors estimated with the extrinsic: a global offset, per-ring offsets, a "
                         "black-square offset (full); auto (default) adds each term the data support (likelihood-"
-                        "ratio test at 0.1%%)")
+                        "ratio test at 0.1%%, valid when the boards disagree beyond the noise)")
+    p.add_argument("--range-accuracy", type=_positive, default=None, metavar="M", dest="range_accuracy_m",
+                   help="the LiDAR's range accuracy (m, 1 sd of a systematic error): the range terms' prior (default: "
+                        "dataset.yaml's lidar.range_accuracy_m, else its lidar.family's: velodyne and ouster 0.03, "
+                        "hesai and livox 0.02, else 0.05)")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
@@ -198,7 +203,8 @@ def _options(args):
     from .solvers.refinement import RefinementOptions
 
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
-                             range_noise_m=args.range_noise_m, range_model=args.range_model)
+                             range_noise_m=args.range_noise_m, range_model=args.range_model,
+                             range_accuracy_m=getattr(args, "range_accuracy_m", None))
 
 
 def _posterior_options(args):
@@ -282,9 +288,15 @@ def _print_range_model(fit) -> None:
         vals = np.array([v for _, v, _ in rings])
         print(f"  per-ring offsets: {len(rings)} rings, spread (sd) {1000 * vals.std():.1f} mm, range "
               f"{1000 * vals.min():+.1f} to {1000 * vals.max():+.1f} mm (all in calibration.json)")
+    for n, v in zip(fit.pinned, fit.pinned_values_m):
+        print(f"  {n}: estimated {1000 * v:+.1f} mm, beyond {1000 * fit.range_accuracy_m:.0f} mm x 3: held at 0 with "
+              "its prior variance in the covariance")
     if fit.offset_translation_correlation:
         print("  correlation of the offset with the translation along the LiDAR's x y z: "
               + "  ".join(f"{c:+.2f}" for c in fit.offset_translation_correlation))
+    if fit.confounding:
+        c = fit.confounding
+        print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f})")
 
 
 def _calibrate(args) -> int:

@@ -191,7 +191,7 @@ def range_residual_arrays(result) -> dict[str, np.ndarray] | None:
     fit = ref.range_model
     terms = fit.terms if fit is not None else None
     beta = np.asarray(fit.values_m) if terms is not None else None
-    labels = frame_labels(used)
+    labels = fit.labels_for(used) if fit is not None else frame_labels(used)
     rows: dict[str, list] = {"range_m": [], "ring": [], "dark": [], "before_m": [], "after_m": []}
     for k, f in enumerate(used):
         pi, _, _ = lidar_plane(result.T_camera_lidar, ref.T_camera_board[f.name])

@@ -26,7 +26,7 @@ from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
 from ..solvers import chi_square as chi2
 from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
-from ..solvers.range_model import RangeTerms, frame_whiteners
+from ..solvers.range_model import RangeTerms, frame_labels, frame_whiteners
 from ..solvers.refinement import _plane_noise, frame_noise, pooled_range_noise_m
 
 SIGNIFICANCE = 0.01
@@ -59,7 +59,9 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
     sigma_r = range_noise_m or pooled_range_noise_m(usable)
     half = 0.5 * float(np.mean(board.extent))
     beta = None if range_terms is None else np.asarray(range_values_m, dtype=float)
-    fws = frame_whiteners(usable, pooled_range_noise_m(usable), range_terms)
+    # Held-out frames: their black squares placed by geometry under the calibration, as the calibration's own were.
+    labels = frame_labels(usable, board, T_camera_lidar) if range_terms is not None else None
+    fws = frame_whiteners(usable, pooled_range_noise_m(usable), range_terms, labels)
     out = []
     for f, fw in zip(usable, fws):
         b = f.camera.T_camera_board
@@ -69,7 +71,7 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
         pi, H_x, H_b = lidar_plane(T_camera_lidar, b)
         if range_terms is None:
             e, D = lidar_residual(W, pi, f.lidar.is_scan_line)
-            C = _plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half)
+            C = _plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half, centre=fw.centre)
         else:
             e, D, H_beta = nuisance_residual(W, fw.S, fw.m_away, pi, beta, f.lidar.is_scan_line, fw.e0)
             C = frame_noise(fw, f.lidar.plane.normal, sigma_r, plane_floor_m, half, tau_m=range_scatter_m)

@@ -39,6 +39,30 @@ def pattern_image(board: BoardModel, px_per_square: int = 64) -> np.ndarray:
     return opencv_board(board).generateImage((nx * px_per_square, ny * px_per_square), marginSize=0, borderBits=1)
 
 
+def pattern_reflectance(board: BoardModel):
+    """The printed board's reflectance as a function of board coordinates (0 black, 1 white, NaN off the
+    board): the checkerboard's own (``BoardModel.reflectance``), or for a ChArUco board OpenCV's printed pattern
+    with its markers, sampled at the nearest texel (96 per square: a marker bit spans about 10)."""
+    if not board.is_charuco:
+        return board.reflectance
+    texels = 96
+    img = pattern_image(board, texels).astype(float) / 255.0
+    ox, oy = board.offset
+    w, h = board.extent
+
+    def reflectance(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        col = np.floor((x - ox) / board.square_size * texels).astype(int)
+        row = np.floor((y - oy) / board.square_size * texels).astype(int)
+        inside = (col >= 0) & (col < img.shape[1]) & (row >= 0) & (row < img.shape[0])
+        out = np.ones(np.broadcast(x, y).shape)
+        out[inside] = img[row[inside], col[inside]]
+        out[(x < 0) | (x > w) | (y < 0) | (y > h)] = np.nan
+        return out
+
+    return reflectance
+
+
 def detect_charuco(gray: np.ndarray, board: BoardModel) -> CornerDetection | None:
     """The ChArUco corners seen in an 8-bit greyscale image, with their ids (ascending), or None when fewer
     than ``MIN_CHARUCO_CORNERS`` are seen or they lie along a line."""

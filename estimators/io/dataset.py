@@ -40,6 +40,10 @@ class Dataset:
     board: BoardModel
     camera: CameraModel | None
     frames: tuple[FrameFiles, ...]
+    # ``lidar: {type, family, range_accuracy_m}`` in dataset.yaml: the sensor family (velodyne, ouster, hesai,
+    # livox, or any name) and its range accuracy (m, 1 sd of a systematic range error); None when not given.
+    lidar_family: str | None = None
+    range_accuracy_m: float | None = None
 
     @property
     def yaml_path(self) -> Path:
@@ -72,14 +76,35 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     if not isinstance(spec, dict):
         raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
                            hint="see README: Dataset format")
-    lidar = str(spec.get("lidar", "3d")).lower()
-    if lidar not in LIDAR_KINDS:
-        raise DatasetError(f"lidar must be '3d' or '2d', got {spec.get('lidar')!r}", path=ypath,
-                           hint="set lidar: 3d or lidar: 2d")
+    lidar, family, accuracy = _parse_lidar(spec.get("lidar", "3d"), ypath)
     board = parse_board(spec.get("board"), ypath)
     camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
     suffixes = SCAN_2D_SUFFIXES if lidar == "2d" else SCAN_SUFFIXES
-    return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root, suffixes))
+    return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root, suffixes),
+                   lidar_family=family, range_accuracy_m=accuracy)
+
+
+def _parse_lidar(value: object, ypath: Path) -> tuple[str, str | None, float | None]:
+    """``lidar: 3d`` (or ``2d``), or a mapping ``{type: 3d, family: velodyne, range_accuracy_m: 0.03}``."""
+    family = accuracy = None
+    if isinstance(value, dict):
+        unknown = set(value) - {"type", "family", "range_accuracy_m"}
+        if unknown:
+            raise DatasetError(f"unknown lidar key(s) {sorted(unknown)}", path=ypath,
+                               hint="lidar takes type (3d or 2d), family and range_accuracy_m")
+        family = None if value.get("family") is None else str(value["family"]).lower()
+        if value.get("range_accuracy_m") is not None:
+            a = value["range_accuracy_m"]
+            if isinstance(a, bool) or not isinstance(a, (int, float)) or not (0 < a < 1):
+                raise DatasetError(f"lidar range_accuracy_m must be a number of metres between 0 and 1, got {a!r}",
+                                   path=ypath, hint="for example range_accuracy_m: 0.03 (3 cm)")
+            accuracy = float(a)
+        value = value.get("type", "3d")
+    lidar = str(value).lower()
+    if lidar not in LIDAR_KINDS:
+        raise DatasetError(f"lidar must be '3d' or '2d', got {value!r}", path=ypath,
+                           hint="set lidar: 3d or lidar: 2d (or lidar: {type: 3d, family: ouster})")
+    return lidar, family, accuracy
 
 
 def dataset_spec(lidar: str, board: BoardModel, camera: CameraModel | None) -> dict:

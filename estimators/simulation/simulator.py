@@ -22,7 +22,7 @@ from geometry.board import CHARUCO, PATTERNS, BoardModel
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
-from ..camera.charuco import pattern_image
+from ..camera.charuco import pattern_reflectance
 from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory, check_output_folder
 from ..io.pointcloud_io import write_scan, write_scan_2d
@@ -67,25 +67,8 @@ def as_charuco(board: BoardModel, dictionary: str = "DICT_5X5_100") -> BoardMode
 
 def board_reflectance(board: BoardModel):
     """The board's reflectance as a function of board coordinates (NaN outside): the checkerboard's own, or
-    for a ChArUco board OpenCV's printed pattern (its markers included), sampled at the nearest texel."""
-    if not board.is_charuco:
-        return board.reflectance
-    texels = 96  # per square: a marker bit (a seventh of 70% of a square) spans about 10 texels
-    img = pattern_image(board, texels).astype(float) / 255.0
-    ox, oy = board.offset
-    w, h = board.extent
-
-    def reflectance(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-        col = np.floor((x - ox) / board.square_size * texels).astype(int)
-        row = np.floor((y - oy) / board.square_size * texels).astype(int)
-        inside = (col >= 0) & (col < img.shape[1]) & (row >= 0) & (row < img.shape[0])
-        out = np.ones(np.broadcast(x, y).shape)
-        out[inside] = img[row[inside], col[inside]]
-        out[(x < 0) | (x > w) | (y < 0) | (y > h)] = np.nan
-        return out
-
-    return reflectance
+    for a ChArUco board OpenCV's printed pattern (its markers included); ``camera.charuco.pattern_reflectance``."""
+    return pattern_reflectance(board)
 
 
 def default_rig(rng: np.random.Generator, lidar: str = "hdl64e", sigma_range_m: float = 0.02) -> Rig:

@@ -1,12 +1,13 @@
-"""The chi-square distribution's tail, quantiles and median, from scipy.special.
+"""The chi-square distribution's tail, quantiles and median, and the F distribution's tail, from scipy.special.
 
-The tests and gates of the solvers need only these four functions. Importing `scipy.stats` for them costs about
+The tests and gates of the solvers need only these functions. Importing `scipy.stats` for them costs about
 0.7 s at start-up (it builds every distribution's docstring), more than a cached calibration's whole solve, so
 they are computed here from the regularised incomplete gamma function and its inverse.
 """
 from __future__ import annotations
 
 from scipy.special import chdtrc, chdtri
+from scipy.special import fdtrc as _fdtrc
 
 
 def sf(x, dof):
@@ -27,3 +28,8 @@ def ppf(q, dof):
 def median(dof):
     """The distribution's median."""
     return chdtri(dof, 0.5)
+
+
+def fdtrc(dfn, dfd, x):
+    """P(X > x) for X ~ F(dfn, dfd)."""
+    return _fdtrc(dfn, dfd, x)

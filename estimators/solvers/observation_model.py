@@ -168,13 +168,38 @@ def layout_range_terms(layout: Layout, model: str) -> RangeTerms | None:
     return terms_for(model, labels)
 
 
-def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None
+INTENSITY_MODES = ("contrast", "flat", "saturated")
+
+
+def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,
+                          board_error_m: float = 0.0, rings: bool = True, intensity: str = "contrast"
                           ) -> list[FrameMeasurement]:
     """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
     board's beam returns with Gaussian range noise, plus ``bias`` (systematic range errors) when given; the
-    returns carry their ring ids and an intensity (0 on black squares, 100 elsewhere). No rendering, no
+    returns carry their ring ids (``rings=False``: none, as a cloud without a ``ring`` field) and an intensity:
+    ``contrast`` 0 on black squares and 100 elsewhere, ``flat`` 50 +- 5 on both (an uncalibrated LiDAR's),
+    ``saturated`` 255 everywhere. ``board_error_m``: each board as the LiDAR sees it is moved from the camera's
+    by a random per-board plane error (distance sd ``board_error_m``, tilt sd ``board_error_m`` over the board's
+    half-size: a bent board, a holder, intrinsics), the overdispersion of real recordings. No rendering, no
     segmentation."""
+    if intensity not in INTENSITY_MODES:
+        raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")
     frames = []
+    seen_by_lidar = layout
+    if board_error_m > 0:
+        from geometry.rotations import R_from_rotvec, T_from_Rt
+
+        err = np.random.default_rng(rng.integers(2**63))  # its own stream: the rest of the draws stay the same
+        half = 0.5 * float(np.mean(layout.board.extent))
+        moved = []
+        for T_cb in layout.T_camera_board:
+            tilt = np.append(err.normal(0.0, board_error_m / half, 2), 0.0)
+            centre = np.append(0.5 * np.array(layout.board.extent), 0.0)
+            # about the board's centre, then along its normal
+            T_local = T_from_Rt(R_from_rotvec(tilt), centre - R_from_rotvec(tilt) @ centre
+                                + np.array([0.0, 0.0, err.normal(0.0, board_error_m)]))
+            moved.append(T_cb @ T_local)
+        seen_by_lidar = replace(layout, T_camera_board=tuple(moved))
     for i in range(layout.n_frames):
         uv = corner_pixels(layout, i)
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
@@ -190,20 +215,23 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
             cam, why, alternatives = None, f"board pose: {exc.message}", exc.observations
         except MeasurementError as exc:  # as the pipeline does: the frame is kept, unusable, with the reason
             cam, why = None, f"board pose: {exc.message}"
-        dirs, ranges, rings, dark = board_returns(layout, i)
+        dirs, ranges, ring_ids, dark = board_returns(seen_by_lidar, i)
         if len(dirs) < 3:
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, why or f"only {len(dirs)} LiDAR beams hit the board"))
             continue
         measured = ranges + rng.normal(0.0, layout.range_noise_m, len(ranges))
-        if bias is not None and rings is not None:
-            measured = measured + bias.of(rings, dark)
+        if bias is not None and ring_ids is not None:
+            measured = measured + bias.of(ring_ids, dark)
         points = dirs * measured[:, None]
         if layout.beams.is_2d:
             frames.append(FrameMeasurement(f"{i:04d}", cam, observe_lidar_line(points), why,
                                            camera_alternatives=alternatives))
             continue
         obs = observe_lidar_board(points)
-        if rings is not None:
-            obs = replace(obs, rings=rings, intensity=np.where(dark, 0.0, 100.0))
+        if ring_ids is not None:
+            value = {"contrast": lambda: np.where(dark, 0.0, 100.0),
+                     "flat": lambda: rng.normal(50.0, 5.0, len(dark)),
+                     "saturated": lambda: np.full(len(dark), 255.0)}[intensity]()
+            obs = replace(obs, rings=ring_ids if rings else None, intensity=value)
         frames.append(FrameMeasurement(f"{i:04d}", cam, obs, why))
     return frames

@@ -200,7 +200,8 @@ class PlaneLikelihood:
         terms = rm.terms if rm is not None else None
         beta = np.asarray(rm.values_m) if terms is not None else np.zeros(0)
         tau = float(rm.term_consistency.get("board_scatter_m", 0.0)) if terms is not None else 0.0
-        fws = frame_whiteners(frames, pooled_range_noise_m(frames), terms)
+        labels = rm.labels_for(frames, board, ref.T_camera_lidar) if terms is not None else None
+        fws = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
         width = max(fw.W.shape[0] for fw in fws) if fws else 3
         for f, fw in zip(frames, fws):
             W = fw.W_plane

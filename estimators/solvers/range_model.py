@@ -2,13 +2,19 @@
 
 A return's measured range is ``rho = rho_true + a . beta + noise``, with ``a`` the return's regressors:
 
-- ``offset``: 1 for every return (a global range offset; prior 0 +- 5 cm);
+- ``offset``: 1 for every return (a global range offset);
 - ``ring r``: 1 for the returns of beam ``r`` (per-laser offsets of a multi-beam LiDAR, deviations from the
-  global offset; prior 0 +- 1 cm). Rings come from the scan's ``ring`` field (or an organised cloud's rows),
-  or from clustering the board points' beam elevations when the scan has neither;
-- ``dark``: 1 for returns from the board's black squares (a reflectivity-dependent offset; prior 0 +- 5 cm).
-  Black and white returns are told apart by their intensity (two clusters, Otsu's threshold) where the scan
-  has an intensity field and the board's intensities are clearly bimodal.
+  global offset). Rings come from the scan's ``ring`` field (or an organised cloud's rows), or from clustering
+  the board points' beam elevations when the scan has neither;
+- ``dark``: the share of the return's footprint on the board's black squares (a reflectivity-dependent
+  offset). The squares are placed by geometry: the camera's board pose, the printed pattern (a ChArUco board's
+  markers included) and the current extrinsic (:func:`geometric_dark`), so a LiDAR whose intensity is
+  saturated or uncalibrated still has the term. Where the scan's intensities fall in two clear groups, they
+  cross-check the geometry (:attr:`FrameLabels.intensity_agreement`).
+
+Priors come from the sensor's range accuracy (``range_accuracy_m``: ``lidar.range_accuracy_m`` in dataset.yaml,
+``--range-accuracy``, or the sensor family's default, :data:`RANGE_ACCURACY_M`): the global offset and the
+black-square term 0 +- the accuracy, each ring 0 +- a fifth of it about the global offset.
 
 Each return is modelled as ``rho = d / (m . b) + a . beta + noise`` (``b`` its unit beam, ``[m; -d]`` the
 board's plane; MATH.md section 2). Each frame is compressed once: its plane fitted to its ranges, and the
@@ -16,12 +22,15 @@ cost's second-order expansion there in the plane and the frame's own terms (Gaus
 so the factor keeps O(1) statistics per frame. The residual is ``W [s pi; S beta] + e0``, with ``S`` the
 frame's own terms from the shared ones (:func:`frame_design`) and ``s = sign(m . m_away)`` orienting the
 camera's plane like the fitted one (facing away from the sensor). Within one board a distance and an offset
-trade along a weak direction (``FrameWhitener.weak``); the refinement estimates a per-board scatter along it
-when the boards disagree there beyond the noise.
+trade along a weak direction (``FrameWhitener.weak``, scaled to one metre of the board's offset); the
+refinement estimates a per-board scatter of the offset along it (``board_scatter_m``, at most the range
+accuracy) when the boards disagree there beyond the noise.
 
-Model choice (``auto``): the terms are added in order (offset, per-ring, dark) while the data support them:
-a likelihood-ratio test at 0.1% on the refined objective, the boards' best-fit floors included, against the
-degrees of freedom the term adds (0.1%, not 1%: a needless offset costs a VLP-16's translation much, `make bench`).
+Model choice (``auto``, ``solvers.refinement``): a global offset, then the per-ring and the black-square terms,
+each kept while a likelihood-ratio test at 0.1% supports it. When the boards' planes disagree beyond the noise
+(overdispersed data: every recorded set), the test is made with the per-board plane error estimated under the
+larger model in place and against an F distribution, so that board-to-board structure the model does not
+explain is not read as a range term.
 """
 from __future__ import annotations
 
@@ -33,10 +42,35 @@ from geometry.planes import sqrt_excess_moment, sqrt_excess_moment_scan
 
 from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObservation
 
-RANGE_MODELS = ("none", "offset", "per-ring", "full", "auto")
-OFFSET_PRIOR_SD_M = 0.05
-RING_PRIOR_SD_M = 0.01
-DARK_PRIOR_SD_M = 0.05
+RANGE_MODELS = ("none", "offset", "per-ring", "offset+dark", "full", "auto")
+# A systematic range error's standard deviation (m) by sensor family, from the makers' accuracy figures
+# (VLP-16 and Ouster OS: +-3 cm typical; HDL-64E, Hesai Pandar and Livox: 2 cm), and a conservative default.
+RANGE_ACCURACY_M = {"velodyne": 0.03, "ouster": 0.03, "hesai": 0.02, "livox": 0.02, "default": 0.05}
+DEFAULT_RANGE_ACCURACY_M = RANGE_ACCURACY_M["default"]
+# Each ring's prior about the global offset, as a share of the range accuracy.
+RING_PRIOR_SHARE = 0.2
+OFFSET_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
+RING_PRIOR_SD_M = RING_PRIOR_SHARE * DEFAULT_RANGE_ACCURACY_M
+DARK_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
+# A term further than this many prior standard deviations from its prior mean is not believed (confounding, a
+# wrong segment, a moving board): it is held at the prior and its prior variance propagated instead.
+MAX_PRIOR_SIGMAS = 3.0
+# Correlation of a term with a direction of the extrinsic above which the two are called confounded.
+CONFOUNDED_CORRELATION = 0.9
+# A beam's full divergence (rad): its footprint on the board, over which a return's black share is averaged
+# (VLP-16 3 mrad, HDL-64E 2 mrad, Ouster OS 2-3 mrad: the largest, so that an edge is never read as one colour).
+BEAM_DIVERGENCE_RAD = 3.0e-3
+# The board's position along its own plane from the camera and the extrinsic (m, 1 sd) at which the colours
+# are placed: a return nearer an edge than about this is counted as part black.
+LABEL_POSITION_SD_M = 0.003
+# Below this agreement between intensity and geometry on clearly black or white returns, a warning is given.
+MIN_INTENSITY_AGREEMENT = 0.8
+
+
+def range_accuracy_for(family: str | None) -> float:
+    """The default range accuracy (m) of a sensor family (``velodyne``, ``ouster``, ``hesai``, ``livox``), the
+    conservative default for None or any other name."""
+    return RANGE_ACCURACY_M.get(str(family).lower(), DEFAULT_RANGE_ACCURACY_M) if family else DEFAULT_RANGE_ACCURACY_M
 # Significance of the likelihood-ratio test that adds a term in ``auto``.
 MODEL_TEST_P = 0.001
 # Beam elevations further apart than this (rad) belong to different rings when the scan has no ring field.
@@ -61,17 +95,38 @@ class RangeTerms:
     @property
     def model(self) -> str:
         if "dark" in self.names:
-            return "full"
+            return "full" if self.rings else "offset+dark"
         return "per-ring" if self.rings else "offset"
 
 
 @dataclass(frozen=True)
 class FrameLabels:
-    """Per frame, each board point's ring (None: not known) and whether it is on a black square (None: not
-    told apart)."""
+    """Per frame, each board point's ring (None: not known) and its footprint's share on the black squares
+    (None: not told apart), from geometry where the board and the extrinsic are given, else from intensity.
+    ``intensity_agreement``: per frame, the share of clearly black or white returns whose intensity says the
+    same (None where the intensities are not two clear groups or the colours come from intensity)."""
 
     rings: tuple
     dark: tuple
+    source: str = "intensity"
+    intensity_agreement: tuple = ()
+    names: tuple = ()  # the frames' names, in order
+
+    def select(self, frames: list[FrameMeasurement]) -> "FrameLabels | None":
+        """These labels for ``frames`` (by name), or None when a frame has none."""
+        index = {n: k for k, n in enumerate(self.names)}
+        if not all(f.name in index for f in frames):
+            return None
+        ks = [index[f.name] for f in frames]
+        return FrameLabels(tuple(self.rings[k] for k in ks), tuple(self.dark[k] for k in ks), self.source,
+                           tuple(self.intensity_agreement[k] for k in ks) if self.intensity_agreement else (),
+                           tuple(self.names[k] for k in ks))
+
+    def agreement(self) -> float | None:
+        """The intensity's agreement with geometry over all frames (None when it could not be checked)."""
+        pairs = [a for a in self.intensity_agreement if a is not None]
+        return float(np.sum([a[0] for a in pairs]) / np.sum([a[1] for a in pairs])) if pairs and sum(
+            a[1] for a in pairs) else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,8 +145,13 @@ class FrameWhitener:
     R: np.ndarray | None = None
     nt: int = 0
     # The board's weak direction in x: its distance and its offsets trading (d up by mean incidence x eps,
-    # every offset down by eps), told apart only by how incidence varies across the board (unit vector).
+    # every offset down by eps), told apart only by how incidence varies across the board (scaled to one metre
+    # of the board's own offset).
     weak: np.ndarray | None = None
+    # The board points' centroid (LiDAR frame; a scan line's in its plane): a per-board plane error tilts the
+    # board about it. With terms, the tangent basis (3 x nt) of the normal in ``x``.
+    centre: np.ndarray | None = None
+    tangent: np.ndarray | None = None
 
     @property
     def W_plane(self) -> np.ndarray:
@@ -123,12 +183,44 @@ class RangeModelFit:
     offset_translation_correlation: tuple[float, ...] = ()
     # How far the boards' own terms are from the shared ones (chi-square, dof, p) and the per-board scatter.
     term_consistency: dict = field(default_factory=dict)
+    # The sensor's range accuracy (m) that set the priors.
+    range_accuracy_m: float = DEFAULT_RANGE_ACCURACY_M
+    # Where the black squares came from (geometry or intensity) and, with geometry, the intensity's agreement.
+    labels_from: str = "intensity"
+    intensity_agreement: float | None = None
+    # Terms held at 0 because their estimates lay beyond MAX_PRIOR_SIGMAS prior sds, and those estimates (m).
+    pinned: tuple[str, ...] = ()
+    pinned_values_m: tuple[float, ...] = ()
+    # The term most correlated with a direction of the extrinsic, when above CONFOUNDED_CORRELATION.
+    confounding: dict | None = None
+    # The frames' ring and black-square labels the terms were estimated with.
+    labels: FrameLabels | None = None
+
+    def labels_for(self, frames: list[FrameMeasurement], board=None, T_camera_lidar=None) -> FrameLabels:
+        """The labels of ``frames``: the estimate's own where it has them, else placed anew (by geometry when
+        the estimate's were and the board and extrinsic are given)."""
+        own = self.labels.select(frames) if self.labels is not None else None
+        if own is not None:
+            return own
+        if self.labels_from == "geometry":
+            return frame_labels(frames, board, T_camera_lidar)
+        return frame_labels(frames)
 
     def to_dict(self) -> dict:
-        terms = [{"term": n, "value_mm": 1000 * v, "std_mm": 1000 * s}
-                 for n, v, s in zip(self.names, self.values_m, self.std_m)]
+        terms = [{"term": n, "value_mm": 1000 * v, "std_mm": 1000 * s,
+                  "prior_sd_mm": 1000 * float(self.terms.prior_sd[k]) if self.terms is not None else None,
+                  "held_at_prior": n in self.pinned}
+                 for k, (n, v, s) in enumerate(zip(self.names, self.values_m, self.std_m))]
         return {"requested": self.requested, "chosen": self.chosen, "reason": self.reason, "terms": terms,
-                "tests": list(self.tests), "test": f"likelihood-ratio test at p < {MODEL_TEST_P} per added term",
+                "tests": list(self.tests),
+                "test": (f"likelihood-ratio test at p < {MODEL_TEST_P} per added block of terms, referred to F; with "
+                         "the per-board plane error estimated under the larger model when the boards' planes "
+                         "disagree beyond the noise"),
+                "range_accuracy_m": self.range_accuracy_m,
+                "black_squares_from": self.labels_from, "intensity_agreement": self.intensity_agreement,
+                "held_at_prior": [{"term": n, "estimate_mm": 1000 * v}
+                                  for n, v in zip(self.pinned, self.pinned_values_m)],
+                "confounding": self.confounding,
                 "offset_translation_correlation_lidar_xyz": list(self.offset_translation_correlation),
                 "board_terms_consistency": self.term_consistency}
 
@@ -136,9 +228,65 @@ class RangeModelFit:
         return self.values_m[self.names.index(name)] if name in self.names else None
 
 
-def frame_labels(frames: list[FrameMeasurement]) -> FrameLabels:
-    """Ring and black-square labels of every frame's board points."""
-    return FrameLabels(tuple(_rings(frames)), tuple(dark_labels(f.lidar) for f in frames))
+def frame_labels(frames: list[FrameMeasurement], board=None, T_camera_lidar: np.ndarray | None = None,
+                 boards: list | None = None) -> FrameLabels:
+    """Ring and black-square labels of every frame's board points. Given the board model and the extrinsic, the
+    black squares are placed by geometry (:func:`geometric_dark`, on each frame's board pose: ``boards`` or
+    the camera's own) and the intensities only cross-check them; else they come from intensity."""
+    rings = tuple(_rings(frames))
+    if board is None or T_camera_lidar is None:
+        return FrameLabels(rings, tuple(dark_labels(f.lidar) for f in frames), names=tuple(f.name for f in frames))
+    from ..camera.charuco import pattern_reflectance  # the printed pattern, a ChArUco board's markers included
+
+    reflectance = pattern_reflectance(board)
+    T_lidar_camera = np.linalg.inv(T_camera_lidar)
+    dark, agree = [], []
+    for i, f in enumerate(frames):
+        if f.lidar.is_scan_line or f.camera is None:
+            dark.append(None)
+            agree.append(None)
+            continue
+        T_cb = boards[i] if boards is not None else f.camera.T_camera_board
+        share = geometric_dark(f.lidar.points, T_lidar_camera @ T_cb, reflectance)
+        dark.append(share)
+        by_intensity = dark_labels(f.lidar)
+        clear = (share < 0.1) | (share > 0.9)
+        agree.append(None if by_intensity is None or not clear.any() else
+                     (int(np.sum(by_intensity[clear] == (share[clear] > 0.5))), int(clear.sum())))
+    return FrameLabels(rings, tuple(dark), "geometry", tuple(agree), tuple(f.name for f in frames))
+
+
+def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
+                   divergence_rad: float = BEAM_DIVERGENCE_RAD, position_sd_m: float = LABEL_POSITION_SD_M
+                   ) -> np.ndarray:
+    """Each return's share of black under its footprint: its beam cut with the board's plane (the camera's, so
+    the range noise does not move it), the printed pattern's reflectance (``reflectance(x, y)`` in board
+    coordinates, below 0.5 on black) averaged over a Gaussian of the footprint's radius (stretched by the
+    incidence) and the position's uncertainty, by 5 x 5 Gauss-Hermite quadrature. Returns off the board count
+    as white."""
+    P = np.asarray(points, dtype=float)
+    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
+    n = R[:, 2]
+    cos_inc = np.abs(beams @ n)
+    t = (n @ o) / np.where(np.abs(beams @ n) < 1e-6, 1e-6, beams @ n)
+    local = (beams * t[:, None] - o) @ R
+    # A uniform disc of radius r (half the divergence times the range) has a standard deviation of r / 2 along
+    # each axis; the footprint stretches by 1 / cos(incidence) along the board.
+    sd = np.hypot(0.25 * divergence_rad * np.abs(t) / np.maximum(cos_inc, MIN_INCIDENCE_COS), position_sd_m)
+    nodes, weights = np.polynomial.hermite_e.hermegauss(5)
+    weights = weights / weights.sum()
+    share = np.zeros(len(P))
+    for zi, wi in zip(nodes, weights):
+        for zj, wj in zip(nodes, weights):
+            r = reflectance(local[:, 0] + sd * zi, local[:, 1] + sd * zj)
+            share += wi * wj * (np.nan_to_num(r, nan=1.0) < 0.5)
+    return share
+
+
+def _two_colours(dark: np.ndarray | None) -> bool:
+    """Whether a frame's black shares hold both colours (a black-square term is then told from an offset)."""
+    return dark is not None and bool(np.any(dark > 0.5)) and bool(np.any(dark < 0.5))
 
 
 def _rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
@@ -175,22 +323,25 @@ def dark_labels(obs: LidarBoardObservation) -> np.ndarray | None:
     return x <= s[j]
 
 
-def terms_for(model: str, labels: FrameLabels) -> RangeTerms | None:
-    """The nuisance terms of a model, or None for ``none``. ``per-ring`` without known rings (a 2D scanner,
-    one elevation) and ``full`` without black/white labels fall back to the terms the data allow."""
+def terms_for(model: str, labels: FrameLabels, range_accuracy_m: float = DEFAULT_RANGE_ACCURACY_M
+              ) -> RangeTerms | None:
+    """The nuisance terms of a model, or None for ``none``, with priors from the range accuracy. ``per-ring``
+    without known rings (a 2D scanner, one elevation) and ``full`` or ``offset+dark`` without both colours on
+    the boards fall back to the terms the data allow."""
     if model == "none":
         return None
-    names, sds, rings = ["offset"], [OFFSET_PRIOR_SD_M], ()
+    acc = float(range_accuracy_m)
+    names, sds, rings = ["offset"], [acc], ()
     if model in ("per-ring", "full"):
         known = [r for r in labels.rings if r is not None]
         ids = sorted(set(np.concatenate(known).tolist())) if known else []
         if len(ids) > 1:
             rings = tuple(int(r) for r in ids)
             names += [f"ring {r}" for r in rings]
-            sds += [RING_PRIOR_SD_M] * len(rings)
-    if model == "full" and any(d is not None and d.any() and not d.all() for d in labels.dark):
+            sds += [RING_PRIOR_SHARE * acc] * len(rings)
+    if model in ("full", "offset+dark") and any(_two_colours(d) for d in labels.dark):
         names.append("dark")
-        sds.append(DARK_PRIOR_SD_M)
+        sds.append(acc)
     return RangeTerms(tuple(names), tuple(sds), rings)
 
 
@@ -232,7 +383,7 @@ def frame_design(n_points: int, terms: RangeTerms, rings: np.ndarray | None, dar
     else:
         cols.append(np.ones(n_points))
         rows.append(np.eye(terms.size)[0])
-    if "dark" in terms.names and dark is not None and dark.any() and not dark.all():
+    if "dark" in terms.names and _two_colours(dark):
         cols.append(np.asarray(dark, dtype=float))
         rows.append(np.eye(terms.size)[terms.names.index("dark")])
     return np.column_stack(cols), np.array(rows)
@@ -254,13 +405,19 @@ def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: Rang
         M = Z.T @ Z
         M[:3, :3] -= sigma_range_m**2 * (beams / c[:, None] ** 2).T @ beams
         W, floor = (sqrt_excess_moment_scan if obs.is_scan_line else sqrt_excess_moment)(M)
-        return FrameWhitener(W, np.zeros((0, 0)), m_away, floor, np.zeros(W.shape[0]))
+        return FrameWhitener(W, np.zeros((0, 0)), m_away, floor, np.zeros(W.shape[0]), centre=P.mean(0))
     A, S = frame_design(len(P), terms, rings, dark)
-    W, e0, floor, R = _range_fit(np.linalg.norm(P, axis=1), beams, A, m_away, obs.is_scan_line)
+    W, e0, floor, R, T = _range_fit(np.linalg.norm(P, axis=1), beams, A, m_away, obs.is_scan_line)
     nt = 1 if obs.is_scan_line else 2
     vals, vecs = np.linalg.eigh(R.T @ R)
     weak = vecs[:, 0]
-    return FrameWhitener(W, S, m_away, floor, e0, R, nt, weak)
+    # Scaled to one metre of the board's own offset (the mean of its offset columns: a ring's term holds the
+    # global offset), so that a scatter along it is in metres of range offset.
+    offset_cols = np.flatnonzero(S[:, 0] == 1.0) if S.size else np.array([], dtype=int)
+    along = float(np.mean(weak[nt + 1 + offset_cols])) if offset_cols.size else 0.0
+    if abs(along) > 1e-3:
+        weak = weak / along
+    return FrameWhitener(W, S, m_away, floor, e0, R, nt, weak, P.mean(0), T)
 
 
 def _tangent(m: np.ndarray, scan_line: bool) -> np.ndarray:
@@ -271,7 +428,7 @@ def _tangent(m: np.ndarray, scan_line: bool) -> np.ndarray:
 
 
 def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray, scan_line: bool,
-               iterations: int = 8) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+               iterations: int = 8) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
     """One board's plane and range terms from its ranges, compressed to a residual.
 
     The model of each return is ``rho = d / (m . b) + a . beta + noise``: the ranges are the observations and
@@ -281,7 +438,7 @@ def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray
     normal; d; beta]``, the cost is ``floor + |R (x - x*)|^2`` to second order (Gauss-Newton; ``beta`` stays
     near 0, while within one board an offset and the plane's distance can trade far along a flat valley).
     Returned as ``W = R P`` and ``e0`` with ``x = P theta`` read from ``theta = [n; -d; beta]`` (the normal's
-    tangent part), the floor, and ``R``.
+    tangent part), the floor, ``R`` and the tangent basis.
     """
     m = m0 / np.linalg.norm(m0)
     mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
@@ -313,7 +470,7 @@ def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray
     Pm[:nt, :3] = T.T
     Pm[nt, 3] = -1.0
     Pm[nt + 1:, 4:] = np.eye(K)
-    return R @ Pm, -R @ x_star, float(r @ r - g @ Hg), R
+    return R @ Pm, -R @ x_star, float(r @ r - g @ Hg), R, T
 
 
 def frame_whiteners(frames: list[FrameMeasurement], sigma_range_m: float, terms: RangeTerms | None,

@@ -45,11 +45,13 @@ from geometry.rotations import T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
+from .chi_square import fdtrc
 from .closed_form import describe_direction, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
                       nuisance_plane_factor, nuisance_residual, plane_factor)
-from .range_model import (MODEL_TEST_P, RANGE_MODELS, FrameLabels, FrameWhitener, RangeModelFit, RangeTerms,
-                          frame_labels, frame_whiteners, terms_for)
+from .range_model import (CONFOUNDED_CORRELATION, DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS,
+                          MIN_INTENSITY_AGREEMENT, MODEL_TEST_P, RANGE_MODELS, FrameLabels, FrameWhitener,
+                          RangeModelFit, RangeTerms, frame_labels, frame_whiteners, terms_for)
 
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 OUTLIER_POLICIES = ("drop", "downweight")
@@ -62,6 +64,8 @@ CORNER_ERROR_CORRELATION = 1.4
 CORNER_SCALE_SD = 1.0e-4
 EXTRINSIC = gtsam.symbol("x", 0)
 RANGE = gtsam.symbol("r", 0)  # the LiDAR range model's nuisance vector
+# Prior standard deviation (m) that holds a pinned range term at 0 in the graph.
+PINNED_SD_M = 1e-7
 
 
 def board_key(i: int) -> int:
@@ -85,8 +89,10 @@ class RefinementOptions:
     estimate_plane_floor: bool = True
     max_iterations: int = 100
     corner_scale_sd: float = CORNER_SCALE_SD
-    # The LiDAR range model (``solvers.range_model``): none, offset, per-ring, full, or auto (chosen by test).
+    # The LiDAR range model (``solvers.range_model``): none, offset, per-ring, offset+dark, full, or auto (chosen
+    # by test), and the sensor's range accuracy (m, 1 sd of a systematic error) that sets the terms' priors.
     range_model: str = "auto"
+    range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -95,7 +101,7 @@ class RefinementOptions:
             raise ValueError(f"Expected outliers in {OUTLIER_POLICIES}, got {self.outliers!r}")
         if self.range_model not in RANGE_MODELS:
             raise ValueError(f"Expected range_model in {RANGE_MODELS}, got {self.range_model!r}")
-        for name in ("corner_noise_px", "range_noise_m", "plane_floor_m"):
+        for name in ("corner_noise_px", "range_noise_m", "plane_floor_m", "range_accuracy_m"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise ValueError(f"Expected {name} to be positive, got {v}")
@@ -196,15 +202,21 @@ def _robust_weight(e_norm: float, options: RefinementOptions, dof: int = 3) -> f
 
 
 def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
-                 scale_m: float = 0.0) -> np.ndarray:
+                 scale_m: float = 0.0, centre: np.ndarray | None = None) -> np.ndarray:
     """Covariance of a plane factor's residual ``W pi``: the points' range noise, plus a per-board plane
-    error (``floor_m`` in distance and at the board's edge) when the data call for one, plus the distance
-    error ``scale_m`` of the camera's board from a scale error of its detected pattern."""
+    error when the data call for one (the board tilted about its centre by ``floor_m`` over its half-size and
+    moved along its normal by ``floor_m``: a bent or held board, imperfect intrinsics), plus the distance error
+    ``scale_m`` of the camera's board from a scale error of its detected pattern. ``centre``: the board points'
+    centroid (LiDAR frame); without it the tilt is about the foot of the perpendicular from the sensor."""
     cov = sigma_r**2 * np.eye(W.shape[0])
     if floor_m > 0 or scale_m > 0:
         S = np.zeros((4, 4))
-        S[:3, :3] = (np.eye(3) - np.outer(normal, normal)) * (floor_m / half_size_m) ** 2
+        S_nn = (np.eye(3) - np.outer(normal, normal)) * (floor_m / half_size_m) ** 2
+        S[:3, :3] = S_nn
         S[3, 3] = floor_m**2 + scale_m**2
+        if centre is not None:  # pi = [n; -d], d = n . c at the centre: a tilt there moves d by dn . c
+            S[:3, 3] = S[3, :3] = -S_nn @ centre
+            S[3, 3] += float(centre @ S_nn @ centre)
         cov = cov + W @ S @ W.T
     return cov
 
@@ -212,15 +224,23 @@ def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: flo
 def frame_noise(fw: FrameWhitener, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
                 scale_m: float = 0.0, tau_m: float = 0.0) -> np.ndarray:
     """Covariance of a frame's whitened LiDAR residual (:func:`_plane_noise`). In the range model's form
-    (``fw.R`` set) the per-board plane error acts on the board's own plane (its tilt, ``floor_m`` at the
-    board's edge, and its distance), and ``tau_m`` is the scatter along the board's weak direction
-    (``fw.weak``: its distance and offsets trading, told apart only by incidence across the board)."""
+    (``fw.R`` set) the per-board plane error acts on the board's own plane (its tilt about its centre,
+    ``floor_m`` at the board's edge, and its distance), and ``tau_m`` is the scatter of the board's own offset
+    along its weak direction (``fw.weak``: its distance and offsets trading, told apart only by incidence
+    across the board)."""
     if fw.R is None:
-        return _plane_noise(fw.W, normal, sigma_r, floor_m, half_size_m, scale_m)
-    var = np.concatenate([np.full(fw.nt, (floor_m / half_size_m) ** 2), [floor_m**2 + scale_m**2],
-                          np.zeros(fw.R.shape[1] - fw.nt - 1)])
+        return _plane_noise(fw.W, normal, sigma_r, floor_m, half_size_m, scale_m, fw.centre)
+    k = fw.R.shape[1]
+    V = np.zeros((k, k))
+    s2 = (floor_m / half_size_m) ** 2
+    V[:fw.nt, :fw.nt] = s2 * np.eye(fw.nt)
+    V[fw.nt, fw.nt] = floor_m**2 + scale_m**2
+    if fw.centre is not None and fw.tangent is not None:  # a tilt about the centre moves d by (T dt) . c
+        g = fw.tangent.T @ fw.centre
+        V[:fw.nt, fw.nt] = V[fw.nt, :fw.nt] = s2 * g
+        V[fw.nt, fw.nt] += s2 * float(g @ g)
     Rv = fw.R @ fw.weak
-    return sigma_r**2 * np.eye(fw.R.shape[0]) + (fw.R * var) @ fw.R.T + tau_m**2 * np.outer(Rv, Rv)
+    return sigma_r**2 * np.eye(fw.R.shape[0]) + fw.R @ V @ fw.R.T + tau_m**2 * np.outer(Rv, Rv)
 
 
 class _Problem:
@@ -241,6 +261,8 @@ class _Problem:
         # Scatter (m) of each board's own range terms about the shared ones: estimated when they disagree
         # beyond the noise (biases that vary with range, incidence or temperature, or terms the model lacks).
         self.tau = 0.0
+        # Indices of terms held at their prior mean (0): not believed, their prior variance propagated instead.
+        self.pinned: tuple[int, ...] = ()
         self.corners_board = [f.camera.corners_board(board) for f in frames]  # the corners each frame saw
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
 
@@ -287,11 +309,15 @@ class _Problem:
             dof += 1
         return stat, max(dof, 1)
 
-    def graph(self, active: list[int], floor_m: float, robust: bool = True) -> gtsam.NonlinearFactorGraph:
+    def graph(self, active: list[int], floor_m: float, robust: bool = True, free_pinned: bool = False
+              ) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         if self.has_beta:
+            sd = np.array(self.terms.prior_sd, dtype=float)
+            if self.pinned and not free_pinned:
+                sd[list(self.pinned)] = PINNED_SD_M
             graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
-                                              gtsam.noiseModel.Diagonal.Sigmas(np.array(self.terms.prior_sd))))
+                                              gtsam.noiseModel.Diagonal.Sigmas(sd)))
         for j, i in enumerate(active):
             f = self.frames[i]
             key = board_key(j)
@@ -390,6 +416,8 @@ MIN_INFORMATION_RATIO = 1e-6
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
            options: RefinementOptions = RefinementOptions()) -> Refinement:
     """Refine ``T_camera_lidar`` from the usable frames, starting at ``T_init``."""
+    if options.range_accuracy_m is None:
+        options = replace(options, range_accuracy_m=DEFAULT_RANGE_ACCURACY_M)
     frames = [f for f in frames if f.usable]
     if len(frames) < 3:
         raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); refinement needs at least 3")
@@ -432,23 +460,31 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         boards = [f.camera.T_camera_board for f in frames]
 
     inliers = [i for i in active if i not in flagged]
-    prob0, start = prob, (T, list(boards))
-    prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options)
-    if prob.terms is not None and prob.terms.model != "offset" and options.plane_floor_m is None:
-        stat, dof = prob.consistency(inliers, T, boards, floor)
-        if chi2.sf(stat, dof) < 0.01:
-            # Per-ring and black-square terms read structure within each board; when that structure differs
-            # from board to board beyond the noise, shared terms cannot hold it (and a per-board plane error
-            # cannot absorb it): fall back to the global offset.
-            why = (f"the {model_fit.chosen} terms left the boards inconsistent (chi-square {stat:.0f} on {dof} dof): "
-                   "their within-board structure differs from board to board; fell back to at most a global offset")
-            tests = model_fit.tests
-            prob, T, boards, model_fit = _choose_range_model(
-                prob0, active, inliers, start[0], start[1], floor,
-                options if options.range_model == "auto" else replace(options, range_model="offset"), upto="offset")
-            why += f"; then {model_fit.chosen}: {model_fit.reason}" if options.range_model == "auto" else ""
-            model_fit = replace(model_fit, requested=options.range_model, reason=why, tests=tests)
-            warnings.append(f"range model: {why}")
+    labels = None
+    if options.range_model != "none":
+        labels = frame_labels(frames, board, T)
+        prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
+        if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
+            # The colours were placed under the extrinsic the model was chosen from; placed again under the
+            # estimate, a share that moved much is chosen with again (once: the extrinsic moves by millimetres).
+            again = frame_labels(frames, board, T)
+            if max((float(np.max(np.abs(x - y))) for x, y in zip(again.dark, labels.dark)
+                    if x is not None and y is not None and len(x)), default=0.0) > 0.25:
+                labels = again
+                prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options,
+                                                                 labels)
+        agreement = labels.agreement()
+        if agreement is not None and agreement < MIN_INTENSITY_AGREEMENT:
+            warnings.append(f"range model: the board returns' intensities agree with the black squares the camera's "
+                            f"pattern places in only {100 * agreement:.0f}% of clearly black or white returns: the "
+                            "intensity field may be uncalibrated or saturated, or the LiDAR board misplaced; the "
+                            "squares are placed by geometry")
+        if model_fit is not None:
+            model_fit = replace(model_fit, labels_from=labels.source, intensity_agreement=agreement, labels=labels)
+            if "fell back" in model_fit.reason:
+                warnings.append(f"range model: {model_fit.reason}")
+    else:
+        model_fit = None
     if prob.has_beta and options.range_noise_m is None:
         # With range terms, the range noise is the points' scatter about each board's own plane and terms: the
         # plane-only residuals pooled above also hold the within-board structure the terms explain (rings,
@@ -462,41 +498,86 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             T, boards = prob.solved[1].atPose3(EXTRINSIC).matrix(), b
     if prob.terms is not None:
         graph, result = prob.solved
-        t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
-        if chi2.sf(t_stat, t_dof) < 0.01 and options.estimate_plane_floor:
-            def with_tau(v):
-                prob.tau = v
-                return floor
+    for attempt in range(2):
+        if prob.terms is not None:
+            graph, result = prob.solved
+            t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
+            if chi2.sf(t_stat, t_dof) < 0.01 and options.estimate_plane_floor:
+                def with_tau(v):
+                    prob.tau = v
+                    return floor
 
-            prob.tau, (T, boards, graph, result, its) = _match_moments(
-                prob, active, T, boards, (1e-4, 10.0), with_tau,
-                lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
+                # At most the range accuracy: a board's own offset cannot scatter further than the sensor's
+                # systematic range error allows (a larger scatter is structure the model lacks).
+                cap = float(options.range_accuracy_m)
+                prob.tau, (T, boards, graph, result, its) = _match_moments(
+                    prob, active, T, boards, (1e-4, cap), with_tau,
+                    lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
+                prob.solved = (graph, result)
+                iterations += its
+                at_cap = prob.term_consistency(inliers, T, boards, floor)[0] / t_dof > 1.0
+                warnings.append(
+                    f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
+                    f"{t_dof} dof): the offset is taken from the camera across boards only (each board's own offset "
+                    f"scatters by {1000 * prob.tau:.0f} mm" + (", the range accuracy: more than that is structure "
+                                                                "the model lacks)" if at_cap else ")"))
+            model_fit = replace(model_fit, term_consistency={
+                "chi2": t_stat, "dof": t_dof, "p_value": float(chi2.sf(t_stat, t_dof)), "board_scatter_m": prob.tau,
+                "board_scatter_meaning": "standard deviation (m) of each board's own range offset about the "
+                                         "shared terms, along the board's distance-against-offset direction"})
+        stat, dof = prob.consistency(inliers, T, boards, floor)
+        variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
+        if (p_value < 0.01 or floor > 0) and options.plane_floor_m is None and options.estimate_plane_floor:
+            # The planes disagree beyond the point and corner noise (real sensors: range biases per laser,
+            # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
+            # consistency statistic equals its degrees of freedom (method of moments), then solve again.
+            first = floor == 0
+            floor, (T, boards, graph, result, its) = _match_moments(
+                prob, active, T, boards, (1e-5, 0.5), lambda v: v,
+                lambda v, T_v, b_v: prob.consistency(inliers, T_v, b_v, v)[0] / dof)
+            prob.solved = (graph, result)
             iterations += its
-            warnings.append(f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
-                            f"{t_dof} dof): the offset is taken from the camera across boards only (a per-board "
-                            f"scatter of {1000 * prob.tau:.0f} mm along distance-against-offset)")
-        model_fit = replace(model_fit, term_consistency={"chi2": t_stat, "dof": t_dof,
-                                                         "p_value": float(chi2.sf(t_stat, t_dof)),
-                                                         "board_scatter_m": prob.tau})
-    stat, dof = prob.consistency(inliers, T, boards, floor)
-    variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
-    if p_value < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor:
-        # The planes disagree beyond the point and corner noise (real sensors: range biases per laser,
-        # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
-        # consistency statistic equals its degrees of freedom (method of moments), then solve again.
-        floor, (T, boards, graph, result, its) = _match_moments(
-            prob, active, T, boards, (1e-5, 0.5), lambda v: v,
-            lambda v, T_v, b_v: prob.consistency(inliers, T_v, b_v, v)[0] / dof)
+            if first:
+                warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise "
+                                f"explain (chi-square {stat:.0f} on {dof} dof, p = {p_value:.1g}); a per-board plane "
+                                f"error of {1000 * floor:.1f} mm, estimated from the data, is included in the "
+                                "covariance")
+        if attempt or prob.terms is None or not prob.has_beta:
+            break
+        # A term beyond its physical prior is not believed: held at 0, its prior variance propagated (below).
+        sd = np.array(prob.terms.prior_sd)
+        far = tuple(int(k) for k in np.flatnonzero(np.abs(prob.beta) > MAX_PRIOR_SIGMAS * sd))
+        if not far:
+            break
+        names = ", ".join(f"{prob.terms.names[k]} {1000 * prob.beta[k]:+.0f} mm" for k in far)
+        warnings.append(f"range model: {names} lie beyond {MAX_PRIOR_SIGMAS:.0f} prior standard deviations of the "
+                        f"sensor's range accuracy ({1000 * options.range_accuracy_m:.0f} mm): likely a term confounded "
+                        "with the extrinsic, a wrong LiDAR segment or a board that moved; held at 0 with their prior "
+                        "variance propagated into the covariance (set lidar.range_accuracy_m if the sensor is known "
+                        "to err more)")
+        model_fit = replace(model_fit, pinned=tuple(prob.terms.names[k] for k in far),
+                            pinned_values_m=tuple(float(prob.beta[k]) for k in far))
+        prob.pinned = far
+        prob.beta[list(far)] = 0.0
+        b = list(boards)
+        graph, result, its = prob.solve(active, T, b, floor)
+        prob.solved = (graph, result)
+        T, boards = result.atPose3(EXTRINSIC).matrix(), b
         iterations += its
-        warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise explain "
-                        f"(chi-square {stat:.0f} on {dof} dof, p = {p_value:.1g}); a per-board plane error of "
-                        f"{1000 * floor:.1f} mm, estimated from the data, is included in the covariance")
 
     try:
         marginals = gtsam.Marginals(graph, result)
         cov = marginals.marginalCovariance(EXTRINSIC)
         if model_fit is not None and prob.terms is not None:
             model_fit = _with_uncertainty(model_fit, prob, marginals)
+            if prob.pinned:
+                cov, model_fit = _consider_pinned(prob, active, result, floor, model_fit)
+            if model_fit.confounding:
+                c = model_fit.confounding
+                warnings.append(f"range model: the {c['term']} is confounded with the extrinsic (correlation "
+                                f"{c['correlation']:.2f} with {c['direction']}); it is marginalised with its prior, "
+                                f"which widens that direction's standard deviation from {c['sd_if_known_mm']:.1f} to "
+                                f"{c['sd_mm']:.1f} mm. {c['advice']}")
     except RuntimeError as exc:
         raise _degenerate(graph, result, len(active)) from exc
     ev = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0, 1.0])
@@ -564,76 +645,224 @@ def _match_moments(prob: _Problem, active: list[int], T: np.ndarray, boards: lis
     return float(np.exp(u)), (T_u, b_u, graph, result, sum(s[4] for s in solves.values()))
 
 
+def _objective(p: _Problem, graph, result, active: list[int], floor_m: float) -> float:
+    """Minus twice the log-likelihood (up to a constant shared by every model of the same frames) at a solve:
+    the objective the solve minimised (robust loss, priors), the boards' best-fit floors (they differ with the
+    terms each board holds) and the log-determinants of the plane factors' covariances relative to the point
+    noise (they differ with the terms once a per-board plane error is in place)."""
+    logdet = 0.0
+    for i in active:
+        C = p.plane_cov(i, floor_m) / p.sigma_r**2
+        logdet += float(np.linalg.slogdet(C)[1])
+    return 2.0 * graph.error(result) + sum(p.fw[i].floor for i in active) / p.sigma_r**2 + logdet
+
+
+@dataclass
+class _ModelFit:
+    """One range model solved over the same frames: its problem, estimate, objective and nuisance rank."""
+
+    model: str
+    prob: _Problem
+    T: np.ndarray
+    boards: list
+    cost: float
+    dof: int
+
+
+def _fit_model(prob: _Problem, model: str, labels: FrameLabels, active: list[int], inliers: list[int],
+               T: np.ndarray, boards: list, floor: float, options: RefinementOptions) -> _ModelFit:
+    terms = terms_for(model, labels, options.range_accuracy_m)
+    # The model without terms in the same (range) form, so that the objectives compare.
+    p = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
+                 terms if terms is not None else RangeTerms((), ()), labels)
+    b = list(boards)
+    graph, result, _ = p.solve(active, T, b, floor)
+    p.solved = (graph, result)  # the refinement goes on from this solution
+    return _ModelFit(model, p, result.atPose3(EXTRINSIC).matrix(), b, _objective(p, graph, result, active, floor),
+                     p.nuisance_rank(inliers))
+
+
+def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: list[int], floor: float,
+                options: RefinementOptions) -> dict:
+    """Whether the terms ``large`` adds to ``small`` are supported: a likelihood-ratio test at ``MODEL_TEST_P``.
+
+    When the boards' planes disagree beyond the noise under the larger model (overdispersed data), the structure
+    neither model explains would otherwise be read as a term: the per-board plane error is estimated under the
+    larger model (method of moments), both models are solved again with it in place, and the decrease of the
+    objective is referred to an F distribution (the error's size is itself estimated from the boards). Else the
+    decrease is referred to chi-square with the added terms' degrees of freedom."""
+    ddof = max(large.dof - small.dof, 1)
+    stat, cdof = large.prob.consistency(inliers, large.T, large.boards, floor)
+    dispersion = stat / cdof
+    delta = small.cost - large.cost
+    record = {"model": large.model, "against": small.model, "cost_decrease": float(delta), "added_dof": int(ddof),
+              "variance_factor": float(dispersion), "consistency_dof": int(cdof)}
+    overdispersed = (chi2.sf(stat, cdof) < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor)
+    if overdispersed:
+        p_l, p_s = large.prob, small.prob
+        saved = [(p, p.beta.copy(), p.solved) for p in (p_l, p_s)]
+        fl, (T_l, b_l, graph_l, result_l, _) = _match_moments(
+            p_l, active, large.T, large.boards, (1e-5, 0.5), lambda v: v,
+            lambda v, T_v, b_v: p_l.consistency(inliers, T_v, b_v, v)[0] / cdof)
+        b_s = list(small.boards)
+        graph_s, result_s, _ = p_s.solve(active, small.T, b_s, fl)
+        delta = (_objective(p_s, graph_s, result_s, active, fl) - _objective(p_l, graph_l, result_l, active, fl))
+        for p, beta, solved in saved:
+            p.beta, p.solved = beta, solved
+        p_value = float(fdtrc(ddof, cdof, max(delta, 0.0) / ddof))
+        record.update({"reference": f"F({ddof}, {cdof})", "plane_error_m": float(fl),
+                       "cost_decrease_with_plane_error": float(delta)})
+    else:
+        p_value = float(chi2.sf(max(delta, 0.0), ddof))
+        record["reference"] = f"chi-square({ddof})"
+    record.update({"p_value": p_value, "included": bool(p_value < MODEL_TEST_P)})
+    return record
+
+
+def _relative_consistency(fit: _ModelFit, base: _ModelFit, inliers: list[int], floor: float) -> tuple[float, float]:
+    """How the boards' planes agree under ``fit`` against under ``base`` (the global offset alone): the ratio of
+    their variance factors and its p-value as F. Per-ring and black-square terms read structure within each
+    board; when it differs from board to board, shared terms leave the planes worse than the offset alone."""
+    s1, d1 = fit.prob.consistency(inliers, fit.T, fit.boards, floor)
+    s0, d0 = base.prob.consistency(inliers, base.T, base.boards, floor)
+    ratio = (s1 / d1) / max(s0 / d0, 1.0)
+    return float(ratio), float(fdtrc(d1, d0, ratio))
+
+
 def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                        floor: float, options: RefinementOptions, upto: str = "full") -> tuple:
+                        floor: float, options: RefinementOptions, labels: FrameLabels) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
-    terms that the data support, added in order while each passes a likelihood-ratio test at 0.1% on the whole
-    cost of the inlier frames. Returns the problem (solved at its estimate), the estimate and the record."""
-    if options.range_model == "none":
-        return prob, T, boards, None
-    labels = frame_labels(prob.frames)
-    order = ["none", "offset", "per-ring", "full"]
-    order = order[:order.index(upto) + 1]
+    terms the data support (:func:`_model_test`): a global offset against none, then the per-ring and the
+    black-square terms each against the offset; both when both pass. A combination that leaves the boards'
+    planes worse than the offset alone (:func:`_relative_consistency`, at 1%) tries the smaller ones before
+    the offset alone. Returns the problem (solved at its estimate), the estimate and the record."""
     wanted = options.range_model
-    models = order if wanted == "auto" else [wanted]  # a requested model is fitted, not tested
-    tests, fits, seen = [], {}, set()
-    for model in models:
-        terms = terms_for(model, labels)
+    models = ["none", "offset", "per-ring", "offset+dark", "full"] if wanted == "auto" else [wanted]
+    fits: dict[str, _ModelFit] = {}
+    seen = set()
+    for model in models:  # a requested model is fitted, not tested
+        terms = terms_for(model, labels, options.range_accuracy_m)
         key = terms.names if terms is not None else ()
-        if key in seen:  # per-ring without rings, full without black/white labels: nothing new to test
+        if key in seen:  # per-ring without rings, black squares without both colours: nothing new to test
             continue
         seen.add(key)
-        # The baseline without terms in the same (range) form, so that the costs compare.
-        p = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
-                     terms if terms is not None else RangeTerms((), ()), labels)
-        b = list(boards)
-        graph_m, result_m, _ = p.solve(active, T, b, floor)
-        p.solved = (graph_m, result_m)  # the refinement goes on from this solution
-        T_m = result_m.atPose3(EXTRINSIC).matrix()
-        # The objective each solve minimised (robust loss, priors) with the boards' best-fit floors: nested
-        # models then compare (the floors differ with the terms each board holds).
-        cost = 2.0 * graph_m.error(result_m) + sum(p.fw[i].floor for i in active) / p.sigma_r**2
-        dof = p.nuisance_rank(inliers)
-        fits[model] = (p, T_m, b, cost, dof)
+        fits[model] = _fit_model(prob, model, labels, active, inliers, T, boards, floor, options)
+    record = dict(requested=wanted, range_accuracy_m=float(options.range_accuracy_m))
     if wanted != "auto":
-        p, T_m, b, _, _ = fits[wanted]
-        got = p.terms.model
+        f = fits[wanted]
+        got = f.prob.terms.model
         why = f"requested ({wanted})" + ("" if got == wanted else f"; the data allow only the {got} terms")
-        return p, T_m, b, RangeModelFit(wanted, got, why, p.terms.names, tuple(p.beta.tolist()), terms=p.terms)
-    chosen, why = "none", "no range term tested"
-    for model in [m for m in models if m in fits and m != "none"]:
-        base = fits[chosen]
-        p, T_m, b, cost, dof = fits[model]
-        delta, ddof = base[3] - cost, max(dof - base[4], 1)
-        p_value = float(chi2.sf(max(delta, 0.0), ddof))
-        accept = p_value < MODEL_TEST_P
-        tests.append({"model": model, "against": chosen, "cost_decrease": float(delta), "added_dof": int(ddof),
-                      "p_value": p_value, "included": bool(accept)})
-        if accept:
+        return f.prob, f.T, f.boards, RangeModelFit(chosen=got, reason=why, names=f.prob.terms.names,
+                                                    values_m=tuple(f.prob.beta.tolist()), terms=f.prob.terms, **record)
+    tests = [_model_test(fits["none"], fits["offset"], active, inliers, floor, options)]
+    if not tests[0]["included"]:
+        why = (f"no range term is supported by the data (p = {tests[0]['p_value']:.2g} for a global offset, test at "
+               f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
+               + ")")
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
+    blocks = []
+    for model in ("per-ring", "offset+dark"):
+        if model in fits:
+            tests.append(_model_test(fits["offset"], fits[model], active, inliers, floor, options))
+            if tests[-1]["included"]:
+                blocks.append(model)
+    candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + ["offset"]
+    chosen, notes = "offset", []
+    for model in candidates:
+        if model == "offset":
             chosen = model
-            why = f"the {model} terms lower the cost by {delta:.1f} on {ddof} dof (p = {p_value:.2g} < {MODEL_TEST_P})"
-        else:
             break
-    if chosen == "none":
-        why = (f"no range term is supported by the data (likelihood-ratio test at {MODEL_TEST_P}: "
-               f"p = {tests[0]['p_value']:.2g} for a global offset)" if tests else "no range term could be tested")
-        return prob, T, boards, RangeModelFit(wanted, "none", why, tests=tuple(tests))
-    p, T_m, b, _, _ = fits[chosen]
-    return p, T_m, b, RangeModelFit(wanted, chosen, why, p.terms.names, tuple(p.beta.tolist()), tests=tuple(tests),
-                                    terms=p.terms)
+        ratio, p_rel = _relative_consistency(fits[model], fits["offset"], inliers, floor)
+        if p_rel >= 0.01:
+            chosen = model
+            break
+        notes.append(f"the {model} terms left the boards' planes {ratio:.1f}x as inconsistent as the offset alone "
+                     f"(p = {p_rel:.1g}): their within-board structure differs from board to board")
+    f = fits[chosen]
+    why = f"the {chosen} terms are supported (" + "; ".join(
+        f"{t['model']} against {t['against']}: p = {t['p_value']:.2g}" for t in tests if t["included"]) + ")"
+    if notes:
+        why += "; " + "; ".join(notes) + f"; fell back to {chosen}"
+    return f.prob, f.T, f.boards, RangeModelFit(chosen=chosen, reason=why, names=f.prob.terms.names,
+                                                values_m=tuple(f.prob.beta.tolist()), tests=tuple(tests),
+                                                terms=f.prob.terms, **record)
 
 
 def _with_uncertainty(fit: RangeModelFit, prob: _Problem, marginals: gtsam.Marginals) -> RangeModelFit:
     """The record with the terms' final values, their marginal standard deviations, the share of the
-    extrinsic's covariance due to them, and the global offset's correlation with the translation."""
+    extrinsic's covariance due to them, the global offset's correlation with the translation, and the term
+    most confounded with a direction of the extrinsic (its multiple correlation with the 6 parameters)."""
     keys = gtsam.KeyVector([EXTRINSIC, RANGE])
     J = marginals.jointMarginalCovariance(keys).fullMatrix()
     Cxx, Cxb, Cbb = J[:6, :6], J[:6, 6:], J[6:, 6:]
     share = Cxb @ np.linalg.solve(Cbb, Cxb.T)
     sd_b = np.sqrt(np.maximum(np.diag(Cbb), 0.0))
     corr = Cxb[3:, 0] / np.sqrt(np.maximum(np.diag(Cxx)[3:], 1e-300)) / max(sd_b[0], 1e-300)
+    confounding = None
+    best = (0.0, -1)
+    for k in range(Cbb.shape[0]):
+        if k in prob.pinned or sd_b[k] <= 0:
+            continue
+        r2 = float(Cxb[:, k] @ np.linalg.solve(Cxx, Cxb[:, k]) / Cbb[k, k])
+        best = max(best, (r2, k))
+    if best[1] >= 0 and np.sqrt(max(best[0], 0.0)) > CONFOUNDED_CORRELATION:
+        k = best[1]
+        g = np.linalg.solve(Cxx, Cxb[:, k])  # the extrinsic's combination most correlated with the term
+        u = g / np.linalg.norm(g)
+        part = "translation" if np.linalg.norm(u[3:]) >= np.linalg.norm(u[:3]) else "rotation"
+        v = u[3:] if part == "translation" else u[:3]
+        axis = int(np.argmax(np.abs(v)))
+        direction = (f"the {part} {'along' if part == 'translation' else 'about'} the LiDAR's "
+                     f"{'xyz'[axis]} axis" + ("" if abs(v[axis]) > 0.9 * np.linalg.norm(v) else
+                                              f" (direction {np.round(v / np.linalg.norm(v), 2).tolist()})"))
+        e = np.zeros(6)
+        e[3 + axis if part == "translation" else axis] = 1.0
+        cond = Cxx - share
+        unit = 1000.0 if part == "translation" else float(np.degrees(1.0))
+        confounding = {"term": prob.terms.names[k], "correlation": float(np.sqrt(best[0])), "direction": direction,
+                       "tangent_direction": u.tolist(), "sd_mm" if part == "translation" else "sd_deg":
+                       float(unit * np.sqrt(e @ Cxx @ e)),
+                       "sd_if_known_mm" if part == "translation" else "sd_if_known_deg":
+                       float(unit * np.sqrt(max(e @ cond @ e, 0.0))),
+                       "advice": "Boards that face the LiDAR at varied incidence and distances separate them: "
+                                 "`lidarcam layout DATASET --range-offset` suggests the poses to add."}
+        if part != "translation":  # the warning's wording is in mm; keep the keys it reads
+            confounding["sd_mm"] = confounding["sd_deg"]
+            confounding["sd_if_known_mm"] = confounding["sd_if_known_deg"]
     return replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(sd_b.tolist()), terms_covariance=Cbb,
-                   extrinsic_share=0.5 * (share + share.T), offset_translation_correlation=tuple(corr.tolist()))
+                   extrinsic_share=0.5 * (share + share.T), offset_translation_correlation=tuple(corr.tolist()),
+                   confounding=confounding)
+
+
+def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, floor: float, fit: RangeModelFit
+                     ) -> tuple[np.ndarray, RangeModelFit]:
+    """The extrinsic's covariance with the pinned terms held at 0 and their prior variance propagated (a
+    "consider" covariance): ``A^-1 + A^-1 B P B^T A^-1`` over the other variables, with ``A`` their information,
+    ``B`` its coupling to the pinned terms and ``P`` the pinned terms' prior covariance. Also returns the record
+    with that share in ``extrinsic_share`` and the pinned terms' standard deviations set to their priors."""
+    graph = prob.graph(active, floor, free_pinned=True)
+    ordering = gtsam.Ordering()
+    ordering.push_back(EXTRINSIC)
+    for j in range(len(active)):
+        ordering.push_back(board_key(j))
+    ordering.push_back(RANGE)
+    H, _ = graph.linearize(result).hessian(ordering)
+    K = prob.terms.size
+    n = H.shape[0] - K
+    pinned = [n + k for k in prob.pinned]
+    rest = [i for i in range(H.shape[0]) if i not in pinned]
+    A, B = H[np.ix_(rest, rest)], H[np.ix_(rest, pinned)]
+    P = np.diag(np.array(prob.terms.prior_sd)[list(prob.pinned)] ** 2)
+    Ainv = np.linalg.inv(A)
+    G = Ainv @ B
+    cov_rest = Ainv + G @ P @ G.T
+    cov = cov_rest[:6, :6]
+    cond = np.linalg.inv(H[:n, :n])[:6, :6]  # every term known
+    std = list(fit.std_m)
+    for k in prob.pinned:
+        std[k] = float(prob.terms.prior_sd[k])
+    share = cov - cond
+    return 0.5 * (cov + cov.T), replace(fit, std_m=tuple(std), extrinsic_share=0.5 * (share + share.T))
 
 
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
