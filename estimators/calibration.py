@@ -50,7 +50,7 @@ if TYPE_CHECKING:  # the 2D solvers are imported where they are used (they load 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation).
-MEASUREMENT_REVISION = 2
+MEASUREMENT_REVISION = 3
 REFINES = ("factor-graph", "none")
 CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")

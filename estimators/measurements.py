@@ -37,6 +37,9 @@ class CameraBoardObservation:
     # One of two tilts that fit the corners alike (``FrameMeasurement.camera_alternatives``): its corner
     # chi-square above the better one's (0 for the better one, and for every unambiguous board).
     orientation_excess_chi2: float = 0.0
+    # Checkerboard: whether the image shows white where the board model has black (the detector's grid started
+    # at a corner of the other colour), None when not read; ChArUco: False (the ids fix the pattern).
+    pattern_inverted: bool | None = None
 
     def corners_board(self, board) -> np.ndarray:
         """The seen corners in the board frame, (M, 3), in the order of ``corners_px``."""

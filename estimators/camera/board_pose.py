@@ -6,6 +6,8 @@ full camera model (pinhole or fisheye) refines it. The pose covariance is ``s^2 
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -92,6 +94,7 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     ids = detection.corner_ids
     X = board.inner_corners() if ids is None else board.inner_corners()[ids]
     T = _ippe_starts(X, camera, corners)[0]
+    squares = detection.square_gray
     if T[:3, 2] @ T[:3, 3] < 0:
         if ids is not None:  # ids fix the board frame: seen from behind is a wrong detection
             raise MeasurementError("the ChArUco corners put the board's printed side away from the camera")
@@ -99,6 +102,7 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
         # that the board frame is right-handed with z pointing away from the camera, and solve again.
         cols, rows = board.inner_corners_shape
         corners = corners.reshape(rows, cols, 2)[::-1].reshape(-1, 2)
+        squares = squares[::-1] if squares is not None else None
         T = _ippe_starts(X, camera, corners)[0]
     T = _gauss_newton(T, X, camera, corners, iterations)
     method = detection.method
@@ -115,15 +119,33 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
             method += f", {int((~keep).sum())} outlying corner(s) dropped"
             T = _gauss_newton(T, X, camera, corners, iterations)
     poses = _orientations(T, X, camera, corners, iterations)
+    inverted = pattern_inverted(squares, board) if ids is None else False
     if len(poses) > 1:
         (best, _), (other, excess) = poses[0], poses[1]
         angle = float(np.degrees(np.arccos(np.clip(best[:3, 2] @ other[:3, 2], -1.0, 1.0))))
         raise AmbiguousOrientationError(
             f"the board's orientation is ambiguous: a pose tilted {angle:.0f} degrees from the best fits its "
             f"corners nearly as well (chi-square {excess:.1f} worse; the board is small or far in the image)",
-            tuple(_observation(P, X, camera, corners, method, ids, e) for P, e in poses),
+            tuple(replace(_observation(P, X, camera, corners, method, ids, e), pattern_inverted=inverted)
+                  for P, e in poses),
             hint="hold the board closer to the camera, or use a board with more squares")
-    return _observation(poses[0][0], X, camera, corners, method, ids, 0.0)
+    return replace(_observation(poses[0][0], X, camera, corners, method, ids, 0.0), pattern_inverted=inverted)
+
+
+def pattern_inverted(squares: np.ndarray | None, board: BoardModel) -> bool | None:
+    """Whether the image shows white where the board model has black (square (0, 0) of the pattern white):
+    the mean grey level of the squares between the inner corners that the model makes black against the others'
+    (``squares`` in the final corner order; the square between corners (c, r) and (c + 1, r + 1) is the model's
+    square (c + 1, r + 1)). None when unknown (no grey levels, or the two groups differ by less than a tenth
+    of the image's range)."""
+    if squares is None or squares.size < 2:
+        return None
+    r, c = np.indices(squares.shape)
+    model_black = ((c + r) % 2 == 0) == board.first_square_black
+    dark, light = float(squares[model_black].mean()), float(squares[~model_black].mean())
+    if abs(dark - light) < 25.5:
+        return None
+    return dark > light
 
 
 def _observation(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.ndarray, method: str,

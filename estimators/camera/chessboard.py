@@ -31,6 +31,22 @@ class CornerDetection:
     corners_px: np.ndarray  # (M, 2), ordered as BoardModel.inner_corners() (or as corner_ids)
     method: str
     corner_ids: np.ndarray | None = None  # ChArUco: which inner corners were seen (ascending); None: all
+    # Checkerboard: the image's grey level at the centre of each square between the inner corners, (rows - 1,
+    # cols - 1) in the corners' order. The detector cannot tell which corner family it started from, so which
+    # squares are black is read here (``board_pose`` turns it into ``pattern_inverted``).
+    square_gray: np.ndarray | None = None
+
+
+def square_gray(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
+    """The mean grey level of a 3 x 3 pixel patch at the centre of each square between the inner corners
+    (the mean of its four corners), (rows - 1, cols - 1)."""
+    cols, rows = pattern
+    g = corners.reshape(rows, cols, 2)
+    centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])
+    blurred = cv2.blur(gray, (3, 3))
+    x = np.clip(np.rint(centres[..., 0]).astype(int), 0, gray.shape[1] - 1)
+    y = np.clip(np.rint(centres[..., 1]).astype(int), 0, gray.shape[0] - 1)
+    return blurred[y, x].astype(float)
 
 
 def subpixel_refine(gray: np.ndarray, corners: np.ndarray, half_px: float, max_half: int = 5
@@ -87,9 +103,11 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
         return detect_charuco(gray, board)
     pattern = board.inner_corners_shape
     found = _detect_pyramid(gray, pattern)
-    if found is not None:
-        return found
-    return _detect_full(gray, pattern, budget_s)
+    if found is None:
+        found = _detect_full(gray, pattern, budget_s)
+    if found is None:
+        return None
+    return CornerDetection(found.corners_px, found.method, square_gray=square_gray(gray, found.corners_px, pattern))
 
 
 def _detect_pyramid(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:

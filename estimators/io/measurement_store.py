@@ -199,7 +199,7 @@ def _save_camera(c: CameraBoardObservation, p: str, arrays: dict) -> dict:
     if c.corner_ids is not None:
         arrays[p + "corner_ids"] = np.asarray(c.corner_ids, dtype=np.int64)
     return {"reprojection_rms_px": c.reprojection_rms_px, "detector": c.detector,
-            "orientation_excess_chi2": c.orientation_excess_chi2}
+            "orientation_excess_chi2": c.orientation_excess_chi2, "pattern_inverted": c.pattern_inverted}
 
 
 def _load_camera(d: dict, p: str, arrays: dict, board: BoardModel) -> CameraBoardObservation:
@@ -212,7 +212,14 @@ def _load_camera(d: dict, p: str, arrays: dict, board: BoardModel) -> CameraBoar
                                   _finite(arrays[p + "plane_covariance"], p + "plane_covariance"),
                                   float(d["reprojection_rms_px"]), str(d["detector"]),
                                   _corner_ids(arrays, p, len(corners), board),
-                                  float(d.get("orientation_excess_chi2", 0.0)))
+                                  float(d.get("orientation_excess_chi2", 0.0)),
+                                  _optional_bool(d.get("pattern_inverted"), p + "pattern_inverted"))
+
+
+def _optional_bool(value, name: str) -> bool | None:
+    if value is None or isinstance(value, bool):
+        return value
+    raise ValueError(f"{name} is {value!r}, expected true, false or null")
 
 
 def _frame(k: int, d: dict, arrays: dict, board: BoardModel) -> FrameMeasurement:

@@ -64,6 +64,9 @@ CORNER_ERROR_CORRELATION = 1.4
 CORNER_SCALE_SD = 1.0e-4
 EXTRINSIC = gtsam.symbol("x", 0)
 RANGE = gtsam.symbol("r", 0)  # the LiDAR range model's nuisance vector
+# A per-board plane error (m) beyond which the boards' disagreement is not a plane error (a bent or held board,
+# intrinsics: millimetres to a centimetre or two): the model test scales by what remains.
+MAX_PLANE_ERROR_M = 0.05
 # Prior standard deviation (m) that holds a pinned range term at 0 in the graph.
 PINNED_SD_M = 1e-7
 
@@ -503,28 +506,16 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             graph, result = prob.solved
             t_stat, t_dof = prob.term_consistency(inliers, T, boards, floor)
             if chi2.sf(t_stat, t_dof) < 0.01 and options.estimate_plane_floor:
-                def with_tau(v):
-                    prob.tau = v
-                    return floor
-
-                # At most the range accuracy: a board's own offset cannot scatter further than the sensor's
-                # systematic range error allows (a larger scatter is structure the model lacks).
-                cap = float(options.range_accuracy_m)
-                prob.tau, (T, boards, graph, result, its) = _match_moments(
-                    prob, active, T, boards, (1e-4, cap), with_tau,
-                    lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
+                T, boards, graph, result, its = _estimate_board_scatter(prob, active, inliers, T, boards, floor)
                 prob.solved = (graph, result)
                 iterations += its
-                at_cap = prob.term_consistency(inliers, T, boards, floor)[0] / t_dof > 1.0
                 warnings.append(
                     f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
-                    f"{t_dof} dof): the offset is taken from the camera across boards only (each board's own offset "
-                    f"scatters by {1000 * prob.tau:.0f} mm" + (", the range accuracy: more than that is structure "
-                                                                "the model lacks)" if at_cap else ")"))
+                    f"{t_dof} dof; each board's apparent offset scatters by {1000 * prob.tau:.0f} mm): the offset is "
+                    "taken from the camera's board distances across boards, not from the incidence across each board")
             model_fit = replace(model_fit, term_consistency={
                 "chi2": t_stat, "dof": t_dof, "p_value": float(chi2.sf(t_stat, t_dof)), "board_scatter_m": prob.tau,
-                "board_scatter_meaning": "standard deviation (m) of each board's own range offset about the "
-                                         "shared terms, along the board's distance-against-offset direction"})
+                "board_scatter_meaning": BOARD_SCATTER_MEANING})
         stat, dof = prob.consistency(inliers, T, boards, floor)
         variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
         if (p_value < 0.01 or floor > 0) and options.plane_floor_m is None and options.estimate_plane_floor:
@@ -532,8 +523,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
             # consistency statistic equals its degrees of freedom (method of moments), then solve again.
             first = floor == 0
+            # With range terms the residual also has the terms' directions, which a plane error cannot hold: its
+            # size is bounded by what a plane error can physically be, and what it leaves scales the covariance.
+            cap = MAX_PLANE_ERROR_M if prob.has_beta else 0.5
             floor, (T, boards, graph, result, its) = _match_moments(
-                prob, active, T, boards, (1e-5, 0.5), lambda v: v,
+                prob, active, T, boards, (1e-5, cap), lambda v: v,
                 lambda v, T_v, b_v: prob.consistency(inliers, T_v, b_v, v)[0] / dof)
             prob.solved = (graph, result)
             iterations += its
@@ -584,6 +578,20 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
 
+    # Structure that neither the range terms (their scatter bounded by the range accuracy) nor a plane error of
+    # physical size explains: the covariance is scaled by the variance factor that remains (quasi-likelihood).
+    quasi_scale = 1.0
+    if prob.has_beta and options.plane_floor_m is None and options.estimate_plane_floor:
+        stat_f, dof_f = prob.consistency(inliers, T, boards, floor)
+        if chi2.sf(stat_f, dof_f) < 0.01:
+            quasi_scale = stat_f / dof_f
+            cov = cov * quasi_scale
+            warnings.append(f"the boards disagree beyond what the range terms and a per-board plane error of physical "
+                            f"size explain (chi-square {stat_f:.0f} on {dof_f} dof): the covariance is scaled by "
+                            f"{quasi_scale:.2f}")
+            if model_fit is not None:
+                model_fit = replace(model_fit, std_m=tuple(np.sqrt(quasi_scale) * np.array(model_fit.std_m)),
+                                    extrinsic_share=quasi_scale * model_fit.extrinsic_share)
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -606,6 +614,31 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
                       tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit)
+
+
+BOARD_SCATTER_MEANING = (
+    "standard deviation (m) of each board's apparent own range offset about the shared terms, along the board's "
+    "distance-against-offset direction (told apart only by how incidence varies across the board): 0 when the "
+    "boards agree; a range error that grows with incidence shows here as metres, the weak direction amplifying it, "
+    "and the offset then rests on the camera's board distances across boards")
+# Upper bound of that scatter (m): past it, no board's own offset information is left.
+MAX_BOARD_SCATTER_M = 10.0
+
+
+def _estimate_board_scatter(prob: _Problem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
+                            floor: float) -> tuple:
+    """``prob.tau``, the boards' scatter along their weak directions, by the method of moments on the term
+    consistency statistic (:meth:`_Problem.term_consistency`); returns the solve ``(T, boards, graph, result,
+    iterations)``."""
+    t_dof = prob.term_consistency(inliers, T, boards, floor)[1]
+
+    def with_tau(v):
+        prob.tau = v
+        return floor
+
+    prob.tau, solve = _match_moments(prob, active, T, boards, (1e-4, MAX_BOARD_SCATTER_M), with_tau,
+                                     lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
+    return solve
 
 
 def _match_moments(prob: _Problem, active: list[int], T: np.ndarray, boards: list, bounds: tuple[float, float],
@@ -688,8 +721,10 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
 
     When the boards' planes disagree beyond the noise under the larger model (overdispersed data), the structure
     neither model explains would otherwise be read as a term: the per-board plane error is estimated under the
-    larger model (method of moments), both models are solved again with it in place, and the decrease of the
-    objective is referred to an F distribution (the error's size is itself estimated from the boards). Else the
+    larger model (method of moments, at most ``MAX_PLANE_ERROR_M``), both models are solved again with it in
+    place, and the decrease of the objective, over the variance factor that remains (a quasi-likelihood scale:
+    structure in the terms' own directions, which a plane error cannot hold), is referred to an F distribution
+    (the error's size is itself estimated from the boards). Else the
     decrease is referred to chi-square with the added terms' degrees of freedom."""
     ddof = max(large.dof - small.dof, 1)
     stat, cdof = large.prob.consistency(inliers, large.T, large.boards, floor)
@@ -700,18 +735,27 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
     overdispersed = (chi2.sf(stat, cdof) < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor)
     if overdispersed:
         p_l, p_s = large.prob, small.prob
-        saved = [(p, p.beta.copy(), p.solved) for p in (p_l, p_s)]
+        saved = [(p, p.beta.copy(), p.solved, p.tau) for p in (p_l, p_s)]
+        T_l, b_l = large.T, large.boards
+        if p_l.has_beta and chi2.sf(*p_l.term_consistency(inliers, T_l, b_l, floor)) < 0.01:
+            T_l, b_l = _estimate_board_scatter(p_l, active, inliers, T_l, b_l, floor)[:2]
+        if p_s.has_beta:
+            p_s.tau = p_l.tau
         fl, (T_l, b_l, graph_l, result_l, _) = _match_moments(
-            p_l, active, large.T, large.boards, (1e-5, 0.5), lambda v: v,
+            p_l, active, T_l, b_l, (1e-5, MAX_PLANE_ERROR_M), lambda v: v,
             lambda v, T_v, b_v: p_l.consistency(inliers, T_v, b_v, v)[0] / cdof)
+        # What the plane error leaves (structure in the terms' own directions, or beyond a plane error's physical
+        # size) scales the test as a quasi-likelihood.
+        scale = max(p_l.consistency(inliers, T_l, b_l, fl)[0] / cdof, 1.0)
         b_s = list(small.boards)
         graph_s, result_s, _ = p_s.solve(active, small.T, b_s, fl)
         delta = (_objective(p_s, graph_s, result_s, active, fl) - _objective(p_l, graph_l, result_l, active, fl))
-        for p, beta, solved in saved:
-            p.beta, p.solved = beta, solved
-        p_value = float(fdtrc(ddof, cdof, max(delta, 0.0) / ddof))
-        record.update({"reference": f"F({ddof}, {cdof})", "plane_error_m": float(fl),
-                       "cost_decrease_with_plane_error": float(delta)})
+        scatter = p_l.tau
+        for p, beta, solved, tau in saved:
+            p.beta, p.solved, p.tau = beta, solved, tau
+        p_value = float(fdtrc(ddof, cdof, max(delta, 0.0) / ddof / scale))
+        record.update({"reference": f"F({ddof}, {cdof})", "plane_error_m": float(fl), "board_scatter_m": scatter,
+                       "cost_decrease_with_plane_error": float(delta), "quasi_likelihood_scale": float(scale)})
     else:
         p_value = float(chi2.sf(max(delta, 0.0), ddof))
         record["reference"] = f"chi-square({ddof})"
@@ -719,13 +763,26 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
     return record
 
 
-def _relative_consistency(fit: _ModelFit, base: _ModelFit, inliers: list[int], floor: float) -> tuple[float, float]:
-    """How the boards' planes agree under ``fit`` against under ``base`` (the global offset alone): the ratio of
-    their variance factors and its p-value as F. Per-ring and black-square terms read structure within each
-    board; when it differs from board to board, shared terms leave the planes worse than the offset alone."""
-    s1, d1 = fit.prob.consistency(inliers, fit.T, fit.boards, floor)
-    s0, d0 = base.prob.consistency(inliers, base.T, base.boards, floor)
-    ratio = (s1 / d1) / max(s0 / d0, 1.0)
+def _relative_consistency(fit: _ModelFit, base: _ModelFit, inliers: list[int], floor: float, fit_test: dict,
+                          base_test: dict) -> tuple[float, float]:
+    """How the boards agree under ``fit`` against under ``base`` (the global offset alone): the ratio of their
+    variance factors and its p-value as F. Per-ring and black-square terms read structure within each board;
+    when it differs from board to board, shared terms leave the boards worse than the offset alone. On
+    overdispersed data the variance factors compared are those the boards' scatter and a per-board plane error
+    of physical size leave (the tests' quasi-likelihood scales; when the offset's leaves none, the combination's is
+    tested as chi-square on its own degrees of freedom), else the raw ones."""
+    if "quasi_likelihood_scale" in fit_test and "quasi_likelihood_scale" in base_test:
+        d1, d0 = fit_test["consistency_dof"], base_test["consistency_dof"]
+        base_scale = base_test["quasi_likelihood_scale"]
+        ratio = fit_test["quasi_likelihood_scale"] / max(base_scale, 1.0)
+        if chi2.sf(base_scale * d0, d0) >= 0.01:
+            # The offset alone leaves the boards consistent (its scatter and plane error of physical size explain
+            # them): the combination must too, tested on its own degrees of freedom.
+            return float(ratio), float(chi2.sf(fit_test["quasi_likelihood_scale"] * d1, d1))
+    else:
+        s1, d1 = fit.prob.consistency(inliers, fit.T, fit.boards, floor)
+        s0, d0 = base.prob.consistency(inliers, base.T, base.boards, floor)
+        ratio = (s1 / d1) / max(s0 / d0, 1.0)
     return float(ratio), float(fdtrc(d1, d0, ratio))
 
 
@@ -760,19 +817,22 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
         return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
-    blocks = []
+    blocks, by_model = [], {}
     for model in ("per-ring", "offset+dark"):
         if model in fits:
             tests.append(_model_test(fits["offset"], fits[model], active, inliers, floor, options))
+            by_model[model] = tests[-1]
             if tests[-1]["included"]:
                 blocks.append(model)
     candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + ["offset"]
+    if candidates[0] == "full":
+        by_model["full"] = _model_test(fits["offset"], fits["full"], active, inliers, floor, options)
     chosen, notes = "offset", []
     for model in candidates:
         if model == "offset":
             chosen = model
             break
-        ratio, p_rel = _relative_consistency(fits[model], fits["offset"], inliers, floor)
+        ratio, p_rel = _relative_consistency(fits[model], fits["offset"], inliers, floor, by_model[model], tests[0])
         if p_rel >= 0.01:
             chosen = model
             break
