@@ -56,7 +56,8 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json")
     s.add_argument("--lidar", default="3d", choices=["3d", "2d"],
                    help="3d: a spinning LiDAR (--model); 2d: a 270-degree single-line scanner, 0.25-degree steps")
-    s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"], help="3D LiDAR beam model")
+    s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16", "os64"],
+                   help="3D LiDAR beam model (os64: Ouster OS1-64-like)")
     s.add_argument("--poses", type=int, default=8)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--range-noise", type=float, default=None, metavar="M",
@@ -70,6 +71,14 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
                    help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
                         "an offset on the board's black squares")
+    s.add_argument("--range-bias-from-priors", default=None, metavar="FAMILY",
+                   help="inject LiDAR range errors drawn from a sensor family's priors (velodyne, ouster, hesai, "
+                        "livox, or any name for the conservative default): offset and black-square term 0 +- its "
+                        "range accuracy, each ring 0 +- a fifth of it")
+    s.add_argument("--intensity", default="contrast", choices=["contrast", "flat", "saturated"],
+                   help="the returns' intensity: contrast (black squares dark), flat (no black/white contrast, as an "
+                        "uncalibrated LiDAR's) or saturated (255 everywhere)")
+    s.add_argument("--no-ring", action="store_true", help="write clouds without a ring field")
     s.add_argument("--rig", default="default", choices=["default", "varied"],
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
@@ -508,7 +517,9 @@ def _simulate(args) -> int:
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
                            fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene,
                            range_bias=None if args.range_bias is None else tuple(args.range_bias),
-                           rig_config=args.rig, pattern=args.pattern, outside_image_share=args.outside_image_share)
+                           rig_config=args.rig, pattern=args.pattern, outside_image_share=args.outside_image_share,
+                           range_bias_family=args.range_bias_from_priors, intensity=args.intensity,
+                           ring_field=not args.no_ring)
     print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene, {args.pattern}) "
           f"to {out}")
     return 0

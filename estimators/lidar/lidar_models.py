@@ -1,9 +1,24 @@
-"""Beam models of spinning LiDARs, for the simulator (elevations, azimuth step, range noise)."""
+"""Beam models of spinning LiDARs, for the simulator (elevations, azimuth step, range noise), and the range
+accuracy of sensor families (the range model's priors, ``solvers.range_model``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+
+# A systematic range error's standard deviation (m) by sensor family, from the makers' accuracy figures
+# (VLP-16 and Ouster OS: +-3 cm typical; HDL-64E, Hesai Pandar and Livox: 2 cm), and a conservative default.
+RANGE_ACCURACY_M = {"velodyne": 0.03, "ouster": 0.03, "hesai": 0.02, "livox": 0.02, "default": 0.05}
+DEFAULT_RANGE_ACCURACY_M = RANGE_ACCURACY_M["default"]
+# Each ring's prior about the global offset, as a share of the range accuracy.
+RING_PRIOR_SHARE = 0.2
+
+
+def range_accuracy_for(family: str | None) -> float:
+    """The default range accuracy (m) of a sensor family (``velodyne``, ``ouster``, ``hesai``, ``livox``), the
+    conservative default for None or any other name."""
+    return RANGE_ACCURACY_M.get(str(family).lower(), DEFAULT_RANGE_ACCURACY_M) if family else DEFAULT_RANGE_ACCURACY_M
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,10 +69,15 @@ def vlp16(sigma_range_m: float = 0.02) -> BeamModel:
     return BeamModel("VLP-16", np.deg2rad(np.arange(-15.0, 15.1, 2.0)), np.deg2rad(0.2), sigma_range_m, 100.0)
 
 
+def os64(sigma_range_m: float = 0.02) -> BeamModel:
+    """Ouster OS1-64-like: 64 beams evenly from -16.6 to +16.6 degrees, 2048 columns a turn (0.176 degrees)."""
+    return BeamModel("OS1-64", np.deg2rad(np.linspace(16.6, -16.6, 64)), 2 * np.pi / 2048, sigma_range_m, 120.0)
+
+
 def scanner2d(sigma_range_m: float = 0.01) -> BeamModel:
     """A Hokuyo/SICK-like single-line scanner: 270 degrees in 0.25 degree steps, 30 m."""
     return BeamModel("2D scanner", np.array([0.0]), np.deg2rad(0.25), sigma_range_m, 30.0,
                      (-np.deg2rad(135.0), np.deg2rad(135.0)))
 
 
-BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "2d": scanner2d}
+BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "os64": os64, "2d": scanner2d}

@@ -26,7 +26,7 @@ from ..camera.charuco import pattern_reflectance
 from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory, check_output_folder
 from ..io.pointcloud_io import write_scan, write_scan_2d
-from ..lidar.lidar_models import BEAM_MODELS, BeamModel
+from ..lidar.lidar_models import BEAM_MODELS, RING_PRIOR_SHARE, BeamModel, range_accuracy_for
 from .office import SCENES, board_fraction_in_fov, hall_layout, holder, office_layout
 from .range_bias import RangeBias
 from .rendering import add_pixel_noise, pixel_rays, render_clean
@@ -435,6 +435,22 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
             yield SimulatedFrame(f"{k:04d}", img, pts, inten, ring_k, T_cb, on_board)
 
 
+INTENSITY_MODES = ("contrast", "flat", "saturated")
+
+
+def _as_recorded(frames: Iterable[SimulatedFrame], intensity: str, ring_field: bool, rng: np.random.Generator
+                 ) -> Iterator[SimulatedFrame]:
+    """The frames as a LiDAR whose intensity has no black/white contrast (``flat``: 50 +- 5) or is saturated
+    (255), and whose clouds have no ring field, would record them."""
+    for f in frames:
+        value = f.intensity
+        if intensity == "flat":
+            value = rng.normal(50.0, 5.0, len(value)).astype(np.float32)
+        elif intensity == "saturated":
+            value = np.full(len(value), 255.0, dtype=np.float32)
+        yield replace(f, intensity=value, ring=f.ring if ring_field else None)
+
+
 def dataset_yaml(rig: Rig, lidar: str | None = None) -> dict:
     return dataset_spec(lidar or ("2d" if rig.beams.is_2d else "3d"), rig.board, rig.camera)
 
@@ -476,7 +492,9 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
                      sigma_range_m: float | None = None, pixel_noise: float = 2.0, scan_format: str | None = None,
                      include_camera: bool = True, overwrite: bool = False, scene: str = "default",
                      range_bias: tuple[float, float, float] | None = None, rig_config: str = "default",
-                     pattern: str = "checkerboard", outside_image_share: float | None = None) -> Path:
+                     pattern: str = "checkerboard", outside_image_share: float | None = None,
+                     range_bias_family: str | None = None, intensity: str = "contrast", ring_field: bool = True
+                     ) -> Path:
     """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
 
     ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
@@ -488,7 +506,13 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration). ``pattern``:
     ``checkerboard`` or ``charuco`` (the same board with DICT_5X5_100 markers, :func:`as_charuco`);
     ``outside_image_share``: the share of poses cut by the image's edge (default 0.3 for ChArUco, else 0).
+    ``range_bias_family``: inject range errors drawn from that sensor family's priors instead
+    (``solvers.range_model.range_accuracy_for``: offset and black-square term 0 +- the accuracy, each ring 0 +- a
+    fifth of it). ``intensity``: ``contrast`` (the board's reflectance), ``flat`` (50 +- 5 on every return: no
+    black/white contrast) or ``saturated`` (255); ``ring_field=False`` writes clouds without rings.
     """
+    if intensity not in INTENSITY_MODES:
+        raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")
     check_output_folder(out, overwrite)  # before minutes of rendering
     if sigma_range_m is None:
         sigma_range_m = 0.01 if lidar == "2d" else 0.02
@@ -508,6 +532,11 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     bias = None
     meta = {"seed": seed, "poses": n_poses, "scene": scene, "rig": rig_config, "pattern": pattern,
             "outside_image_share": outside_image_share}
+    if range_bias_family is not None:
+        acc = range_accuracy_for(range_bias_family)
+        draw = np.random.default_rng([seed, 16])
+        range_bias = (float(draw.normal(0.0, acc)), RING_PRIOR_SHARE * acc, float(draw.normal(0.0, acc)))
+        meta["range_bias_family"] = range_bias_family
     if range_bias is not None:
         # Drawn from a generator of its own, so that the rest of the simulation stays as without a bias.
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
@@ -515,4 +544,7 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
                               "dark_m": bias.dark_m}
     # Each frame is written while the next ones are cast.
     frames = iter_frames(rig, n_poses, rng, scene=scene, bias=bias, outside_image_share=outside_image_share)
+    if intensity != "contrast" or not ring_field:
+        frames = _as_recorded(frames, intensity, ring_field, np.random.default_rng([seed, 17]))
+        meta.update({"intensity": intensity, "ring_field": ring_field})
     return write_dataset(out, rig, frames, scan_format, include_camera, overwrite, meta=meta)

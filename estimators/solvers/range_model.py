@@ -6,8 +6,8 @@ A return's measured range is ``rho = rho_true + a . beta + noise``, with ``a`` t
 - ``ring r``: 1 for the returns of beam ``r`` (per-laser offsets of a multi-beam LiDAR, deviations from the
   global offset). Rings come from the scan's ``ring`` field (or an organised cloud's rows), or from clustering
   the board points' beam elevations when the scan has neither;
-- ``dark``: the share of the return's footprint on the board's black squares (a reflectivity-dependent
-  offset). The squares are placed by geometry: the camera's board pose, the printed pattern (a ChArUco board's
+- ``dark``: 1 for returns from the board's black squares (a reflectivity-dependent offset; near an edge, the
+  chance that the beam's centre is on black). The squares are placed by geometry: the camera's board pose, the printed pattern (a ChArUco board's
   markers included) and the current extrinsic (:func:`geometric_dark`), so a LiDAR whose intensity is
   saturated or uncalibrated still has the term. Where the scan's intensities fall in two clear groups, they
   cross-check the geometry (:attr:`FrameLabels.intensity_agreement`).
@@ -40,15 +40,11 @@ import numpy as np
 
 from geometry.planes import sqrt_excess_moment, sqrt_excess_moment_scan
 
+from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
+                                   range_accuracy_for)
 from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObservation
 
 RANGE_MODELS = ("none", "offset", "per-ring", "offset+dark", "full", "auto")
-# A systematic range error's standard deviation (m) by sensor family, from the makers' accuracy figures
-# (VLP-16 and Ouster OS: +-3 cm typical; HDL-64E, Hesai Pandar and Livox: 2 cm), and a conservative default.
-RANGE_ACCURACY_M = {"velodyne": 0.03, "ouster": 0.03, "hesai": 0.02, "livox": 0.02, "default": 0.05}
-DEFAULT_RANGE_ACCURACY_M = RANGE_ACCURACY_M["default"]
-# Each ring's prior about the global offset, as a share of the range accuracy.
-RING_PRIOR_SHARE = 0.2
 OFFSET_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
 RING_PRIOR_SD_M = RING_PRIOR_SHARE * DEFAULT_RANGE_ACCURACY_M
 DARK_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
@@ -57,21 +53,15 @@ DARK_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
 MAX_PRIOR_SIGMAS = 3.0
 # Correlation of a term with a direction of the extrinsic above which the two are called confounded.
 CONFOUNDED_CORRELATION = 0.9
-# A beam's full divergence (rad): its footprint on the board, over which a return's black share is averaged
-# (VLP-16 3 mrad, HDL-64E 2 mrad, Ouster OS 2-3 mrad: the largest, so that an edge is never read as one colour).
-BEAM_DIVERGENCE_RAD = 3.0e-3
 # The board's position along its own plane from the camera and the extrinsic (m, 1 sd) at which the colours
-# are placed: a return nearer an edge than about this is counted as part black.
-LABEL_POSITION_SD_M = 0.003
+# are placed: a return's black share is the chance that its beam's centre lies on black. Not the footprint's
+# area: at an edge the white part's echo dominates a mixed return (a black square reflects a tenth as much), so
+# the area share would overstate its black share (and in simulation, whose beams are points, it biased the
+# black-square term by a standard deviation).
+LABEL_POSITION_SD_M = 0.002
 # Below this agreement between intensity and geometry on clearly black or white returns, a warning is given (the
 # recorded sets agree at 78-95%: Otsu's threshold on noisy intensities; swapped colours agree at 15-30%).
 MIN_INTENSITY_AGREEMENT = 0.7
-
-
-def range_accuracy_for(family: str | None) -> float:
-    """The default range accuracy (m) of a sensor family (``velodyne``, ``ouster``, ``hesai``, ``livox``), the
-    conservative default for None or any other name."""
-    return RANGE_ACCURACY_M.get(str(family).lower(), DEFAULT_RANGE_ACCURACY_M) if family else DEFAULT_RANGE_ACCURACY_M
 # Significance of the likelihood-ratio test that adds a term in ``auto``.
 MODEL_TEST_P = 0.001
 # Beam elevations further apart than this (rad) belong to different rings when the scan has no ring field.
@@ -273,29 +263,23 @@ def _inverted(board, reflectance):
 
 
 def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
-                   divergence_rad: float = BEAM_DIVERGENCE_RAD, position_sd_m: float = LABEL_POSITION_SD_M
-                   ) -> np.ndarray:
-    """Each return's share of black under its footprint: its beam cut with the board's plane (the camera's, so
-    the range noise does not move it), the printed pattern's reflectance (``reflectance(x, y)`` in board
-    coordinates, below 0.5 on black) averaged over a Gaussian of the footprint's radius (stretched by the
-    incidence) and the position's uncertainty, by 5 x 5 Gauss-Hermite quadrature. Returns off the board count
-    as white."""
+                   position_sd_m: float = LABEL_POSITION_SD_M) -> np.ndarray:
+    """Each return's black share: its beam cut with the board's plane (the camera's, so the range noise does not
+    move it), the printed pattern's reflectance there (``reflectance(x, y)`` in board coordinates, below 0.5 on
+    black) averaged over a Gaussian of the position's uncertainty (``LABEL_POSITION_SD_M``) by 5 x 5
+    Gauss-Hermite quadrature. Returns off the board count as white."""
     P = np.asarray(points, dtype=float)
     beams = P / np.linalg.norm(P, axis=1, keepdims=True)
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     n = R[:, 2]
-    cos_inc = np.abs(beams @ n)
     t = (n @ o) / np.where(np.abs(beams @ n) < 1e-6, 1e-6, beams @ n)
     local = (beams * t[:, None] - o) @ R
-    # A uniform disc of radius r (half the divergence times the range) has a standard deviation of r / 2 along
-    # each axis; the footprint stretches by 1 / cos(incidence) along the board.
-    sd = np.hypot(0.25 * divergence_rad * np.abs(t) / np.maximum(cos_inc, MIN_INCIDENCE_COS), position_sd_m)
     nodes, weights = np.polynomial.hermite_e.hermegauss(5)
     weights = weights / weights.sum()
     share = np.zeros(len(P))
     for zi, wi in zip(nodes, weights):
         for zj, wj in zip(nodes, weights):
-            r = reflectance(local[:, 0] + sd * zi, local[:, 1] + sd * zj)
+            r = reflectance(local[:, 0] + position_sd_m * zi, local[:, 1] + position_sd_m * zj)
             share += wi * wj * (np.nan_to_num(r, nan=1.0) < 0.5)
     return share
 
