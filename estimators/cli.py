@@ -100,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
     la.add_argument("--suggest", type=int, default=0, metavar="K", help="suggest K board poses to add, greedily")
     la.add_argument("--target", nargs=2, type=_positive, default=None, metavar=("DEG", "MM"),
                     help="add suggested poses until every axis's predicted std is within DEG and MM (up to 40)")
-    la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16"],
+    la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16", "os64"],
                     help="beam model for suggestions on a 3D dataset (a 2D dataset uses the 2D scanner model; a plan "
                          "names its own)")
     la.add_argument("--range-offset", action="store_true",

@@ -30,6 +30,25 @@ def test_parses_board_camera_and_pairs_frames(tmp_path):
     assert ds.ground_truth() is None
 
 
+@pytest.mark.parametrize("lidar, family, accuracy", [
+    ("3d", None, 0.05),
+    ("{type: 3d, family: Ouster}", "ouster", 0.03),
+    ("{type: 3d, family: hesai, range_accuracy_m: 0.015}", "hesai", 0.015),
+    ("{family: some-new-lidar}", "some-new-lidar", 0.05),
+])
+def test_the_lidar_entry_gives_the_range_accuracy_of_the_range_terms_priors(tmp_path, lidar, family, accuracy):
+    """``lidar: 3d`` or a mapping with the sensor family and its range accuracy: the range model's priors come
+    from the accuracy given, else the family's default, else the conservative 5 cm."""
+    from estimators.calibration import dataset_range_accuracy
+    from estimators.solvers.range_model import FrameLabels, terms_for
+
+    ds = load_dataset(_make(tmp_path, YAML.replace("lidar: 3d", f"lidar: {lidar}")))
+    assert ds.lidar == "3d" and ds.lidar_family == family
+    assert dataset_range_accuracy(ds) == pytest.approx(accuracy)
+    terms = terms_for("per-ring", FrameLabels((np.array([0, 1]),), (None,)), dataset_range_accuracy(ds))
+    assert terms.prior_sd == pytest.approx((accuracy, 0.2 * accuracy, 0.2 * accuracy))
+
+
 def test_camera_is_optional(tmp_path):
     ds = load_dataset(_make(tmp_path, "lidar: 3d\nboard: {squares: [6, 8], square_size: 0.095}\n"))
     assert ds.camera is None and not ds.board.size_known
@@ -42,6 +61,9 @@ def test_camera_is_optional(tmp_path):
     ("lidar: [3d\n", "invalid YAML"),
     ("- a\n- b\n", "expected a mapping"),
     (YAML.replace("fisheye", "orthographic"), "pinhole or fisheye"),
+    (YAML.replace("lidar: 3d", "lidar: {type: 3d, range_accuracy_m: -0.03}"), "range_accuracy_m must be"),
+    (YAML.replace("lidar: 3d", "lidar: {type: 3d, accuracy: 0.03}"), "unknown lidar key"),
+    (YAML.replace("lidar: 3d", "lidar: {type: 4d}"), "lidar must be"),
     (YAML.replace("dist: [0.01, 0.0, 0.0, 0.0]", "dist: [0.01]"), "invalid camera"),
     ("lidar: 3d\nboard: {squares: [9, 7], square_size: 0.1}\ncamera: {width: 10}\n", "camera lacks K, height"),
     ("!!python/object/apply:os.system ['echo hacked']\n", "invalid YAML"),

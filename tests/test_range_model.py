@@ -6,6 +6,7 @@ import json
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from estimators.analysis.validation import cross_validate, score_frames, split_halves
 from estimators.calibration import solve
@@ -225,3 +226,94 @@ def test_with_range_terms_the_range_noise_excludes_the_structure_they_explain():
     assert abs(full.range_noise_m - 0.02) < 0.08 * 0.02
     none = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none"))
     assert none.range_noise_m == plane_only
+
+
+def _overdispersed(seed: int, board_error_m: float, n: int = 8):
+    """HDL-64E frames with no range error whose boards, as the LiDAR sees them, are moved from the camera's by a
+    per-board plane error (a bent or held board: the overdispersion of recorded sets)."""
+    rng = np.random.default_rng(seed)
+    rig = default_rig(rng, "hdl64e", 0.02)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, n, rng)),
+                    0.2, 0.02)
+    return layout, simulate_measurements(layout, np.random.default_rng(seed + 10**6), None, board_error_m)
+
+
+def test_overdispersed_boards_do_not_buy_a_range_offset():
+    """No range error, 5 mm per-board plane errors: the offset lowers the raw objective by far more than a
+    chi-square(1) allows (raw test p < 1e-6: it would be taken), but with the per-board plane error in place and
+    referred to F the test keeps none (p > 0.001), and the truth lies within the reported covariance."""
+    from estimators.solvers import chi_square as chi2
+
+    layout, frames = _overdispersed(27, 0.005)
+    ref = _refine(layout, frames, "auto")
+    test = ref.range_model.tests[0]
+    assert test["model"] == "offset" and chi2.sf(test["cost_decrease"], 1) < 1e-6
+    assert "plane_error_m" in test and test["p_value"] > 0.001
+    assert ref.range_model.chosen == "none"
+    xi = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
+    assert float(xi @ np.linalg.solve(ref.covariance, xi)) < 22.5  # chi-square(6) at 99.9%
+
+
+def test_black_squares_are_placed_by_geometry_when_intensity_has_no_contrast():
+    """Injected 3 cm offset, 5 mm per ring and 1 cm on the black squares, clouds with no ring field and flat
+    intensity: the squares come from the camera's board pose and the pattern (no intensity label exists), agree
+    with the simulation's own black returns on 99% of clearly placed returns, and the full model recovers the
+    black-square term within 3 of its standard deviations."""
+    from estimators.simulation.range_bias import RangeBias
+    from estimators.solvers.observation_model import board_returns
+    from estimators.solvers.range_model import dark_labels, frame_labels
+
+    rng = np.random.default_rng(31)
+    rig = default_rig(rng, "hdl64e", 0.02)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 10, rng)),
+                    0.2, 0.02)
+    bias = RangeBias.drawn(rng, len(rig.beams.elevations_rad), 0.03, 0.005, 0.01)
+    frames = simulate_measurements(layout, np.random.default_rng(32), bias, rings=False, intensity="flat")
+    used = [f for f in frames if f.usable]
+    assert all(dark_labels(f.lidar) is None and f.lidar.rings is None for f in used)
+    labels = frame_labels(used, layout.board, layout.T_camera_lidar)
+    agree, total = 0, 0
+    for f, share in zip(used, labels.dark):
+        truth = board_returns(layout, int(f.name))[3]
+        clear = (share < 0.1) | (share > 0.9)
+        agree += int(np.sum((share[clear] > 0.5) == truth[clear]))
+        total += int(clear.sum())
+    assert agree >= 0.99 * total and total > 0.8 * sum(f.lidar.n_points for f in used)
+    ref = _refine(layout, frames, "full")
+    fit = ref.range_model
+    assert fit.labels_from == "geometry" and "dark" in fit.names and len(fit.terms.rings) > 10
+    j = fit.names.index("dark")
+    assert abs(fit.values_m[j] - 0.01) < 3 * fit.std_m[j]
+
+
+def test_a_term_beyond_three_prior_sds_is_held_at_its_prior():
+    """An 8 cm offset on a sensor declared accurate to 1 cm: the estimate lies beyond 3 prior standard deviations,
+    so the offset is held at 0, its prior variance propagated into the covariance (the extrinsic's translation
+    sd along the LiDAR's x at least the prior's share through the correlation), and the result warns."""
+    layout, frames = _frames(500, 0.08)
+    ref = refine(frames, layout.board, layout.camera,
+                 solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar,
+                 measurement_model_options(range_model="offset", range_accuracy_m=0.01))
+    fit = ref.range_model
+    assert fit.pinned == ("offset",) and abs(fit.values_m[0]) < 1e-9 and fit.std_m[0] == pytest.approx(0.01)
+    assert abs(fit.pinned_values_m[0]) > 0.03
+    assert any("beyond 3 prior standard deviations" in w for w in ref.warnings)
+    assert np.sqrt(ref.covariance[3, 3]) > 0.5 * 0.01
+
+
+def test_a_detected_grid_that_starts_on_a_white_square_is_read_from_the_image():
+    """The same rendered board with its colours swapped: the detector finds the same pose, and the image's grey
+    levels say that the pattern's colours are the board model's inverted (the squares the range model places)."""
+    import cv2
+
+    from estimators.camera.board_pose import estimate_board_pose
+    from estimators.camera.chessboard import detect_corners
+    from estimators.simulation.simulator import simulate_frames
+
+    rng = np.random.default_rng(1)
+    rig = default_rig(rng, "vlp16")
+    f = simulate_frames(rig, 1, rng, workers=1)[0]
+    gray = f.image if f.image.ndim == 2 else cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY)
+    seen = [estimate_board_pose(detect_corners(g, rig.board), rig.board, rig.camera) for g in (gray, 255 - gray)]
+    assert seen[0].pattern_inverted is False and seen[1].pattern_inverted is True
+    np.testing.assert_allclose(seen[0].T_camera_board, seen[1].T_camera_board, atol=1e-3)

@@ -307,9 +307,25 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                      f"{d['noise_scale_median']:.2f}</p>")
     fit = result.refinement.range_model if result.refinement is not None else None
     if fit is not None:
-        rows = [[n, f"{1000 * v:+.1f}", f"{1000 * sd:.1f}"] for n, v, sd in zip(fit.names, fit.values_m, fit.std_m)]
+        prior = fit.terms.prior_sd if fit.terms is not None else [float("nan")] * len(fit.names)
+        rows = [[n, f"{1000 * v:+.1f}", f"{1000 * sd:.1f}", f"{1000 * p:.1f}",
+                 "held at the prior" if n in fit.pinned else "estimated"]
+                for n, v, sd, p in zip(fit.names, fit.values_m, fit.std_m, prior)]
+        notes = [f"Priors from a range accuracy of {1000 * fit.range_accuracy_m:.0f} mm; black squares placed by "
+                 f"{html.escape(fit.labels_from)}"
+                 + (f" (the intensities agree on {100 * fit.intensity_agreement:.0f}% of clearly placed returns)"
+                    if fit.intensity_agreement is not None else "") + "."]
+        for n, v in zip(fit.pinned, fit.pinned_values_m):
+            notes.append(f"{html.escape(n)} was estimated at {1000 * v:+.1f} mm, beyond 3 prior standard deviations: "
+                         "held at 0 with its prior variance in the covariance.")
+        if fit.confounding:
+            c = fit.confounding
+            notes.append(f"Confounded: the {html.escape(c['term'])} with {html.escape(c['direction'])} (correlation "
+                         f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd_mm']:.1f} with the "
+                         f"term marginalised, {c['sd_if_known_mm']:.1f} were it known. {html.escape(c['advice'])}")
         parts.append(f"<h2>LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
-                     + (_table(rows, ["term", "value [mm]", "std [mm]"]) if rows else ""))
+                     + "".join(f"<p>{t}</p>" for t in notes)
+                     + (_table(rows, ["term", "value [mm]", "std [mm]", "prior sd [mm]", ""]) if rows else ""))
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
     axis, advice = describe_direction(result.weakest_direction_camera)

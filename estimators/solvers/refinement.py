@@ -885,7 +885,7 @@ def _with_uncertainty(fit: RangeModelFit, prob: _Problem, marginals: gtsam.Margi
                        "sd_if_known_mm" if part == "translation" else "sd_if_known_deg":
                        float(unit * np.sqrt(max(e @ cond @ e, 0.0))),
                        "advice": "Boards that face the LiDAR at varied incidence and distances separate them: "
-                                 "`lidarcam layout DATASET --range-offset` suggests the poses to add."}
+                                 "`lidarcam layout DATASET --suggest 2 --range-offset` suggests the poses to add."}
         if part != "translation":  # the warning's wording is in mm; keep the keys it reads
             confounding["sd_mm"] = confounding["sd_deg"]
             confounding["sd_if_known_mm"] = confounding["sd_if_known_deg"]
