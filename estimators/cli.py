@@ -40,9 +40,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="measure again even when the measurement cache holds this dataset (see the README)")
     c.add_argument("--cross-validate", type=int, default=0, metavar="K",
                    help="also score K folds of frames, each under the calibration of the others (validation.json)")
-    c.add_argument("--split", default=None, choices=["halves"],
-                   help="also calibrate the first and last halves apart and test their difference against their "
-                        "covariances (validation.json)")
+    c.add_argument("--split", default=None, choices=["halves", "interleaved"],
+                   help="also calibrate two halves apart and test their difference against their covariances "
+                        "(validation.json): halves, the first and last; interleaved, the even and odd frames")
     c.add_argument("--no-static-scene", action="store_true",
                    help="judge each frame's board alone instead of against the static scene of all frames")
 
@@ -411,12 +411,12 @@ def _validation_runs(args, ds, result) -> None:
               + (f" (chi-square {cv['chi2']:.1f} on {cv['dof']} dof, p = {cv['p_value']:.2g}; flagged: "
                  f"{', '.join(cv['flagged']) or 'none'})" if "chi2" in cv else ""))
     if args.split:
-        sh = split_halves(list(result.frames), solve_subset)
+        sh = split_halves(list(result.frames), solve_subset, args.split)
         out["split_halves"] = sh
         extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f}, 99% limit {sh['limit_99']:.1f}; "
                  f"{sh['difference_rotation_deg']:.2f} deg, {sh['difference_translation_mm']:.0f} mm apart)"
                  if "mahalanobis_d2" in sh else "")
-        print(f"split halves: {sh['verdict']}{extra}")
+        print(f"split ({args.split}): {sh['verdict']}{extra}")
     print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', out)}")
 
 

@@ -151,15 +151,21 @@ def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve)
     return {"k": k, "folds": folds, **verdict(scores)}
 
 
-def split_halves(frames: list[FrameMeasurement], solve) -> dict:
-    """Calibrate the first and last halves of the usable frames apart and test their difference against the
-    sum of their covariances (chi-square, 6 dof)."""
+SPLITS = ("halves", "interleaved")
+
+
+def split_halves(frames: list[FrameMeasurement], solve, how: str = "halves") -> dict:
+    """Calibrate two halves of the usable frames apart and test their difference against the sum of their
+    covariances (chi-square, 6 dof): the first and last halves (``halves``: what drifts over a recording), or
+    the even and odd frames (``interleaved``: two layouts alike)."""
+    if how not in SPLITS:
+        raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
     usable = sorted([f for f in frames if f.usable], key=lambda f: f.name)
     if len(usable) < 6:
-        raise LidarcamError(f"--split halves needs at least 6 usable frames (3 per half), got {len(usable)}",
+        raise LidarcamError(f"--split {how} needs at least 6 usable frames (3 per half), got {len(usable)}",
                             hint="record more board poses")
     h = len(usable) // 2
-    halves = [usable[:h], usable[h:]]
+    halves = [usable[:h], usable[h:]] if how == "halves" else [usable[0::2], usable[1::2]]
     res = []
     for part in halves:
         try:
@@ -172,7 +178,7 @@ def split_halves(frames: list[FrameMeasurement], solve) -> dict:
     d2 = float(xi @ np.linalg.solve(S, xi))
     limit = float(chi2.ppf(1 - SIGNIFICANCE, 6))
     p = float(chi2.sf(d2, 6))
-    return {"halves": [[f.name for f in p_] for p_ in halves],
+    return {"split": how, "halves": [[f.name for f in p_] for p_ in halves],
             "T_camera_lidar": [r.T_camera_lidar.tolist() for r in res],
             "difference_rotation_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
             "difference_translation_mm": float(1000 * np.linalg.norm(xi[3:])),

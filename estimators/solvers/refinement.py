@@ -790,7 +790,8 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
                         floor: float, options: RefinementOptions, labels: FrameLabels) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
     terms the data support (:func:`_model_test`): a global offset against none, then the per-ring and the
-    black-square terms each against the offset; both when both pass. A combination that leaves the boards'
+    black-square terms each against the offset (against none, with the offset, when the offset alone is not
+    supported); both when both pass. A combination that leaves the boards'
     planes worse than the offset alone (:func:`_relative_consistency`, at 1%) tries the smaller ones before
     the offset alone. Returns the problem (solved at its estimate), the estimate and the record."""
     wanted = options.range_model
@@ -812,25 +813,28 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
         return f.prob, f.T, f.boards, RangeModelFit(chosen=got, reason=why, names=f.prob.terms.names,
                                                     values_m=tuple(f.prob.beta.tolist()), terms=f.prob.terms, **record)
     tests = [_model_test(fits["none"], fits["offset"], active, inliers, floor, options)]
-    if not tests[0]["included"]:
+    # The per-ring and black-square blocks are tested against the offset when it is supported, else against none
+    # (with the offset in the block): a strong within-board structure can hide a global offset that only its own
+    # terms make visible.
+    base = "offset" if tests[0]["included"] else "none"
+    blocks, by_model = [], {"offset": tests[0]}
+    for model in ("per-ring", "offset+dark"):
+        if model in fits:
+            tests.append(_model_test(fits[base], fits[model], active, inliers, floor, options))
+            by_model[model] = tests[-1]
+            if tests[-1]["included"]:
+                blocks.append(model)
+    if not blocks and base == "none":
         why = (f"no range term is supported by the data (p = {tests[0]['p_value']:.2g} for a global offset, test at "
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
         return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
-    blocks, by_model = [], {}
-    for model in ("per-ring", "offset+dark"):
-        if model in fits:
-            tests.append(_model_test(fits["offset"], fits[model], active, inliers, floor, options))
-            by_model[model] = tests[-1]
-            if tests[-1]["included"]:
-                blocks.append(model)
-    candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + ["offset"]
+    candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + [base]
     if candidates[0] == "full":
-        by_model["full"] = _model_test(fits["offset"], fits["full"], active, inliers, floor, options)
-    chosen, notes = "offset", []
+        by_model["full"] = _model_test(fits[base], fits["full"], active, inliers, floor, options)
+    chosen, notes = base, []
     for model in candidates:
-        if model == "offset":
-            chosen = model
+        if model == base:
             break
         ratio, p_rel = _relative_consistency(fits[model], fits["offset"], inliers, floor, by_model[model], tests[0])
         if p_rel >= 0.01:
@@ -838,6 +842,10 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
             break
         notes.append(f"the {model} terms left the boards' planes {ratio:.1f}x as inconsistent as the offset alone "
                      f"(p = {p_rel:.1g}): their within-board structure differs from board to board")
+    if chosen == "none":
+        why = ("no range term is kept: " + "; ".join(notes) + f" (a global offset alone: p = {tests[0]['p_value']:.2g}"
+               f", test at {MODEL_TEST_P})")
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
     f = fits[chosen]
     why = f"the {chosen} terms are supported (" + "; ".join(
         f"{t['model']} against {t['against']}: p = {t['p_value']:.2g}" for t in tests if t["included"]) + ")"
