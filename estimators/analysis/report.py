@@ -198,7 +198,7 @@ def range_residual_arrays(result) -> dict[str, np.ndarray] | None:
         n = f.lidar.n_points
         rows["range_m"].append(np.linalg.norm(f.lidar.points, axis=1))
         rows["ring"].append(labels.rings[k] if labels.rings[k] is not None else np.full(n, -1))
-        rows["dark"].append(labels.dark[k] if labels.dark[k] is not None else np.zeros(n, dtype=bool))
+        rows["dark"].append(labels.dark[k] > 0.5 if labels.dark[k] is not None else np.zeros(n, dtype=bool))
         rows["before_m"].append(point_residuals(f.lidar, pi, None, None))
         rows["after_m"].append(point_residuals(f.lidar, pi, terms, beta, labels.rings[k], labels.dark[k]))
     return {**{k: np.concatenate(v) for k, v in rows.items()},

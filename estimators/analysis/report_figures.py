@@ -151,7 +151,7 @@ def range_residuals_pngs(range_m: np.ndarray, ring: np.ndarray, dark: np.ndarray
                  1000 * np.mean(a[key][a["dark"]]) if np.any(a["dark"]) else np.nan]
         ax[2].bar(x + 0.35 * j, means, 0.35, label=key)
     ax[2].set_xticks(x + 0.175, ["white", "black"])
-    ax[2].set_xlabel("square colour (from intensity)")
+    ax[2].set_xlabel("square colour (black: most of the return placed on black)")
     for axis in ax:
         axis.axhline(0, color="k", lw=0.6)
         axis.legend(fontsize=8)
