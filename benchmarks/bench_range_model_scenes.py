@@ -67,14 +67,13 @@ def _injected(args) -> dict:
     from estimators.calibration import calibrate
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
+    from estimators.simulation.simulator import simulate_dataset
     from geometry.rotations import T_inverse, T_log
 
     lidar, ring, intensity, seed, tmp = args
     path = Path(tmp) / f"inj_{lidar}_{ring}_{intensity}_{seed}"
-    simulate_dataset_args = dict(range_bias=(0.03, 0.005, 0.01), intensity=intensity, ring_field=ring, overwrite=True)
-    from estimators.simulation.simulator import simulate_dataset
-
-    simulate_dataset(path, POSES, seed, lidar, **simulate_dataset_args)
+    simulate_dataset(path, POSES, seed, lidar, range_bias=(0.03, 0.005, 0.01), intensity=intensity, ring_field=ring,
+                     overwrite=True)
     try:
         res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:

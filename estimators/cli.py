@@ -306,6 +306,15 @@ def _print_range_model(fit) -> None:
     if fit.confounding:
         c = fit.confounding
         print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f})")
+        if c.get("separating_pose"):
+            sp = c["separating_pose"]
+            x, y, z = sp["board_centre_camera_m"]
+            nx, ny, nz = sp["board_normal_camera"]
+            now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
+            print(f"  the pose that best separates them: board centre at camera ({x:+.2f}, {y:+.2f}, {z:.2f}) m, "
+                  f"normal ({nx:+.2f}, {ny:+.2f}, {nz:+.2f}); translation sd along the LiDAR's x y z, predicted from "
+                  "the point and corner noise alone (as lidarcam layout does), "
+                  + " ".join(f"{v:.1f}" for v in now) + " -> " + " ".join(f"{v:.1f}" for v in then) + " mm")
 
 
 def _calibrate(args) -> int:
@@ -357,7 +366,14 @@ def _calibrate_with(args, ds, figures) -> int:
         if m.board != ds.board or m.lidar != ds.lidar:
             raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
                                path=args.measurements, hint="give the dataset the measurements came from")
-        result = solve(m, init=args.init, refine=args.refine, options=_options(args),
+        from dataclasses import replace
+
+        from .calibration import dataset_range_accuracy
+
+        options = _options(args)
+        if options.range_accuracy_m is None:  # as calibrate does: the dataset's LiDAR accuracy
+            options = replace(options, range_accuracy_m=dataset_range_accuracy(ds))
+        result = solve(m, init=args.init, refine=args.refine, options=options,
                        posterior=_posterior_options(args), rng=np.random.default_rng(args.seed),
                        on_refined=_draw_ahead(figures))
     else:
@@ -368,6 +384,7 @@ def _calibrate_with(args, ds, figures) -> int:
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
                          result.measurements_source)
     _draw_posterior_ahead(result, figures)
+    result = _with_separating_pose(result, ds.board)
     path = write_calibration(result, args.out)
     _print_result(result)
     save_measurements(args.out, m)
@@ -382,6 +399,24 @@ def _calibrate_with(args, ds, figures) -> int:
         _validation_runs(args, ds, result)
     _export_hint(path)
     return 0
+
+
+def _with_separating_pose(result, board):
+    """The result with, where its range offset is confounded with the extrinsic, the board pose that best separates
+    them (``analysis.layout_analysis.separating_pose``) in the confounding record."""
+    from dataclasses import replace
+
+    ref = result.refinement
+    fit = ref.range_model if ref is not None else None
+    if fit is None or not fit.confounding:
+        return result
+    from .analysis.layout_analysis import separating_pose
+
+    pose = separating_pose(result, board)
+    if pose is None:
+        return result
+    fit = replace(fit, confounding={**fit.confounding, "separating_pose": pose})
+    return replace(result, refinement=replace(ref, range_model=fit))
 
 
 def _source_words(source: str) -> str:

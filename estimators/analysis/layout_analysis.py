@@ -284,3 +284,35 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
         current = replace(current, T_camera_board=current.T_camera_board + (best,), hits=hits)
         out.append((best, analyse(current)))
     return out
+
+
+def separating_pose(result, board, rng: np.random.Generator | None = None, candidates: int = 60) -> dict | None:
+    """When the calibration's range offset is confounded with the extrinsic
+    (``RangeModelFit.confounding``), the next board pose that best separates them: the D-optimal one among
+    ``candidates`` feasible poses for the extrinsic with the offset estimated too (:func:`suggest_poses`), and
+    the predicted standard deviations along the LiDAR's axes with the offset estimated, before and after it.
+    The beams are a VLP-16's for a LiDAR whose boards show at most 20 rings, else an HDL-64E's (for the poses'
+    feasibility only). None without a confounded offset."""
+    ref = result.refinement
+    fit = ref.range_model if ref is not None else None
+    if fit is None or not fit.confounding or fit.confounding.get("term") != "offset":
+        return None
+    labels = fit.labels
+    rings = {int(r) for rr in (labels.rings if labels is not None else ()) if rr is not None for r in np.unique(rr)}
+    beams = "vlp16" if 0 < len(rings) <= 20 else "hdl64e"
+    layout, rig, _ = layout_from_result(result, board, beams)
+    before = _with_offset(layout)
+    found = suggest_poses(layout, rig, 1, rng or np.random.default_rng(0), candidates=candidates, range_offset=True)
+    if not found:
+        return None
+    T, after = found[0]
+    c = T[:3, :3] @ board.centre + T[:3, 3]
+    return {"T_camera_board": T.tolist(), "board_centre_camera_m": c.tolist(), "board_normal_camera": T[:3, 2].tolist(),
+            "beam_model": beams,
+            "predicted_translation_std_mm_with_offset": {"now": before["translation_std_mm"],
+                                                         "with_this_pose": _with_offset(
+                                                             replace(layout, T_camera_board=layout.T_camera_board
+                                                                     + (T,), hits=None if layout.hits is None else
+                                                                     layout.hits + (board_hits(replace(
+                                                                         layout, T_camera_board=(T,), hits=None),
+                                                                         0),)))["translation_std_mm"]}}

@@ -323,6 +323,17 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
             notes.append(f"Confounded: the {html.escape(c['term'])} with {html.escape(c['direction'])} (correlation "
                          f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd_mm']:.1f} with the "
                          f"term marginalised, {c['sd_if_known_mm']:.1f} were it known. {html.escape(c['advice'])}")
+            if c.get("separating_pose"):
+                sp = c["separating_pose"]
+                x, y, z = sp["board_centre_camera_m"]
+                nx, ny, nz = sp["board_normal_camera"]
+                now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
+                notes.append(f"The next pose that best separates them ({sp['beam_model']} beams assumed): the board's "
+                             f"centre at ({x:+.2f}, {y:+.2f}, {z:.2f}) m in the camera frame, its normal ({nx:+.2f}, "
+                             f"{ny:+.2f}, {nz:+.2f}); the predicted translation standard deviations along the LiDAR's "
+                             "x y z with the offset estimated, predicted from the point and corner noise alone (as "
+                             "`lidarcam layout` does), go from " + " ".join(f"{v:.1f}" for v in now) + " to "
+                             + " ".join(f"{v:.1f}" for v in then) + " mm.")
         parts.append(f"<h2>LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
                      + "".join(f"<p>{t}</p>" for t in notes)
                      + (_table(rows, ["term", "value [mm]", "std [mm]", "prior sd [mm]", ""]) if rows else ""))

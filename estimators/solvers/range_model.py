@@ -7,9 +7,10 @@ A return's measured range is ``rho = rho_true + a . beta + noise``, with ``a`` t
   global offset). Rings come from the scan's ``ring`` field (or an organised cloud's rows), or from clustering
   the board points' beam elevations when the scan has neither;
 - ``dark``: 1 for returns from the board's black squares (a reflectivity-dependent offset; near an edge, the
-  chance that the beam's centre is on black). The squares are placed by geometry: the camera's board pose, the printed pattern (a ChArUco board's
-  markers included) and the current extrinsic (:func:`geometric_dark`), so a LiDAR whose intensity is
-  saturated or uncalibrated still has the term. Where the scan's intensities fall in two clear groups, they
+  chance that the beam's centre is on black). The squares are placed by geometry: the camera's board pose, the
+  printed pattern (a ChArUco board's markers included; a checkerboard's colours read from the image) and the
+  current extrinsic (:func:`geometric_dark`), so a LiDAR whose intensity is saturated or uncalibrated still
+  has the term. Where the scan's intensities fall in two clear groups, they
   cross-check the geometry (:attr:`FrameLabels.intensity_agreement`).
 
 Priors come from the sensor's range accuracy (``range_accuracy_m``: ``lidar.range_accuracy_m`` in dataset.yaml,
@@ -23,8 +24,8 @@ so the factor keeps O(1) statistics per frame. The residual is ``W [s pi; S beta
 frame's own terms from the shared ones (:func:`frame_design`) and ``s = sign(m . m_away)`` orienting the
 camera's plane like the fitted one (facing away from the sensor). Within one board a distance and an offset
 trade along a weak direction (``FrameWhitener.weak``, scaled to one metre of the board's offset); the
-refinement estimates a per-board scatter of the offset along it (``board_scatter_m``, at most the range
-accuracy) when the boards disagree there beyond the noise.
+refinement estimates a per-board scatter of the offset along it (``board_scatter_m``: a range error that grows
+with incidence shows there as tenths of metres) when the boards disagree there beyond the noise.
 
 Model choice (``auto``, ``solvers.refinement``): a global offset, then the per-ring and the black-square terms,
 each kept while a likelihood-ratio test at 0.1% supports it. When the boards' planes disagree beyond the noise

@@ -22,10 +22,13 @@ Noise levels:
   is solved again: the estimate weighs the boards accordingly and the covariance includes the error.
 
 LiDAR range model (``RefinementOptions.range_model``; ``solvers.range_model``): nuisance terms of the plane
-factors (a global offset, per-ring offsets, a black-square offset) in one vector variable with a prior; under
-``auto`` each is added while a likelihood-ratio test at 0.1% supports it. Per-ring and black-square terms that
-leave the boards inconsistent fall back to the global offset (their within-board structure then differs from
-board to board, which a shared term cannot hold).
+factors (a global offset, per-ring offsets, a black-square offset) in one vector variable with priors from the
+LiDAR's range accuracy. Under ``auto`` each block is added while a likelihood-ratio test at 0.1% supports it,
+made with the boards' disagreement modelled when they disagree beyond the noise (:func:`_model_test`). Per-ring
+and black-square terms that leave the boards inconsistent where the offset alone does not fall back to smaller
+combinations. A term beyond 3 prior standard deviations is held at 0 with its prior variance propagated
+(:func:`_consider_pinned`); what a plane error of physical size and the boards' scatter leave scales the
+covariance (quasi-likelihood).
 
 The covariance is ``gtsam.Marginals`` of the extrinsic, in GTSAM's right tangent: ``T_true = T_hat Exp(xi)``,
 ``xi = [rot; trans]``.
