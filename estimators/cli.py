@@ -410,9 +410,15 @@ def _with_separating_pose(result, board):
     fit = ref.range_model if ref is not None else None
     if fit is None or not fit.confounding:
         return result
-    from .analysis.layout_analysis import separating_pose
+    import numpy as np
 
-    pose = separating_pose(result, board)
+    from .analysis.layout_analysis import separating_pose
+    from .errors import LidarcamError
+
+    try:
+        pose = separating_pose(result, board)
+    except (LidarcamError, ValueError, np.linalg.LinAlgError):  # advice only: the calibration stands without it
+        pose = None
     if pose is None:
         return result
     fit = replace(fit, confounding={**fit.confounding, "separating_pose": pose})

@@ -297,6 +297,8 @@ def separating_pose(result, board, rng: np.random.Generator | None = None, candi
     fit = ref.range_model if ref is not None else None
     if fit is None or not fit.confounding or fit.confounding.get("term") != "offset":
         return None
+    if any(f.lidar is not None and f.lidar.is_scan_line for f in result.frames if f.usable):
+        return None  # a 2D scanner's poses are suggested by `lidarcam layout` with its own beam model
     labels = fit.labels
     rings = {int(r) for rr in (labels.rings if labels is not None else ()) if rr is not None for r in np.unique(rr)}
     beams = "vlp16" if 0 < len(rings) <= 20 else "hdl64e"

@@ -924,11 +924,11 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
     rest = [i for i in range(H.shape[0]) if i not in pinned]
     A, B = H[np.ix_(rest, rest)], H[np.ix_(rest, pinned)]
     P = np.diag(np.array(prob.terms.prior_sd)[list(prob.pinned)] ** 2)
-    Ainv = np.linalg.inv(A)
+    Ainv = np.linalg.pinv(A)  # A is the information of a solve that succeeded; pinv keeps a rank loss finite
     G = Ainv @ B
     cov_rest = Ainv + G @ P @ G.T
     cov = cov_rest[:6, :6]
-    cond = np.linalg.inv(H[:n, :n])[:6, :6]  # every term known
+    cond = np.linalg.pinv(H[:n, :n])[:6, :6]  # every term known
     std = list(fit.std_m)
     for k in prob.pinned:
         std[k] = float(prob.terms.prior_sd[k])
