@@ -468,12 +468,12 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     inliers = [i for i in active if i not in flagged]
     labels = None
     if options.range_model != "none":
-        labels = frame_labels(frames, board, T)
+        labels = frame_labels(frames, board, T, boards)
         prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
         if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
             # The colours were placed under the extrinsic the model was chosen from; placed again under the
             # estimate, a share that moved much is chosen with again (once: the extrinsic moves by millimetres).
-            again = frame_labels(frames, board, T)
+            again = frame_labels(frames, board, T, boards)
             if max((float(np.max(np.abs(x - y))) for x, y in zip(again.dark, labels.dark)
                     if x is not None and y is not None and len(x)), default=0.0) > 0.25:
                 labels = again
