@@ -308,13 +308,10 @@ def separating_pose(result, board, rng: np.random.Generator | None = None, candi
     if not found:
         return None
     T, after = found[0]
+    if after.offset is None:
+        return None
     c = T[:3, :3] @ board.centre + T[:3, 3]
     return {"T_camera_board": T.tolist(), "board_centre_camera_m": c.tolist(), "board_normal_camera": T[:3, 2].tolist(),
             "beam_model": beams,
             "predicted_translation_std_mm_with_offset": {"now": before["translation_std_mm"],
-                                                         "with_this_pose": _with_offset(
-                                                             replace(layout, T_camera_board=layout.T_camera_board
-                                                                     + (T,), hits=None if layout.hits is None else
-                                                                     layout.hits + (board_hits(replace(
-                                                                         layout, T_camera_board=(T,), hits=None),
-                                                                         0),)))["translation_std_mm"]}}
+                                                         "with_this_pose": after.offset["translation_std_mm"]}}

@@ -321,8 +321,8 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         if fit.confounding:
             c = fit.confounding
             notes.append(f"Confounded: the {html.escape(c['term'])} with {html.escape(c['direction'])} (correlation "
-                         f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd_mm']:.1f} with the "
-                         f"term marginalised, {c['sd_if_known_mm']:.1f} were it known. {html.escape(c['advice'])}")
+                         f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd']:.1f} {c['unit']} with "
+                         f"the term marginalised, {c['sd_if_known']:.1f} were it known. {html.escape(c['advice'])}")
             if c.get("separating_pose"):
                 sp = c["separating_pose"]
                 x, y, z = sp["board_centre_camera_m"]

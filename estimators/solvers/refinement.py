@@ -573,8 +573,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 c = model_fit.confounding
                 warnings.append(f"range model: the {c['term']} is confounded with the extrinsic (correlation "
                                 f"{c['correlation']:.2f} with {c['direction']}); it is marginalised with its prior, "
-                                f"which widens that direction's standard deviation from {c['sd_if_known_mm']:.1f} to "
-                                f"{c['sd_mm']:.1f} mm. {c['advice']}")
+                                f"which widens that direction's standard deviation from {c['sd_if_known']:.1f} to "
+                                f"{c['sd']:.1f} {c['unit']}. {c['advice']}")
     except RuntimeError as exc:
         raise _degenerate(graph, result, len(active)) from exc
     ev = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0, 1.0])
@@ -888,18 +888,12 @@ def _with_uncertainty(fit: RangeModelFit, prob: _Problem, marginals: gtsam.Margi
                                               f" (direction {np.round(v / np.linalg.norm(v), 2).tolist()})"))
         e = np.zeros(6)
         e[3 + axis if part == "translation" else axis] = 1.0
-        cond = Cxx - share
-        unit = 1000.0 if part == "translation" else float(np.degrees(1.0))
+        unit, scale = ("mm", 1000.0) if part == "translation" else ("deg", float(np.degrees(1.0)))
         confounding = {"term": prob.terms.names[k], "correlation": float(np.sqrt(best[0])), "direction": direction,
-                       "tangent_direction": u.tolist(), "sd_mm" if part == "translation" else "sd_deg":
-                       float(unit * np.sqrt(e @ Cxx @ e)),
-                       "sd_if_known_mm" if part == "translation" else "sd_if_known_deg":
-                       float(unit * np.sqrt(max(e @ cond @ e, 0.0))),
+                       "tangent_direction": u.tolist(), "unit": unit, "sd": float(scale * np.sqrt(e @ Cxx @ e)),
+                       "sd_if_known": float(scale * np.sqrt(max(e @ (Cxx - share) @ e, 0.0))),
                        "advice": "Boards that face the LiDAR at varied incidence and distances separate them: "
                                  "`lidarcam layout DATASET --suggest 2 --range-offset` suggests the poses to add."}
-        if part != "translation":  # the warning's wording is in mm; keep the keys it reads
-            confounding["sd_mm"] = confounding["sd_deg"]
-            confounding["sd_if_known_mm"] = confounding["sd_if_known_deg"]
     return replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(sd_b.tolist()), terms_covariance=Cbb,
                    extrinsic_share=0.5 * (share + share.T), offset_translation_correlation=tuple(corr.tolist()),
                    confounding=confounding)
