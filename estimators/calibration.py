@@ -232,6 +232,7 @@ class CalibrationResult:
             "iterations": ref.iterations,
             "lidar_range_model": (ref.range_model.to_dict() if ref.range_model is not None else
                                   {"requested": "none", "chosen": "none", "reason": "not requested", "terms": []}),
+            "board_edges": ref.edges if ref.edges is not None else {"used": False},
         }
 
     @property

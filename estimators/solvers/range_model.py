@@ -59,7 +59,7 @@ CONFOUNDED_CORRELATION = 0.9
 # area: at an edge the white part's echo dominates a mixed return (a black square reflects a tenth as much), so
 # the area share would overstate its black share (and in simulation, whose beams are points, it biased the
 # black-square term by a standard deviation).
-LABEL_POSITION_SD_M = 0.002
+LABEL_POSITION_SD_M = 0.001
 # Below this agreement between intensity and geometry on clearly black or white returns, a warning is given (the
 # recorded sets agree at 78-95%: Otsu's threshold on noisy intensities; swapped colours agree at 15-30%).
 MIN_INTENSITY_AGREEMENT = 0.7
@@ -288,6 +288,12 @@ def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
 def _two_colours(dark: np.ndarray | None) -> bool:
     """Whether a frame's black shares hold both colours (a black-square term is then told from an offset)."""
     return dark is not None and bool(np.any(dark > 0.5)) and bool(np.any(dark < 0.5))
+
+
+def frame_rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
+    """Each frame's board points' ring ids: the scan's own, or the beams' elevations clustered over every frame
+    (one ring per cluster; None for 2D scans)."""
+    return _rings(frames)
 
 
 def _rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:

@@ -43,11 +43,13 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane, plane_difference
-from geometry.rotations import T_log
+from geometry.rotations import T_exp, T_log
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
+from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, crossings, edge_factor,
+                          edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
 from .closed_form import describe_direction, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
@@ -99,6 +101,8 @@ class RefinementOptions:
     # by test), and the sensor's range accuracy (m, 1 sd of a systematic error) that sets the terms' priors.
     range_model: str = "auto"
     range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
+    # The board's edges where the rings leave it (``solvers.board_edges``), when the board's size is known.
+    edges: bool = False
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -154,6 +158,9 @@ class Refinement:
     intrinsics_covariance: np.ndarray | None = None
     corner_scale_sd: float = 0.0
     range_model: RangeModelFit | None = None
+    # The board's edges when used (``solvers.board_edges``): ends, growth, per-frame and mean outline shifts and
+    # the test of the planes against the edges (:func:`_edges_record`).
+    edges: dict | None = None
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
@@ -255,8 +262,15 @@ class _Problem:
 
     def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, sigma_px: float,
                  sigma_r: float, options: RefinementOptions, terms: RangeTerms | None = None,
-                 labels: FrameLabels | None = None):
+                 labels: FrameLabels | None = None, edges: list | None = None):
         self.frames, self.board, self.camera = frames, board, camera
+        # Per frame, its ring ends used as the board's edges (``solvers.board_edges``; None: planes only), and
+        # the edges' shared growth (m) and the scale of their standard deviations.
+        self.edges = edges
+        self.outline = np.zeros(4)  # the board's outline: sides' growth (x, y) and offset (x, y), m
+        self.edge_scale = 1.0
+        self.edge_tau = 1e-3  # the boards' in-plane scatter (m), estimated with the edges
+        self.shifts: dict[int, np.ndarray] = {}
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
         self.terms, self.labels = terms, labels
         # Noise-corrected at the noise the data show (not at a given sigma_r, which sets the weights only).
@@ -324,9 +338,14 @@ class _Problem:
                 sd[list(self.pinned)] = PINNED_SD_M
             graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
                                               gtsam.noiseModel.Diagonal.Sigmas(sd)))
+        if self.edges is not None:
+            graph.add(outline_prior())
         for j, i in enumerate(active):
             f = self.frames[i]
             key = board_key(j)
+            if self.has_edges(i):
+                graph.add(shift_prior(shift_key(j), self.edge_tau))
+                graph.add(edge_factor(EXTRINSIC, key, shift_key(j), self.edges[i], self.board, self.edge_scale))
             graph.add(corner_factor(key, self.corners_board[i], f.camera.corners_px, self.camera,
                                     gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
             noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
@@ -356,14 +375,30 @@ class _Problem:
         to move from the camera's own fit (a cheap camera lets a bad LiDAR plane drag the board)."""
         return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
-    def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
-              ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
+    def values(self, active: list[int], T: np.ndarray, boards: list) -> gtsam.Values:
         values = gtsam.Values()
         values.insert(EXTRINSIC, gtsam.Pose3(T))
         for j, i in enumerate(active):
             values.insert(board_key(j), gtsam.Pose3(boards[i]))
         if self.has_beta:
             values.insert(RANGE, self.beta.copy())
+        if self.edges is not None:
+            values.insert(OUTLINE, np.array(self.outline, dtype=float))
+            for j, i in enumerate(active):
+                if self.has_edges(i):
+                    values.insert(shift_key(j), self.shifts.get(i, np.zeros(2)))
+        return values
+
+    def has_edges(self, i: int) -> bool:
+        return self.edges is not None and self.edges[i] is not None and self.edges[i].size > 0
+
+    def copy_edges(self, other: "_Problem") -> None:
+        self.edges, self.outline, self.edge_scale = other.edges, other.outline.copy(), other.edge_scale
+        self.edge_tau, self.shifts = other.edge_tau, dict(other.shifts)
+
+    def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
+              ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
+        values = self.values(active, T, boards)
         graph = self.graph(active, floor_m)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.options.max_iterations)
@@ -376,6 +411,10 @@ class _Problem:
             boards[i] = result.atPose3(board_key(j)).matrix()
         if self.has_beta:
             self.beta = np.asarray(result.atVector(RANGE), dtype=float)
+        if self.edges is not None:
+            self.outline = np.asarray(result.atVector(OUTLINE), dtype=float)
+            self.shifts = {i: np.asarray(result.atVector(shift_key(j)), dtype=float)
+                           for j, i in enumerate(active) if self.has_edges(i)}
         return graph, result, int(opt.iterations())
 
     def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
@@ -392,12 +431,155 @@ def _rank(A: np.ndarray) -> int:
     return int(np.sum(sv > 1e-8 * sv[0])) if sv.size and sv[0] > 0 else 0
 
 
+def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
+               floor: float) -> tuple[np.ndarray, list]:
+    """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
+    their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
+    model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Returns ``T`` and ``boards``."""
+    from .range_model import frame_rings
+
+    rings = frame_rings(frames)
+    edges = []
+    for i, f in enumerate(frames):
+        if i not in active or rings[i] is None:
+            edges.append(None)
+            continue
+        edges.append(crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board))
+    if not any(e is not None and e.size for e in edges):
+        return T, boards
+    prob.edges = edges
+    b = list(boards)
+    for _ in range(4):
+        prob.solved = prob.solve(active, T, b, floor)[:2]
+        T = prob.solved[1].atPose3(EXTRINSIC).matrix()
+        tau, scale = _edge_scatter(prob, active, T, b)
+        if abs(np.log(max(tau, 1e-4) / max(prob.edge_tau, 1e-4))) < 0.1 and abs(np.log(scale / prob.edge_scale)) < 0.05:
+            break
+        prob.edge_tau, prob.edge_scale = tau, scale
+    return T, b
+
+
+# Bound of the boards' in-plane scatter (m): a board's outline placed further off than this by the camera is not
+# a pose error (a wrong board size or pattern offset, which the shift check reports).
+MAX_EDGE_SCATTER_M = 0.05
+
+
+def _edge_scatter(prob: _Problem, active: list[int], T: np.ndarray, boards: list) -> tuple[float, float]:
+    """The boards' in-plane scatter (m) and the ends' scale by the method of moments at the solve: each frame's
+    outline shift by least squares on its ends' residuals (without the shift), its excess over the ends' own
+    variance pooled over frames; the ends' scatter about their frame's shift against their standard deviations
+    (those within twice the Huber threshold; never below 1)."""
+    excess, rank, within, dof = 0.0, 0, 0.0, 0
+    for i in active:
+        if not prob.has_edges(i):
+            continue
+        e = prob.edges[i]
+        shift, cov, k = frame_shift(T, boards[i], e, prob.board, prob.outline, prob.edge_scale)
+        excess += float(shift @ shift - np.trace(cov))
+        rank += k
+        r = edge_residuals(T, boards[i], e, prob.board, prob.outline[:2], shift + prob.outline[2:],
+                           jacobian=False)[0] / e.sd_m
+        core = r[np.abs(r) <= 2 * EDGE_HUBER * prob.edge_scale]
+        within += float(core @ core)
+        dof += max(len(core) - k, 0)
+    tau = float(np.clip(np.sqrt(max(excess, 0.0) / max(rank, 1)), 1e-4, MAX_EDGE_SCATTER_M))
+    scale = float(np.sqrt(within / dof)) if dof > 10 else 1.0
+    return tau, max(1.0, scale)
+
+
+def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float, cov: np.ndarray,
+                  marginals: gtsam.Marginals, quasi_scale: float) -> tuple[dict, list[str]]:
+    """What the edges say, for calibration.json: the ends used, their scale and the boards' in-plane scatter,
+    the growth of the outline's sides, each frame's outline shift (board axes) and their mean in camera axes
+    against its 99% limit, and the planes-only estimate against this one (a Hausman test: their difference
+    against the difference of their covariances, which is the edges' share)."""
+    warnings = []
+    shift_keys = [(j, i) for j, i in enumerate(active) if prob.has_edges(i)]
+    keys = gtsam.KeyVector([OUTLINE] + [shift_key(j) for j, _ in shift_keys])
+    J = marginals.jointMarginalCovariance(keys).fullMatrix() * quasi_scale
+    outline_sd = np.sqrt(np.diag(J[:4, :4]))
+    # The mean shift in camera axes: each frame's board axes mapped by its board pose.
+    A = np.zeros((3, 2 * len(shift_keys)))
+    shifts, per_frame = [], []
+    for k, (j, i) in enumerate(shift_keys):
+        A[:, 2 * k:2 * k + 2] = boards[i][:3, :2] / len(shift_keys)
+        d = prob.shifts.get(i, np.zeros(2))
+        shifts.append(d)
+        sd = np.sqrt(np.diag(J[4 + 2 * k:6 + 2 * k, 4 + 2 * k:6 + 2 * k]))
+        per_frame.append({"frame": prob.frames[i].name, "ends": int(prob.edges[i].size),
+                          "shift_board_xy_m": d.tolist(), "shift_sd_m": sd.tolist()})
+    mean = A @ np.concatenate(shifts)
+    # The shifts are estimated random effects (each 0 +- the scatter a priori): under the model their estimates
+    # vary by the prior's covariance less the posterior's.
+    C = A @ (prob.edge_tau**2 * quasi_scale * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
+    d2, dof = _mahalanobis(mean, C)
+    mean_p = float(chi2.sf(d2, dof)) if dof else 1.0
+    if dof and mean_p < 0.01:
+        warnings.append(f"board edges: the LiDAR's board outlines sit {1000 * np.linalg.norm(mean):.0f} mm off the "
+                        f"camera's on average (camera axes {np.round(1000 * mean, 1).tolist()} mm; beyond the 99% "
+                        f"limit, p = {mean_p:.1g}): an extrinsic the edges contradict")
+    g, o = prob.outline[:2], prob.outline[2:]
+    if np.any(np.abs(g) > np.maximum(GROWTH_PRIOR_SD_M, 2.576 * outline_sd[:2])):
+        warnings.append(f"board edges: the LiDAR sees the board {2000 * g[0]:+.0f} mm wider and {2000 * g[1]:+.0f} mm "
+                        "taller than board.size: check the size in dataset.yaml (the backing board's, not the "
+                        "pattern's)")
+    if np.any(np.abs(o) > np.maximum(OFFSET_PRIOR_SD_M, 2.576 * outline_sd[2:])):
+        warnings.append(f"board edges: the board's outline sits {1000 * o[0]:+.0f} mm along its x and "
+                        f"{1000 * o[1]:+.0f} mm along its y from where dataset.yaml puts it: check "
+                        "board.pattern_offset (the board corner to the pattern's corner) and board.size")
+    # The planes alone, from this estimate, with the same noise model.
+    planes = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, prob.options, prob.terms,
+                      prob.labels)
+    planes.beta, planes.tau, planes.pinned = prob.beta.copy(), prob.tau, prob.pinned
+    b = list(boards)
+    graph, result, _ = planes.solve(active, T, b, floor)
+    T_p = result.atPose3(EXTRINSIC).matrix()
+    try:
+        cov_p = gtsam.Marginals(graph, result).marginalCovariance(EXTRINSIC)
+    except RuntimeError:  # the planes alone leave a direction unobservable: the edges fix it
+        cov_p = None
+    test = None
+    if cov_p is not None:
+        delta = T_log(np.linalg.inv(T_p) @ T)
+        h2, h_dof = _mahalanobis(delta, cov_p - cov)
+        h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
+        test = {"planes_only_T_camera_lidar": T_p.tolist(), "difference_tangent": delta.tolist(),
+                "d2": h2, "dof": h_dof, "p_value": h_p}
+        if h_dof and h_p < 0.01:
+            warnings.append(f"board edges: the planes alone and the planes with the edges differ by "
+                            f"{np.degrees(np.linalg.norm(delta[:3])):.2f} deg and "
+                            f"{1000 * np.linalg.norm(delta[3:]):.0f} mm, beyond what the edges' information "
+                            f"explains (d2 {h2:.1f} on {h_dof} dof, p = {h_p:.1g}): the boards' planes or their "
+                            "outlines carry a bias (range error with incidence, intrinsics, the board's real size); "
+                            "both estimates are in calibration.json")
+    record = {"ends": int(sum(prob.edges[i].size for _, i in shift_keys)), "end_scale": prob.edge_scale,
+              "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(), "growth_sd_m": outline_sd[:2].tolist(),
+              "outline_offset_m": o.tolist(), "outline_offset_sd_m": outline_sd[2:].tolist(), "frames": per_frame,
+              "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(),
+              "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
+              "planes_against_edges": test}
+    return record, warnings
+
+
+def _mahalanobis(x: np.ndarray, C: np.ndarray) -> tuple[float, int]:
+    """``x^T C^+ x`` over the directions ``C`` holds (eigenvalues above 1e-9 of its largest) and their count."""
+    ev, V = np.linalg.eigh(0.5 * (C + C.T))
+    keep = ev > 1e-9 * max(float(ev[-1]), 1e-300)
+    y = V[:, keep].T @ x
+    return float(np.sum(y**2 / ev[keep])), int(keep.sum())
+
+
 def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
     """Explain a singular system by the extrinsic's least-informed direction."""
     ordering = gtsam.Ordering()
     ordering.push_back(EXTRINSIC)
     for j in range(n_frames):
         ordering.push_back(board_key(j))
+    for j in range(n_frames):
+        if values.exists(shift_key(j)):
+            ordering.push_back(shift_key(j))
+    if values.exists(OUTLINE):
+        ordering.push_back(OUTLINE)
     if values.exists(RANGE):
         ordering.push_back(RANGE)
     H, _ = graph.linearize(values).hessian(ordering)
@@ -466,6 +648,14 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         boards = [f.camera.T_camera_board for f in frames]
 
     inliers = [i for i in active if i not in flagged]
+    if options.edges and not any(f.lidar.is_scan_line for f in frames):
+        if board.size_known:
+            T, boards = _add_edges(prob, frames, active, T, boards, floor)
+            if prob.edges is not None:
+                graph, result = prob.solved
+        else:
+            warnings.append("the board's size is not given (board.size in dataset.yaml): its edges are not used, "
+                            "so the translation along the boards' planes rests on the planes alone")
     labels = None
     if options.range_model != "none":
         labels = frame_labels(frames, board, T, boards)
@@ -595,6 +785,14 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             if model_fit is not None:
                 model_fit = replace(model_fit, std_m=tuple(np.sqrt(quasi_scale) * np.array(model_fit.std_m)),
                                     extrinsic_share=quasi_scale * model_fit.extrinsic_share)
+    if model_fit is not None and labels is not None and labels.source == "geometry" and prob.has_beta \
+            and "dark" in prob.terms.names and "dark" not in model_fit.pinned:
+        cov, model_fit = _consider_placement(prob, active, T, boards, floor, cov, model_fit)
+    edges_record = None
+    if prob.edges is not None:
+        edges_record, edge_warnings = _edges_record(prob, active, T, boards, floor, cov / quasi_scale, marginals,
+                                                    quasi_scale)
+        warnings.extend(edge_warnings)
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -616,7 +814,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
-                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit)
+                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record)
 
 
 BOARD_SCATTER_MEANING = (
@@ -711,6 +909,7 @@ def _fit_model(prob: _Problem, model: str, labels: FrameLabels, active: list[int
     # The model without terms in the same (range) form, so that the objectives compare.
     p = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
                  terms if terms is not None else RangeTerms((), ()), labels)
+    p.copy_edges(prob)
     b = list(boards)
     graph, result, _ = p.solve(active, T, b, floor)
     p.solved = (graph, result)  # the refinement goes on from this solution
@@ -910,6 +1109,11 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
     ordering.push_back(EXTRINSIC)
     for j in range(len(active)):
         ordering.push_back(board_key(j))
+    for j, i in enumerate(active):
+        if prob.has_edges(i):
+            ordering.push_back(shift_key(j))
+    if prob.edges is not None:
+        ordering.push_back(OUTLINE)
     ordering.push_back(RANGE)
     H, _ = graph.linearize(result).hessian(ordering)
     K = prob.terms.size
@@ -930,6 +1134,37 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
     return 0.5 * (cov + cov.T), replace(fit, std_m=tuple(std), extrinsic_share=0.5 * (share + share.T))
 
 
+def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
+                        cov: np.ndarray, fit: RangeModelFit) -> tuple[np.ndarray, RangeModelFit]:
+    """The covariance with the black squares' placement propagated: the colours are placed under the estimate,
+    itself uncertain, and a pattern placed a few millimetres off gives the returns near the squares' edges the
+    wrong colour, which shrinks the black-square term (and, through it, moves the rest). Placed again under the
+    extrinsic moved by one standard deviation each way along each principal direction of ``cov`` and solved
+    again, the shifts' spread and their mean (the shrinkage) are added ("consider" covariance, as for pinned
+    terms and intrinsics)."""
+    ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    values = prob.values(active, T, boards)
+    K = prob.terms.size
+    extra = np.zeros((6 + K, 6 + K))
+    for lam, v in zip(ev, V.T):
+        shifts = []
+        for sign in (1.0, -1.0):
+            T_moved = T @ T_exp(sign * np.sqrt(max(lam, 0.0)) * v)
+            labels = frame_labels(prob.frames, prob.board, T_moved, boards)
+            moved = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, prob.options,
+                             prob.terms, replace(prob.labels, dark=labels.dark))
+            moved.copy_edges(prob)
+            moved.tau, moved.pinned = prob.tau, prob.pinned
+            # One Gauss-Newton step from the estimate: the shift the new colours call for, to first order.
+            delta = moved.graph(active, floor).linearize(values).optimize()
+            shifts.append(np.concatenate([delta.at(EXTRINSIC), delta.at(RANGE)]))
+        spread, shrink = 0.5 * (shifts[0] - shifts[1]), 0.5 * (shifts[0] + shifts[1])
+        extra += np.outer(spread, spread) + np.outer(shrink, shrink)
+    std = np.sqrt(np.array(fit.std_m) ** 2 + np.diag(extra)[6:])
+    Cbb = fit.terms_covariance + extra[6:, 6:] if fit.terms_covariance is not None else None
+    return cov + extra[:6, :6], replace(fit, std_m=tuple(std.tolist()), terms_covariance=Cbb)
+
+
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
                            options: RefinementOptions) -> np.ndarray:
     """First-order covariance of the extrinsic due to uncertain intrinsics: re-solve with each parameter
@@ -945,6 +1180,7 @@ def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boa
         p[k] += s
         moved = _Problem(prob.frames, prob.board, cam.with_params(p), prob.sigma_px, prob.sigma_r, options,
                          prob.terms, prob.labels)
+        moved.copy_edges(prob)
         moved.beta = prob.beta.copy()
         _, result, _ = moved.solve(active, T, list(boards), floor)
         xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())

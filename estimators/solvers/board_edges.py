@@ -1,0 +1,262 @@
+"""The board's edges as measurements: where each LiDAR ring leaves the board.
+
+Planes fix the translation only along the boards' normals; when the normals are weakly spread (boards in front
+of the rig, tilted a little) the in-plane directions rest on little. Each ring that crosses a board stops at the
+board's outline, whose place on the board the camera knows (the board's pose and its size, ``BoardModel``).
+
+Measurement (per ring end). Along a ring the beams fire at a fixed azimuth step ``delta``; the board's edge lies
+between the last return on the board (azimuth ``phi``) and the next firing, which missed it. With the edge's
+azimuth uniform on that interval, and the beam's centre able to fall off the board by a little while its
+footprint still returns from it (``BEAM_SD_RAD``), the edge is taken at the interval's middle,
+``phi +- delta / 2``, with variance ``delta^2 / 12 + BEAM_SD_RAD^2`` (the uniform's and the footprint's).
+The two moments are what a Gaussian keeps of that interval; an end that is not the board's edge (a holder's
+hand, a stand, a return lost at the edge) is far out in those units, and a Huber loss (``EDGE_HUBER``) bounds
+its pull.
+
+Residual (per end): the mid-beam's ray cut with the board's plane, in the board's frame, and its signed
+distance outward of the side of the outline it crosses (``sides``: x = 0, x = w, y = 0, y = h), less two
+nuisances: the dataset's outline (:data:`OUTLINE`, one per dataset: the growth of the x and the y sides, as a
+beam footprint or mixed returns make the LiDAR's board look larger than the given size, and the outline's offset
+from where the dataset puts it; priors 0 +- ``GROWTH_PRIOR_SD_M`` and ``OFFSET_PRIOR_SD_M``) and the frame's
+outline shift (:func:`shift_key`, 0 +- the boards' in-plane scatter, estimated by the refinement).
+Its Jacobians by the extrinsic and the board pose (right tangents, ``T Exp(xi)``, ``xi = [rot; trans]``):
+with ``q = R (s b) + t`` the cut in the board frame (``R, t`` of ``T_board_lidar``), ``P`` the projection
+along the ray onto the board's plane and ``w = P^T [a; 0]`` (``a`` the side's outward normal),
+
+    d r / d xi_extrinsic = [p x u, u]   (u = R^T w, p = s b the cut in the LiDAR frame),
+    d r / d xi_board     = [w x q, -w].
+
+Sides are assigned once, under the estimate from the planes (the side the ring's direction of travel leaves
+by); ends near a corner of the outline, rings that graze a side, and ends far from any side are not used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import gtsam
+import numpy as np
+
+from geometry.board import BoardModel
+
+# Beam footprint (rad, 1 sd of where the beam's centre can be while the board still returns it): a few mrad of
+# divergence in spinning LiDARs (VLP-16 3 mrad full width, OS1 about 3 mrad), of which a return's centre counts
+# about a quarter either side.
+BEAM_SD_RAD = 7.5e-4
+# Huber threshold (in standard deviations of an end's position) beyond which an end's pull stops growing.
+EDGE_HUBER = 2.5
+# The edge growth's prior (m): the footprint at 10 m, or a board a centimetre off its given size.
+GROWTH_PRIOR_SD_M = 0.01
+# Ends closer than this (m) to a corner of the outline along their side are not used (which side is crossed
+# is then not clear).
+CORNER_MARGIN_M = 0.02
+# Ends further than this (m) from their side under the planes' estimate are not edges (a hand, a clamp).
+MAX_END_OFFSET_M = 0.15
+# A ring that meets its side at less than this sine of the angle grazes it and is not used.
+MIN_CROSSING_SINE = 0.3
+MIN_RING_POINTS = 4
+# The pattern's offset on the board from where the dataset puts it (m): printing and mounting, a few mm.
+OFFSET_PRIOR_SD_M = 0.01
+# The board's outline against the dataset's, one per dataset: ``[growth of the x = 0, w sides, of the y = 0, h
+# sides, the outline's offset along the board's x, y]`` (m).
+OUTLINE = gtsam.symbol("g", 0)
+
+# Outward normals and offsets of the outline's sides in the board frame: x = 0, x = w, y = 0, y = h.
+_NORMALS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class EdgeCrossings:
+    """One frame's ring ends used as edges: per end the unit mid-beam (LiDAR frame), the side crossed (0-3:
+    x = 0, x = w, y = 0, y = h of the board's outline), its ring, and the standard deviation (m) of its
+    position across that side."""
+
+    beams: np.ndarray
+    sides: np.ndarray
+    rings: np.ndarray
+    sd_m: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return len(self.sides)
+
+
+def side_offsets(board: BoardModel, sides: np.ndarray) -> np.ndarray:
+    w, h = board.extent
+    return np.array([0.0, w, 0.0, h])[sides]
+
+
+def _azimuth(points: np.ndarray) -> np.ndarray:
+    return np.arctan2(points[:, 1], points[:, 0])
+
+
+def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarray, float]]:
+    """Each ring's two ends on the board, as ``(ring, mid-beam, step)``: the unit beam half an azimuth step
+    beyond the ring's last return at each end (the step: the median spacing of the ring's returns)."""
+    out = []
+    for r in np.unique(rings):
+        P = points[rings == r]
+        if len(P) < MIN_RING_POINTS:
+            continue
+        phi = _azimuth(P)
+        centre = float(np.median(phi))
+        phi = centre + np.angle(np.exp(1j * (phi - centre)))  # unwrapped about the board
+        order = np.argsort(phi)
+        steps = np.diff(phi[order])
+        step = float(np.median(steps))
+        if not step > 0:
+            continue
+        for k, sign in ((order[0], -1.0), (order[-1], 1.0)):
+            p = P[k]
+            el = np.arctan2(p[2], np.hypot(p[0], p[1]))
+            a = phi[k] + sign * 0.5 * step
+            out.append((int(r), np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]),
+                        sign * step))
+    return out
+
+
+def cut(T_board_lidar: np.ndarray, beams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The beams' rays cut with the board's plane: ``(q, s, Rb)``, the cuts in the board frame (K, 3), their
+    distances along the beams, and the beams in the board frame."""
+    R, t = T_board_lidar[:3, :3], T_board_lidar[:3, 3]
+    Rb = beams @ R.T
+    z = np.where(np.abs(Rb[:, 2]) < 1e-9, 1e-9, Rb[:, 2])
+    s = -t[2] / z
+    return Rb * s[:, None] + t, s, Rb
+
+
+def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, board: BoardModel,
+              beam_sd_rad: float = BEAM_SD_RAD) -> EdgeCrossings:
+    """The ring ends of one frame's board points that cross the board's outline (module docstring), with
+    sides assigned under ``T_board_lidar``."""
+    ends = ring_ends(points, rings)
+    w, h = board.extent
+    keep_b, keep_s, keep_r, keep_sd = [], [], [], []
+    for ring, beam, step in ends:
+        q, s, Rb = cut(T_board_lidar, beam[None])
+        if not s[0] > 0:
+            continue
+        # The cut's motion in the board's plane per radian of azimuth (the beam turning about the LiDAR's z).
+        db = np.array([-beam[1], beam[0], 0.0]) * np.sign(step)
+        R = T_board_lidar[:3, :3]
+        dq = _project(R @ db * s[0], Rb[0])
+        travel = dq[:2] / max(np.linalg.norm(dq[:2]), 1e-12)
+        cosines = _NORMALS @ travel
+        # The side it leaves by: outward along its travel, the nearest such.
+        offsets = _NORMALS @ q[0, :2] - np.array([0.0, w, 0.0, h])
+        ok = cosines > MIN_CROSSING_SINE
+        if not ok.any():
+            continue
+        side = int(np.flatnonzero(ok)[np.argmin(np.abs(offsets[ok]))])
+        along = q[0, 1] if side < 2 else q[0, 0]
+        length = h if side < 2 else w
+        if abs(offsets[side]) > MAX_END_OFFSET_M or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
+            continue
+        rate = abs(float(_NORMALS[side] @ dq[:2]))  # m across the side per radian
+        keep_b.append(beam)
+        keep_s.append(side)
+        keep_r.append(ring)
+        keep_sd.append(rate * np.sqrt(step**2 / 12.0 + beam_sd_rad**2))
+    return EdgeCrossings(np.array(keep_b).reshape(-1, 3), np.array(keep_s, dtype=np.int64),
+                         np.array(keep_r, dtype=np.int64), np.array(keep_sd))
+
+
+def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """``v`` projected along the ray ``Rb`` onto the board's plane (z = 0)."""
+    return v - Rb * (v[..., 2:3] / Rb[..., 2:3] if v.ndim > 1 else v[2] / Rb[2])
+
+
+def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,
+                   board: BoardModel, growth_m=(0.0, 0.0), shift_m=(0.0, 0.0), jacobian: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Each end's signed distance (m) outward of its side, less the edge growth of its sides (``growth_m``: of
+    the x = 0, w and the y = 0, h sides) and the frame's outline shift (``shift_m``, board axes) (K,), and its
+    Jacobians by the extrinsic (K, 6) and the board pose (K, 6) (the growth's and the shift's:
+    :func:`nuisance_jacobians`)."""
+    T_bl = np.linalg.inv(T_camera_board) @ T_camera_lidar
+    q, s, Rb = cut(T_bl, edges.beams)
+    a = _NORMALS[edges.sides]
+    r = (np.einsum("ij,ij->i", a, q[:, :2] - np.asarray(shift_m)) - side_offsets(board, edges.sides)
+         - np.asarray(growth_m)[edges.sides // 2])
+    if not jacobian:
+        return r, None, None
+    a3 = np.column_stack([a, np.zeros(len(a))])
+    w = a3 - np.outer(np.einsum("ij,ij->i", a3, Rb) / Rb[:, 2], [0.0, 0.0, 1.0])  # P^T a3
+    u = w @ T_bl[:3, :3]
+    p = edges.beams * s[:, None]
+    H_x = np.hstack([np.cross(p, u), u])
+    H_b = np.hstack([np.cross(w, q), -w])
+    return r, H_x, H_b
+
+
+def nuisance_jacobians(edges: EdgeCrossings) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals' Jacobians (K, 2) by the growth (x and y sides) and by the frame's outline shift (the
+    outline's offset has the shift's)."""
+    H_g = np.zeros((edges.size, 2))
+    H_g[np.arange(edges.size), edges.sides // 2] = -1.0
+    return H_g, -_NORMALS[edges.sides]
+
+
+def _huber_whiten(r: np.ndarray, sd: np.ndarray, k: float = EDGE_HUBER) -> np.ndarray:
+    """Per end, the factor ``sqrt(weight) / sd`` of a Huber loss at its current residual (IRLS)."""
+    z = np.abs(r) / sd
+    return np.where(z <= k, 1.0, np.sqrt(k / np.maximum(z, 1e-12))) / sd
+
+
+def _edge_error(edges, board, scale, keys, this, values, H):
+    T = values.atPose3(keys[0]).matrix()
+    Tb = values.atPose3(keys[1]).matrix()
+    shift, outline = values.atVector(keys[2]), values.atVector(keys[3])
+    r, H_x, H_b = edge_residuals(T, Tb, edges, board, outline[:2], shift + outline[2:], jacobian=H is not None)
+    f = _huber_whiten(r, scale * edges.sd_m)
+    if H is not None:
+        H_g, H_s = nuisance_jacobians(edges)
+        H[0] = H_x * f[:, None]
+        H[1] = H_b * f[:, None]
+        H[2] = H_s * f[:, None]
+        H[3] = np.hstack([H_g, H_s]) * f[:, None]
+    return r * f
+
+
+def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeCrossings, board: BoardModel,
+                scale: float = 1.0) -> gtsam.CustomFactor:
+    """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift and the
+    dataset's outline; whitened inside, with each end's Huber weight at its current residual (``scale`` multiplies
+    the ends' standard deviations)."""
+    keys = [key_extrinsic, key_board, key_shift, OUTLINE]
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(edges.size), keys,
+                              partial(_edge_error, edges, board, scale, keys))
+
+
+def outline_prior() -> gtsam.PriorFactorVector:
+    """The board's outline against the dataset's: its sides' growth (x and y sides) 0 +- ``GROWTH_PRIOR_SD_M``,
+    the pattern's offset from where the dataset puts it 0 +- ``OFFSET_PRIOR_SD_M``."""
+    sd = np.array([GROWTH_PRIOR_SD_M, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OFFSET_PRIOR_SD_M])
+    return gtsam.PriorFactorVector(OUTLINE, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sd))
+
+
+def shift_prior(key_shift: int, sd_m: float) -> gtsam.PriorFactorVector:
+    """The frame's outline shift: 0 +- the boards' in-plane scatter (the camera's board pose against the LiDAR's
+    board, per board: a board that sways, a pose the corners place a little off, the board's real outline)."""
+    return gtsam.PriorFactorVector(key_shift, np.zeros(2), gtsam.noiseModel.Isotropic.Sigma(2, max(sd_m, 1e-5)))
+
+
+def shift_key(j: int) -> int:
+    return gtsam.symbol("e", j)
+
+
+def frame_shift(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,
+                board: BoardModel, outline=(0.0, 0.0, 0.0, 0.0), scale: float = 1.0
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The shift ``(dx, dy)`` (m, board axes) of the board's outline that the frame's ends call for under the
+    estimate and the dataset's ``outline`` (:data:`OUTLINE`'s growth and offset), by weighted least squares over
+    the ends (outward normals against residuals); its covariance (2x2) and the rank the sides give it (1 when
+    every end crosses sides of one direction)."""
+    outline = np.asarray(outline, dtype=float)
+    r, _, _ = edge_residuals(T_camera_lidar, T_camera_board, edges, board, outline[:2], outline[2:], jacobian=False)
+    sd = scale * edges.sd_m
+    a = _NORMALS[edges.sides] / sd[:, None]
+    info = a.T @ a
+    rank = int(np.linalg.matrix_rank(info, tol=1e-9 * max(np.trace(info), 1e-300)))
+    cov = np.linalg.pinv(info)
+    return cov @ (a.T @ (r / sd)), cov, rank

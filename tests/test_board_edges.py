@@ -1,0 +1,133 @@
+"""The board's edges as measurements (solvers.board_edges): the factor's Jacobians, its likelihood against
+simulated ring crossings, the refinement with edges on weakly spread boards, and the outline checks."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from estimators.simulation.simulator import _sample_poses, default_rig, sample_board_poses
+from estimators.solvers.board_edges import BEAM_SD_RAD, crossings, edge_residuals, nuisance_jacobians
+from estimators.solvers.closed_form import solve_closed_form
+from estimators.solvers.observation_model import Layout, board_returns, simulate_measurements
+from estimators.solvers.refinement import measurement_model_options, refine
+from geometry.board import BoardModel
+from geometry.rotations import T_exp, T_from_Rt, T_inverse, T_log
+
+
+def _layout(seed: int, lidar: str = "vlp16", n: int = 6, weak: bool = False, noise_m: float = 0.02) -> Layout:
+    rng = np.random.default_rng(seed)
+    rig = default_rig(rng, lidar, noise_m)
+    if weak:  # normals within 3-12 degrees of the viewing axis: planes leave the in-plane translation weak
+        poses = _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3, 12))))
+    else:
+        poses = sample_board_poses(rig, n, rng)
+    return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
+
+
+def _crossings(layout: Layout, i: int):
+    dirs, ranges, rings, _ = board_returns(layout, i)
+    T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
+    return crossings(dirs * ranges[:, None], rings, T_bl, layout.board)
+
+
+def test_edge_jacobians_match_finite_differences():
+    layout = _layout(1)
+    T, h = layout.T_camera_lidar, 1e-6
+    for i in range(layout.n_frames):
+        e, Tb = _crossings(layout, i), layout.T_camera_board[i]
+        assert e.size >= 8
+        g, d = np.array([0.003, -0.002]), np.array([0.004, 0.001])
+        r, H_x, H_b = edge_residuals(T, Tb, e, layout.board, g, d)
+        N_x, N_b = np.zeros_like(H_x), np.zeros_like(H_b)
+        for k in range(6):
+            x = np.zeros(6)
+            x[k] = h
+            f = lambda Ta, Tbb: edge_residuals(Ta, Tbb, e, layout.board, g, d, jacobian=False)[0]  # noqa: E731
+            N_x[:, k] = (f(T @ T_exp(x), Tb) - f(T @ T_exp(-x), Tb)) / (2 * h)
+            N_b[:, k] = (f(T, Tb @ T_exp(x)) - f(T, Tb @ T_exp(-x))) / (2 * h)
+        np.testing.assert_allclose(H_x, N_x, atol=1e-6)
+        np.testing.assert_allclose(H_b, N_b, atol=1e-6)
+        H_g, H_s = nuisance_jacobians(e)
+        for k in range(2):
+            u = np.zeros(2)
+            u[k] = 1e-4
+            moved_g = edge_residuals(T, Tb, e, layout.board, g + u, d, False)[0]
+            moved_d = edge_residuals(T, Tb, e, layout.board, g, d + u, False)[0]
+            np.testing.assert_allclose(H_g[:, k], (moved_g - r) / 1e-4, atol=1e-9)
+            np.testing.assert_allclose(H_s[:, k], (moved_d - r) / 1e-4, atol=1e-9)
+
+
+def test_edge_likelihood_matches_simulated_ring_crossings():
+    # Exact beams on a fixed azimuth grid: under the truth each end's residual is uniform over its azimuth step
+    # (about the step's middle), so the standardised residuals have mean 0 and variance step^2/12 over the
+    # model's variance (which adds the beam footprint).
+    z = []
+    for seed in range(6):
+        layout = _layout(seed, "hdl64e")
+        for i in range(layout.n_frames):
+            e = _crossings(layout, i)
+            r, _, _ = edge_residuals(layout.T_camera_lidar, layout.T_camera_board[i], e, layout.board,
+                                     jacobian=False)
+            z.extend(r / e.sd_m)
+    z = np.array(z)
+    assert len(z) > 500
+    assert abs(z.mean()) < 3 * z.std() / np.sqrt(len(z))
+    step = layout.beams.azimuth_step_rad
+    share = step**2 / 12 / (step**2 / 12 + BEAM_SD_RAD**2)
+    assert abs(z.var() / share - 1.0) < 0.1
+    assert np.max(np.abs(z)) < np.sqrt(3.0 * share) * 1.01  # the uniform's half-width
+
+
+def test_edges_shrink_the_in_plane_error_on_weak_layouts():
+    # Ten boards tilted 3-12 degrees: planes leave the translation along them weak, the edges fix it.
+    err = {False: [], True: []}
+    d2 = []
+    for seed in range(6):
+        layout = _layout(seed, "vlp16", n=10, weak=True)
+        frames = simulate_measurements(layout, np.random.default_rng(seed + 100))
+        T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
+                               allow_weak=True).T_camera_lidar
+        for edges in (False, True):
+            ref = refine(frames, layout.board, layout.camera, T0,
+                         measurement_model_options(range_model="none", edges=edges))
+            xi = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
+            err[edges].append(xi)
+            if edges:
+                d2.append(float(xi @ np.linalg.solve(ref.covariance, xi)))
+                assert ref.edges is not None and ref.edges["ends"] > 100
+                assert ref.edges["planes_against_edges"]["p_value"] > 1e-3
+    rms = {k: np.sqrt(np.mean(np.array(v) ** 2, axis=0)) for k, v in err.items()}
+    assert np.linalg.norm(rms[True][:3]) < 0.7 * np.linalg.norm(rms[False][:3])   # rotation
+    assert np.linalg.norm(rms[True][3:]) < np.linalg.norm(rms[False][3:])          # translation
+    assert 2.0 < np.mean(d2) < 10.0  # 6 expected; six datasets
+
+
+def _with_lidar_board(frames, layout: Layout, lidar_layout: Layout, seed: int):
+    """The camera's frames of ``layout`` with the LiDAR's returns of ``lidar_layout`` (same noise draws)."""
+    lidar_frames = simulate_measurements(lidar_layout, np.random.default_rng(seed))
+    return [replace(f, lidar=g.lidar) for f, g in zip(frames, lidar_frames)]
+
+
+@pytest.mark.parametrize("error", ["pattern_offset", "size"])
+def test_outline_errors_in_the_dataset_are_caught(error):
+    # The dataset's board differs from the real one: the pattern printed 3 cm off centre, or the board 5 cm
+    # larger than given. The camera places the given board; the LiDAR sees the real one.
+    caught = 0
+    for seed in range(3):
+        layout = _layout(seed + 10, "hdl64e", n=8)
+        board = layout.board
+        if error == "pattern_offset":
+            real = layout
+            shifted = [T @ T_from_Rt(np.eye(3), np.array([0.03, 0.0, 0.0])) for T in layout.T_camera_board]
+            real = replace(layout, T_camera_board=tuple(shifted))
+        else:
+            w, h = board.extent
+            big = BoardModel(board.squares, board.square_size, (w + 0.05, h + 0.05), tuple(board.offset + 0.025))
+            moved = [T @ T_from_Rt(np.eye(3), np.array([-0.025, -0.025, 0.0])) for T in layout.T_camera_board]
+            real = replace(layout, board=big, T_camera_board=tuple(moved))
+        frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(seed)), layout, real, seed + 5)
+        T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
+        ref = refine(frames, board, layout.camera, T0, measurement_model_options(range_model="none", edges=True))
+        said = " ".join(ref.warnings)
+        caught += ("board edges:" in said)
+    assert caught == 3
