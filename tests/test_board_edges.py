@@ -131,3 +131,14 @@ def test_outline_errors_in_the_dataset_are_caught(error):
         said = " ".join(ref.warnings)
         caught += ("board edges:" in said)
     assert caught == 3
+
+
+def test_a_board_of_unknown_size_falls_back_to_planes_with_a_warning():
+    layout = _layout(4, "hdl64e", n=5)
+    unknown = BoardModel(layout.board.squares, layout.board.square_size)  # no size: the outline is not known
+    layout = replace(layout, board=unknown)
+    frames = simulate_measurements(layout, np.random.default_rng(4))
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
+    ref = refine(frames, unknown, layout.camera, T0, measurement_model_options(range_model="none", edges=True))
+    assert ref.edges is None
+    assert any("board's size is not given" in w for w in ref.warnings)
