@@ -26,13 +26,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def _layout(lidar: str, seed: int, weak: bool):
-    from estimators.simulation.simulator import _sample_poses, default_rig, sample_board_poses
+    from estimators.simulation.simulator import default_rig, sample_layout
     from estimators.solvers.observation_model import Layout
 
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, 0.02)
-    poses = (_sample_poses(rig, 10, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3, 12))))
-             if weak else sample_board_poses(rig, 8, rng))
+    poses = sample_layout(rig, "weak", 10, rng) if weak else sample_layout(rig, "spread", 8, rng)
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.02)
 
 
@@ -65,22 +64,14 @@ def _accuracy(args) -> dict:
 
 def _outline(args) -> bool:
     from estimators.solvers.closed_form import solve_closed_form
-    from estimators.solvers.observation_model import simulate_measurements
+    from estimators.solvers.observation_model import simulate_measurements, with_outline_error
     from estimators.solvers.refinement import measurement_model_options, refine
-    from geometry.board import BoardModel
-    from geometry.rotations import T_from_Rt
 
     error, seed = args
     layout = _layout("hdl64e", seed, False)
     board = layout.board
-    if error == "pattern 3 cm off centre":
-        real = replace(layout, T_camera_board=tuple(T @ T_from_Rt(np.eye(3), np.array([0.03, 0.0, 0.0]))
-                                                    for T in layout.T_camera_board))
-    else:
-        w, h = board.extent
-        big = BoardModel(board.squares, board.square_size, (w + 0.05, h + 0.05), tuple(board.offset + 0.025))
-        real = replace(layout, board=big, T_camera_board=tuple(T @ T_from_Rt(np.eye(3), np.array([-0.025, -0.025, 0]))
-                                                               for T in layout.T_camera_board))
+    real = (with_outline_error(layout, pattern_shift_m=(0.03, 0.0)) if error == "pattern 3 cm off centre" else
+            with_outline_error(layout, size_error_m=0.05))
     cam = simulate_measurements(layout, np.random.default_rng(seed))
     seen = simulate_measurements(real, np.random.default_rng(seed + 5))
     frames = [replace(f, lidar=g.lidar) for f, g in zip(cam, seen)]

@@ -5,22 +5,20 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from estimators.simulation.simulator import _sample_poses, default_rig, sample_board_poses
+from estimators.simulation.simulator import default_rig, sample_layout
 from estimators.solvers.board_edges import BEAM_SD_RAD, crossings, edge_residuals, nuisance_jacobians
 from estimators.solvers.closed_form import solve_closed_form
-from estimators.solvers.observation_model import Layout, board_returns, simulate_measurements
+from estimators.solvers.observation_model import Layout, board_returns, simulate_measurements, with_outline_error
 from estimators.solvers.refinement import measurement_model_options, refine
 from geometry.board import BoardModel
-from geometry.rotations import T_exp, T_from_Rt, T_inverse, T_log
+from geometry.rotations import T_exp, T_inverse, T_log
 
 
 def _layout(seed: int, lidar: str = "vlp16", n: int = 6, weak: bool = False, noise_m: float = 0.02) -> Layout:
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, noise_m)
-    if weak:  # normals within 3-12 degrees of the viewing axis: planes leave the in-plane translation weak
-        poses = _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3, 12))))
-    else:
-        poses = sample_board_poses(rig, n, rng)
+    # weak: normals within 3-12 degrees of the viewing axis, so planes leave the in-plane translation weak
+    poses = sample_layout(rig, "weak" if weak else "spread", n, rng)
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
 
 
@@ -102,8 +100,8 @@ def test_edges_shrink_the_in_plane_error_on_weak_layouts():
     assert 2.0 < np.mean(d2) < 10.0  # 6 expected; six datasets
 
 
-def _with_lidar_board(frames, layout: Layout, lidar_layout: Layout, seed: int):
-    """The camera's frames of ``layout`` with the LiDAR's returns of ``lidar_layout`` (same noise draws)."""
+def _with_lidar_board(frames, lidar_layout: Layout, seed: int):
+    """The camera's ``frames`` with the LiDAR's returns of ``lidar_layout``."""
     lidar_frames = simulate_measurements(lidar_layout, np.random.default_rng(seed))
     return [replace(f, lidar=g.lidar) for f, g in zip(frames, lidar_frames)]
 
@@ -115,19 +113,12 @@ def test_outline_errors_in_the_dataset_are_caught(error):
     caught = 0
     for seed in range(3):
         layout = _layout(seed + 10, "hdl64e", n=8)
-        board = layout.board
-        if error == "pattern_offset":
-            real = layout
-            shifted = [T @ T_from_Rt(np.eye(3), np.array([0.03, 0.0, 0.0])) for T in layout.T_camera_board]
-            real = replace(layout, T_camera_board=tuple(shifted))
-        else:
-            w, h = board.extent
-            big = BoardModel(board.squares, board.square_size, (w + 0.05, h + 0.05), tuple(board.offset + 0.025))
-            moved = [T @ T_from_Rt(np.eye(3), np.array([-0.025, -0.025, 0.0])) for T in layout.T_camera_board]
-            real = replace(layout, board=big, T_camera_board=tuple(moved))
-        frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(seed)), layout, real, seed + 5)
+        real = (with_outline_error(layout, pattern_shift_m=(0.03, 0.0)) if error == "pattern_offset" else
+                with_outline_error(layout, size_error_m=0.05))
+        frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(seed)), real, seed + 5)
         T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
-        ref = refine(frames, board, layout.camera, T0, measurement_model_options(range_model="none", edges=True))
+        ref = refine(frames, layout.board, layout.camera, T0,
+                     measurement_model_options(range_model="none", edges=True))
         said = " ".join(ref.warnings)
         caught += ("board edges:" in said)
     assert caught == 3

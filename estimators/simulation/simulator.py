@@ -278,19 +278,22 @@ def one_way_poses(rig: Rig, n: int, rng: np.random.Generator, direction: str, ti
     raise RuntimeError(f"no feasible {direction}-tilted board pose found in {max_tries * n} tries")
 
 
-LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal")
+LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal", "weak")
 
 
 def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> list[np.ndarray]:
     """``n`` board poses of a named family: ``spread`` (normals round the viewing axis, 15-40 degrees),
     ``quadrants`` (normals 30 degrees into the four image quadrants in turn), ``upward`` / ``rightward`` (all
-    30 degrees one way), ``frontal`` (tilts under 8 degrees: the rotation is barely observable)."""
+    30 degrees one way), ``frontal`` (tilts under 8 degrees: the rotation is barely observable), ``weak`` (tilts
+    of 3-12 degrees at random azimuths: the planes leave the translation along the boards weak)."""
     if family == "spread":
         return sample_board_poses(rig, n, rng)
     if family == "quadrants":
         return _sample_poses(rig, n, rng, lambda k: (np.pi / 4 + np.pi / 2 * (k % 4), np.deg2rad(30.0)))
     if family in ("upward", "rightward"):
         return one_way_poses(rig, n, rng, {"upward": "up", "rightward": "right"}[family])
+    if family == "weak":
+        return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3.0, 12.0))))
     if family == "frontal":
         return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(0, 8.0))))
     raise ValueError(f"Expected a layout family in {LAYOUT_FAMILIES}, got {family!r}")

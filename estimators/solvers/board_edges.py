@@ -163,7 +163,7 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
 
 def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     """``v`` projected along the ray ``Rb`` onto the board's plane (z = 0)."""
-    return v - Rb * (v[..., 2:3] / Rb[..., 2:3] if v.ndim > 1 else v[2] / Rb[2])
+    return v - Rb * (v[2] / Rb[2])
 
 
 def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,

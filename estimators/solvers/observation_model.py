@@ -15,7 +15,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import T_inverse, transform_points
+from geometry.rotations import T_from_Rt, T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
@@ -169,6 +169,24 @@ def layout_range_terms(layout: Layout, model: str) -> RangeTerms | None:
 
 
 INTENSITY_MODES = ("contrast", "flat", "saturated")
+
+
+def with_outline_error(layout: Layout, pattern_shift_m: tuple[float, float] = (0.0, 0.0),
+                       size_error_m: float = 0.0) -> Layout:
+    """The layout as the LiDAR sees it when the dataset misstates the board: the pattern printed
+    ``pattern_shift_m`` (board x, y) from where the dataset puts it, or the board ``size_error_m`` larger on
+    each axis than given (the pattern centred). The camera places the given board; pair the two layouts'
+    measurements (:func:`simulate_measurements` of each) to simulate the misstatement."""
+    board = layout.board
+    shift = np.array([pattern_shift_m[0], pattern_shift_m[1], 0.0])
+    if size_error_m:
+        w, h = board.extent
+        half = 0.5 * size_error_m
+        board = BoardModel(board.squares, board.square_size, (w + size_error_m, h + size_error_m),
+                           tuple(board.offset + half))
+        shift = shift - np.array([half, half, 0.0])
+    moved = tuple(T @ T_from_Rt(np.eye(3), shift) for T in layout.T_camera_board)
+    return replace(layout, board=board, T_camera_board=moved)
 
 
 def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,

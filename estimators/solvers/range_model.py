@@ -225,7 +225,7 @@ def frame_labels(frames: list[FrameMeasurement], board=None, T_camera_lidar: np.
     """Ring and black-square labels of every frame's board points. Given the board model and the extrinsic, the
     black squares are placed by geometry (:func:`geometric_dark`, on each frame's board pose: ``boards`` or
     the camera's own) and the intensities only cross-check them; else they come from intensity."""
-    rings = tuple(_rings(frames))
+    rings = tuple(frame_rings(frames))
     if board is None or T_camera_lidar is None:
         return FrameLabels(rings, tuple(dark_labels(f.lidar) for f in frames), names=tuple(f.name for f in frames))
     from ..camera.charuco import pattern_reflectance  # the printed pattern, a ChArUco board's markers included
@@ -293,10 +293,6 @@ def _two_colours(dark: np.ndarray | None) -> bool:
 def frame_rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
     """Each frame's board points' ring ids: the scan's own, or the beams' elevations clustered over every frame
     (one ring per cluster; None for 2D scans)."""
-    return _rings(frames)
-
-
-def _rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
     if any(f.lidar.is_scan_line for f in frames):
         return [None] * len(frames)
     if all(f.lidar.rings is not None for f in frames):

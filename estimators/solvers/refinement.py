@@ -392,6 +392,17 @@ class _Problem:
     def has_edges(self, i: int) -> bool:
         return self.edges is not None and self.edges[i] is not None and self.edges[i].size > 0
 
+    def variant(self, camera: CameraModel | None = None, labels: FrameLabels | None = None, edges: bool = True
+                ) -> "_Problem":
+        """The same problem and state (terms and their values, scatter, pinned terms, edges) with another camera
+        model or labels, or without the edges."""
+        p = _Problem(self.frames, self.board, camera or self.camera, self.sigma_px, self.sigma_r, self.options,
+                     self.terms, labels or self.labels)
+        p.beta, p.tau, p.pinned = self.beta.copy(), self.tau, self.pinned
+        if edges:
+            p.copy_edges(self)
+        return p
+
     def copy_edges(self, other: "_Problem") -> None:
         self.edges, self.outline, self.edge_scale = other.edges, other.outline.copy(), other.edge_scale
         self.edge_tau, self.shifts = other.edge_tau, dict(other.shifts)
@@ -528,9 +539,7 @@ def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list
                         f"{1000 * o[1]:+.0f} mm along its y from where dataset.yaml puts it: check "
                         "board.pattern_offset (the board corner to the pattern's corner) and board.size")
     # The planes alone, from this estimate, with the same noise model.
-    planes = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, prob.options, prob.terms,
-                      prob.labels)
-    planes.beta, planes.tau, planes.pinned = prob.beta.copy(), prob.tau, prob.pinned
+    planes = prob.variant(edges=False)
     b = list(boards)
     graph, result, _ = planes.solve(active, T, b, floor)
     T_p = result.atPose3(EXTRINSIC).matrix()
@@ -1151,10 +1160,7 @@ def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards
         for sign in (1.0, -1.0):
             T_moved = T @ T_exp(sign * np.sqrt(max(lam, 0.0)) * v)
             labels = frame_labels(prob.frames, prob.board, T_moved, boards)
-            moved = _Problem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, prob.options,
-                             prob.terms, replace(prob.labels, dark=labels.dark))
-            moved.copy_edges(prob)
-            moved.tau, moved.pinned = prob.tau, prob.pinned
+            moved = prob.variant(labels=replace(prob.labels, dark=labels.dark))
             # One Gauss-Newton step from the estimate: the shift the new colours call for, to first order.
             delta = moved.graph(active, floor).linearize(values).optimize()
             shifts.append(np.concatenate([delta.at(EXTRINSIC), delta.at(RANGE)]))
@@ -1178,10 +1184,7 @@ def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boa
             continue
         p = cam.params.copy()
         p[k] += s
-        moved = _Problem(prob.frames, prob.board, cam.with_params(p), prob.sigma_px, prob.sigma_r, options,
-                         prob.terms, prob.labels)
-        moved.copy_edges(prob)
-        moved.beta = prob.beta.copy()
+        moved = prob.variant(camera=cam.with_params(p))
         _, result, _ = moved.solve(active, T, list(boards), floor)
         xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())
         out += np.outer(xi, xi)
