@@ -138,3 +138,14 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     u = np.cross(n, a)
     u /= np.linalg.norm(u)
     return np.column_stack([u, np.cross(n, u)])
+
+
+def cut_with_board(T_board_sensor: np.ndarray, beams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from a sensor's origin along unit ``beams`` (K, 3, sensor frame) cut with a board's plane (z = 0 of
+    the board frame): ``(q, s, Rb)``, the cuts in the board frame (K, 3), their distances along the beams, and
+    the beams in the board frame. A beam parallel to the board is cut far away (its z taken as 1e-9)."""
+    R, t = T_board_sensor[:3, :3], T_board_sensor[:3, 3]
+    Rb = np.asarray(beams, dtype=float) @ R.T
+    z = np.where(np.abs(Rb[:, 2]) < 1e-9, 1e-9, Rb[:, 2])
+    s = -t[2] / z
+    return Rb * s[:, None] + t, s, Rb

@@ -38,6 +38,7 @@ import gtsam
 import numpy as np
 
 from geometry.board import BoardModel
+from geometry.planes import cut_with_board
 
 # Beam footprint (rad, 1 sd of where the beam's centre can be while the board still returns it): a few mrad of
 # divergence in spinning LiDARs (VLP-16 3 mrad full width, OS1 about 3 mrad), of which a return's centre counts
@@ -115,16 +116,6 @@ def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarr
     return out
 
 
-def cut(T_board_lidar: np.ndarray, beams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The beams' rays cut with the board's plane: ``(q, s, Rb)``, the cuts in the board frame (K, 3), their
-    distances along the beams, and the beams in the board frame."""
-    R, t = T_board_lidar[:3, :3], T_board_lidar[:3, 3]
-    Rb = beams @ R.T
-    z = np.where(np.abs(Rb[:, 2]) < 1e-9, 1e-9, Rb[:, 2])
-    s = -t[2] / z
-    return Rb * s[:, None] + t, s, Rb
-
-
 def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, board: BoardModel,
               beam_sd_rad: float = BEAM_SD_RAD) -> EdgeCrossings:
     """The ring ends of one frame's board points that cross the board's outline (module docstring), with
@@ -133,7 +124,7 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
     w, h = board.extent
     keep_b, keep_s, keep_r, keep_sd = [], [], [], []
     for ring, beam, step in ends:
-        q, s, Rb = cut(T_board_lidar, beam[None])
+        q, s, Rb = cut_with_board(T_board_lidar, beam[None])
         if not s[0] > 0:
             continue
         # The cut's motion in the board's plane per radian of azimuth (the beam turning about the LiDAR's z).
@@ -174,7 +165,7 @@ def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges
     Jacobians by the extrinsic (K, 6) and the board pose (K, 6) (the growth's and the shift's:
     :func:`nuisance_jacobians`)."""
     T_bl = np.linalg.inv(T_camera_board) @ T_camera_lidar
-    q, s, Rb = cut(T_bl, edges.beams)
+    q, s, Rb = cut_with_board(T_bl, edges.beams)
     a = _NORMALS[edges.sides]
     r = (np.einsum("ij,ij->i", a, q[:, :2] - np.asarray(shift_m)) - side_offsets(board, edges.sides)
          - np.asarray(growth_m)[edges.sides // 2])

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geometry.planes import sqrt_excess_moment, sqrt_excess_moment_scan
+from geometry.planes import cut_with_board, sqrt_excess_moment, sqrt_excess_moment_scan
 
 from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
                                    range_accuracy_for)
@@ -270,11 +270,7 @@ def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
     black) averaged over a Gaussian of the position's uncertainty (``LABEL_POSITION_SD_M``) by 5 x 5
     Gauss-Hermite quadrature. Returns off the board count as white."""
     P = np.asarray(points, dtype=float)
-    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
-    R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
-    n = R[:, 2]
-    t = (n @ o) / np.where(np.abs(beams @ n) < 1e-6, 1e-6, beams @ n)
-    local = (beams * t[:, None] - o) @ R
+    local = cut_with_board(np.linalg.inv(T_lidar_board), P / np.linalg.norm(P, axis=1, keepdims=True))[0]
     nodes, weights = np.polynomial.hermite_e.hermegauss(5)
     weights = weights / weights.sum()
     share = np.zeros(len(P))
