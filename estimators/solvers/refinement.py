@@ -578,20 +578,22 @@ def _mahalanobis(x: np.ndarray, C: np.ndarray) -> tuple[float, int]:
     return float(np.sum(y**2 / ev[keep])), int(keep.sum())
 
 
-def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
-    """Explain a singular system by the extrinsic's least-informed direction."""
+def _hessian(graph, values, n_frames: int) -> np.ndarray:
+    """The graph's information at ``values``, ordered extrinsic, board poses, the edges' nuisances, range terms
+    last (those present)."""
     ordering = gtsam.Ordering()
     ordering.push_back(EXTRINSIC)
     for j in range(n_frames):
         ordering.push_back(board_key(j))
-    for j in range(n_frames):
-        if values.exists(shift_key(j)):
-            ordering.push_back(shift_key(j))
-    if values.exists(OUTLINE):
-        ordering.push_back(OUTLINE)
-    if values.exists(RANGE):
-        ordering.push_back(RANGE)
-    H, _ = graph.linearize(values).hessian(ordering)
+    for key in [shift_key(j) for j in range(n_frames)] + [OUTLINE, RANGE]:
+        if values.exists(key):
+            ordering.push_back(key)
+    return graph.linearize(values).hessian(ordering)[0]
+
+
+def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
+    """Explain a singular system by the extrinsic's least-informed direction."""
+    H = _hessian(graph, values, n_frames)
     A, B, C = H[:6, :6], H[:6, 6:], H[6:, 6:]
     info = A - B @ np.linalg.pinv(C) @ B.T
     vals, vecs = np.linalg.eigh(info)
@@ -1113,18 +1115,7 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
     "consider" covariance): ``A^-1 + A^-1 B P B^T A^-1`` over the other variables, with ``A`` their information,
     ``B`` its coupling to the pinned terms and ``P`` the pinned terms' prior covariance. Also returns the record
     with that share in ``extrinsic_share`` and the pinned terms' standard deviations set to their priors."""
-    graph = prob.graph(active, floor, free_pinned=True)
-    ordering = gtsam.Ordering()
-    ordering.push_back(EXTRINSIC)
-    for j in range(len(active)):
-        ordering.push_back(board_key(j))
-    for j, i in enumerate(active):
-        if prob.has_edges(i):
-            ordering.push_back(shift_key(j))
-    if prob.edges is not None:
-        ordering.push_back(OUTLINE)
-    ordering.push_back(RANGE)
-    H, _ = graph.linearize(result).hessian(ordering)
+    H = _hessian(prob.graph(active, floor, free_pinned=True), result, len(active))
     K = prob.terms.size
     n = H.shape[0] - K
     pinned = [n + k for k in prob.pinned]
