@@ -5,8 +5,10 @@ Per dataset: a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 1
 degrees from the viewing axis (planes leave the translation along the boards weak), exact beams on the
 LiDAR's azimuth grid. Each dataset is refined with planes alone and with planes and edges (range model none).
 Rows: RMS rotation and translation error, the translation's error across the mean board normal ("in-plane"),
-the mean squared Mahalanobis distance of the truth (6 ideal), and how often the planes-against-edges test
-rejects at 1%. Then the outline checks: the dataset's board 5 cm too small, or its pattern 3 cm off centre, and
+the RMS errors over the Cramer-Rao bound of the same model (`observation_model.cramer_rao_bound`; with the edges,
+their noise that of these exact beams: uniform over the azimuth step), the mean squared Mahalanobis distance of
+the truth (6 ideal), how often the planes-against-edges test rejects at 1%, and (the first `--posterior N`
+datasets) how often the posterior's 95% intervals hold the truth, over the six axes. Then the outline checks: the dataset's board 5 cm too small, or its pattern 3 cm off centre, and
 how often a `board edges:` warning says so.
 """
 from __future__ import annotations
@@ -37,18 +39,21 @@ def _layout(lidar: str, seed: int, weak: bool):
 
 def _accuracy(args) -> dict:
     from estimators.solvers.closed_form import solve_closed_form
-    from estimators.solvers.observation_model import simulate_measurements
+    from estimators.solvers.observation_model import cramer_rao_bound, simulate_measurements
+    from estimators.solvers.posterior import PosteriorOptions, sample_posterior
     from estimators.solvers.refinement import measurement_model_options, refine
     from geometry.rotations import T_inverse, T_log
 
-    lidar, seed = args
+    lidar, seed, posterior = args
     layout = _layout(lidar, seed, True)
-    frames = simulate_measurements(layout, np.random.default_rng(seed + 10**6))
+    frames = simulate_measurements(layout, np.random.default_rng(seed + 10**6), azimuth_phase=True)
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
                            allow_weak=True).T_camera_lidar
     normal = np.mean([f.camera.plane.normal for f in frames], axis=0)
     normal /= np.linalg.norm(normal)
     out = {}
+    # The simulated ends are exact beams: their only noise is where the azimuth step falls (beam_sd_rad 0).
+    bounds = {False: cramer_rao_bound(layout), True: cramer_rao_bound(layout, edges=True, beam_sd_rad=0.0)}
     for edges in (False, True):
         ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none",
                                                                                          edges=edges))
@@ -58,7 +63,14 @@ def _accuracy(args) -> dict:
         out[edges] = {"rot": np.degrees(np.linalg.norm(xi[:3])), "trans": 1000 * np.linalg.norm(dt),
                       "in_plane": 1000 * np.linalg.norm(dt - normal * (normal @ dt)),
                       "d2": float(xi @ np.linalg.solve(ref.covariance, xi)),
-                      "rejects": bool(test and test["p_value"] < 0.01)}
+                      "rejects": bool(test and test["p_value"] < 0.01),
+                      "crb_rot": float(np.trace(bounds[edges][:3, :3])), "crb_tr": float(np.trace(bounds[edges][3:, 3:])),
+                      "rot_sq": float(xi[:3] @ xi[:3]), "tr_sq": float(xi[3:] @ xi[3:])}
+        if edges and posterior:
+            post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(seed),
+                                    PosteriorOptions(min_ess=1000, progress=False))
+            lo, hi = np.percentile(post.xi, [2.5, 97.5], axis=0)
+            out[edges]["inside"] = float(np.mean((xi >= lo) & (xi <= hi)))
     return out
 
 
@@ -84,19 +96,26 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--datasets", type=int, default=100)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--posterior", type=int, default=20, metavar="N",
+                    help="sample the posterior with the edges on the first N datasets per LiDAR (default 20)")
     args = ap.parse_args()
     print(f"Board edges, measurement level: {args.datasets} datasets per row, 10 boards tilted 3-12 degrees, "
           "2 cm range noise, 0.2 px corners, range model none")
-    print(f"{'row':34s}{'rot deg':>9s}{'trans mm':>10s}{'in-plane mm':>12s}{'d2':>7s}{'test rejects':>14s}")
+    print(f"{'row':34s}{'rot deg':>9s}{'trans mm':>10s}{'in-plane mm':>12s}{'rot/CRB':>9s}{'tr/CRB':>8s}{'d2':>7s}"
+          f"{'test rejects':>14s}{'posterior in 95%':>18s}")
     with ProcessPoolExecutor(args.workers) as pool:
         for lidar in ("vlp16", "os64"):
-            rows = list(pool.map(_accuracy, [(lidar, s) for s in range(args.datasets)]))
+            rows = list(pool.map(_accuracy, [(lidar, s, s < args.posterior) for s in range(args.datasets)]))
             for edges, label in ((False, "planes"), (True, "planes + edges")):
                 r = [x[edges] for x in rows]
                 rms = {k: np.sqrt(np.mean([x[k] ** 2 for x in r])) for k in ("rot", "trans", "in_plane")}
                 rej = f"{100 * np.mean([x['rejects'] for x in r]):.0f}%" if edges else "-"
+                ratio = [np.sqrt(np.mean([x[k + "_sq"] for x in r]) / np.mean([x["crb_" + k] for x in r]))
+                         for k in ("rot", "tr")]
+                inside = [x["inside"] for x in r if "inside" in x]
+                cover = f"{100 * np.mean(inside):.1f}% of {len(inside)}" if inside else "-"
                 print(f"{lidar + ', ' + label:34s}{rms['rot']:9.3f}{rms['trans']:10.1f}{rms['in_plane']:12.1f}"
-                      f"{np.mean([x['d2'] for x in r]):7.2f}{rej:>14s}")
+                      f"{ratio[0]:9.2f}{ratio[1]:8.2f}{np.mean([x['d2'] for x in r]):7.2f}{rej:>14s}{cover:>18s}")
         n = max(args.datasets // 2, 1)
         for error in ("board 5 cm larger than given", "pattern 3 cm off centre"):
             caught = list(pool.map(_outline, [(error, 1000 + s) for s in range(n)]))

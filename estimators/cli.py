@@ -206,7 +206,7 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                    help="also use the board's edges (where each LiDAR ring leaves the board; needs board.size): "
                         "they fix the translation along the boards' planes, which planes leave weak. The result "
                         "tests the planes against the edges and checks the outlines' mean shift (calibration.json "
-                        "'board_edges'). Not yet in the posterior: with --edges the intervals are the Laplace ones")
+                        "'board_edges'); the posterior holds their share to second order about the estimate")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
@@ -228,10 +228,6 @@ def _posterior_options(args):
     if args.samples < 0:
         raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
     if args.samples == 0 or args.refine == "none":
-        return None
-    if getattr(args, "edges", False):
-        print("note: --edges: the posterior does not model the board's edges yet, so no samples are drawn; the "
-              "intervals are the Laplace approximation's (with the edges)", file=sys.stderr)
         return None
     return PosteriorOptions(min_ess=args.samples, likelihood=args.likelihood, progress=sys.stderr.isatty())
 

@@ -32,8 +32,8 @@ from ..lidar.lidar_models import BEAM_MODELS
 from ..simulation.simulator import (R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, min_in_image,
                                     sample_board_poses)
 from ..solvers.closed_form import describe_direction, normal_spread
-from ..solvers.observation_model import (Layout, board_hits, frame_contribution, frame_information,
-                                        range_model_information)
+from ..solvers.observation_model import (Layout, board_hits, edges_information, frame_contribution,
+                                        frame_information, range_model_information)
 from ..solvers.range_model import OFFSET_PRIOR_SD_M, RangeTerms
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
@@ -54,6 +54,9 @@ class LayoutAnalysis:
     # With a global LiDAR range offset estimated too (prior OFFSET_PRIOR_SD_M): the translation's standard
     # deviations (mm), the offset's (mm), and its correlation with the translation along the LiDAR's x y z.
     offset: dict | None = None
+    # With the board's edges too (``--edges``; a planned layout of a 3D LiDAR whose board size is known): the
+    # predicted rotation (deg) and translation (mm) standard deviations.
+    edges: dict | None = None
 
     @property
     def std_rotation_deg(self) -> np.ndarray:
@@ -78,7 +81,7 @@ class LayoutAnalysis:
                 "d_optimality_per_mrad_mm": self.d_optimality, "e_optimality_per_mrad_mm": self.e_optimality,
                 "weakest_direction": self.weakest_words,
                 "leverage": dict(zip(self.names, self.leverage.tolist())),
-                "with_range_offset": self.offset}
+                "with_range_offset": self.offset, "with_board_edges": self.edges}
 
     def format(self) -> str:
         def fmt(v, unit, digits):
@@ -98,6 +101,11 @@ class LayoutAnalysis:
                       + "  ".join(f"{v:.2f}" for v in o["translation_std_mm"]) + f" mm; offset {o['offset_std_mm']:.1f}"
                       " mm; its correlation with the translation along x y z "
                       + "  ".join(f"{c:+.2f}" for c in o["translation_correlation"])]
+        if self.edges is not None:
+            e = self.edges
+            lines += ["with the board's edges (--edges): rotation "
+                      + "  ".join(f"{v:.3f}" for v in e["rotation_std_deg"]) + " deg; translation "
+                      + "  ".join(f"{v:.2f}" for v in e["translation_std_mm"]) + " mm"]
         return "\n".join(lines)
 
 
@@ -127,7 +135,20 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
     except np.linalg.LinAlgError:  # a board's own information is singular (absurd board sizes): no offset view
         offset = None
     return LayoutAnalysis(names, cov, F, s, D, float(vals[0]), _weakest_words(vecs[:, 0], layout, tiny[0]),
-                          leverage, offset)
+                          leverage, offset, _with_edges(layout))
+
+
+def _with_edges(layout: Layout) -> dict | None:
+    """The predicted standard deviations with the board's edges (``observation_model.edges_information``), for a
+    planned 3D layout whose board size is known (measured layouts have no rings to find the ends by)."""
+    if layout.hits is not None or layout.beams.is_2d or layout.board.size is None:
+        return None
+    try:
+        C = np.linalg.inv(edges_information(layout))
+    except np.linalg.LinAlgError:
+        return None
+    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist()}
 
 
 OFFSET_TERMS = RangeTerms(("offset",), (OFFSET_PRIOR_SD_M,))

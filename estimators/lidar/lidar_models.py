@@ -2,7 +2,7 @@
 accuracy of sensor families (the range model's priors, ``solvers.range_model``)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,6 +30,8 @@ class BeamModel:
     max_range_m: float
     # Field of view in azimuth (from, to), radians; None for a full turn.
     azimuth_limits_rad: tuple[float, float] | None = None
+    # Where the sweep's firings fall (radians, within one step): a real sweep's phase differs from sweep to sweep.
+    azimuth_phase_rad: float = 0.0
 
     @property
     def is_2d(self) -> bool:
@@ -38,9 +40,9 @@ class BeamModel:
 
     def azimuths(self) -> np.ndarray:
         if self.azimuth_limits_rad is None:
-            return np.arange(0.0, 2 * np.pi, self.azimuth_step_rad)
+            return np.arange(0.0, 2 * np.pi, self.azimuth_step_rad) + self.azimuth_phase_rad
         lo, hi = self.azimuth_limits_rad
-        return np.arange(lo, hi + 0.5 * self.azimuth_step_rad, self.azimuth_step_rad)
+        return np.arange(lo, hi + 0.5 * self.azimuth_step_rad, self.azimuth_step_rad) + self.azimuth_phase_rad
 
     def directions(self) -> tuple[np.ndarray, np.ndarray]:
         """Unit beam directions (N, 3) in the LiDAR frame (x forward, y left, z up) and ring ids (N,)."""
@@ -51,8 +53,7 @@ class BeamModel:
         return d, ring
 
     def with_noise(self, sigma_range_m: float) -> "BeamModel":
-        return BeamModel(self.name, self.elevations_rad, self.azimuth_step_rad, sigma_range_m, self.max_range_m,
-                         self.azimuth_limits_rad)
+        return replace(self, sigma_range_m=sigma_range_m)
 
 
 def hdl64e(sigma_range_m: float = 0.02) -> BeamModel:

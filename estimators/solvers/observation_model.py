@@ -138,12 +138,59 @@ def extrinsic_information(F: np.ndarray) -> np.ndarray:
         return A - B @ np.linalg.pinv(C, hermitian=True) @ B.T
 
 
-def cramer_rao_bound(layout: Layout, terms: RangeTerms | None = None) -> np.ndarray:
+def cramer_rao_bound(layout: Layout, terms: RangeTerms | None = None, edges: bool = False,
+                     beam_sd_rad: float | None = None) -> np.ndarray:
     """The Cramer-Rao bound (6x6 covariance, right tangent of ``T_camera_lidar``) of the layout; with range
-    terms, of the model that estimates them too (their priors included), marginal over them."""
+    terms, of the model that estimates them too (their priors included), marginal over them; with ``edges``, of
+    the planes and the board's edges (:func:`edges_information`, no range terms; ``beam_sd_rad`` there)."""
+    if edges:
+        if terms is not None:
+            raise ValueError("the bound with edges and range terms together is not built")
+        return np.linalg.inv(edges_information(layout, beam_sd_rad=beam_sd_rad))
     if terms is None:
         return np.linalg.inv(extrinsic_information(fisher_information(layout)))
     return np.linalg.inv(range_model_information(layout, terms))[:6, :6]
+
+
+def edges_information(layout: Layout, board_scatter_m: float = 0.0, beam_sd_rad: float | None = None) -> np.ndarray:
+    """The 6x6 information on the extrinsic from the board planes and the board's edges (every ring end on the
+    board's outline, ``solvers.board_edges``), with the board poses, each frame's outline shift (0 +-
+    ``board_scatter_m``; none when 0) and the dataset's outline growth and offset (their priors) marginalised:
+    the bound of ``--edges``. ``beam_sd_rad``: the ends' angular noise beyond the azimuth step's (default the
+    model's beam footprint, ``board_edges.BEAM_SD_RAD``; 0 for this module's simulated beams, which are exact).
+    Needs the board's size and a 3D LiDAR."""
+    from .board_edges import (BEAM_SD_RAD, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, crossings, edge_residuals,
+                              nuisance_jacobians)
+
+    if layout.board.size is None or layout.beams.is_2d:
+        raise ValueError("the edges' bound needs a 3D LiDAR and the board's size")
+    shifts = board_scatter_m > 0
+    info = np.zeros((10, 10))  # extrinsic, the outline's growth (x, y sides) and offset (x, y)
+    info[6:, 6:] = np.diag(1.0 / np.array([GROWTH_PRIOR_SD_M] * 2 + [OFFSET_PRIOR_SD_M] * 2) ** 2)
+    for i in range(layout.n_frames):
+        T_cb = layout.T_camera_board[i]
+        # [extrinsic, outline, board pose, shift]
+        n = 16 + 2 * shifts
+        F = np.zeros((n, n))
+        F12 = frame_information(layout, i)
+        idx = np.r_[0:6, 10:16]
+        F[np.ix_(idx, idx)] += F12
+        dirs, ranges, rings, _ = board_returns(layout, i)
+        if len(dirs) and rings is not None:
+            e = crossings(dirs * ranges[:, None], rings, T_inverse(T_cb) @ layout.T_camera_lidar, layout.board,
+                          BEAM_SD_RAD if beam_sd_rad is None else beam_sd_rad)
+            if e.size:
+                _, H_x, H_b = edge_residuals(layout.T_camera_lidar, T_cb, e, layout.board)
+                H_g, H_s = nuisance_jacobians(e)
+                blocks = [H_x, H_g, H_s, H_b] + ([H_s] if shifts else [])
+                J = np.hstack(blocks) / e.sd_m[:, None]
+                F += J.T @ J
+        if shifts:
+            F[16:, 16:] += np.eye(2) / board_scatter_m**2
+        A, B, C = F[:10, :10], F[:10, 10:], F[10:, 10:]
+        info += A - B @ np.linalg.pinv(C, hermitian=True) @ B.T
+    A, B, C = info[:6, :6], info[:6, 6:], info[6:, 6:]
+    return A - B @ np.linalg.solve(C, B.T)
 
 
 def range_model_information(layout: Layout, terms: RangeTerms) -> np.ndarray:
@@ -190,16 +237,18 @@ def with_outline_error(layout: Layout, pattern_shift_m: tuple[float, float] = (0
 
 
 def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,
-                          board_error_m: float = 0.0, rings: bool = True, intensity: str = "contrast"
-                          ) -> list[FrameMeasurement]:
+                          board_error_m: float = 0.0, rings: bool = True, intensity: str = "contrast",
+                          azimuth_phase: bool = False) -> list[FrameMeasurement]:
     """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
     board's beam returns with Gaussian range noise, plus ``bias`` (systematic range errors) when given; the
     returns carry their ring ids (``rings=False``: none, as a cloud without a ``ring`` field) and an intensity:
     ``contrast`` 0 on black squares and 100 elsewhere, ``flat`` 50 +- 5 on both (an uncalibrated LiDAR's),
     ``saturated`` 255 everywhere. ``board_error_m``: each board as the LiDAR sees it is moved from the camera's
     by a random per-board plane error (distance sd ``board_error_m``, tilt sd ``board_error_m`` over the board's
-    half-size: a bent board, a holder, intrinsics), the overdispersion of real recordings. No rendering, no
-    segmentation."""
+    half-size: a bent board, a holder, intrinsics), the overdispersion of real recordings. ``azimuth_phase``:
+    each frame's sweep fires at a random phase of its azimuth step (as real sweeps do), so that repeated draws
+    of one layout vary where the rings end on the board; by default the layout's fixed firing grid. No
+    rendering, no segmentation."""
     if intensity not in INTENSITY_MODES:
         raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")
     frames = []
@@ -218,6 +267,10 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
                                 + np.array([0.0, 0.0, err.normal(0.0, board_error_m)]))
             moved.append(T_cb @ T_local)
         seen_by_lidar = replace(layout, T_camera_board=tuple(moved))
+    phases = None
+    if azimuth_phase:
+        phases = np.random.default_rng(rng.integers(2**63)).uniform(0.0, layout.beams.azimuth_step_rad,
+                                                                     layout.n_frames)
     for i in range(layout.n_frames):
         uv = corner_pixels(layout, i)
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
@@ -233,7 +286,10 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
             cam, why, alternatives = None, f"board pose: {exc.message}", exc.observations
         except MeasurementError as exc:  # as the pipeline does: the frame is kept, unusable, with the reason
             cam, why = None, f"board pose: {exc.message}"
-        dirs, ranges, ring_ids, dark = board_returns(seen_by_lidar, i)
+        swept = seen_by_lidar
+        if phases is not None:
+            swept = replace(seen_by_lidar, beams=replace(layout.beams, azimuth_phase_rad=float(phases[i])))
+        dirs, ranges, ring_ids, dark = board_returns(swept, i)
         if len(dirs) < 3:
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, why or f"only {len(dirs)} LiDAR beams hit the board"))
             continue

@@ -19,7 +19,10 @@ LiDAR points in O(1), and ``C_i(s) = A_i + s^2 B_i`` (LiDAR part, camera part). 
 dominate). A frame the robust loss down-weighted keeps that weight. When the intrinsics were calibrated
 from the same images, their first-order effect (from the refinement) is convolved into the samples. With a
 LiDAR range model (``solvers.range_model``) its terms are held at the MAP in the likelihood and their share of
-the extrinsic's covariance is convolved in the same way, so the intervals are marginal over them.
+the extrinsic's covariance is convolved in the same way, so the intervals are marginal over them. With the
+board's edges (``--edges``), their share of the log-posterior enters as a quadratic about the MAP (their
+nuisances and the board poses profiled out), second order like a Laplace approximation of that share alone:
+the ends' Huber weights are those of the refinement.
 """
 from __future__ import annotations
 
@@ -253,6 +256,9 @@ class PlaneLikelihood:
         self.signs, self.consts = np.array(signs), np.array(consts)
         self.normals, self.dists = np.array(normals), np.array(dists)
         self.dims, self.scan = np.array(dims, dtype=float), np.array(scan, dtype=bool)
+        # The board's edges, when used: their share of the log-posterior to second order about the MAP (their
+        # nuisances profiled out; ``refinement._edge_share``).
+        self.edge_H, self.edge_eta = ref.edge_share if ref.edge_share is not None else (None, None)
 
     @property
     def n_frames(self) -> int:
@@ -279,6 +285,9 @@ class PlaneLikelihood:
         else:
             q = np.sum(z * z / g, axis=2)
             loglik = -0.5 * np.sum((self.nu + self.dims) * np.log1p(q / self.nu), axis=1)
+        if self.edge_H is not None:
+            xi = theta[:, :6]
+            loglik = loglik + xi @ self.edge_eta - 0.5 * np.einsum("wi,ij,wj->w", xi, self.edge_H, xi)
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
 
 

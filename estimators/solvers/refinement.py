@@ -161,6 +161,8 @@ class Refinement:
     # The board's edges when used (``solvers.board_edges``): ends, growth, per-frame and mean outline shifts and
     # the test of the planes against the edges (:func:`_edges_record`).
     edges: dict | None = None
+    # The edges' share of the extrinsic's log-posterior, second order (:func:`_edge_share`): ``(H, eta)``.
+    edge_share: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
@@ -578,9 +580,10 @@ def _mahalanobis(x: np.ndarray, C: np.ndarray) -> tuple[float, int]:
     return float(np.sum(y**2 / ev[keep])), int(keep.sum())
 
 
-def _hessian(graph, values, n_frames: int) -> np.ndarray:
-    """The graph's information at ``values``, ordered extrinsic, board poses, the edges' nuisances, range terms
-    last (those present)."""
+def _hessian(graph, values, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """The graph's information and information vector at ``values`` (its cost there is ``0.5 d^T H d - eta^T d``
+    + const in the tangent ``d``), ordered extrinsic, board poses, the edges' nuisances, range terms last (those
+    present)."""
     ordering = gtsam.Ordering()
     ordering.push_back(EXTRINSIC)
     for j in range(n_frames):
@@ -588,14 +591,33 @@ def _hessian(graph, values, n_frames: int) -> np.ndarray:
     for key in [shift_key(j) for j in range(n_frames)] + [OUTLINE, RANGE]:
         if values.exists(key):
             ordering.push_back(key)
-    return graph.linearize(values).hessian(ordering)[0]
+    return graph.linearize(values).hessian(ordering)
+
+
+def _extrinsic_information(graph, values, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """The graph's information and information vector on the extrinsic alone at ``values``, every other
+    variable profiled out (Schur complement)."""
+    H, eta = _hessian(graph, values, n_frames)
+    K = H[:6, 6:] @ np.linalg.pinv(H[6:, 6:])
+    return H[:6, :6] - K @ H[:6, 6:].T, eta[:6] - K @ eta[6:]
+
+
+def _edge_share(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float, quasi_scale: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """What the edges add to the extrinsic's log-posterior about this estimate, to second order: ``eta^T xi -
+    0.5 xi^T H xi`` in the tangent ``xi`` (the posterior's). ``H``: the information with the edges less that of
+    the planes alone, every other variable profiled out; ``eta``: minus the planes' pull at the estimate, which
+    the edges balance (the whole graph's is zero there). Scaled like the covariance by ``quasi_scale``."""
+    H_all, _ = _extrinsic_information(prob.graph(active, floor), prob.values(active, T, boards), len(active))
+    planes = prob.variant(edges=False)
+    H_p, eta_p = _extrinsic_information(planes.graph(active, floor), planes.values(active, T, boards), len(active))
+    ev, V = np.linalg.eigh(0.5 * (H_all - H_p + (H_all - H_p).T))
+    return (V * np.maximum(ev, 0.0)) @ V.T / quasi_scale, -eta_p / quasi_scale
 
 
 def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
     """Explain a singular system by the extrinsic's least-informed direction."""
-    H = _hessian(graph, values, n_frames)
-    A, B, C = H[:6, :6], H[:6, 6:], H[6:, 6:]
-    info = A - B @ np.linalg.pinv(C) @ B.T
+    info, _ = _extrinsic_information(graph, values, n_frames)
     vals, vecs = np.linalg.eigh(info)
     weak = vecs[:, 0]
     part = "rotation" if np.linalg.norm(weak[:3]) > np.linalg.norm(weak[3:]) else "translation"
@@ -799,11 +821,12 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if model_fit is not None and labels is not None and labels.source == "geometry" and prob.has_beta \
             and "dark" in prob.terms.names and "dark" not in model_fit.pinned:
         cov, model_fit = _consider_placement(prob, active, T, boards, floor, cov, model_fit)
-    edges_record = None
+    edges_record = edge_share = None
     if prob.edges is not None:
         edges_record, edge_warnings = _edges_record(prob, active, T, boards, floor, cov / quasi_scale, marginals,
                                                     quasi_scale)
         warnings.extend(edge_warnings)
+        edge_share = _edge_share(prob, active, T, boards, floor, quasi_scale)
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -825,7 +848,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
-                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record)
+                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
+                      edge_share)
 
 
 BOARD_SCATTER_MEANING = (
@@ -1115,7 +1139,7 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
     "consider" covariance): ``A^-1 + A^-1 B P B^T A^-1`` over the other variables, with ``A`` their information,
     ``B`` its coupling to the pinned terms and ``P`` the pinned terms' prior covariance. Also returns the record
     with that share in ``extrinsic_share`` and the pinned terms' standard deviations set to their priors."""
-    H = _hessian(prob.graph(active, floor, free_pinned=True), result, len(active))
+    H, _ = _hessian(prob.graph(active, floor, free_pinned=True), result, len(active))
     K = prob.terms.size
     n = H.shape[0] - K
     pinned = [n + k for k in prob.pinned]
