@@ -690,6 +690,9 @@ def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
     return replace(frame, lidar=lidar)
 
 
+CONSENSUS_FAILED = "the frames' joint choice of their boards failed: no extrinsic that enough frames'"
+
+
 def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], what: str, choose):
     """The joint choice over the frames with a camera board (``choose(planes, poses, candidates, frame ids)``),
     and each such frame's :class:`FrameChoice`; (None, {}) with a warning when there is no consensus."""
@@ -700,8 +703,8 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
         assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
                        [candidates[k] for k in ks], ks)
     except DegenerateLayoutError as exc:
-        warnings.append(f"no extrinsic that enough frames' {what} agree on ({exc.problem}); each frame's is "
-                        "chosen from its own cues")
+        warnings.append(f"{CONSENSUS_FAILED} {what} agree on ({exc.problem}); each frame's is chosen from its own "
+                        "cues")
         return None, {}
     return assoc, dict(zip(ks, assoc.choices))
 
@@ -828,8 +831,8 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
                 return frames
             T_camera_lidar = ref.T_camera_lidar
         else:
-            T_camera_lidar = solve_closed_form([f.camera.plane for f in clear],
-                                               [f.lidar.plane for f in clear]).T_camera_lidar
+            T_camera_lidar = solve_closed_form([f.camera.plane for f in clear], [f.lidar.plane for f in clear],
+                                               allow_weak=True).T_camera_lidar
     except DegenerateLayoutError:
         return frames
     T_lidar_camera = np.linalg.inv(T_camera_lidar)
@@ -1015,8 +1018,15 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     t0 = time.perf_counter()
     # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
     # what the full model determines (and names what it does not).
-    sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used],
-                            allow_weak=refine == "factor-graph")
+    try:
+        sol = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used],
+                                allow_weak=refine == "factor-graph")
+    except DegenerateLayoutError as exc:
+        # Frames skipped as ambiguous because the frames' joint choice failed: the error says why it failed.
+        failed = [w for w in warnings if w.startswith(CONSENSUS_FAILED)]
+        if not failed:
+            raise
+        raise DegenerateLayoutError(f"{exc.problem}; {failed[0]}", path=exc.path, hint=exc.hint) from exc
     timings["solve"] = time.perf_counter() - t0
     T, ref = sol.T_camera_lidar, None
     if refine == "factor-graph":

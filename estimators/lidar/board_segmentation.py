@@ -284,8 +284,44 @@ def board_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardO
                 continue
             pieces.append((Q, plane, cost))
     pieces.sort(key=lambda c: c[2])
-    return [BoardCandidate(_finish(Q, P, board, len(pieces)), cost, foreground is not None)
-            for Q, _, cost in pieces], rejected
+    finished = _one_per_board([(_finish(Q, P, board, len(pieces)), cost) for Q, _, cost in pieces], P, board)
+    return [BoardCandidate(obs, cost, foreground is not None) for obs, cost in finished], rejected
+
+
+# Two candidates are one board when they share this share of the smaller's points (each piece's points are
+# gathered again around it, so two pieces of one board end up holding the same returns), or when their planes
+# agree within these limits and their points touch.
+SAME_BOARD_SHARED = 0.5
+SAME_BOARD_ANGLE_RAD = np.deg2rad(3.0)
+SAME_BOARD_OFFSET_M = 0.03
+SAME_BOARD_GAP_M = 0.08
+
+
+def _one_per_board(found: list[tuple[LidarBoardObservation, float]], P: np.ndarray, board: BoardModel
+                   ) -> list[tuple[LidarBoardObservation, float]]:
+    """One candidate per board: pieces that share most of their points, or lie in one plane and touch, are
+    merged (their points joined and finished again), keeping the best camera cue; ``found`` is sorted by it."""
+    out: list[tuple[LidarBoardObservation, float]] = []
+    for obs, cost in found:
+        for k, (kept, kept_cost) in enumerate(out):
+            if _same_board(kept, obs):
+                joined = np.unique(np.vstack([kept.points, obs.points]), axis=0)
+                merged = _finish(joined, P, board, len(found))
+                out[k] = (merged, min(kept_cost, cost))
+                break
+        else:
+            out.append((obs, cost))
+    return out
+
+
+def _same_board(a: LidarBoardObservation, b: LidarBoardObservation) -> bool:
+    small, large = (a, b) if len(a.points) <= len(b.points) else (b, a)
+    gap = cKDTree(large.points).query(small.points, distance_upper_bound=SAME_BOARD_GAP_M)[0]
+    if np.mean(gap < 1e-9) >= SAME_BOARD_SHARED:  # the same returns
+        return True
+    angle = float(np.arccos(min(1.0, abs(float(a.plane.normal @ b.plane.normal)))))
+    offset = float(np.median(np.abs(large.plane.signed_distances(small.points))))
+    return angle < SAME_BOARD_ANGLE_RAD and offset < SAME_BOARD_OFFSET_M and bool(np.any(np.isfinite(gap)))
 
 
 def find_board(points: np.ndarray, board: BoardModel, camera: CameraBoardObservation | None,

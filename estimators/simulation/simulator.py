@@ -278,14 +278,15 @@ def one_way_poses(rig: Rig, n: int, rng: np.random.Generator, direction: str, ti
     raise RuntimeError(f"no feasible {direction}-tilted board pose found in {max_tries * n} tries")
 
 
-LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal", "weak")
+LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal", "weak", "handheld")
 
 
 def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> list[np.ndarray]:
     """``n`` board poses of a named family: ``spread`` (normals round the viewing axis, 15-40 degrees),
     ``quadrants`` (normals 30 degrees into the four image quadrants in turn), ``upward`` / ``rightward`` (all
     30 degrees one way), ``frontal`` (tilts under 8 degrees: the rotation is barely observable), ``weak`` (tilts
-    of 3-12 degrees at random azimuths: the planes leave the translation along the boards weak)."""
+    of 3-12 degrees at random azimuths: the planes leave the translation along the boards weak), ``handheld``
+    (:func:`_handheld_poses`: boards held up in front of the rig, all facing its forward axis)."""
     if family == "spread":
         return sample_board_poses(rig, n, rng)
     if family == "quadrants":
@@ -296,7 +297,29 @@ def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> li
         return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3.0, 12.0))))
     if family == "frontal":
         return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(0, 8.0))))
+    if family == "handheld":
+        return _handheld_poses(rig, n, rng)
     raise ValueError(f"Expected a layout family in {LAYOUT_FAMILIES}, got {family!r}")
+
+
+def _handheld_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000) -> list[np.ndarray]:
+    """``n`` poses of a board held up in front of the rig: in the middle of the image, its normal within 1-4
+    degrees of the camera's optical axis (not of the line of sight), so that the normals spread 0.02-0.05 (the
+    smallest singular value of the best triple over sqrt 3) and the planes leave the layout weak."""
+    poses = []
+    for _ in range(n):
+        for _ in range(max_tries):
+            uv = np.array([[rng.uniform(0.3, 0.7) * rig.camera.width, rng.uniform(0.35, 0.65) * rig.camera.height]])
+            centre = rig.camera.rays(uv)[0] * rng.uniform(rig.min_distance_m, rig.max_distance_m)
+            R = _board_rotation(np.array([0.0, 0.0, 1.0]), np.deg2rad(rng.uniform(1.0, 4.0)),
+                                rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(-10.0, 10.0)))
+            T = T_from_Rt(R, centre - R @ rig.board.centre)
+            if _pose_fits(rig, T):
+                poses.append(T)
+                break
+        else:
+            raise ValueError("no feasible hand-held board pose found; check the rig")
+    return poses
 
 
 def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | None = None,

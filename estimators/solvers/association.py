@@ -34,7 +34,7 @@ from geometry.rotations import T_from_Rt, transform_points
 
 from ..errors import DegenerateLayoutError
 from ..lidar.board_segmentation import robust_plane_fit
-from .closed_form import MIN_NORMAL_SPREAD, solve_closed_form
+from .closed_form import MIN_NORMAL_SPREAD, WEAK_NORMAL_SPREAD, solve_closed_form
 
 GATE_CHI2_2DOF = 9.21  # 99% point of chi-square with 2 dof
 
@@ -71,17 +71,17 @@ class Association:
     seconds: float
 
 
-def _batch_closed_form(nc: np.ndarray, dc: np.ndarray, nl: np.ndarray, dl: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _batch_closed_form(nc: np.ndarray, dc: np.ndarray, nl: np.ndarray, dl: np.ndarray,
+                       min_spread: float = MIN_NORMAL_SPREAD) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed form of many plane triples at once: nc, nl (H, 3, 3) normals by row, dc, dl (H, 3). Returns R
-    (H, 3, 3), t (H, 3) and a validity mask (normals that span 3D)."""
+    (H, 3, 3), t (H, 3) and a validity mask (normals that span 3D: spread above ``min_spread``)."""
     K = np.einsum("hki,hkj->hij", nc, nl)
     U, _, Vt = np.linalg.svd(K)
     d = np.sign(np.linalg.det(U @ Vt))
     U = U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=1)[:, None, :]
     R = U @ Vt
     s = np.linalg.svd(nc, compute_uv=False)
-    ok = s[:, -1] / np.sqrt(3.0) > MIN_NORMAL_SPREAD
+    ok = s[:, -1] / np.sqrt(3.0) > min_spread
     t = np.zeros((len(nc), 3))
     if ok.any():
         t[ok] = np.linalg.solve(nc[ok], (dc - dl)[ok][:, :, None])[:, :, 0]
@@ -132,14 +132,18 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
     cl = np.array([c.points.mean(0) for k in frames for c in candidates[k]])
     ncam = np.array([p.normal for p in camera_planes])
     dcam = np.array([p.distance for p in camera_planes])
-    H = _hypotheses(frames, candidates, ncam, rng, params, weights)  # (H, 3, 2): (frame, candidate) per row
+    # (H, 3, 2): (frame, candidate) per row; triples spanning 3D well, else (hand-held boards, all facing the
+    # rig) those above the factor graph's weak limit
+    H, limit = _hypotheses(frames, candidates, ncam, rng, params, weights)
     if len(H) == 0:
         raise DegenerateLayoutError(f"no three of the {len(frames)} frames with board candidates have camera "
-                                    "normals that span 3D")
+                                    f"normals that span 3D (the best triple's spread is {limit:.3f}; the "
+                                    f"consensus needs {WEAK_NORMAL_SPREAD})")
     first = np.zeros(max(frames) + 1, dtype=int)
     first[frames] = np.searchsorted(cand_frame, frames)
     flat = first[H[:, :, 0]] + H[:, :, 1]
-    R, t, ok = _batch_closed_form(ncam[H[:, :, 0]], dcam[H[:, :, 0]], nl[flat], dl[flat])
+    R, t, ok = _batch_closed_form(ncam[H[:, :, 0]], dcam[H[:, :, 0]], nl[flat], dl[flat],
+                                  limit)
     R, t = R[ok], t[ok]
     if len(R) == 0:
         raise DegenerateLayoutError("no triple of frames with board candidates has normals that span 3D")
@@ -156,7 +160,7 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
                                         "inside the camera's outline")
         try:
             T = solve_closed_form([camera_planes[k] for k in chosen],
-                                  [candidates[k][i].plane for k, i in chosen.items()]).T_camera_lidar
+                                  [candidates[k][i].plane for k, i in chosen.items()], allow_weak=True).T_camera_lidar
         except DegenerateLayoutError:
             break
         new = _choose(T, candidates, camera_planes, camera_poses, board, params)
@@ -168,22 +172,25 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
 
 
 def _hypotheses(frames: list[int], candidates: list[list], ncam: np.ndarray, rng: np.random.Generator,
-                params: AssociationParams, weights) -> np.ndarray:
-    """(frame, candidate) triples, (H, 3, 2), from frames whose camera normals span 3D: all when they fit the
-    budget, else a sample (without repeats) weighted by the candidates' weights."""
+                params: AssociationParams, weights) -> tuple[np.ndarray, float]:
+    """(frame, candidate) triples, (H, 3, 2), from frames whose camera normals span 3D (spread above
+    ``MIN_NORMAL_SPREAD``; when no triple reaches it, above ``WEAK_NORMAL_SPREAD``, the factor graph's limit):
+    all when they fit the budget, else a sample (without repeats) weighted by the candidates' weights. Also the
+    spread limit used (the best triple's spread when none reaches the weak limit)."""
     tri = np.array(list(itertools.combinations(frames, 3)), dtype=int).reshape(-1, 3)
     if len(tri) == 0:
-        return np.zeros((0, 3, 2), dtype=int)
+        return np.zeros((0, 3, 2), dtype=int), 0.0
     spread = np.linalg.svd(ncam[tri], compute_uv=False)[:, -1] / np.sqrt(3.0)
-    tri = tri[spread > MIN_NORMAL_SPREAD]
+    limit = MIN_NORMAL_SPREAD if np.any(spread > MIN_NORMAL_SPREAD) else WEAK_NORMAL_SPREAD
+    if not np.any(spread > limit):
+        return np.zeros((0, 3, 2), dtype=int), float(spread.max())
+    tri = tri[spread > limit]
     sizes = np.zeros(len(ncam), dtype=int)
     sizes[frames] = [len(candidates[k]) for k in frames]
-    if len(tri) == 0:
-        return np.zeros((0, 3, 2), dtype=int)
     if np.prod(sizes[tri], axis=1).sum() <= params.max_hypotheses:
         rows = [[(a, i), (b, j), (c, m)] for a, b, c in tri for i in range(sizes[a]) for j in range(sizes[b])
                 for m in range(sizes[c])]
-        return np.array(rows, dtype=int)
+        return np.array(rows, dtype=int), limit
     # Cumulative sampling weights per frame, padded with 1 beyond each frame's candidates.
     cum = np.ones((len(ncam), sizes.max()))
     for k in frames:
@@ -193,7 +200,7 @@ def _hypotheses(frames: list[int], candidates: list[list], ncam: np.ndarray, rng
     u = rng.random(picks.shape)
     idx = np.minimum((u[:, :, None] > cum[picks]).sum(2), sizes[picks] - 1)
     H = np.unique(np.stack([picks, idx], axis=2).reshape(len(picks), 6), axis=0)
-    return H.reshape(-1, 3, 2)
+    return H.reshape(-1, 3, 2), limit
 
 
 def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, chunk: int = 1024):
