@@ -550,10 +550,9 @@ def _segment_dicts(cands: list, residuals=(), chosen: int | None = None) -> tupl
 
 def _trim_line(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board):
     """A laser segment cut to the camera's board outline (and its plane's band) under the extrinsic."""
-    if not board.size_known:
-        return obs
     P = np.column_stack([obs.points[:, :2], np.zeros(len(obs.points))])
-    inside = inside_outline(P, T_camera_lidar, T_camera_board, board, LINE_TRIM_M, OUTLINE_BAND_M)
+    inside = inside_outline(P, T_camera_lidar, T_camera_board, board, LINE_TRIM_M + board.unknown_margin,
+                            OUTLINE_BAND_M)
     if inside.all() or inside.sum() < 5:
         return obs
     return observe_lidar_line(P[inside], obs.candidates)
@@ -610,6 +609,11 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     n = len(dataset.frames)
     sweeps, scene = sweeps_and_scene
     cams, good = _without_damaged_scans(cams, sweeps)
+    if not dataset.board.size_known:
+        w, h = dataset.board.judged_extent
+        warnings.append(f"board.size is not given: the LiDAR's board returns are judged and trimmed by the "
+                        f"pattern's extent and {100 * dataset.board.unknown_margin:.0f} cm on each side ({w:.2f} x "
+                        f"{h:.2f} m); give board.size in dataset.yaml (the backing board's) to trim to the board itself")
     if hints.static_scene and scene.note:
         warnings.append(f"static scene: {scene.note}")
 
@@ -798,9 +802,8 @@ def _trim_to_outline(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
                      params: SegmentationParams):
     """The observation cut to the camera's board outline (grown by ``OUTLINE_TRIM_M``) under the extrinsic,
     and refitted robustly (the holder's points left in the plane band are outliers)."""
-    if not board.size_known:
-        return obs
-    inside = inside_outline(obs.points, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M, OUTLINE_BAND_M)
+    inside = inside_outline(obs.points, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M + board.unknown_margin,
+                            OUTLINE_BAND_M)
     if inside.all() or inside.sum() < params.min_points:
         return obs
     _, keep = robust_plane_fit(obs.points[inside])

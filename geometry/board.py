@@ -31,6 +31,11 @@ def aruco_dictionary_size(name: object) -> int:
     return int(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0])
 
 
+# When dataset.yaml gives no board size: the board is taken to reach at most this far (m) beyond the printed
+# pattern on each side (white borders are a few centimetres; a stand's posts and feet are beyond).
+UNKNOWN_SIZE_MARGIN_M = 0.15
+
+
 @dataclass(frozen=True)
 class BoardModel:
     """A checkerboard of ``squares = (nx, ny)`` squares of ``square_size`` m, printed on a board.
@@ -122,6 +127,19 @@ class BoardModel:
     def extent(self) -> tuple[float, float]:
         """The board's (width, height): its given size, or the pattern's extent when unknown."""
         return self.size if self.size is not None else self.pattern_extent
+
+    @property
+    def unknown_margin(self) -> float:
+        """How far (m) the board may reach beyond :attr:`extent` on each side: 0 when its size is given, else
+        ``UNKNOWN_SIZE_MARGIN_M`` around the pattern (a board's white border)."""
+        return 0.0 if self.size is not None else UNKNOWN_SIZE_MARGIN_M
+
+    @property
+    def judged_extent(self) -> tuple[float, float]:
+        """The largest (width, height) the board can have: its size, or the pattern's extent grown by
+        :attr:`unknown_margin` on each side. LiDAR returns are judged and trimmed by it."""
+        w, h = self.extent
+        return w + 2 * self.unknown_margin, h + 2 * self.unknown_margin
 
     @property
     def offset(self) -> np.ndarray:

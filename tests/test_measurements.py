@@ -163,3 +163,25 @@ def test_ambiguous_board_orientation_is_refused_not_guessed():
         T, det = observe(1.5, seed)
         obs = estimate_board_pose(det, board, camera)
         assert np.degrees(np.arccos(min(1.0, obs.plane.normal @ T[:3, 2]))) < 2.0
+
+
+def test_a_board_of_unknown_size_is_trimmed_by_its_pattern_and_margin():
+    """A board whose size dataset.yaml leaves out, on a post in its own plane reaching 0.8 m below it (returns as
+    dense as the board's): the piece is cut to a window of the pattern's extent and 15 cm on each side (before,
+    with no size, it was kept whole), so the post's lower part is gone while the board's returns stay."""
+    from geometry.board import BoardModel
+
+    rng = np.random.default_rng(3)
+    board = BoardModel((8, 6), 0.1)  # pattern 0.8 x 0.6 m, size unknown
+    u, v = rng.uniform(-0.05, 0.85, 3000), rng.uniform(-0.05, 0.65, 3000)
+    post_u, post_v = 0.4 + rng.uniform(-0.03, 0.03, 250), rng.uniform(-0.8, 0.0, 250)
+    local = np.column_stack([np.r_[u, post_u], np.r_[v, post_v], rng.normal(0.0, 0.003, 3250)])
+    A = np.array([[0.0, 0.2, -0.98], [1.0, 0.0, 0.0], [0.0, 0.98, 0.2]])
+    Q, R = np.linalg.qr(A)
+    T_lidar_board = np.eye(4)
+    T_lidar_board[:3, :3], T_lidar_board[:3, 3] = Q * np.sign(np.diag(R)), [3.0, -0.4, -0.3]
+    obs = find_board(transform_points(T_lidar_board, local), board, None, rng)
+    q = transform_points(T_inverse(T_lidar_board), obs.points)
+    on_board = (q[:, 1] > -0.05) & (q[:, 0] > -0.05) & (q[:, 0] < 0.85)
+    assert on_board.sum() > 2800
+    assert np.all(q[:, 1] > -0.5)  # the pattern's 0.6 m and the margins: 0.9 m of window at most

@@ -154,10 +154,10 @@ def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: Segment
     uv = (P - P.mean(0)) @ plane_basis(plane.normal)
     (_, _), (w, h), _ = cv2.minAreaRect(uv.astype(np.float32))
     big, small = max(w, h), min(w, h)
-    bw, bh = max(board.extent), min(board.extent)
+    bw, bh = max(board.judged_extent), min(board.judged_extent)  # a board of unknown size: the pattern and margin
     tol = params.extent_tolerance_m
     keep = np.ones(len(P), dtype=bool)
-    if board.size_known and (big > np.hypot(bw, bh) + tol or small > bw + tol):
+    if big > np.hypot(bw, bh) + tol or small > bw + tol:
         # Larger than the board: a board on a stand, or a wall. Keep the best board-sized window when
         # it holds most of the piece (a stand is thin); a wall spreads far beyond any window.
         # Cheap necessary condition first: most points near the median point (a wall fails it at once).
@@ -169,16 +169,17 @@ def _board_piece(P: np.ndarray, plane: Plane, board: BoardModel, params: Segment
         if keep.mean() < 0.7:
             return None, f"too large ({big:.2f} x {small:.2f} m)"
         uv = uv[keep]
-    elif not board.size_known and big > 4.0 * np.hypot(bw, bh):
-        return None, f"too large ({big:.2f} x {small:.2f} m)"
     area = cv2.contourArea(cv2.convexHull(uv.astype(np.float32)))
-    if area < params.min_area_fraction * bw * bh:
-        return None, f"too small ({area:.3f} m^2 of {bw * bh:.3f})"
+    pw, ph = board.extent
+    if area < params.min_area_fraction * pw * ph:
+        return None, f"too small ({area:.3f} m^2 of {pw * ph:.3f})"
     return P[keep], ""
 
 
-def robust_plane_fit(P: np.ndarray, iterations: int = 4) -> tuple[Plane, np.ndarray]:
-    """PCA plane with an iterated 3-sigma inlier step (sigma from the median absolute deviation)."""
+def robust_plane_fit(P: np.ndarray, iterations: int = 50) -> tuple[Plane, np.ndarray]:
+    """PCA plane with an iterated 3-sigma inlier step (sigma from the median absolute deviation), to convergence
+    (the inliers no longer change; at most ``iterations``): a stand's posts joined to the board tilt the first
+    fits by degrees and take a dozen steps to leave."""
     keep = np.ones(len(P), dtype=bool)
     plane = fit_plane_pca(P)
     for _ in range(iterations):
@@ -357,12 +358,13 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
     Q = P[near]
     plane, keep = robust_plane_fit(Q)
     Q = Q[keep]
-    if board.size_known and len(Q) >= 3:
-        # Cut to the board's rectangle: the few centimetres of a stand or tripod head just outside the
-        # board lie within the noise band of its plane but tilt it (they sit at one edge, behind it).
+    if len(Q) >= 3:
+        # Cut to the board's rectangle (of unknown size: the pattern's and the margin): the few centimetres of
+        # a stand or tripod head just outside the board lie within the noise band of its plane but tilt it (they
+        # sit at one edge, behind it).
         origin, basis = Q.mean(0), plane_basis(plane.normal)
         uv = (Q - origin) @ basis
-        rect = _board_rectangle(uv, *board.extent)
+        rect = _board_rectangle(uv, *board.judged_extent)
         inside = _in_rectangle(uv, rect, 0.015)
         if inside.sum() >= 3:
             plane, keep = robust_plane_fit(Q[inside])

@@ -172,16 +172,17 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
 
 
 def _hypotheses(frames: list[int], candidates: list[list], ncam: np.ndarray, rng: np.random.Generator,
-                params: AssociationParams, weights) -> tuple[np.ndarray, float]:
+                params: AssociationParams, weights, allow_weak: bool = True) -> tuple[np.ndarray, float]:
     """(frame, candidate) triples, (H, 3, 2), from frames whose camera normals span 3D (spread above
-    ``MIN_NORMAL_SPREAD``; when no triple reaches it, above ``WEAK_NORMAL_SPREAD``, the factor graph's limit):
+    ``MIN_NORMAL_SPREAD``; when no triple reaches it and ``allow_weak``, above ``WEAK_NORMAL_SPREAD``, the factor
+    graph's limit):
     all when they fit the budget, else a sample (without repeats) weighted by the candidates' weights. Also the
     spread limit used (the best triple's spread when none reaches the weak limit)."""
     tri = np.array(list(itertools.combinations(frames, 3)), dtype=int).reshape(-1, 3)
     if len(tri) == 0:
         return np.zeros((0, 3, 2), dtype=int), 0.0
     spread = np.linalg.svd(ncam[tri], compute_uv=False)[:, -1] / np.sqrt(3.0)
-    limit = MIN_NORMAL_SPREAD if np.any(spread > MIN_NORMAL_SPREAD) else WEAK_NORMAL_SPREAD
+    limit = MIN_NORMAL_SPREAD if np.any(spread > MIN_NORMAL_SPREAD) or not allow_weak else WEAK_NORMAL_SPREAD
     if not np.any(spread > limit):
         return np.zeros((0, 3, 2), dtype=int), float(spread.max())
     tri = tri[spread > limit]
@@ -227,10 +228,10 @@ def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
     out = []
     cam = camera_planes[k]
     for c in candidates[k]:
-        inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m)
+        inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m + board.unknown_margin)
         share = float(np.mean(inside)) if len(inside) else 0.0
         plane, P = c.plane, c.points
-        if share >= params.min_inside and board.size_known:
+        if share >= params.min_inside:
             near = inside & inside_outline(P, T, camera_poses[k], board, np.inf, params.refit_band_m)
             if 10 <= near.sum() < len(near):
                 plane, keep = robust_plane_fit(P[near])
@@ -298,7 +299,9 @@ def associate_lines(camera_planes: list[Plane], camera_poses: list[np.ndarray], 
         raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a scan segment; choosing among them "
                                     f"needs {params.min_frames}")
     ncam = np.array([p.normal for p in camera_planes])
-    H = _hypotheses(frames, candidates, ncam, rng, replace(params, max_hypotheses=max_triples), None)
+    # Triples spanning 3D well only: the weak ones' minimal solutions would multiply near-degenerate roots.
+    H, _ = _hypotheses(frames, candidates, ncam, rng, replace(params, max_hypotheses=max_triples), None,
+                       allow_weak=False)
     if len(H) == 0:
         raise DegenerateLayoutError(f"no three of the {len(frames)} frames with scan segments have camera normals "
                                     "that span 3D")
