@@ -188,3 +188,19 @@ def test_the_bound_with_edges_matches_the_edges_error_and_the_layout_analysis_re
     model = cramer_rao_bound(layout, edges=True)
     np.testing.assert_allclose(a.edges["translation_std_mm"], 1000 * np.sqrt(np.diag(model)[3:]), rtol=1e-9)
     assert "with the board's edges" in a.format()
+
+
+def test_the_layout_of_a_measured_dataset_has_the_edges_bound(tmp_path):
+    # lidarcam layout DATASET: the measured returns keep their rings, so the ends are found and the bound with
+    # the edges is printed; it is tighter than the planes' alone in rotation.
+    from estimators.analysis.layout_analysis import analyse, layout_from_result
+    from estimators.calibration import calibrate
+    from estimators.io.dataset import load_dataset
+    from estimators.simulation.simulator import simulate_dataset
+
+    path = simulate_dataset(tmp_path / "sim", n_poses=5, seed=3, lidar="vlp16")
+    ds = load_dataset(path)
+    layout, _, names = layout_from_result(calibrate(ds, samples=0), ds.board, "vlp16")
+    a = analyse(layout, names)
+    assert a.edges is not None
+    assert np.linalg.norm(a.edges["rotation_std_deg"]) < np.linalg.norm(a.std_rotation_deg)

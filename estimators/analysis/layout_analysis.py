@@ -32,8 +32,8 @@ from ..lidar.lidar_models import BEAM_MODELS
 from ..simulation.simulator import (R_CAMERA_LIDAR_NOMINAL, Rig, _pose_fits, board_pose, min_in_image,
                                     sample_board_poses)
 from ..solvers.closed_form import describe_direction, normal_spread
-from ..solvers.observation_model import (Layout, board_hits, edges_information, frame_contribution,
-                                        frame_information, range_model_information)
+from ..solvers.observation_model import (Layout, board_hits, board_returns, edges_information,
+                                        frame_contribution, frame_information, range_model_information)
 from ..solvers.range_model import OFFSET_PRIOR_SD_M, RangeTerms
 
 _SCALE = np.array([1e3] * 6)  # rad -> mrad, m -> mm
@@ -140,9 +140,11 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
 
 def _with_edges(layout: Layout) -> dict | None:
     """The predicted standard deviations with the board's edges (``observation_model.edges_information``), for a
-    planned 3D layout whose board size is known (measured layouts have no rings to find the ends by)."""
-    if layout.hits is not None or layout.beams.is_2d or layout.board.size is None:
+    3D layout whose board size is known: planned, or measured with the returns' rings."""
+    if layout.beams.is_2d or layout.board.size is None:
         return None
+    if layout.hits is not None and any(len(h) < 3 or h[2] is None for h in layout.hits):
+        return None  # measured returns without rings: no ends to find
     try:
         C = np.linalg.inv(edges_information(layout))
     except np.linalg.LinAlgError:
@@ -197,9 +199,12 @@ def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layo
     poses, the refinement's noise levels and the board points actually measured. ``beams_model`` only
     serves pose suggestions."""
     ref = result.refinement
+    from ..solvers.range_model import frame_rings
+
     used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board]
+    rings = frame_rings(used) if used else []
     hits = tuple((f.lidar.points / np.linalg.norm(f.lidar.points, axis=1, keepdims=True),
-                  np.linalg.norm(f.lidar.points, axis=1)) for f in used)
+                  np.linalg.norm(f.lidar.points, axis=1), r) for f, r in zip(used, rings))
     beams = BEAM_MODELS[beams_model](ref.range_noise_m)
     layout = Layout(result.camera, board, beams, result.T_camera_lidar,
                     tuple(ref.T_camera_board[f.name] for f in used), ref.corner_noise_px, ref.range_noise_m, hits)
@@ -300,8 +305,8 @@ def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, ca
                 best, best_d = T, d
         if best is None:
             break
-        hits = None if current.hits is None else current.hits + (board_hits(replace(current, T_camera_board=(best,),
-                                                                                   hits=None), 0),)
+        hits = None if current.hits is None else current.hits + (board_returns(replace(current, T_camera_board=(best,),
+                                                                                      hits=None), 0)[:3],)
         current = replace(current, T_camera_board=current.T_camera_board + (best,), hits=hits)
         out.append((best, analyse(current)))
     return out

@@ -39,7 +39,8 @@ class Layout:
     T_camera_board: tuple[np.ndarray, ...]
     corner_noise_px: float
     range_noise_m: float
-    # Measured beams per frame ((dirs, ranges) in the LiDAR frame) instead of the beam model's cast.
+    # Measured beams per frame ((dirs, ranges) in the LiDAR frame, and their rings when known) instead of the
+    # beam model's cast.
     hits: tuple | None = None
 
     @property
@@ -54,10 +55,11 @@ def board_hits(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def board_returns(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """:func:`board_hits` with each return's ring id and whether it lies on a black square (both None for a
-    layout with measured ``hits``)."""
+    """:func:`board_hits` with each return's ring id and whether it lies on a black square (for a layout with
+    measured ``hits``: the rings when they hold them, ``(dirs, ranges, rings)``, and no colours)."""
     if layout.hits is not None:
-        return (*layout.hits[i], None, None)
+        h = layout.hits[i]
+        return h[0], h[1], h[2] if len(h) > 2 else None, None
     T_lidar_board = T_inverse(layout.T_camera_lidar) @ layout.T_camera_board[i]
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = layout.board.extent
