@@ -54,9 +54,13 @@ def board_hits(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray]:
     return board_returns(layout, i)[:2]
 
 
-def board_returns(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+def board_returns(layout: Layout, i: int, pointing: tuple[np.random.Generator, float] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """:func:`board_hits` with each return's ring id and whether it lies on a black square (for a layout with
-    measured ``hits``: the rings when they hold them, ``(dirs, ranges, rings)``, and no colours)."""
+    measured ``hits``: the rings when they hold them, ``(dirs, ranges, rings)``, and no colours). ``pointing``:
+    ``(rng, sd)``, each beam's true direction off its nominal one by an isotropic Gaussian angle of ``sd`` rad
+    (its footprint's spread and pointing error): whether it hits the board, and its range, are the true
+    direction's; the direction returned is the nominal one, as a LiDAR reports it."""
     if layout.hits is not None:
         h = layout.hits[i]
         return h[0], h[1], h[2] if len(h) > 2 else None, None
@@ -68,9 +72,17 @@ def board_returns(layout: Layout, i: int) -> tuple[np.ndarray, np.ndarray, np.nd
     outline = transform_points(T_lidar_board, layout.board.outline())
     centre = outline.mean(0) / np.linalg.norm(outline.mean(0))
     cos_min = float(np.min((outline / np.linalg.norm(outline, axis=1, keepdims=True)) @ centre))
-    keep = dirs @ centre >= cos_min - 1e-9
+    widen = 5.0 * pointing[1] if pointing is not None else 0.0  # beams just outside may hit off their nominal
+    keep = dirs @ centre >= np.cos(np.arccos(min(cos_min, 1.0)) + widen) - 1e-9
     near, rings = dirs[keep], rings[keep]
-    ranges, which, refl = cast(np.zeros(3), near, [rectangle(o, R[:, 0], R[:, 1], w, h, layout.board.reflectance)],
+    true = near
+    if pointing is not None:
+        rng, sd = pointing
+        off = rng.normal(0.0, sd, near.shape)
+        off -= near * np.sum(off * near, axis=1, keepdims=True)  # across the beam
+        true = near + off
+        true /= np.linalg.norm(true, axis=1, keepdims=True)
+    ranges, which, refl = cast(np.zeros(3), true, [rectangle(o, R[:, 0], R[:, 1], w, h, layout.board.reflectance)],
                                layout.beams.max_range_m)
     hit = which == 0
     return near[hit], ranges[hit], rings[hit], refl[hit] < 0.5
@@ -240,7 +252,7 @@ def with_outline_error(layout: Layout, pattern_shift_m: tuple[float, float] = (0
 
 def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,
                           board_error_m: float = 0.0, rings: bool = True, intensity: str = "contrast",
-                          azimuth_phase: bool = False) -> list[FrameMeasurement]:
+                          azimuth_phase: bool = False, beam_sd_rad: float = 0.0) -> list[FrameMeasurement]:
     """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
     board's beam returns with Gaussian range noise, plus ``bias`` (systematic range errors) when given; the
     returns carry their ring ids (``rings=False``: none, as a cloud without a ``ring`` field) and an intensity:
@@ -249,8 +261,10 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
     by a random per-board plane error (distance sd ``board_error_m``, tilt sd ``board_error_m`` over the board's
     half-size: a bent board, a holder, intrinsics), the overdispersion of real recordings. ``azimuth_phase``:
     each frame's sweep fires at a random phase of its azimuth step (as real sweeps do), so that repeated draws
-    of one layout vary where the rings end on the board; by default the layout's fixed firing grid. No
-    rendering, no segmentation."""
+    of one layout vary where the rings end on the board; by default the layout's fixed firing grid.
+    ``beam_sd_rad``: each beam's footprint and pointing error (:func:`board_returns`' ``pointing``): the board's
+    edges blur by it, as the edge model assumes (``board_edges.BEAM_SD_RAD``); 0: exact beams. No rendering, no
+    segmentation."""
     if intensity not in INTENSITY_MODES:
         raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")
     frames = []
@@ -269,10 +283,12 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
                                 + np.array([0.0, 0.0, err.normal(0.0, board_error_m)]))
             moved.append(T_cb @ T_local)
         seen_by_lidar = replace(layout, T_camera_board=tuple(moved))
-    phases = None
+    phases = pointing = None
     if azimuth_phase:
         phases = np.random.default_rng(rng.integers(2**63)).uniform(0.0, layout.beams.azimuth_step_rad,
                                                                      layout.n_frames)
+    if beam_sd_rad > 0:  # its own stream: the rest of the draws stay the same
+        pointing = (np.random.default_rng(rng.integers(2**63)), beam_sd_rad)
     for i in range(layout.n_frames):
         uv = corner_pixels(layout, i)
         uv = uv + rng.normal(0.0, layout.corner_noise_px, uv.shape)
@@ -291,7 +307,7 @@ def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeB
         swept = seen_by_lidar
         if phases is not None:
             swept = replace(seen_by_lidar, beams=replace(layout.beams, azimuth_phase_rad=float(phases[i])))
-        dirs, ranges, ring_ids, dark = board_returns(swept, i)
+        dirs, ranges, ring_ids, dark = board_returns(swept, i, pointing)
         if len(dirs) < 3:
             frames.append(FrameMeasurement(f"{i:04d}", cam, None, why or f"only {len(dirs)} LiDAR beams hit the board"))
             continue
