@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_range_model_scenes.py
 	$(PY) benchmarks/bench_range_model_scenes.py --inject 100
 	$(PY) benchmarks/bench_board_edges.py
+	$(PY) benchmarks/bench_principal_point.py
 	$(PY) benchmarks/bench_corners.py
 	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
