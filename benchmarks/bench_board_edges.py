@@ -119,6 +119,8 @@ def main() -> None:
                 cover = f"{100 * np.mean(inside):.1f}% of {len(inside)}" if inside else "-"
                 print(f"{lidar + ', ' + label:34s}{rms['rot']:9.3f}{rms['trans']:10.1f}{rms['in_plane']:12.1f}"
                       f"{ratio[0]:9.2f}{ratio[1]:8.2f}{np.mean([x['d2'] for x in r]):7.2f}{rej:>14s}{cover:>18s}")
+            bound = np.sqrt(np.mean([x[False]["crb_tr"] for x in rows]) / np.mean([x[True]["crb_tr"] for x in rows]))
+            print(f"{lidar}: the bound's translation, planes alone over planes + edges: {bound:.2f}")
         n = max(args.datasets // 2, 1)
         for error in ("board 5 cm larger than given", "pattern 3 cm off centre"):
             caught = list(pool.map(_outline, [(error, 1000 + s) for s in range(n)]))
