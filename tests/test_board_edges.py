@@ -190,7 +190,7 @@ def test_the_bound_with_edges_matches_the_edges_error_and_the_layout_analysis_re
     assert "with the board's edges" in a.format()
 
 
-def test_the_layout_of_a_measured_dataset_has_the_edges_bound(tmp_path):
+def test_a_measured_dataset_with_edges_has_their_bound_and_report(tmp_path):
     # lidarcam layout DATASET: the measured returns keep their rings, so the ends are found and the bound with
     # the edges is printed; it is tighter than the planes' alone in rotation.
     from estimators.analysis.layout_analysis import analyse, layout_from_result
@@ -198,12 +198,18 @@ def test_the_layout_of_a_measured_dataset_has_the_edges_bound(tmp_path):
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
 
+    from estimators.solvers.refinement import RefinementOptions
+
     path = simulate_dataset(tmp_path / "sim", n_poses=5, seed=3, lidar="vlp16")
     ds = load_dataset(path)
-    layout, _, names = layout_from_result(calibrate(ds, samples=0), ds.board, "vlp16")
+    result = calibrate(ds, samples=0, options=RefinementOptions(edges=True))
+    layout, _, names = layout_from_result(result, ds.board, "vlp16")
     a = analyse(layout, names)
     assert a.edges is not None
     assert np.linalg.norm(a.edges["rotation_std_deg"]) < np.linalg.norm(a.std_rotation_deg)
+    # The report has the edges' section: the mean shift, the test and each frame's shift.
+    page = result.report(tmp_path / "report").read_text()
+    assert "<h2>Board edges</h2>" in page and "outline shift x [mm]" in page and "planes alone against" in page
 
 
 def test_edge_likelihood_matches_beams_with_a_footprint():

@@ -45,6 +45,32 @@ def residual_arrays(result) -> dict[str, np.ndarray]:
                                      else np.nan for n in names], float)}
 
 
+def _edges_section(edges: dict) -> str:
+    """The board's edges (``--edges``): the outlines' mean shift with its 99% test, the outline's growth and
+    offset, the test of the planes against the edges, and each frame's shift."""
+    m = 1000 * np.array(edges["mean_shift_camera_m"])
+    sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(edges["mean_shift_covariance"])), 0.0))
+    g, gs = 1000 * np.array(edges["growth_m"]), 1000 * np.array(edges["growth_sd_m"])
+    o, os_ = 1000 * np.array(edges["outline_offset_m"]), 1000 * np.array(edges["outline_offset_sd_m"])
+    text = (f"<p>{edges['ends']} ring ends on the boards' outlines. The LiDAR's outlines sit "
+            f"{np.linalg.norm(m):.1f} mm off the camera's on average (camera x y z: "
+            + ", ".join(f"{v:+.1f} ± {e:.1f}" for v, e in zip(m, sd))
+            + f" mm; p = {edges['mean_shift_p_value']:.2g}, beyond the 99% limit below 0.01). The board looks "
+            f"{2 * g[0]:+.1f} ± {2 * gs[0]:.1f} mm wider and {2 * g[1]:+.1f} ± {2 * gs[1]:.1f} mm "
+            f"taller than board.size; its pattern sits {o[0]:+.1f} ± {os_[0]:.1f} / {o[1]:+.1f} ± "
+            f"{os_[1]:.1f} mm (x / y) from where dataset.yaml puts it.</p>")
+    test = edges.get("planes_against_edges")
+    if test:
+        text += (f"<p>The planes alone against the planes with the edges: d2 {test['d2']:.1f} on {test['dof']} dof "
+                 f"(p = {test['p_value']:.2g}); below 0.01 the boards' planes or their outlines carry a bias (see "
+                 "the warnings).</p>")
+    rows = [[f["frame"], f["ends"], f"{1000 * f['shift_board_xy_m'][0]:+.1f} ± {1000 * f['shift_sd_m'][0]:.1f}",
+             f"{1000 * f['shift_board_xy_m'][1]:+.1f} ± {1000 * f['shift_sd_m'][1]:.1f}"]
+            for f in edges["frames"]]
+    return ("<h2>Board edges</h2>" + text
+            + _table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]))
+
+
 def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The camera's board outline and the LiDAR's (pixels), and the pixel offset ``(du, dv)`` of the LiDAR's.
 
@@ -352,6 +378,9 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                      "planar method's re-projection check, horizontal and vertical. Sparse rings leave a few "
                      "pixels of sampling error even when the extrinsic is right.</p>"
                      + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
+    edges = result.refinement.edges if result.refinement is not None else None
+    if edges:
+        parts.append(_edges_section(edges))
     decided = [f for f in result.frames if f.decision is not None]
     if decided:
         rows = [[f.name, f.decision.method, len(f.decision.candidates),
