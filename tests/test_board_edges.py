@@ -22,10 +22,25 @@ def _layout(seed: int, lidar: str = "vlp16", n: int = 6, weak: bool = False, noi
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
 
 
-def _crossings(layout: Layout, i: int):
-    dirs, ranges, rings, _ = board_returns(layout, i)
+def _crossings(layout: Layout, i: int, pointing=None):
+    dirs, ranges, rings, _ = board_returns(layout, i, pointing)
     T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
     return crossings(dirs * ranges[:, None], rings, T_bl, layout.board)
+
+
+def _standardised_end_residuals(beam_sd_rad: float = 0.0) -> np.ndarray:
+    """Every end's residual under the truth over its model standard deviation, on six HDL-64E layouts whose
+    beams are off their nominal directions by ``beam_sd_rad`` (0: exact)."""
+    z = []
+    for seed in range(6):
+        layout = _layout(seed, "hdl64e")
+        for i in range(layout.n_frames):
+            pointing = (np.random.default_rng(100 * seed + i), beam_sd_rad) if beam_sd_rad else None
+            e = _crossings(layout, i, pointing)
+            r, _, _ = edge_residuals(layout.T_camera_lidar, layout.T_camera_board[i], e, layout.board,
+                                     jacobian=False)
+            z.extend(r / e.sd_m)
+    return np.array(z)
 
 
 def test_edge_jacobians_match_finite_differences():
@@ -59,18 +74,10 @@ def test_edge_likelihood_matches_simulated_ring_crossings():
     # Exact beams on a fixed azimuth grid: under the truth each end's residual is uniform over its azimuth step
     # (about the step's middle), so the standardised residuals have mean 0 and variance step^2/12 over the
     # model's variance (which adds the beam footprint).
-    z = []
-    for seed in range(6):
-        layout = _layout(seed, "hdl64e")
-        for i in range(layout.n_frames):
-            e = _crossings(layout, i)
-            r, _, _ = edge_residuals(layout.T_camera_lidar, layout.T_camera_board[i], e, layout.board,
-                                     jacobian=False)
-            z.extend(r / e.sd_m)
-    z = np.array(z)
+    z = _standardised_end_residuals()
     assert len(z) > 500
     assert abs(z.mean()) < 3 * z.std() / np.sqrt(len(z))
-    step = layout.beams.azimuth_step_rad
+    step = _layout(0, "hdl64e").beams.azimuth_step_rad
     share = step**2 / 12 / (step**2 / 12 + BEAM_SD_RAD**2)
     assert abs(z.var() / share - 1.0) < 0.1
     assert np.max(np.abs(z)) < np.sqrt(3.0 * share) * 1.01  # the uniform's half-width
@@ -215,17 +222,7 @@ def test_a_measured_dataset_with_edges_has_their_bound_and_report(tmp_path):
 def test_edge_likelihood_matches_beams_with_a_footprint():
     # Beams off their nominal direction by the model's footprint and pointing spread (the simulator's
     # beam_sd_rad): the ends' standardised residuals have mean 0 and variance 1 (within 10%, ~2000 ends).
-    z = []
-    for seed in range(6):
-        layout = _layout(seed, "hdl64e")
-        for i in range(layout.n_frames):
-            dirs, ranges, rings, _ = board_returns(layout, i, (np.random.default_rng(100 * seed + i), BEAM_SD_RAD))
-            T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
-            e = crossings(dirs * ranges[:, None], rings, T_bl, layout.board)
-            r, _, _ = edge_residuals(layout.T_camera_lidar, layout.T_camera_board[i], e, layout.board,
-                                     jacobian=False)
-            z.extend(r / e.sd_m)
-    z = np.array(z)
+    z = _standardised_end_residuals(BEAM_SD_RAD)
     assert len(z) > 1500
     assert abs(z.mean()) < 3 * z.std() / np.sqrt(len(z))
     assert abs(z.var() - 1.0) < 0.1
