@@ -435,3 +435,27 @@ def test_too_few_frames_after_a_failed_joint_choice_says_why_it_failed():
     with pytest.raises(DegenerateLayoutError) as plain:
         solve(frames, rig.board, rig.camera)
     assert "joint choice" not in plain.value.message
+
+
+def test_a_board_of_unknown_size_on_a_stand_with_uprights(tmp_path):
+    """A board on an aluminium stand (two uprights 2 cm beside its ends, 6 cm behind it, from the ground to above
+    it), dataset.yaml without the board's size: every frame is used, each LiDAR plane within 0.5 degree of the
+    board's (the uprights' returns are trimmed by the pattern's extent and margin, and the robust fit)."""
+    import re
+    from dataclasses import replace
+
+    from estimators.simulation.simulator import write_dataset
+
+    rng = np.random.default_rng(4)
+    rig = replace(default_rig(rng, "hdl64e", 0.02), stand="uprights")
+    frames = simulate_frames(rig, 8, rng)
+    path = write_dataset(tmp_path / "stand", rig, frames)
+    yaml = path / "dataset.yaml"
+    yaml.write_text(re.sub(r"  size: \[.*\]\n", "", yaml.read_text()))
+    result = calibrate(path, samples=0)
+    assert result.frames_used == 8
+    assert any("board.size is not given" in w for w in result.warnings)
+    for f, truth in zip(result.frames, frames):
+        n = truth.T_camera_board[:3, 2]
+        plane = f.lidar.plane.transformed(rig.T_camera_lidar)
+        assert np.degrees(np.arccos(min(1.0, abs(plane.normal @ n)))) < 0.5, f.name

@@ -48,6 +48,9 @@ class Rig:
     max_distance_m: float = 5.0
     # 2D: the scan plane must cut the board over at least this share of its smaller side.
     min_crossing: float = 0.4
+    # What holds the board in the default scene: "post" (one thin post under it) or "uprights" (an aluminium
+    # stand: two uprights just beside the board's ends, a few centimetres behind it, from the ground to above it).
+    stand: str = "post"
 
 
 def default_camera() -> CameraModel:
@@ -333,8 +336,11 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     ground_z = -rig.lidar_height_m
     if held:
         return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z) + list(static or []), 0
-    # A thin stand from the board's lowest point to the ground, a little behind the board.
     outline = transform_points(T_lidar_board, board.outline())
+    if rig.stand == "uprights":
+        return patches + _uprights(outline, R[:, 2], ground_z) + list(default_room(ground_z) if static is None
+                                                                      else static), 0
+    # A thin stand from the board's lowest point to the ground, a little behind the board.
     low = outline[np.argmin(outline[:, 2])]
     to_sensor = -low[:2] / np.linalg.norm(low[:2])
     side = np.array([-to_sensor[1], to_sensor[0], 0.0])
@@ -343,6 +349,29 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
         patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
                                  [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
     return patches + list(default_room(ground_z) if static is None else static), 0
+
+
+# The stand's uprights: width (m), gap beside the board's ends (m), distance behind the board's plane (m), and how
+# far above the board's top they reach (m).
+UPRIGHT_WIDTH_M, UPRIGHT_GAP_M, UPRIGHT_BEHIND_M, UPRIGHT_ABOVE_M = 0.04, 0.02, 0.06, 0.10
+
+
+def _uprights(outline: np.ndarray, normal: np.ndarray, ground_z: float) -> list[Patch]:
+    """Two vertical uprights of a stand beside the board's left and right ends, behind its plane (LiDAR frame:
+    ``outline`` the board's corners, ``normal`` its normal)."""
+    away = normal if normal @ outline.mean(0) > 0 else -normal  # from the sensor through the board
+    across = np.cross(away, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    along = outline @ across
+    top = float(outline[:, 2].max()) + UPRIGHT_ABOVE_M
+    posts = []
+    for end, side in ((along.min(), -1.0), (along.max(), 1.0)):
+        centre = outline[np.argmin(np.abs(along - end))]
+        foot = centre + across * (end - centre @ across + side * (UPRIGHT_GAP_M + UPRIGHT_WIDTH_M / 2)) \
+            + away * UPRIGHT_BEHIND_M
+        foot = np.array([foot[0], foot[1], ground_z]) - across * UPRIGHT_WIDTH_M / 2
+        posts.append(rectangle(foot, across, [0.0, 0.0, 1.0], UPRIGHT_WIDTH_M, top - ground_z, 0.35, "stand"))
+    return posts
 
 
 def default_room(ground_z: float) -> list[Patch]:
