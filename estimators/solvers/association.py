@@ -153,7 +153,8 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
         raise DegenerateLayoutError(f"no extrinsic is supported by {params.min_frames} frames' candidates "
                                     f"(best: {int(agree[best])})")
     T = T_from_Rt(R[best], t[best])
-    chosen = _choose(T, candidates, camera_planes, camera_poses, board, params)
+    cov_R = _rotation_covariance(ncam[H[ok][best][:, 0]], params)
+    chosen = _choose(T, candidates, camera_planes, camera_poses, board, params, cov_R)
     for _ in range(5):
         if len(chosen) < params.min_frames:
             raise DegenerateLayoutError(f"the best extrinsic keeps only {len(chosen)} frame(s) whose board lies "
@@ -163,11 +164,12 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
                                   [candidates[k][i].plane for k, i in chosen.items()], allow_weak=True).T_camera_lidar
         except DegenerateLayoutError:
             break
-        new = _choose(T, candidates, camera_planes, camera_poses, board, params)
+        cov_R = _rotation_covariance(ncam[list(chosen)], params)
+        new = _choose(T, candidates, camera_planes, camera_poses, board, params, cov_R)
         if new == chosen:
             break
         chosen = new
-    choices = _explain(T, candidates, camera_planes, camera_poses, board, params, chosen)
+    choices = _explain(T, candidates, camera_planes, camera_poses, board, params, chosen, cov_R)
     return Association(T, tuple(choices), len(chosen), len(R), time.perf_counter() - t0)
 
 
@@ -220,13 +222,26 @@ def _score(R, t, nl, cl, nc, dc, cand_frame, frames, params: AssociationParams, 
     return cost, agree
 
 
-def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
+def _rotation_covariance(normals: np.ndarray, params: AssociationParams) -> np.ndarray:
+    """The rotation's covariance (3x3, rad^2) of a closed form from boards with these camera normals, each
+    normal known to ``sigma_angle_rad``: a rotation about ``a`` moves normal ``n`` by ``a x n``, so the
+    information is ``sum (I - n n^T) / sigma^2``. Weak about the axis the normals crowd round."""
+    info = sum(np.eye(3) - np.outer(n, n) for n in normals) / params.sigma_angle_rad**2
+    return np.linalg.pinv(info)
+
+
+def _stats(T, candidates, camera_planes, camera_poses, board, params, k, cov_R=None):
     """Per candidate of frame k: (angle, distance, inside share, gated statistic, points judged). A candidate
     that can be chosen (enough of it inside the camera's board outline) is judged by its points inside the
     outline and near the plane, refitted robustly, so that a holder's arm or body joined to the board's piece
-    does not tilt it."""
+    does not tilt it. ``cov_R``: the extrinsic's rotation covariance, which widens the angle's scale (a layout
+    whose boards all face the rig leaves the rotation about its axis weak)."""
     out = []
     cam = camera_planes[k]
+    sigma_angle = params.sigma_angle_rad
+    if cov_R is not None:
+        sigma_angle = float(np.sqrt(sigma_angle**2 + np.trace((np.eye(3) - np.outer(cam.normal, cam.normal))
+                                                             @ cov_R)))
     for c in candidates[k]:
         inside = inside_outline(c.points, T, camera_poses[k], board, params.outline_margin_m + board.unknown_margin)
         share = float(np.mean(inside)) if len(inside) else 0.0
@@ -238,16 +253,16 @@ def _stats(T, candidates, camera_planes, camera_poses, board, params, k):
                 P = P[near][keep]
         ang, dist = (float(v[0, 0]) for v in _residuals(T[None, :3, :3], T[None, :3, 3], plane.normal[None],
                                                         P.mean(0)[None], cam.normal[None], np.array([cam.distance])))
-        e2 = (ang / params.sigma_angle_rad) ** 2 + (dist / params.sigma_distance_m) ** 2
+        e2 = (ang / sigma_angle) ** 2 + (dist / params.sigma_distance_m) ** 2
         out.append((ang, dist, share, e2, len(P)))
     return out
 
 
-def _choose(T, candidates, camera_planes, camera_poses, board, params) -> dict[int, int]:
+def _choose(T, candidates, camera_planes, camera_poses, board, params, cov_R=None) -> dict[int, int]:
     """Frame -> candidate: among candidates within the gate and inside the outline, the best statistic."""
     chosen = {}
     for k, cands in enumerate(candidates):
-        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k)
+        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k, cov_R)
         ok = [(-n, e2, i) for i, (_, _, inside, e2, n) in enumerate(stats)
               if e2 < GATE_CHI2_2DOF and inside >= params.min_inside]
         if ok:  # the fullest piece that agrees: pieces of the board itself agree too, but hold fewer points
@@ -255,11 +270,12 @@ def _choose(T, candidates, camera_planes, camera_poses, board, params) -> dict[i
     return chosen
 
 
-def _explain(T, candidates, camera_planes, camera_poses, board, params, chosen: dict[int, int]) -> list[FrameChoice]:
+def _explain(T, candidates, camera_planes, camera_poses, board, params, chosen: dict[int, int], cov_R=None
+             ) -> list[FrameChoice]:
     out = []
     n = len(chosen)
     for k, cands in enumerate(candidates):
-        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k)
+        stats = _stats(T, candidates, camera_planes, camera_poses, board, params, k, cov_R)
         res = tuple((a, d, inside) for a, d, inside, _, _ in stats)
         if not cands:
             out.append(FrameChoice(None, res, "no board candidate"))
