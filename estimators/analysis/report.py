@@ -55,7 +55,8 @@ def _edges_section(edges: dict) -> str:
     text = (f"<p>{edges['ends']} ring ends on the boards' outlines. The LiDAR's outlines sit "
             f"{np.linalg.norm(m):.1f} mm off the camera's on average (camera x y z: "
             + ", ".join(f"{v:+.1f} ± {e:.1f}" for v, e in zip(m, sd))
-            + f" mm; p = {edges['mean_shift_p_value']:.2g}, beyond the 99% limit below 0.01). The board looks "
+            + f" mm; p = {edges['mean_shift_p_value']:.2g}: "
+            + ("beyond" if edges["mean_shift_p_value"] < 0.01 else "within") + " its 99% limit). The board looks "
             f"{2 * g[0]:+.1f} ± {2 * gs[0]:.1f} mm wider and {2 * g[1]:+.1f} ± {2 * gs[1]:.1f} mm "
             f"taller than board.size; its pattern sits {o[0]:+.1f} ± {os_[0]:.1f} / {o[1]:+.1f} ± "
             f"{os_[1]:.1f} mm (x / y) from where dataset.yaml puts it.</p>")
