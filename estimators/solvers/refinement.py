@@ -820,7 +820,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                                     extrinsic_share=quasi_scale * model_fit.extrinsic_share)
     if model_fit is not None and labels is not None and labels.source == "geometry" and prob.has_beta \
             and "dark" in prob.terms.names and "dark" not in model_fit.pinned:
-        cov, model_fit = _consider_placement(prob, active, T, boards, floor, cov, model_fit)
+        cov, model_fit, T = _consider_placement(prob, active, T, boards, floor, cov, model_fit)
     edges_record = edge_share = None
     if prob.edges is not None:
         edges_record, edge_warnings = _edges_record(prob, active, T, boards, floor, cov / quasi_scale, marginals,
@@ -1159,17 +1159,20 @@ def _consider_pinned(prob: _Problem, active: list[int], result: gtsam.Values, fl
 
 
 def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
-                        cov: np.ndarray, fit: RangeModelFit) -> tuple[np.ndarray, RangeModelFit]:
-    """The covariance with the black squares' placement propagated: the colours are placed under the estimate,
-    itself uncertain, and a pattern placed a few millimetres off gives the returns near the squares' edges the
-    wrong colour, which shrinks the black-square term (and, through it, moves the rest). Placed again under the
-    extrinsic moved by one standard deviation each way along each principal direction of ``cov`` and solved
-    again, the shifts' spread and their mean (the shrinkage) are added ("consider" covariance, as for pinned
-    terms and intrinsics)."""
+                        cov: np.ndarray, fit: RangeModelFit) -> tuple[np.ndarray, RangeModelFit, np.ndarray]:
+    """The black squares' placement propagated: the colours are placed under the estimate, itself uncertain, and
+    a pattern placed a few millimetres off gives the returns near the squares' edges the wrong colour, which
+    shrinks the black-square term (and, through it, moves the rest). Placed again under the extrinsic moved by
+    one standard deviation each way along each principal direction of ``cov`` and solved again (one Gauss-Newton
+    step): the shifts' spread is added to the covariance ("consider" covariance, as for pinned terms and
+    intrinsics), and their mean, summed over the directions, is the shrinkage that the estimate's own error
+    causes on average (second order): it is taken off the terms and the extrinsic, and its square kept in the
+    covariance. Returns the covariance, the record and the extrinsic."""
     ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
     values = prob.values(active, T, boards)
     K = prob.terms.size
     extra = np.zeros((6 + K, 6 + K))
+    bias = np.zeros(6 + K)
     for lam, v in zip(ev, V.T):
         shifts = []
         for sign in (1.0, -1.0):
@@ -1181,9 +1184,14 @@ def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards
             shifts.append(np.concatenate([delta.at(EXTRINSIC), delta.at(RANGE)]))
         spread, shrink = 0.5 * (shifts[0] - shifts[1]), 0.5 * (shifts[0] + shifts[1])
         extra += np.outer(spread, spread) + np.outer(shrink, shrink)
+        bias += shrink
     std = np.sqrt(np.array(fit.std_m) ** 2 + np.diag(extra)[6:])
     Cbb = fit.terms_covariance + extra[6:, 6:] if fit.terms_covariance is not None else None
-    return cov + extra[:6, :6], replace(fit, std_m=tuple(std.tolist()), terms_covariance=Cbb)
+    if np.any(np.abs(bias[6:]) > std):  # beyond second order (a term the data barely hold): not corrected
+        bias[:] = 0.0
+    prob.beta = prob.beta - bias[6:]
+    return (cov + extra[:6, :6], replace(fit, values_m=tuple(prob.beta.tolist()), std_m=tuple(std.tolist()),
+                                         terms_covariance=Cbb), T @ T_exp(-bias[:6]))
 
 
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
