@@ -29,20 +29,16 @@ N_FRAMES = 8
 
 
 def _trial(args) -> dict:
-    from dataclasses import replace
-
     from estimators.calibration import calibrate
     from estimators.errors import LidarcamError
-    from estimators.simulation.simulator import default_rig, sample_layout, simulate_frames, write_dataset
+    from estimators.simulation.simulator import handheld_rig, sample_layout, simulate_frames, write_dataset
     from estimators.solvers.observation_model import Layout, cramer_rao_bound
     from estimators.solvers.refinement import CORNER_ERROR_CORRELATION
-    from geometry.board import BoardModel
     from geometry.rotations import T_inverse, T_log, transform_points
 
     seed, tmp = args
     rng = np.random.default_rng(seed)
-    rig = replace(default_rig(rng, "vlp16", 0.02), board=BoardModel((7, 8), 0.045, size=(0.35, 0.40)),
-                  min_distance_m=1.5, max_distance_m=4.0)
+    rig = handheld_rig(rng)
     poses = sample_layout(rig, "handheld", N_FRAMES, rng)
     normals = np.array([T[:3, 2] for T in poses])
     spread = max(np.linalg.svd(normals[list(t)], compute_uv=False)[-1] / np.sqrt(3.0)

@@ -226,14 +226,10 @@ def test_small_hand_held_board_facing_the_rig_on_a_vlp16(tmp_path):
     segmentation finds of one board count as one, and 7 of the 8 frames are used with their points on the board; the
     layout is weak (the bound is degrees and centimetres) and the covariance says so: the truth lies within 4
     standard deviations in every axis."""
-    from dataclasses import replace
-
-    from estimators.simulation.simulator import sample_layout, write_dataset
-    from geometry.board import BoardModel
+    from estimators.simulation.simulator import handheld_rig, sample_layout, write_dataset
 
     rng = np.random.default_rng(2)
-    rig = replace(default_rig(rng, "vlp16", 0.02), board=BoardModel((7, 8), 0.045, size=(0.35, 0.40)),
-                  min_distance_m=1.5, max_distance_m=4.0)
+    rig = handheld_rig(rng)
     poses = sample_layout(rig, "handheld", 8, rng)
     path = write_dataset(tmp_path / "handheld", rig, simulate_frames(rig, 8, rng, poses=poses, scene="office"))
     result, truth = _check_dataset(path)

@@ -305,6 +305,14 @@ def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> li
     raise ValueError(f"Expected a layout family in {LAYOUT_FAMILIES}, got {family!r}")
 
 
+def handheld_rig(rng: np.random.Generator) -> Rig:
+    """The default camera and a VLP-16-like LiDAR (2 cm range noise) with a small hand-held board (0.35 x 0.40
+    m, 6 x 7 inner corners) held 1.5-4 m away: with :func:`sample_layout`'s ``handheld`` poses, the weak layouts
+    of boards held up facing the rig."""
+    return replace(default_rig(rng, "vlp16", 0.02), board=BoardModel((7, 8), 0.045, size=(0.35, 0.40)),
+                   min_distance_m=1.5, max_distance_m=4.0)
+
+
 def _handheld_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: int = 20000) -> list[np.ndarray]:
     """``n`` poses of a board held up in front of the rig: in the middle of the image, its normal within 1-4
     degrees of the camera's optical axis (not of the line of sight), so that the normals spread 0.02-0.05 (the

@@ -143,9 +143,10 @@ def fisher_information(layout: Layout) -> np.ndarray:
     return F
 
 
-def extrinsic_information(F: np.ndarray) -> np.ndarray:
-    """The 6x6 information on the extrinsic with the board poses marginalised (Schur complement)."""
-    A, B, C = F[:6, :6], F[:6, 6:], F[6:, 6:]
+def extrinsic_information(F: np.ndarray, keep: int = 6) -> np.ndarray:
+    """The information on the first ``keep`` parameters (the extrinsic's 6 by default) with the rest (board poses,
+    nuisances) marginalised (Schur complement)."""
+    A, B, C = F[:keep, :keep], F[:keep, keep:], F[keep:, keep:]
     try:
         return A - B @ np.linalg.solve(C, B.T)
     except np.linalg.LinAlgError:  # board poses the corners do not fix (a board far away): what is fixed
@@ -201,10 +202,8 @@ def edges_information(layout: Layout, board_scatter_m: float = 0.0, beam_sd_rad:
                 F += J.T @ J
         if shifts:
             F[16:, 16:] += np.eye(2) / board_scatter_m**2
-        A, B, C = F[:10, :10], F[:10, 10:], F[10:, 10:]
-        info += A - B @ np.linalg.pinv(C, hermitian=True) @ B.T
-    A, B, C = info[:6, :6], info[:6, 6:], info[6:, 6:]
-    return A - B @ np.linalg.solve(C, B.T)
+        info += extrinsic_information(F, keep=10)
+    return extrinsic_information(info)
 
 
 def range_model_information(layout: Layout, terms: RangeTerms) -> np.ndarray:
