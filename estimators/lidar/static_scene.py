@@ -18,14 +18,22 @@ background (foreground). Three forms, by what the recording tells:
   neighbour is.
 - **Per-beam ranges** (2D scans): the range image with one beam row.
 
-The rig moved between frames when a frame's returns match the static scene less than ``moved_fraction`` of the
-time, or ``moved_drop`` less often than the typical frame's do (in a static scene almost every return matches a
-background range; only the board, its holder and what they hide do not). The model then
+A background range counts only where it is *settled*: returned by more than half the frames that do not see
+something nearer there. Boards held at one place in a few frames of a cloud cropped to a box around the boards
+(nothing behind them but air) do not make a surface, so the next frame's board there stays foreground.
+
+The rig moved between frames when a frame contradicts the static scene. It is judged on the background alone:
+the returns on settled cells that match the background, lie beyond it (the frame sees through a surface the
+others return), or lie in front of it on a surface that other frames return too (a rig that moved half-way: two
+groups of frames, each consistent with itself). A frame whose matching share is under ``moved_fraction``, or
+``moved_drop`` under the typical frame's, was taken from elsewhere. Returns in front of the background that no
+other frame repeats (the board, its holder) do not count, so a board that fills most of a cropped cloud does
+not make the rig look moved; a frame with fewer than ``min_judged`` judged returns is not judged. The model then
 says so and is not used: each frame falls back to the cues it holds alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -40,14 +48,17 @@ class StaticSceneParams:
     seen_through: int = 2           # range image: a background surface is returned by this many frames at least
     support_share: float = 0.25     # ... and by this share of the frames
     min_frames: int = 3             # fewer frames: no model
-    moved_fraction: float = 0.6     # a frame matching the static scene less than this: the rig moved
-    moved_drop: float = 0.08        # ... or matching it this much less than the typical frame does
+    moved_fraction: float = 0.9     # a frame matching less than this of its judged background: the rig moved
+    moved_drop: float = 0.05        # ... or matching it this much less than the typical frame does
+    min_judged: int = 100           # a frame with fewer returns on settled background is not judged
+    direction_bin_deg: float = 1.0  # voxels: the direction bins in which a return is judged beyond the scene
 
 
 @dataclass(frozen=True, eq=False)
 class StaticScene:
     """Background model of a dataset's sweeps. ``kind``: ``range-image``, ``voxels`` or ``none`` (too few
-    frames, or the rig moved); ``match`` is each frame's share of returns consistent with the static scene."""
+    frames, or the rig moved); ``match`` is each frame's share of its returns on settled background that match
+    it rather than lie beyond it (nan: too few such returns to judge)."""
 
     kind: str
     params: StaticSceneParams
@@ -57,6 +68,7 @@ class StaticScene:
     _column_rad: float = 0.0
     _rows: np.ndarray | None = None      # range image: the beam ids, in row order
     _voxels: np.ndarray | None = None    # voxels: sorted keys of background voxels
+    _bins: tuple = ()                    # voxels: sorted direction-bin keys and the farthest background in each
     _frames: tuple = ()                  # the foreground mask of each frame the model was built from
 
     @property
@@ -78,13 +90,14 @@ class StaticScene:
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "note": self.note,
-                "frames_matching_static_scene": [round(float(m), 3) for m in self.match]}
+                "frames_matching_static_scene": [None if np.isnan(m) else round(float(m), 3) for m in self.match]}
 
     # -- range image -------------------------------------------------------------------------------------
     def _classify(self, points: np.ndarray, ring: np.ndarray | None, cells: tuple | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-        """(foreground, static) masks: ``static`` when the range matches a background range of the window.
-        ``cells``: the points' ``(row, column, range)`` when known already."""
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(foreground, static, beyond) masks: ``static`` when the range matches a background range of the
+        window; ``beyond`` when it lies farther than every one of them (the frame sees through a surface the
+        other frames return). ``cells``: the points' ``(row, column, range)`` when known already."""
         row, col, r = cells if cells is not None else (*_cells(points, ring, self._rows, self._column_rad),
                                                        _ranges(points))
         dr, dc = self.params.ring_window, self.params.column_window
@@ -104,7 +117,7 @@ class StaticScene:
                     behind |= v > r + margin
                     seen |= ~np.isnan(v)
         static &= held
-        return ~static & (behind | ~seen | ~held), static
+        return ~static & (behind | ~seen | ~held), static, held & seen & ~static & ~behind
 
     # -- voxels ------------------------------------------------------------------------------------------
     def _in_background_voxel(self, points: np.ndarray) -> np.ndarray:
@@ -116,6 +129,17 @@ class StaticScene:
             hit |= self._voxels[pos] == k if len(self._voxels) else False
         return hit
 
+    def _beyond_voxels(self, points: np.ndarray) -> np.ndarray:
+        """Returns farther than every background voxel in their direction bin by the margin (and a voxel)."""
+        keys, far = self._bins
+        if len(keys) == 0:
+            return np.zeros(len(points), dtype=bool)
+        k = _direction_keys(points, self.params.direction_bin_deg)
+        pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+        there = keys[pos] == k
+        slack = self.params.margin_m + np.sqrt(3.0) * self.params.voxel_m
+        return there & (_ranges(points) > far[pos] + slack)
+
 
 _SHIFT = 2 ** 20
 _NEIGHBOURS = np.array([(i * _SHIFT + j) * _SHIFT + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
@@ -126,6 +150,14 @@ def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     ijk = np.floor(points / size).astype(np.int64) + _SHIFT // 2
     ijk = np.clip(ijk, 1, _SHIFT - 2)
     return (ijk[:, 0] * _SHIFT + ijk[:, 1]) * _SHIFT + ijk[:, 2]
+
+
+def _direction_keys(points: np.ndarray, bin_deg: float) -> np.ndarray:
+    """Key of each point's (azimuth, elevation) bin."""
+    step = np.deg2rad(bin_deg)
+    az = np.floor(_azimuth(points) / step).astype(np.int64)
+    el = np.floor((np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])) + np.pi) / step).astype(np.int64)
+    return el * 100000 + az
 
 
 def _ranges(points: np.ndarray) -> np.ndarray:
@@ -201,31 +233,62 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
     for i in range(F - m, -1, -1):  # nearest first, so the farthest qualifying cluster is written last
         ok = (spans[i] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
         background[ok] = ordered[i][ok]
+    # Settled: returned by m frames and by more than half of those that see nothing nearer there. A board held
+    # at one place in a few frames of a cloud cropped to the boards is not (the other frames return nothing).
+    margin = params.margin_m
+    with np.errstate(invalid="ignore"):
+        front = stack < background - margin
+        returned = np.sum(np.abs(stack - background) <= margin, axis=0)
+        background[(returned < m) | (returned <= 0.5 * (F - front.sum(axis=0)))] = np.nan
     scene = StaticScene("range-image", params, _background=background, _column_rad=column, _rows=rows)
-    classified = [scene._classify(P, ring, c) for P, ring, c in zip(points, rings, cells)]
-    return _checked(scene, np.array([float(np.mean(s)) for _, s in classified]), tuple(f for f, _ in classified))
+    judged, foreground = [], []
+    for k, (P, ring) in enumerate(zip(points, rings)):
+        fg, static, beyond = scene._classify(P, ring, cells[k])
+        # In front of a settled surface on a surface of its own that m frames (3 at least) return: a second
+        # static scene (a board left at one place for two frames is not one).
+        with np.errstate(invalid="ignore"):
+            repeated = front[k] & (np.sum(np.abs(stack - stack[k]) <= 0.5 * margin, axis=0) >= max(m, 3))
+        row, col, _ = cells[k]
+        judged.append((static, beyond | (fg & (row >= 0) & repeated[np.maximum(row, 0), col])))
+        foreground.append(fg)
+    return _checked(scene, judged, tuple(foreground))
 
 
 def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> StaticScene:
     per_frame = [np.unique(_voxel_keys(P, params.voxel_m)) for P in points]
     keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
     need = max(2, int(np.ceil(0.5 * len(points))))
-    scene = StaticScene("voxels", params, _voxels=keys[counts >= need])
+    voxels = keys[counts >= need]
+    # Each direction bin's farthest background voxel centre: a return farther than it sees through the scene.
+    centres = (np.stack([voxels // _SHIFT ** 2, voxels // _SHIFT % _SHIFT, voxels % _SHIFT], axis=1)
+               - _SHIFT // 2 + 0.5) * params.voxel_m
+    bins, inverse = np.unique(_direction_keys(centres, params.direction_bin_deg), return_inverse=True)
+    far = np.full(len(bins), -np.inf)
+    np.maximum.at(far, inverse.ravel(), _ranges(centres))
+    scene = StaticScene("voxels", params, _voxels=voxels, _bins=(bins, far))
     background = [scene._in_background_voxel(P) for P in points]
-    return _checked(scene, np.array([float(np.mean(b)) for b in background]), tuple(~b for b in background))
+    beyond = [~b & scene._beyond_voxels(P) for b, P in zip(background, points)]
+    return _checked(scene, list(zip(background, beyond)), tuple(~b for b in background))
 
 
-def _checked(scene: StaticScene, match: np.ndarray, foreground: tuple = ()) -> StaticScene:
-    limit = max(scene.params.moved_fraction, float(np.median(match)) - scene.params.moved_drop)
-    moved = np.nonzero(match < limit)[0]
+def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], foreground: tuple = ()
+             ) -> StaticScene:
+    """The scene, or none when a frame contradicts it: ``judged`` holds each frame's masks of the returns that
+    match the static scene and of those that contradict it."""
+    p = scene.params
+    match = np.array([s.sum() / (s.sum() + b.sum()) if s.sum() + b.sum() >= p.min_judged else np.nan
+                      for s, b in judged])
+    typical = float(np.nanmedian(match)) if np.isfinite(match).any() else 1.0
+    with np.errstate(invalid="ignore"):
+        moved = np.nonzero(match < max(p.moved_fraction, typical - p.moved_drop))[0]
     if len(moved):
         names = ", ".join(str(int(k)) for k in moved[:8])
-        return StaticScene("none", scene.params, match,
+        return StaticScene("none", p, match,
                            f"the rig seems to have moved: frame(s) {names} match the static scene for only "
-                           f"{100 * match[moved].min():.0f}% of their returns; each frame's board is found from "
-                           "its own cues")
-    return StaticScene(scene.kind, scene.params, match, scene.note, scene._background, scene._column_rad,
-                       scene._rows, scene._voxels, foreground)
+                           f"{100 * match[moved].min():.0f}% of their returns on settled background (the rest lie "
+                           "beyond it or on a surface of their own); each frame's board is found from its own "
+                           "cues")
+    return replace(scene, match=match, _frames=foreground)
 
 
 def build_static_scene(points: list[np.ndarray], rings: list[np.ndarray | None] | None = None,

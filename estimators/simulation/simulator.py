@@ -498,6 +498,19 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
             yield SimulatedFrame(f"{k:04d}", img, pts, inten, ring_k, T_cb, on_board)
 
 
+def cropped_to_boards(frames: list[SimulatedFrame], pad_m: float) -> list[SimulatedFrame]:
+    """The frames' clouds cropped, as some recorders do, to one box (in the LiDAR frame) around every frame's
+    board returns widened by ``pad_m``: the board then fills a large share of each cloud."""
+    boards = np.vstack([f.points[f.board_mask] for f in frames])
+    lo, hi = boards.min(axis=0) - pad_m, boards.max(axis=0) + pad_m
+    out = []
+    for f in frames:
+        keep = np.all((f.points >= lo) & (f.points <= hi), axis=1)
+        out.append(replace(f, points=f.points[keep], intensity=f.intensity[keep], ring=f.ring[keep],
+                           board_mask=f.board_mask[keep]))
+    return out
+
+
 INTENSITY_MODES = ("contrast", "flat", "saturated")
 
 
