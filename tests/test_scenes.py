@@ -481,18 +481,24 @@ def test_too_few_frames_after_a_failed_joint_choice_says_why_it_failed():
     assert "joint choice" not in plain.value.message
 
 
-def test_a_board_of_unknown_size_on_a_stand_with_uprights(tmp_path):
+@pytest.mark.parametrize("lidar, stand, crop_m", [("hdl64e", "uprights", None), ("spin2d", "uprights", 0.3),
+                                                  ("vlp16", "tripod", None)])
+def test_a_board_of_unknown_size_on_a_stand(tmp_path, lidar, stand, crop_m):
     """A board on an aluminium stand (two uprights 2 cm beside its ends, 6 cm behind it, from the ground to above
-    it), dataset.yaml without the board's size: every frame is used, each LiDAR plane within 0.5 degree of the
-    board's (the uprights' returns are trimmed by the pattern's extent and margin, and the robust fit)."""
+    it, on feet) or a tripod, dataset.yaml without the board's size: every frame is used, each LiDAR plane within
+    0.5 degree of the board's (the stand's returns are trimmed by the pattern's extent and margin, and the robust
+    fit). On an HDL-64E-like LiDAR, a spinning 2D laser's dense sweep cropped to a box 0.3 m around the boards,
+    and a VLP-16."""
     import re
     from dataclasses import replace
 
-    from estimators.simulation.simulator import write_dataset
+    from estimators.simulation.simulator import cropped_to_boards, write_dataset
 
     rng = np.random.default_rng(4)
-    rig = replace(default_rig(rng, "hdl64e", 0.02), stand="uprights")
+    rig = replace(default_rig(rng, lidar, 0.02), stand=stand)
     frames = simulate_frames(rig, 8, rng)
+    if crop_m is not None:
+        frames = cropped_to_boards(frames, crop_m)
     path = write_dataset(tmp_path / "stand", rig, frames)
     yaml = path / "dataset.yaml"
     yaml.write_text(re.sub(r"  size: \[.*\]\n", "", yaml.read_text()))

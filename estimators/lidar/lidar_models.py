@@ -81,4 +81,11 @@ def scanner2d(sigma_range_m: float = 0.01) -> BeamModel:
                      (-np.deg2rad(135.0), np.deg2rad(135.0)))
 
 
-BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "os64": os64, "2d": scanner2d}
+def spinning2d(sigma_range_m: float = 0.02) -> BeamModel:
+    """A single-line scanner spun about the vertical axis (a lab's dense sweep): its scan line, vertical, holds
+    -40 to +40 degrees in 0.25 degree steps (321 "rings"), turned in 0.5 degree steps, 30 m."""
+    return BeamModel("spinning 2D laser", np.deg2rad(np.arange(40.0, -40.01, -0.25)), np.deg2rad(0.5),
+                     sigma_range_m, 30.0)
+
+
+BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "os64": os64, "2d": scanner2d, "spin2d": spinning2d}

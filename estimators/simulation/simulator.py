@@ -48,9 +48,13 @@ class Rig:
     max_distance_m: float = 5.0
     # 2D: the scan plane must cut the board over at least this share of its smaller side.
     min_crossing: float = 0.4
-    # What holds the board in the default scene: "post" (one thin post under it) or "uprights" (an aluminium
-    # stand: two uprights just beside the board's ends, a few centimetres behind it, from the ground to above it).
+    # What holds the board in the default scene (STANDS): "post" (one thin post under it), "uprights" (an
+    # aluminium stand: two uprights just beside the board's ends, a few centimetres behind it, from the ground to
+    # above it, on feet) or "tripod" (a head behind the board's centre, a column and three splayed legs).
     stand: str = "post"
+
+
+STANDS = ("post", "uprights", "tripod")
 
 
 def default_camera() -> CameraModel:
@@ -345,9 +349,13 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     if held:
         return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z) + list(static or []), 0
     outline = transform_points(T_lidar_board, board.outline())
+    if rig.stand not in STANDS:
+        raise ValueError(f"Expected stand in {STANDS}, got {rig.stand!r}")
+    room = list(default_room(ground_z) if static is None else static)
     if rig.stand == "uprights":
-        return patches + _uprights(outline, R[:, 2], ground_z) + list(default_room(ground_z) if static is None
-                                                                      else static), 0
+        return patches + _uprights(outline, R[:, 2], ground_z) + room, 0
+    if rig.stand == "tripod":
+        return patches + _tripod(outline, R[:, 2], ground_z) + room, 0
     # A thin stand from the board's lowest point to the ground, a little behind the board.
     low = outline[np.argmin(outline[:, 2])]
     to_sensor = -low[:2] / np.linalg.norm(low[:2])
@@ -356,20 +364,31 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     if low[2] > ground_z:
         patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
                                  [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
-    return patches + list(default_room(ground_z) if static is None else static), 0
+    return patches + room, 0
 
 
 # The stand's uprights: width (m), gap beside the board's ends (m), distance behind the board's plane (m), and how
-# far above the board's top they reach (m).
+# far above the board's top they reach (m); each stands on a foot (length along the line of sight, height; m).
 UPRIGHT_WIDTH_M, UPRIGHT_GAP_M, UPRIGHT_BEHIND_M, UPRIGHT_ABOVE_M = 0.04, 0.02, 0.06, 0.10
+FOOT_LENGTH_M, FOOT_HEIGHT_M = 0.6, 0.05
+# A tripod: the head (square side, distance behind the board's plane), the column's width, and the legs' width,
+# the hub's height over the ground and how far the feet spread from under it (m).
+TRIPOD_HEAD_M, TRIPOD_BEHIND_M, TRIPOD_COLUMN_M = 0.15, 0.04, 0.04
+TRIPOD_LEG_M, TRIPOD_HUB_M, TRIPOD_SPREAD_M = 0.03, 0.7, 0.45
+
+
+def _away_across(outline: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The board's normal pointing away from the sensor, and the horizontal direction along the board."""
+    away = normal if normal @ outline.mean(0) > 0 else -normal  # from the sensor through the board
+    across = np.cross(away, [0.0, 0.0, 1.0])
+    return away, across / np.linalg.norm(across)
 
 
 def _uprights(outline: np.ndarray, normal: np.ndarray, ground_z: float) -> list[Patch]:
-    """Two vertical uprights of a stand beside the board's left and right ends, behind its plane (LiDAR frame:
-    ``outline`` the board's corners, ``normal`` its normal)."""
-    away = normal if normal @ outline.mean(0) > 0 else -normal  # from the sensor through the board
-    across = np.cross(away, [0.0, 0.0, 1.0])
-    across /= np.linalg.norm(across)
+    """Two vertical uprights of a stand beside the board's left and right ends, behind its plane, each on a foot
+    along the line of sight (LiDAR frame: ``outline`` the board's corners, ``normal`` its normal)."""
+    away, across = _away_across(outline, normal)
+    ahead = np.array([-away[0], -away[1], 0.0]) / np.linalg.norm(away[:2])  # horizontal, towards the sensor
     along = outline @ across
     top = float(outline[:, 2].max()) + UPRIGHT_ABOVE_M
     posts = []
@@ -379,7 +398,34 @@ def _uprights(outline: np.ndarray, normal: np.ndarray, ground_z: float) -> list[
             + away * UPRIGHT_BEHIND_M
         foot = np.array([foot[0], foot[1], ground_z]) - across * UPRIGHT_WIDTH_M / 2
         posts.append(rectangle(foot, across, [0.0, 0.0, 1.0], UPRIGHT_WIDTH_M, top - ground_z, 0.35, "stand"))
+        # The foot: a bar on the ground under the upright, half in front of it, its side facing across.
+        bar = foot + across * UPRIGHT_WIDTH_M / 2 - ahead * FOOT_LENGTH_M / 2
+        posts.append(rectangle(bar, ahead, [0.0, 0.0, 1.0], FOOT_LENGTH_M, FOOT_HEIGHT_M, 0.35, "stand"))
     return posts
+
+
+def _tripod(outline: np.ndarray, normal: np.ndarray, ground_z: float) -> list[Patch]:
+    """A tripod: a square head behind the board's centre, a column from it down to the hub, and three legs from
+    the hub splayed to the ground (LiDAR frame)."""
+    away, across = _away_across(outline, normal)
+    up = np.cross(across, away)
+    centre = outline.mean(0) + away * TRIPOD_BEHIND_M
+    parts = [rectangle(centre - (across + up) * TRIPOD_HEAD_M / 2, across, up, TRIPOD_HEAD_M, TRIPOD_HEAD_M,
+                       0.2, "stand")]
+    hub = np.array([centre[0], centre[1], ground_z + TRIPOD_HUB_M])
+    head_low = centre[2] - TRIPOD_HEAD_M / 2
+    if head_low > hub[2]:
+        parts.append(rectangle(hub - across * TRIPOD_COLUMN_M / 2, across, [0.0, 0.0, 1.0], TRIPOD_COLUMN_M,
+                               head_low - hub[2], 0.2, "stand"))
+    for k in range(3):
+        a = np.deg2rad(90.0 + 120.0 * k)  # one leg straight back, two towards the sensor's side
+        out = np.cos(a) * across + np.sin(a) * np.array([away[0], away[1], 0.0]) / np.linalg.norm(away[:2])
+        foot = np.array([hub[0], hub[1], ground_z]) + TRIPOD_SPREAD_M * out
+        leg = hub - foot
+        side = np.cross(leg, [0.0, 0.0, 1.0])
+        parts.append(rectangle(foot - side / np.linalg.norm(side) * TRIPOD_LEG_M / 2, side, leg, TRIPOD_LEG_M,
+                               np.linalg.norm(leg), 0.2, "stand"))
+    return parts
 
 
 def default_room(ground_z: float) -> list[Patch]:
