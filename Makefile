@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_realdata.py
 	$(PY) benchmarks/bench_scenes.py
 	$(PY) benchmarks/bench_handheld.py
+	$(PY) benchmarks/bench_stands.py
 	$(PY) benchmarks/bench_range_model.py
 	$(PY) benchmarks/bench_range_model_scenes.py
 	$(PY) benchmarks/bench_range_model_scenes.py --inject 100

@@ -17,7 +17,7 @@ from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
-from geometry.rotations import quat_xyzw_from_R
+from geometry.rotations import T_inverse, quat_xyzw_from_R, transform_points
 
 from . import __version__
 from .camera.board_pose import estimate_board_pose
@@ -32,8 +32,8 @@ from .io.image_io import read_gray
 from .io.input_files import load_json, regular_file
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan_2d, read_sweep
-from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, choose_by_prediction,
-                                       decide_alone, robust_plane_fit)
+from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
+                                       choose_by_prediction, decide_alone, robust_plane_fit)
 from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from .measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
@@ -804,10 +804,27 @@ def _trim_to_outline(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
     and refitted robustly (the holder's points left in the plane band are outliers)."""
     inside = inside_outline(obs.points, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M + board.unknown_margin,
                             OUTLINE_BAND_M)
+    if board.unknown_margin > 0 and inside.sum() >= params.min_points and not obs.is_scan_line:
+        inside &= _border(obs.points, inside, T_camera_lidar, T_camera_board, board, params)
     if inside.all() or inside.sum() < params.min_points:
         return obs
     _, keep = robust_plane_fit(obs.points[inside])
     return observe_lidar_board(obs.points[inside][keep], n_candidates)
+
+
+def _border(points: np.ndarray, inside: np.ndarray, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board,
+            params: SegmentationParams) -> np.ndarray:
+    """A board of unknown size: its points in the pattern's extent, and the border beyond it as far as it stays
+    in their plane (``board_segmentation.border_trim``); all True when the pattern holds too few points."""
+    q = transform_points(T_inverse(T_camera_board) @ T_camera_lidar, points)
+    w, h = board.extent
+    pattern = inside & np.all((q[:, :2] >= 0.0) & (q[:, :2] <= [w, h]), axis=1)
+    if pattern.sum() < params.min_points:
+        return np.ones(len(points), dtype=bool)
+    plane, keep = robust_plane_fit(points[pattern])
+    r = plane.signed_distances(points)
+    sigma = float(np.sqrt(np.mean(r[pattern][keep] ** 2)))
+    return border_trim(q[:, :2], r, (w, h), sigma)
 
 
 # A 2D frame's ambiguous scan segment is chosen when exactly one lies within this RMS distance (m) of the

@@ -195,6 +195,40 @@ def robust_plane_fit(P: np.ndarray, iterations: int = 50) -> tuple[Plane, np.nda
     return plane, keep
 
 
+# A board of unknown size: the border beyond its pattern is grown outwards in steps of this width (m), and stops
+# at the first step whose points sit, on average, this many of their standard errors and this share of the
+# noise off the pattern's plane (a stand's upright or a tripod head a few centimetres behind, fingers in front).
+BORDER_STEP_M = 0.01
+BORDER_STOP_SE = 4.0
+BORDER_STOP_SIGMA = 0.5
+
+
+def border_trim(xy: np.ndarray, residual: np.ndarray, extent: tuple[float, float], sigma: float) -> np.ndarray:
+    """Mask of a board's points (``xy`` in the board frame, the pattern's extent ``(0, 0)-extent``) kept when
+    its size is unknown: all of the pattern's, and beyond each of its four sides the steps outwards up to the
+    first one whose points leave the plane (``residual``: each point's distance from the plane fitted to the
+    pattern's points; ``sigma``: their noise). What lies past that step is not the board's border."""
+    w, h = extent
+    below = np.stack([-xy[:, 0], xy[:, 0] - w, -xy[:, 1], xy[:, 1] - h], axis=1)  # beyond each side (m)
+    side = np.argmax(below, axis=1)
+    beyond = below[np.arange(len(xy)), side]
+    keep = beyond <= 0.0
+    for s in range(4):
+        on = (side == s) & (beyond > 0.0)
+        if not on.any():
+            continue
+        step = np.floor(beyond[on] / BORDER_STEP_M).astype(int)
+        stop = step.max() + 1
+        for k in range(stop):
+            r = residual[on][step == k]
+            if len(r) and abs(r.mean()) > max(BORDER_STOP_SE * sigma / np.sqrt(len(r)), BORDER_STOP_SIGMA * sigma):
+                stop = k
+                break
+        idx = np.nonzero(on)[0]
+        keep[idx[step < stop]] = True
+    return keep
+
+
 def _camera_cue_cost(plane: Plane, P: np.ndarray, cam: CameraBoardObservation, board: BoardModel,
                      sep: float) -> float:
     """Disagreement with the camera's board in quantities that do not depend on the unknown rotation."""
