@@ -613,7 +613,8 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
         w, h = dataset.board.judged_extent
         warnings.append(f"board.size is not given: the LiDAR's board returns are judged and trimmed by the "
                         f"pattern's extent and {100 * dataset.board.unknown_margin:.0f} cm on each side ({w:.2f} x "
-                        f"{h:.2f} m); give board.size in dataset.yaml (the backing board's) to trim to the board itself")
+                        f"{h:.2f} m), the border beyond the pattern kept as far as it stays in the pattern's plane; "
+                        "give board.size in dataset.yaml (the backing board's) to trim to the board itself")
     if hints.static_scene and scene.note:
         warnings.append(f"static scene: {scene.note}")
 
