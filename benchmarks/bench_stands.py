@@ -116,17 +116,20 @@ def main() -> None:
         print(f"{lidar:10s}{len(rows):9d}{len(rows) - len(ok):8d}{sum(r['frames'] for r in ok):7d}"
               f"{sum(r['used'] for r in ok):6d}{100 * np.mean(chi2 < CHI2_3_999) if len(chi2) else np.nan:12.1f}%"
               f"{np.median(chi2) if len(chi2) else np.nan:12.2f}{np.max(angle) if len(angle) else np.nan:14.2f}")
-    for r in stands:
+    for k, r in enumerate(stands):
+        if "failed" not in r and max(r["chi2"], default=0.0) > CHI2_3_999:
+            print(f"  chi2 over 16.27 (seed {9000 + k}, {r['lidar']}, {r['stand']}, cropped {r['cropped']}): "
+                  + ", ".join(f"{c:.1f}" for c in r["chi2"] if c > CHI2_3_999))
         if "failed" in r:
             print(f"  refused ({r['lidar']}, {r['stand']}): {r['failed']}")
         elif r["reasons"]:
             print(f"  unused frames ({r['lidar']}, {r['stand']}, cropped {r['cropped']}): {r['reasons']}")
     print("chi2: the truth's chi-square under each recorded plane's information (3 dof: median 2.37 ideal)")
+    if not cropped:
+        return
     print(f"Office clouds cropped 0.3 m around the boards (VLP-16 and HDL-64E, {N_FRAMES} frames): {args.cropped} "
           f"datasets (seeds 9500-{9500 + args.cropped - 1})")
     ok = [r for r in cropped if "failed" not in r]
-    if not cropped:
-        return
     print(f"  board's largest share of a cloud: median {np.median([r['fill'] for r in cropped]):.2f}, max "
           f"{np.max([r['fill'] for r in cropped]):.2f}; declared 'rig moved': {sum(r['moved'] for r in ok)} of "
           f"{len(ok)}; frames used {sum(r['used'] for r in ok)} of {sum(r['frames'] for r in ok)}; refused "
