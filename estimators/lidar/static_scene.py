@@ -28,8 +28,10 @@ others return), or lie in front of it on a surface that other frames return too 
 groups of frames, each consistent with itself). A frame whose matching share is under ``moved_fraction``, or
 ``moved_drop`` under the typical frame's, was taken from elsewhere. Returns in front of the background that no
 other frame repeats (the board, its holder) do not count, so a board that fills most of a cropped cloud does
-not make the rig look moved; a frame with fewer than ``min_judged`` judged returns is not judged. The model then
-says so and is not used: each frame falls back to the cues it holds alone.
+not make the rig look moved; a frame with fewer than ``min_judged`` judged returns is not judged. With voxels,
+the judged returns are those in a background voxel and those off the background that are not in front of it
+(in their direction bin, no nearer than its farthest background voxel): a wall seen from elsewhere. The model
+then says so and is not used: each frame falls back to the cues it holds alone.
 """
 from __future__ import annotations
 
@@ -51,7 +53,7 @@ class StaticSceneParams:
     moved_fraction: float = 0.9     # a frame matching less than this of its judged background: the rig moved
     moved_drop: float = 0.05        # ... or matching it this much less than the typical frame does
     min_judged: int = 100           # a frame with fewer returns on settled background is not judged
-    direction_bin_deg: float = 1.0  # voxels: the direction bins in which a return is judged beyond the scene
+    direction_bin_deg: float = 1.0  # voxels: the direction bins in which a return is judged in front or not
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,8 +131,10 @@ class StaticScene:
             hit |= self._voxels[pos] == k if len(self._voxels) else False
         return hit
 
-    def _beyond_voxels(self, points: np.ndarray) -> np.ndarray:
-        """Returns farther than every background voxel in their direction bin by the margin (and a voxel)."""
+    def _not_in_front(self, points: np.ndarray) -> np.ndarray:
+        """Returns in a direction bin that holds background voxels and no nearer than the farthest of them by
+        the margin (and a voxel): off the background, such a return is not something in front of it (a board, a
+        person) but the scene seen from elsewhere."""
         keys, far = self._bins
         if len(keys) == 0:
             return np.zeros(len(points), dtype=bool)
@@ -138,7 +142,7 @@ class StaticScene:
         pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
         there = keys[pos] == k
         slack = self.params.margin_m + np.sqrt(3.0) * self.params.voxel_m
-        return there & (_ranges(points) > far[pos] + slack)
+        return there & (_ranges(points) >= far[pos] - slack)
 
 
 _SHIFT = 2 ** 20
@@ -267,8 +271,8 @@ def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> Static
     np.maximum.at(far, inverse.ravel(), _ranges(centres))
     scene = StaticScene("voxels", params, _voxels=voxels, _bins=(bins, far))
     background = [scene._in_background_voxel(P) for P in points]
-    beyond = [~b & scene._beyond_voxels(P) for b, P in zip(background, points)]
-    return _checked(scene, list(zip(background, beyond)), tuple(~b for b in background))
+    off = [~b & scene._not_in_front(P) for b, P in zip(background, points)]
+    return _checked(scene, list(zip(background, off)), tuple(~b for b in background))
 
 
 def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], foreground: tuple = ()
