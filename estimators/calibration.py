@@ -249,7 +249,8 @@ class CalibrationResult:
             "inside_board_extent": sel.n_inside_extent, "clusters": sel.n_clusters,
             "candidates_refined": len(sel.candidates), "cost_threshold": sel.threshold,
             "candidate_costs": [c.cost for c in sel.candidates], "degenerate_triples": list(sel.degenerate_triples),
-            "weak_triples": list(sel.weak_triples), "multistart_fallback": sel.fallback, "seconds": sel.seconds},
+            "weak_triples": list(sel.weak_triples), "multistart_fallback": sel.fallback, "seconds": sel.seconds,
+            "max_sensor_separation_m": sel.max_separation_m, "unphysical_solutions": sel.n_unphysical},
             "modes": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                        "refined_cost": m.cost, "outline_cost": m.outline_cost,
                        "evidence": m.evidence} for m in self.modes],
@@ -930,6 +931,8 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     rng = np.random.default_rng(0) if rng is None else rng
     if options.range_accuracy_m is None:  # the dataset's, or its LiDAR family's (an explicit option wins)
         options = replace(options, range_accuracy_m=dataset_range_accuracy(dataset))
+    # One bound on the sensors' separation: the board search's (``params``) also bounds the 2D solutions.
+    options = replace(options, max_sensor_separation_m=params.max_sensor_separation_m)
     timings: dict = {}
     t_start = time.perf_counter()
     if posterior is not None and refine != "none":
@@ -1116,7 +1119,8 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     method = "minimal-lower-bound" if init == "closed-form" else init
     t0 = time.perf_counter()
     if refine == "none":
-        sel = select_minimal([f for f in frames if f.usable], board, method, use_extent)
+        sel = select_minimal([f for f in frames if f.usable], board, method, use_extent,
+                             options.max_sensor_separation_m)
         timings["solve"] = time.perf_counter() - t0
     else:  # the boards skipped as ambiguous in their orientation may be used with the tilt the laser decides
         frames, sel, ref, modes, notes = select_and_refine(frames, board, camera, method, options, use_extent)
@@ -1131,8 +1135,11 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
         warnings.append(f"{len(sel.weak_triples)} of {sel.n_triples} board triples are ill-conditioned and were "
                         f"solved anyway (first: {sel.weak_triples[0]})")
     if sel.fallback:
-        warnings.append("no board triple gave a minimal solution: the candidates come from a multi-start search "
-                        "over rotations seeded by the camera's board planes")
+        why = (f" that could be the rig ({sel.n_unphysical} put the LiDAR behind a board, a segment behind the "
+               f"camera, or the sensors more than {sel.max_separation_m:g} m apart)"
+               if sel.n_unphysical and sel.max_separation_m is not None else "")
+        warnings.append(f"no board triple gave a minimal solution{why}: the candidates come from a multi-start "
+                        "search over rotations seeded by the camera's board planes")
     spread, weak = normal_spread(np.array([f.camera.plane.normal for f in used]))
     if refine == "none":
         T = sel.candidates[0].T_camera_lidar

@@ -219,7 +219,8 @@ def _options(args):
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
                              range_noise_m=args.range_noise_m, range_model=args.range_model,
                              range_accuracy_m=getattr(args, "range_accuracy_m", None),
-                             edges=getattr(args, "edges", False))
+                             edges=getattr(args, "edges", False),
+                             max_sensor_separation_m=getattr(args, "max_sensor_separation", 1.0))
 
 
 def _posterior_options(args):

@@ -251,3 +251,32 @@ def test_boards_ambiguous_in_their_tilt_are_decided_by_the_laser_when_the_rest_c
     same[3] = replace(amb[3], camera_alternatives=(amb[3].camera_alternatives[1],) * 2)
     with pytest.raises(DegenerateLayoutError, match="do not decide it either"):
         select_and_refine(same, rig.board, rig.camera)
+
+
+def test_roots_that_cannot_be_the_rig_are_not_solutions():
+    """``physical``: the truth passes; the same rotation with the LiDAR 2 m from the camera fails the default 1 m
+    bound (and passes with none); the LiDAR moved through a board's plane to its far side fails; a root that puts
+    the segments behind the camera (turned half round about the camera's vertical) fails. ``select_minimal``
+    keeps only roots within the bound: all of them, and the truth's, within 0.5 m of the camera for the default
+    rig (its LiDAR about 0.11 m away), none within 1 cm, where it refuses naming the bound."""
+    from estimators.solvers.solution_selection import physical
+
+    rig, frames = _frames("default", 4, 3)
+    T = rig.T_camera_lidar
+    far = T.copy()
+    far[:3, 3] *= 2.0 / np.linalg.norm(T[:3, 3])
+    f0 = frames[0].camera.T_camera_board
+    n, d = f0[:3, 2], f0[:3, 2] @ f0[:3, 3]
+    through = T.copy()
+    through[:3, 3] += (d - n @ T[:3, 3] + 0.5) * n  # 0.5 m beyond the board's plane
+    turned = T.copy()
+    turned[:3, :3] = np.diag([-1.0, 1.0, -1.0]) @ T[:3, :3]
+    Ts = np.array([T, far, through, turned])
+    np.testing.assert_array_equal(physical(Ts, frames, 1.0), [True, False, False, False])
+    assert physical(far, frames, None)[0]
+    sel = select_minimal(frames, rig.board, max_separation_m=0.5)
+    assert sel.candidates and sel.max_separation_m == 0.5
+    assert all(np.linalg.norm(c.T_camera_lidar[:3, 3]) <= 0.5 for c in sel.candidates + sel.reserve)
+    assert sel.n_unphysical > 0  # the minimal solver's other roots
+    with pytest.raises(DegenerateLayoutError, match="0.01 m"):
+        select_minimal(frames, rig.board, max_separation_m=0.01)

@@ -103,6 +103,9 @@ class RefinementOptions:
     range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
     # The board's edges where the rings leave it (``solvers.board_edges``), when the board's size is known.
     edges: bool = False
+    # 2D: a minimal solution or refined minimum whose sensors are farther apart than this (m) is not a solution
+    # (``solution_selection.physical``); None: no bound. ``calibrate`` uses its segmentation parameters' bound.
+    max_sensor_separation_m: float | None = 1.0
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -111,7 +114,8 @@ class RefinementOptions:
             raise ValueError(f"Expected outliers in {OUTLIER_POLICIES}, got {self.outliers!r}")
         if self.range_model not in RANGE_MODELS:
             raise ValueError(f"Expected range_model in {RANGE_MODELS}, got {self.range_model!r}")
-        for name in ("corner_noise_px", "range_noise_m", "plane_floor_m", "range_accuracy_m"):
+        for name in ("corner_noise_px", "range_noise_m", "plane_floor_m", "range_accuracy_m",
+                     "max_sensor_separation_m"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise ValueError(f"Expected {name} to be positive, got {v}")

@@ -92,6 +92,9 @@ class MinimalSelection:
     # The other cluster representatives (beyond the lower bound), best first: refined when few boards leave
     # the minima close in cost, or when the kept candidates refine to an implausible fit.
     reserve: tuple[Candidate, ...] = ()
+    # Roots that could not be the rig (``physical``), and the sensors' separation bound used (m; None: none).
+    n_unphysical: int = 0
+    max_separation_m: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +124,22 @@ def _camera_planes(frames: list[FrameMeasurement]) -> tuple[np.ndarray, np.ndarr
 def _in_front(Ts: np.ndarray, normals: np.ndarray, dists: np.ndarray) -> np.ndarray:
     """For (K, 4, 4) ``T_camera_lidar``: the LiDAR on the camera's side of every board (K,) bool."""
     return np.all(Ts[:, :3, 3] @ normals.T - dists < 0, axis=1)
+
+
+def physical(Ts: np.ndarray, frames: list[FrameMeasurement], max_separation_m: float | None) -> np.ndarray:
+    """For (K, 4, 4) ``T_camera_lidar``: whether each could be the rig (K,) bool. The sensors at most
+    ``max_separation_m`` apart (None: no bound), the LiDAR on the camera's side of every board, and every scan
+    segment's ends in front of the camera (a root can put a segment on its board's plane behind the camera)."""
+    Ts = np.asarray(Ts).reshape(-1, 4, 4)
+    normals, dists = _camera_planes(frames)
+    ok = _in_front(Ts, normals, dists)
+    if max_separation_m is not None:
+        ok &= np.linalg.norm(Ts[:, :3, 3], axis=1) <= max_separation_m
+    for f in frames:
+        ends, _ = _segment_ends(f)
+        depth = np.einsum("kj,mj->km", Ts[:, 2, :3], ends) + Ts[:, 2, 3][:, None]
+        ok &= np.all(depth > 0.0, axis=1)
+    return ok
 
 
 def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
@@ -282,8 +301,10 @@ def solution_distances(Ts: np.ndarray) -> np.ndarray:
 
 
 def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: str = "minimal-lower-bound",
-                   use_extent: bool | None = None) -> MinimalSelection:
-    """Minimal solutions of all C(N, 3) triples of usable 2D frames, and the candidates to refine."""
+                   use_extent: bool | None = None, max_separation_m: float | None = None) -> MinimalSelection:
+    """Minimal solutions of all C(N, 3) triples of usable 2D frames, and the candidates to refine. Roots that
+    cannot be the rig (:func:`physical`: the sensors farther apart than ``max_separation_m``, the LiDAR behind
+    a board, a segment behind the camera) are not solutions."""
     if method not in METHODS:
         raise ValueError(f"Expected method in {METHODS}, got {method!r}")
     t0 = time.perf_counter()
@@ -313,18 +334,27 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
             weak_triples.append(f"boards {names}: {res.weak}")
         Ts.extend(res.T_camera_lidar)
     n_solutions = len(Ts)
+    if Ts:
+        Ts = [T for T, ok in zip(Ts, physical(np.array(Ts), frames, max_separation_m)) if ok]
+    n_unphysical = n_solutions - len(Ts)
     fallback = not Ts
     if fallback:
-        Ts = list(multistart_candidates(frames, sigma_r))
+        Ts = list(multistart_candidates(frames, sigma_r, max_separation_m=max_separation_m))
         if not Ts:
+            bound = (f" within {max_separation_m:g} m of the camera" if max_separation_m is not None else "")
             raise DegenerateLayoutError(
                 f"no minimal solution from {len(triples)} triple(s) of boards"
-                + (f" ({degenerate[0]})" if degenerate else "") + ", and no start of the multi-start search "
-                "puts the laser segments on their boards",
-                hint="tilt the boards in different directions (about both horizontal and vertical axes)")
+                + (f" ({degenerate[0]})" if degenerate else "")
+                + (f" puts the LiDAR{bound} on the camera's side of every board ({n_unphysical} root(s) do not)"
+                   if n_unphysical else "")
+                + ", and no start of the multi-start search puts the laser segments on their boards"
+                + (" with the sensors that close" if max_separation_m is not None else ""),
+                hint="tilt the boards in different directions (about both horizontal and vertical axes); if the "
+                     "sensors are farther apart, raise --max-sensor-separation")
     Ts = np.array(Ts)
     S = laser_costs(Ts, frames, sigma_r)
-    info = dict(degenerate_triples=tuple(degenerate), weak_triples=tuple(weak_triples), fallback=fallback)
+    info = dict(degenerate_triples=tuple(degenerate), weak_triples=tuple(weak_triples), fallback=fallback,
+                n_unphysical=n_unphysical, max_separation_m=max_separation_m)
     if method == "minimal-min-residual":
         k = int(np.argmin(S))
         return MinimalSelection(method, (Candidate(Ts[k], float(S[k]), 1),), len(triples), n_solutions,
@@ -377,12 +407,13 @@ def _representatives(Ts: np.ndarray, S: np.ndarray) -> list[Candidate]:
 
 
 def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_starts: int = 4096,
-                          n_polish: int = 12) -> list[np.ndarray]:
+                          n_polish: int = 12, max_separation_m: float | None = None) -> list[np.ndarray]:
     """``T_camera_lidar`` candidates without the minimal solver, from the camera's geometry alone: for each of
     ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
-    board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost.
-    For layouts where every triple is degenerate although the normals span 3D."""
+    board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost, and
+    those that could be the rig kept (:func:`physical`). For layouts where every triple is degenerate although
+    the normals span 3D."""
     normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
     pts, owner = [], []
@@ -408,7 +439,7 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
         res = least_squares(lambda xi, T0=Ts[k]: laser_residuals(_retract(T0, xi[None]), frames, sigma_r)[0],
                             np.zeros(6), method="lm", max_nfev=600)
         T = _retract(Ts[k], res.x[None])
-        if np.all(np.isfinite(T)) and _in_front(T, normals, dists)[0]:
+        if np.all(np.isfinite(T)) and physical(T, frames, max_separation_m)[0]:
             out.append(T[0])
     return out
 
@@ -525,17 +556,21 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
         # An implausible best fit, or with few boards a single minimum: that no other root was found is no
         # proof that there is none (a root the minimal solver lost to noise), so the multi-start search looks
         # for others, whose evidence is then weighed against it.
-        refine_all(multistart_candidates(usable, sigma_r))
+        refine_all(multistart_candidates(usable, sigma_r, max_separation_m=options.max_sensor_separation_m))
     if not refined:
         if error:
             raise error[0]
         raise DegenerateLayoutError("no candidate of the minimal solutions could be refined")
-    # A refined minimum that puts the LiDAR behind a board (on the side the camera does not see) is not physical.
-    normals, dists = _camera_planes(usable)
-    front = [cr for cr in refined if _in_front(cr[1].T_camera_lidar[None], normals, dists)[0]]
+    # A refined minimum that puts the LiDAR behind a board (on the side the camera does not see), a segment
+    # behind the camera, or the sensors farther apart than the bound is not physical.
+    sep = options.max_sensor_separation_m
+    front = [cr for cr in refined if physical(cr[1].T_camera_lidar, usable, sep)[0]]
     if not front:
-        raise DegenerateLayoutError("every refined minimum puts the LiDAR behind one of the boards",
-                                    hint="check that the camera and the LiDAR see the same side of each board")
+        raise DegenerateLayoutError(
+            "every refined minimum puts the LiDAR behind one of the boards, a scan segment behind the camera"
+            + (f", or the LiDAR farther than {sep:g} m from the camera" if sep is not None else ""),
+            hint="check that the camera and the LiDAR see the same side of each board; if the sensors are "
+                 "farther apart, raise --max-sensor-separation")
     refined = front
     distinct = _distinct(refined)
     # The factor graph estimates its noise terms (the per-board plane error) from where it starts, so a
@@ -639,6 +674,6 @@ def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
 
 def _select_and_refine(frames, board, camera, method, options, use_extent):
     used = [f for f in frames if f.usable]
-    sel = select_minimal(used, board, method, use_extent)
+    sel = select_minimal(used, board, method, use_extent, options.max_sensor_separation_m)
     ref, modes = refine_candidates(used, board, camera, sel, options, use_extent)
     return frames, sel, ref, modes
