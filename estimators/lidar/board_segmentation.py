@@ -197,7 +197,7 @@ def robust_plane_fit(P: np.ndarray, iterations: int = 50) -> tuple[Plane, np.nda
 
 # A board of unknown size: the border beyond its pattern is grown outwards in steps of this width (m), and stops
 # at the first step whose points sit, on average, this many of their standard errors and this share of the
-# noise off the pattern's plane (a stand's upright or a tripod head a few centimetres behind, fingers in front).
+# noise off the pattern's plane (a stand's upright or a tripod head a few centimetres behind it).
 BORDER_STEP_M = 0.01
 BORDER_STOP_SE = 4.0
 BORDER_STOP_SIGMA = 0.5
@@ -209,9 +209,9 @@ def border_trim(xy: np.ndarray, residual: np.ndarray, extent: tuple[float, float
     first one whose points leave the plane (``residual``: each point's distance from the plane fitted to the
     pattern's points; ``sigma``: their noise). What lies past that step is not the board's border."""
     w, h = extent
-    below = np.stack([-xy[:, 0], xy[:, 0] - w, -xy[:, 1], xy[:, 1] - h], axis=1)  # beyond each side (m)
-    side = np.argmax(below, axis=1)
-    beyond = below[np.arange(len(xy)), side]
+    past = np.stack([-xy[:, 0], xy[:, 0] - w, -xy[:, 1], xy[:, 1] - h], axis=1)  # beyond each side (m)
+    side = np.argmax(past, axis=1)
+    beyond = past[np.arange(len(xy)), side]
     keep = beyond <= 0.0
     for s in range(4):
         on = (side == s) & (beyond > 0.0)

@@ -59,8 +59,8 @@ class StaticSceneParams:
 @dataclass(frozen=True, eq=False)
 class StaticScene:
     """Background model of a dataset's sweeps. ``kind``: ``range-image``, ``voxels`` or ``none`` (too few
-    frames, or the rig moved); ``match`` is each frame's share of its returns on settled background that match
-    it rather than lie beyond it (nan: too few such returns to judge)."""
+    frames, or the rig moved); ``match`` is each frame's share of its judged returns (on settled background)
+    that match it rather than contradict it (nan: too few such returns to judge)."""
 
     kind: str
     params: StaticSceneParams
@@ -263,7 +263,8 @@ def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> Static
     keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
     need = max(2, int(np.ceil(0.5 * len(points))))
     voxels = keys[counts >= need]
-    # Each direction bin's farthest background voxel centre: a return farther than it sees through the scene.
+    # Each direction bin's farthest background voxel centre: a return off the background and not nearer than it
+    # is not in front of the scene but the scene seen from elsewhere.
     centres = (np.stack([voxels // _SHIFT ** 2, voxels // _SHIFT % _SHIFT, voxels % _SHIFT], axis=1)
                - _SHIFT // 2 + 0.5) * params.voxel_m
     bins, inverse = np.unique(_direction_keys(centres, params.direction_bin_deg), return_inverse=True)
@@ -289,9 +290,8 @@ def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], fo
         names = ", ".join(str(int(k)) for k in moved[:8])
         return StaticScene("none", p, match,
                            f"the rig seems to have moved: frame(s) {names} match the static scene for only "
-                           f"{100 * match[moved].min():.0f}% of their returns on settled background (the rest lie "
-                           "beyond it or on a surface of their own); each frame's board is found from its own "
-                           "cues")
+                           f"{100 * match[moved].min():.0f}% of their returns on settled background (the rest see "
+                           "through it or show it from elsewhere); each frame's board is found from its own cues")
     return replace(scene, match=match, _frames=foreground)
 
 
