@@ -54,8 +54,8 @@ class LayoutAnalysis:
     # With a global LiDAR range offset estimated too (prior OFFSET_PRIOR_SD_M): the translation's standard
     # deviations (mm), the offset's (mm), and its correlation with the translation along the LiDAR's x y z.
     offset: dict | None = None
-    # With the board's edges too (``--edges``; a planned layout of a 3D LiDAR whose board size is known): the
-    # predicted rotation (deg) and translation (mm) standard deviations.
+    # With the board's edges too (a 3D LiDAR's ``--edges``, a 2D scan's segment ends; the board's size known):
+    # the predicted rotation (deg) and translation (mm) standard deviations.
     edges: dict | None = None
 
     @property
@@ -103,7 +103,8 @@ class LayoutAnalysis:
                       + "  ".join(f"{c:+.2f}" for c in o["translation_correlation"])]
         if self.edges is not None:
             e = self.edges
-            lines += ["with the board's edges (--edges): rotation "
+            lines += [("with the segment ends on the boards' edges (used by default): rotation " if e.get("scan_line")
+                       else "with the board's edges (--edges): rotation ")
                       + "  ".join(f"{v:.3f}" for v in e["rotation_std_deg"]) + " deg; translation "
                       + "  ".join(f"{v:.2f}" for v in e["translation_std_mm"]) + " mm"]
         return "\n".join(lines)
@@ -140,17 +141,19 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
 
 def _with_edges(layout: Layout) -> dict | None:
     """The predicted standard deviations with the board's edges (``observation_model.edges_information``), for a
-    3D layout whose board size is known: planned, or measured with the returns' rings."""
-    if layout.beams.is_2d or layout.board.size is None:
+    layout whose board size is known: planned, or measured with the returns' rings (a 2D scan: its segments'
+    ends)."""
+    if layout.board.size is None:
         return None
-    if layout.hits is not None and any(len(h) < 3 or h[2] is None for h in layout.hits):
+    if not layout.beams.is_2d and layout.hits is not None and any(len(h) < 3 or h[2] is None for h in layout.hits):
         return None  # measured returns without rings: no ends to find
     try:
         C = np.linalg.inv(edges_information(layout))
     except np.linalg.LinAlgError:
         return None
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist()}
+    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist(),
+            "scan_line": bool(layout.beams.is_2d)}
 
 
 OFFSET_TERMS = RangeTerms(("offset",), (OFFSET_PRIOR_SD_M,))

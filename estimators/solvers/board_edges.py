@@ -1,4 +1,4 @@
-"""The board's edges as measurements: where each LiDAR ring leaves the board.
+"""The board's edges as measurements: where each LiDAR ring (or a 2D scan's line) leaves the board.
 
 Planes fix the translation only along the boards' normals; when the normals are weakly spread (boards in front
 of the rig, tilted a little) the in-plane directions rest on little. Each ring that crosses a board stops at the
@@ -9,9 +9,12 @@ between the last return on the board (azimuth ``phi``) and the next firing, whic
 azimuth uniform on that interval, and the beam's centre able to fall off the board by a little while its
 footprint still returns from it (``BEAM_SD_RAD``), the edge is taken at the interval's middle,
 ``phi +- delta / 2``, with variance ``delta^2 / 12 + BEAM_SD_RAD^2`` (the uniform's and the footprint's).
-The two moments are what a Gaussian keeps of that interval; an end that is not the board's edge (a holder's
-hand, a stand, a return lost at the edge) is far out in those units, and a Huber loss (``EDGE_HUBER``) bounds
-its pull.
+The two moments are what a Gaussian keeps of that interval. An end that is not the board's edge (a holder's
+hand, a stand, a return lost at the edge) lies inside the outline, far out in those units: inward, the ends'
+likelihood is a mixture of that Gaussian and a uniform up to ``MAX_END_OFFSET_M`` inside (share
+``HIDDEN_END_SHARE``), so such an end stops pulling; outward, where no hidden end can lie, a Huber loss
+(``EDGE_HUBER``) bounds the pull of a stray return (:func:`end_loss`). A 2D scan's board segment is one ring:
+its two ends are the same measurement, and the same factor serves both LiDARs.
 
 Residual (per end): the mid-beam's ray cut with the board's plane, in the board's frame, and its signed
 distance outward of the side of the outline it crosses (``sides``: x = 0, x = w, y = 0, y = h), less two
@@ -44,8 +47,12 @@ from geometry.planes import cut_with_board
 # divergence in spinning LiDARs (VLP-16 3 mrad full width, OS1 about 3 mrad), of which a return's centre counts
 # about a quarter either side.
 BEAM_SD_RAD = 7.5e-4
-# Huber threshold (in standard deviations of an end's position) beyond which an end's pull stops growing.
+# Huber threshold (in standard deviations of an end's position) beyond which the pull of an end beyond its side
+# stops growing (:func:`end_loss`).
 EDGE_HUBER = 2.5
+# Share of ends that are not their side's but were hidden before it (a hand, a stand, a return lost at the edge),
+# anywhere up to MAX_END_OFFSET_M inside (:func:`end_loss`).
+HIDDEN_END_SHARE = 0.05
 # The edge growth's prior (m): the footprint at 10 m, or a board a centimetre off its given size.
 GROWTH_PRIOR_SD_M = 0.01
 # Ends closer than this (m) to a corner of the outline along their side are not used (which side is crossed
@@ -63,7 +70,7 @@ OFFSET_PRIOR_SD_M = 0.01
 OUTLINE = gtsam.symbol("g", 0)
 
 # Outward normals and offsets of the outline's sides in the board frame: x = 0, x = w, y = 0, y = h.
-_NORMALS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+SIDE_NORMALS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -132,9 +139,9 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
         R = T_board_lidar[:3, :3]
         dq = _project(R @ db * s[0], Rb[0])
         travel = dq[:2] / max(np.linalg.norm(dq[:2]), 1e-12)
-        cosines = _NORMALS @ travel
+        cosines = SIDE_NORMALS @ travel
         # The side it leaves by: outward along its travel, the nearest such.
-        offsets = _NORMALS @ q[0, :2] - np.array([0.0, w, 0.0, h])
+        offsets = SIDE_NORMALS @ q[0, :2] - np.array([0.0, w, 0.0, h])
         ok = cosines > MIN_CROSSING_SINE
         if not ok.any():
             continue
@@ -143,7 +150,7 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
         length = h if side < 2 else w
         if abs(offsets[side]) > MAX_END_OFFSET_M or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
             continue
-        rate = abs(float(_NORMALS[side] @ dq[:2]))  # m across the side per radian
+        rate = abs(float(SIDE_NORMALS[side] @ dq[:2]))  # m across the side per radian
         keep_b.append(beam)
         keep_s.append(side)
         keep_r.append(ring)
@@ -166,7 +173,7 @@ def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges
     :func:`nuisance_jacobians`)."""
     T_bl = np.linalg.inv(T_camera_board) @ T_camera_lidar
     q, s, Rb = cut_with_board(T_bl, edges.beams)
-    a = _NORMALS[edges.sides]
+    a = SIDE_NORMALS[edges.sides]
     r = (np.einsum("ij,ij->i", a, q[:, :2] - np.asarray(shift_m)) - side_offsets(board, edges.sides)
          - np.asarray(growth_m)[edges.sides // 2])
     if not jacobian:
@@ -185,13 +192,41 @@ def nuisance_jacobians(edges: EdgeCrossings) -> tuple[np.ndarray, np.ndarray]:
     outline's offset has the shift's)."""
     H_g = np.zeros((edges.size, 2))
     H_g[np.arange(edges.size), edges.sides // 2] = -1.0
-    return H_g, -_NORMALS[edges.sides]
+    return H_g, -SIDE_NORMALS[edges.sides]
 
 
-def _huber_whiten(r: np.ndarray, sd: np.ndarray, k: float = EDGE_HUBER) -> np.ndarray:
-    """Per end, the factor ``sqrt(weight) / sd`` of a Huber loss at its current residual (IRLS)."""
-    z = np.abs(r) / sd
-    return np.where(z <= k, 1.0, np.sqrt(k / np.maximum(z, 1e-12))) / sd
+def end_loss(r: np.ndarray, sd: np.ndarray, k: float = EDGE_HUBER, hidden: float = HIDDEN_END_SHARE
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Each end's whitened residual ``e`` with ``e^2 / 2`` its negative log-likelihood (relative to an end on its
+    side), and ``de / dr``, for outward distances ``r`` (m) with standard deviations ``sd`` (module docstring).
+
+    Inward (``r < 0``), an end is its side's with share ``1 - hidden`` (Gaussian) or was hidden before the edge
+    (a hand, a stand, a return lost) and lies anywhere up to ``MAX_END_OFFSET_M`` inside (uniform, share
+    ``hidden``): the loss is bounded, and an end far inside stops pulling. Outward, a hidden end cannot lie, so
+    the loss stays Gaussian out to ``k`` standard deviations and grows linearly beyond (Huber: a stray return
+    beyond the board, or a footprint the growth does not hold)."""
+    r, sd = np.broadcast_arrays(np.asarray(r, dtype=float), np.asarray(sd, dtype=float))
+    z = r / sd
+    e, de = np.empty_like(z), np.empty_like(z)
+    out = z >= 0
+    # Huber outward: rho = z^2 / 2 within k, k |z| - k^2 / 2 beyond.
+    zo = z[out]
+    far = zo > k
+    e[out] = np.where(far, np.sqrt(np.maximum(2 * k * zo - k * k, 0.0)), zo)
+    de[out] = np.where(far, k / np.maximum(e[out], 1e-300), 1.0) / sd[out]
+    # Gaussian and uniform inward.
+    zi, si = z[~out], sd[~out]
+    log_u = np.log(hidden / MAX_END_OFFSET_M)
+    log_g = np.log1p(-hidden) - 0.5 * zi**2 - np.log(si * np.sqrt(2 * np.pi))
+    log_g0 = np.log1p(-hidden) - np.log(si * np.sqrt(2 * np.pi))
+    log_mix = np.logaddexp(log_g, log_u)
+    rho = np.maximum(np.logaddexp(log_g0, log_u) - log_mix, 0.0)
+    resp = np.exp(log_g - log_mix)  # the share of the edge's component at this end
+    ei = -np.sqrt(2 * rho)
+    small = np.abs(ei) < 1e-8
+    e[~out] = ei
+    de[~out] = np.where(small, np.sqrt(resp), resp * zi / np.where(small, -1.0, ei)) / si
+    return e, de
 
 
 def _edge_error(edges, board, scale, keys, this, values, H):
@@ -199,21 +234,20 @@ def _edge_error(edges, board, scale, keys, this, values, H):
     Tb = values.atPose3(keys[1]).matrix()
     shift, outline = values.atVector(keys[2]), values.atVector(keys[3])
     r, H_x, H_b = edge_residuals(T, Tb, edges, board, outline[:2], shift + outline[2:], jacobian=H is not None)
-    f = _huber_whiten(r, scale * edges.sd_m)
+    e, f = end_loss(r, scale * edges.sd_m)
     if H is not None:
         H_g, H_s = nuisance_jacobians(edges)
         H[0] = H_x * f[:, None]
         H[1] = H_b * f[:, None]
         H[2] = H_s * f[:, None]
         H[3] = np.hstack([H_g, H_s]) * f[:, None]
-    return r * f
+    return e
 
 
 def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeCrossings, board: BoardModel,
                 scale: float = 1.0) -> gtsam.CustomFactor:
     """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift and the
-    dataset's outline; whitened inside, with each end's Huber weight at its current residual (``scale`` multiplies
-    the ends' standard deviations)."""
+    dataset's outline; whitened inside by :func:`end_loss` (``scale`` multiplies the ends' standard deviations)."""
     keys = [key_extrinsic, key_board, key_shift, OUTLINE]
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(edges.size), keys,
                               partial(_edge_error, edges, board, scale, keys))
@@ -246,7 +280,7 @@ def frame_shift(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: E
     outline = np.asarray(outline, dtype=float)
     r, _, _ = edge_residuals(T_camera_lidar, T_camera_board, edges, board, outline[:2], outline[2:], jacobian=False)
     sd = scale * edges.sd_m
-    a = _NORMALS[edges.sides] / sd[:, None]
+    a = SIDE_NORMALS[edges.sides] / sd[:, None]
     info = a.T @ a
     rank = int(np.linalg.matrix_rank(info, tol=1e-9 * max(np.trace(info), 1e-300)))
     cov = np.linalg.pinv(info)

@@ -21,6 +21,10 @@ MIN_NORMAL_SPREAD = 0.05
 # The limit when the closed form only starts the factor graph: between the two, the layout is weak (the
 # planar method's boards all tilted one way, spread about 0.02) but the full model still determines it.
 WEAK_NORMAL_SPREAD = 0.01
+# 2D: board normals (with the segment ends, also the outward normals of the board sides they end on) whose spread
+# is below this lie in one plane: translation across it is unobservable, refused at once. Between this and
+# MIN_NORMAL_SPREAD the layout is weak but is tried: the factor graph's own observability test decides.
+MIN_SCAN_NORMAL_SPREAD = 0.01
 
 _AXIS_WORDS = ("camera x (right)", "camera y (down)", "camera z (forward)")
 _AXIS_ADVICE = (

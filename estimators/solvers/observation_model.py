@@ -173,12 +173,12 @@ def edges_information(layout: Layout, board_scatter_m: float = 0.0, beam_sd_rad:
     ``board_scatter_m``; none when 0) and the dataset's outline growth and offset (their priors) marginalised:
     the bound of ``--edges``. ``beam_sd_rad``: the ends' angular noise beyond the azimuth step's (default the
     model's beam footprint, ``board_edges.BEAM_SD_RAD``; 0 for this module's simulated beams, which are exact).
-    Needs the board's size and a 3D LiDAR."""
+    Needs the board's size; a 2D scan's segment is one ring, its two ends the edges."""
     from .board_edges import (BEAM_SD_RAD, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, crossings, edge_residuals,
                               nuisance_jacobians)
 
-    if layout.board.size is None or layout.beams.is_2d:
-        raise ValueError("the edges' bound needs a 3D LiDAR and the board's size")
+    if layout.board.size is None:
+        raise ValueError("the edges' bound needs the board's size")
     shifts = board_scatter_m > 0
     info = np.zeros((10, 10))  # extrinsic, the outline's growth (x, y sides) and offset (x, y)
     info[6:, 6:] = np.diag(1.0 / np.array([GROWTH_PRIOR_SD_M] * 2 + [OFFSET_PRIOR_SD_M] * 2) ** 2)
@@ -191,6 +191,8 @@ def edges_information(layout: Layout, board_scatter_m: float = 0.0, beam_sd_rad:
         idx = np.r_[0:6, 10:16]
         F[np.ix_(idx, idx)] += F12
         dirs, ranges, rings, _ = board_returns(layout, i)
+        if layout.beams.is_2d:  # one scan line: one ring
+            rings = np.zeros(len(dirs), dtype=np.int64)
         if len(dirs) and rings is not None:
             e = crossings(dirs * ranges[:, None], rings, T_inverse(T_cb) @ layout.T_camera_lidar, layout.board,
                           BEAM_SD_RAD if beam_sd_rad is None else beam_sd_rad)

@@ -48,10 +48,10 @@ from geometry.rotations import T_exp, T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, crossings, edge_factor,
-                          edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
+from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, SIDE_NORMALS, crossings,
+                          edge_factor, edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
-from .closed_form import describe_direction, solve_closed_form
+from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
                       nuisance_plane_factor, nuisance_residual, plane_factor)
 from .range_model import (CONFOUNDED_CORRELATION, DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS,
@@ -101,8 +101,10 @@ class RefinementOptions:
     # by test), and the sensor's range accuracy (m, 1 sd of a systematic error) that sets the terms' priors.
     range_model: str = "auto"
     range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
-    # The board's edges where the rings leave it (``solvers.board_edges``), when the board's size is known.
-    edges: bool = False
+    # The board's edges where the rings (a 2D scan's line) leave it (``solvers.board_edges``), when the board's
+    # size is known. None: a 2D scan's segment ends are used (a few scan lines leave directions along the boards
+    # that their planes hardly fix), a 3D LiDAR's ring ends only when asked (True).
+    edges: bool | None = None
     # 2D: a minimal solution or refined minimum whose sensors are farther apart than this (m) is not a solution
     # (``solution_selection.physical``); None: no bound. ``calibrate`` uses its segmentation parameters' bound.
     max_sensor_separation_m: float | None = 1.0
@@ -276,6 +278,7 @@ class _Problem:
         self.outline = np.zeros(4)  # the board's outline: sides' growth (x, y) and offset (x, y), m
         self.edge_scale = 1.0
         self.edge_tau = 1e-3  # the boards' in-plane scatter (m), estimated with the edges
+        self.solved = None  # the last solve's (graph, values) when a step beyond the first solves again
         self.shifts: dict[int, np.ndarray] = {}
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
         self.terms, self.labels = terms, labels
@@ -448,21 +451,32 @@ def _rank(A: np.ndarray) -> int:
     return int(np.sum(sv > 1e-8 * sv[0])) if sv.size and sv[0] > 0 else 0
 
 
+def _edge_crossings(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray,
+                    boards: list) -> list | None:
+    """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards`` (None when
+    no frame has any)."""
+    from .range_model import frame_rings
+
+    # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
+    rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
+             for f, r in zip(frames, frame_rings(frames))]
+    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board)
+             if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
+    return edges if any(e is not None and e.size for e in edges) else None
+
+
 def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
                floor: float) -> tuple[np.ndarray, list]:
     """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
     their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
     model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Returns ``T`` and ``boards``."""
-    from .range_model import frame_rings
-
-    rings = frame_rings(frames)
-    edges = []
-    for i, f in enumerate(frames):
-        if i not in active or rings[i] is None:
-            edges.append(None)
-            continue
-        edges.append(crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board))
-    if not any(e is not None and e.size for e in edges):
+    edges = _edge_crossings(prob, frames, active, T, boards)
+    if edges is None:
+        if prob.edges is not None:  # ends assigned under the start, none under the estimate: planes alone
+            prob.edges = None
+            b = list(boards)
+            prob.solved = prob.solve(active, T, b, floor)[:2]
+            return prob.solved[1].atPose3(EXTRINSIC).matrix(), b
         return T, boards
     prob.edges = edges
     b = list(boards)
@@ -479,6 +493,10 @@ def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int]
 # Bound of the boards' in-plane scatter (m): a board's outline placed further off than this by the camera is not
 # a pose error (a wrong board size or pattern offset, which the shift check reports).
 MAX_EDGE_SCATTER_M = 0.05
+# Fewest outline-shift directions (summed over frames) from which that scatter is estimated: the extrinsic's six
+# directions absorb much of what a few boards' shifts show (3 scan lines give 3), and the scatter is then kept
+# at its start.
+MIN_SCATTER_RANK = 10
 
 
 def _edge_scatter(prob: _Problem, active: list[int], T: np.ndarray, boards: list) -> tuple[float, float]:
@@ -499,7 +517,8 @@ def _edge_scatter(prob: _Problem, active: list[int], T: np.ndarray, boards: list
         core = r[np.abs(r) <= 2 * EDGE_HUBER * prob.edge_scale]
         within += float(core @ core)
         dof += max(len(core) - k, 0)
-    tau = float(np.clip(np.sqrt(max(excess, 0.0) / max(rank, 1)), 1e-4, MAX_EDGE_SCATTER_M))
+    tau = (float(np.clip(np.sqrt(max(excess, 0.0) / max(rank, 1)), 1e-4, MAX_EDGE_SCATTER_M))
+           if rank >= MIN_SCATTER_RANK else prob.edge_tau)
     scale = float(np.sqrt(within / dof)) if dof > 10 else 1.0
     return tau, max(1.0, scale)
 
@@ -636,6 +655,48 @@ def _degenerate(graph, values, n_frames: int) -> DegenerateLayoutError:
 # taken as unobservable: a good layout of metre-scale boards is near 1e-2; one whose normals do not span 3D
 # falls below 1e-6 (its weak translation std grows to metres).
 MIN_INFORMATION_RATIO = 1e-6
+# A 2D LiDAR's extrinsic whose standard deviation (planes and segment ends) reaches this rotation (rad) or
+# translation (m) is refused: the layout leaves it unobservable in all but name, and a point estimate there
+# would be a confident-looking guess.
+MAX_SCAN_ROTATION_SD_RAD = np.deg2rad(5.0)
+MAX_SCAN_TRANSLATION_SD_M = 0.5
+
+
+def _check_scan_directions(prob: _Problem, active: list[int], boards: list) -> None:
+    """2D: the translation is fixed along the boards' normals (their scan lines) and along the outward normals of
+    the sides their segments end on (the ends). When all of these lie in one plane (spread, as
+    ``closed_form.normal_spread``, below ``MIN_SCAN_NORMAL_SPREAD``: upright boards whose lines end on their
+    upright sides), the translation across it is unobservable: raise :class:`DegenerateLayoutError` naming it."""
+    dirs = []
+    for i in active:
+        dirs.append(boards[i][:3, 2])
+        if prob.has_edges(i):
+            dirs.extend(SIDE_NORMALS[prob.edges[i].sides] @ boards[i][:3, :2].T)
+    spread, weak = normal_spread(np.array(dirs))
+    if spread[-1] < MIN_SCAN_NORMAL_SPREAD:
+        axis, advice = describe_direction(weak)
+        raise DegenerateLayoutError(
+            f"the {len(active)} board normals and the board sides their scan segments end on all lie in one plane "
+            f"(spread {spread[-1]:.3f} along {axis}): translation along {axis} is unobservable", hint=advice)
+
+
+def _too_weak(cov: np.ndarray, T: np.ndarray, n_frames: int, ends: bool) -> DegenerateLayoutError | None:
+    """The refusal of a 2D extrinsic whose covariance reaches ``MAX_SCAN_ROTATION_SD_RAD`` or
+    ``MAX_SCAN_TRANSLATION_SD_M`` (None when it does not), naming the weakest direction in camera axes."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    if sd[:3].max() < MAX_SCAN_ROTATION_SD_RAD and sd[3:].max() < MAX_SCAN_TRANSLATION_SD_M:
+        return None
+    part = "translation" if sd[3:].max() / MAX_SCAN_TRANSLATION_SD_M >= sd[:3].max() / MAX_SCAN_ROTATION_SD_RAD \
+        else "rotation"
+    block = cov[3:, 3:] if part == "translation" else cov[:3, :3]
+    weak = T[:3, :3] @ np.linalg.eigh(block)[1][:, -1]  # LiDAR axes to camera axes
+    axis, advice = describe_direction(weak)
+    what = "scan lines and their segment ends on the boards' edges" if ends else "scan lines"
+    return DegenerateLayoutError(
+        f"the {n_frames} {what} leave the "
+        f"extrinsic's {part} nearly unobservable (standard deviations up to {np.degrees(sd[:3].max()):.1f} deg and "
+        f"{1000 * sd[3:].max():.0f} mm; weakest along {axis})",
+        hint=f"record more board poses; {advice}")
 
 
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
@@ -658,6 +719,12 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     flagged: dict[int, str] = {}
     T, boards = T_init, [f.camera.T_camera_board for f in frames]
     iterations = 0
+    scan_lines = all(f.lidar.is_scan_line for f in frames)
+    use_edges = scan_lines if options.edges is None else options.edges
+    if use_edges and board.size_known and scan_lines:
+        # A few scan lines leave a direction along the boards loose, where the planes alone drift far from the
+        # start: the segment ends hold it from the first solve (sides assigned under the start).
+        prob.edges = _edge_crossings(prob, frames, active, T, boards)
     for _ in range(max(4, len(frames) // 3)):
         graph, result, its = prob.solve(active, T, boards, floor)
         iterations += its
@@ -685,11 +752,13 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         boards = [f.camera.T_camera_board for f in frames]
 
     inliers = [i for i in active if i not in flagged]
-    if options.edges and not any(f.lidar.is_scan_line for f in frames):
+    if use_edges:
         if board.size_known:
             T, boards = _add_edges(prob, frames, active, T, boards, floor)
-            if prob.edges is not None:
+            if prob.solved is not None:
                 graph, result = prob.solved
+            if scan_lines and prob.edges is not None:
+                _check_scan_directions(prob, active, boards)
         else:
             warnings.append("the board's size is not given (board.size in dataset.yaml): its edges are not used, "
                             "so the translation along the boards' planes rests on the planes alone")
@@ -807,6 +876,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     ev = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0, 1.0])
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
+    if scan_lines and (weak := _too_weak(cov, T, len(active), prob.edges is not None)) is not None:
+        raise weak
 
     # Structure that neither the range terms (their scatter bounded by the range accuracy) nor a plane error of
     # physical size explains: the covariance is scaled by the variance factor that remains (quasi-likelihood).

@@ -38,7 +38,7 @@ from geometry.rotations import T_inverse, exp_batch
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement, lidar_whitener
-from .closed_form import describe_direction, normal_spread
+from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread
 from .minimal_solver import solve_triples
 from .refinement import Refinement, RefinementOptions, pooled_range_noise_m
 from .refinement import refine as refine_graph
@@ -51,10 +51,6 @@ EXTENT_TOLERANCE_M = 0.03
 METHODS = ("minimal-lower-bound", "minimal-min-residual")
 # Other minima holding at least this share of the posterior mass are reported: the answer is ambiguous.
 MIN_MODE_MASS = 0.01
-# Board normals whose spread (``closed_form.normal_spread``) is below this lie in one plane: refused at once.
-# Between this and ``MIN_NORMAL_SPREAD`` the layout is weak but is tried: the factor graph's own
-# observability test decides.
-MIN_SCAN_NORMAL_SPREAD = 0.01
 # Cluster representatives held in reserve beyond the lower bound, and the board count up to which they are
 # always refined (with 3-4 boards a wrong root can fit as well as the true one, and the true one can score
 # worse before refinement).
@@ -245,7 +241,15 @@ def _segment_ends(f: FrameMeasurement) -> tuple[np.ndarray, np.ndarray]:
 
 def outline_costs(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float) -> np.ndarray:
     """Where each laser segment ends against where the scan plane leaves its board, for each of (K, 4, 4)
-    ``T_camera_lidar``: ``-2 log`` of the end points' likelihood, summed over boards.
+    ``T_camera_lidar``: ``-2 log`` of the end points' likelihood, summed over boards (:func:`outline_residuals`)."""
+    return np.sum(outline_residuals(Ts, frames, board, sigma_r) ** 2, axis=1)
+
+
+def outline_residuals(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float
+                      ) -> np.ndarray:
+    """Per segment end (K, 2 x boards), a signed residual whose square is ``-2 log`` of the end's likelihood
+    relative to its best: its sign is that of the end's depth inside its end of the chord less its expected
+    depth.
 
     Mapped into the board's frame, a segment lies on the chord that the scan plane cuts through the board's
     outline; its end points are the last returns inside the outline, so each lies between 0 and one beam
@@ -255,7 +259,7 @@ def outline_costs(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardMo
     tells the true one: a wrong solution slides or turns the chord against the segment."""
     w, h = board.extent
     K = len(Ts)
-    total = np.zeros(K)
+    out = []
     for f in frames:
         ends, spacing = _segment_ends(f)
         T_bc = T_inverse(f.camera.T_camera_board)
@@ -287,8 +291,9 @@ def outline_costs(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardMo
         log_gauss = np.log(1 - EDGE_OUTLIER) - 0.5 * z2 - 0.5 * np.log(2 * np.pi * var)
         log_uniform = np.where(depth >= -EXTENT_TOLERANCE_M, np.log(EDGE_OUTLIER / chord), -np.inf)
         log_peak = np.logaddexp(np.log(1 - EDGE_OUTLIER) - 0.5 * np.log(2 * np.pi * var), np.log(EDGE_OUTLIER / chord))
-        total += np.sum(-2 * (np.logaddexp(log_gauss, log_uniform) - log_peak), axis=1)
-    return total
+        cost = np.maximum(-2 * (np.logaddexp(log_gauss, log_uniform) - log_peak), 0.0)
+        out.append(np.where(depth >= spacing / 2, 1.0, -1.0) * np.sqrt(cost))
+    return np.concatenate(out, axis=1) if out else np.zeros((K, 0))
 
 
 def solution_distances(Ts: np.ndarray) -> np.ndarray:
@@ -315,10 +320,14 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
             hint="record more boards; if frames were skipped as ambiguous, a tighter --max-sensor-separation "
                  "(the camera-LiDAR distance bound) leaves fewer scan segments where the camera puts the board")
     sigma_r = max(pooled_range_noise_m(frames), 1e-5)
+    if use_extent is None:
+        use_extent = board.size_known
     planes = [f.camera.plane for f in frames]
     lines = [f.lidar.line for f in frames]
     spread, weak = normal_spread(np.array([p.normal for p in planes]))
-    if spread[-1] < MIN_SCAN_NORMAL_SPREAD:
+    # Normals in one plane leave the planes alone degenerate; the segment ends on the boards' edges may still
+    # fix the extrinsic (the refinement's information, with them, decides).
+    if spread[-1] < MIN_SCAN_NORMAL_SPREAD and not use_extent:
         axis, advice = describe_direction(weak)
         raise DegenerateLayoutError(
             f"the {len(frames)} board normals all lie in one plane (spread {spread[-1]:.3f} along {axis}): "
@@ -339,7 +348,8 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
     n_unphysical = n_solutions - len(Ts)
     fallback = not Ts
     if fallback:
-        Ts = list(multistart_candidates(frames, sigma_r, max_separation_m=max_separation_m))
+        Ts = list(multistart_candidates(frames, sigma_r, max_separation_m=max_separation_m,
+                                        board=board if use_extent else None))
         if not Ts:
             bound = (f" within {max_separation_m:g} m of the camera" if max_separation_m is not None else "")
             raise DegenerateLayoutError(
@@ -359,8 +369,6 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
         k = int(np.argmin(S))
         return MinimalSelection(method, (Candidate(Ts[k], float(S[k]), 1),), len(triples), n_solutions,
                                 n_solutions, 1, 0.0, seconds=time.perf_counter() - t0, **info)
-    if use_extent is None:
-        use_extent = board.size_known
     n_inside = n_solutions
     outside_reps: list[Candidate] = []
     if use_extent:
@@ -407,13 +415,15 @@ def _representatives(Ts: np.ndarray, S: np.ndarray) -> list[Candidate]:
 
 
 def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_starts: int = 4096,
-                          n_polish: int = 12, max_separation_m: float | None = None) -> list[np.ndarray]:
+                          n_polish: int = 12, max_separation_m: float | None = None,
+                          board: BoardModel | None = None) -> list[np.ndarray]:
     """``T_camera_lidar`` candidates without the minimal solver, from the camera's geometry alone: for each of
     ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
     board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost, and
-    those that could be the rig kept (:func:`physical`). For layouts where every triple is degenerate although
-    the normals span 3D."""
+    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the segment ends are
+    part of the cost (:func:`outline_residuals`). For layouts where every triple is degenerate although the
+    normals span 3D, and for roots that all leave the segment ends off their boards."""
     normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
     pts, owner = [], []
@@ -433,10 +443,16 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     if not front.any():
         return []
     Ts = Ts[front]
-    S = laser_costs(Ts, frames, sigma_r)
+    ends = board is not None and board.size_known
+
+    def residuals(Ts: np.ndarray) -> np.ndarray:
+        r = laser_residuals(Ts, frames, sigma_r)
+        return np.hstack([r, outline_residuals(Ts, frames, board, sigma_r)]) if ends else r
+
+    S = np.sum(residuals(Ts) ** 2, axis=1)
     out: list[np.ndarray] = []
     for k in np.argsort(S)[:n_polish]:
-        res = least_squares(lambda xi, T0=Ts[k]: laser_residuals(_retract(T0, xi[None]), frames, sigma_r)[0],
+        res = least_squares(lambda xi, T0=Ts[k]: residuals(_retract(T0, xi[None]))[0],
                             np.zeros(6), method="lm", max_nfev=600)
         T = _retract(Ts[k], res.x[None])
         if np.all(np.isfinite(T)) and physical(T, frames, max_separation_m)[0]:
@@ -543,11 +559,19 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
                 continue
             refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
 
+    ends = board.size_known if use_extent is None else use_extent
+
     def plausible() -> bool:
+        """The best refined minimum fits the laser points and, with a known board size, the segment ends."""
         if not refined:
             return False
         cost, r = min(refined, key=lambda cr: cr[0])
-        return cost <= chi2.isf(IMPLAUSIBLE_P, max(sum(fr.plane_dof for fr in r.frames) - 6, 1))
+        if cost > chi2.isf(IMPLAUSIBLE_P, max(sum(fr.plane_dof for fr in r.frames) - 6, 1)):
+            return False
+        if not ends:
+            return True
+        return any(outline_costs(r.T_camera_lidar[None], usable, board, sigma_r)[0]
+                   <= chi2.isf(IMPLAUSIBLE_P, 2 * len(usable)) for _, r in refined)
 
     refine_all([c.T_camera_lidar for c in sel.candidates])
     if len(usable) <= REFINE_ALL_UP_TO or not plausible():
@@ -556,7 +580,8 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
         # An implausible best fit, or with few boards a single minimum: that no other root was found is no
         # proof that there is none (a root the minimal solver lost to noise), so the multi-start search looks
         # for others, whose evidence is then weighed against it.
-        refine_all(multistart_candidates(usable, sigma_r, max_separation_m=options.max_sensor_separation_m))
+        refine_all(multistart_candidates(usable, sigma_r, max_separation_m=options.max_sensor_separation_m,
+                                         board=board if ends else None))
     if not refined:
         if error:
             raise error[0]
