@@ -52,6 +52,10 @@ INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation).
 MEASUREMENT_REVISION = 3
 REFINES = ("factor-graph", "none")
+# 2D: a second minimum holding at least this share of the posterior mass makes the result ambiguous: the printed
+# result begins with it and ``lidarcam calibrate --strict`` exits with EXIT_AMBIGUOUS.
+AMBIGUOUS_MASS = 0.05
+EXIT_AMBIGUOUS = 3
 CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera = R p_lidar + t. "
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
 COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m)] in GTSAM's Pose3 tangent: "
@@ -240,6 +244,12 @@ class CalibrationResult:
         """2D LiDAR: the other minima that hold posterior mass (empty when the answer is unambiguous)."""
         return tuple(self.modes[1:])
 
+    @property
+    def ambiguous(self) -> bool:
+        """A second minimum holds at least ``AMBIGUOUS_MASS`` of the posterior mass: the printed result starts
+        with it, and ``--strict`` exits non-zero."""
+        return any(m.mass >= AMBIGUOUS_MASS for m in self.modes[1:])
+
     def _minimal_dict(self) -> dict:
         sel = self.selection
         if sel is None:
@@ -252,9 +262,9 @@ class CalibrationResult:
             "weak_triples": list(sel.weak_triples), "multistart_fallback": sel.fallback, "seconds": sel.seconds,
             "max_sensor_separation_m": sel.max_separation_m, "unphysical_solutions": sel.n_unphysical},
             "modes": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
-                       "refined_cost": m.cost, "outline_cost": m.outline_cost,
-                       "evidence": m.evidence} for m in self.modes],
-            "ambiguous": len(self.modes) > 1}
+                       "covariance": m.refinement.covariance.tolist(), "refined_cost": m.cost,
+                       "outline_cost": m.outline_cost, "evidence": m.evidence} for m in self.modes],
+            "ambiguous": len(self.modes) > 1, "ambiguous_5_percent": self.ambiguous}
 
     def to_dict(self) -> dict:
         R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
@@ -1099,7 +1109,8 @@ def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng
     """Posterior samples, or None with the reason among the warnings (a nearly degenerate problem)."""
     try:
         post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
-                                options, modes)
+                                options, tuple((m.refinement, m.mass) for m in modes[1:]),
+                                modes[0].mass if modes else 1.0)
     except PosteriorSkippedError as exc:
         warnings.append(f"posterior not sampled: {exc.message}")
         return None
@@ -1156,8 +1167,8 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     result = CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
                                {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None, sel,
                                tuple(modes))
-    return _with_posterior(result, used, board, camera, rng, posterior, tuple(m.T_camera_lidar for m in modes[1:]),
-                           warnings, tail, timings, on_refined)
+    return _with_posterior(result, used, board, camera, rng, posterior, tuple(modes), warnings, tail, timings,
+                           on_refined)
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:

@@ -20,6 +20,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="initial solution: closed-form (3D LiDAR; for a 2D LiDAR it means minimal-lower-bound), "
                         "or the 2D minimal-solution selections")
     c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
+    c.add_argument("--strict", action="store_true",
+                   help="exit with code 3 (after writing the results) when the answer is ambiguous: a 2D LiDAR's "
+                        "second solution holds at least 5%% of the posterior mass")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
@@ -79,10 +82,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="the returns' intensity: contrast (black squares dark), flat (no black/white contrast, as an "
                         "uncalibrated LiDAR's) or saturated (255 everywhere)")
     s.add_argument("--no-ring", action="store_true", help="write clouds without a ring field")
-    s.add_argument("--rig", default="default", choices=["default", "varied"],
+    s.add_argument("--rig", default="default", choices=["default", "varied", "mounted"],
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
-                        "another camera, 0.25 or 0.5 degree steps)")
+                        "another camera, 0.25 or 0.5 degree steps); mounted: a third (the scanner upside down on "
+                        "half the rigs, tilted 10-30 degrees or 0.5 m from the camera, 0.4-1.2 m boards 0.8-6 m "
+                        "away, 0.25-1 degree steps, boards at one height on half the rigs)")
     s.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"],
                    help="the board's pattern: charuco prints the same board with DICT_5X5_100 markers in its "
                         "white squares (then some poses are cut by the image's edge)")
@@ -202,11 +207,16 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                    help="the LiDAR's range accuracy (m, 1 sd of a systematic error): the range terms' prior (default: "
                         "dataset.yaml's lidar.range_accuracy_m, else its lidar.family's: velodyne and ouster 0.03, "
                         "hesai and livox 0.02, else 0.05)")
-    p.add_argument("--edges", action="store_true",
-                   help="also use the board's edges (where each LiDAR ring leaves the board; needs board.size): "
-                        "they fix the translation along the boards' planes, which planes leave weak. The result "
-                        "tests the planes against the edges and checks the outlines' mean shift (calibration.json "
-                        "'board_edges'); the posterior holds their share to second order about the estimate")
+    edges = p.add_mutually_exclusive_group()
+    edges.add_argument("--edges", action="store_true", default=None,
+                       help="also use a 3D LiDAR's board edges (where each ring leaves the board; needs board.size): "
+                            "they fix the translation along the boards' planes, which planes leave weak. The result "
+                            "tests the planes against the edges and checks the outlines' mean shift (calibration.json "
+                            "'board_edges'); the posterior holds their share to second order about the estimate. A "
+                            "2D scan's segment ends are used by default")
+    edges.add_argument("--no-edges", dest="edges", action="store_false",
+                       help="use the boards' planes alone, also for a 2D scan (whose segment ends are otherwise used "
+                            "when board.size is given)")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
@@ -219,7 +229,7 @@ def _options(args):
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
                              range_noise_m=args.range_noise_m, range_model=args.range_model,
                              range_accuracy_m=getattr(args, "range_accuracy_m", None),
-                             edges=getattr(args, "edges", False),
+                             edges=getattr(args, "edges", None),
                              max_sensor_separation_m=getattr(args, "max_sensor_separation", 1.0))
 
 
@@ -240,6 +250,11 @@ def _print_result(result, truth=None) -> None:
 
     T = result.T_camera_lidar
     np.set_printoptions(precision=5, suppress=True)
+    if result.ambiguous:
+        masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
+        print(f"AMBIGUOUS: {len(result.modes)} distinct solutions fit the boards (posterior mass {masses}); the most "
+              "probable is shown, the intervals cover every mode, and calibration.json lists each with its "
+              "covariance. Add boards tilted in other directions to decide.")
     print(f"T_camera_lidar (p_camera = R p_lidar + t), {result.init}, refine {result.refine}:")
     for row in T:
         print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
@@ -421,6 +436,16 @@ def _calibrate_with(args, ds, figures) -> int:
     if args.cross_validate or args.split:
         _validation_runs(args, ds, result)
     _export_hint(path)
+    return _exit_code(args, result)
+
+
+def _exit_code(args, result) -> int:
+    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) for an ambiguous answer under ``--strict``."""
+    from .calibration import EXIT_AMBIGUOUS
+
+    if getattr(args, "strict", False) and result.ambiguous:
+        print(f"lidarcam: the answer is ambiguous (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
+        return EXIT_AMBIGUOUS
     return 0
 
 

@@ -86,6 +86,8 @@ class Posterior:
     run: ChainResult
     likelihood: str
     warnings: tuple[str, ...] = ()
+    # With several modes (2D): each mode's share of the samples, the MAP's first (empty: one mode).
+    mode_weights: tuple[float, ...] = ()
 
     @property
     def covariance(self) -> np.ndarray:
@@ -110,7 +112,8 @@ class Posterior:
         return {"likelihood": self.likelihood, "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
                 "burn_in": r.burn, "tau_steps": r.tau.tolist(), "acceptance_fraction": r.acceptance,
                 "effective_samples": r.ess, "converged": r.converged, "seconds": r.seconds,
-                "noise_scale_median": float(np.median(self.scale))}
+                "noise_scale_median": float(np.median(self.scale)),
+                "mode_weights": list(self.mode_weights)}  # the diagnostics of the chain are the MAP mode's
 
 
 class _NoBar:
@@ -316,23 +319,57 @@ def unsampled_reason(covariance: np.ndarray) -> str | None:
 
 def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
                      rng: np.random.Generator, options: PosteriorOptions = PosteriorOptions(),
-                     other_modes: tuple[np.ndarray, ...] = ()) -> Posterior:
-    """Sample the posterior of ``T_camera_lidar`` around the refinement's MAP. ``other_modes``: other
-    refined minima (``T_camera_lidar``) that fit about as well; walkers start in every mode, so that the
-    samples show them all. A nearly degenerate problem raises :class:`PosteriorSkippedError` with the reason
-    (``unsampled_reason``) instead of sampling."""
+                     other_modes: tuple = (), mass: float = 1.0) -> Posterior:
+    """Sample the posterior of ``T_camera_lidar`` around the refinement's MAP. ``other_modes``: other refined
+    minima that hold posterior mass, as ``(Refinement, mass)`` pairs, ``mass`` the MAP's own. Walkers do not
+    cross between separated minima, so each is sampled from its own start, and the samples are mixed in
+    proportion to the masses, in the MAP's tangent: the intervals cover every mode. A mode that cannot be
+    sampled contributes its Laplace approximation (with a warning). A nearly degenerate problem at the MAP raises
+    :class:`PosteriorSkippedError` with the reason (``unsampled_reason``) instead of sampling."""
+    main = _sample_mode(frames, board, camera, ref, rng, options)
+    if not other_modes:
+        return main
+    parts, warnings = [(main.xi, main.scale, mass)], list(main.warnings)
+    for k, (r, m) in enumerate(other_modes, start=2):
+        try:
+            p = _sample_mode(frames, board, camera, r, rng, options)
+            xi_k, scale_k = p.xi, p.scale
+            warnings += [f"mode {k}: {w}" for w in p.warnings]
+        except PosteriorSkippedError as exc:
+            warnings.append(f"mode {k} (mass {m:.0%}) not sampled ({exc.message}): its Laplace approximation is "
+                            "mixed in")
+            xi_k = rng.multivariate_normal(np.zeros(6), r.covariance, len(main.xi))
+            scale_k = np.ones(len(xi_k))
+        # Each sample T_k Exp(xi) in the MAP's tangent.
+        R, t = exp_batch(xi_k)
+        T = np.tile(np.eye(4), (len(xi_k), 1, 1))
+        T[:, :3, :3], T[:, :3, 3] = R, t
+        rel = np.linalg.inv(ref.T_camera_lidar) @ r.T_camera_lidar
+        parts.append((np.array([T_log(rel @ Tk) for Tk in T]), scale_k, m))
+    w = np.array([m for _, _, m in parts], dtype=float)
+    w = w / w.sum()
+    n = len(main.xi)
+    counts = rng.multinomial(n, w)
+    xi, scale = [], []
+    for (x, sc, _), c in zip(parts, counts):
+        pick = rng.choice(len(x), size=c, replace=c > len(x))
+        xi.append(x[pick])
+        scale.append(sc[pick])
+    return Posterior(ref.T_camera_lidar, np.concatenate(xi), np.concatenate(scale), main.run, options.likelihood,
+                     tuple(warnings), tuple(float(v) for v in w))
+
+
+def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
+                 rng: np.random.Generator, options: PosteriorOptions) -> Posterior:
+    """The posterior about one refined minimum (:func:`sample_posterior`)."""
     reason = unsampled_reason(ref.covariance)
     if reason is not None:
         raise PosteriorSkippedError(reason, hint="the covariance is the Laplace one; add board poses that "
                                                  "constrain the weak direction")
     model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu)
-    # Walkers start in the Laplace approximation (already the typical set: no long burn-in), shared out
-    # among the modes.
+    # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
     start = np.empty((options.walkers, 7))
     start[:, :6] = rng.multivariate_normal(np.zeros(6), ref.covariance, options.walkers)
-    for m, T_mode in enumerate(other_modes):
-        share = slice(m + 1, None, len(other_modes) + 1)
-        start[share, :6] += T_log(np.linalg.inv(ref.T_camera_lidar) @ T_mode)
     start[:, 6] = rng.normal(0.0, 0.05, options.walkers)
     try:
         run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
