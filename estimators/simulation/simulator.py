@@ -52,9 +52,30 @@ class Rig:
     # aluminium stand: two uprights just beside the board's ends, a few centimetres behind it, from the ground to
     # above it, on feet) or "tripod" (a head behind the board's centre, a column and three splayed legs).
     stand: str = "post"
+    # The scanner's mounting against the world: the rotation from the LiDAR's axes to the level frame (the
+    # LiDAR's origin, z up), in which the ground lies ``lidar_height_m`` below and the stands stand; None: level
+    # (an upside-down or tilted scanner has another).
+    R_level_lidar: np.ndarray | None = None
+    # 2D: every board's centre at this height (m) in the level frame (boards on stands of one height); None:
+    # heights vary with where the board is in the image.
+    board_height_m: float | None = None
+
+    @property
+    def level(self) -> np.ndarray:
+        """``R_level_lidar`` (identity for a level scanner)."""
+        return np.eye(3) if self.R_level_lidar is None else self.R_level_lidar
 
 
 STANDS = ("post", "uprights", "tripod")
+
+
+def rotated_patches(patches: list[Patch], R: np.ndarray) -> list[Patch]:
+    """Scene pieces turned by the rotation ``R`` about the origin (the LiDAR's): from the level frame into the
+    LiDAR's with ``R = R_level_lidar^T``."""
+    if np.allclose(R, np.eye(3)):
+        return list(patches)
+    return [replace(p, normal=R @ p.normal, origin=None if p.origin is None else R @ p.origin,
+                    u=None if p.u is None else R @ p.u, v=None if p.v is None else R @ p.v) for p in patches]
 
 
 def default_camera() -> CameraModel:
@@ -98,7 +119,7 @@ def default_rig_2d(rng: np.random.Generator, sigma_range_m: float = 0.01) -> Rig
                max_distance_m=4.0)
 
 
-RIGS_2D = ("default", "varied")
+RIGS_2D = ("default", "varied", "mounted")
 
 
 def varied_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
@@ -129,12 +150,64 @@ def varied_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) 
                lidar_height_m=rng.uniform(0.3, 1.5), min_distance_m=0.5, max_distance_m=8.0, min_crossing=0.25)
 
 
+def mounted_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
+    """A third 2D configuration, unlike the other two in how the scanner is mounted: upside down on half the
+    rigs; then either its scan plane tilted 10-30 degrees about a horizontal axis (rolled, or pitched with the
+    camera pitched to within 10 degrees of it) or the camera 0.5 m from it in a random direction. Angular steps 0.25-1 degree, range noise 0.5-3 cm unless
+    given, boards 0.4-1.2 m (aspect ratio 0.7-1.4, 4-10 squares a side) 0.8-6 m away, the scanner 0.4-1.5 m
+    above the ground; on half the rigs every board's centre at one height (where the scan plane passes 1.5-3 m
+    ahead), else at the heights the image positions give."""
+    R_level_lidar = R_from_rotvec([np.pi, 0.0, 0.0]) if rng.uniform() < 0.5 else np.eye(3)
+    # The camera looking ahead in the level frame, within a few degrees.
+    R_level_camera = R_from_rotvec(rng.normal(0.0, np.deg2rad(3.0), 3)) @ R_CAMERA_LIDAR_NOMINAL.T
+    if rng.uniform() < 0.5:
+        # Tilted about the forward axis (roll), or about the sideways axis (pitch), when the camera looks up or
+        # down with it to within 10 degrees (a scan plane pitched 20 degrees from the camera's axis leaves the
+        # image where the camera sees a whole board).
+        angle = np.deg2rad(rng.uniform(10.0, 30.0)) * rng.choice([-1.0, 1.0])
+        if rng.uniform() < 0.5:
+            R_level_lidar = R_from_rotvec([angle, 0.0, 0.0]) @ R_level_lidar
+        else:
+            R_level_lidar = R_from_rotvec([0.0, angle, 0.0]) @ R_level_lidar
+            R_level_camera = R_from_rotvec([0.0, angle + np.deg2rad(rng.uniform(-10.0, 10.0)), 0.0]) @ R_level_camera
+        camera_in_level = np.array([0.05, 0.0, 0.12]) + rng.normal(0.0, 0.02, 3)
+    else:
+        d = rng.normal(size=3)
+        d[0] = 0.5 * abs(d[0])  # not far behind the scanner's origin
+        camera_in_level = 0.5 * d / np.linalg.norm(d)
+    R_camera_level = R_level_camera.T
+    R = R_camera_level @ R_level_lidar
+    camera_in_lidar = R_level_lidar.T @ camera_in_level
+    width = rng.uniform(0.4, 1.2)
+    height = float(np.clip(width * rng.uniform(0.7, 1.4), 0.4, 1.2))
+    squares = (int(rng.integers(4, 11)), int(rng.integers(4, 11)))
+    square = min((width - 0.04) / squares[0], (height - 0.04) / squares[1])
+    board = BoardModel(squares=squares, square_size=square, size=(width, height))
+    sigma = rng.uniform(0.005, 0.03) if sigma_range_m is None else sigma_range_m
+    beams = replace(BEAM_MODELS["2d"](sigma), azimuth_step_rad=np.deg2rad(rng.uniform(0.25, 1.0)))
+    lidar_height = rng.uniform(0.4, 1.5)
+    board_height = None
+    if rng.uniform() < 0.5:
+        # Where the scan plane passes a point 1.5-3 m ahead (of those whose board would stand on the ground and
+        # below 1.2 m; none: heights vary).
+        n = R_level_lidar[:, 2]
+        ahead = rng.uniform(1.5, 3.0, 64)
+        z = -n[0] * ahead / n[2]
+        ok = (z > -lidar_height + 0.15 + height / 2) & (z < 1.2)
+        board_height = float(z[ok][0]) if ok.any() else None
+    return Rig(camera=default_camera(), beams=beams, board=board, T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar),
+               lidar_height_m=lidar_height, min_distance_m=0.8, max_distance_m=6.0, min_crossing=0.25,
+               R_level_lidar=R_level_lidar, board_height_m=board_height)
+
+
 def rig_2d(config: str, rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
     """The 2D rig of simulator configuration ``config`` (``RIGS_2D``)."""
     if config == "default":
         return default_rig_2d(rng, 0.01 if sigma_range_m is None else sigma_range_m)
     if config == "varied":
         return varied_rig_2d(rng, sigma_range_m)
+    if config == "mounted":
+        return mounted_rig_2d(rng, sigma_range_m)
     raise ValueError(f"Expected config in {RIGS_2D}, got {config!r}")
 
 
@@ -207,7 +280,7 @@ def _pose_fits(rig: Rig, T_camera_board: np.ndarray, min_in_fov: float = 1.0, mi
         # The scan plane must cut well across the board (and the board stand on the ground).
         T_lb = T_inverse(rig.T_camera_lidar) @ T_camera_board
         return (scan_crossing_length(rig.board, T_lb) >= rig.min_crossing * min(rig.board.extent)
-                and bool(outline_l[:, 2].min() > -rig.lidar_height_m + 0.1))
+                and bool((outline_l @ rig.level.T)[:, 2].min() > -rig.lidar_height_m + 0.1))
     el = np.arctan2(outline_l[:, 2], np.linalg.norm(outline_l[:, :2], axis=1))
     margin = np.deg2rad(0.5)
     if min_in_fov < 1.0:
@@ -251,7 +324,17 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
             uv = np.array([[rng.uniform(lo, hi) * cam.width, rng.uniform(lo, hi) * cam.height]])
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
-            T = board_pose(rig.board, ray * dist, tilt, azimuth, spin)
+            centre = ray * dist
+            if rig.board_height_m is not None:  # the centre moved to the boards' one height (level frame)
+                T_level_camera = np.eye(4)
+                T_level_camera[:3, :3] = rig.level
+                T_level_camera = T_level_camera @ T_inverse(rig.T_camera_lidar)
+                p = transform_points(T_level_camera, centre[None])[0]
+                p[2] = rig.board_height_m
+                centre = transform_points(T_inverse(T_level_camera), p[None])[0]
+                if centre[2] <= 0.3:
+                    continue
+            T = board_pose(rig.board, centre, tilt, azimuth, spin)
             if k in cut and not (np.any(~rig.camera.in_image(rig.camera.project(transform_points(
                     T, rig.board.outline())))) and corners_in_image_share(rig, T) <= 0.9):
                 continue  # a cut pose must be cut: part of the board and of its corners outside the image
@@ -341,21 +424,32 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
                   held: bool = False) -> tuple[list[Patch], int]:
     """Scene pieces in the LiDAR frame and the index of the board among them: the board, its stand (or the
     person holding it, ``held``), and the static scene (``static``; default: the ground and four walls)."""
+    if rig.stand not in STANDS:
+        raise ValueError(f"Expected stand in {STANDS}, got {rig.stand!r}")
+    # Built in the level frame (the ground below, stands upright), then turned into the LiDAR's; ``static`` is
+    # given in the LiDAR's frame.
+    to_lidar = rig.level.T
+    T_level_board = np.eye(4)
+    T_level_board[:3, :3] = rig.level
+    T_level_board = T_level_board @ T_lidar_board
+    room = list(rotated_patches(default_room(-rig.lidar_height_m), to_lidar) if static is None else static)
+    return rotated_patches(_board_and_holder(rig, T_level_board, held), to_lidar) + room, 0
+
+
+def _board_and_holder(rig: Rig, T_lidar_board: np.ndarray, held: bool) -> list[Patch]:
+    """The board and its stand (or holder), for a level scanner: the ground ``lidar_height_m`` below."""
     board = rig.board
     R, o = T_lidar_board[:3, :3], T_lidar_board[:3, 3]
     w, h = board.extent
     patches = [rectangle(o, R[:, 0], R[:, 1], w, h, board_reflectance(board), "board")]
     ground_z = -rig.lidar_height_m
     if held:
-        return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z) + list(static or []), 0
+        return patches + holder(transform_points(T_lidar_board, board.outline()), ground_z)
     outline = transform_points(T_lidar_board, board.outline())
-    if rig.stand not in STANDS:
-        raise ValueError(f"Expected stand in {STANDS}, got {rig.stand!r}")
-    room = list(default_room(ground_z) if static is None else static)
     if rig.stand == "uprights":
-        return patches + _uprights(outline, R[:, 2], ground_z) + room, 0
+        return patches + _uprights(outline, R[:, 2], ground_z)
     if rig.stand == "tripod":
-        return patches + _tripod(outline, R[:, 2], ground_z) + room, 0
+        return patches + _tripod(outline, R[:, 2], ground_z)
     # A thin stand from the board's lowest point to the ground, a little behind the board.
     low = outline[np.argmin(outline[:, 2])]
     to_sensor = -low[:2] / np.linalg.norm(low[:2])
@@ -364,7 +458,7 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     if low[2] > ground_z:
         patches.append(rectangle(np.array([low[0], low[1], ground_z]) + behind - 0.02 * side, side,
                                  [0.0, 0.0, 1.0], 0.04, low[2] - ground_z, 0.3, "stand"))
-    return patches + room, 0
+    return patches
 
 
 # The stand's uprights: width (m), gap beside the board's ends (m), distance behind the board's plane (m), and how
@@ -500,9 +594,9 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
     T_lidar_camera = T_inverse(rig.T_camera_lidar)
     static = None
     if scene == "office":
-        static = office_layout(-rig.lidar_height_m, rng)
+        static = rotated_patches(office_layout(-rig.lidar_height_m, rng), rig.level.T)
     elif scene == "hall":
-        static = hall_layout(-rig.lidar_height_m)
+        static = rotated_patches(hall_layout(-rig.lidar_height_m), rig.level.T)
     if poses is None:
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
@@ -516,7 +610,7 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
     with ThreadPoolExecutor(max_workers=workers) if workers > 1 else contextlib.nullcontext() as pool:
         # The static scene is cast once, for the camera's pixels and the LiDAR's beams; each frame casts only
         # the board and its stand or holder over it (the same images and sweeps as casting the whole scene).
-        static = default_room(-rig.lidar_height_m) if static is None else static
+        static = rotated_patches(default_room(-rig.lidar_height_m), rig.level.T) if static is None else static
         image_background = cast_background(T_lidar_camera[:3, 3], pixel_rays(rig.camera, T_lidar_camera, pool),
                                            static)
         dirs, ring = rig.beams.directions()
@@ -624,8 +718,9 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     npy in 3D (default pcd), csv, npy or pcd in 2D (default csv). ``scene``: ``default``, ``office`` or
     ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
     ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
-    every return (the drawn values go to ground_truth.json). ``rig_config`` (2D only): ``default`` or
-    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration). ``pattern``:
+    every return (the drawn values go to ground_truth.json). ``rig_config`` (2D only): ``default``,
+    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration) or ``mounted``
+    (:func:`mounted_rig_2d`, a third: the scanner upside down, tilted or 0.5 m from the camera). ``pattern``:
     ``checkerboard`` or ``charuco`` (the same board with DICT_5X5_100 markers, :func:`as_charuco`);
     ``outside_image_share``: the share of poses cut by the image's edge (default 0.3 for ChArUco, else 0).
     ``range_bias_family``: inject range errors drawn from that sensor family's priors instead
@@ -642,7 +737,7 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
         scan_format = "csv" if lidar == "2d" else "pcd"
     rng = np.random.default_rng(seed)
     if rig_config not in RIGS_2D or (rig_config != "default" and lidar != "2d"):
-        raise ValueError(f"Expected rig_config in {RIGS_2D} (varied only for 2d), got {rig_config!r}")
+        raise ValueError(f"Expected rig_config in {RIGS_2D} (varied and mounted only for 2d), got {rig_config!r}")
     base = rig_2d(rig_config, rng, sigma_range_m) if lidar == "2d" else default_rig(rng, lidar, sigma_range_m)
     if pattern not in PATTERNS:
         raise ValueError(f"Expected pattern in {PATTERNS}, got {pattern!r}")
