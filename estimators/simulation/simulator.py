@@ -153,10 +153,24 @@ def varied_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) 
 def mounted_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None) -> Rig:
     """A third 2D configuration, unlike the other two in how the scanner is mounted: upside down on half the
     rigs; then either its scan plane tilted 10-30 degrees about a horizontal axis (rolled, or pitched with the
-    camera pitched to within 10 degrees of it) or the camera 0.5 m from it in a random direction. Angular steps 0.25-1 degree, range noise 0.5-3 cm unless
-    given, boards 0.4-1.2 m (aspect ratio 0.7-1.4, 4-10 squares a side) 0.8-6 m away, the scanner 0.4-1.5 m
-    above the ground; on half the rigs every board's centre at one height (where the scan plane passes 1.5-3 m
-    ahead), else at the heights the image positions give."""
+    camera pitched to within 10 degrees of it) or the camera 0.5 m from it in a random direction. Angular steps
+    0.25-1 degree, range noise 0.5-3 cm unless given, boards 0.4-1.2 m (aspect ratio 0.7-1.4, 4-10 squares a
+    side) 0.8-6 m away, the scanner 0.4-1.5 m above the ground (higher where its plane falls ahead, to meet the
+    ground 2.5 m ahead); on half the rigs every board's centre at one height (where the scan plane passes 1.5-3
+    m ahead), else at the heights the image positions give. A rig on which 6 board poses (one per sixth of the
+    normals' azimuths) are not found in 2000 tries each (a steep plane and a large board) is drawn again."""
+    for _ in range(20):
+        rig = _mounted_rig_once(rng, sigma_range_m)
+        try:
+            sample_board_poses(rig, 6, np.random.default_rng(rng.integers(2**63)), max_tries=2000)
+        except RuntimeError:
+            continue
+        return rig
+    raise RuntimeError("no mounted 2D rig with a feasible board pose in 20 draws")
+
+
+def _mounted_rig_once(rng: np.random.Generator, sigma_range_m: float | None) -> Rig:
+    """One draw of :func:`mounted_rig_2d`'s rig."""
     R_level_lidar = R_from_rotvec([np.pi, 0.0, 0.0]) if rng.uniform() < 0.5 else np.eye(3)
     # The camera looking ahead in the level frame, within a few degrees.
     R_level_camera = R_from_rotvec(rng.normal(0.0, np.deg2rad(3.0), 3)) @ R_CAMERA_LIDAR_NOMINAL.T
@@ -185,14 +199,17 @@ def mounted_rig_2d(rng: np.random.Generator, sigma_range_m: float | None = None)
     board = BoardModel(squares=squares, square_size=square, size=(width, height))
     sigma = rng.uniform(0.005, 0.03) if sigma_range_m is None else sigma_range_m
     beams = replace(BEAM_MODELS["2d"](sigma), azimuth_step_rad=np.deg2rad(rng.uniform(0.25, 1.0)))
-    lidar_height = rng.uniform(0.4, 1.5)
+    n = R_level_lidar[:, 2]
+    drop = n[0] / n[2]  # the scan plane's fall per metre ahead (level frame): it passes z = -drop x
+    # A scan plane that falls ahead meets the ground at least 2.5 m ahead (nearer, no board both stands on the
+    # ground and is seen whole by the camera where the plane cuts it).
+    lidar_height = max(rng.uniform(0.4, 1.5), 2.5 * drop)
     board_height = None
     if rng.uniform() < 0.5:
         # Where the scan plane passes a point 1.5-3 m ahead (of those whose board would stand on the ground and
         # below 1.2 m; none: heights vary).
-        n = R_level_lidar[:, 2]
         ahead = rng.uniform(1.5, 3.0, 64)
-        z = -n[0] * ahead / n[2]
+        z = -drop * ahead
         ok = (z > -lidar_height + 0.15 + height / 2) & (z < 1.2)
         board_height = float(z[ok][0]) if ok.any() else None
     return Rig(camera=default_camera(), beams=beams, board=board, T_camera_lidar=T_from_Rt(R, -R @ camera_in_lidar),
