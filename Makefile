@@ -33,14 +33,18 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_range_model.py
 	$(PY) benchmarks/bench_range_model_scenes.py
 	$(PY) benchmarks/bench_range_model_scenes.py --inject 100
-	$(PY) benchmarks/bench_board_edges.py
+	$(PY) benchmarks/bench_board_edges.py --posterior 40
 	$(PY) benchmarks/bench_principal_point.py
 	$(PY) benchmarks/bench_corners.py
 	$(PY) benchmarks/bench_speed.py
 	$(PY) benchmarks/bench_2d.py
 	$(PY) benchmarks/bench_2d.py --pattern charuco
-	$(PY) benchmarks/bench_2d_honesty.py varied 300
 	$(PY) benchmarks/bench_2d_honesty.py default 200
+	$(PY) benchmarks/bench_2d_honesty.py varied 200
+	$(PY) benchmarks/bench_2d_honesty.py mounted 200
+	$(PY) benchmarks/bench_2d_honesty.py default 100 --pattern charuco
+	$(PY) benchmarks/bench_2d_honesty.py varied 100 --pattern charuco
+	$(PY) benchmarks/bench_2d_honesty.py mounted 100 --pattern charuco
 	$(PY) benchmarks/bench_charuco.py
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
