@@ -86,8 +86,10 @@ class Posterior:
     run: ChainResult
     likelihood: str
     warnings: tuple[str, ...] = ()
-    # With several modes (2D): each mode's share of the samples, the MAP's first (empty: one mode).
+    # With several modes (2D): each mode's share of the samples, the MAP's first (empty: one mode), and each
+    # sample's mode (index into the weights; None: one mode).
     mode_weights: tuple[float, ...] = ()
+    mode_index: np.ndarray | None = None
 
     @property
     def covariance(self) -> np.ndarray:
@@ -350,13 +352,14 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     w = w / w.sum()
     n = len(main.xi)
     counts = rng.multinomial(n, w)
-    xi, scale = [], []
-    for (x, sc, _), c in zip(parts, counts):
+    xi, scale, index = [], [], []
+    for m, ((x, sc, _), c) in enumerate(zip(parts, counts)):
         pick = rng.choice(len(x), size=c, replace=c > len(x))
         xi.append(x[pick])
         scale.append(sc[pick])
+        index.append(np.full(c, m))
     return Posterior(ref.T_camera_lidar, np.concatenate(xi), np.concatenate(scale), main.run, options.likelihood,
-                     tuple(warnings), tuple(float(v) for v in w))
+                     tuple(warnings), tuple(float(v) for v in w), np.concatenate(index))
 
 
 def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,

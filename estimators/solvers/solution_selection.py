@@ -124,8 +124,9 @@ def _in_front(Ts: np.ndarray, normals: np.ndarray, dists: np.ndarray) -> np.ndar
 
 def physical(Ts: np.ndarray, frames: list[FrameMeasurement], max_separation_m: float | None) -> np.ndarray:
     """For (K, 4, 4) ``T_camera_lidar``: whether each could be the rig (K,) bool. The sensors at most
-    ``max_separation_m`` apart (None: no bound), the LiDAR on the camera's side of every board, and every scan
-    segment's ends in front of the camera (a root can put a segment on its board's plane behind the camera)."""
+    ``max_separation_m`` apart (None: no bound), the LiDAR on the camera's side of every board, and no scan
+    segment wholly behind the camera (a root can put a segment on its board's plane behind the camera; one end
+    may lie behind it, on a board close beside the camera that the image shows only in part)."""
     Ts = np.asarray(Ts).reshape(-1, 4, 4)
     normals, dists = _camera_planes(frames)
     ok = _in_front(Ts, normals, dists)
@@ -134,7 +135,7 @@ def physical(Ts: np.ndarray, frames: list[FrameMeasurement], max_separation_m: f
     for f in frames:
         ends, _ = _segment_ends(f)
         depth = np.einsum("kj,mj->km", Ts[:, 2, :3], ends) + Ts[:, 2, 3][:, None]
-        ok &= np.all(depth > 0.0, axis=1)
+        ok &= np.any(depth > 0.0, axis=1)
     return ok
 
 
@@ -421,8 +422,9 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
     board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost, and
-    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the segment ends are
-    part of the cost (:func:`outline_residuals`). For layouts where every triple is degenerate although the
+    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the ``n_polish`` least
+    joint costs of the laser and the segment ends (:func:`outline_residuals`) are polished too, and every start
+    is polished on the joint cost after the laser's. For layouts where every triple is degenerate although the
     normals span 3D, and for roots that all leave the segment ends off their boards."""
     normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
@@ -445,19 +447,37 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     Ts = Ts[front]
     ends = board is not None and board.size_known
 
-    def residuals(Ts: np.ndarray) -> np.ndarray:
-        r = laser_residuals(Ts, frames, sigma_r)
-        return np.hstack([r, outline_residuals(Ts, frames, board, sigma_r)]) if ends else r
+    def laser(Ts: np.ndarray) -> np.ndarray:
+        return laser_residuals(Ts, frames, sigma_r)
 
-    S = np.sum(residuals(Ts) ** 2, axis=1)
+    def joint(Ts: np.ndarray) -> np.ndarray:
+        return np.hstack([laser_residuals(Ts, frames, sigma_r), outline_residuals(Ts, frames, board, sigma_r)])
+
+    def polish(T0: np.ndarray, residuals) -> np.ndarray:
+        res = least_squares(lambda xi: residuals(_retract(T0, xi[None]))[0], np.zeros(6), method="lm", max_nfev=600)
+        return _retract(T0, res.x[None])[0]
+
+    S = np.sum(laser(Ts) ** 2, axis=1)
+    starts = list(np.argsort(S)[:n_polish])
+    if ends:  # also the best starts by the joint cost; each polished on the (smooth) laser cost first
+        S_joint = np.sum(joint(Ts) ** 2, axis=1)
+        starts += [k for k in np.argsort(S_joint)[:n_polish] if k not in starts]
     out: list[np.ndarray] = []
-    for k in np.argsort(S)[:n_polish]:
-        res = least_squares(lambda xi, T0=Ts[k]: residuals(_retract(T0, xi[None]))[0],
-                            np.zeros(6), method="lm", max_nfev=600)
-        T = _retract(Ts[k], res.x[None])
+    for k in starts:
+        T = polish(Ts[k], laser)
+        if ends and np.all(np.isfinite(T)):
+            T = polish(T, joint)
         if np.all(np.isfinite(T)) and physical(T, frames, max_separation_m)[0]:
-            out.append(T[0])
-    return out
+            out.append(T)
+    if len(out) < 2:
+        return out
+    # One per basin (``solution_distances`` under 1), the least cost first: each is refined by the caller.
+    cost = np.sum((joint if ends else laser)(np.array(out)) ** 2, axis=1)
+    kept: list[np.ndarray] = []
+    for k in np.argsort(cost):
+        if all(solution_distances(np.array([out[k], T]))[0] >= 1.0 for T in kept):
+            kept.append(out[k])
+    return kept
 
 
 def _quasi_uniform_quaternions(n: int) -> np.ndarray:
