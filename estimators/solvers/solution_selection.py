@@ -422,9 +422,8 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
     board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost, and
-    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the ``n_polish`` least
-    joint costs of the laser and the segment ends (:func:`outline_residuals`) are polished too, and every start
-    is polished on the joint cost after the laser's. For layouts where every triple is degenerate although the
+    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the segment ends are
+    part of the cost (:func:`outline_residuals`). For layouts where every triple is degenerate although the
     normals span 3D, and for roots that all leave the segment ends off their boards."""
     normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
@@ -447,37 +446,19 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     Ts = Ts[front]
     ends = board is not None and board.size_known
 
-    def laser(Ts: np.ndarray) -> np.ndarray:
-        return laser_residuals(Ts, frames, sigma_r)
+    def residuals(Ts: np.ndarray) -> np.ndarray:
+        r = laser_residuals(Ts, frames, sigma_r)
+        return np.hstack([r, outline_residuals(Ts, frames, board, sigma_r)]) if ends else r
 
-    def joint(Ts: np.ndarray) -> np.ndarray:
-        return np.hstack([laser_residuals(Ts, frames, sigma_r), outline_residuals(Ts, frames, board, sigma_r)])
-
-    def polish(T0: np.ndarray, residuals) -> np.ndarray:
-        res = least_squares(lambda xi: residuals(_retract(T0, xi[None]))[0], np.zeros(6), method="lm", max_nfev=600)
-        return _retract(T0, res.x[None])[0]
-
-    S = np.sum(laser(Ts) ** 2, axis=1)
-    starts = list(np.argsort(S)[:n_polish])
-    if ends:  # also the best starts by the joint cost; each polished on the (smooth) laser cost first
-        S_joint = np.sum(joint(Ts) ** 2, axis=1)
-        starts += [k for k in np.argsort(S_joint)[:n_polish] if k not in starts]
+    S = np.sum(residuals(Ts) ** 2, axis=1)
     out: list[np.ndarray] = []
-    for k in starts:
-        T = polish(Ts[k], laser)
-        if ends and np.all(np.isfinite(T)):
-            T = polish(T, joint)
+    for k in np.argsort(S)[:n_polish]:
+        res = least_squares(lambda xi, T0=Ts[k]: residuals(_retract(T0, xi[None]))[0],
+                            np.zeros(6), method="lm", max_nfev=600)
+        T = _retract(Ts[k], res.x[None])
         if np.all(np.isfinite(T)) and physical(T, frames, max_separation_m)[0]:
-            out.append(T)
-    if len(out) < 2:
-        return out
-    # One per basin (``solution_distances`` under 1), the least cost first: each is refined by the caller.
-    cost = np.sum((joint if ends else laser)(np.array(out)) ** 2, axis=1)
-    kept: list[np.ndarray] = []
-    for k in np.argsort(cost):
-        if all(solution_distances(np.array([out[k], T]))[0] >= 1.0 for T in kept):
-            kept.append(out[k])
-    return kept
+            out.append(T[0])
+    return out
 
 
 def _quasi_uniform_quaternions(n: int) -> np.ndarray:
