@@ -10,9 +10,8 @@ the most probable mode's covariance), those flagged ambiguous (a second mode wit
 those confidently wrong (outside the region and not flagged), each listed. Targets (issue 35): confidently
 wrong at most 0.2%; refusals only where the bound is degenerate; elsewhere the truth inside the region in at
 least 95%."""
-import sys, os
+import argparse, sys, os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-from dataclasses import replace
 from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT)); sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -20,6 +19,7 @@ import numpy as np
 from concurrent.futures import ProcessPoolExecutor
 import bench_2d as B
 from estimators.errors import DegenerateLayoutError
+from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
 from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_inverse, T_log
@@ -54,12 +54,14 @@ def one(args):
 
 
 def main() -> None:
-    args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    pattern = "charuco" if "--pattern" in sys.argv and sys.argv[sys.argv.index("--pattern") + 1] == "charuco" \
-        else "checkerboard"
-    args = [a for a in args if a not in ("charuco", "checkerboard")]
-    config, n = args[0], int(args[1])
-    seeds = np.random.SeedSequence([int(args[2]) if len(args) > 2 else 77, 3]).generate_state(n)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("config", choices=RIGS_2D)
+    ap.add_argument("trials", type=int)
+    ap.add_argument("seed", type=int, nargs="?", default=77)
+    ap.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"])
+    a = ap.parse_args()
+    config, pattern = a.config, a.pattern
+    seeds = np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
         rows = list(pool.map(one, [(int(s), config, pattern) for s in seeds], chunksize=4))
     skipped = sum(r is None for r in rows)

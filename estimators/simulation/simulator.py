@@ -327,6 +327,7 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
     (azimuth, tilt) in radians."""
     poses = []
     cam = rig.camera
+    T_level_camera = T_from_Rt(rig.level, np.zeros(3)) @ T_inverse(rig.T_camera_lidar)
     partial = set() if partial_share <= 0 else set(np.nonzero(rng.uniform(size=n) < partial_share)[0].tolist())
     # Drawn from a generator of its own, so that datasets without such poses stay as they were.
     cut_rng = np.random.default_rng(rng.integers(2**63)) if outside_image_share > 0 else None
@@ -343,9 +344,6 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
             centre = ray * dist
             if rig.board_height_m is not None:  # the centre moved to the boards' one height (level frame)
-                T_level_camera = np.eye(4)
-                T_level_camera[:3, :3] = rig.level
-                T_level_camera = T_level_camera @ T_inverse(rig.T_camera_lidar)
                 p = transform_points(T_level_camera, centre[None])[0]
                 p[2] = rig.board_height_m
                 centre = transform_points(T_inverse(T_level_camera), p[None])[0]
@@ -446,10 +444,11 @@ def scene_patches(rig: Rig, T_lidar_board: np.ndarray, static: list[Patch] | Non
     # Built in the level frame (the ground below, stands upright), then turned into the LiDAR's; ``static`` is
     # given in the LiDAR's frame.
     to_lidar = rig.level.T
-    T_level_board = np.eye(4)
-    T_level_board[:3, :3] = rig.level
-    T_level_board = T_level_board @ T_lidar_board
-    room = list(rotated_patches(default_room(-rig.lidar_height_m), to_lidar) if static is None else static)
+    T_level_board = T_from_Rt(rig.level, np.zeros(3)) @ T_lidar_board
+    if static is not None:
+        room = list(static)
+    else:  # a held board in the default scene has no room around it (as before the level frame)
+        room = [] if held else rotated_patches(default_room(-rig.lidar_height_m), to_lidar)
     return rotated_patches(_board_and_holder(rig, T_level_board, held), to_lidar) + room, 0
 
 

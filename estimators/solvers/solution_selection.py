@@ -546,6 +546,8 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     A minimum's evidence (``Mode``) is its refined cost or, when the board size is known, the joint cost of
     the laser points and the segment ends near it (``outline_evidence``). More than one mode returned means
     the data do not decide between them."""
+    if use_extent is None:
+        use_extent = board.size_known
     usable = [f for f in used if f.usable]
     sigma_r = max(pooled_range_noise_m(usable), 1e-5)
     refined: list = []
@@ -560,16 +562,15 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
                 continue
             refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
 
-    ends = board.size_known if use_extent is None else use_extent
-
     def plausible() -> bool:
-        """The best refined minimum fits the laser points and, with a known board size, the segment ends."""
+        """The best refined minimum fits the laser points and, with a known board size, some minimum the segment
+        ends."""
         if not refined:
             return False
-        cost, r = min(refined, key=lambda cr: cr[0])
-        if cost > chi2.isf(IMPLAUSIBLE_P, max(sum(fr.plane_dof for fr in r.frames) - 6, 1)):
+        cost, best = min(refined, key=lambda cr: cr[0])
+        if cost > chi2.isf(IMPLAUSIBLE_P, max(sum(fr.plane_dof for fr in best.frames) - 6, 1)):
             return False
-        if not ends:
+        if not use_extent:
             return True
         return any(outline_costs(r.T_camera_lidar[None], usable, board, sigma_r)[0]
                    <= chi2.isf(IMPLAUSIBLE_P, 2 * len(usable)) for _, r in refined)
@@ -582,7 +583,7 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
         # proof that there is none (a root the minimal solver lost to noise), so the multi-start search looks
         # for others, whose evidence is then weighed against it.
         refine_all(multistart_candidates(usable, sigma_r, max_separation_m=options.max_sensor_separation_m,
-                                         board=board if ends else None))
+                                         board=board if use_extent else None))
     if not refined:
         if error:
             raise error[0]
@@ -610,8 +611,6 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
             pass
         polished.append((sum(fr.consistency_chi2 for fr in r.frames), r))
     distinct = _distinct(polished)
-    if use_extent is None:
-        use_extent = board.size_known
     costs = np.array([c for c, _ in distinct])
     refs = [r for _, r in distinct]
     if use_extent and len(distinct) > 1:
