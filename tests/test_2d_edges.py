@@ -135,16 +135,50 @@ def test_the_bound_with_segment_ends_matches_their_error_and_the_layout_analysis
     assert "segment ends" in analyse(layout).format()
 
 
+def test_the_posterior_evaluates_the_ends_as_the_factor_does():
+    """The posterior's batched ends (``EndSet``, every walker at once) give each end the factor's residual
+    (``edge_residuals``) for perturbed extrinsics and outlines, to 1e-9 m; their log-likelihood is the end
+    loss's. On a six-board layout, where the ends' likelihood is near its quadratic, the posterior with the ends
+    sampled exactly (4 more parameters: the outline) has standard deviations within 0.8-1.25 of the Laplace
+    ones."""
+    from estimators.solvers.posterior import PlaneLikelihood, PosteriorOptions, sample_posterior
+
+    rig, frames = _frames(5, n=6)
+    ref = refine(frames, rig.board, rig.camera, rig.T_camera_lidar)
+    terms = ref.end_terms
+    assert terms is not None and sum(e.size for e in terms.edges.values()) >= 8
+    boards = {f.name: f.camera.T_camera_board for f in frames}
+    ends = terms.end_set(ref.T_camera_lidar, boards, rig.board)
+    rng = np.random.default_rng(0)
+    Ts = np.array([ref.T_camera_lidar @ T_exp(rng.normal(0, [0.01] * 3 + [0.02] * 3)) for _ in range(5)])
+    outline = rng.normal(0.0, 0.01, (5, 4))
+    r = ends.residuals(Ts, outline)
+    for k in range(5):
+        expected = np.concatenate([edge_residuals(Ts[k], boards[f.name], terms.edges[f.name], rig.board, outline[k, :2],
+                                                  terms.shifts[f.name] + outline[k, 2:], jacobian=False)[0]
+                                   for f in frames if f.name in terms.edges])
+        np.testing.assert_allclose(r[k], expected, atol=1e-9)
+    e, _ = end_loss(r, np.broadcast_to(ends.sd_m, r.shape))
+    np.testing.assert_allclose(ends.log_likelihood(Ts, outline), -0.5 * np.sum(e**2, axis=1), rtol=1e-12)
+    model = PlaneLikelihood(frames, rig.board, rig.camera, ref)
+    assert model.ndim == 11 and model.edge_H is None
+    post = sample_posterior(frames, rig.board, rig.camera, ref, np.random.default_rng(1), PosteriorOptions(min_ess=600))
+    ratio = np.sqrt(np.diag(post.covariance) / np.diag(ref.covariance))
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+
+
 def test_a_two_mode_posterior_covers_both_modes():
-    """Two refined minima of one 3-board layout, far apart (squared Mahalanobis distance about 700), given masses
-    0.7 and 0.3: each is sampled from its own start and the samples mixed by mass (30% of them the second's, which
-    lie about it), and the 95% interval along the axis that separates them spans both."""
+    """Two refined minima of one 3-board layout (planes alone: the mixing is what is tested), far apart (squared
+    Mahalanobis distance about 700), given masses 0.7 and 0.3: each is sampled from its own start within its cell
+    and the samples mixed by mass (30% of them the second's, which lie about it), and the 95% interval along the
+    axis that separates them spans both."""
     from estimators.solvers.posterior import PosteriorOptions, sample_posterior
     from estimators.solvers.solution_selection import select_minimal
 
     rig, frames = _frames(4)
     sel = select_minimal(frames, rig.board)
-    first, second = (refine(frames, rig.board, rig.camera, c.T_camera_lidar) for c in sel.candidates + sel.reserve)
+    first, second = (refine(frames, rig.board, rig.camera, c.T_camera_lidar, RefinementOptions(edges=False))
+                     for c in sel.candidates + sel.reserve)
     post = sample_posterior(frames, rig.board, rig.camera, first, np.random.default_rng(2), PosteriorOptions(min_ess=300),
                             other_modes=((second, 0.3),), mass=0.7)
     np.testing.assert_allclose(post.mode_weights, [0.7, 0.3], atol=1e-12)

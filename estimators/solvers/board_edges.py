@@ -256,8 +256,7 @@ def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeC
 def outline_prior() -> gtsam.PriorFactorVector:
     """The board's outline against the dataset's: its sides' growth (x and y sides) 0 +- ``GROWTH_PRIOR_SD_M``,
     the pattern's offset from where the dataset puts it 0 +- ``OFFSET_PRIOR_SD_M``."""
-    sd = np.array([GROWTH_PRIOR_SD_M, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OFFSET_PRIOR_SD_M])
-    return gtsam.PriorFactorVector(OUTLINE, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sd))
+    return gtsam.PriorFactorVector(OUTLINE, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(outline_prior_sd()))
 
 
 def shift_prior(key_shift: int, sd_m: float) -> gtsam.PriorFactorVector:
@@ -285,3 +284,89 @@ def frame_shift(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: E
     rank = int(np.linalg.matrix_rank(info, tol=1e-9 * max(np.trace(info), 1e-300)))
     cov = np.linalg.pinv(info)
     return cov @ (a.T @ (r / sd)), cov, rank
+
+
+@dataclass(frozen=True, eq=False)
+class EndTerms:
+    """A refinement's ends and their nuisances at its estimate, by frame name: the ends used, the frames' outline
+    shifts (m, board axes), the dataset's outline (:data:`OUTLINE`) and the scale of the ends' standard
+    deviations."""
+
+    edges: dict
+    shifts: dict
+    outline: np.ndarray
+    scale: float
+
+    def end_set(self, T_camera_lidar: np.ndarray, boards: dict, board: BoardModel,
+                board_covariances: dict | None = None) -> "EndSet":
+        """The ends of the frames in ``boards`` (name: ``T_camera_board``) as an :class:`EndSet`; each end's
+        variance grows by its board pose's (``board_covariances``, name: 6x6, right tangent), carried to its
+        residual at ``T_camera_lidar``."""
+        beams, sides, sd, frame, Tb, shift = [], [], [], [], [], []
+        for name, b in boards.items():
+            e = self.edges.get(name)
+            if e is None or e.size == 0:
+                continue
+            shift_k = np.asarray(self.shifts.get(name, np.zeros(2)), dtype=float)
+            var = (self.scale * e.sd_m) ** 2
+            if board_covariances is not None and name in board_covariances:
+                _, _, H_b = edge_residuals(T_camera_lidar, b, e, board, self.outline[:2], shift_k + self.outline[2:])
+                var = var + np.einsum("ij,jk,ik->i", H_b, board_covariances[name], H_b)
+            beams.append(e.beams)
+            sides.append(e.sides)
+            sd.append(np.sqrt(var))
+            frame.append(np.full(e.size, len(Tb)))
+            Tb.append(np.linalg.inv(b))
+            shift.append(np.tile(shift_k, (e.size, 1)))
+        if not beams:
+            raise ValueError("no frame with ends among the boards given")
+        return EndSet(np.vstack(beams), np.concatenate(sides), np.concatenate(sd), np.concatenate(frame),
+                      np.array(Tb), np.vstack(shift), board.extent)
+
+
+@dataclass(frozen=True, eq=False)
+class EndSet:
+    """A 2D calibration's segment ends as the posterior evaluates them (:func:`end_set`): per end its mid-beam
+    (LiDAR frame), its side, its standard deviation (m; the refinement's scaled one with the camera's board pose
+    uncertainty added), its frame's board pose (``T_board_camera``, index ``frame``) and that frame's outline
+    shift at the MAP (board axes)."""
+
+    beams: np.ndarray  # (E, 3)
+    sides: np.ndarray  # (E,)
+    sd_m: np.ndarray  # (E,)
+    frame: np.ndarray  # (E,) index into T_board_camera
+    T_board_camera: np.ndarray  # (F, 4, 4)
+    shift_m: np.ndarray  # (E, 2)
+    extent: tuple[float, float]
+
+    @property
+    def size(self) -> int:
+        return len(self.sides)
+
+    def residuals(self, Ts: np.ndarray, outline: np.ndarray) -> np.ndarray:
+        """Each end's outward distance (m) from its side (:func:`edge_residuals`) for (K, 4, 4) ``T_camera_lidar``
+        and (K, 4) outlines (growth x, y; offset x, y): (K, E). A beam that misses the board's plane (it cuts it
+        behind the LiDAR) lies 1 m outward."""
+        Tb = self.T_board_camera[self.frame]  # (E, 4, 4)
+        R = np.einsum("eij,kjl->keil", Tb[:, :3, :3], Ts[:, :3, :3])  # R_board_lidar per (K, E)
+        t = np.einsum("eij,kj->kei", Tb[:, :3, :3], Ts[:, :3, 3]) + Tb[None, :, :3, 3]
+        d = np.einsum("keij,ej->kei", R, self.beams)
+        dz = np.where(np.abs(d[..., 2]) < 1e-9, 1e-9, d[..., 2])
+        s = -t[..., 2] / dz
+        q = t[..., :2] + s[..., None] * d[..., :2]
+        a = SIDE_NORMALS[self.sides]
+        w, h = self.extent
+        offset = np.array([0.0, w, 0.0, h])[self.sides]
+        r = (np.einsum("ej,kej->ke", a, q - self.shift_m[None] - outline[:, None, 2:])
+             - offset - outline[:, self.sides // 2])
+        return np.where(s > 0, r, 1.0)
+
+    def log_likelihood(self, Ts: np.ndarray, outline: np.ndarray) -> np.ndarray:
+        """The ends' log-likelihood (:func:`end_loss`, relative to every end on its side), (K,)."""
+        e, _ = end_loss(self.residuals(Ts, outline), np.broadcast_to(self.sd_m, (len(Ts), self.size)))
+        return -0.5 * np.sum(e * e, axis=1)
+
+
+def outline_prior_sd() -> np.ndarray:
+    """The standard deviations of :data:`OUTLINE`'s prior: growth of the x and y sides, offset along x and y (m)."""
+    return np.array([GROWTH_PRIOR_SD_M, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OFFSET_PRIOR_SD_M])

@@ -38,6 +38,7 @@ from geometry.rotations import T_log, exp_batch
 from ..errors import LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
 from .factors import corner_residuals, lidar_plane, lidar_residual
+from .board_edges import outline_prior_sd
 from .range_model import frame_whiteners
 from .refinement import Refinement, frame_noise, pooled_range_noise_m
 
@@ -57,8 +58,8 @@ class PosteriorOptions:
     def __post_init__(self):
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"Expected likelihood in {LIKELIHOODS}, got {self.likelihood!r}")
-        if self.min_ess < 1 or self.walkers < 16:
-            raise ValueError(f"Expected min_ess >= 1 and walkers >= 16 (4 x 4 parameters), got "
+        if self.min_ess < 1 or self.walkers < 24:
+            raise ValueError(f"Expected min_ess >= 1 and walkers >= 24 (twice the up to 11 parameters, and more), got "
                              f"{self.min_ess} and {self.walkers}")
 
 
@@ -196,12 +197,16 @@ class PlaneLikelihood:
     """
 
     def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
-                 likelihood: str = "gaussian", nu: float = 4.0, log_scale_prior_sd: float = 0.5):
+                 likelihood: str = "gaussian", nu: float = 4.0, log_scale_prior_sd: float = 0.5,
+                 cells: "ModeCells | None" = None, cell: int = 0):
         fits = {f.name: f for f in ref.frames}
+        # With several modes, each is sampled within its own cell (the points nearer to it than to any other).
+        self.cells, self.cell = cells, cell
         self.T_map = ref.T_camera_lidar
         self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
         half = 0.5 * float(np.mean(board.extent))
         rows, lams, normals, dists, dims, scan, signs, consts = [], [], [], [], [], [], [], []
+        board_covariances = {}
         # With a range model, its terms are held at the MAP here and their uncertainty is convolved into the
         # samples afterwards (``Refinement.range_model.extrinsic_share``; first order, like the intrinsics').
         rm = ref.range_model
@@ -219,6 +224,7 @@ class PlaneLikelihood:
             b = f.camera.T_camera_board
             _, J = corner_residuals(b, f.camera.corners_board(board), f.camera.corners_px, camera)
             cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
+            board_covariances[f.name] = cov_b
             k = W.shape[0]
             if k < (2 if f.lidar.is_scan_line else 3):
                 raise LidarcamError(f"frame {f.name}: its board points do not span a "
@@ -264,6 +270,35 @@ class PlaneLikelihood:
         # The board's edges, when used: their share of the log-posterior to second order about the MAP (their
         # nuisances profiled out; ``refinement._edge_share``).
         self.edge_H, self.edge_eta = ref.edge_share if ref.edge_share is not None else (None, None)
+        # A 2D scan's segment ends: their own likelihood (``board_edges.end_loss``), not its quadratic, with the
+        # dataset's outline sampled under its prior (the frames' outline shifts held at the MAP). An end hidden
+        # before its edge then lets the posterior reach where the MAP's quadratic would not.
+        self.ends = None
+        if ref.end_terms is not None and any(n in ref.end_terms.edges for n in board_covariances):
+            self.ends = ref.end_terms.end_set(self.T_map, {f.name: f.camera.T_camera_board for f in frames
+                                                           if f.name in board_covariances}, board, board_covariances)
+            self.outline_map, self.outline_sd = ref.end_terms.outline, outline_prior_sd()
+            self.edge_H = self.edge_eta = None
+
+    @property
+    def ndim(self) -> int:
+        """Parameters: ``xi`` (6), ``log s`` and, with a 2D scan's ends, the dataset's outline (4)."""
+        return 7 + (4 if self.ends is not None else 0)
+
+    def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
+        """Walkers' starting points: the extrinsic from its Laplace approximation, the scale near 1, the outline
+        near the MAP's (half its prior's spread)."""
+        start = np.empty((walkers, self.ndim))
+        start[:, :6] = rng.multivariate_normal(np.zeros(6), covariance, walkers)
+        start[:, 6] = rng.normal(0.0, 0.05, walkers)
+        if self.ends is not None:
+            start[:, 7:] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
+        for _ in range(20):  # within the mode's cell: walkers outside it are drawn again, nearer the mode
+            outside = ~np.isfinite(self(start))
+            if not outside.any():
+                break
+            start[outside, :6] *= 0.5
+        return start
 
     @property
     def n_frames(self) -> int:
@@ -293,7 +328,39 @@ class PlaneLikelihood:
         if self.edge_H is not None:
             xi = theta[:, :6]
             loglik = loglik + xi @ self.edge_eta - 0.5 * np.einsum("wi,ij,wj->w", xi, self.edge_H, xi)
+        if self.cells is not None:
+            loglik = np.where(self.cells.nearest(R, t) == self.cell, loglik, -np.inf)
+        if self.ends is not None:
+            Ts = np.tile(np.eye(4), (len(theta), 1, 1))
+            Ts[:, :3, :3], Ts[:, :3, 3] = R, t
+            outline = theta[:, 7:11]
+            loglik = loglik + self.ends.log_likelihood(Ts, outline) - 0.5 * np.sum((outline / self.outline_sd) ** 2,
+                                                                                   axis=1)
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
+
+
+class ModeCells:
+    """The cells of several refined minima: each point belongs to the minimum nearest to it, by the squared
+    Mahalanobis distance of ``[rotation vector; translation]`` (the point relative to the minimum, in the
+    minimum's axes) under the minimum's covariance. Sampled within its cell, each minimum's samples stay its own,
+    and mixing them by the minima's masses counts none twice (a wide, shallow minimum's walkers would otherwise
+    reach a deeper one)."""
+
+    def __init__(self, refs: list[Refinement]):
+        self.R = np.array([r.T_camera_lidar[:3, :3] for r in refs])
+        self.t = np.array([r.T_camera_lidar[:3, 3] for r in refs])
+        self.info = np.array([np.linalg.pinv(r.covariance) for r in refs])
+
+    def nearest(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The index of the nearest minimum for (w, 3, 3) rotations and (w, 3) translations of ``T_camera_lidar``."""
+        from scipy.spatial.transform import Rotation
+
+        d = np.empty((len(R), len(self.R)))
+        for j, (Rj, tj, Ij) in enumerate(zip(self.R, self.t, self.info)):
+            rel = np.einsum("ji,wjk->wik", Rj, R)
+            x = np.hstack([Rotation.from_matrix(rel).as_rotvec(), (t - tj) @ Rj])
+            d[:, j] = np.einsum("wi,ij,wj->w", x, Ij, x)
+        return np.argmin(d, axis=1)
 
 
 # A Laplace covariance beyond these limits does not describe a posterior worth sampling: some direction is
@@ -328,13 +395,14 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     proportion to the masses, in the MAP's tangent: the intervals cover every mode. A mode that cannot be
     sampled contributes its Laplace approximation (with a warning). A nearly degenerate problem at the MAP raises
     :class:`PosteriorSkippedError` with the reason (``unsampled_reason``) instead of sampling."""
-    main = _sample_mode(frames, board, camera, ref, rng, options)
+    cells = ModeCells([ref] + [r for r, _ in other_modes]) if other_modes else None
+    main = _sample_mode(frames, board, camera, ref, rng, options, cells, 0)
     if not other_modes:
         return main
     parts, warnings = [(main.xi, main.scale, mass)], list(main.warnings)
     for k, (r, m) in enumerate(other_modes, start=2):
         try:
-            p = _sample_mode(frames, board, camera, r, rng, options)
+            p = _sample_mode(frames, board, camera, r, rng, options, cells, k - 1)
             xi_k, scale_k = p.xi, p.scale
             warnings += [f"mode {k}: {w}" for w in p.warnings]
         except PosteriorSkippedError as exc:
@@ -363,17 +431,18 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
 
 
 def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
-                 rng: np.random.Generator, options: PosteriorOptions) -> Posterior:
-    """The posterior about one refined minimum (:func:`sample_posterior`)."""
+                 rng: np.random.Generator, options: PosteriorOptions, cells: "ModeCells | None" = None,
+                 index: int = 0) -> Posterior:
+    """The posterior about one refined minimum (:func:`sample_posterior`), within its cell of ``cells`` (mode
+    ``index``) when given."""
     reason = unsampled_reason(ref.covariance)
     if reason is not None:
         raise PosteriorSkippedError(reason, hint="the covariance is the Laplace one; add board poses that "
                                                  "constrain the weak direction")
-    model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu)
+    model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu,
+                            cells=cells, cell=index)
     # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
-    start = np.empty((options.walkers, 7))
-    start[:, :6] = rng.multivariate_normal(np.zeros(6), ref.covariance, options.walkers)
-    start[:, 6] = rng.normal(0.0, 0.05, options.walkers)
+    start = model.start(rng, ref.covariance, options.walkers)
     try:
         run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability

@@ -48,8 +48,8 @@ from geometry.rotations import T_exp, T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, SIDE_NORMALS, crossings,
-                          edge_factor, edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
+from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, SIDE_NORMALS, EndTerms,
+                          crossings, edge_factor, edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
@@ -169,6 +169,9 @@ class Refinement:
     edges: dict | None = None
     # The edges' share of the extrinsic's log-posterior, second order (:func:`_edge_share`): ``(H, eta)``.
     edge_share: tuple[np.ndarray, np.ndarray] | None = None
+    # A 2D scan's segment ends and their nuisances at the estimate, which the posterior evaluates exactly
+    # (``board_edges.EndTerms``; None without ends or for a 3D LiDAR, whose edges enter as ``edge_share``).
+    end_terms: EndTerms | None = None
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
@@ -896,12 +899,16 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if model_fit is not None and labels is not None and labels.source == "geometry" and prob.has_beta \
             and "dark" in prob.terms.names and "dark" not in model_fit.pinned:
         cov, model_fit, T = _consider_placement(prob, active, T, boards, floor, cov, model_fit)
-    edges_record = edge_share = None
+    edges_record = edge_share = end_terms = None
     if prob.edges is not None:
         edges_record, edge_warnings = _edges_record(prob, active, T, boards, floor, cov / quasi_scale, marginals,
                                                     quasi_scale)
         warnings.extend(edge_warnings)
         edge_share = _edge_share(prob, active, T, boards, floor, quasi_scale)
+        if all(frames[i].lidar.is_scan_line for i in active):
+            end_terms = EndTerms({frames[i].name: prob.edges[i] for i in active if prob.has_edges(i)},
+                                 {frames[i].name: prob.shifts.get(i, np.zeros(2)) for i in active},
+                                 np.array(prob.outline, dtype=float), prob.edge_scale * np.sqrt(quasi_scale))
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
@@ -924,7 +931,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
                       tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
-                      edge_share)
+                      edge_share, end_terms)
 
 
 BOARD_SCATTER_MEANING = (
