@@ -2,10 +2,10 @@
 [--pattern charuco]`, CONFIG default, varied or mounted, as in bench_2d.py; part of make bench.)
 
 Each trial is one layout of 3 boards (1 cm range noise), calibrated as the pipeline does (minimal solutions,
-multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is the Cramer-Rao bound with the segment ends
-(`observation_model.cramer_rao_bound(layout, edges=True)`); it is degenerate when a standard deviation reaches
-5 degrees or 0.5 m (or it is singular). Printed, per group of layouts (bound degenerate or not): the trials,
-the refusals, the answers whose truth lies inside the reported 99.9% region (squared Mahalanobis distance under
+multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is the
+Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
+degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
+layouts (bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported 99.9% region (squared Mahalanobis distance under
 the reported covariance: the posterior's, over every mode; beside it under the Laplace one of the most probable
 mode), those flagged ambiguous (a second mode with at least 5% of the mass), those confidently wrong (outside
 the region and not flagged), each listed, and how often the posterior's 95% intervals hold the truth. Targets
