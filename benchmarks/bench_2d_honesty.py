@@ -31,7 +31,7 @@ MAX_BOUND = (5.0, 500.0)  # deg, mm: a bound beyond either is degenerate
 
 
 def one(args):
-    seed, config, pattern = args
+    seed, config, pattern, posterior = args
     try:
         rig, layout, frames, _ = B.trial_setup(seed, config, 3, 0.01, pattern)
     except RuntimeError:  # no feasible pose for this rig: not a trial
@@ -52,6 +52,8 @@ def one(args):
     # posterior is not sampled.
     cov, covered = ref.covariance, None
     try:
+        if not posterior:
+            raise PosteriorSkippedError("--no-posterior")
         post = sample_posterior([f for f in used if f.usable], rig.board, rig.camera, ref, np.random.default_rng(seed),
                                 PosteriorOptions(), tuple((m.refinement, m.mass) for m in modes[1:]), modes[0].mass)
         cov = post.covariance
@@ -73,11 +75,13 @@ def main() -> None:
     ap.add_argument("trials", type=int)
     ap.add_argument("seed", type=int, nargs="?", default=77)
     ap.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"])
+    ap.add_argument("--no-posterior", dest="posterior", action="store_false",
+                    help="the Laplace covariance alone (quick; not what the pipeline reports)")
     a = ap.parse_args()
     config, pattern = a.config, a.pattern
     seeds = np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
-        rows = list(pool.map(one, [(int(s), config, pattern) for s in seeds], chunksize=4))
+        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior) for s in seeds], chunksize=4))
     skipped = sum(r is None for r in rows)
     rows = [r for r in rows if r is not None]
     print(f"{config}, {pattern}, 3 boards: {len(rows)} trials ({skipped} rigs without a feasible pose skipped)")

@@ -22,7 +22,9 @@ LiDAR range model (``solvers.range_model``) its terms are held at the MAP in the
 the extrinsic's covariance is convolved in the same way, so the intervals are marginal over them. With the
 board's edges (``--edges``), their share of the log-posterior enters as a quadratic about the MAP (their
 nuisances and the board poses profiled out), second order like a Laplace approximation of that share alone:
-the ends' Huber weights are those of the refinement.
+the ends' Huber weights are those of the refinement. A 2D scan's segment ends enter by their own likelihood
+(``board_edges.EndSet``) with the dataset's outline (4 more parameters) under its prior: with a few boards, an
+end hidden before its edge moves the posterior beyond what a quadratic holds.
 """
 from __future__ import annotations
 
@@ -188,7 +190,8 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
 
 
 class PlaneLikelihood:
-    """The vectorised log-posterior of ``theta = [xi; log s]`` (see the module docstring).
+    """The vectorised log-posterior of ``theta = [xi; log s]`` (and a 2D scan's outline, :attr:`ndim`; see the
+    module docstring).
 
     Per frame ``C(s) = A + s^2 B`` with ``A`` the LiDAR part and ``B`` the camera (and per-board plane
     error) part; a simultaneous diagonalisation ``A = L L^T``, ``L^-1 B L^-T = V diag(lam) V^T`` makes
