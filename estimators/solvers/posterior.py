@@ -39,8 +39,8 @@ from geometry.rotations import T_log, exp_batch
 
 from ..errors import LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
-from .factors import corner_residuals, lidar_plane, lidar_residual
 from .board_edges import outline_prior_sd
+from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
 from .refinement import Refinement, frame_noise, pooled_range_noise_m
 
@@ -61,7 +61,7 @@ class PosteriorOptions:
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"Expected likelihood in {LIKELIHOODS}, got {self.likelihood!r}")
         if self.min_ess < 1 or self.walkers < 24:
-            raise ValueError(f"Expected min_ess >= 1 and walkers >= 24 (twice the up to 11 parameters, and more), got "
+            raise ValueError(f"Expected min_ess >= 1 and walkers >= 24 (at least twice the up to 11 parameters), got "
                              f"{self.min_ess} and {self.walkers}")
 
 
@@ -296,7 +296,7 @@ class PlaneLikelihood:
         start[:, 6] = rng.normal(0.0, 0.05, walkers)
         if self.ends is not None:
             start[:, 7:] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
-        for _ in range(20):  # within the mode's cell: walkers outside it are drawn again, nearer the mode
+        for _ in range(20):  # within the mode's cell: a walker outside it is moved halfway to the mode
             outside = ~np.isfinite(self(start))
             if not outside.any():
                 break
