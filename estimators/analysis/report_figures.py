@@ -83,8 +83,9 @@ def corner_png(xi: np.ndarray, covariance_laplace: np.ndarray) -> bytes:
 
 
 def traces_png(chain: np.ndarray, burn: int) -> bytes:
-    """The sampler's chain (steps, walkers, 7: the tangent and the log camera-noise scale), a twelfth of the
-    walkers drawn, with the end of burn-in dashed."""
+    """The sampler's chain (steps, walkers, 7 or more: the tangent and the log camera-noise scale, then for a 2D
+    scan's ends the outline's nuisances, not drawn), a twelfth of the walkers drawn, with the end of burn-in
+    dashed."""
     labels = LABELS + ["log s (camera noise scale)"]
     units = np.append(UNITS, 1.0)
     fig, ax = _SPARE.pop("traces", None) or _traces_figure()
