@@ -320,8 +320,9 @@ class EndTerms:
             shift.append(np.tile(shift_k, (e.size, 1)))
         if not beams:
             raise ValueError("no frame with ends among the boards given")
-        return EndSet(np.vstack(beams), np.concatenate(sides), np.concatenate(sd), np.concatenate(frame),
-                      np.array(Tb), np.vstack(shift), board.extent)
+        sides = np.concatenate(sides)
+        return EndSet(np.vstack(beams), sides, np.concatenate(sd), np.concatenate(frame), np.array(Tb),
+                      np.vstack(shift), side_offsets(board, sides))
 
 
 @dataclass(frozen=True, eq=False)
@@ -337,7 +338,7 @@ class EndSet:
     frame: np.ndarray  # (E,) index into T_board_camera
     T_board_camera: np.ndarray  # (F, 4, 4)
     shift_m: np.ndarray  # (E, 2)
-    extent: tuple[float, float]
+    offset_m: np.ndarray  # (E,) each side's offset (``side_offsets``)
 
     @property
     def size(self) -> int:
@@ -354,11 +355,8 @@ class EndSet:
         dz = np.where(np.abs(d[..., 2]) < 1e-9, 1e-9, d[..., 2])
         s = -t[..., 2] / dz
         q = t[..., :2] + s[..., None] * d[..., :2]
-        a = SIDE_NORMALS[self.sides]
-        w, h = self.extent
-        offset = np.array([0.0, w, 0.0, h])[self.sides]
-        r = (np.einsum("ej,kej->ke", a, q - self.shift_m[None] - outline[:, None, 2:])
-             - offset - outline[:, self.sides // 2])
+        r = (np.einsum("ej,kej->ke", SIDE_NORMALS[self.sides], q - self.shift_m[None] - outline[:, None, 2:])
+             - self.offset_m - outline[:, self.sides // 2])
         return np.where(s > 0, r, 1.0)
 
     def log_likelihood(self, Ts: np.ndarray, outline: np.ndarray) -> np.ndarray:
