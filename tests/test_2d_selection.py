@@ -146,7 +146,12 @@ def test_multistart_search_finds_the_true_basin_without_the_minimal_solver():
         basin = _truth_basin(rig, frames)
         assert basin is not None
         starts = multistart_candidates(frames, pooled_range_noise_m(frames))
-        refined = [refine(frames, rig.board, rig.camera, T0).T_camera_lidar for T0 in starts]
+        refined = []
+        for T0 in starts:
+            try:  # a start in a wrong basin can refine to a degenerate minimum, which the pipeline skips too
+                refined.append(refine(frames, rig.board, rig.camera, T0).T_camera_lidar)
+            except DegenerateLayoutError:
+                continue
         assert min(solution_distances(np.array([T, basin]))[0] for T in refined) < 0.05
 
 

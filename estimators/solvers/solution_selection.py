@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
-from scipy.optimize import least_squares, minimize
+from scipy.optimize import minimize
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 from . import chi_square as chi2
@@ -141,11 +141,17 @@ def physical(Ts: np.ndarray, frames: list[FrameMeasurement], max_separation_m: f
 
 def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """``T Exp(xi)`` for each row of (K, 6) ``xi``: (K, 4, 4)."""
+    xi = np.asarray(xi, dtype=float).reshape(-1, 6)
+    return _retract_each(np.broadcast_to(T, (len(xi), 4, 4)), xi)
+
+
+def _retract_each(Ts: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``T_k Exp(xi_k)`` for (K, 4, 4) ``Ts`` and (K, 6) ``xi``: (K, 4, 4)."""
     R, t = exp_batch(xi)
-    Ts = np.tile(np.eye(4), (len(R), 1, 1))
-    Ts[:, :3, :3] = T[:3, :3] @ R
-    Ts[:, :3, 3] = t @ T[:3, :3].T + T[:3, 3]
-    return Ts
+    out = np.array(Ts, dtype=float)
+    out[:, :3, :3] = Ts[:, :3, :3] @ R
+    out[:, :3, 3] = np.einsum("kij,kj->ki", Ts[:, :3, :3], t) + Ts[:, :3, 3]
+    return out
 
 
 def _board_data(frames: list[FrameMeasurement], sigma_r: float):
@@ -416,15 +422,19 @@ def _representatives(Ts: np.ndarray, S: np.ndarray) -> list[Candidate]:
 
 
 def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_starts: int = 4096,
-                          n_polish: int = 12, max_separation_m: float | None = None,
+                          n_keep: int = 12, max_separation_m: float | None = None,
                           board: BoardModel | None = None) -> list[np.ndarray]:
     """``T_camera_lidar`` candidates without the minimal solver, from the camera's geometry alone: for each of
     ``n_starts`` rotations spread over SO(3) (a fixed quasi-random set), the translation that puts every
     segment's centre and ends on its board plane (linear least squares) with the LiDAR in front of every
-    board; the ``n_polish`` least laser costs are then polished by local minimisation of the laser cost, and
-    those that could be the rig kept (:func:`physical`). With a ``board`` of known size the segment ends are
-    part of the cost (:func:`outline_residuals`). For layouts where every triple is degenerate although the
-    normals span 3D, and for roots that all leave the segment ends off their boards."""
+    board; every such start is then polished by local minimisation of the laser cost (:func:`_polish`, all at
+    once), those that could be the rig kept (:func:`physical`), and the least-cost member of each of the
+    ``n_keep`` best clusters returned. With a ``board`` of known size the segment ends are part of the cost
+    (:func:`outline_residuals`). For layouts where every triple is degenerate although the normals span 3D,
+    and for roots that all leave the segment ends off their boards.
+
+    Every start is polished, not the few of least cost: with 3 boards a start within the grid's spacing (about
+    15 degrees) of the truth can have its translation metres off and a cost above many wrong starts'."""
     normals, dists = _camera_planes(frames)
     # Three points per segment: its ends and its centroid.
     pts, owner = [], []
@@ -443,22 +453,44 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     front = _in_front(Ts, normals, dists)
     if not front.any():
         return []
-    Ts = Ts[front]
     ends = board is not None and board.size_known
 
     def residuals(Ts: np.ndarray) -> np.ndarray:
         r = laser_residuals(Ts, frames, sigma_r)
         return np.hstack([r, outline_residuals(Ts, frames, board, sigma_r)]) if ends else r
 
-    S = np.sum(residuals(Ts) ** 2, axis=1)
-    out: list[np.ndarray] = []
-    for k in np.argsort(S)[:n_polish]:
-        res = least_squares(lambda xi, T0=Ts[k]: residuals(_retract(T0, xi[None]))[0],
-                            np.zeros(6), method="lm", max_nfev=600)
-        T = _retract(Ts[k], res.x[None])
-        if np.all(np.isfinite(T)) and physical(T, frames, max_separation_m)[0]:
-            out.append(T[0])
-    return out
+    Ts, S = _polish(Ts[front], residuals)
+    keep = np.isfinite(S) & physical(Ts, frames, max_separation_m)
+    if not keep.any():
+        return []
+    return [c.T_camera_lidar for c in _representatives(Ts[keep], S[keep])[:n_keep]]
+
+
+def _polish(Ts: np.ndarray, residuals, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt from each of (K, 4, 4) ``T_camera_lidar`` at once, on ``T Exp(xi)`` with a
+    forward-difference Jacobian; ``residuals`` maps (K, 4, 4) to (K, m). Returns the polished transforms and
+    their costs (sums of squared residuals)."""
+    Ts = Ts.copy()
+    r = residuals(Ts)
+    cost = np.sum(r**2, axis=1)
+    lam = np.full(len(Ts), 1e-3)
+    eps = 1e-6
+    eye = np.eye(6)
+    for _ in range(iterations):
+        J = np.stack([(residuals(_retract_each(Ts, np.broadcast_to(eps * eye[j], (len(Ts), 6)))) - r) / eps
+                      for j in range(6)], axis=2)
+        H = np.einsum("kmi,kmj->kij", J, J)
+        g = np.einsum("kmi,km->ki", J, r)
+        damp = lam[:, None, None] * (eye * np.diagonal(H, axis1=1, axis2=2)[:, :, None] + 1e-9 * eye)
+        with np.errstate(invalid="ignore", over="ignore"):
+            step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
+        trial = _retract_each(Ts, np.nan_to_num(step))
+        r_trial = residuals(trial)
+        c_trial = np.sum(r_trial**2, axis=1)
+        better = np.isfinite(c_trial) & (c_trial < cost)
+        Ts[better], r[better], cost[better] = trial[better], r_trial[better], c_trial[better]
+        lam = np.clip(np.where(better, lam / 3.0, lam * 4.0), 1e-9, 1e9)
+    return Ts, cost
 
 
 def _quasi_uniform_quaternions(n: int) -> np.ndarray:
