@@ -130,7 +130,44 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
-    """The estimate and everything a reader needs to judge it. Frames keep their measurements."""
+    """The estimate and everything a reader needs to judge it; frames keep their measurements.
+
+    ``covariance``, ``samples``, ``std_rotation_deg``, ``std_translation_mm`` and ``diagnostics`` are derived from
+    these; ``report(out)`` writes ``report.html`` and ``to_dict()`` gives ``calibration.json``'s content.
+
+    Attributes
+    ----------
+    T_camera_lidar : numpy.ndarray
+        4x4, maps LiDAR points into the camera frame (``p_camera = R p_lidar + t``).
+    init, refine : str
+        The initial solver and the refinement used.
+    frames : tuple of FrameMeasurement
+        Every frame, used or skipped (with its reason).
+    camera : CameraModel
+        The camera model used (given, or calibrated from the images).
+    normal_singular_values : numpy.ndarray
+        Singular values of the used frames' stacked camera normals (their spread).
+    weakest_direction_camera : numpy.ndarray
+        The direction those normals constrain least, in the camera frame.
+    dataset : str
+        The dataset's name.
+    warnings : tuple of str
+        Everything that limits trust in the result, most important first.
+    timings_s : dict
+        Stage times (s).
+    plane_residuals : dict
+        Per frame: the normal angle (rad) and distance (m) between the camera's and the LiDAR's plane.
+    refinement : Refinement or None
+        The factor graph's solution and Laplace covariance.
+    posterior : Posterior or None
+        The posterior samples and their summary.
+    selection : MinimalSelection or None
+        2D: how the minimal solutions were chosen.
+    modes : tuple
+        2D: the refined minima that hold posterior mass, the chosen one first.
+    measurements_source : str
+        ``measured``, ``cache`` or a measurements file.
+    """
 
     T_camera_lidar: np.ndarray
     init: str
@@ -918,17 +955,57 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
               samples: int | None = None, hints: Hints = Hints(), cache: bool = False,
               on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
-    """Estimate ``T_camera_lidar`` (and, refined, its covariance and posterior) from a dataset (loaded, or
-    its folder).
+    """Estimate ``T_camera_lidar``, its covariance and posterior from a dataset.
 
-    ``init``: ``closed-form`` (3D; for a 2D LiDAR it means ``minimal-lower-bound``), ``minimal-lower-bound``
-    or ``minimal-min-residual`` (2D). ``refine``: ``factor-graph`` or ``none``. ``samples``: effective
-    posterior samples to draw (0: none; overrides ``posterior``).
+    Measures every frame (the board in each image and scan), solves in closed form (3D) or by the minimal
+    solutions (2D), refines in the factor graph and samples the posterior.
 
-    ``rng`` drives the RANSAC of the board segmentation and the MCMC (a fixed default seed when None,
-    so runs repeat). ``posterior=None`` skips sampling (the covariance is then the Laplace one).
-    ``hints``: an optional initial guess and region of interest for scenes beyond automation (:class:`Hints`).
-    ``cache``: keep and reuse the measurements (:func:`measure`). ``on_refined``: see :func:`solve`.
+    Parameters
+    ----------
+    dataset : Dataset, str or Path
+        A loaded :class:`Dataset` or its folder.
+    init : str
+        ``closed-form`` (3D; for a 2D LiDAR it means ``minimal-lower-bound``), ``minimal-lower-bound`` or
+        ``minimal-min-residual`` (2D).
+    refine : str
+        ``factor-graph`` or ``none`` (the initial solution, without covariance).
+    rng : numpy.random.Generator, optional
+        Drives the board segmentation's RANSAC and the MCMC; a fixed seed when None, so runs repeat.
+    params : SegmentationParams
+        The LiDAR board segmentation's settings.
+    options : RefinementOptions
+        The factor graph's noise, robust loss, range model and edges.
+    posterior : PosteriorOptions or None
+        The sampler's settings; None skips sampling (the covariance is then the Laplace one).
+    use_extent : bool, optional
+        2D only: drop minimal solutions whose laser segments leave the boards' outlines (default: when the board
+        size is known).
+    samples : int, optional
+        Effective posterior samples to draw (0: none); overrides ``posterior``'s.
+    hints : Hints
+        An initial guess and a region of interest, for scenes beyond automation.
+    cache : bool
+        Keep and reuse the measurements (see :func:`measure`).
+    on_refined : callable, optional
+        Called with the refined result just before the posterior is sampled (see :func:`solve`).
+
+    Returns
+    -------
+    CalibrationResult
+        The estimate, its covariance and posterior, every frame's measurements and the warnings.
+
+    Raises
+    ------
+    LidarcamError
+        A missing or corrupt file (:class:`~estimators.errors.DatasetError`), or too few usable frames or a
+        degenerate layout (:class:`~estimators.errors.DegenerateLayoutError`). Frames that cannot be used are
+        skipped with their reason instead.
+
+    Examples
+    --------
+    >>> import estimators as lc
+    >>> result = lc.calibrate(lc.simulate("/tmp/sim", n_poses=8, seed=1), samples=500)  # doctest: +SKIP
+    >>> result.std_rotation_deg, result.std_translation_mm  # doctest: +SKIP
     """
     _check_methods(init, refine)
     if not isinstance(dataset, Dataset):
@@ -976,10 +1053,33 @@ def dataset_range_accuracy(dataset: Dataset) -> float:
 def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = None,
             params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(), cache: bool = False,
             timings: dict | None = None) -> Measurements:
-    """Measure every frame of a dataset once (:func:`measure_frames`) into a :class:`Measurements` that
-    :func:`solve` takes any number of times. With ``cache``, the measurements are kept under
-    :func:`~estimators.io.measurement_store.cache_dir`, keyed by the dataset files' content, the options and
-    the generator's state: a second call with the same inputs reads them back (``source`` is ``cache``)."""
+    """Measure every frame of a dataset once, for :func:`solve` to take any number of times.
+
+    Parameters
+    ----------
+    dataset : Dataset, str or Path
+        A loaded :class:`Dataset` or its folder.
+    rng : numpy.random.Generator, optional
+        Drives the segmentation's RANSAC (a fixed seed when None).
+    params : SegmentationParams
+        The LiDAR board segmentation's settings.
+    hints : Hints
+        An initial guess and a region of interest, for scenes beyond automation.
+    cache : bool
+        Keep the measurements under the user's cache folder, keyed by the dataset files' content, the options and
+        the generator's state: a second call with the same inputs reads them back (``source`` is ``cache``).
+    timings : dict, optional
+        Filled with the stage times (s).
+
+    Returns
+    -------
+    Measurements
+
+    Raises
+    ------
+    DatasetError
+        A missing or corrupt file.
+    """
     if not isinstance(dataset, Dataset):
         dataset = load_dataset(dataset)
     rng = np.random.default_rng(0) if rng is None else rng
@@ -1023,13 +1123,53 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
           use_extent: bool | None = None, samples: int | None = None,
           on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
-    """The solver stage on measured frames (a list with ``board`` and ``camera``, or :class:`Measurements`):
-    initial solution, then (optionally) the factor graph and posterior samples (``posterior`` options, or
-    ``samples`` effective samples; needs the factor graph). ``use_extent`` (2D only): whether the
-    minimal-solution selection drops solutions whose laser segments leave the boards' outlines (default:
-    when the board size is known). ``on_refined``: called with the refined result just before the posterior
-    is sampled (the same result without the posterior, its warnings and its time), e.g. to start drawing
-    the report's other figures meanwhile (``analysis.report.draw_ahead``)."""
+    """The solver stage alone, on measured frames: initial solution, factor graph and posterior.
+
+    Parameters
+    ----------
+    frames : Measurements or list of FrameMeasurement
+        From :func:`measure` or :func:`load_measurements` (then ``board`` and ``camera`` come with them), or a list
+        of frames with ``board`` and ``camera`` given.
+    board : BoardModel, optional
+        The board, with a list of frames.
+    camera : CameraModel, optional
+        The camera model, with a list of frames.
+    init, refine : str
+        As for :func:`calibrate`.
+    options : RefinementOptions
+        The factor graph's settings.
+    name : str
+        The dataset's name in the result.
+    warnings : list of str, optional
+        Warnings from measuring, carried into the result.
+    timings : dict, optional
+        Stage times (s) so far, carried into the result.
+    posterior : PosteriorOptions, optional
+        The sampler's settings; None (default) draws no samples unless ``samples`` asks.
+    rng : numpy.random.Generator, optional
+        Drives the MCMC (a fixed seed when None).
+    use_extent : bool, optional
+        As for :func:`calibrate`.
+    samples : int, optional
+        Effective posterior samples to draw; needs the factor graph.
+    on_refined : callable, optional
+        Called with the refined result (without the posterior) just before the posterior is sampled, e.g. to start
+        drawing the report's other figures meanwhile.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    DegenerateLayoutError
+        Too few usable frames, or board normals that do not determine the transform.
+
+    Examples
+    --------
+    >>> m = lc.measure("/tmp/sim")                                           # doctest: +SKIP
+    >>> a = lc.solve(m, refine="none"); b = lc.solve(m, samples=1000)        # doctest: +SKIP
+    """
     if isinstance(frames, Measurements):
         m = frames
         result = solve(list(m.frames), m.board, m.camera, init, refine, options, name or m.dataset,
@@ -1172,7 +1312,20 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
-    """Write ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each atomically."""
+    """Write ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each atomically.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        From :func:`calibrate` or :func:`solve`.
+    out_dir : str or Path
+        The output folder (created when missing).
+
+    Returns
+    -------
+    Path
+        The path of ``calibration.json``.
+    """
     out = Path(out_dir)
     if result.posterior is not None:
         p = result.posterior

@@ -97,8 +97,34 @@ def _trial(args):
 
 def run_study(trials: int, out: str | Path, mode: str = "measurement", seed: int = 0, workers: int = 2,
               n_frames: int = 8, samples: int = 1000, progress: bool = False, likelihood: str = "gaussian") -> dict:
-    """Run ``trials`` trials on local processes; write ``OUT/coverage.csv`` and ``OUT/coverage.json``
-    (each atomically) and return the summary."""
+    """How often the reported intervals hold the truth, over simulated trials.
+
+    Parameters
+    ----------
+    trials : int
+        Simulated datasets.
+    out : str or Path
+        Folder for ``coverage.csv`` and ``coverage.json`` (each written atomically).
+    mode : str
+        ``measurement`` (noise from the model) or ``end-to-end`` (rendered images, full scans).
+    seed : int
+        Seed of the first trial.
+    workers : int
+        Local processes.
+    n_frames : int
+        Board poses per trial.
+    samples : int
+        Effective posterior samples per trial.
+    progress : bool
+        Show a progress bar.
+    likelihood : str
+        The posterior's likelihood, ``gaussian`` or ``student-t``.
+
+    Returns
+    -------
+    dict
+        The summary: per axis and level, the share of trials whose interval holds the truth.
+    """
     if trials < 1:
         raise ValueError(f"Expected at least 1 trial, got {trials}")
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]

@@ -116,8 +116,30 @@ def _d_opt(F: np.ndarray) -> float:
 
 
 def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
-    """The predicted uncertainty and conditioning of a layout (never raises on a degenerate one: its
-    unobservable directions get infinite standard deviations and are named)."""
+    """The predicted uncertainty and conditioning of a layout of board poses.
+
+    Never raises on a degenerate layout: its unobservable directions get infinite standard deviations and are
+    named.
+
+    Parameters
+    ----------
+    layout : Layout
+        The rig and its board poses (:func:`layout_from_plan`, :func:`layout_from_result`).
+    names : list of str, optional
+        The frames' names, for the per-frame leverage.
+
+    Returns
+    -------
+    LayoutAnalysis
+        The predicted covariance (the Cramer-Rao bound, GTSAM tangent of ``T_camera_lidar``), the normals'
+        singular values, D- and E-optimality, the weakest direction in words and each frame's leverage;
+        ``format()`` gives the text ``lidarcam layout`` prints.
+
+    Examples
+    --------
+    >>> layout, rig, names = lc.layout_from_result(result, lc.load_dataset(path).board)  # doctest: +SKIP
+    >>> print(lc.analyse(layout, names).format())                                        # doctest: +SKIP
+    """
     names = tuple(names or [f"{i:04d}" for i in range(layout.n_frames)])
     shares = [frame_contribution(frame_information(layout, i)) for i in range(layout.n_frames)]
     F = np.sum(shares, axis=0) if shares else np.zeros((6, 6))
@@ -198,9 +220,22 @@ def _weakest_words(v: np.ndarray, layout: Layout, unobservable: bool) -> str:
 
 
 def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layout, Rig, list[str]]:
-    """A layout of measured frames (a refined :class:`CalibrationResult`): the estimate, the refined board
-    poses, the refinement's noise levels and the board points actually measured. ``beams_model`` only
-    serves pose suggestions."""
+    """The layout of a calibration's measured frames.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        A refined result: its estimate, refined board poses, noise levels and measured board points are used.
+    board : BoardModel
+        The dataset's board.
+    beams_model : str
+        The 3D beam model (``hdl64e``, ``vlp16``, ``os64``) that pose suggestions cast.
+
+    Returns
+    -------
+    tuple of (Layout, Rig, list of str)
+        The layout, the rig (for :func:`suggest_poses`) and the used frames' names.
+    """
     ref = result.refinement
     from ..solvers.range_model import frame_rings
 
@@ -218,7 +253,25 @@ def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layo
 
 
 def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
-    """A layout (and the rig, for pose suggestions) from a parsed ``PLAN.yaml``."""
+    """A layout, and the rig for pose suggestions, from a parsed ``PLAN.yaml``.
+
+    Parameters
+    ----------
+    plan : dict
+        The plan: ``camera``, ``board``, ``lidar``, ``corner_noise_px``, ``poses`` and optionally
+        ``T_camera_lidar`` (see the how-to on choosing board poses).
+    source : str
+        The plan's name in error messages.
+
+    Returns
+    -------
+    tuple of (Layout, Rig)
+
+    Raises
+    ------
+    DatasetError
+        A missing or bad key, named with what to write.
+    """
     from ..io.dataset import parse_board, parse_camera
 
     try:
@@ -242,7 +295,8 @@ def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
             raise ValueError("corner_noise_px and range_noise_m must be positive and finite")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise DatasetError(f"invalid plan ({exc})", path=source,
-                           hint="see the PLAN.yaml format in the README (camera, board, lidar, poses)") from exc
+                           hint="see the PLAN.yaml format in docs/howto/layout.md (camera, board, lidar, poses)"
+                           ) from exc
     rig = Rig(camera=camera, beams=beams, board=board, T_camera_lidar=T_cl)
     return Layout(camera, board, beams, T_cl, tuple(poses), corner_noise, beams.sigma_range_m), rig
 
@@ -276,12 +330,35 @@ def meets(analysis: LayoutAnalysis, max_rotation_deg: float, max_translation_mm:
 def suggest_poses(layout: Layout, rig: Rig, k: int, rng: np.random.Generator, candidates: int = 150,
                   target: tuple[float, float] | None = None, range_offset: bool = False
                   ) -> list[tuple[np.ndarray, LayoutAnalysis]]:
-    """Greedily, ``k`` board poses that most raise D-optimality, each from ``candidates`` feasible poses
-    (fully in the image, or for a ChArUco board partly, inside the LiDAR's field of view, 2-5 m away, hit by
-    enough beams). With
-    ``target = (max_rotation_deg, max_translation_mm)``, stop as soon as every axis meets it. With
-    ``range_offset``, D-optimality is that of the extrinsic with a LiDAR range offset estimated too (poses
-    that separate the offset from the translation score higher)."""
+    """Greedily, ``k`` board poses that most raise the layout's D-optimality.
+
+    Each is chosen from ``candidates`` feasible poses: fully in the image (a ChArUco board may be cut by its edge),
+    inside the LiDAR's field of view, 2-5 m away and hit by enough beams.
+
+    Parameters
+    ----------
+    layout : Layout
+        The poses so far.
+    rig : Rig
+        The rig the candidates are drawn for.
+    k : int
+        Poses to add at most.
+    rng : numpy.random.Generator
+        Draws the candidates.
+    candidates : int
+        Candidate poses per step.
+    target : tuple of float, optional
+        ``(max_rotation_deg, max_translation_mm)``: stop as soon as every axis's predicted standard deviation
+        meets it.
+    range_offset : bool
+        Score the extrinsic with a LiDAR range offset estimated too (poses that separate the offset from the
+        translation score higher).
+
+    Returns
+    -------
+    list of tuple of (numpy.ndarray, LayoutAnalysis)
+        Each added pose's ``T_camera_board`` and the analysis of the layout with it.
+    """
     out = []
     current = layout
     for _ in range(k):

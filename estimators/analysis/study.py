@@ -81,7 +81,7 @@ def _list(v, kind, key, source):
         out = tuple(kind(x) for x in values)
     except (TypeError, ValueError):
         raise DatasetError(f"{key} must be a number or a list of numbers, got {v!r}", path=source,
-                           hint="see the SPEC.yaml format in the README") from None
+                           hint="see the SPEC.yaml format in docs/howto/studies.md") from None
     if not out:
         raise DatasetError(f"{key} is empty", path=source, hint="give at least one value")
     return out
@@ -94,13 +94,31 @@ def _scalar(v, kind, key, source):
         return kind(v)
     except (TypeError, ValueError, OverflowError):
         raise DatasetError(f"{key} must be a number, got {v!r}", path=source,
-                           hint="see the SPEC.yaml format in the README") from None
+                           hint="see the SPEC.yaml format in docs/howto/studies.md") from None
 
 
 def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
-    """Validate a parsed ``SPEC.yaml`` (errors name the key and what to write)."""
+    """Validate a parsed ``SPEC.yaml`` for :func:`run_study`.
+
+    Parameters
+    ----------
+    spec : dict
+        The spec (see the how-to on studies for its keys).
+    source : str
+        Its name in error messages.
+
+    Returns
+    -------
+    StudySpec
+
+    Raises
+    ------
+    DatasetError
+        A missing or bad key, named with what to write.
+    """
     if not isinstance(spec, dict):
-        raise DatasetError("a study spec must be a mapping", path=source, hint="see the SPEC.yaml format in the README")
+        raise DatasetError("a study spec must be a mapping", path=source,
+                           hint="see the SPEC.yaml format in docs/howto/studies.md")
     lidar = str(spec.get("lidar", "3d")).lower()
     if lidar not in ("3d", "2d"):
         raise DatasetError(f"lidar must be 3d or 2d, got {lidar!r}", path=source, hint="set lidar: 3d or lidar: 2d")
@@ -231,9 +249,34 @@ COLUMNS = ("cell", "trial", "seed", "lidar", "mode", "layout", "frames", "range_
 
 def run_study(spec: StudySpec, out: str | Path, workers: int | None = None, scheduler: str | None = None,
               progress: bool = True) -> list[dict]:
-    """Run every trial of ``spec`` on local processes (``workers``, default every core) or on the Dask
-    scheduler at ``scheduler`` (``tcp://host:port``, or a ``distributed.Client``); write ``OUT/study.csv``,
-    ``OUT/summary.json`` and the summary plots, each atomically; return the rows."""
+    """Run every trial of a study spec and write its table and figures.
+
+    Every solver of a trial sees the same simulated data; the rows are the same on local processes and on a
+    cluster.
+
+    Parameters
+    ----------
+    spec : StudySpec
+        From :func:`parse_spec`.
+    out : str or Path
+        Folder for ``study.csv``, ``summary.json`` and the summary plots (each written atomically).
+    workers : int, optional
+        Local processes (default: every core).
+    scheduler : str or distributed.Client, optional
+        A Dask scheduler (``tcp://host:port``) to run the trials on instead.
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    list of dict
+        One row per trial and solver, as in ``study.csv``.
+
+    Examples
+    --------
+    >>> rows = lc.run_study(lc.parse_spec({"lidar": "3d", "solvers": ["closed-form", "factor-graph"],
+    ...                                    "frames": [4, 8], "trials": 10}), "/tmp/study")  # doctest: +SKIP
+    """
     args = trial_arguments(spec)
     results: list[list[dict]] = []
     bar = tqdm(total=len(args), desc=spec.name, disable=not progress)

@@ -56,7 +56,21 @@ REASONS = {
 
 @dataclass(frozen=True)
 class ExtractOptions:
-    """Pairing and stillness settings (seconds, pixels of the full image)."""
+    """Pairing and stillness settings for :func:`extract_bag`.
+
+    Attributes
+    ----------
+    max_dt_s : float
+        Pair an image with the nearest scan within this many seconds (header stamps).
+    still_s : float
+        The board must stay still this long (s) to give a frame.
+    still_px : float
+        Largest corner motion (px of the full image) between examined images that still counts as still.
+    check_hz : float
+        Examine at most this many images per second.
+    scan_format : str or None
+        ``pcd``, ``ply``, ``npy`` or ``csv``; default ``pcd`` for a 3D LiDAR, ``csv`` (angle,range) for a 2D one.
+    """
 
     max_dt_s: float = 0.05
     still_s: float = 1.0
@@ -270,11 +284,45 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 camera_info_topic: str | None = None, use_camera_info: bool = True,
                 options: ExtractOptions = ExtractOptions(), progress: bool = False,
                 overwrite: bool = False) -> ExtractSummary:
-    """Write a dataset folder (``dataset.yaml``, ``NNNN.png`` and ``NNNN.pcd|csv``, ``extract.json``) from a bag.
+    """Write a dataset folder from a ROS 1 or ROS 2 bag: one frame per still board pose.
 
-    Give ``cloud_topic`` (PointCloud2, a 3D LiDAR) or ``scan_topic`` (LaserScan, a 2D LiDAR). The camera
-    intrinsics come from ``camera_info_topic``, or a CameraInfo topic beside the image topic, unless
-    ``use_camera_info`` is False. The folder appears complete or not at all.
+    The folder (``dataset.yaml``, ``NNNN.png`` and ``NNNN.pcd|csv``, ``extract.json``) appears complete or not at
+    all.
+
+    Parameters
+    ----------
+    bag : str or os.PathLike
+        A ROS 1 ``.bag`` file, a ROS 2 bag folder, or its ``.db3`` or ``.mcap`` file.
+    out : str or os.PathLike
+        The dataset folder to write.
+    board : BoardModel
+        The board (``lidarcam extract --board`` parses the short form).
+    image_topic : str
+        A ``sensor_msgs/Image`` or ``CompressedImage`` topic.
+    cloud_topic : str, optional
+        A ``PointCloud2`` topic (a 3D LiDAR).
+    scan_topic : str, optional
+        A ``LaserScan`` topic (a 2D LiDAR); give exactly one of the two.
+    camera_info_topic : str, optional
+        The ``CameraInfo`` topic (default: the one beside the image topic, if any).
+    use_camera_info : bool
+        False: write no intrinsics; ``calibrate`` then estimates them from the board views.
+    options : ExtractOptions
+        Pairing and stillness settings.
+    progress : bool
+        Show a progress bar.
+    overwrite : bool
+        Replace an existing folder.
+
+    Returns
+    -------
+    ExtractSummary
+        The frames kept and, per reason, the images dropped.
+
+    Raises
+    ------
+    BagError
+        A missing topic, an unknown encoding, or no image paired with a scan.
     """
     from tqdm.auto import tqdm
 

@@ -1,6 +1,6 @@
 """The dataset folder: ``dataset.yaml`` plus one image and one scan per frame, paired by file stem.
 
-See README "Dataset format" for the contract other tools write to.
+See docs/reference/dataset.md for the contract other tools write to.
 """
 from __future__ import annotations
 
@@ -33,7 +33,25 @@ class FrameFiles:
 
 @dataclass(frozen=True)
 class Dataset:
-    """A loaded dataset description (files are read later, frame by frame)."""
+    """A loaded dataset description (files are read later, frame by frame).
+
+    Attributes
+    ----------
+    root : Path
+        The dataset folder.
+    lidar : str
+        ``3d`` or ``2d``.
+    board : BoardModel
+        The board: pattern, squares, square size, and its physical size when known.
+    camera : CameraModel or None
+        The intrinsics, or None to calibrate them from the images.
+    frames : tuple of FrameFiles
+        Each frame's image and scan file.
+    lidar_family : str or None
+        The sensor family named in ``dataset.yaml`` (velodyne, ouster, hesai, livox, or any name).
+    range_accuracy_m : float or None
+        The sensor's range accuracy (m, 1 sd of a systematic range error), when given.
+    """
 
     root: Path
     lidar: str
@@ -65,17 +83,38 @@ class Dataset:
 
 
 def load_dataset(path: str | os.PathLike) -> Dataset:
-    """Read ``dataset.yaml`` and pair the frames of a dataset folder."""
+    """Read ``dataset.yaml`` and pair the frames of a dataset folder (files are read later, frame by frame).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The dataset folder (see the dataset reference for its format).
+
+    Returns
+    -------
+    Dataset
+
+    Raises
+    ------
+    DatasetError
+        A missing folder or ``dataset.yaml``, a bad key (named, with what to write), or an image without its scan
+        (or a scan without its image).
+
+    Examples
+    --------
+    >>> ds = lc.load_dataset("/tmp/sim")            # doctest: +SKIP
+    >>> ds.lidar, ds.board.squares, len(ds.frames)  # doctest: +SKIP
+    """
     root = Path(path)
     if not root.is_dir():
         raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
     ypath = root / "dataset.yaml"
     if not ypath.exists():
-        raise DatasetError("no dataset.yaml", path=root, hint="create one (see README: Dataset format)")
+        raise DatasetError("no dataset.yaml", path=root, hint="create one (see docs/reference/dataset.md)")
     spec = load_yaml(ypath, "dataset.yaml")
     if not isinstance(spec, dict):
         raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
-                           hint="see README: Dataset format")
+                           hint="see docs/reference/dataset.md")
     lidar, family, accuracy = _parse_lidar(spec.get("lidar", "3d"), ypath)
     board = parse_board(spec.get("board"), ypath)
     camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
@@ -133,23 +172,23 @@ def write_dataset_yaml(folder: Path, spec: dict, comment: str) -> Path:
 def _number(value: object, key: str, ypath: Path) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DatasetError(f"board {key} must be a number (m), got {value!r}", path=ypath,
-                           hint="see README: Dataset format")
+                           hint="see docs/reference/dataset.md")
     return float(value)
 
 
 def parse_board(b: object, ypath: Path) -> BoardModel:
     if not isinstance(b, dict) or "squares" not in b or "square_size" not in b:
         raise DatasetError("board needs squares: [nx, ny] and square_size (m)", path=ypath,
-                           hint="see README: Dataset format")
+                           hint="see docs/reference/dataset.md")
     pattern = b.get("pattern", CHECKERBOARD)
     if pattern not in PATTERNS:
         raise DatasetError(f"board pattern must be one of {', '.join(PATTERNS)}, got {pattern!r}", path=ypath,
-                           hint="see README: Dataset format")
+                           hint="see docs/reference/dataset.md")
     extra = {}
     if pattern == CHARUCO:
         if b.get("marker_size") is None:
             raise DatasetError("a charuco board needs marker_size (m, the markers' side)", path=ypath,
-                               hint="see README: ChArUco boards")
+                               hint="see docs/reference/dataset.md, ChArUco boards")
         legacy = b.get("legacy_pattern", False)
         if not isinstance(legacy, bool):
             raise DatasetError(f"board legacy_pattern must be true or false, got {legacy!r}", path=ypath,
@@ -167,7 +206,7 @@ def parse_board(b: object, ypath: Path) -> BoardModel:
 
 def parse_camera(c: object, ypath: Path) -> CameraModel:
     if not isinstance(c, dict):
-        raise DatasetError("camera must be a mapping", path=ypath, hint="see README: Dataset format")
+        raise DatasetError("camera must be a mapping", path=ypath, hint="see docs/reference/dataset.md")
     missing = [k for k in ("K", "width", "height") if k not in c]
     if missing:
         raise DatasetError(f"camera lacks {', '.join(missing)}", path=ypath,

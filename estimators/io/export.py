@@ -43,7 +43,23 @@ def _nums(a) -> str:
 
 
 def load_calibration(path: str | os.PathLike) -> dict:
-    """Read a ``calibration.json`` and check that it holds a rigid 4x4 ``T_camera_lidar``."""
+    """Read a ``calibration.json`` and check that it holds a rigid 4x4 ``T_camera_lidar``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file, or the folder holding it.
+
+    Returns
+    -------
+    dict
+        The file's content.
+
+    Raises
+    ------
+    LidarcamError
+        A missing or unreadable file, or a ``T_camera_lidar`` that is not a rigid transform.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "calibration.json"
@@ -106,8 +122,32 @@ def _tree(T_camera_lidar: np.ndarray, camera_frame: str, lidar_frame: str, paren
 
 def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lidar_frame: str = "lidar",
                        parent: str = "camera") -> str:
-    """The text of ``fmt`` (one of ``FORMATS``) for a result, a ``calibration.json`` path or dict, or a 4x4
-    ``T_camera_lidar``."""
+    """The calibration as text for ROS tf, URDF, KITTI, OpenCV YAML or JSON, with its direction written beside it.
+
+    Parameters
+    ----------
+    calibration : CalibrationResult, str, os.PathLike, dict or numpy.ndarray
+        A result, a ``calibration.json`` path or its content, or a 4x4 ``T_camera_lidar``.
+    fmt : str
+        One of ``ros-tf``, ``urdf``, ``kitti``, ``opencv-yaml``, ``json``.
+    camera_frame, lidar_frame : str
+        The two frames' names (distinct, without spaces).
+    parent : str
+        ``camera``: the LiDAR is the child (``T_camera_lidar``'s own numbers); ``lidar``: the inverse.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    LidarcamError
+        Bad frame names, or a transform that is not rigid.
+
+    Examples
+    --------
+    >>> print(lc.export_calibration("/tmp/calib/calibration.json", "ros-tf", lidar_frame="velodyne"))  # doctest: +SKIP
+    """
     if fmt not in FORMATS:
         raise ValueError(f"Expected a format in {FORMATS}, got {fmt!r}")
     if camera_frame == lidar_frame or any(not f or any(c.isspace() for c in f) for f in (camera_frame, lidar_frame)):
@@ -125,7 +165,23 @@ def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lida
 
 
 def write_export(calibration, fmt: str, path: str | os.PathLike, **frames) -> Path:
-    """Write ``export_calibration(calibration, fmt, ...)`` to ``path`` atomically."""
+    """Write :func:`export_calibration`'s text to a file, atomically.
+
+    Parameters
+    ----------
+    calibration : CalibrationResult, str, os.PathLike, dict or numpy.ndarray
+        As for :func:`export_calibration`.
+    fmt : str
+        As for :func:`export_calibration`.
+    path : str or os.PathLike
+        The file to write.
+    **frames
+        ``camera_frame``, ``lidar_frame`` and ``parent``, as for :func:`export_calibration`.
+
+    Returns
+    -------
+    Path
+    """
     text = export_calibration(calibration, fmt, **frames)
     return write_atomic(path, lambda fh: fh.write(text))
 

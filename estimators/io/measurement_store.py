@@ -32,9 +32,27 @@ CACHE_ENV = "LIDARCAM_CACHE_DIR"
 
 @dataclass(frozen=True, eq=False)
 class Measurements:
-    """A dataset's measured frames, ready to solve: the camera model, the board, the LiDAR kind, the frames,
-    the measurement's warnings, where they came from (``measured``, ``cache`` or a file) and the key of the
-    dataset content and options they were measured from."""
+    """A dataset's measured frames, ready to :func:`solve`.
+
+    Attributes
+    ----------
+    camera : CameraModel
+        The camera model the frames were measured with.
+    board : BoardModel
+        The board.
+    lidar : str
+        ``3d`` or ``2d``.
+    frames : tuple of FrameMeasurement
+        Every frame, usable or with the reason it is not.
+    warnings : tuple of str
+        Warnings from measuring.
+    dataset : str
+        The dataset's name.
+    source : str
+        ``measured``, ``cache`` or the file they were read from.
+    key : str
+        The key of the dataset content and options they were measured from.
+    """
 
     camera: CameraModel
     board: BoardModel
@@ -78,7 +96,20 @@ def cache_dir() -> Path:
 
 
 def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
-    """Write ``OUT/measurements.npz`` and then ``OUT/measurements.json`` (each atomically)."""
+    """Write ``OUT/measurements.npz`` and then ``OUT/measurements.json``, each atomically.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The output folder (created when missing).
+    m : Measurements
+        From :func:`measure`.
+
+    Returns
+    -------
+    Path
+        The path of ``measurements.json``.
+    """
     out = Path(out_dir)
     arrays: dict[str, np.ndarray] = {}
     frames = []
@@ -114,7 +145,22 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
 
 
 def load_measurements(path: str | Path) -> Measurements:
-    """Read ``measurements.npz`` (or its folder, or ``measurements.json``) with its ``measurements.json``."""
+    """Read measurements that :func:`save_measurements` (or ``lidarcam calibrate``) wrote.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``measurements.npz``, its folder, or ``measurements.json``; the two files are read together.
+
+    Returns
+    -------
+    Measurements
+
+    Raises
+    ------
+    DatasetError
+        A missing, corrupt or mismatched file (never unpickled: the arrays are read without pickle).
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "measurements.npz"

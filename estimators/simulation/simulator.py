@@ -727,22 +727,57 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
                      pattern: str = "checkerboard", outside_image_share: float | None = None,
                      range_bias_family: str | None = None, intensity: str = "contrast", ring_field: bool = True
                      ) -> Path:
-    """Simulate the default rig and write a dataset folder with ``ground_truth.json``.
+    """Simulate a rig and write a dataset folder, with ``ground_truth.json``.
 
-    ``lidar``: ``hdl64e`` or ``vlp16`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
-    ``sigma_range_m``: range noise (default 0.02 m in 3D, 0.01 m in 2D); ``scan_format``: pcd, ply, bin or
-    npy in 3D (default pcd), csv, npy or pcd in 2D (default csv). ``scene``: ``default``, ``office`` or
-    ``hall`` (see :func:`simulate_frames`). ``ground_truth_board_points.npz`` holds which returns hit the board.
-    ``range_bias``: (global offset, sd of the per-ring offsets, black-square offset) in metres, injected into
-    every return (the drawn values go to ground_truth.json). ``rig_config`` (2D only): ``default``,
-    ``varied`` (:func:`varied_rig_2d`, a rig drawn from a second, independent configuration) or ``mounted``
-    (:func:`mounted_rig_2d`, a third: the scanner upside down, tilted or 0.5 m from the camera). ``pattern``:
-    ``checkerboard`` or ``charuco`` (the same board with DICT_5X5_100 markers, :func:`as_charuco`);
-    ``outside_image_share``: the share of poses cut by the image's edge (default 0.3 for ChArUco, else 0).
-    ``range_bias_family``: inject range errors drawn from that sensor family's priors instead
-    (``solvers.range_model.range_accuracy_for``: offset and black-square term 0 +- the accuracy, each ring 0 +- a
-    fifth of it). ``intensity``: ``contrast`` (the board's reflectance), ``flat`` (50 +- 5 on every return: no
-    black/white contrast) or ``saturated`` (255); ``ring_field=False`` writes clouds without rings.
+    Images are rendered and scans cast from the LiDAR's beam model, so the dataset goes through the same
+    measurement as a recording. ``ground_truth_board_points.npz`` holds which returns hit the board.
+
+    Parameters
+    ----------
+    out : str or Path
+        The dataset folder to write (atomically).
+    n_poses : int
+        Board poses (frames).
+    seed : int
+        Seed of the rig's and the poses' draws and of the noise.
+    lidar : str
+        ``hdl64e``, ``vlp16`` or ``os64`` (3D beam models) or ``2d`` (a 270-degree single-line scanner).
+    sigma_range_m : float, optional
+        Range noise, m (default 0.02 in 3D, 0.01 in 2D).
+    pixel_noise : float
+        Image noise, grey levels (1 sd).
+    scan_format : str, optional
+        ``pcd``, ``ply``, ``bin`` or ``npy`` in 3D (default ``pcd``); ``csv``, ``npy`` or ``pcd`` in 2D (default ``csv``).
+    include_camera : bool
+        Write the intrinsics into ``dataset.yaml`` (False: they are calibrated from the images).
+    overwrite : bool
+        Replace an existing folder.
+    scene : str
+        ``default``, ``office`` or ``hall``.
+    range_bias : tuple of float, optional
+        (global offset, sd of the per-ring offsets, black-square offset), m, injected into every return.
+    rig_config : str
+        2D only: ``default``, ``varied`` (a rig from a second, independent configuration) or ``mounted`` (the
+        scanner upside down, tilted or 0.5 m from the camera).
+    pattern : str
+        ``checkerboard`` or ``charuco`` (the same board with DICT_5X5_100 markers).
+    outside_image_share : float, optional
+        The share of poses cut by the image's edge (default 0.3 for ChArUco, 0 for a checkerboard).
+    range_bias_family : str, optional
+        Inject range errors drawn from that sensor family's priors instead of ``range_bias``.
+    intensity : str
+        ``contrast`` (the board's reflectance), ``flat`` (no black/white contrast) or ``saturated``.
+    ring_field : bool
+        Write each return's ring (False: clouds without a ``ring`` field).
+
+    Returns
+    -------
+    Path
+        The dataset folder.
+
+    Examples
+    --------
+    >>> path = lc.simulate("/tmp/sim2d", n_poses=6, lidar="2d", seed=3)   # doctest: +SKIP
     """
     if intensity not in INTENSITY_MODES:
         raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")

@@ -30,7 +30,28 @@ from .range_model import FrameLabels, RangeTerms, regressors, terms_for
 
 @dataclass(frozen=True, eq=False)
 class Layout:
-    """A rig and a set of board poses: everything the bound and the measurement simulation need."""
+    """A rig and a set of board poses: everything the bound and the measurement simulation need.
+
+    Attributes
+    ----------
+    camera : CameraModel
+        The camera model.
+    board : BoardModel
+        The board.
+    beams : BeamModel
+        The LiDAR's beam model (its range noise included).
+    T_camera_lidar : numpy.ndarray
+        4x4, the extrinsic.
+    T_camera_board : tuple of numpy.ndarray
+        Each board pose, 4x4.
+    corner_noise_px : float
+        Effective per-corner pixel noise.
+    range_noise_m : float
+        Range noise, m.
+    hits : tuple or None
+        Measured beams per frame (directions and ranges in the LiDAR frame, and their rings when known) instead of
+        the beam model's cast.
+    """
 
     camera: CameraModel
     board: BoardModel
@@ -155,9 +176,31 @@ def extrinsic_information(F: np.ndarray, keep: int = 6) -> np.ndarray:
 
 def cramer_rao_bound(layout: Layout, terms: RangeTerms | None = None, edges: bool = False,
                      beam_sd_rad: float | None = None) -> np.ndarray:
-    """The Cramer-Rao bound (6x6 covariance, right tangent of ``T_camera_lidar``) of the layout; with range
-    terms, of the model that estimates them too (their priors included), marginal over them; with ``edges``, of
-    the planes and the board's edges (:func:`edges_information`, no range terms; ``beam_sd_rad`` there)."""
+    """The Cramer-Rao bound of a layout: the least covariance any unbiased estimator can reach.
+
+    Parameters
+    ----------
+    layout : Layout
+        The rig and its board poses.
+    terms : RangeTerms, optional
+        LiDAR range terms estimated too (with their priors); the bound is then marginal over them.
+    edges : bool
+        Include the board's edges (ring or segment ends) with the planes; no range terms then.
+    beam_sd_rad : float, optional
+        The beam's footprint and pointing error for the edges (default: the edge model's).
+
+    Returns
+    -------
+    numpy.ndarray
+        6x6 covariance in the right tangent of ``T_camera_lidar`` (``xi = [rot; trans]``).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The information is singular (a degenerate layout); :func:`analyse` names the directions instead.
+    ValueError
+        ``edges`` with range terms, or without the board's size.
+    """
     if edges:
         if terms is not None:
             raise ValueError("the bound with edges and range terms together is not built")
@@ -254,18 +297,35 @@ def with_outline_error(layout: Layout, pattern_shift_m: tuple[float, float] = (0
 def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,
                           board_error_m: float = 0.0, rings: bool = True, intensity: str = "contrast",
                           azimuth_phase: bool = False, beam_sd_rad: float = 0.0) -> list[FrameMeasurement]:
-    """Per frame: corners with Gaussian pixel noise (board pose fitted as from a detection) and the
-    board's beam returns with Gaussian range noise, plus ``bias`` (systematic range errors) when given; the
-    returns carry their ring ids (``rings=False``: none, as a cloud without a ``ring`` field) and an intensity:
-    ``contrast`` 0 on black squares and 100 elsewhere, ``flat`` 50 +- 5 on both (an uncalibrated LiDAR's),
-    ``saturated`` 255 everywhere. ``board_error_m``: each board as the LiDAR sees it is moved from the camera's
-    by a random per-board plane error (distance sd ``board_error_m``, tilt sd ``board_error_m`` over the board's
-    half-size: a bent board, a holder, intrinsics), the overdispersion of real recordings. ``azimuth_phase``:
-    each frame's sweep fires at a random phase of its azimuth step (as real sweeps do), so that repeated draws
-    of one layout vary where the rings end on the board; by default the layout's fixed firing grid.
-    ``beam_sd_rad``: each beam's footprint and pointing error (:func:`board_returns`' ``pointing``): the board's
-    edges blur by it, as the edge model assumes (``board_edges.BEAM_SD_RAD``); 0: exact beams. No rendering, no
-    segmentation."""
+    """Simulated measurements of a layout, without rendering or segmentation.
+
+    Per frame: corners with Gaussian pixel noise (the board pose fitted as from a detection) and the board's beam
+    returns with Gaussian range noise.
+
+    Parameters
+    ----------
+    layout : Layout
+        The rig and its board poses.
+    rng : numpy.random.Generator
+        Draws the noise.
+    bias : RangeBias, optional
+        Systematic range errors added to the returns.
+    board_error_m : float
+        Each board as the LiDAR sees it is moved from the camera's by a random plane error (distance sd this, tilt
+        sd this over the board's half-size): the overdispersion of real recordings.
+    rings : bool
+        Give the returns their ring ids (False: as a cloud without a ``ring`` field).
+    intensity : str
+        ``contrast`` (0 on black squares, 100 elsewhere), ``flat`` (50 +- 5) or ``saturated`` (255).
+    azimuth_phase : bool
+        Fire each sweep at a random phase of its azimuth step, as real sweeps do.
+    beam_sd_rad : float
+        Each beam's footprint and pointing error (the board's edges blur by it); 0: exact beams.
+
+    Returns
+    -------
+    list of FrameMeasurement
+    """
     if intensity not in INTENSITY_MODES:
         raise ValueError(f"Expected intensity in {INTENSITY_MODES}, got {intensity!r}")
     frames = []

@@ -49,6 +49,26 @@ LIKELIHOODS = ("gaussian", "student-t")
 
 @dataclass(frozen=True)
 class PosteriorOptions:
+    """Settings of the posterior sampler (emcee).
+
+    Attributes
+    ----------
+    min_ess : int
+        Effective samples wanted, of the slowest-mixing parameter.
+    walkers : int
+        Ensemble walkers (at least 24: twice the up to 11 parameters).
+    likelihood : str
+        ``gaussian`` or ``student-t``.
+    nu : float
+        The Student-t likelihood's degrees of freedom.
+    max_steps : int
+        Steps at most.
+    chunk : int
+        Steps between convergence checks.
+    progress : bool
+        Show a progress bar.
+    """
+
     min_ess: int = 2000  # effective samples wanted (of the slowest-mixing parameter)
     walkers: int = 48
     likelihood: str = "gaussian"

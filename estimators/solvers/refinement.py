@@ -79,6 +79,46 @@ def board_key(i: int) -> int:
 
 @dataclass(frozen=True)
 class RefinementOptions:
+    """Settings of the factor-graph refinement.
+
+    Attributes
+    ----------
+    robust : str
+        The robust loss on each frame's plane residual: ``huber``, ``cauchy`` or ``none``.
+    robust_threshold : float
+        The loss's threshold on the whitened residual's norm (default: the square root of chi-square(3) at 99%).
+    corner_noise_px : float or None
+        Effective per-corner pixel noise; None: estimated from the corner residuals.
+    corner_error_correlation : float
+        The factor by which the pooled corner residual is scaled to the effective noise (detected corners err
+        together within a board).
+    range_noise_m : float or None
+        LiDAR range noise (m); None: estimated from the board points' scatter.
+    outliers : str
+        ``drop`` or ``downweight`` a frame whose residual is a gross outlier.
+    outlier_p : float
+        The tail probability below which a frame is a gross outlier.
+    plane_floor_m : float or None
+        A per-board plane error (m); None: estimated when the planes disagree beyond the noise.
+    estimate_plane_floor : bool
+        Estimate that plane error from the data.
+    max_iterations : int
+        The optimiser's iterations at most.
+    corner_scale_sd : float
+        A per-board relative scale error of the detected pattern, for a camera known to have one.
+    range_model : str
+        The LiDAR range model: ``none``, ``offset``, ``per-ring``, ``offset+dark``, ``full``, or ``auto`` (chosen by
+        test).
+    range_accuracy_m : float or None
+        The sensor's range accuracy (m, 1 sd of a systematic error) that sets the range terms' priors; None: a
+        conservative default.
+    edges : bool or None
+        Use the board's edges where the rings (a 2D scan's line) leave it; None: a 2D scan's segment ends are used,
+        a 3D LiDAR's ring ends only when True.
+    max_sensor_separation_m : float or None
+        2D: a solution with the sensors farther apart than this (m) is not a solution; None: no bound.
+    """
+
     robust: str = "huber"
     # On the whitened norm of a frame's plane residual; sqrt of chi-square(3) at 99%.
     robust_threshold: float = float(np.sqrt(chi2.ppf(0.99, 3)))
