@@ -3,7 +3,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench docs clean
 
 # pip compiles the dependencies' bytecode; an editable install leaves the project's own to the first import,
 # which cannot keep it where writing bytecode is switched off (PYTHONDONTWRITEBYTECODE): compiled here.
@@ -20,6 +20,11 @@ demo: $(STAMP)
 # Two test processes, one per core (pytest-xdist): 6.5 minutes instead of 9.5 on this 2-core machine.
 test: $(STAMP)
 	$(PY) -m pytest -n 2
+
+# The documentation site (Sphinx): warnings are errors; the notebooks run at small sizes (cached between builds).
+docs: $(STAMP)
+	$(PY) -m sphinx -b html -W --keep-going -q docs docs/_build/html
+	@echo "open docs/_build/html/index.html"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py
@@ -53,4 +58,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_fuzz.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info
+	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info docs/_build

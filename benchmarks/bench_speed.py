@@ -69,7 +69,7 @@ _LAUNCH = ("import atexit, sys\n"
 
 def large_frames() -> Path:
     """4 frames of 3840x2160 images and 2-million-point scans (the simulator's HDL-64 sweeps with returns
-    added far behind the board, on a wall 40 m away), for the README's resource bounds."""
+    added far behind the board, on a wall 40 m away), for the documented resource bounds."""
     path = OUT / "large"
     if (path / "dataset.yaml").is_file():
         return path

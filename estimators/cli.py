@@ -40,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="solve from a measurements.npz that an earlier calibrate wrote (images and scans are not "
                         "read)")
     c.add_argument("--no-cache", action="store_true",
-                   help="measure again even when the measurement cache holds this dataset (see the README)")
+                   help="measure again even when the measurement cache holds this dataset (docs/reference/cli.md)")
     c.add_argument("--cross-validate", type=int, default=0, metavar="K",
                    help="also score K folds of frames, each under the calibration of the others (validation.json)")
     c.add_argument("--split", default=None, choices=["halves", "interleaved"],
@@ -635,7 +635,8 @@ def _layout(args) -> int:
     elif src.is_file():
         plan = load_yaml(src, "plan", "fix the plan file")
         if not isinstance(plan, dict):
-            raise DatasetError("a plan must be a mapping", path=src, hint="see the PLAN.yaml format in the README")
+            raise DatasetError("a plan must be a mapping", path=src,
+                               hint="see the PLAN.yaml format in docs/howto/layout.md")
         layout, rig = layout_from_plan(plan, str(src))
         names = [f"plan{i:02d}" for i in range(layout.n_frames)]
     else:
@@ -688,7 +689,7 @@ def _study(args) -> int:
 def _study_spec_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcam study",
                                 description="run a solver-comparison study (a grid of simulated calibrations)")
-    p.add_argument("spec", help="SPEC.yaml: solvers x frames x noise levels x trials (see the README)")
+    p.add_argument("spec", help="SPEC.yaml: solvers x frames x noise levels x trials (docs/howto/studies.md)")
     p.add_argument("--out", required=True, help="folder for study.csv, summary.json and the summary plots")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
@@ -702,7 +703,7 @@ def _study_spec(argv: list[str]) -> int:
 
     args = _study_spec_parser().parse_args(argv)
     path = Path(args.spec)
-    raw = load_yaml(path, "study spec", "fix the spec (see the README)")
+    raw = load_yaml(path, "study spec", "fix the spec (see docs/howto/studies.md)")
     spec = parse_spec(raw, str(path))
     if args.workers < 1:
         raise SystemExit("lidarcam: error: --workers must be positive")

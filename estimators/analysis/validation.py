@@ -12,7 +12,7 @@ the image (the outline check a user does by eye).
 
 Two halves: the first and last halves of the frames (in name order) calibrated apart; their difference
 ``xi = Log(T_1^-1 T_2)`` should be explained by the two covariances, ``xi^T (S_1 + S_2)^-1 xi`` being
-chi-square with 6 dof. If it is not, the model misses an error (the README's recorded-data section).
+chi-square with 6 dof. If it is not, the model misses an error (docs/benchmarks.md, recorded data).
 """
 from __future__ import annotations
 

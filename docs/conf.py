@@ -1,0 +1,62 @@
+"""Sphinx configuration: the lidarcam documentation site (`make docs`, warnings as errors).
+
+Sphinx with the furo theme: the site is Markdown (MyST) pages beside an API reference that autodoc builds from the
+docstrings and a CLI reference that sphinx-argparse builds from the parser itself, so neither can drift from the
+code. The notebooks (``docs/notebooks`` links to ``notebooks/``) are executed by myst-nb (at the small sizes
+their ``LIDARCAM_NOTEBOOK_FAST`` switch selects unless ``LIDARCAM_DOCS_FULL=1``), so they render with outputs.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from pathlib import Path
+
+DOCS = Path(__file__).resolve().parent
+ROOT = DOCS.parent
+sys.path.insert(0, str(ROOT))
+
+import estimators  # noqa: E402
+
+project = "lidarcam"
+author = "the lidarcam developers"
+copyright = "2026, the lidarcam developers"
+release = estimators.__version__
+version = release
+
+extensions = [
+    "myst_nb",
+    "sphinx.ext.autodoc",
+    "sphinx.ext.napoleon",
+    "sphinx.ext.mathjax",
+    "sphinx.ext.viewcode",
+    "sphinxarg.ext",
+]
+source_suffix = {".md": "myst-nb", ".ipynb": "myst-nb"}
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "**.ipynb_checkpoints", "notebooks/README.md"]
+html_theme = "furo"
+html_title = f"lidarcam {release}"
+myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
+myst_heading_anchors = 4
+suppress_warnings = ["myst.xref_missing"] if os.environ.get("LIDARCAM_DOCS_LENIENT") else []
+
+autodoc_typehints = "description"
+autodoc_member_order = "bysource"
+autodoc_default_options = {"members": False}
+napoleon_numpy_docstring = True
+napoleon_google_docstring = False
+napoleon_use_ivar = True
+
+# myst-nb reads each Markdown page as a notebook without cell ids; nbformat's warning about it is not ours.
+warnings.filterwarnings("ignore", message="Cell is missing an id field")
+
+# Notebooks: docs/notebooks is a link to notebooks/ (Sphinx reads only its source folder); each runs in its own
+# folder, as a user runs it.
+if os.environ.get("LIDARCAM_DOCS_FULL") != "1":
+    os.environ["LIDARCAM_NOTEBOOK_FAST"] = "1"
+os.environ.setdefault("MPLBACKEND", "Agg")
+nb_execution_mode = os.environ.get("LIDARCAM_DOCS_EXECUTE", "cache")
+nb_execution_timeout = 900
+nb_execution_raise_on_error = True
+nb_execution_in_temp = False
+nb_execution_cache_path = str(DOCS / "_build" / ".jupyter_cache")

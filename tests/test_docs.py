@@ -1,0 +1,101 @@
+"""The documentation: the site builds with no warning, every public name has a docstring in the one style, and
+the README stays short and free of history."""
+from __future__ import annotations
+
+import inspect
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import estimators
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_site_builds_without_a_warning(tmp_path):
+    """`make docs` as a test: Sphinx with warnings as errors, every page, the API and CLI references. The
+    notebooks are not executed here (tests/test_notebooks.py runs each one)."""
+    pytest.importorskip("sphinx")
+    env = {**os.environ, "LIDARCAM_DOCS_EXECUTE": "off"}
+    proc = subprocess.run([sys.executable, "-m", "sphinx", "-b", "html", "-W", "--keep-going", "-q",
+                           str(ROOT / "docs"), str(tmp_path / "html"), "-d", str(tmp_path / "doctrees")],
+                          capture_output=True, text=True, env=env, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for page in ("index", "tutorial", "howto/index", "reference/cli", "reference/api", "reference/errors",
+                 "method", "benchmarks", "examples", "notebooks/quickstart"):
+        assert (tmp_path / "html" / f"{page}.html").is_file(), page
+    cli = (tmp_path / "html" / "reference" / "cli.html").read_text()
+    assert "--max-sensor-separation" in cli and "--strict" in cli  # generated from the parser
+    api = (tmp_path / "html" / "reference" / "api.html").read_text()
+    missing = [n for n in estimators.__all__ if n != "__version__" and f'id="estimators.{n}"' not in api]
+    assert not missing, f"public names absent from the API page: {missing}"
+
+
+def _public():
+    return [(n, getattr(estimators, n)) for n in estimators.__all__ if n != "__version__"]
+
+
+@pytest.mark.parametrize("name,obj", _public(), ids=[n for n, _ in _public()])
+def test_every_public_name_has_a_numpydoc_docstring(name, obj):
+    """A summary line, then for a function a ``Parameters`` section naming each parameter and a ``Returns``
+    section; for a class, ``Parameters`` or ``Attributes``."""
+    doc = inspect.getdoc(obj)
+    assert doc, f"{name} has no docstring"
+    summary = doc.split("\n\n")[0]
+    assert summary.strip() and len(summary) <= 400, f"{name}: the first paragraph is a short summary"
+    sections = set(re.findall(r"^(\w[\w ]*)\n-{3,}$", doc, flags=re.M))
+    if inspect.isclass(obj):
+        assert sections & {"Parameters", "Attributes"}, f"{name}: no Parameters or Attributes section"
+        return
+    params = [p for p in inspect.signature(obj).parameters.values()
+              if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    if params:
+        assert "Parameters" in sections, f"{name}: no Parameters section"
+        after = doc.split("Parameters\n----------\n", 1)[1]
+        block = re.split(r"^\w[\w ]*\n-{3,}$", after, flags=re.M)[0]  # up to the next section
+        named = {n.strip(" *") for line in re.findall(r"^([\w*][\w, *]*?)\s*:", block, flags=re.M)
+                 for n in line.split(",")}
+        absent = [p.name for p in params if p.name not in named]
+        assert not absent, f"{name}: parameters not described: {absent}"
+    assert "Returns" in sections, f"{name}: no Returns section"
+
+
+def test_readme_is_short_and_has_no_history():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 200
+    assert not re.search(r"\bissue \d+|#\d{2,}\b", text, flags=re.I), "issue numbers belong in commit messages"
+    assert "make demo" in text and "make test" in text
+
+
+def _readme_commands(text: str) -> list[str]:
+    """The README's `lidarcam ...` commands (in shell blocks and inline) that name no placeholder (DS, CAL,
+    rig.bag: the user's own data), in the order a reader meets them."""
+    found = set(re.findall(r"`(lidarcam [^`]+)`", text))
+    for block in re.findall(r"```sh\n(.*?)```", text, flags=re.S):
+        found |= {line.split("#")[0].strip() for line in block.replace("\\\n", " ").splitlines()}
+    runnable = [c for c in found if c.startswith("lidarcam ") and not re.search(r"\b[A-Z]{2,}\b|rig\.bag", c)]
+    return sorted(runnable, key=text.find)
+
+
+def test_readme_commands_run_as_written(tmp_path):
+    """Every README command that needs no data of the user's own runs as written (its /tmp paths moved into a
+    temporary folder), and so does the Python example; each writes what the README says it writes."""
+    text = (ROOT / "README.md").read_text()
+    commands = _readme_commands(text)
+    assert any(c.startswith("lidarcam simulate") for c in commands)
+    assert any(c.startswith("lidarcam calibrate") for c in commands)
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    for cmd in commands:
+        args = cmd.replace("/tmp/", f"{tmp_path}/").split()[1:]
+        proc = subprocess.run([sys.executable, "-m", "estimators", *args], capture_output=True, text=True,
+                              env=env, cwd=tmp_path)
+        assert proc.returncode == 0, f"{cmd}: {proc.stderr[-2000:]}"
+    assert (tmp_path / "cal" / "calibration.json").is_file()
+    code = re.search(r"```python\n(.*?)```", text, flags=re.S).group(1).replace("/tmp/", f"{tmp_path}/")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "cal-py" / "calibration.json").is_file() and (tmp_path / "cal-py" / "report.html").is_file()
