@@ -54,7 +54,8 @@ warnings.filterwarnings("ignore", message="Cell is missing an id field")
 # folder, as a user runs it.
 if os.environ.get("LIDARCAM_DOCS_FULL") != "1":
     os.environ["LIDARCAM_NOTEBOOK_FAST"] = "1"
-os.environ.setdefault("MPLBACKEND", "Agg")
+# The kernels use their own inline backend, so that each figure appears under its cell.
+os.environ.pop("MPLBACKEND", None)
 nb_execution_mode = os.environ.get("LIDARCAM_DOCS_EXECUTE", "cache")
 nb_execution_timeout = 900
 nb_execution_raise_on_error = True
