@@ -21,41 +21,44 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -n 2
 
+# Every benchmark through benchmarks/record.py, which writes its output as a page of the docs (docs/bench/).
+RECORD := $(PY) benchmarks/record.py
+
 # The documentation site (Sphinx): warnings are errors; the notebooks run at small sizes (cached between builds).
 docs: $(STAMP)
 	$(PY) -m sphinx -b html -W --keep-going -q docs docs/_build/html
 	@echo "open docs/_build/html/index.html"
 
 bench: $(STAMP)
-	$(PY) benchmarks/bench_pipeline.py
-	$(PY) benchmarks/bench_refinement.py
-	$(PY) benchmarks/bench_posterior.py
-	$(PY) benchmarks/bench_layout.py
-	$(PY) benchmarks/bench_realdata.py
-	$(PY) benchmarks/bench_scenes.py
-	$(PY) benchmarks/bench_handheld.py
-	$(PY) benchmarks/bench_stands.py
-	$(PY) benchmarks/bench_range_model.py
-	$(PY) benchmarks/bench_range_model_scenes.py
-	$(PY) benchmarks/bench_range_model_scenes.py --inject 100
-	$(PY) benchmarks/bench_board_edges.py --posterior 40
-	$(PY) benchmarks/bench_principal_point.py
-	$(PY) benchmarks/bench_corners.py
-	$(PY) benchmarks/bench_speed.py
-	$(PY) benchmarks/bench_2d.py
-	$(PY) benchmarks/bench_2d.py --pattern charuco
-	$(PY) benchmarks/bench_2d_honesty.py default 200
-	$(PY) benchmarks/bench_2d_honesty.py varied 200
-	$(PY) benchmarks/bench_2d_honesty.py mounted 200
-	$(PY) benchmarks/bench_2d_honesty.py default 100 --pattern charuco
-	$(PY) benchmarks/bench_2d_honesty.py varied 100 --pattern charuco
-	$(PY) benchmarks/bench_2d_honesty.py mounted 100 --pattern charuco
-	$(PY) benchmarks/bench_charuco.py
-	$(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
-	$(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
-	$(PY) benchmarks/bench_study.py
-	$(PY) benchmarks/bench_bag.py
-	$(PY) benchmarks/bench_fuzz.py
+	$(RECORD) pipeline -- $(PY) benchmarks/bench_pipeline.py
+	$(RECORD) refinement -- $(PY) benchmarks/bench_refinement.py
+	$(RECORD) posterior -- $(PY) benchmarks/bench_posterior.py
+	$(RECORD) layout -- $(PY) benchmarks/bench_layout.py
+	$(RECORD) realdata -- $(PY) benchmarks/bench_realdata.py
+	$(RECORD) scenes -- $(PY) benchmarks/bench_scenes.py
+	$(RECORD) handheld -- $(PY) benchmarks/bench_handheld.py
+	$(RECORD) stands -- $(PY) benchmarks/bench_stands.py
+	$(RECORD) range_model -- $(PY) benchmarks/bench_range_model.py
+	$(RECORD) range_model_scenes -- $(PY) benchmarks/bench_range_model_scenes.py
+	$(RECORD) range_model_scenes_inject -- $(PY) benchmarks/bench_range_model_scenes.py --inject 100
+	$(RECORD) board_edges -- $(PY) benchmarks/bench_board_edges.py --posterior 40
+	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
+	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
+	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
+	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py
+	$(RECORD) 2d_charuco -- $(PY) benchmarks/bench_2d.py --pattern charuco
+	$(RECORD) 2d_honesty_default -- $(PY) benchmarks/bench_2d_honesty.py default 200
+	$(RECORD) 2d_honesty_varied -- $(PY) benchmarks/bench_2d_honesty.py varied 200
+	$(RECORD) 2d_honesty_mounted -- $(PY) benchmarks/bench_2d_honesty.py mounted 200
+	$(RECORD) 2d_honesty_default_charuco -- $(PY) benchmarks/bench_2d_honesty.py default 100 --pattern charuco
+	$(RECORD) 2d_honesty_varied_charuco -- $(PY) benchmarks/bench_2d_honesty.py varied 100 --pattern charuco
+	$(RECORD) 2d_honesty_mounted_charuco -- $(PY) benchmarks/bench_2d_honesty.py mounted 100 --pattern charuco
+	$(RECORD) charuco -- $(PY) benchmarks/bench_charuco.py
+	$(RECORD) study_2d_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
+	$(RECORD) study_2d_varied_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
+	$(RECORD) study -- $(PY) benchmarks/bench_study.py
+	$(RECORD) bag -- $(PY) benchmarks/bench_bag.py
+	$(RECORD) fuzz -- $(PY) benchmarks/bench_fuzz.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis *.egg-info docs/_build

@@ -99,3 +99,27 @@ def test_readme_commands_run_as_written(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "cal-py" / "calibration.json").is_file() and (tmp_path / "cal-py" / "report.html").is_file()
+
+
+def test_docs_carry_no_issue_numbers():
+    pages = [p for p in (ROOT / "docs").rglob("*.md") if "_build" not in p.parts and "notebooks" not in p.parts]
+    hits = [f"{p.relative_to(ROOT)}: {m.group(0)}" for p in pages
+            for m in re.finditer(r"\bissue \d+", p.read_text(), flags=re.I)]
+    assert not hits, hits
+
+
+def test_a_benchmark_run_becomes_a_docs_page(tmp_path):
+    """`make bench` runs each benchmark through benchmarks/record.py: its output, the command, the date and the
+    machine become a page; a failing command leaves the previous page alone and passes on its status."""
+    env = {**os.environ, "LIDARCAM_BENCH_PAGES": str(tmp_path)}
+    script = "print('configuration  rot deg\\ndefault          0.051')"
+    ok = subprocess.run([sys.executable, "benchmarks/record.py", "demo_table", "--", sys.executable, "-c", script],
+                        capture_output=True, text=True, env=env, cwd=ROOT)
+    assert ok.returncode == 0 and "default          0.051" in ok.stdout
+    page = (tmp_path / "demo_table.md").read_text()
+    assert "default          0.051" in page and "- machine: " in page and "cores" in page and "-c" in page
+    bad = subprocess.run([sys.executable, "benchmarks/record.py", "demo_table", "--", sys.executable, "-c",
+                          "import sys; print('partial'); sys.exit(3)"], capture_output=True, text=True, env=env,
+                         cwd=ROOT)
+    assert bad.returncode == 3
+    assert (tmp_path / "demo_table.md").read_text() == page

@@ -1,0 +1,97 @@
+"""Run one benchmark and write its output into the documentation as a page (`make bench` runs every benchmark
+through it): `python benchmarks/record.py NAME -- COMMAND ...`.
+
+The page `docs/bench/NAME.md` holds the command, the date, the machine and the printed output, unedited: the
+documented numbers are the ones a rerun of that command prints. The output is also streamed to the terminal.
+A command that fails leaves the previous page in place and exits with its status."""
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+PAGES = Path(os.environ.get("LIDARCAM_BENCH_PAGES", ROOT / "docs" / "bench"))
+
+
+def machine() -> str:
+    """CPU model, cores, memory, OS and Python: what the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+        mem_text = f", {mem:.0f} GiB"
+    except (ValueError, OSError, AttributeError):
+        mem_text = ""
+    return f"{cpu}, {os.cpu_count()} cores{mem_text}, {platform.system()} {platform.release()}, " \
+           f"Python {platform.python_version()}"
+
+
+def revision() -> str:
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True, cwd=ROOT)
+        return out.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def title_of(command: list[str]) -> str:
+    """The first line of the benchmark script's docstring, or the command."""
+    for arg in command:
+        if arg.endswith(".py") and (ROOT / arg).is_file():
+            text = (ROOT / arg).read_text()
+            for quote in ('"""', "'''"):
+                if text.lstrip().startswith(quote):
+                    return text.lstrip()[3:].split("\n")[0].split(" (")[0].strip().rstrip(".:")
+    return " ".join(command)
+
+
+def page(name: str, command: list[str], output: str, seconds: float, when: datetime.datetime) -> str:
+    shown = " ".join(shlex.quote(c) for c in command)
+    return "\n".join([
+        f"# {title_of(command)}", "",
+        f"`{shown}`", "",
+        f"- run: {when:%Y-%m-%d %H:%M} UTC, {seconds / 60:.1f} min; lidarcam {revision()}",
+        f"- machine: {machine()}", "",
+        "```text", output.rstrip("\n"), "```", ""])
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) < 3 or argv[1] != "--":
+        print(__doc__.split("\n\n")[0], file=sys.stderr)
+        return 2
+    name, command = argv[0], argv[2:]
+    when = datetime.datetime.now(datetime.timezone.utc)
+    start = datetime.datetime.now().timestamp()
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=None, text=True, cwd=ROOT)
+    lines = []
+    for line in proc.stdout:
+        sys.stdout.write(line)
+        sys.stdout.flush()
+        lines.append(line)
+    code = proc.wait()
+    if code != 0:
+        print(f"record.py: {' '.join(command)} exited with {code}; docs/bench/{name}.md left as it was",
+              file=sys.stderr)
+        return code
+    from estimators.io.output import write_atomic
+
+    PAGES.mkdir(parents=True, exist_ok=True)
+    text = page(name, command, "".join(lines), datetime.datetime.now().timestamp() - start, when)
+    write_atomic(PAGES / f"{name}.md", lambda fh: fh.write(text))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
