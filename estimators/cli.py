@@ -12,7 +12,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcam", description="Camera-LiDAR extrinsic calibration from planar boards.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    c = sub.add_parser("calibrate", help="estimate T_camera_lidar from a dataset folder")
+    c = sub.add_parser("calibrate", help="estimate T_camera_lidar from a dataset folder",
+                       description="Estimate T_camera_lidar, its covariance and posterior from a dataset folder, and "
+                                   "write calibration.json, posterior.npz, measurements.npz and report.html into "
+                                   "--out. Example: lidarcam calibrate DS --out CAL")
     c.add_argument("dataset", help="folder with dataset.yaml, NNNN.png and NNNN.pcd|ply|bin|npy (2D: csv|npy|pcd)")
     c.add_argument("--out", required=True, help="output folder (calibration.json is written there)")
     c.add_argument("--init", default="closed-form",
@@ -50,27 +53,34 @@ def _parser() -> argparse.ArgumentParser:
                    help="judge each frame's board alone instead of against the static scene of all frames")
 
     v = sub.add_parser("validate", help="score a dataset's frames under a calibration: plane residuals and outline "
-                                        "offsets against what its covariance and the noise predict")
+                                        "offsets against what its covariance and the noise predict",
+                       description="Score the frames a calibration did not use: each frame's plane residual and "
+                                   "outline offset against what the calibration's covariance and the noise "
+                                   "predict, with one verdict (validation.json). Example: lidarcam validate DS "
+                                   "--calibration CAL")
     v.add_argument("dataset", help="a dataset folder (frames the calibration did not use are held out)")
     v.add_argument("--calibration", required=True, help="calibration.json (or the folder holding it)")
     v.add_argument("--out", default=None, help="folder for validation.json (default: the calibration's folder)")
-    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--seed", type=int, default=0, help="seed of the board segmentation's RANSAC")
 
-    s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json")
+    s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json",
+                       description="Write a simulated dataset folder (rendered images, ray-cast scans) with its "
+                                   "ground truth, for trying lidarcam without data and for studies. Example: "
+                                   "lidarcam simulate --poses 8 --seed 1 --out /tmp/sim")
     s.add_argument("--lidar", default="3d", choices=["3d", "2d"],
                    help="3d: a spinning LiDAR (--model); 2d: a 270-degree single-line scanner, 0.25-degree steps")
     s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16", "os64"],
                    help="3D LiDAR beam model (os64: Ouster OS1-64-like)")
-    s.add_argument("--poses", type=int, default=8)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--poses", type=int, default=8, help="board poses (frames)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the rig, the poses and the noise")
     s.add_argument("--range-noise", type=float, default=None, metavar="M",
                    help="LiDAR range sigma (m; default 0.02 for 3d, 0.01 for 2d)")
     s.add_argument("--pixel-noise", type=float, default=2.0, metavar="GREY", help="image noise sigma (grey levels)")
     s.add_argument("--scan-format", default=None, choices=["pcd", "ply", "bin", "npy", "csv"],
                    help="default pcd (3d) or csv (2d: angle,range)")
     s.add_argument("--no-camera", action="store_true", help="omit intrinsics (to test self-calibration)")
-    s.add_argument("--out", required=True)
-    s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--out", required=True, help="the dataset folder to write")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
                    help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
                         "an offset on the board's black squares")
@@ -99,7 +109,11 @@ def _parser() -> argparse.ArgumentParser:
                         "outside the vertical field of view); hall: an open hall")
 
     la = sub.add_parser("layout", help="predicted uncertainty and conditioning of a dataset's or a plan's board "
-                                       "poses, and the poses to add")
+                                       "poses, and the poses to add",
+                        description="Predict the extrinsic's uncertainty (the Cramer-Rao bound) of a dataset's "
+                                    "measured board poses or a PLAN.yaml's planned ones, name the weakest "
+                                    "direction, and suggest the poses that help most. Example: lidarcam layout DS "
+                                    "--suggest 3")
     la.add_argument("source", help="a dataset folder (measured frames) or a PLAN.yaml (planned poses)")
     la.add_argument("--json", default=None, metavar="FILE", help="also write the analysis as JSON")
     la.add_argument("--suggest", type=int, default=0, metavar="K", help="suggest K board poses to add, greedily")
@@ -111,24 +125,35 @@ def _parser() -> argparse.ArgumentParser:
     la.add_argument("--range-offset", action="store_true",
                     help="suggest poses for the extrinsic with a LiDAR range offset estimated too (they separate the "
                          "offset from the translation)")
-    la.add_argument("--seed", type=int, default=0)
+    la.add_argument("--seed", type=int, default=0, help="seed of the candidate poses' draws")
 
     st = sub.add_parser("study", help="simulation studies: `study SPEC.yaml --out DIR [--scheduler tcp://H:P]` "
-                                      "(solver comparison) or `study coverage`")
+                                      "(solver comparison) or `study coverage`",
+                        description="Simulation studies: `lidarcam study SPEC.yaml --out DIR` compares solvers on "
+                                    "a grid of simulated calibrations (its options below), `lidarcam study "
+                                    "coverage` measures how often the reported intervals hold the truth.")
     studies = st.add_subparsers(dest="study", required=True)
-    cv = studies.add_parser("coverage", help="how often the reported intervals contain the truth")
-    cv.add_argument("--trials", type=int, default=200)
+    cv = studies.add_parser("coverage", help="how often the reported intervals contain the truth",
+                            description="Calibrate simulated datasets and count how often the posterior's 68% and "
+                                        "95% intervals hold the truth, per axis (coverage.csv, coverage.json). "
+                                        "Example: lidarcam study coverage --trials 200 --out /tmp/cov")
+    cv.add_argument("--trials", type=int, default=200, help="simulated datasets")
     cv.add_argument("--out", required=True, help="folder for coverage.csv and coverage.json")
     cv.add_argument("--mode", default="measurement", choices=["measurement", "end-to-end"],
                     help="measurement: noise drawn from the model (fast); end-to-end: rendered images and sweeps")
     cv.add_argument("--frames", type=int, default=8, help="board poses per trial")
     cv.add_argument("--samples", type=int, default=1000, help="effective posterior samples per trial")
     cv.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
-    cv.add_argument("--seed", type=int, default=0)
-    cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"])
+    cv.add_argument("--seed", type=int, default=0, help="seed of the first trial")
+    cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
+                    help="the posterior's likelihood")
 
     x = sub.add_parser("extract", help="write a dataset folder from a ROS 1 or ROS 2 (sqlite3, MCAP) bag: one frame "
-                                       "per still board pose")
+                                       "per still board pose",
+                       description="Write a dataset folder from a ROS 1 or ROS 2 bag (no ROS install needed): one "
+                                   "frame per still board pose, each image paired with the scan nearest in time. "
+                                   "Example: lidarcam extract rig.bag --image-topic /camera/image_raw "
+                                   "--cloud-topic /velodyne_points --board 9x7:0.1:1.0x1.0 --out DS")
     x.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag folder (with metadata.yaml)")
     x.add_argument("--image-topic", required=True, help="sensor_msgs/Image or CompressedImage topic")
     lt = x.add_mutually_exclusive_group(required=True)
@@ -152,12 +177,16 @@ def _parser() -> argparse.ArgumentParser:
                    help="examine at most this many images per second")
     x.add_argument("--scan-format", default=None, choices=["pcd", "ply", "npy", "csv"],
                    help="default pcd (3D) or csv (2D: angle,range)")
-    x.add_argument("--overwrite", action="store_true")
+    x.add_argument("--overwrite", action="store_true", help="replace an existing folder")
 
     e = sub.add_parser("export", help="T_camera_lidar for ROS tf, URDF, KITTI, OpenCV YAML or JSON, with its "
-                                      "direction written beside the numbers")
+                                      "direction written beside the numbers",
+                       description="Write a calibration's T_camera_lidar for ROS tf, URDF, KITTI, OpenCV YAML or "
+                                   "JSON, with its direction written beside the numbers. Example: lidarcam export "
+                                   "CAL/calibration.json --format ros-tf --parent lidar --lidar-frame velodyne")
     e.add_argument("calibration", help="calibration.json (or the folder holding it)")
-    e.add_argument("--format", required=True, choices=["ros-tf", "urdf", "kitti", "opencv-yaml", "json"])
+    e.add_argument("--format", required=True, choices=["ros-tf", "urdf", "kitti", "opencv-yaml", "json"],
+                   help="the output format")
     e.add_argument("--camera-frame", default="camera", help="the camera's frame name (default camera)")
     e.add_argument("--lidar-frame", default="lidar", help="the LiDAR's frame name (default lidar)")
     e.add_argument("--parent", default="camera", choices=["camera", "lidar"],
@@ -165,13 +194,15 @@ def _parser() -> argparse.ArgumentParser:
                         "T_camera_lidar's; lidar: its inverse)")
     e.add_argument("--out", default=None, help="write to this file (atomically) instead of printing")
 
-    d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result")
+    d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result",
+                       description="Simulate the default rig, calibrate it and print the result with its error "
+                                   "against the truth; what `make demo` runs. Example: lidarcam demo --out /tmp/demo")
     d.add_argument("--out", default="lidarcam-demo",
                    help="folder for the dataset, calibration.json, posterior.npz and report.html (default "
                         "lidarcam-demo)")
-    d.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"])
-    d.add_argument("--poses", type=int, default=8)
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"], help="3D LiDAR beam model")
+    d.add_argument("--poses", type=int, default=8, help="board poses (frames)")
+    d.add_argument("--seed", type=int, default=0, help="seed of the simulation and the solve")
     _solver_arguments(d)
     return p
 

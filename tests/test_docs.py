@@ -123,3 +123,24 @@ def test_a_benchmark_run_becomes_a_docs_page(tmp_path):
                          cwd=ROOT)
     assert bad.returncode == 3
     assert (tmp_path / "demo_table.md").read_text() == page
+
+
+def test_every_cli_command_and_option_is_described():
+    """The CLI reference is generated from the parser: each command needs its description (with an example)
+    and each argument its help."""
+    import argparse
+
+    from estimators.cli import _parser, _study_spec_parser
+
+    def walk(p, name):
+        yield name, p
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, sp in action.choices.items():
+                    yield from walk(sp, f"{name} {sub}")
+
+    for name, p in [*walk(_parser(), "lidarcam"), ("lidarcam study SPEC.yaml", _study_spec_parser())]:
+        assert p.description, f"{name}: no description"
+        bare = [a.dest for a in p._actions
+                if not a.help and not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]
+        assert not bare, f"{name}: arguments without help: {bare}"
