@@ -35,6 +35,7 @@ import numpy as np  # noqa: E402
 
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.measurements import observe_lidar_line  # noqa: E402
+from estimators.solvers.board_edges import outline_prior_sd  # noqa: E402
 from estimators.simulation.simulator import RIGS_2D, as_charuco, rig_2d, sample_board_poses  # noqa: E402
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
@@ -70,7 +71,11 @@ def trial_setup(seed: int, config: str, n_boards: int, noise_m: float, pattern: 
     if pattern == "charuco":  # the same board printed as ChArUco, 30% of the poses cut by the image's edge
         rig = replace(rig, board=as_charuco(rig.board))
     poses = sample_board_poses(rig, n_boards, rng, outside_image_share=0.3 if pattern == "charuco" else 0.0)
-    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
+    # The physical board is off its declared size and print position as the edge model's prior allows (drawn
+    # from that prior, apart from the rest of the trial's draws): its coverage is judged under its assumptions.
+    outline_error = tuple(np.random.default_rng([seed, 17]).normal(0.0, outline_prior_sd()))
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m,
+                    outline_error_m=outline_error)
     frames = simulate_measurements(layout, rng)
     if config != "default":  # the independent configurations: hands and stands hide some segments' ends
         frames = occlude_ends(frames, rng)

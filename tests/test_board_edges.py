@@ -226,3 +226,29 @@ def test_edge_likelihood_matches_beams_with_a_footprint():
     assert len(z) > 1500
     assert abs(z.mean()) < 3 * z.std() / np.sqrt(len(z))
     assert abs(z.var() - 1.0) < 0.1
+
+
+def test_a_board_off_its_declared_outline_moves_a_scan_lines_ends_by_that_error():
+    """``Layout.outline_error_m`` (the physical board's growth and offset against the declared outline, as the
+    edge model's nuisance): a 2D scan line's returns end where the physical board does, within the scanner's
+    angular step."""
+    from estimators.simulation.simulator import default_rig_2d, sample_board_poses
+
+    rng = np.random.default_rng(3)
+    rig = default_rig_2d(rng, 0.0)
+    poses = sample_board_poses(rig, 3, rng)
+    exact = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.0)
+    error = (0.04, 0.0, 0.03, 0.0)  # 4 cm wider on each x side, moved 3 cm along x
+    off = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.0,
+                 outline_error_m=error)
+    w = rig.board.extent[0]
+    for i in range(3):
+        T_board_lidar = T_inverse(poses[i]) @ rig.T_camera_lidar
+        x = []
+        for lay in (exact, off):
+            dirs, ranges, _, _ = board_returns(lay, i)
+            pts = (T_board_lidar[:3, :3] @ (dirs * ranges[:, None]).T).T + T_board_lidar[:3, 3]
+            x.append((pts[:, 0].min(), pts[:, 0].max()))
+        step = 0.25 * np.pi / 180 * 4.0  # the scanner's step at the farthest board, m
+        assert abs(x[0][0] - 0.0) < step and abs(x[0][1] - w) < step
+        assert abs(x[1][0] - (0.03 - 0.04)) < step and abs(x[1][1] - (w + 0.04 + 0.03)) < step

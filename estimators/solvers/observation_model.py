@@ -10,12 +10,13 @@ GTSAM's right tangent; the bound on the extrinsic is the Schur complement of the
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import T_from_Rt, T_inverse, transform_points
+from geometry.rotations import T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
 from ..camera.chessboard import CornerDetection
@@ -51,6 +52,11 @@ class Layout:
     hits : tuple or None
         Measured beams per frame (directions and ranges in the LiDAR frame, and their rings when known) instead of
         the beam model's cast.
+    outline_error_m : tuple of float or None
+        The physical board's outline against the declared one, as the edge model's nuisance
+        (``board_edges.OUTLINE``): the growth of the x and the y sides and the outline's offset along the board's
+        x and y (m); the LiDAR's beams hit the physical board, the camera sees the pattern where the board frame
+        puts it. None: the declared outline.
     """
 
     camera: CameraModel
@@ -63,6 +69,7 @@ class Layout:
     # Measured beams per frame ((dirs, ranges) in the LiDAR frame, and their rings when known) instead of the
     # beam model's cast.
     hits: tuple | None = None
+    outline_error_m: tuple[float, float, float, float] | None = None
 
     @property
     def n_frames(self) -> int:
@@ -90,7 +97,12 @@ def board_returns(layout: Layout, i: int, pointing: tuple[np.random.Generator, f
     w, h = layout.board.extent
     dirs, rings = layout.beams.directions()
     # Only beams within the board's angular box can hit it: cheap pre-selection before the exact cast.
-    outline = transform_points(T_lidar_board, layout.board.outline())
+    x0, y0, x1, y1 = 0.0, 0.0, w, h
+    if layout.outline_error_m is not None:  # the physical board: grown and moved against the declared outline
+        gx, gy, ox, oy = layout.outline_error_m
+        x0, y0, x1, y1 = ox - gx, oy - gy, w + gx + ox, h + gy + oy
+    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    outline = transform_points(T_lidar_board, corners)
     centre = outline.mean(0) / np.linalg.norm(outline.mean(0))
     cos_min = float(np.min((outline / np.linalg.norm(outline, axis=1, keepdims=True)) @ centre))
     widen = 5.0 * pointing[1] if pointing is not None else 0.0  # beams just outside may hit off their nominal
@@ -103,10 +115,18 @@ def board_returns(layout: Layout, i: int, pointing: tuple[np.random.Generator, f
         off -= near * np.sum(off * near, axis=1, keepdims=True)  # across the beam
         true = near + off
         true /= np.linalg.norm(true, axis=1, keepdims=True)
-    ranges, which, refl = cast(np.zeros(3), true, [rectangle(o, R[:, 0], R[:, 1], w, h, layout.board.reflectance)],
-                               layout.beams.max_range_m)
+    reflectance = layout.board.reflectance
+    if (x0, y0) != (0.0, 0.0):
+        reflectance = partial(_shifted_reflectance, layout.board.reflectance, x0, y0)
+    board = rectangle(o + x0 * R[:, 0] + y0 * R[:, 1], R[:, 0], R[:, 1], x1 - x0, y1 - y0, reflectance)
+    ranges, which, refl = cast(np.zeros(3), true, [board], layout.beams.max_range_m)
     hit = which == 0
     return near[hit], ranges[hit], rings[hit], refl[hit] < 0.5
+
+
+def _shifted_reflectance(reflectance, x0: float, y0: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The board's reflectance on a patch whose origin is ``(x0, y0)`` in the board's frame."""
+    return reflectance(a + x0, b + y0)
 
 
 def corner_pixels(layout: Layout, i: int) -> np.ndarray:
@@ -278,20 +298,11 @@ INTENSITY_MODES = ("contrast", "flat", "saturated")
 
 def with_outline_error(layout: Layout, pattern_shift_m: tuple[float, float] = (0.0, 0.0),
                        size_error_m: float = 0.0) -> Layout:
-    """The layout as the LiDAR sees it when the dataset misstates the board: the pattern printed
-    ``pattern_shift_m`` (board x, y) from where the dataset puts it, or the board ``size_error_m`` larger on
-    each axis than given (the pattern centred). The camera places the given board; pair the two layouts'
-    measurements (:func:`simulate_measurements` of each) to simulate the misstatement."""
-    board = layout.board
-    shift = np.array([pattern_shift_m[0], pattern_shift_m[1], 0.0])
-    if size_error_m:
-        w, h = board.extent
-        half = 0.5 * size_error_m
-        board = BoardModel(board.squares, board.square_size, (w + size_error_m, h + size_error_m),
-                           tuple(board.offset + half))
-        shift = shift - np.array([half, half, 0.0])
-    moved = tuple(T @ T_from_Rt(np.eye(3), shift) for T in layout.T_camera_board)
-    return replace(layout, board=board, T_camera_board=moved)
+    """The layout when the dataset misstates the board: the pattern printed ``pattern_shift_m`` (board x, y)
+    from where the dataset puts it, or the board ``size_error_m`` larger on each axis than given (the pattern
+    centred): its ``outline_error_m``. The camera still places the given board."""
+    half = 0.5 * size_error_m
+    return replace(layout, outline_error_m=(half, half, float(pattern_shift_m[0]), float(pattern_shift_m[1])))
 
 
 def simulate_measurements(layout: Layout, rng: np.random.Generator, bias: RangeBias | None = None,
