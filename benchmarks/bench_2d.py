@@ -2,7 +2,9 @@
 time of the three ways to choose among the minimal solutions, on three simulator configurations at the
 measurement level: ``default`` (a 270-degree scanner, 1 m boards 1.5-4 m away, corners 0.2 px), ``varied``
 (``simulation.simulator.varied_rig_2d``, drawn per trial) and ``mounted`` (``mounted_rig_2d``: the scanner upside
-down, tilted or 0.5 m from the camera); 20% of the segments of the last two also lose 5-25% at one end.
+down, tilted or 0.5 m from the camera); 20% of the segments of the last two also lose 5-25% at one end. Each
+trial's physical board is off its declared outline by an error drawn from the edge model's prior (growth and
+offset 0 +- 1 cm: ``board_edges.outline_prior_sd``).
 
 A trial is a hit when the final estimate is the local minimum that the factor graph reaches when started
 from the ground truth (refined twice, so that its noise terms are estimated at that minimum); a refusal is a

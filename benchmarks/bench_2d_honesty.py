@@ -1,7 +1,8 @@
 """2D, three boards: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
 [--pattern charuco]`, CONFIG default, varied or mounted, as in bench_2d.py; part of make bench.)
 
-Each trial is one layout of 3 boards (1 cm range noise), calibrated as the pipeline does (minimal solutions,
+Each trial is one layout of 3 boards (1 cm range noise; the board's outline off its declared one by an error
+drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal solutions,
 multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is the
 Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
 degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
