@@ -62,6 +62,8 @@ def one(args):
         covered = ((xi >= lo) & (xi <= hi)).tolist()
     except PosteriorSkippedError:
         pass
+    except DegenerateLayoutError as exc:  # the sampled mode as wide as the refinement refuses: refused
+        return {**out, "refused": True, "why": exc.problem[:140]}
     sd = np.sqrt(np.diag(cov))
     return {**out, "refused": False, "masses": [m.mass for m in modes], "covered": covered,
             "d2_laplace": float(xi @ np.linalg.solve(ref.covariance, xi)),

@@ -723,9 +723,10 @@ def _check_scan_directions(prob: _Problem, active: list[int], boards: list) -> N
             f"(spread {spread[-1]:.3f} along {axis}): translation along {axis} is unobservable", hint=advice)
 
 
-def _too_weak(cov: np.ndarray, T: np.ndarray, n_frames: int, ends: bool) -> DegenerateLayoutError | None:
+def scan_refusal(cov: np.ndarray, T: np.ndarray, n_frames: int, ends: bool) -> DegenerateLayoutError | None:
     """The refusal of a 2D extrinsic whose covariance reaches ``MAX_SCAN_ROTATION_SD_RAD`` or
-    ``MAX_SCAN_TRANSLATION_SD_M`` (None when it does not), naming the weakest direction in camera axes."""
+    ``MAX_SCAN_TRANSLATION_SD_M`` (None when it does not), naming the weakest direction in camera axes: the
+    refinement's covariance, or the posterior's about the MAP's mode."""
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     if sd[:3].max() < MAX_SCAN_ROTATION_SD_RAD and sd[3:].max() < MAX_SCAN_TRANSLATION_SD_M:
         return None
@@ -919,7 +920,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     ev = np.linalg.eigvalsh(cov) if np.all(np.isfinite(cov)) else np.array([0.0, 1.0])
     if ev[0] <= 0 or ev[0] / ev[-1] < MIN_INFORMATION_RATIO:
         raise _degenerate(graph, result, len(active))
-    if scan_lines and (weak := _too_weak(cov, T, len(active), prob.edges is not None)) is not None:
+    if scan_lines and (weak := scan_refusal(cov, T, len(active), prob.edges is not None)) is not None:
         raise weak
 
     # Structure that neither the range terms (their scatter bounded by the range accuracy) nor a plane error of
