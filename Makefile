@@ -47,9 +47,9 @@ bench: $(STAMP)
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
 	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py
 	$(RECORD) 2d_charuco -- $(PY) benchmarks/bench_2d.py --pattern charuco
-	$(RECORD) 2d_honesty_default -- $(PY) benchmarks/bench_2d_honesty.py default 200
-	$(RECORD) 2d_honesty_varied -- $(PY) benchmarks/bench_2d_honesty.py varied 200
-	$(RECORD) 2d_honesty_mounted -- $(PY) benchmarks/bench_2d_honesty.py mounted 200
+	$(RECORD) 2d_honesty_default -- $(PY) benchmarks/bench_2d_honesty.py default 100
+	$(RECORD) 2d_honesty_varied -- $(PY) benchmarks/bench_2d_honesty.py varied 100
+	$(RECORD) 2d_honesty_mounted -- $(PY) benchmarks/bench_2d_honesty.py mounted 100
 	$(RECORD) 2d_honesty_default_charuco -- $(PY) benchmarks/bench_2d_honesty.py default 100 --pattern charuco
 	$(RECORD) 2d_honesty_varied_charuco -- $(PY) benchmarks/bench_2d_honesty.py varied 100 --pattern charuco
 	$(RECORD) 2d_honesty_mounted_charuco -- $(PY) benchmarks/bench_2d_honesty.py mounted 100 --pattern charuco

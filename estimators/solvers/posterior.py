@@ -42,7 +42,7 @@ from ..measurements import FrameMeasurement
 from .board_edges import outline_prior_sd
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
-from .refinement import Refinement, frame_noise, pooled_range_noise_m, scan_refusal
+from .refinement import POSTERIOR_REFUSAL_FACTOR, Refinement, frame_noise, pooled_range_noise_m, scan_refusal
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -418,15 +418,17 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     proportion to the masses, in the MAP's tangent: the intervals cover every mode. A mode that cannot be
     sampled contributes its Laplace approximation (with a warning). A nearly degenerate problem at the MAP raises
     :class:`PosteriorSkippedError` with the reason (``unsampled_reason``) instead of sampling; a 2D MAP mode
-    whose samples spread as far as the refinement refuses (:func:`refinement.scan_refusal`) raises
+    whose samples spread ``POSTERIOR_REFUSAL_FACTOR`` times as far as the refinement refuses
+    (:func:`refinement.scan_refusal`) raises
     :class:`DegenerateLayoutError`."""
     cells = ModeCells([ref] + [r for r, _ in other_modes]) if other_modes else None
     main = _sample_mode(frames, board, camera, ref, rng, options, cells, 0)
     usable = [f for f in frames if f.usable]
     if usable and all(f.lidar.is_scan_line for f in usable):
-        # 2D: the MAP's own mode, sampled, as wide as the refinement refuses (its curved valley reaches further
-        # than its Laplace approximation): unobservable in all but name, not a confident answer.
-        weak = scan_refusal(main.covariance, ref.T_camera_lidar, len(usable), ref.end_terms is not None)
+        # 2D: the MAP's own mode, sampled, spread well beyond what the refinement refuses (its curved valley
+        # reaches further than its Laplace approximation): unobservable in all but name, not an answer.
+        weak = scan_refusal(main.covariance, ref.T_camera_lidar, len(usable), ref.end_terms is not None,
+                            POSTERIOR_REFUSAL_FACTOR)
         if weak is not None:
             raise DegenerateLayoutError(f"sampled, {weak.problem}", hint=weak.hint)
     if not other_modes:
