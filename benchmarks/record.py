@@ -57,12 +57,12 @@ def title_of(command: list[str]) -> str:
     return " ".join(command)
 
 
-def page(name: str, command: list[str], output: str, seconds: float, when: datetime.datetime) -> str:
+def page(name: str, command: list[str], output: str, seconds: float, when: datetime.datetime, rev: str) -> str:
     shown = " ".join(shlex.quote(c) for c in command)
     return "\n".join([
         f"# {title_of(command)}", "",
         f"`{shown}`", "",
-        f"- run: {when:%Y-%m-%d %H:%M} UTC, {seconds / 60:.1f} min; lidarcam {revision()}",
+        f"- run: {when:%Y-%m-%d %H:%M} UTC, {seconds / 60:.1f} min; lidarcam {rev}",
         f"- machine: {machine()}", "",
         "```text", output.rstrip("\n"), "```", ""])
 
@@ -73,6 +73,7 @@ def main(argv: list[str]) -> int:
         return 2
     name, command = argv[0], argv[2:]
     when = datetime.datetime.now(datetime.timezone.utc)
+    rev = revision()  # the code that runs: taken before the run, as edits meanwhile do not reach it
     start = datetime.datetime.now().timestamp()
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=None, text=True, cwd=ROOT)
     lines = []
@@ -88,7 +89,7 @@ def main(argv: list[str]) -> int:
     from estimators.io.output import write_atomic
 
     PAGES.mkdir(parents=True, exist_ok=True)
-    text = page(name, command, "".join(lines), datetime.datetime.now().timestamp() - start, when)
+    text = page(name, command, "".join(lines), datetime.datetime.now().timestamp() - start, when, rev)
     write_atomic(PAGES / f"{name}.md", lambda fh: fh.write(text))
     return 0
 
