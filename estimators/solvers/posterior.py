@@ -419,8 +419,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     sampled contributes its Laplace approximation (with a warning). A nearly degenerate problem at the MAP raises
     :class:`PosteriorSkippedError` with the reason (``unsampled_reason``) instead of sampling; a 2D MAP mode
     whose samples spread ``POSTERIOR_REFUSAL_FACTOR`` times as far as the refinement refuses
-    (:func:`refinement.scan_refusal`) raises
-    :class:`DegenerateLayoutError`."""
+    (:func:`refinement.scan_refusal`) raises :class:`DegenerateLayoutError`."""
     cells = ModeCells([ref] + [r for r, _ in other_modes]) if other_modes else None
     main = _sample_mode(frames, board, camera, ref, rng, options, cells, 0)
     usable = [f for f in frames if f.usable]
