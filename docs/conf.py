@@ -38,11 +38,9 @@ html_theme = "furo"
 html_title = f"lidarcam {release}"
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 4
-suppress_warnings = ["myst.xref_missing"] if os.environ.get("LIDARCAM_DOCS_LENIENT") else []
 
 autodoc_typehints = "description"
 autodoc_member_order = "bysource"
-autodoc_default_options = {"members": False}
 napoleon_numpy_docstring = True
 napoleon_google_docstring = False
 napoleon_use_ivar = True
