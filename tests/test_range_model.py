@@ -338,6 +338,39 @@ def test_a_charuco_boards_markers_count_as_their_black_area():
         return float(np.mean(geometric_dark(points, T_lidar_board, pattern_reflectance(board))))
 
     charuco = as_charuco(plain)
-    # (the 2 mm placement uncertainty blurs the squares' edges by a few per cent)
+    # (the 1 mm placement uncertainty blurs the squares' edges by a few per cent)
     assert mean_share(plain, (1, 0)) < 0.05 and 0.2 < mean_share(charuco, (1, 0)) < 0.5
     assert mean_share(plain, (0, 0)) > 0.9 and mean_share(charuco, (0, 0)) > 0.9
+
+
+def test_black_shares_blurred_by_the_extrinsics_uncertainty_do_not_shrink_the_black_square_term():
+    """Colours placed under an extrinsic that is a few millimetres off give returns near the squares' edges the
+    wrong colour: regressed on shares placed sharply, a range offset on black comes out shrunk; on shares blurred
+    by the extrinsic's covariance (the chance of black given what is known), it does not (Berkson's error model).
+    Truth and estimate differ by xi ~ N(0, C) as the covariance says; 200 draws, seed fixed."""
+    from estimators.camera.charuco import pattern_reflectance
+    from estimators.simulation.simulator import default_board
+    from estimators.solvers.range_model import geometric_dark
+    from geometry.rotations import T_exp
+
+    board = default_board()
+    reflectance = pattern_reflectance(board)
+    rng = np.random.default_rng(20261125)
+    T_lidar_board = np.eye(4)
+    T_lidar_board[:3, 3] = [-board.offset[0] - 0.4, -board.offset[1] - 0.3, 5.0]  # 5 m ahead along z
+    xy = rng.uniform([0.0, 0.0], [0.8, 0.6], (3000, 2)) + board.offset
+    points = (T_lidar_board @ np.column_stack([xy, np.zeros(len(xy)), np.ones(len(xy))]).T).T[:, :3]
+    C = np.diag(np.array([1e-3, 1e-3, 1e-3, 3e-3, 3e-3, 3e-3]) ** 2)  # 1 mrad (5 mm at 5 m) and 3 mm
+    sharp = geometric_dark(points, T_lidar_board, reflectance)
+    blurred = geometric_dark(points, T_lidar_board, reflectance, placement_cov=C)
+    beta = 0.01
+    slopes_sharp, slopes_blurred = [], []
+    for _ in range(200):
+        xi = rng.multivariate_normal(np.zeros(6), C)
+        truth = geometric_dark(points, T_exp(-xi) @ T_lidar_board, reflectance, position_sd_m=1e-9) > 0.5
+        y = beta * truth + rng.normal(0.0, 0.02, len(points))
+        slopes_sharp.append(np.polyfit(sharp, y, 1)[0])
+        slopes_blurred.append(np.polyfit(blurred, y, 1)[0])
+    # Each mean slope has a standard error of about 1.5% of beta here.
+    assert np.mean(slopes_sharp) < 0.93 * beta
+    assert abs(np.mean(slopes_blurred) - beta) < 0.05 * beta

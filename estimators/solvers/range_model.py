@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geometry.planes import cut_with_board, sqrt_excess_moment, sqrt_excess_moment_scan
+from geometry.rotations import T_exp
 
 from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
                                    range_accuracy_for)
@@ -103,6 +104,8 @@ class FrameLabels:
     source: str = "intensity"
     intensity_agreement: tuple = ()
     names: tuple = ()  # the frames' names, in order
+    # The extrinsic's covariance (6 x 6, tangent) the geometric colours were placed under (None: the floor only).
+    placement_cov: np.ndarray | None = None
 
     def select(self, frames: list[FrameMeasurement]) -> "FrameLabels | None":
         """These labels for ``frames`` (by name), or None when a frame has none."""
@@ -112,7 +115,7 @@ class FrameLabels:
         ks = [index[f.name] for f in frames]
         return FrameLabels(tuple(self.rings[k] for k in ks), tuple(self.dark[k] for k in ks), self.source,
                            tuple(self.intensity_agreement[k] for k in ks) if self.intensity_agreement else (),
-                           tuple(self.names[k] for k in ks))
+                           tuple(self.names[k] for k in ks), self.placement_cov)
 
     def agreement(self) -> float | None:
         """The intensity's agreement with geometry over all frames (None when it could not be checked)."""
@@ -221,10 +224,11 @@ class RangeModelFit:
 
 
 def frame_labels(frames: list[FrameMeasurement], board=None, T_camera_lidar: np.ndarray | None = None,
-                 boards: list | None = None) -> FrameLabels:
+                 boards: list | None = None, placement_cov: np.ndarray | None = None) -> FrameLabels:
     """Ring and black-square labels of every frame's board points. Given the board model and the extrinsic, the
     black squares are placed by geometry (:func:`geometric_dark`, on each frame's board pose: ``boards`` or
-    the camera's own) and the intensities only cross-check them; else they come from intensity."""
+    the camera's own; ``placement_cov`` the extrinsic's 6 x 6 covariance, whose spread blurs the placement) and
+    the intensities only cross-check them; else they come from intensity."""
     rings = tuple(frame_rings(frames))
     if board is None or T_camera_lidar is None:
         return FrameLabels(rings, tuple(dark_labels(f.lidar) for f in frames), names=tuple(f.name for f in frames))
@@ -240,13 +244,13 @@ def frame_labels(frames: list[FrameMeasurement], board=None, T_camera_lidar: np.
             continue
         T_cb = boards[i] if boards is not None else f.camera.T_camera_board
         flip = _inverted(board, reflectance) if f.camera.pattern_inverted else reflectance
-        share = geometric_dark(f.lidar.points, T_lidar_camera @ T_cb, flip)
+        share = geometric_dark(f.lidar.points, T_lidar_camera @ T_cb, flip, placement_cov=placement_cov)
         dark.append(share)
         by_intensity = dark_labels(f.lidar)
         clear = (share < 0.1) | (share > 0.9)
         agree.append(None if by_intensity is None or not clear.any() else
                      (int(np.sum(by_intensity[clear] == (share[clear] > 0.5))), int(clear.sum())))
-    return FrameLabels(rings, tuple(dark), "geometry", tuple(agree), tuple(f.name for f in frames))
+    return FrameLabels(rings, tuple(dark), "geometry", tuple(agree), tuple(f.name for f in frames), placement_cov)
 
 
 def _inverted(board, reflectance):
@@ -264,19 +268,44 @@ def _inverted(board, reflectance):
 
 
 def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
-                   position_sd_m: float = LABEL_POSITION_SD_M) -> np.ndarray:
+                   position_sd_m: float = LABEL_POSITION_SD_M, placement_cov: np.ndarray | None = None) -> np.ndarray:
     """Each return's black share: its beam cut with the board's plane (the camera's, so the range noise does not
     move it), the printed pattern's reflectance there (``reflectance(x, y)`` in board coordinates, below 0.5 on
-    black) averaged over a Gaussian of the position's uncertainty (``LABEL_POSITION_SD_M``) by 5 x 5
-    Gauss-Hermite quadrature. Returns off the board count as white."""
+    black) averaged over a Gaussian of the position's uncertainty by 5 x 5 Gauss-Hermite quadrature. Returns off
+    the board count as white.
+
+    The position's uncertainty is ``position_sd_m`` in both board axes, plus, given ``placement_cov`` (the
+    extrinsic's 6 x 6 covariance in the tangent convention), each cut's own 2 x 2 covariance under it (its cut
+    moved along each principal direction by one standard deviation each way). The share is then the chance of
+    black given what is known of the placement: regressed on it, the black-square term is not shrunk by the
+    placement's error (Berkson's error model), where shares placed sharper than they are known would shrink it."""
     P = np.asarray(points, dtype=float)
-    local = cut_with_board(np.linalg.inv(T_lidar_board), P / np.linalg.norm(P, axis=1, keepdims=True))[0]
+    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    T_board_lidar = np.linalg.inv(T_lidar_board)
+    local = cut_with_board(T_board_lidar, beams)[0]
+    cxx = np.full(len(P), position_sd_m ** 2)
+    cyy, cxy = cxx.copy(), np.zeros(len(P))
+    if placement_cov is not None and np.all(np.isfinite(placement_cov)):
+        ev, V = np.linalg.eigh(0.5 * (placement_cov + placement_cov.T))
+        for lam, v in zip(ev, V.T):
+            step = np.sqrt(max(lam, 0.0)) * v
+            # T_camera_lidar Exp(xi) moves T_lidar_board to Exp(-xi) T_lidar_board.
+            ahead = cut_with_board(T_board_lidar @ T_exp(step), beams)[0]
+            back = cut_with_board(T_board_lidar @ T_exp(-step), beams)[0]
+            d = 0.5 * (ahead - back)
+            cxx += d[:, 0] ** 2
+            cyy += d[:, 1] ** 2
+            cxy += d[:, 0] * d[:, 1]
+    # Each cut's Cholesky factor [[l11, 0], [l21, l22]].
+    l11 = np.sqrt(cxx)
+    l21 = cxy / l11
+    l22 = np.sqrt(np.maximum(cyy - l21 ** 2, 0.0))
     nodes, weights = np.polynomial.hermite_e.hermegauss(5)
     weights = weights / weights.sum()
     share = np.zeros(len(P))
     for zi, wi in zip(nodes, weights):
         for zj, wj in zip(nodes, weights):
-            r = reflectance(local[:, 0] + position_sd_m * zi, local[:, 1] + position_sd_m * zj)
+            r = reflectance(local[:, 0] + l11 * zi, local[:, 1] + l21 * zi + l22 * zj)
             share += wi * wj * (np.nan_to_num(r, nan=1.0) < 0.5)
     return share
 

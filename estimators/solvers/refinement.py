@@ -819,14 +819,15 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         labels = frame_labels(frames, board, T, boards)
         prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
         if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
-            # The colours were placed under the extrinsic the model was chosen from; placed again under the
-            # estimate, a share that moved much is chosen with again (once: the extrinsic moves by millimetres).
-            again = frame_labels(frames, board, T, boards)
-            if max((float(np.max(np.abs(x - y))) for x, y in zip(again.dark, labels.dark)
-                    if x is not None and y is not None and len(x)), default=0.0) > 0.25:
-                labels = again
-                prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options,
-                                                                 labels)
+            # The colours were placed under the extrinsic the model was chosen from, as if it were exact. Placed
+            # again under the estimate and blurred by its uncertainty (shares placed sharper than they are known
+            # shrink the black-square term), the model is chosen again (once: the extrinsic moves by millimetres).
+            try:
+                placement_cov = gtsam.Marginals(*prob.solved).marginalCovariance(EXTRINSIC) if prob.solved else None
+            except RuntimeError:  # a singular graph is refused below, with its reason
+                placement_cov = None
+            labels = frame_labels(frames, board, T, boards, placement_cov)
+            prob, T, boards, model_fit = _choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
         agreement = labels.agreement()
         if agreement is not None and agreement < MIN_INTENSITY_AGREEMENT:
             warnings.append(f"range model: the board returns' intensities agree with the black squares the camera's "
@@ -1308,7 +1309,7 @@ def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards
         shifts = []
         for sign in (1.0, -1.0):
             T_moved = T @ T_exp(sign * np.sqrt(max(lam, 0.0)) * v)
-            labels = frame_labels(prob.frames, prob.board, T_moved, boards)
+            labels = frame_labels(prob.frames, prob.board, T_moved, boards, prob.labels.placement_cov)
             moved = prob.variant(labels=replace(prob.labels, dark=labels.dark))
             # One Gauss-Newton step from the estimate: the shift the new colours call for, to first order.
             delta = moved.graph(active, floor).linearize(values).optimize()
