@@ -20,7 +20,7 @@ from geometry.planes import plane_difference
 from geometry.rotations import T_inverse, quat_xyzw_from_R, transform_points
 
 from . import __version__
-from .camera.board_pose import estimate_board_pose
+from .camera.board_pose import estimate_board_pose, reobserve
 from .camera.charuco import MIN_CHARUCO_CORNERS
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
@@ -40,6 +40,7 @@ from .measurements import (BoardDecision, FrameMeasurement, count_reasons, obser
                            observe_lidar_line)
 from .solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
+from .solvers.intrinsics_refinement import IntrinsicsFit, refine_intrinsics
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement, RefinementOptions
 from .solvers.refinement import refine as refine_graph
@@ -167,6 +168,9 @@ class CalibrationResult:
         2D: the refined minima that hold posterior mass, the chosen one first.
     measurements_source : str
         ``measured``, ``cache`` or a measurements file.
+    intrinsics_refinement : IntrinsicsFit or None
+        With ``RefinementOptions.refine_intrinsics``: the intrinsics given and refined, and the boards'
+        overdispersion under each.
     """
 
     T_camera_lidar: np.ndarray
@@ -188,6 +192,8 @@ class CalibrationResult:
     modes: tuple = ()
     # Where the measurements came from: "measured" (images and scans read now), "cache" or a measurements file.
     measurements_source: str = "measured"
+    # The intrinsics refined with the extrinsic (``--refine-intrinsics``; ``camera`` is then the refined model).
+    intrinsics_refinement: IntrinsicsFit | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -325,6 +331,8 @@ class CalibrationResult:
             },
             **self._minimal_dict(),
             "intrinsics": self.camera.as_dict(),
+            **({"intrinsics_refinement": self.intrinsics_refinement.to_dict()}
+               if self.intrinsics_refinement is not None else {}),
             "warnings": list(self.warnings),
             "measurements_source": self.measurements_source,
             "timings_s": self.timings_s,
@@ -1181,6 +1189,9 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     if samples is not None:
         posterior = None if samples <= 0 else replace(posterior or PosteriorOptions(), min_ess=int(samples))
     _check_methods(init, refine)
+    if options.refine_intrinsics and refine == "factor-graph":
+        return _solve_with_intrinsics(frames, board, camera, init, options, name, warnings, timings, posterior, rng,
+                                      use_extent, on_refined)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
@@ -1225,6 +1236,41 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
                                sol.weakest_direction_camera, name, tuple(warnings + tail),
                                {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None)
     return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings, on_refined)
+
+
+# Joint solves of the intrinsics at most (each followed by a refinement whose plane error weights the next).
+INTRINSICS_ROUNDS = 3
+
+
+def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, options: RefinementOptions, name: str,
+                           warnings, timings, posterior, rng, use_extent, on_refined) -> CalibrationResult:
+    """:func:`solve` with the intrinsics refined (``solvers.intrinsics_refinement``): solved under the given
+    intrinsics, then with them as variables, then, the boards observed again under the refined intrinsics, solved
+    (and sampled) under those."""
+    plain = replace(options, refine_intrinsics=False)
+    t0 = time.perf_counter()
+    first = solve(frames, board, camera, init, "factor-graph", plain, name, list(warnings or []), None, None, rng,
+                  use_extent)
+    timings = {} if timings is None else timings
+    ref, floor = first.refinement, options.plane_floor_m or 0.0
+    for _ in range(INTRINSICS_ROUNDS):
+        fit = refine_intrinsics(list(first.frames), board, camera, ref, plain, floor)
+        again = [replace(f, camera=reobserve(f.camera, board, fit.camera) if f.camera is not None else None,
+                         camera_alternatives=tuple(reobserve(a, board, fit.camera) for a in f.camera_alternatives))
+                 for f in frames]
+        ref = solve(again, board, fit.camera, init, "factor-graph", plain, name, [], None, None, rng,
+                    use_extent).refinement
+        if abs(ref.plane_floor_m - floor) <= max(0.1 * floor, 1e-4):  # the plane error settled (0.1 mm)
+            break
+        floor = ref.plane_floor_m
+    timings["intrinsics_refinement"] = time.perf_counter() - t0
+    result = solve(again, board, fit.camera, init, "factor-graph", plain, name, warnings, timings, posterior, rng,
+                   use_extent, on_refined=on_refined)
+    ref = result.refinement
+    fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
+                  variance_factor_refined=float(ref.variance_factor),
+                  corner_residual_refined_px=float(ref.corner_residual_px))
+    return replace(result, intrinsics_refinement=fit)
 
 
 def _with_posterior(result: CalibrationResult, used, board, camera: CameraModel, rng, options: PosteriorOptions | None,

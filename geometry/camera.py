@@ -26,8 +26,10 @@ class CameraModel:
     height: int
     model: str = PINHOLE
     source: str = field(default="given")
-    # Standard deviations of [fx, fy, cx, cy, dist...] when the intrinsics were estimated (else None).
+    # Standard deviations of [fx, fy, cx, cy, dist...] when the intrinsics were estimated or stated (else None).
     param_std: np.ndarray | None = None
+    # Their full covariance when known (refined intrinsics are strongly correlated; None: independent).
+    param_covariance: np.ndarray | None = None
 
     def __post_init__(self):
         K = np.asarray(self.K, dtype=float)
@@ -68,16 +70,21 @@ class CameraModel:
 
     def project_jacobian(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels of (N, 3) camera-frame points in front of the camera, and ``d uv / d point`` (N, 2, 3)."""
+        return self.project_jacobians(points_c)[:2]
+
+    def project_jacobians(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixels of (N, 3) camera-frame points in front of the camera, ``d uv / d point`` (N, 2, 3) and
+        ``d uv / d params`` (N, 2, P) by :attr:`params` ``[fx, fy, cx, cy, dist...]``."""
         P = np.asarray(points_c, dtype=float).reshape(-1, 1, 3)
         zero = np.zeros(3)
         if self.model == FISHEYE:
             img, jac = cv2.fisheye.projectPoints(P, zero, zero, self.K, self.dist)
-            dpoint = jac[:, 11:14]  # columns: f(2), c(2), k(4), rvec(3), tvec(3), alpha(1)
+            dpoint, dparams = jac[:, 11:14], jac[:, 0:8]  # columns: f(2), c(2), k(4), rvec(3), tvec(3), alpha
         else:
             img, jac = cv2.projectPoints(P, zero, zero, self.K, self.dist)
-            dpoint = jac[:, 3:6]  # columns: rvec(3), tvec(3), f(2), c(2), dist
+            dpoint, dparams = jac[:, 3:6], jac[:, 6:10 + self.dist.size]  # rvec(3), tvec(3), f(2), c(2), dist
         # With zero rotation and translation, the derivative by tvec is the derivative by the point.
-        return img.reshape(-1, 2), dpoint.reshape(-1, 2, 3)
+        return img.reshape(-1, 2), dpoint.reshape(-1, 2, 3), dparams.reshape(-1, 2, 4 + self.dist.size)
 
     def normalized_from_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Undistorted normalized coordinates ``(x/z, y/z)`` of (N, 2) pixels (the inverse of :meth:`project`)."""
@@ -124,7 +131,8 @@ class CameraModel:
         p = np.asarray(params, dtype=float)
         K = self.K.copy()
         K[0, 0], K[1, 1], K[0, 2], K[1, 2] = p[:4]
-        return CameraModel(K, p[4:], self.width, self.height, self.model, self.source, self.param_std)
+        return CameraModel(K, p[4:], self.width, self.height, self.model, self.source, self.param_std,
+                           self.param_covariance)
 
     def as_dict(self) -> dict:
         d = {"model": self.model, "width": self.width, "height": self.height,

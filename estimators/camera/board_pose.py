@@ -132,6 +132,16 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     return replace(_observation(poses[0][0], X, camera, corners, method, ids, 0.0), pattern_inverted=inverted)
 
 
+def reobserve(obs: CameraBoardObservation, board: BoardModel, camera: CameraModel, iterations: int = 10
+              ) -> CameraBoardObservation:
+    """The same detected corners observed under another camera model (refined intrinsics): the pose solved again
+    from the old one, its plane and covariances anew; detector, corner ids and pattern colours kept."""
+    X = obs.corners_board(board)
+    T = _gauss_newton(obs.T_camera_board, X, camera, obs.corners_px, iterations)
+    new = _observation(T, X, camera, obs.corners_px, obs.detector, obs.corner_ids, obs.orientation_excess_chi2)
+    return replace(new, pattern_inverted=obs.pattern_inverted)
+
+
 def pattern_inverted(squares: np.ndarray | None, board: BoardModel) -> bool | None:
     """Whether the image shows white where the board model has black (square (0, 0) of the pattern white):
     the mean grey level of the squares between the inner corners that the model makes black against the others'

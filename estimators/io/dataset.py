@@ -216,8 +216,16 @@ def parse_camera(c: object, ypath: Path) -> CameraModel:
         raise DatasetError(f"camera model must be pinhole or fisheye, got {model!r}", path=ypath,
                            hint="use pinhole (radial-tangential) or fisheye (Kannala-Brandt)")
     try:
-        return CameraModel(K=np.asarray(c["K"], dtype=float), dist=np.asarray(c.get("dist") or [], dtype=float),
-                           width=int(c["width"]), height=int(c["height"]), model=model, source="dataset.yaml")
+        camera = CameraModel(K=np.asarray(c["K"], dtype=float), dist=np.asarray(c.get("dist") or [], dtype=float),
+                             width=int(c["width"]), height=int(c["height"]), model=model, source="dataset.yaml")
+        std = c.get("param_std")
+        if std is not None:
+            std = np.asarray(std, dtype=float).ravel()
+            if std.size != camera.params.size or not np.all(np.isfinite(std)) or np.any(std <= 0):
+                raise ValueError(f"param_std must hold {camera.params.size} positive numbers (fx fy cx cy and "
+                                 f"{camera.dist.size} distortion coefficients), got {std.tolist()}")
+            camera = CameraModel(camera.K, camera.dist, camera.width, camera.height, model, camera.source, std)
+        return camera
     except (ValueError, TypeError, OverflowError) as exc:
         raise DatasetError(f"invalid camera ({exc})", path=ypath, hint="fix the camera entry") from exc
 

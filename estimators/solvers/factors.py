@@ -5,7 +5,7 @@ Jacobians are taken in GTSAM's right (body) tangent, ``T Exp(xi)`` with ``xi = [
 (MATH.md sections 2, 3 and 6).
 
 - Corner factor (one per frame): projected minus detected board corners through the dataset's camera
-  model, ``2M`` residuals in pixels.
+  model, ``2M`` residuals in pixels; with the intrinsics as a second (vector) variable when they are refined.
 - Plane factor (one per frame): ``W pi`` with ``pi = [R^T n; n . t - d]`` the camera's board plane
   (``n = R_b e3``, ``d = n . t_b``) mapped into the LiDAR frame and ``W`` the square root of the board
   points' excess moment (:func:`geometry.planes.sqrt_excess_moment`), so that ``|W pi|^2`` plus a
@@ -29,12 +29,21 @@ def corner_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, corn
                      camera: CameraModel, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Projected minus detected corners (2M,) in pixels, and their Jacobian (2M, 6) by the board pose
     (None when ``jacobian`` is False)."""
+    r, H, _ = corner_residuals_intrinsics(T_camera_board, corners_board, corners_px, camera, jacobian)
+    return r, H
+
+
+def corner_residuals_intrinsics(T_camera_board: np.ndarray, corners_board: np.ndarray, corners_px: np.ndarray,
+                                camera: CameraModel, jacobian: bool = True
+                                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Projected minus detected corners (2M,) in pixels, and their Jacobians by the board pose (2M, 6) and by
+    the camera's :attr:`~geometry.camera.CameraModel.params` (2M, P) (None when ``jacobian`` is False)."""
     R, t = T_camera_board[:3, :3], T_camera_board[:3, 3]
     X = np.asarray(corners_board, dtype=float)
-    uv, duv_dp = camera.project_jacobian(X @ R.T + t)
+    uv, duv_dp, duv_dk = camera.project_jacobians(X @ R.T + t)
     r = (uv - corners_px).ravel()
     if not jacobian:
-        return r, None
+        return r, None, None
     # d(point)/d xi for R Exp(w) X + t + R v is [-R [X]x, R]; with A = d uv/d point R, each row a of
     # A [X]x is (a x X)^T, so the rotation block is X x a row by row (written out: np.cross is slow).
     A = duv_dp @ R
@@ -44,7 +53,7 @@ def corner_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, corn
     H[:, :, 1] = z * A[:, :, 0] - x * A[:, :, 2]
     H[:, :, 2] = x * A[:, :, 1] - y * A[:, :, 0]
     H[:, :, 3:] = A
-    return r, H.reshape(-1, 6)
+    return r, H.reshape(-1, 6), duv_dk.reshape(len(r), -1)
 
 
 def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
@@ -106,6 +115,15 @@ def _corner_error(corners_board, corners_px, camera, this, values, H):
     return r
 
 
+def _corner_intrinsics_error(corners_board, corners_px, camera, this, values, H):
+    keys = this.keys()
+    cam = camera.with_params(values.atVector(keys[1]))
+    r, J, J_k = corner_residuals_intrinsics(_pose(values, keys[0]), corners_board, corners_px, cam, H is not None)
+    if H is not None:
+        H[0], H[1] = J, J_k
+    return r
+
+
 def _plane_error(W, scan_line, this, values, H):
     keys = this.keys()
     pi, H_x, H_b = lidar_plane(_pose(values, keys[0]), _pose(values, keys[1]))
@@ -142,6 +160,16 @@ def corner_factor(key_board: int, corners_board: np.ndarray, corners_px: np.ndar
     corners_px = np.asarray(corners_px, dtype=float).reshape(-1, 2)
     return gtsam.CustomFactor(noise, [key_board], partial(_corner_error, np.asarray(corners_board, dtype=float),
                                                           corners_px, camera))
+
+
+def corner_intrinsics_factor(key_board: int, key_intrinsics: int, corners_board: np.ndarray, corners_px: np.ndarray,
+                             camera: CameraModel, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """The corner factor with the camera's intrinsics (``[fx, fy, cx, cy, dist...]``, a vector variable) free:
+    ``camera`` gives the model, the image size and the skew."""
+    corners_px = np.asarray(corners_px, dtype=float).reshape(-1, 2)
+    return gtsam.CustomFactor(noise, [key_board, key_intrinsics],
+                              partial(_corner_intrinsics_error, np.asarray(corners_board, dtype=float), corners_px,
+                                      camera))
 
 
 def plane_factor(key_extrinsic: int, key_board: int, W: np.ndarray, noise: gtsam.noiseModel.Base,

@@ -117,6 +117,9 @@ class RefinementOptions:
         a 3D LiDAR's ring ends only when True.
     max_sensor_separation_m : float or None
         2D: a solution with the sensors farther apart than this (m) is not a solution; None: no bound.
+    refine_intrinsics : bool
+        Refine the camera's intrinsics with the extrinsic (``solvers.intrinsics_refinement``; :func:`calibrate` and
+        :func:`solve` do it, :func:`refine` does not).
     """
 
     robust: str = "huber"
@@ -148,6 +151,7 @@ class RefinementOptions:
     # 2D: a minimal solution or refined minimum whose sensors are farther apart than this (m) is not a solution
     # (``solution_selection.physical``); None: no bound. ``calibrate`` uses its segmentation parameters' bound.
     max_sensor_separation_m: float | None = 1.0
+    refine_intrinsics: bool = False
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -963,8 +967,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
         cov = cov + cov_intrinsics
-        warnings.append("intrinsics were calibrated from the same images; their uncertainty is propagated "
-                        "into the covariance (first order, parameters taken as independent)")
+        how = ("parameters taken as independent" if camera.param_covariance is None else
+               "with the parameters' correlations")
+        what = ("the intrinsics' stated uncertainty (camera.param_std)" if camera.source == "dataset.yaml"
+                else "the intrinsics were estimated from the same images; their uncertainty")
+        warnings.append(f"{what} is propagated into the covariance (first order, {how})")
 
     fits = []
     for i, f in enumerate(frames):
@@ -1328,18 +1335,23 @@ def _consider_placement(prob: _Problem, active: list[int], T: np.ndarray, boards
 
 def _intrinsics_covariance(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float,
                            options: RefinementOptions) -> np.ndarray:
-    """First-order covariance of the extrinsic due to uncertain intrinsics: re-solve with each parameter
-    moved by one standard deviation (OpenCV's, scaled like the corner noise by the correlation factor)
-    and sum the outer products of the shifts."""
+    """First-order covariance of the extrinsic due to uncertain intrinsics: re-solve with the parameters moved
+    by one standard deviation along each principal direction of their covariance (each parameter alone when only
+    standard deviations are known) and sum the outer products of the shifts. Intrinsics estimated from the images
+    (OpenCV's, or refined here) are in OpenCV's convention, scaled like the corner noise by the correlation
+    factor; stated ones (dataset.yaml) are taken as they are."""
     cam = prob.camera
-    std = cam.param_std * (options.corner_error_correlation if options.corner_noise_px is None else 1.0)
+    scale = options.corner_error_correlation if options.corner_noise_px is None and cam.source != "dataset.yaml" \
+        else 1.0
+    if cam.param_covariance is not None:
+        ev, V = np.linalg.eigh(0.5 * (cam.param_covariance + cam.param_covariance.T))
+        steps = [scale * np.sqrt(max(lam, 0.0)) * v for lam, v in zip(ev, V.T)]
+    else:
+        steps = [scale * s * np.eye(len(cam.param_std))[k] for k, s in enumerate(cam.param_std)
+                 if np.isfinite(s) and s > 0]
     out = np.zeros((6, 6))
-    for k, s in enumerate(std):
-        if not (np.isfinite(s) and s > 0):
-            continue
-        p = cam.params.copy()
-        p[k] += s
-        moved = prob.variant(camera=cam.with_params(p))
+    for step in steps:
+        moved = prob.variant(camera=cam.with_params(cam.params + step))
         _, result, _ = moved.solve(active, T, list(boards), floor)
         xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())
         out += np.outer(xi, xi)
