@@ -1270,7 +1270,16 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
     fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
                   variance_factor_refined=float(ref.variance_factor),
                   corner_residual_refined_px=float(ref.corner_residual_px))
-    return replace(result, intrinsics_refinement=fit)
+    warned = result.warnings
+    if not fit.lowers_overdispersion:
+        # The planes' other errors pull the intrinsics: said first, as the refined camera is then not to be used.
+        moved = float(np.max(np.abs(fit.params - fit.given_params) / fit.std))
+        warned = (f"refining the intrinsics did not lower the boards' plane disagreement (variance factor "
+                  f"{fit.variance_factor_given:.2f} under the given intrinsics, {fit.variance_factor_refined:.2f} "
+                  f"refined) while moving them by up to {moved:.1f} standard deviations: the camera's calibration "
+                  "is not what the boards disagree about; keep the given intrinsics (calibrate without "
+                  "--refine-intrinsics)",) + tuple(warned)
+    return replace(result, intrinsics_refinement=fit, warnings=warned)
 
 
 def _with_posterior(result: CalibrationResult, used, board, camera: CameraModel, rng, options: PosteriorOptions | None,
