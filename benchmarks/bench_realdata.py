@@ -63,13 +63,20 @@ def _tilts(res, frames) -> None:
     print(f"    tilt / sd: median {np.median(ratios):.1f}, largest {np.max(ratios):.1f}")
 
 
-def main() -> None:
-    if not (DATA / "dataset.yaml").is_file():
-        print(f"recorded data: {DATA} is absent; skipped")
-        return
-    ds = load_dataset(DATA)
+def _recorded(path: Path):
+    """A recorded set measured (``ds, camera, frames``) and its reference extrinsic, or None (said) when absent."""
+    if not (path / "dataset.yaml").is_file():
+        print(f"recorded data: {path} is absent; skipped")
+        return None
+    ds = load_dataset(path)
     camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-    ref = np.array(json.loads((DATA / "reference.json").read_text())["T_camera_lidar"])
+    return ds, camera, frames, np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
+
+
+def main() -> None:
+    if (recorded := _recorded(DATA)) is None:
+        return
+    ds, camera, frames, ref = recorded
     print(f"recorded data: {DATA.name}, {sum(f.usable for f in frames)}/{len(frames)} frames usable")
     for label, method, model in (("closed form", "none", "none"), ("graph, no range model", "factor-graph", "none"),
                                  ("graph, range model auto", "factor-graph", "auto")):
@@ -208,12 +215,9 @@ def intrinsics() -> None:
     intrinsics, how far each parameter moved in its standard deviations, and the estimate against the reference
     (the reference's squared Mahalanobis distance under each estimate's covariance)."""
     for path in (DATA, OFFICE):
-        if not (path / "dataset.yaml").is_file():
-            print(f"recorded data: {path} is absent; skipped")
+        if (recorded := _recorded(path)) is None:
             continue
-        ds = load_dataset(path)
-        camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-        ref = np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
+        ds, camera, frames, ref = recorded
         print(f"recorded data: {path.name}, the camera's intrinsics refined with the extrinsic (no prior)")
         for label, refine in (("given intrinsics", False), ("refined intrinsics", True)):
             res = solve(frames, ds.board, camera, options=RefinementOptions(refine_intrinsics=refine))
