@@ -1268,6 +1268,7 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
                    use_extent, on_refined=on_refined)
     ref = result.refinement
     fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
+                  corner_residual_given_px=float(first.refinement.corner_residual_px),
                   variance_factor_refined=float(ref.variance_factor),
                   corner_residual_refined_px=float(ref.corner_residual_px))
     warned = result.warnings

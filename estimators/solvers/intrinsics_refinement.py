@@ -48,9 +48,9 @@ class IntrinsicsFit:
         The prior's standard deviations (None: no prior, estimated from the frames).
     variance_factor_given, variance_factor_refined : float
         The boards' plane-consistency variance factor (1 when the planes agree to their noise) under the given
-        and the refined intrinsics; ``refined`` is NaN until the refinement has run again.
+        and the refined intrinsics (NaN until both refinements have run: ``calibration.solve`` fills them).
     corner_residual_given_px, corner_residual_refined_px : float
-        The pooled corner residual under each.
+        The pooled corner residual under each (the same).
     """
 
     camera: CameraModel
@@ -58,7 +58,7 @@ class IntrinsicsFit:
     params: np.ndarray
     std: np.ndarray
     prior_sd: np.ndarray | None
-    variance_factor_given: float
+    variance_factor_given: float = float("nan")
     variance_factor_refined: float = float("nan")
     corner_residual_given_px: float = float("nan")
     corner_residual_refined_px: float = float("nan")
@@ -153,5 +153,4 @@ def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel
               + (", with its param_std as prior)" if prior_sd is not None else ")"))
     camera_refined = replace(camera_refined, source=source, param_std=std / scale,
                              param_covariance=cov / scale**2)
-    return IntrinsicsFit(camera_refined, given, refined, std, prior_sd, float(ref.variance_factor),
-                         corner_residual_given_px=float(ref.corner_residual_px))
+    return IntrinsicsFit(camera_refined, given, refined, std, prior_sd)
