@@ -75,6 +75,8 @@ def test_wrong_given_intrinsics_are_refined_back_and_the_boards_agree_again(sim_
     assert refined.camera.source.startswith("refined") and refined.camera.param_covariance is not None
     out = refined.to_dict()["intrinsics_refinement"]
     assert [p["name"] for p in out["parameters"][:4]] == ["fx", "fy", "cx", "cy"] and out["lowers_overdispersion"]
+    page = refined.report(tmp_path / "report").read_text()
+    assert "Intrinsics refined with the extrinsic" in page and "refining lowers it" in page
 
 
 def test_a_stated_param_std_is_the_intrinsics_prior(sim_hdl64e, tmp_path):

@@ -72,6 +72,22 @@ def _edges_section(edges: dict) -> str:
             + _table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]))
 
 
+def _intrinsics_section(fit) -> str:
+    """The intrinsics refined with the extrinsic (``--refine-intrinsics``): whether they lower the boards'
+    overdispersion, and each parameter given and refined."""
+    verdict = ("lowers it: the camera's calibration explains part of the boards' disagreement, and the refined "
+               "intrinsics belong with this extrinsic" if fit.lowers_overdispersion else
+               "does not lower it: the camera's calibration is not what the boards disagree about; keep the given "
+               "intrinsics")
+    text = (f"<p>Prior: {'the given camera.param_std' if fit.prior_sd is not None else 'none'}. The boards' plane "
+            f"consistency (chi-square per dof) is {fit.variance_factor_given:.2f} under the given intrinsics and "
+            f"{fit.variance_factor_refined:.2f} under the refined ones; refining {verdict}.</p>")
+    rows = [[n, f"{g:.6g}", f"{v:.6g}", f"{sd:.3g}", f"{(v - g) / sd:+.1f}"]
+            for n, g, v, sd in zip(fit.names, fit.given_params, fit.params, fit.std)]
+    return ("<h2>Intrinsics refined with the extrinsic</h2>" + text
+            + _table(rows, ["parameter", "given", "refined", "sd", "moved [sd]"]))
+
+
 def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The camera's board outline and the LiDAR's (pixels), and the pixel offset ``(du, dv)`` of the LiDAR's.
 
@@ -382,6 +398,8 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
     edges = result.refinement.edges if result.refinement is not None else None
     if edges:
         parts.append(_edges_section(edges))
+    if result.intrinsics_refinement is not None:
+        parts.append(_intrinsics_section(result.intrinsics_refinement))
     decided = [f for f in result.frames if f.decision is not None]
     if decided:
         rows = [[f.name, f.decision.method, len(f.decision.candidates),
