@@ -1277,9 +1277,11 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
         moved = float(np.max(np.abs(fit.params - fit.given_params) / fit.std))
         warned = (f"refining the intrinsics did not lower the boards' plane disagreement (variance factor "
                   f"{fit.variance_factor_given:.2f} under the given intrinsics, {fit.variance_factor_refined:.2f} "
-                  f"refined) while moving them by up to {moved:.1f} standard deviations: the camera's calibration "
-                  "is not what the boards disagree about; keep the given intrinsics (calibrate without "
-                  "--refine-intrinsics)",) + tuple(warned)
+                  f"refined) while moving them by up to {moved:.1f} standard deviations (corner residual "
+                  f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px): the camera's "
+                  "calibration is not what the boards disagree about; keep the given intrinsics (calibrate without "
+                  "--refine-intrinsics) unless a calibration made for the camera confirms the refined ones",
+                  ) + tuple(warned)
     return replace(result, intrinsics_refinement=fit, warnings=warned)
 
 
