@@ -25,10 +25,36 @@ from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
 from estimators.solvers.solution_selection import select_and_refine
-from geometry.rotations import T_inverse, T_log
+from geometry.rotations import T_exp, T_inverse, T_log
 
 LIMIT = 22.458  # chi-square, 6 dof, 99.9%
 MAX_BOUND = (5.0, 500.0)  # deg, mm: a bound beyond either is degenerate
+
+
+def _d2(ref, T_true) -> float:
+    """The truth's squared Mahalanobis distance under a mode's Laplace covariance, in its own tangent."""
+    x = T_log(T_inverse(ref.T_camera_lidar) @ T_true)
+    return float(x @ np.linalg.solve(ref.covariance, x))
+
+
+def _in_mixture(modes, T_true, rng, level=0.999, draws=20000) -> bool:
+    """Whether the truth lies in the 99.9% highest-density region of the modes' mixture (each mode a Gaussian
+    of its Laplace covariance in its own tangent, weighted by its mass): its density at least the level that
+    ``draws`` samples of the mixture exceed in 99.9% of cases. For one mode, a squared Mahalanobis distance
+    below the chi-square point; for several, a truth in a minor mode is inside when that mode holds mass."""
+    Ts = [m.refinement.T_camera_lidar for m in modes]
+    Ls = [np.linalg.cholesky(m.refinement.covariance) for m in modes]
+    inv = [np.linalg.inv(m.refinement.covariance) for m in modes]
+    norm = [m.mass / np.sqrt(np.linalg.det(2 * np.pi * m.refinement.covariance)) for m in modes]
+
+    def density(T):
+        return sum(c * np.exp(-0.5 * (x := T_log(T_inverse(Tk) @ T)) @ P @ x) for Tk, P, c in zip(Ts, inv, norm))
+
+    masses = np.array([m.mass for m in modes])
+    which = rng.choice(len(modes), draws, p=masses / masses.sum())
+    z = rng.standard_normal((draws, 6))
+    sample = [Ts[k] @ T_exp(Ls[k] @ zi) for k, zi in zip(which, z)]
+    return bool(density(T_true) >= np.quantile([density(T) for T in sample], 1 - level))
 
 
 def one(args):
@@ -66,6 +92,8 @@ def one(args):
         return {**out, "refused": True, "why": exc.problem[:140]}
     sd = np.sqrt(np.diag(cov))
     return {**out, "refused": False, "masses": [m.mass for m in modes], "covered": covered,
+            "d2_modes": [float(_d2(m.refinement, rig.T_camera_lidar)) for m in modes],
+            "in_mixture": _in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])),
             "d2_laplace": float(xi @ np.linalg.solve(ref.covariance, xi)),
             "d2": float(xi @ np.linalg.solve(cov, xi)),
             "err": (float(np.degrees(np.linalg.norm(xi[:3]))), float(1000 * np.linalg.norm(xi[3:]))),
@@ -77,12 +105,14 @@ def main() -> None:
     ap.add_argument("config", choices=RIGS_2D)
     ap.add_argument("trials", type=int)
     ap.add_argument("seed", type=int, nargs="?", default=77)
+    ap.add_argument("--seeds", type=int, nargs="+", metavar="S",
+                    help="run these trial seeds (as listed by an earlier run) instead of TRIALS drawn from SEED")
     ap.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"])
     ap.add_argument("--no-posterior", dest="posterior", action="store_false",
                     help="the Laplace covariance alone (quick; not what the pipeline reports)")
     a = ap.parse_args()
     config, pattern = a.config, a.pattern
-    seeds = np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
+    seeds = a.seeds or np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
         rows = list(pool.map(one, [(int(s), config, pattern, a.posterior) for s in seeds], chunksize=4))
     skipped = sum(r is None for r in rows)
@@ -111,7 +141,9 @@ def main() -> None:
     for r in wrong_all:
         print(f"confidently wrong: seed {r['seed']} d2 {r['d2']:.1f}, error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, "
               f"sd up to {r['sd'][0]:.2f} deg {r['sd'][1]:.0f} mm, bound {r['bound'][0]:.2f} deg "
-              f"{r['bound'][1]:.0f} mm, masses {np.round(r['masses'], 3).tolist()}")
+              f"{r['bound'][1]:.0f} mm, masses {np.round(r['masses'], 3).tolist()}; d2 under each mode's Laplace "
+              f"covariance {np.round(r['d2_modes'], 1).tolist()}: the truth "
+              + ("inside" if r["in_mixture"] else "outside") + " the modes' 99.9% region")
     for r in rows:
         if r["refused"] and not r["degenerate"]:
             print(f"refused with a finite bound: seed {r['seed']}, bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm: "
