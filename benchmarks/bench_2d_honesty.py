@@ -25,7 +25,7 @@ from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
 from estimators.solvers.solution_selection import select_and_refine
-from geometry.rotations import T_exp, T_inverse, T_log
+from geometry.rotations import T_inverse, T_log
 
 LIMIT = 22.458  # chi-square, 6 dof, 99.9%
 MAX_BOUND = (5.0, 500.0)  # deg, mm: a bound beyond either is degenerate
@@ -35,26 +35,6 @@ def _d2(ref, T_true) -> float:
     """The truth's squared Mahalanobis distance under a mode's Laplace covariance, in its own tangent."""
     x = T_log(T_inverse(ref.T_camera_lidar) @ T_true)
     return float(x @ np.linalg.solve(ref.covariance, x))
-
-
-def _in_mixture(modes, T_true, rng, level=0.999, draws=20000) -> bool:
-    """Whether the truth lies in the 99.9% highest-density region of the modes' mixture (each mode a Gaussian
-    of its Laplace covariance in its own tangent, weighted by its mass): its density at least the level that
-    ``draws`` samples of the mixture exceed in 99.9% of cases. For one mode, a squared Mahalanobis distance
-    below the chi-square point; for several, a truth in a minor mode is inside when that mode holds mass."""
-    Ts = [m.refinement.T_camera_lidar for m in modes]
-    Ls = [np.linalg.cholesky(m.refinement.covariance) for m in modes]
-    inv = [np.linalg.inv(m.refinement.covariance) for m in modes]
-    norm = [m.mass / np.sqrt(np.linalg.det(2 * np.pi * m.refinement.covariance)) for m in modes]
-
-    def density(T):
-        return sum(c * np.exp(-0.5 * (x := T_log(T_inverse(Tk) @ T)) @ P @ x) for Tk, P, c in zip(Ts, inv, norm))
-
-    masses = np.array([m.mass for m in modes])
-    which = rng.choice(len(modes), draws, p=masses / masses.sum())
-    z = rng.standard_normal((draws, 6))
-    sample = [Ts[k] @ T_exp(Ls[k] @ zi) for k, zi in zip(which, z)]
-    return bool(density(T_true) >= np.quantile([density(T) for T in sample], 1 - level))
 
 
 def one(args):
@@ -93,7 +73,7 @@ def one(args):
     sd = np.sqrt(np.diag(cov))
     return {**out, "refused": False, "masses": [m.mass for m in modes], "covered": covered,
             "d2_modes": [float(_d2(m.refinement, rig.T_camera_lidar)) for m in modes],
-            "in_mixture": _in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])),
+            "in_mixture": B.in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])),
             "d2_laplace": float(xi @ np.linalg.solve(ref.covariance, xi)),
             "d2": float(xi @ np.linalg.solve(cov, xi)),
             "err": (float(np.degrees(np.linalg.norm(xi[:3]))), float(1000 * np.linalg.norm(xi[3:]))),
