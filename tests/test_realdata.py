@@ -118,7 +118,6 @@ def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, v
     assert "Which LiDAR points" in report.read_text()
 
 
-@pytest.mark.skipif(not (RPG / "dataset.yaml").is_file(), reason="shared/realdata/acfr_rpg_2d is absent")
 def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards_overdispersion(vlp16, ouster):
     """Refined without a prior: on the Ouster set they lower the boards' plane disagreement and are kept; on the
     VLP-16 set they do not (the planes' other errors pull them), and the result's first warning says to keep the
@@ -135,6 +134,7 @@ def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards
     assert result.warnings[0].startswith("refining the intrinsics did not lower")
 
 
+@pytest.mark.skipif(not (RPG / "dataset.yaml").is_file(), reason="shared/realdata/acfr_rpg_2d is absent")
 def test_recorded_2d_set_is_explained_as_degenerate_without_a_hint():
     """All boards upright: with the static scan background (no hint) every board is found, and the answer is
     the degenerate layout's explanation, never a 6-DoF estimate or a crash."""
