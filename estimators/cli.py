@@ -355,14 +355,20 @@ def _print_intrinsics(fit) -> None:
 
 
 def _print_edges(edges) -> None:
-    if not edges:
+    import numpy as np
+
+    if not edges or "mean_shift_camera_m" not in edges:
         return
     m = [1000 * v for v in edges["mean_shift_camera_m"]]
-    print(f"board edges: {edges['ends']} ring ends; outlines' mean shift (camera axes) "
-          f"{m[0]:+.1f} {m[1]:+.1f} {m[2]:+.1f} mm (p = {edges['mean_shift_p_value']:.2g}); growth "
-          f"{1000 * edges['growth_m'][0]:+.1f} / {1000 * edges['growth_m'][1]:+.1f} mm per side, outline offset "
-          f"{1000 * edges['outline_offset_m'][0]:+.1f} / {1000 * edges['outline_offset_m'][1]:+.1f} mm; in-plane board "
-          f"scatter {1000 * edges['board_scatter_in_plane_m']:.1f} mm")
+    sd = [1000 * float(np.sqrt(max(c, 0.0))) for c in np.diag(np.array(edges["mean_shift_covariance"]))]
+    what = "used" if edges["used"] else "a check, not used in the estimate"
+    print(f"board edges ({what}): {edges['ends']} ring ends; the LiDAR's outlines sit (camera axes) "
+          + " ".join(f"{v:+.1f}+-{e:.1f}" for v, e in zip(m, sd))
+          + f" mm off the camera's on average (p = {edges['mean_shift_p_value']:.2g}); growth "
+          f"{1000 * edges['growth_m'][0]:+.1f} / {1000 * edges['growth_m'][1]:+.1f} mm per side"
+          + (f", outline offset {1000 * edges['outline_offset_m'][0]:+.1f} / "
+             f"{1000 * edges['outline_offset_m'][1]:+.1f} mm" if edges["used"] else "")
+          + f"; in-plane board scatter {1000 * edges['board_scatter_in_plane_m']:.1f} mm")
     test = edges.get("planes_against_edges")
     if test:
         print(f"  planes alone against planes + edges: d2 {test['d2']:.1f} on {test['dof']} dof (p = "

@@ -9,6 +9,8 @@ from estimators.simulation.simulator import default_rig, sample_layout
 from estimators.solvers.board_edges import BEAM_SD_RAD, crossings, edge_residuals, nuisance_jacobians
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, board_returns, simulate_measurements, with_outline_error
+from estimators.solvers.chi_square import isf as chi2_isf
+from estimators.solvers.outline_check import shift_fit
 from estimators.solvers.refinement import measurement_model_options, refine
 from geometry.board import BoardModel
 from geometry.rotations import T_exp, T_inverse, T_log
@@ -113,8 +115,9 @@ def _with_lidar_board(frames, lidar_layout: Layout, seed: int):
     return [replace(f, lidar=g.lidar) for f, g in zip(frames, lidar_frames)]
 
 
+@pytest.mark.parametrize("edges", [True, False])
 @pytest.mark.parametrize("error", ["pattern_offset", "size"])
-def test_outline_errors_in_the_dataset_are_caught(error):
+def test_outline_errors_in_the_dataset_are_caught(error, edges):
     # The dataset's board differs from the real one: the pattern printed 3 cm off centre, or the board 5 cm
     # larger than given. The camera places the given board; the LiDAR sees the real one.
     caught = 0
@@ -125,10 +128,53 @@ def test_outline_errors_in_the_dataset_are_caught(error):
         frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(seed)), real, seed + 5)
         T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
         ref = refine(frames, layout.board, layout.camera, T0,
-                     measurement_model_options(range_model="none", edges=True))
+                     measurement_model_options(range_model="none", edges=edges))
+        # Without --edges the ends check the planes' estimate, and say the same (solvers.outline_check).
+        assert ref.edges is not None and ref.edges["used"] == edges
         said = " ".join(ref.warnings)
         caught += ("board edges:" in said)
     assert caught == 3
+
+
+def test_the_check_of_a_right_dataset_stays_quiet_and_its_mean_shift_is_consistent():
+    # Planes alone on weakly spread boards (the translation along the boards weak): the ends check the estimate.
+    # A right dataset gives no warning, and the mean shift's d2 against its covariance stays near its dof.
+    d2, dof = [], []
+    for seed in range(4):
+        layout = _layout(seed + 30, "vlp16", n=10, weak=True)
+        frames = simulate_measurements(layout, np.random.default_rng(seed), azimuth_phase=True,
+                                       beam_sd_rad=BEAM_SD_RAD)
+        T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
+                               allow_weak=True).T_camera_lidar
+        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none"))
+        assert ref.edges is not None and not ref.edges["used"] and ref.edges["ends"] > 100
+        assert not any(w.startswith("board edges:") for w in ref.warnings)
+        d2.append(ref.edges["mean_shift_d2"])
+        dof.append(ref.edges["mean_shift_dof"])
+    assert np.sum(d2) < chi2_isf(0.001, np.sum(dof))  # 4 datasets: far below the 0.1% tail
+
+
+def test_the_checks_sensitivity_to_the_extrinsic_and_board_poses_matches_finite_differences():
+    layout = _layout(3, "hdl64e", n=5)
+    boards = list(layout.T_camera_board)
+    edges = [_crossings(layout, i) for i in range(layout.n_frames)]
+    T, h = layout.T_camera_lidar @ T_exp(np.array([0.002, -0.001, 0.001, 0.004, -0.003, 0.002])), 1e-6
+    theta, _, G, scale = shift_fit(T, boards, edges, layout.board)
+    N = np.zeros_like(G)
+    for k in range(6 + 6 * len(boards)):
+        x = np.zeros(6)
+        x[k % 6] = h
+        f = []
+        for sign in (1, -1):
+            Ts, bs = T, list(boards)
+            if k < 6:
+                Ts = T @ T_exp(sign * x)
+            else:
+                bs[k // 6 - 1] = boards[k // 6 - 1] @ T_exp(sign * x)
+            f.append(shift_fit(Ts, bs, edges, layout.board, scale)[0])
+        N[:, k] = (f[0] - f[1]) / (2 * h)
+    # Gauss-Newton's sensitivity leaves out the loss's curvature times the residuals: within 0.5% of the largest.
+    np.testing.assert_allclose(G, N, atol=5e-3 * np.abs(N).max())
 
 
 def test_a_board_of_unknown_size_falls_back_to_planes_with_a_warning():

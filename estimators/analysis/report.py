@@ -46,28 +46,37 @@ def residual_arrays(result) -> dict[str, np.ndarray]:
 
 
 def _edges_section(edges: dict) -> str:
-    """The board's edges (``--edges``): the outlines' mean shift with its 99% test, the outline's growth and
-    offset, the test of the planes against the edges, and each frame's shift."""
+    """The board's edges, used (``--edges``) or as a check of the planes' estimate: the outlines' mean shift with
+    its 99% test, the outline's growth (and offset, when used), the test of the planes against the edges, and
+    each frame's shift."""
     m = 1000 * np.array(edges["mean_shift_camera_m"])
     sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(edges["mean_shift_covariance"])), 0.0))
     g, gs = 1000 * np.array(edges["growth_m"]), 1000 * np.array(edges["growth_sd_m"])
-    o, os_ = 1000 * np.array(edges["outline_offset_m"]), 1000 * np.array(edges["outline_offset_sd_m"])
-    text = (f"<p>{edges['ends']} ring ends on the boards' outlines. The LiDAR's outlines sit "
+    how = ("used in the estimate" if edges["used"] else "not used in the estimate: they check it (calibrate with "
+           "--edges to use them)")
+    text = (f"<p>{edges['ends']} ring ends on the boards' outlines, {how}. The LiDAR's outlines sit "
             f"{np.linalg.norm(m):.1f} mm off the camera's on average (camera x y z: "
             + ", ".join(f"{v:+.1f} ± {e:.1f}" for v, e in zip(m, sd))
             + f" mm; p = {edges['mean_shift_p_value']:.2g}: "
             + ("beyond" if edges["mean_shift_p_value"] < 0.01 else "within") + " its 99% limit). The board looks "
             f"{2 * g[0]:+.1f} ± {2 * gs[0]:.1f} mm wider and {2 * g[1]:+.1f} ± {2 * gs[1]:.1f} mm "
-            f"taller than board.size; its pattern sits {o[0]:+.1f} ± {os_[0]:.1f} / {o[1]:+.1f} ± "
-            f"{os_[1]:.1f} mm (x / y) from where dataset.yaml puts it.</p>")
+            "taller than board.size")
+    if edges["used"]:
+        o, os_ = 1000 * np.array(edges["outline_offset_m"]), 1000 * np.array(edges["outline_offset_sd_m"])
+        text += (f"; its pattern sits {o[0]:+.1f} ± {os_[0]:.1f} / {o[1]:+.1f} ± {os_[1]:.1f} mm (x / y) from where "
+                 "dataset.yaml puts it")
+    text += ".</p>"
     test = edges.get("planes_against_edges")
     if test:
         text += (f"<p>The planes alone against the planes with the edges: d2 {test['d2']:.1f} on {test['dof']} dof "
                  f"(p = {test['p_value']:.2g}); below 0.01 the boards' planes or their outlines carry a bias (see "
                  "the warnings).</p>")
-    rows = [[f["frame"], f["ends"], f"{1000 * f['shift_board_xy_m'][0]:+.1f} ± {1000 * f['shift_sd_m'][0]:.1f}",
-             f"{1000 * f['shift_board_xy_m'][1]:+.1f} ± {1000 * f['shift_sd_m'][1]:.1f}"]
-            for f in edges["frames"]]
+
+    def cell(f, k):
+        v, e = f["shift_board_xy_m"][k], f["shift_sd_m"][k]
+        return "-" if v is None else f"{1000 * v:+.1f} ± {1000 * e:.1f}"
+
+    rows = [[f["frame"], f["ends"], cell(f, 0), cell(f, 1)] for f in edges["frames"]]
     return ("<h2>Board edges</h2>" + text
             + _table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]))
 

@@ -6,6 +6,7 @@ they are computed here from the regularised incomplete gamma function and its in
 """
 from __future__ import annotations
 
+import numpy as np
 from scipy.special import chdtrc, chdtri
 from scipy.special import fdtrc as _fdtrc
 
@@ -33,3 +34,12 @@ def median(dof):
 def fdtrc(dfn, dfd, x):
     """P(X > x) for X ~ F(dfn, dfd)."""
     return _fdtrc(dfn, dfd, x)
+
+
+def mahalanobis(x, C, max_var: float = np.inf) -> tuple[float, int]:
+    """``x^T C^+ x`` over the directions ``C`` holds (eigenvalues above 1e-9 of its largest, and at most
+    ``max_var``: wider ones carry no test) and their count (the chi-square's degrees of freedom)."""
+    ev, V = np.linalg.eigh(0.5 * (C + C.T))
+    keep = (ev > 1e-9 * max(float(ev[-1]), 1e-300)) & (ev <= max_var)
+    y = V[:, keep].T @ np.asarray(x)
+    return float(np.sum(y**2 / ev[keep])), int(keep.sum())

@@ -48,12 +48,13 @@ from geometry.rotations import T_exp, T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import (EDGE_HUBER, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OUTLINE, SIDE_NORMALS, EndTerms,
+from .board_edges import (EDGE_HUBER, OUTLINE, SIDE_NORMALS, EndTerms,
                           crossings, edge_factor, edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
                       nuisance_plane_factor, nuisance_residual, plane_factor)
+from .outline_check import outline_check, outline_warnings
 from .range_model import (CONFOUNDED_CORRELATION, DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS,
                           MIN_INTENSITY_AGREEMENT, MODEL_TEST_P, RANGE_MODELS, FrameLabels, FrameWhitener,
                           RangeModelFit, RangeTerms, frame_labels, frame_whiteners, terms_for)
@@ -595,21 +596,9 @@ def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list
     # The shifts are estimated random effects (each 0 +- the scatter a priori): under the model their estimates
     # vary by the prior's covariance less the posterior's.
     C = A @ (prob.edge_tau**2 * quasi_scale * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
-    d2, dof = _mahalanobis(mean, C)
+    d2, dof = chi2.mahalanobis(mean, C)
     mean_p = float(chi2.sf(d2, dof)) if dof else 1.0
-    if dof and mean_p < 0.01:
-        warnings.append(f"board edges: the LiDAR's board outlines sit {1000 * np.linalg.norm(mean):.0f} mm off the "
-                        f"camera's on average (camera axes {np.round(1000 * mean, 1).tolist()} mm; beyond the 99% "
-                        f"limit, p = {mean_p:.1g}): an extrinsic the edges contradict")
     g, o = prob.outline[:2], prob.outline[2:]
-    if np.any(np.abs(g) > np.maximum(GROWTH_PRIOR_SD_M, 2.576 * outline_sd[:2])):
-        warnings.append(f"board edges: the LiDAR sees the board {2000 * g[0]:+.0f} mm wider and {2000 * g[1]:+.0f} mm "
-                        "taller than board.size: check the size in dataset.yaml (the backing board's, not the "
-                        "pattern's)")
-    if np.any(np.abs(o) > np.maximum(OFFSET_PRIOR_SD_M, 2.576 * outline_sd[2:])):
-        warnings.append(f"board edges: the board's outline sits {1000 * o[0]:+.0f} mm along its x and "
-                        f"{1000 * o[1]:+.0f} mm along its y from where dataset.yaml puts it: check "
-                        "board.pattern_offset (the board corner to the pattern's corner) and board.size")
     # The planes alone, from this estimate, with the same noise model.
     planes = prob.variant(edges=False)
     b = list(boards)
@@ -622,7 +611,7 @@ def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list
     test = None
     if cov_p is not None:
         delta = T_log(np.linalg.inv(T_p) @ T)
-        h2, h_dof = _mahalanobis(delta, cov_p - cov)
+        h2, h_dof = chi2.mahalanobis(delta, cov_p - cov)
         h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
         test = {"planes_only_T_camera_lidar": T_p.tolist(), "difference_tangent": delta.tolist(),
                 "d2": h2, "dof": h_dof, "p_value": h_p}
@@ -633,21 +622,30 @@ def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list
                             f"explains (d2 {h2:.1f} on {h_dof} dof, p = {h_p:.1g}): the boards' planes or their "
                             "outlines carry a bias (range error with incidence, intrinsics, the board's real size); "
                             "both estimates are in calibration.json")
-    record = {"ends": int(sum(prob.edges[i].size for _, i in shift_keys)), "end_scale": prob.edge_scale,
-              "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(), "growth_sd_m": outline_sd[:2].tolist(),
+    record = {"used": True, "ends": int(sum(prob.edges[i].size for _, i in shift_keys)),
+              "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(), "growth_sd_m": outline_sd[:2].tolist(),
               "outline_offset_m": o.tolist(), "outline_offset_sd_m": outline_sd[2:].tolist(), "frames": per_frame,
               "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(),
               "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
               "planes_against_edges": test}
-    return record, warnings
+    return record, outline_warnings(record, used=True) + warnings
 
 
-def _mahalanobis(x: np.ndarray, C: np.ndarray) -> tuple[float, int]:
-    """``x^T C^+ x`` over the directions ``C`` holds (eigenvalues above 1e-9 of its largest) and their count."""
-    ev, V = np.linalg.eigh(0.5 * (C + C.T))
-    keep = ev > 1e-9 * max(float(ev[-1]), 1e-300)
-    y = V[:, keep].T @ x
-    return float(np.sum(y**2 / ev[keep])), int(keep.sum())
+def _outline_check(prob: _Problem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,
+                   quasi_scale: float, cov: np.ndarray) -> tuple[dict | None, list[str]]:
+    """The board's edges as a check of this planes-only estimate (``solvers.outline_check``): each frame's ring
+    ends found under it, and its joint covariance with the board poses from the graph (scaled like ``cov``, the
+    extrinsic's block widened to ``cov`` where the range terms' or the intrinsics' propagation widened it)."""
+    edges = _edge_crossings(prob, prob.frames, active, T, boards)
+    if edges is None:
+        return None, []
+    used = [(j, i) for j, i in enumerate(active) if edges[i] is not None and edges[i].size]
+    keys = gtsam.KeyVector([EXTRINSIC] + [board_key(j) for j, _ in used])
+    joint = marginals.jointMarginalCovariance(keys).fullMatrix() * quasi_scale
+    ev, V = np.linalg.eigh(0.5 * (cov + cov.T) - joint[:6, :6])
+    joint[:6, :6] += (V * np.maximum(ev, 0.0)) @ V.T
+    return outline_check(T, [boards[i] for _, i in used], [edges[i] for _, i in used], prob.board,
+                         [prob.frames[i].name for _, i in used], joint)
 
 
 def _hessian(graph, values, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -972,6 +970,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         what = ("the intrinsics' stated uncertainty (camera.param_std)" if camera.source == "dataset.yaml"
                 else "the intrinsics were estimated from the same images; their uncertainty")
         warnings.append(f"{what} is propagated into the covariance (first order, {how})")
+
+    if prob.edges is None and board.size_known and not scan_lines:
+        edges_record, check_warnings = _outline_check(prob, active, T, boards, marginals, quasi_scale, cov)
+        warnings.extend(check_warnings)
 
     fits = []
     for i, f in enumerate(frames):
