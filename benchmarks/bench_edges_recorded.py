@@ -1,0 +1,66 @@
+"""The recorded sets with the planes alone (the board's edges as a check) and with the planes and the edges
+(`--edges`), side by side (make bench; each set skipped when absent from ../shared/realdata;
+`python benchmarks/bench_edges_recorded.py`).
+
+Per set and model: the estimate's translation (camera frame, mm) and its distance from the source tool's
+reference; the LiDAR's board outlines' mean shift from the camera's (mm) and its p-value against its 99% limit
+(with the planes alone the ends check the estimate; with the edges they are in it); the planes-against-edges test
+(d2 on 6 dof, p); and the first and last halves of the frames calibrated apart: the squared Mahalanobis distance
+of their difference against the sum of their covariances and its 99% limit.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI does (see bench_refinement.py)
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_principal_point import REALDATA, SETS, _reference  # noqa: E402
+
+from estimators.calibration import measure_frames, solve  # noqa: E402
+from estimators.io.dataset import load_dataset  # noqa: E402
+from estimators.solvers import chi_square as chi2  # noqa: E402
+from estimators.solvers.refinement import RefinementOptions  # noqa: E402
+from geometry.rotations import T_inverse, T_log  # noqa: E402
+
+
+def main() -> None:
+    print(f"{'set':18s}{'model':16s}{'t (mm, camera)':>26s}{'from ref mm':>13s}{'outline shift mm':>18s}{'p':>8s}"
+          f"{'planes vs edges':>17s}{'halves d2':>11s}{'99% limit':>11s}")
+    for name in SETS:
+        path = REALDATA / name
+        if not path.is_dir():
+            print(f"{name}: not in {REALDATA}; skipped")
+            continue
+        ds = load_dataset(path)
+        camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
+        frames = [f for f in frames if f.usable]
+        ref = _reference(path)
+        half = len(frames) // 2
+        for label, edges in (("planes (check)", False), ("planes + edges", True)):
+            options = RefinementOptions(edges=edges)
+            res = solve(frames, ds.board, camera, options=options)
+            t = 1000 * res.T_camera_lidar[:3, 3]
+            far = f"{np.linalg.norm(t - ref):13.1f}" if ref is not None else f"{'-':>13s}"
+            e = res.refinement.edges or {}
+            shift = (f"{1000 * np.linalg.norm(e['mean_shift_camera_m']):18.1f}{e['mean_shift_p_value']:8.3f}"
+                     if "mean_shift_camera_m" in e else f"{'-':>18s}{'-':>8s}")
+            test = e.get("planes_against_edges")
+            test = f"{test['d2']:9.1f}, p {test['p_value']:.3f}" if test else "-"
+            ra = solve(frames[:half], ds.board, camera, options=options)
+            rb = solve(frames[half:], ds.board, camera, options=options)
+            xi = T_log(T_inverse(ra.T_camera_lidar) @ rb.T_camera_lidar)
+            d2 = float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
+            print(f"{name:18s}{label:16s}{'(' + ', '.join(f'{v:.1f}' for v in t) + ')':>26s}{far}{shift}"
+                  f"{test:>17s}{d2:11.1f}{chi2.isf(0.01, 6):11.1f}")
+        if ref is not None:
+            print(f"{name:18s}{'reference':16s}{'(' + ', '.join(f'{v:.1f}' for v in ref) + ')':>26s}")
+
+
+if __name__ == "__main__":
+    main()
