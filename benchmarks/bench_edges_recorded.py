@@ -1,6 +1,7 @@
-"""The recorded sets with the planes alone (the board's edges as a check) and with the planes and the edges
-(`--edges`), side by side (make bench; each set skipped when absent from ../shared/realdata;
-`python benchmarks/bench_edges_recorded.py`).
+"""The recorded sets, planes alone against planes and board edges, side by side
+(make bench; each set skipped when absent from ../shared/realdata; `python benchmarks/bench_edges_recorded.py`).
+
+With the planes alone the board's edges check the estimate; with `--edges` they are in it.
 
 Per set and model: the estimate's translation (camera frame, mm) and its distance from the source tool's
 reference; the LiDAR's board outlines' mean shift from the camera's (mm) and its p-value against its 99% limit
