@@ -6,11 +6,13 @@ With the planes alone the board's edges check the estimate; with `--edges` they 
 Per set and model: the estimate's translation (camera frame, mm) and its distance from the source tool's
 reference; the LiDAR's board outlines' mean shift from the camera's (mm) and its p-value against its 99% limit
 (with the planes alone the ends check the estimate; with the edges they are in it); the planes-against-edges test
-(d2 on 6 dof, p); and the first and last halves of the frames calibrated apart: the squared Mahalanobis distance
+(d2 on 6 dof, p); under the source tool's reference, the outlines' mean shift by the same fit (camera's board
+poses); and the first and last halves of the frames calibrated apart: the squared Mahalanobis distance
 of their difference against the sum of their covariances and its 99% limit.
 """
 from __future__ import annotations
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -26,6 +28,9 @@ from bench_principal_point import REALDATA, SETS, _reference  # noqa: E402
 from estimators.calibration import measure_frames, solve  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.solvers import chi_square as chi2  # noqa: E402
+from estimators.solvers.board_edges import crossings  # noqa: E402
+from estimators.solvers.outline_check import outline_check  # noqa: E402
+from estimators.solvers.range_model import frame_rings  # noqa: E402
 from estimators.solvers.refinement import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 
@@ -60,7 +65,25 @@ def main() -> None:
             print(f"{name:18s}{label:16s}{'(' + ', '.join(f'{v:.1f}' for v in t) + ')':>26s}{far}{shift}"
                   f"{test:>17s}{d2:11.1f}{chi2.isf(0.01, 6):11.1f}")
         if ref is not None:
-            print(f"{name:18s}{'reference':16s}{'(' + ', '.join(f'{v:.1f}' for v in ref) + ')':>26s}")
+            shift = 1000 * np.linalg.norm(_outline_shift(frames, ds.board, _reference_T(path))["mean_shift_camera_m"])
+            print(f"{name:18s}{'reference':16s}{'(' + ', '.join(f'{v:.1f}' for v in ref) + ')':>26s}{'':13s}"
+                  f"{shift:18.1f}{'-':>8s}")
+
+
+def _reference_T(path: Path) -> np.ndarray:
+    return np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
+
+
+def _outline_shift(frames, board, T: np.ndarray) -> dict:
+    """The outlines' mean shift under ``T`` (the check's fit, with the camera's board poses; no covariance of
+    ``T``: only the shift is printed)."""
+    rings = frame_rings(frames)
+    used = [(f, crossings(f.lidar.points, r, T_inverse(f.camera.T_camera_board) @ T, board))
+            for f, r in zip(frames, rings) if r is not None]
+    used = [(f, e) for f, e in used if e.size]
+    record, _ = outline_check(T, [f.camera.T_camera_board for f, _ in used], [e for _, e in used], board,
+                              [f.name for f, _ in used], np.zeros((6 + 6 * len(used),) * 2))
+    return record
 
 
 if __name__ == "__main__":
