@@ -243,8 +243,9 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                        help="also use a 3D LiDAR's board edges (where each ring leaves the board; needs board.size): "
                             "they fix the translation along the boards' planes, which planes leave weak. The result "
                             "tests the planes against the edges and checks the outlines' mean shift (calibration.json "
-                            "'board_edges'); the posterior holds their share to second order about the estimate. A "
-                            "2D scan's segment ends are used by default")
+                            "'board_edges'); the posterior holds their share to second order about the estimate. "
+                            "Without it they check a 3D estimate (the outlines' mean shift, a warning beyond its 99%% "
+                            "limit). A 2D scan's segment ends are used by default")
     edges.add_argument("--no-edges", dest="edges", action="store_false",
                        help="use the boards' planes alone, also for a 2D scan (whose segment ends are otherwise used "
                             "when board.size is given)")
