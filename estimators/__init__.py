@@ -15,6 +15,8 @@ Layout: ``analyse``, ``layout_from_plan``, ``layout_from_result``, ``suggest_pos
 Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``run_coverage_study``.
 Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export_calibration`` and
 ``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
+Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig``, ``write_rig_calibration``,
+``simulate_rig``.
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
@@ -49,6 +51,10 @@ _API = {
     "export_calibration": ("io.export", "export_calibration"),
     "write_export": ("io.export", "write_export"),
     "load_calibration": ("io.export", "load_calibration"),
+    "load_rig": ("io.rig_dataset", "load_rig"),
+    "calibrate_rig": ("rig_calibration", "calibrate_rig"),
+    "write_rig_calibration": ("rig_calibration", "write_rig_calibration"),
+    "simulate_rig": ("simulation.rig_simulator", "simulate_rig"),
 }
 __all__ = ["__version__", *_API]
 

@@ -92,6 +92,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the returns' intensity: contrast (black squares dark), flat (no black/white contrast, as an "
                         "uncalibrated LiDAR's) or saturated (255 everywhere)")
     s.add_argument("--no-ring", action="store_true", help="write clouds without a ring field")
+    s.add_argument("--cameras", type=int, default=1, metavar="N",
+                   help="2 or more: a rig folder (sensors cam0..camN-1 and lidar0, docs/howto/rig.md) whose cameras "
+                        "sit beside each other, each seeing the frames whose board lies wholly in its image")
     s.add_argument("--rig", default="default", choices=["default", "varied", "mounted"],
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
@@ -414,10 +417,60 @@ def _print_range_model(fit) -> None:
 
 def _calibrate(args) -> int:
     from .io.dataset import load_dataset
+    from .io.rig_dataset import is_rig
 
+    if is_rig(args.dataset):
+        return _calibrate_rig(args)
     ds = load_dataset(args.dataset)
     with _figure_process(args, not args.no_report) as figures:
         return _calibrate_with(args, ds, figures)
+
+
+def _calibrate_rig(args) -> int:
+    """A rig folder (``sensors:`` in dataset.yaml): one graph for every sensor (``rig_calibration``)."""
+    import numpy as np
+
+    from .io.rig_dataset import load_rig
+    from .rig_calibration import calibrate_rig, write_rig_calibration
+
+    rig = load_rig(args.dataset)
+    result = calibrate_rig(rig, np.random.default_rng(args.seed))
+    path = write_rig_calibration(result, args.out)
+    _print_rig(result)
+    print(f"wrote {path}")
+    return 0
+
+
+def _print_rig(result) -> None:
+    import numpy as np
+
+    sol = result.solution
+    for w in result.warnings[:1]:
+        print(f"warning: {w}")
+    print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph, Laplace covariance (no posterior "
+          "sampling for rigs in this version)")
+    for s in result.rig.sensors:
+        n = len(result.frames_used.get(s.name, ()))
+        skipped = len(result.skipped.get(s.name, {}))
+        print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else ""))
+    print("every pair (joint graph; t in the first sensor's frame, mm; rotation sd deg; pairwise-only estimate in "
+          "brackets, as far from the joint one):")
+    for a, b in result.pairs():
+        T, C = sol.transform(a, b)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        line = (f"  T_{a}_{b}: t = (" + ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]) + ") +- ("
+                + ", ".join(f"{1000 * v:.1f}" for v in sd[3:]) + ") mm, rotation sd ("
+                + ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3]) + ") deg")
+        if (a, b) in result.pairwise:
+            from geometry.rotations import T_log
+
+            Tp = result.pairwise[(a, b)][0]
+            xi = T_log(np.linalg.inv(T) @ Tp)
+            line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
+                     "away]")
+        print(line)
+    for w in result.warnings[1:]:
+        print(f"warning: {w}")
 
 
 def _figure_process(args, report: bool):
@@ -647,6 +700,14 @@ def _simulate(args) -> int:
 
     if args.poses < 1:
         raise SystemExit("lidarcam: error: --poses must be at least 1")
+    if args.cameras != 1:
+        if args.cameras < 2 or args.lidar == "2d":
+            raise SystemExit("lidarcam: error: --cameras N (2 or more) writes a rig folder with a 3D LiDAR")
+        from .simulation.rig_simulator import simulate_rig
+
+        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite)
+        print(f"wrote a rig of {args.cameras} cameras and a {args.model} ({args.poses} frames) to {out}")
+        return 0
     two_d = args.lidar == "2d"
     fmt = args.scan_format or ("csv" if two_d else "pcd")
     allowed = ("csv", "npy", "pcd") if two_d else ("pcd", "ply", "bin", "npy")

@@ -1,0 +1,301 @@
+"""A whole rig in one graph: measure every sensor, start each pose along the links that share the most frames,
+solve jointly (``solvers.rig_graph``), and write every pair's transform with its covariance.
+
+Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
+its frames when dataset.yaml gives none); each LiDAR's board, chosen with a camera that shares at least
+``MIN_PAIR_FRAMES`` frames with it (``calibration.measure_frames`` on that pair). Each such camera-LiDAR pair is
+also solved alone (planes, no range terms: the joint graph's model), which starts the joint graph and is reported
+beside it ("pairwise only"). Two cameras are linked by every frame both saw.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import T_log
+
+from . import __version__
+from .calibration import _detect, measure_frames, solve
+from .camera.board_pose import estimate_board_pose
+from .camera.intrinsics import calibrate_intrinsics
+from .camera.chessboard import CornerDetection
+from .errors import DegenerateLayoutError, LidarcamError
+from .io.dataset import FrameFiles
+from .io.output import write_json_atomic
+from .io.rig_dataset import RigDataset, Sensor
+from .measurements import lidar_whitener
+from .solvers.refinement import RefinementOptions, pooled_range_noise_m
+from .solvers.rig_graph import CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree
+
+# Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
+MIN_PAIR_FRAMES = 3
+# The effective corner noise over the corners' residual (the pair's default: detector errors are correlated).
+CORNER_ERROR_CORRELATION = RefinementOptions().corner_error_correlation
+PAIR_OPTIONS = RefinementOptions(range_model="none", edges=False)
+
+
+@dataclass(frozen=True, eq=False)
+class RigResult:
+    """A rig's calibration: the joint solution, each camera's intrinsics, the pairwise-only estimates of the
+    camera-LiDAR pairs (``(camera, lidar) -> (T, covariance, frames)``), the frames each sensor contributed,
+    the frames skipped with their reasons (``sensor -> {stem: reason}``) and the warnings."""
+
+    rig: RigDataset
+    solution: RigSolution
+    cameras: dict
+    pairwise: dict
+    frames_used: dict
+    skipped: dict
+    warnings: tuple[str, ...]
+    timings_s: dict
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every camera-LiDAR pair and every camera-camera pair (earlier camera first), in sensor order."""
+        cams = [s.name for s in self.rig.cameras]
+        out = [(c, lid.name) for c in cams for lid in self.rig.lidars]
+        out += [(a, b) for i, a in enumerate(cams) for b in cams[i + 1:]]
+        return out
+
+    def to_json(self) -> dict:
+        sol, ref = self.solution, self.rig.reference
+
+        def entry(T, cov) -> dict:
+            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": np.degrees(sd[:3]).tolist(),
+                    "std_translation_mm": (1000 * sd[3:]).tolist()}
+
+        sensors = []
+        for s in self.rig.sensors:
+            e = entry(sol.T_ref[s.name], sol.covariance(s.name))
+            sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
+                            "frames_used": len(self.frames_used.get(s.name, ())),
+                            "noise_scale": sol.noise_scale.get(s.name, 1.0)})
+        transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
+        pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}
+        cameras = {n: {"model": m.model, "width": m.width, "height": m.height, "K": m.K.tolist(),
+                       "dist": m.dist.tolist(), "source": m.source} for n, m in self.cameras.items()}
+        return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms,
+                "covariance_joint": sol.covariance_joint.tolist(), "pairwise_only": pairwise, "cameras": cameras,
+                "frames_used": {n: list(v) for n, v in self.frames_used.items()},
+                "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
+                "version": __version__,
+                "convention": "T_a_b maps points from b's frame into a's: p_a = R p_b + t. Covariances are 6x6 in "
+                              "GTSAM's Pose3 right tangent, T_true = T_hat * Exp(xi), xi = [rot; trans]; "
+                              "covariance_joint holds every sensor's T_<reference>_<sensor> in the order of "
+                              "sensors (the reference's block is zero)."}
+
+
+def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str]]:
+    """One camera's board poses by stem, the frames skipped with their reasons, and its intrinsics (calibrated
+    from its frames when the rig's dataset.yaml gives none)."""
+    warnings: list[str] = []
+    frames = [FrameFiles(stem, path, path) for stem, path in sensor.files]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        detections = list(pool.map(lambda f: _detect(f, board, {}), frames))
+    camera = sensor.camera
+    if camera is None:
+        found = [d for _, d in detections if isinstance(d, CornerDetection)]
+        sizes = {s for s, _ in detections if s is not None}
+        if len(sizes) != 1 or len(found) < 3:
+            raise DegenerateLayoutError(f"camera {sensor.name}: intrinsics cannot be calibrated from "
+                                        f"{len(found)} board view(s) of {len(sizes)} image size(s)",
+                                        hint=f"give K, width and height for {sensor.name} in dataset.yaml, or more "
+                                             "frames")
+        camera, _ = calibrate_intrinsics([d.corners_px for d in found], board, *sizes.pop(),
+                                         corner_ids=[d.corner_ids for d in found])
+        warnings.append(f"camera {sensor.name}: no intrinsics in dataset.yaml: {camera.source}")
+    poses, skipped = {}, {}
+    for f, (size, det) in zip(frames, detections):
+        if isinstance(det, str):
+            skipped[f.name] = det
+        elif det is None:
+            skipped[f.name] = "board not found in the image"
+        elif size != (camera.width, camera.height):
+            skipped[f.name] = f"image is {size[0]}x{size[1]} but the camera is {camera.width}x{camera.height}"
+        else:
+            try:
+                poses[f.name] = estimate_board_pose(det, board, camera)
+            except LidarcamError as exc:
+                skipped[f.name] = f"board pose: {exc.message}"
+    return camera, poses, skipped, warnings
+
+
+def _camera_views(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
+    """The camera's corners for the graph, with its effective pixel noise (pooled PnP residual, 2M - 6 dof per
+    frame, times the detector's error correlation)."""
+    ss = sum(p.reprojection_rms_px**2 * p.corners_px.size for p in poses.values())
+    dof = sum(p.corners_px.size - 6 for p in poses.values())
+    sigma = max(np.sqrt(ss / max(dof, 1)), 1e-3) * CORNER_ERROR_CORRELATION
+    return CameraViews(name, camera, float(sigma), {s: p.corners_board(board) for s, p in poses.items()},
+                       {s: p.corners_px for s, p in poses.items()}, {s: p.T_camera_board for s, p in poses.items()})
+
+
+def pattern_flip(board) -> np.ndarray | None:
+    """The board-frame transform that turns a checkerboard's pattern by 180 degrees about its centre, when the
+    pattern looks the same turned (an even sum of squares: the detector may then number its corners from
+    either end, each camera on its own); None for a ChArUco board (its ids fix the numbering) or an asymmetric
+    pattern. A pose found with the corners numbered from the other end is ``T_camera_board @ flip``."""
+    if board.is_charuco or sum(board.squares) % 2:
+        return None
+    c = board.inner_corners().mean(axis=0)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    flip[:2, 3] = 2 * c[:2]
+    return flip
+
+
+def _flipped(obs, flip: np.ndarray):
+    """The camera's observation with its corners numbered from the other end (:func:`pattern_flip`)."""
+    return replace(obs, corners_px=obs.corners_px[::-1].copy(), T_camera_board=obs.T_camera_board @ flip)
+
+
+def _align_numbering(cams: list[str], poses: dict, flip: np.ndarray) -> dict:
+    """Each camera's boards numbered as the earlier cameras number them: against the earlier camera that shares
+    the most frames, the relative pose most shared frames agree with (within 2 degrees and 5 cm, either
+    numbering), and each frame's numbering the one that agrees with it."""
+    out = {cams[0]: dict(poses[cams[0]])}
+    for b in cams[1:]:
+        out[b] = dict(poses[b])
+        earlier = max(cams[:cams.index(b)], key=lambda a: sum(1 for st in out[a] if st in out[b]))
+        shared = [st for st in out[earlier] if st in out[b]]
+        if not shared:
+            continue
+        cands = {st: [out[earlier][st].T_camera_board @ np.linalg.inv(T)
+                      for T in (out[b][st].T_camera_board, out[b][st].T_camera_board @ flip)] for st in shared}
+
+        def close(A, B):
+            xi = T_log(np.linalg.inv(A) @ B)
+            return np.linalg.norm(xi[:3]) < np.deg2rad(2.0) and np.linalg.norm(xi[3:]) < 0.05
+
+        hyps = [T for st in shared for T in cands[st]]
+        best = max(hyps, key=lambda H: sum(any(close(H, T) for T in cands[st]) for st in shared))
+        for st in shared:
+            if close(best, cands[st][1]) and not close(best, cands[st][0]):
+                out[b][st] = _flipped(out[b][st], flip)
+    return out
+
+
+def _medoid_relative(rels: list[np.ndarray]) -> np.ndarray:
+    """The relative pose closest to all the others (sum of tangent distances)."""
+    cost = [sum(np.linalg.norm(T_log(np.linalg.inv(a) @ b)) for b in rels) for a in rels]
+    return rels[int(np.argmin(cost))]
+
+
+def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigResult:
+    """Measure and solve a rig (module docstring)."""
+    t0 = time.perf_counter()
+    warnings: list[str] = []
+    cameras, poses, skipped = {}, {}, {}
+    for s in rig.cameras:
+        cameras[s.name], poses[s.name], skipped[s.name], w = measure_camera(s, rig.board, workers)
+        warnings.extend(w)
+    flip = pattern_flip(rig.board)
+    if flip is not None:
+        poses = _align_numbering([c.name for c in rig.cameras], poses, flip)
+    t_cam = time.perf_counter()
+    # Each LiDAR with each camera that shares enough frames: its boards chosen with that camera, the pair solved.
+    lidar_obs: dict = {s.name: {} for s in rig.lidars}
+    sigma_r: dict = {}
+    pairwise, links = {}, {}
+    for lid in rig.lidars:
+        skipped[lid.name] = {}
+        shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
+        for cam in shared:
+            if sum(1 for st in poses[cam.name] if lid.file(st) is not None) < MIN_PAIR_FRAMES:
+                continue
+            ds = rig.pair(cam.name, lid.name, cameras[cam.name])
+            _, frames, w = measure_frames(ds, rng, workers=workers)
+            warnings.extend(f"{cam.name}-{lid.name}: {x}" for x in w)
+            usable = [f for f in frames if f.usable]
+            for f in frames:
+                if not f.usable and f.name not in lidar_obs[lid.name]:
+                    skipped[lid.name].setdefault(f.name, f"with {cam.name}: {f.reason}")
+            if len(usable) < MIN_PAIR_FRAMES:
+                warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
+                continue
+            try:
+                res = solve(usable, rig.board, cameras[cam.name], options=PAIR_OPTIONS)
+            except DegenerateLayoutError as exc:
+                warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
+                continue
+            pairwise[(cam.name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
+            links[(cam.name, lid.name)] = len(usable)
+            for f in usable:
+                lidar_obs[lid.name].setdefault(f.name, f.lidar)
+                skipped[lid.name].pop(f.name, None)
+        if lidar_obs[lid.name]:
+            sigma_r[lid.name] = pooled_range_noise_m([_Framed(o) for o in lidar_obs[lid.name].values()])
+    t_pairs = time.perf_counter()
+    cams = [c.name for c in rig.cameras]
+    for i, a in enumerate(cams):
+        for b in cams[i + 1:]:
+            links[(a, b)] = sum(1 for st in poses[a] if st in poses[b])
+    names = tuple(s.name for s in rig.sensors)
+    parent = spanning_tree(names, rig.reference, links)
+    T_ref = _start(names, rig.reference, parent, poses, pairwise, rig)
+    # Each frame a camera saw starts from the first camera (in the rig's order) that saw it.
+    T_ref_board = {}
+    for c in cams:
+        for st, p in poses[c].items():
+            T_ref_board.setdefault(st, T_ref[c] @ p.T_camera_board)
+    camera_views = [_camera_views(c, cameras[c], poses[c], rig.board) for c in cams if poses[c]]
+    lidar_views = [LidarViews(lid.name, sigma_r[lid.name],
+                              {st: lidar_whitener(o, sigma_r[lid.name]) for st, o in lidar_obs[lid.name].items()
+                               if st in T_ref_board}, lid.lidar == "2d")
+                   for lid in rig.lidars if lidar_obs[lid.name]]
+    solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board)
+    for n, s in solution.noise_scale.items():
+        if s > 1.0:
+            ss, dof = solution.chi2_dof[n]
+            warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
+                            f"noise is scaled by {s:.2f}")
+    used = {c.name: tuple(c.corners_px) for c in camera_views}
+    used.update({lv.name: tuple(lv.W) for lv in lidar_views})
+    timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": time.perf_counter() - t_pairs}
+    return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
+                     {k: round(v, 3) for k, v in timings.items()})
+
+
+@dataclass(frozen=True, eq=False)
+class _Framed:
+    """A LiDAR observation in the shape ``pooled_range_noise_m`` reads (``frame.lidar``)."""
+
+    lidar: object
+
+
+def _start(names, reference, parent, poses, pairwise, rig) -> dict:
+    """Each sensor's starting pose in the reference's frame, composed along the tree from the reference."""
+    T_ref = {reference: np.eye(4)}
+    pending = [n for n in names if n != reference]
+    while pending:
+        for n in list(pending):
+            p = parent[n]
+            if p not in T_ref:
+                continue
+            T_ref[n] = T_ref[p] @ _relative(p, n, poses, pairwise, rig)
+            pending.remove(n)
+    return T_ref
+
+
+def _relative(a: str, b: str, poses, pairwise, rig) -> np.ndarray:
+    """``T_a_b`` from the pairwise solution (camera-LiDAR) or the shared boards (camera-camera)."""
+    if (a, b) in pairwise:
+        return pairwise[(a, b)][0]
+    if (b, a) in pairwise:
+        return np.linalg.inv(pairwise[(b, a)][0])
+    shared = [st for st in poses[a] if st in poses[b]]
+    return _medoid_relative([poses[a][st].T_camera_board @ np.linalg.inv(poses[b][st].T_camera_board)
+                             for st in shared])
+
+
+def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
+    """``calibration.json`` of a rig, written atomically into ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "calibration.json"
+    write_json_atomic(path, result.to_json())
+    return path

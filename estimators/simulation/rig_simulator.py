@@ -1,0 +1,99 @@
+"""Simulated rigs: several cameras and a 3D LiDAR sharing the frames, written as a rig folder
+(``io.rig_dataset``) with the ground truth of every sensor.
+
+The first camera and the LiDAR are the pair simulator's (``simulator.iter_frames``: its boards, scene and
+noise); every further camera is rendered of the same scene from its own pose, and sees a frame only when the
+whole board lies in its image (else it has no file for that frame, as a camera that did not see the board).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
+
+from ..io.dataset import dataset_spec, write_dataset_yaml
+from ..io.output import atomic_directory
+from ..io.pointcloud_io import write_scan
+from .rendering import add_pixel_noise, pixel_rays, render_clean
+from .scene import cast_background
+from .simulator import default_rig, default_room, iter_frames, rotated_patches, sample_board_poses, scene_patches
+
+
+def _extra_cameras(n: int, rng: np.random.Generator) -> list[tuple[str, CameraModel, np.ndarray]]:
+    """Cameras after the first: each 0.15-0.35 m beside it (alternately right and left), turned 5-15 degrees
+    away about its y axis, with intrinsics a little unlike the first's (``T_cam0_camk``)."""
+    out = []
+    base = default_rig(np.random.default_rng(0)).camera
+    for k in range(1, n):
+        side = 1.0 if k % 2 else -1.0
+        t = np.array([side * rng.uniform(0.15, 0.35), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)])
+        R = R_from_rotvec(np.array([0.0, side * np.deg2rad(rng.uniform(5.0, 15.0)), 0.0]))
+        f = base.K[0, 0] * rng.uniform(0.9, 1.1)
+        K = np.array([[f, 0.0, base.width / 2 + rng.uniform(-10, 10)], [0.0, f, base.height / 2 + rng.uniform(-10, 10)],
+                      [0.0, 0.0, 1.0]])
+        out.append((f"cam{k}", CameraModel(K, base.dist.copy(), base.width, base.height, base.model), T_from_Rt(R, t)))
+    return out
+
+
+def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
+    pts = transform_points(T_camera_board, board.inner_corners())
+    if np.any(pts[:, 2] <= 0.1):
+        return False
+    uv = camera.project(pts)
+    margin = 10.0
+    return bool(np.all((uv[:, 0] > margin) & (uv[:, 0] < camera.width - margin) & (uv[:, 1] > margin)
+                       & (uv[:, 1] < camera.height - margin)))
+
+
+def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
+                 overwrite: bool = False) -> Path:
+    """Simulate a rig of ``cameras`` pinhole cameras and one 3D LiDAR and write its folder atomically: the
+    sensors ``cam0..camN-1`` and ``lidar0``, reference ``cam0``, and ``ground_truth.json`` with every sensor's
+    ``T_cam0_<sensor>`` (module docstring)."""
+    rng = np.random.default_rng(seed)
+    rig = default_rig(rng, lidar, 0.02)
+    extra = _extra_cameras(cameras, rng)
+    poses = sample_board_poses(rig, n_poses, rng)
+    T_lidar_cam0 = T_inverse(rig.T_camera_lidar)
+    static = rotated_patches(default_room(-rig.lidar_height_m), rig.level.T)
+    backgrounds = {}
+    for name, cam, T_c0_ck in extra:
+        T_lidar_ck = T_lidar_cam0 @ T_c0_ck
+        backgrounds[name] = cast_background(T_lidar_ck[:3, 3], pixel_rays(cam, T_lidar_ck), static)
+    spec = dataset_spec("3d", rig.board, rig.camera)
+    sensors = [{"name": "cam0", "type": "camera", **spec["camera"]}]
+    sensors += [{"name": n, "type": "camera", "model": c.model, "width": c.width, "height": c.height,
+                 "K": c.K.tolist(), "dist": c.dist.tolist()} for n, c, _ in extra]
+    sensors.append({"name": "lidar0", "type": "lidar", "lidar": "3d"})
+    truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist()}
+    truth.update({f"T_cam0_{n}": T.tolist() for n, _, T in extra})
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        write_dataset_yaml(tmp, {"board": spec["board"], "sensors": sensors, "reference": "cam0"},
+                           "simulated rig by lidarcam; ground_truth.json is for evaluation only")
+        for name in ["cam0", "lidar0"] + [n for n, _, _ in extra]:
+            (tmp / name).mkdir()
+        seen = {n: [] for n, _, _ in extra}
+        for f in iter_frames(rig, n_poses, rng, poses, workers=1):
+            cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
+            write_scan(tmp / "lidar0" / f"{f.name}.pcd", f.points, f.intensity, f.ring)
+            T_lidar_board = T_lidar_cam0 @ f.T_camera_board
+            patches, bi = scene_patches(rig, T_lidar_board, static)
+            for name, cam, T_c0_ck in extra:
+                T_ck_board = T_inverse(T_c0_ck) @ f.T_camera_board
+                if not _sees_board(cam, T_ck_board, rig.board):
+                    continue
+                T_lidar_ck = T_lidar_cam0 @ T_c0_ck
+                clean = render_clean(cam, T_lidar_ck, patches, bi, transform_points(T_lidar_board,
+                                                                                    rig.board.outline()),
+                                     background=backgrounds[name])
+                cv2.imwrite(str(tmp / name / f"{f.name}.png"), add_pixel_noise(clean, rng, rig.pixel_noise))
+                seen[name].append(f.name)
+        truth["frames_seen"] = {"cam0": [f"{k:04d}" for k in range(len(poses))], **seen}
+        (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
+    return Path(out)
+

@@ -1,0 +1,268 @@
+"""One factor graph for a rig: every sensor's pose in the reference sensor's frame, one board pose per frame.
+
+Variables: ``T_ref_s`` for every sensor but the reference (the identity), and ``T_ref_board`` for every frame stem
+that a camera saw. The graph's reference is a camera (the first when the rig's reference is a LiDAR, whose frame
+the poses and their covariance are then carried into: :func:`change_reference`). Factors:
+
+- each camera's corners in each frame it saw: the pair's corner factor through ``T_s_board = T_ref_s^-1
+  T_ref_board``. With right tangents, ``T_s_board`` moves by ``xi_board`` for the board's and by
+  ``-Ad(T_s_board^-1) xi_s`` for the sensor's (:func:`_rig_corner_error`);
+- each LiDAR's board points in each frame it saw: the pair's plane factor, unchanged, with the reference frame in
+  the camera's place (it maps the board's plane into the LiDAR frame through ``T_ref_s`` and ``T_ref_board``).
+
+The noise: each camera's corners with its own effective pixel noise, each LiDAR's points with its own range noise
+(``W`` whitens by it); a sensor whose factors disagree beyond their noise (chi-square per dof, p < 0.01) has its
+noise scaled by that factor and the graph is solved again (quasi-likelihood, as the pair's refinement does).
+The joint covariance of all sensor poses is the graph's marginal; any pair's transform ``T_a_b = T_ref_a^-1
+T_ref_b`` has the covariance ``J Sigma_ab J^T`` with ``J = [-Ad(T_a_b^-1), I]`` (:func:`pair_transform`).
+Loops close exactly: every pair's transform is composed of the same sensor poses.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+
+import gtsam
+import numpy as np
+
+from geometry.camera import CameraModel
+
+from ..errors import DegenerateLayoutError
+from . import chi_square as chi2
+from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
+
+
+def sensor_key(k: int) -> int:
+    return gtsam.symbol("s", k)
+
+
+def frame_key(k: int) -> int:
+    return gtsam.symbol("f", k)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraViews:
+    """One camera's frames: per stem the board's corners (board frame, (M, 3)) and their detections (M, 2), and
+    the board's pose from them alone (``T_camera_board``, the start)."""
+
+    name: str
+    camera: CameraModel
+    sigma_px: float
+    corners_board: dict = field(default_factory=dict)
+    corners_px: dict = field(default_factory=dict)
+    T_camera_board: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class LidarViews:
+    """One LiDAR's frames: per stem the square root ``W`` of its board points' range moment
+    (``measurements.lidar_whitener``: ``|W pi|^2`` is their sum of squared range errors), its range noise (m),
+    and whether it is a scan line (2D)."""
+
+    name: str
+    sigma_m: float
+    W: dict = field(default_factory=dict)
+    scan_line: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class RigSolution:
+    """The rig's sensor poses in the reference sensor's frame (``T_ref``, by name, in ``names`` order), their
+    joint covariance (6N x 6N, right tangents, in ``names`` order), the board poses by stem, each sensor's noise
+    scale (quasi-likelihood, 1 when its factors agree with their noise) and its chi-square and dof."""
+
+    names: tuple[str, ...]
+    reference: str
+    T_ref: dict
+    covariance_joint: np.ndarray
+    T_ref_board: dict
+    noise_scale: dict
+    chi2_dof: dict
+    iterations: int
+
+    def covariance(self, name: str) -> np.ndarray:
+        k = self.names.index(name)
+        return self.covariance_joint[6 * k:6 * k + 6, 6 * k:6 * k + 6]
+
+    def transform(self, a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
+        """``T_a_b`` (maps b's points into a's frame) and its 6x6 covariance (right tangent of ``T_a_b``)."""
+        ka, kb = self.names.index(a), self.names.index(b)
+        idx = np.r_[6 * ka:6 * ka + 6, 6 * kb:6 * kb + 6]
+        return pair_transform(self.T_ref[a], self.T_ref[b], self.covariance_joint[np.ix_(idx, idx)])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """GTSAM's Pose3 adjoint in ``[rot; trans]`` order: ``T Exp(xi) T^-1 = Exp(Ad(T) xi)``."""
+    return gtsam.Pose3(T).AdjointMap()
+
+
+def pair_transform(T_ref_a: np.ndarray, T_ref_b: np.ndarray, cov_ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T_a_b = T_ref_a^-1 T_ref_b`` and its covariance from the joint covariance ``cov_ab`` (12 x 12) of the two
+    poses' right tangents: ``T_a_b Exp(xi_b - Ad(T_a_b^-1) xi_a)`` to first order."""
+    T_ab = np.linalg.inv(T_ref_a) @ T_ref_b
+    J = np.hstack([-adjoint(np.linalg.inv(T_ab)), np.eye(6)])
+    return T_ab, J @ cov_ab @ J.T
+
+
+def _rig_corner_error(corners_board, corners_px, camera, this, values, H):
+    keys = this.keys()
+    T_rs, T_rb = values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix()
+    T_sb = np.linalg.inv(T_rs) @ T_rb
+    r, J = corner_residuals(T_sb, corners_board, corners_px, camera, H is not None)
+    if H is not None:
+        H[0] = -J @ adjoint(np.linalg.inv(T_sb))
+        H[1] = J
+    return r
+
+
+def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray, corners_px: np.ndarray,
+                      camera: CameraModel, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """A camera's corners of one frame through its pose in the rig and the board's (module docstring)."""
+    return gtsam.CustomFactor(noise, [key_sensor, key_board],
+                              partial(_rig_corner_error, np.asarray(corners_board, dtype=float),
+                                      np.asarray(corners_px, dtype=float).reshape(-1, 2), camera))
+
+
+def _graph(names, cameras, lidars, stems, scale, reference):
+    graph = gtsam.NonlinearFactorGraph()
+    for c in cameras:
+        k = names.index(c.name)
+        for stem in c.corners_px:
+            px = c.corners_px[stem]
+            noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma_px * np.sqrt(scale[c.name]))
+            if c.name == reference:
+                graph.add(corner_factor(frame_key(stems.index(stem)), c.corners_board[stem], px, c.camera, noise))
+            else:
+                graph.add(rig_corner_factor(sensor_key(k), frame_key(stems.index(stem)), c.corners_board[stem], px,
+                                            c.camera, noise))
+    for lv in lidars:
+        k = names.index(lv.name)
+        for stem, W in lv.W.items():
+            if stem not in stems:
+                continue
+            noise = gtsam.noiseModel.Isotropic.Sigma(W.shape[0], lv.sigma_m * np.sqrt(scale[lv.name]))
+            graph.add(plane_factor(sensor_key(k), frame_key(stems.index(stem)), W, noise, lv.scan_line))
+    return graph
+
+
+def _pose(values, names, reference, name) -> np.ndarray:
+    return np.eye(4) if name == reference else values.atPose3(sensor_key(names.index(name))).matrix()
+
+
+def change_reference(names: tuple[str, ...], T_ref: dict, cov: np.ndarray, new: str) -> tuple[dict, np.ndarray]:
+    """The poses ``T_new_s = T_ref_new^-1 T_ref_s`` and their joint covariance: to first order ``xi'_s = xi_s -
+    Ad(T_new_s^-1) xi_new`` (``pair_transform``), the new reference's block zero."""
+    k_new = names.index(new)
+    out, J = {}, np.zeros((6 * len(names), 6 * len(names)))
+    for k, n in enumerate(names):
+        out[n] = np.linalg.inv(T_ref[new]) @ T_ref[n]
+        if n == new:
+            continue
+        J[6 * k:6 * k + 6, 6 * k:6 * k + 6] = np.eye(6)
+        J[6 * k:6 * k + 6, 6 * k_new:6 * k_new + 6] = -adjoint(np.linalg.inv(out[n]))
+    out[new] = np.eye(4)
+    return out, J @ cov @ J.T
+
+
+def _chi2(names, cameras, lidars, stems, values, reference) -> dict:
+    """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom (its
+    residuals less 6 for its pose; a camera's less a share of the board poses it fixes)."""
+    out = {}
+    for c in cameras:
+        T_rs = _pose(values, names, reference, c.name)
+        ss, n = 0.0, 0
+        for stem in c.corners_px:
+            T_sb = np.linalg.inv(T_rs) @ values.atPose3(frame_key(stems.index(stem))).matrix()
+            r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], c.camera, jacobian=False)
+            ss += float(r @ r) / c.sigma_px**2
+            n += r.size - 6
+        out[c.name] = (ss, max(n - 6, 1))
+    for lv in lidars:
+        T_rs = _pose(values, names, reference, lv.name)
+        ss, n = 0.0, 0
+        for stem, W in lv.W.items():
+            if stem not in stems:
+                continue
+            pi, _, _ = lidar_plane(T_rs, values.atPose3(frame_key(stems.index(stem))).matrix())
+            e, _ = lidar_residual(W, pi, lv.scan_line)
+            ss += float(e @ e) / lv.sigma_m**2
+            n += e.size
+        out[lv.name] = (ss, max(n - 6, 1))
+    return out
+
+
+def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+              T_ref_init: dict, T_ref_board_init: dict) -> RigSolution:
+    """The joint estimate of every sensor's pose (module docstring) from the starts ``T_ref_init`` (by name, in
+    the frame of ``reference``) and ``T_ref_board_init`` (by stem; the frames a camera saw)."""
+    camera_names = [c.name for c in cameras]
+    inner = reference if reference in camera_names else camera_names[0]
+    T0 = {n: np.linalg.inv(T_ref_init[inner]) @ T_ref_init[n] for n in names}
+    stems = sorted(T_ref_board_init)
+    values = gtsam.Values()
+    for k, n in enumerate(names):
+        if n != inner:
+            values.insert(sensor_key(k), gtsam.Pose3(T0[n]))
+    for j, s in enumerate(stems):
+        values.insert(frame_key(j), gtsam.Pose3(np.linalg.inv(T_ref_init[inner]) @ T_ref_board_init[s]))
+    scale = {n: 1.0 for n in names}
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    iterations = 0
+    for _ in range(3):
+        graph = _graph(names, cameras, lidars, stems, scale, inner)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = opt.optimize()
+        iterations += opt.iterations()
+        stats = _chi2(names, cameras, lidars, stems, values, inner)
+        new = {n: (max(1.0, ss / dof) if chi2.sf(ss, dof) < 0.01 else 1.0) for n, (ss, dof) in stats.items()}
+        new = {n: new.get(n, 1.0) for n in names}
+        converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
+        scale = new
+        if converged:
+            break
+    graph = _graph(names, cameras, lidars, stems, scale, inner)
+    others = [k for k, n in enumerate(names) if n != inner]
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        inner_cov = marginals.jointMarginalCovariance(gtsam.KeyVector([sensor_key(k) for k in others])).fullMatrix()
+    except RuntimeError as exc:
+        raise DegenerateLayoutError("the rig's sensor poses are not all fixed by the frames (the graph's "
+                                    "information is singular)",
+                                    hint="record more board poses that the weakly linked sensors see") from exc
+    cov = np.zeros((6 * len(names), 6 * len(names)))
+    idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in others])
+    cov[np.ix_(idx, idx)] = inner_cov
+    T = {n: _pose(values, names, inner, n) for n in names}
+    boards = {s: values.atPose3(frame_key(j)).matrix() for j, s in enumerate(stems)}
+    if inner != reference:
+        T_inner_ref = T[reference]
+        T, cov = change_reference(tuple(names), T, cov, reference)
+        boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
+    return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
+                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations)
+
+
+def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
+    """Each sensor's parent on the path to the reference, by the links that share the most frames (``links``:
+    ``(a, b) -> frames shared``, only the usable ones); raises a one-line error naming a sensor with no path."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    n = len(names)
+    w = np.zeros((n, n))
+    for (a, b), count in links.items():
+        if count > 0:
+            i, j = names.index(a), names.index(b)
+            w[i, j] = w[j, i] = 1.0 / count  # fewer shared frames: a longer edge
+    tree = minimum_spanning_tree(csr_matrix(w))
+    tree = tree + tree.T
+    order, pred = breadth_first_order(tree, names.index(reference), directed=False, return_predecessors=True)
+    reached = set(order.tolist())
+    missing = [names[k] for k in range(n) if k not in reached]
+    if missing:
+        raise DegenerateLayoutError(f"sensor(s) {', '.join(missing)} share no usable frames with the rest of the rig "
+                                    f"(no path to the reference {reference})",
+                                    hint="record board poses that they and a connected camera see together (a "
+                                         "LiDAR needs 3 or more with a camera; two cameras 1 or more)")
+    return {names[k]: (names[pred[k]] if pred[k] >= 0 else None) for k in range(n)}

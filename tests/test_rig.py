@@ -1,0 +1,164 @@
+"""Whole rigs in one graph (io.rig_dataset, solvers.rig_graph, rig_calibration): the folder format and its errors,
+the rig corner factor's Jacobians, the pair transforms' covariance, a change of reference, an unconnected sensor,
+and a simulated rig of three cameras and a LiDAR against its ground truth."""
+import json
+import subprocess
+import sys
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimators.errors import DatasetError, DegenerateLayoutError
+from estimators.io.rig_dataset import is_rig, load_rig
+from estimators.rig_calibration import calibrate_rig, pattern_flip
+from estimators.simulation.rig_simulator import simulate_rig
+from estimators.simulation.simulator import default_board, default_camera
+from estimators.solvers.rig_graph import change_reference, pair_transform, rig_corner_factor, spanning_tree
+from geometry.rotations import T_exp, T_log
+
+
+@pytest.fixture(scope="module")
+def rig_folder(tmp_path_factory):
+    return simulate_rig(tmp_path_factory.mktemp("rig") / "rig", n_poses=10, seed=2, cameras=3)
+
+
+@pytest.fixture(scope="module")
+def rig_result(rig_folder):
+    return calibrate_rig(load_rig(rig_folder), np.random.default_rng(0))
+
+
+def _truth(folder, a, b):
+    gt = json.loads((folder / "ground_truth.json").read_text())
+    return np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
+
+
+def test_the_rig_folder_lists_each_sensors_files_and_a_missing_file_means_not_seen(rig_folder):
+    rig = load_rig(rig_folder)
+    assert is_rig(rig_folder)
+    assert [s.name for s in rig.sensors] == ["cam0", "cam1", "cam2", "lidar0"] and rig.reference == "cam0"
+    seen = json.loads((rig_folder / "ground_truth.json").read_text())["frames_seen"]
+    for s in rig.cameras:
+        assert list(s.stems) == seen[s.name]
+    # cam2 sees fewer frames than cam0: its pair with the LiDAR covers only those
+    assert len(rig.sensor("cam2").stems) < 10
+    assert len(rig.pair("cam2", "lidar0").frames) == len(rig.sensor("cam2").stems)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda y: y.replace("reference: cam0", "reference: cam9"), "reference 'cam9' is not a sensor"),
+    (lambda y: y.replace("name: cam1", "name: cam0"), "two sensors are named 'cam0'"),
+    (lambda y: y.replace("name: cam2\n  type: camera", "name: cam2\n  type: radar"), "has type 'radar'"),
+    (lambda y: y.replace("name: cam2", "name: cam7"), "sensor folder cam7/ not found"),
+])
+def test_a_bad_rig_entry_is_a_one_line_error_naming_it(rig_folder, tmp_path, edit, message):
+    import shutil
+
+    folder = tmp_path / "rig"
+    shutil.copytree(rig_folder, folder)
+    ypath = folder / "dataset.yaml"
+    ypath.write_text(edit(ypath.read_text()))
+    with pytest.raises(DatasetError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_rig(folder)
+
+
+def test_the_rig_corner_factors_jacobians_match_finite_differences():
+    cam, board = default_camera(), default_board()
+    X = board.inner_corners()
+    T_rs = T_exp(np.array([0.05, -0.1, 0.02, 0.2, 0.01, -0.03]))
+    T_rb = T_exp(np.array([0.1, 0.2, -0.05, -0.3, 0.1, 3.0]))
+    T_sb = np.linalg.inv(T_rs) @ T_rb
+    px = cam.project(X @ T_sb[:3, :3].T + T_sb[:3, 3]) + 0.3
+    f = rig_corner_factor(1, 2, X, px, cam, gtsam.noiseModel.Unit.Create(px.size))
+    values = gtsam.Values()
+    values.insert(1, gtsam.Pose3(T_rs))
+    values.insert(2, gtsam.Pose3(T_rb))
+    A, _ = f.linearize(values).jacobian()
+    h, N = 1e-6, np.zeros_like(A)
+    for k in range(12):
+        d = np.zeros(6)
+        d[k % 6] = h
+        for sign in (1, -1):
+            v = gtsam.Values()
+            v.insert(1, gtsam.Pose3(T_rs @ T_exp(sign * d) if k < 6 else T_rs))
+            v.insert(2, gtsam.Pose3(T_rb @ T_exp(sign * d) if k >= 6 else T_rb))
+            N[:, k] += sign * f.unwhitenedError(v) / (2 * h)
+    np.testing.assert_allclose(A, N, atol=1e-6 * np.abs(N).max())
+
+
+def test_pair_transforms_and_a_change_of_reference_carry_the_covariance_to_first_order():
+    # Monte Carlo over the joint tangent of two poses against the first-order covariances (small spread: 1e-3).
+    rng = np.random.default_rng(5)
+    Ta, Tb = T_exp(np.array([0.3, -0.2, 0.1, 0.5, -0.2, 0.1])), T_exp(np.array([-0.1, 0.4, 0.2, -0.3, 0.8, 0.2]))
+    L = rng.normal(size=(12, 12)) * 1e-3
+    cov = L @ L.T
+    T_ab, C = pair_transform(Ta, Tb, cov)
+    xs = rng.multivariate_normal(np.zeros(12), cov, 4000)
+    d = np.array([T_log(np.linalg.inv(T_ab) @ np.linalg.inv(Ta @ T_exp(x[:6])) @ Tb @ T_exp(x[6:])) for x in xs])
+    np.testing.assert_allclose(np.cov(d.T), C, atol=0.08 * np.abs(C).max())
+    T_new, C_new = change_reference(("a", "b"), {"a": Ta, "b": Tb}, cov, "a")
+    np.testing.assert_allclose(T_new["b"], T_ab, atol=1e-12)
+    np.testing.assert_allclose(C_new[6:, 6:], C, atol=1e-15)
+    assert np.all(C_new[:6] == 0) and np.all(C_new[:, :6] == 0)
+
+
+def test_a_sensor_with_no_path_to_the_reference_is_an_error_that_names_it():
+    names = ("cam0", "cam1", "lidar0")
+    with pytest.raises(DegenerateLayoutError, match="cam1"):
+        spanning_tree(names, "cam0", {("cam0", "lidar0"): 10, ("cam0", "cam1"): 0, ("cam1", "lidar0"): 0})
+    parent = spanning_tree(names, "cam0", {("cam0", "lidar0"): 10, ("cam0", "cam1"): 2, ("cam1", "lidar0"): 8})
+    assert parent == {"cam0": None, "lidar0": "cam0", "cam1": "lidar0"}  # the links sharing the most frames
+
+
+def test_a_symmetric_checkerboards_numbering_flip_maps_corners_onto_reversed_corners():
+    board = default_board()  # 9 x 7 squares: the pattern looks the same turned by 180 degrees
+    flip = pattern_flip(board)
+    X = board.inner_corners()
+    np.testing.assert_allclose((X @ flip[:3, :3].T + flip[:3, 3])[::-1], X, atol=1e-12)
+
+
+def test_a_simulated_rig_against_its_ground_truth(rig_folder, rig_result):
+    # Three cameras (two see only some frames) and an HDL-64E-like LiDAR, 10 frames: every pair within 0.1 deg and
+    # 3 mm of the truth and its d2 under its covariance below the chi-square's 99.9% point (22.5 on 6 dof); loops
+    # close exactly; the joint graph is at least as sure as each camera-LiDAR pair alone.
+    sol = rig_result.solution
+    for a, b in rig_result.pairs():
+        T, C = sol.transform(a, b)
+        xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, a, b))
+        assert np.degrees(np.linalg.norm(xi[:3])) < 0.1 and 1000 * np.linalg.norm(xi[3:]) < 3.0, (a, b, xi)
+        assert xi @ np.linalg.solve(C, xi) < 22.5, (a, b)
+    T01, _ = sol.transform("cam0", "cam1")
+    T1l, _ = sol.transform("cam1", "lidar0")
+    T0l, _ = sol.transform("cam0", "lidar0")
+    np.testing.assert_allclose(T01 @ T1l, T0l, atol=1e-12)
+    for (c, lidar), (_, C_pair, _) in rig_result.pairwise.items():
+        _, C = sol.transform(c, lidar)
+        assert np.trace(C[3:, 3:]) <= 1.05 * np.trace(C_pair[3:, 3:]), c
+
+
+def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path):
+    out = tmp_path / "cal"
+    run = subprocess.run([sys.executable, "-m", "estimators", "calibrate", str(rig_folder), "--out", str(out)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert "T_cam2_lidar0" in run.stdout
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["rig"] and cal["reference"] == "cam0" and [s["name"] for s in cal["sensors"]][-1] == "lidar0"
+    assert set(cal["transforms"]) == {"T_cam0_lidar0", "T_cam1_lidar0", "T_cam2_lidar0", "T_cam0_cam1",
+                                      "T_cam0_cam2", "T_cam1_cam2"}
+    assert np.array(cal["covariance_joint"]).shape == (24, 24)
+
+
+def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
+    import shutil
+
+    folder = tmp_path / "rig"
+    shutil.copytree(rig_folder, folder)
+    ypath = folder / "dataset.yaml"
+    ypath.write_text(ypath.read_text().replace("reference: cam0", "reference: lidar0"))
+    sol = calibrate_rig(load_rig(folder), np.random.default_rng(0)).solution
+    assert sol.reference == "lidar0" and np.allclose(sol.T_ref["lidar0"], np.eye(4))
+    T, C = sol.transform("cam1", "lidar0")
+    T_cam, C_cam = rig_result.solution.transform("cam1", "lidar0")
+    np.testing.assert_allclose(T, T_cam, atol=1e-6)
+    np.testing.assert_allclose(C, C_cam, rtol=0.02, atol=1e-12)
