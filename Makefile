@@ -44,6 +44,7 @@ bench: $(STAMP)
 	$(RECORD) board_edges -- $(PY) benchmarks/bench_board_edges.py --posterior 40
 	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
+	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
 	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py

@@ -186,7 +186,29 @@ def _medoid_relative(rels: list[np.ndarray]) -> np.ndarray:
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigResult:
-    """Measure and solve a rig (module docstring)."""
+    """Measure and solve a rig in one graph (module docstring).
+
+    Parameters
+    ----------
+    rig : RigDataset
+        From :func:`~estimators.io.rig_dataset.load_rig`.
+    rng : numpy.random.Generator
+        Seeds the LiDAR board segmentation's random draws.
+    workers : int
+        Threads for the image and sweep work.
+
+    Returns
+    -------
+    RigResult
+        The joint solution (every sensor's pose in the reference's frame and their joint covariance; any pair's
+        transform by ``result.solution.transform(a, b)``), the pairwise-only estimates, the frames used and
+        skipped, and the warnings.
+
+    Raises
+    ------
+    DegenerateLayoutError
+        A sensor with no path to the reference (named), or a graph whose information is singular.
+    """
     t0 = time.perf_counter()
     warnings: list[str] = []
     cameras, poses, skipped = {}, {}, {}
@@ -293,7 +315,20 @@ def _relative(a: str, b: str, poses, pairwise, rig) -> np.ndarray:
 
 
 def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
-    """``calibration.json`` of a rig, written atomically into ``out``."""
+    """Write a rig's ``calibration.json`` atomically.
+
+    Parameters
+    ----------
+    result : RigResult
+        From :func:`calibrate_rig`.
+    out : str or Path
+        The output folder (created when absent).
+
+    Returns
+    -------
+    Path
+        The file written (docs/reference/calibration_json.md, rigs).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "calibration.json"

@@ -121,6 +121,16 @@ def _sensor_files(folder: Path, suffixes: tuple[str, ...], ypath: Path) -> tuple
 def load_rig(path: str | os.PathLike) -> RigDataset:
     """Read a rig folder's ``dataset.yaml`` and list each sensor's files (module docstring).
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The rig folder: ``dataset.yaml`` with ``sensors:`` and a folder of files per sensor.
+
+    Returns
+    -------
+    RigDataset
+        The board, the sensors (each with its files by stem) and the reference sensor's name.
+
     Raises
     ------
     DatasetError

@@ -52,9 +52,29 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
                  overwrite: bool = False) -> Path:
-    """Simulate a rig of ``cameras`` pinhole cameras and one 3D LiDAR and write its folder atomically: the
-    sensors ``cam0..camN-1`` and ``lidar0``, reference ``cam0``, and ``ground_truth.json`` with every sensor's
-    ``T_cam0_<sensor>`` (module docstring)."""
+    """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
+
+    Parameters
+    ----------
+    out : str or Path
+        The rig folder to write: sensors ``cam0..camN-1`` and ``lidar0``, reference ``cam0``.
+    n_poses : int
+        Board poses (frames), sampled in the first camera's view.
+    seed : int
+        Seed of the rig, the poses and the noise.
+    cameras : int
+        Cameras (2 or more).
+    lidar : str
+        ``hdl64e``, ``vlp16`` or ``os64``.
+    overwrite : bool
+        Replace an existing folder.
+
+    Returns
+    -------
+    Path
+        The folder; its ``ground_truth.json`` holds every sensor's ``T_cam0_<sensor>`` and the frames each
+        camera saw.
+    """
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, 0.02)
     extra = _extra_cameras(cameras, rng)
