@@ -162,3 +162,26 @@ def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
     T_cam, C_cam = rig_result.solution.transform("cam1", "lidar0")
     np.testing.assert_allclose(T, T_cam, atol=1e-6)
     np.testing.assert_allclose(C, C_cam, rtol=0.02, atol=1e-12)
+
+
+def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
+    import xml.etree.ElementTree as ET
+
+    from estimators.errors import LidarcamError
+    from estimators.io.export import export_calibration
+    from estimators.rig_calibration import write_rig_calibration
+    from geometry.rotations import R_from_quat_xyzw
+
+    path = write_rig_calibration(rig_result, tmp_path)
+    tf = export_calibration(path, "ros-tf")
+    ros1 = [line.split() for line in tf.splitlines() if line.startswith("rosrun")]
+    assert [r[-1] for r in ros1] == ["cam1", "cam2", "lidar0"] and all(r[-2] == "cam0" for r in ros1)
+    x = np.array(ros1[-1][3:10], dtype=float)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_from_quat_xyzw(x[3:]), x[:3]
+    np.testing.assert_allclose(T, rig_result.solution.T_ref["lidar0"], atol=1e-8)
+    joints = ET.fromstring(export_calibration(path, "urdf")).findall("joint")
+    assert [j.find("child").get("link") for j in joints] == ["cam1", "cam2", "lidar0"]
+    assert "camera_matrix" in export_calibration(path, "opencv-yaml")
+    with pytest.raises(LidarcamError, match="one camera-LiDAR pair"):
+        export_calibration(path, "kitti")

@@ -65,6 +65,14 @@ def load_calibration(path: str | os.PathLike) -> dict:
         path = path / "calibration.json"
     data = load_json(path, "calibration file", "give the calibration.json written by lidarcam calibrate",
                      LidarcamError)
+    if isinstance(data, dict) and data.get("rig") is True:
+        try:
+            for s in data["sensors"]:
+                _check_rigid(np.asarray(s[f"T_{data['reference']}_{s['name']}"], dtype=float))
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
+            raise LidarcamError(f"malformed rig calibration ({exc})", path=path,
+                                hint="give the calibration.json written by lidarcam calibrate") from None
+        return data
     if not isinstance(data, dict) or "T_camera_lidar" not in data:
         raise LidarcamError("no T_camera_lidar in the file", path=path,
                             hint="give the calibration.json written by lidarcam calibrate")
@@ -154,6 +162,8 @@ def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lida
         raise LidarcamError(f"frame names must be distinct and without spaces, got camera {camera_frame!r} and "
                             f"lidar {lidar_frame!r}", hint="set --camera-frame and --lidar-frame")
     cal = _as_calibration(calibration)
+    if cal.get("rig") is True:
+        return _rig_export(cal, fmt)
     try:
         T = _check_rigid(np.asarray(cal["T_camera_lidar"], dtype=float))
     except (ValueError, TypeError, KeyError) as exc:
@@ -184,6 +194,59 @@ def write_export(calibration, fmt: str, path: str | os.PathLike, **frames) -> Pa
     """
     text = export_calibration(calibration, fmt, **frames)
     return write_atomic(path, lambda fh: fh.write(text))
+
+
+def _rig_export(cal: dict, fmt: str) -> str:
+    """A rig's tree: every sensor a child of the reference sensor (frames named as the sensors), for ROS tf
+    (one static transform per sensor), URDF (a fixed joint per sensor), OpenCV YAML (per camera its intrinsics
+    and its transform to every LiDAR) or JSON; KITTI holds one camera-LiDAR pair and is refused."""
+    ref = cal["reference"]
+    origin = f"lidarcam {cal.get('version', '?')} rig calibration (reference {ref})"
+    poses = {s["name"]: _check_rigid(np.asarray(s[f"T_{ref}_{s['name']}"], dtype=float))
+             for s in cal["sensors"] if s["name"] != ref}
+    if fmt == "kitti":
+        raise LidarcamError("KITTI's calib file holds one camera-LiDAR pair, not a rig",
+                            hint="export ros-tf, urdf, opencv-yaml or json, or take a pair from 'transforms'")
+    if fmt == "ros-tf":
+        lines = [f"# {origin}", f"# Each sensor's pose in '{ref}': p_{ref} = R p_sensor + t; arguments x y z (m), "
+                 "qx qy qz qw, parent, child.", "# ROS 1:"]
+        lines += [f"rosrun tf2_ros static_transform_publisher {_nums(T[:3, 3])} {_nums(quat_xyzw_from_R(T[:3, :3]))} "
+                  f"{ref} {n}" for n, T in poses.items()]
+        lines.append("# ROS 2 (Humble and later, named arguments):")
+        for n, T in poses.items():
+            t, q = T[:3, 3], quat_xyzw_from_R(T[:3, :3])
+            lines.append(f"ros2 run tf2_ros static_transform_publisher --x {_num(t[0])} --y {_num(t[1])} "
+                         f"--z {_num(t[2])} --qx {_num(q[0])} --qy {_num(q[1])} --qz {_num(q[2])} --qw {_num(q[3])} "
+                         f"--frame-id {ref} --child-frame-id {n}")
+        return "\n".join(lines) + "\n"
+    if fmt == "urdf":
+        lines = ['<?xml version="1.0"?>', f"<!-- {origin}. Each joint origin is the sensor's pose in '{ref}'; rpy "
+                 "are fixed-axis roll, pitch, yaw in radians: R = Rz(yaw) Ry(pitch) Rx(roll). -->",
+                 '<robot name="lidarcam_rig">', f'  <link name="{ref}"/>']
+        for n, T in poses.items():
+            lines += [f'  <link name="{n}"/>', f'  <joint name="{ref}_to_{n}" type="fixed">',
+                      f'    <parent link="{ref}"/>', f'    <child link="{n}"/>',
+                      f'    <origin xyz="{_nums(T[:3, 3])}" rpy="{_nums(rpy_from_R(T[:3, :3]))}"/>', "  </joint>"]
+        return "\n".join(lines + ["</robot>", ""])
+    if fmt == "opencv-yaml":
+        fs = cv2.FileStorage("export.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+        fs.write("source", origin)
+        fs.write("direction", "T_a_b maps b's points into a's frame: p_a = R p_b + t (metres)")
+        for name, intr in cal.get("cameras", {}).items():
+            fs.startWriteStruct(name, cv2.FileNode_MAP)
+            fs.write("camera_model", str(intr["model"]))
+            fs.write("image_width", int(intr["width"]))
+            fs.write("image_height", int(intr["height"]))
+            fs.write("camera_matrix", np.asarray(intr["K"], dtype=float))
+            fs.write("distortion_coefficients", np.asarray(intr["dist"], dtype=float).reshape(1, -1))
+            for key, tr in cal.get("transforms", {}).items():
+                if key.startswith(f"T_{name}_"):
+                    fs.write(key, np.asarray(tr["T"], dtype=float))
+            fs.endWriteStruct()
+        return fs.releaseAndGetString()
+    out = dict(cal)
+    out["direction"] = "T_a_b maps b's points into a's frame: p_a = R p_b + t (metres)"
+    return json.dumps(out, indent=1) + "\n"
 
 
 def _ros_tf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:

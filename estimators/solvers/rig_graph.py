@@ -212,7 +212,12 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     for _ in range(3):
         graph = _graph(names, cameras, lidars, stems, scale, inner)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        values = opt.optimize()
+        try:
+            values = opt.optimize()
+        except RuntimeError as exc:  # an indeterminate system: a pose no factor fixes
+            raise DegenerateLayoutError("the rig's graph cannot be solved: a sensor or board pose is not fixed by "
+                                        "any frame", hint="check that every sensor shares frames with a camera that "
+                                                          "saw the board") from exc
         iterations += opt.iterations()
         stats = _chi2(names, cameras, lidars, stems, values, inner)
         new = {n: (max(1.0, ss / dof) if chi2.sf(ss, dof) < 0.01 else 1.0) for n, (ss, dof) in stats.items()}
