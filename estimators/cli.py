@@ -438,6 +438,11 @@ def _calibrate_rig(args) -> int:
     path = write_rig_calibration(result, args.out)
     _print_rig(result)
     print(f"wrote {path}")
+    if not args.no_report:
+        from .analysis.rig_report import write_rig_report
+
+        print(f"wrote {write_rig_report(result, args.out)}")
+    print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
     return 0
 
 

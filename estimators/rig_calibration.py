@@ -53,6 +53,8 @@ class RigResult:
     skipped: dict
     warnings: tuple[str, ...]
     timings_s: dict
+    # Each camera-LiDAR pair's measured frames (``(camera, lidar) -> [FrameMeasurement]``), for the report.
+    pair_frames: dict | None = None
 
     def pairs(self) -> list[tuple[str, str]]:
         """Every camera-LiDAR pair and every camera-camera pair (earlier camera first), in sensor order."""
@@ -222,7 +224,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
     # Each LiDAR with each camera that shares enough frames: its boards chosen with that camera, the pair solved.
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     sigma_r: dict = {}
-    pairwise, links = {}, {}
+    pairwise, links, pair_frames = {}, {}, {}
     for lid in rig.lidars:
         skipped[lid.name] = {}
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
@@ -245,6 +247,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
                 warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
             pairwise[(cam.name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
+            pair_frames[(cam.name, lid.name)] = usable
             links[(cam.name, lid.name)] = len(usable)
             for f in usable:
                 lidar_obs[lid.name].setdefault(f.name, f.lidar)
@@ -279,7 +282,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
     timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": time.perf_counter() - t_pairs}
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
-                     {k: round(v, 3) for k, v in timings.items()})
+                     {k: round(v, 3) for k, v in timings.items()}, pair_frames)
 
 
 @dataclass(frozen=True, eq=False)

@@ -147,6 +147,10 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert set(cal["transforms"]) == {"T_cam0_lidar0", "T_cam1_lidar0", "T_cam2_lidar0", "T_cam0_cam1",
                                       "T_cam0_cam2", "T_cam1_cam2"}
     assert np.array(cal["covariance_joint"]).shape == (24, 24)
+    page = (out / "report.html").read_text()
+    assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
+    shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
+    assert shown and all(name in page for name in shown)
 
 
 def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):

@@ -421,8 +421,12 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
     for name, title, png in figures:
         data = base64.b64encode(png).decode("ascii")
         parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
-    page = ("<!doctype html><html><head><meta charset='utf-8'><title>lidarcam report</title><style>"
+    return html_page("lidarcam report", parts)
+
+
+def html_page(title: str, parts: list[str]) -> str:
+    """A self-contained report page of HTML ``parts`` (the figures embedded)."""
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>"
             "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
             "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}img{max-width:100%}</style></head><body>"
             + "".join(parts) + "</body></html>")
-    return page

@@ -1,0 +1,69 @@
+"""A rig's report: every sensor and every pair from the joint graph beside each camera-LiDAR pair alone, the
+warnings, and each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image
+under the joint estimate (the single pair's overlay, ``analysis.report.projection_figure``)."""
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from geometry.rotations import T_log
+
+from ..io.output import write_atomic
+from .report import _table, html_page, projection_figure
+
+
+def _pair_rows(result) -> list[list[str]]:
+    sol, rows = result.solution, []
+    for a, b in result.pairs():
+        T, C = sol.transform(a, b)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        row = [f"T_{a}_{b}", ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]),
+               ", ".join(f"{1000 * v:.2f}" for v in sd[3:]), ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3])]
+        if (a, b) in result.pairwise:
+            Tp, Cp, n = result.pairwise[(a, b)]
+            xi = T_log(np.linalg.inv(T) @ Tp)
+            sdp = np.sqrt(np.maximum(np.diag(Cp), 0.0))
+            row += [str(n), f"{np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm",
+                    ", ".join(f"{1000 * v:.2f}" for v in sdp[3:])]
+        else:
+            row += ["-", "-", "-"]
+        rows.append(row)
+    return rows
+
+
+def write_rig_report(result, out_dir: str | Path) -> Path:
+    """Write ``OUT/report.html`` for a rig (module docstring) and its overlays (``projection_<camera>_<lidar>_
+    <frame>.png``), each file atomically."""
+    sol = result.solution
+    parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
+             f"{html.escape(sol.reference)}; one graph, Laplace covariance.</p>"]
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
+    parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
+    rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
+             f"{sol.noise_scale.get(s.name, 1.0):.2f}"] for s in result.rig.sensors]
+    parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale"]))
+    parts.append("<h2>Every pair</h2><p>From the joint graph: the translation (mm, in the first sensor's frame) "
+                 "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
+                 "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
+                 "standard deviations.</p>"
+                 + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
+                                               "pair alone: away", "pair alone: t sd [mm]"]))
+    skipped = [[n, st, why] for n, d in result.skipped.items() for st, why in sorted(d.items())]
+    if skipped:
+        parts.append("<h2>Frames skipped</h2>" + _table(skipped, ["sensor", "frame", "why"]))
+    out = Path(out_dir)
+    for (cam, lidar), frames in (result.pair_frames or {}).items():
+        T, _ = sol.transform(cam, lidar)
+        view = SimpleNamespace(camera=result.cameras[cam], T_camera_lidar=T)
+        c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
+        parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
+                     "image (joint estimate)</h2>")
+        for f in frames:
+            png, _ = projection_figure(view, f, result.rig.board, c.file(f.name), lid.file(f.name))
+            name = f"projection_{cam}_{lidar}_{f.name}.png"
+            write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+            parts.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
+    return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
