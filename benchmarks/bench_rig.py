@@ -1,8 +1,10 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--poses P]`).
 
-Each rig (`simulation.rig_simulator`): C pinhole cameras side by side and an HDL-64E-like LiDAR, P board poses
-sampled in the first camera's view; the other cameras see the frames whose board lies wholly in their image.
+Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
+camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
+5 a pinhole looking left, each with boards of its own (P/2, in its view and the LiDAR's). Every camera sees the
+frames whose board lies wholly in its image.
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
 the camera saw, and the mean squared Mahalanobis distance of the truth under each covariance (6 ideal). The

@@ -142,9 +142,13 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
     # of such a change (a margin for the squares' corners) are supersampled.
     T_camera_world = np.linalg.inv(T_world_camera)
     uv = camera.project(transform_points(T_camera_world, board_outline_world))
-    u_lo, v_lo = np.floor(np.nanmin(uv, axis=0)).astype(int) - 2
-    u_hi, v_hi = np.ceil(np.nanmax(uv, axis=0)).astype(int) + 2
-    u_lo, v_lo, u_hi, v_hi = max(u_lo, 0), max(v_lo, 0), min(u_hi, W - 1), min(v_hi, H - 1)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]  # a board behind the camera (a rig's other cameras) projects nowhere
+    if len(uv):
+        u_lo, v_lo = np.floor(uv.min(axis=0)).astype(int) - 2
+        u_hi, v_hi = np.ceil(uv.max(axis=0)).astype(int) + 2
+        u_lo, v_lo, u_hi, v_hi = max(u_lo, 0), max(v_lo, 0), min(u_hi, W - 1), min(v_hi, H - 1)
+    else:
+        u_lo = v_lo = u_hi = v_hi = 0
     if u_hi > u_lo and v_hi > v_lo:
         box = (slice(v_lo, v_hi + 1), slice(u_lo, u_hi + 1))
         r_box, w_box = refl[box], which[box]

@@ -2,12 +2,16 @@
 (``io.rig_dataset``) with the ground truth of every sensor.
 
 The first camera and the LiDAR are the pair simulator's (``simulator.iter_frames``: its boards, scene and
-noise); every further camera is rendered of the same scene from its own pose, and sees a frame only when the
-whole board lies in its image (else it has no file for that frame, as a camera that did not see the board).
+noise). Further cameras, in this order: two pinhole cameras beside the first, turned 5-15 degrees (their views
+overlap the first's); a fisheye looking backwards; a fisheye looking right; a pinhole looking left. A camera
+whose view does not overlap the first's gets boards of its own, sampled in its view (and the LiDAR's), so that it
+shares frames with the LiDAR only. Every camera is rendered of the same scene from its own pose and sees a frame
+only when the whole board lies in its image (else it has no file for that frame).
 """
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -24,19 +28,31 @@ from .scene import cast_background
 from .simulator import default_rig, default_room, iter_frames, rotated_patches, sample_board_poses, scene_patches
 
 
-def _extra_cameras(n: int, rng: np.random.Generator) -> list[tuple[str, CameraModel, np.ndarray]]:
-    """Cameras after the first: each 0.15-0.35 m beside it (alternately right and left), turned 5-15 degrees
-    away about its y axis, with intrinsics a little unlike the first's (``T_cam0_camk``)."""
+def _fisheye(f: float) -> CameraModel:
+    return CameraModel(np.array([[f, 0.0, 512.0], [0.0, f, 400.0], [0.0, 0.0, 1.0]]),
+                       np.array([0.02, -0.005, 0.001, -0.0005]), 1024, 800, "fisheye")
+
+
+def _extra_cameras(n: int, rng: np.random.Generator) -> list[tuple[str, CameraModel, np.ndarray, bool]]:
+    """Cameras after the first (module docstring): ``(name, model, T_cam0_camk, overlaps the first's view)``."""
     out = []
     base = default_rig(np.random.default_rng(0)).camera
     for k in range(1, n):
-        side = 1.0 if k % 2 else -1.0
-        t = np.array([side * rng.uniform(0.15, 0.35), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)])
-        R = R_from_rotvec(np.array([0.0, side * np.deg2rad(rng.uniform(5.0, 15.0)), 0.0]))
-        f = base.K[0, 0] * rng.uniform(0.9, 1.1)
-        K = np.array([[f, 0.0, base.width / 2 + rng.uniform(-10, 10)], [0.0, f, base.height / 2 + rng.uniform(-10, 10)],
-                      [0.0, 0.0, 1.0]])
-        out.append((f"cam{k}", CameraModel(K, base.dist.copy(), base.width, base.height, base.model), T_from_Rt(R, t)))
+        if k <= 2:
+            side = 1.0 if k % 2 else -1.0
+            t = np.array([side * rng.uniform(0.15, 0.35), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)])
+            yaw = side * np.deg2rad(rng.uniform(5.0, 15.0))
+            f = base.K[0, 0] * rng.uniform(0.9, 1.1)
+            K = np.array([[f, 0.0, base.width / 2 + rng.uniform(-10, 10)],
+                          [0.0, f, base.height / 2 + rng.uniform(-10, 10)], [0.0, 0.0, 1.0]])
+            cam, overlaps = CameraModel(K, base.dist.copy(), base.width, base.height, base.model), True
+        else:  # backwards, right, left: the first's view not shared
+            yaw = {3: np.pi, 4: np.pi / 2, 5: -np.pi / 2}[(k - 3) % 3 + 3] + np.deg2rad(rng.uniform(-5.0, 5.0))
+            t = np.array([np.sin(yaw), 0.0, np.cos(yaw)]) * 0.15 + rng.uniform(-0.03, 0.03, 3)
+            cam = _fisheye(rng.uniform(330.0, 370.0)) if k in (3, 4) else base
+            overlaps = False
+        R = R_from_rotvec(np.array([0.0, yaw, 0.0]))
+        out.append((f"cam{k}", cam, T_from_Rt(R, t), overlaps))
     return out
 
 
@@ -79,31 +95,37 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     rig = default_rig(rng, lidar, 0.02)
     extra = _extra_cameras(cameras, rng)
     poses = sample_board_poses(rig, n_poses, rng)
+    for _, cam, T_c0_ck, overlaps in extra:
+        if not overlaps:  # boards of its own, in its view and the LiDAR's
+            own = replace(rig, camera=cam, T_camera_lidar=T_inverse(T_c0_ck) @ rig.T_camera_lidar)
+            poses += [T_c0_ck @ T for T in sample_board_poses(own, max(3, n_poses // 2), rng)]
     T_lidar_cam0 = T_inverse(rig.T_camera_lidar)
     static = rotated_patches(default_room(-rig.lidar_height_m), rig.level.T)
     backgrounds = {}
-    for name, cam, T_c0_ck in extra:
+    for name, cam, T_c0_ck, _ in extra:
         T_lidar_ck = T_lidar_cam0 @ T_c0_ck
         backgrounds[name] = cast_background(T_lidar_ck[:3, 3], pixel_rays(cam, T_lidar_ck), static)
     spec = dataset_spec("3d", rig.board, rig.camera)
     sensors = [{"name": "cam0", "type": "camera", **spec["camera"]}]
     sensors += [{"name": n, "type": "camera", "model": c.model, "width": c.width, "height": c.height,
-                 "K": c.K.tolist(), "dist": c.dist.tolist()} for n, c, _ in extra]
+                 "K": c.K.tolist(), "dist": c.dist.tolist()} for n, c, _, _ in extra]
     sensors.append({"name": "lidar0", "type": "lidar", "lidar": "3d"})
     truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist()}
-    truth.update({f"T_cam0_{n}": T.tolist() for n, _, T in extra})
+    truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_dataset_yaml(tmp, {"board": spec["board"], "sensors": sensors, "reference": "cam0"},
                            "simulated rig by lidarcam; ground_truth.json is for evaluation only")
-        for name in ["cam0", "lidar0"] + [n for n, _, _ in extra]:
+        for name in ["cam0", "lidar0"] + [n for n, _, _, _ in extra]:
             (tmp / name).mkdir()
-        seen = {n: [] for n, _, _ in extra}
-        for f in iter_frames(rig, n_poses, rng, poses, workers=1):
-            cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
+        seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
+        for f in iter_frames(rig, len(poses), rng, poses, workers=1):
+            if _sees_board(rig.camera, f.T_camera_board, rig.board):
+                cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
+                seen["cam0"].append(f.name)
             write_scan(tmp / "lidar0" / f"{f.name}.pcd", f.points, f.intensity, f.ring)
             T_lidar_board = T_lidar_cam0 @ f.T_camera_board
             patches, bi = scene_patches(rig, T_lidar_board, static)
-            for name, cam, T_c0_ck in extra:
+            for name, cam, T_c0_ck, _ in extra:
                 T_ck_board = T_inverse(T_c0_ck) @ f.T_camera_board
                 if not _sees_board(cam, T_ck_board, rig.board):
                     continue
@@ -113,7 +135,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
                                      background=backgrounds[name])
                 cv2.imwrite(str(tmp / name / f"{f.name}.png"), add_pixel_noise(clean, rng, rig.pixel_noise))
                 seen[name].append(f.name)
-        truth["frames_seen"] = {"cam0": [f"{k:04d}" for k in range(len(poses))], **seen}
+        truth["frames_seen"] = seen
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
     return Path(out)
 
