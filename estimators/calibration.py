@@ -407,32 +407,34 @@ def _detect(frame, board, timings) -> tuple[tuple[int, int] | None, CornerDetect
 
 
 def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
-                   timings: dict | None = None, workers: int = 2, hints: Hints = Hints()
-                   ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                   timings: dict | None = None, workers: int = 2, hints: Hints = Hints(),
+                   detections: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason.
 
     3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
     candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
-    board segment, with the other scans as the static background."""
+    board segment, with the other scans as the static background. ``detections``: the images' corners already
+    found (frame name -> what ``_detect`` returns; a rig's cameras are searched once)."""
     # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
     # (their own pools on top of ours would oversubscribe the cores).
     with threadpool_limits(1 if workers > 1 else None):
-        return _measure_frames(dataset, rng, params, timings, workers, hints)
+        return _measure_frames(dataset, rng, params, timings, workers, hints, detections)
 
 
 def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
-                    workers: int, hints: Hints) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                    workers: int, hints: Hints, detections: dict | None = None
+                    ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     timings = {} if timings is None else timings
     with ThreadPoolExecutor(max_workers=1) as ahead:
         # A 3D dataset's sweeps are read and its static scene built (they need no camera) while the images
         # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
         # stage that keeps one core idle.
         sweeps = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
-        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps)
+        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections)
 
 
 def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
-                         workers: int, hints: Hints, sweeps_ahead
+                         workers: int, hints: Hints, sweeps_ahead, found: dict | None = None
                          ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     """:func:`_measure_frames` given the future of :func:`_sweeps_and_scene` (None for a 2D dataset)."""
     warnings: list[str] = []
@@ -440,7 +442,8 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
     try:
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            detections = list(pool.map(lambda f: _detect(f, dataset.board, timings), dataset.frames))
+            detections = list(pool.map(lambda f: found[f.name] if found and f.name in found else
+                                       _detect(f, dataset.board, timings), dataset.frames))
     finally:
         cv2.setNumThreads(cv_threads)
     camera = dataset.camera

@@ -92,9 +92,9 @@ class RigResult:
                               "sensors (the reference's block is zero)."}
 
 
-def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str]]:
-    """One camera's board poses by stem, the frames skipped with their reasons, and its intrinsics (calibrated
-    from its frames when the rig's dataset.yaml gives none)."""
+def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str], dict]:
+    """One camera's board poses by stem, the frames skipped with their reasons, its intrinsics (calibrated from
+    its frames when the rig's dataset.yaml gives none) and its images' corners by stem (for the pairs)."""
     warnings: list[str] = []
     frames = [FrameFiles(stem, path, path) for stem, path in sensor.files]
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -124,7 +124,7 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
                 poses[f.name] = estimate_board_pose(det, board, camera)
             except LidarcamError as exc:
                 skipped[f.name] = f"board pose: {exc.message}"
-    return camera, poses, skipped, warnings
+    return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}
 
 
 def _camera_views(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
@@ -213,9 +213,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
     """
     t0 = time.perf_counter()
     warnings: list[str] = []
-    cameras, poses, skipped = {}, {}, {}
+    cameras, poses, skipped, found = {}, {}, {}, {}
     for s in rig.cameras:
-        cameras[s.name], poses[s.name], skipped[s.name], w = measure_camera(s, rig.board, workers)
+        cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
         warnings.extend(w)
     flip = pattern_flip(rig.board)
     if flip is not None:
@@ -232,7 +232,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
             if sum(1 for st in poses[cam.name] if lid.file(st) is not None) < MIN_PAIR_FRAMES:
                 continue
             ds = rig.pair(cam.name, lid.name, cameras[cam.name])
-            _, frames, w = measure_frames(ds, rng, workers=workers)
+            _, frames, w = measure_frames(ds, rng, workers=workers, detections=found[cam.name])
             warnings.extend(f"{cam.name}-{lid.name}: {x}" for x in w)
             usable = [f for f in frames if f.usable]
             for f in frames:
