@@ -94,7 +94,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--no-ring", action="store_true", help="write clouds without a ring field")
     s.add_argument("--cameras", type=int, default=1, metavar="N",
                    help="2 or more: a rig folder (sensors cam0..camN-1 and lidar0, docs/howto/rig.md) whose cameras "
-                        "sit beside each other, each seeing the frames whose board lies wholly in its image")
+                        "sit beside each other (the fourth and later look backwards, right, left), each seeing the "
+                        "frames whose board lies wholly in its image")
+    s.add_argument("--lidars", type=int, default=1, metavar="N",
+                   help="with --cameras: 2 adds a second LiDAR (lidar1, VLP-16-like, to the first's left)")
     s.add_argument("--rig", default="default", choices=["default", "varied", "mounted"],
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
@@ -710,8 +713,10 @@ def _simulate(args) -> int:
             raise SystemExit("lidarcam: error: --cameras N (2 or more) writes a rig folder with a 3D LiDAR")
         from .simulation.rig_simulator import simulate_rig
 
-        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite)
-        print(f"wrote a rig of {args.cameras} cameras and a {args.model} ({args.poses} frames) to {out}")
+        if args.lidars not in (1, 2):
+            raise SystemExit("lidarcam: error: --lidars is 1 or 2")
+        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars)
+        print(f"wrote a rig of {args.cameras} cameras and {args.lidars} LiDAR(s) ({args.poses} frames) to {out}")
         return 0
     two_d = args.lidar == "2d"
     fmt = args.scan_format or ("csv" if two_d else "pcd")

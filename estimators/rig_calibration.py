@@ -57,10 +57,12 @@ class RigResult:
     pair_frames: dict | None = None
 
     def pairs(self) -> list[tuple[str, str]]:
-        """Every camera-LiDAR pair and every camera-camera pair (earlier camera first), in sensor order."""
-        cams = [s.name for s in self.rig.cameras]
-        out = [(c, lid.name) for c in cams for lid in self.rig.lidars]
+        """Every camera-LiDAR pair, every camera-camera and every LiDAR-LiDAR pair (earlier sensor first), in
+        sensor order."""
+        cams, lidars = [s.name for s in self.rig.cameras], [s.name for s in self.rig.lidars]
+        out = [(c, lid) for c in cams for lid in lidars]
         out += [(a, b) for i, a in enumerate(cams) for b in cams[i + 1:]]
+        out += [(a, b) for i, a in enumerate(lidars) for b in lidars[i + 1:]]
         return out
 
     def to_json(self) -> dict:

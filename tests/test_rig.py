@@ -20,7 +20,7 @@ from geometry.rotations import T_exp, T_log
 
 @pytest.fixture(scope="module")
 def rig_folder(tmp_path_factory):
-    return simulate_rig(tmp_path_factory.mktemp("rig") / "rig", n_poses=10, seed=2, cameras=3)
+    return simulate_rig(tmp_path_factory.mktemp("rig") / "rig", n_poses=10, seed=2, cameras=3, lidars=2)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def _truth(folder, a, b):
 def test_the_rig_folder_lists_each_sensors_files_and_a_missing_file_means_not_seen(rig_folder):
     rig = load_rig(rig_folder)
     assert is_rig(rig_folder)
-    assert [s.name for s in rig.sensors] == ["cam0", "cam1", "cam2", "lidar0"] and rig.reference == "cam0"
+    assert [s.name for s in rig.sensors] == ["cam0", "cam1", "cam2", "lidar0", "lidar1"] and rig.reference == "cam0"
     seen = json.loads((rig_folder / "ground_truth.json").read_text())["frames_seen"]
     for s in rig.cameras:
         assert list(s.stems) == seen[s.name]
@@ -118,14 +118,14 @@ def test_a_symmetric_checkerboards_numbering_flip_maps_corners_onto_reversed_cor
 
 
 def test_a_simulated_rig_against_its_ground_truth(rig_folder, rig_result):
-    # Three cameras (two see only some frames) and an HDL-64E-like LiDAR, 10 frames: every pair within 0.1 deg and
-    # 3 mm of the truth and its d2 under its covariance below the chi-square's 99.9% point (22.5 on 6 dof); loops
+    # Three cameras (two see only some frames), an HDL-64E-like and a VLP-16-like LiDAR, 10 frames: every pair
+    # within 0.2 deg and 10 mm of the truth (the VLP-16's standard deviations are 2-3 mm) and its d2 under its covariance below the chi-square's 99.9% point (22.5 on 6 dof); loops
     # close exactly; the joint graph is at least as sure as each camera-LiDAR pair alone.
     sol = rig_result.solution
     for a, b in rig_result.pairs():
         T, C = sol.transform(a, b)
         xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, a, b))
-        assert np.degrees(np.linalg.norm(xi[:3])) < 0.1 and 1000 * np.linalg.norm(xi[3:]) < 3.0, (a, b, xi)
+        assert np.degrees(np.linalg.norm(xi[:3])) < 0.2 and 1000 * np.linalg.norm(xi[3:]) < 10.0, (a, b, xi)
         assert xi @ np.linalg.solve(C, xi) < 22.5, (a, b)
     T01, _ = sol.transform("cam0", "cam1")
     T1l, _ = sol.transform("cam1", "lidar0")
@@ -143,10 +143,10 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert run.returncode == 0, run.stderr
     assert "T_cam2_lidar0" in run.stdout
     cal = json.loads((out / "calibration.json").read_text())
-    assert cal["rig"] and cal["reference"] == "cam0" and [s["name"] for s in cal["sensors"]][-1] == "lidar0"
-    assert set(cal["transforms"]) == {"T_cam0_lidar0", "T_cam1_lidar0", "T_cam2_lidar0", "T_cam0_cam1",
-                                      "T_cam0_cam2", "T_cam1_cam2"}
-    assert np.array(cal["covariance_joint"]).shape == (24, 24)
+    assert cal["rig"] and cal["reference"] == "cam0" and [s["name"] for s in cal["sensors"]][-1] == "lidar1"
+    assert set(cal["transforms"]) == {f"T_cam{k}_lidar{j}" for k in range(3) for j in range(2)} | {
+        "T_cam0_cam1", "T_cam0_cam2", "T_cam1_cam2", "T_lidar0_lidar1"}
+    assert np.array(cal["covariance_joint"]).shape == (30, 30)
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
@@ -179,13 +179,13 @@ def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
     path = write_rig_calibration(rig_result, tmp_path)
     tf = export_calibration(path, "ros-tf")
     ros1 = [line.split() for line in tf.splitlines() if line.startswith("rosrun")]
-    assert [r[-1] for r in ros1] == ["cam1", "cam2", "lidar0"] and all(r[-2] == "cam0" for r in ros1)
-    x = np.array(ros1[-1][3:10], dtype=float)
+    assert [r[-1] for r in ros1] == ["cam1", "cam2", "lidar0", "lidar1"] and all(r[-2] == "cam0" for r in ros1)
+    x = np.array(ros1[-2][3:10], dtype=float)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R_from_quat_xyzw(x[3:]), x[:3]
     np.testing.assert_allclose(T, rig_result.solution.T_ref["lidar0"], atol=1e-8)
     joints = ET.fromstring(export_calibration(path, "urdf")).findall("joint")
-    assert [j.find("child").get("link") for j in joints] == ["cam1", "cam2", "lidar0"]
+    assert [j.find("child").get("link") for j in joints] == ["cam1", "cam2", "lidar0", "lidar1"]
     assert "camera_matrix" in export_calibration(path, "opencv-yaml")
     with pytest.raises(LidarcamError, match="one camera-LiDAR pair"):
         export_calibration(path, "kitti")

@@ -6,7 +6,9 @@ noise). Further cameras, in this order: two pinhole cameras beside the first, tu
 overlap the first's); a fisheye looking backwards; a fisheye looking right; a pinhole looking left. A camera
 whose view does not overlap the first's gets boards of its own, sampled in its view (and the LiDAR's), so that it
 shares frames with the LiDAR only. Every camera is rendered of the same scene from its own pose and sees a frame
-only when the whole board lies in its image (else it has no file for that frame).
+only when the whole board lies in its image (else it has no file for that frame). A second LiDAR (``lidars=2``,
+VLP-16-like, 0.4-0.6 m to the first's left and 0.1-0.3 m lower, turned 10-30 degrees to the left and tilted a few
+degrees) casts its own sweep of every frame's scene; it records every frame, as a running LiDAR does.
 """
 from __future__ import annotations
 
@@ -24,8 +26,9 @@ from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory
 from ..io.pointcloud_io import write_scan
 from .rendering import add_pixel_noise, pixel_rays, render_clean
-from .scene import cast_background
-from .simulator import default_rig, default_room, iter_frames, rotated_patches, sample_board_poses, scene_patches
+from .scene import cast, cast_background
+from .simulator import (BEAM_MODELS, default_rig, default_room, iter_frames, rotated_patches, sample_board_poses,
+                        scene_patches)
 
 
 def _fisheye(f: float) -> CameraModel:
@@ -56,6 +59,23 @@ def _extra_cameras(n: int, rng: np.random.Generator) -> list[tuple[str, CameraMo
     return out
 
 
+def _second_lidar(rng: np.random.Generator) -> np.ndarray:
+    """``T_lidar0_lidar1`` of the second LiDAR (module docstring)."""
+    yaw = np.deg2rad(rng.uniform(10.0, 30.0))
+    R = R_from_rotvec(np.array([0.0, 0.0, yaw])) @ R_from_rotvec(rng.normal(0.0, np.deg2rad(3.0), 3))
+    return T_from_Rt(R, np.array([rng.uniform(-0.1, 0.1), rng.uniform(0.4, 0.6), -rng.uniform(0.1, 0.3)]))
+
+
+def _sweep(beams, T_l0_l1: np.ndarray, patches, background, rng: np.random.Generator):
+    """The second LiDAR's noisy sweep of the scene ``patches`` (in the first LiDAR's frame): points in its own
+    frame, intensity, ring."""
+    dirs, ring = beams.directions()
+    ranges, _, refl = cast(T_l0_l1[:3, 3], background.dirs, patches, beams.max_range_m, background)
+    hit = np.isfinite(ranges)
+    r = ranges[hit] + rng.normal(0.0, beams.sigma_range_m, hit.sum())
+    return dirs[hit] * r[:, None], (refl[hit] * 100).astype(np.float32), ring[hit]
+
+
 def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
     pts = transform_points(T_camera_board, board.inner_corners())
     if np.any(pts[:, 2] <= 0.1):
@@ -67,7 +87,7 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
-                 overwrite: bool = False) -> Path:
+                 overwrite: bool = False, lidars: int = 1) -> Path:
     """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
 
     Parameters
@@ -81,9 +101,11 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     cameras : int
         Cameras (2 or more).
     lidar : str
-        ``hdl64e``, ``vlp16`` or ``os64``.
+        The first LiDAR: ``hdl64e``, ``vlp16`` or ``os64``.
     overwrite : bool
         Replace an existing folder.
+    lidars : int
+        1, or 2 for a second LiDAR ``lidar1`` (VLP-16-like, module docstring).
 
     Returns
     -------
@@ -91,9 +113,12 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         The folder; its ``ground_truth.json`` holds every sensor's ``T_cam0_<sensor>`` and the frames each
         camera saw.
     """
+    if lidars not in (1, 2):
+        raise ValueError(f"Expected 1 or 2 LiDARs, got {lidars}")
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, 0.02)
     extra = _extra_cameras(cameras, rng)
+    T_l0_l1 = _second_lidar(rng) if lidars == 2 else None
     poses = sample_board_poses(rig, n_poses, rng)
     for _, cam, T_c0_ck, overlaps in extra:
         if not overlaps:  # boards of its own, in its view and the LiDAR's
@@ -110,12 +135,19 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     sensors += [{"name": n, "type": "camera", "model": c.model, "width": c.width, "height": c.height,
                  "K": c.K.tolist(), "dist": c.dist.tolist()} for n, c, _, _ in extra]
     sensors.append({"name": "lidar0", "type": "lidar", "lidar": "3d"})
+    if T_l0_l1 is not None:
+        sensors.append({"name": "lidar1", "type": "lidar", "lidar": "3d"})
+        beams1 = BEAM_MODELS["vlp16"](0.02)
+        dirs1, _ = beams1.directions()
+        background1 = cast_background(T_l0_l1[:3, 3], dirs1 @ T_l0_l1[:3, :3].T, static, beams1.max_range_m)
     truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist()}
     truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
+    if T_l0_l1 is not None:
+        truth["T_cam0_lidar1"] = (rig.T_camera_lidar @ T_l0_l1).tolist()
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_dataset_yaml(tmp, {"board": spec["board"], "sensors": sensors, "reference": "cam0"},
                            "simulated rig by lidarcam; ground_truth.json is for evaluation only")
-        for name in ["cam0", "lidar0"] + [n for n, _, _, _ in extra]:
+        for name in ["cam0", "lidar0"] + (["lidar1"] if T_l0_l1 is not None else []) + [n for n, _, _, _ in extra]:
             (tmp / name).mkdir()
         seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
         for f in iter_frames(rig, len(poses), rng, poses, workers=1):
@@ -125,6 +157,8 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             write_scan(tmp / "lidar0" / f"{f.name}.pcd", f.points, f.intensity, f.ring)
             T_lidar_board = T_lidar_cam0 @ f.T_camera_board
             patches, bi = scene_patches(rig, T_lidar_board, static)
+            if T_l0_l1 is not None:
+                write_scan(tmp / "lidar1" / f"{f.name}.pcd", *_sweep(beams1, T_l0_l1, patches, background1, rng))
             for name, cam, T_c0_ck, _ in extra:
                 T_ck_board = T_inverse(T_c0_ck) @ f.T_camera_board
                 if not _sees_board(cam, T_ck_board, rig.board):
