@@ -157,36 +157,40 @@ def _flipped(obs, flip: np.ndarray):
     return replace(obs, corners_px=obs.corners_px[::-1].copy(), T_camera_board=obs.T_camera_board @ flip)
 
 
-def _align_numbering(cams: list[str], poses: dict, flip: np.ndarray) -> dict:
-    """Each camera's boards numbered as the earlier cameras number them: against the earlier camera that shares
-    the most frames, the relative pose most shared frames agree with (within 2 degrees and 5 cm, either
-    numbering), and each frame's numbering the one that agrees with it."""
-    out = {cams[0]: dict(poses[cams[0]])}
-    for b in cams[1:]:
-        out[b] = dict(poses[b])
-        earlier = max(cams[:cams.index(b)], key=lambda a: sum(1 for st in out[a] if st in out[b]))
-        shared = [st for st in out[earlier] if st in out[b]]
-        if not shared:
-            continue
-        cands = {st: [out[earlier][st].T_camera_board @ np.linalg.inv(T)
-                      for T in (out[b][st].T_camera_board, out[b][st].T_camera_board @ flip)] for st in shared}
-
-        def close(A, B):
-            xi = T_log(np.linalg.inv(A) @ B)
-            return np.linalg.norm(xi[:3]) < np.deg2rad(2.0) and np.linalg.norm(xi[3:]) < 0.05
-
-        hyps = [T for st in shared for T in cands[st]]
-        best = max(hyps, key=lambda H: sum(any(close(H, T) for T in cands[st]) for st in shared))
-        for st in shared:
-            if close(best, cands[st][1]) and not close(best, cands[st][0]):
-                out[b][st] = _flipped(out[b][st], flip)
+def _align_numbering(cams: list[str], poses: dict, T_ref: dict, flip: np.ndarray) -> dict:
+    """Each frame's boards numbered alike in every camera: as the first camera (in the rig's order) that saw the
+    frame numbers it, each other camera's numbering the one whose pose lies nearer to where the start
+    (``T_ref``, composed of numbering-free links: a LiDAR's plane, or the consensus of two cameras' frames) puts
+    that board."""
+    out = {c: dict(poses[c]) for c in cams}
+    first: dict = {}
+    for c in cams:
+        for st in out[c]:
+            first.setdefault(st, c)
+    for c in cams:
+        for st, obs in out[c].items():
+            if first[st] == c:
+                continue
+            c0 = first[st]
+            predicted = np.linalg.inv(T_ref[c]) @ T_ref[c0] @ out[c0][st].T_camera_board
+            angle = [np.linalg.norm(T_log(np.linalg.inv(predicted) @ T)[:3])
+                     for T in (obs.T_camera_board, obs.T_camera_board @ flip)]
+            if angle[1] < angle[0]:
+                out[c][st] = _flipped(obs, flip)
     return out
 
 
-def _medoid_relative(rels: list[np.ndarray]) -> np.ndarray:
-    """The relative pose closest to all the others (sum of tangent distances)."""
-    cost = [sum(np.linalg.norm(T_log(np.linalg.inv(a) @ b)) for b in rels) for a in rels]
-    return rels[int(np.argmin(cost))]
+def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
+    """The relative pose most frames agree with (within 2 degrees and 5 cm), each frame giving its candidates
+    (one per numbering of the board), and its candidate nearest that."""
+    def close(A, B):
+        xi = T_log(np.linalg.inv(A) @ B)
+        return np.linalg.norm(xi[:3]) < np.deg2rad(2.0) and np.linalg.norm(xi[3:]) < 0.05
+
+    hyps = [T for cands in rels for T in cands]
+    return max(hyps, key=lambda H: (sum(any(close(H, T) for T in cands) for cands in rels),
+                                    -sum(min(np.linalg.norm(T_log(np.linalg.inv(H) @ T)) for T in cands)
+                                         for cands in rels)))
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigResult:
@@ -219,9 +223,6 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
     for s in rig.cameras:
         cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
         warnings.extend(w)
-    flip = pattern_flip(rig.board)
-    if flip is not None:
-        poses = _align_numbering([c.name for c in rig.cameras], poses, flip)
     t_cam = time.perf_counter()
     # Each LiDAR with each camera that shares enough frames: its boards chosen with that camera, the pair solved.
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
@@ -263,7 +264,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
             links[(a, b)] = sum(1 for st in poses[a] if st in poses[b])
     names = tuple(s.name for s in rig.sensors)
     parent = spanning_tree(names, rig.reference, links)
-    T_ref = _start(names, rig.reference, parent, poses, pairwise, rig)
+    flip = pattern_flip(rig.board)
+    T_ref = _start(names, rig.reference, parent, poses, pairwise, flip)
+    if flip is not None:
+        poses = _align_numbering(cams, poses, T_ref, flip)
     # Each frame a camera saw starts from the first camera (in the rig's order) that saw it.
     T_ref_board = {}
     for c in cams:
@@ -294,7 +298,7 @@ class _Framed:
     lidar: object
 
 
-def _start(names, reference, parent, poses, pairwise, rig) -> dict:
+def _start(names, reference, parent, poses, pairwise, flip) -> dict:
     """Each sensor's starting pose in the reference's frame, composed along the tree from the reference."""
     T_ref = {reference: np.eye(4)}
     pending = [n for n in names if n != reference]
@@ -303,20 +307,22 @@ def _start(names, reference, parent, poses, pairwise, rig) -> dict:
             p = parent[n]
             if p not in T_ref:
                 continue
-            T_ref[n] = T_ref[p] @ _relative(p, n, poses, pairwise, rig)
+            T_ref[n] = T_ref[p] @ _relative(p, n, poses, pairwise, flip)
             pending.remove(n)
     return T_ref
 
 
-def _relative(a: str, b: str, poses, pairwise, rig) -> np.ndarray:
-    """``T_a_b`` from the pairwise solution (camera-LiDAR) or the shared boards (camera-camera)."""
+def _relative(a: str, b: str, poses, pairwise, flip) -> np.ndarray:
+    """``T_a_b`` from the pairwise solution (camera-LiDAR) or the shared boards' consensus (camera-camera; both
+    numberings of a board that looks the same turned, ``flip``)."""
     if (a, b) in pairwise:
         return pairwise[(a, b)][0]
     if (b, a) in pairwise:
         return np.linalg.inv(pairwise[(b, a)][0])
     shared = [st for st in poses[a] if st in poses[b]]
-    return _medoid_relative([poses[a][st].T_camera_board @ np.linalg.inv(poses[b][st].T_camera_board)
-                             for st in shared])
+    flips = [np.eye(4)] if flip is None else [np.eye(4), flip]
+    return _consensus_relative([[poses[a][st].T_camera_board @ np.linalg.inv(poses[b][st].T_camera_board @ F)
+                                 for F in flips] for st in shared])
 
 
 def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
