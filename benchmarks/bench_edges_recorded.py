@@ -23,10 +23,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_principal_point import REALDATA, SETS, _reference  # noqa: E402
+from bench_principal_point import _reference, recorded_sets  # noqa: E402
 
 from estimators.calibration import measure_frames, solve  # noqa: E402
-from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.solvers import chi_square as chi2  # noqa: E402
 from estimators.solvers.board_edges import crossings  # noqa: E402
 from estimators.solvers.outline_check import outline_check  # noqa: E402
@@ -38,12 +37,7 @@ from geometry.rotations import T_inverse, T_log  # noqa: E402
 def main() -> None:
     print(f"{'set':18s}{'model':16s}{'t (mm, camera)':>26s}{'from ref mm':>13s}{'outline shift mm':>18s}{'p':>8s}"
           f"{'planes vs edges':>17s}{'halves d2':>11s}{'99% limit':>11s}")
-    for name in SETS:
-        path = REALDATA / name
-        if not path.is_dir():
-            print(f"{name}: not in {REALDATA}; skipped")
-            continue
-        ds = load_dataset(path)
+    for name, path, ds in recorded_sets():
         camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
         frames = [f for f in frames if f.usable]
         ref = _reference(path)

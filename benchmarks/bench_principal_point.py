@@ -40,18 +40,23 @@ def _reference(path: Path) -> np.ndarray | None:
     return None if T is None else 1000 * np.array(T)[:3, 3]
 
 
+def recorded_sets():
+    """``(name, path, dataset)`` of each recorded set present in ../shared/realdata (an absent one is said)."""
+    for name in SETS:
+        path = REALDATA / name
+        if not path.is_dir():
+            print(f"{name}: not in {REALDATA}; skipped")
+            continue
+        yield name, path, load_dataset(path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--shift", type=float, default=20.0, help="principal point shift (px; default 20)")
     args = ap.parse_args()
     s = args.shift
     shifts = [(0.0, 0.0), (s, 0.0), (-s, 0.0), (0.0, s), (0.0, -s), (1.5 * s, 0.5 * s)]
-    for name in SETS:
-        path = REALDATA / name
-        if not path.is_dir():
-            print(f"{name}: not in {REALDATA}; skipped")
-            continue
-        ds = load_dataset(path)
+    for name, path, ds in recorded_sets():
         ref = _reference(path)
         print(f"{name}: --edges with the principal point moved (dataset's cx, cy = {ds.camera.K[0, 2]:.1f}, "
               f"{ds.camera.K[1, 2]:.1f} px)" + ("" if ref is None else

@@ -105,13 +105,7 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     >>> ds = lc.load_dataset("/tmp/sim")            # doctest: +SKIP
     >>> ds.lidar, ds.board.squares, len(ds.frames)  # doctest: +SKIP
     """
-    root = Path(path)
-    if not root.is_dir():
-        raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
-    ypath = root / "dataset.yaml"
-    if not ypath.exists():
-        raise DatasetError("no dataset.yaml", path=root, hint="create one (see docs/reference/dataset.md)")
-    spec = load_yaml(ypath, "dataset.yaml")
+    root, ypath, spec = read_dataset_yaml(path)
     if not isinstance(spec, dict):
         raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
                            hint="see docs/reference/dataset.md")
@@ -121,6 +115,18 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     suffixes = SCAN_2D_SUFFIXES if lidar == "2d" else SCAN_SUFFIXES
     return Dataset(root=root, lidar=lidar, board=board, camera=camera, frames=_pair_frames(root, suffixes),
                    lidar_family=family, range_accuracy_m=accuracy)
+
+
+def read_dataset_yaml(path: str | os.PathLike) -> tuple[Path, Path, object]:
+    """The folder, its ``dataset.yaml`` and that file's content (``yaml.safe_load``), or a one-line error for a
+    missing folder or file."""
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
+    ypath = root / "dataset.yaml"
+    if not ypath.exists():
+        raise DatasetError("no dataset.yaml", path=root, hint="create one (see docs/reference/dataset.md)")
+    return root, ypath, load_yaml(ypath, "dataset.yaml")
 
 
 def _parse_lidar(value: object, ypath: Path) -> tuple[str, str | None, float | None]:

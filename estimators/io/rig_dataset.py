@@ -23,7 +23,8 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
 from ..errors import DatasetError
-from .dataset import IMAGE_SUFFIXES, Dataset, FrameFiles, _parse_lidar, parse_board, parse_camera
+from .dataset import (IMAGE_SUFFIXES, Dataset, FrameFiles, _parse_lidar, parse_board, parse_camera,
+                      read_dataset_yaml)
 from .input_files import load_yaml
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
@@ -136,13 +137,7 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
     DatasetError
         A missing folder, a bad sensor entry (named, with what to write), a sensor folder missing or empty.
     """
-    root = Path(path)
-    if not root.is_dir():
-        raise DatasetError("dataset folder not found", path=root, hint="give the folder holding dataset.yaml")
-    ypath = root / "dataset.yaml"
-    if not ypath.exists():
-        raise DatasetError("no dataset.yaml", path=root, hint="create one (see docs/reference/dataset.md)")
-    spec = load_yaml(ypath, "dataset.yaml")
+    root, ypath, spec = read_dataset_yaml(path)
     if not isinstance(spec, dict) or not isinstance(spec.get("sensors"), list) or not spec["sensors"]:
         raise DatasetError("sensors must be a non-empty list", path=ypath,
                            hint="list each sensor as {name: cam0, type: camera, ...} (docs/howto/rig.md)")
