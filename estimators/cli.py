@@ -477,6 +477,13 @@ def _print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
+    layout = result.layout()
+    if layout["weakest_pair"]:
+        w = layout["pairs"][layout["weakest_pair"]]
+        print(f"weakest pair: {layout['weakest_pair']}, translation sd up to {w['max_translation_sd_mm']:.1f} mm "
+              f"along {w['axis']}; to constrain it, {w['advice']}")
+    for link, n in layout["links_with_few_frames"].items():
+        print(f"  {link} share {n} frame(s) with the board found in both")
     for w in result.warnings[1:]:
         print(f"warning: {w}")
 

@@ -29,6 +29,7 @@ from .io.dataset import FrameFiles
 from .io.output import write_json_atomic
 from .io.rig_dataset import RigDataset, Sensor
 from .measurements import lidar_whitener
+from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
 from .solvers.rig_graph import CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree
 
@@ -55,6 +56,28 @@ class RigResult:
     timings_s: dict
     # Each camera-LiDAR pair's measured frames (``(camera, lidar) -> [FrameMeasurement]``), for the report.
     pair_frames: dict | None = None
+    # The frames each pair of sensors shares where both found the board (``(a, b) -> count``; a camera-LiDAR
+    # pair's usable frames, a camera pair's frames both saw).
+    links: dict | None = None
+
+    def layout(self) -> dict:
+        """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
+        joint graph's) and the direction (camera axes) and advice for it (``closed_form.describe_direction``),
+        the weakest pair, and the sensor pairs that share some frames but fewer than ``MIN_PAIR_FRAMES`` (a
+        camera-LiDAR pair is then not solved alone; two cameras rest on one or two boards)."""
+        pairs = {}
+        for c in self.rig.cameras:
+            for lid in self.rig.lidars:
+                T, C = self.solution.transform(c.name, lid.name)
+                ev, V = np.linalg.eigh(C[3:, 3:])
+                weak = T[:3, :3] @ V[:, -1]  # along the LiDAR's axes, into the camera's
+                axis, advice = describe_direction(weak)
+                pairs[f"T_{c.name}_{lid.name}"] = {"max_translation_sd_mm": float(1000 * np.sqrt(max(ev[-1], 0.0))),
+                                                   "weakest_direction_camera": weak.tolist(), "axis": axis,
+                                                   "advice": advice}
+        weakest = max(pairs, key=lambda k: pairs[k]["max_translation_sd_mm"]) if pairs else None
+        few = {f"{a}-{b}": n for (a, b), n in (self.links or {}).items() if 0 < n < MIN_PAIR_FRAMES}
+        return {"pairs": pairs, "weakest_pair": weakest, "links_with_few_frames": few}
 
     def pairs(self) -> list[tuple[str, str]]:
         """Every camera-LiDAR pair, every camera-camera and every LiDAR-LiDAR pair (earlier sensor first), in
@@ -83,7 +106,7 @@ class RigResult:
         pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}
         cameras = {n: {"model": m.model, "width": m.width, "height": m.height, "K": m.K.tolist(),
                        "dist": m.dist.tolist(), "source": m.source} for n, m in self.cameras.items()}
-        return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms,
+        return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms, "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "pairwise_only": pairwise, "cameras": cameras,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
                 "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
@@ -288,7 +311,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
     timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": time.perf_counter() - t_pairs}
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
-                     {k: round(v, 3) for k, v in timings.items()}, pair_frames)
+                     {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links))
 
 
 @dataclass(frozen=True, eq=False)

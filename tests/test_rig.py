@@ -147,6 +147,10 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert set(cal["transforms"]) == {f"T_cam{k}_lidar{j}" for k in range(3) for j in range(2)} | {
         "T_cam0_cam1", "T_cam0_cam2", "T_cam1_cam2", "T_lidar0_lidar1"}
     assert np.array(cal["covariance_joint"]).shape == (30, 30)
+    # the weakest camera-LiDAR pair: the one whose translation's largest standard deviation is largest
+    sd = {k: np.sqrt(np.linalg.eigvalsh(np.array(v["covariance"])[3:, 3:])[-1]) for k, v in cal["transforms"].items()
+          if "cam" in k and "lidar" in k}
+    assert cal["layout"]["weakest_pair"] == max(sd, key=sd.get) and "weakest pair: " + max(sd, key=sd.get) in run.stdout
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))

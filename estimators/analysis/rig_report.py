@@ -51,6 +51,14 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                  "standard deviations.</p>"
                  + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
                                                "pair alone: away", "pair alone: t sd [mm]"]))
+    layout = result.layout()
+    if layout["weakest_pair"]:
+        w = layout["pairs"][layout["weakest_pair"]]
+        few = ", ".join(f"{k} ({n})" for k, n in layout["links_with_few_frames"].items()) or "none"
+        parts.append(f"<h2>Layout</h2><p>The weakest camera-LiDAR pair is {html.escape(layout['weakest_pair'])}: its "
+                     f"translation's standard deviation reaches {w['max_translation_sd_mm']:.1f} mm along "
+                     f"{html.escape(w['axis'])}; to constrain it, {html.escape(w['advice'])}. Sensor pairs sharing "
+                     f"fewer than 3 frames with the board found in both: {html.escape(few)}.</p>")
     skipped = [[n, st, why] for n, d in result.skipped.items() for st, why in sorted(d.items())]
     if skipped:
         parts.append("<h2>Frames skipped</h2>" + _table(skipped, ["sensor", "frame", "why"]))
