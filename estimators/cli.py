@@ -437,7 +437,7 @@ def _calibrate_rig(args) -> int:
     from .rig_calibration import calibrate_rig, write_rig_calibration
 
     rig = load_rig(args.dataset)
-    result = calibrate_rig(rig, np.random.default_rng(args.seed))
+    result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics)
     path = write_rig_calibration(result, args.out)
     _print_rig(result)
     print(f"wrote {path}")
@@ -477,6 +477,10 @@ def _print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
+    for n, (p, sd) in (sol.intrinsics or {}).items():
+        given = result.cameras[n].params
+        print(f"  {n} intrinsics refined: " + ", ".join(f"{g:.5g} -> {v:.5g} (sd {e:.2g})"
+                                                       for g, v, e in zip(given[:4], p[:4], sd[:4])) + " (fx fy cx cy)")
     layout = result.layout()
     if layout["weakest_pair"]:
         w = layout["pairs"][layout["weakest_pair"]]

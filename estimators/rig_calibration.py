@@ -106,6 +106,11 @@ class RigResult:
         pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}
         cameras = {n: {"model": m.model, "width": m.width, "height": m.height, "K": m.K.tolist(),
                        "dist": m.dist.tolist(), "source": m.source} for n, m in self.cameras.items()}
+        for n, (p, sd) in (sol.intrinsics or {}).items():
+            refined = self.cameras[n].with_params(p)
+            cameras[n].update({"given_params": self.cameras[n].params.tolist(), "refined_params": p.tolist(),
+                               "refined_params_sd": sd.tolist(), "K": refined.K.tolist(),
+                               "dist": refined.dist.tolist(), "source": "refined with the rig"})
         return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms, "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "pairwise_only": pairwise, "cameras": cameras,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
@@ -216,7 +221,8 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
                                          for cands in rels)))
 
 
-def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigResult:
+def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False
+                  ) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -227,6 +233,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
         Seeds the LiDAR board segmentation's random draws.
     workers : int
         Threads for the image and sweep work.
+    refine_intrinsics : bool
+        Every camera's intrinsics as variables of the graph too (under a prior of its ``param_std`` in
+        dataset.yaml when given); the refined ones are in ``result.solution.intrinsics``.
 
     Returns
     -------
@@ -301,12 +310,15 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -
                               {st: lidar_whitener(o, sigma_r[lid.name]) for st, o in lidar_obs[lid.name].items()
                                if st in T_ref_board}, lid.lidar == "2d")
                    for lid in rig.lidars if lidar_obs[lid.name]]
-    solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board)
+    solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     for n, s in solution.noise_scale.items():
         if s > 1.0:
             ss, dof = solution.chi2_dof[n]
+            hint = ("; a camera whose corners disagree this much with the rest of the rig may have wrong intrinsics "
+                    "(--refine-intrinsics estimates them with the rig)" if n in cameras and not refine_intrinsics
+                    and s > 2.0 else "")
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
-                            f"noise is scaled by {s:.2f}")
+                            f"noise is scaled by {s:.2f}{hint}")
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
     timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": time.perf_counter() - t_pairs}

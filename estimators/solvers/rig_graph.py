@@ -10,6 +10,10 @@ the poses and their covariance are then carried into: :func:`change_reference`).
 - each LiDAR's board points in each frame it saw: the pair's plane factor, unchanged, with the reference frame in
   the camera's place (it maps the board's plane into the LiDAR frame through ``T_ref_s`` and ``T_ref_board``).
 
+With ``refine_intrinsics`` each camera's intrinsics ``[fx, fy, cx, cy, dist...]`` are a vector variable of its
+corner factors too (the corners' Jacobians by them from ``geometry.camera``), under a prior of the camera's
+``param_std`` when it has one.
+
 The noise: each camera's corners with its own effective pixel noise, each LiDAR's points with its own range noise
 (``W`` whitens by it); a sensor whose factors disagree beyond their noise (chi-square per dof, p < 0.01) has its
 noise scaled by that factor and the graph is solved again (quasi-likelihood, as the pair's refinement does).
@@ -29,7 +33,8 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from . import chi_square as chi2
-from .factors import corner_factor, corner_residuals, lidar_plane, lidar_residual, plane_factor
+from .factors import (corner_factor, corner_intrinsics_factor, corner_residuals, corner_residuals_intrinsics,
+                      lidar_plane, lidar_residual, plane_factor)
 
 
 def sensor_key(k: int) -> int:
@@ -38,6 +43,10 @@ def sensor_key(k: int) -> int:
 
 def frame_key(k: int) -> int:
     return gtsam.symbol("f", k)
+
+
+def intrinsics_key(k: int) -> int:
+    return gtsam.symbol("k", k)
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,6 +88,8 @@ class RigSolution:
     noise_scale: dict
     chi2_dof: dict
     iterations: int
+    # With the intrinsics refined: each camera's ``(params, their 1-sd)`` (``CameraModel.params`` order).
+    intrinsics: dict | None = None
 
     def covariance(self, name: str) -> np.ndarray:
         k = self.names.index(name)
@@ -115,6 +126,19 @@ def _rig_corner_error(corners_board, corners_px, camera, this, values, H):
     return r
 
 
+def _rig_corner_intrinsics_error(corners_board, corners_px, camera, this, values, H):
+    keys = this.keys()
+    T_rs, T_rb = values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix()
+    T_sb = np.linalg.inv(T_rs) @ T_rb
+    cam = camera.with_params(values.atVector(keys[2]))
+    r, J, J_k = corner_residuals_intrinsics(T_sb, corners_board, corners_px, cam, H is not None)
+    if H is not None:
+        H[0] = -J @ adjoint(np.linalg.inv(T_sb))
+        H[1] = J
+        H[2] = J_k
+    return r
+
+
 def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray, corners_px: np.ndarray,
                       camera: CameraModel, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
     """A camera's corners of one frame through its pose in the rig and the board's (module docstring)."""
@@ -123,18 +147,28 @@ def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray
                                       np.asarray(corners_px, dtype=float).reshape(-1, 2), camera))
 
 
-def _graph(names, cameras, lidars, stems, scale, reference):
+def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=False):
     graph = gtsam.NonlinearFactorGraph()
     for c in cameras:
         k = names.index(c.name)
+        if refine_intrinsics and c.camera.param_std is not None:
+            graph.add(gtsam.PriorFactorVector(intrinsics_key(k), c.camera.params,
+                                              gtsam.noiseModel.Diagonal.Sigmas(np.asarray(c.camera.param_std))))
         for stem in c.corners_px:
             px = c.corners_px[stem]
             noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma_px * np.sqrt(scale[c.name]))
-            if c.name == reference:
-                graph.add(corner_factor(frame_key(stems.index(stem)), c.corners_board[stem], px, c.camera, noise))
+            fk = frame_key(stems.index(stem))
+            if refine_intrinsics and c.name == reference:
+                graph.add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise))
+            elif refine_intrinsics:
+                graph.add(gtsam.CustomFactor(noise, [sensor_key(k), fk, intrinsics_key(k)],
+                                             partial(_rig_corner_intrinsics_error,
+                                                     np.asarray(c.corners_board[stem], dtype=float),
+                                                     np.asarray(px, dtype=float).reshape(-1, 2), c.camera)))
+            elif c.name == reference:
+                graph.add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise))
             else:
-                graph.add(rig_corner_factor(sensor_key(k), frame_key(stems.index(stem)), c.corners_board[stem], px,
-                                            c.camera, noise))
+                graph.add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise))
     for lv in lidars:
         k = names.index(lv.name)
         for stem, W in lv.W.items():
@@ -164,16 +198,18 @@ def change_reference(names: tuple[str, ...], T_ref: dict, cov: np.ndarray, new: 
     return out, J @ cov @ J.T
 
 
-def _chi2(names, cameras, lidars, stems, values, reference) -> dict:
+def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=False) -> dict:
     """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom (its
     residuals less 6 for its pose; a camera's less a share of the board poses it fixes)."""
     out = {}
     for c in cameras:
         T_rs = _pose(values, names, reference, c.name)
+        cam = c.camera.with_params(values.atVector(intrinsics_key(names.index(c.name)))) if refine_intrinsics \
+            else c.camera
         ss, n = 0.0, 0
         for stem in c.corners_px:
             T_sb = np.linalg.inv(T_rs) @ values.atPose3(frame_key(stems.index(stem))).matrix()
-            r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], c.camera, jacobian=False)
+            r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], cam, jacobian=False)
             ss += float(r @ r) / c.sigma_px**2
             n += r.size - 6
         out[c.name] = (ss, max(n - 6, 1))
@@ -192,9 +228,10 @@ def _chi2(names, cameras, lidars, stems, values, reference) -> dict:
 
 
 def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
-              T_ref_init: dict, T_ref_board_init: dict) -> RigSolution:
+              T_ref_init: dict, T_ref_board_init: dict, refine_intrinsics: bool = False) -> RigSolution:
     """The joint estimate of every sensor's pose (module docstring) from the starts ``T_ref_init`` (by name, in
-    the frame of ``reference``) and ``T_ref_board_init`` (by stem; the frames a camera saw)."""
+    the frame of ``reference``) and ``T_ref_board_init`` (by stem; the frames a camera saw); with
+    ``refine_intrinsics``, every camera's intrinsics too."""
     camera_names = [c.name for c in cameras]
     inner = reference if reference in camera_names else camera_names[0]
     T0 = {n: np.linalg.inv(T_ref_init[inner]) @ T_ref_init[n] for n in names}
@@ -205,12 +242,15 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
             values.insert(sensor_key(k), gtsam.Pose3(T0[n]))
     for j, s in enumerate(stems):
         values.insert(frame_key(j), gtsam.Pose3(np.linalg.inv(T_ref_init[inner]) @ T_ref_board_init[s]))
+    if refine_intrinsics:
+        for c in cameras:
+            values.insert(intrinsics_key(names.index(c.name)), np.asarray(c.camera.params, dtype=float))
     scale = {n: 1.0 for n in names}
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     iterations = 0
     for _ in range(3):
-        graph = _graph(names, cameras, lidars, stems, scale, inner)
+        graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         try:
             values = opt.optimize()
@@ -219,18 +259,24 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
                                         "any frame", hint="check that every sensor shares frames with a camera that "
                                                           "saw the board") from exc
         iterations += opt.iterations()
-        stats = _chi2(names, cameras, lidars, stems, values, inner)
+        stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics)
         new = {n: (max(1.0, ss / dof) if chi2.sf(ss, dof) < 0.01 else 1.0) for n, (ss, dof) in stats.items()}
         new = {n: new.get(n, 1.0) for n in names}
         converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
         scale = new
         if converged:
             break
-    graph = _graph(names, cameras, lidars, stems, scale, inner)
+    graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
     others = [k for k, n in enumerate(names) if n != inner]
+    intrinsics = None
     try:
         marginals = gtsam.Marginals(graph, values)
         inner_cov = marginals.jointMarginalCovariance(gtsam.KeyVector([sensor_key(k) for k in others])).fullMatrix()
+        if refine_intrinsics:
+            intrinsics = {}
+            for c in cameras:
+                key = intrinsics_key(names.index(c.name))
+                intrinsics[c.name] = (values.atVector(key).copy(), np.sqrt(np.diag(marginals.marginalCovariance(key))))
     except RuntimeError as exc:
         raise DegenerateLayoutError("the rig's sensor poses are not all fixed by the frames (the graph's "
                                     "information is singular)",
@@ -245,7 +291,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         T, cov = change_reference(tuple(names), T, cov, reference)
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
-                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations)
+                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics)
 
 
 def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
