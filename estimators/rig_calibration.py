@@ -26,12 +26,13 @@ from .camera.intrinsics import calibrate_intrinsics
 from .camera.chessboard import CornerDetection
 from .errors import DegenerateLayoutError, LidarcamError
 from .io.dataset import FrameFiles
-from .io.output import write_json_atomic
+from .io.output import write_json_atomic, write_npz_atomic
 from .io.rig_dataset import RigDataset, Sensor
 from .measurements import lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
 from .solvers.rig_graph import CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree
+from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3
@@ -59,6 +60,10 @@ class RigResult:
     # The frames each pair of sensors shares where both found the board (``(a, b) -> count``; a camera-LiDAR
     # pair's usable frames, a camera pair's frames both saw).
     links: dict | None = None
+    # The rig's posterior (``solvers.rig_posterior``) when sampled, and the views the graph was solved from.
+    posterior: RigPosterior | None = None
+    camera_views: tuple = ()
+    lidar_views: tuple = ()
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -103,6 +108,12 @@ class RigResult:
                             "frames_used": len(self.frames_used.get(s.name, ())),
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
         transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
+        posterior = None
+        if self.posterior is not None:
+            for a, b in self.pairs():
+                transforms[f"T_{a}_{b}"]["posterior"] = self.posterior.pair_summary(a, b)
+            posterior = {**self.posterior.diagnostics(), "covariance_joint": self.posterior.covariance_joint.tolist(),
+                         "file": "posterior.npz"}
         pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}
         cameras = {n: {"model": m.model, "width": m.width, "height": m.height, "K": m.K.tolist(),
                        "dist": m.dist.tolist(), "source": m.source} for n, m in self.cameras.items()}
@@ -112,7 +123,8 @@ class RigResult:
                                "refined_params_sd": sd.tolist(), "K": refined.K.tolist(),
                                "dist": refined.dist.tolist(), "source": "refined with the rig"})
         return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms, "layout": self.layout(),
-                "covariance_joint": sol.covariance_joint.tolist(), "pairwise_only": pairwise, "cameras": cameras,
+                "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
+                "pairwise_only": pairwise, "cameras": cameras,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
                 "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
                 "version": __version__,
@@ -221,8 +233,8 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
                                          for cands in rels)))
 
 
-def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False
-                  ) -> RigResult:
+def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
+                  samples: int = 0) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -236,6 +248,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     refine_intrinsics : bool
         Every camera's intrinsics as variables of the graph too (under a prior of its ``param_std`` in
         dataset.yaml when given); the refined ones are in ``result.solution.intrinsics``.
+    samples : int
+        Effective posterior samples of every sensor's pose to draw with emcee (``solvers.rig_posterior``); 0
+        skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
+        covariance, which carries them, is then the uncertainty reported), with a warning saying so.
 
     Returns
     -------
@@ -319,11 +335,24 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                     and s > 2.0 else "")
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
+    t_joint = time.perf_counter()
+    posterior = None
+    if samples > 0 and refine_intrinsics:
+        warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
+                        "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
+    elif samples > 0:
+        posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples)
+        if not posterior.run.converged:
+            warnings.append(f"the rig's posterior did not converge in {posterior.run.chain.shape[0]} steps "
+                            f"({posterior.run.ess:.0f} effective samples): its intervals are rough")
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
-    timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": time.perf_counter() - t_pairs}
+    timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": t_joint - t_pairs}
+    if posterior is not None:
+        timings["posterior"] = time.perf_counter() - t_joint
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
-                     {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links))
+                     {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
+                     tuple(camera_views), tuple(lidar_views))
 
 
 @dataclass(frozen=True, eq=False)
@@ -373,10 +402,15 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
     Returns
     -------
     Path
-        The file written (docs/reference/calibration_json.md, rigs).
+        The file written (docs/reference/calibration_json.md, rigs); with a posterior, ``posterior.npz`` beside it
+        first (``xi``: the samples of every sensor's pose, ``names``, ``T_ref``: the MAP poses in that order).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    post = result.posterior
+    if post is not None:
+        write_npz_atomic(out / "posterior.npz", xi=post.xi, names=np.array(post.names),
+                         T_ref=np.array([post.T_ref[n] for n in post.names]), reference=np.array(post.reference))
     path = out / "calibration.json"
     write_json_atomic(path, result.to_json())
     return path

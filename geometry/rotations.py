@@ -139,6 +139,22 @@ def exp_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, np.einsum("nij,nj->ni", J, v)
 
 
+def log_batch(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """SE(3) logarithm of each pose (rotations (n, 3, 3), translations (n, 3)): rows ``[omega; v]`` (n, 6), the
+    inverse of :func:`exp_batch` (GTSAM's ``Pose3.Logmap``)."""
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    omega = Rotation.from_matrix(R).as_rotvec()
+    th2 = np.sum(omega**2, axis=1)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    safe = np.where(small, 1.0, th)
+    # J^-1 = I - W/2 + c W^2, c = 1/t^2 - (1 + cos t) / (2 t sin t), with its Taylor series near 0.
+    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    W = skew_batch(omega)
+    J_inv = np.eye(3) - 0.5 * W + c[:, None, None] * (W @ W)
+    return np.hstack([omega, np.einsum("nij,nj->ni", J_inv, np.asarray(t, dtype=float).reshape(-1, 3))])
+
+
 def T_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """Right perturbation ``T Exp(xi)``, the tangent convention of every covariance in lidarcam."""
     return T @ T_exp(xi)

@@ -21,6 +21,8 @@ from geometry.rotations import (
     T_local,
     T_log,
     T_retract,
+    exp_batch,
+    log_batch,
     quat_xyzw_from_R,
     random_rotation,
     rotation_error,
@@ -41,6 +43,19 @@ def test_se3_exp_matches_gtsam_and_log_inverts(seed):
     T0 = T_from_Rt(random_rotation(rng), rng.normal(size=3))
     np.testing.assert_allclose(T_local(T0, T_retract(T0, xi)), xi, atol=1e-8)
     np.testing.assert_allclose(T_retract(T0, xi), gtsam.Pose3(T0).retract(xi).matrix(), atol=1e-9)
+
+
+@given(seeds)
+def test_the_batched_se3_log_matches_gtsam_and_inverts_the_batched_exp(seed):
+    rng = np.random.default_rng(seed)
+    xi = rng.normal(0, 1.0, (8, 6))
+    xi[:, :3] *= rng.uniform(0.0, 3.0, (8, 1)) / np.linalg.norm(xi[:, :3], axis=1, keepdims=True)
+    xi[0, :3] = rng.normal(0, 1e-6, 3)  # the small-angle series
+    R, t = exp_batch(xi)
+    np.testing.assert_allclose(log_batch(R, t), xi, atol=1e-8)
+    for k in range(8):
+        np.testing.assert_allclose(log_batch(R[k], t[k])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T_from_Rt(R[k], t[k]))),
+                                   atol=1e-8)
 
 
 @given(seeds)

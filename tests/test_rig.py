@@ -15,6 +15,7 @@ from estimators.rig_calibration import calibrate_rig, pattern_flip
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.rig_graph import change_reference, pair_transform, rig_corner_factor, spanning_tree
+from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
 
 
@@ -136,6 +137,54 @@ def test_a_simulated_rig_against_its_ground_truth(rig_folder, rig_result):
         assert np.trace(C[3:, 3:]) <= 1.05 * np.trace(C_pair[3:, 3:]), c
 
 
+def test_the_rig_posteriors_curvature_at_the_map_is_the_graphs_information(rig_result):
+    # Each frame's board pose integrated out in closed form: at the MAP the log-posterior of the free sensors' poses
+    # is flat (its gradient moves the mode by far less than 0.01 sd) and its Hessian (central differences) inverts
+    # to the graph's joint covariance (gtsam.Marginals, in the graph's reference camera) within 1%.
+    sol = rig_result.solution
+    like = RigLikelihood(sol, list(rig_result.camera_views), list(rig_result.lidar_views))
+    assert like.inner == "cam0" and like.free == ["cam1", "cam2", "lidar0", "lidar1"]
+    n, h = like.ndim, 1e-4
+    E = np.eye(n) * h
+    grad = np.array([(like(E[i])[0] - like(-E[i])[0]) / (2 * h) for i in range(n)])
+    H = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            H[i, j] = H[j, i] = (like(E[i] + E[j])[0] - like(E[i] - E[j])[0] - like(E[j] - E[i])[0]
+                                 + like(-E[i] - E[j])[0]) / (4 * h * h)
+    C = np.linalg.inv(-H)
+    cov = sol.covariance_joint[6:, 6:]  # cam0 is both references here
+    np.testing.assert_allclose(np.sqrt(np.diag(C)), np.sqrt(np.diag(cov)), rtol=0.01)
+    d = np.sqrt(np.diag(cov))
+    assert np.max(np.abs(C - cov) / np.outer(d, d)) < 0.01  # every correlation too
+    shift = C @ grad
+    assert np.all(np.abs(shift) < 0.01 * np.sqrt(np.diag(cov)))
+
+
+def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one_joint_sample(rig_folder, rig_result):
+    # emcee over the four free sensors' poses (24 parameters): every pair's posterior standard deviations within
+    # 15% of the graph's (the problem is near-linear: only the LiDAR planes' rotation enters beyond first order),
+    # its mean within 0.2 sd of the MAP, and the truth's d2 under the posterior covariance below 22.5; each pair's
+    # sample is composed from the same joint sample, so T_cam1_lidar0 = T_cam0_cam1^-1 T_cam0_lidar0 per sample.
+    sol = rig_result.solution
+    post = sample_rig_posterior(sol, list(rig_result.camera_views), list(rig_result.lidar_views),
+                                np.random.default_rng(3), min_ess=300)
+    assert post.run.converged and post.xi.shape[1] == 30 and np.all(post.xi[:, :6] == 0.0)
+    for a, b in rig_result.pairs():
+        T, C = sol.transform(a, b)
+        s = post.pair_samples(a, b)
+        sd, sd_graph = np.std(s, axis=0), np.sqrt(np.diag(C))
+        np.testing.assert_allclose(sd, sd_graph, rtol=0.15, err_msg=f"{a}-{b}")
+        assert np.all(np.abs(s.mean(axis=0)) < 0.2 * sd_graph), (a, b)
+        xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, a, b))
+        assert xi @ np.linalg.solve(np.cov(s, rowvar=False), xi) < 22.5, (a, b)
+    s01, s0l, s1l = (post.pair_samples(*p)[:50] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
+    T01, T0l, T1l = (sol.transform(*p)[0] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
+    for k in range(50):
+        np.testing.assert_allclose(np.linalg.inv(T01 @ T_exp(s01[k])) @ T0l @ T_exp(s0l[k]), T1l @ T_exp(s1l[k]),
+                                   atol=1e-9)
+
+
 def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path):
     out = tmp_path / "cal"
     run = subprocess.run([sys.executable, "-m", "estimators", "calibrate", str(rig_folder), "--out", str(out)],
@@ -147,6 +196,12 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert set(cal["transforms"]) == {f"T_cam{k}_lidar{j}" for k in range(3) for j in range(2)} | {
         "T_cam0_cam1", "T_cam0_cam2", "T_cam1_cam2", "T_lidar0_lidar1"}
     assert np.array(cal["covariance_joint"]).shape == (30, 30)
+    # the posterior by default: each pair's intervals, the joint samples in posterior.npz
+    assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 24 and "posterior (emcee" in run.stdout
+    iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
+    assert all(lo < 0 < hi for lo, hi in iv)
+    with np.load(out / "posterior.npz") as npz:
+        assert npz["xi"].shape[1] == 30 and list(npz["names"]) == [s["name"] for s in cal["sensors"]]
     # the weakest camera-LiDAR pair: the one whose translation's largest standard deviation is largest
     sd = {k: np.sqrt(np.linalg.eigvalsh(np.array(v["covariance"])[3:, 3:])[-1]) for k, v in cal["transforms"].items()
           if "cam" in k and "lidar" in k}
@@ -164,12 +219,18 @@ def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
     shutil.copytree(rig_folder, folder)
     ypath = folder / "dataset.yaml"
     ypath.write_text(ypath.read_text().replace("reference: cam0", "reference: lidar0"))
-    sol = calibrate_rig(load_rig(folder), np.random.default_rng(0)).solution
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), samples=300)
+    sol = res.solution
     assert sol.reference == "lidar0" and np.allclose(sol.T_ref["lidar0"], np.eye(4))
     T, C = sol.transform("cam1", "lidar0")
     T_cam, C_cam = rig_result.solution.transform("cam1", "lidar0")
     np.testing.assert_allclose(T, T_cam, atol=1e-6)
     np.testing.assert_allclose(C, C_cam, rtol=0.02, atol=1e-12)
+    # sampled in the graph's camera frame, carried into the LiDAR's: its own block zero, the others as the graph's
+    post = res.posterior
+    assert np.all(post.xi[:, 18:24] == 0.0)
+    np.testing.assert_allclose(np.sqrt(np.diag(post.covariance_joint)), np.sqrt(np.diag(sol.covariance_joint)),
+                               rtol=0.15, atol=1e-12)
 
 
 def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):

@@ -227,13 +227,19 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
     return out
 
 
+def graph_reference(reference: str, camera_names: list[str]) -> str:
+    """The camera whose frame the graph is solved in: the rig's reference when it is a camera, else the first
+    camera (module docstring)."""
+    return reference if reference in camera_names else camera_names[0]
+
+
 def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
               T_ref_init: dict, T_ref_board_init: dict, refine_intrinsics: bool = False) -> RigSolution:
     """The joint estimate of every sensor's pose (module docstring) from the starts ``T_ref_init`` (by name, in
     the frame of ``reference``) and ``T_ref_board_init`` (by stem; the frames a camera saw); with
     ``refine_intrinsics``, every camera's intrinsics too."""
     camera_names = [c.name for c in cameras]
-    inner = reference if reference in camera_names else camera_names[0]
+    inner = graph_reference(reference, camera_names)
     T0 = {n: np.linalg.inv(T_ref_init[inner]) @ T_ref_init[n] for n in names}
     stems = sorted(T_ref_board_init)
     values = gtsam.Values()

@@ -1,0 +1,240 @@
+"""The posterior of a rig's sensor poses by MCMC (emcee), in the joint graph's right tangent about its MAP.
+
+Parameters: every sensor's pose but the graph's own reference camera's (``rig_graph.graph_reference``), 6 each:
+``T_s = T_s_hat Exp(xi_s)``, so 48 parameters for 9 sensors. The likelihood is the joint graph's, at its noise
+scales, with each frame's board pose integrated out:
+
+- a camera's corners are linear in its pose's and the board's tangents about the MAP (the rig corner factor's
+  Jacobians): hundreds of corners per board at sub-pixel noise, whose second order is far below their first, as
+  the pair's posterior assumes for its camera board fit;
+- a LiDAR's board points enter exactly in the LiDAR's pose (the board's plane turned and moved into the LiDAR
+  through ``T_ref_l Exp(xi_l)``, whitened by the frame's ``W``; a scan line divided by ``|n_xy|``) and linearly in
+  the board's tangent.
+
+The board tangent ``b_j`` of frame ``j`` then enters quadratically with a Hessian ``H_j`` that does not depend on
+the sensor poses, and integrates out in closed form:
+
+    log p(xi) = -1/2 sum_j [ c_j(xi) - g_j(xi)^T H_j^-1 g_j(xi) ] + const,
+
+``c_j`` the frame's squared whitened residuals at ``b_j = 0`` and ``g_j`` their gradient by ``b_j``. Flat priors on
+the poses. At the MAP its Hessian is the graph's information of the sensor poses (the Schur complement that
+``gtsam.Marginals`` inverts), so the samples depart from the Laplace covariance only where the LiDAR planes are
+nonlinear in the poses. The noise scales are the graph's (quasi-likelihood; each sensor's, by its chi-square);
+intrinsics refined with the rig are not sampled (the caller reports the graph's covariance then).
+
+Samples are carried into the rig's reference frame exactly (``T_ref_s = T_ref_inner^-1 T_inner_s`` per sample) and
+any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sample by sample.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.rotations import exp_batch, log_batch
+
+from ..errors import LidarcamError
+from .factors import corner_residuals, lidar_plane, lidar_residual
+from .posterior import ChainResult, run_ensemble
+from .rig_graph import CameraViews, LidarViews, RigSolution, adjoint, change_reference, graph_reference
+
+# Samples kept for the pairs' intervals and covariances (thinned evenly from the chain after burn-in).
+MAX_KEPT = 20000
+
+
+@dataclass(frozen=True, eq=False)
+class RigPosterior:
+    """Samples of every sensor's pose in the reference's frame: ``xi`` (M, 6N) in the order of ``names`` (right
+    tangents of ``T_ref_s`` at the MAP; the reference's block zero), the MAP poses and the chain's diagnostics."""
+
+    names: tuple[str, ...]
+    reference: str
+    T_ref: dict
+    xi: np.ndarray
+    run: ChainResult
+
+    @property
+    def covariance_joint(self) -> np.ndarray:
+        """The samples' covariance of every sensor's pose (6N x 6N, ``names`` order)."""
+        return np.cov(self.xi, rowvar=False)
+
+    def pair_samples(self, a: str, b: str) -> np.ndarray:
+        """Samples (M, 6) of ``T_a_b``'s right tangent at its MAP, each composed from one joint sample."""
+        Ra, ta = _poses(self.T_ref[a], self._block(a))
+        Rb, tb = _poses(self.T_ref[b], self._block(b))
+        R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
+        t_ab = np.einsum("nji,nj->ni", Ra, tb - ta)
+        T_hat = np.linalg.inv(self.T_ref[a]) @ self.T_ref[b]
+        Rh, th = T_hat[:3, :3], T_hat[:3, 3]
+        return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
+
+    def pair_summary(self, a: str, b: str) -> dict:
+        """``T_a_b``'s posterior standard deviations and equal-tailed 68% and 95% intervals (degrees about, and
+        millimetres along, b's axes: the right tangent)."""
+        s = self.pair_samples(a, b)
+        sd = np.std(s, axis=0, ddof=1)
+        out = {"std_rotation_deg": np.degrees(sd[:3]).tolist(), "std_translation_mm": (1000 * sd[3:]).tolist()}
+        for level in (0.68, 0.95):
+            q = 100 * (1 - level) / 2
+            iv = np.percentile(s, [q, 100 - q], axis=0).T
+            out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
+                                            "translation_mm": (1000 * iv[3:]).tolist()}
+        return out
+
+    def diagnostics(self) -> dict:
+        r = self.run
+        return {"likelihood": "gaussian", "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
+                "parameters": int(r.chain.shape[2]), "burn_in": r.burn, "tau_steps_max": float(np.max(r.tau)),
+                "acceptance_fraction": r.acceptance, "effective_samples": r.ess, "converged": r.converged,
+                "seconds": r.seconds, "samples_kept": int(self.xi.shape[0])}
+
+    def _block(self, name: str) -> np.ndarray:
+        k = self.names.index(name)
+        return self.xi[:, 6 * k:6 * k + 6]
+
+
+def _poses(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T_hat Exp(xi)`` for each row of ``xi``: rotations (n, 3, 3) and translations (n, 3)."""
+    dR, dt = exp_batch(xi)
+    return T_hat[:3, :3] @ dR, T_hat[:3, 3] + dt @ T_hat[:3, :3].T
+
+
+class RigLikelihood:
+    """The vectorised log-posterior of the free sensors' tangents (module docstring), built at the MAP."""
+
+    def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews]):
+        names = solution.names
+        self.inner = graph_reference(solution.reference, [c.name for c in cameras])
+        T_inner = np.linalg.inv(solution.T_ref[self.inner])
+        self.T = {n: T_inner @ solution.T_ref[n] for n in names}
+        boards = {s: T_inner @ B for s, B in solution.T_ref_board.items()}
+        self.stems = sorted(boards)
+        frame = {s: j for j, s in enumerate(self.stems)}
+        self.free = [n for n in names if n != self.inner]
+        col = {n: 6 * k for k, n in enumerate(self.free)}
+        F = len(self.stems)
+        H = np.zeros((F, 6, 6))
+        self.g0 = np.zeros((F, 6))  # the camera parts of g_j at xi = 0
+        self.c0 = 0.0
+        self.cam_terms = []  # per free camera: (column, Q, q, frame indices, K (F_c, 6, 6))
+        for c in cameras:
+            s = c.sigma_px * np.sqrt(solution.noise_scale.get(c.name, 1.0))
+            T_rs = self.T[c.name]
+            Q, q, idx, K = np.zeros((6, 6)), np.zeros(6), [], []
+            for stem in c.corners_px:
+                if stem not in frame:
+                    continue
+                j = frame[stem]
+                T_sb = np.linalg.inv(T_rs) @ boards[stem]
+                r, J = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], c.camera)
+                r, B = r / s, J / s
+                H[j] += B.T @ B
+                self.g0[j] += B.T @ r
+                self.c0 += float(r @ r)
+                if c.name != self.inner:
+                    A = -B @ adjoint(np.linalg.inv(T_sb))
+                    Q += A.T @ A
+                    q += A.T @ r
+                    idx.append(j)
+                    K.append(B.T @ A)
+            if c.name != self.inner and idx:
+                self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.array(K)))
+        self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W (F_l, k, 4), normals, points, scan, G)
+        for lv in lidars:
+            s = lv.sigma_m * np.sqrt(solution.noise_scale.get(lv.name, 1.0))
+            idx, Ws, G, normals, points = [], [], [], [], []
+            width = max((W.shape[0] for st, W in lv.W.items() if st in frame), default=0)
+            for stem, W in lv.W.items():
+                if stem not in frame:
+                    continue
+                j = frame[stem]
+                pi, _, H_b = lidar_plane(self.T[lv.name], boards[stem])
+                _, D = lidar_residual(W, pi, lv.scan_line)
+                Gj = np.zeros((width, 6))
+                Gj[:W.shape[0]] = D @ H_b / s
+                H[j] += Gj.T @ Gj
+                Wp = np.zeros((width, 4))
+                Wp[:W.shape[0]] = W / s
+                idx.append(j)
+                Ws.append(Wp)
+                G.append(Gj)
+                normals.append(boards[stem][:3, 2])
+                points.append(boards[stem][:3, 3])
+            if idx:
+                self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx), np.array(Ws),
+                                         np.array(normals), np.array(points), lv.scan_line, np.array(G)))
+        try:
+            self.H_inv = np.linalg.inv(H)
+        except np.linalg.LinAlgError as exc:
+            raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
+                                "integrate it out") from exc
+        self.ndim = 6 * len(self.free)
+
+    def __call__(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.atleast_2d(theta)
+        n = theta.shape[0]
+        g = np.broadcast_to(self.g0, (n,) + self.g0.shape).copy()
+        c = np.full(n, self.c0)
+        for k0, Q, q, idx, K in self.cam_terms:
+            x = theta[:, k0:k0 + 6]
+            c += np.einsum("wi,ij,wj->w", x, Q, x) + 2.0 * x @ q
+            g[:, idx] += np.einsum("fab,wb->wfa", K, x)
+        for k0, T_hat, idx, W, normals, points, scan, G in self.lidar_terms:
+            R, t = _poses(T_hat, theta[:, k0:k0 + 6])
+            pi = np.empty((n, len(idx), 4))
+            pi[..., :3] = np.einsum("wji,fj->wfi", R, normals)  # R^T n
+            pi[..., 3] = np.einsum("fj,wj->wf", normals, t) - np.sum(normals * points, axis=1)
+            e = np.einsum("fki,wfi->wfk", W, pi)
+            if scan:
+                e /= np.hypot(pi[..., 0], pi[..., 1])[..., None]
+            c += np.einsum("wfk,wfk->w", e, e)
+            g[:, idx] += np.einsum("fka,wfk->wfa", G, e)
+        return -0.5 * (c - np.einsum("wfa,fab,wfb->w", g, self.H_inv, g))
+
+
+def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
+                         rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000) -> RigPosterior:
+    """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
+
+    Parameters
+    ----------
+    solution : RigSolution
+        The joint graph's estimate (``rig_graph.solve_rig``) from the same ``cameras`` and ``lidars``.
+    cameras, lidars : list
+        The views the graph was solved from.
+    rng : numpy.random.Generator
+        Seeds the walkers' start and the sampler.
+    min_ess : int
+        Effective samples wanted (of the slowest-mixing parameter).
+    max_steps : int
+        Steps at most.
+
+    Returns
+    -------
+    RigPosterior
+        Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
+    """
+    like = RigLikelihood(solution, cameras, lidars)
+    names = solution.names
+    _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
+    cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
+    cov = cov_inner[np.ix_(cols, cols)]
+    walkers = max(64, 2 * like.ndim + 16)
+    start = rng.multivariate_normal(np.zeros(like.ndim), 0.25 * (cov + cov.T), walkers)
+    run = run_ensemble(like, start, rng, min_ess=min_ess, max_steps=max_steps, label="rig posterior")
+    keep = run.samples[np.linspace(0, len(run.samples) - 1, min(MAX_KEPT, len(run.samples))).astype(int)]
+    # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
+    m = len(keep)
+    R_in, t_in = {like.inner: np.broadcast_to(np.eye(3), (m, 3, 3))}, {like.inner: np.zeros((m, 3))}
+    for k, n in enumerate(like.free):
+        R_in[n], t_in[n] = _poses(like.T[n], keep[:, 6 * k:6 * k + 6])
+    ref = solution.reference
+    xi = np.zeros((m, 6 * len(names)))
+    for k, n in enumerate(names):
+        if n == ref:
+            continue
+        R = np.einsum("nji,njk->nik", R_in[ref], R_in[n])
+        t = np.einsum("nji,nj->ni", R_in[ref], t_in[n] - t_in[ref])
+        Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
+        xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
+    return RigPosterior(names, ref, dict(solution.T_ref), xi, run)
