@@ -1,10 +1,13 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
-(make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--poses P]`).
+(make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
+[--posterior N]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
 5 a pinhole looking left, each with boards of its own (P/2, in its view and the LiDAR's). Every camera sees the
-frames whose board lies wholly in its image.
+frames whose board lies wholly in its image. `--lidars 2` adds a VLP-16-like LiDAR, `--scanners 1` a 2D scanner.
+`--posterior N` samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2
+of the truth under each pair's posterior covariance and the posterior's time.
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
 the camera saw, and the mean squared Mahalanobis distance of the truth under each covariance (6 ideal). The
@@ -15,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -34,14 +38,17 @@ def _one(args) -> dict:
     from estimators.simulation.rig_simulator import simulate_rig
     from geometry.rotations import T_log
 
-    seed, cameras, poses = args
+    seed, cameras, poses, lidars, scanners, samples = args
     with tempfile.TemporaryDirectory() as tmp:
-        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras)
+        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners)
         gt = json.loads((folder / "ground_truth.json").read_text())
         t0 = time.perf_counter()
-        res = calibrate_rig(load_rig(folder), np.random.default_rng(seed), workers=1)
+        res = calibrate_rig(load_rig(folder), np.random.default_rng(seed), workers=1, samples=samples)
         seconds = time.perf_counter() - t0
-    out = {"seconds": seconds, "pairs": {}}
+    # The worker's peak resident memory so far (simulating included: an upper bound of the calibration's).
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out = {"seconds": seconds, "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb,
+           "pairs": {}}
     for a, b in res.pairs():
         truth = np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
         rows = {}
@@ -51,6 +58,9 @@ def _one(args) -> dict:
         for kind, (T, C) in estimates.items():
             xi = T_log(np.linalg.inv(T) @ truth)
             rows[kind] = (float(xi[:3] @ xi[:3]), float(xi[3:] @ xi[3:]), float(xi @ np.linalg.solve(C, xi)))
+        if res.posterior is not None:
+            xi = T_log(np.linalg.inv(estimates["joint"][0]) @ truth)
+            rows["posterior"] = float(xi @ np.linalg.solve(np.cov(res.posterior.pair_samples(a, b), rowvar=False), xi))
         out["pairs"][f"T_{a}_{b}"] = {"rows": rows, "frames": len(res.frames_used.get(a, ()))}
     return out
 
@@ -60,13 +70,19 @@ def main() -> None:
     ap.add_argument("--rigs", type=int, default=20)
     ap.add_argument("--cameras", type=int, default=3)
     ap.add_argument("--poses", type=int, default=12)
+    ap.add_argument("--lidars", type=int, default=1)
+    ap.add_argument("--scanners", type=int, default=0)
+    ap.add_argument("--posterior", type=int, default=0, metavar="N", help="effective posterior samples (0: none)")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:
-        runs = list(pool.map(_one, [(s, args.cameras, args.poses) for s in range(args.rigs)]))
-    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR, {args.poses} board poses")
+        runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior)
+                                    for s in range(args.rigs)]))
+    more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
+    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses")
+    post = args.posterior > 0
     print(f"{'pair':16s}{'frames':>8s}{'joint rot deg':>15s}{'trans mm':>10s}{'d2':>7s}"
-          f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>7s}")
+          + (f"{'d2 post':>8s}" if post else "") + f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>7s}")
     for name in runs[0]["pairs"]:
         rows = [r["pairs"][name] for r in runs]
         frames = np.mean([r["frames"] for r in rows])
@@ -79,9 +95,16 @@ def main() -> None:
         alone = (f"{np.degrees(rms('pair', 0)):15.4f}{1000 * rms('pair', 1):10.2f}"
                  f"{np.mean([r['rows']['pair'][2] for r in rows]):7.2f}") if "pair" in rows[0]["rows"] else \
             f"{'-':>15s}{'-':>10s}{'-':>7s}"
+        if post:
+            joint += f"{np.mean([r['rows']['posterior'] for r in rows]):8.2f}"
         print(f"{name:16s}{frames:8.1f}{joint}{alone}")
     t = [r["seconds"] for r in runs]
-    print(f"measure + solve per rig: median {np.median(t):.1f} s, max {np.max(t):.1f} s (one worker per rig)")
+    what = "measure + solve + posterior" if post else "measure + solve"
+    print(f"{what} per rig: median {np.median(t):.1f} s, max {np.max(t):.1f} s (one worker per rig); peak resident "
+          f"memory of a worker (simulating included) {max(r['peak_mb'] for r in runs):.0f} MB")
+    if post:
+        tp = [r["posterior_s"] for r in runs]
+        print(f"of which the posterior: median {np.median(tp):.1f} s, max {np.max(tp):.1f} s")
 
 
 if __name__ == "__main__":

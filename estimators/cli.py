@@ -98,6 +98,8 @@ def _parser() -> argparse.ArgumentParser:
                         "frames whose board lies wholly in its image")
     s.add_argument("--lidars", type=int, default=1, metavar="N",
                    help="with --cameras: 2 adds a second LiDAR (lidar1, VLP-16-like, to the first's left)")
+    s.add_argument("--scanners", type=int, default=0, metavar="N",
+                   help="with --cameras: 1 adds a 2D scanner (scan0, level, below and right of the first camera)")
     s.add_argument("--rig", default="default", choices=["default", "varied", "mounted"],
                    help="2d only. default: the scanner 60 cm up, 1 m boards 1.5-4 m away; varied: a rig drawn from "
                         "a second configuration (tilted scan plane, 0.5-1.5 m boards of other shapes 0.5-8 m away, "
@@ -437,7 +439,8 @@ def _calibrate_rig(args) -> int:
     from .rig_calibration import calibrate_rig, write_rig_calibration
 
     rig = load_rig(args.dataset)
-    result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics)
+    result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
+                           samples=args.samples)
     path = write_rig_calibration(result, args.out)
     _print_rig(result)
     print(f"wrote {path}")
@@ -455,17 +458,25 @@ def _print_rig(result) -> None:
     sol = result.solution
     for w in result.warnings[:1]:
         print(f"warning: {w}")
-    print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph, Laplace covariance (no posterior "
-          "sampling for rigs in this version)")
+    post = result.posterior
+    if post is not None:
+        d = post.diagnostics()
+        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph; posterior (emcee, "
+              f"{d['parameters']} parameters): {d['effective_samples']:.0f} effective samples, tau "
+              f"{d['tau_steps_max']:.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s")
+    else:
+        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph, Laplace covariance (posterior "
+              "not sampled)")
     for s in result.rig.sensors:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
         print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else ""))
-    print("every pair (joint graph; t in the first sensor's frame, mm; rotation sd deg; pairwise-only estimate in "
-          "brackets, as far from the joint one):")
+    print("every pair (joint graph; t in the first sensor's frame, mm; "
+          + ("posterior" if post is not None else "Laplace") + " standard deviations, rotation in deg; pairwise-only "
+          "estimate in brackets, as far from the joint one):")
     for a, b in result.pairs():
         T, C = sol.transform(a, b)
-        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        sd = np.sqrt(np.maximum(np.diag(C if post is None else np.cov(post.pair_samples(a, b), rowvar=False)), 0.0))
         line = (f"  T_{a}_{b}: t = (" + ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]) + ") +- ("
                 + ", ".join(f"{1000 * v:.1f}" for v in sd[3:]) + ") mm, rotation sd ("
                 + ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3]) + ") deg")
@@ -719,6 +730,8 @@ def _simulate(args) -> int:
 
     if args.poses < 1:
         raise SystemExit("lidarcam: error: --poses must be at least 1")
+    if args.cameras == 1 and (args.lidars != 1 or args.scanners != 0):
+        raise SystemExit("lidarcam: error: --lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
     if args.cameras != 1:
         if args.cameras < 2 or args.lidar == "2d":
             raise SystemExit("lidarcam: error: --cameras N (2 or more) writes a rig folder with a 3D LiDAR")
@@ -726,8 +739,12 @@ def _simulate(args) -> int:
 
         if args.lidars not in (1, 2):
             raise SystemExit("lidarcam: error: --lidars is 1 or 2")
-        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars)
-        print(f"wrote a rig of {args.cameras} cameras and {args.lidars} LiDAR(s) ({args.poses} frames) to {out}")
+        if args.scanners not in (0, 1):
+            raise SystemExit("lidarcam: error: --scanners is 0 or 1")
+        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
+                           args.scanners)
+        print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "
+              f"({args.poses} frames) to {out}")
         return 0
     two_d = args.lidar == "2d"
     fmt = args.scan_format or ("csv" if two_d else "pcd")

@@ -8,7 +8,10 @@ whose view does not overlap the first's gets boards of its own, sampled in its v
 shares frames with the LiDAR only. Every camera is rendered of the same scene from its own pose and sees a frame
 only when the whole board lies in its image (else it has no file for that frame). A second LiDAR (``lidars=2``,
 VLP-16-like, 0.4-0.6 m to the first's left and 0.1-0.3 m lower, turned 10-30 degrees to the left and tilted a few
-degrees) casts its own sweep of every frame's scene; it records every frame, as a running LiDAR does.
+degrees) casts its own sweep of every frame's scene; it records every frame, as a running LiDAR does. A 2D
+scanner (``scanners=1``, ``scan0``: 270 degrees in 0.25 degree steps, 1 cm range noise) sits level 0.15-0.3 m
+below the camera and 0.1-0.3 m to its right, tilted up to 3 degrees: its scan line cuts the boards that reach
+down to its height, and a frame whose board it misses is skipped by the calibration with that reason.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from ..io.pointcloud_io import write_scan
 from .rendering import add_pixel_noise, pixel_rays, render_clean
 from .scene import cast, cast_background
 from .simulator import (BEAM_MODELS, default_rig, default_room, iter_frames, rotated_patches, sample_board_poses,
-                        scene_patches)
+                        scene_patches, write_sweep_2d)
 
 
 def _fisheye(f: float) -> CameraModel:
@@ -66,6 +69,16 @@ def _second_lidar(rng: np.random.Generator) -> np.ndarray:
     return T_from_Rt(R, np.array([rng.uniform(-0.1, 0.1), rng.uniform(0.4, 0.6), -rng.uniform(0.1, 0.3)]))
 
 
+def _scanner(rng: np.random.Generator, T_lidar_cam0: np.ndarray, R_level_lidar: np.ndarray) -> np.ndarray:
+    """``T_lidar0_scan0`` of the 2D scanner (module docstring): level in the world, below and right of the
+    camera."""
+    cam = T_lidar_cam0[:3, 3]
+    down, right = R_level_lidar.T @ np.array([0.0, 0.0, -1.0]), T_lidar_cam0[:3, :3] @ np.array([1.0, 0.0, 0.0])
+    t = cam + rng.uniform(0.15, 0.3) * down + rng.uniform(0.1, 0.3) * right
+    R = R_level_lidar.T @ R_from_rotvec(np.r_[rng.normal(0.0, np.deg2rad(1.5), 2), rng.uniform(-0.2, 0.2)])
+    return T_from_Rt(R, t)
+
+
 def _sweep(beams, T_l0_l1: np.ndarray, patches, background, rng: np.random.Generator):
     """The second LiDAR's noisy sweep of the scene ``patches`` (in the first LiDAR's frame): points in its own
     frame, intensity, ring."""
@@ -87,7 +100,7 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
-                 overwrite: bool = False, lidars: int = 1) -> Path:
+                 overwrite: bool = False, lidars: int = 1, scanners: int = 0) -> Path:
     """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
 
     Parameters
@@ -106,6 +119,8 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         Replace an existing folder.
     lidars : int
         1, or 2 for a second LiDAR ``lidar1`` (VLP-16-like, module docstring).
+    scanners : int
+        0, or 1 for a 2D scanner ``scan0`` (module docstring).
 
     Returns
     -------
@@ -115,6 +130,8 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     """
     if lidars not in (1, 2):
         raise ValueError(f"Expected 1 or 2 LiDARs, got {lidars}")
+    if scanners not in (0, 1):
+        raise ValueError(f"Expected 0 or 1 2D scanners, got {scanners}")
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, 0.02)
     extra = _extra_cameras(cameras, rng)
@@ -126,6 +143,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             poses += [T_c0_ck @ T for T in sample_board_poses(own, max(3, n_poses // 2), rng)]
     T_lidar_cam0 = T_inverse(rig.T_camera_lidar)
     static = rotated_patches(default_room(-rig.lidar_height_m), rig.level.T)
+    T_l0_s = _scanner(rng, T_lidar_cam0, rig.level) if scanners else None
     backgrounds = {}
     for name, cam, T_c0_ck, _ in extra:
         T_lidar_ck = T_lidar_cam0 @ T_c0_ck
@@ -140,14 +158,22 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         beams1 = BEAM_MODELS["vlp16"](0.02)
         dirs1, _ = beams1.directions()
         background1 = cast_background(T_l0_l1[:3, 3], dirs1 @ T_l0_l1[:3, :3].T, static, beams1.max_range_m)
+    if T_l0_s is not None:
+        sensors.append({"name": "scan0", "type": "lidar", "lidar": "2d"})
+        beams_s = BEAM_MODELS["2d"](0.01)
+        dirs_s, _ = beams_s.directions()
+        background_s = cast_background(T_l0_s[:3, 3], dirs_s @ T_l0_s[:3, :3].T, static, beams_s.max_range_m)
     truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist()}
     truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
     if T_l0_l1 is not None:
         truth["T_cam0_lidar1"] = (rig.T_camera_lidar @ T_l0_l1).tolist()
+    if T_l0_s is not None:
+        truth["T_cam0_scan0"] = (rig.T_camera_lidar @ T_l0_s).tolist()
     with atomic_directory(out, overwrite=overwrite) as tmp:
         write_dataset_yaml(tmp, {"board": spec["board"], "sensors": sensors, "reference": "cam0"},
                            "simulated rig by lidarcam; ground_truth.json is for evaluation only")
-        for name in ["cam0", "lidar0"] + (["lidar1"] if T_l0_l1 is not None else []) + [n for n, _, _, _ in extra]:
+        for name in ["cam0", "lidar0"] + (["lidar1"] if T_l0_l1 is not None else []) + \
+                (["scan0"] if T_l0_s is not None else []) + [n for n, _, _, _ in extra]:
             (tmp / name).mkdir()
         seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
         for f in iter_frames(rig, len(poses), rng, poses, workers=1):
@@ -159,6 +185,9 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             patches, bi = scene_patches(rig, T_lidar_board, static)
             if T_l0_l1 is not None:
                 write_scan(tmp / "lidar1" / f"{f.name}.pcd", *_sweep(beams1, T_l0_l1, patches, background1, rng))
+            if T_l0_s is not None:
+                write_sweep_2d(tmp / "scan0" / f"{f.name}.csv", beams_s,
+                               _sweep(beams_s, T_l0_s, patches, background_s, rng)[0])
             for name, cam, T_c0_ck, _ in extra:
                 T_ck_board = T_inverse(T_c0_ck) @ f.T_camera_board
                 if not _sees_board(cam, T_ck_board, rig.board):

@@ -687,6 +687,16 @@ def dataset_yaml(rig: Rig, lidar: str | None = None) -> dict:
     return dataset_spec(lidar or ("2d" if rig.beams.is_2d else "3d"), rig.board, rig.camera)
 
 
+def write_sweep_2d(path: str | Path, beams, points: np.ndarray) -> None:
+    """A 2D scanner's returns (points in its frame) as the scan file it writes: every beam of the sweep, those
+    with no return at range 0 (as scanners report them)."""
+    az = beams.azimuths()
+    ranges = np.zeros(len(az))
+    k = np.rint((np.arctan2(points[:, 1], points[:, 0]) - az[0]) / beams.azimuth_step_rad)
+    ranges[k.astype(int)] = np.linalg.norm(points[:, :2], axis=1)
+    write_scan_2d(path, az, ranges)
+
+
 def write_dataset(out: str | Path, rig: Rig, frames: Iterable[SimulatedFrame], scan_format: str = "pcd",
                   include_camera: bool = True, overwrite: bool = False, meta: dict | None = None) -> Path:
     """Write the dataset folder atomically (all of it, or nothing). ``frames`` may be an iterator
@@ -703,12 +713,7 @@ def write_dataset(out: str | Path, rig: Rig, frames: Iterable[SimulatedFrame], s
                 masks[f.name] = f.board_mask
             cv2.imwrite(str(tmp / f"{f.name}.png"), f.image)
             if rig.beams.is_2d:
-                # Every beam of the sweep, the ones with no return at range 0 (as scanners report them).
-                az = rig.beams.azimuths()
-                ranges = np.zeros(len(az))
-                k = np.rint((np.arctan2(f.points[:, 1], f.points[:, 0]) - az[0]) / rig.beams.azimuth_step_rad)
-                ranges[k.astype(int)] = np.linalg.norm(f.points[:, :2], axis=1)
-                write_scan_2d(tmp / f"{f.name}.{scan_format}", az, ranges)
+                write_sweep_2d(tmp / f"{f.name}.{scan_format}", rig.beams, f.points)
             else:
                 write_scan(tmp / f"{f.name}.{scan_format}", f.points, f.intensity, f.ring)
         truth = {"T_camera_lidar": rig.T_camera_lidar.tolist(), "T_camera_board": poses,
