@@ -228,10 +228,13 @@ def _solve_trihedra(geo: list, triples: list[tuple[int, int, int]]) -> list[Trip
         P = np.array([geo[i][2] for i in owner])[:, None, :] + lam[:, :, None] * np.array([geo[i][3] for i in owner])
         Ts = T_align(Q, P)
         cond = np.atleast_1d(edge_conditioning(lam, np.array([geo[i][5] for i in owner])))
+    roots_of: dict[int, list[int]] = {}  # each triple's rows of the batch
+    for j, o in enumerate(owner):
+        roots_of.setdefault(o, []).append(j)
     for i in good:
         N, d = geo[i][0], geo[i][1]
         sols, conds = [], []
-        for j in (j for j, o in enumerate(owner) if o == i):
+        for j in roots_of.get(i, ()):
             # The LiDAR sits on the camera's side of every board (the camera at the origin has n . 0 - d < 0).
             if np.all(N @ Ts[j][:3, 3] - d < 0):
                 sols.append(Ts[j])

@@ -59,6 +59,10 @@ REFINE_ALL_UP_TO = 4
 # A refined fit whose cost exceeds the chi-square quantile at this tail probability is implausible: the
 # reserve and the multi-start search are then tried as well.
 IMPLAUSIBLE_P = 1e-3
+# Triples of boards solved at most (C(21, 3) = 1330: every triple up to 21 boards). With more boards, the triples
+# whose normals span 3D best: the candidates' clustering grows with the square of their number, and a root
+# from a well-spread triple is as good a seed as any (every candidate is scored on all boards).
+MAX_TRIPLES = 1500
 
 
 @dataclass(frozen=True, eq=False)
@@ -312,9 +316,21 @@ def solution_distances(Ts: np.ndarray) -> np.ndarray:
     return D[iu]
 
 
+def _triples(normals: np.ndarray) -> list[tuple[int, int, int]]:
+    """Every triple of boards, or the ``MAX_TRIPLES`` whose normals span 3D best (largest smallest singular
+    value; ties in index order) when there are more."""
+    triples = list(itertools.combinations(range(len(normals)), 3))
+    if len(triples) <= MAX_TRIPLES:
+        return triples
+    spread = np.linalg.svd(normals[np.array(triples)], compute_uv=False)[:, -1]
+    keep = np.sort(np.argsort(-spread, kind="stable")[:MAX_TRIPLES])
+    return [triples[k] for k in keep]
+
+
 def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: str = "minimal-lower-bound",
                    use_extent: bool | None = None, max_separation_m: float | None = None) -> MinimalSelection:
-    """Minimal solutions of all C(N, 3) triples of usable 2D frames, and the candidates to refine. Roots that
+    """Minimal solutions of all C(N, 3) triples of usable 2D frames (at most ``MAX_TRIPLES``, the best spread), and
+    the candidates to refine. Roots that
     cannot be the rig (:func:`physical`: the sensors farther apart than ``max_separation_m``, the LiDAR behind
     a board, a segment behind the camera) are not solutions."""
     if method not in METHODS:
@@ -341,7 +357,7 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
             f"with one scan line per board, translation along {axis} and rotation about the two axes "
             "perpendicular to it are unobservable", hint=advice)
     Ts, degenerate, weak_triples = [], [], []
-    triples = list(itertools.combinations(range(len(frames)), 3))
+    triples = _triples(np.array([p.normal for p in planes]))
     for tri, res in zip(triples, solve_triples(planes, lines, triples)):
         names = ', '.join(frames[i].name for i in tri)
         if res.degenerate:
