@@ -167,12 +167,13 @@ def _progress_bar(progress: bool, total: int, label: str):
 
 
 def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_ess: int = 2000,
-                 max_steps: int = 40000, chunk: int = 500, progress: bool = False, label: str = "posterior"
-                 ) -> ChainResult:
+                 max_steps: int = 40000, chunk: int = 500, progress: bool = False, label: str = "posterior",
+                 moves=None) -> ChainResult:
     """Run emcee (vectorised log-probability over walkers) until the chain is longer than 50
     integrated autocorrelation times and holds ``min_ess`` effective samples, or ``max_steps``.
 
-    The sampler's random state is seeded from ``rng``; results repeat for the same generator state.
+    The sampler's random state is seeded from ``rng``; results repeat for the same generator state. ``moves``:
+    emcee's ``(move, weight)`` list (default: differential evolution and the stretch move, below).
     """
     t0 = time.perf_counter()
     nwalkers, ndim = initial.shape
@@ -181,7 +182,7 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
     # posterior came out 10% too narrow against the analytic Gaussian.)
     import emcee  # imported when sampling: it loads scipy.stats, about 0.7 s
 
-    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.StretchMove(), 0.2)]
+    moves = moves if moves is not None else [(emcee.moves.DEMove(), 0.8), (emcee.moves.StretchMove(), 0.2)]
     sampler = emcee.EnsembleSampler(nwalkers, ndim, log_prob, vectorize=True, moves=moves)
     state = emcee.State(initial, random_state=np.random.RandomState(int(rng.integers(2**32))).get_state())
     steps, converged, n = 0, False, chunk

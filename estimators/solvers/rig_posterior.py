@@ -116,7 +116,7 @@ class RigLikelihood:
         H = np.zeros((F, 6, 6))
         self.g0 = np.zeros((F, 6))  # the camera parts of g_j at xi = 0
         self.c0 = 0.0
-        self.cam_terms = []  # per free camera: (column, Q, q, frame indices, K (F_c, 6, 6))
+        self.cam_terms = []  # per free camera: (column, Q, q, frame indices, K^T (F_c, 6, 6))
         for c in cameras:
             s = c.sigma_px * np.sqrt(solution.noise_scale.get(c.name, 1.0))
             T_rs = self.T[c.name]
@@ -137,9 +137,9 @@ class RigLikelihood:
                     q += A.T @ r
                     idx.append(j)
                     K.append(B.T @ A)
-            if c.name != self.inner and idx:
-                self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.array(K)))
-        self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W (F_l, k, 4), normals, points, scan, G)
+            if c.name != self.inner and idx:  # K transposed: x @ K^T is K x for every walker
+                self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.transpose(np.array(K), (0, 2, 1))))
+        self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G)
         for lv in lidars:
             s = lv.sigma_m * np.sqrt(solution.noise_scale.get(lv.name, 1.0))
             idx, Ws, G, normals, points = [], [], [], [], []
@@ -160,11 +160,13 @@ class RigLikelihood:
                 G.append(Gj)
                 normals.append(boards[stem][:3, 2])
                 points.append(boards[stem][:3, 3])
-            if idx:
-                self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx), np.array(Ws),
-                                         np.array(normals), np.array(points), lv.scan_line, np.array(G)))
+            if idx:  # W transposed (pi^T W^T is (W pi)^T); each plane's offset n . t_board
+                normals, points = np.array(normals), np.array(points)
+                self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx),
+                                         np.transpose(np.array(Ws), (0, 2, 1)), normals,
+                                         np.sum(normals * points, axis=1), lv.scan_line, np.array(G)))
         try:
-            self.H_inv = np.linalg.inv(H)
+            self.H_chol = np.linalg.cholesky(np.linalg.inv(H))
         except np.linalg.LinAlgError as exc:
             raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
                                 "integrate it out") from exc
@@ -173,23 +175,47 @@ class RigLikelihood:
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(theta)
         n = theta.shape[0]
-        g = np.broadcast_to(self.g0, (n,) + self.g0.shape).copy()
+        # Frame-major batches (F, walkers, .): each product below is one batched matrix product over the frames.
+        g = np.broadcast_to(self.g0[:, None, :], (len(self.g0), n, 6)).copy()
         c = np.full(n, self.c0)
-        for k0, Q, q, idx, K in self.cam_terms:
+        for k0, Q, q, idx, Kt in self.cam_terms:
             x = theta[:, k0:k0 + 6]
-            c += np.einsum("wi,ij,wj->w", x, Q, x) + 2.0 * x @ q
-            g[:, idx] += np.einsum("fab,wb->wfa", K, x)
-        for k0, T_hat, idx, W, normals, points, scan, G in self.lidar_terms:
+            c += np.sum((x @ Q) * x, axis=1) + 2.0 * x @ q
+            g[idx] += x @ Kt
+        for k0, T_hat, idx, Wt, normals, offsets, scan, G in self.lidar_terms:
             R, t = _poses(T_hat, theta[:, k0:k0 + 6])
-            pi = np.empty((n, len(idx), 4))
-            pi[..., :3] = np.einsum("wji,fj->wfi", R, normals)  # R^T n
-            pi[..., 3] = np.einsum("fj,wj->wf", normals, t) - np.sum(normals * points, axis=1)
-            e = np.einsum("fki,wfi->wfk", W, pi)
+            pi = np.empty((len(idx), n, 4))
+            pi[..., :3] = np.tensordot(normals, R, axes=([1], [1]))  # R^T n
+            pi[..., 3] = normals @ t.T - offsets[:, None]
+            e = pi @ Wt  # (F_l, walkers, k)
             if scan:
                 e /= np.hypot(pi[..., 0], pi[..., 1])[..., None]
-            c += np.einsum("wfk,wfk->w", e, e)
-            g[:, idx] += np.einsum("fka,wfk->wfa", G, e)
-        return -0.5 * (c - np.einsum("wfa,fab,wfb->w", g, self.H_inv, g))
+            c += np.einsum("fwk,fwk->w", e, e)
+            g[idx] += e @ G
+        z = g @ self.H_chol  # g^T H^-1 g = |L^T g|^2 with H^-1 = L L^T
+        return -0.5 * (c - np.einsum("fwa,fwa->w", z, z))
+
+
+class LaplaceProposal:
+    """An independence proposal for emcee's ``MHMove``: a multivariate Student-t about the MAP with the Laplace
+    covariance (scaled by ``scale``), whatever the walker's position. Where the posterior is near its Laplace
+    approximation, as a rig's is, nearly every proposal is an independent draw accepted with high probability,
+    so the chain's autocorrelation stays a few steps in any dimension (an ensemble move's grows with it); the
+    t's tails keep the sampler exact where the posterior's are heavier."""
+
+    def __init__(self, covariance: np.ndarray, nu: float = 30.0, scale: float = 1.05):
+        self.L = np.linalg.cholesky(covariance) * scale
+        self.nu = nu
+
+    def log_density(self, x: np.ndarray) -> np.ndarray:
+        u = np.linalg.solve(self.L, x.T)
+        return -0.5 * (self.nu + x.shape[1]) * np.log1p(np.sum(u * u, axis=0) / self.nu)
+
+    def __call__(self, coords: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
+        n, d = coords.shape
+        w = random.chisquare(self.nu, n) / self.nu
+        new = (random.randn(n, d) / np.sqrt(w)[:, None]) @ self.L.T
+        return new, self.log_density(coords) - self.log_density(new)
 
 
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
@@ -221,7 +247,11 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     cov = cov_inner[np.ix_(cols, cols)]
     walkers = max(64, 2 * like.ndim + 16)
     start = rng.multivariate_normal(np.zeros(like.ndim), 0.25 * (cov + cov.T), walkers)
-    run = run_ensemble(like, start, rng, min_ess=min_ess, max_steps=max_steps, label="rig posterior")
+    import emcee
+
+    # Mostly independent draws from the Laplace approximation; differential evolution for what it misses.
+    moves = [(emcee.moves.MHMove(LaplaceProposal(cov)), 0.7), (emcee.moves.DEMove(), 0.3)]
+    run = run_ensemble(like, start, rng, min_ess=min_ess, max_steps=max_steps, label="rig posterior", moves=moves)
     keep = run.samples[np.linspace(0, len(run.samples) - 1, min(MAX_KEPT, len(run.samples))).astype(int)]
     # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     m = len(keep)
