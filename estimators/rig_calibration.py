@@ -28,7 +28,7 @@ from .errors import DegenerateLayoutError, LidarcamError
 from .io.dataset import FrameFiles
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.rig_dataset import RigDataset, Sensor
-from .measurements import lidar_whitener
+from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
 from .solvers.rig_graph import CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree
@@ -279,16 +279,18 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     for lid in rig.lidars:
         skipped[lid.name] = {}
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
+        measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
         for cam in shared:
-            if sum(1 for st in poses[cam.name] if lid.file(st) is not None) < MIN_PAIR_FRAMES:
+            stems = [st for st in poses[cam.name] if lid.file(st) is not None]
+            if len(stems) < MIN_PAIR_FRAMES:
                 continue
-            ds = rig.pair(cam.name, lid.name, cameras[cam.name])
-            _, frames, w = measure_frames(ds, rng, workers=workers, detections=found[cam.name])
-            warnings.extend(f"{cam.name}-{lid.name}: {x}" for x in w)
+            frames = _pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), stems, poses[cam.name],
+                                  measured, rng, workers, found[cam.name], warnings, f"{cam.name}-{lid.name}")
             usable = [f for f in frames if f.usable]
             for f in frames:
                 if not f.usable and f.name not in lidar_obs[lid.name]:
-                    skipped[lid.name].setdefault(f.name, f"with {cam.name}: {f.reason}")
+                    by = measured[f.name][0] if f.name in measured else cam.name
+                    skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
             if len(usable) < MIN_PAIR_FRAMES:
                 warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
@@ -353,6 +355,33 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views))
+
+
+def _pair_frames(ds, stems: list[str], poses: dict, measured: dict, rng, workers: int, found: dict,
+                 warnings: list, label: str) -> list[FrameMeasurement]:
+    """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
+    it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
+    frames not yet measured measures them with those it shares (choosing each frame's board takes three)."""
+    new = [st for st in stems if st not in measured]
+    now = {}
+    if new:
+        keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
+        _, frames, w = measure_frames(replace(ds, frames=tuple(f for f in ds.frames if f.name in keep)), rng,
+                                      workers=workers, detections=found)
+        warnings.extend(f"{label}: {x}" for x in w)
+        now = {f.name: f for f in frames}
+        camera_name = label.split("-")[0]
+        for f in frames:
+            if f.camera is not None:  # the LiDAR side was tried (it needs the camera's board)
+                measured.setdefault(f.name, (camera_name, f))
+    out = []
+    for st in stems:
+        if st in now:
+            out.append(now[st])
+        elif st in measured and st in poses:
+            f = measured[st][1]
+            out.append(FrameMeasurement(st, poses[st], f.lidar, None if f.lidar is not None else f.reason))
+    return out
 
 
 @dataclass(frozen=True, eq=False)
