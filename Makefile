@@ -45,7 +45,7 @@ bench: $(STAMP)
 	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
 	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py
-	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --rigs 10
+	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 40 --posterior 1000
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
 	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py

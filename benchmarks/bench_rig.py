@@ -42,12 +42,13 @@ def _one(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners)
         gt = json.loads((folder / "ground_truth.json").read_text())
+        rig = load_rig(folder)
         t0 = time.perf_counter()
-        res = calibrate_rig(load_rig(folder), np.random.default_rng(seed), workers=1, samples=samples)
+        res = calibrate_rig(rig, np.random.default_rng(seed), workers=1, samples=samples)
         seconds = time.perf_counter() - t0
     # The worker's peak resident memory so far (simulating included: an upper bound of the calibration's).
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    out = {"seconds": seconds, "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb,
+    out = {"frames_total": len(rig.sensor("lidar0").stems), "seconds": seconds, "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb,
            "pairs": {}}
     for a, b in res.pairs():
         truth = np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
@@ -79,7 +80,10 @@ def main() -> None:
         runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior)
                                     for s in range(args.rigs)]))
     more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
-    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses")
+    frames = np.mean([r["frames_total"] for r in runs])
+    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses "
+          f"in the first camera's view, {frames:.0f} frames in all (the cameras that do not share its view have "
+          "boards of their own)")
     post = args.posterior > 0
     print(f"{'pair':16s}{'frames':>8s}{'joint rot deg':>15s}{'trans mm':>10s}{'d2':>7s}"
           + (f"{'d2 post':>8s}" if post else "") + f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>7s}")
