@@ -161,14 +161,19 @@ def _parser() -> argparse.ArgumentParser:
                        description="Write a dataset folder from a ROS 1 or ROS 2 bag (no ROS install needed): one "
                                    "frame per still board pose, each image paired with the scan nearest in time. "
                                    "Example: lidarcam extract rig.bag --image-topic /camera/image_raw "
-                                   "--cloud-topic /velodyne_points --board 9x7:0.1:1.0x1.0 --out DS")
+                                   "--cloud-topic /velodyne_points --board 9x7:0.1:1.0x1.0 --out DS. Several image "
+                                   "or LiDAR topics write a rig folder (docs/howto/rig.md): the cameras' still poses "
+                                   "that overlap in time are one frame, each LiDAR's scan nearest to it.")
     x.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag folder (with metadata.yaml)")
-    x.add_argument("--image-topic", required=True, help="sensor_msgs/Image or CompressedImage topic")
-    lt = x.add_mutually_exclusive_group(required=True)
-    lt.add_argument("--cloud-topic", help="sensor_msgs/PointCloud2 topic (3D LiDAR)")
-    lt.add_argument("--scan-topic", help="sensor_msgs/LaserScan topic (2D LiDAR)")
+    x.add_argument("--image-topic", required=True, action="append",
+                   help="sensor_msgs/Image or CompressedImage topic; repeat it for a rig's cameras (cam0, cam1, ...)")
+    x.add_argument("--cloud-topic", action="append", default=[],
+                   help="sensor_msgs/PointCloud2 topic (3D LiDAR); repeat it for a rig's LiDARs (lidar0, ...)")
+    x.add_argument("--scan-topic", action="append", default=[],
+                   help="sensor_msgs/LaserScan topic (2D LiDAR); repeat it for a rig's scanners (scan0, ...)")
     x.add_argument("--camera-info-topic", default=None,
-                   help="sensor_msgs/CameraInfo topic (default: the one beside the image topic, if any)")
+                   help="sensor_msgs/CameraInfo topic (default: the one beside the image topic, if any; a rig's "
+                        "cameras each take the one beside their image topic)")
     x.add_argument("--no-camera-info", action="store_true",
                    help="ignore CameraInfo; calibrate will estimate the intrinsics from the board views")
     x.add_argument("--board", required=True, metavar="NXxNY:SQUARE[:WxH]",
@@ -900,8 +905,22 @@ def _extract(args) -> int:
 
     options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
                              check_hz=args.check_hz, scan_format=args.scan_format)
-    summary = extract_bag(args.bag, args.out, _board_argument(args.board), args.image_topic,
-                          cloud_topic=args.cloud_topic, scan_topic=args.scan_topic,
+    if not args.cloud_topic and not args.scan_topic:
+        raise SystemExit("lidarcam: error: give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
+    if len(args.image_topic) + len(args.cloud_topic) + len(args.scan_topic) > 2:  # a rig folder
+        from .io.rig_bag_extract import extract_rig_bag
+
+        if args.camera_info_topic is not None:
+            raise SystemExit("lidarcam: error: --camera-info-topic is for one camera; a rig's cameras each take "
+                             "the CameraInfo beside their image topic")
+        rig = extract_rig_bag(args.bag, args.out, _board_argument(args.board), args.image_topic, args.cloud_topic,
+                              args.scan_topic, use_camera_info=not args.no_camera_info, options=options,
+                              progress=sys.stderr.isatty(), overwrite=args.overwrite)
+        print("\n".join(rig.lines()))
+        print(f"wrote {rig.out} (next: lidarcam calibrate {rig.out} --out OUT)")
+        return 0
+    summary = extract_bag(args.bag, args.out, _board_argument(args.board), args.image_topic[0],
+                          cloud_topic=(args.cloud_topic or [None])[0], scan_topic=(args.scan_topic or [None])[0],
                           camera_info_topic=args.camera_info_topic, use_camera_info=not args.no_camera_info,
                           options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite)
     print("\n".join(summary.lines()))

@@ -174,3 +174,63 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
                 bag.write(image_topic, image_message(bag, moved, s, encoding), s)
             t = end + int(move_s * 1e9)
     return bag_path
+
+
+def rig_topics(rig) -> dict:
+    """The topic of each sensor of a rig folder in :func:`write_bag_from_rig`'s bags."""
+    return {s.name: f"/{s.name}/image_raw" if s.type == "camera" else
+            f"/{s.name}/points" if s.lidar == "3d" else f"/{s.name}/scan" for s in rig.sensors}
+
+
+def write_bag_from_rig(folder: Path, bag_path: Path, kind: str, stems: list[str], sensors: list[str], *,
+                       image_hz: float = 4.0, scan_hz: float = 5.0, still_s: float = 1.5, move_s: float = 0.6,
+                       seed: int = 0) -> Path:
+    """Record some frames (``stems``) of a rig folder's ``sensors`` as a bag: as :func:`write_bag_from_dataset`,
+    every camera publishing all along (a frame it has no file for: an image without the board), its CameraInfo
+    beside it, and every LiDAR its frame's scan (topics: :func:`rig_topics`)."""
+    from estimators.io.rig_dataset import load_rig
+
+    rig = load_rig(folder)
+    chosen = [rig.sensor(n) for n in sensors]
+    topics = rig_topics(rig)
+    rng = np.random.default_rng(seed)
+    t = T0_NS
+    dt_img, dt_scan = int(1e9 / image_hz), int(1e9 / scan_hz)
+    with _Bag(bag_path, kind) as bag:
+        for k, stem in enumerate(stems):
+            end = t + int(still_s * 1e9)
+            events = []
+            for ci, s in enumerate(chosen):
+                if s.type == "camera":
+                    path = s.file(stem)
+                    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path is not None else np.zeros(
+                        (s.camera.height, s.camera.width), np.uint8)
+                    events += [(u + 7_000_000 * ci, "img", s, img) for u in range(t, end, dt_img)]
+                    if k == 0:
+                        events.append((t, "info", s, None))
+                elif s.file(stem) is not None:
+                    data = read_scan(s.file(stem)) if s.lidar == "3d" else _read_scan_2d_raw(s.file(stem))
+                    events += [(u + 11_000_000, "scan", s, data) for u in range(t, end, dt_scan)]
+            for u, what, s, data in sorted(events, key=lambda e: e[0]):
+                if what == "img":
+                    noisy = np.clip(data + rng.normal(0, 1.0, data.shape), 0, 255).astype(np.uint8)
+                    bag.write(topics[s.name], image_message(bag, noisy, u), u)
+                elif what == "info":
+                    bag.write(f"/{s.name}/camera_info", info_message(bag, s.camera, u), u)
+                elif s.lidar == "3d":
+                    bag.write(topics[s.name], cloud_message(bag, data, u), u)
+                else:
+                    bag.write(topics[s.name], scan_message(bag, *data, u), u)
+            # The board moves to the next pose: every camera's image slides, and shows no board once.
+            moves = list(range(end, end + int(move_s * 1e9), dt_img))
+            for j, u in enumerate(moves):
+                for s in chosen:
+                    if s.type != "camera":
+                        continue
+                    path = s.file(stem)
+                    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path is not None else np.zeros(
+                        (s.camera.height, s.camera.width), np.uint8)
+                    moved = np.zeros_like(img) if j == len(moves) // 2 else np.roll(img, 25 * (j + 1), axis=1)
+                    bag.write(topics[s.name], image_message(bag, moved, u), u)
+            t = end + int(move_s * 1e9)
+    return bag_path

@@ -309,3 +309,45 @@ def test_the_laplace_independence_proposal_samples_a_target_it_does_not_match():
     assert run.converged
     np.testing.assert_allclose(np.cov(run.samples, rowvar=False), target, atol=0.1 * np.sqrt(np.outer(
         np.diag(target), np.diag(target))).max(), rtol=0.1)
+
+
+def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):
+    # Five frames of two cameras (cam2 misses one), the VLP-16-like LiDAR and the 2D scanner, recorded as one ROS 1
+    # bag (each pose held 1.5 s, images at 4 Hz, scans at 5 Hz 11 ms later): the command writes a rig folder with
+    # five frames, each camera's files where it saw the board, every scan the very one recorded, and the cameras'
+    # intrinsics from CameraInfo.
+    from estimators.cli import main
+    from estimators.errors import BagError
+    from estimators.io.pointcloud_io import read_scan, read_scan_2d
+    from estimators.io.rig_bag_extract import extract_rig_bag
+    from tests.rosbag_writer import rig_topics, write_bag_from_rig
+
+    rig = load_rig(rig_folder)
+    stems = ["0000", "0001", "0002", "0003", "0004"]
+    assert rig.sensor("cam2").file("0004") is None and rig.sensor("cam2").file("0003") is not None
+    bag = write_bag_from_rig(rig_folder, tmp_path / "rig.bag", "ros1", stems, ["cam0", "cam2", "lidar1", "scan0"])
+    topics = rig_topics(rig)
+    out = tmp_path / "extracted"
+    args = ["extract", str(bag), "--image-topic", topics["cam0"], "--image-topic", topics["cam2"],
+            "--cloud-topic", topics["lidar1"], "--scan-topic", topics["scan0"], "--board", str(rig_folder /
+                                                                                              "dataset.yaml"),
+            "--out", str(out)]
+    assert main(args) == 0
+    x = load_rig(out)
+    assert [s.name for s in x.sensors] == ["cam0", "cam1", "lidar0", "scan0"] and x.reference == "cam0"
+    assert x.sensor("cam0").stems == tuple(stems) and x.sensor("cam1").stems == tuple(stems[:4])
+    np.testing.assert_allclose(x.sensor("cam1").camera.K, rig.sensor("cam2").camera.K)
+    for st in stems:
+        np.testing.assert_allclose(read_scan(x.sensor("lidar0").file(st)), read_scan(rig.sensor("lidar1").file(st)),
+                                   atol=1e-5)
+        # LaserScan carries float32 ranges and angles as start + k * increment: 0.1 mm over these ranges
+        np.testing.assert_allclose(read_scan_2d(x.sensor("scan0").file(st)), read_scan_2d(rig.sensor("scan0").file(st)),
+                                   atol=1e-4)
+    record = json.loads((out / "extract.json").read_text())
+    assert record["topics"]["cam1"] == topics["cam2"] and record["image_counts"]["cam1"]["kept"] == 4
+    # a topic given twice, or a topic not in the bag: one line naming it, and nothing written
+    with pytest.raises(BagError, match="given twice"):
+        extract_rig_bag(bag, tmp_path / "twice", rig.board, [topics["cam0"], topics["cam0"]], [topics["lidar1"]])
+    assert main(args[:-1] + [str(tmp_path / "missing")] + ["--image-topic", "/cam9/image_raw"]) == 2
+    assert "/cam9/image_raw" in capsys.readouterr().err and not (tmp_path / "missing").exists()
+    assert not (tmp_path / "twice").exists()

@@ -205,6 +205,36 @@ class _StillSegments:
         self._reset()
 
 
+class _ImageGrid:
+    """One image topic's fixed time grid of ``1/check_hz`` (the first image in each cell is examined, so examined
+    images are one cell apart whatever the stamps' jitter), its images' count and time span, and its camera
+    period, which credits its still segments (``segments.credit_s``)."""
+
+    def __init__(self, options: ExtractOptions, segments: _StillSegments):
+        self.hz, self.segments = options.check_hz, segments
+        self.origin = self.last_cell = self.last_stamp = None
+        self.intervals: deque = deque(maxlen=16)  # recent image intervals (ns), for the camera's period
+        self.n = 0
+        self.span: list = [None, None]
+
+    def examine(self, stamp: int) -> bool:
+        """Count an image stamped ``stamp`` and say whether it is examined."""
+        self.n += 1
+        self.span = [stamp if self.span[0] is None else min(self.span[0], stamp),
+                     stamp if self.span[1] is None else max(self.span[1], stamp)]
+        if self.last_stamp is not None and stamp > self.last_stamp:
+            self.intervals.append(stamp - self.last_stamp)
+            self.segments.credit_s = 1.0 / self.hz + float(np.median(self.intervals)) * 1e-9
+        self.last_stamp = stamp
+        self.origin = stamp if self.origin is None else self.origin
+        cell = (stamp - self.origin) * self.hz // 1_000_000_000
+        if cell == self.last_cell:
+            self.segments.counts["between_checks"] += 1
+            return False
+        self.last_cell = cell
+        return True
+
+
 def _open_reader(bag: Path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -360,12 +390,11 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                                 "dt_ms": round((c.scan_stamp - c.stamp) * 1e-6, 3)})
 
             segments = _StillSegments(options, emit)
+            grid = _ImageGrid(options, segments)
             scans: deque = deque()  # (stamp, msg) in arrival order
             pending: deque = deque()  # examined images awaiting a later scan
             camera: CameraModel | None = None
-            n_images, origin, last_cell, last_stamp = 0, None, None, None
-            intervals: deque = deque(maxlen=16)  # recent image intervals (ns), for the camera's period
-            img_span, scan_span = [None, None], [None, None]
+            scan_span = [None, None]
             peak = {"scans": 0, "images_awaiting_a_scan": 0}
             max_dt = int(options.max_dt_s * 1e9)
 
@@ -394,20 +423,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                     while pending and stamp > pending[0].stamp + max_dt:
                         resolve(pending.popleft())
                 else:
-                    n_images += 1
-                    span(img_span, stamp)
-                    if last_stamp is not None and stamp > last_stamp:
-                        intervals.append(stamp - last_stamp)
-                        segments.credit_s = 1.0 / options.check_hz + float(np.median(intervals)) * 1e-9
-                    last_stamp = stamp
-                    # A fixed time grid: the first image in each cell of 1/check_hz is examined, so examined
-                    # images are one cell apart whatever the stamps' jitter.
-                    origin = stamp if origin is None else origin
-                    cell = (stamp - origin) * options.check_hz // 1_000_000_000
-                    if cell == last_cell:
-                        segments.counts["between_checks"] += 1
+                    if not grid.examine(stamp):
                         continue
-                    last_cell = cell
                     image = decode_image(msg, image_topic)
                     pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
                     if len(pending) > MAX_PENDING_IMAGES:
@@ -423,7 +440,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             while pending:
                 resolve(pending.popleft())
             segments.close()
-            _check_overlap(bag, image_topic, lidar_topic, img_span, scan_span, n_images, options)
+            n_images = grid.n
+            _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,

@@ -1,0 +1,273 @@
+"""A rig folder (``io.rig_dataset``) from a ROS 1 or ROS 2 bag with several cameras and LiDARs.
+
+Two streaming passes over the bag:
+
+1. **Still poses, per camera.** Each image topic is examined on its own grid and grouped into still segments as
+   for a single pair (``bag_extract``: its steadiest interior image, one per still pose, a pose already kept not
+   kept again), its kept image staged on disk at once. Segments of different cameras that overlap in time are one
+   board pose, one frame: a camera whose segment does not overlap any other's gives a frame of its own (a camera
+   looking backwards at boards of its own). Frames are numbered in time order.
+2. **Scans.** Each LiDAR topic's scan nearest to the frame's moment (the first camera's kept image), within the
+   time the board stood still in every camera of the frame (plus ``max_dt_s``), is written for that frame. Only
+   the best scan so far of the one frame in reach is held in memory.
+
+A camera without a kept image in a frame did not see the board then (it has no file for that stem), and a LiDAR
+without a scan within reach has none either; ``extract.json`` says which sensor has which frame and why not.
+Sensors are named ``cam0..``, ``lidar0..`` (clouds) and ``scan0..`` (2D scans) in the order their topics are
+given, the reference ``cam0``; each camera's intrinsics from the CameraInfo beside its image topic when there is
+one.
+"""
+from __future__ import annotations
+
+import bisect
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+
+from geometry.board import BoardModel
+
+from ..errors import BagError
+from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, SCAN_TYPE, ExtractOptions, _Check, _detect,
+                          _ImageGrid, _messages, _open_reader, _StillSegments, _camera_info_topic, _topic)
+from .dataset import dataset_spec, write_dataset_yaml
+from .image_io import to_gray8
+from .output import atomic_directory
+from .pointcloud_io import write_scan, write_scan_2d
+from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
+
+
+@dataclass(frozen=True)
+class RigExtractSummary:
+    """What a rig extraction wrote: the frames, each sensor's topic and its files, and each camera's image
+    counts by reason (``bag_extract.REASONS``)."""
+
+    out: Path
+    frames: int
+    topics: dict
+    files: dict
+    counts: dict = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        out = [f"{self.frames} frames (one per still board pose, seen by any camera)"]
+        for name, topic in self.topics.items():
+            line = f"  {name:8s} {topic}: {self.files[name]} files"
+            if name in self.counts:
+                c = self.counts[name]
+                line += f" ({c.get('kept', 0)} still poses of {sum(c.values())} images)"
+            out.append(line)
+        return out
+
+
+@dataclass
+class _Frame:
+    """One board pose: the kept image of each camera that held it still (stamp, staged file), the moment its scans
+    are taken nearest to, and the window in which the board stood still in all of those cameras."""
+
+    t_ref: int
+    lo: int
+    hi: int
+    images: dict = field(default_factory=dict)
+
+
+def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardModel, image_topics: list[str],
+                    cloud_topics: list[str] = (), scan_topics: list[str] = (), use_camera_info: bool = True,
+                    options: ExtractOptions = ExtractOptions(), progress: bool = False,
+                    overwrite: bool = False) -> RigExtractSummary:
+    """Write a rig folder from a bag with several cameras and LiDARs (module docstring), atomically.
+
+    Parameters
+    ----------
+    bag : str or os.PathLike
+        A ROS 1 ``.bag`` file, a ROS 2 bag folder, or its ``.db3`` or ``.mcap`` file.
+    out : str or os.PathLike
+        The rig folder to write.
+    board : BoardModel
+        The board.
+    image_topics : list of str
+        ``sensor_msgs/Image`` or ``CompressedImage`` topics: ``cam0``, ``cam1``, ... in this order.
+    cloud_topics, scan_topics : list of str
+        ``PointCloud2`` topics (``lidar0``, ...) and ``LaserScan`` topics (``scan0``, ...); one or more in all.
+    use_camera_info : bool
+        False: write no intrinsics (``calibrate`` estimates each camera's from its board views).
+    options : ExtractOptions
+        Stillness settings; ``max_dt_s`` widens each frame's window for its scans.
+    progress : bool
+        Show a progress bar.
+    overwrite : bool
+        Replace an existing folder.
+
+    Returns
+    -------
+    RigExtractSummary
+
+    Raises
+    ------
+    BagError
+        A missing or repeated topic, a topic without messages, or no still board pose in any camera.
+    """
+    from tqdm.auto import tqdm
+
+    bag = Path(bag)
+    topics = list(image_topics) + list(cloud_topics) + list(scan_topics)
+    if not image_topics or not (cloud_topics or scan_topics):
+        raise BagError("a rig needs at least one image topic and one cloud or scan topic", path=bag,
+                       hint="pass --image-topic T for each camera and --cloud-topic T / --scan-topic T for each LiDAR")
+    if len(set(topics)) != len(topics):
+        raise BagError("a topic is given twice", path=bag, hint="give each sensor's topic once")
+    cams = {f"cam{k}": t for k, t in enumerate(image_topics)}
+    lidars = {f"lidar{k}": (t, "3d") for k, t in enumerate(cloud_topics)}
+    lidars.update({f"scan{k}": (t, "2d") for k, t in enumerate(scan_topics)})
+    scan_format = {"3d": options.scan_format or "pcd", "2d": options.scan_format or "csv"}
+    reader = _open_reader(bag)
+    try:
+        img_conns = {n: _topic(reader, bag, t, IMAGE_TYPES, "--image-topic") for n, t in cams.items()}
+        lidar_conns = {n: _topic(reader, bag, t, (CLOUD_TYPE,) if kind == "3d" else (SCAN_TYPE,),
+                                 "--cloud-topic" if kind == "3d" else "--scan-topic")
+                       for n, (t, kind) in lidars.items()}
+        info = {n: _camera_info_topic(reader, t) if use_camera_info else None for n, t in cams.items()}
+        info_conns = {n: _topic(reader, bag, t, (INFO_TYPE,), "--image-topic") for n, t in info.items() if t}
+        with atomic_directory(out, overwrite=overwrite) as tmp:
+            stage = tmp / ".staged"
+            stage.mkdir()
+            for name in list(cams) + list(lidars):
+                (tmp / name).mkdir()
+            kept, cameras, counts = _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options,
+                                                 stage, progress, tqdm)
+            frames = _merge(kept)
+            if not frames:
+                total = ", ".join(f"{n}: {sum(c.values())} images" for n, c in counts.items())
+                raise BagError(f"no still board poses found in any camera ({total})", path=bag,
+                               hint="hold the board still for --still-s seconds per pose, or raise --still-px for "
+                                    "a hand-held board")
+            files = {n: 0 for n in list(cams) + list(lidars)}
+            records = [{"name": f"{j:04d}", "stamp_ns": f.t_ref, "cameras": {}, "lidars": {}}
+                       for j, f in enumerate(frames)]
+            for j, f in enumerate(frames):
+                for cam, (stamp, path) in f.images.items():
+                    path.rename(tmp / cam / f"{j:04d}.png")
+                    records[j]["cameras"][cam] = stamp
+                    files[cam] += 1
+            for name, (topic, kind) in lidars.items():
+                for j, (stamp, msg) in _nearest_scans(reader, bag, lidar_conns[name], frames, options.max_dt_s,
+                                                  progress, tqdm):
+                    path = tmp / name / f"{j:04d}.{scan_format[kind]}"
+                    if kind == "3d":
+                        write_scan(path, *decode_point_cloud(msg, topic))
+                    else:
+                        write_scan_2d(path, *decode_laser_scan(msg))
+                    records[j]["lidars"][name] = stamp
+                    files[name] += 1
+                if files[name] == 0:
+                    raise BagError(f"topic {topic!r} has no scan while the board stood still in a camera", path=bag,
+                                   hint="check that every sensor stamps with the same clock and recorded then")
+            stage.rmdir()
+            spec = dataset_spec("3d", board, None)
+            spec.pop("lidar")
+            sensors = []
+            for n in cams:
+                entry = {"name": n, "type": "camera"}
+                if cameras.get(n) is not None:
+                    entry.update(dataset_spec("3d", board, cameras[n])["camera"])
+                sensors.append(entry)
+            sensors += [{"name": n, "type": "lidar", "lidar": kind} for n, (_, kind) in lidars.items()]
+            spec.update({"sensors": sensors, "reference": "cam0"})
+            write_dataset_yaml(tmp, spec, f"extracted by lidarcam from {bag.name}: " + ", ".join(
+                f"{n} {t}" for n, t in list(cams.items()) + [(n, t) for n, (t, _) in lidars.items()]))
+            (tmp / "extract.json").write_text(json.dumps({
+                "bag": str(bag), "topics": {**cams, **{n: t for n, (t, _) in lidars.items()}},
+                "camera_info_topics": {n: t for n, t in info.items() if cameras.get(n) is not None},
+                "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
+                            "still_px": options.still_px, "check_hz": options.check_hz},
+                "image_counts": counts, "files": files, "frames": records}, indent=1) + "\n")
+    finally:
+        reader.close()
+    return RigExtractSummary(Path(out), len(frames), {**cams, **{n: t for n, (t, _) in lidars.items()}}, files,
+                             counts)
+
+
+def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options, stage, progress, tqdm):
+    """Pass 1: each camera's kept still poses ``(first stamp, last stamp, kept stamp, staged file)``, its
+    intrinsics from CameraInfo (or None) and its images' counts by reason."""
+    kept = {n: [] for n in cams}
+    segments, grids = {}, {}
+    for n in cams:
+        def emit(c: _Check, n=n) -> None:
+            seg = segments[n]  # emit runs before the segment is reset: its first and last images are known
+            path = stage / f"{n}_{len(kept[n]):04d}.png"
+            cv2.imwrite(str(path), c.image)
+            kept[n].append((seg.first.stamp, seg.prev.stamp, c.stamp, path))
+
+        segments[n] = _StillSegments(options, emit)
+        grids[n] = _ImageGrid(options, segments[n])
+    by_topic = {cams[n]: n for n in cams}
+    info_of = {t: n for n, t in info.items() if t}
+    cameras = {}
+    conns = [c for cs in img_conns.values() for c in cs] + [c for cs in info_conns.values() for c in cs]
+    bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"images in {bag.name}", unit="msg", disable=not progress)
+    for conn, t_bag, msg in _messages(reader, bag, conns):
+        bar.update(1)
+        if conn.topic in info_of:
+            n = info_of[conn.topic]
+            if cameras.get(n) is None:
+                cameras[n] = camera_from_info(msg, conn.topic)
+            continue
+        n = by_topic[conn.topic]
+        stamp = stamp_ns(msg, t_bag)
+        if not grids[n].examine(stamp):
+            continue
+        image = decode_image(msg, conn.topic)
+        # Still segments pair nothing here (each LiDAR's scan is taken in the second pass): every image may be kept.
+        segments[n].add(_Check(stamp, image, _detect(to_gray8(image), board), scan=True))
+    bar.close()
+    for n in cams:
+        segments[n].close()
+        if grids[n].n == 0:
+            raise BagError(f"topic {cams[n]!r} has no messages", path=bag, hint="check the recording")
+    counts = {n: {k: int(v) for k, v in segments[n].counts.items() if v} for n in cams}
+    return kept, cameras, counts
+
+
+def _merge(kept: dict) -> list[_Frame]:
+    """Frames from every camera's still poses: poses of different cameras that overlap in time are one frame
+    (a camera's second pose in the same overlap starts a frame of its own)."""
+    poses = sorted((first, last, stamp, n, path) for n, ks in kept.items() for first, last, stamp, path in ks)
+    frames: list[_Frame] = []
+    for first, last, stamp, n, path in poses:
+        f = frames[-1] if frames else None
+        if f is not None and first <= f.hi and last >= f.lo and n not in f.images:
+            f.lo, f.hi = max(f.lo, first), min(f.hi, last)
+            f.images[n] = (stamp, path)
+        else:
+            frames.append(_Frame(stamp, first, last, {n: (stamp, path)}))
+    for f in frames:  # the scans' moment: the first camera's kept image, within the window all cameras share
+        f.t_ref = min(max(f.t_ref, f.lo), f.hi)
+    return frames
+
+
+def _nearest_scans(reader, bag, conns, frames: list[_Frame], max_dt_s: float, progress, tqdm):
+    """Pass 2 for one LiDAR: ``(frame index, (stamp, message))`` of the scan nearest each frame's moment within
+    its still window widened by ``max_dt_s``, streaming; frames without one are left out."""
+    slack = int(max_dt_s * 1e9)
+    lo = [f.lo for f in frames]
+    best: tuple | None = None  # (frame index, |dt|, stamp, message)
+    bar = tqdm(total=sum(c.msgcount for c in conns), desc="scans", unit="msg", disable=not progress)
+    for _, t_bag, msg in _messages(reader, bag, conns):
+        bar.update(1)
+        stamp = stamp_ns(msg, t_bag)
+        if best is not None and stamp > frames[best[0]].hi + slack:
+            yield best[0], (best[2], best[3])
+            best = None
+        j = bisect.bisect_right(lo, stamp + slack) - 1
+        if j < 0 or stamp > frames[j].hi + slack:
+            continue
+        dt = abs(stamp - frames[j].t_ref)
+        if best is None or best[0] != j or dt < best[1]:
+            if best is not None and best[0] != j:
+                yield best[0], (best[2], best[3])
+            best = (j, dt, stamp, msg)
+    bar.close()
+    if best is not None:
+        yield best[0], (best[2], best[3])
