@@ -16,7 +16,7 @@ Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``
 Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export_calibration`` and
 ``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
 Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig``, ``write_rig_calibration``,
-``simulate_rig``.
+``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and LiDARs).
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
@@ -55,6 +55,7 @@ _API = {
     "calibrate_rig": ("rig_calibration", "calibrate_rig"),
     "write_rig_calibration": ("rig_calibration", "write_rig_calibration"),
     "simulate_rig": ("simulation.rig_simulator", "simulate_rig"),
+    "extract_rig_bag": ("io.rig_bag_extract", "extract_rig_bag"),
 }
 __all__ = ["__version__", *_API]
 
