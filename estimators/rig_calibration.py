@@ -284,8 +284,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             stems = [st for st in poses[cam.name] if lid.file(st) is not None]
             if len(stems) < MIN_PAIR_FRAMES:
                 continue
-            frames = _pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), stems, poses[cam.name],
-                                  measured, rng, workers, found[cam.name], warnings, f"{cam.name}-{lid.name}")
+            frames = _pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name, lid.name, stems,
+                                  poses[cam.name], measured, rng, workers, found[cam.name], warnings)
             usable = [f for f in frames if f.usable]
             for f in frames:
                 if not f.usable and f.name not in lidar_obs[lid.name]:
@@ -357,8 +357,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                      tuple(camera_views), tuple(lidar_views))
 
 
-def _pair_frames(ds, stems: list[str], poses: dict, measured: dict, rng, workers: int, found: dict,
-                 warnings: list, label: str) -> list[FrameMeasurement]:
+def _pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
+                 workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three)."""
@@ -368,9 +368,8 @@ def _pair_frames(ds, stems: list[str], poses: dict, measured: dict, rng, workers
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         _, frames, w = measure_frames(replace(ds, frames=tuple(f for f in ds.frames if f.name in keep)), rng,
                                       workers=workers, detections=found)
-        warnings.extend(f"{label}: {x}" for x in w)
+        warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
-        camera_name = label.split("-")[0]
         for f in frames:
             if f.camera is not None:  # the LiDAR side was tried (it needs the camera's board)
                 measured.setdefault(f.name, (camera_name, f))
