@@ -30,6 +30,9 @@ def _pair_rows(result) -> list[list[str]]:
                     ", ".join(f"{1000 * v:.2f}" for v in sdp[3:])]
         else:
             row += ["-", "-", "-"]
+        if result.posterior is not None:
+            iv = result.posterior.pair_summary(a, b)["95%"]["translation_mm"]
+            row.append(", ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in iv))
         rows.append(row)
     return rows
 
@@ -38,8 +41,16 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     """Write ``OUT/report.html`` for a rig (module docstring) and its overlays (``projection_<camera>_<lidar>_
     <frame>.png``), each file atomically."""
     sol = result.solution
+    post = result.posterior
+    if post is None:
+        how = "one graph, Laplace covariance (posterior not sampled)"
+    else:
+        d = post.diagnostics()
+        how = (f"one graph; its posterior sampled with emcee over {d['parameters']} parameters ("
+               f"{d['effective_samples']:.0f} effective samples, autocorrelation {d['tau_steps_max']:.1f} steps, "
+               f"acceptance {d['acceptance_fraction']:.2f}{'' if d['converged'] else ', NOT converged'})")
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
-             f"{html.escape(sol.reference)}; one graph, Laplace covariance.</p>"]
+             f"{html.escape(sol.reference)}; {how}.</p>"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
     rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
@@ -48,9 +59,12 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     parts.append("<h2>Every pair</h2><p>From the joint graph: the translation (mm, in the first sensor's frame) "
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
-                 "standard deviations.</p>"
+                 "standard deviations" + ("; the posterior's 95% interval of the translation's right tangent "
+                                          "(mm, along the second sensor's axes)" if post is not None else "")
+                 + ".</p>"
                  + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
-                                               "pair alone: away", "pair alone: t sd [mm]"]))
+                                               "pair alone: away", "pair alone: t sd [mm]"]
+                          + (["posterior 95%: t [mm]"] if post is not None else [])))
     layout = result.layout()
     if layout["weakest_pair"]:
         w = layout["pairs"][layout["weakest_pair"]]
