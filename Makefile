@@ -44,7 +44,7 @@ bench: $(STAMP)
 	$(RECORD) board_edges -- $(PY) benchmarks/bench_board_edges.py --posterior 40
 	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
-	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py
+	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000
 	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 40 --posterior 1000
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py

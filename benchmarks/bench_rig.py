@@ -10,7 +10,9 @@ frames whose board lies wholly in its image. `--lidars 2` adds a VLP-16-like LiD
 of the truth under each pair's posterior covariance and the posterior's time.
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
-the camera saw, and the mean squared Mahalanobis distance of the truth under each covariance (6 ideal). The
+the camera saw, the joint errors over the RMS Cramer-Rao bound (`rig_graph.rig_bound`: the graph's information at
+the truth, for the views measured, at the noise levels the graph used), and the mean squared Mahalanobis
+distance of the truth under each covariance (6 ideal). The
 time is measure + solve per rig, on this machine's 2 cores.
 """
 from __future__ import annotations
@@ -36,6 +38,7 @@ def _one(args) -> dict:
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
     from estimators.simulation.rig_simulator import simulate_rig
+    from estimators.solvers.rig_graph import pair_transform
     from geometry.rotations import T_log
 
     seed, cameras, poses, lidars, scanners, samples = args
@@ -48,8 +51,9 @@ def _one(args) -> dict:
         seconds = time.perf_counter() - t0
     # The worker's peak resident memory so far (simulating included: an upper bound of the calibration's).
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    out = {"frames_total": len(rig.sensor("lidar0").stems), "seconds": seconds, "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb,
-           "pairs": {}}
+    out = {"frames_total": len(rig.sensor("lidar0").stems), "seconds": seconds,
+           "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb, "pairs": {}}
+    bound = _bound(res, gt)
     for a, b in res.pairs():
         truth = np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
         rows = {}
@@ -62,8 +66,32 @@ def _one(args) -> dict:
         if res.posterior is not None:
             xi = T_log(np.linalg.inv(estimates["joint"][0]) @ truth)
             rows["posterior"] = float(xi @ np.linalg.solve(np.cov(res.posterior.pair_samples(a, b), rowvar=False), xi))
+        names = res.solution.names
+        idx = np.r_[6 * names.index(a):6 * names.index(a) + 6, 6 * names.index(b):6 * names.index(b) + 6]
+        _, Cb = pair_transform(np.array(gt[f"T_cam0_{a}"]), np.array(gt[f"T_cam0_{b}"]), bound[np.ix_(idx, idx)])
+        rows["bound"] = (float(np.trace(Cb[:3, :3])), float(np.trace(Cb[3:, 3:])))
         out["pairs"][f"T_{a}_{b}"] = {"rows": rows, "frames": len(res.frames_used.get(a, ()))}
     return out
+
+
+def _bound(res, gt) -> np.ndarray:
+    """The graph's information at the truth (every sensor's and board's pose), at the noise levels the graph used:
+    the Cramer-Rao bound of the rig's measurement model for the views measured (``rig_graph.rig_bound``). A board
+    numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise."""
+    from estimators.rig_calibration import pattern_flip
+    from estimators.solvers.rig_graph import rig_bound
+    from geometry.rotations import T_log
+
+    sol = res.solution
+    flip = pattern_flip(res.rig.board)
+    boards = {}
+    for st, B in sol.T_ref_board.items():
+        options = [np.array(gt["T_cam0_board"][st])]
+        options += [options[0] @ flip] if flip is not None else []
+        boards[st] = min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(B) @ T)))
+    truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
+    return rig_bound(sol.names, "cam0", list(res.camera_views), list(res.lidar_views), truth, boards,
+                     sol.noise_scale)
 
 
 def main() -> None:
@@ -85,7 +113,7 @@ def main() -> None:
           f"in the first camera's view, {frames:.0f} frames in all (the cameras that do not share its view have "
           "boards of their own)")
     post = args.posterior > 0
-    print(f"{'pair':16s}{'frames':>8s}{'joint rot deg':>15s}{'trans mm':>10s}{'d2':>7s}"
+    print(f"{'pair':16s}{'frames':>8s}{'joint rot deg':>15s}{'trans mm':>10s}{'rot/CRB':>9s}{'tr/CRB':>8s}{'d2':>7s}"
           + (f"{'d2 post':>8s}" if post else "") + f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>7s}")
     for name in runs[0]["pairs"]:
         rows = [r["pairs"][name] for r in runs]
@@ -94,8 +122,9 @@ def main() -> None:
         def rms(kind, k):
             return np.sqrt(np.mean([r["rows"][kind][k] for r in rows]))
 
-        joint = f"{np.degrees(rms('joint', 0)):15.4f}{1000 * rms('joint', 1):10.2f}" \
-                f"{np.mean([r['rows']['joint'][2] for r in rows]):7.2f}"
+        joint = (f"{np.degrees(rms('joint', 0)):15.4f}{1000 * rms('joint', 1):10.2f}"
+                 f"{rms('joint', 0) / rms('bound', 0):9.2f}{rms('joint', 1) / rms('bound', 1):8.2f}"
+                 f"{np.mean([r['rows']['joint'][2] for r in rows]):7.2f}")
         alone = (f"{np.degrees(rms('pair', 0)):15.4f}{1000 * rms('pair', 1):10.2f}"
                  f"{np.mean([r['rows']['pair'][2] for r in rows]):7.2f}") if "pair" in rows[0]["rows"] else \
             f"{'-':>15s}{'-':>10s}{'-':>7s}"

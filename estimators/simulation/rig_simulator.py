@@ -125,8 +125,8 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     Returns
     -------
     Path
-        The folder; its ``ground_truth.json`` holds every sensor's ``T_cam0_<sensor>`` and the frames each
-        camera saw.
+        The folder; its ``ground_truth.json`` holds every sensor's ``T_cam0_<sensor>``, the frames each camera
+        saw and every frame's board pose ``T_cam0_board``.
     """
     if lidars not in (1, 2):
         raise ValueError(f"Expected 1 or 2 LiDARs, got {lidars}")
@@ -176,7 +176,9 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
                 (["scan0"] if T_l0_s is not None else []) + [n for n, _, _, _ in extra]:
             (tmp / name).mkdir()
         seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
+        boards = {}
         for f in iter_frames(rig, len(poses), rng, poses, workers=1):
+            boards[f.name] = f.T_camera_board.tolist()
             if _sees_board(rig.camera, f.T_camera_board, rig.board):
                 cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
                 seen["cam0"].append(f.name)
@@ -199,6 +201,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
                 cv2.imwrite(str(tmp / name / f"{f.name}.png"), add_pixel_noise(clean, rng, rig.pixel_noise))
                 seen[name].append(f.name)
         truth["frames_seen"] = seen
+        truth["T_cam0_board"] = boards
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
     return Path(out)
 

@@ -240,14 +240,8 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     ``refine_intrinsics``, every camera's intrinsics too."""
     camera_names = [c.name for c in cameras]
     inner = graph_reference(reference, camera_names)
-    T0 = {n: np.linalg.inv(T_ref_init[inner]) @ T_ref_init[n] for n in names}
     stems = sorted(T_ref_board_init)
-    values = gtsam.Values()
-    for k, n in enumerate(names):
-        if n != inner:
-            values.insert(sensor_key(k), gtsam.Pose3(T0[n]))
-    for j, s in enumerate(stems):
-        values.insert(frame_key(j), gtsam.Pose3(np.linalg.inv(T_ref_init[inner]) @ T_ref_board_init[s]))
+    values = _values(names, inner, stems, T_ref_init, T_ref_board_init)
     if refine_intrinsics:
         for c in cameras:
             values.insert(intrinsics_key(names.index(c.name)), np.asarray(c.camera.params, dtype=float))
@@ -273,23 +267,13 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         if converged:
             break
     graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
-    others = [k for k, n in enumerate(names) if n != inner]
+    marginals, cov = _joint_marginal(graph, values, names, inner)
     intrinsics = None
-    try:
-        marginals = gtsam.Marginals(graph, values)
-        inner_cov = marginals.jointMarginalCovariance(gtsam.KeyVector([sensor_key(k) for k in others])).fullMatrix()
-        if refine_intrinsics:
-            intrinsics = {}
-            for c in cameras:
-                key = intrinsics_key(names.index(c.name))
-                intrinsics[c.name] = (values.atVector(key).copy(), np.sqrt(np.diag(marginals.marginalCovariance(key))))
-    except RuntimeError as exc:
-        raise DegenerateLayoutError("the rig's sensor poses are not all fixed by the frames (the graph's "
-                                    "information is singular)",
-                                    hint="record more board poses that the weakly linked sensors see") from exc
-    cov = np.zeros((6 * len(names), 6 * len(names)))
-    idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in others])
-    cov[np.ix_(idx, idx)] = inner_cov
+    if refine_intrinsics:
+        intrinsics = {}
+        for c in cameras:
+            key = intrinsics_key(names.index(c.name))
+            intrinsics[c.name] = (values.atVector(key).copy(), np.sqrt(np.diag(marginals.marginalCovariance(key))))
     T = {n: _pose(values, names, inner, n) for n in names}
     boards = {s: values.atPose3(frame_key(j)).matrix() for j, s in enumerate(stems)}
     if inner != reference:
@@ -298,6 +282,52 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
                        {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics)
+
+
+def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict) -> gtsam.Values:
+    """The graph's pose variables in the frame of its reference camera ``inner``."""
+    T_inner = np.linalg.inv(T_ref[inner])
+    values = gtsam.Values()
+    for k, n in enumerate(names):
+        if n != inner:
+            values.insert(sensor_key(k), gtsam.Pose3(T_inner @ T_ref[n]))
+    for j, s in enumerate(stems):
+        values.insert(frame_key(j), gtsam.Pose3(T_inner @ T_ref_board[s]))
+    return values
+
+
+def _joint_marginal(graph, values, names, inner: str) -> tuple:
+    """GTSAM's marginals at ``values`` and the joint covariance (6N x 6N, ``names`` order, the graph's reference
+    camera's block zero); a singular information is a one-line error."""
+    others = [k for k, n in enumerate(names) if n != inner]
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        inner_cov = marginals.jointMarginalCovariance(gtsam.KeyVector([sensor_key(k) for k in others])).fullMatrix()
+    except RuntimeError as exc:
+        raise DegenerateLayoutError("the rig's sensor poses are not all fixed by the frames (the graph's "
+                                    "information is singular)",
+                                    hint="record more board poses that the weakly linked sensors see") from exc
+    cov = np.zeros((6 * len(names), 6 * len(names)))
+    idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in others])
+    cov[np.ix_(idx, idx)] = inner_cov
+    return marginals, cov
+
+
+def rig_bound(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+              T_ref: dict, T_ref_board: dict, noise_scale: dict | None = None) -> np.ndarray:
+    """The joint covariance of every sensor's pose (6N x 6N, ``names`` order, in the frame of ``reference``) that
+    the graph's information gives at the poses ``T_ref`` and board poses ``T_ref_board`` (by stem): at a
+    simulation's truth, the Cramer-Rao bound of the graph's measurement model for these views (their corners,
+    their board points' moments) at the views' noise levels (times ``noise_scale``, by sensor)."""
+    inner = graph_reference(reference, [c.name for c in cameras])
+    stems = sorted(T_ref_board)
+    scale = {n: (noise_scale or {}).get(n, 1.0) for n in names}
+    graph = _graph(names, cameras, lidars, stems, scale, inner)
+    _, cov = _joint_marginal(graph, _values(names, inner, stems, T_ref, T_ref_board), names, inner)
+    if inner != reference:
+        _, cov = change_reference(tuple(names), {n: np.linalg.inv(T_ref[inner]) @ T_ref[n] for n in names}, cov,
+                                  reference)
+    return 0.5 * (cov + cov.T)
 
 
 def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
