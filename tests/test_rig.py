@@ -15,7 +15,7 @@ from estimators.io.rig_dataset import is_rig, load_rig
 from estimators.rig_calibration import calibrate_rig, pattern_flip
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
-from estimators.solvers.rig_graph import change_reference, pair_transform, rig_corner_factor, spanning_tree
+from estimators.solvers.rig_graph import change_reference, pair_transform, rig_bound, rig_corner_factor, spanning_tree
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
 
@@ -138,6 +138,26 @@ def test_a_simulated_rig_against_its_ground_truth(rig_folder, rig_result):
     for (c, lidar), (_, C_pair, _) in rig_result.pairwise.items():
         _, C = sol.transform(c, lidar)
         assert np.trace(C[3:, 3:]) <= 1.05 * np.trace(C_pair[3:, 3:]), c
+
+
+def test_the_rigs_bound_is_its_covariance_at_its_estimate_and_near_it_at_the_truth(rig_folder, rig_result):
+    # rig_bound is the graph's information inverted at the poses given: at the estimate (with the graph's noise
+    # scales) exactly the reported joint covariance; at the truth, 1 cm and 0.2 deg away, every standard
+    # deviation within 5% of it.
+    sol = rig_result.solution
+    views = (list(rig_result.camera_views), list(rig_result.lidar_views))
+    C = rig_bound(sol.names, sol.reference, *views, sol.T_ref, sol.T_ref_board, sol.noise_scale)
+    np.testing.assert_allclose(C, sol.covariance_joint, rtol=1e-6, atol=1e-15)
+    gt = json.loads((rig_folder / "ground_truth.json").read_text())
+    truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
+    flip = pattern_flip(load_rig(rig_folder).board)
+    boards = {}
+    for st, B in sol.T_ref_board.items():
+        options = [np.array(gt["T_cam0_board"][st])] + ([np.array(gt["T_cam0_board"][st]) @ flip] if flip is not None
+                                                         else [])
+        boards[st] = min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(B) @ T)))
+    Ct = rig_bound(sol.names, sol.reference, *views, truth, boards, sol.noise_scale)
+    np.testing.assert_allclose(np.sqrt(np.diag(Ct))[6:], np.sqrt(np.diag(sol.covariance_joint))[6:], rtol=0.05)
 
 
 def test_the_rig_posteriors_curvature_at_the_map_is_the_graphs_information(rig_result):
