@@ -143,6 +143,7 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
     T_camera_world = np.linalg.inv(T_world_camera)
     uv = camera.project(transform_points(T_camera_world, board_outline_world))
     uv = uv[np.all(np.isfinite(uv), axis=1)]  # a board behind the camera (a rig's other cameras) projects nowhere
+    uv = np.clip(uv, -1e6, 1e6)  # nearly behind a fisheye: far outside the image, and no integer overflow
     if len(uv):
         u_lo, v_lo = np.floor(uv.min(axis=0)).astype(int) - 2
         u_hi, v_hi = np.ceil(uv.max(axis=0)).astype(int) + 2
