@@ -120,13 +120,16 @@ def main() -> None:
         frames = np.mean([r["frames"] for r in rows])
 
         def rms(kind, k):
-            return np.sqrt(np.mean([r["rows"][kind][k] for r in rows]))
+            return np.sqrt(np.mean([r["rows"][kind][k] for r in rows if kind in r["rows"]]))
 
         joint = (f"{np.degrees(rms('joint', 0)):15.4f}{1000 * rms('joint', 1):10.2f}"
                  f"{rms('joint', 0) / rms('bound', 0):9.2f}{rms('joint', 1) / rms('bound', 1):8.2f}"
                  f"{np.mean([r['rows']['joint'][2] for r in rows]):7.2f}")
+        # A camera-LiDAR pair is solved alone where they share 3 usable frames: its columns are over those rigs.
+        solved = sum("pair" in r["rows"] for r in rows)
         alone = (f"{np.degrees(rms('pair', 0)):15.4f}{1000 * rms('pair', 1):10.2f}"
-                 f"{np.mean([r['rows']['pair'][2] for r in rows]):7.2f}") if "pair" in rows[0]["rows"] else \
+                 f"{np.mean([r['rows']['pair'][2] for r in rows if 'pair' in r['rows']]):7.2f}"
+                 + (f"  (in {solved} rigs)" if solved < len(rows) else "")) if solved else \
             f"{'-':>15s}{'-':>10s}{'-':>7s}"
         if post:
             joint += f"{np.mean([r['rows']['posterior'] for r in rows]):8.2f}"
