@@ -460,6 +460,8 @@ def _calibrate_rig(args) -> int:
 def _print_rig(result) -> None:
     import numpy as np
 
+    from .solvers.rig_graph import translation_sd_in_first
+
     sol = result.solution
     for w in result.warnings[:1]:
         print(f"warning: {w}")
@@ -476,14 +478,16 @@ def _print_rig(result) -> None:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
         print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else ""))
-    print("every pair (joint graph; t in the first sensor's frame, mm; "
-          + ("posterior" if post is not None else "Laplace") + " standard deviations, rotation in deg; pairwise-only "
-          "estimate in brackets, as far from the joint one):")
+    print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
+          "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
+          + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")
     for a, b in result.pairs():
         T, C = sol.transform(a, b)
-        sd = np.sqrt(np.maximum(np.diag(C if post is None else np.cov(post.pair_samples(a, b), rowvar=False)), 0.0))
+        C = C if post is None else np.cov(post.pair_samples(a, b), rowvar=False)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        sd_t = translation_sd_in_first(T, C)
         line = (f"  T_{a}_{b}: t = (" + ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]) + ") +- ("
-                + ", ".join(f"{1000 * v:.1f}" for v in sd[3:]) + ") mm, rotation sd ("
+                + ", ".join(f"{1000 * v:.1f}" for v in sd_t) + ") mm, rotation sd ("
                 + ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3]) + ") deg")
         if (a, b) in result.pairwise:
             from geometry.rotations import T_log

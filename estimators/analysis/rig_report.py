@@ -12,6 +12,7 @@ import numpy as np
 from geometry.rotations import T_log
 
 from ..io.output import write_atomic
+from ..solvers.rig_graph import translation_sd_in_first
 from .report import _table, html_page, projection_figure
 
 
@@ -21,13 +22,13 @@ def _pair_rows(result) -> list[list[str]]:
         T, C = sol.transform(a, b)
         sd = np.sqrt(np.maximum(np.diag(C), 0.0))
         row = [f"T_{a}_{b}", ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]),
-               ", ".join(f"{1000 * v:.2f}" for v in sd[3:]), ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3])]
+               ", ".join(f"{1000 * v:.2f}" for v in translation_sd_in_first(T, C)),
+               ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3])]
         if (a, b) in result.pairwise:
             Tp, Cp, n = result.pairwise[(a, b)]
             xi = T_log(np.linalg.inv(T) @ Tp)
-            sdp = np.sqrt(np.maximum(np.diag(Cp), 0.0))
             row += [str(n), f"{np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm",
-                    ", ".join(f"{1000 * v:.2f}" for v in sdp[3:])]
+                    ", ".join(f"{1000 * v:.2f}" for v in translation_sd_in_first(Tp, Cp))]
         else:
             row += ["-", "-", "-"]
         if result.posterior is not None:

@@ -115,6 +115,12 @@ def pair_transform(T_ref_a: np.ndarray, T_ref_b: np.ndarray, cov_ab: np.ndarray)
     return T_ab, J @ cov_ab @ J.T
 
 
+def translation_sd_in_first(T_ab: np.ndarray, cov_ab: np.ndarray) -> np.ndarray:
+    """The standard deviations of ``T_a_b``'s translation in a's frame (its covariance's tangent translation is
+    along b's axes: ``R C R^T``)."""
+    return np.sqrt(np.maximum(np.diag(T_ab[:3, :3] @ cov_ab[3:, 3:] @ T_ab[:3, :3].T), 0.0))
+
+
 def _rig_corner_error(corners_board, corners_px, camera, this, values, H):
     keys = this.keys()
     T_rs, T_rb = values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix()
