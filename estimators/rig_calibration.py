@@ -31,7 +31,8 @@ from .io.rig_dataset import RigDataset, Sensor
 from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
-from .solvers.rig_graph import CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree
+from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree,
+                                translation_sd_in_first)
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -99,7 +100,8 @@ class RigResult:
         def entry(T, cov) -> dict:
             sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
             return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": np.degrees(sd[:3]).tolist(),
-                    "std_translation_mm": (1000 * sd[3:]).tolist()}
+                    "std_translation_mm": (1000 * sd[3:]).tolist(),
+                    "std_translation_of_t_mm": (1000 * translation_sd_in_first(T, cov)).tolist()}
 
         sensors = []
         for s in self.rig.sensors:
