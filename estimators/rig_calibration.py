@@ -2,10 +2,11 @@
 solve jointly (``solvers.rig_graph``), and write every pair's transform with its covariance.
 
 Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
-its frames when dataset.yaml gives none); each LiDAR's board, chosen with a camera that shares at least
-``MIN_PAIR_FRAMES`` frames with it (``calibration.measure_frames`` on that pair). Each such camera-LiDAR pair is
-also solved alone (planes, no range terms: the joint graph's model), which starts the joint graph and is reported
-beside it ("pairwise only"). Two cameras are linked by every frame both saw.
+its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
+sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it (``calibration.measure_frames`` on that
+pair) and paired with every other camera's board pose of the frame. Each such camera-LiDAR pair is
+also solved alone (planes, no range terms and no segment ends: the joint graph's model), which starts the joint graph
+and is reported beside it ("pairwise only"). Two cameras are linked by every frame both saw.
 """
 from __future__ import annotations
 
@@ -297,7 +298,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam.name], options=PAIR_OPTIONS)
+                res = solve(usable, rig.board, cameras[cam.name], options=PAIR_OPTIONS, use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
