@@ -121,14 +121,24 @@ def translation_sd_in_first(T_ab: np.ndarray, cov_ab: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(T_ab[:3, :3] @ cov_ab[3:, 3:] @ T_ab[:3, :3].T), 0.0))
 
 
+def rig_corner_residuals(T_rs: np.ndarray, T_rb: np.ndarray, corners_board: np.ndarray, corners_px: np.ndarray,
+                         camera: CameraModel, jacobian: bool = True) -> tuple:
+    """A camera's corner residuals through its pose ``T_rs`` and the board's ``T_rb`` (both in the reference's
+    frame), and their Jacobians by the sensor's and the board's right tangents (module docstring; None without
+    ``jacobian``)."""
+    T_sb = np.linalg.inv(T_rs) @ T_rb
+    r, J = corner_residuals(T_sb, corners_board, corners_px, camera, jacobian)
+    if not jacobian:
+        return r, None, None
+    return r, -J @ adjoint(np.linalg.inv(T_sb)), J
+
+
 def _rig_corner_error(corners_board, corners_px, camera, this, values, H):
     keys = this.keys()
-    T_rs, T_rb = values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix()
-    T_sb = np.linalg.inv(T_rs) @ T_rb
-    r, J = corner_residuals(T_sb, corners_board, corners_px, camera, H is not None)
+    r, H_s, H_b = rig_corner_residuals(values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix(),
+                                       corners_board, corners_px, camera, H is not None)
     if H is not None:
-        H[0] = -J @ adjoint(np.linalg.inv(T_sb))
-        H[1] = J
+        H[0], H[1] = H_s, H_b
     return r
 
 

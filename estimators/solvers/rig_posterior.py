@@ -34,9 +34,10 @@ import numpy as np
 from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
-from .factors import corner_residuals, lidar_plane, lidar_residual
+from .factors import lidar_plane, lidar_residual
 from .posterior import ChainResult, run_ensemble
-from .rig_graph import CameraViews, LidarViews, RigSolution, adjoint, change_reference, graph_reference
+from .rig_graph import (CameraViews, LidarViews, RigSolution, change_reference, graph_reference,
+                        rig_corner_residuals)
 
 # Samples kept for the pairs' intervals and covariances (thinned evenly from the chain after burn-in).
 MAX_KEPT = 20000
@@ -125,14 +126,13 @@ class RigLikelihood:
                 if stem not in frame:
                     continue
                 j = frame[stem]
-                T_sb = np.linalg.inv(T_rs) @ boards[stem]
-                r, J = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], c.camera)
-                r, B = r / s, J / s
+                r, A, B = rig_corner_residuals(T_rs, boards[stem], c.corners_board[stem], c.corners_px[stem],
+                                               c.camera)
+                r, A, B = r / s, A / s, B / s
                 H[j] += B.T @ B
                 self.g0[j] += B.T @ r
                 self.c0 += float(r @ r)
                 if c.name != self.inner:
-                    A = -B @ adjoint(np.linalg.inv(T_sb))
                     Q += A.T @ A
                     q += A.T @ r
                     idx.append(j)
