@@ -506,6 +506,10 @@ def _print_rig(result) -> None:
         w = layout["pairs"][layout["weakest_pair"]]
         print(f"weakest pair: {layout['weakest_pair']}, translation sd up to {w['max_translation_sd_mm']:.1f} mm "
               f"along {w['axis']}; to constrain it, {w['advice']}")
+        if layout["next_pose"]:
+            from .analysis.rig_layout import next_pose_words
+
+            print("  next pose for it: " + next_pose_words(layout["next_pose"]))
     for link, n in layout["links_with_few_frames"].items():
         print(f"  {link} share {n} frame(s) with the board found in both")
     for w in result.warnings[1:]:

@@ -66,6 +66,9 @@ class RigResult:
     posterior: RigPosterior | None = None
     camera_views: tuple = ()
     lidar_views: tuple = ()
+    # The board pose that most helps the weakest camera-LiDAR pair (``analysis.rig_layout``), with that pair's
+    # predicted standard deviations before and after it; None when none was computed or none is feasible.
+    next_pose: dict | None = None
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -84,7 +87,7 @@ class RigResult:
                                                    "advice": advice}
         weakest = max(pairs, key=lambda k: pairs[k]["max_translation_sd_mm"]) if pairs else None
         few = {f"{a}-{b}": n for (a, b), n in (self.links or {}).items() if 0 < n < MIN_PAIR_FRAMES}
-        return {"pairs": pairs, "weakest_pair": weakest, "links_with_few_frames": few}
+        return {"pairs": pairs, "weakest_pair": weakest, "links_with_few_frames": few, "next_pose": self.next_pose}
 
     def pairs(self) -> list[tuple[str, str]]:
         """Every camera-LiDAR pair, every camera-camera and every LiDAR-LiDAR pair (earlier sensor first), in
@@ -237,7 +240,7 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
-                  samples: int = 0) -> RigResult:
+                  samples: int = 0, advise: bool = True) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -255,6 +258,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         Effective posterior samples of every sensor's pose to draw with emcee (``solvers.rig_posterior``); 0
         skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
         covariance, which carries them, is then the uncertainty reported), with a warning saying so.
+    advise : bool
+        Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
+        ``result.next_pose``; about a second).
 
     Returns
     -------
@@ -341,6 +347,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
     t_joint = time.perf_counter()
+    advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
     if samples > 0 and refine_intrinsics:
         warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
@@ -350,14 +357,48 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if not posterior.run.converged:
             warnings.append(f"the rig's posterior did not converge in {posterior.run.chain.shape[0]} steps "
                             f"({posterior.run.ess:.0f} effective samples): its intervals are rough")
+    t_post = time.perf_counter()
+    result = RigResult(rig, solution, cameras, pairwise, {}, skipped, (), {}, pair_frames, dict(links), None,
+                       tuple(camera_views), tuple(lidar_views))
+    next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
     timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": t_joint - t_pairs}
     if posterior is not None:
-        timings["posterior"] = time.perf_counter() - t_joint
+        timings["posterior"] = t_post - t_joint
+    if advise:
+        timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views))
+                     tuple(camera_views), tuple(lidar_views), next_pose)
+
+
+def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:
+    """The board pose that most lowers the weakest camera-LiDAR pair's largest translation standard deviation
+    (``analysis.rig_layout.next_pose_for_pair``, at the noise levels the graph weighed the two sensors with), with
+    ``pair``, ``camera`` and ``lidar`` added; None without a weakest pair or a feasible pose."""
+    from .analysis.rig_layout import beam_model_name, next_pose_for_pair
+
+    weakest = result.layout()["weakest_pair"]
+    if weakest is None:
+        return None
+    cam, lid = next((c.name, d.name) for c in result.rig.cameras for d in result.rig.lidars
+                    if f"T_{c.name}_{d.name}" == weakest)
+    sol = result.solution
+    cv = next((v for v in result.camera_views if v.name == cam), None)
+    lv = next((v for v in result.lidar_views if v.name == lid), None)
+    if cv is None or lv is None:
+        return None
+    rings = [len(np.unique(f.lidar.rings)) for (_, d), frames in (result.pair_frames or {}).items() if d == lid
+             for f in frames if f.lidar is not None and f.lidar.rings is not None]
+    T, P = sol.transform(cam, lid)
+    camera = result.cameras[cam]
+    if sol.intrinsics and cam in sol.intrinsics:
+        camera = camera.with_params(sol.intrinsics[cam][0])
+    found = next_pose_for_pair(camera, result.rig.board, T, P, cv.sigma_px * np.sqrt(sol.noise_scale.get(cam, 1.0)),
+                               lv.sigma_m * np.sqrt(sol.noise_scale.get(lid, 1.0)),
+                               beam_model_name(lv.scan_line, max(rings) if rings else None), rng, candidates)
+    return None if found is None else {"pair": weakest, "camera": cam, "lidar": lid, **found}
 
 
 def _pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,

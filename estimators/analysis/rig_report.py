@@ -14,6 +14,7 @@ from geometry.rotations import T_log
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
 from .report import _table, html_page, projection_figure
+from .rig_layout import next_pose_words
 
 
 def _pair_rows(result) -> list[list[str]]:
@@ -73,7 +74,10 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
         parts.append(f"<h2>Layout</h2><p>The weakest camera-LiDAR pair is {html.escape(layout['weakest_pair'])}: its "
                      f"translation's standard deviation reaches {w['max_translation_sd_mm']:.1f} mm along "
                      f"{html.escape(w['axis'])}; to constrain it, {html.escape(w['advice'])}. Sensor pairs sharing "
-                     f"fewer than 3 frames with the board found in both: {html.escape(few)}.</p>")
+                     f"fewer than 3 frames with the board found in both: {html.escape(few)}.</p>"
+                     + (f"<p>The next board pose for it: {html.escape(next_pose_words(layout['next_pose']))}; its 4x4 "
+                        "<code>T_camera_board</code> is in calibration.json (<code>layout.next_pose</code>).</p>"
+                        if layout["next_pose"] else ""))
     skipped = [[n, st, why] for n, d in result.skipped.items() for st, why in sorted(d.items())]
     if skipped:
         parts.append("<h2>Frames skipped</h2>" + _table(skipped, ["sensor", "frame", "why"]))

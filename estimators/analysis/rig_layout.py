@@ -1,0 +1,112 @@
+"""The next board pose for a rig's weakest camera-LiDAR pair.
+
+A new frame seen by a camera and a LiDAR depends on the rig only through their relative pose ``T_camera_lidar``
+(its board pose is a new unknown of its own). Its information on that pose, the board marginalised, is the
+single pair's ``observation_model.frame_contribution`` ``S`` (in the right tangent of ``T_camera_lidar``), and the
+pair's covariance after it is exactly ``(P^-1 + S)^-1``, ``P`` the pair's covariance from the rig's joint one
+(``RigSolution.transform``): every other sensor's factors reach the pair only through ``P``. Candidates are the
+single pair's feasible poses (``simulation.simulator.sample_board_poses``: in the camera's image, in the LiDAR's
+field of view, hit by enough beams), scored by the pair's largest translation standard deviation after them.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import T_inverse
+
+from ..lidar.lidar_models import BEAM_MODELS
+from ..simulation.simulator import Rig, _pose_fits, min_in_image, sample_board_poses
+from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
+
+# Fewest beams on a candidate board (a 3D LiDAR's; a 2D scanner's line) for it to count as seen.
+MIN_HITS_3D = 50
+MIN_HITS_2D = 15
+
+
+def beam_model_name(scan_line: bool, rings: int | None) -> str:
+    """The beam model that casts a rig LiDAR's candidate boards: a 2D scanner's, a VLP-16's for a LiDAR whose
+    boards show at most 20 rings, else an HDL-64E's (for the poses' feasibility and their beams)."""
+    if scan_line:
+        return "2d"
+    return "vlp16" if rings is not None and 0 < rings <= 20 else "hdl64e"
+
+
+def predicted_pair_covariance(P: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``(P^-1 + S)^-1`` written without inverting ``P`` or ``S`` (either may be near singular): the pair's
+    covariance ``P`` after a frame that adds information ``S`` on its tangent alone."""
+    C = P @ np.linalg.solve(np.eye(6) + S @ P, np.eye(6))
+    return 0.5 * (C + C.T)
+
+
+def _max_translation_sd(C: np.ndarray) -> float:
+    return float(np.sqrt(max(np.linalg.eigvalsh(C[3:, 3:])[-1], 0.0)))
+
+
+def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P: np.ndarray, corner_noise_px: float,
+                       range_noise_m: float, beams_model: str, rng: np.random.Generator, candidates: int = 60
+                       ) -> dict | None:
+    """The board pose, among ``candidates`` feasible ones, after which the pair's largest translation standard
+    deviation is smallest (module docstring); None when no candidate is feasible.
+
+    Parameters
+    ----------
+    camera, board : CameraModel, BoardModel
+        The pair's camera and the rig's board.
+    T_camera_lidar : numpy.ndarray
+        4x4, the pair's estimate.
+    P : numpy.ndarray
+        6x6, its covariance now (right tangent of ``T_camera_lidar``).
+    corner_noise_px, range_noise_m : float
+        The camera's effective corner noise and the LiDAR's range noise, as the graph weighs them.
+    beams_model : str
+        A key of ``lidar.lidar_models.BEAM_MODELS`` (:func:`beam_model_name`).
+    rng : numpy.random.Generator
+        Draws the candidates.
+
+    Returns
+    -------
+    dict or None
+        ``T_camera_board`` (4x4 list), ``board_centre_camera_m``, ``board_normal_camera``, ``distance_m``, and the
+        pair's largest translation standard deviation (mm) and rotation standard deviations (deg) before and
+        after it.
+    """
+    beams = BEAM_MODELS[beams_model](range_noise_m)
+    rig = Rig(camera, beams, board, T_camera_lidar)
+    if beams.is_2d:  # boards near a 2D scanner's plane, as the 2D simulator places them
+        rig = replace(rig, lidar_height_m=0.6, min_distance_m=1.5, max_distance_m=4.0)
+    cut_share = 0.3 if board.is_charuco else 0.0
+    pool = [T for T in sample_board_poses(rig, candidates, rng, outside_image_share=cut_share)
+            if _pose_fits(rig, T, min_in_image=min_in_image(board))]
+    base = Layout(camera, board, beams, T_camera_lidar, (), corner_noise_px, range_noise_m)
+    best, best_sd, best_C = None, np.inf, None
+    for T in pool:
+        trial = replace(base, T_camera_board=(T,))
+        if len(board_hits(trial, 0)[0]) < (MIN_HITS_2D if beams.is_2d else MIN_HITS_3D):
+            continue
+        C = predicted_pair_covariance(P, frame_contribution(frame_information(trial, 0)))
+        sd = _max_translation_sd(C)
+        if sd < best_sd:
+            best, best_sd, best_C = T, sd, C
+    if best is None:
+        return None
+    centre = best[:3, :3] @ board.centre + best[:3, 3]
+    return {"T_camera_board": best.tolist(), "board_centre_camera_m": centre.tolist(),
+            "board_normal_camera": best[:3, 2].tolist(), "distance_m": float(np.linalg.norm(centre)),
+            "board_centre_lidar_m": (T_inverse(T_camera_lidar)[:3, :3] @ centre
+                                     + T_inverse(T_camera_lidar)[:3, 3]).tolist(),
+            "max_translation_sd_mm_before": 1000 * _max_translation_sd(P), "max_translation_sd_mm_after": 1000 * best_sd,
+            "std_rotation_deg_before": np.degrees(np.sqrt(np.maximum(np.diag(P)[:3], 0.0))).tolist(),
+            "std_rotation_deg_after": np.degrees(np.sqrt(np.maximum(np.diag(best_C)[:3], 0.0))).tolist()}
+
+
+def next_pose_words(found: dict) -> str:
+    """:func:`next_pose_for_pair`'s pose (with ``camera``, ``lidar`` and ``pair`` added) in words."""
+    c, n = np.array(found["board_centre_camera_m"]), np.array(found["board_normal_camera"])
+    tilt = np.degrees(np.arccos(min(abs(float(n @ c)) / np.linalg.norm(c), 1.0)))
+    return (f"the board's centre at ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}) m in {found['camera']}'s frame, its normal "
+            f"({n[0]:.2f}, {n[1]:.2f}, {n[2]:.2f}) ({tilt:.0f} deg from the line of sight), seen by "
+            f"{found['camera']} and {found['lidar']}: {found['pair']}'s translation sd up to "
+            f"{found['max_translation_sd_mm_before']:.1f} -> {found['max_translation_sd_mm_after']:.1f} mm (predicted)")
