@@ -46,6 +46,7 @@ bench: $(STAMP)
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
 	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000
 	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 40 --posterior 1000
+	$(RECORD) rig_intrinsics -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
 	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py

@@ -74,10 +74,11 @@ def _one(args) -> dict:
     return out
 
 
-def _bound(res, gt) -> np.ndarray:
+def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     """The graph's information at the truth (every sensor's and board's pose), at the noise levels the graph used:
     the Cramer-Rao bound of the rig's measurement model for the views measured (``rig_graph.rig_bound``). A board
-    numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise."""
+    numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise.
+    ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values."""
     from estimators.rig_calibration import pattern_flip
     from estimators.solvers.rig_graph import rig_bound
     from geometry.rotations import T_log
@@ -91,7 +92,7 @@ def _bound(res, gt) -> np.ndarray:
         boards[st] = min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(B) @ T)))
     truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
     return rig_bound(sol.names, "cam0", list(res.camera_views), list(res.lidar_views), truth, boards,
-                     sol.noise_scale)
+                     sol.noise_scale, intrinsics)
 
 
 def main() -> None:

@@ -443,9 +443,15 @@ def _calibrate_rig(args) -> int:
     from .io.rig_dataset import load_rig
     from .rig_calibration import calibrate_rig, write_rig_calibration
 
+    from .errors import LidarcamError
+    from .rig_calibration import RIG_RANGE_MODELS
+
+    if args.range_model not in RIG_RANGE_MODELS:
+        raise LidarcamError(f"--range-model {args.range_model} is not available for a rig",
+                            hint="a rig's LiDARs take none, offset or auto (a global range offset per LiDAR)")
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
-                           samples=args.samples)
+                           samples=args.samples, range_model=args.range_model)
     path = write_rig_calibration(result, args.out)
     _print_rig(result)
     print(f"wrote {path}")
@@ -460,6 +466,7 @@ def _calibrate_rig(args) -> int:
 def _print_rig(result) -> None:
     import numpy as np
 
+    from .rig_calibration import range_offset_words
     from .solvers.rig_graph import translation_sd_in_first
 
     sol = result.solution
@@ -477,7 +484,8 @@ def _print_rig(result) -> None:
     for s in result.rig.sensors:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
-        print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else ""))
+        print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else "")
+              + (f"; {range_offset_words(result.range_offsets[s.name])}" if s.name in result.range_offsets else ""))
     print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
           "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
           + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")

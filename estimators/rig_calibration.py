@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,9 @@ from .io.rig_dataset import RigDataset, Sensor
 from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
-from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, solve_rig, spanning_tree,
+from .lidar.lidar_models import range_accuracy_for
+from .solvers.range_model import MODEL_TEST_P, RangeTerms, frame_whitener
+from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, solve_rig, spanning_tree,
                                 translation_sd_in_first)
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
@@ -69,6 +71,9 @@ class RigResult:
     # The board pose that most helps the weakest camera-LiDAR pair (``analysis.rig_layout``), with that pair's
     # predicted standard deviations before and after it; None when none was computed or none is feasible.
     next_pose: dict | None = None
+    # Each LiDAR's range model: ``model`` (``offset`` or ``none``), ``prior_sd_m``, the test under ``auto``, and with
+    # an offset its ``value_m`` and ``sd_m`` (:func:`_range_offsets`).
+    range_offsets: dict = field(default_factory=dict)
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -113,6 +118,11 @@ class RigResult:
             sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
                             "frames_used": len(self.frames_used.get(s.name, ())),
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
+            if s.name in self.range_offsets:
+                sensors[-1]["range_model"] = dict(self.range_offsets[s.name])
+                if self.posterior is not None and s.name in self.posterior.offsets:
+                    o = self.posterior.offsets[s.name]
+                    sensors[-1]["range_model"]["posterior_95%_m"] = np.percentile(o, [2.5, 97.5]).tolist()
         transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
         posterior = None
         if self.posterior is not None:
@@ -240,7 +250,7 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
-                  samples: int = 0, advise: bool = True) -> RigResult:
+                  samples: int = 0, advise: bool = True, range_model: str = "auto") -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -258,6 +268,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         Effective posterior samples of every sensor's pose to draw with emcee (``solvers.rig_posterior``); 0
         skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
         covariance, which carries them, is then the uncertainty reported), with a warning saying so.
+    range_model : str
+        Each LiDAR's range model: ``none`` (planes), ``offset`` (a global range offset under the prior of its range
+        accuracy, dataset.yaml's ``range_accuracy_m`` or its family's), or ``auto``: the offset where a
+        likelihood-ratio test at ``MODEL_TEST_P`` supports it (:func:`_range_offsets`).
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -338,6 +352,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                if st in T_ref_board}, lid.lidar == "2d")
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
+    range_offsets: dict = {}
+    if range_model != "none" and lidar_views:
+        lidar_views, range_offsets = _range_offsets(rig, names, camera_views, lidar_views, lidar_obs, solution,
+                                                    range_model)
+        if any(lv.has_offset for lv in lidar_views):
+            solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
+                                 refine_intrinsics)
+        for n, (value, sd) in solution.offsets.items():
+            range_offsets[n].update(value_m=value, sd_m=sd)
+            prior = range_offsets[n]["prior_sd_m"]
+            if abs(value) > 3 * prior:
+                warnings.append(f"{n}: its range offset {1000 * value:+.1f} mm is beyond 3 times its range accuracy "
+                                f"({1000 * prior:.0f} mm): a wrong board in some frames, or a range_accuracy_m in "
+                                "dataset.yaml too small for this sensor")
     for n, s in solution.noise_scale.items():
         if s > 1.0:
             ss, dof = solution.chi2_dof[n]
@@ -370,7 +398,41 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose)
+                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets)
+
+
+RIG_RANGE_MODELS = ("none", "offset", "auto")
+
+
+def range_offset_words(record: dict) -> str:
+    """A LiDAR's range model in words (:func:`_range_offsets`' record)."""
+    test = (f"test p = {record['p_value']:.2g} at {record['test_p']:g}" if "p_value" in record else "requested")
+    if record["model"] == "offset":
+        return (f"range offset {1000 * record['value_m']:+.1f} +- {1000 * record['sd_m']:.1f} mm ({test}; prior sd "
+                f"{1000 * record['prior_sd_m']:.0f} mm)")
+    return f"no range offset ({test})" if "p_value" in record else "no range offset (--range-model none)"
+
+
+def _range_offsets(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                   solution: RigSolution, range_model: str) -> tuple[list, dict]:
+    """Each LiDAR's views with its global range offset where the model has one, and per LiDAR the record:
+    ``model`` (``offset`` or ``none``), ``prior_sd_m`` (its range accuracy), and under ``auto`` the test
+    (``rig_graph.offset_test``: ``statistic``, ``p_value``, ``test_p`` and the offset's estimate with it)."""
+    out, records = [], {}
+    for lv in lidar_views:
+        sensor = rig.sensor(lv.name)
+        prior = float(sensor.range_accuracy_m or range_accuracy_for(sensor.lidar_family))
+        obs = lidar_obs[lv.name]
+        with_offset = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms(("offset",), (prior,)))
+                                          for st in lv.W}, offset_prior_sd_m=prior)
+        record = {"model": range_model, "prior_sd_m": prior}
+        if range_model == "auto":
+            without = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms((), ())) for st in lv.W})
+            test = offset_test(names, rig.reference, camera_views, lidar_views, solution, without, with_offset)
+            record.update(test, test_p=MODEL_TEST_P, model="offset" if test["p_value"] < MODEL_TEST_P else "none")
+        out.append(with_offset if record["model"] == "offset" else lv)
+        records[lv.name] = record
+    return out, records
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

@@ -55,9 +55,14 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
              f"{html.escape(sol.reference)}; {how}.</p>"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
+    from ..rig_calibration import range_offset_words
+
     rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
-             f"{sol.noise_scale.get(s.name, 1.0):.2f}"] for s in result.rig.sensors]
-    parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale"]))
+             f"{sol.noise_scale.get(s.name, 1.0):.2f}",
+             range_offset_words(result.range_offsets[s.name]) if s.name in result.range_offsets else "-"]
+            for s in result.rig.sensors]
+    parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
+                                                    "LiDAR range model"]))
     parts.append("<h2>Every pair</h2><p>From the joint graph: the translation (mm, in the first sensor's frame) "
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "

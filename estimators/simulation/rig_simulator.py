@@ -100,7 +100,7 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
-                 overwrite: bool = False, lidars: int = 1, scanners: int = 0) -> Path:
+                 overwrite: bool = False, lidars: int = 1, scanners: int = 0, range_offset_m: float = 0.0) -> Path:
     """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
 
     Parameters
@@ -121,6 +121,9 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         1, or 2 for a second LiDAR ``lidar1`` (VLP-16-like, module docstring).
     scanners : int
         0, or 1 for a 2D scanner ``scan0`` (module docstring).
+    range_offset_m : float
+        A range offset (m) added to every return of ``lidar0`` (a systematic range error; ground_truth.json
+        records it as ``range_offset_m``).
 
     Returns
     -------
@@ -163,7 +166,8 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         beams_s = BEAM_MODELS["2d"](0.01)
         dirs_s, _ = beams_s.directions()
         background_s = cast_background(T_l0_s[:3, 3], dirs_s @ T_l0_s[:3, :3].T, static, beams_s.max_range_m)
-    truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist()}
+    truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist(),
+             "range_offset_m": {"lidar0": float(range_offset_m)}}
     truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
     if T_l0_l1 is not None:
         truth["T_cam0_lidar1"] = (rig.T_camera_lidar @ T_l0_l1).tolist()
@@ -182,7 +186,10 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             if _sees_board(rig.camera, f.T_camera_board, rig.board):
                 cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
                 seen["cam0"].append(f.name)
-            write_scan(tmp / "lidar0" / f"{f.name}.pcd", f.points, f.intensity, f.ring)
+            points = f.points
+            if range_offset_m:
+                points = points * (1.0 + range_offset_m / np.linalg.norm(points, axis=1, keepdims=True))
+            write_scan(tmp / "lidar0" / f"{f.name}.pcd", points, f.intensity, f.ring)
             T_lidar_board = T_lidar_cam0 @ f.T_camera_board
             patches, bi = scene_patches(rig, T_lidar_board, static)
             if T_l0_l1 is not None:

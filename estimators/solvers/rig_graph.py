@@ -33,8 +33,9 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from . import chi_square as chi2
-from .factors import (corner_factor, corner_intrinsics_factor, corner_residuals, corner_residuals_intrinsics,
-                      lidar_plane, lidar_residual, plane_factor)
+from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
+                      corner_residuals_intrinsics, lidar_plane, lidar_residual, nuisance_plane_factor,
+                      nuisance_residual, plane_factor)
 
 
 def sensor_key(k: int) -> int:
@@ -47,6 +48,11 @@ def frame_key(k: int) -> int:
 
 def intrinsics_key(k: int) -> int:
     return gtsam.symbol("k", k)
+
+
+def offset_key(k: int) -> int:
+    """A LiDAR's range offset (a 1-vector, m)."""
+    return gtsam.symbol("o", k)
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,12 +72,23 @@ class CameraViews:
 class LidarViews:
     """One LiDAR's frames: per stem the square root ``W`` of its board points' range moment
     (``measurements.lidar_whitener``: ``|W pi|^2`` is their sum of squared range errors), its range noise (m),
-    and whether it is a scan line (2D)."""
+    and whether it is a scan line (2D).
+
+    ``ranged``: per stem the frame's ``range_model.FrameWhitener`` in the range model's form (the residual
+    ``W [s pi; S beta] + e0`` from the points' ranges), used instead of ``W`` when given: with the global range
+    offset (terms ``offset``) when ``offset_prior_sd_m`` is set (the offset a variable of the graph under that
+    prior), else without terms (``affine``: the form the offset is tested against)."""
 
     name: str
     sigma_m: float
     W: dict = field(default_factory=dict)
     scan_line: bool = False
+    ranged: dict | None = None
+    offset_prior_sd_m: float | None = None
+
+    @property
+    def has_offset(self) -> bool:
+        return self.ranged is not None and self.offset_prior_sd_m is not None
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +107,11 @@ class RigSolution:
     iterations: int
     # With the intrinsics refined: each camera's ``(params, their 1-sd)`` (``CameraModel.params`` order).
     intrinsics: dict | None = None
+    # Each LiDAR with a range offset in the graph: ``(value, sd)`` (m).
+    offsets: dict = field(default_factory=dict)
+    # The Laplace covariance of the free sensors' tangents in the graph's reference camera's frame (in ``names``
+    # order, that camera left out) and then the LiDARs' range offsets (in ``offsets`` order).
+    covariance_inner: np.ndarray | None = None
 
     def covariance(self, name: str) -> np.ndarray:
         k = self.names.index(name)
@@ -187,12 +209,37 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
                 graph.add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise))
     for lv in lidars:
         k = names.index(lv.name)
+        sd = lv.sigma_m * np.sqrt(scale[lv.name])
+        if lv.has_offset:
+            graph.add(gtsam.PriorFactorVector(offset_key(k), np.zeros(1),
+                                              gtsam.noiseModel.Isotropic.Sigma(1, lv.offset_prior_sd_m)))
         for stem, W in lv.W.items():
             if stem not in stems:
                 continue
-            noise = gtsam.noiseModel.Isotropic.Sigma(W.shape[0], lv.sigma_m * np.sqrt(scale[lv.name]))
-            graph.add(plane_factor(sensor_key(k), frame_key(stems.index(stem)), W, noise, lv.scan_line))
+            fk = frame_key(stems.index(stem))
+            if lv.ranged is None:
+                graph.add(plane_factor(sensor_key(k), fk, W, gtsam.noiseModel.Isotropic.Sigma(W.shape[0], sd),
+                                       lv.scan_line))
+                continue
+            fw = lv.ranged[stem]
+            noise = gtsam.noiseModel.Isotropic.Sigma(fw.W.shape[0], sd)
+            if lv.has_offset:
+                graph.add(nuisance_plane_factor(sensor_key(k), fk, offset_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
+                                                lv.scan_line))
+            else:
+                graph.add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line))
     return graph
+
+
+def lidar_frame_residual(lv: LidarViews, stem: str, pi: np.ndarray, offset: float = 0.0) -> np.ndarray:
+    """The LiDAR's residual of frame ``stem`` (m) at the board plane ``pi`` (in the LiDAR frame) and its range
+    offset (ignored without one)."""
+    if lv.ranged is None:
+        return lidar_residual(lv.W[stem], pi, lv.scan_line)[0]
+    fw = lv.ranged[stem]
+    beta = np.array([offset]) if lv.has_offset else np.zeros(0)
+    S = fw.S if lv.has_offset else np.zeros((0, 0))
+    return nuisance_residual(fw.W, S, fw.m_away, pi, beta, lv.scan_line, fw.e0)[0]
 
 
 def _pose(values, names, reference, name) -> np.ndarray:
@@ -232,14 +279,16 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
     for lv in lidars:
         T_rs = _pose(values, names, reference, lv.name)
         ss, n = 0.0, 0
-        for stem, W in lv.W.items():
+        k = names.index(lv.name)
+        offset = float(values.atVector(offset_key(k))[0]) if lv.has_offset else 0.0
+        for stem in lv.W:
             if stem not in stems:
                 continue
             pi, _, _ = lidar_plane(T_rs, values.atPose3(frame_key(stems.index(stem))).matrix())
-            e, _ = lidar_residual(W, pi, lv.scan_line)
+            e = lidar_frame_residual(lv, stem, pi, offset)
             ss += float(e @ e) / lv.sigma_m**2
             n += e.size
-        out[lv.name] = (ss, max(n - 6, 1))
+        out[lv.name] = (ss, max(n - 6 - int(lv.has_offset), 1))
     return out
 
 
@@ -257,7 +306,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     camera_names = [c.name for c in cameras]
     inner = graph_reference(reference, camera_names)
     stems = sorted(T_ref_board_init)
-    values = _values(names, inner, stems, T_ref_init, T_ref_board_init)
+    values = _values(names, inner, stems, T_ref_init, T_ref_board_init, lidars)
     if refine_intrinsics:
         for c in cameras:
             values.insert(intrinsics_key(names.index(c.name)), np.asarray(c.camera.params, dtype=float))
@@ -284,6 +333,17 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
             break
     graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
     marginals, cov = _joint_marginal(graph, values, names, inner)
+    ranged = [lv for lv in lidars if lv.has_offset]
+    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [offset_key(names.index(lv.name))
+                                                                        for lv in ranged]
+    if ranged:
+        cov_inner = marginals.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    else:
+        idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k, n in enumerate(names) if n != inner])
+        cov_inner = cov[np.ix_(idx, idx)]
+    nb = 6 * (len(names) - 1)
+    offsets = {lv.name: (float(values.atVector(offset_key(names.index(lv.name)))[0]),
+                         float(np.sqrt(max(cov_inner[nb + i, nb + i], 0.0)))) for i, lv in enumerate(ranged)}
     intrinsics = None
     if refine_intrinsics:
         intrinsics = {}
@@ -297,13 +357,19 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         T, cov = change_reference(tuple(names), T, cov, reference)
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
-                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics)
+                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, offsets,
+                       0.5 * (cov_inner + cov_inner.T))
 
 
-def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict) -> gtsam.Values:
-    """The graph's pose variables in the frame of its reference camera ``inner``."""
+def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict, lidars=(),
+            offsets: dict | None = None) -> gtsam.Values:
+    """The graph's pose variables in the frame of its reference camera ``inner``, and the range offsets of the
+    ``lidars`` that have one (``offsets`` by name, m; 0 where not given)."""
     T_inner = np.linalg.inv(T_ref[inner])
     values = gtsam.Values()
+    for lv in lidars:
+        if lv.has_offset:
+            values.insert(offset_key(names.index(lv.name)), np.array([(offsets or {}).get(lv.name, 0.0)]))
     for k, n in enumerate(names):
         if n != inner:
             values.insert(sensor_key(k), gtsam.Pose3(T_inner @ T_ref[n]))
@@ -330,16 +396,23 @@ def _joint_marginal(graph, values, names, inner: str) -> tuple:
 
 
 def rig_bound(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
-              T_ref: dict, T_ref_board: dict, noise_scale: dict | None = None) -> np.ndarray:
+              T_ref: dict, T_ref_board: dict, noise_scale: dict | None = None,
+              intrinsics: dict | None = None, offsets: dict | None = None) -> np.ndarray:
     """The joint covariance of every sensor's pose (6N x 6N, ``names`` order, in the frame of ``reference``) that
     the graph's information gives at the poses ``T_ref`` and board poses ``T_ref_board`` (by stem): at a
     simulation's truth, the Cramer-Rao bound of the graph's measurement model for these views (their corners,
-    their board points' moments) at the views' noise levels (times ``noise_scale``, by sensor)."""
+    their board points' moments) at the views' noise levels (times ``noise_scale``, by sensor). ``intrinsics``
+    (camera name -> ``CameraModel.params``, for every camera): the cameras' intrinsics are unknowns of the graph
+    too (``--refine-intrinsics``, under each camera's ``param_std`` prior where it has one), at these values.
+    A LiDAR with a range offset has it as an unknown too, at ``offsets`` (by name, m; 0 where not given)."""
     inner = graph_reference(reference, [c.name for c in cameras])
     stems = sorted(T_ref_board)
     scale = {n: (noise_scale or {}).get(n, 1.0) for n in names}
-    graph = _graph(names, cameras, lidars, stems, scale, inner)
-    _, cov = _joint_marginal(graph, _values(names, inner, stems, T_ref, T_ref_board), names, inner)
+    graph = _graph(names, cameras, lidars, stems, scale, inner, intrinsics is not None)
+    values = _values(names, inner, stems, T_ref, T_ref_board, lidars, offsets)
+    for c in cameras if intrinsics is not None else ():
+        values.insert(intrinsics_key(names.index(c.name)), np.asarray(intrinsics[c.name], dtype=float))
+    _, cov = _joint_marginal(graph, values, names, inner)
     if inner != reference:
         _, cov = change_reference(tuple(names), {n: np.linalg.inv(T_ref[inner]) @ T_ref[n] for n in names}, cov,
                                   reference)
@@ -369,3 +442,43 @@ def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
                                     hint="record board poses that they and a connected camera see together (a "
                                          "LiDAR needs 3 or more with a camera; two cameras 1 or more)")
     return {names[k]: (names[pred[k]] if pred[k] >= 0 else None) for k in range(n)}
+
+
+def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+                solution: RigSolution, without: LidarViews, with_offset: LidarViews) -> dict:
+    """The likelihood-ratio test of one LiDAR's global range offset: the graph solved with that LiDAR's frames in
+    the range model's form without terms (``without``) and with the offset under its prior (``with_offset``),
+    every other view as in ``lidars``, at the noise scales of ``solution`` (quasi-likelihood: an overdispersed
+    sensor's statistic is scaled down by its excess). The statistic is the drop of the total cost, each frame's
+    floor (its points' scatter about their best plane) included, chi-square with 1 dof when there is no offset.
+
+    Returns ``statistic``, ``p_value`` and the offset's estimate ``offset_m`` and ``sd_m`` with it."""
+    inner = graph_reference(reference, [c.name for c in cameras])
+    stems = sorted(solution.T_ref_board)
+    refine = solution.intrinsics is not None
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    cost, out = {}, {}
+    k = names.index(without.name)
+    for key, lv in (("without", without), ("with", with_offset)):
+        views = [lv if v.name == lv.name else v for v in lidars]
+        graph = _graph(names, cameras, views, stems, solution.noise_scale, inner, refine)
+        values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, views)
+        for c in cameras if refine else ():
+            values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+        try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        except RuntimeError as exc:
+            raise DegenerateLayoutError(f"{lv.name}: its range offset cannot be tested (the graph with it cannot be "
+                                        "solved)", hint="calibrate with --range-model none") from exc
+        floor = sum(fw.floor for st, fw in lv.ranged.items() if st in stems)
+        cost[key] = 2.0 * graph.error(values) + floor / (lv.sigma_m**2 * solution.noise_scale.get(lv.name, 1.0))
+        if key == "with":
+            out["offset_m"] = float(values.atVector(offset_key(k))[0])
+            try:
+                out["sd_m"] = float(np.sqrt(gtsam.Marginals(graph, values).marginalCovariance(offset_key(k))[0, 0]))
+            except RuntimeError:
+                out["sd_m"] = float("inf")
+    stat = cost["without"] - cost["with"]
+    out.update(statistic=float(stat), p_value=float(chi2.sf(max(stat, 0.0), 1)))
+    return out

@@ -27,7 +27,7 @@ any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,6 +53,8 @@ class RigPosterior:
     T_ref: dict
     xi: np.ndarray
     run: ChainResult
+    # Each LiDAR's range offset (m) per sample, where the graph has one.
+    offsets: dict = field(default_factory=dict)
 
     @property
     def covariance_joint(self) -> np.ndarray:
@@ -139,38 +141,59 @@ class RigLikelihood:
                     K.append(B.T @ A)
             if c.name != self.inner and idx:  # K transposed: x @ K^T is K x for every walker
                 self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.transpose(np.array(K), (0, 2, 1))))
-        self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G)
+        # Each LiDAR with a range offset in the graph: its offset is a parameter after the poses, under its prior.
+        self.offsets = [lv.name for lv in lidars if lv.has_offset]
+        self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
+        #                                    signs (F_l,), e0 (F_l, k), offset regressors (F_l, k), offset column)
         for lv in lidars:
             s = lv.sigma_m * np.sqrt(solution.noise_scale.get(lv.name, 1.0))
-            idx, Ws, G, normals, points = [], [], [], [], []
-            width = max((W.shape[0] for st, W in lv.W.items() if st in frame), default=0)
+            idx, Ws, G, normals, points, signs, E0, Hb = [], [], [], [], [], [], [], []
+            rows = {st: (lv.ranged[st].W.shape[0] if lv.ranged is not None else W.shape[0]) for st, W in lv.W.items()}
+            width = max((k for st, k in rows.items() if st in frame), default=0)
             for stem, W in lv.W.items():
                 if stem not in frame:
                     continue
                 j = frame[stem]
+                fw = lv.ranged[stem] if lv.ranged is not None else None
+                W4 = fw.W[:, :4] if fw is not None else W
                 pi, _, H_b = lidar_plane(self.T[lv.name], boards[stem])
-                _, D = lidar_residual(W, pi, lv.scan_line)
+                _, D = lidar_residual(W4, pi, lv.scan_line)
+                # The range model's form orients the plane like the fitted one (``factors.nuisance_residual``).
+                sign = 1.0 if fw is None or float(pi[:3] @ fw.m_away) >= 0 else -1.0
+                k = W4.shape[0]
                 Gj = np.zeros((width, 6))
-                Gj[:W.shape[0]] = D @ H_b / s
+                Gj[:k] = sign * D @ H_b / s
                 H[j] += Gj.T @ Gj
                 Wp = np.zeros((width, 4))
-                Wp[:W.shape[0]] = W / s
+                Wp[:k] = W4 / s
+                e0, hb = np.zeros(width), np.zeros(width)
+                if fw is not None:
+                    e0[:k] = fw.e0 / s
+                    if lv.has_offset:
+                        hb[:k] = (fw.W[:, 4:] @ fw.S)[:, 0] / s
                 idx.append(j)
                 Ws.append(Wp)
                 G.append(Gj)
                 normals.append(boards[stem][:3, 2])
                 points.append(boards[stem][:3, 3])
+                signs.append(sign)
+                E0.append(e0)
+                Hb.append(hb)
             if idx:  # W transposed (pi^T W^T is (W pi)^T); each plane's offset n . t_board
                 normals, points = np.array(normals), np.array(points)
+                beta = 6 * len(self.free) + self.offsets.index(lv.name) if lv.has_offset else None
                 self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx),
                                          np.transpose(np.array(Ws), (0, 2, 1)), normals,
-                                         np.sum(normals * points, axis=1), lv.scan_line, np.array(G)))
+                                         np.sum(normals * points, axis=1), lv.scan_line, np.array(G),
+                                         np.array(signs), np.array(E0), np.array(Hb), beta))
+        self.offset_prior_sd = np.array([lv.offset_prior_sd_m for lv in lidars if lv.has_offset])
+        self.offset_hat = np.array([solution.offsets[n][0] for n in self.offsets])
         try:
             self.H_chol = np.linalg.cholesky(np.linalg.inv(H))
         except np.linalg.LinAlgError as exc:
             raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
                                 "integrate it out") from exc
-        self.ndim = 6 * len(self.free)
+        self.ndim = 6 * len(self.free) + len(self.offsets)
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(theta)
@@ -182,7 +205,7 @@ class RigLikelihood:
             x = theta[:, k0:k0 + 6]
             c += np.sum((x @ Q) * x, axis=1) + 2.0 * x @ q
             g[idx] += x @ Kt
-        for k0, T_hat, idx, Wt, normals, offsets, scan, G in self.lidar_terms:
+        for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, Hb, beta in self.lidar_terms:
             R, t = _poses(T_hat, theta[:, k0:k0 + 6])
             pi = np.empty((len(idx), n, 4))
             pi[..., :3] = np.tensordot(normals, R, axes=([1], [1]))  # R^T n
@@ -190,8 +213,13 @@ class RigLikelihood:
             e = pi @ Wt  # (F_l, walkers, k)
             if scan:
                 e /= np.hypot(pi[..., 0], pi[..., 1])[..., None]
+            e = e * signs[:, None, None] + E0[:, None, :]
+            if beta is not None:  # the offset's parameter is its departure from the MAP's
+                e += Hb[:, None, :] * (self.offset_hat[beta - 6 * len(self.free)] + theta[None, :, beta, None])
             c += np.einsum("fwk,fwk->w", e, e)
             g[idx] += e @ G
+        if self.offsets:
+            c += np.sum(((self.offset_hat + theta[:, 6 * len(self.free):]) / self.offset_prior_sd) ** 2, axis=1)
         z = g @ self.H_chol  # g^T H^-1 g = |L^T g|^2 with H^-1 = L L^T
         return -0.5 * (c - np.einsum("fwa,fwa->w", z, z))
 
@@ -242,9 +270,14 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     """
     like = RigLikelihood(solution, cameras, lidars)
     names = solution.names
-    _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
-    cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
-    cov = cov_inner[np.ix_(cols, cols)]
+    if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == like.ndim:
+        cov = solution.covariance_inner
+    else:
+        _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
+        cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
+        cov = cov_inner[np.ix_(cols, cols)]
+        if like.offsets:
+            raise LidarcamError("the rig's solution has no covariance of its range offsets to start the posterior")
     walkers = max(64, 2 * like.ndim + 16)
     start = rng.multivariate_normal(np.zeros(like.ndim), 0.25 * (cov + cov.T), walkers)
     import emcee
@@ -267,4 +300,6 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         t = np.einsum("nji,nj->ni", R_in[ref], t_in[n] - t_in[ref])
         Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
         xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
-    return RigPosterior(names, ref, dict(solution.T_ref), xi, run)
+    nb = 6 * len(like.free)
+    offsets = {n: keep[:, nb + i] + solution.offsets[n][0] for i, n in enumerate(like.offsets)}
+    return RigPosterior(names, ref, dict(solution.T_ref), xi, run, offsets)
