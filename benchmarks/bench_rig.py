@@ -1,13 +1,15 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
-[--posterior N]`).
+[--posterior N] [--range-offset M]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
 5 a pinhole looking left, each with boards of its own (P/2, in its view and the LiDAR's). Every camera sees the
 frames whose board lies wholly in its image. `--lidars 2` adds a VLP-16-like LiDAR, `--scanners 1` a 2D scanner.
-`--posterior N` samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2
-of the truth under each pair's posterior covariance and the posterior's time.
+`--range-offset M` adds a range offset of M metres to every return of lidar0 (each LiDAR's offset is tested and,
+where included, estimated: `rig_calibration.calibrate_rig`'s range model, summarised per LiDAR). `--posterior N`
+samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2 of the truth under
+each pair's posterior covariance and the posterior's time.
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
 the camera saw, the joint errors over the RMS Cramer-Rao bound (`rig_graph.rig_bound`: the graph's information at
@@ -41,9 +43,10 @@ def _one(args) -> dict:
     from estimators.solvers.rig_graph import pair_transform
     from geometry.rotations import T_log
 
-    seed, cameras, poses, lidars, scanners, samples = args
+    seed, cameras, poses, lidars, scanners, samples, offset = args
     with tempfile.TemporaryDirectory() as tmp:
-        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners)
+        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners,
+                              range_offset_m=offset)
         gt = json.loads((folder / "ground_truth.json").read_text())
         rig = load_rig(folder)
         t0 = time.perf_counter()
@@ -52,7 +55,9 @@ def _one(args) -> dict:
     # The worker's peak resident memory so far (simulating included: an upper bound of the calibration's).
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out = {"frames_total": len(rig.sensor("lidar0").stems), "seconds": seconds,
-           "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb, "pairs": {}}
+           "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb, "pairs": {},
+           "range_models": {n: (r["model"], r.get("value_m", r.get("offset_m")), r.get("sd_m"))
+                            for n, r in res.range_offsets.items()}}
     bound = _bound(res, gt)
     for a, b in res.pairs():
         truth = np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
@@ -103,11 +108,13 @@ def main() -> None:
     ap.add_argument("--lidars", type=int, default=1)
     ap.add_argument("--scanners", type=int, default=0)
     ap.add_argument("--posterior", type=int, default=0, metavar="N", help="effective posterior samples (0: none)")
+    ap.add_argument("--range-offset", type=float, default=0.0, metavar="M",
+                    help="a range offset (m) on every return of lidar0")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:
-        runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior)
-                                    for s in range(args.rigs)]))
+        runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior,
+                                     args.range_offset) for s in range(args.rigs)]))
     more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
     frames = np.mean([r["frames_total"] for r in runs])
     print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses "
@@ -142,6 +149,17 @@ def main() -> None:
     if post:
         tp = [r["posterior_s"] for r in runs]
         print(f"of which the posterior: median {np.median(tp):.1f} s, max {np.max(tp):.1f} s")
+    for name in runs[0]["range_models"]:
+        models = [r["range_models"][name] for r in runs]
+        truth = args.range_offset if name == "lidar0" else 0.0
+        line = (f"{name}: range offset (true {1000 * truth:.0f} mm) included by the test in "
+                f"{sum(m[0] == 'offset' for m in models)} of {len(models)} rigs")
+        err = np.array([m[1] - truth for m in models if m[0] == "offset"])
+        if err.size:
+            sd = np.array([m[2] for m in models if m[0] == "offset"])
+            line += (f"; where included, its RMS error {1000 * np.sqrt(np.mean(err**2)):.1f} mm, mean sd "
+                     f"{1000 * np.mean(sd):.1f} mm, mean d2 {np.mean((err / sd) ** 2):.2f} (1 ideal)")
+        print(line)
 
 
 if __name__ == "__main__":
