@@ -369,16 +369,13 @@ def _print_intrinsics(fit) -> None:
 
 
 def _print_edges(edges) -> None:
-    import numpy as np
-
     if not edges or "mean_shift_camera_m" not in edges:
         return
-    m = [1000 * v for v in edges["mean_shift_camera_m"]]
-    sd = [1000 * float(np.sqrt(max(c, 0.0))) for c in np.diag(np.array(edges["mean_shift_covariance"]))]
+    from .solvers.outline_check import outline_shift_words
+
     what = "used" if edges["used"] else "a check, not used in the estimate"
     print(f"board edges ({what}): {edges['ends']} ring ends; the LiDAR's outlines sit (camera axes) "
-          + " ".join(f"{v:+.1f}+-{e:.1f}" for v, e in zip(m, sd))
-          + f" mm off the camera's on average (p = {edges['mean_shift_p_value']:.2g}); growth "
+          + outline_shift_words(edges) + "; growth "
           f"{1000 * edges['growth_m'][0]:+.1f} / {1000 * edges['growth_m'][1]:+.1f} mm per side"
           + (f", outline offset {1000 * edges['outline_offset_m'][0]:+.1f} / "
              f"{1000 * edges['outline_offset_m'][1]:+.1f} mm" if edges["used"] else "")
@@ -467,6 +464,7 @@ def _print_rig(result) -> None:
     import numpy as np
 
     from .rig_calibration import range_offset_words
+    from .solvers.outline_check import outline_shift_words
     from .solvers.rig_graph import translation_sd_in_first
 
     sol = result.solution
@@ -505,6 +503,11 @@ def _print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
+    if result.outline_checks:
+        print("board edges (a check of the joint estimate, not used in it): each 3D pair's LiDAR board outlines, "
+              "camera axes:")
+        for (a, b), e in result.outline_checks.items():
+            print(f"  T_{a}_{b}: {outline_shift_words(e, ends=True)}")
     for n, (p, sd) in (sol.intrinsics or {}).items():
         given = result.cameras[n].params
         print(f"  {n} intrinsics refined: " + ", ".join(f"{g:.5g} -> {v:.5g} (sd {e:.2g})"

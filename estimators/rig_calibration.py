@@ -33,9 +33,11 @@ from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
 from .lidar.lidar_models import range_accuracy_for
-from .solvers.range_model import MODEL_TEST_P, RangeTerms, frame_whitener
-from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, solve_rig, spanning_tree,
-                                translation_sd_in_first)
+from .solvers.board_edges import crossings
+from .solvers.outline_check import outline_check
+from .solvers.range_model import MODEL_TEST_P, RangeTerms, frame_rings, frame_whitener
+from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, pair_board_covariance, solve_rig,
+                                spanning_tree, translation_sd_in_first)
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -74,6 +76,9 @@ class RigResult:
     # Each LiDAR's range model: ``model`` (``offset`` or ``none``), ``prior_sd_m``, the test under ``auto``, and with
     # an offset its ``value_m`` and ``sd_m`` (:func:`_range_offsets`).
     range_offsets: dict = field(default_factory=dict)
+    # Each 3D camera-LiDAR pair's board-edges check under the joint estimate (``(camera, lidar) -> record``, as a
+    # single pair's ``board_edges``; :func:`_outline_checks`).
+    outline_checks: dict = field(default_factory=dict)
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -124,6 +129,8 @@ class RigResult:
                     o = self.posterior.offsets[s.name]
                     sensors[-1]["range_model"]["posterior_95%_m"] = np.percentile(o, [2.5, 97.5]).tolist()
         transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
+        for (a, b), record in self.outline_checks.items():
+            transforms[f"T_{a}_{b}"]["board_edges"] = record
         posterior = None
         if self.posterior is not None:
             for a, b in self.pairs():
@@ -374,6 +381,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                     and s > 2.0 else "")
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
+    outline_checks = _outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
@@ -398,7 +406,45 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets)
+                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets, outline_checks)
+
+
+def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
+                    pair_frames: dict, warnings: list) -> dict:
+    """Each camera-LiDAR pair's board-edges check under the joint estimate (``solvers.outline_check``, as every
+    single 3D pair's result has): the ring ends of the LiDAR's boards against the outline the camera places, each
+    frame's shift and their mean against its 99% limit, with the joint covariance of the pair's transform and
+    its board poses from the graph. 3D LiDARs with ``board.size`` given; a pair whose frames show no ring ends
+    has none. Warnings (prefixed with the pair) are added to ``warnings``."""
+    if not rig.board.size_known:
+        return {}
+    scan = {lv.name: lv.scan_line for lv in lidar_views}
+    seen = {cv.name: set(cv.corners_px) for cv in camera_views}
+    jobs = []
+    for (cam, lid), frames in (pair_frames or {}).items():
+        if scan.get(lid, True) or cam not in seen:
+            continue
+        frames = [f for f in frames if f.name in seen[cam] and f.name in solution.T_ref_board]
+        rings = frame_rings(frames)
+        T_cl = solution.transform(cam, lid)[0]
+        T_c = solution.T_ref[cam]
+        boards = [np.linalg.inv(T_c) @ solution.T_ref_board[f.name] for f in frames]
+        edges = [crossings(f.lidar.points, r, np.linalg.inv(B) @ T_cl, rig.board) if r is not None else None
+                 for f, r, B in zip(frames, rings, boards)]
+        used = [j for j, e in enumerate(edges) if e is not None and e.size]
+        if used:
+            jobs.append((cam, lid, T_cl, [frames[j].name for j in used], [boards[j] for j in used],
+                         [edges[j] for j in used]))
+    if not jobs:
+        return {}
+    covs = pair_board_covariance(names, rig.reference, camera_views, lidar_views, solution,
+                                 [(cam, lid, stems) for cam, lid, _, stems, _, _ in jobs])
+    out = {}
+    for (cam, lid, T_cl, stems, boards, edges), cov in zip(jobs, covs):
+        record, found = outline_check(T_cl, boards, edges, rig.board, stems, cov)
+        out[(cam, lid)] = record
+        warnings.extend(f"{cam}-{lid}: {w}" for w in found)
+    return out
 
 
 RIG_RANGE_MODELS = ("none", "offset", "auto")

@@ -259,6 +259,38 @@ def test_lidars_without_a_range_offset_keep_planes_alone(rig_folder, rig_result,
     assert len(run.stderr.strip().splitlines()) <= 2 and not out.exists()
 
 
+def test_each_3d_pair_is_checked_by_its_board_edges_and_a_wrong_board_size_is_caught(rig_folder, rig_result,
+                                                                                      tmp_path):
+    # Under the joint estimate every 3D camera-LiDAR pair's ring ends sit on the camera's outline: each pair's
+    # mean shift under 3 mm and within its 99% limit, no warning. With the board declared 5 cm wider than it is
+    # in dataset.yaml, every 3D pair's check finds each x side 25 mm in (within 3 mm) and warns about the size,
+    # and no pair's mean shift is warned about (the fit starts from least squares: from zero, ends that all lie
+    # inside their sides pull nothing, and a frame's shift ran off by 2 m).
+    import shutil
+
+    import yaml
+
+    assert {k for k in rig_result.outline_checks} == {(c, d) for c in ("cam0", "cam1", "cam2")
+                                                     for d in ("lidar0", "lidar1")}
+    for e in rig_result.outline_checks.values():
+        assert np.linalg.norm(e["mean_shift_camera_m"]) < 0.003 and e["mean_shift_p_value"] > 0.01
+    assert not any("board edges" in w for w in rig_result.warnings)
+    assert "board_edges" in rig_result.to_json()["transforms"]["T_cam1_lidar0"]
+    folder = tmp_path / "rig"
+    shutil.copytree(rig_folder, folder)
+    ypath = folder / "dataset.yaml"
+    spec = yaml.safe_load(ypath.read_text())
+    spec["board"]["size"] = [1.05, 1.0]
+    ypath.write_text(yaml.safe_dump(spec, sort_keys=False))
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False)
+    assert len(res.outline_checks) == 6
+    for (cam, lidar), e in res.outline_checks.items():
+        assert abs(e["growth_m"][0] + 0.025) < 0.003 and e["mean_shift_p_value"] > 0.01, (cam, lidar)
+        assert any(w.startswith(f"{cam}-{lidar}: board edges: the LiDAR sees the board -") and " mm wider" in w
+                   for w in res.warnings)
+    assert not any("outlines sit" in w for w in res.warnings)
+
+
 @pytest.fixture(scope="module")
 def offset_rig(tmp_path_factory):
     return simulate_rig(tmp_path_factory.mktemp("offset") / "rig", n_poses=10, seed=1, cameras=2,

@@ -72,6 +72,19 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                  + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
                                                "pair alone: away", "pair alone: t sd [mm]"]
                           + (["posterior 95%: t [mm]"] if post is not None else [])))
+    if result.outline_checks:
+        rows = []
+        for (a, b), e in result.outline_checks.items():
+            m = 1000 * np.array(e["mean_shift_camera_m"])
+            sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(e["mean_shift_covariance"])), 0.0))
+            rows.append([f"T_{a}_{b}", len(e["frames"]), e["ends"], ", ".join(f"{v:+.1f}" for v in m),
+                         ", ".join(f"{v:.1f}" for v in sd), f"{e['mean_shift_p_value']:.2g}"])
+        parts.append("<h2>Board edges</h2><p>A check of the joint estimate, which does not use them: under it, each "
+                     "3D LiDAR's ring ends draw the board's outline, which should sit on the outline the camera "
+                     "places. The mean shift over the frames (camera axes) with its standard deviation; a p-value "
+                     "below 0.01 is warned about (a wrong board.size or pattern_offset, or an extrinsic the edges "
+                     "contradict).</p>"
+                     + _table(rows, ["pair", "frames", "ring ends", "mean shift [mm]", "sd [mm]", "p"]))
     layout = result.layout()
     if layout["weakest_pair"]:
         w = layout["pairs"][layout["weakest_pair"]]

@@ -45,9 +45,15 @@ CHECK_P = 0.01
 def _fit(r0: np.ndarray, A: np.ndarray, sd: np.ndarray, prior_sd: np.ndarray, iterations: int = 30
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust Gauss-Newton for ``theta`` in ``r = r0 + A theta`` under ``end_loss`` with a zero-mean Gaussian
-    prior: ``theta``, the whitened Jacobian ``J`` at it (prior rows last) and each end's ``de/dr``."""
-    theta = np.zeros(A.shape[1])
+    prior: ``theta``, the whitened Jacobian ``J`` at it (prior rows last) and each end's ``de/dr``.
+
+    It starts from the plain least-squares fit: inward, ``end_loss`` stops pulling an end a few standard
+    deviations inside its side (it may have been hidden), so from ``theta = 0`` a side that every end sees
+    inside (a board.size too large in dataset.yaml) gives no gradient, and a frame's shift could run off to where
+    none of its ends pulls."""
     P = np.diag(1.0 / prior_sd)
+    theta = np.linalg.lstsq(np.vstack([A / sd[:, None], P]), -np.concatenate([r0 / sd, np.zeros(len(P))]),
+                            rcond=None)[0]
     for _ in range(iterations):
         e, f = end_loss(r0 + A @ theta, sd)
         J = np.vstack([f[:, None] * A, P])
@@ -186,3 +192,12 @@ def outline_warnings(record: dict, used: bool) -> list[str]:
                             f"{1000 * o[1]:+.0f} mm along its y from where dataset.yaml puts it: check "
                             "board.pattern_offset (the board corner to the pattern's corner) and board.size")
     return warnings
+
+
+def outline_shift_words(record: dict, ends: bool = False) -> str:
+    """A board-edges record's mean shift (camera axes, mm) with its standard deviations and p-value, in words
+    (and its ring ends' count)."""
+    m = 1000 * np.array(record["mean_shift_camera_m"])
+    sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(record["mean_shift_covariance"])), 0.0))
+    return (" ".join(f"{v:+.1f}+-{e:.1f}" for v, e in zip(m, sd)) + f" mm off the camera's on average (p = "
+            f"{record['mean_shift_p_value']:.2g}" + (f", {record['ends']} ring ends)" if ends else ")"))

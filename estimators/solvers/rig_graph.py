@@ -482,3 +482,43 @@ def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraView
     stat = cost["without"] - cost["with"]
     out.update(statistic=float(stat), p_value=float(chi2.sf(max(stat, 0.0), 1)))
     return out
+
+
+def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[CameraViews],
+                          lidars: list[LidarViews], solution: RigSolution, requests: list[tuple[str, str, list]]
+                          ) -> list[np.ndarray]:
+    """For each request ``(camera, lidar, stems)``: the joint covariance (6 + 6n) of ``T_camera_lidar`` and the
+    board poses ``T_camera_board`` of those frames (right tangents), from the graph's marginals at ``solution``.
+    Right tangents are the same in any reference frame, so with ``J`` of :func:`pair_transform`:
+    ``xi_cl = xi_l - Ad(T_cl^-1) xi_c`` and ``xi_cb = xi_b - Ad(T_cb^-1) xi_c``."""
+    inner = graph_reference(reference, [c.name for c in cameras])
+    stems = sorted(solution.T_ref_board)
+    refine = solution.intrinsics is not None
+    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
+    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars,
+                     {n: v for n, (v, _) in solution.offsets.items()})
+    for c in cameras if refine else ():
+        values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+    marginals = gtsam.Marginals(graph, values)
+    out = []
+    for cam, lidar, frames in requests:
+        sensors = [s for s in (cam, lidar) if s != inner]
+        keys = [sensor_key(names.index(s)) for s in sensors] + [frame_key(stems.index(st)) for st in frames]
+        S = marginals.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+        col = {s: 6 * i for i, s in enumerate(sensors)}
+        nb = 6 * len(sensors)
+        J = np.zeros((6 + 6 * len(frames), S.shape[0]))
+        T_c = solution.T_ref[cam]
+        T_cl = np.linalg.inv(T_c) @ solution.T_ref[lidar]
+        J[:6, col[lidar]:col[lidar] + 6] = np.eye(6)
+        if cam in col:
+            J[:6, col[cam]:col[cam] + 6] = -adjoint(np.linalg.inv(T_cl))
+        for j, st in enumerate(frames):
+            rows = slice(6 + 6 * j, 12 + 6 * j)
+            J[rows, nb + 6 * j:nb + 6 * j + 6] = np.eye(6)
+            if cam in col:
+                T_cb = np.linalg.inv(T_c) @ solution.T_ref_board[st]
+                J[rows, col[cam]:col[cam] + 6] = -adjoint(np.linalg.inv(T_cb))
+        C = J @ S @ J.T
+        out.append(0.5 * (C + C.T))
+    return out
