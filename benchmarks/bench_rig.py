@@ -122,7 +122,7 @@ def main() -> None:
           "boards of their own)")
     post = args.posterior > 0
     print(f"{'pair':16s}{'frames':>8s}{'joint rot deg':>15s}{'trans mm':>10s}{'rot/CRB':>9s}{'tr/CRB':>8s}{'d2':>7s}"
-          + (f"{'d2 post':>8s}" if post else "") + f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>7s}")
+          + (f"{'d2 post':>8s}" if post else "") + f"{'alone rot deg':>15s}{'trans mm':>10s}{'d2':>9s}")
     for name in runs[0]["pairs"]:
         rows = [r["pairs"][name] for r in runs]
         frames = np.mean([r["frames"] for r in rows])
@@ -136,9 +136,9 @@ def main() -> None:
         # A camera-LiDAR pair is solved alone where they share 3 usable frames: its columns are over those rigs.
         solved = sum("pair" in r["rows"] for r in rows)
         alone = (f"{np.degrees(rms('pair', 0)):15.4f}{1000 * rms('pair', 1):10.2f}"
-                 f"{np.mean([r['rows']['pair'][2] for r in rows if 'pair' in r['rows']]):7.2f}"
+                 f"{np.mean([r['rows']['pair'][2] for r in rows if 'pair' in r['rows']]):9.2f}"
                  + (f"  (in {solved} rigs)" if solved < len(rows) else "")) if solved else \
-            f"{'-':>15s}{'-':>10s}{'-':>7s}"
+            f"{'-':>15s}{'-':>10s}{'-':>9s}"
         if post:
             joint += f"{np.mean([r['rows']['posterior'] for r in rows]):8.2f}"
         print(f"{name:16s}{frames:8.1f}{joint}{alone}")

@@ -448,7 +448,7 @@ def _calibrate_rig(args) -> int:
                             hint="a rig's LiDARs take none, offset or auto (a global range offset per LiDAR)")
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
-                           samples=args.samples, range_model=args.range_model)
+                           samples=args.samples, range_model=args.range_model, edges=bool(args.edges))
     path = write_rig_calibration(result, args.out)
     _print_rig(result)
     print(f"wrote {path}")
@@ -503,6 +503,11 @@ def _print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
+    for n, e in result.edges.items():
+        print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
+              f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "
+              f"{1000 * e['growth_m'][0]:+.1f} / {1000 * e['growth_m'][1]:+.1f} mm per side, outline offset "
+              f"{1000 * e['outline_offset_m'][0]:+.1f} / {1000 * e['outline_offset_m'][1]:+.1f} mm")
     if result.outline_checks:
         print("board edges (a check of the joint estimate, not used in it): each 3D pair's LiDAR board outlines, "
               "camera axes:")

@@ -33,11 +33,11 @@ from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, pooled_range_noise_m
 from .lidar.lidar_models import range_accuracy_for
-from .solvers.board_edges import crossings
+from .solvers.board_edges import crossings, edge_scatter
 from .solvers.outline_check import outline_check
 from .solvers.range_model import MODEL_TEST_P, RangeTerms, frame_rings, frame_whitener
-from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, pair_board_covariance, solve_rig,
-                                spanning_tree, translation_sd_in_first)
+from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, outline_key, pair_board_covariance,
+                                solve_rig, spanning_tree, translation_sd_in_first)
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -79,6 +79,8 @@ class RigResult:
     # Each 3D camera-LiDAR pair's board-edges check under the joint estimate (``(camera, lidar) -> record``, as a
     # single pair's ``board_edges``; :func:`_outline_checks`).
     outline_checks: dict = field(default_factory=dict)
+    # With ``--edges``: each LiDAR's board-edges record (:func:`_with_edges`).
+    edges: dict = field(default_factory=dict)
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -123,6 +125,8 @@ class RigResult:
             sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
                             "frames_used": len(self.frames_used.get(s.name, ())),
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
+            if s.name in self.edges:
+                sensors[-1]["board_edges"] = self.edges[s.name]
             if s.name in self.range_offsets:
                 sensors[-1]["range_model"] = dict(self.range_offsets[s.name])
                 if self.posterior is not None and s.name in self.posterior.offsets:
@@ -257,7 +261,8 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
-                  samples: int = 0, advise: bool = True, range_model: str = "auto") -> RigResult:
+                  samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool = False
+                  ) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -279,6 +284,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         Each LiDAR's range model: ``none`` (planes), ``offset`` (a global range offset under the prior of its range
         accuracy, dataset.yaml's ``range_accuracy_m`` or its family's), or ``auto``: the offset where a
         likelihood-ratio test at ``MODEL_TEST_P`` supports it (:func:`_range_offsets`).
+    edges : bool
+        The board's edges as measurements too (``--edges``): each LiDAR's ring ends (a 2D scanner's segment ends)
+        on the board's outline, in the joint graph (:func:`_with_edges`); the posterior is then not sampled.
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -381,11 +389,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                     and s > 2.0 else "")
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
+    edge_records: dict = {}
+    if edges and not rig.board.size_known:
+        warnings.append("--edges: the board's size is not in dataset.yaml (board.size): planes alone")
+    elif edges:
+        lidar_views, solution, edge_records = _with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution,
+                                                          T_ref, T_ref_board, refine_intrinsics)
     outline_checks = _outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
-    if samples > 0 and refine_intrinsics:
+    if samples > 0 and edge_records:
+        warnings.append("the posterior is not sampled with --edges for a rig (the ends' likelihood is not in the "
+                        "sampler): the uncertainty given is the joint graph's, which carries the edges")
+    elif samples > 0 and refine_intrinsics:
         warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
                         "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
     elif samples > 0:
@@ -406,7 +423,61 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets, outline_checks)
+                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets, outline_checks, edge_records)
+
+
+def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool
+                ) -> tuple[list, RigSolution, dict]:
+    """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
+    (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
+    the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
+    per LiDAR (its sides' growth and the pattern's offset, under their priors); the scatter and the ends' scale
+    estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
+    Returns the views, the solution and per LiDAR its record (ends, scale, scatter, outline)."""
+    views = []
+    for lv in lidar_views:
+        obs = lidar_obs[lv.name]
+        T_l = solution.T_ref[lv.name]
+        found = {}
+        for st in lv.W:
+            o = obs[st]
+            rings = np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else o.rings
+            if rings is None or st not in solution.T_ref_board:
+                continue
+            e = crossings(o.points, np.asarray(rings, dtype=np.int64),
+                          np.linalg.inv(solution.T_ref_board[st]) @ T_l, rig.board)
+            if e.size:
+                found[st] = e
+        views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
+    if not any(v.edges for v in views):
+        return lidar_views, solution, {}
+    for _ in range(4):
+        solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
+        settled, new = True, []
+        for lv in views:
+            if not lv.edges:
+                new.append(lv)
+                continue
+            k = names.index(lv.name)
+            outline = solution.vectors[outline_key(k)]
+            T_l = solution.T_ref[lv.name]
+            frames = [(np.eye(4), np.linalg.inv(T_l) @ solution.T_ref_board[st], e) for st, e in lv.edges.items()]
+            tau, scale = edge_scatter(frames, rig.board, outline, lv.edge_scale, lv.edge_tau_m)
+            settled &= (abs(np.log(max(tau, 1e-4) / max(lv.edge_tau_m, 1e-4))) < 0.1
+                        and abs(np.log(scale / lv.edge_scale)) < 0.05)
+            new.append(replace(lv, edge_tau_m=tau, edge_scale=scale))
+        views = new
+        if settled:
+            break
+    records = {}
+    for lv in views:
+        if lv.edges:
+            outline = solution.vectors[outline_key(names.index(lv.name))]
+            records[lv.name] = {"used": True, "frames": len(lv.edges), "ends": int(sum(e.size for e in lv.edges.values())),
+                                "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
+                                "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist()}
+    return views, solution, records
 
 
 def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
@@ -418,7 +489,7 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
     has none. Warnings (prefixed with the pair) are added to ``warnings``."""
     if not rig.board.size_known:
         return {}
-    scan = {lv.name: lv.scan_line for lv in lidar_views}
+    scan = {lv.name: lv.scan_line or bool(lv.edges) for lv in lidar_views}  # with the edges used: not a check
     seen = {cv.name: set(cv.corners_px) for cv in camera_views}
     jobs = []
     for (cam, lid), frames in (pair_frames or {}).items():

@@ -291,6 +291,28 @@ def test_each_3d_pair_is_checked_by_its_board_edges_and_a_wrong_board_size_is_ca
     assert not any("outlines sit" in w for w in res.warnings)
 
 
+def test_the_board_edges_in_the_rigs_graph(rig_folder, rig_result):
+    # --edges: each LiDAR's ring ends (the scanner's segment ends) in the joint graph. Every LiDAR has them (the
+    # outlines' growth within 3 mm of 0: the board's size is right), every camera-LiDAR pair's largest translation
+    # sd is at most the planes' and the scanner's at least 2% lower, and the truth stays inside each camera-LiDAR
+    # pair's 99.9% region (d2 below 22.5). The posterior is not sampled with them (a warning says so), and the
+    # pairs they are used for are not checked by them.
+    res = calibrate_rig(load_rig(rig_folder), np.random.default_rng(0), edges=True, samples=200, advise=False)
+    assert set(res.edges) == {"lidar0", "lidar1", "scan0"} and res.posterior is None
+    assert any("not sampled with --edges" in w for w in res.warnings) and not res.outline_checks
+    for n, e in res.edges.items():
+        assert e["ends"] > 10 and np.all(np.abs(e["growth_m"]) < 0.003), n
+    for cam in ("cam0", "cam1", "cam2"):
+        for lidar in ("lidar0", "lidar1", "scan0"):
+            T, C = res.solution.transform(cam, lidar)
+            _, C0 = rig_result.solution.transform(cam, lidar)
+            sd, sd0 = (np.sqrt(np.linalg.eigvalsh(c[3:, 3:])[-1]) for c in (C, C0))
+            assert sd <= sd0 * (0.98 if lidar == "scan0" else 1.0) + 1e-9, (cam, lidar)
+            xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, cam, lidar))
+            assert xi @ np.linalg.solve(C, xi) < 22.5, (cam, lidar)
+    assert next(r for r in res.to_json()["sensors"] if r["name"] == "scan0")["board_edges"]["used"]
+
+
 @pytest.fixture(scope="module")
 def offset_rig(tmp_path_factory):
     return simulate_rig(tmp_path_factory.mktemp("offset") / "rig", n_poses=10, seed=1, cameras=2,

@@ -245,18 +245,50 @@ def _edge_error(edges, board, scale, keys, this, values, H):
 
 
 def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeCrossings, board: BoardModel,
-                scale: float = 1.0) -> gtsam.CustomFactor:
+                scale: float = 1.0, key_outline: int = OUTLINE) -> gtsam.CustomFactor:
     """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift and the
-    dataset's outline; whitened inside by :func:`end_loss` (``scale`` multiplies the ends' standard deviations)."""
-    keys = [key_extrinsic, key_board, key_shift, OUTLINE]
+    dataset's outline (``key_outline``); whitened inside by :func:`end_loss` (``scale`` multiplies the ends'
+    standard deviations)."""
+    keys = [key_extrinsic, key_board, key_shift, key_outline]
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(edges.size), keys,
                               partial(_edge_error, edges, board, scale, keys))
 
 
-def outline_prior() -> gtsam.PriorFactorVector:
+def outline_prior(key: int = OUTLINE) -> gtsam.PriorFactorVector:
     """The board's outline against the dataset's: its sides' growth (x and y sides) 0 +- ``GROWTH_PRIOR_SD_M``,
     the pattern's offset from where the dataset puts it 0 +- ``OFFSET_PRIOR_SD_M``."""
-    return gtsam.PriorFactorVector(OUTLINE, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(outline_prior_sd()))
+    return gtsam.PriorFactorVector(key, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(outline_prior_sd()))
+
+
+# Bound of the boards' in-plane scatter (m): a board's outline placed further off than this by the camera is not
+# a pose error (a wrong board size or pattern offset, which the shift check reports).
+MAX_EDGE_SCATTER_M = 0.05
+# Fewest outline-shift directions (summed over frames) from which that scatter is estimated: the extrinsic's six
+# directions absorb much of what a few boards' shifts show (3 scan lines give 3), and the scatter is then kept
+# at its start.
+MIN_SCATTER_RANK = 10
+
+
+def edge_scatter(frames: list, board: BoardModel, outline: np.ndarray, scale: float, tau: float
+                 ) -> tuple[float, float]:
+    """The boards' in-plane scatter (m) and the ends' scale by the method of moments at a solve, over ``frames``
+    (``(T_camera_lidar, T_camera_board, EdgeCrossings)`` each): each frame's outline shift by least squares on its
+    ends' residuals (without the shift), its excess over the ends' own variance pooled over frames; the ends'
+    scatter about their frame's shift against their standard deviations (those within twice the Huber threshold;
+    never below 1). The scatter stays ``tau`` when the shifts show fewer than ``MIN_SCATTER_RANK`` directions."""
+    excess, rank, within, dof = 0.0, 0, 0.0, 0
+    for T, Tb, e in frames:
+        shift, cov, k = frame_shift(T, Tb, e, board, outline, scale)
+        excess += float(shift @ shift - np.trace(cov))
+        rank += k
+        r = edge_residuals(T, Tb, e, board, outline[:2], shift + outline[2:], jacobian=False)[0] / e.sd_m
+        core = r[np.abs(r) <= 2 * EDGE_HUBER * scale]
+        within += float(core @ core)
+        dof += max(len(core) - k, 0)
+    tau = (float(np.clip(np.sqrt(max(excess, 0.0) / max(rank, 1)), 1e-4, MAX_EDGE_SCATTER_M))
+           if rank >= MIN_SCATTER_RANK else tau)
+    new_scale = float(np.sqrt(within / dof)) if dof > 10 else 1.0
+    return tau, max(1.0, new_scale)
 
 
 def shift_prior(key_shift: int, sd_m: float) -> gtsam.PriorFactorVector:

@@ -48,8 +48,8 @@ from geometry.rotations import T_exp, T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import (EDGE_HUBER, OUTLINE, SIDE_NORMALS, EndTerms,
-                          crossings, edge_factor, edge_residuals, frame_shift, outline_prior, shift_key, shift_prior)
+from .board_edges import (EDGE_HUBER, OUTLINE, SIDE_NORMALS, EndTerms, crossings, edge_factor, edge_residuals,
+                          edge_scatter, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
@@ -538,37 +538,10 @@ def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int]
     return T, b
 
 
-# Bound of the boards' in-plane scatter (m): a board's outline placed further off than this by the camera is not
-# a pose error (a wrong board size or pattern offset, which the shift check reports).
-MAX_EDGE_SCATTER_M = 0.05
-# Fewest outline-shift directions (summed over frames) from which that scatter is estimated: the extrinsic's six
-# directions absorb much of what a few boards' shifts show (3 scan lines give 3), and the scatter is then kept
-# at its start.
-MIN_SCATTER_RANK = 10
-
-
 def _edge_scatter(prob: _Problem, active: list[int], T: np.ndarray, boards: list) -> tuple[float, float]:
-    """The boards' in-plane scatter (m) and the ends' scale by the method of moments at the solve: each frame's
-    outline shift by least squares on its ends' residuals (without the shift), its excess over the ends' own
-    variance pooled over frames; the ends' scatter about their frame's shift against their standard deviations
-    (those within twice the Huber threshold; never below 1)."""
-    excess, rank, within, dof = 0.0, 0, 0.0, 0
-    for i in active:
-        if not prob.has_edges(i):
-            continue
-        e = prob.edges[i]
-        shift, cov, k = frame_shift(T, boards[i], e, prob.board, prob.outline, prob.edge_scale)
-        excess += float(shift @ shift - np.trace(cov))
-        rank += k
-        r = edge_residuals(T, boards[i], e, prob.board, prob.outline[:2], shift + prob.outline[2:],
-                           jacobian=False)[0] / e.sd_m
-        core = r[np.abs(r) <= 2 * EDGE_HUBER * prob.edge_scale]
-        within += float(core @ core)
-        dof += max(len(core) - k, 0)
-    tau = (float(np.clip(np.sqrt(max(excess, 0.0) / max(rank, 1)), 1e-4, MAX_EDGE_SCATTER_M))
-           if rank >= MIN_SCATTER_RANK else prob.edge_tau)
-    scale = float(np.sqrt(within / dof)) if dof > 10 else 1.0
-    return tau, max(1.0, scale)
+    """The boards' in-plane scatter (m) and the ends' scale at the solve (``board_edges.edge_scatter``)."""
+    return edge_scatter([(T, boards[i], prob.edges[i]) for i in active if prob.has_edges(i)], prob.board,
+                        prob.outline, prob.edge_scale, prob.edge_tau)
 
 
 def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list, floor: float, cov: np.ndarray,

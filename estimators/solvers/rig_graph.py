@@ -33,6 +33,7 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from . import chi_square as chi2
+from .board_edges import edge_factor, outline_prior, shift_prior
 from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
                       corner_residuals_intrinsics, lidar_plane, lidar_residual, nuisance_plane_factor,
                       nuisance_residual, plane_factor)
@@ -53,6 +54,16 @@ def intrinsics_key(k: int) -> int:
 def offset_key(k: int) -> int:
     """A LiDAR's range offset (a 1-vector, m)."""
     return gtsam.symbol("o", k)
+
+
+def outline_key(k: int) -> int:
+    """A LiDAR's view of the board's outline (``board_edges.OUTLINE``: its sides' growth, the pattern's offset)."""
+    return gtsam.symbol("g", k)
+
+
+def edge_shift_key(k: int, j: int) -> int:
+    """Sensor ``k``'s outline shift in frame ``j`` (``board_edges.shift_key``)."""
+    return gtsam.symbol("e", 100000 * k + j)
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +96,12 @@ class LidarViews:
     scan_line: bool = False
     ranged: dict | None = None
     offset_prior_sd_m: float | None = None
+    # With the board's edges (``--edges``): per stem the frame's ends (``board_edges.EdgeCrossings``), the board,
+    # the boards' in-plane scatter (m, each frame's shift prior) and the ends' scale (``board_edges.edge_factor``).
+    edges: dict | None = None
+    board: object = None
+    edge_tau_m: float = 0.0
+    edge_scale: float = 1.0
 
     @property
     def has_offset(self) -> bool:
@@ -112,6 +129,8 @@ class RigSolution:
     # The Laplace covariance of the free sensors' tangents in the graph's reference camera's frame (in ``names``
     # order, that camera left out) and then the LiDARs' range offsets (in ``offsets`` order).
     covariance_inner: np.ndarray | None = None
+    # The graph's vector variables at the estimate (range offsets, outlines, outline shifts; by key).
+    vectors: dict = field(default_factory=dict)
 
     def covariance(self, name: str) -> np.ndarray:
         k = self.names.index(name)
@@ -213,6 +232,14 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
         if lv.has_offset:
             graph.add(gtsam.PriorFactorVector(offset_key(k), np.zeros(1),
                                               gtsam.noiseModel.Isotropic.Sigma(1, lv.offset_prior_sd_m)))
+        if lv.edges:
+            graph.add(outline_prior(outline_key(k)))
+            for stem, e in lv.edges.items():
+                if stem in stems:
+                    j = stems.index(stem)
+                    graph.add(shift_prior(edge_shift_key(k, j), lv.edge_tau_m))
+                    graph.add(edge_factor(sensor_key(k), frame_key(j), edge_shift_key(k, j), e, lv.board,
+                                          lv.edge_scale, outline_key(k)))
         for stem, W in lv.W.items():
             if stem not in stems:
                 continue
@@ -356,20 +383,34 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         T_inner_ref = T[reference]
         T, cov = change_reference(tuple(names), T, cov, reference)
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
+    vectors = {key: values.atVector(key).copy() for key in _vector_keys(names, stems, lidars)}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
                        {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, offsets,
-                       0.5 * (cov_inner + cov_inner.T))
+                       0.5 * (cov_inner + cov_inner.T), vectors)
+
+
+def _vector_keys(names, stems: list[str], lidars) -> dict:
+    """The graph's vector variables of the ``lidars`` (each key and its size): range offsets, and with the
+    board's edges each LiDAR's outline and its frames' outline shifts."""
+    out = {}
+    for lv in lidars:
+        k = names.index(lv.name)
+        if lv.has_offset:
+            out[offset_key(k)] = 1
+        if lv.edges:
+            out[outline_key(k)] = 4
+            out.update({edge_shift_key(k, stems.index(st)): 2 for st in lv.edges if st in stems})
+    return out
 
 
 def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict, lidars=(),
-            offsets: dict | None = None) -> gtsam.Values:
-    """The graph's pose variables in the frame of its reference camera ``inner``, and the range offsets of the
-    ``lidars`` that have one (``offsets`` by name, m; 0 where not given)."""
+            vectors: dict | None = None) -> gtsam.Values:
+    """The graph's pose variables in the frame of its reference camera ``inner``, and the vector variables of the
+    ``lidars`` (:func:`_vector_keys`) at ``vectors`` (by key; 0 where not given)."""
     T_inner = np.linalg.inv(T_ref[inner])
     values = gtsam.Values()
-    for lv in lidars:
-        if lv.has_offset:
-            values.insert(offset_key(names.index(lv.name)), np.array([(offsets or {}).get(lv.name, 0.0)]))
+    for key, size in _vector_keys(names, stems, lidars).items():
+        values.insert(key, np.asarray((vectors or {}).get(key, np.zeros(size)), dtype=float))
     for k, n in enumerate(names):
         if n != inner:
             values.insert(sensor_key(k), gtsam.Pose3(T_inner @ T_ref[n]))
@@ -409,7 +450,8 @@ def rig_bound(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     stems = sorted(T_ref_board)
     scale = {n: (noise_scale or {}).get(n, 1.0) for n in names}
     graph = _graph(names, cameras, lidars, stems, scale, inner, intrinsics is not None)
-    values = _values(names, inner, stems, T_ref, T_ref_board, lidars, offsets)
+    vectors = {offset_key(names.index(n)): np.array([v]) for n, v in (offsets or {}).items()}
+    values = _values(names, inner, stems, T_ref, T_ref_board, lidars, vectors)
     for c in cameras if intrinsics is not None else ():
         values.insert(intrinsics_key(names.index(c.name)), np.asarray(intrinsics[c.name], dtype=float))
     _, cov = _joint_marginal(graph, values, names, inner)
@@ -463,7 +505,7 @@ def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraView
     for key, lv in (("without", without), ("with", with_offset)):
         views = [lv if v.name == lv.name else v for v in lidars]
         graph = _graph(names, cameras, views, stems, solution.noise_scale, inner, refine)
-        values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, views)
+        values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, views, solution.vectors)
         for c in cameras if refine else ():
             values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
         try:
@@ -495,8 +537,7 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
     stems = sorted(solution.T_ref_board)
     refine = solution.intrinsics is not None
     graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
-    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars,
-                     {n: v for n, (v, _) in solution.offsets.items()})
+    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
     for c in cameras if refine else ():
         values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
     marginals = gtsam.Marginals(graph, values)
