@@ -1,6 +1,6 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
-[--posterior N] [--range-offset M]`).
+[--posterior N] [--range-offset M] [--edges]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
@@ -9,7 +9,8 @@ frames whose board lies wholly in its image. `--lidars 2` adds a VLP-16-like LiD
 `--range-offset M` adds a range offset of M metres to every return of lidar0 (each LiDAR's offset is tested and,
 where included, estimated: `rig_calibration.calibrate_rig`'s range model, summarised per LiDAR). `--posterior N`
 samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2 of the truth under
-each pair's posterior covariance and the posterior's time.
+each pair's posterior covariance and the posterior's time. `--edges` puts every LiDAR's board edges in the graph
+(the bound then has them too).
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
 the camera saw, the joint errors over the RMS Cramer-Rao bound (`rig_graph.rig_bound`: the graph's information at
@@ -43,14 +44,14 @@ def _one(args) -> dict:
     from estimators.solvers.rig_graph import pair_transform
     from geometry.rotations import T_log
 
-    seed, cameras, poses, lidars, scanners, samples, offset = args
+    seed, cameras, poses, lidars, scanners, samples, offset, edges = args
     with tempfile.TemporaryDirectory() as tmp:
         folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners,
                               range_offset_m=offset)
         gt = json.loads((folder / "ground_truth.json").read_text())
         rig = load_rig(folder)
         t0 = time.perf_counter()
-        res = calibrate_rig(rig, np.random.default_rng(seed), workers=1, samples=samples)
+        res = calibrate_rig(rig, np.random.default_rng(seed), workers=1, samples=samples, edges=edges)
         seconds = time.perf_counter() - t0
     # The worker's peak resident memory so far (simulating included: an upper bound of the calibration's).
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -110,12 +111,14 @@ def main() -> None:
     ap.add_argument("--posterior", type=int, default=0, metavar="N", help="effective posterior samples (0: none)")
     ap.add_argument("--range-offset", type=float, default=0.0, metavar="M",
                     help="a range offset (m) on every return of lidar0")
+    ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph (no posterior)")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:
         runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior,
-                                     args.range_offset) for s in range(args.rigs)]))
+                                     args.range_offset, args.edges) for s in range(args.rigs)]))
     more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
+    more += "; every LiDAR's board edges in the graph (--edges)" if args.edges else ""
     frames = np.mean([r["frames_total"] for r in runs])
     print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses "
           f"in the first camera's view, {frames:.0f} frames in all (the cameras that do not share its view have "
