@@ -111,7 +111,7 @@ def main() -> None:
     ap.add_argument("--posterior", type=int, default=0, metavar="N", help="effective posterior samples (0: none)")
     ap.add_argument("--range-offset", type=float, default=0.0, metavar="M",
                     help="a range offset (m) on every return of lidar0")
-    ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph (no posterior)")
+    ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:

@@ -286,7 +286,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         likelihood-ratio test at ``MODEL_TEST_P`` supports it (:func:`_range_offsets`).
     edges : bool
         The board's edges as measurements too (``--edges``): each LiDAR's ring ends (a 2D scanner's segment ends)
-        on the board's outline, in the joint graph (:func:`_with_edges`); the posterior is then not sampled.
+        on the board's outline, in the joint graph (:func:`_with_edges`); the posterior holds their share to
+        second order about the estimate (``rig_posterior.edges_quadratic``).
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -399,10 +400,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
-    if samples > 0 and edge_records:
-        warnings.append("the posterior is not sampled with --edges for a rig (the ends' likelihood is not in the "
-                        "sampler): the uncertainty given is the joint graph's, which carries the edges")
-    elif samples > 0 and refine_intrinsics:
+    if samples > 0 and refine_intrinsics:
         warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
                         "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
     elif samples > 0:

@@ -295,11 +295,14 @@ def test_the_board_edges_in_the_rigs_graph(rig_folder, rig_result):
     # --edges: each LiDAR's ring ends (the scanner's segment ends) in the joint graph. Every LiDAR has them (the
     # outlines' growth within 3 mm of 0: the board's size is right), every camera-LiDAR pair's largest translation
     # sd is at most the planes' and the scanner's at least 2% lower, and the truth stays inside each camera-LiDAR
-    # pair's 99.9% region (d2 below 22.5). The posterior is not sampled with them (a warning says so), and the
-    # pairs they are used for are not checked by them.
-    res = calibrate_rig(load_rig(rig_folder), np.random.default_rng(0), edges=True, samples=200, advise=False)
-    assert set(res.edges) == {"lidar0", "lidar1", "scan0"} and res.posterior is None
-    assert any("not sampled with --edges" in w for w in res.warnings) and not res.outline_checks
+    # pair's 99.9% region (d2 below 22.5). The posterior holds the edges to second order about the estimate: each
+    # camera-LiDAR pair's posterior standard deviations within 15% of the graph's. The pairs whose edges are used
+    # are not checked by them.
+    res = calibrate_rig(load_rig(rig_folder), np.random.default_rng(0), edges=True, samples=300, advise=False)
+    assert set(res.edges) == {"lidar0", "lidar1", "scan0"} and not res.outline_checks
+    for cam, lidar in (("cam0", "lidar0"), ("cam2", "scan0"), ("cam1", "lidar1")):
+        sd_post = np.std(res.posterior.pair_samples(cam, lidar), axis=0, ddof=1)
+        np.testing.assert_allclose(sd_post, np.sqrt(np.diag(res.solution.transform(cam, lidar)[1])), rtol=0.15)
     for n, e in res.edges.items():
         assert e["ends"] > 10 and np.all(np.abs(e["growth_m"]) < 0.003), n
     for cam in ("cam0", "cam1", "cam2"):

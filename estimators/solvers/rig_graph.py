@@ -563,3 +563,22 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
         C = J @ S @ J.T
         out.append(0.5 * (C + C.T))
     return out
+
+
+def inner_covariance(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+                     solution: RigSolution) -> np.ndarray:
+    """The Laplace covariance of the free sensors' tangents (and the range offsets) in the graph's reference
+    camera's frame, as ``RigSolution.covariance_inner`` orders them, for these views at ``solution``'s values:
+    with views other than the solution's (the LiDARs without their edges, say), that model's curvature at this
+    estimate."""
+    inner = graph_reference(reference, [c.name for c in cameras])
+    stems = sorted(solution.T_ref_board)
+    refine = solution.intrinsics is not None
+    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
+    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
+    for c in cameras if refine else ():
+        values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [offset_key(names.index(lv.name))
+                                                                        for lv in lidars if lv.has_offset]
+    C = gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    return 0.5 * (C + C.T)

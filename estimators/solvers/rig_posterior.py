@@ -105,7 +105,8 @@ def _poses(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class RigLikelihood:
     """The vectorised log-posterior of the free sensors' tangents (module docstring), built at the MAP."""
 
-    def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews]):
+    def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
+                 quadratic: tuple[np.ndarray, np.ndarray] | None = None):
         names = solution.names
         self.inner = graph_reference(solution.reference, [c.name for c in cameras])
         T_inner = np.linalg.inv(solution.T_ref[self.inner])
@@ -194,6 +195,9 @@ class RigLikelihood:
             raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
                                 "integrate it out") from exc
         self.ndim = 6 * len(self.free) + len(self.offsets)
+        # Measurements held to second order about the MAP (the board edges: :func:`edges_quadratic`): ``(A, b)``,
+        # adding ``-1/2 theta^T A theta + b^T theta`` to the log-posterior.
+        self.quadratic = quadratic
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(theta)
@@ -221,7 +225,11 @@ class RigLikelihood:
         if self.offsets:
             c += np.sum(((self.offset_hat + theta[:, 6 * len(self.free):]) / self.offset_prior_sd) ** 2, axis=1)
         z = g @ self.H_chol  # g^T H^-1 g = |L^T g|^2 with H^-1 = L L^T
-        return -0.5 * (c - np.einsum("fwa,fwa->w", z, z))
+        out = -0.5 * (c - np.einsum("fwa,fwa->w", z, z))
+        if self.quadratic is not None:
+            A, b = self.quadratic
+            out += -0.5 * np.sum((theta @ A) * theta, axis=1) + theta @ b
+        return out
 
 
 class LaplaceProposal:
@@ -244,6 +252,29 @@ class LaplaceProposal:
         w = random.chisquare(self.nu, n) / self.nu
         new = (random.randn(n, d) / np.sqrt(w)[:, None]) @ self.L.T
         return new, self.log_density(coords) - self.log_density(new)
+
+
+def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[CameraViews],
+                    lidars: list[LidarViews], h: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+    """The board edges' share of the log-posterior to second order about the MAP, as the single pair's posterior
+    holds them: the information they add to the free sensors' tangents (the graph's with them less the graph's
+    without them, both at the MAP, each sensor's own outline shifts and outline marginalised; negative
+    directions clipped) and the gradient that makes the MAP stationary (the planes' and corners' gradient at it,
+    which the edges balance, by central differences of ``like``). Returns ``(A, b)`` for
+    ``RigLikelihood.quadratic``."""
+    from dataclasses import replace
+
+    from .rig_graph import inner_covariance
+
+    planes = [replace(lv, edges=None) if lv.edges else lv for lv in lidars]
+    C_p = inner_covariance(solution.names, solution.reference, cameras, planes, solution)
+    A = np.linalg.inv(solution.covariance_inner) - np.linalg.inv(C_p)
+    ev, V = np.linalg.eigh(0.5 * (A + A.T))
+    A = (V * np.maximum(ev, 0.0)) @ V.T
+    E = np.eye(like.ndim) * h
+    f = like(np.vstack([E, -E]))
+    grad = (f[:like.ndim] - f[like.ndim:]) / (2 * h)
+    return A, -grad
 
 
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
@@ -269,6 +300,8 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
     """
     like = RigLikelihood(solution, cameras, lidars)
+    if any(lv.edges for lv in lidars):
+        like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
     if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == like.ndim:
         cov = solution.covariance_inner
