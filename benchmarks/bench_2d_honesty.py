@@ -1,8 +1,8 @@
 """2D, three boards: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
-[--pattern charuco]`, CONFIG default, varied or mounted, as in bench_2d.py; part of make bench.)
+[--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py; part of make bench.)
 
-Each trial is one layout of 3 boards (1 cm range noise; the board's outline off its declared one by an error
-drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal solutions,
+Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared
+one by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal solutions,
 multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is the
 Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
 degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
@@ -38,9 +38,9 @@ def _d2(ref, T_true) -> float:
 
 
 def one(args):
-    seed, config, pattern, posterior = args
+    seed, config, pattern, posterior, boards = args
     try:
-        rig, layout, frames, _ = B.trial_setup(seed, config, 3, 0.01, pattern)
+        rig, layout, frames, _ = B.trial_setup(seed, config, boards, 0.01, pattern)
     except RuntimeError:  # no feasible pose for this rig: not a trial
         return None
     try:
@@ -88,16 +88,17 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", metavar="S",
                     help="run these trial seeds (as listed by an earlier run) instead of TRIALS drawn from SEED")
     ap.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"])
+    ap.add_argument("--boards", type=int, default=3, help="boards per layout (default 3)")
     ap.add_argument("--no-posterior", dest="posterior", action="store_false",
                     help="the Laplace covariance alone (quick; not what the pipeline reports)")
     a = ap.parse_args()
     config, pattern = a.config, a.pattern
     seeds = a.seeds or np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
-        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior) for s in seeds], chunksize=4))
+        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior, a.boards) for s in seeds], chunksize=4))
     skipped = sum(r is None for r in rows)
     rows = [r for r in rows if r is not None]
-    print(f"{config}, {pattern}, 3 boards: {len(rows)} trials ({skipped} rigs without a feasible pose skipped)")
+    print(f"{config}, {pattern}, {a.boards} boards: {len(rows)} trials ({skipped} rigs without a feasible pose skipped)")
     print(f"{'bound':12s} {'trials':>6s} {'refused':>7s} {'answered':>8s} {'in 99.9%':>9s} {'(Laplace)':>9s} "
           f"{'ambiguous':>9s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
     wrong_all = []
