@@ -44,7 +44,9 @@ from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 MIN_PAIR_FRAMES = 3
 # The effective corner noise over the corners' residual (the pair's default: detector errors are correlated).
 CORNER_ERROR_CORRELATION = RefinementOptions().corner_error_correlation
-PAIR_OPTIONS = RefinementOptions(range_model="none", edges=False)
+# The pairwise solves start the joint graph and are reported beside it: no range terms, no edges and no check by
+# the edges (the joint estimate is checked).
+PAIR_OPTIONS = RefinementOptions(range_model="none", edges=False, outline_check=False)
 
 
 @dataclass(frozen=True, eq=False)

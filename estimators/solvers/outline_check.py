@@ -52,13 +52,16 @@ def _fit(r0: np.ndarray, A: np.ndarray, sd: np.ndarray, prior_sd: np.ndarray, it
     inside (a board.size too large in dataset.yaml) gives no gradient, and a frame's shift could run off to where
     none of its ends pulls."""
     P = np.diag(1.0 / prior_sd)
-    theta = np.linalg.lstsq(np.vstack([A / sd[:, None], P]), -np.concatenate([r0 / sd, np.zeros(len(P))]),
-                            rcond=None)[0]
+
+    def solve(J, res):  # the least-squares step by its normal equations (the prior rows make them definite)
+        return np.linalg.solve(J.T @ J, -(J.T @ res))
+
+    theta = solve(np.vstack([A / sd[:, None], P]), np.concatenate([r0 / sd, np.zeros(len(P))]))
     for _ in range(iterations):
         e, f = end_loss(r0 + A @ theta, sd)
         J = np.vstack([f[:, None] * A, P])
         res = np.concatenate([e, P @ theta])
-        step = np.linalg.lstsq(J, -res, rcond=None)[0]
+        step = solve(J, res)
         theta = theta + step
         if np.max(np.abs(step)) < 1e-7:
             break

@@ -145,6 +145,9 @@ class RefinementOptions:
     # by test), and the sensor's range accuracy (m, 1 sd of a systematic error) that sets the terms' priors.
     range_model: str = "auto"
     range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
+    # Without the edges, check a 3D estimate by its ring ends (``solvers.outline_check``; off where the estimate
+    # only starts another solve, as a rig's pairwise solves).
+    outline_check: bool = True
     # The board's edges where the rings (a 2D scan's line) leave it (``solvers.board_edges``), when the board's
     # size is known. None: a 2D scan's segment ends are used (a few scan lines leave directions along the boards
     # that their planes hardly fix), a 3D LiDAR's ring ends only when asked (True).
@@ -944,7 +947,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 else "the intrinsics were estimated from the same images; their uncertainty")
         warnings.append(f"{what} is propagated into the covariance (first order, {how})")
 
-    if prob.edges is None and board.size_known and not scan_lines:
+    if prob.edges is None and board.size_known and not scan_lines and options.outline_check:
         edges_record, check_warnings = _outline_check(prob, active, T, boards, marginals, quasi_scale, cov)
         warnings.extend(check_warnings)
 
