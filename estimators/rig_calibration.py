@@ -398,6 +398,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif edges:
         lidar_views, solution, edge_records = _with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution,
                                                           T_ref, T_ref_board, refine_intrinsics)
+        if not edge_records:
+            warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
+                            "could not be solved): planes alone")
     outline_checks = _outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
@@ -452,8 +455,12 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
         views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
     if not any(v.edges for v in views):
         return lidar_views, solution, {}
+    planes = solution
     for _ in range(4):
-        solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
+        try:
+            solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
+        except LidarcamError:
+            return lidar_views, planes, {}
         settled, new = True, []
         for lv in views:
             if not lv.edges:
@@ -508,8 +515,13 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
                          [edges[j] for j in used]))
     if not jobs:
         return {}
-    covs = pair_board_covariance(names, rig.reference, camera_views, lidar_views, solution,
-                                 [(cam, lid, stems) for cam, lid, _, stems, _, _ in jobs])
+    try:
+        covs = pair_board_covariance(names, rig.reference, camera_views, lidar_views, solution,
+                                     [(cam, lid, stems) for cam, lid, _, stems, _, _ in jobs])
+    except (RuntimeError, np.linalg.LinAlgError) as exc:
+        warnings.append(f"board edges: the joint estimate is not checked by them (its covariance with the board "
+                        f"poses could not be formed: {exc})")
+        return {}
     out = {}
     for (cam, lid, T_cl, stems, boards, edges), cov in zip(jobs, covs):
         record, found = outline_check(T_cl, boards, edges, rig.board, stems, cov)
@@ -544,8 +556,15 @@ def _range_offsets(rig: RigDataset, names: tuple, camera_views: list, lidar_view
                                           for st in lv.W}, offset_prior_sd_m=prior)
         record = {"model": range_model, "prior_sd_m": prior}
         if range_model == "auto":
-            without = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms((), ())) for st in lv.W})
-            test = offset_test(names, rig.reference, camera_views, lidar_views, solution, without, with_offset)
+            try:
+                without = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms((), ()))
+                                              for st in lv.W})
+                test = offset_test(names, rig.reference, camera_views, lidar_views, solution, without, with_offset)
+            except (LidarcamError, np.linalg.LinAlgError) as exc:
+                why = exc.message if isinstance(exc, LidarcamError) else str(exc)
+                records[lv.name] = {"model": "none", "prior_sd_m": prior, "reason": f"not tested: {why}"}
+                out.append(lv)
+                continue
             record.update(test, test_p=MODEL_TEST_P, model="offset" if test["p_value"] < MODEL_TEST_P else "none")
         out.append(with_offset if record["model"] == "offset" else lv)
         records[lv.name] = record

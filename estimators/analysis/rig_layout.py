@@ -86,7 +86,10 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
         trial = replace(base, T_camera_board=(T,))
         if len(board_hits(trial, 0)[0]) < (MIN_HITS_2D if beams.is_2d else MIN_HITS_3D):
             continue
-        C = predicted_pair_covariance(P, frame_contribution(frame_information(trial, 0)))
+        try:
+            C = predicted_pair_covariance(P, frame_contribution(frame_information(trial, 0)))
+        except np.linalg.LinAlgError:  # a candidate whose frame fixes no direction of its own board
+            continue
         sd = _max_translation_sd(C)
         if sd < best_sd:
             best, best_sd, best_C = T, sd, C
