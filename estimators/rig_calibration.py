@@ -498,7 +498,7 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
         return {}
     scan = {lv.name: lv.scan_line or bool(lv.edges) for lv in lidar_views}  # with the edges used: not a check
     seen = {cv.name: set(cv.corners_px) for cv in camera_views}
-    jobs = []
+    jobs, found = [], {}  # a LiDAR's ends in a frame are the same with every camera (T_board_lidar is the rig's)
     for (cam, lid), frames in (pair_frames or {}).items():
         if scan.get(lid, True) or cam not in seen:
             continue
@@ -507,8 +507,11 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
         T_cl = solution.transform(cam, lid)[0]
         T_c = solution.T_ref[cam]
         boards = [np.linalg.inv(T_c) @ solution.T_ref_board[f.name] for f in frames]
-        edges = [crossings(f.lidar.points, r, np.linalg.inv(B) @ T_cl, rig.board) if r is not None else None
-                 for f, r, B in zip(frames, rings, boards)]
+        for f, r, B in zip(frames, rings, boards):
+            if (lid, f.name) not in found:
+                found[(lid, f.name)] = (crossings(f.lidar.points, r, np.linalg.inv(B) @ T_cl, rig.board)
+                                        if r is not None else None)
+        edges = [found[(lid, f.name)] for f in frames]
         used = [j for j, e in enumerate(edges) if e is not None and e.size]
         if used:
             jobs.append((cam, lid, T_cl, [frames[j].name for j in used], [boards[j] for j in used],

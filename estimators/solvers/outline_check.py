@@ -26,6 +26,7 @@ terms add. A mean beyond its 99% limit says the estimate and the edges disagree:
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 
 from geometry.board import BoardModel
 
@@ -52,16 +53,17 @@ def _fit(r0: np.ndarray, A: np.ndarray, sd: np.ndarray, prior_sd: np.ndarray, it
     inside (a board.size too large in dataset.yaml) gives no gradient, and a frame's shift could run off to where
     none of its ends pulls."""
     P = np.diag(1.0 / prior_sd)
+    As = sparse.csr_matrix(A)  # each end touches its sides' growth and its frame's shift: 4 of the columns
+    p2 = 1.0 / prior_sd**2
 
-    def solve(J, res):  # the least-squares step by its normal equations (the prior rows make them definite)
-        return np.linalg.solve(J.T @ J, -(J.T @ res))
+    def solve(w, e, theta):  # the step from the normal equations of rows w * A (residuals e) and the prior's
+        N = (As.T @ As.multiply(w[:, None] ** 2)).toarray() + np.diag(p2)
+        return np.linalg.solve(N, -(As.T @ (w * e) + p2 * theta))
 
-    theta = solve(np.vstack([A / sd[:, None], P]), np.concatenate([r0 / sd, np.zeros(len(P))]))
+    theta = solve(1.0 / sd, r0 / sd, np.zeros(A.shape[1]))
     for _ in range(iterations):
-        e, f = end_loss(r0 + A @ theta, sd)
-        J = np.vstack([f[:, None] * A, P])
-        res = np.concatenate([e, P @ theta])
-        step = solve(J, res)
+        e, f = end_loss(r0 + As @ theta, sd)
+        step = solve(f, e, theta)
         theta = theta + step
         if np.max(np.abs(step)) < 1e-7:
             break

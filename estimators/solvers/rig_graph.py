@@ -526,6 +526,21 @@ def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraView
     return out
 
 
+def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[np.ndarray, dict]:
+    """The graph's whole Laplace covariance at ``values`` (its information, dense, inverted: for a rig's few hundred
+    unknowns far quicker than ``gtsam.Marginals``' joint marginals of many keys) and each key's indices in it."""
+    keys = list(values.keys())
+    ordering = gtsam.Ordering()
+    index, start = {}, 0
+    for k in keys:
+        ordering.push_back(k)
+        dim = 6 if gtsam.Symbol(k).chr() in (ord("s"), ord("f")) else len(values.atVector(k))
+        index[k] = np.arange(start, start + dim)
+        start += dim
+    H, _ = graph.linearize(values).hessian(ordering)
+    return np.linalg.inv(0.5 * (H + H.T)), index
+
+
 def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[CameraViews],
                           lidars: list[LidarViews], solution: RigSolution, requests: list[tuple[str, str, list]]
                           ) -> list[np.ndarray]:
@@ -540,12 +555,13 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
     values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
     for c in cameras if refine else ():
         values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
-    marginals = gtsam.Marginals(graph, values)
+    full, index = dense_covariance(graph, values)
     out = []
     for cam, lidar, frames in requests:
         sensors = [s for s in (cam, lidar) if s != inner]
         keys = [sensor_key(names.index(s)) for s in sensors] + [frame_key(stems.index(st)) for st in frames]
-        S = marginals.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+        idx = np.concatenate([index[k] for k in keys])
+        S = full[np.ix_(idx, idx)]
         col = {s: 6 * i for i, s in enumerate(sensors)}
         nb = 6 * len(sensors)
         J = np.zeros((6 + 6 * len(frames), S.shape[0]))
