@@ -526,6 +526,20 @@ def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraView
     return out
 
 
+def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+              solution: RigSolution) -> tuple:
+    """The graph of these views at ``solution``'s noise scales and its values at ``solution`` (its poses, vector
+    variables and refined intrinsics), with the graph's reference camera and the stems."""
+    inner = graph_reference(reference, [c.name for c in cameras])
+    stems = sorted(solution.T_ref_board)
+    refine = solution.intrinsics is not None
+    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
+    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
+    for c in cameras if refine else ():
+        values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+    return graph, values, inner, stems
+
+
 def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[np.ndarray, dict]:
     """The graph's whole Laplace covariance at ``values`` (its information, dense, inverted: for a rig's few hundred
     unknowns far quicker than ``gtsam.Marginals``' joint marginals of many keys) and each key's indices in it."""
@@ -548,13 +562,7 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
     board poses ``T_camera_board`` of those frames (right tangents), from the graph's marginals at ``solution``.
     Right tangents are the same in any reference frame, so with ``J`` of :func:`pair_transform`:
     ``xi_cl = xi_l - Ad(T_cl^-1) xi_c`` and ``xi_cb = xi_b - Ad(T_cb^-1) xi_c``."""
-    inner = graph_reference(reference, [c.name for c in cameras])
-    stems = sorted(solution.T_ref_board)
-    refine = solution.intrinsics is not None
-    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
-    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
-    for c in cameras if refine else ():
-        values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+    graph, values, inner, stems = _graph_at(names, reference, cameras, lidars, solution)
     full, index = dense_covariance(graph, values)
     out = []
     for cam, lidar, frames in requests:
@@ -587,13 +595,7 @@ def inner_covariance(names: tuple[str, ...], reference: str, cameras: list[Camer
     camera's frame, as ``RigSolution.covariance_inner`` orders them, for these views at ``solution``'s values:
     with views other than the solution's (the LiDARs without their edges, say), that model's curvature at this
     estimate."""
-    inner = graph_reference(reference, [c.name for c in cameras])
-    stems = sorted(solution.T_ref_board)
-    refine = solution.intrinsics is not None
-    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
-    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
-    for c in cameras if refine else ():
-        values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+    graph, values, inner, stems = _graph_at(names, reference, cameras, lidars, solution)
     keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [offset_key(names.index(lv.name))
                                                                         for lv in lidars if lv.has_offset]
     C = gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
