@@ -442,16 +442,10 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     for lv in lidar_views:
         obs = lidar_obs[lv.name]
         T_l = solution.T_ref[lv.name]
-        found = {}
-        for st in lv.W:
-            o = obs[st]
-            rings = np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else o.rings
-            if rings is None or st not in solution.T_ref_board:
-                continue
-            e = crossings(o.points, np.asarray(rings, dtype=np.int64),
-                          np.linalg.inv(solution.T_ref_board[st]) @ T_l, rig.board)
-            if e.size:
-                found[st] = e
+        stems = [st for st in lv.W if st in solution.T_ref_board]
+        ends = _lidar_ends([obs[st] for st in stems],
+                           [np.linalg.inv(solution.T_ref_board[st]) @ T_l for st in stems], rig.board)
+        found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
         views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
     if not any(v.edges for v in views):
         return lidar_views, solution, {}
@@ -487,6 +481,17 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     return views, solution, records
 
 
+def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
+    """Each LiDAR board observation's ring ends on the board's outline (a scan line's two segment ends; rings from
+    the scan's field or clustered over these observations, ``range_model.frame_rings``), sides assigned under its
+    ``T_board_lidar``; None where the rings are unknown."""
+    if not observations:
+        return []
+    rings = frame_rings([_Framed(o) for o in observations])
+    return [crossings(o.points, np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r, T, board)
+            if o.is_scan_line or r is not None else None for o, r, T in zip(observations, rings, T_board_lidar)]
+
+
 def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
                     pair_frames: dict, warnings: list) -> dict:
     """Each camera-LiDAR pair's board-edges check under the joint estimate (``solvers.outline_check``, as every
@@ -503,14 +508,12 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
         if scan.get(lid, True) or cam not in seen:
             continue
         frames = [f for f in frames if f.name in seen[cam] and f.name in solution.T_ref_board]
-        rings = frame_rings(frames)
         T_cl = solution.transform(cam, lid)[0]
         T_c = solution.T_ref[cam]
         boards = [np.linalg.inv(T_c) @ solution.T_ref_board[f.name] for f in frames]
-        for f, r, B in zip(frames, rings, boards):
-            if (lid, f.name) not in found:
-                found[(lid, f.name)] = (crossings(f.lidar.points, r, np.linalg.inv(B) @ T_cl, rig.board)
-                                        if r is not None else None)
+        new = [(f, B) for f, B in zip(frames, boards) if (lid, f.name) not in found]
+        ends = _lidar_ends([f.lidar for f, _ in new], [np.linalg.inv(B) @ T_cl for _, B in new], rig.board)
+        found.update({(lid, f.name): e for (f, _), e in zip(new, ends)})
         edges = [found[(lid, f.name)] for f in frames]
         used = [j for j, e in enumerate(edges) if e is not None and e.size]
         if used:

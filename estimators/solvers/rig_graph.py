@@ -495,19 +495,13 @@ def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraView
     floor (its points' scatter about their best plane) included, chi-square with 1 dof when there is no offset.
 
     Returns ``statistic``, ``p_value`` and the offset's estimate ``offset_m`` and ``sd_m`` with it."""
-    inner = graph_reference(reference, [c.name for c in cameras])
-    stems = sorted(solution.T_ref_board)
-    refine = solution.intrinsics is not None
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     cost, out = {}, {}
     k = names.index(without.name)
     for key, lv in (("without", without), ("with", with_offset)):
         views = [lv if v.name == lv.name else v for v in lidars]
-        graph = _graph(names, cameras, views, stems, solution.noise_scale, inner, refine)
-        values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, views, solution.vectors)
-        for c in cameras if refine else ():
-            values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
+        graph, values, _, stems = _graph_at(names, reference, cameras, views, solution)
         try:
             values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         except RuntimeError as exc:
