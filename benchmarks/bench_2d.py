@@ -43,7 +43,7 @@ from estimators.simulation.simulator import RIGS_2D, as_charuco, rig_2d, sample_
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
 from estimators.solvers.solution_selection import select_and_refine, solution_distances  # noqa: E402
-from geometry.rotations import T_exp, T_inverse, T_log  # noqa: E402
+from geometry.rotations import T_exp, T_inverse, T_log, exp_batch, log_batch  # noqa: E402
 
 SELECTIONS = (("min-residual", "minimal-min-residual", False), ("lower-bound", "minimal-lower-bound", False),
               ("lower-bound+extent", "minimal-lower-bound", True))
@@ -100,14 +100,23 @@ def in_mixture(modes, T_true, rng, level=0.999, draws=20000) -> bool:
     inv = [np.linalg.inv(m.refinement.covariance) for m in modes]
     norm = [m.mass / np.sqrt(np.linalg.det(2 * np.pi * m.refinement.covariance)) for m in modes]
 
-    def density(T):
-        return sum(c * np.exp(-0.5 * (x := T_log(T_inverse(Tk) @ T)) @ P @ x) for Tk, P, c in zip(Ts, inv, norm))
+    def density(R, t):  # of poses (n, 3, 3), (n, 3), all at once
+        out = np.zeros(len(R))
+        for Tk, P, c in zip(Ts, inv, norm):  # Log(Tk^-1 T): rotation Rk^T R, translation Rk^T (t - tk)
+            x = log_batch(Tk[:3, :3].T @ R, (t - Tk[:3, 3]) @ Tk[:3, :3])
+            out += c * np.exp(-0.5 * np.einsum("ni,ij,nj->n", x, P, x))
+        return out
 
     masses = np.array([m.mass for m in modes])
     which = rng.choice(len(modes), draws, p=masses / masses.sum())
     z = rng.standard_normal((draws, 6))
-    sample = [Ts[k] @ T_exp(Ls[k] @ zi) for k, zi in zip(which, z)]
-    return bool(density(T_true) >= np.quantile([density(T) for T in sample], 1 - level))
+    R = np.empty((draws, 3, 3))
+    t = np.empty((draws, 3))
+    for k, Tk in enumerate(Ts):  # Tk Exp(Lk z)
+        m = which == k
+        dR, dt = exp_batch(z[m] @ Ls[k].T)
+        R[m], t[m] = Tk[:3, :3] @ dR, dt @ Tk[:3, :3].T + Tk[:3, 3]
+    return bool(density(T_true[None, :3, :3], T_true[None, :3, 3])[0] >= np.quantile(density(R, t), 1 - level))
 
 
 def trial(args) -> dict:
