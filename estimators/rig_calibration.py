@@ -31,7 +31,7 @@ from .io.output import write_json_atomic, write_npz_atomic
 from .io.rig_dataset import RigDataset, Sensor
 from .measurements import FrameMeasurement, lidar_whitener
 from .solvers.closed_form import describe_direction
-from .solvers.refinement import RefinementOptions, pooled_range_noise_m
+from .solvers.refinement import RefinementOptions, pooled_corner_residual_px, pooled_range_noise_m
 from .lidar.lidar_models import range_accuracy_for
 from .solvers.board_edges import crossings, edge_scatter
 from .solvers.outline_check import outline_check
@@ -199,11 +199,11 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
 
 
 def _camera_views(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
-    """The camera's corners for the graph, with its effective pixel noise (pooled PnP residual, 2M - 6 dof per
-    frame, times the detector's error correlation)."""
-    ss = sum(p.reprojection_rms_px**2 * p.corners_px.size for p in poses.values())
-    dof = sum(p.corners_px.size - 6 for p in poses.values())
-    sigma = max(np.sqrt(ss / max(dof, 1)), 1e-3) * CORNER_ERROR_CORRELATION
+    """The camera's corners for the graph, with its effective pixel noise (the pooled per-axis PnP residual, as
+    the pair's, times the detector's error correlation)."""
+    resid = pooled_corner_residual_px(((p.T_camera_board, p.corners_board(board), p.corners_px)
+                                       for p in poses.values()), camera)
+    sigma = max(resid, 1e-3) * CORNER_ERROR_CORRELATION
     return CameraViews(name, camera, float(sigma), {s: p.corners_board(board) for s, p in poses.items()},
                        {s: p.corners_px for s, p in poses.items()}, {s: p.T_camera_board for s, p in poses.items()})
 

@@ -222,15 +222,21 @@ class Refinement:
     end_terms: EndTerms | None = None
 
 
-def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
-    """Pooled per-axis corner residual of the per-frame board poses (``2M - 6`` dof per frame)."""
+def pooled_corner_residual_px(views, camera: CameraModel) -> float:
+    """Pooled per-axis corner residual of board poses (``2M - 6`` dof each); ``views``: ``(T_camera_board,
+    corners_board, corners_px)`` per board."""
     ss, dof = 0.0, 0
-    for f in frames:
-        r, _ = corner_residuals(f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px,
-                                camera)
+    for T, X, px in views:
+        r, _ = corner_residuals(T, X, px, camera, jacobian=False)
         ss += float(r @ r)
         dof += r.size - 6
     return float(np.sqrt(ss / max(dof, 1)))
+
+
+def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
+    """Pooled per-axis corner residual of the frames' board poses (:func:`pooled_corner_residual_px`)."""
+    return pooled_corner_residual_px(((f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px)
+                                      for f in frames), camera)
 
 
 def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
