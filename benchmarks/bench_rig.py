@@ -1,6 +1,6 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
-[--posterior N] [--range-offset M] [--edges]`).
+[--posterior N] [--range-offset M] [--edges] [--timed K]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
@@ -16,7 +16,9 @@ rotation and translation error of the joint graph and of the pair alone (camera-
 the camera saw, the joint errors over the RMS Cramer-Rao bound (`rig_graph.rig_bound`: the graph's information at
 the truth, for the views measured, at the noise levels the graph used), and the mean squared Mahalanobis
 distance of the truth under each covariance (6 ideal). The
-time is measure + solve per rig, on this machine's 2 cores.
+time is measure + solve per rig, with one worker per rig and two rigs at a time on this machine's 2 cores;
+`--timed K` then times the first K rigs once more one at a time with both cores, as `lidarcam calibrate` runs one
+rig (its default 2 workers; the modules imported before the clock starts).
 """
 from __future__ import annotations
 
@@ -101,6 +103,22 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
                      sol.noise_scale, intrinsics)
 
 
+def _timed(seed: int, cameras, poses, lidars, scanners, samples, offset, edges) -> float:
+    """Measure + solve (+ posterior) of rig ``seed`` in this process with 2 workers, as the command runs it."""
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
+    from estimators.simulation.rig_simulator import simulate_rig
+    import emcee  # noqa: F401  (imported by the posterior: not part of a rig's time here)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners,
+                              range_offset_m=offset)
+        rig = load_rig(folder)
+        t0 = time.perf_counter()
+        calibrate_rig(rig, np.random.default_rng(seed), workers=2, samples=samples, edges=edges)
+        return time.perf_counter() - t0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--rigs", type=int, default=20)
@@ -113,6 +131,8 @@ def main() -> None:
                     help="a range offset (m) on every return of lidar0")
     ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--timed", type=int, default=0, metavar="K",
+                    help="then time the first K rigs one at a time with both cores, as the command runs a rig")
     args = ap.parse_args()
     with ProcessPoolExecutor(args.workers) as pool:
         runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior,
@@ -152,6 +172,11 @@ def main() -> None:
     if post:
         tp = [r["posterior_s"] for r in runs]
         print(f"of which the posterior: median {np.median(tp):.1f} s, max {np.max(tp):.1f} s")
+    if args.timed:
+        t = [_timed(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior, args.range_offset,
+                    args.edges) for s in range(args.timed)]
+        print(f"{what}, one rig at a time with both cores (as `lidarcam calibrate`, 2 workers), {args.timed} rigs: "
+              f"median {np.median(t):.1f} s, max {np.max(t):.1f} s")
     for name in runs[0]["range_models"]:
         models = [r["range_models"][name] for r in runs]
         truth = args.range_offset if name == "lidar0" else 0.0
