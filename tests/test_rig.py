@@ -15,6 +15,7 @@ from estimators.io.rig_dataset import is_rig, load_rig
 from estimators.rig_calibration import calibrate_rig, pattern_flip
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
+from estimators.solvers.refinement import CORNER_ERROR_CORRELATION, corner_residual_px, pooled_corner_residual_px
 from estimators.solvers.rig_graph import change_reference, pair_transform, rig_bound, rig_corner_factor, spanning_tree
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
@@ -138,6 +139,38 @@ def test_a_simulated_rig_against_its_ground_truth(rig_folder, rig_result):
     for (c, lidar), (_, C_pair, _) in rig_result.pairwise.items():
         _, C = sol.transform(c, lidar)
         assert np.trace(C[3:, 3:]) <= 1.05 * np.trace(C_pair[3:, 3:]), c
+
+
+def test_the_pooled_corner_residual_is_the_per_axis_pixel_noise():
+    # 40 boards' exact projections with 0.3 px of noise on each axis, at their true poses: the pooled residual
+    # (2M - 6 dof per board) is 0.3 * sqrt(2M / (2M - 6)) within 3% (2M ~ 5000 residuals: sd about 1%).
+    rng = np.random.default_rng(3)
+    camera, board = default_camera(), default_board()
+    X = board.inner_corners()
+    views = []
+    for _ in range(40):
+        T = np.eye(4)
+        T[:3, :3] = T_exp(np.r_[rng.uniform(-0.3, 0.3, 3), 0, 0, 0])[:3, :3]
+        T[:3, 3] = [rng.uniform(-0.8, -0.2), rng.uniform(-0.6, 0.0), rng.uniform(2.5, 4.0)]
+        uv = camera.project(X @ T[:3, :3].T + T[:3, 3])
+        views.append((T, X, uv + rng.normal(0.0, 0.3, uv.shape)))
+    m2 = 2 * len(X)
+    assert pooled_corner_residual_px(views, camera) == pytest.approx(0.3 * np.sqrt(m2 / (m2 - 6)), rel=0.03)
+
+
+def test_each_cameras_corner_noise_is_the_single_pairs(rig_result):
+    # The graph's corner noise of a camera is what the pair's refinement gives the same frames: the pooled
+    # per-axis corner residual times the detector's error correlation (it once pooled the per-corner 2D norm,
+    # sqrt(2) too large). The frames: cam0's with lidar0, every one of which cam0 saw.
+    for cv in rig_result.camera_views:
+        frames = [f for f in rig_result.pair_frames[(cv.name, "lidar0")] if f.camera is not None]
+        if {f.name for f in frames} != set(cv.corners_px):
+            continue
+        expected = corner_residual_px(frames, rig_result.rig.board, cv.camera) * CORNER_ERROR_CORRELATION
+        assert cv.sigma_px == pytest.approx(expected, rel=1e-9), cv.name
+        break
+    else:
+        pytest.fail("no camera with all its frames in its pair with lidar0")
 
 
 def test_the_rigs_bound_is_its_covariance_at_its_estimate_and_near_it_at_the_truth(rig_folder, rig_result):
