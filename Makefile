@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
-# Two test processes, one per core (pytest-xdist): 6.5 minutes instead of 9.5 on this 2-core machine.
+# Two test processes, one per core (pytest-xdist): the suite takes about 8 minutes on this 2-core machine.
 test: $(STAMP)
 	$(PY) -m pytest -n 2
 
