@@ -82,6 +82,15 @@ def _one(args) -> dict:
     return out
 
 
+def numbered_as(T_hat: np.ndarray, T_true: np.ndarray, flip: np.ndarray | None) -> np.ndarray:
+    """The true board pose numbered as the estimate ``T_hat`` (a checkerboard that looks the same turned, ``flip``
+    not None, may be numbered from its other end): ``T_true`` or ``T_true @ flip``, whichever is nearer."""
+    from geometry.rotations import T_log
+
+    options = [T_true] + ([T_true @ flip] if flip is not None else [])
+    return min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(T_hat) @ T)))
+
+
 def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     """The graph's information at the truth (every sensor's and board's pose), at the noise levels the graph used:
     the Cramer-Rao bound of the rig's measurement model for the views measured (``rig_graph.rig_bound``). A board
@@ -89,15 +98,10 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values."""
     from estimators.rig_calibration import pattern_flip
     from estimators.solvers.rig_graph import rig_bound
-    from geometry.rotations import T_log
 
     sol = res.solution
     flip = pattern_flip(res.rig.board)
-    boards = {}
-    for st, B in sol.T_ref_board.items():
-        options = [np.array(gt["T_cam0_board"][st])]
-        options += [options[0] @ flip] if flip is not None else []
-        boards[st] = min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(B) @ T)))
+    boards = {st: numbered_as(B, np.array(gt["T_cam0_board"][st]), flip) for st, B in sol.T_ref_board.items()}
     truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
     return rig_bound(sol.names, "cam0", list(res.camera_views), list(res.lidar_views), truth, boards,
                      sol.noise_scale, intrinsics)

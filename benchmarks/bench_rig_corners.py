@@ -26,6 +26,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_rig import numbered_as  # noqa: E402
 
 PLANE, IN_PLANE = [0, 1, 5], [2, 3, 4]
 
@@ -49,10 +52,7 @@ def _one(args) -> dict:
         T_cam0_cam = np.array(gt[f"T_cam0_{cv.name}"])
         rows = []
         for stem, T_hat in cv.T_camera_board.items():
-            T0 = np.linalg.inv(T_cam0_cam) @ np.array(gt["T_cam0_board"][stem])
-            # a board that looks the same turned may be numbered from its other end: the truth turned likewise
-            T_true = min([T0] + ([T0 @ flip] if flip is not None else []),
-                         key=lambda T: np.linalg.norm(T_log(np.linalg.inv(T_hat) @ T)))
+            T_true = numbered_as(T_hat, np.linalg.inv(T_cam0_cam) @ np.array(gt["T_cam0_board"][stem]), flip)
             xi = T_log(np.linalg.inv(T_hat) @ T_true)
             r, H = corner_residuals(T_hat, cv.corners_board[stem], cv.corners_px[stem], cv.camera)
             info = H.T @ H / cv.sigma_px**2
