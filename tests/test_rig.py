@@ -12,10 +12,12 @@ import pytest
 
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
-from estimators.rig_calibration import calibrate_rig, pattern_flip
+from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
-from estimators.solvers.refinement import CORNER_ERROR_CORRELATION, corner_residual_px, pooled_corner_residual_px
+from estimators.solvers.factors import corner_residuals
+from estimators.solvers.refinement import (BOARD_NOISE_PRIOR_DOF, board_corner_residuals_px, corner_residual_px,
+                                          pooled_corner_residual_px)
 from estimators.solvers.rig_graph import change_reference, pair_transform, rig_bound, rig_corner_factor, spanning_tree
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
@@ -158,19 +160,51 @@ def test_the_pooled_corner_residual_is_the_per_axis_pixel_noise():
     assert pooled_corner_residual_px(views, camera) == pytest.approx(0.3 * np.sqrt(m2 / (m2 - 6)), rel=0.03)
 
 
-def test_each_cameras_corner_noise_is_the_single_pairs(rig_result):
-    # The graph's corner noise of a camera is what the pair's refinement gives the same frames: the pooled
-    # per-axis corner residual times the detector's error correlation (it once pooled the per-corner 2D norm,
-    # sqrt(2) too large). The frames: cam0's with lidar0, every one of which cam0 saw.
+def test_each_cameras_corner_noise_is_the_single_pairs_pooled_and_each_boards_own(rig_result):
+    # A camera's pooled corner noise is the pooled per-axis residual the pair's refinement computes for the same
+    # frames (it once pooled the per-corner 2D norm, sqrt(2) too large), times the rig's factor; each board's is
+    # that board's own residual (2M - 6 dof) shrunk towards the pooled one by BOARD_NOISE_PRIOR_DOF. The frames:
+    # a camera's with lidar0, every one of which it saw.
     for cv in rig_result.camera_views:
         frames = [f for f in rig_result.pair_frames[(cv.name, "lidar0")] if f.camera is not None]
         if {f.name for f in frames} != set(cv.corners_px):
             continue
-        expected = corner_residual_px(frames, rig_result.rig.board, cv.camera) * CORNER_ERROR_CORRELATION
-        assert cv.sigma_px == pytest.approx(expected, rel=1e-9), cv.name
+        pooled = corner_residual_px(frames, rig_result.rig.board, cv.camera)
+        assert cv.sigma_px == pytest.approx(pooled * BOARD_CORNER_FACTOR, rel=1e-9), cv.name
+        for f in frames:
+            r, _ = corner_residuals(f.camera.T_camera_board, f.camera.corners_board(rig_result.rig.board),
+                                    f.camera.corners_px, cv.camera, jacobian=False)
+            own = (r @ r + BOARD_NOISE_PRIOR_DOF * pooled**2) / (r.size - 6 + BOARD_NOISE_PRIOR_DOF)
+            assert cv.sigma(f.name) == pytest.approx(np.sqrt(own) * BOARD_CORNER_FACTOR, rel=1e-9), f.name
         break
     else:
         pytest.fail("no camera with all its frames in its pair with lidar0")
+
+
+def test_each_boards_corner_noise_follows_its_own_residual():
+    # Boards whose corners carry 0.1 and 0.4 px of noise (the default board's corners): each board's estimate
+    # within 15% of its own noise shrunk towards the pooled one (as 30 more residuals at the pooled noise), the
+    # pooled one between them; a board of 4 corners (2 dof) is pulled most of the way to the pooled one.
+    camera, X = default_camera(), default_board().inner_corners()
+    m2 = 2 * len(X)  # at the true poses the residual has all 2M of its dof
+    rng = np.random.default_rng(5)
+    views, truth = [], []
+    for k in range(12):
+        T = np.eye(4)
+        T[:3, :3] = T_exp(np.r_[rng.uniform(-0.3, 0.3, 3), 0, 0, 0])[:3, :3]
+        T[:3, 3] = [rng.uniform(-0.4, 0.0), rng.uniform(-0.4, 0.0), rng.uniform(2.5, 3.5)]
+        sd = 0.1 if k % 2 else 0.4
+        uv = camera.project(X @ T[:3, :3].T + T[:3, 3])
+        views.append((T, X, uv + rng.normal(0.0, sd, uv.shape)))
+        truth.append(sd)
+    pooled, own = board_corner_residuals_px(views, camera)
+    assert 0.15 < pooled < 0.35
+    for sd, est in zip(truth, own):
+        assert est == pytest.approx(np.sqrt((m2 * sd**2 + BOARD_NOISE_PRIOR_DOF * pooled**2)
+                                            / (m2 - 6 + BOARD_NOISE_PRIOR_DOF)), rel=0.15)
+    few = [(T, Xb[:4], uv[:4]) for T, Xb, uv in views[:1]] + views[1:]
+    _, own_few = board_corner_residuals_px(few, camera)
+    assert abs(own_few[0] - pooled) < 0.5 * abs(0.4 - pooled) + 0.02
 
 
 def test_the_rigs_bound_is_its_covariance_at_its_estimate_and_near_it_at_the_truth(rig_folder, rig_result):

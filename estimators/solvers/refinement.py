@@ -65,6 +65,9 @@ OUTLIER_POLICIES = ("drop", "downweight")
 # LiDAR planes see): measured by `make bench` (bench_refinement.py (d), 80 varied layouts, 640 boards: 1.28, 90%
 # bootstrap 1.21-1.35). It holds every error of the camera's board plane, the corner pattern's scale included.
 CORNER_ERROR_CORRELATION = 1.28
+# A rig weighs each board's corners by that board's own residual (``board_corner_residuals_px``), shrunk towards the
+# camera's pooled residual by this many degrees of freedom (a 7 x 10 board's residuals have 134).
+BOARD_NOISE_PRIOR_DOF = 30.0
 EXTRINSIC = gtsam.symbol("x", 0)
 RANGE = gtsam.symbol("r", 0)  # the LiDAR range model's nuisance vector
 # A per-board plane error (m) beyond which the boards' disagreement is not a plane error (a bent or held board,
@@ -231,6 +234,21 @@ def pooled_corner_residual_px(views, camera: CameraModel) -> float:
         ss += float(r @ r)
         dof += r.size - 6
     return float(np.sqrt(ss / max(dof, 1)))
+
+
+def board_corner_residuals_px(views, camera: CameraModel, prior_dof: float = BOARD_NOISE_PRIOR_DOF
+                              ) -> tuple[float, list[float]]:
+    """The pooled per-axis corner residual (:func:`pooled_corner_residual_px`) and each board's own (its ``2M - 6``
+    dof), shrunk towards the pooled one as if the pooled one were ``prior_dof`` more residuals of that board: a
+    board's corner noise follows its image (its distance, tilt, blur and light), so a rig weighs each board by its
+    own; the shrinkage keeps a board of few corners from a lucky small residual."""
+    ss, dofs = [], []
+    for T, X, px in views:
+        r, _ = corner_residuals(T, X, px, camera, jacobian=False)
+        ss.append(float(r @ r))
+        dofs.append(max(r.size - 6, 1))
+    pooled = float(np.sqrt(sum(ss) / max(sum(dofs), 1)))
+    return pooled, [float(np.sqrt((s + prior_dof * pooled**2) / (d + prior_dof))) for s, d in zip(ss, dofs)]
 
 
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:

@@ -68,8 +68,9 @@ def edge_shift_key(k: int, j: int) -> int:
 
 @dataclass(frozen=True, eq=False)
 class CameraViews:
-    """One camera's frames: per stem the board's corners (board frame, (M, 3)) and their detections (M, 2), and
-    the board's pose from them alone (``T_camera_board``, the start)."""
+    """One camera's frames: per stem the board's corners (board frame, (M, 3)) and their detections (M, 2), the
+    board's pose from them alone (``T_camera_board``, the start) and its corners' pixel noise (``sigma_board``;
+    ``sigma_px`` where a stem has none, and for a board not recorded)."""
 
     name: str
     camera: CameraModel
@@ -77,6 +78,11 @@ class CameraViews:
     corners_board: dict = field(default_factory=dict)
     corners_px: dict = field(default_factory=dict)
     T_camera_board: dict = field(default_factory=dict)
+    sigma_board: dict = field(default_factory=dict)
+
+    def sigma(self, stem: str) -> float:
+        """The pixel noise of the corners of frame ``stem``."""
+        return float(self.sigma_board.get(stem, self.sigma_px))
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,7 +219,7 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
                                               gtsam.noiseModel.Diagonal.Sigmas(np.asarray(c.camera.param_std))))
         for stem in c.corners_px:
             px = c.corners_px[stem]
-            noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma_px * np.sqrt(scale[c.name]))
+            noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma(stem) * np.sqrt(scale[c.name]))
             fk = frame_key(stems.index(stem))
             if refine_intrinsics and c.name == reference:
                 graph.add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise))
@@ -300,7 +306,7 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
         for stem in c.corners_px:
             T_sb = np.linalg.inv(T_rs) @ values.atPose3(frame_key(stems.index(stem))).matrix()
             r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], cam, jacobian=False)
-            ss += float(r @ r) / c.sigma_px**2
+            ss += float(r @ r) / c.sigma(stem)**2
             n += r.size - 6
         out[c.name] = (ss, max(n - 6, 1))
     for lv in lidars:

@@ -122,13 +122,14 @@ class RigLikelihood:
         self.c0 = 0.0
         self.cam_terms = []  # per free camera: (column, Q, q, frame indices, K^T (F_c, 6, 6))
         for c in cameras:
-            s = c.sigma_px * np.sqrt(solution.noise_scale.get(c.name, 1.0))
+            scale = np.sqrt(solution.noise_scale.get(c.name, 1.0))
             T_rs = self.T[c.name]
             Q, q, idx, K = np.zeros((6, 6)), np.zeros(6), [], []
             for stem in c.corners_px:
                 if stem not in frame:
                     continue
                 j = frame[stem]
+                s = c.sigma(stem) * scale
                 r, A, B = rig_corner_residuals(T_rs, boards[stem], c.corners_board[stem], c.corners_px[stem],
                                                c.camera)
                 r, A, B = r / s, A / s, B / s
