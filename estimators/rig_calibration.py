@@ -43,9 +43,10 @@ from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3
 # A rig camera's board pose error over what its corners' own residual (each board's, ``_camera_views``) predicts:
-# measured by `make bench` (bench_rig_corners.py, 10 six-camera rigs, 1178 boards: mean d2 6.08 of 6 at 1.0; with
-# one pooled residual per camera, the pair's model, the boards' d2 spread from 3.7 in median to 6% beyond the 99%
-# point). The single pair keeps its pooled residual and ``refinement.CORNER_ERROR_CORRELATION``.
+# measured by `make bench` (bench_rig_corners.py, 10 six-camera rigs, 702 boards: at 1.0, d2 mean 5.54 and median
+# 4.48 (chi-square 5.35), 1.7% beyond the 99% point; one pooled residual per camera times 1.28, the single pair's
+# model, gives mean 3.68 and median 2.23 with 2.6% beyond). The single pair keeps its pooled residual and
+# ``refinement.CORNER_ERROR_CORRELATION``.
 BOARD_CORNER_FACTOR = 1.0
 # The pairwise solves start the joint graph and are reported beside it: no range terms, no edges and no check by
 # the edges (the joint estimate is checked).
