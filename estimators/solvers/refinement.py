@@ -228,12 +228,7 @@ class Refinement:
 def pooled_corner_residual_px(views, camera: CameraModel) -> float:
     """Pooled per-axis corner residual of board poses (``2M - 6`` dof each); ``views``: ``(T_camera_board,
     corners_board, corners_px)`` per board."""
-    ss, dof = 0.0, 0
-    for T, X, px in views:
-        r, _ = corner_residuals(T, X, px, camera, jacobian=False)
-        ss += float(r @ r)
-        dof += r.size - 6
-    return float(np.sqrt(ss / max(dof, 1)))
+    return board_corner_residuals_px(views, camera)[0]
 
 
 def board_corner_residuals_px(views, camera: CameraModel, prior_dof: float = BOARD_NOISE_PRIOR_DOF
