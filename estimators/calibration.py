@@ -408,21 +408,23 @@ def _detect(frame, board, timings) -> tuple[tuple[int, int] | None, CornerDetect
 
 def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
                    timings: dict | None = None, workers: int = 2, hints: Hints = Hints(),
-                   detections: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                   detections: dict | None = None, board_poses: dict | None = None
+                   ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason.
 
     3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
     candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
     board segment, with the other scans as the static background. ``detections``: the images' corners already
-    found (frame name -> what ``_detect`` returns; a rig's cameras are searched once)."""
+    found (frame name -> what ``_detect`` returns; a rig's cameras are searched once); ``board_poses``: the board
+    poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera)."""
     # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
     # (their own pools on top of ours would oversubscribe the cores).
     with threadpool_limits(1 if workers > 1 else None):
-        return _measure_frames(dataset, rng, params, timings, workers, hints, detections)
+        return _measure_frames(dataset, rng, params, timings, workers, hints, detections, board_poses)
 
 
 def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
-                    workers: int, hints: Hints, detections: dict | None = None
+                    workers: int, hints: Hints, detections: dict | None = None, board_poses: dict | None = None
                     ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     timings = {} if timings is None else timings
     with ThreadPoolExecutor(max_workers=1) as ahead:
@@ -430,12 +432,12 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
         # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
         # stage that keeps one core idle.
         sweeps = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
-        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections)
+        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections, board_poses)
 
 
 def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
-                         workers: int, hints: Hints, sweeps_ahead, found: dict | None = None
-                         ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                         workers: int, hints: Hints, sweeps_ahead, found: dict | None = None,
+                         board_poses: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     """:func:`_measure_frames` given the future of :func:`_sweeps_and_scene` (None for a 2D dataset)."""
     warnings: list[str] = []
     cv_threads = cv2.getNumThreads()
@@ -476,6 +478,8 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
                           if dataset.board.is_charuco else "checkerboard not found in the image")
         if isinstance(det, str):
             return None, det
+        if board_poses and dataset.frames[k].name in board_poses:
+            return board_poses[dataset.frames[k].name], None
         try:
             return estimate_board_pose(det, dataset.board, camera), None
         except AmbiguousOrientationError as exc:

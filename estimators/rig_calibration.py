@@ -30,6 +30,7 @@ from .io.dataset import FrameFiles
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.rig_dataset import RigDataset, Sensor
 from .measurements import FrameMeasurement, lidar_whitener
+from .solvers import chi_square as chi2
 from .solvers.closed_form import describe_direction
 from .solvers.refinement import RefinementOptions, board_corner_residuals_px, pooled_range_noise_m
 from .lidar.lidar_models import range_accuracy_for
@@ -48,6 +49,10 @@ MIN_PAIR_FRAMES = 3
 # model, gives mean 3.68 and median 2.23 with 2.6% beyond). The single pair keeps its pooled residual and
 # ``refinement.CORNER_ERROR_CORRELATION``.
 BOARD_CORNER_FACTOR = 1.0
+# A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
+# (``rig_graph.solve_rig``); the warning that its factors disagree beyond their noise is given when its chi-square
+# is beyond this tail probability.
+NOISE_WARNING_P = 0.01
 # The pairwise solves start the joint graph and are reported beside it: no range terms, no edges and no check by
 # the edges (the joint estimate is checked).
 PAIR_OPTIONS = RefinementOptions(range_model="none", edges=False, outline_check=False)
@@ -393,12 +398,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                 f"({1000 * prior:.0f} mm): a wrong board in some frames, or a range_accuracy_m in "
                                 "dataset.yaml too small for this sensor")
     for n, s in solution.noise_scale.items():
-        if s > 1.0:
-            ss, dof = solution.chi2_dof[n]
+        ss, dof = solution.chi2_dof[n]
+        if s > 1.0 and chi2.sf(ss, dof) < NOISE_WARNING_P:
             hint = ("; a camera whose corners disagree this much with the rest of the rig may have wrong intrinsics "
                     "(--refine-intrinsics estimates them with the rig)" if n in cameras and not refine_intrinsics
                     and s > 2.0 else "")
-            warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof} dof): its "
+            warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof:.0f} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
     edge_records: dict = {}
     if edges and not rig.board.size_known:
@@ -617,13 +622,14 @@ def _pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses:
                  workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
-    frames not yet measured measures them with those it shares (choosing each frame's board takes three)."""
+    frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
+    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found."""
     new = [st for st in stems if st not in measured]
     now = {}
     if new:
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         _, frames, w = measure_frames(replace(ds, frames=tuple(f for f in ds.frames if f.name in keep)), rng,
-                                      workers=workers, detections=found)
+                                      workers=workers, detections=found, board_poses=poses)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:

@@ -18,7 +18,8 @@ from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.factors import corner_residuals
 from estimators.solvers.refinement import (BOARD_NOISE_PRIOR_DOF, board_corner_residuals_px, corner_residual_px,
                                           pooled_corner_residual_px)
-from estimators.solvers.rig_graph import change_reference, pair_transform, rig_bound, rig_corner_factor, spanning_tree
+from estimators.solvers.rig_graph import (_graph, _values, change_reference, graph_reference, pair_transform, redundancy,
+                                         rig_bound, rig_corner_factor, spanning_tree)
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
 
@@ -225,6 +226,29 @@ def test_the_rigs_bound_is_its_covariance_at_its_estimate_and_near_it_at_the_tru
         boards[st] = min(options, key=lambda T: np.linalg.norm(T_log(np.linalg.inv(B) @ T)))
     Ct = rig_bound(sol.names, sol.reference, *views, truth, boards, sol.noise_scale)
     np.testing.assert_allclose(np.sqrt(np.diag(Ct))[6:], np.sqrt(np.diag(sol.covariance_joint))[6:], rtol=0.05)
+
+
+def test_each_sensors_share_of_the_unknowns_adds_up_to_them_all(rig_result):
+    # The hat matrix's trace is the number of unknowns: the sensors' shares of them (its trace over each one's
+    # rows) add up to every free sensor pose and board pose, 6 numbers each, to rounding. A LiDAR's pose is fixed
+    # by its own planes alone, so its share is at least its 6; every share is below its residual count.
+    from dataclasses import replace
+
+    sol = rig_result.solution
+    cameras = list(rig_result.camera_views)
+    lidars = [replace(lv, ranged=None, offset_prior_sd_m=None, edges=None) for lv in rig_result.lidar_views]
+    inner = graph_reference(sol.reference, [c.name for c in cameras])
+    stems = sorted(sol.T_ref_board)
+    owners: list = []
+    graph = _graph(sol.names, cameras, lidars, stems, sol.noise_scale, inner, False, owners)
+    assert len(owners) == graph.size() and None not in owners
+    shares = redundancy(graph, _values(sol.names, inner, stems, sol.T_ref, sol.T_ref_board), owners)
+    assert sum(shares.values()) == pytest.approx(6 * (len(sol.names) - 1) + 6 * len(stems), rel=1e-8)
+    for lv in lidars:
+        residuals = sum(W.shape[0] for st, W in lv.W.items() if st in stems)
+        assert 6.0 - 1e-8 <= shares[lv.name] < residuals
+    for c in cameras:
+        assert 0.0 < shares[c.name] < sum(px.size for px in c.corners_px.values())
 
 
 def _with_frame(result, cam, lidar, T_camera_board, beams, rng):

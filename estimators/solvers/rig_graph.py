@@ -15,8 +15,10 @@ corner factors too (the corners' Jacobians by them from ``geometry.camera``), un
 ``param_std`` when it has one.
 
 The noise: each camera's corners with its own effective pixel noise, each LiDAR's points with its own range noise
-(``W`` whitens by it); a sensor whose factors disagree beyond their noise (chi-square per dof, p < 0.01) has its
-noise scaled by that factor and the graph is solved again (quasi-likelihood, as the pair's refinement does).
+(``W`` whitens by it); a sensor whose chi-square per degree of freedom is above 1 has its noise scaled by it and
+the graph is solved again (quasi-likelihood, a variance factor per sensor). Its degrees of freedom are its
+residuals less its share of the unknowns (:func:`redundancy`): a LiDAR's planes also fix the board poses that
+few cameras saw, so residuals less 6 would count its chi-square against too many and miss its excess.
 The joint covariance of all sensor poses is the graph's marginal; any pair's transform ``T_a_b = T_ref_a^-1
 T_ref_b`` has the covariance ``J Sigma_ab J^T`` with ``J = [-Ad(T_a_b^-1), I]`` (:func:`pair_transform`).
 Loops close exactly: every pair's transform is composed of the same sensor poses.
@@ -210,8 +212,10 @@ def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray
                                       np.asarray(corners_px, dtype=float).reshape(-1, 2), camera))
 
 
-def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=False):
-    graph = gtsam.NonlinearFactorGraph()
+def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=False, owners: list | None = None):
+    """The rig's factor graph; ``owners`` (a list, filled): per factor the sensor whose measurement residuals it
+    holds (the residuals :func:`_chi2` counts: corners, LiDAR planes), None for the others (priors, edges)."""
+    graph = _OwnedGraph(owners)
     for c in cameras:
         k = names.index(c.name)
         if refine_intrinsics and c.camera.param_std is not None:
@@ -222,16 +226,17 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
             noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma(stem) * np.sqrt(scale[c.name]))
             fk = frame_key(stems.index(stem))
             if refine_intrinsics and c.name == reference:
-                graph.add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise))
+                graph.add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise),
+                          c.name)
             elif refine_intrinsics:
                 graph.add(gtsam.CustomFactor(noise, [sensor_key(k), fk, intrinsics_key(k)],
                                              partial(_rig_corner_intrinsics_error,
                                                      np.asarray(c.corners_board[stem], dtype=float),
-                                                     np.asarray(px, dtype=float).reshape(-1, 2), c.camera)))
+                                                     np.asarray(px, dtype=float).reshape(-1, 2), c.camera)), c.name)
             elif c.name == reference:
-                graph.add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise))
+                graph.add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise), c.name)
             else:
-                graph.add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise))
+                graph.add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise), c.name)
     for lv in lidars:
         k = names.index(lv.name)
         sd = lv.sigma_m * np.sqrt(scale[lv.name])
@@ -252,16 +257,47 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
             fk = frame_key(stems.index(stem))
             if lv.ranged is None:
                 graph.add(plane_factor(sensor_key(k), fk, W, gtsam.noiseModel.Isotropic.Sigma(W.shape[0], sd),
-                                       lv.scan_line))
+                                       lv.scan_line), lv.name)
                 continue
             fw = lv.ranged[stem]
             noise = gtsam.noiseModel.Isotropic.Sigma(fw.W.shape[0], sd)
             if lv.has_offset:
                 graph.add(nuisance_plane_factor(sensor_key(k), fk, offset_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
-                                                lv.scan_line))
+                                                lv.scan_line), lv.name)
             else:
-                graph.add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line))
-    return graph
+                graph.add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line), lv.name)
+    return graph.graph
+
+
+class _OwnedGraph:
+    """A factor graph being built, with each factor's owner (``_graph``'s ``owners``) recorded beside it."""
+
+    def __init__(self, owners: list | None):
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.owners = owners
+
+    def add(self, factor, owner: str | None = None) -> None:
+        self.graph.add(factor)
+        if self.owners is not None:
+            self.owners.append(owner)
+
+
+def redundancy(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, owners: list) -> dict:
+    """Each sensor's share of the unknowns its residuals fix: the trace of the graph's hat matrix over the rows
+    of the factors it owns (``owners``, per factor: :func:`_graph`), at ``values``. Its residuals less this share
+    are its redundancy, the degrees of freedom its chi-square has at the estimate: a LiDAR whose planes also fix
+    board poses that few cameras saw leaves less than its residuals less 6."""
+    linear = graph.linearize(values)
+    cov, index = dense_covariance(graph, values, linear)
+    out: dict = {}
+    for i, owner in enumerate(owners):
+        if owner is None:
+            continue
+        factor = linear.at(i)
+        idx = np.concatenate([index[k] for k in factor.keys()])
+        A = factor.getA()
+        out[owner] = out.get(owner, 0.0) + float(np.sum((A @ cov[np.ix_(idx, idx)]) * A))
+    return out
 
 
 def lidar_frame_residual(lv: LidarViews, stem: str, pi: np.ndarray, offset: float = 0.0) -> np.ndarray:
@@ -294,9 +330,11 @@ def change_reference(names: tuple[str, ...], T_ref: dict, cov: np.ndarray, new: 
     return out, J @ cov @ J.T
 
 
-def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=False) -> dict:
-    """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom (its
-    residuals less 6 for its pose; a camera's less a share of the board poses it fixes)."""
+def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=False, shares: dict | None = None
+          ) -> dict:
+    """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom: its
+    residuals less the share of the unknowns they fix (``shares``, by sensor: :func:`redundancy`); without
+    ``shares``, less 6 for its pose (a camera's less 6 per board too)."""
     out = {}
     for c in cameras:
         T_rs = _pose(values, names, reference, c.name)
@@ -307,8 +345,8 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
             T_sb = np.linalg.inv(T_rs) @ values.atPose3(frame_key(stems.index(stem))).matrix()
             r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], cam, jacobian=False)
             ss += float(r @ r) / c.sigma(stem)**2
-            n += r.size - 6
-        out[c.name] = (ss, max(n - 6, 1))
+            n += r.size
+        out[c.name] = (ss, max(n - shares[c.name], 1.0) if shares else max(n - 6 * len(c.corners_px) - 6, 1))
     for lv in lidars:
         T_rs = _pose(values, names, reference, lv.name)
         ss, n = 0.0, 0
@@ -321,7 +359,7 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
             e = lidar_frame_residual(lv, stem, pi, offset)
             ss += float(e @ e) / lv.sigma_m**2
             n += e.size
-        out[lv.name] = (ss, max(n - 6 - int(lv.has_offset), 1))
+        out[lv.name] = (ss, max(n - shares[lv.name], 1.0) if shares else max(n - 6 - int(lv.has_offset), 1))
     return out
 
 
@@ -348,7 +386,8 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     params.setMaxIterations(100)
     iterations = 0
     for _ in range(3):
-        graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
+        owners: list = []
+        graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics, owners)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         try:
             values = opt.optimize()
@@ -357,8 +396,9 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
                                         "any frame", hint="check that every sensor shares frames with a camera that "
                                                           "saw the board") from exc
         iterations += opt.iterations()
-        stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics)
-        new = {n: (max(1.0, ss / dof) if chi2.sf(ss, dof) < 0.01 else 1.0) for n, (ss, dof) in stats.items()}
+        stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics,
+                      redundancy(graph, values, owners))
+        new = {n: max(1.0, ss / dof) for n, (ss, dof) in stats.items()}
         new = {n: new.get(n, 1.0) for n in names}
         converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
         scale = new
@@ -391,7 +431,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     vectors = {key: values.atVector(key).copy() for key in _vector_keys(names, stems, lidars)}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
-                       {n: (float(ss), int(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, offsets,
+                       {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, offsets,
                        0.5 * (cov_inner + cov_inner.T), vectors)
 
 
@@ -540,9 +580,11 @@ def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     return graph, values, inner, stems
 
 
-def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[np.ndarray, dict]:
+def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                     linear: gtsam.GaussianFactorGraph | None = None) -> tuple[np.ndarray, dict]:
     """The graph's whole Laplace covariance at ``values`` (its information, dense, inverted: for a rig's few hundred
-    unknowns far quicker than ``gtsam.Marginals``' joint marginals of many keys) and each key's indices in it."""
+    unknowns far quicker than ``gtsam.Marginals``' joint marginals of many keys) and each key's indices in it.
+    ``linear``: the graph linearised at ``values`` already."""
     keys = list(values.keys())
     ordering = gtsam.Ordering()
     index, start = {}, 0
@@ -551,7 +593,7 @@ def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) ->
         dim = 6 if gtsam.Symbol(k).chr() in (ord("s"), ord("f")) else len(values.atVector(k))
         index[k] = np.arange(start, start + dim)
         start += dim
-    H, _ = graph.linearize(values).hessian(ordering)
+    H, _ = (graph.linearize(values) if linear is None else linear).hessian(ordering)
     return np.linalg.inv(0.5 * (H + H.T)), index
 
 
