@@ -215,71 +215,64 @@ def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray
 def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=False, owners: list | None = None):
     """The rig's factor graph; ``owners`` (a list, filled): per factor the sensor whose measurement residuals it
     holds (the residuals :func:`_chi2` counts: corners, LiDAR planes), None for the others (priors, edges)."""
-    graph = _OwnedGraph(owners)
+    factors = gtsam.NonlinearFactorGraph()
+
+    def add(factor, owner: str | None = None) -> None:
+        factors.add(factor)
+        if owners is not None:
+            owners.append(owner)
+
     for c in cameras:
         k = names.index(c.name)
         if refine_intrinsics and c.camera.param_std is not None:
-            graph.add(gtsam.PriorFactorVector(intrinsics_key(k), c.camera.params,
-                                              gtsam.noiseModel.Diagonal.Sigmas(np.asarray(c.camera.param_std))))
+            add(gtsam.PriorFactorVector(intrinsics_key(k), c.camera.params,
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.asarray(c.camera.param_std))))
         for stem in c.corners_px:
             px = c.corners_px[stem]
             noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma(stem) * np.sqrt(scale[c.name]))
             fk = frame_key(stems.index(stem))
             if refine_intrinsics and c.name == reference:
-                graph.add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise),
-                          c.name)
+                add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise),
+                    c.name)
             elif refine_intrinsics:
-                graph.add(gtsam.CustomFactor(noise, [sensor_key(k), fk, intrinsics_key(k)],
-                                             partial(_rig_corner_intrinsics_error,
-                                                     np.asarray(c.corners_board[stem], dtype=float),
-                                                     np.asarray(px, dtype=float).reshape(-1, 2), c.camera)), c.name)
+                add(gtsam.CustomFactor(noise, [sensor_key(k), fk, intrinsics_key(k)],
+                                       partial(_rig_corner_intrinsics_error,
+                                               np.asarray(c.corners_board[stem], dtype=float),
+                                               np.asarray(px, dtype=float).reshape(-1, 2), c.camera)), c.name)
             elif c.name == reference:
-                graph.add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise), c.name)
+                add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise), c.name)
             else:
-                graph.add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise), c.name)
+                add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise), c.name)
     for lv in lidars:
         k = names.index(lv.name)
         sd = lv.sigma_m * np.sqrt(scale[lv.name])
         if lv.has_offset:
-            graph.add(gtsam.PriorFactorVector(offset_key(k), np.zeros(1),
-                                              gtsam.noiseModel.Isotropic.Sigma(1, lv.offset_prior_sd_m)))
+            add(gtsam.PriorFactorVector(offset_key(k), np.zeros(1),
+                                        gtsam.noiseModel.Isotropic.Sigma(1, lv.offset_prior_sd_m)))
         if lv.edges:
-            graph.add(outline_prior(outline_key(k)))
+            add(outline_prior(outline_key(k)))
             for stem, e in lv.edges.items():
                 if stem in stems:
                     j = stems.index(stem)
-                    graph.add(shift_prior(edge_shift_key(k, j), lv.edge_tau_m))
-                    graph.add(edge_factor(sensor_key(k), frame_key(j), edge_shift_key(k, j), e, lv.board,
-                                          lv.edge_scale, outline_key(k)))
+                    add(shift_prior(edge_shift_key(k, j), lv.edge_tau_m))
+                    add(edge_factor(sensor_key(k), frame_key(j), edge_shift_key(k, j), e, lv.board,
+                                    lv.edge_scale, outline_key(k)))
         for stem, W in lv.W.items():
             if stem not in stems:
                 continue
             fk = frame_key(stems.index(stem))
             if lv.ranged is None:
-                graph.add(plane_factor(sensor_key(k), fk, W, gtsam.noiseModel.Isotropic.Sigma(W.shape[0], sd),
-                                       lv.scan_line), lv.name)
+                add(plane_factor(sensor_key(k), fk, W, gtsam.noiseModel.Isotropic.Sigma(W.shape[0], sd),
+                                 lv.scan_line), lv.name)
                 continue
             fw = lv.ranged[stem]
             noise = gtsam.noiseModel.Isotropic.Sigma(fw.W.shape[0], sd)
             if lv.has_offset:
-                graph.add(nuisance_plane_factor(sensor_key(k), fk, offset_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
-                                                lv.scan_line), lv.name)
+                add(nuisance_plane_factor(sensor_key(k), fk, offset_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
+                                          lv.scan_line), lv.name)
             else:
-                graph.add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line), lv.name)
-    return graph.graph
-
-
-class _OwnedGraph:
-    """A factor graph being built, with each factor's owner (``_graph``'s ``owners``) recorded beside it."""
-
-    def __init__(self, owners: list | None):
-        self.graph = gtsam.NonlinearFactorGraph()
-        self.owners = owners
-
-    def add(self, factor, owner: str | None = None) -> None:
-        self.graph.add(factor)
-        if self.owners is not None:
-            self.owners.append(owner)
+                add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line), lv.name)
+    return factors
 
 
 def redundancy(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, owners: list) -> dict:
@@ -330,11 +323,9 @@ def change_reference(names: tuple[str, ...], T_ref: dict, cov: np.ndarray, new: 
     return out, J @ cov @ J.T
 
 
-def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=False, shares: dict | None = None
-          ) -> dict:
+def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, shares: dict) -> dict:
     """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom: its
-    residuals less the share of the unknowns they fix (``shares``, by sensor: :func:`redundancy`); without
-    ``shares``, less 6 for its pose (a camera's less 6 per board too)."""
+    residuals less the share of the unknowns they fix (``shares``, by sensor: :func:`redundancy`)."""
     out = {}
     for c in cameras:
         T_rs = _pose(values, names, reference, c.name)
@@ -346,7 +337,7 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
             r, _ = corner_residuals(T_sb, c.corners_board[stem], c.corners_px[stem], cam, jacobian=False)
             ss += float(r @ r) / c.sigma(stem)**2
             n += r.size
-        out[c.name] = (ss, max(n - shares[c.name], 1.0) if shares else max(n - 6 * len(c.corners_px) - 6, 1))
+        out[c.name] = (ss, max(n - shares[c.name], 1.0))
     for lv in lidars:
         T_rs = _pose(values, names, reference, lv.name)
         ss, n = 0.0, 0
@@ -359,7 +350,7 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics=Fa
             e = lidar_frame_residual(lv, stem, pi, offset)
             ss += float(e @ e) / lv.sigma_m**2
             n += e.size
-        out[lv.name] = (ss, max(n - shares[lv.name], 1.0) if shares else max(n - 6 - int(lv.has_offset), 1))
+        out[lv.name] = (ss, max(n - shares[lv.name], 1.0))
     return out
 
 
