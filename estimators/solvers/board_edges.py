@@ -7,8 +7,10 @@ board's outline, whose place on the board the camera knows (the board's pose and
 Measurement (per ring end). Along a ring the beams fire at a fixed azimuth step ``delta``; the board's edge lies
 between the last return on the board (azimuth ``phi``) and the next firing, which missed it. With the edge's
 azimuth uniform on that interval, and the beam's centre able to fall off the board by a little while its
-footprint still returns from it (``BEAM_SD_RAD``), the edge is taken at the interval's middle,
-``phi +- delta / 2``, with variance ``delta^2 / 12 + BEAM_SD_RAD^2`` (the uniform's and the footprint's).
+footprint still returns from it (``BEAM_SD_RAD``, in any direction across the beam: in elevation as much as in
+azimuth), the edge is taken at the interval's middle, ``phi +- delta / 2``, with the uniform's variance
+``delta^2 / 12`` along the ring and the footprint's ``BEAM_SD_RAD^2`` across the beam, both mapped to metres
+across the side it crosses (a ring running nearly along the top or the bottom side crosses it by its elevation).
 The two moments are what a Gaussian keeps of that interval. An end that is not the board's edge (a holder's
 hand, a stand, a return lost at the edge) lies inside the outline, far out in those units: inward, the ends'
 likelihood is a mixture of that Gaussian and a uniform up to ``MAX_END_OFFSET_M`` inside (share
@@ -150,13 +152,23 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
         length = h if side < 2 else w
         if abs(offsets[side]) > MAX_END_OFFSET_M or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
             continue
-        rate = abs(float(SIDE_NORMALS[side] @ dq[:2]))  # m across the side per radian
+        rate = abs(float(SIDE_NORMALS[side] @ dq[:2]))  # m across the side per radian of azimuth
         keep_b.append(beam)
         keep_s.append(side)
         keep_r.append(ring)
-        keep_sd.append(rate * np.sqrt(step**2 / 12.0 + beam_sd_rad**2))
+        keep_sd.append(np.sqrt((rate * step) ** 2 / 12.0 + (s[0] * beam_sd_rad) ** 2 * _across(side, Rb[0])))
     return EdgeCrossings(np.array(keep_b).reshape(-1, 3), np.array(keep_s, dtype=np.int64),
                          np.array(keep_r, dtype=np.int64), np.array(keep_sd))
+
+
+def _across(side: int, b: np.ndarray) -> float:
+    """Squared metres across ``side`` per radian (and metre of range) of a beam turned off its direction ``b``
+    (board frame) in any direction across it, averaged over the two (a footprint is a cone: its elevation
+    counts as much as its azimuth, and most on a side the ring runs nearly along): ``|w|^2 - (w . b)^2`` with
+    ``w = P^T a``, ``a`` the side's outward normal and ``P`` the projection along the beam onto the board."""
+    a = np.append(SIDE_NORMALS[side], 0.0)
+    w = a - np.array([0.0, 0.0, a @ b / b[2]])
+    return float(w @ w - (w @ b) ** 2)
 
 
 def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
