@@ -3,8 +3,11 @@
 Parameters ``theta = [xi (6); log s]``: ``T = T_hat Exp(xi)`` and ``s`` the scale of the camera-side
 noise (the effective corner noise and any per-board plane error) relative to what the refinement
 assumed: that level is the least certain part of the noise model (corner errors correlate within a
-board), so it is estimated with the extrinsic, under a log-normal prior (sd 0.5 on ``log s``). The range
-noise is not sampled: thousands of board points pin it down.
+board), so it is estimated with the extrinsic, under a log-normal prior (sd 0.5 on ``log s``). A 3D
+LiDAR's range noise is not sampled: thousands of board points pin it down. A 2D scan's rests on a few
+dozen: its scale ``r`` is sampled as well (last parameter, flat prior on ``log r``), the lines' residuals
+about their own best fits carrying their share of its likelihood, so the intervals hold the range noise's
+uncertainty (a Student-t-like widening of the tails).
 
 Likelihood, per used frame ``i`` (MATH.md section 3), with the board pose marginalised: the camera's
 own board fit ``b_i`` (PnP on the corners) has covariance ``Sigma_b = sigma_px^2 (J^T J)^-1`` at the
@@ -230,6 +233,7 @@ class PlaneLikelihood:
         self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
         half = 0.5 * float(np.mean(board.extent))
         rows, lams, normals, dists, dims, scan, signs, consts = [], [], [], [], [], [], [], []
+        floors, floor_dof = 0.0, 0.0  # the scan lines' residuals about their own best lines, and their dof
         board_covariances = {}
         # With a range model, its terms are held at the MAP here and their uncertainty is convolved into the
         # samples afterwards (``Refinement.range_model.extrinsic_share``; first order, like the intrinsics').
@@ -284,6 +288,10 @@ class PlaneLikelihood:
             dists.append(float(n @ b[:3, 3]))
             dims.append(k)
             scan.append(f.lidar.is_scan_line)
+            if f.lidar.is_scan_line:
+                dof = max(f.lidar.n_points - k, 0)  # as pooled_range_noise_m counts them
+                floors += fit.weight * f.lidar.range_rms_m**2 * dof / ref.range_noise_m**2
+                floor_dof += fit.weight * dof
         if len(rows) < 3:
             raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")
         # (F, k, 4), (F, k): zero rows pad a scan line's 2 and frames with fewer range terms
@@ -291,6 +299,12 @@ class PlaneLikelihood:
         self.signs, self.consts = np.array(signs), np.array(consts)
         self.normals, self.dists = np.array(normals), np.array(dists)
         self.dims, self.scan = np.array(dims, dtype=float), np.array(scan, dtype=bool)
+        self.valid = np.arange(width)[None, :] < self.dims[:, None]  # (F, k): the rows that are not padding
+        # A 2D scan's range noise rests on a few dozen points: its scale ``r`` (to the refinement's) is sampled
+        # too, its likelihood the lines' own residuals (``floor_dof`` of them, ``floors`` in units of the
+        # refinement's range variance) and the rest of the model, under a flat prior on ``log r``.
+        self.range_scale = bool(self.scan.any())
+        self.floors, self.floor_dof = floors, floor_dof
         # The board's edges, when used: their share of the log-posterior to second order about the MAP (their
         # nuisances profiled out; ``refinement._edge_share``).
         self.edge_H, self.edge_eta = ref.edge_share if ref.edge_share is not None else (None, None)
@@ -306,8 +320,9 @@ class PlaneLikelihood:
 
     @property
     def ndim(self) -> int:
-        """Parameters: ``xi`` (6), ``log s`` and, with a 2D scan's ends, the dataset's outline (4)."""
-        return 7 + (4 if self.ends is not None else 0)
+        """Parameters: ``xi`` (6), ``log s``, with a 2D scan's ends the dataset's outline (4), and for a 2D scan
+        ``log r``, the range noise's scale (last)."""
+        return 7 + (4 if self.ends is not None else 0) + (1 if self.range_scale else 0)
 
     def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
         """Walkers' starting points: the extrinsic from its Laplace approximation, the scale near 1, the outline
@@ -316,7 +331,9 @@ class PlaneLikelihood:
         start[:, :6] = rng.multivariate_normal(np.zeros(6), covariance, walkers)
         start[:, 6] = rng.normal(0.0, 0.05, walkers)
         if self.ends is not None:
-            start[:, 7:] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
+            start[:, 7:11] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
+        if self.range_scale:
+            start[:, -1] = rng.normal(0.0, 0.5 / np.sqrt(max(self.floor_dof, 1.0)), walkers)
         for _ in range(20):  # within the mode's cell: a walker outside it is moved halfway to the mode
             outside = ~np.isfinite(self(start))
             if not outside.any():
@@ -342,7 +359,11 @@ class PlaneLikelihood:
             gxy = np.hypot(pi[:, 0, :], pi[:, 1, :]).T  # (w, F)
             z = np.where(self.scan[None, :, None], z / gxy[:, :, None], z)
         z = z * self.signs[None, :, None] + self.consts[None, :, :]
-        g = 1.0 + np.exp(2 * log_s)[:, None, None] * self.lam  # (w, F, 3)
+        if self.range_scale:  # C = r^2 A + s^2 B: the whitened rows' variances r^2 + s^2 lam (padding: 1)
+            rho = np.exp(2 * theta[:, -1])
+            g = np.where(self.valid[None], rho[:, None, None] + np.exp(2 * log_s)[:, None, None] * self.lam, 1.0)
+        else:
+            g = 1.0 + np.exp(2 * log_s)[:, None, None] * self.lam  # (w, F, 3)
         logdet = np.sum(np.log(g), axis=(1, 2))
         if self.likelihood == "gaussian":
             loglik = -0.5 * np.sum(z * z / g, axis=(1, 2))
@@ -360,6 +381,10 @@ class PlaneLikelihood:
             outline = theta[:, 7:11]
             loglik = loglik + self.ends.log_likelihood(Ts, outline) - 0.5 * np.sum((outline / self.outline_sd) ** 2,
                                                                                    axis=1)
+        if self.range_scale:  # the lines' own residuals, each of variance r^2 (flat prior on log r, |log r| < 2)
+            log_r = theta[:, -1]
+            loglik = (loglik - self.floor_dof * log_r - 0.5 * self.floors * np.exp(-2 * log_r)
+                      + np.where(np.abs(log_r) < 2.0, 0.0, -np.inf))
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
 
 
