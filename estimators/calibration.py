@@ -42,7 +42,7 @@ from .solvers.association import Association, AssociationParams, associate, asso
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import IntrinsicsFit, refine_intrinsics
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
-from .solvers.refinement import Refinement, RefinementOptions
+from .solvers.refinement import Refinement, RefinementOptions, contradiction
 from .solvers.refinement import refine as refine_graph
 
 if TYPE_CHECKING:  # the 2D solvers are imported where they are used (they load scipy.optimize)
@@ -280,12 +280,20 @@ class CalibrationResult:
             "lidar_range_model": (ref.range_model.to_dict() if ref.range_model is not None else
                                   {"requested": "none", "chosen": "none", "reason": "not requested", "terms": []}),
             "board_edges": ref.edges if ref.edges is not None else {"used": False},
+            "contradicted": self.contradicted,
         }
 
     @property
     def alternatives(self) -> tuple:
         """2D LiDAR: the other minima that hold posterior mass (empty when the answer is unambiguous)."""
         return tuple(self.modes[1:])
+
+    @property
+    def contradicted(self) -> str | None:
+        """Why the answer cannot be trusted as its intervals say (``refinement.contradiction``: the boards'
+        planes and their edges disagree far beyond their noise), or None. The printed result begins with it, and
+        ``--strict`` exits non-zero."""
+        return contradiction(self.refinement) if self.refinement is not None else None
 
     @property
     def ambiguous(self) -> bool:

@@ -24,8 +24,9 @@ def _parser() -> argparse.ArgumentParser:
                         "or the 2D minimal-solution selections")
     c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
     c.add_argument("--strict", action="store_true",
-                   help="exit with code 3 (after writing the results) when the answer is ambiguous: a 2D LiDAR's "
-                        "second solution holds at least 5%% of the posterior mass")
+                   help="exit with code 3 (after writing the results) when the answer is ambiguous (a 2D LiDAR's "
+                        "second solution holds at least 5%% of the posterior mass) or contradicted (the boards' "
+                        "planes and their edges disagree far beyond their noise, p < 0.001)")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
@@ -301,6 +302,9 @@ def _print_result(result, truth=None) -> None:
 
     T = result.T_camera_lidar
     np.set_printoptions(precision=5, suppress=True)
+    if result.contradicted:
+        print(f"UNTRUSTED: {result.contradicted}. Both estimates are in calibration.json (board_edges, "
+              "planes_against_edges); check board.size and the boards' outlines in the report, and add boards.")
     if result.ambiguous:
         masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
         print(f"AMBIGUOUS: {len(result.modes)} distinct solutions fit the boards (posterior mass {masses}); the most "
@@ -609,11 +613,12 @@ def _calibrate_with(args, ds, figures) -> int:
 
 
 def _exit_code(args, result) -> int:
-    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) for an ambiguous answer under ``--strict``."""
+    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) for an ambiguous or contradicted answer under ``--strict``."""
     from .calibration import EXIT_AMBIGUOUS
 
-    if getattr(args, "strict", False) and result.ambiguous:
-        print(f"lidarcam: the answer is ambiguous (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
+    if getattr(args, "strict", False) and (result.ambiguous or result.contradicted):
+        what = "ambiguous" if result.ambiguous else "contradicted by its boards' edges"
+        print(f"lidarcam: the answer is {what} (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
         return EXIT_AMBIGUOUS
     return 0
 

@@ -726,6 +726,27 @@ def _check_scan_directions(prob: _Problem, active: list[int], boards: list) -> N
 POSTERIOR_REFUSAL_FACTOR = 2.0
 
 
+# The planes alone against the planes with the edges (``Refinement.edges['planes_against_edges']``): below this
+# p-value the data contradict the model the estimate rests on, and the answer says so first (``contradiction``).
+CONTRADICTION_P = 1e-3
+
+
+def contradiction(ref: Refinement) -> str | None:
+    """Why the estimate cannot be trusted as its covariance says, or None: the boards' planes and the ends of
+    their rings (a 2D scan's segments) disagree far beyond their noise (p below ``CONTRADICTION_P``), so one of
+    them carries what the model does not hold (an end hidden before the board's edge, a wrong board size, a plane
+    error) and the two pull the answer apart."""
+    test = (ref.edges or {}).get("planes_against_edges")
+    if not test or not test.get("dof") or test["p_value"] >= CONTRADICTION_P:
+        return None
+    delta = np.asarray(test["difference_tangent"], dtype=float)
+    what = "segment ends" if ref.end_terms is not None else "ring ends"
+    return (f"the boards' planes and their {what} on the boards' edges disagree far beyond their noise "
+            f"({np.degrees(np.linalg.norm(delta[:3])):.1f} deg and {1000 * np.linalg.norm(delta[3:]):.0f} mm apart; "
+            f"d2 {test['d2']:.1f} on {test['dof']} dof, p = {test['p_value']:.1g}): the answer may be further off "
+            "than its intervals say")
+
+
 def scan_refusal(cov: np.ndarray, T: np.ndarray, n_frames: int, ends: bool,
                  factor: float = 1.0) -> DegenerateLayoutError | None:
     """The refusal of a 2D extrinsic whose covariance reaches ``MAX_SCAN_ROTATION_SD_RAD`` or
