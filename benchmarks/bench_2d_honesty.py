@@ -8,9 +8,8 @@ Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layo
 degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
 layouts (bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported 99.9% region (squared Mahalanobis distance under
 the reported covariance: the posterior's, over every mode; beside it under the Laplace one of the most probable
-mode), those flagged ambiguous (a second mode with at least 5% of the mass), those flagged contradicted (the
-planes and the segment ends disagree at p < 0.001: `refinement.contradiction`, printed first as UNTRUSTED), those
-confidently wrong (outside the region and not flagged), each listed, and how often the posterior's 95% intervals hold the truth. Targets
+mode), those flagged ambiguous (a second mode with at least 5% of the mass), those confidently wrong (outside
+the region and not flagged), each listed, and how often the posterior's 95% intervals hold the truth. Targets
 (issue 35): confidently wrong at most 0.2%; refusals only where the bound is degenerate; elsewhere the truth
 inside the region in at least 95%; the 95% intervals cover 93-97%."""
 import argparse, sys, os
@@ -25,7 +24,6 @@ from estimators.errors import DegenerateLayoutError, PosteriorSkippedError
 from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
-from estimators.solvers.refinement import contradiction
 from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_inverse, T_log
 
@@ -74,7 +72,6 @@ def one(args):
         return {**out, "refused": True, "why": exc.problem[:140]}
     sd = np.sqrt(np.diag(cov))
     return {**out, "refused": False, "masses": [m.mass for m in modes], "covered": covered,
-            "contradicted": contradiction(ref) is not None,
             "d2_modes": [float(_d2(m.refinement, rig.T_camera_lidar)) for m in modes],
             "in_mixture": B.in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])),
             "d2_laplace": float(xi @ np.linalg.solve(ref.covariance, xi)),
@@ -103,14 +100,12 @@ def main() -> None:
     rows = [r for r in rows if r is not None]
     print(f"{config}, {pattern}, {a.boards} boards: {len(rows)} trials ({skipped} rigs without a feasible pose skipped)")
     print(f"{'bound':12s} {'trials':>6s} {'refused':>7s} {'answered':>8s} {'in 99.9%':>9s} {'(Laplace)':>9s} "
-          f"{'ambiguous':>9s} {'contradicted':>12s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
+          f"{'ambiguous':>9s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
     wrong_all = []
     for label, degenerate in (("finite", False), ("degenerate", True)):
         group = [r for r in rows if r["degenerate"] == degenerate]
         answered = [r for r in group if not r["refused"]]
-        ambiguous = [any(m >= 0.05 for m in r["masses"][1:]) for r in answered]
-        contradicted = [r["contradicted"] for r in answered]
-        flagged = [a or c for a, c in zip(ambiguous, contradicted)]
+        flagged = [any(m >= 0.05 for m in r["masses"][1:]) for r in answered]
         inside = [r["d2"] <= LIMIT for r in answered]
         wrong = [r for r, f, i in zip(answered, flagged, inside) if not f and not i]
         wrong_all += wrong
@@ -119,14 +114,11 @@ def main() -> None:
         laplace = f"{100 * sum(r['d2_laplace'] <= LIMIT for r in answered) / len(group):.1f}%" if group else "-"
         cover = f"{100 * np.mean(covered):.1f}% ({len(covered) // 6})" if covered else "-"
         print(f"{label:12s} {len(group):6d} {len(group) - len(answered):7d} {len(answered):8d} {share:>9s} "
-              f"{laplace:>9s} {sum(ambiguous):9d} {sum(contradicted):5d} ({sum(c and i for c, i in zip(contradicted, inside))} in)"
-              f" {len(wrong):8d} ({100 * len(wrong) / max(len(rows), 1):.1f}%) "
+              f"{laplace:>9s} {sum(flagged):9d} {len(wrong):8d} ({100 * len(wrong) / max(len(rows), 1):.1f}%) "
               f"{cover:>19s}")
     print("(in 99.9%: share of the group's trials, refusals counted as outside, under the reported covariance, the "
-          "posterior's, and under the Laplace one; contradicted: answers whose planes and segment ends disagree at "
-          "p < 0.001, flagged UNTRUSTED (how many of them hold the truth in their 99.9% region); confidently wrong: "
-          "outside and neither ambiguous nor contradicted; 95% intervals: the share of the 6 axes' equal-tailed "
-          "posterior intervals holding the truth, over the answers sampled (their count))")
+          "posterior's, and under the Laplace one; 95% intervals: the share of the 6 axes' equal-tailed posterior "
+          "intervals holding the truth, over the answers sampled (their count))")
     for r in wrong_all:
         print(f"confidently wrong: seed {r['seed']} d2 {r['d2']:.1f}, error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, "
               f"sd up to {r['sd'][0]:.2f} deg {r['sd'][1]:.0f} mm, bound {r['bound'][0]:.2f} deg "

@@ -25,8 +25,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
     c.add_argument("--strict", action="store_true",
                    help="exit with code 3 (after writing the results) when the answer is ambiguous (a 2D LiDAR's "
-                        "second solution holds at least 5%% of the posterior mass) or contradicted (the boards' "
-                        "planes and their edges disagree far beyond their noise, p < 0.001)")
+                        "second solution holds at least 5%% of the posterior mass) or contradicted (with --edges, the "
+                        "boards' planes and their ring ends disagree far beyond their noise, p < 0.001)")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",

@@ -219,34 +219,24 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     assert _exit_code(_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0
 
 
-def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_non_zero(capsys):
-    """Six boards (default configuration) whose pattern is printed 10 cm along the board's x from where the
-    dataset puts it: the segment ends contradict the planes (planes-against-edges p < 0.001), the printed result
-    begins with UNTRUSTED, calibration.json says why, and ``--strict`` exits with code 3. The same layouts with the
-    pattern where the dataset says are not flagged."""
+
+def test_a_scan_lines_planes_are_not_tested_against_their_ends():
+    """A 2D scan's lines alone have several exact solutions for a few boards, so their refit from the estimate
+    is no test of a bias (it flagged 8 of 97 right 3-board answers at p < 0.001): with a pattern printed 10 cm
+    off or right, a 6-board answer has no planes-against-edges test, no warning from it, and is not flagged."""
     from dataclasses import replace
 
-    from estimators.calibration import EXIT_AMBIGUOUS, solve
-    from estimators.cli import _exit_code, _parser, _print_result
-    from estimators.simulation.simulator import rig_2d, sample_board_poses
+    from estimators.calibration import solve
     from estimators.solvers.observation_model import with_outline_error
 
-    for seed in (0, 3):
-        rng = np.random.default_rng(seed)
-        rig = rig_2d("default", rng, 0.01)
-        layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 6, rng)),
-                        0.2, 0.01)
-        cam = simulate_measurements(layout, np.random.default_rng(seed + 1))
-        for shift in (0.0, 0.1):
-            seen = simulate_measurements(with_outline_error(layout, pattern_shift_m=(shift, 0.0)),
-                                         np.random.default_rng(seed + 2))
-            frames = [replace(f, lidar=g.lidar) for f, g in zip(cam, seen)]
-            result = solve(frames, rig.board, rig.camera, samples=0)
-            assert bool(result.contradicted) == (shift > 0), result.contradicted
-            assert result.to_dict()["contradicted"] == result.contradicted
-            capsys.readouterr()
-            _print_result(result)
-            assert capsys.readouterr().out.startswith("UNTRUSTED: the boards' planes and their segment ends") == (
-                shift > 0)
-            strict = _parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
-            assert _exit_code(strict, result) == (EXIT_AMBIGUOUS if shift > 0 else 0)
+    rng = np.random.default_rng(0)
+    rig = rig_2d("default", rng, 0.01)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 6, rng)),
+                    0.2, 0.01)
+    cam = simulate_measurements(layout, np.random.default_rng(1))
+    for shift in (0.0, 0.1):
+        seen = simulate_measurements(with_outline_error(layout, pattern_shift_m=(shift, 0.0)), np.random.default_rng(2))
+        result = solve([replace(f, lidar=g.lidar) for f, g in zip(cam, seen)], rig.board, rig.camera, samples=0)
+        assert result.refinement.edges is not None and result.refinement.edges["ends"] > 0
+        assert result.refinement.edges["planes_against_edges"] is None and result.contradicted is None
+        assert not any("the planes alone and the planes with the edges" in w for w in result.warnings)

@@ -315,3 +315,28 @@ def test_a_board_off_its_declared_outline_moves_a_scan_lines_ends_by_that_error(
         step = 0.25 * np.pi / 180 * 4.0  # the scanner's step at the farthest board, m
         assert abs(x[0][0] - 0.0) < step and abs(x[0][1] - w) < step
         assert abs(x[1][0] - (0.03 - 0.04)) < step and abs(x[1][1] - (w + 0.04 + 0.03)) < step
+
+
+def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_non_zero(capsys):
+    """With ``--edges``, a planes-against-edges test below p = 0.001 makes the answer contradicted: the printed
+    result begins with UNTRUSTED and the reason, calibration.json holds it, and ``--strict`` exits with code 3;
+    at p = 0.01 (a warning only) none of that."""
+    from estimators.calibration import EXIT_AMBIGUOUS, solve
+    from estimators.cli import _exit_code, _parser, _print_result
+
+    layout = _layout(0, "vlp16", n=8, weak=True)
+    frames = simulate_measurements(layout, np.random.default_rng(100))
+    result = solve(frames, layout.board, layout.camera, samples=0,
+                   options=measurement_model_options(range_model="none", edges=True))
+    test = result.refinement.edges["planes_against_edges"]
+    assert test is not None and test["p_value"] > 1e-3 and result.contradicted is None
+    strict = _parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
+    for p_value, flagged in ((1e-5, True), (1e-2, False)):
+        edges = {**result.refinement.edges, "planes_against_edges": {**test, "p_value": p_value}}
+        moved = replace(result, refinement=replace(result.refinement, edges=edges))
+        assert bool(moved.contradicted) == flagged
+        assert moved.to_dict()["contradicted"] == moved.contradicted
+        capsys.readouterr()
+        _print_result(moved)
+        assert capsys.readouterr().out.startswith("UNTRUSTED: the boards' planes and their ring ends") == flagged
+        assert _exit_code(strict, moved) == (EXIT_AMBIGUOUS if flagged else 0)
