@@ -162,10 +162,11 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
 
 
 def _across(side: int, b: np.ndarray) -> float:
-    """Squared metres across ``side`` per radian (and metre of range) of a beam turned off its direction ``b``
-    (board frame) in any direction across it, averaged over the two (a footprint is a cone: its elevation
-    counts as much as its azimuth, and most on a side the ring runs nearly along): ``|w|^2 - (w . b)^2`` with
-    ``w = P^T a``, ``a`` the side's outward normal and ``P`` the projection along the beam onto the board."""
+    """The variance across ``side`` (m^2, per rad^2 and m^2 of range) of where a beam ``b`` (board frame) cuts the
+    board when it is turned off its direction by an isotropic angle of unit variance per axis across it (a
+    footprint is a cone: its elevation counts as much as its azimuth, and most on a side the ring runs nearly
+    along): ``|w|^2 - (w . b)^2`` with ``w = P^T a``, ``a`` the side's outward normal and ``P`` the projection
+    along the beam onto the board."""
     a = np.append(SIDE_NORMALS[side], 0.0)
     w = a - np.array([0.0, 0.0, a @ b / b[2]])
     return float(w @ w - (w @ b) ** 2)
