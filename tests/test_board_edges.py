@@ -24,10 +24,10 @@ def _layout(seed: int, lidar: str = "vlp16", n: int = 6, weak: bool = False, noi
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
 
 
-def _crossings(layout: Layout, i: int, pointing=None):
+def _crossings(layout: Layout, i: int, pointing=None, beam_sd_rad: float = BEAM_SD_RAD):
     dirs, ranges, rings, _ = board_returns(layout, i, pointing)
     T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
-    return crossings(dirs * ranges[:, None], rings, T_bl, layout.board)
+    return crossings(dirs * ranges[:, None], rings, T_bl, layout.board, beam_sd_rad)
 
 
 def _standardised_end_residuals(beam_sd_rad: float = 0.0, lidar: str = "hdl64e") -> tuple[np.ndarray, np.ndarray]:
@@ -39,9 +39,7 @@ def _standardised_end_residuals(beam_sd_rad: float = 0.0, lidar: str = "hdl64e")
         layout = _layout(seed, lidar)
         for i in range(layout.n_frames):
             pointing = (np.random.default_rng(100 * seed + i), beam_sd_rad) if beam_sd_rad else None
-            dirs, ranges, rings, _ = board_returns(layout, i, pointing)
-            T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
-            e = crossings(dirs * ranges[:, None], rings, T_bl, layout.board, beam_sd_rad)
+            e = _crossings(layout, i, pointing, beam_sd_rad)
             r, _, _ = edge_residuals(layout.T_camera_lidar, layout.T_camera_board[i], e, layout.board,
                                      jacobian=False)
             z.extend(r / e.sd_m)

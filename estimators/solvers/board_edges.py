@@ -167,9 +167,15 @@ def _across(side: int, b: np.ndarray) -> float:
     footprint is a cone: its elevation counts as much as its azimuth, and most on a side the ring runs nearly
     along): ``|w|^2 - (w . b)^2`` with ``w = P^T a``, ``a`` the side's outward normal and ``P`` the projection
     along the beam onto the board."""
-    a = np.append(SIDE_NORMALS[side], 0.0)
-    w = a - np.array([0.0, 0.0, a @ b / b[2]])
+    w = _outward_along_beams(np.array([side]), b[None])[0]
     return float(w @ w - (w @ b) ** 2)
+
+
+def _outward_along_beams(sides: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """``w = P^T a`` per end (K, 3): ``a`` its side's outward normal (board frame), ``P`` the projection along its
+    beam ``Rb`` (board frame) onto the board's plane; ``w . dq`` moves the end outward for a cut moved by ``dq``."""
+    a3 = np.column_stack([SIDE_NORMALS[sides], np.zeros(len(sides))])
+    return a3 - np.outer(np.einsum("ij,ij->i", a3, Rb) / Rb[:, 2], [0.0, 0.0, 1.0])
 
 
 def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
@@ -191,8 +197,7 @@ def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges
          - np.asarray(growth_m)[edges.sides // 2])
     if not jacobian:
         return r, None, None
-    a3 = np.column_stack([a, np.zeros(len(a))])
-    w = a3 - np.outer(np.einsum("ij,ij->i", a3, Rb) / Rb[:, 2], [0.0, 0.0, 1.0])  # P^T a3
+    w = _outward_along_beams(edges.sides, Rb)  # P^T a
     u = w @ T_bl[:3, :3]
     p = edges.beams * s[:, None]
     H_x = np.hstack([np.cross(p, u), u])

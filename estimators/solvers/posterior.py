@@ -45,7 +45,8 @@ from ..measurements import FrameMeasurement
 from .board_edges import outline_prior_sd
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
-from .refinement import POSTERIOR_REFUSAL_FACTOR, Refinement, frame_noise, pooled_range_noise_m, scan_refusal
+from .refinement import (POSTERIOR_REFUSAL_FACTOR, Refinement, frame_noise, own_fit_residuals, pooled_range_noise_m,
+                         scan_refusal)
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -289,8 +290,8 @@ class PlaneLikelihood:
             dims.append(k)
             scan.append(f.lidar.is_scan_line)
             if f.lidar.is_scan_line:
-                dof = max(f.lidar.n_points - k, 0)  # as pooled_range_noise_m counts them
-                floors += fit.weight * f.lidar.range_rms_m**2 * dof / ref.range_noise_m**2
+                ss, dof = own_fit_residuals(f)
+                floors += fit.weight * ss / ref.range_noise_m**2
                 floor_dof += fit.weight * dof
         if len(rows) < 3:
             raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")

@@ -252,11 +252,16 @@ def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera
                                       for f in frames), camera)
 
 
+def own_fit_residuals(f: FrameMeasurement) -> tuple[float, int]:
+    """A frame's squared range residuals about its own best-fit plane (a scan line's: its line) (m^2) and their
+    degrees of freedom (``n - 3``; ``n - 2`` for a scan line)."""
+    dof = max(f.lidar.n_points - (2 if f.lidar.is_scan_line else 3), 1)
+    return f.lidar.range_rms_m**2 * dof, dof
+
+
 def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
-    """Range noise pooled over the frames' best-fit plane residuals (``n - 3`` dof per frame)."""
-    fitted = [2 if f.lidar.is_scan_line else 3 for f in frames]
-    ss = sum(f.lidar.range_rms_m**2 * max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
-    dof = sum(max(f.lidar.n_points - k, 1) for f, k in zip(frames, fitted))
+    """Range noise pooled over the frames' best-fit plane residuals (:func:`own_fit_residuals`)."""
+    ss, dof = np.sum([own_fit_residuals(f) for f in frames], axis=0)
     return float(np.sqrt(ss / dof))
 
 
