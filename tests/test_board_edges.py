@@ -132,8 +132,10 @@ def test_outline_errors_in_the_dataset_are_caught(error, edges):
         T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
         ref = refine(frames, layout.board, layout.camera, T0,
                      measurement_model_options(range_model="none", edges=edges))
-        # Without --edges the ends check the planes' estimate, and say the same (solvers.outline_check).
+        # Without --edges the ends check the planes' estimate, and say the same (solvers.outline_check); with
+        # them, the planes-only estimate made beside is checked too.
         assert ref.edges is not None and ref.edges["used"] == edges
+        assert not edges or ref.edges["planes_only_check"]["mean_shift_dof"] > 0
         said = " ".join(ref.warnings)
         caught += ("board edges:" in said)
     assert caught == 3
@@ -152,6 +154,11 @@ def test_the_check_of_a_right_dataset_stays_quiet_and_its_mean_shift_is_consiste
         ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none"))
         assert ref.edges is not None and not ref.edges["used"] and ref.edges["ends"] > 100
         assert not any(w.startswith("board edges:") for w in ref.warnings)
+        if seed < 2:  # with the edges, the planes-only estimate's check beside them is as quiet
+            with_edges = refine(frames, layout.board, layout.camera, T0,
+                                measurement_model_options(range_model="none", edges=True))
+            assert with_edges.edges["planes_only_check"]["mean_shift_p_value"] > 0.01
+            assert not any("under the planes alone" in w for w in with_edges.warnings)
         d2.append(ref.edges["mean_shift_d2"])
         dof.append(ref.edges["mean_shift_dof"])
     assert np.sum(d2) < chi2_isf(0.001, np.sum(dof))  # 4 datasets: far below the 0.1% tail

@@ -169,13 +169,20 @@ def outline_check(T_camera_lidar: np.ndarray, boards: list, edges: list[EdgeCros
     return record, outline_warnings(record, used=False)
 
 
-def outline_warnings(record: dict, used: bool) -> list[str]:
+def outline_warnings(record: dict, used: bool, beside_edges: bool = False) -> list[str]:
     """The warnings of a board-edges record (``outline_check``'s, or the refinement's with the edges ``used``):
     the outlines' mean shift beyond its 99% limit, the sides' growth and (with the edges) the outline's offset
-    beyond their priors and 99% intervals."""
+    beyond their priors and 99% intervals. ``beside_edges``: ``outline_check``'s record of the planes-only
+    estimate made beside one with the edges (its shift alone is warned of, as the planes')."""
     warnings = []
     mean, p = np.array(record["mean_shift_camera_m"]), record["mean_shift_p_value"]
-    if record["mean_shift_dof"] and p < CHECK_P:
+    shifted = bool(record["mean_shift_dof"]) and p < CHECK_P
+    if beside_edges:
+        return [f"board edges: under the planes alone, the LiDAR's board outlines sit "
+                f"{1000 * np.linalg.norm(mean):.0f} mm off the camera's on average (beyond the 99% limit, p = "
+                f"{p:.1g}): a wrong board.pattern_offset or board.size in dataset.yaml, which also pulls the "
+                "estimate with the edges, or planes the edges contradict"] if shifted else []
+    if shifted:
         along = "".join(f", {1000 * v:+.0f} mm along the board's {a}" for a, v in
                         zip("xy", record.get("mean_shift_board_xy_m") or (None, None)) if v is not None)
         why = ("an extrinsic the edges contradict" if used else
