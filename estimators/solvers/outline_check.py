@@ -180,7 +180,7 @@ def outline_warnings(record: dict, used: bool, beside_edges: bool = False) -> li
     if beside_edges:
         return [f"board edges: under the planes alone, the LiDAR's board outlines sit "
                 f"{1000 * np.linalg.norm(mean):.0f} mm off the camera's on average (beyond the 99% limit, p = "
-                f"{p:.1g}): a wrong board.pattern_offset or board.size in dataset.yaml, which also pulls the "
+                f"{p:.2g}): a wrong board.pattern_offset or board.size in dataset.yaml, which also pulls the "
                 "estimate with the edges, or planes the edges contradict"] if shifted else []
     if shifted:
         along = "".join(f", {1000 * v:+.0f} mm along the board's {a}" for a, v in
@@ -191,7 +191,7 @@ def outline_warnings(record: dict, used: bool, beside_edges: bool = False) -> li
                "--edges uses the edges)")
         warnings.append(f"board edges: the LiDAR's board outlines sit {1000 * np.linalg.norm(mean):.0f} mm off the "
                         f"camera's on average (camera axes {np.round(1000 * mean, 1).tolist()} mm; beyond the 99% "
-                        f"limit, p = {p:.1g}): {why}")
+                        f"limit, p = {p:.2g}): {why}")
     g, gs = np.array(record["growth_m"]), np.array(record["growth_sd_m"])
     if np.any(np.abs(g) > np.maximum(GROWTH_PRIOR_SD_M, 2.576 * gs)):
         warnings.append(f"board edges: the LiDAR sees the board {2000 * g[0]:+.0f} mm wider and {2000 * g[1]:+.0f} mm "
