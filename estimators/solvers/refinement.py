@@ -614,14 +614,13 @@ def _edges_record(prob: _Problem, active: list[int], T: np.ndarray, boards: list
             cov_p = marginals_p.marginalCovariance(EXTRINSIC)
         except RuntimeError:  # the planes alone leave a direction unobservable: the edges fix it
             cov_p = None
-        if cov_p is not None:
-            # The outline check of the planes alone too: with the edges in the graph, a pattern placed off where
-            # dataset.yaml says pulls the estimate along with the outline, and the shifts about it shrink.
-            planes_check, _ = _outline_check(planes, active, T_p, b, marginals_p, quasi_scale, quasi_scale * cov_p)
-            if planes_check is not None:
-                warnings.extend(outline_warnings(planes_check, used=False, beside_edges=True))
     test = None
     if cov_p is not None:
+        # The outline check of the planes alone too: with the edges in the graph, a pattern placed off where
+        # dataset.yaml says pulls the estimate along with the outline, and the shifts about it shrink.
+        planes_check, _ = _outline_check(planes, active, T_p, b, marginals_p, quasi_scale, quasi_scale * cov_p)
+        if planes_check is not None:
+            warnings.extend(outline_warnings(planes_check, used=False, beside_edges=True))
         delta = T_log(np.linalg.inv(T_p) @ T)
         h2, h_dof = chi2.mahalanobis(delta, cov_p - cov)
         h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
