@@ -49,6 +49,8 @@ bench: $(STAMP)
 	$(RECORD) rig_intrinsics -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30
 	$(RECORD) rig_corners -- $(PY) benchmarks/bench_rig_corners.py --rigs 10
 	$(RECORD) rig_range_offset -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000 --range-offset 0.03
+	$(RECORD) rig_range_terms -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000 --range-bias 0.03,0.005,0.01
+	$(RECORD) rig_range_terms_vlp16 -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000 --range-bias 0.03,0.005,0.01 --lidar vlp16
 	$(RECORD) rig_edges -- $(PY) benchmarks/bench_rig.py --cameras 2 --scanners 1 --rigs 40 --edges --posterior 1000
 	$(RECORD) rig_scanner -- $(PY) benchmarks/bench_rig.py --cameras 2 --scanners 1 --rigs 40 --posterior 1000
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py

@@ -1,13 +1,16 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
-[--posterior N] [--range-offset M] [--edges] [--timed K]`).
+[--posterior N] [--range-offset M] [--range-bias OFF,RING,DARK] [--lidar L] [--edges] [--timed K]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
 5 a pinhole looking left, each with boards of its own (P/2, in its view and the LiDAR's). Every camera sees the
 frames whose board lies wholly in its image. `--lidars 2` adds a VLP-16-like LiDAR, `--scanners 1` a 2D scanner.
-`--range-offset M` adds a range offset of M metres to every return of lidar0 (each LiDAR's offset is tested and,
-where included, estimated: `rig_calibration.calibrate_rig`'s range model, summarised per LiDAR). `--posterior N`
+`--range-offset M` adds a range offset of M metres to every return of lidar0 (each LiDAR's range terms are tested
+and, where included, estimated: `rig_calibration.calibrate_rig`'s range model, summarised per LiDAR);
+`--range-bias OFF,RING,DARK` injects the single pair's range errors into lidar0 instead (a global offset, per-ring
+offsets drawn with sd RING, the black squares' offset) and adds each term's error over its sd; `--lidar` sets lidar0's
+beams (HDL-64E, VLP-16 or OS1-64 like). `--posterior N`
 samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2 of the truth under
 each pair's posterior covariance and the posterior's time. `--edges` puts every LiDAR's board edges in the graph
 (the bound then has them too).
@@ -46,10 +49,10 @@ def _one(args) -> dict:
     from estimators.solvers.rig_graph import pair_transform
     from geometry.rotations import T_log
 
-    seed, cameras, poses, lidars, scanners, samples, offset, edges = args
+    seed, cameras, poses, lidars, scanners, samples, offset, edges, bias, lidar = args
     with tempfile.TemporaryDirectory() as tmp:
-        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners,
-                              range_offset_m=offset)
+        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidar, lidars=lidars, scanners=scanners,
+                              range_offset_m=offset, range_bias=bias)
         gt = json.loads((folder / "ground_truth.json").read_text())
         rig = load_rig(folder)
         t0 = time.perf_counter()
@@ -59,8 +62,13 @@ def _one(args) -> dict:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out = {"frames_total": len(rig.sensor("lidar0").stems), "seconds": seconds,
            "posterior_s": res.timings_s.get("posterior", 0.0), "peak_mb": peak_mb, "pairs": {},
-           "range_models": {n: (r["model"], r.get("value_m", r.get("offset_m")), r.get("sd_m"))
-                            for n, r in res.range_offsets.items()}}
+           "range_models": {n: (r["model"], r.get("value_m"), r.get("sd_m"))
+                            for n, r in res.range_models.items()}}
+    if bias is not None and "terms" in res.range_models.get("lidar0", {}):
+        truth = gt["range_bias"]["lidar0"]
+        out["terms_z"] = {n: (v["value_m"] - (truth["offset_m"] if n == "offset" else truth["dark_m"] if n == "dark"
+                                              else truth["ring_offsets_m"][int(n.split()[1])])) / v["sd_m"]
+                          for n, v in res.range_models["lidar0"]["terms"].items()}
     bound = _bound(res, gt)
     for a, b in res.pairs():
         truth = np.linalg.inv(np.array(gt[f"T_cam0_{a}"])) @ np.array(gt[f"T_cam0_{b}"])
@@ -107,7 +115,7 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
                      sol.noise_scale, intrinsics)
 
 
-def _timed(seed: int, cameras, poses, lidars, scanners, samples, offset, edges) -> float:
+def _timed(seed: int, cameras, poses, lidars, scanners, samples, offset, edges, bias, lidar) -> float:
     """Measure + solve (+ posterior) of rig ``seed`` in this process with 2 workers, as the command runs it."""
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
@@ -115,8 +123,8 @@ def _timed(seed: int, cameras, poses, lidars, scanners, samples, offset, edges) 
     import emcee  # noqa: F401  (imported by the posterior: not part of a rig's time here)
 
     with tempfile.TemporaryDirectory() as tmp:
-        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidars=lidars, scanners=scanners,
-                              range_offset_m=offset)
+        folder = simulate_rig(Path(tmp) / "rig", poses, seed, cameras, lidar, lidars=lidars, scanners=scanners,
+                              range_offset_m=offset, range_bias=bias)
         rig = load_rig(folder)
         t0 = time.perf_counter()
         calibrate_rig(rig, np.random.default_rng(seed), workers=2, samples=samples, edges=edges)
@@ -133,18 +141,24 @@ def main() -> None:
     ap.add_argument("--posterior", type=int, default=0, metavar="N", help="effective posterior samples (0: none)")
     ap.add_argument("--range-offset", type=float, default=0.0, metavar="M",
                     help="a range offset (m) on every return of lidar0")
+    ap.add_argument("--range-bias", default=None, metavar="OFF,RING,DARK",
+                    help="range errors (m) injected into lidar0: a global offset, per-ring offsets drawn with this "
+                         "sd, the black squares' offset (as the single pair's --range-bias)")
+    ap.add_argument("--lidar", default="hdl64e", choices=["hdl64e", "vlp16", "os64"], help="lidar0's beams")
     ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--timed", type=int, default=0, metavar="K",
                     help="then time the first K rigs one at a time with both cores, as the command runs a rig")
     args = ap.parse_args()
+    bias = tuple(float(v) for v in args.range_bias.split(",")) if args.range_bias else None
     with ProcessPoolExecutor(args.workers) as pool:
         runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior,
-                                     args.range_offset, args.edges) for s in range(args.rigs)]))
+                                     args.range_offset, args.edges, bias, args.lidar) for s in range(args.rigs)]))
     more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
     more += "; every LiDAR's board edges in the graph (--edges)" if args.edges else ""
     frames = np.mean([r["frames_total"] for r in runs])
-    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + an HDL-64E-like LiDAR{more}, {args.poses} board poses "
+    family = {"hdl64e": "an HDL-64E", "vlp16": "a VLP-16", "os64": "an OS1-64"}[args.lidar]
+    print(f"{args.rigs} simulated rigs: {args.cameras} cameras + {family}-like LiDAR{more}, {args.poses} board poses "
           f"in the first camera's view, {frames:.0f} frames in all (the cameras that do not share its view have "
           "boards of their own)")
     post = args.posterior > 0
@@ -178,20 +192,36 @@ def main() -> None:
         print(f"of which the posterior: median {np.median(tp):.1f} s, max {np.max(tp):.1f} s")
     if args.timed:
         t = [_timed(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior, args.range_offset,
-                    args.edges) for s in range(args.timed)]
+                    args.edges, bias, args.lidar) for s in range(args.timed)]
         print(f"{what}, one rig at a time with both cores (as `lidarcam calibrate`, 2 workers), {args.timed} rigs: "
               f"median {np.median(t):.1f} s, max {np.max(t):.1f} s")
     for name in runs[0]["range_models"]:
         models = [r["range_models"][name] for r in runs]
-        truth = args.range_offset if name == "lidar0" else 0.0
-        line = (f"{name}: range offset (true {1000 * truth:.0f} mm) included by the test in "
-                f"{sum(m[0] == 'offset' for m in models)} of {len(models)} rigs")
-        err = np.array([m[1] - truth for m in models if m[0] == "offset"])
+        truth = args.range_offset + (bias[0] if bias else 0.0) if name == "lidar0" else 0.0
+        chosen = {m: sum(c[0] == m for c in models) for m in ("per-ring", "offset+dark", "full")}
+        line = (f"{name}: range offset (true {1000 * truth:.0f} mm) included by the tests in "
+                f"{sum(m[0] != 'none' for m in models)} of {len(models)} rigs (per-ring offsets in "
+                f"{chosen['per-ring'] + chosen['full']}, black squares in {chosen['offset+dark'] + chosen['full']})")
+        err = np.array([m[1] - truth for m in models if m[0] != "none"])
         if err.size:
-            sd = np.array([m[2] for m in models if m[0] == "offset"])
+            sd = np.array([m[2] for m in models if m[0] != "none"])
             line += (f"; where included, its RMS error {1000 * np.sqrt(np.mean(err**2)):.1f} mm, mean sd "
                      f"{1000 * np.mean(sd):.1f} mm, mean d2 {np.mean((err / sd) ** 2):.2f} (1 ideal)")
         print(line)
+    if bias is not None:
+        z = [r["terms_z"] for r in runs if "terms_z" in r]
+        full = sum(r["range_models"]["lidar0"][0] == "full" for r in runs)
+        print(f"lidar0's injected errors (offset {1000 * bias[0]:.0f} mm, rings drawn with sd {1000 * bias[1]:.0f} mm, "
+              f"black squares {1000 * bias[2]:.0f} mm): every term (full) chosen in {full} of {len(runs)} rigs")
+        for name in ("offset", "dark"):
+            v = np.array([d[name] for d in z if name in d])
+            if v.size:
+                print(f"  {name}: z (estimate - truth over its sd) mean {np.mean(v):+.2f}, RMS {np.sqrt(np.mean(v**2)):.2f}"
+                      f" (1 ideal), beyond 3 in {np.sum(np.abs(v) > 3)} of {v.size}")
+        rings = np.concatenate([[v for n, v in d.items() if n.startswith("ring ")] for d in z] or [[]])
+        if rings.size:
+            print(f"  ring terms: RMS z {np.sqrt(np.mean(rings**2)):.2f} over {rings.size} (below 1: their prior sd, a "
+                  "fifth of the range accuracy, is wider than the sd they were drawn with)")
 
 
 if __name__ == "__main__":

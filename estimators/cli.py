@@ -444,12 +444,6 @@ def _calibrate_rig(args) -> int:
     from .io.rig_dataset import load_rig
     from .rig_calibration import calibrate_rig, write_rig_calibration
 
-    from .errors import LidarcamError
-    from .rig_calibration import RIG_RANGE_MODELS
-
-    if args.range_model not in RIG_RANGE_MODELS:
-        raise LidarcamError(f"--range-model {args.range_model} is not available for a rig",
-                            hint="a rig's LiDARs take none, offset or auto (a global range offset per LiDAR)")
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
                            samples=args.samples, range_model=args.range_model, edges=bool(args.edges))
@@ -467,7 +461,7 @@ def _calibrate_rig(args) -> int:
 def _print_rig(result) -> None:
     import numpy as np
 
-    from .rig_calibration import range_offset_words
+    from .rig_calibration import range_model_words
     from .solvers.outline_check import outline_shift_words
     from .solvers.rig_graph import translation_sd_in_first
 
@@ -487,7 +481,7 @@ def _print_rig(result) -> None:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
         print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else "")
-              + (f"; {range_offset_words(result.range_offsets[s.name])}" if s.name in result.range_offsets else ""))
+              + (f"; {range_model_words(result.range_models[s.name])}" if s.name in result.range_models else ""))
     print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
           "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
           + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")

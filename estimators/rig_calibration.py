@@ -10,6 +10,7 @@ and is reported beside it ("pairwise only"). Two cameras are linked by every fra
 """
 from __future__ import annotations
 
+import copy
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -36,9 +37,10 @@ from .solvers.refinement import RefinementOptions, board_corner_residuals_px, po
 from .lidar.lidar_models import range_accuracy_for
 from .solvers.board_edges import crossings, edge_scatter
 from .solvers.outline_check import outline_check
-from .solvers.range_model import MODEL_TEST_P, RangeTerms, frame_rings, frame_whitener
-from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, offset_test, outline_key, pair_board_covariance,
-                                solve_rig, spanning_tree, translation_sd_in_first)
+from .solvers.range_model import (MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener,
+                                  terms_for)
+from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, outline_key, pair_board_covariance, solve_rig,
+                                spanning_tree, terms_fit, terms_test, translation_sd_in_first)
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -84,9 +86,9 @@ class RigResult:
     # The board pose that most helps the weakest camera-LiDAR pair (``analysis.rig_layout``), with that pair's
     # predicted standard deviations before and after it; None when none was computed or none is feasible.
     next_pose: dict | None = None
-    # Each LiDAR's range model: ``model`` (``offset`` or ``none``), ``prior_sd_m``, the test under ``auto``, and with
-    # an offset its ``value_m`` and ``sd_m`` (:func:`_range_offsets`).
-    range_offsets: dict = field(default_factory=dict)
+    # Each LiDAR's range model: ``model`` (``none``, ``offset``, ``per-ring``, ``offset+dark`` or ``full``),
+    # ``prior_sd_m``, the tests under ``auto``, and with terms each one's estimate (:func:`_range_models`).
+    range_models: dict = field(default_factory=dict)
     # Each 3D camera-LiDAR pair's board-edges check under the joint estimate (``(camera, lidar) -> record``, as a
     # single pair's ``board_edges``; :func:`_outline_checks`).
     outline_checks: dict = field(default_factory=dict)
@@ -138,11 +140,13 @@ class RigResult:
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
             if s.name in self.edges:
                 sensors[-1]["board_edges"] = self.edges[s.name]
-            if s.name in self.range_offsets:
-                sensors[-1]["range_model"] = dict(self.range_offsets[s.name])
-                if self.posterior is not None and s.name in self.posterior.offsets:
-                    o = self.posterior.offsets[s.name]
-                    sensors[-1]["range_model"]["posterior_95%_m"] = np.percentile(o, [2.5, 97.5]).tolist()
+            if s.name in self.range_models:
+                record = sensors[-1]["range_model"] = copy.deepcopy(self.range_models[s.name])
+                if self.posterior is not None and s.name in self.posterior.range_terms:
+                    q = np.percentile(self.posterior.range_terms[s.name], [2.5, 97.5], axis=0)
+                    record["posterior_95%_m"] = q[:, 0].tolist()
+                    for k, term in enumerate(record["terms"].values()):
+                        term["posterior_95%_m"] = q[:, k].tolist()
         transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
         for (a, b), record in self.outline_checks.items():
             transforms[f"T_{a}_{b}"]["board_edges"] = record
@@ -296,9 +300,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
         covariance, which carries them, is then the uncertainty reported), with a warning saying so.
     range_model : str
-        Each LiDAR's range model: ``none`` (planes), ``offset`` (a global range offset under the prior of its range
-        accuracy, dataset.yaml's ``range_accuracy_m`` or its family's), or ``auto``: the offset where a
-        likelihood-ratio test at ``MODEL_TEST_P`` supports it (:func:`_range_offsets`).
+        Each LiDAR's range model, as the single pair's ``--range-model``: ``none`` (planes), ``offset``,
+        ``per-ring``, ``offset+dark``, ``full`` (the terms under priors from its range accuracy, dataset.yaml's
+        ``range_accuracy_m`` or its family's), or ``auto``: the terms that likelihood-ratio tests at
+        ``MODEL_TEST_P`` support (:func:`_range_models`).
     edges : bool
         The board's edges as measurements too (``--edges``): each LiDAR's ring ends (a 2D scanner's segment ends)
         on the board's outline, in the joint graph (:func:`_with_edges`); the posterior holds their share to
@@ -383,20 +388,16 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                if st in T_ref_board}, lid.lidar == "2d")
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
-    range_offsets: dict = {}
+    range_models: dict = {}
     if range_model != "none" and lidar_views:
-        lidar_views, range_offsets = _range_offsets(rig, names, camera_views, lidar_views, lidar_obs, solution,
-                                                    range_model)
-        if any(lv.has_offset for lv in lidar_views):
+        lidar_views, range_models = _range_models(rig, names, camera_views, lidar_views, lidar_obs, pair_frames,
+                                                  solution, range_model)
+        if any(lv.has_terms for lv in lidar_views):
             solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                  refine_intrinsics)
-        for n, (value, sd) in solution.offsets.items():
-            range_offsets[n].update(value_m=value, sd_m=sd)
-            prior = range_offsets[n]["prior_sd_m"]
-            if abs(value) > 3 * prior:
-                warnings.append(f"{n}: its range offset {1000 * value:+.1f} mm is beyond 3 times its range accuracy "
-                                f"({1000 * prior:.0f} mm): a wrong board in some frames, or a range_accuracy_m in "
-                                "dataset.yaml too small for this sensor")
+        for lv in lidar_views:
+            if lv.has_terms:
+                _range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
     for n, s in solution.noise_scale.items():
         ss, dof = solution.chi2_dof[n]
         if s > 1.0 and chi2.sf(ss, dof) < NOISE_WARNING_P:
@@ -439,7 +440,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose, range_offsets, outline_checks, edge_records)
+                     tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records)
 
 
 def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
@@ -549,45 +550,157 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
     return out
 
 
-RIG_RANGE_MODELS = ("none", "offset", "auto")
+def range_model_words(record: dict) -> str:
+    """A LiDAR's range model in words (:func:`_range_models`' record)."""
+    tests = [t for t in record.get("tests", ())]
+    said = ", ".join(f"{t['model']} p = {t['p_value']:.2g}" for t in tests)
+    how = f"tests at {record['test_p']:g}: {said}" if tests else "requested"
+    terms = record.get("terms") or {}
+    if not terms:
+        return f"no range terms ({how})" if tests else "no range terms (--range-model none)"
+    parts = [f"range offset {1000 * terms['offset']['value_m']:+.1f} +- {1000 * terms['offset']['sd_m']:.1f} mm"]
+    rings = [v["value_m"] for n, v in terms.items() if n.startswith("ring ")]
+    if rings:
+        parts.append(f"{len(rings)} ring offsets, spread (sd) {1000 * float(np.std(rings)):.1f} mm")
+    if "dark" in terms:
+        parts.append(f"black squares {1000 * terms['dark']['value_m']:+.1f} +- {1000 * terms['dark']['sd_m']:.1f} mm")
+    return "; ".join(parts) + f" ({how}; prior sd {1000 * record['prior_sd_m']:.0f} mm)"
 
 
-def range_offset_words(record: dict) -> str:
-    """A LiDAR's range model in words (:func:`_range_offsets`' record)."""
-    test = (f"test p = {record['p_value']:.2g} at {record['test_p']:g}" if "p_value" in record else "requested")
-    if record["model"] == "offset":
-        return (f"range offset {1000 * record['value_m']:+.1f} +- {1000 * record['sd_m']:.1f} mm ({test}; prior sd "
-                f"{1000 * record['prior_sd_m']:.0f} mm)")
-    return f"no range offset ({test})" if "p_value" in record else "no range offset (--range-model none)"
+def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solution: RigSolution,
+                  blurred: bool = True) -> dict:
+    """Each of LiDAR ``name``'s frames' labels for the range terms, by stem: ``(rings, black shares)``. Rings come
+    from the scan's field or its beams' elevations clustered over all its frames (``range_model.frame_rings``);
+    the black squares are placed by geometry (``range_model.frame_labels``) on the joint estimate's board pose,
+    with the colours the image of the camera the frame's board was found with shows (a numbering turned to the
+    reference camera's is of a pattern that looks the same turned), under the joint estimate of that camera-LiDAR
+    transform, blurred by its covariance (the camera's own board pose, noisier, would shrink the black squares'
+    term as an error in a regressor does) (``blurred``; else by the labels' floor alone: the covariance of a
+    solution without the terms is inflated by them). A 2D scanner's frames have neither."""
+    measured: dict = {}  # stem -> (camera, frame) whose LiDAR observation is the one in ``obs``
+    for (cam, lid), frames in pair_frames.items():
+        for f in frames if lid == name else ():
+            if f.name in obs and obs[f.name] is f.lidar:
+                measured.setdefault(f.name, (cam, f))
+    stems = list(obs)
+    rings = dict(zip(stems, frame_rings([_Framed(obs[st]) for st in stems])))
+    dark = dict.fromkeys(stems)
+    for cam in sorted({c for c, _ in measured.values()}):
+        group = [st for st in stems if st in measured and measured[st][0] == cam]
+        T, C = solution.transform(cam, name)
+        T_c = np.linalg.inv(solution.T_ref[cam])
+        boards = [T_c @ solution.T_ref_board[st] if st in solution.T_ref_board else
+                  measured[st][1].camera.T_camera_board for st in group]
+        labels = frame_labels([measured[st][1] for st in group], rig.board, T, boards,
+                              placement_cov=C if blurred else None)
+        dark.update(zip(group, labels.dark))
+    return {st: (rings[st], dark[st]) for st in stems}
 
 
-def _range_offsets(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                   solution: RigSolution, range_model: str) -> tuple[list, dict]:
-    """Each LiDAR's views with its global range offset where the model has one, and per LiDAR the record:
-    ``model`` (``offset`` or ``none``), ``prior_sd_m`` (its range accuracy), and under ``auto`` the test
-    (``rig_graph.offset_test``: ``statistic``, ``p_value``, ``test_p`` and the offset's estimate with it)."""
+def _range_models(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                  pair_frames: dict, solution: RigSolution, range_model: str) -> tuple[list, dict]:
+    """Each LiDAR's views with the range terms of its model (``solvers.range_model``: a global offset, per-ring
+    offsets, the black squares' offset; priors from its range accuracy, dataset.yaml's ``range_accuracy_m`` or its
+    family's), and per LiDAR the record (:func:`_range_record`).
+
+    ``auto`` chooses as the single pair does (``refinement._choose_range_model``): a global offset against none,
+    then the per-ring and the black-square blocks each against the offset (against none, with the offset in the
+    block, when the offset alone is not supported); both when both pass. Each test is a likelihood ratio on the
+    joint graph at the graph's noise scales (``rig_graph.terms_test``: an overdispersed sensor's statistic is
+    scaled down by its excess). A model the data cannot hold (per-ring without rings, the black squares without
+    both colours on the boards) is not tried; a requested one falls back to the terms the data allow."""
     out, records = [], {}
     for lv in lidar_views:
         sensor = rig.sensor(lv.name)
-        prior = float(sensor.range_accuracy_m or range_accuracy_for(sensor.lidar_family))
+        acc = float(sensor.range_accuracy_m or range_accuracy_for(sensor.lidar_family))
         obs = lidar_obs[lv.name]
-        with_offset = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms(("offset",), (prior,)))
-                                          for st in lv.W}, offset_prior_sd_m=prior)
-        record = {"model": range_model, "prior_sd_m": prior}
-        if range_model == "auto":
-            try:
-                without = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, RangeTerms((), ()))
-                                              for st in lv.W})
-                test = offset_test(names, rig.reference, camera_views, lidar_views, solution, without, with_offset)
-            except (LidarcamError, np.linalg.LinAlgError) as exc:
-                why = exc.message if isinstance(exc, LidarcamError) else str(exc)
-                records[lv.name] = {"model": "none", "prior_sd_m": prior, "reason": f"not tested: {why}"}
-                out.append(lv)
-                continue
-            record.update(test, test_p=MODEL_TEST_P, model="offset" if test["p_value"] < MODEL_TEST_P else "none")
-        out.append(with_offset if record["model"] == "offset" else lv)
+        record: dict = {"requested": range_model, "prior_sd_m": acc}
+        placed: dict = {}  # the labels under each solution, placed once
+        try:
+            def views(model: str, solved: RigSolution, blurred: bool = True) -> LidarViews:
+                key = (id(solved), blurred)
+                if key not in placed:
+                    placed[key] = (solved, _lidar_labels(rig, lv.name, obs, pair_frames, solved, blurred))
+                labels = placed[key][1]
+                known = FrameLabels(tuple(r for r, _ in labels.values()), tuple(d for _, d in labels.values()))
+                terms = terms_for(model, known, acc) or RangeTerms((), ())
+                return replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, terms, *labels[st]) for st in lv.W},
+                               terms=terms)
+
+            if range_model != "auto":
+                chosen = views(range_model, solution, blurred=False)
+                record["model"] = chosen.terms.model if chosen.has_terms else "none"
+            else:
+                chosen, tests = _choose_terms(names, rig.reference, camera_views, lidar_views, solution, views,
+                                              lv.name)
+                record.update(model=chosen.terms.model if chosen.has_terms else "none", tests=tests,
+                              test_p=MODEL_TEST_P)
+        except (LidarcamError, np.linalg.LinAlgError) as exc:
+            why = exc.message if isinstance(exc, LidarcamError) else str(exc)
+            records[lv.name] = {**record, "model": "none", "reason": f"not tested: {why}"}
+            out.append(lv)
+            continue
+        out.append(chosen if chosen.has_terms else lv)
         records[lv.name] = record
     return out, records
+
+
+def _choose_terms(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,
+                  views, name: str) -> tuple:
+    """``auto``'s choice for LiDAR ``name`` (:func:`_range_models`): its chosen views (``views(model, solution)``) and
+    the tests (``model``, ``against``, ``statistic``, ``dof``, ``p_value``; the offset's estimate with it,
+    ``offset_m`` and ``sd_m``).
+
+    Where the LiDAR's planes disagree beyond their noise (its chi-square beyond ``NOISE_WARNING_P``), the tests
+    are made at the sensors' noise scales under the largest model, and its colours placed under that model's
+    estimate and blurred by its covariance: a range term left out inflates its LiDAR's excess and the
+    extrinsic's covariance, which would scale down the very statistic that tests it (quasi-likelihood's
+    dispersion is estimated under the largest model) and smear the squares' placement."""
+    ss, dof = solution.chi2_dof.get(name, (0.0, 1.0))
+    largest = views("full", solution, blurred=False)
+    if largest.has_terms and chi2.sf(ss, dof) < NOISE_WARNING_P:  # without a significant excess: as they are
+        solution = solve_rig(names, reference, camera_views,
+                             [largest if v.name == largest.name else v for v in lidar_views], solution.T_ref,
+                             solution.T_ref_board, solution.intrinsics is not None)
+    fits, seen = {}, set()
+    for model in ("none", "offset", "per-ring", "offset+dark"):
+        v = views(model, solution)
+        if v.terms.names in seen:  # per-ring without rings, black squares without both colours: nothing new
+            continue
+        seen.add(v.terms.names)
+        fits[model] = (v, terms_fit(names, reference, camera_views, lidar_views, solution, v))
+
+    def test(model: str, against: str) -> dict:
+        return {"model": model, "against": against, **terms_test(fits[against][1], fits[model][1])}
+
+    tests = [{**test("offset", "none"), "offset_m": float(fits["offset"][1]["values_m"][0]),
+              "sd_m": float(fits["offset"][1]["sd_m"][0])}]
+    base = "offset" if tests[0]["p_value"] < MODEL_TEST_P else "none"
+    blocks = []
+    for model in ("per-ring", "offset+dark"):
+        if model in fits:
+            tests.append(test(model, base))
+            if tests[-1]["p_value"] < MODEL_TEST_P:
+                blocks.append(model)
+    if len(blocks) == 2:
+        return views("full", solution), tests
+    return fits[blocks[0] if blocks else base][0], tests
+
+
+def _range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.ndarray, warnings: list,
+                  name: str) -> None:
+    """A LiDAR's range record with its terms' final estimates (``terms``: by name, ``value_m``, ``sd_m``,
+    ``prior_sd_m``; the global offset's also as ``value_m`` and ``sd_m``), and a warning for each term beyond 3
+    prior standard deviations (a wrong board in some frames, or a range accuracy too small for the sensor)."""
+    record["terms"] = {n: {"value_m": float(v), "sd_m": float(s), "prior_sd_m": float(p)}
+                       for n, v, s, p in zip(terms.names, values, sds, terms.prior_sd)}
+    record.update(value_m=float(values[0]), sd_m=float(sds[0]))
+    beyond = [n for n, v, p in zip(terms.names, values, terms.prior_sd) if abs(v) > 3 * p]
+    if beyond:
+        said = ", ".join(f"{n} {1000 * values[terms.names.index(n)]:+.1f} mm" for n in beyond)
+        warnings.append(f"{name}: its range terms {said} lie beyond 3 times their prior sd (range accuracy "
+                        f"{1000 * record['prior_sd_m']:.0f} mm): a wrong board in some frames, or a "
+                        "range_accuracy_m in dataset.yaml too small for this sensor")
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

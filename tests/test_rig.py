@@ -236,7 +236,7 @@ def test_each_sensors_share_of_the_unknowns_adds_up_to_them_all(rig_result):
 
     sol = rig_result.solution
     cameras = list(rig_result.camera_views)
-    lidars = [replace(lv, ranged=None, offset_prior_sd_m=None, edges=None) for lv in rig_result.lidar_views]
+    lidars = [replace(lv, ranged=None, terms=None, edges=None) for lv in rig_result.lidar_views]
     inner = graph_reference(sol.reference, [c.name for c in cameras])
     stems = sorted(sol.T_ref_board)
     owners: list = []
@@ -336,18 +336,18 @@ def _assert_curvature_is(like, cov, h=1e-4):
     assert np.all(np.abs(shift) < 0.01 * np.sqrt(np.diag(cov)))
 
 
-def test_lidars_without_a_range_offset_keep_planes_alone(rig_folder, rig_result, tmp_path):
-    # No LiDAR of the simulated rig has a range error: the test keeps each (two 3D LiDARs and the scanner) on
-    # planes alone (p above 0.001), each offset estimated within 3 sd of 0. A range model a rig does not take is
-    # a one-line error with a non-zero exit and no output.
-    assert set(rig_result.range_offsets) == {"lidar0", "lidar1", "scan0"}
-    for rec in rig_result.range_offsets.values():
-        assert rec["model"] == "none" and rec["p_value"] > 1e-3 and abs(rec["offset_m"]) < 3 * rec["sd_m"]
-    out = tmp_path / "out"
-    run = subprocess.run([sys.executable, "-m", "estimators", "calibrate", str(rig_folder), "--out", str(out),
-                          "--range-model", "per-ring"], capture_output=True, text=True, timeout=600)
-    assert run.returncode != 0 and "--range-model per-ring is not available for a rig" in run.stderr
-    assert len(run.stderr.strip().splitlines()) <= 2 and not out.exists()
+def test_lidars_without_range_errors_keep_planes_alone(rig_result):
+    # No LiDAR of the simulated rig has a range error: the tests keep each (two 3D LiDARs and the scanner) on
+    # planes alone (every p above 0.001), each offset estimated within 3 sd of 0. The 3D LiDARs' per-ring and
+    # black-square blocks are tested too (their rings from the scans, the squares placed by geometry: both colours
+    # on the boards); the scanner has neither, so only its offset is.
+    assert set(rig_result.range_models) == {"lidar0", "lidar1", "scan0"}
+    for name, rec in rig_result.range_models.items():
+        tested = [t["model"] for t in rec["tests"]]
+        assert tested == (["offset"] if name == "scan0" else ["offset", "per-ring", "offset+dark"]), name
+        assert rec["model"] == "none" and min(t["p_value"] for t in rec["tests"]) > 1e-3, name
+        off = rec["tests"][0]
+        assert abs(off["offset_m"]) < 3 * off["sd_m"], name
 
 
 def test_each_3d_pair_is_checked_by_its_board_edges_and_a_wrong_board_size_is_caught(rig_folder, rig_result,
@@ -415,32 +415,72 @@ def offset_rig(tmp_path_factory):
 
 def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(offset_rig):
     # lidar0's returns all 3 cm long. Planes alone put the truth far outside the covariance (d2 above 100); under
-    # auto the likelihood-ratio test includes the offset (p < 0.001), its estimate is within 3 sd of 3 cm, and the
-    # camera-LiDAR transform is back: the truth's d2 below 16.8 (99% of chi-square 6) and within 5 mm. The
-    # posterior samples the offset too: its Hessian at the MAP is the graph's information of the poses and the
-    # offset (within 1%), and its samples' offset agrees with the graph's.
+    # auto the likelihood-ratio test includes the offset (p < 0.001) and no other term, its estimate is within 3 sd
+    # of 3 cm, and the camera-LiDAR transform is back: the truth's d2 below 16.8 (99% of chi-square 6) and within
+    # 5 mm. The posterior samples the offset too: its Hessian at the MAP is the graph's information of the poses
+    # and the offset (within 1%), and its samples' offset agrees with the graph's.
     rig = load_rig(offset_rig)
     truth = _truth(offset_rig, "cam0", "lidar0")
     plain = calibrate_rig(rig, np.random.default_rng(0), range_model="none", advise=False)
     T, C = plain.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
-    assert xi @ np.linalg.solve(C, xi) > 100 and plain.range_offsets == {}
+    assert xi @ np.linalg.solve(C, xi) > 100 and plain.range_models == {}
     res = calibrate_rig(rig, np.random.default_rng(0), advise=False)
-    rec = res.range_offsets["lidar0"]
-    assert rec["model"] == "offset" and rec["p_value"] < 1e-3
+    rec = res.range_models["lidar0"]
+    assert rec["model"] == "offset" and rec["tests"][0]["p_value"] < 1e-3 and list(rec["terms"]) == ["offset"]
     assert abs(rec["value_m"] - 0.03) < 3 * rec["sd_m"] and rec["sd_m"] < 0.005
     T, C = res.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
     assert xi @ np.linalg.solve(C, xi) < 16.8 and 1000 * np.linalg.norm(xi[3:]) < 5.0
     like = RigLikelihood(res.solution, list(res.camera_views), list(res.lidar_views))
-    assert like.ndim == 13 and like.offsets == ["lidar0"]
+    assert like.ndim == 13 and like.ranged == ["lidar0"]
     _assert_curvature_is(like, res.solution.covariance_inner)
     post = sample_rig_posterior(res.solution, list(res.camera_views), list(res.lidar_views),
                                 np.random.default_rng(4), min_ess=400)
-    o = post.offsets["lidar0"]
+    o = post.range_terms["lidar0"][:, 0]
     assert abs(o.mean() - rec["value_m"]) < 0.2 * rec["sd_m"] and o.std() == pytest.approx(rec["sd_m"], rel=0.15)
     rows = res.to_json()["sensors"]
     assert next(r for r in rows if r["name"] == "lidar0")["range_model"]["model"] == "offset"
+
+
+@pytest.fixture(scope="module")
+def ranged_rig(tmp_path_factory):
+    return simulate_rig(tmp_path_factory.mktemp("ranged") / "rig", n_poses=10, seed=11, cameras=2,
+                        range_bias=(0.03, 0.005, 0.01))
+
+
+def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimated_in_the_rig(ranged_rig):
+    # lidar0's returns 3 cm long, each ring a further N(0, 5 mm), the black squares' 1 cm longer still (the single
+    # pair's injected errors). Under auto every block passes its test (p < 0.001, at the noise scales of the
+    # largest model: under the planes' scale, which the errors inflate 30-fold, the rings' test failed), the
+    # model is full, the offset and the black squares' term are within 3 sd of the truth and the rings' terms
+    # within it on the whole (RMS z below 1.5: their prior, 10 mm, is wider than the 5 mm they were drawn with),
+    # and both camera-LiDAR transforms are back: the truth's d2 below 16.8 (99% of chi-square 6). The posterior
+    # samples every term: its black squares' term agrees with the graph's. A requested model is fitted untested.
+    rig = load_rig(ranged_rig)
+    gt = json.loads((ranged_rig / "ground_truth.json").read_text())["range_bias"]["lidar0"]
+    res = calibrate_rig(rig, np.random.default_rng(0), samples=300, advise=False)
+    rec = res.range_models["lidar0"]
+    assert rec["model"] == "full" and all(t["p_value"] < 1e-3 for t in rec["tests"])
+    terms = rec["terms"]
+    truth = {n: gt["offset_m"] if n == "offset" else gt["dark_m"] if n == "dark" else
+             gt["ring_offsets_m"][int(n.split()[1])] for n in terms}
+    z = {n: (v["value_m"] - truth[n]) / v["sd_m"] for n, v in terms.items()}
+    assert abs(z["offset"]) < 3 and abs(z["dark"]) < 3 and terms["dark"]["sd_m"] < 0.001
+    rings = np.array([v for n, v in z.items() if n.startswith("ring ")])
+    assert rings.size > 30 and np.sqrt(np.mean(rings**2)) < 1.5
+    for cam in ("cam0", "cam1"):
+        T, C = res.solution.transform(cam, "lidar0")
+        xi = T_log(np.linalg.inv(T) @ _truth(ranged_rig, cam, "lidar0"))
+        assert xi @ np.linalg.solve(C, xi) < 16.8, cam
+    dark = res.posterior.range_terms["lidar0"][:, list(terms).index("dark")]
+    assert abs(dark.mean() - terms["dark"]["value_m"]) < 0.25 * terms["dark"]["sd_m"]
+    assert dark.std() == pytest.approx(terms["dark"]["sd_m"], rel=0.2)
+    row = next(r for r in res.to_json()["sensors"] if r["name"] == "lidar0")["range_model"]
+    assert len(row["terms"]["dark"]["posterior_95%_m"]) == 2
+    asked = calibrate_rig(rig, np.random.default_rng(0), range_model="offset+dark", advise=False)
+    rec = asked.range_models["lidar0"]
+    assert rec["model"] == "offset+dark" and list(rec["terms"]) == ["offset", "dark"] and "tests" not in rec
 
 
 def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one_joint_sample(rig_folder, rig_result):

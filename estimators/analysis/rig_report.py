@@ -55,11 +55,11 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
              f"{html.escape(sol.reference)}; {how}.</p>"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
-    from ..rig_calibration import range_offset_words
+    from ..rig_calibration import range_model_words
 
     rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
              f"{sol.noise_scale.get(s.name, 1.0):.2f}",
-             range_offset_words(result.range_offsets[s.name]) if s.name in result.range_offsets else "-"]
+             range_model_words(result.range_models[s.name]) if s.name in result.range_models else "-"]
             for s in result.rig.sensors]
     parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
                                                     "LiDAR range model"]))

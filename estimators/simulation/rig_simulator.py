@@ -28,6 +28,7 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_po
 from ..io.dataset import dataset_spec, write_dataset_yaml
 from ..io.output import atomic_directory
 from ..io.pointcloud_io import write_scan
+from .range_bias import RangeBias
 from .rendering import add_pixel_noise, pixel_rays, render_clean
 from .scene import cast, cast_background
 from .simulator import (BEAM_MODELS, default_rig, default_room, iter_frames, rotated_patches, sample_board_poses,
@@ -100,7 +101,8 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
-                 overwrite: bool = False, lidars: int = 1, scanners: int = 0, range_offset_m: float = 0.0) -> Path:
+                 overwrite: bool = False, lidars: int = 1, scanners: int = 0, range_offset_m: float = 0.0,
+                 range_bias: tuple[float, float, float] | None = None) -> Path:
     """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
 
     Parameters
@@ -124,6 +126,10 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     range_offset_m : float
         A range offset (m) added to every return of ``lidar0`` (a systematic range error; ground_truth.json
         records it as ``range_offset_m``).
+    range_bias : tuple of float, optional
+        ``(global offset, sd of the per-ring offsets, black-square offset)`` (m) injected into ``lidar0``'s returns
+        as the single pair's simulation does (``range_bias.RangeBias``, the rings' offsets drawn from a generator
+        of their own); ground_truth.json records the terms as ``range_bias``.
 
     Returns
     -------
@@ -168,6 +174,11 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         background_s = cast_background(T_l0_s[:3, 3], dirs_s @ T_l0_s[:3, :3].T, static, beams_s.max_range_m)
     truth = {"reference": "cam0", "T_cam0_cam0": np.eye(4).tolist(), "T_cam0_lidar0": rig.T_camera_lidar.tolist(),
              "range_offset_m": {"lidar0": float(range_offset_m)}}
+    bias = None
+    if range_bias is not None:
+        bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
+        truth["range_bias"] = {"lidar0": {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
+                                          "dark_m": bias.dark_m}}
     truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
     if T_l0_l1 is not None:
         truth["T_cam0_lidar1"] = (rig.T_camera_lidar @ T_l0_l1).tolist()
@@ -181,7 +192,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             (tmp / name).mkdir()
         seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
         boards = {}
-        for f in iter_frames(rig, len(poses), rng, poses, workers=1):
+        for f in iter_frames(rig, len(poses), rng, poses, bias=bias, workers=1):
             boards[f.name] = f.T_camera_board.tolist()
             if _sees_board(rig.camera, f.T_camera_board, rig.board):
                 cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)

@@ -39,6 +39,7 @@ from .board_edges import edge_factor, outline_prior, shift_prior
 from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
                       corner_residuals_intrinsics, lidar_plane, lidar_residual, nuisance_plane_factor,
                       nuisance_residual, plane_factor)
+from .range_model import RangeTerms
 
 
 def sensor_key(k: int) -> int:
@@ -53,8 +54,8 @@ def intrinsics_key(k: int) -> int:
     return gtsam.symbol("k", k)
 
 
-def offset_key(k: int) -> int:
-    """A LiDAR's range offset (a 1-vector, m)."""
+def terms_key(k: int) -> int:
+    """A LiDAR's range terms (a vector, m: ``range_model.RangeTerms``, the global offset first)."""
     return gtsam.symbol("o", k)
 
 
@@ -94,16 +95,17 @@ class LidarViews:
     and whether it is a scan line (2D).
 
     ``ranged``: per stem the frame's ``range_model.FrameWhitener`` in the range model's form (the residual
-    ``W [s pi; S beta] + e0`` from the points' ranges), used instead of ``W`` when given: with the global range
-    offset (terms ``offset``) when ``offset_prior_sd_m`` is set (the offset a variable of the graph under that
-    prior), else without terms (``affine``: the form the offset is tested against)."""
+    ``W [s pi; S beta] + e0`` from the points' ranges), used instead of ``W`` when given: with the range terms
+    ``terms`` when they are set and not empty (the global offset, per-ring offsets, the black squares' offset: one
+    vector variable of the graph under their priors), else without terms (``affine``: the form the terms are
+    tested against)."""
 
     name: str
     sigma_m: float
     W: dict = field(default_factory=dict)
     scan_line: bool = False
     ranged: dict | None = None
-    offset_prior_sd_m: float | None = None
+    terms: RangeTerms | None = None
     # With the board's edges (``--edges``): per stem the frame's ends (``board_edges.EdgeCrossings``), the board,
     # the boards' in-plane scatter (m, each frame's shift prior) and the ends' scale (``board_edges.edge_factor``).
     edges: dict | None = None
@@ -112,8 +114,8 @@ class LidarViews:
     edge_scale: float = 1.0
 
     @property
-    def has_offset(self) -> bool:
-        return self.ranged is not None and self.offset_prior_sd_m is not None
+    def has_terms(self) -> bool:
+        return self.ranged is not None and self.terms is not None and self.terms.size > 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,10 +134,10 @@ class RigSolution:
     iterations: int
     # With the intrinsics refined: each camera's ``(params, their 1-sd)`` (``CameraModel.params`` order).
     intrinsics: dict | None = None
-    # Each LiDAR with a range offset in the graph: ``(value, sd)`` (m).
-    offsets: dict = field(default_factory=dict)
+    # Each LiDAR with range terms in the graph: ``(values, sds)`` (m, arrays in its ``RangeTerms`` order).
+    range_terms: dict = field(default_factory=dict)
     # The Laplace covariance of the free sensors' tangents in the graph's reference camera's frame (in ``names``
-    # order, that camera left out) and then the LiDARs' range offsets (in ``offsets`` order).
+    # order, that camera left out) and then the LiDARs' range terms (in ``range_terms`` order).
     covariance_inner: np.ndarray | None = None
     # The graph's vector variables at the estimate (range offsets, outlines, outline shifts; by key).
     vectors: dict = field(default_factory=dict)
@@ -246,9 +248,9 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
     for lv in lidars:
         k = names.index(lv.name)
         sd = lv.sigma_m * np.sqrt(scale[lv.name])
-        if lv.has_offset:
-            add(gtsam.PriorFactorVector(offset_key(k), np.zeros(1),
-                                        gtsam.noiseModel.Isotropic.Sigma(1, lv.offset_prior_sd_m)))
+        if lv.has_terms:
+            add(gtsam.PriorFactorVector(terms_key(k), np.zeros(lv.terms.size),
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.asarray(lv.terms.prior_sd))))
         if lv.edges:
             add(outline_prior(outline_key(k)))
             for stem, e in lv.edges.items():
@@ -267,8 +269,8 @@ def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=Fa
                 continue
             fw = lv.ranged[stem]
             noise = gtsam.noiseModel.Isotropic.Sigma(fw.W.shape[0], sd)
-            if lv.has_offset:
-                add(nuisance_plane_factor(sensor_key(k), fk, offset_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
+            if lv.has_terms:
+                add(nuisance_plane_factor(sensor_key(k), fk, terms_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
                                           lv.scan_line), lv.name)
             else:
                 add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line), lv.name)
@@ -293,14 +295,14 @@ def redundancy(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, owners: 
     return out
 
 
-def lidar_frame_residual(lv: LidarViews, stem: str, pi: np.ndarray, offset: float = 0.0) -> np.ndarray:
+def lidar_frame_residual(lv: LidarViews, stem: str, pi: np.ndarray, beta: np.ndarray | None = None) -> np.ndarray:
     """The LiDAR's residual of frame ``stem`` (m) at the board plane ``pi`` (in the LiDAR frame) and its range
-    offset (ignored without one)."""
+    terms ``beta`` (ignored without them)."""
     if lv.ranged is None:
         return lidar_residual(lv.W[stem], pi, lv.scan_line)[0]
     fw = lv.ranged[stem]
-    beta = np.array([offset]) if lv.has_offset else np.zeros(0)
-    S = fw.S if lv.has_offset else np.zeros((0, 0))
+    beta = np.asarray(beta, dtype=float) if lv.has_terms else np.zeros(0)
+    S = fw.S if lv.has_terms else np.zeros((0, 0))
     return nuisance_residual(fw.W, S, fw.m_away, pi, beta, lv.scan_line, fw.e0)[0]
 
 
@@ -342,12 +344,12 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, s
         T_rs = _pose(values, names, reference, lv.name)
         ss, n = 0.0, 0
         k = names.index(lv.name)
-        offset = float(values.atVector(offset_key(k))[0]) if lv.has_offset else 0.0
+        beta = values.atVector(terms_key(k)) if lv.has_terms else None
         for stem in lv.W:
             if stem not in stems:
                 continue
             pi, _, _ = lidar_plane(T_rs, values.atPose3(frame_key(stems.index(stem))).matrix())
-            e = lidar_frame_residual(lv, stem, pi, offset)
+            e = lidar_frame_residual(lv, stem, pi, beta)
             ss += float(e @ e) / lv.sigma_m**2
             n += e.size
         out[lv.name] = (ss, max(n - shares[lv.name], 1.0))
@@ -397,17 +399,21 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
             break
     graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
     marginals, cov = _joint_marginal(graph, values, names, inner)
-    ranged = [lv for lv in lidars if lv.has_offset]
-    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [offset_key(names.index(lv.name))
+    ranged = [lv for lv in lidars if lv.has_terms]
+    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [terms_key(names.index(lv.name))
                                                                         for lv in ranged]
     if ranged:
         cov_inner = marginals.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     else:
         idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k, n in enumerate(names) if n != inner])
         cov_inner = cov[np.ix_(idx, idx)]
-    nb = 6 * (len(names) - 1)
-    offsets = {lv.name: (float(values.atVector(offset_key(names.index(lv.name)))[0]),
-                         float(np.sqrt(max(cov_inner[nb + i, nb + i], 0.0)))) for i, lv in enumerate(ranged)}
+    at = 6 * (len(names) - 1)
+    range_terms = {}
+    for lv in ranged:
+        K = lv.terms.size
+        sd = np.sqrt(np.maximum(np.diag(cov_inner)[at:at + K], 0.0))
+        range_terms[lv.name] = (values.atVector(terms_key(names.index(lv.name))).copy(), sd)
+        at += K
     intrinsics = None
     if refine_intrinsics:
         intrinsics = {}
@@ -422,18 +428,18 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     vectors = {key: values.atVector(key).copy() for key in _vector_keys(names, stems, lidars)}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
-                       {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, offsets,
+                       {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, range_terms,
                        0.5 * (cov_inner + cov_inner.T), vectors)
 
 
 def _vector_keys(names, stems: list[str], lidars) -> dict:
-    """The graph's vector variables of the ``lidars`` (each key and its size): range offsets, and with the
+    """The graph's vector variables of the ``lidars`` (each key and its size): range terms, and with the
     board's edges each LiDAR's outline and its frames' outline shifts."""
     out = {}
     for lv in lidars:
         k = names.index(lv.name)
-        if lv.has_offset:
-            out[offset_key(k)] = 1
+        if lv.has_terms:
+            out[terms_key(k)] = lv.terms.size
         if lv.edges:
             out[outline_key(k)] = 4
             out.update({edge_shift_key(k, stems.index(st)): 2 for st in lv.edges if st in stems})
@@ -443,11 +449,12 @@ def _vector_keys(names, stems: list[str], lidars) -> dict:
 def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict, lidars=(),
             vectors: dict | None = None) -> gtsam.Values:
     """The graph's pose variables in the frame of its reference camera ``inner``, and the vector variables of the
-    ``lidars`` (:func:`_vector_keys`) at ``vectors`` (by key; 0 where not given)."""
+    ``lidars`` (:func:`_vector_keys`) at ``vectors`` (by key; 0 where not given or of another size)."""
     T_inner = np.linalg.inv(T_ref[inner])
     values = gtsam.Values()
     for key, size in _vector_keys(names, stems, lidars).items():
-        values.insert(key, np.asarray((vectors or {}).get(key, np.zeros(size)), dtype=float))
+        given = np.asarray((vectors or {}).get(key, np.zeros(size)), dtype=float)
+        values.insert(key, given if given.size == size else np.zeros(size))  # another model's terms: from 0
     for k, n in enumerate(names):
         if n != inner:
             values.insert(sensor_key(k), gtsam.Pose3(T_inner @ T_ref[n]))
@@ -475,19 +482,20 @@ def _joint_marginal(graph, values, names, inner: str) -> tuple:
 
 def rig_bound(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
               T_ref: dict, T_ref_board: dict, noise_scale: dict | None = None,
-              intrinsics: dict | None = None, offsets: dict | None = None) -> np.ndarray:
+              intrinsics: dict | None = None, range_terms: dict | None = None) -> np.ndarray:
     """The joint covariance of every sensor's pose (6N x 6N, ``names`` order, in the frame of ``reference``) that
     the graph's information gives at the poses ``T_ref`` and board poses ``T_ref_board`` (by stem): at a
     simulation's truth, the Cramer-Rao bound of the graph's measurement model for these views (their corners,
     their board points' moments) at the views' noise levels (times ``noise_scale``, by sensor). ``intrinsics``
     (camera name -> ``CameraModel.params``, for every camera): the cameras' intrinsics are unknowns of the graph
     too (``--refine-intrinsics``, under each camera's ``param_std`` prior where it has one), at these values.
-    A LiDAR with a range offset has it as an unknown too, at ``offsets`` (by name, m; 0 where not given)."""
+    A LiDAR with range terms has them as unknowns too, at ``range_terms`` (by name, m; 0 where not given)."""
     inner = graph_reference(reference, [c.name for c in cameras])
     stems = sorted(T_ref_board)
     scale = {n: (noise_scale or {}).get(n, 1.0) for n in names}
     graph = _graph(names, cameras, lidars, stems, scale, inner, intrinsics is not None)
-    vectors = {offset_key(names.index(n)): np.array([v]) for n, v in (offsets or {}).items()}
+    vectors = {terms_key(names.index(n)): np.atleast_1d(np.asarray(v, dtype=float))
+               for n, v in (range_terms or {}).items()}
     values = _values(names, inner, stems, T_ref, T_ref_board, lidars, vectors)
     for c in cameras if intrinsics is not None else ():
         values.insert(intrinsics_key(names.index(c.name)), np.asarray(intrinsics[c.name], dtype=float))
@@ -523,38 +531,45 @@ def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
     return {names[k]: (names[pred[k]] if pred[k] >= 0 else None) for k in range(n)}
 
 
-def offset_test(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
-                solution: RigSolution, without: LidarViews, with_offset: LidarViews) -> dict:
-    """The likelihood-ratio test of one LiDAR's global range offset: the graph solved with that LiDAR's frames in
-    the range model's form without terms (``without``) and with the offset under its prior (``with_offset``),
-    every other view as in ``lidars``, at the noise scales of ``solution`` (quasi-likelihood: an overdispersed
-    sensor's statistic is scaled down by its excess). The statistic is the drop of the total cost, each frame's
-    floor (its points' scatter about their best plane) included, chi-square with 1 dof when there is no offset.
+def terms_fit(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+              solution: RigSolution, views: LidarViews) -> dict:
+    """The graph solved with one LiDAR's frames as ``views`` (in the range model's form: ``ranged`` given, with
+    or without terms), every other view as in ``lidars``, at the noise scales of ``solution`` (quasi-likelihood:
+    an overdispersed sensor's costs are scaled down by its excess), started from ``solution``.
 
-    Returns ``statistic``, ``p_value`` and the offset's estimate ``offset_m`` and ``sd_m`` with it."""
+    Returns ``cost`` (the total cost, each of the LiDAR's frames' floor included: its points' scatter about
+    their own best fit under these terms), ``size`` (the terms' count), and with terms ``values_m`` and ``sd_m``
+    (marginal; inf where the graph's marginals cannot be formed)."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
-    cost, out = {}, {}
-    k = names.index(without.name)
-    for key, lv in (("without", without), ("with", with_offset)):
-        views = [lv if v.name == lv.name else v for v in lidars]
-        graph, values, _, stems = _graph_at(names, reference, cameras, views, solution)
+    k = names.index(views.name)
+    graph, values, _, stems = _graph_at(names, reference, cameras,
+                                        [views if v.name == views.name else v for v in lidars], solution)
+    try:
+        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError as exc:
+        raise DegenerateLayoutError(f"{views.name}: its range terms cannot be tested (the graph with them cannot be "
+                                    "solved)", hint="calibrate with --range-model none") from exc
+    floor = sum(fw.floor for st, fw in views.ranged.items() if st in stems)
+    out = {"cost": 2.0 * graph.error(values) + floor / (views.sigma_m**2 * solution.noise_scale.get(views.name, 1.0)),
+           "size": views.terms.size if views.has_terms else 0}
+    if views.has_terms:
+        out["values_m"] = values.atVector(terms_key(k)).copy()
         try:
-            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        except RuntimeError as exc:
-            raise DegenerateLayoutError(f"{lv.name}: its range offset cannot be tested (the graph with it cannot be "
-                                        "solved)", hint="calibrate with --range-model none") from exc
-        floor = sum(fw.floor for st, fw in lv.ranged.items() if st in stems)
-        cost[key] = 2.0 * graph.error(values) + floor / (lv.sigma_m**2 * solution.noise_scale.get(lv.name, 1.0))
-        if key == "with":
-            out["offset_m"] = float(values.atVector(offset_key(k))[0])
-            try:
-                out["sd_m"] = float(np.sqrt(gtsam.Marginals(graph, values).marginalCovariance(offset_key(k))[0, 0]))
-            except RuntimeError:
-                out["sd_m"] = float("inf")
-    stat = cost["without"] - cost["with"]
-    out.update(statistic=float(stat), p_value=float(chi2.sf(max(stat, 0.0), 1)))
+            out["sd_m"] = np.sqrt(np.maximum(np.diag(gtsam.Marginals(graph, values).marginalCovariance(terms_key(k))),
+                                             0.0))
+        except RuntimeError:
+            out["sd_m"] = np.full(out["size"], np.inf)
     return out
+
+
+def terms_test(smaller: dict, larger: dict) -> dict:
+    """The likelihood-ratio test of a LiDAR's larger range model against its smaller one (two :func:`terms_fit`
+    results of nested models): the drop of the total cost, chi-square with the added terms' count as its dof.
+    Returns ``statistic``, ``dof`` and ``p_value``."""
+    stat = smaller["cost"] - larger["cost"]
+    dof = max(larger["size"] - smaller["size"], 1)
+    return {"statistic": float(stat), "dof": int(dof), "p_value": float(chi2.sf(max(stat, 0.0), dof))}
 
 
 def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
@@ -624,12 +639,12 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
 
 def inner_covariance(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
                      solution: RigSolution) -> np.ndarray:
-    """The Laplace covariance of the free sensors' tangents (and the range offsets) in the graph's reference
+    """The Laplace covariance of the free sensors' tangents (and the range terms) in the graph's reference
     camera's frame, as ``RigSolution.covariance_inner`` orders them, for these views at ``solution``'s values:
     with views other than the solution's (the LiDARs without their edges, say), that model's curvature at this
     estimate."""
     graph, values, inner, stems = _graph_at(names, reference, cameras, lidars, solution)
-    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [offset_key(names.index(lv.name))
-                                                                        for lv in lidars if lv.has_offset]
+    keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [terms_key(names.index(lv.name))
+                                                                        for lv in lidars if lv.has_terms]
     C = gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     return 0.5 * (C + C.T)

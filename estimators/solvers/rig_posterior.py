@@ -53,8 +53,8 @@ class RigPosterior:
     T_ref: dict
     xi: np.ndarray
     run: ChainResult
-    # Each LiDAR's range offset (m) per sample, where the graph has one.
-    offsets: dict = field(default_factory=dict)
+    # Each LiDAR's range terms (m, (M, K) in its ``RangeTerms`` order) per sample, where the graph has them.
+    range_terms: dict = field(default_factory=dict)
 
     @property
     def covariance_joint(self) -> np.ndarray:
@@ -143,10 +143,15 @@ class RigLikelihood:
                     K.append(B.T @ A)
             if c.name != self.inner and idx:  # K transposed: x @ K^T is K x for every walker
                 self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.transpose(np.array(K), (0, 2, 1))))
-        # Each LiDAR with a range offset in the graph: its offset is a parameter after the poses, under its prior.
-        self.offsets = [lv.name for lv in lidars if lv.has_offset]
+        # Each LiDAR with range terms in the graph: its terms are parameters after the poses, under their priors.
+        ranged = [lv for lv in lidars if lv.has_terms]
+        self.ranged = [lv.name for lv in ranged]
+        at, self.term_columns = 6 * len(self.free), {}
+        for lv in ranged:
+            self.term_columns[lv.name] = np.arange(at, at + lv.terms.size)
+            at += lv.terms.size
         self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
-        #                                    signs (F_l,), e0 (F_l, k), offset regressors (F_l, k), offset column)
+        #                                    signs (F_l,), e0 (F_l, k), terms' Jacobians (F_l, k, K), their columns)
         for lv in lidars:
             s = lv.sigma_m * np.sqrt(solution.noise_scale.get(lv.name, 1.0))
             idx, Ws, G, normals, points, signs, E0, Hb = [], [], [], [], [], [], [], []
@@ -168,11 +173,11 @@ class RigLikelihood:
                 H[j] += Gj.T @ Gj
                 Wp = np.zeros((width, 4))
                 Wp[:k] = W4 / s
-                e0, hb = np.zeros(width), np.zeros(width)
+                e0, hb = np.zeros(width), np.zeros((width, lv.terms.size if lv.has_terms else 0))
                 if fw is not None:
                     e0[:k] = fw.e0 / s
-                    if lv.has_offset:
-                        hb[:k] = (fw.W[:, 4:] @ fw.S)[:, 0] / s
+                    if lv.has_terms:
+                        hb[:k] = fw.W_nuisance / s
                 idx.append(j)
                 Ws.append(Wp)
                 G.append(Gj)
@@ -183,19 +188,20 @@ class RigLikelihood:
                 Hb.append(hb)
             if idx:  # W transposed (pi^T W^T is (W pi)^T); each plane's offset n . t_board
                 normals, points = np.array(normals), np.array(points)
-                beta = 6 * len(self.free) + self.offsets.index(lv.name) if lv.has_offset else None
+                beta = self.term_columns.get(lv.name)
                 self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx),
                                          np.transpose(np.array(Ws), (0, 2, 1)), normals,
                                          np.sum(normals * points, axis=1), lv.scan_line, np.array(G),
                                          np.array(signs), np.array(E0), np.array(Hb), beta))
-        self.offset_prior_sd = np.array([lv.offset_prior_sd_m for lv in lidars if lv.has_offset])
-        self.offset_hat = np.array([solution.offsets[n][0] for n in self.offsets])
+        self.terms_prior_sd = np.concatenate([lv.terms.prior_sd for lv in ranged]) if ranged else np.zeros(0)
+        self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
+            else np.zeros(0)
         try:
             self.H_chol = np.linalg.cholesky(np.linalg.inv(H))
         except np.linalg.LinAlgError as exc:
             raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
                                 "integrate it out") from exc
-        self.ndim = 6 * len(self.free) + len(self.offsets)
+        self.ndim = 6 * len(self.free) + len(self.terms_hat)
         # Measurements held to second order about the MAP (the board edges: :func:`edges_quadratic`): ``(A, b)``,
         # adding ``-1/2 theta^T A theta + b^T theta`` to the log-posterior.
         self.quadratic = quadratic
@@ -219,12 +225,13 @@ class RigLikelihood:
             if scan:
                 e /= np.hypot(pi[..., 0], pi[..., 1])[..., None]
             e = e * signs[:, None, None] + E0[:, None, :]
-            if beta is not None:  # the offset's parameter is its departure from the MAP's
-                e += Hb[:, None, :] * (self.offset_hat[beta - 6 * len(self.free)] + theta[None, :, beta, None])
+            if beta is not None:  # the terms' parameters are their departures from the MAP's
+                b = self.terms_hat[beta - 6 * len(self.free)] + theta[:, beta]  # (walkers, K)
+                e += np.einsum("fkK,wK->fwk", Hb, b)
             c += np.einsum("fwk,fwk->w", e, e)
             g[idx] += e @ G
-        if self.offsets:
-            c += np.sum(((self.offset_hat + theta[:, 6 * len(self.free):]) / self.offset_prior_sd) ** 2, axis=1)
+        if self.ranged:
+            c += np.sum(((self.terms_hat + theta[:, 6 * len(self.free):]) / self.terms_prior_sd) ** 2, axis=1)
         z = g @ self.H_chol  # g^T H^-1 g = |L^T g|^2 with H^-1 = L L^T
         out = -0.5 * (c - np.einsum("fwa,fwa->w", z, z))
         if self.quadratic is not None:
@@ -310,8 +317,8 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov = cov_inner[np.ix_(cols, cols)]
-        if like.offsets:
-            raise LidarcamError("the rig's solution has no covariance of its range offsets to start the posterior")
+        if like.ranged:
+            raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
     walkers = max(64, 2 * like.ndim + 16)
     start = rng.multivariate_normal(np.zeros(like.ndim), 0.25 * (cov + cov.T), walkers)
     import emcee
@@ -334,6 +341,5 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         t = np.einsum("nji,nj->ni", R_in[ref], t_in[n] - t_in[ref])
         Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
         xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
-    nb = 6 * len(like.free)
-    offsets = {n: keep[:, nb + i] + solution.offsets[n][0] for i, n in enumerate(like.offsets)}
-    return RigPosterior(names, ref, dict(solution.T_ref), xi, run, offsets)
+    terms = {n: keep[:, like.term_columns[n]] + solution.range_terms[n][0] for n in like.ranged}
+    return RigPosterior(names, ref, dict(solution.T_ref), xi, run, terms)
