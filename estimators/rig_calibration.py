@@ -552,7 +552,7 @@ def _outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_vie
 
 def range_model_words(record: dict) -> str:
     """A LiDAR's range model in words (:func:`_range_models`' record)."""
-    tests = [t for t in record.get("tests", ())]
+    tests = list(record.get("tests", ()))
     said = ", ".join(f"{t['model']} p = {t['p_value']:.2g}" for t in tests)
     how = f"tests at {record['test_p']:g}: {said}" if tests else "requested"
     terms = record.get("terms") or {}
@@ -571,12 +571,12 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
                   blurred: bool = True) -> dict:
     """Each of LiDAR ``name``'s frames' labels for the range terms, by stem: ``(rings, black shares)``. Rings come
     from the scan's field or its beams' elevations clustered over all its frames (``range_model.frame_rings``);
-    the black squares are placed by geometry (``range_model.frame_labels``) on the joint estimate's board pose,
-    with the colours the image of the camera the frame's board was found with shows (a numbering turned to the
-    reference camera's is of a pattern that looks the same turned), under the joint estimate of that camera-LiDAR
-    transform, blurred by its covariance (the camera's own board pose, noisier, would shrink the black squares'
-    term as an error in a regressor does) (``blurred``; else by the labels' floor alone: the covariance of a
-    solution without the terms is inflated by them). A 2D scanner's frames have neither."""
+    the black squares are placed by geometry (``range_model.frame_labels``) on ``solution``'s board pose (the
+    camera's own, noisier, would shrink the black squares' term as an error in a regressor does), with the colours
+    that the image of the camera the board was found with shows (a numbering turned to the reference camera's is
+    that of a pattern that looks the same turned), under ``solution``'s transform of that camera-LiDAR pair.
+    ``blurred``: each placement blurred by that transform's covariance; else by the labels' floor alone (the
+    covariance of a solution without the terms is inflated by them). A 2D scanner's frames have neither."""
     measured: dict = {}  # stem -> (camera, frame) whose LiDAR observation is the one in ``obs``
     for (cam, lid), frames in pair_frames.items():
         for f in frames if lid == name else ():
