@@ -84,7 +84,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
                    help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
-                        "an offset on the board's black squares")
+                        "an offset on the board's black squares (a rig's: into lidar0)")
     s.add_argument("--range-bias-from-priors", default=None, metavar="FAMILY",
                    help="inject LiDAR range errors drawn from a sensor family's priors (velodyne, ouster, hesai, "
                         "livox, or any name for the conservative default): offset and black-square term 0 +- its "
@@ -769,8 +769,11 @@ def _simulate(args) -> int:
             raise SystemExit("lidarcam: error: --lidars is 1 or 2")
         if args.scanners not in (0, 1):
             raise SystemExit("lidarcam: error: --scanners is 0 or 1")
+        if args.range_bias_from_priors is not None:
+            raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes --range-bias, "
+                             "injected into lidar0)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
-                           args.scanners)
+                           args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias))
         print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "
               f"({args.poses} frames) to {out}")
         return 0

@@ -12,7 +12,7 @@ import pytest
 
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
-from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip
+from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip, range_model_words
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.factors import corner_residuals
@@ -449,6 +449,23 @@ def ranged_rig(tmp_path_factory):
                         range_bias=(0.03, 0.005, 0.01))
 
 
+def test_the_simulate_command_injects_range_errors_into_a_rigs_first_lidar(tmp_path):
+    # --range-bias with --cameras: lidar0's terms in ground_truth.json (a ring's offset per beam, drawn); the
+    # family's priors are for a single pair, a one-line error.
+    out = tmp_path / "rig"
+    run = subprocess.run([sys.executable, "-m", "estimators", "simulate", "--cameras", "2", "--poses", "3", "--out",
+                          str(out), "--range-bias", "0.02", "0.004", "0.01"], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    truth = json.loads((out / "ground_truth.json").read_text())["range_bias"]["lidar0"]
+    assert truth["offset_m"] == 0.02 and truth["dark_m"] == 0.01 and len(truth["ring_offsets_m"]) == 64
+    assert 0.002 < np.std(truth["ring_offsets_m"]) < 0.006
+    run = subprocess.run([sys.executable, "-m", "estimators", "simulate", "--cameras", "2", "--poses", "3", "--out",
+                          str(tmp_path / "other"), "--range-bias-from-priors", "velodyne"], capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode != 0 and "is for a single pair" in run.stderr and not (tmp_path / "other").exists()
+
+
 def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimated_in_the_rig(ranged_rig):
     # lidar0's returns 3 cm long, each ring a further N(0, 5 mm), the black squares' 1 cm longer still (the single
     # pair's injected errors). Under auto every block passes its test (p < 0.001, at the noise scales of the
@@ -478,6 +495,8 @@ def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimate
     assert dark.std() == pytest.approx(terms["dark"]["sd_m"], rel=0.2)
     row = next(r for r in res.to_json()["sensors"] if r["name"] == "lidar0")["range_model"]
     assert len(row["terms"]["dark"]["posterior_95%_m"]) == 2
+    words = range_model_words(row)
+    assert words.startswith("range offset +") and f"{rings.size} ring offsets" in words and "black squares +" in words
     asked = calibrate_rig(rig, np.random.default_rng(0), range_model="offset+dark", advise=False)
     rec = asked.range_models["lidar0"]
     assert rec["model"] == "offset+dark" and list(rec["terms"]) == ["offset", "dark"] and "tests" not in rec
