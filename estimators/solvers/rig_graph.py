@@ -139,7 +139,7 @@ class RigSolution:
     # The Laplace covariance of the free sensors' tangents in the graph's reference camera's frame (in ``names``
     # order, that camera left out) and then the LiDARs' range terms (in ``range_terms`` order).
     covariance_inner: np.ndarray | None = None
-    # The graph's vector variables at the estimate (range offsets, outlines, outline shifts; by key).
+    # The graph's vector variables at the estimate (range terms, outlines, outline shifts; by key).
     vectors: dict = field(default_factory=dict)
 
     def covariance(self, name: str) -> np.ndarray:
