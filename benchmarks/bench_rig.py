@@ -216,8 +216,8 @@ def main() -> None:
         for name in ("offset", "dark"):
             v = np.array([d[name] for d in z if name in d])
             if v.size:
-                print(f"  {name}: z (estimate - truth over its sd) mean {np.mean(v):+.2f}, RMS {np.sqrt(np.mean(v**2)):.2f}"
-                      f" (1 ideal), beyond 3 in {np.sum(np.abs(v) > 3)} of {v.size}")
+                print(f"  {name}: z (estimate - truth over its sd) mean {np.mean(v):+.2f}, RMS "
+                      f"{np.sqrt(np.mean(v**2)):.2f} (1 ideal), beyond 3 in {np.sum(np.abs(v) > 3)} of {v.size}")
         rings = np.concatenate([[v for n, v in d.items() if n.startswith("ring ")] for d in z] or [[]])
         if rings.size:
             print(f"  ring terms: RMS z {np.sqrt(np.mean(rings**2)):.2f} over {rings.size} (below 1: their prior sd, a "

@@ -770,8 +770,8 @@ def _simulate(args) -> int:
         if args.scanners not in (0, 1):
             raise SystemExit("lidarcam: error: --scanners is 0 or 1")
         if args.range_bias_from_priors is not None:
-            raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes --range-bias, "
-                             "injected into lidar0)")
+            raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes "
+                             "--range-bias, injected into lidar0)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
                            args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias))
         print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "

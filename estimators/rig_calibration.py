@@ -615,7 +615,8 @@ def _range_models(rig: RigDataset, names: tuple, camera_views: list, lidar_views
     then the per-ring and the black-square blocks each against the offset (against none, with the offset in the
     block, when the offset alone is not supported); both when both pass. Each test is a likelihood ratio on the
     joint graph at the graph's noise scales (``rig_graph.terms_test``: an overdispersed sensor's statistic is
-    scaled down by its excess). A model the data cannot hold (per-ring without rings, the black squares without
+    scaled down by its excess), and only the offset is tested where the planes stay overdispersed under every
+    term (:func:`_choose_terms`). A model the data cannot hold (per-ring without rings, the black squares without
     both colours on the boards) is not tried; a requested one falls back to the terms the data allow."""
     out, records = [], {}
     for lv in lidar_views:

@@ -428,8 +428,8 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
     vectors = {key: values.atVector(key).copy() for key in _vector_keys(names, stems, lidars)}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
-                       {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics, range_terms,
-                       0.5 * (cov_inner + cov_inner.T), vectors)
+                       {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics,
+                       range_terms, 0.5 * (cov_inner + cov_inner.T), vectors)
 
 
 def _vector_keys(names, stems: list[str], lidars) -> dict:
