@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def _one(args) -> dict:
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
+    from estimators.simulation.range_bias import RangeBias
     from estimators.simulation.rig_simulator import simulate_rig
     from estimators.solvers.rig_graph import pair_transform
     from geometry.rotations import T_log
@@ -65,9 +66,8 @@ def _one(args) -> dict:
            "range_models": {n: (r["model"], r.get("value_m"), r.get("sd_m"))
                             for n, r in res.range_models.items()}}
     if bias is not None and "terms" in res.range_models.get("lidar0", {}):
-        truth = gt["range_bias"]["lidar0"]
-        out["terms_z"] = {n: (v["value_m"] - (truth["offset_m"] if n == "offset" else truth["dark_m"] if n == "dark"
-                                              else truth["ring_offsets_m"][int(n.split()[1])])) / v["sd_m"]
+        truth = RangeBias.from_record(gt["range_bias"]["lidar0"])
+        out["terms_z"] = {n: (v["value_m"] - truth.term(n)) / v["sd_m"]
                           for n, v in res.range_models["lidar0"]["terms"].items()}
     bound = _bound(res, gt)
     for a, b in res.pairs():

@@ -13,6 +13,7 @@ import pytest
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
 from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip, range_model_words
+from estimators.simulation.range_bias import RangeBias
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.factors import corner_residuals
@@ -475,14 +476,12 @@ def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimate
     # and both camera-LiDAR transforms are back: the truth's d2 below 16.8 (99% of chi-square 6). The posterior
     # samples every term: its black squares' term agrees with the graph's. A requested model is fitted untested.
     rig = load_rig(ranged_rig)
-    gt = json.loads((ranged_rig / "ground_truth.json").read_text())["range_bias"]["lidar0"]
+    gt = RangeBias.from_record(json.loads((ranged_rig / "ground_truth.json").read_text())["range_bias"]["lidar0"])
     res = calibrate_rig(rig, np.random.default_rng(0), samples=300, advise=False)
     rec = res.range_models["lidar0"]
     assert rec["model"] == "full" and all(t["p_value"] < 1e-3 for t in rec["tests"])
     terms = rec["terms"]
-    truth = {n: gt["offset_m"] if n == "offset" else gt["dark_m"] if n == "dark" else
-             gt["ring_offsets_m"][int(n.split()[1])] for n in terms}
-    z = {n: (v["value_m"] - truth[n]) / v["sd_m"] for n, v in terms.items()}
+    z = {n: (v["value_m"] - gt.term(n)) / v["sd_m"] for n, v in terms.items()}
     assert abs(z["offset"]) < 3 and abs(z["dark"]) < 3 and terms["dark"]["sd_m"] < 0.001
     rings = np.array([v for n, v in z.items() if n.startswith("ring ")])
     assert rings.size > 30 and np.sqrt(np.mean(rings**2)) < 1.5

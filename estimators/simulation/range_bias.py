@@ -21,6 +21,24 @@ class RangeBias:
         return RangeBias(offset_m, tuple(rng.normal(0.0, ring_sd_m, n_rings).tolist()) if ring_sd_m > 0 else (),
                          dark_m)
 
+    def record(self) -> dict:
+        """As a simulation records it (its ground truth's ``range_bias``; :meth:`from_record` reads it)."""
+        return {"offset_m": self.offset_m, "ring_offsets_m": list(self.ring_offsets_m), "dark_m": self.dark_m}
+
+    @staticmethod
+    def from_record(record: dict) -> "RangeBias":
+        """The bias a simulation recorded (ground_truth.json's ``range_bias`` of a LiDAR)."""
+        return RangeBias(record["offset_m"], tuple(record["ring_offsets_m"]), record["dark_m"])
+
+    def term(self, name: str) -> float:
+        """The injected value (m) of a range term named as the range model names them: ``offset``, ``dark`` or
+        ``ring <id>`` (a ring's deviation from the global offset)."""
+        if name == "offset":
+            return self.offset_m
+        if name == "dark":
+            return self.dark_m
+        return self.ring_offsets_m[int(name.split()[1])]
+
     @property
     def is_zero(self) -> bool:
         return self.offset_m == 0 and not any(self.ring_offsets_m) and self.dark_m == 0

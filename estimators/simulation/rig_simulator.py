@@ -177,8 +177,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
     bias = None
     if range_bias is not None:
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
-        truth["range_bias"] = {"lidar0": {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
-                                          "dark_m": bias.dark_m}}
+        truth["range_bias"] = {"lidar0": bias.record()}
     truth.update({f"T_cam0_{n}": T.tolist() for n, _, T, _ in extra})
     if T_l0_l1 is not None:
         truth["T_cam0_lidar1"] = (rig.T_camera_lidar @ T_l0_l1).tolist()

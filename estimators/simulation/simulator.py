@@ -813,8 +813,7 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     if range_bias is not None:
         # Drawn from a generator of its own, so that the rest of the simulation stays as without a bias.
         bias = RangeBias.drawn(np.random.default_rng([seed, 16]), len(rig.beams.elevations_rad), *range_bias)
-        meta["range_bias"] = {"offset_m": bias.offset_m, "ring_offsets_m": list(bias.ring_offsets_m),
-                              "dark_m": bias.dark_m}
+        meta["range_bias"] = bias.record()
     # Each frame is written while the next ones are cast.
     frames = iter_frames(rig, n_poses, rng, scene=scene, bias=bias, outside_image_share=outside_image_share)
     if intensity != "contrast" or not ring_field:
