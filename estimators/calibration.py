@@ -263,6 +263,7 @@ class CalibrationResult:
                     "covariance_note": "no covariance without refinement (refine: none)"}
         post = self.posterior
         sampled = {"covariance_laplace": ref.covariance.tolist(), "intervals": post.summary(),
+                   "credible_regions": post.regions(),
                    "posterior": {**post.diagnostics(), "file": "posterior.npz"}} if post is not None else {
             "covariance_note": "Laplace approximation (no posterior samples were drawn)"}
         return {
@@ -1328,6 +1329,9 @@ def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng
         warnings.append(f"posterior not sampled: {exc.message}")
         return None
     warnings.extend(post.warnings)
+    heavy = post.heavy_tails()
+    if heavy is not None:
+        warnings.append(heavy)
     return post
 
 

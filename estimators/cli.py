@@ -354,8 +354,10 @@ def _print_result(result, truth=None) -> None:
 
             xi = T_log(T_inverse(T) @ truth)
             d2 = float(xi @ np.linalg.solve(result.covariance, xi))
+            region = (f"; the posterior's 99.9% region reaches {result.posterior.region_d2(0.999):.1f}"
+                      if result.posterior is not None else "")
             print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
-                  f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
+                  f"(chi-square, 6 dof: mean 6, 95% below 12.6{region})")
     for w in result.warnings:
         print(f"warning: {w}")
 

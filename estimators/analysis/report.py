@@ -351,6 +351,11 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                 rows.append([f"{level} {key.split('_')[0]} [{unit}]"]
                             + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv[key]])
         parts.append("<h2>Intervals (offsets from the estimate, GTSAM tangent)</h2>" + _table(rows, ["", "x", "y", "z"]))
+        regions = result.posterior.regions()
+        parts.append("<p>Credible regions: the covariance's ellipsoid about the estimate holding 99% / 99.9% of the "
+                     f"samples reaches a squared Mahalanobis distance of {regions['99%']['d2']:.1f} / "
+                     f"{regions['99.9%']['d2']:.1f} (a Gaussian's: {regions['99%']['gaussian_d2']:.1f} / "
+                     f"{regions['99.9%']['gaussian_d2']:.1f}).</p>")
         d = result.posterior.diagnostics()
         parts.append(f"<p>MCMC ({d['likelihood']}): {d['walkers']} walkers x {d['steps']} steps, burn-in "
                      f"{d['burn_in']}, tau {max(d['tau_steps']):.1f} steps, acceptance "

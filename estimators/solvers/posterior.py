@@ -42,6 +42,7 @@ from geometry.rotations import T_log, exp_batch
 
 from ..errors import DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
+from . import chi_square as chi2
 from .board_edges import outline_prior_sd
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
@@ -103,6 +104,11 @@ class ChainResult:
     seconds: float
 
 
+# A posterior whose 99.9% region (``Posterior.region_d2``) reaches this many times a Gaussian's squared distance
+# is reported as heavy-tailed (``Posterior.heavy_tails``).
+HEAVY_TAIL_FACTOR = 1.25
+
+
 @dataclass(frozen=True, eq=False)
 class Posterior:
     """Posterior samples of ``xi`` (tangent at ``T_map``) and of the noise scale, with diagnostics."""
@@ -127,6 +133,35 @@ class Posterior:
         q = 100 * (1 - level) / 2
         return np.percentile(self.xi, [q, 100 - q], axis=0).T
 
+    def d2(self, xi: np.ndarray) -> np.ndarray:
+        """Squared Mahalanobis distance of tangent offsets ``xi`` (from the MAP, ``T = T_map Exp(xi)``) under
+        :attr:`covariance`."""
+        xi = np.atleast_2d(xi)
+        return np.einsum("ni,ni->n", xi, np.linalg.solve(self.covariance, xi.T).T)
+
+    def region_d2(self, level: float) -> float:
+        """The credible region at ``level``: ``T = T_map Exp(xi)`` with ``d2(xi)`` at most this, the ellipsoid
+        of :attr:`covariance` (about the MAP) that holds ``level`` of the samples, never smaller than a
+        Gaussian's (the chi-square point, 6 dof). A posterior with heavy tails (a 2D layout's curved valley, the
+        sampled range noise, a minor mode) needs a larger distance than the Gaussian's: the covariance's
+        chi-square ellipsoid would leave the truth outside more often than ``1 - level``."""
+        return float(max(chi2.ppf(level, 6), np.quantile(self.d2(self.xi), level)))
+
+    def contains(self, T: np.ndarray, level: float) -> bool:
+        """Whether the pose ``T`` (``T_camera_lidar``) lies in the credible region at ``level``."""
+        xi = T_log(np.linalg.inv(self.T_map) @ T)
+        return bool(self.d2(xi)[0] <= self.region_d2(level))
+
+    def heavy_tails(self, level: float = 0.999) -> str | None:
+        """A note when the region at ``level`` reaches beyond ``HEAVY_TAIL_FACTOR`` times a Gaussian's distance
+        (the covariance alone then understates how far the truth may lie), else None."""
+        q, g = self.region_d2(level), chi2.ppf(level, 6)
+        if q < HEAVY_TAIL_FACTOR * g:
+            return None
+        return (f"the posterior's tails are heavier than a Gaussian's: its {100 * level:g}% region reaches a squared "
+                f"Mahalanobis distance of {q:.1f} under the covariance (a Gaussian's {g:.1f}); judge tail "
+                "probabilities by that region or the samples (posterior.npz), not by the covariance alone")
+
     def summary(self) -> dict:
         """Intervals in degrees (rotation about the LiDAR's axes) and millimetres (translation along them)."""
         out = {}
@@ -135,6 +170,14 @@ class Posterior:
             out[f"{round(100 * level)}%"] = {"rotation_deg_about_lidar_xyz": np.degrees(iv[:3]).tolist(),
                                             "translation_mm_along_lidar_xyz": (1000 * iv[3:]).tolist()}
         return out
+
+    def regions(self) -> dict:
+        """The credible regions (:meth:`region_d2`) at 99% and 99.9%, beside a Gaussian's."""
+        return {"definition": "T = T_hat * Exp(xi) with xi^T covariance^-1 xi at most d2: the covariance's ellipsoid "
+                              "about the estimate holding the level's share of the samples, never below a "
+                              "Gaussian's chi-square point",
+                **{f"{100 * level:g}%": {"d2": self.region_d2(level), "gaussian_d2": float(chi2.ppf(level, 6))}
+                   for level in (0.99, 0.999)}}
 
     def diagnostics(self) -> dict:
         r = self.run
