@@ -8,7 +8,7 @@ import pytest
 from estimators.simulation.simulator import default_rig, sample_board_poses
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.posterior import PlaneLikelihood, PosteriorOptions, run_ensemble, sample_posterior
+from estimators.solvers.posterior import PlaneLikelihood, Posterior, PosteriorOptions, run_ensemble, sample_posterior
 from estimators.solvers.refinement import measurement_model_options, refine
 
 from .numeric import likelihood_gradient, likelihood_hessian
@@ -95,3 +95,49 @@ def test_calibration_posterior_matches_the_laplace_approximation(measured, likel
     assert np.all(iv[:, 0] < 0) and np.all(iv[:, 1] > 0)
     summary = post.summary()
     assert set(summary) == {"68%", "95%"}
+
+
+def _posterior_of(xi: np.ndarray) -> Posterior:
+    return Posterior(np.eye(4), xi, np.ones(len(xi)), None, "gaussian")
+
+
+def test_credible_region_is_the_gaussian_one_for_gaussian_samples_and_holds_heavy_tails():
+    rng = np.random.default_rng(5)
+    n = 400_000
+    A = rng.normal(size=(6, 6)) * 0.01
+    z = rng.normal(size=(n, 6))
+    gauss = _posterior_of(z @ A.T)
+    # 400k independent draws: the 99.9% quantile of chi-square(6) (22.46) within 3%; never below it.
+    assert 22.458 <= gauss.region_d2(0.999) < 1.03 * 22.458
+    assert abs(gauss.region_d2(0.99) - 16.81) < 0.03 * 16.81 + 1e-9 and gauss.heavy_tails() is None
+    # Multivariate Student-t, 4 dof: xi = z / sqrt(w / 4), w ~ chi-square(4), covariance 2 A A^T. Under the
+    # covariance, d2 = (6 / 2) F(6, 4): its 99.9% point is 3 x 53.44 = 160.3 (F table), far beyond 22.46.
+    w = rng.chisquare(4, n)
+    heavy = _posterior_of((z / np.sqrt(w / 4)[:, None]) @ A.T)
+    assert 0.85 * 160.3 < heavy.region_d2(0.999) < 1.15 * 160.3
+    assert "heavier than a Gaussian" in heavy.heavy_tails()
+    # The region holds its share of fresh draws from the same distribution (coverage, 0.1% +- 0.03%).
+    w2 = rng.chisquare(4, n)
+    fresh = (rng.normal(size=(n, 6)) / np.sqrt(w2 / 4)[:, None]) @ A.T
+    outside = np.mean(heavy.d2(fresh) > heavy.region_d2(0.999))
+    assert 0.0005 < outside < 0.0016
+    # contains() on a pose: the MAP itself is in, a pose far along the tail is not.
+    assert heavy.contains(np.eye(4), 0.999)
+    far = np.eye(4)
+    far[:3, 3] = 30 * np.sqrt(2) * A[3:, :] @ np.ones(6)
+    assert not heavy.contains(far, 0.999)
+
+
+def test_credible_region_of_a_two_mode_mixture_holds_the_minor_mode():
+    """A minor mode with 3% of the mass, far from the main one: the covariance's chi-square ellipsoid leaves it
+    out, the region (99.9% of the samples) holds it; with 0.05% of the mass it is left out."""
+    rng = np.random.default_rng(8)
+    n = 200_000
+    for share, inside in ((0.03, True), (0.0005, False)):
+        xi = rng.normal(size=(n, 6)) * 0.01
+        m = int(share * n)
+        xi[:m] += np.array([0.0, 0.0, 0.0, 0.25, 0.0, 0.0])
+        post = _posterior_of(xi)
+        minor = np.array([0.0, 0.0, 0.0, 0.25, 0.0, 0.0])
+        assert post.d2(minor)[0] > 22.458
+        assert bool(post.d2(minor)[0] <= post.region_d2(0.999)) is inside
