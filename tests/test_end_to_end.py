@@ -64,6 +64,13 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
         iv = np.array(data["intervals"][level]["translation_mm_along_lidar_xyz"])
         assert iv.shape == (3, 2) and np.all(iv[:, 0] < iv[:, 1])
     assert np.array(data["covariance_laplace"]).shape == (6, 6)
+    # The credible regions: the share of the written samples within each region's distance, as the JSON says.
+    with np.load(out / "posterior.npz", allow_pickle=False) as post:
+        d2 = np.einsum("ni,ni->n", post["xi"], np.linalg.solve(cov, post["xi"].T).T)
+    for level, share in (("99%", 0.99), ("99.9%", 0.999)):
+        region = data["credible_regions"][level]
+        assert region["d2"] >= region["gaussian_d2"]
+        assert np.mean(d2 <= region["d2"]) >= share - 1e-9
     # The report: self-contained (every figure embedded) with the PNGs beside it.
     page = (out / "report.html").read_text()
     pngs = sorted(p.name for p in out.glob("*.png"))
