@@ -338,8 +338,9 @@ class PlaneLikelihood:
                 ss, dof = own_fit_residuals(f)
                 floors += fit.weight * ss / ref.range_noise_m**2
                 floor_dof += fit.weight * dof
-        if len(rows) < 3:
-            raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least 3")
+        least = 2 if ref.end_terms is not None and all(scan) else 3  # scan lines with their segment ends: 2
+        if len(rows) < least:
+            raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least {least}")
         # (F, k, 4), (F, k): zero rows pad a scan line's 2 and frames with fewer range terms
         self.rows, self.lam = np.array(rows), np.array(lams)
         self.signs, self.consts = np.array(signs), np.array(consts)

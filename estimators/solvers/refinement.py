@@ -790,8 +790,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if options.range_accuracy_m is None:
         options = replace(options, range_accuracy_m=DEFAULT_RANGE_ACCURACY_M)
     frames = [f for f in frames if f.usable]
-    if len(frames) < 3:
-        raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); refinement needs at least 3")
+    # Scan lines with their segment ends on a board of known size: two boards can determine the extrinsic.
+    least = 2 if (frames and all(f.lidar.is_scan_line for f in frames) and board.size_known
+                  and options.edges is not False) else 3
+    if len(frames) < least:
+        raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); refinement needs at least {least}")
     resid_px = corner_residual_px(frames, board, camera)
     sigma_px = options.corner_noise_px or max(resid_px, 1e-3) * options.corner_error_correlation
     sigma_r = options.range_noise_m or max(pooled_range_noise_m(frames), 1e-5)

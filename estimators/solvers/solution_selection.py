@@ -337,14 +337,19 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
         raise ValueError(f"Expected method in {METHODS}, got {method!r}")
     t0 = time.perf_counter()
     frames = [f for f in frames if f.usable]
-    if len(frames) < 3:
+    if use_extent is None:
+        use_extent = board.size_known
+    # Two boards give no minimal solution, but with a known board size their segments' four ends on the edges
+    # and two lines on the planes are 8 constraints on 6 unknowns: the multi-start search seeds them.
+    least = 2 if use_extent else 3
+    if len(frames) < least:
         raise DegenerateLayoutError(
-            f"only {len(frames)} usable frame(s); a 2D LiDAR needs at least 3 boards",
+            f"only {len(frames)} usable frame(s); a 2D LiDAR needs at least 3 boards"
+            + (" (2 with the board's size known, whose segment ends then hold what the planes leave)"
+               if use_extent else " (2 with the board's size in dataset.yaml)"),
             hint="record more boards; if frames were skipped as ambiguous, a tighter --max-sensor-separation "
                  "(the camera-LiDAR distance bound) leaves fewer scan segments where the camera puts the board")
     sigma_r = max(pooled_range_noise_m(frames), 1e-5)
-    if use_extent is None:
-        use_extent = board.size_known
     planes = [f.camera.plane for f in frames]
     lines = [f.lidar.line for f in frames]
     spread, weak = normal_spread(np.array([p.normal for p in planes]))
@@ -600,6 +605,7 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     sigma_r = max(pooled_range_noise_m(usable), 1e-5)
     refined: list = []
     error: list = []
+    unrefined: list = []  # the starts whose refinement was refused as unobservable
 
     def refine_all(starts) -> None:
         for T0 in starts:
@@ -607,6 +613,7 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
                 r = refine_graph(used, board, camera, T0, options)
             except DegenerateLayoutError as exc:
                 error.append(exc)
+                unrefined.append(T0)
                 continue
             refined.append((sum(fr.consistency_chi2 for fr in r.frames), r))
 
@@ -674,7 +681,46 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     modes = tuple(Mode(refs[k].T_camera_lidar, float(costs[k]), float(outline[k]), float(evidence[k]),
                        float(mass[k]), refs[k]) for k in order)
     kept = (modes[0],) + tuple(m for m in modes[1:] if m.mass >= MIN_MODE_MASS)
+    if len(usable) == 2 and use_extent:
+        _two_boards_decided(kept, unrefined, usable, board, sigma_r)
     return kept[0].refinement, kept
+
+
+# Two boards: a start whose refinement was refused as unobservable, away from every mode, with a joint cost of the
+# laser points and segment ends within this of the answer's, fits the data as well: the answer is refused.
+TWO_BOARD_MARGIN_CHI2 = 9.0
+
+
+def _two_boards_decided(modes: tuple, unrefined: list, usable: list[FrameMeasurement], board: BoardModel,
+                        sigma_r: float) -> None:
+    """Raise :class:`DegenerateLayoutError` when, with two boards, more than one mode holds mass, or a pose the
+    refinement could not settle (its covariance unobservable) fits the laser points and segment ends about as well
+    as the answer: the weakest layout that can be solved is answered only when it is unambiguous. Two segments
+    and their four ends are 8 constraints on 6 unknowns: besides the answer the data can hold a second, weakly
+    determined pose (a 147-degree mirror of a simulated layout fitted them better than the truth), and a mode
+    dropped for being wide is not evidence against it."""
+    if len(modes) > 1:
+        raise DegenerateLayoutError(
+            f"with 2 boards, {len(modes)} distinct poses fit the scan segments and their ends on the boards' edges "
+            f"(posterior mass {', '.join(f'{m.mass:.0%}' for m in modes)}): two boards do not decide between them",
+            hint="record a third board, tilted in another direction")
+    if not unrefined:
+        return
+
+    def joint(Ts: np.ndarray) -> np.ndarray:
+        return marginal_laser_costs(Ts, usable, sigma_r) + outline_costs(Ts, usable, board, sigma_r)
+
+    best = float(joint(np.array([m.T_camera_lidar for m in modes])).min())
+    starts = np.array(unrefined)
+    costs = joint(starts)
+    for T, c in zip(starts, costs):
+        far = all(solution_distances(np.array([T, m.T_camera_lidar]))[0] >= 1.0 for m in modes)
+        if far and c <= best + TWO_BOARD_MARGIN_CHI2:
+            raise DegenerateLayoutError(
+                f"with 2 boards, another pose fits the scan segments and their ends on the boards' edges about as "
+                f"well as the answer (joint cost {c:.1f} against {best:.1f}) but the data leave it unobservable: "
+                "the two cannot be told apart",
+                hint="record a third board, tilted in another direction")
 
 
 # A board whose corners fit two tilts alike (``FrameMeasurement.camera_alternatives``) is skipped, unless the
@@ -694,14 +740,34 @@ def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
     and some boards were skipped as ambiguous in their orientation, the tilts of those boards are tried
     (``TILT_MARGIN_CHI2``). Returns the frames (an ambiguous board made usable with its chosen tilt), the
     selection, the refinement, the modes and notes on the tilts chosen."""
+    ambiguous = [k for k, f in enumerate(frames)
+                 if not f.usable and f.lidar is not None and len(f.camera_alternatives) > 1][:MAX_AMBIGUOUS_BOARDS]
+    if ambiguous and sum(f.usable for f in frames) == 2:
+        # Two boards alone are the weakest layout that can be solved: a third from the ambiguous ones, with the
+        # tilt the laser decides, first; the two alone when no tilt decides.
+        try:
+            return _with_tilts(frames, board, camera, method, options, use_extent, ambiguous, DegenerateLayoutError(
+                "only 2 usable frame(s); a 2D LiDAR needs at least 3 boards",
+                hint="record more boards, or boards whose orientation the image decides"))
+        except DegenerateLayoutError as exc:
+            tilts_failed = exc
+        try:
+            return _select_and_refine(frames, board, camera, method, options, use_extent) + ((),)
+        except DegenerateLayoutError:
+            raise tilts_failed from None
     try:
         return _select_and_refine(frames, board, camera, method, options, use_extent) + ((),)
     except DegenerateLayoutError as exc:
         degenerate = exc
-    ambiguous = [k for k, f in enumerate(frames)
-                 if not f.usable and f.lidar is not None and len(f.camera_alternatives) > 1][:MAX_AMBIGUOUS_BOARDS]
     if not ambiguous:
         raise degenerate
+    return _with_tilts(frames, board, camera, method, options, use_extent, ambiguous, degenerate)
+
+
+def _with_tilts(frames, board, camera, method, options, use_extent, ambiguous: list[int],
+                degenerate: DegenerateLayoutError):
+    """:func:`select_and_refine` over each combination of the ``ambiguous`` boards' tilts (``TILT_MARGIN_CHI2``);
+    ``degenerate``: why the layout without them was not solved, the refusal's start."""
     use_extent = board.size_known if use_extent is None else use_extent
     tried = []
     for tilts in itertools.product(*(range(len(frames[k].camera_alternatives)) for k in ambiguous)):
@@ -714,10 +780,14 @@ def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
             continue
         used = [f for f in out[0] if f.usable]
         sigma_r = max(pooled_range_noise_m(used), 1e-5)
-        Ts = np.array([m.T_camera_lidar for m in out[3]])
-        joint = marginal_laser_costs(Ts, used, sigma_r)
         if use_extent:
-            joint = joint + outline_costs(Ts, used, board, sigma_r)
+            # The least joint cost near each minimum (``outline_evidence``), not at it: an ambiguous board's
+            # camera pose is weak along its tilt, and the factor graph's minimum, which moves that pose, can sit
+            # well above the joint cost's own minimum close by (a right tilt judged implausible at 113 on 12
+            # dof where the truth's cost was 26).
+            joint = np.array([outline_evidence(m.refinement, used, board, sigma_r)[0] for m in out[3]])
+        else:
+            joint = marginal_laser_costs(np.array([m.T_camera_lidar for m in out[3]]), used, sigma_r)
         corners = sum(frames[k].camera_alternatives[c].orientation_excess_chi2 for k, c in zip(ambiguous, tilts))
         tried.append((float(joint.min()) + corners, tilts, out, (4 if use_extent else 2) * len(used)))
     if not tried:
