@@ -237,10 +237,10 @@ def _tilted(obs, angle_rad: float, board):
 
 
 def test_boards_ambiguous_in_their_tilt_are_decided_by_the_laser_when_the_rest_cannot_be_solved():
-    """Two usable boards and two whose corners fit two tilts alike (the second tilt 35 degrees off): the two
-    alone cannot be solved, so every combination of the tilts is solved, and the one the laser lines agree with
-    is used: the true tilts, an answer at the truth's basin. When a board's two tilts are the same plane
-    (nothing to decide by), the calibration is refused as before, with why."""
+    """Two usable boards and two whose corners fit two tilts alike (the second tilt 35 degrees off): every
+    combination of the tilts is solved before the two alone, and the one the laser lines agree with is used: the
+    true tilts, an answer at the truth's basin. When a board's two tilts are the same plane (nothing to decide
+    by), the two usable boards alone fit two poses, and the calibration is refused with why."""
     from estimators.solvers.solution_selection import select_and_refine
 
     rig, frames = _frames("default", 4, 5)
