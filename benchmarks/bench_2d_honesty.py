@@ -127,6 +127,12 @@ def main() -> None:
               f"{r['bound'][1]:.0f} mm, masses {np.round(r['masses'], 3).tolist()}; d2 under each mode's Laplace "
               f"covariance {np.round(r['d2_modes'], 1).tolist()}: the truth "
               + ("inside" if r["in_mixture"] else "outside") + " the modes' 99.9% region")
+    for r in rows if a.seeds else ():  # trials asked for by seed: each one's distance against its region
+        if not r["refused"]:
+            print(f"seed {r['seed']}: d2 {r['d2']:.1f} against the region's {r['limit']:.1f} (Laplace "
+                  f"{r['d2_laplace']:.1f} against {LIMIT:.2f}), error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, sd up "
+                  f"to {r['sd'][0]:.2f} deg {r['sd'][1]:.0f} mm, bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm, "
+                  f"masses {np.round(r['masses'], 3).tolist()}")
     for r in rows:
         if r["refused"] and not r["degenerate"]:
             print(f"refused with a finite bound: seed {r['seed']}, bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm: "
