@@ -697,8 +697,8 @@ def _two_boards_decided(modes: tuple, unrefined: list, usable: list[FrameMeasure
     refinement could not settle (its covariance unobservable) fits the laser points and segment ends about as well
     as the answer: the weakest layout that can be solved is answered only when it is unambiguous. Two segments
     and their four ends are 8 constraints on 6 unknowns: besides the answer the data can hold a second, weakly
-    determined pose (a 147-degree mirror of a simulated layout fitted them better than the truth), and a mode
-    dropped for being wide is not evidence against it."""
+    determined pose (far from the truth, it can fit two segments better than the truth does), and a mode dropped
+    for being wide is not evidence against it."""
     if len(modes) > 1:
         raise DegenerateLayoutError(
             f"with 2 boards, {len(modes)} distinct poses fit the scan segments and their ends on the boards' edges "
@@ -784,8 +784,7 @@ def _with_tilts(frames, board, camera, method, options, use_extent, ambiguous: l
         if use_extent:
             # The least joint cost near each minimum (``outline_evidence``), not at it: an ambiguous board's
             # camera pose is weak along its tilt, and the factor graph's minimum, which moves that pose, can sit
-            # well above the joint cost's own minimum close by (a right tilt judged implausible at 113 on 12
-            # dof where the truth's cost was 26).
+            # well above the joint cost's own minimum close by (a right tilt was judged implausible).
             joint = np.array([outline_evidence(m.refinement, used, board, sigma_r)[0] for m in out[3]])
         else:
             joint = marginal_laser_costs(np.array([m.T_camera_lidar for m in out[3]]), used, sigma_r)
