@@ -523,6 +523,12 @@ def _quasi_uniform_quaternions(n: int) -> np.ndarray:
                             b * np.sin(2 * np.pi * u[:, 2]), b * np.cos(2 * np.pi * u[:, 2])])
 
 
+def joint_costs(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float) -> np.ndarray:
+    """``J(T) = marginal_laser_costs(T) + outline_costs(T)``: the laser points against the camera planes (with
+    their uncertainty) and the segment ends against the boards' outlines, for (K, 4, 4) ``T_camera_lidar``."""
+    return marginal_laser_costs(Ts, frames, sigma_r) + outline_costs(Ts, frames, board, sigma_r)
+
+
 def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: BoardModel, sigma_r: float,
                      rng: np.random.Generator | None = None, n_polish: int = 2) -> tuple[float, float, np.ndarray]:
     """The least joint cost ``J(T) = M(T) + outline_costs(T)`` near the refined minimum (``M``:
@@ -542,8 +548,7 @@ def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: Boa
     T = ref.T_camera_lidar
 
     def cost(Z: np.ndarray) -> np.ndarray:
-        Ts = _retract(T, np.atleast_2d(Z) @ L.T)
-        return marginal_laser_costs(Ts, frames, sigma_r) + outline_costs(Ts, frames, board, sigma_r)
+        return joint_costs(_retract(T, np.atleast_2d(Z) @ L.T), frames, board, sigma_r)
 
     Z = np.vstack([np.zeros(6), rng.normal(0.0, 1.5, (1024, 6)), rng.normal(0.0, 4.0, (1024, 6))])
     values = cost(Z)
@@ -707,12 +712,9 @@ def _two_boards_decided(modes: tuple, unrefined: list, usable: list[FrameMeasure
     if not unrefined:
         return
 
-    def joint(Ts: np.ndarray) -> np.ndarray:
-        return marginal_laser_costs(Ts, usable, sigma_r) + outline_costs(Ts, usable, board, sigma_r)
-
-    best = float(joint(np.array([m.T_camera_lidar for m in modes])).min())
+    best = float(joint_costs(np.array([m.T_camera_lidar for m in modes]), usable, board, sigma_r).min())
     starts = np.array(unrefined)
-    costs = joint(starts)
+    costs = joint_costs(starts, usable, board, sigma_r)
     for T, c in zip(starts, costs):
         far = all(solution_distances(np.array([T, m.T_camera_lidar]))[0] >= 1.0 for m in modes)
         if far and c <= best + TWO_BOARD_MARGIN_CHI2:
