@@ -41,6 +41,7 @@ from .solvers.range_model import (MODEL_TEST_P, FrameLabels, RangeTerms, frame_l
                                   terms_for)
 from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, outline_key, pair_board_covariance, solve_rig,
                                 spanning_tree, terms_fit, terms_test, translation_sd_in_first)
+from .solvers.posterior import heavy_tails
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -434,6 +435,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     t_post = time.perf_counter()
     result = RigResult(rig, solution, cameras, pairwise, {}, skipped, (), {}, pair_frames, dict(links), None,
                        tuple(camera_views), tuple(lidar_views))
+    for a, b in result.pairs() if posterior is not None else ():
+        note = heavy_tails(posterior.pair_samples(a, b), what=f"T_{a}_{b} posterior")
+        if note is not None:
+            warnings.append(note)
     next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})

@@ -517,7 +517,12 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
         np.testing.assert_allclose(sd, sd_graph, rtol=0.15, err_msg=f"{a}-{b}")
         assert np.all(np.abs(s.mean(axis=0)) < 0.2 * sd_graph), (a, b)
         xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, a, b))
-        assert xi @ np.linalg.solve(np.cov(s, rowvar=False), xi) < 22.5, (a, b)
+        d2 = xi @ np.linalg.solve(np.cov(s, rowvar=False), xi)
+        assert d2 < 22.5, (a, b)
+        # the pair's credible region holds its share of the pair's samples, never below a Gaussian's, and the truth
+        region = post.pair_summary(a, b)["credible_regions"]["99.9%"]
+        inside = np.mean(np.einsum("ni,ni->n", s, np.linalg.solve(np.cov(s, rowvar=False), s.T).T) <= region["d2"])
+        assert region["d2"] >= region["gaussian_d2"] and inside >= 0.999 and d2 <= region["d2"], (a, b)
     s01, s0l, s1l = (post.pair_samples(*p)[:50] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
     T01, T0l, T1l = (sol.transform(*p)[0] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
     for k in range(50):
@@ -540,6 +545,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 30 and "posterior (emcee" in run.stdout
     iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
     assert all(lo < 0 < hi for lo, hi in iv)
+    assert cal["transforms"]["T_cam2_lidar0"]["posterior"]["credible_regions"]["99.9%"]["d2"] >= 22.45
     with np.load(out / "posterior.npz") as npz:
         assert npz["xi"].shape[1] == 36 and list(npz["names"]) == [s["name"] for s in cal["sensors"]]
     # the weakest camera-LiDAR pair: the one whose translation's largest standard deviation is largest

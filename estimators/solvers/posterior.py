@@ -111,6 +111,43 @@ class ChainResult:
 HEAVY_TAIL_FACTOR = 2.0
 
 
+def mahalanobis_d2(samples: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance of tangent offsets ``xi`` (rows; from the estimate the samples' tangent is
+    taken at) under the covariance of ``samples`` (M, 6)."""
+    xi = np.atleast_2d(xi)
+    return np.einsum("ni,ni->n", xi, np.linalg.solve(np.cov(samples, rowvar=False), xi.T).T)
+
+
+def region_d2(samples: np.ndarray, level: float) -> float:
+    """The credible region at ``level`` of posterior ``samples`` (M, 6; tangent offsets from the estimate): the
+    ellipsoid of their covariance, about the estimate, that holds ``level`` of them, never smaller than a
+    Gaussian's (the chi-square point, 6 dof). A posterior with heavy tails (a 2D layout's curved valley, the
+    sampled range noise, a minor mode) needs a larger distance than the Gaussian's: the covariance's chi-square
+    ellipsoid would leave the truth outside more often than ``1 - level``."""
+    return float(max(chi2.ppf(level, 6), np.quantile(mahalanobis_d2(samples, samples), level)))
+
+
+def heavy_tails(samples: np.ndarray, level: float = 0.999, what: str = "posterior") -> str | None:
+    """A note when the region of ``samples`` at ``level`` reaches beyond ``HEAVY_TAIL_FACTOR`` times a Gaussian's
+    distance (the covariance alone then understates how far the truth may lie), else None."""
+    q, g = region_d2(samples, level), chi2.ppf(level, 6)
+    if q < HEAVY_TAIL_FACTOR * g:
+        return None
+    return (f"the {what}'s tails are heavier than a Gaussian's: its {100 * level:g}% region reaches a squared "
+            f"Mahalanobis distance of {q:.1f} under the covariance (a Gaussian's {g:.1f}); judge tail "
+            "probabilities by that region or the samples (posterior.npz), not by the covariance alone")
+
+
+def regions(samples: np.ndarray) -> dict:
+    """The credible regions (:func:`region_d2`) of ``samples`` at 99% and 99.9%, beside a Gaussian's, for
+    calibration.json."""
+    return {"definition": "T = T_hat * Exp(xi) with xi^T covariance^-1 xi at most d2: the covariance's ellipsoid "
+                          "about the estimate holding the level's share of the samples, never below a "
+                          "Gaussian's chi-square point",
+            **{f"{100 * level:g}%": {"d2": region_d2(samples, level), "gaussian_d2": float(chi2.ppf(level, 6))}
+               for level in (0.99, 0.999)}}
+
+
 @dataclass(frozen=True, eq=False)
 class Posterior:
     """Posterior samples of ``xi`` (tangent at ``T_map``) and of the noise scale, with diagnostics."""
@@ -138,16 +175,12 @@ class Posterior:
     def d2(self, xi: np.ndarray) -> np.ndarray:
         """Squared Mahalanobis distance of tangent offsets ``xi`` (from the MAP, ``T = T_map Exp(xi)``) under
         :attr:`covariance`."""
-        xi = np.atleast_2d(xi)
-        return np.einsum("ni,ni->n", xi, np.linalg.solve(self.covariance, xi.T).T)
+        return mahalanobis_d2(self.xi, xi)
 
     def region_d2(self, level: float) -> float:
-        """The credible region at ``level``: ``T = T_map Exp(xi)`` with ``d2(xi)`` at most this, the ellipsoid
-        of :attr:`covariance` (about the MAP) that holds ``level`` of the samples, never smaller than a
-        Gaussian's (the chi-square point, 6 dof). A posterior with heavy tails (a 2D layout's curved valley, the
-        sampled range noise, a minor mode) needs a larger distance than the Gaussian's: the covariance's
-        chi-square ellipsoid would leave the truth outside more often than ``1 - level``."""
-        return float(max(chi2.ppf(level, 6), np.quantile(self.d2(self.xi), level)))
+        """The credible region at ``level`` (:func:`region_d2`): ``T = T_map Exp(xi)`` with ``d2(xi)`` at most
+        this."""
+        return region_d2(self.xi, level)
 
     def contains(self, T: np.ndarray, level: float) -> bool:
         """Whether the pose ``T`` (``T_camera_lidar``) lies in the credible region at ``level``."""
@@ -156,13 +189,8 @@ class Posterior:
 
     def heavy_tails(self, level: float = 0.999) -> str | None:
         """A note when the region at ``level`` reaches beyond ``HEAVY_TAIL_FACTOR`` times a Gaussian's distance
-        (the covariance alone then understates how far the truth may lie), else None."""
-        q, g = self.region_d2(level), chi2.ppf(level, 6)
-        if q < HEAVY_TAIL_FACTOR * g:
-            return None
-        return (f"the posterior's tails are heavier than a Gaussian's: its {100 * level:g}% region reaches a squared "
-                f"Mahalanobis distance of {q:.1f} under the covariance (a Gaussian's {g:.1f}); judge tail "
-                "probabilities by that region or the samples (posterior.npz), not by the covariance alone")
+        (:func:`heavy_tails`), else None."""
+        return heavy_tails(self.xi, level)
 
     def summary(self) -> dict:
         """Intervals in degrees (rotation about the LiDAR's axes) and millimetres (translation along them)."""
@@ -174,12 +202,8 @@ class Posterior:
         return out
 
     def regions(self) -> dict:
-        """The credible regions (:meth:`region_d2`) at 99% and 99.9%, beside a Gaussian's."""
-        return {"definition": "T = T_hat * Exp(xi) with xi^T covariance^-1 xi at most d2: the covariance's ellipsoid "
-                              "about the estimate holding the level's share of the samples, never below a "
-                              "Gaussian's chi-square point",
-                **{f"{100 * level:g}%": {"d2": self.region_d2(level), "gaussian_d2": float(chi2.ppf(level, 6))}
-                   for level in (0.99, 0.999)}}
+        """The credible regions (:func:`regions`) at 99% and 99.9%, beside a Gaussian's."""
+        return regions(self.xi)
 
     def diagnostics(self) -> dict:
         r = self.run

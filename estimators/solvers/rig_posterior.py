@@ -35,7 +35,7 @@ from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
-from .posterior import ChainResult, run_ensemble
+from .posterior import ChainResult, regions, run_ensemble
 from .rig_graph import (CameraViews, LidarViews, RigSolution, change_reference, graph_reference,
                         rig_corner_residuals)
 
@@ -72,8 +72,9 @@ class RigPosterior:
         return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
 
     def pair_summary(self, a: str, b: str) -> dict:
-        """``T_a_b``'s posterior standard deviations and equal-tailed 68% and 95% intervals (degrees about, and
-        millimetres along, b's axes: the right tangent)."""
+        """``T_a_b``'s posterior standard deviations, equal-tailed 68% and 95% intervals (degrees about, and
+        millimetres along, b's axes: the right tangent) and credible regions (``posterior.regions``: the
+        covariance's ellipsoid about the estimate holding 99% and 99.9% of the samples)."""
         s = self.pair_samples(a, b)
         sd = np.std(s, axis=0, ddof=1)
         out = {"std_rotation_deg": np.degrees(sd[:3]).tolist(), "std_translation_mm": (1000 * sd[3:]).tolist()}
@@ -82,6 +83,7 @@ class RigPosterior:
             iv = np.percentile(s, [q, 100 - q], axis=0).T
             out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
                                             "translation_mm": (1000 * iv[3:]).tolist()}
+        out["credible_regions"] = regions(s)
         return out
 
     def diagnostics(self) -> dict:
