@@ -512,11 +512,31 @@ class _Problem:
                            for j, i in enumerate(active) if self.has_edges(i)}
         return graph, result, int(opt.iterations())
 
-    def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
+    def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float,
+                    active: list[int] | None = None) -> tuple[float, float]:
         """The cost the camera alone cannot explain, summed over ``frames`` (chi-square with ``3 N - 6``
-        dof under the model)."""
+        dof under the model; with the edges, more: :meth:`edge_leverage`, given the graph's ``active`` frames)."""
         stat = sum(self.frame_chi2(i, T, boards[i], floor_m) for i in frames)
-        return stat, max(sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames), 1)
+        dof = sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames)
+        if self.edges is not None and active is not None:
+            dof += self.edge_leverage(active, T, boards, floor_m)
+        return stat, max(dof, 1)
+
+    def edge_leverage(self, active: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
+        """How many of the extrinsic's and board poses' directions the edges fit rather than the corners and
+        planes: ``P - tr(H_cp Sigma)``, ``H_cp`` the corners' and planes' information on those ``P`` unknowns
+        and ``Sigma`` their covariance in the whole graph. The planes' and corners' cost at the joint estimate
+        then has that many more degrees of freedom than ``3 N - 6`` (the expected cost of a linear model's rows
+        is their count less their leverage): three 2D scan lines give their planes 6 rows, which alone would
+        fit the extrinsic exactly, while the segment ends fix much of it."""
+        n = len(active)
+        H_all = _hessian(self.graph(active, floor_m), self.values(active, T, boards), n)[0]
+        planes = self.variant(edges=False)
+        H_cp = _hessian(planes.graph(active, floor_m), planes.values(active, T, boards), n)[0]
+        k = 6 + 6 * n  # extrinsic and board poses, first in both orderings; range terms last in both
+        idx = np.r_[0:k, H_all.shape[0] - (H_cp.shape[0] - k):H_all.shape[0]]
+        Sigma = np.linalg.pinv(H_all, hermitian=True)[np.ix_(idx, idx)]
+        return float(np.clip(H_cp.shape[0] - np.trace(H_cp @ Sigma), 0.0, 6.0))
 
 
 def _rank(A: np.ndarray) -> int:
@@ -904,7 +924,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             model_fit = replace(model_fit, term_consistency={
                 "chi2": t_stat, "dof": t_dof, "p_value": float(chi2.sf(t_stat, t_dof)), "board_scatter_m": prob.tau,
                 "board_scatter_meaning": BOARD_SCATTER_MEANING})
-        stat, dof = prob.consistency(inliers, T, boards, floor)
+        stat, dof = prob.consistency(inliers, T, boards, floor, active)
         variance_factor, p_value = stat / dof, float(chi2.sf(stat, dof))
         if (p_value < 0.01 or floor > 0) and options.plane_floor_m is None and options.estimate_plane_floor:
             # The planes disagree beyond the point and corner noise (real sensors: range biases per laser,
