@@ -330,7 +330,7 @@ def _print_result(result, truth=None) -> None:
         print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
         print(f"noise: corners {ref.corner_noise_px:.3f} px effective ({ref.corner_residual_px:.3f} px residual), "
               f"range {1000 * ref.range_noise_m:.1f} mm; plane consistency {ref.variance_factor:.2f} "
-              f"(chi-square/dof, {ref.consistency_dof} dof, p = {ref.consistency_p:.2g})"
+              f"(chi-square/dof, {ref.consistency_dof:g} dof, p = {ref.consistency_p:.2g})"
               + (f"; per-board plane error {1000 * ref.plane_floor_m:.1f} mm" if ref.plane_floor_m else ""))
         _print_range_model(ref.range_model)
         _print_edges(ref.edges)

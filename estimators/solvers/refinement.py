@@ -207,7 +207,7 @@ class Refinement:
     range_noise_m: float
     plane_floor_m: float
     variance_factor: float
-    consistency_dof: int
+    consistency_dof: float  # with the edges, their leverage added (``_Problem.edge_leverage``): not whole
     consistency_p: float
     iterations: int
     warnings: tuple[str, ...] = ()
@@ -997,7 +997,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             quasi_scale = stat_f / dof_f
             cov = cov * quasi_scale
             warnings.append(f"the boards disagree beyond what the range terms and a per-board plane error of physical "
-                            f"size explain (chi-square {stat_f:.0f} on {dof_f} dof): the covariance is scaled by "
+                            f"size explain (chi-square {stat_f:.0f} on {dof_f:.3g} dof): the covariance is scaled by "
                             f"{quasi_scale:.2f}")
             if model_fit is not None:
                 model_fit = replace(model_fit, std_m=tuple(np.sqrt(quasi_scale) * np.array(model_fit.std_m)),
@@ -1042,7 +1042,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             action = "dropped" if i in dropped else "down-weighted"
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
-                      resid_px, float(sigma_r), float(floor), float(variance_factor), dof, p_value, iterations,
+                      resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value, iterations,
                       tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
                       edge_share, end_terms)
 
