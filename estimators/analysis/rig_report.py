@@ -33,8 +33,9 @@ def _pair_rows(result) -> list[list[str]]:
         else:
             row += ["-", "-", "-"]
         if result.posterior is not None:
-            iv = result.posterior.pair_summary(a, b)["95%"]["translation_mm"]
-            row.append(", ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in iv))
+            summary = result.posterior.pair_summary(a, b)
+            row.append(", ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in summary["95%"]["translation_mm"]))
+            row.append(f"{summary['credible_regions']['99.9%']['d2']:.1f}")
         rows.append(row)
     return rows
 
@@ -67,11 +68,14 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
                  "standard deviations" + ("; the posterior's 95% interval of the translation's right tangent "
-                                          "(mm, along the second sensor's axes)" if post is not None else "")
+                                          "(mm, along the second sensor's axes) and its 99.9% credible region (the squared Mahalanobis "
+                                          "distance under the pair's posterior covariance within which 99.9% of "
+                                          "its samples lie)" if post is not None else "")
                  + ".</p>"
                  + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
                                                "pair alone: away", "pair alone: t sd [mm]"]
-                          + (["posterior 95%: t [mm]"] if post is not None else [])))
+                          + (["posterior 95%: t [mm]", "99.9% region: d2 (a Gaussian's 22.5)"]
+                             if post is not None else [])))
     if result.outline_checks:
         rows = []
         for (a, b), e in result.outline_checks.items():
