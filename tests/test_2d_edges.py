@@ -249,8 +249,8 @@ def test_the_planes_consistency_with_segment_ends_counts_the_dof_the_ends_leave_
     draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of the mean dof
     counted (measured 0.72-0.92 per layout, 0.84 pooled), while the count without the ends' leverage is below
     the mean statistic by more than 1.3 times (measured 1.75); at most 3% of the draws reject at 1% (measured
-    none). That test adds a plane error: bench_2d_honesty's mounted seed 2103088077 rejected at p = 0.0013 on
-    1 dof, and its plane error then ran to 0.5 m."""
+    none). That test adds a plane error: counted on 1 dof, bench_2d_honesty's mounted seed 2103088077 was
+    rejected by chance, and the plane error estimated on that 1 dof took every weight from its planes."""
     stats, dofs, plain, p = [], [], [], []
     for seed, config, n in ((78, "mounted", 3), (79, "default", 3), (80, "varied", 4)):
         rng = np.random.default_rng(seed)

@@ -528,7 +528,8 @@ class _Problem:
         and ``Sigma`` their covariance in the whole graph. The planes' and corners' cost at the joint estimate
         then has that many more degrees of freedom than ``3 N - 6`` (the expected cost of a linear model's rows
         is their count less their leverage): three 2D scan lines give their planes 6 rows, which alone would
-        fit the extrinsic exactly, while the segment ends fix much of it."""
+        fit the extrinsic exactly, while the segment ends fix much of it. Kept within 0-6: the corners fix the
+        board poses far better than the edges can, so what the edges take is the extrinsic's."""
         n = len(active)
         H_all = _hessian(self.graph(active, floor_m), self.values(active, T, boards), n)[0]
         planes = self.variant(edges=False)
