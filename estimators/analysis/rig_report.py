@@ -68,9 +68,10 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
                  "standard deviations" + ("; the posterior's 95% interval of the translation's right tangent "
-                                          "(mm, along the second sensor's axes) and its 99.9% credible region (the squared Mahalanobis "
-                                          "distance under the pair's posterior covariance within which 99.9% of "
-                                          "its samples lie)" if post is not None else "")
+                                          "(mm, along the second sensor's axes) and its 99.9% credible region "
+                                          "(the squared Mahalanobis distance under the pair's posterior "
+                                          "covariance within which 99.9% of its samples lie)"
+                                          if post is not None else "")
                  + ".</p>"
                  + _table(_pair_rows(result), ["pair", "t [mm]", "t sd [mm]", "rotation sd [deg]", "frames",
                                                "pair alone: away", "pair alone: t sd [mm]"]

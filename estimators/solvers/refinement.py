@@ -1043,8 +1043,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             action = "dropped" if i in dropped else "down-weighted"
             warnings.append(f"frame {f.name}: {why}; {action}")
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
-                      resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value, iterations,
-                      tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
+                      resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value,
+                      iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
                       edge_share, end_terms)
 
 
