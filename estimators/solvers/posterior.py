@@ -106,7 +106,7 @@ class ChainResult:
 
 # A posterior whose 99.9% region (``Posterior.region_d2``) reaches this many times a Gaussian's squared distance
 # is reported as heavy-tailed (``Posterior.heavy_tails``). The sampled noise scale alone makes every posterior a
-# scale mixture, its 99.9% region about 1.4 times a Gaussian's (the simulated default, ``lidarcam demo``): the
+# scale mixture, its 99.9% region 1.4-1.6 times a Gaussian's (the simulated default, ``lidarcam demo``): the
 # warning is kept for the posteriors the covariance misdescribes (a 2D layout's curved valley, a minor mode).
 HEAVY_TAIL_FACTOR = 2.0
 
