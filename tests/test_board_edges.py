@@ -345,3 +345,21 @@ def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_no
         _print_result(moved)
         assert capsys.readouterr().out.startswith("UNTRUSTED: the boards' planes and their ring ends") == flagged
         assert _exit_code(strict, moved) == (EXIT_AMBIGUOUS if flagged else 0)
+
+
+def test_the_range_models_tests_count_the_edges_leverage_as_the_planes_consistency_does():
+    # The range-model tests compare the planes' cost with its degrees of freedom; with the edges in the graph the
+    # edges fit part of the extrinsic, so the planes' cost has more dof than its rows less 6 and the terms (as in the
+    # main consistency test): without that the quasi-likelihood scale and the F tests would read the edges' fit as
+    # excess scatter.
+    layout = _layout(3, "vlp16", n=8, weak=True)
+    frames = simulate_measurements(layout, np.random.default_rng(7))
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
+                           allow_weak=True).T_camera_lidar
+    dof = {}
+    for edges in (False, True):
+        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="auto",
+                                                                                         edges=edges))
+        dof[edges] = ref.range_model.tests[0]["consistency_dof"]
+    assert dof[False] == round(dof[False])  # rows less the extrinsic and the terms: whole
+    assert dof[False] + 0.01 < dof[True] <= dof[False] + 6

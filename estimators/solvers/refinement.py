@@ -993,7 +993,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     # physical size explains: the covariance is scaled by the variance factor that remains (quasi-likelihood).
     quasi_scale = 1.0
     if prob.has_beta and options.plane_floor_m is None and options.estimate_plane_floor:
-        stat_f, dof_f = prob.consistency(inliers, T, boards, floor)
+        stat_f, dof_f = prob.consistency(inliers, T, boards, floor, active)
         if chi2.sf(stat_f, dof_f) < 0.01:
             quasi_scale = stat_f / dof_f
             cov = cov * quasi_scale
@@ -1160,11 +1160,11 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
     (the error's size is itself estimated from the boards). Else the
     decrease is referred to chi-square with the added terms' degrees of freedom."""
     ddof = max(large.dof - small.dof, 1)
-    stat, cdof = large.prob.consistency(inliers, large.T, large.boards, floor)
+    stat, cdof = large.prob.consistency(inliers, large.T, large.boards, floor, active)
     dispersion = stat / cdof
     delta = small.cost - large.cost
     record = {"model": large.model, "against": small.model, "cost_decrease": float(delta), "added_dof": int(ddof),
-              "variance_factor": float(dispersion), "consistency_dof": int(cdof)}
+              "variance_factor": float(dispersion), "consistency_dof": round(float(cdof), 2)}
     overdispersed = (chi2.sf(stat, cdof) < 0.01 and options.plane_floor_m is None and options.estimate_plane_floor)
     if overdispersed:
         p_l, p_s = large.prob, small.prob
@@ -1187,7 +1187,7 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
         for p, beta, solved, tau in saved:
             p.beta, p.solved, p.tau = beta, solved, tau
         p_value = float(fdtrc(ddof, cdof, max(delta, 0.0) / ddof / scale))
-        record.update({"reference": f"F({ddof}, {cdof})", "plane_error_m": float(fl), "board_scatter_m": scatter,
+        record.update({"reference": f"F({ddof}, {cdof:.4g})", "plane_error_m": float(fl), "board_scatter_m": scatter,
                        "cost_decrease_with_plane_error": float(delta), "quasi_likelihood_scale": float(scale)})
     else:
         p_value = float(chi2.sf(max(delta, 0.0), ddof))
@@ -1196,8 +1196,8 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
     return record
 
 
-def _relative_consistency(fit: _ModelFit, base: _ModelFit, inliers: list[int], floor: float, fit_test: dict,
-                          base_test: dict) -> tuple[float, float]:
+def _relative_consistency(fit: _ModelFit, base: _ModelFit, active: list[int], inliers: list[int], floor: float,
+                          fit_test: dict, base_test: dict) -> tuple[float, float]:
     """How the boards agree under ``fit`` against under ``base`` (the global offset alone): the ratio of their
     variance factors and its p-value as F. Per-ring and black-square terms read structure within each board;
     when it differs from board to board, shared terms leave the boards worse than the offset alone. On
@@ -1213,8 +1213,8 @@ def _relative_consistency(fit: _ModelFit, base: _ModelFit, inliers: list[int], f
             # them): the combination must too, tested on its own degrees of freedom.
             return float(ratio), float(chi2.sf(fit_test["quasi_likelihood_scale"] * d1, d1))
     else:
-        s1, d1 = fit.prob.consistency(inliers, fit.T, fit.boards, floor)
-        s0, d0 = base.prob.consistency(inliers, base.T, base.boards, floor)
+        s1, d1 = fit.prob.consistency(inliers, fit.T, fit.boards, floor, active)
+        s0, d0 = base.prob.consistency(inliers, base.T, base.boards, floor, active)
         ratio = (s1 / d1) / max(s0 / d0, 1.0)
     return float(ratio), float(fdtrc(d1, d0, ratio))
 
@@ -1269,7 +1269,8 @@ def _choose_range_model(prob: _Problem, active: list[int], inliers: list[int], T
     for model in candidates:
         if model == base:
             break
-        ratio, p_rel = _relative_consistency(fits[model], fits["offset"], inliers, floor, by_model[model], tests[0])
+        ratio, p_rel = _relative_consistency(fits[model], fits["offset"], active, inliers, floor, by_model[model],
+                                             tests[0])
         if p_rel >= 0.01:
             chosen = model
             break
