@@ -24,6 +24,21 @@ def _layout(seed: int, lidar: str = "vlp16", n: int = 6, weak: bool = False, noi
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, noise_m)
 
 
+def _weak_start(seed: int, noise_seed: int, n: int) -> tuple[Layout, list, np.ndarray]:
+    """A VLP-16 layout of ``n`` weakly spread boards, its simulated frames and their closed-form start."""
+    layout = _layout(seed, "vlp16", n=n, weak=True)
+    frames = simulate_measurements(layout, np.random.default_rng(noise_seed))
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
+                           allow_weak=True).T_camera_lidar
+    return layout, frames, T0
+
+
+def _refined(layout: Layout, frames: list, T0: np.ndarray, edges: bool, range_model: str = "none"):
+    """The refinement of ``frames`` from ``T0``, with or without the board's edges."""
+    return refine(frames, layout.board, layout.camera, T0,
+                  measurement_model_options(range_model=range_model, edges=edges))
+
+
 def _crossings(layout: Layout, i: int, pointing=None, beam_sd_rad: float = BEAM_SD_RAD):
     dirs, ranges, rings, _ = board_returns(layout, i, pointing)
     T_bl = T_inverse(layout.T_camera_board[i]) @ layout.T_camera_lidar
@@ -90,13 +105,9 @@ def test_edges_shrink_the_in_plane_error_on_weak_layouts():
     err = {False: [], True: []}
     d2, p_values = [], []
     for seed in range(6):
-        layout = _layout(seed, "vlp16", n=10, weak=True)
-        frames = simulate_measurements(layout, np.random.default_rng(seed + 100))
-        T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
-                               allow_weak=True).T_camera_lidar
+        layout, frames, T0 = _weak_start(seed, seed + 100, 10)
         for edges in (False, True):
-            ref = refine(frames, layout.board, layout.camera, T0,
-                         measurement_model_options(range_model="none", edges=edges))
+            ref = _refined(layout, frames, T0, edges)
             xi = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
             err[edges].append(xi)
             if edges:
@@ -130,8 +141,7 @@ def test_outline_errors_in_the_dataset_are_caught(error, edges):
                 with_outline_error(layout, size_error_m=0.05))
         frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(seed)), real, seed + 5)
         T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
-        ref = refine(frames, layout.board, layout.camera, T0,
-                     measurement_model_options(range_model="none", edges=edges))
+        ref = _refined(layout, frames, T0, edges)
         # Without --edges the ends check the planes' estimate, and say the same (solvers.outline_check); with
         # them, the planes-only estimate made beside is checked too.
         assert ref.edges is not None and ref.edges["used"] == edges
@@ -205,14 +215,10 @@ def test_the_posterior_holds_the_edges():
     # on the estimate, and narrower than the planes' alone.
     from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 
-    layout = _layout(1, "vlp16", n=10, weak=True)
-    frames = simulate_measurements(layout, np.random.default_rng(101))
-    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
-                           allow_weak=True).T_camera_lidar
+    layout, frames, T0 = _weak_start(1, 101, 10)
     sd = {}
     for edges in (False, True):
-        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none",
-                                                                                         edges=edges))
+        ref = _refined(layout, frames, T0, edges)
         post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(1),
                                 PosteriorOptions(min_ess=1000, progress=False))
         sd[edges] = post.xi.std(axis=0)
@@ -352,14 +358,9 @@ def test_the_range_models_tests_count_the_edges_leverage_as_the_planes_consisten
     # edges fit part of the extrinsic, so the planes' cost has more dof than its rows less 6 and the terms (as in the
     # main consistency test): without that the quasi-likelihood scale and the F tests would read the edges' fit as
     # excess scatter.
-    layout = _layout(3, "vlp16", n=8, weak=True)
-    frames = simulate_measurements(layout, np.random.default_rng(7))
-    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
-                           allow_weak=True).T_camera_lidar
+    layout, frames, T0 = _weak_start(3, 7, 8)
     dof = {}
     for edges in (False, True):
-        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="auto",
-                                                                                         edges=edges))
-        dof[edges] = ref.range_model.tests[0]["consistency_dof"]
+        dof[edges] = _refined(layout, frames, T0, edges, "auto").range_model.tests[0]["consistency_dof"]
     assert dof[False] == round(dof[False])  # rows less the extrinsic and the terms: whole
     assert dof[False] + 0.01 < dof[True] <= dof[False] + 6
