@@ -66,6 +66,9 @@ bench: $(STAMP)
 	$(RECORD) 2d_honesty_default_4_boards -- $(PY) benchmarks/bench_2d_honesty.py default 100 --boards 4
 	$(RECORD) 2d_honesty_varied_4_boards -- $(PY) benchmarks/bench_2d_honesty.py varied 100 --boards 4
 	$(RECORD) 2d_honesty_mounted_4_boards -- $(PY) benchmarks/bench_2d_honesty.py mounted 100 --boards 4
+	$(RECORD) 2d_honesty_default_8_boards -- $(PY) benchmarks/bench_2d_honesty.py default 100 --boards 8
+	$(RECORD) 2d_honesty_varied_8_boards -- $(PY) benchmarks/bench_2d_honesty.py varied 100 --boards 8
+	$(RECORD) 2d_honesty_mounted_8_boards -- $(PY) benchmarks/bench_2d_honesty.py mounted 100 --boards 8
 	$(RECORD) charuco -- $(PY) benchmarks/bench_charuco.py
 	$(RECORD) study_2d_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(RECORD) study_2d_varied_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
