@@ -942,7 +942,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             iterations += its
             if first:
                 warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise "
-                                f"explain (chi-square {stat:.0f} on {dof} dof, p = {p_value:.1g}); a per-board plane "
+                                f"explain (chi-square {stat:.0f} on {dof:.4g} dof, p = {p_value:.1g}); a per-board plane "
                                 f"error of {1000 * floor:.1f} mm, estimated from the data, is included in the "
                                 "covariance")
         if attempt or prob.terms is None or not prob.has_beta:
