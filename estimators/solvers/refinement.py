@@ -512,15 +512,18 @@ class _Problem:
                            for j, i in enumerate(active) if self.has_edges(i)}
         return graph, result, int(opt.iterations())
 
+    def plane_cost(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
+        """The cost the camera alone cannot explain, summed over ``frames``."""
+        return sum(self.frame_chi2(i, T, boards[i], floor_m) for i in frames)
+
     def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float,
-                    active: list[int] | None = None) -> tuple[float, float]:
-        """The cost the camera alone cannot explain, summed over ``frames`` (chi-square with ``3 N - 6``
-        dof under the model; with the edges, more: :meth:`edge_leverage`, given the graph's ``active`` frames)."""
-        stat = sum(self.frame_chi2(i, T, boards[i], floor_m) for i in frames)
+                    active: list[int]) -> tuple[float, float]:
+        """:meth:`plane_cost` and its degrees of freedom under the model: the frames' whitened rows less 6 and
+        the range terms' rank; with the edges in the graph of the ``active`` frames, more (:meth:`edge_leverage`)."""
         dof = sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames)
-        if self.edges is not None and active is not None:
+        if self.edges is not None:
             dof += self.edge_leverage(active, T, boards, floor_m)
-        return stat, max(dof, 1)
+        return self.plane_cost(frames, T, boards, floor_m), max(dof, 1)
 
     def edge_leverage(self, active: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
         """How many of the extrinsic's and board poses' directions the edges fit rather than the corners and
@@ -937,13 +940,13 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             cap = MAX_PLANE_ERROR_M if prob.has_beta else 0.5
             floor, (T, boards, graph, result, its) = _match_moments(
                 prob, active, T, boards, (1e-5, cap), lambda v: v,
-                lambda v, T_v, b_v: prob.consistency(inliers, T_v, b_v, v)[0] / dof)
+                lambda v, T_v, b_v: prob.plane_cost(inliers, T_v, b_v, v) / dof)
             prob.solved = (graph, result)
             iterations += its
             if first:
                 warnings.append(f"the boards' camera and LiDAR planes disagree more than the point and corner noise "
-                                f"explain (chi-square {stat:.0f} on {dof:.4g} dof, p = {p_value:.1g}); a per-board plane "
-                                f"error of {1000 * floor:.1f} mm, estimated from the data, is included in the "
+                                f"explain (chi-square {stat:.0f} on {dof:.4g} dof, p = {p_value:.1g}); a per-board "
+                                f"plane error of {1000 * floor:.1f} mm, estimated from the data, is included in the "
                                 "covariance")
         if attempt or prob.terms is None or not prob.has_beta:
             break
@@ -1176,10 +1179,10 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
             p_s.tau = p_l.tau
         fl, (T_l, b_l, graph_l, result_l, _) = _match_moments(
             p_l, active, T_l, b_l, (1e-5, MAX_PLANE_ERROR_M), lambda v: v,
-            lambda v, T_v, b_v: p_l.consistency(inliers, T_v, b_v, v)[0] / cdof)
+            lambda v, T_v, b_v: p_l.plane_cost(inliers, T_v, b_v, v) / cdof)
         # What the plane error leaves (structure in the terms' own directions, or beyond a plane error's physical
         # size) scales the test as a quasi-likelihood.
-        scale = max(p_l.consistency(inliers, T_l, b_l, fl)[0] / cdof, 1.0)
+        scale = max(p_l.plane_cost(inliers, T_l, b_l, fl) / cdof, 1.0)
         b_s = list(small.boards)
         graph_s, result_s, _ = p_s.solve(active, small.T, b_s, fl)
         delta = (_objective(p_s, graph_s, result_s, active, fl) - _objective(p_l, graph_l, result_l, active, fl))
