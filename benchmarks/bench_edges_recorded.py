@@ -6,7 +6,8 @@ With the planes alone the board's edges check the estimate; with `--edges` they 
 Per set and model: the estimate's translation (camera frame, mm) and its distance from the source tool's
 reference, and the reference's squared Mahalanobis distance under the estimate's covariance (``T_ref = T_hat
 Exp(xi)``; against the same 99% limit): a reference a few centimetres away can lie inside the estimate's
-uncertainty, where the boards, all a few metres in front of the rig, trade the rotation for the translation; the LiDAR's board outlines' mean shift from the camera's (mm) and its p-value against its 99% limit
+uncertainty, where the boards, all a few metres in front of the rig, trade the rotation for the translation;
+the LiDAR's board outlines' mean shift from the camera's (mm) and its p-value against its 99% limit
 (with the planes alone the ends check the estimate; with the edges they are in it); the planes-against-edges test
 (d2 on 6 dof, p); under the source tool's reference, the outlines' mean shift by the same fit (camera's board
 poses); and the first and last halves of the frames calibrated apart: the squared Mahalanobis distance
@@ -37,8 +38,8 @@ from geometry.rotations import T_inverse, T_log  # noqa: E402
 
 
 def main() -> None:
-    print(f"{'set':18s}{'model':16s}{'t (mm, camera)':>26s}{'from ref mm':>13s}{'ref d2':>8s}{'outline shift mm':>18s}{'p':>8s}"
-          f"{'planes vs edges':>17s}{'halves d2':>11s}{'99% limit':>11s}")
+    print(f"{'set':18s}{'model':16s}{'t (mm, camera)':>26s}{'from ref mm':>13s}{'ref d2':>8s}{'outline shift mm':>18s}"
+          f"{'p':>8s}{'planes vs edges':>17s}{'halves d2':>11s}{'99% limit':>11s}")
     for name, path, ds in recorded_sets():
         camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
         frames = [f for f in frames if f.usable]
@@ -48,12 +49,11 @@ def main() -> None:
             options = RefinementOptions(edges=edges)
             res = solve(frames, ds.board, camera, options=options)
             t = 1000 * res.T_camera_lidar[:3, 3]
-            far = f"{np.linalg.norm(t - ref):13.1f}" if ref is not None else f"{'-':>13s}"
-            if ref is not None:
-                xi_ref = T_log(T_inverse(res.T_camera_lidar) @ _reference_T(path))
-                far += f"{float(xi_ref @ np.linalg.solve(res.covariance, xi_ref)):8.1f}"
+            if ref is None:
+                far = f"{'-':>13s}{'-':>8s}"
             else:
-                far += f"{'-':>8s}"
+                xi_ref = T_log(T_inverse(res.T_camera_lidar) @ _reference_T(path))
+                far = f"{np.linalg.norm(t - ref):13.1f}{float(xi_ref @ np.linalg.solve(res.covariance, xi_ref)):8.1f}"
             e = res.refinement.edges or {}
             shift = (f"{1000 * np.linalg.norm(e['mean_shift_camera_m']):18.1f}{e['mean_shift_p_value']:8.3f}"
                      if "mean_shift_camera_m" in e else f"{'-':>18s}{'-':>8s}")
