@@ -44,6 +44,7 @@ bench: $(STAMP)
 	$(RECORD) board_edges -- $(PY) benchmarks/bench_board_edges.py --datasets 300 --posterior 40
 	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
+	$(RECORD) reference_features -- $(PY) benchmarks/bench_reference_features.py
 	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000
 	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 80 --posterior 1000 --timed 10
 	$(RECORD) rig_intrinsics -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30
