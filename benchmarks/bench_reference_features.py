@@ -55,7 +55,8 @@ def _meet(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) ->
 
 def source_centre(points: np.ndarray, rings: np.ndarray, normal: np.ndarray, distance: float) -> np.ndarray | None:
     """The board's centre as the source tool defines it, from the board's returns (LiDAR frame), or None when a
-    side has fewer than two rings."""
+    side has fewer than two rings or two sides that should meet are parallel (a board turned as a diamond, as on
+    the recorded sets, has four sides the rings cross)."""
     P = points - np.outer(points @ normal - distance, normal)  # on the plane
     u = np.cross([0.0, 0.0, 1.0], normal)
     u /= np.linalg.norm(u)  # horizontal in the plane (towards the LiDAR's left for a board ahead)
@@ -75,7 +76,10 @@ def source_centre(points: np.ndarray, rings: np.ndarray, normal: np.ndarray, dis
             return None
         sides[key] = (_side(e[: k + 1]), _side(e[k:]))  # (lower, upper), the furthest ring in both
     (ll, lu), (rl, ru) = sides["left"], sides["right"]
-    corners = np.array([_meet(lu, ru), _meet(ll, rl), _meet(lu, ll), _meet(ru, rl)])
+    try:
+        corners = np.array([_meet(lu, ru), _meet(ll, rl), _meet(lu, ll), _meet(ru, rl)])
+    except np.linalg.LinAlgError:  # parallel sides: an upright board's rings end on two vertical sides
+        return None
     c = corners.mean(axis=0)
     return c[0] * u + c[1] * v + distance * normal
 
