@@ -13,6 +13,8 @@ estimates by those two features, measured here from the same frames:
   centre of the four corners where they meet), mapped into the camera, against the camera's board centre;
   the mean over frames and its standard error. The LiDAR's returns are raw (no range offset applied): along
   the boards' normals (about the camera's z) an estimate with a range offset leaves them off by it.
+- the outline's offset from the pattern's middle that the estimate with the edges fits (a nuisance), in the
+  board's axes and, averaged over the frames, in the camera's: the centres above are the pattern's middle;
 - `outside`: returns within 3 cm of a board's plane and up to 25 cm beyond its outline (the camera's outline
   under the estimate with the edges), over all frames: a stand or a holder in the board's plane would show here.
 """
@@ -101,8 +103,9 @@ def main() -> None:
         frames = [f for f in frames if f.usable]
         rings = frame_rings(frames)
         w, h = ds.board.size
-        transforms = [(label, solve(frames, ds.board, camera, options=RefinementOptions(edges=edges)).T_camera_lidar)
-                      for label, edges in (("planes", False), ("planes + edges", True))]
+        results = [(label, solve(frames, ds.board, camera, options=RefinementOptions(edges=edges)))
+                   for label, edges in (("planes", False), ("planes + edges", True))]
+        transforms = [(label, res.T_camera_lidar) for label, res in results]
         path_ref = path / "reference.json"
         if path_ref.is_file():
             transforms.append(("reference", _reference_T(path)))
@@ -116,6 +119,11 @@ def main() -> None:
                       for i in used]
             print(f"{name:18s}{label:16s}{_mean_and_se(turns):>48s}{_mean_and_se(shifts):>50s}"
                   f"{f'{len(used)}/{len(frames)}':>8s}")
+        offset = np.asarray((results[1][1].refinement.edges or {}).get("outline_offset_m", [0.0, 0.0]))[:2]
+        in_camera = np.mean([f.camera.T_camera_board[:3, :2] @ offset for f in frames], axis=0)
+        print(f"{name:18s}planes + edges: the outline's offset from the pattern's middle (its nuisance) "
+              f"({', '.join(f'{1000 * x:+.1f}' for x in offset)}) mm along the board's x, y; in camera axes, "
+              f"mean over frames ({', '.join(f'{1000 * x:+.1f}' for x in in_camera)}) mm")
         T_edges = transforms[1][1]
         outside = total = 0
         for f, files in zip(frames, [next(x for x in ds.frames if x.name == f.name) for f in frames]):
