@@ -91,7 +91,7 @@ def main() -> None:
     print(f"  range model: {fit.chosen}" + "".join(f"; {n} {1000 * v:+.1f} +- {1000 * sd:.1f} mm"
                                                 for n, v, sd in zip(fit.names, fit.values_m, fit.std_m)
                                                 if not n.startswith("ring"))
-          + " (the source tool applies -30 mm)")
+          + " (the source tool's hand correction, distance_offset_mm -30, shortens every range: +30 mm in this sign)")
     print(f"  consistency: chi-square {r.variance_factor * r.consistency_dof:.0f} on {r.consistency_dof} dof "
           f"(p = {r.consistency_p:.1g}); per-board plane error estimated {1000 * r.plane_floor_m:.1f} mm")
     n = len(frames)

@@ -67,16 +67,19 @@ def test_recorded_vlp16_halves_agree_within_their_covariances(vlp16):
     assert d2 < chi2.ppf(0.99, 6), d2
 
 
-def test_recorded_vlp16_range_offset_agrees_with_the_source_tools_correction(vlp16):
-    """The range model (auto) keeps a global offset on the VLP-16 set, and its estimate lies within 3 standard
-    deviations of the -30 mm that the recording's source tool applies by hand (`distance_offset_mm`). The
+def test_recorded_vlp16_ranges_are_short_and_the_offset_holds_out(vlp16):
+    """The range model (auto) keeps a global offset on the VLP-16 set: the returns are short (measured = true +
+    offset, the offset below 0 by more than 2 standard deviations), as the planes alone say (lengthening every
+    range by 2 cm lowers their disagreement, `bench_realdata.py`). The recording's source tool corrects the other
+    way by hand (`distance_offset_mm: -30` shortens every range, +30 mm in this sign), to shrink a board that
+    looks too large, which the board's edges put down to the beam's footprint (`docs/board_edges.md`). The
     held-out frames of a 4-fold cross-validation are consistent with the covariance (p > 0.01)."""
     from estimators.analysis.validation import cross_validate
 
     ds, camera, frames = vlp16
     fit = solve(frames, ds.board, camera).refinement.range_model
     assert fit.chosen == "offset", fit.reason
-    assert abs(fit.values_m[0] + 0.030) < 3 * fit.std_m[0], (fit.values_m, fit.std_m)
+    assert fit.values_m[0] + 2 * fit.std_m[0] < 0, (fit.values_m, fit.std_m)
     cv = cross_validate(frames, ds.board, camera, 4, lambda fs: solve(fs, ds.board, camera))
     assert cv["p_value"] > 0.01, cv["verdict"]
 
