@@ -15,7 +15,6 @@ of their difference against the sum of their covariances and its 99% limit.
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_principal_point import _reference, recorded_sets  # noqa: E402
+from bench_principal_point import recorded_sets, reference_T  # noqa: E402
 
 from estimators.calibration import measure_frames, solve  # noqa: E402
 from estimators.solvers import chi_square as chi2  # noqa: E402
@@ -43,7 +42,8 @@ def main() -> None:
     for name, path, ds in recorded_sets():
         camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
         frames = [f for f in frames if f.usable]
-        ref = _reference(path)
+        T_ref = reference_T(path)
+        ref = None if T_ref is None else 1000 * T_ref[:3, 3]
         half = len(frames) // 2
         for label, edges in (("planes (check)", False), ("planes + edges", True)):
             options = RefinementOptions(edges=edges)
@@ -52,7 +52,7 @@ def main() -> None:
             if ref is None:
                 far = f"{'-':>13s}{'-':>8s}"
             else:
-                xi_ref = T_log(T_inverse(res.T_camera_lidar) @ _reference_T(path))
+                xi_ref = T_log(T_inverse(res.T_camera_lidar) @ T_ref)
                 far = f"{np.linalg.norm(t - ref):13.1f}{float(xi_ref @ np.linalg.solve(res.covariance, xi_ref)):8.1f}"
             e = res.refinement.edges or {}
             shift = (f"{1000 * np.linalg.norm(e['mean_shift_camera_m']):18.1f}{e['mean_shift_p_value']:8.3f}"
@@ -66,13 +66,9 @@ def main() -> None:
             print(f"{name:18s}{label:16s}{'(' + ', '.join(f'{v:.1f}' for v in t) + ')':>26s}{far}{shift}"
                   f"{test:>17s}{d2:11.1f}{chi2.isf(0.01, 6):11.1f}")
         if ref is not None:
-            shift = 1000 * np.linalg.norm(_outline_shift(frames, ds.board, _reference_T(path))["mean_shift_camera_m"])
+            shift = 1000 * np.linalg.norm(_outline_shift(frames, ds.board, T_ref)["mean_shift_camera_m"])
             print(f"{name:18s}{'reference':16s}{'(' + ', '.join(f'{v:.1f}' for v in ref) + ')':>26s}{'':21s}"
                   f"{shift:18.1f}{'-':>8s}")
-
-
-def _reference_T(path: Path) -> np.ndarray:
-    return np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
 
 
 def _outline_shift(frames, board, T: np.ndarray) -> dict:

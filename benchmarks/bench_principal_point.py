@@ -31,13 +31,19 @@ REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 SETS = ("acfr_ouster64_b", "acfr_vlp16_a")
 
 
-def _reference(path: Path) -> np.ndarray | None:
+def reference_T(path: Path) -> np.ndarray | None:
+    """The source tool's reference ``T_camera_lidar`` of a recorded set, or None when the set has none."""
     ref = path / "reference.json"
     if not ref.is_file():
         return None
-    data = json.loads(ref.read_text())
-    T = data.get("T_camera_lidar")
-    return None if T is None else 1000 * np.array(T)[:3, 3]
+    T = json.loads(ref.read_text()).get("T_camera_lidar")
+    return None if T is None else np.array(T, dtype=float)
+
+
+def _reference(path: Path) -> np.ndarray | None:
+    """The reference's translation (mm, camera frame), or None."""
+    T = reference_T(path)
+    return None if T is None else 1000 * T[:3, 3]
 
 
 def recorded_sets():

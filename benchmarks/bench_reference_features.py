@@ -30,14 +30,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_edges_recorded import _reference_T  # noqa: E402
-from bench_principal_point import recorded_sets  # noqa: E402
+from bench_principal_point import recorded_sets, reference_T  # noqa: E402
 
 from estimators.calibration import measure_frames, solve  # noqa: E402
 from estimators.io.pointcloud_io import read_sweep  # noqa: E402
 from estimators.solvers.range_model import frame_rings  # noqa: E402
 from estimators.solvers.refinement import RefinementOptions  # noqa: E402
-from geometry.rotations import T_inverse  # noqa: E402
+from geometry.rotations import T_inverse, transform_points  # noqa: E402
 
 PLANE_BAND_M = 0.03
 BEYOND_M = 0.25
@@ -106,16 +105,15 @@ def main() -> None:
         results = [(label, solve(frames, ds.board, camera, options=RefinementOptions(edges=edges)))
                    for label, edges in (("planes", False), ("planes + edges", True))]
         transforms = [(label, res.T_camera_lidar) for label, res in results]
-        path_ref = path / "reference.json"
-        if path_ref.is_file():
-            transforms.append(("reference", _reference_T(path)))
+        if (T_ref := reference_T(path)) is not None:
+            transforms.append(("reference", T_ref))
         centres = [source_centre(f.lidar.points, r, f.lidar.plane.normal, f.lidar.plane.distance)
                    for f, r in zip(frames, rings)]
         used = [i for i, c in enumerate(centres) if c is not None]
         for label, T in transforms:
             turns = [np.degrees(np.cross(T[:3, :3] @ f.lidar.plane.normal, f.camera.plane.normal)) for f in frames]
-            shifts = [1000 * (T[:3, :3] @ centres[i] + T[:3, 3]
-                              - (frames[i].camera.T_camera_board @ np.array([w / 2, h / 2, 0.0, 1.0]))[:3])
+            shifts = [1000 * (transform_points(T, centres[i]) - transform_points(frames[i].camera.T_camera_board,
+                                                                                  ds.board.centre))
                       for i in used]
             print(f"{name:18s}{label:16s}{_mean_and_se(turns):>48s}{_mean_and_se(shifts):>50s}"
                   f"{f'{len(used)}/{len(frames)}':>8s}")
@@ -126,13 +124,15 @@ def main() -> None:
               f"mean over frames ({', '.join(f'{1000 * x:+.1f}' for x in in_camera)}) mm")
         T_edges = transforms[1][1]
         outside = total = 0
-        for f, files in zip(frames, [next(x for x in ds.frames if x.name == f.name) for f in frames]):
-            P = read_sweep(files.scan).points
-            B = P @ (T_inverse(f.camera.T_camera_board) @ T_edges)[:3, :3].T \
-                + (T_inverse(f.camera.T_camera_board) @ T_edges)[:3, 3]
-            near = ((np.abs(P @ f.lidar.plane.normal - f.lidar.plane.distance) < PLANE_BAND_M)
-                    & (B[:, 0] > -BEYOND_M) & (B[:, 0] < w + BEYOND_M) & (B[:, 1] > -BEYOND_M) & (B[:, 1] < h + BEYOND_M))
-            beyond = (B[:, 0] < -0.03) | (B[:, 0] > w + 0.03) | (B[:, 1] < -0.03) | (B[:, 1] > h + 0.03)
+        scans = {x.name: x.scan for x in ds.frames}
+        for f in frames:
+            P = read_sweep(scans[f.name]).points
+            B = transform_points(T_inverse(f.camera.T_camera_board) @ T_edges, P)
+            def within(m: float) -> np.ndarray:
+                return (B[:, 0] > -m) & (B[:, 0] < w + m) & (B[:, 1] > -m) & (B[:, 1] < h + m)
+
+            near = (np.abs(P @ f.lidar.plane.normal - f.lidar.plane.distance) < PLANE_BAND_M) & within(BEYOND_M)
+            beyond = ~within(0.03)
             outside += int((near & beyond).sum())
             total += int(near.sum())
         print(f"{name:18s}outside: {outside} of {total} returns within {100 * PLANE_BAND_M:.0f} cm of a board's plane "
