@@ -1,8 +1,10 @@
 """The board's edges as measurements (`--edges`), at the measurement level (make bench;
-`python benchmarks/bench_board_edges.py [--datasets N] [--workers W]`).
+`python benchmarks/bench_board_edges.py [--datasets N] [--facing N] [--workers W]`).
 
 Per dataset: a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12
-degrees from the viewing axis (planes leave the translation along the boards weak), beams on the LiDAR's azimuth
+degrees from the viewing axis (planes leave the translation along the boards weak; normal spreads about
+0.05-0.2), or (`--facing` datasets) 10 boards whose normals lie within 1-4 degrees of the camera's optical axis
+(`sample_layout`'s "handheld" poses with the rig's board: spreads 0.01-0.03, as boards held up facing the rig), beams on the LiDAR's azimuth
 grid at a random phase per sweep, each off its nominal direction by the edge model's 0.75 mrad (footprint and
 pointing). Each dataset is refined with planes alone and with planes and edges (range model none).
 Rows: RMS rotation and translation error, the translation's error across the mean board normal ("in-plane"),
@@ -11,7 +13,11 @@ and their nuisances), the mean squared Mahalanobis distance of
 the truth (6 ideal), how often the planes-against-edges test rejects at 1%, and (the first `--posterior N`
 datasets) how often the posterior's 95% intervals hold the truth, over the six axes; and how often the outlines'
 mean shift lies beyond its 99% limit (with planes alone the ends check the estimate, `solvers.outline_check`:
-1% expected of a right model, less where it is conservative). Then the outline checks: the dataset's board 5 cm
+1% expected of a right model, less where it is conservative). Per LiDAR and layout: the layouts' normal spreads
+(smallest singular value of the normals over sqrt of their number, as the closed form's) and how many times
+smaller the translation is with the edges, RMS over the datasets: the bound's, in total and across the mean
+normal, and the estimate's across it (the in-plane gain the edges give is the layout's: the bound is met, so the
+estimate's ratio follows the bound's). Then the outline checks: the dataset's board 5 cm
 larger than given, or its pattern 3 cm off centre (and a right one), and how often a `board edges:` warning says
 so, with planes alone (the check) and with the edges.
 """
@@ -31,33 +37,43 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def _layout(lidar: str, seed: int, weak: bool):
+# Layouts: (family of sample_layout, boards). "handheld" poses on the default rig's board: boards facing the
+# rig's forward axis.
+LAYOUTS = {"weak": ("weak", 10), "facing": ("handheld", 10), "spread": ("spread", 8)}
+LAYOUT_WORDS = {"weak": "10 boards tilted 3-12 degrees from the line of sight",
+                "facing": "10 boards within 1-4 degrees of facing the camera's axis"}
+
+
+def _layout(lidar: str, seed: int, layout: str):
     from estimators.simulation.simulator import default_rig, sample_layout
     from estimators.solvers.observation_model import Layout
 
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, 0.02)
-    poses = sample_layout(rig, "weak", 10, rng) if weak else sample_layout(rig, "spread", 8, rng)
+    family, n = LAYOUTS[layout]
+    poses = sample_layout(rig, family, n, rng)
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.02)
 
 
 def _accuracy(args) -> dict:
     from estimators.solvers.board_edges import BEAM_SD_RAD
-    from estimators.solvers.closed_form import solve_closed_form
+    from estimators.solvers.closed_form import normal_spread, solve_closed_form
     from estimators.solvers.observation_model import cramer_rao_bound, simulate_measurements
     from estimators.solvers.posterior import PosteriorOptions, sample_posterior
     from estimators.solvers.refinement import measurement_model_options, refine
     from geometry.rotations import T_inverse, T_log
 
-    lidar, seed, posterior = args
-    layout = _layout(lidar, seed, True)
+    lidar, seed, posterior, which = args
+    layout = _layout(lidar, seed, which)
     frames = simulate_measurements(layout, np.random.default_rng(seed + 10**6), azimuth_phase=True,
                                    beam_sd_rad=BEAM_SD_RAD)
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
                            allow_weak=True).T_camera_lidar
     normal = np.mean([f.camera.plane.normal for f in frames], axis=0)
     normal /= np.linalg.norm(normal)
-    out = {}
+    across = np.eye(3) - np.outer(normal, normal)
+    R = layout.T_camera_lidar[:3, :3]  # the tangent's translation is in the LiDAR frame
+    out = {"spread": float(normal_spread([f.camera.plane.normal for f in frames])[0][-1])}
     # The simulated beams have the edge model's footprint and pointing spread (BEAM_SD_RAD), as its bound.
     bounds = {False: cramer_rao_bound(layout), True: cramer_rao_bound(layout, edges=True)}
     for edges in (False, True):
@@ -72,6 +88,7 @@ def _accuracy(args) -> dict:
                       "d2": float(xi @ np.linalg.solve(ref.covariance, xi)),
                       "rejects": bool(test and test["p_value"] < 0.01), "shift_p": shift_p,
                       "crb_rot": float(np.trace(bounds[edges][:3, :3])), "crb_tr": float(np.trace(bounds[edges][3:, 3:])),
+                      "crb_in_plane": float(np.trace(across @ R @ bounds[edges][3:, 3:] @ R.T @ across)),
                       "rot_sq": float(xi[:3] @ xi[:3]), "tr_sq": float(xi[3:] @ xi[3:])}
         if edges and posterior:
             post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(seed),
@@ -87,7 +104,7 @@ def _outline(args) -> tuple[bool, bool]:
     from estimators.solvers.refinement import measurement_model_options, refine
 
     error, seed, lidar, weak = args
-    layout = _layout(lidar, seed, weak)
+    layout = _layout(lidar, seed, "weak" if weak else "spread")
     board = layout.board
     real = (with_outline_error(layout, pattern_shift_m=(0.03, 0.0)) if error == "pattern 3 cm off centre" else
             with_outline_error(layout, size_error_m=0.05) if error == "board 5 cm larger than given" else layout)
@@ -107,28 +124,43 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--posterior", type=int, default=20, metavar="N",
                     help="sample the posterior with the edges on the first N datasets per LiDAR (default 20)")
+    ap.add_argument("--facing", type=int, default=100, metavar="N",
+                    help="datasets per LiDAR with boards facing the camera's axis (default 100)")
     args = ap.parse_args()
-    print(f"Board edges, measurement level: {args.datasets} datasets per row, 10 boards tilted 3-12 degrees, "
+    print(f"Board edges, measurement level: {args.datasets} datasets per row ({args.facing} with boards facing), "
           "2 cm range noise, 0.2 px corners, range model none")
     print(f"{'row':34s}{'rot deg':>9s}{'trans mm':>10s}{'in-plane mm':>12s}{'rot/CRB':>9s}{'tr/CRB':>8s}{'d2':>7s}"
           f"{'test rejects':>14s}{'posterior in 95%':>18s}{'shift > 99%':>13s}")
+    ratios = []
     with ProcessPoolExecutor(args.workers) as pool:
-        for lidar in ("vlp16", "os64"):
-            rows = list(pool.map(_accuracy, [(lidar, s, s < args.posterior) for s in range(args.datasets)]))
-            for edges, label in ((False, "planes"), (True, "planes + edges")):
-                r = [x[edges] for x in rows]
-                rms = {k: np.sqrt(np.mean([x[k] ** 2 for x in r])) for k in ("rot", "trans", "in_plane")}
-                rej = f"{100 * np.mean([x['rejects'] for x in r]):.0f}%" if edges else "-"
-                ratio = [np.sqrt(np.mean([x[k + "_sq"] for x in r]) / np.mean([x["crb_" + k] for x in r]))
-                         for k in ("rot", "tr")]
-                inside = [x["inside"] for x in r if "inside" in x]
-                cover = f"{100 * np.mean(inside):.1f}% of {len(inside)}" if inside else "-"
-                shift = f"{100 * np.mean([x['shift_p'] < 0.01 for x in r]):.0f}%"
-                print(f"{lidar + ', ' + label:34s}{rms['rot']:9.3f}{rms['trans']:10.1f}{rms['in_plane']:12.1f}"
-                      f"{ratio[0]:9.2f}{ratio[1]:8.2f}{np.mean([x['d2'] for x in r]):7.2f}{rej:>14s}{cover:>18s}"
-                      f"{shift:>13s}")
-            bound = np.sqrt(np.mean([x[False]["crb_tr"] for x in rows]) / np.mean([x[True]["crb_tr"] for x in rows]))
-            print(f"{lidar}: the bound's translation, planes alone over planes + edges: {bound:.2f}")
+        for which in ("weak", "facing"):
+            n_sets = args.datasets if which == "weak" else args.facing
+            print(f"{LAYOUT_WORDS[which]}:")
+            for lidar in ("vlp16", "os64"):
+                rows = list(pool.map(_accuracy, [(lidar, s, s < args.posterior, which) for s in range(n_sets)]))
+                for edges, label in ((False, "planes"), (True, "planes + edges")):
+                    r = [x[edges] for x in rows]
+                    rms = {k: np.sqrt(np.mean([x[k] ** 2 for x in r])) for k in ("rot", "trans", "in_plane")}
+                    rej = f"{100 * np.mean([x['rejects'] for x in r]):.0f}%" if edges else "-"
+                    ratio = [np.sqrt(np.mean([x[k + "_sq"] for x in r]) / np.mean([x["crb_" + k] for x in r]))
+                             for k in ("rot", "tr")]
+                    inside = [x["inside"] for x in r if "inside" in x]
+                    cover = f"{100 * np.mean(inside):.1f}% of {len(inside)}" if inside else "-"
+                    shift = f"{100 * np.mean([x['shift_p'] < 0.01 for x in r]):.0f}%"
+                    print(f"{lidar + ', ' + label:34s}{rms['rot']:9.3f}{rms['trans']:10.1f}{rms['in_plane']:12.1f}"
+                          f"{ratio[0]:9.2f}{ratio[1]:8.2f}{np.mean([x['d2'] for x in r]):7.2f}{rej:>14s}{cover:>18s}"
+                          f"{shift:>13s}")
+                spread = np.array([x["spread"] for x in rows])
+                ratios.append((lidar, which, spread.min(), spread.max(),
+                               *(np.sqrt(np.mean([x[False][k] for x in rows]) / np.mean([x[True][k] for x in rows]))
+                                 for k in ("crb_tr", "crb_in_plane")),
+                               np.sqrt(np.mean([x[False]["in_plane"] ** 2 for x in rows])
+                                       / np.mean([x[True]["in_plane"] ** 2 for x in rows]))))
+        print("Planes alone over planes + edges (RMS): the bound's translation, the bound's and the estimate's "
+              "in-plane translation")
+        print(f"{'LiDAR, layout':24s}{'normal spread':>15s}{'bound':>8s}{'bound in-plane':>16s}{'measured in-plane':>19s}")
+        for lidar, which, lo, hi, b_tr, b_ip, m_ip in ratios:
+            print(f"{lidar + ', ' + which:24s}{f'{lo:.3f}-{hi:.3f}':>15s}{b_tr:8.2f}{b_ip:16.2f}{m_ip:19.2f}")
         n = max(args.datasets // 2, 1)
         print(f"{'outline in dataset.yaml':30s}{'LiDAR, layout':>36s}{'warned: planes (check)':>24s}"
               f"{'with the edges':>16s}")
