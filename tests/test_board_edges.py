@@ -197,6 +197,41 @@ def test_the_checks_sensitivity_to_the_extrinsic_and_board_poses_matches_finite_
     np.testing.assert_allclose(G, N, atol=5e-3 * np.abs(N).max())
 
 
+def test_edges_are_found_where_the_planes_leave_the_boards_beyond_the_ends_cut():
+    # Ten boards facing the camera's axis (normal spread 0.014): the planes alone put the boards 0.18 m off along
+    # them, beyond the ends' 0.15 m cut, so every end was dropped and --edges silently gave the planes' answer.
+    # The ends within half the board's side are fitted first, then assigned again under that estimate.
+    rng = np.random.default_rng(85)
+    rig = default_rig(rng, "vlp16", 0.02)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar,
+                    tuple(sample_layout(rig, "handheld", 10, rng)), 0.2, 0.02)
+    frames = simulate_measurements(layout, np.random.default_rng(85 + 10**6), azimuth_phase=True,
+                                   beam_sd_rad=BEAM_SD_RAD)
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
+                           allow_weak=True).T_camera_lidar
+    planes, edges = (_refined(layout, frames, T0, e) for e in (False, True))
+    err = {k: np.linalg.norm(r.T_camera_lidar[:3, 3] - layout.T_camera_lidar[:3, 3]) for k, r in
+           (("planes", planes), ("edges", edges))}
+    assert err["planes"] > 0.15  # the premise: beyond the cut
+    assert edges.edges is not None and edges.edges["used"] and edges.edges["ends"] > 100
+    # The bound with the edges is 15 mm here (RMS over the axes); 3 of it.
+    assert err["edges"] < 0.045
+    xi = T_log(T_inverse(edges.T_camera_lidar) @ layout.T_camera_lidar)
+    assert float(xi @ np.linalg.solve(edges.covariance, xi)) < chi2_isf(0.001, 6)
+
+
+def test_edges_that_cannot_be_used_are_said_to_be_unused():
+    # The real board is 1 m larger than dataset.yaml says: every ring end lies 0.5 m beyond the given outline,
+    # further than half its side, so no end is an edge; the answer is the planes' and says so.
+    layout = _layout(4, "hdl64e", n=5)
+    frames = _with_lidar_board(simulate_measurements(layout, np.random.default_rng(4)),
+                               with_outline_error(layout, size_error_m=1.0), 9)
+    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
+    ref = _refined(layout, frames, T0, True)
+    assert ref.edges is None or not ref.edges["used"]
+    assert any(w.startswith("board edges: no ring end") for w in ref.warnings)
+
+
 def test_a_board_of_unknown_size_falls_back_to_planes_with_a_warning():
     layout = _layout(4, "hdl64e", n=5)
     unknown = BoardModel(layout.board.squares, layout.board.square_size)  # no size: the outline is not known

@@ -126,9 +126,9 @@ def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarr
 
 
 def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, board: BoardModel,
-              beam_sd_rad: float = BEAM_SD_RAD) -> EdgeCrossings:
+              beam_sd_rad: float = BEAM_SD_RAD, max_offset_m: float = MAX_END_OFFSET_M) -> EdgeCrossings:
     """The ring ends of one frame's board points that cross the board's outline (module docstring), with
-    sides assigned under ``T_board_lidar``."""
+    sides assigned under ``T_board_lidar``; ends further than ``max_offset_m`` from their side are not used."""
     ends = ring_ends(points, rings)
     w, h = board.extent
     keep_b, keep_s, keep_r, keep_sd = [], [], [], []
@@ -150,7 +150,7 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
         side = int(np.flatnonzero(ok)[np.argmin(np.abs(offsets[ok]))])
         along = q[0, 1] if side < 2 else q[0, 0]
         length = h if side < 2 else w
-        if abs(offsets[side]) > MAX_END_OFFSET_M or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
+        if abs(offsets[side]) > max_offset_m or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
             continue
         rate = abs(float(SIDE_NORMALS[side] @ dq[:2]))  # m across the side per radian of azimuth
         keep_b.append(beam)

@@ -48,8 +48,8 @@ from geometry.rotations import T_exp, T_log
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import (EDGE_HUBER, OUTLINE, SIDE_NORMALS, EndTerms, crossings, edge_factor, edge_residuals,
-                          edge_scatter, frame_shift, outline_prior, shift_key, shift_prior)
+from .board_edges import (EDGE_HUBER, MAX_END_OFFSET_M, OUTLINE, SIDE_NORMALS, EndTerms, crossings, edge_factor,
+                          edge_residuals, edge_scatter, frame_shift, outline_prior, shift_key, shift_prior)
 from .chi_square import fdtrc
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
@@ -551,34 +551,70 @@ def _rank(A: np.ndarray) -> int:
 
 
 def _edge_crossings(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray,
-                    boards: list) -> list | None:
-    """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards`` (None when
-    no frame has any)."""
+                    boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
+    """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards``, those
+    within ``max_offset_m`` of their side (None when no frame has any)."""
     from .range_model import frame_rings
 
     # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
     rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
              for f, r in zip(frames, frame_rings(frames))]
-    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board)
+    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board,
+                       max_offset_m=max_offset_m)
              if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
     return edges if any(e is not None and e.size for e in edges) else None
+
+
+# When the planes' estimate leaves fewer than this share of the ring ends that lie within half the board's
+# smaller side of the outline inside ``MAX_END_OFFSET_M`` of it, it is further off along the boards than the ends'
+# cut (weakly spread normals: boards facing the rig); the ends are first fitted with the wide cut.
+MIN_CUT_SHARE = 0.5
+
+
+def _ends(edges: list | None) -> int:
+    return 0 if edges is None else sum(e.size for e in edges if e is not None)
+
+
+def _cut_ends(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list
+              ) -> tuple[list | None, list | None]:
+    """The ends under ``T`` within ``MAX_END_OFFSET_M`` of their sides, and those within half the board's smaller
+    side when the first are fewer than ``MIN_CUT_SHARE`` of them (else None): ``T`` is then further off along
+    the boards than the cut."""
+    edges = _edge_crossings(prob, frames, active, T, boards)
+    wide = _edge_crossings(prob, frames, active, T, boards, max_offset_m=0.5 * min(prob.board.extent))
+    return edges, (wide if _ends(edges) < MIN_CUT_SHARE * _ends(wide) else None)
 
 
 def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
                floor: float) -> tuple[np.ndarray, list]:
     """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
     their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
-    model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Returns ``T`` and ``boards``."""
-    edges = _edge_crossings(prob, frames, active, T, boards)
+    model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Where the planes' estimate
+    lies further from the outlines than the ends' cut (``MIN_CUT_SHARE``), the ends within half the board's
+    smaller side are fitted first and assigned again under that estimate. Returns ``T`` and ``boards``."""
+    edges, wide = _cut_ends(prob, frames, active, T, boards)
+    if wide is not None:
+        start = prob.edge_tau, prob.edge_scale
+        prob.edges = wide
+        T_wide, b_wide = _solve_with_edges(prob, active, T, list(boards), floor)
+        edges = _edge_crossings(prob, frames, active, T_wide, b_wide)
+        if edges is not None:  # the ends' scale and scatter are estimated again from the ends under the cut
+            T, boards = T_wide, b_wide
+            prob.edge_tau, prob.edge_scale = start
     if edges is None:
-        if prob.edges is not None:  # ends assigned under the start, none under the estimate: planes alone
+        if prob.edges is not None:  # ends assigned before, none under the estimate: planes alone
             prob.edges = None
             b = list(boards)
             prob.solved = prob.solve(active, T, b, floor)[:2]
             return prob.solved[1].atPose3(EXTRINSIC).matrix(), b
         return T, boards
     prob.edges = edges
-    b = list(boards)
+    return _solve_with_edges(prob, active, T, list(boards), floor)
+
+
+def _solve_with_edges(prob: _Problem, active: list[int], T: np.ndarray, b: list, floor: float
+                      ) -> tuple[np.ndarray, list]:
+    """Solve with ``prob``'s ends, their scale and the boards' in-plane scatter estimated in turn."""
     for _ in range(4):
         prob.solved = prob.solve(active, T, b, floor)[:2]
         T = prob.solved[1].atPose3(EXTRINSIC).matrix()
@@ -670,8 +706,10 @@ def _outline_check(prob: _Problem, active: list[int], T: np.ndarray, boards: lis
                    quasi_scale: float, cov: np.ndarray) -> tuple[dict | None, list[str]]:
     """The board's edges as a check of this planes-only estimate (``solvers.outline_check``): each frame's ring
     ends found under it, and its joint covariance with the board poses from the graph (scaled like ``cov``, the
-    extrinsic's block widened to ``cov`` where the range terms' or the intrinsics' propagation widened it)."""
-    edges = _edge_crossings(prob, prob.frames, active, T, boards)
+    extrinsic's block widened to ``cov`` where the range terms' or the intrinsics' propagation widened it). Where
+    the estimate lies further from the outlines than the ends' cut, the ends within half the board's side."""
+    edges, wide = _cut_ends(prob, prob.frames, active, T, boards)
+    edges = edges if wide is None else wide
     if edges is None:
         return None, []
     used = [(j, i) for j, i in enumerate(active) if edges[i] is not None and edges[i].size]
@@ -872,6 +910,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             T, boards = _add_edges(prob, frames, active, T, boards, floor)
             if prob.solved is not None:
                 graph, result = prob.solved
+            if prob.edges is None:
+                warnings.append("board edges: no ring end of the boards' points could be used as an edge (none "
+                                "crosses the board's outline within half its side under the planes' estimate): "
+                                "the estimate rests on the planes alone; check board.size in dataset.yaml")
             if scan_lines and prob.edges is not None:
                 _check_scan_directions(prob, active, boards)
         else:
