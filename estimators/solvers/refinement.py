@@ -590,10 +590,12 @@ def _add_edges(prob: _Problem, frames: list[FrameMeasurement], active: list[int]
     """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
     their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
     model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Where the planes' estimate
-    lies further from the outlines than the ends' cut (``MIN_CUT_SHARE``), the ends within half the board's
+    lies further from the outlines than the ends' cut (``MIN_CUT_SHARE``; 3D), the ends within half the board's
     smaller side are fitted first and assigned again under that estimate. Returns ``T`` and ``boards``."""
     edges, wide = _cut_ends(prob, frames, active, T, boards)
-    if wide is not None:
+    # A 2D scan's ends are in the graph from the first solve (assigned under the start), so its estimate fits
+    # them already; the wide cut is for 3D ends found after the planes' solve.
+    if wide is not None and not any(f.lidar.is_scan_line for f in frames):
         start = prob.edge_tau, prob.edge_scale
         prob.edges = wide
         T_wide, b_wide = _solve_with_edges(prob, active, T, list(boards), floor)
