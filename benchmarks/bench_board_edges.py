@@ -1,10 +1,12 @@
 """The board's edges as measurements (`--edges`), at the measurement level (make bench;
-`python benchmarks/bench_board_edges.py [--datasets N] [--facing N] [--workers W]`).
+`python benchmarks/bench_board_edges.py [--datasets N] [--others N] [--workers W]`).
 
 Per dataset: a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12
 degrees from the viewing axis (planes leave the translation along the boards weak; normal spreads 0.04-0.17),
-or (`--facing` datasets) 10 boards whose normals lie within 1-4 degrees of the camera's optical axis
-(`sample_layout`'s "handheld" poses with the rig's board: spreads 0.01-0.035, as boards held up facing the rig),
+turned within 20 degrees about their normals; or (`--others` datasets each) the same tilts with every board
+turned 35-55 degrees ("diamond", as the shared recordings hold their boards), or 10 boards whose normals lie
+within 1-4 degrees of the camera's optical axis (`sample_layout`'s "handheld" poses with the rig's board:
+spreads 0.01-0.035, as boards held up facing the rig),
 beams on the LiDAR's azimuth grid at a random phase per sweep, each off its nominal direction by the edge model's
 0.75 mrad (footprint and pointing), the real board's outline off the dataset's by the edge model's nuisances drawn
 from their priors (the x sides and the y sides each grown by 0 +- 1 cm, the outline offset by 0 +- 1 cm along each
@@ -41,9 +43,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # Layouts: (family of sample_layout, boards). "handheld" poses on the default rig's board: boards facing the
 # rig's forward axis.
-LAYOUTS = {"weak": ("weak", 10), "facing": ("handheld", 10), "spread": ("spread", 8)}
-LAYOUT_WORDS = {"weak": "10 boards tilted 3-12 degrees from the line of sight",
-                "facing": "10 boards within 1-4 degrees of facing the camera's axis"}
+LAYOUTS = {"weak": ("weak", 10), "diamond": ("diamond", 10), "facing": ("handheld", 10), "spread": ("spread", 8)}
+LAYOUT_WORDS = {"weak": "10 boards tilted 3-12 degrees from the line of sight, turned within 20 degrees",
+                "diamond": "the same tilts, each board turned 35-55 degrees about its normal",
+                "facing": "10 boards within 1-4 degrees of facing the camera's axis, turned within 10 degrees"}
 
 
 def _layout(lidar: str, seed: int, layout: str):
@@ -136,17 +139,17 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--posterior", type=int, default=20, metavar="N",
                     help="sample the posterior with the edges on the first N datasets per LiDAR (default 20)")
-    ap.add_argument("--facing", type=int, default=100, metavar="N",
-                    help="datasets per LiDAR with boards facing the camera's axis (default 100)")
+    ap.add_argument("--others", type=int, default=100, metavar="N",
+                    help="datasets per LiDAR of the diamond and the facing layouts (default 100)")
     args = ap.parse_args()
-    print(f"Board edges, measurement level: {args.datasets} datasets per row ({args.facing} with boards facing), "
+    print(f"Board edges, measurement level: {args.datasets} datasets per row (weak; {args.others} of the others), "
           "2 cm range noise, 0.2 px corners, range model none")
     print(f"{'row':34s}{'rot deg':>9s}{'trans mm':>10s}{'in-plane mm':>12s}{'rot/CRB':>9s}{'tr/CRB':>8s}{'d2':>7s}"
           f"{'test rejects':>14s}{'posterior in 95%':>18s}{'shift > 99%':>13s}")
     ratios = []
     with ProcessPoolExecutor(args.workers) as pool:
-        for which in ("weak", "facing"):
-            n_sets = args.datasets if which == "weak" else args.facing
+        for which in ("weak", "diamond", "facing"):
+            n_sets = args.datasets if which == "weak" else args.others
             print(f"{LAYOUT_WORDS[which]}:")
             for lidar in ("vlp16", "os64"):
                 rows = list(pool.map(_accuracy, [(lidar, s, s < args.posterior, which) for s in range(n_sets)]))

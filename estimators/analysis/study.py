@@ -10,7 +10,7 @@ A study is given as a mapping (``SPEC.yaml``)::
                                              # 2d: minimal-min-residual, minimal-lower-bound,
                                              #     minimal-lower-bound-no-extent
     layouts: [spread, quadrants]             # board-pose families: spread, quadrants, upward, rightward,
-                                             # frontal, weak (see simulator.sample_layout)
+                                             # frontal, weak, diamond (see simulator.sample_layout)
     frames: [4, 8, 16]                       # board poses per calibration
     range_noise_m: [0.01, 0.02]              # LiDAR range sigma
     corner_noise_px: [0.2]                   # corner sigma (measurement level)

@@ -322,9 +322,9 @@ def sample_board_poses(rig: Rig, n: int, rng: np.random.Generator, max_tries: in
 
 
 def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries: int = 20000,
-                  partial_share: float = 0.0, outside_image_share: float = 0.0) -> list[np.ndarray]:
+                  partial_share: float = 0.0, outside_image_share: float = 0.0, spin=None) -> list[np.ndarray]:
     """``n`` feasible poses at random image positions and distances; ``normal(k)`` draws the k-th pose's
-    (azimuth, tilt) in radians."""
+    (azimuth, tilt) in radians, ``spin(k)`` its turn about its normal (default: uniform within 20 degrees)."""
     poses = []
     cam = rig.camera
     T_level_camera = T_from_Rt(rig.level, np.zeros(3)) @ T_inverse(rig.T_camera_lidar)
@@ -338,7 +338,7 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
         lo, hi = (-0.1, 1.1) if k in cut else (0.1, 0.9)
         for _ in range(max_tries):
             azimuth, tilt = normal(k)
-            spin = np.deg2rad(rng.uniform(-20.0, 20.0))
+            turn = np.deg2rad(rng.uniform(-20.0, 20.0)) if spin is None else spin(k)
             uv = np.array([[rng.uniform(lo, hi) * cam.width, rng.uniform(lo, hi) * cam.height]])
             ray = cam.rays(uv)[0]
             dist = rng.uniform(rig.min_distance_m, rig.max_distance_m)
@@ -349,7 +349,7 @@ def _sample_poses(rig: Rig, n: int, rng: np.random.Generator, normal, max_tries:
                 centre = transform_points(T_inverse(T_level_camera), p[None])[0]
                 if centre[2] <= 0.3:
                     continue
-            T = board_pose(rig.board, centre, tilt, azimuth, spin)
+            T = board_pose(rig.board, centre, tilt, azimuth, turn)
             if k in cut and not (np.any(~rig.camera.in_image(rig.camera.project(transform_points(
                     T, rig.board.outline())))) and corners_in_image_share(rig, T) <= 0.9):
                 continue  # a cut pose must be cut: part of the board and of its corners outside the image
@@ -383,14 +383,16 @@ def one_way_poses(rig: Rig, n: int, rng: np.random.Generator, direction: str, ti
     raise RuntimeError(f"no feasible {direction}-tilted board pose found in {max_tries * n} tries")
 
 
-LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal", "weak", "handheld")
+LAYOUT_FAMILIES = ("spread", "quadrants", "upward", "rightward", "frontal", "weak", "diamond", "handheld")
 
 
 def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> list[np.ndarray]:
     """``n`` board poses of a named family: ``spread`` (normals round the viewing axis, 15-40 degrees),
     ``quadrants`` (normals 30 degrees into the four image quadrants in turn), ``upward`` / ``rightward`` (all
     30 degrees one way), ``frontal`` (tilts under 8 degrees: the rotation is barely observable), ``weak`` (tilts
-    of 3-12 degrees at random azimuths: the planes leave the translation along the boards weak), ``handheld``
+    of 3-12 degrees at random azimuths: the planes leave the translation along the boards weak), ``diamond``
+    (the weak tilts, each board turned 35-55 degrees either way about its normal, as the shared recordings hold
+    theirs: every ring then leaves it by slanted sides), ``handheld``
     (:func:`_handheld_poses`: boards held up in front of the rig, all facing its forward axis)."""
     if family == "spread":
         return sample_board_poses(rig, n, rng)
@@ -400,6 +402,9 @@ def sample_layout(rig: Rig, family: str, n: int, rng: np.random.Generator) -> li
         return one_way_poses(rig, n, rng, {"upward": "up", "rightward": "right"}[family])
     if family == "weak":
         return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3.0, 12.0))))
+    if family == "diamond":
+        return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(3.0, 12.0))),
+                             spin=lambda k: np.deg2rad(rng.choice([-1.0, 1.0]) * rng.uniform(35.0, 55.0)))
     if family == "frontal":
         return _sample_poses(rig, n, rng, lambda k: (rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(0, 8.0))))
     if family == "handheld":
