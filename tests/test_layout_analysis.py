@@ -7,7 +7,7 @@ import json
 import numpy as np
 import yaml
 
-from estimators.analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+from estimators.analysis.layout_analysis import analyse, layout_from_plan, suggest_poses, turned_boards
 from estimators.cli import main
 from estimators.solvers.observation_model import cramer_rao_bound
 from geometry.rotations import R_from_rotvec, T_from_Rt
@@ -54,6 +54,34 @@ def test_suggested_pose_lowers_the_predicted_uncertainty():
     assert after.d_optimality > before.d_optimality
     assert np.all(after.std_translation_mm <= before.std_translation_mm + 1e-9)
     assert T.shape == (4, 4) and 2.0 <= np.linalg.norm(T[:3, :3] @ rig.board.centre + T[:3, 3]) <= 5.5
+
+
+def test_upright_boards_are_told_to_turn_about_their_normals_when_their_edges_would_gain(tmp_path, capsys):
+    # Upright boards tilted a little, before a VLP-16: the rings leave them by their left and right sides only,
+    # so the edges fix the translation along the boards' height poorly. Turned 45 degrees about their normals,
+    # every ring leaves by slanted sides.
+    poses = [{"centre_m": [x, y, z], "tilt_deg": tilt, "azimuth_deg": az, "spin_deg": 0}
+             for x, y, z, tilt, az in ((-0.8, 0.1, 3.0, 8, 0), (0.8, 0.0, 3.5, 10, 90), (0.0, 0.2, 4.0, 6, 180),
+                                       (-0.4, -0.1, 4.5, 12, 270), (0.5, 0.1, 3.0, 5, 45), (0.0, 0.0, 5.0, 9, 135))]
+    plan = dict(PLAN, lidar={"model": "vlp16", "range_noise_m": 0.02}, poses=poses)
+    layout, _ = layout_from_plan(plan)
+    turned = turned_boards(layout)
+    c = layout.board.centre
+    for T, U in zip(layout.T_camera_board, turned.T_camera_board):
+        np.testing.assert_allclose(U[:3, :3] @ c + U[:3, 3], T[:3, :3] @ c + T[:3, 3], atol=1e-12)  # same centre
+        np.testing.assert_allclose(U[:3, 2], T[:3, 2], atol=1e-12)                               # same normal
+        x0 = np.array([1.0, 0.0, 0.0]) - U[0, 2] * U[:3, 2]
+        assert abs(np.degrees(np.arccos(U[:3, 0] @ x0 / np.linalg.norm(x0))) - 45.0) < 1e-6
+    edges = analyse(layout).edges
+    suggestion = edges["turned_45_deg"]
+    assert np.linalg.norm(suggestion["translation_std_mm"]) < 0.8 * np.linalg.norm(edges["translation_std_mm"])
+    path = tmp_path / "plan.yaml"
+    path.write_text(yaml.safe_dump(plan))
+    assert main(["layout", str(path)]) == 0
+    assert "with every board turned 45 degrees about its normal" in capsys.readouterr().out
+    # Boards already turned 45 degrees gain nothing more: no suggestion.
+    diamond = dict(plan, poses=[dict(p, spin_deg=45) for p in poses])
+    assert "turned_45_deg" not in analyse(layout_from_plan(diamond)[0]).edges
 
 
 def test_cli_layout_plan_writes_json_and_rejects_bad_plans(tmp_path, capsys):

@@ -107,6 +107,12 @@ class LayoutAnalysis:
                        else "with the board's edges (--edges): rotation ")
                       + "  ".join(f"{v:.3f}" for v in e["rotation_std_deg"]) + " deg; translation "
                       + "  ".join(f"{v:.2f}" for v in e["translation_std_mm"]) + " mm"]
+            if "turned_45_deg" in e:
+                t = e["turned_45_deg"]
+                lines += ["  with every board turned 45 degrees about its normal (the rings then leave each board by "
+                          "slanted sides, which fix both directions along it; keep the turned boards in view): "
+                          "rotation " + "  ".join(f"{v:.3f}" for v in t["rotation_std_deg"]) + " deg; translation "
+                          + "  ".join(f"{v:.2f}" for v in t["translation_std_mm"]) + " mm"]
         return "\n".join(lines)
 
 
@@ -174,8 +180,40 @@ def _with_edges(layout: Layout) -> dict | None:
     except np.linalg.LinAlgError:
         return None
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist(),
-            "scan_line": bool(layout.beams.is_2d)}
+    out = {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist(),
+           "scan_line": bool(layout.beams.is_2d)}
+    if not layout.beams.is_2d and layout.hits is None:  # planned: the boards turned as a suggestion
+        try:
+            turned = np.sqrt(np.maximum(np.diag(np.linalg.inv(edges_information(turned_boards(layout)))), 0.0))
+        except np.linalg.LinAlgError:
+            return out
+        if np.linalg.norm(turned[3:]) < (1.0 - MIN_TURN_GAIN) * np.linalg.norm(sd[3:]):
+            out["turned_45_deg"] = {"rotation_std_deg": np.degrees(turned[:3]).tolist(),
+                                    "translation_std_mm": (1000 * turned[3:]).tolist()}
+    return out
+
+
+# The boards turned 45 degrees about their normals are suggested (``lidarcam layout``, with the edges) when that
+# shrinks the translation's predicted standard deviation by at least this share.
+MIN_TURN_GAIN = 0.2
+
+
+def turned_boards(layout: Layout, turn_deg: float = 45.0) -> Layout:
+    """The layout with each board turned about its normal, through its centre, so that its x axis lies
+    ``turn_deg`` from the camera's x axis seen in the board's plane (on the side it was turned to already): the
+    rings of a spinning LiDAR then leave every board by slanted sides, which fix both directions along it."""
+    poses = []
+    for T in layout.T_camera_board:
+        n = T[:3, 2]
+        x0 = np.array([1.0, 0.0, 0.0]) - n[0] * n
+        x0 /= np.linalg.norm(x0)
+        now = np.arctan2(np.cross(x0, T[:3, 0]) @ n, x0 @ T[:3, 0])
+        turn = np.copysign(np.deg2rad(turn_deg), now if now != 0 else 1.0) - now
+        c, s_ = np.cos(turn), np.sin(turn)
+        Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        centre = layout.board.centre
+        poses.append(T @ T_from_Rt(Rz, centre - Rz @ centre))
+    return replace(layout, T_camera_board=tuple(poses))
 
 
 OFFSET_TERMS = RangeTerms(("offset",), (OFFSET_PRIOR_SD_M,))
