@@ -565,9 +565,9 @@ def _edge_crossings(prob: _Problem, frames: list[FrameMeasurement], active: list
     return edges if any(e is not None and e.size for e in edges) else None
 
 
-# When the planes' estimate leaves fewer than this share of the ring ends that lie within half the board's
-# smaller side of the outline inside ``MAX_END_OFFSET_M`` of it, it is further off along the boards than the ends'
-# cut (weakly spread normals: boards facing the rig); the ends are first fitted with the wide cut.
+# Of the ring ends within half the board's smaller side of their sides under the planes' estimate, fewer than
+# this share within ``MAX_END_OFFSET_M``: the estimate is further off along the boards than the ends' cut (weakly
+# spread normals: boards facing the rig), and the ends are first fitted with the wide cut.
 MIN_CUT_SHARE = 0.5
 
 
