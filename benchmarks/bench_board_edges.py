@@ -60,6 +60,13 @@ def _layout(lidar: str, seed: int, layout: str):
     return Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.2, 0.02)
 
 
+def _seen_by_lidar(frames: list, real, rng: np.random.Generator, **kwargs) -> list:
+    """The camera's ``frames`` with the LiDAR's returns of the ``real`` board (``simulate_measurements``)."""
+    from estimators.solvers.observation_model import simulate_measurements
+
+    return [replace(f, lidar=g.lidar) for f, g in zip(frames, simulate_measurements(real, rng, **kwargs))]
+
+
 def _accuracy(args) -> dict:
     from estimators.solvers.board_edges import BEAM_SD_RAD, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M
     from estimators.solvers.closed_form import normal_spread, solve_closed_form
@@ -79,9 +86,8 @@ def _accuracy(args) -> dict:
     draw = np.random.default_rng(seed + 7)
     real = replace(layout, outline_error_m=tuple(np.r_[draw.normal(0.0, GROWTH_PRIOR_SD_M, 2),
                                                        draw.normal(0.0, OFFSET_PRIOR_SD_M, 2)]))
-    seen = simulate_measurements(real, np.random.default_rng(seed + 10**6), azimuth_phase=True,
-                                 beam_sd_rad=BEAM_SD_RAD)
-    frames = [replace(f, lidar=g.lidar) for f, g in zip(frames, seen)]
+    frames = _seen_by_lidar(frames, real, np.random.default_rng(seed + 10**6), azimuth_phase=True,
+                            beam_sd_rad=BEAM_SD_RAD)
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
                            allow_weak=True).T_camera_lidar
     normal = np.mean([f.camera.plane.normal for f in frames], axis=0)
@@ -123,9 +129,8 @@ def _outline(args) -> tuple[bool, bool]:
     board = layout.board
     real = (with_outline_error(layout, pattern_shift_m=(0.03, 0.0)) if error == "pattern 3 cm off centre" else
             with_outline_error(layout, size_error_m=0.05) if error == "board 5 cm larger than given" else layout)
-    cam = simulate_measurements(layout, np.random.default_rng(seed))
-    seen = simulate_measurements(real, np.random.default_rng(seed + 5))
-    frames = [replace(f, lidar=g.lidar) for f, g in zip(cam, seen)]
+    frames = _seen_by_lidar(simulate_measurements(layout, np.random.default_rng(seed)), real,
+                            np.random.default_rng(seed + 5))
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
                            allow_weak=weak).T_camera_lidar
     return tuple(any(w.startswith("board edges:") for w in refine(

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from geometry.rotations import T_from_Rt
+from geometry.rotations import R_from_rotvec, T_from_Rt
 
 from ..errors import DatasetError
 from ..lidar.lidar_models import BEAM_MODELS
@@ -176,21 +176,27 @@ def _with_edges(layout: Layout) -> dict | None:
     if not layout.beams.is_2d and layout.hits is not None and any(len(h) < 3 or h[2] is None for h in layout.hits):
         return None  # measured returns without rings: no ends to find
     try:
-        C = np.linalg.inv(edges_information(layout))
+        sd = _edges_sd(layout)
     except np.linalg.LinAlgError:
         return None
-    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-    out = {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist(),
-           "scan_line": bool(layout.beams.is_2d)}
+    out = {**_sd_dict(sd), "scan_line": bool(layout.beams.is_2d)}
     if not layout.beams.is_2d and layout.hits is None:  # planned: the boards turned as a suggestion
         try:
-            turned = np.sqrt(np.maximum(np.diag(np.linalg.inv(edges_information(turned_boards(layout)))), 0.0))
+            turned = _edges_sd(turned_boards(layout))
         except np.linalg.LinAlgError:
             return out
         if np.linalg.norm(turned[3:]) < (1.0 - MIN_TURN_GAIN) * np.linalg.norm(sd[3:]):
-            out["turned_45_deg"] = {"rotation_std_deg": np.degrees(turned[:3]).tolist(),
-                                    "translation_std_mm": (1000 * turned[3:]).tolist()}
+            out["turned_45_deg"] = _sd_dict(turned)
     return out
+
+
+def _edges_sd(layout: Layout) -> np.ndarray:
+    """The six standard deviations of the edges' bound (rad, m); ``LinAlgError`` where it is singular."""
+    return np.sqrt(np.maximum(np.diag(np.linalg.inv(edges_information(layout))), 0.0))
+
+
+def _sd_dict(sd: np.ndarray) -> dict:
+    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist()}
 
 
 # The boards turned 45 degrees about their normals are suggested (``lidarcam layout``, with the edges) when that
@@ -203,16 +209,14 @@ def turned_boards(layout: Layout, turn_deg: float = 45.0) -> Layout:
     ``turn_deg`` from the camera's x axis seen in the board's plane (on the side it was turned to already): the
     rings of a spinning LiDAR then leave every board by slanted sides, which fix both directions along it."""
     poses = []
+    c = layout.board.centre
     for T in layout.T_camera_board:
         n = T[:3, 2]
         x0 = np.array([1.0, 0.0, 0.0]) - n[0] * n
         x0 /= np.linalg.norm(x0)
         now = np.arctan2(np.cross(x0, T[:3, 0]) @ n, x0 @ T[:3, 0])
-        turn = np.copysign(np.deg2rad(turn_deg), now if now != 0 else 1.0) - now
-        c, s_ = np.cos(turn), np.sin(turn)
-        Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-        centre = layout.board.centre
-        poses.append(T @ T_from_Rt(Rz, centre - Rz @ centre))
+        R = R_from_rotvec(n * (np.copysign(np.deg2rad(turn_deg), now if now != 0 else 1.0) - now)) @ T[:3, :3]
+        poses.append(T_from_Rt(R, T[:3, :3] @ c + T[:3, 3] - R @ c))
     return replace(layout, T_camera_board=tuple(poses))
 
 
