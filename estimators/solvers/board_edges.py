@@ -100,6 +100,12 @@ def _azimuth(points: np.ndarray) -> np.ndarray:
     return np.arctan2(points[:, 1], points[:, 0])
 
 
+def _unwrapped(phi: np.ndarray) -> np.ndarray:
+    """Azimuths unwrapped about their median (one board never spans half a turn)."""
+    centre = float(np.median(phi))
+    return centre + np.angle(np.exp(1j * (phi - centre)))
+
+
 def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarray, float]]:
     """Each ring's two ends on the board, as ``(ring, mid-beam, step)``: the unit beam half an azimuth step
     beyond the ring's last return at each end (the step: the median spacing of the ring's returns)."""
@@ -108,9 +114,7 @@ def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarr
         P = points[rings == r]
         if len(P) < MIN_RING_POINTS:
             continue
-        phi = _azimuth(P)
-        centre = float(np.median(phi))
-        phi = centre + np.angle(np.exp(1j * (phi - centre)))  # unwrapped about the board
+        phi = _unwrapped(_azimuth(P))
         order = np.argsort(phi)
         steps = np.diff(phi[order])
         step = float(np.median(steps))
@@ -125,10 +129,64 @@ def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarr
     return out
 
 
+# The returns' azimuth noise is measured from the second differences of their sorted azimuths only while it stays
+# under this share of the azimuth step; beyond it the sort reorders neighbouring returns and hides it.
+MAX_MEASURED_JITTER = 0.1
+
+
+@dataclass(frozen=True)
+class EndNoise:
+    """What blurs a ring's end beyond its azimuth step, across the beam: an angle (the footprint and the azimuths'
+    own jitter, rad) and a distance (returns whose positional noise is not along their beam, m)."""
+
+    beam_sd_rad: float = BEAM_SD_RAD
+    position_sd_m: float = 0.0
+
+
+def end_noise(scans: list[tuple[np.ndarray, np.ndarray]]) -> EndNoise:
+    """The ends' noise across the beam, from ``scans`` (each a board's points and their rings). Along a ring the
+    beams fire a fixed step apart and a return lies on its beam, noisy in range only: then the second differences
+    of successive returns' azimuths (where neither gap skips a beam) measure the azimuths' jitter alone (variance
+    ``6 sd^2``, by the median absolute deviation), zero for exact angles, and it adds to the footprint
+    (``BEAM_SD_RAD``). Where that jitter reaches ``MAX_MEASURED_JITTER`` of the step, the returns are off their
+    beams by about their spacing (points with noise in every direction, a scan de-skewed or converted with noise):
+    their noise is then taken as isotropic, its size the returns' scatter across the board's line (or plane)."""
+    second, steps, scatter = [], [], []
+    for points, rings in scans:
+        for r in np.unique(rings):
+            P = points[rings == r]
+            d = np.diff(np.sort(_unwrapped(_azimuth(P))))
+            if len(d) < 4:
+                continue
+            step = float(np.median(d))
+            if not step > 0:
+                continue
+            steps.append(step)
+            regular = (np.abs(d[:-1] / step - 1.0) < 0.5) & (np.abs(d[1:] / step - 1.0) < 0.5)
+            second.append(np.diff(d)[regular])
+        scatter.append(_scatter(points))
+    second = np.concatenate(second) if second else np.zeros(0)
+    if len(second) < 10:
+        return EndNoise()
+    jitter = float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+    if jitter < MAX_MEASURED_JITTER * float(np.median(steps)):
+        return EndNoise(float(np.hypot(BEAM_SD_RAD, jitter)))
+    return EndNoise(BEAM_SD_RAD, float(np.median(scatter)))
+
+
+def _scatter(points: np.ndarray) -> float:
+    """The RMS distance (m) of a board's points from their best line (a scan line: z = 0) or plane."""
+    P = points[:, :2] if np.allclose(points[:, 2], 0.0) else points
+    Q = P - P.mean(0)
+    return float(np.sqrt(max(np.linalg.eigvalsh(Q.T @ Q / max(len(Q) - len(P[0]), 1))[0], 0.0)))
+
+
 def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, board: BoardModel,
-              beam_sd_rad: float = BEAM_SD_RAD, max_offset_m: float = MAX_END_OFFSET_M) -> EdgeCrossings:
+              beam_sd_rad: float = BEAM_SD_RAD, max_offset_m: float = MAX_END_OFFSET_M, position_sd_m: float = 0.0
+              ) -> EdgeCrossings:
     """The ring ends of one frame's board points that cross the board's outline (module docstring), with
-    sides assigned under ``T_board_lidar``; ends further than ``max_offset_m`` from their side are not used."""
+    sides assigned under ``T_board_lidar``; ends further than ``max_offset_m`` from their side are not used.
+    ``beam_sd_rad`` and ``position_sd_m``: the ends' noise across the beam (:class:`EndNoise`)."""
     ends = ring_ends(points, rings)
     w, h = board.extent
     keep_b, keep_s, keep_r, keep_sd = [], [], [], []
@@ -156,7 +214,8 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
         keep_b.append(beam)
         keep_s.append(side)
         keep_r.append(ring)
-        keep_sd.append(np.sqrt((rate * step) ** 2 / 12.0 + (s[0] * beam_sd_rad) ** 2 * _across(side, Rb[0])))
+        across = ((s[0] * beam_sd_rad) ** 2 + position_sd_m**2) * _across(side, Rb[0])
+        keep_sd.append(np.sqrt((rate * step) ** 2 / 12.0 + across))
     return EdgeCrossings(np.array(keep_b).reshape(-1, 3), np.array(keep_s, dtype=np.int64),
                          np.array(keep_r, dtype=np.int64), np.array(keep_sd))
 

@@ -49,7 +49,8 @@ from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
 from .board_edges import (EDGE_HUBER, MAX_END_OFFSET_M, OUTLINE, SIDE_NORMALS, EndTerms, crossings, edge_factor,
-                          edge_residuals, edge_scatter, frame_shift, outline_prior, shift_key, shift_prior)
+                          edge_residuals, edge_scatter, end_noise, frame_shift, outline_prior, shift_key,
+                          shift_prior)
 from .chi_square import fdtrc
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread, solve_closed_form
 from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
@@ -559,8 +560,9 @@ def _edge_crossings(prob: _Problem, frames: list[FrameMeasurement], active: list
     # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
     rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
              for f, r in zip(frames, frame_rings(frames))]
-    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board,
-                       max_offset_m=max_offset_m)
+    noise = end_noise([(frames[i].lidar.points, rings[i]) for i in active if rings[i] is not None])
+    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
+                       max_offset_m, noise.position_sd_m)
              if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
     return edges if any(e is not None and e.size for e in edges) else None
 
