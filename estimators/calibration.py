@@ -33,7 +33,7 @@ from .io.input_files import load_json, regular_file
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.pointcloud_io import read_scan_2d, read_sweep
 from .lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
-                                       choose_by_prediction, decide_alone, robust_plane_fit)
+                                       choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
 from .lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from .lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from .measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
@@ -724,7 +724,7 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
             frames.append(FrameMeasurement(frame.name, None, None, why))
         elif assoc is not None:
             frames.append(_consensus_frame(frame.name, cam_obs, cands, rejected, error, choice[k], assoc,
-                                           dataset.board, params))
+                                           dataset.board, params, (sweeps[k], scene)))
         else:
             frames.append(_alone_frame(frame.name, cam_obs, cands, rejected, error, dataset.board, params,
                                        ambiguous))
@@ -826,7 +826,8 @@ def _candidate_dicts(cands: list[BoardCandidate], residuals=(), chosen: int | No
 
 
 def _consensus_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None,
-                     choice, assoc: Association, board, params: SegmentationParams) -> FrameMeasurement:
+                     choice, assoc: Association, board, params: SegmentationParams,
+                     sweep: tuple | None = None) -> FrameMeasurement:
     points = tuple(c.observation.points for c in cands)
     method = f"consensus of {assoc.agreeing} frames"
     if not cands:
@@ -836,9 +837,37 @@ def _consensus_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: 
                              choice.reason, tuple(rejected), points)
     if choice.chosen is None:
         return FrameMeasurement(name, cam_obs, None, f"LiDAR board: {choice.reason}", decision)
-    obs = _trim_to_outline(cands[choice.chosen].observation, assoc.T_camera_lidar, cam_obs.T_camera_board, board,
-                           len(cands), params)
+    obs = cands[choice.chosen].observation
+    if sweep is not None:
+        obs = _every_return_on(obs, *sweep, params)
+    obs = _trim_to_outline(obs, assoc.T_camera_lidar, cam_obs.T_camera_board, board, len(cands), params)
     return FrameMeasurement(name, cam_obs, obs, None, decision)
+
+
+def _every_return_on(obs, sweep, scene: StaticScene, params: SegmentationParams):
+    """The chosen candidate with every return of its sweep in the range image's cells that hold its points and
+    in its plane's noise band along the beam (``board_segmentation.noise_band``, as the candidate's own points
+    were gathered), whatever the static scene said of each return.
+
+    The static scene chooses which piece is the board, and which cells it covers; not which of a cell's returns
+    are measured. Where the board stands close in front of a surface (a table it stands on, a wall it leans on),
+    the scene calls the returns whose range noise carries them within its margin of that surface background and
+    keeps the others: a selection on the noise, which tilts the fitted plane. The returns of the board's own cells,
+    in a band symmetric in range, undo it; cells the board does not reach are not added."""
+    keys = scene.cell_keys(sweep.points, sweep.ring)
+    if not (keys >= 0).any():
+        return obs
+    lo, hi = obs.points.min(axis=0) - 1e-6, obs.points.max(axis=0) + 1e-6
+    box = np.flatnonzero(np.all((sweep.points >= lo) & (sweep.points <= hi), axis=1))
+    if len(box) == 0:
+        return obs
+    dist, found = cKDTree(sweep.points[box]).query(obs.points, distance_upper_bound=1e-6)
+    own = np.unique(keys[box[found[np.isfinite(dist)]]])
+    cells = np.flatnonzero(np.isin(keys, own[own >= 0]))
+    take = cells[noise_band(sweep.points[cells], obs.plane, obs.points)]
+    if len(take) <= obs.n_points:
+        return obs
+    return observe_lidar_board(sweep.points[take], obs.candidates)
 
 
 def _alone_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None, board,

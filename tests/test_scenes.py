@@ -41,49 +41,67 @@ def office_frames():
 
 
 def test_static_scene_separates_the_moving_board_from_the_office(office_frames):
-    """Range image (beam index known): at least 95% of the board's returns are foreground in every frame and
-    at most 3% of the rest of the room is. Without beam indices the voxel model still finds 85% of the board."""
+    """Range image (beam index known) and direction bins (an unorganised cloud): at least 95% of the board's
+    returns are foreground in every frame and at most 3% of the rest of the room is."""
     rig, frames = office_frames
-    scene = build_static_scene([f.points for f in frames], [f.ring for f in frames])
-    assert scene.kind == "range-image" and scene.usable
-    for f in frames:
-        fg = scene.foreground(f.points, f.ring)
-        assert fg[f.board_mask].mean() >= 0.95, f.name
-        assert fg[~f.board_mask].mean() <= 0.03, f.name
-    voxels = build_static_scene([f.points for f in frames])
-    assert voxels.kind == "voxels"
-    for f in frames:
-        assert voxels.foreground(f.points)[f.board_mask].mean() >= 0.85, f.name
+    for rings, kind in (([f.ring for f in frames], "range-image"), (None, "direction-bins")):
+        scene = build_static_scene([f.points for f in frames], rings)
+        assert scene.kind == kind and scene.usable and scene.moved == () and scene.note == ""
+        for f in frames:
+            fg = scene.foreground(f.points, None if rings is None else f.ring)
+            assert fg[f.board_mask].mean() >= 0.95, (kind, f.name)
+            assert fg[~f.board_mask].mean() <= 0.03, (kind, f.name)
 
 
 def test_static_scene_notices_a_rig_that_moved(office_frames):
-    """One sweep turned by 3 degrees about the vertical: the model says the rig moved and is not used."""
+    """One sweep turned by 3 degrees about the vertical: exactly that frame contradicts the scene and the note
+    names it (with or without beam indices); the scene is kept, and the turned frame's board is still foreground
+    (its returns the scene does not explain stay candidates). Two frames are too few for a model."""
     rig, frames = office_frames
     points = [f.points for f in frames]
     points[2] = points[2] @ R_from_rotvec([0.0, 0.0, np.deg2rad(3.0)]).T
-    scene = build_static_scene(points, [f.ring for f in frames])
-    assert not scene.usable and "moved" in scene.note and "2" in scene.note
-    assert scene.foreground(points[0], frames[0].ring).all()
-    assert not build_static_scene(points[:2]).usable  # two frames: too few for a model
+    for rings in ([f.ring for f in frames], None):
+        scene = build_static_scene(points, rings)
+        assert scene.usable and scene.moved == (2,), (rings is None, scene.moved)
+        assert scene.note.startswith("frame(s) 2 contradict the static scene")
+        assert scene.frame_foreground(2)[frames[2].board_mask].mean() >= 0.95
+        assert scene.frame_foreground(0)[~frames[0].board_mask].mean() <= 0.03  # the others' scene unchanged
+    assert not build_static_scene(points[:2]).usable
 
 
 def test_static_scene_notices_a_rig_that_moved_half_way(office_frames):
     """The last three of six sweeps turned by 3 degrees: two groups of frames, each consistent with itself (each
-    group's walls are a surface that three frames return); every frame contradicts the scene, it is not used."""
+    group's walls are a surface that three frames return); every frame contradicts the scene."""
     rig, frames = office_frames
     turn = R_from_rotvec([0.0, 0.0, np.deg2rad(3.0)])
     points = [f.points @ turn.T if k >= 3 else f.points for k, f in enumerate(frames)]
     scene = build_static_scene(points, [f.ring for f in frames])
-    assert not scene.usable and "moved" in scene.note
+    assert scene.moved == tuple(range(6))
     assert np.all(scene.match < scene.params.moved_fraction)
+
+
+def test_a_board_left_at_one_place_does_not_make_the_rig_look_moved(office_frames):
+    """The board (and its holder) of frame 0 left standing in frames 1 and 2 as well: three frames return it in
+    front of the settled scene, as a rig moved half-way returns its walls, but it is no larger than an object
+    that stands in front of the scene for a few frames: no frame contradicts the scene."""
+    rig, frames = office_frames
+    points = [f.points for f in frames]
+    board = frames[0].points[frames[0].board_mask]
+    rings = [f.ring for f in frames]
+    for k in (1, 2):
+        points[k] = np.vstack([points[k], board])
+        rings[k] = np.concatenate([rings[k], frames[0].ring[frames[0].board_mask]])
+    scene = build_static_scene(points, rings)
+    assert scene.moved == () and scene.usable
 
 
 @pytest.mark.parametrize("pad_m", [0.5, 0.3])
 def test_a_board_filling_a_cropped_cloud_does_not_make_the_rig_look_moved(office_frames, pad_m):
     """The clouds cropped to one box around the boards (widened by 0.5 or 0.3 m): the boards fill up to 61% or
-    81% of the returns. The rig is not declared moved (judged on the background alone, and not at all where
-    too little of it is left), every board is foreground (at least 99% of its returns), with and without beam
-    indices."""
+    81% of the returns. No frame is said to contradict the scene, every board is foreground (at least 98% of its
+    returns), with and without beam indices. What little background is left cannot show a move, and the note
+    says so: at 0.3 m no frame holds enough settled background to be judged; at 0.5 m a 3-degree turn of the
+    rig would not show against it. Uncropped, that turn of one sweep is noticed."""
     from estimators.simulation.simulator import cropped_to_boards
 
     rig, frames = office_frames
@@ -91,26 +109,48 @@ def test_a_board_filling_a_cropped_cloud_does_not_make_the_rig_look_moved(office
     assert max(f.board_mask.mean() for f in cropped) > (0.6 if pad_m == 0.5 else 0.8)
     for rings in ([f.ring for f in cropped], None):
         scene = build_static_scene([f.points for f in cropped], rings)
-        assert scene.usable, scene.note
+        assert scene.usable and scene.moved == (), scene.note
         for k, f in enumerate(cropped):
             fg = scene.foreground(f.points, None if rings is None else f.ring)
-            assert fg[f.board_mask].mean() >= 0.99, (pad_m, rings is None, f.name)
-    # The same frames with one sweep turned by 3 degrees, uncropped: still noticed.
+            assert fg[f.board_mask].mean() >= 0.98, (pad_m, rings is None, f.name)
+        if rings is not None:
+            unchecked = ("could not be checked: no frame" if pad_m == 0.3
+                         else "a 3-degree turn of the rig about its vertical axis would not show")
+            assert unchecked in scene.note
     turned = [f.points for f in frames]
     turned[1] = turned[1] @ R_from_rotvec([0.0, 0.0, np.deg2rad(3.0)]).T
-    assert not build_static_scene(turned, [f.ring for f in frames]).usable
+    assert build_static_scene(turned, [f.ring for f in frames]).moved == (1,)
+
+
+@pytest.mark.parametrize("pad_m", [0.5, 0.3])
+def test_a_rig_that_moved_in_a_cropped_cloud_is_caught_or_said_to_be_unchecked(office_frames, pad_m):
+    """One sweep turned by 3 degrees, then every cloud cropped to the boards' box in the LiDAR's frame (as a
+    recorder crops): the turn is either among the frames that contradict the scene or the note says that the
+    stillness was not checked; never a silent pass."""
+    from dataclasses import replace
+
+    rig, frames = office_frames
+    turn = R_from_rotvec([0.0, 0.0, np.deg2rad(3.0)])
+    boards = np.vstack([f.points[f.board_mask] for f in frames])
+    lo, hi = boards.min(axis=0) - pad_m, boards.max(axis=0) + pad_m
+    moved = [replace(f, points=f.points @ turn.T) if k == 1 else f for k, f in enumerate(frames)]
+    keep = [np.all((f.points >= lo) & (f.points <= hi), axis=1) for f in moved]
+    scene = build_static_scene([f.points[m] for f, m in zip(moved, keep)], [f.ring[m] for f, m in zip(moved, keep)])
+    assert 1 in scene.moved or "not checked" in scene.note or "could not be checked" in scene.note, scene.note
 
 
 def test_a_cropped_cloud_calibrates_with_the_static_scene(tmp_path, office_frames):
-    """End to end on clouds cropped 0.3 m around the boards: every frame used, no "rig moved" warning, and
-    the estimate within 0.3 degree and 20 mm of the truth (6 office frames, VLP-16, 2 cm noise)."""
+    """End to end on clouds cropped 0.3 m around the boards: every frame used, no frame said to contradict the
+    scene but a warning that the rig's stillness could not be checked, and the estimate within 0.3 degree and 20
+    mm of the truth (6 office frames, VLP-16, 2 cm noise)."""
     from estimators.simulation.simulator import cropped_to_boards, write_dataset
 
     rig, frames = office_frames
     path = write_dataset(tmp_path / "cropped", rig, cropped_to_boards(frames, 0.3))
     result = calibrate(path, samples=0)
     assert result.frames_used == len(frames)
-    assert not any("moved" in w for w in result.warnings), result.warnings
+    assert not any("contradict the static scene" in w for w in result.warnings), result.warnings
+    assert any("stillness could not be checked" in w for w in result.warnings), result.warnings
     xi = T_log(T_inverse(result.T_camera_lidar) @ rig.T_camera_lidar)
     assert np.degrees(np.linalg.norm(xi[:3])) < 0.3 and np.linalg.norm(xi[3:]) < 0.02
 
@@ -563,3 +603,30 @@ def test_the_choice_gate_widens_with_the_rotation_uncertainty():
                         for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
     C = _rotation_covariance(crowded, params)
     assert C[2, 2] > 100 * max(C[0, 0], C[1, 1])
+
+
+@pytest.mark.parametrize("crop_m", [None, 0.3])
+def test_a_small_board_on_a_table_under_a_dense_laser_without_its_size(tmp_path, crop_m):
+    """Issue 61: an 18 x 24 cm board (6 x 8 squares of 30 mm) standing on a small plate on an optical table, seen
+    by a dense LiDAR with a non-repetitive pattern and no beam index (25-40 thousand returns a sweep, thousands
+    on the board), 15 poses, dataset.yaml without board.size; the whole lab in the cloud, or the clouds cropped
+    0.3 m around the boards. The static scene keeps the board in front of the table it stands on (direction
+    bins, judged along the beams; voxels called it background), nothing says the rig moved, every frame is
+    used, and the truth lies inside the reported 99.9% region (chi-square 6 dof; the estimate within a few
+    standard deviations, not 26 degrees and 821 mm as the recording gave)."""
+    from estimators.simulation.simulator import cropped_to_boards, write_dataset
+    from estimators.simulation.table import declared, simulate_table_frames, table_rig
+
+    rng = np.random.default_rng(3)
+    rig = table_rig(rng)
+    frames, _ = simulate_table_frames(rig, 15, rng)
+    assert all(f.ring is None for f in frames) and all(1000 < f.board_mask.sum() < len(f.points) / 2 for f in frames)
+    if crop_m is not None:
+        frames = cropped_to_boards(frames, crop_m)
+    path = write_dataset(tmp_path / "table", declared(rig), frames)
+    result = calibrate(path, samples=0)
+    assert not any("contradict the static scene" in w for w in result.warnings), result.warnings
+    assert any("board.size is not given" in w for w in result.warnings)
+    assert result.frames_used == 15
+    xi = T_log(T_inverse(result.T_camera_lidar) @ rig.T_camera_lidar)
+    assert xi @ np.linalg.solve(result.covariance, xi) < 22.46

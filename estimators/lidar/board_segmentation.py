@@ -409,7 +409,7 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
             # up to 1.8x as far off as all the board's returns give, a range noise 7% low, and planes that
             # disagreed beyond it (errors 1.3x the Cramer-Rao bound over 40 layouts; now 1.0-1.06).
             R = P[_in_rectangle((P - origin) @ basis, rect, 0.015) & (np.abs(plane.signed_distances(P)) < 0.3)]
-            band = _noise_band(R, plane)
+            band = noise_band(R, plane)
             if band.sum() >= len(Q):  # (never fewer points than the trims left)
                 Q = R[band]
     return observe_lidar_board(Q, n_candidates)
@@ -420,13 +420,19 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
 NOISE_BAND_SIGMA = 3.0
 
 
-def _noise_band(P: np.ndarray, plane: Plane) -> np.ndarray:
-    """Points within ``NOISE_BAND_SIGMA`` range-noise standard deviations of ``plane`` along their beams, the
-    deviation from their median absolute residual (the points of the board's rectangle: mostly the board)."""
+def along_beams(P: np.ndarray, plane: Plane) -> np.ndarray:
+    """Each point's distance from ``plane`` along its own beam (its range noise, for a point of the plane)."""
     beams = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-9)
     cos = np.maximum(np.abs(beams @ plane.normal), MIN_INCIDENCE_COS)
-    r = plane.signed_distances(P) / cos  # along the beam
-    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return plane.signed_distances(P) / cos
+
+
+def noise_band(P: np.ndarray, plane: Plane, of: np.ndarray | None = None) -> np.ndarray:
+    """Points within ``NOISE_BAND_SIGMA`` range-noise standard deviations of ``plane`` along their beams, the
+    deviation from the median absolute residual of the points ``of`` (default ``P``; mostly the board's)."""
+    r = along_beams(P, plane)
+    ref = r if of is None else along_beams(of, plane)
+    sigma = 1.4826 * float(np.median(np.abs(ref - np.median(ref))))
     return np.abs(r) <= max(NOISE_BAND_SIGMA * sigma, 1e-3)
 
 

@@ -88,4 +88,35 @@ def spinning2d(sigma_range_m: float = 0.02) -> BeamModel:
                      sigma_range_m, 30.0)
 
 
+@dataclass(frozen=True, eq=False)
+class Rosette:
+    """A Livox-like LiDAR (for the simulator): a non-repetitive rosette in a circular field of view ahead (x),
+    from two prisms turning at incommensurate rates, each sweep a new stretch of it (25-40 thousand returns a
+    sweep), no beam index. Its ``directions`` draw a sweep's."""
+
+    name: str = "rosette"
+    sigma_range_m: float = 0.01
+    max_range_m: float = 40.0
+    fov_deg: float = 38.4
+    points: tuple[int, int] = (25000, 40000)   # returns a sweep (at 100 thousand a second)
+    rates_hz: tuple[float, float] = (121.57, -77.73)  # the two prisms' turns a second
+    is_2d: bool = False
+
+    def directions(self, rng: np.random.Generator) -> np.ndarray:
+        """One sweep's unit beam directions (N, 3): the rosette from a random start, N drawn in ``points``."""
+        n = int(rng.integers(self.points[0], self.points[1] + 1))
+        t = rng.uniform(0.0, 100.0) + np.arange(n) * 1e-5
+        w1, w2 = 2 * np.pi * np.asarray(self.rates_hz)
+        half = 0.25 * np.deg2rad(self.fov_deg)
+        a = half * (np.cos(w1 * t) + np.cos(w2 * t))
+        b = half * (np.sin(w1 * t) + np.sin(w2 * t))
+        r, phi = np.hypot(a, b), np.arctan2(b, a)
+        return np.column_stack([np.cos(r), np.sin(r) * np.cos(phi), np.sin(r) * np.sin(phi)])
+
+    def in_view(self, points: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
+        """Which points (LiDAR frame) lie inside the field of view, ``margin_rad`` inside its edge."""
+        off = np.arccos(np.clip(points[:, 0] / np.linalg.norm(points, axis=1), -1.0, 1.0))
+        return off <= 0.5 * np.deg2rad(self.fov_deg) - margin_rad
+
+
 BEAM_MODELS = {"hdl64e": hdl64e, "vlp16": vlp16, "os64": os64, "2d": scanner2d, "spin2d": spinning2d}

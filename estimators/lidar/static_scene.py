@@ -13,9 +13,10 @@ background (foreground). Three forms, by what the recording tells:
   cover that cell; boards held at one place in a few frames do not make a surface. Over a window of neighbouring
   cells (rig vibration of a few centimetres, column jitter, depth edges), a point is foreground when it
   matches no background range within ``margin_m`` and lies nearer than some of them (or the window has none).
-- **Voxel occupancy** (unorganised 3D clouds with no beam index): counts of the frames that occupy each voxel;
-  a voxel held by half the frames or more is background, and a point is background when its voxel or a
-  neighbour is.
+- **Direction bins** (unorganised 3D clouds with no beam index, a non-repetitive pattern among them): the same
+  range image over bins of elevation and azimuth, their size chosen so that a sweep returns a few points in each
+  (:func:`direction_bin`), so that a board standing on a table or held by a wall is still in front of the
+  surface behind it.
 - **Per-beam ranges** (2D scans): the range image with one beam row.
 
 A background range counts only where it is *settled*: returned by more than half the frames that do not see
@@ -28,10 +29,11 @@ others return), or lie in front of it on a surface that other frames return too 
 groups of frames, each consistent with itself). A frame whose matching share is under ``moved_fraction``, or
 ``moved_drop`` under the typical frame's, was taken from elsewhere. Returns in front of the background that no
 other frame repeats (the board, its holder) do not count, so a board that fills most of a cropped cloud does
-not make the rig look moved; a frame with fewer than ``min_judged`` judged returns is not judged. With voxels,
-the judged returns are those in a background voxel and those off the background that are not in front of it
-(in their direction bin, no nearer than its farthest background voxel): a wall seen from elsewhere. The model
-then says so and is not used: each frame falls back to the cues it holds alone.
+not make the rig look moved, nor does an object larger than a board that stays in front of it for several frames
+(``max_object_m``: a board on its stand, its holder); a frame with fewer than ``min_judged`` judged returns is
+not judged. A frame that contradicts the scene keeps the model, with every return it does not explain in its
+foreground (:func:`_checked`), and the note says so, as it says when the stillness could not be judged or the
+background would not show a turn of the rig.
 """
 from __future__ import annotations
 
@@ -46,20 +48,20 @@ class StaticSceneParams:
     margin_m: float = 0.12          # nearer than the background by this much: foreground
     ring_window: int = 1            # neighbouring beams compared (each side)
     column_window: int = 2          # neighbouring azimuth columns compared (each side)
-    voxel_m: float = 0.10           # voxel side for unorganised clouds
     seen_through: int = 2           # range image: a background surface is returned by this many frames at least
     support_share: float = 0.25     # ... and by this share of the frames
     min_frames: int = 3             # fewer frames: no model
     moved_fraction: float = 0.9     # a frame matching less than this of its judged background: the rig moved
     moved_drop: float = 0.05        # ... or matching it this much less than the typical frame does
     min_judged: int = 100           # a frame with fewer returns on settled background is not judged
-    direction_bin_deg: float = 1.0  # voxels: the direction bins in which a return is judged in front or not
+    max_object_m: float = 2.5       # a surface repeated in front of the scene and no larger: an object left there
+    checked_turn_deg: float = 3.0   # the turn of the rig about its vertical axis the judgement must be able to see
 
 
 @dataclass(frozen=True, eq=False)
 class StaticScene:
-    """Background model of a dataset's sweeps. ``kind``: ``range-image``, ``voxels`` or ``none`` (too few
-    frames, or the rig moved); ``match`` is each frame's share of its judged returns (on settled background)
+    """Background model of a dataset's sweeps. ``kind``: ``range-image`` (beam indices or a 2D scan's beams),
+    ``direction-bins`` (an unorganised cloud) or ``none`` (too few frames); ``match`` is each frame's share of its judged returns (on settled background)
     that match it rather than contradict it (nan: too few such returns to judge)."""
 
     kind: str
@@ -69,9 +71,10 @@ class StaticScene:
     _background: np.ndarray | None = None  # range image: background range per beam and column (nan: none)
     _column_rad: float = 0.0
     _rows: np.ndarray | None = None      # range image: the beam ids, in row order
-    _voxels: np.ndarray | None = None    # voxels: sorted keys of background voxels
-    _bins: tuple = ()                    # voxels: sorted direction-bin keys and the farthest background in each
+    _bin_rad: float | None = None        # direction bins: their side (rad), elevation rows in place of beams
     _frames: tuple = ()                  # the foreground mask of each frame the model was built from
+    moved: tuple = ()                    # the frames that contradict the scene (by index)
+    unchecked: tuple = ()                # the frames whose stillness could not be judged (by index)
 
     @property
     def usable(self) -> bool:
@@ -81,9 +84,16 @@ class StaticScene:
         """Mask of the points in front of the static scene (all True when there is no model)."""
         if not self.usable or len(points) == 0:
             return np.ones(len(points), dtype=bool)
-        if self.kind == "voxels":
-            return ~self._in_background_voxel(points)
         return self._classify(points, ring)[0]
+
+    def cell_keys(self, points: np.ndarray, ring: np.ndarray | None = None) -> np.ndarray:
+        """Each point's cell of the range image (beam or elevation bin, and column) as one key; -1 for a beam
+        the model does not hold (and for every point when there is no model)."""
+        if not self.usable or len(points) == 0:
+            return np.full(len(points), -1, dtype=np.int64)
+        ring = _elevation_rows(points, self._bin_rad) if self._bin_rad is not None else ring
+        row, col = _cells(points, ring, self._rows, self._column_rad)
+        return np.where(row >= 0, row * self._background.shape[1] + col, -1)
 
     def frame_foreground(self, k: int) -> np.ndarray | None:
         """The foreground mask of the k-th frame the model was built from (computed once, at the build), or
@@ -92,7 +102,9 @@ class StaticScene:
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "note": self.note,
-                "frames_matching_static_scene": [None if np.isnan(m) else round(float(m), 3) for m in self.match]}
+                "frames_matching_static_scene": [None if np.isnan(m) else round(float(m), 3) for m in self.match],
+                "frames_contradicting_it": [int(k) for k in self.moved],
+                "frames_not_judged": [int(k) for k in self.unchecked]}
 
     # -- range image -------------------------------------------------------------------------------------
     def _classify(self, points: np.ndarray, ring: np.ndarray | None, cells: tuple | None = None
@@ -100,9 +112,12 @@ class StaticScene:
         """(foreground, static, beyond) masks: ``static`` when the range matches a background range of the
         window; ``beyond`` when it lies farther than every one of them (the frame sees through a surface the
         other frames return). ``cells``: the points' ``(row, column, range)`` when known already."""
-        row, col, r = cells if cells is not None else (*_cells(points, ring, self._rows, self._column_rad),
-                                                       _ranges(points))
-        dr, dc = self.params.ring_window, self.params.column_window
+        if cells is None:
+            ring = _elevation_rows(points, self._bin_rad) if self._bin_rad is not None else ring
+            cells = (*_cells(points, ring, self._rows, self._column_rad), _ranges(points))
+        row, col, r = cells
+        # Direction bins are a few azimuth steps wide already: one either side.
+        dr, dc = self.params.ring_window, (self.params.column_window if self._bin_rad is None else 1)
         padded = _padded(self._background, dr, dc).ravel()
         width = self._background.shape[1] + 2 * dc
         held = row >= 0  # a beam the model does not hold has no background: foreground
@@ -121,47 +136,27 @@ class StaticScene:
         static &= held
         return ~static & (behind | ~seen | ~held), static, held & seen & ~static & ~behind
 
-    # -- voxels ------------------------------------------------------------------------------------------
-    def _in_background_voxel(self, points: np.ndarray) -> np.ndarray:
-        keys = _voxel_keys(points, self.params.voxel_m)
-        hit = np.zeros(len(points), dtype=bool)
-        for off in _NEIGHBOURS:
-            k = keys + off
-            pos = np.clip(np.searchsorted(self._voxels, k), 0, max(len(self._voxels) - 1, 0))
-            hit |= self._voxels[pos] == k if len(self._voxels) else False
-        return hit
 
-    def _not_in_front(self, points: np.ndarray) -> np.ndarray:
-        """Returns in a direction bin that holds background voxels and no nearer than the farthest of them by
-        the margin (and a voxel): off the background, such a return is not something in front of it (a board, a
-        person) but the scene seen from elsewhere."""
-        keys, far = self._bins
-        if len(keys) == 0:
-            return np.zeros(len(points), dtype=bool)
-        k = _direction_keys(points, self.params.direction_bin_deg)
-        pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
-        there = keys[pos] == k
-        slack = self.params.margin_m + np.sqrt(3.0) * self.params.voxel_m
-        return there & (_ranges(points) >= far[pos] - slack)
+def _elevation_rows(points: np.ndarray, bin_rad: float) -> np.ndarray:
+    """Each point's elevation bin (the rows of a range image of an unorganised cloud)."""
+    return np.floor(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])) / bin_rad).astype(np.int64)
 
 
-_SHIFT = 2 ** 20
-_NEIGHBOURS = np.array([(i * _SHIFT + j) * _SHIFT + k for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
-                       dtype=np.int64)
+# Candidate sides (degrees) of an unorganised cloud's direction bins, finest first.
+BIN_SIDES_DEG = (0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 
 
-def _voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
-    ijk = np.floor(points / size).astype(np.int64) + _SHIFT // 2
-    ijk = np.clip(ijk, 1, _SHIFT - 2)
-    return (ijk[:, 0] * _SHIFT + ijk[:, 1]) * _SHIFT + ijk[:, 2]
-
-
-def _direction_keys(points: np.ndarray, bin_deg: float) -> np.ndarray:
-    """Key of each point's (azimuth, elevation) bin."""
-    step = np.deg2rad(bin_deg)
-    az = np.floor(_azimuth(points) / step).astype(np.int64)
-    el = np.floor((np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])) + np.pi) / step).astype(np.int64)
-    return el * 100000 + az
+def direction_bin(points: np.ndarray, min_returns: float = 4.0) -> float:
+    """The side (rad) of an unorganised cloud's direction bins: the finest of ``BIN_SIDES_DEG`` at which the
+    sweep's occupied bins hold ``min_returns`` returns or more (median), so that most bins a surface covers are
+    returned in every sweep."""
+    az = _azimuth(points)
+    for side in np.deg2rad(BIN_SIDES_DEG):
+        keys = _elevation_rows(points, side) * 100000 + (az / side).astype(np.int64)
+        _, counts = np.unique(keys, return_counts=True)
+        if np.median(counts) >= min_returns:
+            return float(side)
+    return float(np.deg2rad(BIN_SIDES_DEG[-1]))
 
 
 def _ranges(points: np.ndarray) -> np.ndarray:
@@ -207,10 +202,14 @@ def _column_width(points: list[np.ndarray], rings: list[np.ndarray | None]) -> f
     return float(np.clip(step, np.deg2rad(0.05), np.deg2rad(2.0)))
 
 
-def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None], params: StaticSceneParams
-                       ) -> StaticScene:
+def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None], params: StaticSceneParams,
+                       bin_rad: float | None = None) -> StaticScene:
+    """The range image of the sweeps, rows by beam (``rings``) or, given ``bin_rad``, by elevation bin (the
+    columns then as wide)."""
+    if bin_rad is not None:
+        rings = [_elevation_rows(P, bin_rad) for P in points]
     rows = np.unique(np.concatenate([np.zeros(1, np.int64) if r is None else np.unique(r) for r in rings]))
-    column = _column_width(points, rings)
+    column = _column_width(points, rings) if bin_rad is None else bin_rad
     n_cols = int(np.ceil(2 * np.pi / column))
     F = len(points)
     stack = np.full((F, len(rows), n_cols), np.nan)
@@ -244,55 +243,104 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
         front = stack < background - margin
         returned = np.sum(np.abs(stack - background) <= margin, axis=0)
         background[(returned < m) | (returned <= 0.5 * (F - front.sum(axis=0)))] = np.nan
-    scene = StaticScene("range-image", params, _background=background, _column_rad=column, _rows=rows)
+    scene = StaticScene("range-image" if bin_rad is None else "direction-bins", params, _background=background,
+                        _column_rad=column, _rows=rows, _bin_rad=bin_rad)
     judged, foreground = [], []
     for k, (P, ring) in enumerate(zip(points, rings)):
         fg, static, beyond = scene._classify(P, ring, cells[k])
         # In front of a settled surface on a surface of its own that m frames (3 at least) return: a second
-        # static scene (a board left at one place for two frames is not one).
+        # static scene (a board left at one place for two frames is not one), when it is larger than an object
+        # that can stand still in front of the scene for a few frames (a board on its stand, its holder).
         with np.errstate(invalid="ignore"):
             repeated = front[k] & (np.sum(np.abs(stack - stack[k]) <= 0.5 * margin, axis=0) >= max(m, 3))
         row, col, _ = cells[k]
-        judged.append((static, beyond | (fg & (row >= 0) & repeated[np.maximum(row, 0), col])))
+        on = fg & (row >= 0) & repeated[np.maximum(row, 0), col]
+        judged.append((static, beyond | (on & _larger_than(P, on, repeated, row, col, params.max_object_m))))
         foreground.append(fg)
-    return _checked(scene, judged, tuple(foreground))
+    return _checked(scene, judged, tuple(foreground), points, rings)
 
 
-def _build_voxels(points: list[np.ndarray], params: StaticSceneParams) -> StaticScene:
-    per_frame = [np.unique(_voxel_keys(P, params.voxel_m)) for P in points]
-    keys, counts = np.unique(np.concatenate(per_frame), return_counts=True)
-    need = max(2, int(np.ceil(0.5 * len(points))))
-    voxels = keys[counts >= need]
-    # Each direction bin's farthest background voxel centre: a return off the background and not nearer than it
-    # is not in front of the scene but the scene seen from elsewhere.
-    centres = (np.stack([voxels // _SHIFT ** 2, voxels // _SHIFT % _SHIFT, voxels % _SHIFT], axis=1)
-               - _SHIFT // 2 + 0.5) * params.voxel_m
-    bins, inverse = np.unique(_direction_keys(centres, params.direction_bin_deg), return_inverse=True)
-    far = np.full(len(bins), -np.inf)
-    np.maximum.at(far, inverse.ravel(), _ranges(centres))
-    scene = StaticScene("voxels", params, _voxels=voxels, _bins=(bins, far))
-    background = [scene._in_background_voxel(P) for P in points]
-    off = [~b & scene._not_in_front(P) for b, P in zip(background, points)]
-    return _checked(scene, list(zip(background, off)), tuple(~b for b in background))
+def _larger_than(points: np.ndarray, on: np.ndarray, image: np.ndarray, row: np.ndarray, col: np.ndarray,
+                 size_m: float) -> np.ndarray:
+    """Of the returns ``on`` (those on the cells of ``image``), the ones whose connected region of cells
+    (neighbouring beams and columns) spans more than ``size_m`` (the diagonal of its returns' box)."""
+    out = np.zeros(len(points), dtype=bool)
+    if not on.any():
+        return out
+    labels, n = ndimage.label(image, structure=np.ones((3, 3), dtype=bool))
+    lab = labels[row[on], col[on]]
+    idx = np.flatnonzero(on)
+    P = points[idx]
+    lo = np.full((n + 1, 3), np.inf)
+    hi = np.full((n + 1, 3), -np.inf)
+    np.minimum.at(lo, lab, P)
+    np.maximum.at(hi, lab, P)
+    large = np.linalg.norm(hi - lo, axis=1) > size_m
+    out[idx] = large[lab]
+    return out
 
 
-def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], foreground: tuple = ()
-             ) -> StaticScene:
-    """The scene, or none when a frame contradicts it: ``judged`` holds each frame's masks of the returns that
-    match the static scene and of those that contradict it."""
+def _judged_masks(scene: StaticScene, points: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A sweep's returns that match the static scene and those that lie beyond it: a single sweep's judgement,
+    without the other frames' repeats."""
+    _, static, beyond = scene._classify(points, ring)
+    return static, beyond
+
+
+def _share(static: np.ndarray, against: np.ndarray, min_judged: int) -> float:
+    n = static.sum() + against.sum()
+    return float(static.sum() / n) if n >= min_judged else np.nan
+
+
+def _names(frames) -> str:
+    return ", ".join(str(int(k)) for k in frames[:8]) + (" ..." if len(frames) > 8 else "")
+
+
+def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], foreground: tuple,
+             points: list[np.ndarray], rings: list) -> StaticScene:
+    """The scene with its judgement of the rig's stillness: ``judged`` holds each frame's masks of the returns
+    that match the static scene and of those that contradict it.
+
+    A frame that contradicts the scene (the rig moved, or the scene changed) keeps the model: every return the
+    scene does not explain stays in its foreground, so its board stays a candidate; only the note says so. (A
+    board is in front of whatever the scene holds there, so a contradicted model still leaves it in front, while
+    dropping the model for every frame leaves each board among all the clutter of its room.) Frames with too few
+    returns on settled background are not judged, and a scene that would not show a turn of the rig by
+    ``checked_turn_deg`` about its vertical axis (the ground alone, in a cloud cropped to the boards) is said to
+    leave the stillness unchecked."""
     p = scene.params
-    match = np.array([s.sum() / (s.sum() + b.sum()) if s.sum() + b.sum() >= p.min_judged else np.nan
-                      for s, b in judged])
+    match = np.array([_share(s, b, p.min_judged) for s, b in judged])
     typical = float(np.nanmedian(match)) if np.isfinite(match).any() else 1.0
+    limit = max(p.moved_fraction, typical - p.moved_drop)
     with np.errstate(invalid="ignore"):
-        moved = np.nonzero(match < max(p.moved_fraction, typical - p.moved_drop))[0]
-    if len(moved):
-        names = ", ".join(str(int(k)) for k in moved[:8])
-        return StaticScene("none", p, match,
-                           f"the rig seems to have moved: frame(s) {names} match the static scene for only "
-                           f"{100 * match[moved].min():.0f}% of their returns on settled background (the rest see "
-                           "through it or show it from elsewhere); each frame's board is found from its own cues")
-    return replace(scene, match=match, _frames=foreground)
+        moved = tuple(int(k) for k in np.nonzero(match < limit)[0])
+    unjudged = tuple(int(k) for k in np.nonzero(~np.isfinite(match))[0])
+    notes = []
+    if moved:
+        notes.append(f"frame(s) {_names(moved)} contradict the static scene (as little as {100 * np.nanmin(match):.0f}% "
+                     "of their returns on settled background match it, the rest lie beyond it or on a surface larger "
+                     "than a board that other frames repeat): the rig moved, or the scene changed; the scene is kept, "
+                     "and every return of theirs that it does not explain stays a board candidate")
+        foreground = tuple(~judged[k][0] if k in moved else f for k, f in enumerate(foreground))
+    if len(unjudged) == len(match):
+        notes.append(f"the rig's stillness could not be checked: no frame has {p.min_judged} returns on settled "
+                     "background (a cloud cropped to the boards?)")
+    elif unjudged:
+        notes.append(f"the rig's stillness could not be checked on frame(s) {_names(unjudged)}: fewer than "
+                     f"{p.min_judged} of their returns lie on settled background")
+    if len(unjudged) < len(match) and not moved:
+        # The power of the judgement: the best-judged frame turned by the checked angle either way.
+        k = int(np.nanargmax([s.sum() + b.sum() if np.isfinite(m) else -1 for (s, b), m in zip(judged, match)]))
+        turns = []
+        for sign in (-1.0, 1.0):
+            a = sign * np.deg2rad(p.checked_turn_deg)
+            Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+            turns.append(_share(*_judged_masks(scene, points[k] @ Rz.T, rings[k]), p.min_judged))
+        if not all(t < limit for t in turns):
+            notes.append(f"the rig's stillness is not checked: a {p.checked_turn_deg:g}-degree turn of the rig about "
+                         "its vertical axis would not show against the background in view (too little of it changes "
+                         "with a turn: the ground alone, a cloud cropped to the boards?)")
+    return replace(scene, match=match, note="; ".join(notes), _frames=foreground, moved=moved, unchecked=unjudged)
 
 
 def build_static_scene(points: list[np.ndarray], rings: list[np.ndarray | None] | None = None,
@@ -308,4 +356,4 @@ def build_static_scene(points: list[np.ndarray], rings: list[np.ndarray | None] 
     if planar or all(r is not None for r in rings):
         rings = [None] * len(points) if planar else rings
         return _build_range_image(points, rings, params)
-    return _build_voxels(points, params)
+    return _build_range_image(points, rings, params, direction_bin(points[0]))

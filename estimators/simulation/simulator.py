@@ -667,8 +667,8 @@ def cropped_to_boards(frames: list[SimulatedFrame], pad_m: float) -> list[Simula
     out = []
     for f in frames:
         keep = np.all((f.points >= lo) & (f.points <= hi), axis=1)
-        out.append(replace(f, points=f.points[keep], intensity=f.intensity[keep], ring=f.ring[keep],
-                           board_mask=f.board_mask[keep]))
+        out.append(replace(f, points=f.points[keep], intensity=f.intensity[keep],
+                           ring=None if f.ring is None else f.ring[keep], board_mask=f.board_mask[keep]))
     return out
 
 
