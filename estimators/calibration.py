@@ -25,7 +25,7 @@ from .camera.charuco import MIN_CHARUCO_CORNERS
 from .camera.chessboard import CornerDetection, detect_corners
 from .camera.intrinsics import calibrate_intrinsics
 from .errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
-                     ImageReadError, MeasurementError, PosteriorSkippedError, ScanReadError)
+                     ImageReadError, LidarcamError, MeasurementError, PosteriorSkippedError, ScanReadError)
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from .io.image_io import read_gray
@@ -1240,11 +1240,13 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
-    if any(f.lidar is not None and f.lidar.is_scan_line for f in frames) or init.startswith("minimal"):
+    scan_lines = any(f.lidar is not None and f.lidar.is_scan_line for f in frames)
+    if init.startswith("minimal") and not scan_lines and any(f.lidar is not None for f in frames):
+        raise LidarcamError(f"init {init!r} is for 2D LiDAR datasets; these frames hold a 3D LiDAR's boards",
+                            hint="use init closed-form")
+    if scan_lines or init.startswith("minimal"):
         return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng,
                          use_extent, on_refined)
-    if init != "closed-form":
-        raise ValueError(f"init {init!r} is for 2D LiDAR datasets; a 3D LiDAR uses closed-form")
     t0 = time.perf_counter()
     # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
     # what the full model determines (and names what it does not).

@@ -167,13 +167,26 @@ def test_simulated_2d_dataset_calibrates_end_to_end(sim_2d):
     assert xi @ np.linalg.solve(result.covariance, xi) < chi2.ppf(0.999, 6)
 
 
-def test_3d_init_on_a_2d_dataset_and_back_are_refused(tmp_path):
+def test_the_3d_init_on_a_2d_dataset_is_the_minimal_solver_and_a_2d_init_on_a_3d_dataset_is_refused(sim_vlp16):
+    """``closed-form`` on scan lines means the 2D minimal solver (the CLI's default serves both LiDARs): the same
+    estimate as asking for it. A 2D init on a 3D LiDAR's boards is refused with a one-line error that says so,
+    through the library (measured frames) and through a 3D dataset folder."""
+    from estimators.errors import DatasetError
+    from estimators.simulation.simulator import default_rig
+
     rig, frames = _measured_2d(6, 4)
-    with pytest.raises(LidarcamError):
-        solve(frames[:2], rig.board, rig.camera, init="minimal-lower-bound")
-    frames3d = [replace(f, lidar=None) for f in frames]
-    with pytest.raises(LidarcamError):
-        solve(frames3d, rig.board, rig.camera, init="minimal-lower-bound")
+    given = solve(frames, rig.board, rig.camera, init="closed-form", posterior=None)
+    minimal = solve(frames, rig.board, rig.camera, init="minimal-lower-bound", posterior=None)
+    assert given.init == "minimal-lower-bound"
+    np.testing.assert_array_equal(given.T_camera_lidar, minimal.T_camera_lidar)
+    rng = np.random.default_rng(1)
+    rig3 = default_rig(rng, "vlp16")
+    layout = Layout(rig3.camera, rig3.board, rig3.beams, rig3.T_camera_lidar, tuple(sample_board_poses(rig3, 5, rng)),
+                    0.2, 0.02)
+    with pytest.raises(LidarcamError, match="is for 2D LiDAR datasets; these frames hold a 3D LiDAR's boards"):
+        solve(simulate_measurements(layout, rng), rig3.board, rig3.camera, init="minimal-lower-bound")
+    with pytest.raises(DatasetError, match="is for 2D LiDAR datasets"):
+        calibrate(sim_vlp16, init="minimal-min-residual", posterior=None)
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata/acfr_rpg_2d is absent")
