@@ -133,8 +133,12 @@ def _with_lidar_board(frames, lidar_layout: Layout, seed: int):
 @pytest.mark.parametrize("edges", [True, False])
 @pytest.mark.parametrize("error", ["pattern_offset", "size"])
 def test_outline_errors_in_the_dataset_are_caught(error, edges):
-    # The dataset's board differs from the real one: the pattern printed 3 cm off centre, or the board 5 cm
-    # larger than given. The camera places the given board; the LiDAR sees the real one.
+    """The dataset's board differs from the real one: the pattern printed 3 cm off centre along the board's x, or
+    the board 5 cm larger than given. The camera places the given board; the LiDAR sees the real one. In each of
+    3 layouts the warning names the error and its size: the outline 20-40 mm off along the board's x (with the
+    edges, the outline's offset; without, the outlines' mean shift), or the board seen 40-60 mm wider."""
+    import re
+
     caught = 0
     for seed in range(3):
         layout = _layout(seed + 10, "hdl64e", n=8)
@@ -148,7 +152,16 @@ def test_outline_errors_in_the_dataset_are_caught(error, edges):
         assert ref.edges is not None and ref.edges["used"] == edges
         assert not edges or ref.edges["planes_only_check"]["mean_shift_dof"] > 0
         said = " ".join(ref.warnings)
-        caught += ("board edges:" in said)
+        if error == "size":
+            found = re.search(r"board edges: the LiDAR sees the board ([+-]\d+) mm wider", said)
+            caught += found is not None and 40 <= int(found.group(1)) <= 60
+        elif edges:
+            found = re.search(r"board edges: the board's outline sits ([+-]\d+) mm along its x", said)
+            caught += found is not None and 20 <= int(found.group(1)) <= 40
+        else:
+            found = re.search(r"board edges: the LiDAR's board outlines sit (\d+) mm off the camera's on average "
+                              r".*a wrong board.pattern_offset or board.size", said)
+            caught += found is not None and 20 <= int(found.group(1)) <= 40
     assert caught == 3
 
 

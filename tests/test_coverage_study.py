@@ -29,9 +29,16 @@ def test_study_coverage_writes_one_row_per_trial_and_a_consistent_summary(tmp_pa
     assert "coverage over 3 measurement trials" in capsys.readouterr().out
 
 
-def test_wilson_ranges_contain_the_fraction():
-    rows = [{"d2_posterior": 1.0, "d2_laplace": 1.0, **{f"in{k}_{a}": int(i % 4 != 0) for k in (68, 95)
-                                                        for a in (*AXES, "joint", "joint_chi2")}}
-            for i in range(40)]
-    c = summarize(rows)["coverage"]["95%"]["joint"]
-    assert c["fraction"] == 0.75 and c["low"] < 0.75 < c["high"] and 0 <= c["low"] and c["high"] <= 1
+def test_wilson_ranges_are_the_wilson_score_intervals():
+    """The summary's 95% ranges are Wilson's score intervals, as SciPy's binomial test computes them, for 30 of
+    40 trials inside and at the edges (none and all of 10)."""
+    from scipy.stats import binomtest
+
+    for k, n in ((30, 40), (0, 10), (10, 10)):
+        rows = [{"d2_posterior": 1.0, "d2_laplace": 1.0, **{f"in{level}_{a}": int(i < k) for level in (68, 95)
+                                                            for a in (*AXES, "joint", "joint_chi2")}}
+                for i in range(n)]
+        c = summarize(rows)["coverage"]["95%"]["joint"]
+        ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
+        assert c["fraction"] == k / n
+        np.testing.assert_allclose([c["low"], c["high"]], [ci.low, ci.high], atol=1e-3)
