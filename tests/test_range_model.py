@@ -97,10 +97,19 @@ def test_auto_adds_the_offset_only_when_the_data_support_it():
     inclusion, so that a test falsely including the offset 20% of the time passes 7% of the time (a 1% rate
     fails 2%). With a 3 cm offset (1.5 range-noise sd) on 10 boards the test's power is near 1 (each board's
     ranges vary with incidence, which an offset and a plane shift do not share): at least 5 of 6 layouts choose
-    it (a test of power 0.5 passes 11% of the time)."""
-    fits = [_refine(*_frames(300 + s, 0.0, n=6), "auto").range_model for s in range(20)]
+    it (a test of power 0.5 passes 11% of the time). The null layouts' extrinsics, too: the truth's squared
+    Mahalanobis distances summed within the 0.1-99.9% points of chi-square with 120 dof (77.8-173.6: a covariance
+    2x too small in variance fails 99% of the time, 2x too large 98%)."""
+    fits, d2 = [], 0.0
+    for s in range(20):
+        layout, frames = _frames(300 + s, 0.0, n=6)
+        ref = _refine(layout, frames, "auto")
+        fits.append(ref.range_model)
+        xi = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
+        d2 += float(xi @ np.linalg.solve(ref.covariance, xi))
     assert [f.chosen for f in fits].count("none") >= 19
     assert all(f.tests and f.tests[0]["model"] == "offset" for f in fits)
+    assert 77.8 < d2 < 173.6, d2
     biased = [_refine(*_frames(400 + s, 0.03), "auto").range_model for s in range(6)]
     assert [f.chosen for f in biased].count("offset") >= 5
 

@@ -294,13 +294,15 @@ def _check_dataset(path, min_hit_share: float = 0.4):
 def test_office_scene_3d_uses_every_board_and_no_wrong_segment(tmp_path):
     """An office (VLP-16, 3 cm noise, boards held by a person or on a stand, some partly outside the vertical
     field of view): every frame with most of its board hit is used, each with at least 80% of its points on the
-    board; the estimate is within 4 standard deviations of the truth in every tangent axis."""
+    board; the simulation has no range error and the range model chooses none (issue 61: clutter made it keep a
+    global offset confounded with the translation); the truth inside the reported 99.9% region."""
     path = simulate_dataset(tmp_path / "office", n_poses=8, seed=2, lidar="vlp16", sigma_range_m=0.03,
                             scene="office")
     result, truth = _check_dataset(path)
     assert result.frames_used >= 7
+    assert result.refinement.range_model.chosen == "none", result.refinement.range_model.to_dict()
     xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
-    assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
+    assert xi @ np.linalg.solve(result.covariance, xi) < 22.46, xi
     assert all(f.decision is not None and f.decision.method.startswith("consensus") for f in result.frames)
     frame = result.to_dict()["frames"][0]
     assert {"method", "chosen", "reason", "candidates"} <= frame["lidar_board_choice"].keys()
@@ -327,10 +329,14 @@ def test_small_hand_held_board_facing_the_rig_on_a_vlp16(tmp_path):
 
 
 def test_open_hall_with_3cm_noise_uses_every_frame(tmp_path):
-    """Ground patches of the board's size at the boards' distances are background: all 6 frames are used."""
+    """Ground patches of the board's size at the boards' distances are background: all 6 frames are used; no range
+    error simulated, none chosen; the truth inside the reported 99.9% region."""
     path = simulate_dataset(tmp_path / "hall", n_poses=6, seed=4, lidar="vlp16", sigma_range_m=0.03, scene="hall")
     result, truth = _check_dataset(path)
     assert result.frames_used == 6
+    assert result.refinement.range_model.chosen == "none", result.refinement.range_model.to_dict()
+    xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
+    assert xi @ np.linalg.solve(result.covariance, xi) < 22.46, xi
 
 
 def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(tmp_path):
