@@ -1,10 +1,19 @@
 """Shared fixtures: small simulated datasets, made once per test session with fixed seeds."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-import pytest
-from hypothesis import settings
+# One BLAS thread per test process, as the CLI runs (and every child process inherits it): the suite runs two
+# processes on two cores, and OpenBLAS's own threads would compete with the other process (they keep spinning
+# after each large product). Set before numpy loads OpenBLAS, and limited again below where it was loaded already.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]))
 
 # Property tests check correctness, not speed: no per-example deadline on a loaded 2-core CI machine. Their
 # examples are drawn from a fixed seed (derandomize) and no example database is kept, so every run, here or in CI,
@@ -12,7 +21,7 @@ from hypothesis import settings
 settings.register_profile("lidarcam", deadline=None, max_examples=100, derandomize=True, database=None)
 settings.load_profile("lidarcam")
 
-from estimators.simulation.simulator import simulate_dataset
+from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 
