@@ -61,8 +61,9 @@ class StaticSceneParams:
 @dataclass(frozen=True, eq=False)
 class StaticScene:
     """Background model of a dataset's sweeps. ``kind``: ``range-image`` (beam indices or a 2D scan's beams),
-    ``direction-bins`` (an unorganised cloud) or ``none`` (too few frames); ``match`` is each frame's share of its judged returns (on settled background)
-    that match it rather than contradict it (nan: too few such returns to judge)."""
+    ``direction-bins`` (an unorganised cloud) or ``none`` (too few frames); ``match`` is each frame's share of its
+    judged returns (on settled background) that match it rather than contradict it (nan: too few such returns to
+    judge); ``moved`` the frames that contradict it, ``unchecked`` those not judged."""
 
     kind: str
     params: StaticSceneParams
@@ -317,10 +318,11 @@ def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], fo
     unjudged = tuple(int(k) for k in np.nonzero(~np.isfinite(match))[0])
     notes = []
     if moved:
-        notes.append(f"frame(s) {_names(moved)} contradict the static scene (as little as {100 * np.nanmin(match):.0f}% "
-                     "of their returns on settled background match it, the rest lie beyond it or on a surface larger "
-                     "than a board that other frames repeat): the rig moved, or the scene changed; the scene is kept, "
-                     "and every return of theirs that it does not explain stays a board candidate")
+        notes.append(f"frame(s) {_names(moved)} contradict the static scene (as little as "
+                     f"{100 * np.nanmin(match):.0f}% of their returns on settled background match it, the rest lie "
+                     "beyond it or on a surface larger than a board that other frames repeat): the rig moved, or the "
+                     "scene changed; the scene is kept, and every return of theirs that it does not explain stays a "
+                     "board candidate")
         foreground = tuple(~judged[k][0] if k in moved else f for k, f in enumerate(foreground))
     if len(unjudged) == len(match):
         notes.append(f"the rig's stillness could not be checked: no frame has {p.min_judged} returns on settled "
