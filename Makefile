@@ -70,6 +70,10 @@ bench: $(STAMP)
 	$(RECORD) 2d_honesty_default_8_boards -- $(PY) benchmarks/bench_2d_honesty.py default 100 --boards 8
 	$(RECORD) 2d_honesty_varied_8_boards -- $(PY) benchmarks/bench_2d_honesty.py varied 100 --boards 8
 	$(RECORD) 2d_honesty_mounted_8_boards -- $(PY) benchmarks/bench_2d_honesty.py mounted 100 --boards 8
+	$(RECORD) 2d_honesty_footprint -- $(PY) benchmarks/bench_2d_honesty.py footprint 100
+	$(RECORD) 2d_honesty_footprint_4_boards -- $(PY) benchmarks/bench_2d_honesty.py footprint 100 --boards 4
+	$(RECORD) 2d_honesty_footprint_6_boards -- $(PY) benchmarks/bench_2d_honesty.py footprint 100 --boards 6
+	$(RECORD) 2d_honesty_footprint_4_boards_no_edges -- $(PY) benchmarks/bench_2d_honesty.py footprint 100 --boards 4 --no-edges
 	$(RECORD) charuco -- $(PY) benchmarks/bench_charuco.py
 	$(RECORD) study_2d_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
 	$(RECORD) study_2d_varied_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end

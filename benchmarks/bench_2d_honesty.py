@@ -1,5 +1,6 @@
 """2D, three boards: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
-[--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py; part of make bench.)
+[--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py, or footprint: the second
+2D generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
 
 Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared
 one by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal solutions,
@@ -25,6 +26,7 @@ from estimators.errors import DegenerateLayoutError, PosteriorSkippedError
 from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
+from estimators.solvers.refinement import RefinementOptions
 from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_inverse, T_log
 
@@ -38,10 +40,23 @@ def _d2(ref, T_true) -> float:
     return float(x @ np.linalg.solve(ref.covariance, x))
 
 
+def _footprint_trial(seed: int, boards: int):
+    """A layout of the second 2D generator (``simulation.footprint_2d``: beam footprints and mixed returns, noise
+    along the beam or in the scan plane, its own scene and camera), as ``bench_2d.trial_setup`` returns one."""
+    from estimators.simulation.footprint_2d import as_beam_model, layout_trial
+    from estimators.solvers.observation_model import Layout
+
+    rig, poses, frames = layout_trial(seed, boards)
+    layout = Layout(rig.camera, rig.board, as_beam_model(rig), rig.T_camera_lidar, tuple(poses),
+                    rig.corner_noise_px, rig.scanner.sigma_m)
+    return rig, layout, frames, None
+
+
 def one(args):
-    seed, config, pattern, posterior, boards = args
+    seed, config, pattern, posterior, boards, edges = args
     try:
-        rig, layout, frames, _ = B.trial_setup(seed, config, boards, 0.01, pattern)
+        rig, layout, frames, _ = (_footprint_trial(seed, boards) if config == "footprint" else
+                                  B.trial_setup(seed, config, boards, 0.01, pattern))
     except RuntimeError:  # no feasible pose for this rig: not a trial
         return None
     try:
@@ -52,7 +67,8 @@ def one(args):
     bound = tuple(b if np.isfinite(b) else np.inf for b in bound)
     out = {"seed": seed, "bound": bound, "degenerate": bool(bound[0] >= MAX_BOUND[0] or bound[1] >= MAX_BOUND[1])}
     try:
-        used, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera)
+        options = RefinementOptions() if edges else RefinementOptions(edges=False)
+        used, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera, options=options)
     except DegenerateLayoutError as exc:
         return {**out, "refused": True, "why": exc.problem[:140]}
     xi = T_log(T_inverse(ref.T_camera_lidar) @ rig.T_camera_lidar)
@@ -83,23 +99,28 @@ def one(args):
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("config", choices=RIGS_2D)
+    ap.add_argument("config", choices=RIGS_2D + ("footprint",),
+                    help="a configuration of the simulator, or footprint: the second 2D generator (checkerboard)")
     ap.add_argument("trials", type=int)
     ap.add_argument("seed", type=int, nargs="?", default=77)
     ap.add_argument("--seeds", type=int, nargs="+", metavar="S",
                     help="run these trial seeds (as listed by an earlier run) instead of TRIALS drawn from SEED")
     ap.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"])
     ap.add_argument("--boards", type=int, default=3, help="boards per layout (default 3)")
+    ap.add_argument("--no-edges", dest="edges", action="store_false",
+                    help="the planes alone, as calibrate --no-edges (the bound stays the one with the ends)")
     ap.add_argument("--no-posterior", dest="posterior", action="store_false",
                     help="the Laplace covariance alone (quick; not what the pipeline reports)")
     a = ap.parse_args()
     config, pattern = a.config, a.pattern
     seeds = a.seeds or np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
-        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior, a.boards) for s in seeds], chunksize=4))
+        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior, a.boards, a.edges) for s in seeds],
+                             chunksize=4))
     skipped = sum(r is None for r in rows)
     rows = [r for r in rows if r is not None]
-    print(f"{config}, {pattern}, {a.boards} boards: {len(rows)} trials ({skipped} rigs without a feasible pose skipped)")
+    print(f"{config}, {pattern}, {a.boards} boards{'' if a.edges else ', --no-edges'}: {len(rows)} trials ({skipped} "
+          "rigs without a feasible pose skipped)")
     print(f"{'bound':12s} {'trials':>6s} {'refused':>7s} {'answered':>8s} {'in 99.9%':>9s} {'(Laplace)':>9s} "
           f"{'ambiguous':>9s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
     wrong_all = []

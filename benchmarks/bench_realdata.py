@@ -149,7 +149,8 @@ def office() -> None:
 
 def rig_moved() -> None:
     """The static scene's rig-moved check on both 3D sets: each frame's share of its judged background that it
-    matches (with beam indices, and as unorganised clouds), then with the third sweep turned about the vertical
+    matches (with beam indices, and as unorganised clouds: direction bins), and whether a frame contradicts the
+    scene ("moved") or the note says the stillness could not be checked ("unchecked"), then with the third sweep turned about the vertical
     or shifted forwards, and with the second half of the sweeps turned by 2 degrees."""
     from estimators.io.pointcloud_io import read_sweep
     from estimators.lidar.static_scene import build_static_scene
@@ -164,10 +165,10 @@ def rig_moved() -> None:
 
         def check(points, label):
             rows = []
-            for kind, r in (("rings", rings), ("voxels", None)):
+            for kind, r in (("rings", rings), ("bins", None)):
                 scene = build_static_scene(points, r)
-                rows.append(f"{kind} {'moved' if not scene.usable else 'still'} "
-                            f"{np.nanmin(scene.match):.3f}-{np.nanmax(scene.match):.3f}")
+                said = "moved" if scene.moved else "unchecked" if "checked" in scene.note else "still"
+                rows.append(f"{kind} {said} {np.nanmin(scene.match):.3f}-{np.nanmax(scene.match):.3f}")
             print(f"    {label:28s} {'; '.join(rows)}")
 
         print(f"recorded data: {root.name}, rig-moved check (share of the judged background each frame matches, "
