@@ -140,6 +140,18 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     return np.column_stack([u, np.cross(n, u)])
 
 
+def on_plane_along_beams(points: np.ndarray, plane: Plane) -> np.ndarray:
+    """Where each point's beam from the sensor's origin meets ``plane`` (points (N, 3), sensor frame): the point
+    without its range noise, for a point of the plane. A beam nearly parallel to the plane keeps its point."""
+    P = np.asarray(points, dtype=float)
+    r = np.linalg.norm(P, axis=1)
+    cos = (P @ plane.normal) / np.maximum(r, 1e-12)
+    ok = np.abs(cos) > 1e-3
+    out = P.copy()
+    out[ok] = P[ok] * (plane.distance / (cos[ok] * r[ok]))[:, None]
+    return out
+
+
 def cut_with_board(T_board_sensor: np.ndarray, beams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays from a sensor's origin along unit ``beams`` (K, 3, sensor frame) cut with a board's plane (z = 0 of
     the board frame): ``(q, s, Rb)``, the cuts in the board frame (K, 3), their distances along the beams, and
