@@ -7,6 +7,7 @@ measured. :func:`dataset_key` names a dataset's content and the measurement opti
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -64,10 +65,24 @@ class Measurements:
     key: str = ""
 
 
+@functools.lru_cache(maxsize=1)
+def code_key() -> str:
+    """SHA-256 over the source of the package that measures (every module of ``estimators`` and ``geometry``):
+    measurements cached by another version of the code are measured again, not returned."""
+    h = hashlib.sha256()
+    top = Path(__file__).resolve().parents[2]
+    for path in sorted([*(top / "estimators").rglob("*.py"), *(top / "geometry").rglob("*.py")]):
+        h.update(str(path.relative_to(top)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
 def dataset_key(root: Path, files: list[Path], options: dict) -> str:
-    """SHA-256 over ``dataset.yaml``, every frame file's bytes (in order) and the measurement options."""
+    """SHA-256 over ``dataset.yaml``, every frame file's bytes (in order), the measurement options and the code
+    that measures (:func:`code_key`)."""
     h = hashlib.sha256()
     h.update(FORMAT.encode())
+    h.update(code_key().encode())
     h.update(json.dumps(options, sort_keys=True, default=_plain).encode())
     for path in [root / "dataset.yaml", *files]:
         h.update(path.name.encode())
