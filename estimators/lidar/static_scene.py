@@ -54,7 +54,8 @@ class StaticSceneParams:
     moved_fraction: float = 0.9     # a frame matching less than this of its judged background: the rig moved
     moved_drop: float = 0.05        # ... or matching it this much less than the typical frame does
     min_judged: int = 100           # a frame with fewer returns on settled background is not judged
-    max_object_m: float = 2.5       # a surface repeated in front of the scene and no larger: an object left there
+    max_object_m: float = 2.5       # surfaces repeated in front of the scene, all within a box this large: an
+    min_object_returns: int = 20    # object left there (surfaces of fewer returns are not weighed)
     checked_turn_deg: float = 3.0   # the turn of the rig about its vertical axis the judgement must be able to see
 
 
@@ -147,7 +148,7 @@ def _elevation_rows(points: np.ndarray, bin_rad: float) -> np.ndarray:
 BIN_SIDES_DEG = (0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 
 
-def direction_bin(points: np.ndarray, min_returns: float = 4.0) -> float:
+def direction_bin(points: np.ndarray, min_returns: float = 3.0) -> float:
     """The side (rad) of an unorganised cloud's direction bins: the finest of ``BIN_SIDES_DEG`` at which the
     sweep's occupied bins hold ``min_returns`` returns or more (median), so that most bins a surface covers are
     returned in every sweep."""
@@ -256,15 +257,20 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
             repeated = front[k] & (np.sum(np.abs(stack - stack[k]) <= 0.5 * margin, axis=0) >= max(m, 3))
         row, col, _ = cells[k]
         on = fg & (row >= 0) & repeated[np.maximum(row, 0), col]
-        judged.append((static, beyond | (on & _larger_than(P, on, repeated, row, col, params.max_object_m))))
+        judged.append((static, beyond | (on & _displaced(P, on, repeated, row, col, params))))
         foreground.append(fg)
     return _checked(scene, judged, tuple(foreground), points, rings)
 
 
-def _larger_than(points: np.ndarray, on: np.ndarray, image: np.ndarray, row: np.ndarray, col: np.ndarray,
-                 size_m: float) -> np.ndarray:
-    """Of the returns ``on`` (those on the cells of ``image``), the ones whose connected region of cells
-    (neighbouring beams and columns) spans more than ``size_m`` (the diagonal of its returns' box)."""
+def _displaced(points: np.ndarray, on: np.ndarray, image: np.ndarray, row: np.ndarray, col: np.ndarray,
+               params: StaticSceneParams) -> np.ndarray:
+    """Of the returns ``on`` (those on the cells of ``image``: in front of the settled scene, on a surface other
+    frames repeat), the ones that show the scene displaced rather than an object left standing in front of it.
+    Connected regions of cells (neighbouring beams and columns) larger than ``max_object_m`` (the diagonal of
+    their returns' box) count in any case (a wall); the smaller ones count too unless together they lie within
+    one such box: a board on its stand and its holder left at one place for a few frames make one place, a rig
+    moved half-way shows pieces of its scene all round (regions of fewer than ``min_object_returns`` returns
+    are not weighed in that box)."""
     out = np.zeros(len(points), dtype=bool)
     if not on.any():
         return out
@@ -276,7 +282,10 @@ def _larger_than(points: np.ndarray, on: np.ndarray, image: np.ndarray, row: np.
     hi = np.full((n + 1, 3), -np.inf)
     np.minimum.at(lo, lab, P)
     np.maximum.at(hi, lab, P)
-    large = np.linalg.norm(hi - lo, axis=1) > size_m
+    large = np.linalg.norm(hi - lo, axis=1) > params.max_object_m
+    objects = ~large & (np.bincount(lab, minlength=n + 1) >= params.min_object_returns)
+    if objects.any() and np.linalg.norm(hi[objects].max(axis=0) - lo[objects].min(axis=0)) > params.max_object_m:
+        large |= objects
     out[idx] = large[lab]
     return out
 

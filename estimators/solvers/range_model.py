@@ -317,16 +317,19 @@ def _two_colours(dark: np.ndarray | None) -> bool:
 
 def frame_rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
     """Each frame's board points' ring ids: the scan's own, or the beams' elevations clustered over every frame
-    (one ring per cluster; None for 2D scans)."""
+    (one ring per cluster; None for 2D scans, and for a board that no separate beams swept)."""
     if any(f.lidar.is_scan_line for f in frames):
         return [None] * len(frames)
     if all(f.lidar.rings is not None for f in frames):
         return [np.asarray(f.lidar.rings, dtype=np.int64) for f in frames]
-    # No ring field: cluster the beams' elevations over every frame's board points (one ring per cluster).
+    # No ring field: cluster the beams' elevations over every frame's board points (one ring per cluster). A board
+    # whose elevations span several gaps' widths yet fall in fewer than three clusters was not swept by separate
+    # beams (a non-repetitive pattern fills the elevations between them): it has no rings.
     elev = [np.arctan2(f.lidar.points[:, 2], np.hypot(f.lidar.points[:, 0], f.lidar.points[:, 1])) for f in frames]
     allv = np.sort(np.concatenate(elev))
     edges = allv[:-1][np.diff(allv) > RING_GAP_RAD] if len(allv) > 1 else np.array([])
-    return [np.searchsorted(edges, e, side="left").astype(np.int64) for e in elev]
+    rings = [np.searchsorted(edges, e, side="left").astype(np.int64) for e in elev]
+    return [None if len(np.unique(r)) < 3 and np.ptp(e) > 3 * RING_GAP_RAD else r for r, e in zip(rings, elev)]
 
 
 def dark_labels(obs: LidarBoardObservation) -> np.ndarray | None:
