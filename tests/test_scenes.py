@@ -624,8 +624,8 @@ def test_a_small_board_on_a_table_under_a_dense_laser_without_its_size(tmp_path,
     on the board), 15 poses, dataset.yaml without board.size; the whole lab in the cloud, or the clouds cropped
     0.3 m around the boards. The static scene keeps the board in front of the table it stands on (direction
     bins, judged along the beams; voxels called it background), nothing says the rig moved, every frame is
-    used, and the truth lies inside the reported 99.9% region (chi-square 6 dof; the estimate within a few
-    standard deviations, not 26 degrees and 821 mm as the recording gave)."""
+    used, no range term is kept, and the truth lies inside the reported 99.9% region (chi-square 6 dof; the
+    estimate within a few standard deviations, not 26 degrees and 821 mm as the recording gave)."""
     from estimators.simulation.simulator import cropped_to_boards, write_dataset
     from estimators.simulation.table import declared, simulate_table_frames, table_rig
 
@@ -640,5 +640,8 @@ def test_a_small_board_on_a_table_under_a_dense_laser_without_its_size(tmp_path,
     assert not any("contradict the static scene" in w for w in result.warnings), result.warnings
     assert any("board.size is not given" in w for w in result.warnings)
     assert result.frames_used == 15
+    # No range error simulated, none kept: a border judged by the returns' noisy positions tilted the small board's
+    # planes by up to a degree, which the range-term test read as an offset (8 mm, d2 33 on this dataset).
+    assert result.refinement.range_model.chosen == "none", result.refinement.range_model.reason
     xi = T_log(T_inverse(result.T_camera_lidar) @ rig.T_camera_lidar)
     assert xi @ np.linalg.solve(result.covariance, xi) < 22.46
