@@ -29,9 +29,9 @@ others return), or lie in front of it on a surface that other frames return too 
 groups of frames, each consistent with itself). A frame whose matching share is under ``moved_fraction``, or
 ``moved_drop`` under the typical frame's, was taken from elsewhere. Returns in front of the background that no
 other frame repeats (the board, its holder) do not count, so a board that fills most of a cropped cloud does
-not make the rig look moved, nor does an object larger than a board that stays in front of it for several frames
-(``max_object_m``: a board on its stand, its holder); a frame with fewer than ``min_judged`` judged returns is
-not judged. A frame that contradicts the scene keeps the model, with every return it does not explain in its
+not make the rig look moved, nor do objects left standing at one place in front of it for several frames (surfaces
+that lie together within a box of ``max_object_m``: a board on its stand, its holder); a frame with fewer than
+``min_judged`` judged returns is not judged. A frame that contradicts the scene keeps the model, with every return it does not explain in its
 foreground (:func:`_checked`), and the note says so, as it says when the stillness could not be judged or the
 background would not show a turn of the rig.
 """
@@ -93,9 +93,13 @@ class StaticScene:
         the model does not hold (and for every point when there is no model)."""
         if not self.usable or len(points) == 0:
             return np.full(len(points), -1, dtype=np.int64)
-        ring = _elevation_rows(points, self._bin_rad) if self._bin_rad is not None else ring
-        row, col = _cells(points, ring, self._rows, self._column_rad)
+        row, col = self._cells(points, ring)
         return np.where(row >= 0, row * self._background.shape[1] + col, -1)
+
+    def _cells(self, points: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The points' (row, column) in the range image: rows by beam, or by elevation bin."""
+        ring = _elevation_rows(points, self._bin_rad) if self._bin_rad is not None else ring
+        return _cells(points, ring, self._rows, self._column_rad)
 
     def frame_foreground(self, k: int) -> np.ndarray | None:
         """The foreground mask of the k-th frame the model was built from (computed once, at the build), or
@@ -114,10 +118,7 @@ class StaticScene:
         """(foreground, static, beyond) masks: ``static`` when the range matches a background range of the
         window; ``beyond`` when it lies farther than every one of them (the frame sees through a surface the
         other frames return). ``cells``: the points' ``(row, column, range)`` when known already."""
-        if cells is None:
-            ring = _elevation_rows(points, self._bin_rad) if self._bin_rad is not None else ring
-            cells = (*_cells(points, ring, self._rows, self._column_rad), _ranges(points))
-        row, col, r = cells
+        row, col, r = cells if cells is not None else (*self._cells(points, ring), _ranges(points))
         # Direction bins are a few azimuth steps wide already: one either side.
         dr, dc = self.params.ring_window, (self.params.column_window if self._bin_rad is None else 1)
         padded = _padded(self._background, dr, dc).ravel()
