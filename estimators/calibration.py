@@ -748,20 +748,26 @@ def _without_damaged_scans(cams: list[tuple], scans: list) -> tuple[list[tuple],
     return cams, [k for k, s in enumerate(scans) if not isinstance(s, str)]
 
 
+def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``points`` (taken from ``sweep``, exact coordinates) as its index in the sweep, and which were found.
+    Only the sweep's points in their bounding box can match: a tree over those, not the sweep."""
+    lo, hi = points.min(axis=0) - 1e-6, points.max(axis=0) + 1e-6
+    near = np.flatnonzero(np.all((sweep >= lo) & (sweep <= hi), axis=1))
+    if len(near) == 0:
+        return np.zeros(len(points), dtype=np.int64), np.zeros(len(points), dtype=bool)
+    dist, found = cKDTree(sweep[near]).query(points, distance_upper_bound=1e-6)
+    ok = np.isfinite(dist)
+    return near[np.where(ok, found, 0)], ok
+
+
 def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
     """The frame with its board points' ring and intensity looked up in the sweep they came from (exact
     coordinates), for the range model's per-ring and reflectivity terms."""
     if not frame.usable or (sweep.ring is None and sweep.intensity is None):
         return frame
-    # Only the sweep's points in the board points' bounding box can match: a tree over those, not the sweep.
-    lo, hi = frame.lidar.points.min(axis=0) - 1e-6, frame.lidar.points.max(axis=0) + 1e-6
-    near = np.flatnonzero(np.all((sweep.points >= lo) & (sweep.points <= hi), axis=1))
-    if len(near) == 0:
+    idx, found = _in_sweep(frame.lidar.points, sweep.points)
+    if not found.all():
         return frame
-    dist, found = cKDTree(sweep.points[near]).query(frame.lidar.points, distance_upper_bound=1e-6)
-    if not np.all(np.isfinite(dist)):
-        return frame
-    idx = near[found]
     lidar = replace(frame.lidar, rings=None if sweep.ring is None else sweep.ring[idx],
                     intensity=None if sweep.intensity is None else sweep.intensity[idx])
     return replace(frame, lidar=lidar)
@@ -857,12 +863,8 @@ def _every_return_on(obs, sweep, scene: StaticScene, params: SegmentationParams)
     keys = scene.cell_keys(sweep.points, sweep.ring)
     if not (keys >= 0).any():
         return obs
-    lo, hi = obs.points.min(axis=0) - 1e-6, obs.points.max(axis=0) + 1e-6
-    box = np.flatnonzero(np.all((sweep.points >= lo) & (sweep.points <= hi), axis=1))
-    if len(box) == 0:
-        return obs
-    dist, found = cKDTree(sweep.points[box]).query(obs.points, distance_upper_bound=1e-6)
-    own = np.unique(keys[box[found[np.isfinite(dist)]]])
+    idx, found = _in_sweep(obs.points, sweep.points)
+    own = np.unique(keys[idx[found]])
     cells = np.flatnonzero(np.isin(keys, own[own >= 0]))
     take = cells[noise_band(sweep.points[cells], obs.plane, obs.points)]
     if len(take) <= obs.n_points:
