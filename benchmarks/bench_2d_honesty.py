@@ -1,4 +1,4 @@
-"""2D, three boards: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
+"""2D, three boards or --boards N: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
 [--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py, or footprint: the second
 2D generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
 
