@@ -2,7 +2,6 @@
 degenerate layouts (simulated ground truth; the recorded set when ../shared is present)."""
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -3,7 +3,6 @@ degenerate triples are reported with the reason."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from estimators.solvers.minimal_solver import edge_conditioning, solve_p3p_edges, solve_three_boards
 from geometry.lines import Line2D, fit_line_tls, intersect, line_from_plane

@@ -223,7 +223,6 @@ def second_poses(rig: Rig2D, n: int, rng: np.random.Generator, max_tries: int = 
     within 60 degrees, leaning up to 25 degrees back or forward and rolled up to 20, its bottom above the floor,
     the scan plane crossing it between a fifth and four fifths of its height; every inner corner 10 px inside the
     image."""
-    T_lidar_camera = T_inverse(rig.T_camera_lidar)
     w, h = rig.board.extent
     poses = []
     for k in range(n):
