@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate  # noqa: E402
 from estimators.camera.board_pose import estimate_board_pose  # noqa: E402
-from estimators.camera.chessboard import detect_corners  # noqa: E402
+from estimators.camera.corners import detect_corners  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.simulation.rendering import render_image  # noqa: E402
 from estimators.simulation.simulator import (as_charuco, default_rig, sample_board_poses, scene_patches,  # noqa: E402

@@ -50,7 +50,7 @@ def recorded() -> None:
             gray = cv2.imread(str(f.image), cv2.IMREAD_GRAYSCALE)
             if gray is None:
                 continue
-            new, tn = _timed(chessboard.detect_corners, gray, ds.board)
+            new, tn = _timed(chessboard.detect_chessboard, gray, ds.board)
             old, to = _timed(chessboard._detect_full, gray, pattern)
             t_new.append(tn)
             t_old.append(to)
@@ -85,7 +85,7 @@ def rendered(trials: int = 8) -> None:
             patches, bi = scene_patches(rig, T_lb)
             gray = render_image(cam, T_lc, patches, bi, transform_points(T_lb, rig.board.outline()), rng)
             truth = cam.project(transform_points(T_cb, rig.board.inner_corners()))
-            new, tn = _timed(chessboard.detect_corners, gray, rig.board)
+            new, tn = _timed(chessboard.detect_chessboard, gray, rig.board)
             old, to = _timed(chessboard._detect_full, gray, pattern)
             t_new.append(tn)
             t_old.append(to)

@@ -22,7 +22,8 @@ from geometry.rotations import T_inverse, quat_xyzw_from_R, transform_points
 from . import __version__
 from .camera.board_pose import estimate_board_pose, reobserve
 from .camera.charuco import MIN_CHARUCO_CORNERS
-from .camera.chessboard import CornerDetection, detect_corners
+from .camera.corners import detect_corners
+from .camera.detection import CornerDetection
 from .camera.intrinsics import calibrate_intrinsics
 from .errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
                      ImageReadError, LidarcamError, MeasurementError, PosteriorSkippedError, ScanReadError)

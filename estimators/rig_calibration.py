@@ -25,7 +25,7 @@ from . import __version__
 from .calibration import _detect, measure_frames, solve
 from .camera.board_pose import estimate_board_pose
 from .camera.intrinsics import calibrate_intrinsics
-from .camera.chessboard import CornerDetection
+from .camera.detection import CornerDetection
 from .errors import DegenerateLayoutError, LidarcamError
 from .io.dataset import FrameFiles
 from .io.output import write_json_atomic, write_npz_atomic

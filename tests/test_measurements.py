@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from estimators.camera.board_pose import estimate_board_pose, plane_jacobian
-from estimators.camera.chessboard import CornerDetection, detect_corners
+from estimators.camera.corners import detect_corners
+from estimators.camera.detection import CornerDetection
 from estimators.errors import MeasurementError
 from estimators.io.dataset import load_dataset
 from estimators.io.image_io import read_gray

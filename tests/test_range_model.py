@@ -322,7 +322,7 @@ def test_a_detected_grid_that_starts_on_a_white_square_is_read_from_the_image():
     import cv2
 
     from estimators.camera.board_pose import estimate_board_pose
-    from estimators.camera.chessboard import detect_corners
+    from estimators.camera.corners import detect_corners
     from estimators.simulation.simulator import simulate_frames
 
     rng = np.random.default_rng(1)

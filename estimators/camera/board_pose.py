@@ -19,7 +19,7 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract, skew, skew_b
 from ..errors import AmbiguousOrientationError, MeasurementError
 from ..measurements import CameraBoardObservation
 from .charuco import spans_plane
-from .chessboard import CornerDetection
+from .detection import CornerDetection
 
 
 def reprojection_residuals(T_camera_board: np.ndarray, corners_board: np.ndarray, camera: CameraModel,

@@ -5,7 +5,7 @@ Every inner corner of a ChArUco board is identified by the ArUco markers in the 
 so a board cut by the image's edge still gives its pose, and the board frame is never ambiguous (a plain
 checkerboard's is up to a half turn). OpenCV's detector interpolates the corners from the markers and refines
 them; here they are refined once more at full resolution in a window inside the squares, as the
-checkerboard's are (``chessboard.subpixel_refine``), in a window that keeps clear of the markers.
+checkerboard's are (``detection.subpixel_refine``), in a window that keeps clear of the markers.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 
-from .chessboard import CornerDetection, subpixel_refine
+from .detection import CornerDetection, subpixel_refine
 
 # A partial view is used from this many corners on (they must span the board's plane, not a line).
 MIN_CHARUCO_CORNERS = 6

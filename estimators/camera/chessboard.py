@@ -8,14 +8,13 @@ accuracy and normalisation flags; then the classic detector with sub-pixel refin
 from __future__ import annotations
 
 import multiprocessing
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
 from geometry.board import BoardModel
 
 from ..errors import MeasurementError
+from .detection import CornerDetection, subpixel_refine
 
 _SB_ATTEMPTS = (
     ("SB exhaustive+accuracy", cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY),
@@ -24,17 +23,6 @@ _SB_ATTEMPTS = (
     ("SB normalize+exhaustive", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
     ("SB default", 0),
 )
-
-
-@dataclass(frozen=True, eq=False)
-class CornerDetection:
-    corners_px: np.ndarray  # (M, 2), ordered as BoardModel.inner_corners() (or as corner_ids)
-    method: str
-    corner_ids: np.ndarray | None = None  # ChArUco: which inner corners were seen (ascending); None: all
-    # Checkerboard: the image's grey level at the centre of each square between the inner corners, (rows - 1,
-    # cols - 1) in the corners' order. The detector cannot tell which corner family it started from, so which
-    # squares are black is read here (``board_pose`` turns it into ``pattern_inverted``).
-    square_gray: np.ndarray | None = None
 
 
 def square_gray(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
@@ -47,16 +35,6 @@ def square_gray(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int])
     x = np.clip(np.rint(centres[..., 0]).astype(int), 0, gray.shape[1] - 1)
     y = np.clip(np.rint(centres[..., 1]).astype(int), 0, gray.shape[0] - 1)
     return blurred[y, x].astype(float)
-
-
-def subpixel_refine(gray: np.ndarray, corners: np.ndarray, half_px: float, max_half: int = 5
-                    ) -> tuple[np.ndarray, int]:
-    """Corners moved to the saddle point of the image gradient (``cornerSubPix``) in a window of half-size
-    ``half_px`` (rounded down, 2 to ``max_half`` px), which the caller keeps inside the neighbouring squares."""
-    half = int(np.clip(np.floor(half_px), 2, max_half))
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-    out = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit)
-    return out.reshape(-1, 2).astype(float), half
 
 
 def _subpixel(gray: np.ndarray, corners: np.ndarray, pattern: tuple[int, int], max_half: int = 5
@@ -83,10 +61,10 @@ _PYRAMID_ATTEMPTS = (
 )
 
 
-def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None = CLASSIC_BUDGET_S
+def detect_chessboard(gray: np.ndarray, board: BoardModel, budget_s: float | None = CLASSIC_BUDGET_S
                    ) -> CornerDetection | None:
-    """Inner corners of ``board`` in an 8-bit greyscale image, or None when no setting finds them all (a
-    ChArUco board: the corners seen, with their ids, by ``charuco.detect_charuco``).
+    """Inner corners of the checkerboard ``board`` in an 8-bit greyscale image, or None when no setting finds
+    them all.
 
     First on a pyramid with the fast flags: reduced copies (halved while the image is 1000 px or larger),
     then the full image, the corners refined at full resolution; then at full resolution with every
@@ -97,10 +75,6 @@ def detect_corners(gray: np.ndarray, board: BoardModel, budget_s: float | None =
     runs within ``budget_s`` seconds; past it, :class:`MeasurementError` (the frame is skipped with that
     reason).
     """
-    if board.is_charuco:
-        from .charuco import detect_charuco  # it builds on this module
-
-        return detect_charuco(gray, board)
     pattern = board.inner_corners_shape
     found = _detect_pyramid(gray, pattern)
     if found is None:

@@ -25,7 +25,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
-from ..camera.chessboard import CornerDetection
+from ..camera.detection import CornerDetection
 from ..errors import MeasurementError
 from ..lidar.lidar_models import scanner2d
 from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates

@@ -19,7 +19,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, transform_points
 
 from ..camera.board_pose import estimate_board_pose
-from ..camera.chessboard import CornerDetection
+from ..camera.detection import CornerDetection
 from ..errors import AmbiguousOrientationError, MeasurementError
 from ..lidar.lidar_models import BeamModel
 from ..measurements import FrameMeasurement, observe_lidar_board, observe_lidar_line
