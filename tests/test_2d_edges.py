@@ -204,7 +204,9 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     result begins with the ambiguity, calibration.json lists each mode with its covariance, and ``--strict``
     exits with code 3."""
     from estimators.calibration import EXIT_AMBIGUOUS, solve
-    from estimators.cli import _exit_code, _parser, _print_result
+    from estimators.cli.commands import exit_code
+    from estimators.cli.parser import build_parser
+    from estimators.cli.printing import print_result
 
     rig, frames = _frames(7, "varied")
     result = solve(frames, rig.board, rig.camera)
@@ -212,11 +214,11 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     modes = result.to_dict()["modes"]
     assert len(modes) == 2 and all(np.shape(m["covariance"]) == (6, 6) for m in modes)
     capsys.readouterr()
-    _print_result(result)
+    print_result(result)
     assert capsys.readouterr().out.startswith("AMBIGUOUS: 2 distinct solutions")
-    args = _parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
-    assert _exit_code(args, result) == EXIT_AMBIGUOUS
-    assert _exit_code(_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0
+    args = build_parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
+    assert exit_code(args, result) == EXIT_AMBIGUOUS
+    assert exit_code(build_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0
 
 
 

@@ -408,7 +408,9 @@ def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_no
     result begins with UNTRUSTED and the reason, calibration.json holds it, and ``--strict`` exits with code 3;
     at p = 0.01 (a warning only) none of that."""
     from estimators.calibration import EXIT_AMBIGUOUS, solve
-    from estimators.cli import _exit_code, _parser, _print_result
+    from estimators.cli.commands import exit_code
+    from estimators.cli.parser import build_parser
+    from estimators.cli.printing import print_result
 
     layout = _layout(0, "vlp16", n=8, weak=True)
     frames = simulate_measurements(layout, np.random.default_rng(100))
@@ -416,16 +418,16 @@ def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_no
                    options=measurement_model_options(range_model="none", edges=True))
     test = result.refinement.edges["planes_against_edges"]
     assert test is not None and test["p_value"] > 1e-3 and result.contradicted is None
-    strict = _parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
+    strict = build_parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
     for p_value, flagged in ((1e-5, True), (1e-2, False)):
         edges = {**result.refinement.edges, "planes_against_edges": {**test, "p_value": p_value}}
         moved = replace(result, refinement=replace(result.refinement, edges=edges))
         assert bool(moved.contradicted) == flagged
         assert moved.to_dict()["contradicted"] == moved.contradicted
         capsys.readouterr()
-        _print_result(moved)
+        print_result(moved)
         assert capsys.readouterr().out.startswith("UNTRUSTED: the boards' planes and their ring ends") == flagged
-        assert _exit_code(strict, moved) == (EXIT_AMBIGUOUS if flagged else 0)
+        assert exit_code(strict, moved) == (EXIT_AMBIGUOUS if flagged else 0)
 
 
 def test_the_range_models_tests_count_the_edges_leverage_as_the_planes_consistency_does():

@@ -130,7 +130,7 @@ def test_every_cli_command_and_option_is_described():
     and each argument its help."""
     import argparse
 
-    from estimators.cli import _parser, _study_spec_parser
+    from estimators.cli.parser import build_parser, study_spec_parser
 
     def walk(p, name):
         yield name, p
@@ -139,7 +139,7 @@ def test_every_cli_command_and_option_is_described():
                 for sub, sp in action.choices.items():
                     yield from walk(sp, f"{name} {sub}")
 
-    for name, p in [*walk(_parser(), "lidarcam"), ("lidarcam study SPEC.yaml", _study_spec_parser())]:
+    for name, p in [*walk(build_parser(), "lidarcam"), ("lidarcam study SPEC.yaml", study_spec_parser())]:
         assert p.description, f"{name}: no description"
         bare = [a.dest for a in p._actions
                 if not a.help and not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]

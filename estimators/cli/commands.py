@@ -1,0 +1,449 @@
+"""The command line's commands, each from parsed arguments to printed and written results and an exit code."""
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+
+from .parser import board_argument, hints, posterior_options, refinement_options, study_spec_parser
+from .printing import export_hint, print_result, print_rig, source_words
+
+
+def calibrate_command(args) -> int:
+    from ..io.dataset import load_dataset
+    from ..io.rig_dataset import is_rig
+
+    if is_rig(args.dataset):
+        return _calibrate_rig(args)
+    ds = load_dataset(args.dataset)
+    with _figure_process(args, not args.no_report) as figures:
+        return _calibrate_with(args, ds, figures)
+
+
+def _calibrate_rig(args) -> int:
+    """A rig folder (``sensors:`` in dataset.yaml): one graph for every sensor (``rig_calibration``)."""
+    import numpy as np
+
+    from ..io.rig_dataset import load_rig
+    from ..rig_calibration import calibrate_rig, write_rig_calibration
+
+    rig = load_rig(args.dataset)
+    result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
+                           samples=args.samples, range_model=args.range_model, edges=bool(args.edges))
+    path = write_rig_calibration(result, args.out)
+    print_rig(result)
+    print(f"wrote {path}")
+    if not args.no_report:
+        from ..analysis.rig_report import write_rig_report
+
+        print(f"wrote {write_rig_report(result, args.out)}")
+    print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
+    return 0
+
+
+def _figure_process(args, report: bool):
+    """A child that loads matplotlib during the calibration and then draws the report's figures
+    (``analysis.figure_process.FigureProcess``), when a report will be drawn; else nothing to start."""
+    if report and args.refine != "none":
+        from ..analysis.figure_process import FigureProcess
+
+        return FigureProcess()
+    return contextlib.nullcontext()
+
+
+def _draw_ahead(figures):
+    """The pipeline's ``on_refined`` hook: the report's figures that need no posterior are drawn by the
+    figure process while the posterior is sampled (None without a figure process)."""
+    if figures is None:
+        return None
+    from ..analysis.report import draw_ahead
+
+    return lambda result: draw_ahead(result, figures)
+
+
+def _draw_posterior_ahead(result, figures) -> None:
+    """Start the posterior's figures (and any other not started yet) as soon as the calibration returns,
+    before anything is printed or written."""
+    hook = _draw_ahead(figures)
+    if hook is not None:
+        hook(result)
+
+
+def _calibrate_with(args, ds, figures) -> int:
+    import numpy as np
+
+    from ..calibration import calibrate, solve, write_calibration
+    from ..errors import DatasetError
+    from ..io.measurement_store import Measurements, load_measurements, save_measurements
+    from ..lidar.board_segmentation import SegmentationParams
+
+    if args.measurements:
+        m = load_measurements(args.measurements)
+        if m.board != ds.board or m.lidar != ds.lidar:
+            raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
+                               path=args.measurements, hint="give the dataset the measurements came from")
+        from dataclasses import replace
+
+        from ..calibration import dataset_range_accuracy
+
+        options = refinement_options(args)
+        if options.range_accuracy_m is None:  # as calibrate does: the dataset's LiDAR accuracy
+            options = replace(options, range_accuracy_m=dataset_range_accuracy(ds))
+        result = solve(m, init=args.init, refine=args.refine, options=options,
+                       posterior=posterior_options(args), rng=np.random.default_rng(args.seed),
+                       on_refined=_draw_ahead(figures))
+    else:
+        result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
+                           SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), refinement_options(args),
+                           posterior_options(args), hints=hints(args), cache=not args.no_cache,
+                           on_refined=_draw_ahead(figures))
+        m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
+                         result.measurements_source)
+    _draw_posterior_ahead(result, figures)
+    result = _with_separating_pose(result, ds.board)
+    path = write_calibration(result, args.out)
+    print_result(result)
+    save_measurements(args.out, m)
+    print(f"measurements: {source_words(result.measurements_source)}; wrote "
+          f"{Path(args.out) / 'measurements.npz'} (and .json)")
+    print(f"wrote {path}")
+    if not args.no_report and result.refinement is not None:
+        from ..analysis.report import write_report
+
+        print(f"wrote {write_report(result, ds, args.out, figures)} (and its figures)")
+    if args.cross_validate or args.split:
+        _validation_runs(args, ds, result)
+    export_hint(path)
+    return exit_code(args, result)
+
+
+def exit_code(args, result) -> int:
+    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) for an ambiguous or contradicted answer under ``--strict``."""
+    from ..calibration import EXIT_AMBIGUOUS
+
+    if getattr(args, "strict", False) and (result.ambiguous or result.contradicted):
+        what = "ambiguous" if result.ambiguous else "contradicted by its boards' edges"
+        print(f"lidarcam: the answer is {what} (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
+        return EXIT_AMBIGUOUS
+    return 0
+
+
+def _with_separating_pose(result, board):
+    """The result with, where its range offset is confounded with the extrinsic, the board pose that best separates
+    them (``analysis.layout_analysis.separating_pose``) in the confounding record."""
+    from dataclasses import replace
+
+    ref = result.refinement
+    fit = ref.range_model if ref is not None else None
+    if fit is None or not fit.confounding:
+        return result
+    import numpy as np
+
+    from ..analysis.layout_analysis import separating_pose
+    from ..errors import LidarcamError
+
+    try:
+        pose = separating_pose(result, board)
+    except (LidarcamError, ValueError, np.linalg.LinAlgError):  # advice only: the calibration stands without it
+        pose = None
+    if pose is None:
+        return result
+    fit = replace(fit, confounding={**fit.confounding, "separating_pose": pose})
+    return replace(result, refinement=replace(ref, range_model=fit))
+
+
+def _validation_runs(args, ds, result) -> None:
+    """--cross-validate K and --split halves on the frames already measured (validation.json)."""
+    from ..analysis.validation import cross_validate, split_halves
+    from ..calibration import solve
+    from ..io.output import write_json_atomic
+
+    options = refinement_options(args)
+
+    def solve_subset(frames):
+        return solve(frames, ds.board, result.camera, args.init, "factor-graph", options)
+
+    out = {}
+    if args.cross_validate:
+        cv = cross_validate(list(result.frames), ds.board, result.camera, args.cross_validate, solve_subset)
+        out["cross_validation"] = cv
+        print(f"cross-validation ({cv['k']} folds): {cv['verdict']}"
+              + (f" (chi-square {cv['chi2']:.1f} on {cv['dof']} dof, p = {cv['p_value']:.2g}; flagged: "
+                 f"{', '.join(cv['flagged']) or 'none'})" if "chi2" in cv else ""))
+    if args.split:
+        sh = split_halves(list(result.frames), solve_subset, args.split)
+        out["split_halves"] = sh
+        extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f}, 99% limit {sh['limit_99']:.1f}; "
+                 f"{sh['difference_rotation_deg']:.2f} deg, {sh['difference_translation_mm']:.0f} mm apart)"
+                 if "mahalanobis_d2" in sh else "")
+        print(f"split ({args.split}): {sh['verdict']}{extra}")
+    print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', out)}")
+
+
+def validate_command(args) -> int:
+    import numpy as np
+
+    from ..analysis.validation import score_frames, terms_from_json, verdict
+    from ..calibration import measure_frames
+    from ..errors import DatasetError
+    from ..io.dataset import load_dataset
+    from ..io.input_files import load_json
+    from ..io.output import write_json_atomic
+
+    cal_path = Path(args.calibration)
+    if cal_path.is_dir():
+        cal_path = cal_path / "calibration.json"
+    cal = load_json(cal_path, "calibration file", "give the calibration.json that lidarcam calibrate wrote")
+    try:
+        T = np.array(cal["T_camera_lidar"], dtype=float).reshape(4, 4)
+        cov = np.array(cal["covariance"], dtype=float).reshape(6, 6)
+        noise = cal["noise"]
+        used = {f["name"] for f in cal.get("frames", []) if f.get("used")}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DatasetError(f"not a calibration.json with a covariance ({type(exc).__name__}: {exc})", path=cal_path,
+                           hint="give the calibration.json written by `lidarcam calibrate` (refined)") from None
+    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+        raise DatasetError("the calibration's transform or covariance is not finite", path=cal_path,
+                           hint="recalibrate")
+    ds = load_dataset(args.dataset)
+    camera, frames, _ = measure_frames(ds, np.random.default_rng(args.seed))
+    same = Path(str(cal.get("dataset", ""))).resolve() == Path(ds.root).resolve()
+    held = [f for f in frames if f.usable and not (same and f.name in used)]
+    note = "frames the calibration did not use"
+    if not held:
+        held = [f for f in frames if f.usable]
+        note = "every frame was used by the calibration: these scores are NOT held out (optimistic)"
+    scores = score_frames(held, ds.board, camera, T, cov, float(noise["corner_noise_px"]),
+                          float(noise["range_noise_m"]), float(noise.get("plane_floor_m") or 0.0),
+                          *terms_from_json(cal.get("lidar_range_model")))
+    v = verdict(scores)
+    print(f"validate: {len(scores)} frame(s) scored ({note})")
+    for s_ in scores:
+        print(f"  {s_.name}: chi-square {s_.chi2:6.1f} on {s_.dof} dof (p = {s_.p_value:.2g}); plane offset "
+              f"{s_.plane_offset_mm:+6.1f} mm (predicted sd {s_.predicted_offset_sd_mm:.1f}); centre offset "
+              f"{s_.outline_offset_px:.1f} px{'  FLAGGED' if s_.flagged else ''}")
+    print(f"verdict: {v['verdict']}" + (f" (chi-square {v['chi2']:.1f} on {v['dof']} dof, p = {v['p_value']:.2g})"
+                                         if "chi2" in v else ""))
+    for f in frames:
+        if not f.usable:
+            print(f"  {f.name}: skipped: {f.reason}")
+    out = Path(args.out) if args.out else cal_path.parent
+    path = write_json_atomic(out / "validation.json", {"calibration": str(cal_path), "dataset": str(ds.root),
+                                                       "held_out": note, "frames": [x.to_dict() for x in scores],
+                                                       **v})
+    print(f"wrote {path}")
+    return 0
+
+
+def simulate_command(args) -> int:
+    from ..simulation.simulator import simulate_dataset
+
+    if args.poses < 1:
+        raise SystemExit("lidarcam: error: --poses must be at least 1")
+    if args.cameras == 1 and (args.lidars != 1 or args.scanners != 0):
+        raise SystemExit("lidarcam: error: --lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
+    if args.cameras != 1:
+        if args.cameras < 2 or args.lidar == "2d":
+            raise SystemExit("lidarcam: error: --cameras N (2 or more) writes a rig folder with a 3D LiDAR")
+        from ..simulation.rig_simulator import simulate_rig
+
+        if args.lidars not in (1, 2):
+            raise SystemExit("lidarcam: error: --lidars is 1 or 2")
+        if args.scanners not in (0, 1):
+            raise SystemExit("lidarcam: error: --scanners is 0 or 1")
+        if args.range_bias_from_priors is not None:
+            raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes "
+                             "--range-bias, injected into lidar0)")
+        out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
+                           args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias))
+        print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "
+              f"({args.poses} frames) to {out}")
+        return 0
+    two_d = args.lidar == "2d"
+    fmt = args.scan_format or ("csv" if two_d else "pcd")
+    allowed = ("csv", "npy", "pcd") if two_d else ("pcd", "ply", "bin", "npy")
+    if fmt not in allowed:
+        raise SystemExit(f"lidarcam: error: --scan-format {fmt} is not a {args.lidar} scan format (use one of "
+                         f"{', '.join(allowed)})")
+    if args.rig != "default" and not two_d:
+        raise SystemExit("lidarcam: error: --rig varied is a 2D rig (add --lidar 2d)")
+    if args.outside_image_share is not None and (args.pattern != "charuco" or not 0 <= args.outside_image_share <= 1):
+        raise SystemExit("lidarcam: error: --outside-image-share is a share (0 to 1) of the poses of a charuco board "
+                         "(a checkerboard must be seen whole)")
+    noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
+    model = "2d" if two_d else args.model
+    out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
+                           fmt, include_camera=not args.no_camera, overwrite=args.overwrite, scene=args.scene,
+                           range_bias=None if args.range_bias is None else tuple(args.range_bias),
+                           rig_config=args.rig, pattern=args.pattern, outside_image_share=args.outside_image_share,
+                           range_bias_family=args.range_bias_from_priors, intensity=args.intensity,
+                           ring_field=not args.no_ring)
+    print(f"wrote {args.poses} frames ({'2D scanner' if two_d else args.model}, {args.scene} scene, {args.pattern}) "
+          f"to {out}")
+    return 0
+
+
+def layout_command(args) -> int:
+    import numpy as np
+
+    from ..analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
+    from ..errors import DatasetError
+    from ..io.input_files import load_yaml
+    from ..io.output import write_json_atomic
+
+    src = Path(args.source)
+    if src.is_dir():
+        from ..analysis.layout_analysis import layout_from_result
+        from ..calibration import calibrate
+        from ..io.dataset import load_dataset
+
+        ds = load_dataset(src)
+        result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
+        model = "2d" if ds.lidar == "2d" else args.lidar_model
+        layout, rig, names = layout_from_result(result, ds.board, model)
+    elif src.is_file():
+        plan = load_yaml(src, "plan", "fix the plan file")
+        if not isinstance(plan, dict):
+            raise DatasetError("a plan must be a mapping", path=src,
+                               hint="see the PLAN.yaml format in docs/howto/layout.md")
+        layout, rig = layout_from_plan(plan, str(src))
+        names = [f"plan{i:02d}" for i in range(layout.n_frames)]
+    else:
+        raise DatasetError("no such dataset folder or plan file", path=src, hint="check the path")
+    analysis = analyse(layout, names)
+    print(analysis.format())
+    out = analysis.to_dict()
+    if args.suggest > 0 or args.target:
+        from ..analysis.layout_analysis import meets
+
+        k_max = args.suggest if not args.target else max(args.suggest, 40)
+        target = tuple(args.target) if args.target else None
+        print(f"suggested poses (greedy, D-optimal among sampled feasible poses, seed {args.seed}):")
+        out["suggestions"] = []
+        found = suggest_poses(layout, rig, k_max, np.random.default_rng(args.seed), target=target,
+                              range_offset=args.range_offset)
+        if target is not None:
+            final = found[-1][1] if found else analysis
+            if meets(final, *target):
+                print(f"the target ({target[0]} deg, {target[1]} mm per axis) is met with {len(found)} more pose(s): "
+                      f"{layout.n_frames + len(found)} in all")
+            else:
+                print(f"the target is not met even with {len(found)} more poses; the closest is below")
+        for k, (T, after) in enumerate(found):
+            c = T[:3, :3] @ layout.board.centre + T[:3, 3]
+            n = T[:3, 2]
+            print(f"  {k + 1}: board centre at camera ({c[0]:+.2f}, {c[1]:+.2f}, {c[2]:.2f}) m, normal "
+                  f"({n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f}); then std rotation "
+                  + " ".join(f"{v:.3f}" for v in after.std_rotation_deg) + " deg, translation "
+                  + " ".join(f"{v:.2f}" for v in after.std_translation_mm) + " mm")
+            out["suggestions"].append({"T_camera_board": T.tolist(), "centre_m": c.tolist(),
+                                       "std_after": after.to_dict()["predicted_std"]})
+    if args.json:
+        print(f"wrote {write_json_atomic(args.json, out)}")
+    return 0
+
+
+def study_command(args) -> int:
+    from ..analysis.coverage_study import format_summary, run_study
+
+    if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
+        raise SystemExit("lidarcam: error: --trials, --samples and --workers must be positive and --frames >= 3")
+    summary = run_study(args.trials, args.out, args.mode, args.seed, args.workers, args.frames, args.samples,
+                        progress=sys.stderr.isatty(), likelihood=args.likelihood)
+    print(format_summary(summary))
+    print(f"wrote {Path(args.out) / 'coverage.csv'} and coverage.json")
+    return 0
+
+
+def study_spec_command(argv: list[str]) -> int:
+    from ..analysis.study import format_summary, parse_spec, run_study, summarize
+    from ..io.input_files import load_yaml
+
+    args = study_spec_parser().parse_args(argv)
+    path = Path(args.spec)
+    raw = load_yaml(path, "study spec", "fix the spec (see docs/howto/studies.md)")
+    spec = parse_spec(raw, str(path))
+    if args.workers < 1:
+        raise SystemExit("lidarcam: error: --workers must be positive")
+    where = args.scheduler or f"{args.workers} local process(es)"
+    print(f"{spec.name}: {spec.n_trials} trials x {len(spec.solvers)} solvers on {where}")
+    rows = run_study(spec, args.out, args.workers, args.scheduler, progress=sys.stderr.isatty())
+    print(format_summary(summarize(rows)))
+    print(f"wrote {Path(args.out) / 'study.csv'}, summary.json and the plots")
+    return 0
+
+
+def extract_command(args) -> int:
+    from ..io.bag_extract import ExtractOptions, extract_bag
+
+    options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
+                             check_hz=args.check_hz, scan_format=args.scan_format)
+    if not args.cloud_topic and not args.scan_topic:
+        raise SystemExit("lidarcam: error: give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
+    if len(args.image_topic) + len(args.cloud_topic) + len(args.scan_topic) > 2:  # a rig folder
+        from ..io.rig_bag_extract import extract_rig_bag
+
+        if args.camera_info_topic is not None:
+            raise SystemExit("lidarcam: error: --camera-info-topic is for one camera; a rig's cameras each take "
+                             "the CameraInfo beside their image topic")
+        rig = extract_rig_bag(args.bag, args.out, board_argument(args.board), args.image_topic, args.cloud_topic,
+                              args.scan_topic, use_camera_info=not args.no_camera_info, options=options,
+                              progress=sys.stderr.isatty(), overwrite=args.overwrite)
+        print("\n".join(rig.lines()))
+        print(f"wrote {rig.out} (next: lidarcam calibrate {rig.out} --out OUT)")
+        return 0
+    summary = extract_bag(args.bag, args.out, board_argument(args.board), args.image_topic[0],
+                          cloud_topic=(args.cloud_topic or [None])[0], scan_topic=(args.scan_topic or [None])[0],
+                          camera_info_topic=args.camera_info_topic, use_camera_info=not args.no_camera_info,
+                          options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite)
+    print("\n".join(summary.lines()))
+    if summary.frames < 4:
+        print(f"warning: only {summary.frames} frames; a 3D calibration needs 3 or more spread poses, 4+ "
+              "are advised", file=sys.stderr)
+    print(f"wrote {summary.out} (next: lidarcam calibrate {summary.out} --out OUT)")
+    return 0
+
+
+def export_command(args) -> int:
+    from ..io.export import export_calibration, write_export
+
+    frames = {"camera_frame": args.camera_frame, "lidar_frame": args.lidar_frame, "parent": args.parent}
+    if args.out is None:
+        sys.stdout.write(export_calibration(args.calibration, args.format, **frames))
+    else:
+        print(f"wrote {write_export(args.calibration, args.format, args.out, **frames)}")
+    return 0
+
+
+def demo_command(args) -> int:
+    # The figure process starts first: it loads matplotlib while this process loads the pipeline.
+    with _figure_process(args, True) as figures:
+        return _demo_with(args, figures)
+
+
+def _demo_with(args, figures) -> int:
+    import numpy as np
+
+    from ..calibration import calibrate, import_sampler_ahead, write_calibration
+    from ..io.dataset import load_dataset
+    from ..simulation.simulator import simulate_dataset
+
+    base = Path(args.out)
+    data = base / "dataset"
+    print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
+    import_sampler_ahead()  # while the frames are simulated
+    simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
+    ds = load_dataset(data)
+    result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=refinement_options(args),
+                       posterior=posterior_options(args), on_refined=_draw_ahead(figures))
+    _draw_posterior_ahead(result, figures)
+    print_result(result, ds.ground_truth())
+    print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
+    path = write_calibration(result, base)
+    print(f"wrote {path}")
+    if result.refinement is not None:
+        from ..analysis.report import write_report
+
+        print(f"wrote {write_report(result, ds, base, figures)} (open it in a browser)")
+    export_hint(path)
+    return 0

@@ -1,0 +1,219 @@
+"""What the command line prints of a result: a pair's estimate, noise, range terms, edges and posterior; a rig's."""
+from __future__ import annotations
+
+
+def print_result(result, truth=None) -> None:
+    import numpy as np
+
+    from geometry.rotations import rotation_error
+
+    T = result.T_camera_lidar
+    np.set_printoptions(precision=5, suppress=True)
+    if result.contradicted:
+        print(f"UNTRUSTED: {result.contradicted}. Both estimates are in calibration.json (board_edges, "
+              "planes_against_edges); check board.size and the boards' outlines in the report, and add boards.")
+    if result.ambiguous:
+        masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
+        print(f"AMBIGUOUS: {len(result.modes)} distinct solutions fit the boards (posterior mass {masses}); the most "
+              "probable is shown, the intervals cover every mode, and calibration.json lists each with its "
+              "covariance. Add boards tilted in other directions to decide.")
+    print(f"T_camera_lidar (p_camera = R p_lidar + t), {result.init}, refine {result.refine}:")
+    for row in T:
+        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+    print(f"frames used: {result.frames_used} of {len(result.frames)}; normal condition number "
+          f"{result.condition_number:.2f}")
+    for f in result.frames:
+        if f.usable:
+            print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
+                  f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
+        else:
+            print(f"  {f.name}: skipped: {f.reason}")
+    if result.covariance is not None:
+        ref = result.refinement
+        kind = "posterior" if result.posterior is not None else "Laplace"
+        print(f"standard deviations ({kind}; GTSAM tangent, about/along the LiDAR's x y z):")
+        print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
+        print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
+        print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
+        print(f"noise: corners {ref.corner_noise_px:.3f} px effective ({ref.corner_residual_px:.3f} px residual), "
+              f"range {1000 * ref.range_noise_m:.1f} mm; plane consistency {ref.variance_factor:.2f} "
+              f"(chi-square/dof, {ref.consistency_dof:g} dof, p = {ref.consistency_p:.2g})"
+              + (f"; per-board plane error {1000 * ref.plane_floor_m:.1f} mm" if ref.plane_floor_m else ""))
+        _print_range_model(ref.range_model)
+        _print_edges(ref.edges)
+        _print_intrinsics(result.intrinsics_refinement)
+    if result.posterior is not None:
+        post = result.posterior
+        d = post.diagnostics()
+        print(f"posterior ({d['likelihood']}): {d['effective_samples']:.0f} effective samples, tau "
+              f"{max(d['tau_steps']):.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s; "
+              f"99.9% region: squared Mahalanobis distance up to {post.region_d2(0.999):.1f} under the covariance "
+              "(a Gaussian's 22.5)")
+        for level, iv in post.summary().items():
+            rot = iv["rotation_deg_about_lidar_xyz"]
+            tr = iv["translation_mm_along_lidar_xyz"]
+            print(f"  {level} intervals: rotation " + "  ".join(f"[{a:+.3f}, {b:+.3f}]" for a, b in rot) + " deg")
+            print(f"  {'':14s}translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in tr) + " mm")
+    if truth is not None:
+        rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
+        tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
+        print(f"error against ground truth: rotation {rot:.3f} deg, translation {tr:.1f} mm")
+        if result.covariance is not None:
+            from geometry.rotations import T_inverse, T_log
+
+            xi = T_log(T_inverse(T) @ truth)
+            d2 = float(xi @ np.linalg.solve(result.covariance, xi))
+            print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
+                  f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
+    for w in result.warnings:
+        print(f"warning: {w}")
+
+
+def _print_intrinsics(fit) -> None:
+    if fit is None:
+        return
+    verdict = "lowers" if fit.lowers_overdispersion else "does not lower"
+    print(f"intrinsics refined ({'with the given param_std as prior' if fit.prior_sd is not None else 'no prior'}): "
+          f"plane consistency {fit.variance_factor_given:.2f} under the given intrinsics, "
+          f"{fit.variance_factor_refined:.2f} refined ({verdict} the overdispersion); corner residual "
+          f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px")
+    for n, g, v, sd in zip(fit.names, fit.given_params, fit.params, fit.std):
+        print(f"  {n:3s} {g:12.5g} -> {v:12.5g}  (sd {sd:.3g}, moved {(v - g) / sd:+.1f} sd)")
+
+
+def _print_edges(edges) -> None:
+    if not edges or "mean_shift_camera_m" not in edges:
+        return
+    from ..solvers.outline_check import outline_shift_words
+
+    what = "used" if edges["used"] else "a check, not used in the estimate"
+    print(f"board edges ({what}): {edges['ends']} ring ends; the LiDAR's outlines sit (camera axes) "
+          + outline_shift_words(edges) + "; growth "
+          f"{1000 * edges['growth_m'][0]:+.1f} / {1000 * edges['growth_m'][1]:+.1f} mm per side"
+          + (f", outline offset {1000 * edges['outline_offset_m'][0]:+.1f} / "
+             f"{1000 * edges['outline_offset_m'][1]:+.1f} mm" if edges["used"] else "")
+          + f"; in-plane board scatter {1000 * edges['board_scatter_in_plane_m']:.1f} mm")
+    test = edges.get("planes_against_edges")
+    if test:
+        print(f"  planes alone against planes + edges: d2 {test['d2']:.1f} on {test['dof']} dof (p = "
+              f"{test['p_value']:.2g})")
+
+
+def _print_range_model(fit) -> None:
+    import numpy as np
+
+    if fit is None:
+        return
+    print(f"LiDAR range model: {fit.chosen} ({fit.reason})")
+    if not fit.names:
+        return
+    rings = [(n, v, s) for n, v, s in zip(fit.names, fit.values_m, fit.std_m) if n.startswith("ring")]
+    for n, v, s in zip(fit.names, fit.values_m, fit.std_m):
+        if not n.startswith("ring"):
+            print(f"  {n:8s} {1000 * v:+7.1f} +- {1000 * s:.1f} mm")
+    if rings:
+        vals = np.array([v for _, v, _ in rings])
+        print(f"  per-ring offsets: {len(rings)} rings, spread (sd) {1000 * vals.std():.1f} mm, range "
+              f"{1000 * vals.min():+.1f} to {1000 * vals.max():+.1f} mm (all in calibration.json)")
+    for n, v in zip(fit.pinned, fit.pinned_values_m):
+        print(f"  {n}: estimated {1000 * v:+.1f} mm, beyond {1000 * fit.range_accuracy_m:.0f} mm x 3: held at 0 with "
+              "its prior variance in the covariance")
+    if fit.offset_translation_correlation:
+        print("  correlation of the offset with the translation along the LiDAR's x y z: "
+              + "  ".join(f"{c:+.2f}" for c in fit.offset_translation_correlation))
+    if fit.confounding:
+        c = fit.confounding
+        print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f})")
+        if c.get("separating_pose"):
+            sp = c["separating_pose"]
+            x, y, z = sp["board_centre_camera_m"]
+            nx, ny, nz = sp["board_normal_camera"]
+            now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
+            print(f"  the pose that best separates them: board centre at camera ({x:+.2f}, {y:+.2f}, {z:.2f}) m, "
+                  f"normal ({nx:+.2f}, {ny:+.2f}, {nz:+.2f}); translation sd along the LiDAR's x y z, predicted from "
+                  "the point and corner noise alone (as lidarcam layout does), "
+                  + " ".join(f"{v:.1f}" for v in now) + " -> " + " ".join(f"{v:.1f}" for v in then) + " mm")
+
+
+def print_rig(result) -> None:
+    import numpy as np
+
+    from ..rig_calibration import range_model_words
+    from ..solvers.outline_check import outline_shift_words
+    from ..solvers.rig_graph import translation_sd_in_first
+
+    sol = result.solution
+    for w in result.warnings[:1]:
+        print(f"warning: {w}")
+    post = result.posterior
+    if post is not None:
+        d = post.diagnostics()
+        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph; posterior (emcee, "
+              f"{d['parameters']} parameters): {d['effective_samples']:.0f} effective samples, tau "
+              f"{d['tau_steps_max']:.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s")
+    else:
+        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph, Laplace covariance (posterior "
+              "not sampled)")
+    for s in result.rig.sensors:
+        n = len(result.frames_used.get(s.name, ()))
+        skipped = len(result.skipped.get(s.name, {}))
+        print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else "")
+              + (f"; {range_model_words(result.range_models[s.name])}" if s.name in result.range_models else ""))
+    print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
+          "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
+          + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")
+    for a, b in result.pairs():
+        T, C = sol.transform(a, b)
+        C = C if post is None else np.cov(post.pair_samples(a, b), rowvar=False)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        sd_t = translation_sd_in_first(T, C)
+        line = (f"  T_{a}_{b}: t = (" + ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]) + ") +- ("
+                + ", ".join(f"{1000 * v:.1f}" for v in sd_t) + ") mm, rotation sd ("
+                + ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3]) + ") deg")
+        if (a, b) in result.pairwise:
+            from geometry.rotations import T_log
+
+            Tp = result.pairwise[(a, b)][0]
+            xi = T_log(np.linalg.inv(T) @ Tp)
+            line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
+                     "away]")
+        print(line)
+    for n, e in result.edges.items():
+        print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
+              f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "
+              f"{1000 * e['growth_m'][0]:+.1f} / {1000 * e['growth_m'][1]:+.1f} mm per side, outline offset "
+              f"{1000 * e['outline_offset_m'][0]:+.1f} / {1000 * e['outline_offset_m'][1]:+.1f} mm")
+    if result.outline_checks:
+        print("board edges (a check of the joint estimate, not used in it): each 3D pair's LiDAR board outlines, "
+              "camera axes:")
+        for (a, b), e in result.outline_checks.items():
+            print(f"  T_{a}_{b}: {outline_shift_words(e, ends=True)}")
+    for n, (p, sd) in (sol.intrinsics or {}).items():
+        given = result.cameras[n].params
+        print(f"  {n} intrinsics refined: " + ", ".join(f"{g:.5g} -> {v:.5g} (sd {e:.2g})"
+                                                       for g, v, e in zip(given[:4], p[:4], sd[:4])) + " (fx fy cx cy)")
+    layout = result.layout()
+    if layout["weakest_pair"]:
+        w = layout["pairs"][layout["weakest_pair"]]
+        print(f"weakest pair: {layout['weakest_pair']}, translation sd up to {w['max_translation_sd_mm']:.1f} mm "
+              f"along {w['axis']}; to constrain it, {w['advice']}")
+        if layout["next_pose"]:
+            from ..analysis.rig_layout import next_pose_words
+
+            print("  next pose for it: " + next_pose_words(layout["next_pose"]))
+    for link, n in layout["links_with_few_frames"].items():
+        print(f"  {link} share {n} frame(s) with the board found in both")
+    for w in result.warnings[1:]:
+        print(f"warning: {w}")
+
+
+def source_words(source: str) -> str:
+    if source == "measured":
+        return "measured from the images and scans"
+    if source == "cache":
+        return "read from the measurement cache (same files and options as an earlier run; --no-cache measures again)"
+    return f"read from {source}"
+
+
+def export_hint(path) -> None:
+    print(f"for ROS tf, URDF, KITTI or OpenCV: lidarcam export {path} --format ros-tf|urdf|kitti|opencv-yaml")
