@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_principal_point import recorded_sets, reference_T  # noqa: E402
 
-from estimators.calibration import measure_frames, solve  # noqa: E402
+from estimators.calibration import solve  # noqa: E402
+from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.solvers import chi_square as chi2  # noqa: E402
 from estimators.solvers.board_edges import crossings  # noqa: E402
 from estimators.solvers.outline_check import outline_check  # noqa: E402

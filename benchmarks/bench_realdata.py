@@ -23,7 +23,8 @@ from scipy.stats import chi2  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import measure_frames, solve  # noqa: E402
+from estimators.calibration import solve  # noqa: E402
+from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
 from estimators.solvers.refinement import RefinementOptions  # noqa: E402

@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_principal_point import recorded_sets, reference_T  # noqa: E402
 
-from estimators.calibration import measure_frames, solve  # noqa: E402
+from estimators.calibration import solve  # noqa: E402
+from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.io.pointcloud_io import read_sweep  # noqa: E402
 from estimators.solvers.range_model import frame_rings  # noqa: E402
 from estimators.solvers.refinement import RefinementOptions  # noqa: E402

@@ -142,7 +142,7 @@ def consensus_timing(repeats: int = 5) -> list[float]:
 
 def lidar_side_timing() -> None:
     """Static scene, candidates and consensus of one HDL-64E office dataset of 16 frames, on one core."""
-    from estimators.calibration import measure_frames
+    from estimators.pipeline.measurement import measure_frames
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
 

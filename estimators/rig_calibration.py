@@ -3,7 +3,7 @@ solve jointly (``solvers.rig_graph``), and write every pair's transform with its
 
 Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
 its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
-sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it (``calibration.measure_frames`` on that
+sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it (``pipeline.measurement.measure_frames`` on that
 pair) and paired with every other camera's board pose of the frame. Each such camera-LiDAR pair is
 also solved alone (planes, no range terms and no segment ends: the joint graph's model), which starts the joint graph
 and is reported beside it ("pairwise only"). Two cameras are linked by every frame both saw.
@@ -22,7 +22,8 @@ from geometry.camera import CameraModel
 from geometry.rotations import T_log
 
 from . import __version__
-from .calibration import _detect, measure_frames, solve
+from .calibration import solve
+from .pipeline.measurement import detect_in_image, measure_frames
 from .camera.board_pose import estimate_board_pose
 from .camera.intrinsics import calibrate_intrinsics
 from .camera.detection import CornerDetection
@@ -187,7 +188,7 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
     warnings: list[str] = []
     frames = [FrameFiles(stem, path, path) for stem, path in sensor.files]
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        detections = list(pool.map(lambda f: _detect(f, board, {}), frames))
+        detections = list(pool.map(lambda f: detect_in_image(f, board, {}), frames))
     camera = sensor.camera
     if camera is None:
         found = [d for _, d in detections if isinstance(d, CornerDetection)]

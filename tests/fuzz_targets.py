@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from estimators.analysis.layout_analysis import analyse, layout_from_plan
 from estimators.analysis.study import parse_spec
-from estimators.calibration import parse_initial_guess
+from estimators.pipeline.measurement import parse_initial_guess
 from estimators.io.dataset import load_dataset
 from estimators.io.export import FORMATS, export_calibration, load_calibration
 from estimators.io.image_io import read_gray

@@ -96,7 +96,7 @@ def test_board_segment_survives_a_stray_return_and_a_short_gap(defect):
 def test_an_ambiguous_2d_frame_is_resolved_by_the_clear_frames():
     """Frame 0 offers its true segment and one 30 cm behind it: the clear frames' extrinsic picks the true one;
     offered two wrong segments, the frame stays skipped."""
-    from estimators.calibration import _resolve_ambiguous
+    from estimators.pipeline.measurement import _resolve_ambiguous
     from estimators.measurements import FrameMeasurement, observe_lidar_line
 
     rig, frames = _measured_2d(6, 6)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimators.calibration import measure_frames, solve
+from estimators.calibration import solve
+from estimators.pipeline.measurement import measure_frames
 from estimators.io.dataset import load_dataset
 from estimators.solvers.posterior import PosteriorOptions
 from geometry.rotations import T_inverse, T_log, rotation_error
@@ -108,7 +109,7 @@ def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(oust
 def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, vlp16, ouster, tmp_path):
     """Posterior and report on each recorded 3D set (no hint): samples drawn, every figure written,
     calibration.json holds each frame's board choice."""
-    from estimators.calibration import write_calibration
+    from estimators.pipeline.result import write_calibration
 
     ds, camera, frames = vlp16 if which == "vlp16" else ouster
     result = solve(frames, ds.board, camera, posterior=PosteriorOptions(min_ess=300), name=str(ds.root))

@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from estimators.calibration import Hints, calibrate, measure_frames, parse_initial_guess
+from estimators.calibration import calibrate
+from estimators.pipeline.measurement import Hints, measure_frames, parse_initial_guess
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.dataset import load_dataset
 from estimators.io.pointcloud_io import read_scan_2d, read_sweep

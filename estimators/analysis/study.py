@@ -173,7 +173,8 @@ def run_trial(args: tuple) -> list[dict]:
     """Simulate one calibration and score every solver of the spec on it (rows of ``study.csv``)."""
     from geometry.rotations import T_inverse, T_log
 
-    from ..calibration import measure_frames, solve
+    from ..calibration import solve
+    from ..pipeline.measurement import measure_frames
     from ..io.dataset import load_dataset
     from ..lidar.board_segmentation import SegmentationParams
     from ..simulation.simulator import default_rig, rig_2d, sample_layout, simulate_frames, write_dataset

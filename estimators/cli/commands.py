@@ -72,7 +72,8 @@ def _draw_posterior_ahead(result, figures) -> None:
 def _calibrate_with(args, ds, figures) -> int:
     import numpy as np
 
-    from ..calibration import calibrate, solve, write_calibration
+    from ..calibration import calibrate, solve
+    from ..pipeline.result import write_calibration
     from ..errors import DatasetError
     from ..io.measurement_store import Measurements, load_measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
@@ -184,7 +185,7 @@ def validate_command(args) -> int:
     import numpy as np
 
     from ..analysis.validation import score_frames, terms_from_json, verdict
-    from ..calibration import measure_frames
+    from ..pipeline.measurement import measure_frames
     from ..errors import DatasetError
     from ..io.dataset import load_dataset
     from ..io.input_files import load_json
@@ -424,7 +425,8 @@ def demo_command(args) -> int:
 def _demo_with(args, figures) -> int:
     import numpy as np
 
-    from ..calibration import calibrate, import_sampler_ahead, write_calibration
+    from ..calibration import calibrate, import_sampler_ahead
+    from ..pipeline.result import write_calibration
     from ..io.dataset import load_dataset
     from ..simulation.simulator import simulate_dataset
 

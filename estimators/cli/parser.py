@@ -298,7 +298,7 @@ def posterior_options(args):
 def hints(args):
     import numpy as np
 
-    from ..calibration import Hints, parse_initial_guess
+    from ..pipeline.measurement import Hints, parse_initial_guess
 
     guess = None if args.initial_guess is None else parse_initial_guess(args.initial_guess)
     roi = (None, None) if args.roi is None else (np.array(args.roi[:3]), np.array(args.roi[3:]))

@@ -1,0 +1,774 @@
+"""A dataset's frames measured: each image's board and each sweep's or scan line's, chosen across frames over the
+static scene (``measure_frames``), and kept in the measurement cache (``measure``); the hints that steer it."""
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
+
+from geometry.camera import CameraModel
+from geometry.planes import fit_plane_pca, on_plane_along_beams, plane_difference
+from geometry.rotations import T_inverse, transform_points
+
+from .. import __version__
+from ..camera.board_pose import estimate_board_pose
+from ..camera.charuco import MIN_CHARUCO_CORNERS
+from ..camera.corners import detect_corners
+from ..camera.detection import CornerDetection
+from ..camera.intrinsics import calibrate_intrinsics
+from ..errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
+                      ImageReadError, MeasurementError, ScanReadError)
+from ..io.dataset import Dataset, load_dataset
+from ..io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
+from ..io.image_io import read_gray
+from ..io.input_files import load_json, regular_file
+from ..io.pointcloud_io import read_scan_2d, read_sweep
+from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
+                                       choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
+from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
+from ..lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
+from ..measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
+                           observe_lidar_line)
+from ..solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
+from ..solvers.closed_form import solve_closed_form
+
+
+
+# Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
+# cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation).
+MEASUREMENT_REVISION = 3
+
+
+@dataclass(frozen=True, eq=False)
+class Hints:
+    """Optional help for scenes beyond automation; never a factor, only a gate on the LiDAR candidates.
+
+    ``initial_guess``: a rough ``T_camera_lidar``; a candidate whose plane, mapped through it, differs from the
+    camera's board plane by more than ``guess_angle_rad`` or ``guess_distance_m`` is rejected.
+    ``roi_min`` / ``roi_max``: a box in the LiDAR frame (m) outside which points are ignored.
+    ``static_scene``: build the background model from all frames (default) or judge each frame alone."""
+
+    initial_guess: np.ndarray | None = None
+    guess_angle_rad: float = float(np.deg2rad(10.0))
+    guess_distance_m: float = 0.30
+    roi_min: np.ndarray | None = None
+    roi_max: np.ndarray | None = None
+    static_scene: bool = True
+
+    def in_roi(self, points: np.ndarray) -> np.ndarray:
+        keep = np.ones(len(points), dtype=bool)
+        if self.roi_min is not None:
+            keep &= np.all(points >= np.asarray(self.roi_min), axis=1)
+        if self.roi_max is not None:
+            keep &= np.all(points <= np.asarray(self.roi_max), axis=1)
+        return keep
+
+
+def parse_initial_guess(values: list[str]) -> np.ndarray:
+    """A rough ``T_camera_lidar`` from the command line: six numbers ``x y z roll pitch yaw`` (m, degrees;
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``), or one file: a ``calibration.json`` (its ``T_camera_lidar``) or a 4x4
+    matrix as JSON, text or ``.npy``."""
+    from scipy.spatial.transform import Rotation
+
+    from geometry.rotations import T_from_Rt
+
+    if len(values) == 6:
+        try:
+            x, y, z, roll, pitch, yaw = (float(v) for v in values)
+        except ValueError:
+            raise DatasetError(f"--initial-guess {' '.join(values)!r} is not six numbers",
+                               hint="give x y z roll pitch yaw (m, degrees) or a file") from None
+        R = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
+        return T_from_Rt(R, np.array([x, y, z]))
+    if len(values) != 1:
+        raise DatasetError(f"--initial-guess takes six numbers or one file, got {len(values)} value(s)",
+                           hint="give x y z roll pitch yaw (m, degrees) or a file")
+    path = regular_file(values[0], "initial guess file", hint="give a calibration.json or a 4x4 matrix")
+    try:
+        if path.suffix.lower() == ".npy":
+            T = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() == ".json":
+            data = load_json(path, "initial guess file")
+            T = data["T_camera_lidar"] if isinstance(data, dict) else data
+        else:
+            T = np.loadtxt(path)
+        T = np.asarray(T, dtype=float)
+    except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
+                           hint="give a calibration.json or a 4x4 matrix") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DatasetError(f"initial guess is not a finite 4x4 matrix (shape {T.shape})", path=path,
+                           hint="give a calibration.json or a 4x4 matrix")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+        raise DatasetError("initial guess is not a rigid transform (its rotation is not orthonormal)", path=path,
+                           hint="give T_camera_lidar as a 4x4 rigid transform")
+    return T
+
+
+_TIMING_LOCK = threading.Lock()
+
+
+def _add_time(timings: dict, key: str, seconds: float) -> None:
+    with _TIMING_LOCK:
+        timings[key] = timings.get(key, 0.0) + seconds
+
+
+def detect_in_image(frame, board, timings) -> tuple[tuple[int, int] | None, CornerDetection | str | None]:
+    """The image's size and the corners found in it (None: no board; a string: why the frame is skipped)."""
+    t0 = time.perf_counter()
+    try:
+        gray = read_gray(frame.image)
+    except ImageReadError as exc:  # a damaged frame is skipped with its reason; the rest calibrate
+        _add_time(timings, "load_images", time.perf_counter() - t0)
+        return None, f"image: {exc.message}"
+    t1 = time.perf_counter()
+    try:
+        det = detect_corners(gray, board)
+    except MeasurementError as exc:  # past the time budget: the frame is skipped with the reason
+        det = exc.message
+    _add_time(timings, "load_images", t1 - t0)
+    _add_time(timings, "corners", time.perf_counter() - t1)
+    return (gray.shape[1], gray.shape[0]), det
+
+
+def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
+                   timings: dict | None = None, workers: int = 2, hints: Hints = Hints(),
+                   detections: dict | None = None, board_poses: dict | None = None
+                   ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+    """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason.
+
+    3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
+    candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
+    board segment, with the other scans as the static background. ``detections``: the images' corners already
+    found (frame name -> what ``detect_in_image`` returns; a rig's cameras are searched once); ``board_poses``: the board
+    poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera)."""
+    # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
+    # (their own pools on top of ours would oversubscribe the cores).
+    with threadpool_limits(1 if workers > 1 else None):
+        return _measure_frames(dataset, rng, params, timings, workers, hints, detections, board_poses)
+
+
+def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
+                    workers: int, hints: Hints, detections: dict | None = None, board_poses: dict | None = None
+                    ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+    timings = {} if timings is None else timings
+    with ThreadPoolExecutor(max_workers=1) as ahead:
+        # A 3D dataset's sweeps are read and its static scene built (they need no camera) while the images
+        # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
+        # stage that keeps one core idle.
+        sweeps = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
+        return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections, board_poses)
+
+
+def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
+                         workers: int, hints: Hints, sweeps_ahead, found: dict | None = None,
+                         board_poses: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+    """:func:`_measure_frames` given the future of :func:`_sweeps_and_scene` (None for a 2D dataset)."""
+    warnings: list[str] = []
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1 if workers > 1 else cv_threads)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            detections = list(pool.map(lambda f: found[f.name] if found and f.name in found else
+                                       detect_in_image(f, dataset.board, timings), dataset.frames))
+    finally:
+        cv2.setNumThreads(cv_threads)
+    camera = dataset.camera
+    sizes = {s for s, _ in detections if s is not None}
+    if camera is None:
+        found = [d for _, d in detections if isinstance(d, CornerDetection)]
+        if len(sizes) != 1:
+            raise DatasetError(f"images have different sizes {sorted(sizes)}", path=dataset.root,
+                               hint="use one camera resolution for all frames")
+        if len(found) < 3:
+            raise DegenerateLayoutError(f"intrinsics cannot be calibrated from {len(found)} board view(s)",
+                                        path=dataset.yaml_path, hint="add camera: to dataset.yaml or more frames")
+        t0 = time.perf_counter()
+        camera, rms = calibrate_intrinsics([d.corners_px for d in found], dataset.board, *sizes.pop(),
+                                           corner_ids=[d.corner_ids for d in found])
+        _add_time(timings, "intrinsics", time.perf_counter() - t0)
+        warnings.append(f"no camera in dataset.yaml: intrinsics {camera.source}")
+    # An image of another size than the camera entry's is refused for its frame: the intrinsics are for
+    # another resolution.
+    detections = [(size, f"image is {size[0]}x{size[1]} but the camera entry is {camera.width}x{camera.height} "
+                         "(its intrinsics are for another resolution; fix camera width/height in dataset.yaml)")
+                  if size is not None and size != (camera.width, camera.height) else (size, det)
+                  for size, det in detections]
+
+    alternatives: dict[int, tuple] = {}  # both tilts of each board ambiguous in its orientation
+
+    def camera_side(k: int, det) -> tuple:
+        if det is None:
+            return None, (f"fewer than {MIN_CHARUCO_CORNERS} ChArUco corners spanning the board seen in the image"
+                          if dataset.board.is_charuco else "checkerboard not found in the image")
+        if isinstance(det, str):
+            return None, det
+        if board_poses and dataset.frames[k].name in board_poses:
+            return board_poses[dataset.frames[k].name], None
+        try:
+            return estimate_board_pose(det, dataset.board, camera), None
+        except AmbiguousOrientationError as exc:
+            alternatives[k] = exc.observations
+            return None, f"board pose: {exc.message}"
+        except MeasurementError as exc:
+            return None, f"board pose: {exc.message}"
+
+    cams = [camera_side(k, det) for k, (_, det) in enumerate(detections)]
+    frame_rngs = rng.spawn(len(dataset.frames) + 1)
+    if dataset.lidar == "2d":
+        frames = _measure_scans_2d(dataset, cams, camera, frame_rngs[-1], params, timings, warnings, workers,
+                                   alternatives)
+    else:
+        frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers,
+                                    sweeps_ahead.result())
+    return camera, frames, warnings
+
+
+def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rng: np.random.Generator,
+                      params: SegmentationParams, timings: dict, warnings: list[str], workers: int,
+                      alternatives: dict[int, tuple] | None = None) -> list[FrameMeasurement]:
+    """Each scan's board segment. Single-line scans are small, so all are read once: the static scene's
+    per-beam ranges tell the board (which moves between frames) from background of the board's length, and
+    every frame's candidate segments are chosen jointly by the minimal solution most frames agree with
+    (``solvers.association.associate_lines``); without one, each frame decides alone. A board ambiguous in
+    its orientation (``alternatives``: both tilts) keeps its segment when it is the only one where the camera
+    puts the board, for the solver to try its tilts (``solution_selection.select_and_refine``)."""
+    from scipy.spatial import cKDTree
+
+    alternatives = alternatives or {}
+
+    t0 = time.perf_counter()
+    read = [_read_or_reason(read_scan_2d, f.scan) for f in dataset.frames]
+    cams, good = _without_damaged_scans(cams, read)
+    scans_2d = [xy if not isinstance(xy, str) else np.zeros((0, 2)) for xy in read]
+    _add_time(timings, "load_scans", time.perf_counter() - t0)
+    trees = {k: cKDTree(scans_2d[k]) for k in good}
+    scene = build_static_scene([scans_2d[k] for k in good])
+    if scene.note and len(scans_2d) >= scene.params.min_frames:
+        warnings.append(f"static scene: {scene.note}")
+    seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
+
+    def search(k: int) -> tuple[list, str | None, list]:
+        # an ambiguous board's tilts put it at one place: either finds its segments (outside the consensus)
+        cam_obs = alternatives[k][0] if k in alternatives and k in good else cams[k][0]
+        if cam_obs is None:
+            return [], None, []
+        t1 = time.perf_counter()
+        static: list = []
+        try:
+            return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
+                                   [t for j, t in trees.items() if j != k],
+                                   scene.frame_foreground(good.index(k)), static), None, static
+        except MeasurementError as exc:
+            return [], exc.message, []
+        finally:
+            _add_time(timings, "segmentation", time.perf_counter() - t1)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        searched = list(pool.map(search, range(len(dataset.frames))))
+    t0 = time.perf_counter()
+    # The consensus also sees the segments judged static (boards held at one place in several frames look
+    # static); without a consensus each frame decides from its moving segments alone.
+    joint = [cands + sorted(static, key=lambda c: c[0]) for cands, _, static in searched]
+    assoc, choice = _consensus(cams, [[obs for _, obs in c] for c in joint], warnings, "scan segments",
+                               lambda planes, poses, cands, _: associate_lines(planes, poses, cands, dataset.board,
+                                                                                rng))
+    _add_time(timings, "association", time.perf_counter() - t0)
+    found = [(joint[k], error) if assoc is not None else (cands, error)
+             for k, (cands, error, _) in enumerate(searched)]
+    found = [(c, e if c else (e or "no straight scan segment of the board's length that moves between frames"))
+             for c, e in found]
+    frames, ambiguous = [], {}
+    for k, frame in enumerate(dataset.frames):
+        (cam_obs, why), (cands, error) = cams[k], found[k]
+        if cam_obs is None and k in alternatives and len(searched[k][0]) == 1:
+            _, seg = searched[k][0][0]
+            frames.append(FrameMeasurement(
+                frame.name, None, seg, why, BoardDecision(
+                    "this frame alone", _segment_dicts(searched[k][0], chosen=0), 0,
+                    "the only segment where the camera puts the board (its tilt is left to the solver)", (),
+                    (seg.points,)), alternatives[k]))
+            continue
+        if cam_obs is None:
+            frames.append(FrameMeasurement(frame.name, None, None, why))
+            continue
+        if not cands:
+            frames.append(FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {error}"))
+            continue
+        points = tuple(obs.points for _, obs in cands)
+        if assoc is not None:
+            c = choice[k]
+            decision = BoardDecision(f"consensus of {assoc.agreeing} frames", _segment_dicts(cands, c.residuals,
+                                                                                            c.chosen),
+                                     c.chosen, c.reason, (), points)
+            lid = None if c.chosen is None else _trim_line(cands[c.chosen][1], assoc.T_camera_lidar,
+                                                           cam_obs.T_camera_board, dataset.board)
+            frames.append(FrameMeasurement(frame.name, cam_obs, lid, None if lid else f"LiDAR board: {c.reason}",
+                                           decision))
+            continue
+        if len(cands) > 1 and cands[1][0] < seg_params.ambiguity_ratio * cands[0][0] + 0.05:
+            reason = f"ambiguous: {len(cands)} board-length scan segments lie where the camera puts the board"
+            ambiguous[frame.name] = [obs for _, obs in cands]
+            frames.append(FrameMeasurement(frame.name, cam_obs, None, f"LiDAR board: {reason}",
+                                           BoardDecision("this frame alone", _segment_dicts(cands), None, reason,
+                                                         (), points)))
+            continue
+        frames.append(FrameMeasurement(frame.name, cam_obs, cands[0][1], None,
+                                       BoardDecision("this frame alone", _segment_dicts(cands, chosen=0), 0,
+                                                     "the only segment that agrees with the camera's board", (),
+                                                     points)))
+    if ambiguous:
+        frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
+    return _trim_scan_lines(frames, dataset.board)
+
+
+def _segment_dicts(cands: list, residuals=(), chosen: int | None = None) -> tuple[dict, ...]:
+    out = []
+    for i, (cost, obs) in enumerate(cands):
+        d = {"points": obs.n_points, "centre_lidar_m": np.round(obs.points.mean(0), 4).tolist(),
+             "length_m": round(float(np.ptp(obs.line.coordinates(obs.points[:, :2]))), 3),
+             "camera_cue_cost": round(float(cost), 3)}
+        if i < len(residuals):
+            d.update({"rms_from_board_plane_mm": round(1000 * residuals[i][1], 1),
+                      "inside_board": round(residuals[i][2], 3)})
+        d["status"] = "chosen" if i == chosen else "rejected"
+        out.append(d)
+    return tuple(out)
+
+
+def _trim_line(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board):
+    """A laser segment cut to the camera's board outline (and its plane's band) under the extrinsic."""
+    P = np.column_stack([obs.points[:, :2], np.zeros(len(obs.points))])
+    inside = inside_outline(P, T_camera_lidar, T_camera_board, board, LINE_TRIM_M + board.unknown_margin,
+                            OUTLINE_BAND_M)
+    if inside.all() or inside.sum() < 5:
+        return obs
+    return observe_lidar_line(P[inside], obs.candidates)
+
+
+def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasurement]:
+    """Cut each frame's laser segment to the camera's board outline under the extrinsic the frames agree on
+    (the minimal-solution selection, when it keeps a single candidate): the holder's hands and arms, in line
+    with the board, leave the segment. Without a single candidate the segments stay as found."""
+    from ..solvers.solution_selection import select_minimal  # 2D only (it loads scipy.optimize)
+
+    used = [f for f in frames if f.usable]
+    if len(used) < 3 or not board.size_known:
+        return frames
+    try:
+        sel = select_minimal(used, board)
+    except DegenerateLayoutError:
+        return frames
+    if len(sel.candidates) != 1:
+        return frames
+    T = sel.candidates[0].T_camera_lidar
+    out = []
+    for f in frames:
+        if f.usable:
+            f = replace(f, lidar=_trim_line(f.lidar, T, f.camera.T_camera_board, board))
+        out.append(f)
+    return out
+
+
+def _sweeps_and_scene(dataset: Dataset, hints: Hints, timings: dict) -> tuple[list, StaticScene]:
+    """A 3D dataset's sweeps (or, for each one that cannot be read, the reason) and the static scene of those
+    read (``hints``: the region of interest, and whether to build the scene at all)."""
+    t0 = time.perf_counter()
+    sweeps = [_read_or_reason(read_sweep, f.scan) for f in dataset.frames]
+    if hints.roi_min is not None or hints.roi_max is not None:
+        sweeps = [_cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for s in sweeps]
+    good = [s for s in sweeps if not isinstance(s, str)]
+    _add_time(timings, "load_scans", time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    if hints.static_scene:
+        scene = build_static_scene([s.points for s in good], [s.ring for s in good])
+    else:
+        scene = StaticScene("none", StaticSceneParams(), note="not used (each frame judged alone)")
+    _add_time(timings, "static_scene", time.perf_counter() - t0)
+    return sweeps, scene
+
+
+def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],
+                       params: SegmentationParams, hints: Hints, timings: dict, warnings: list[str],
+                       workers: int, sweeps_and_scene: tuple[list, StaticScene]) -> list[FrameMeasurement]:
+    """Candidates per frame in its sweep, over the static scene (:func:`_sweeps_and_scene`), and the joint
+    choice (module docstring of ``solvers.association``); without a consensus (fewer than 3 frames with
+    candidates spanning 3D), each frame decides alone."""
+    n = len(dataset.frames)
+    sweeps, scene = sweeps_and_scene
+    cams, good = _without_damaged_scans(cams, sweeps)
+    if not dataset.board.size_known:
+        w, h = dataset.board.judged_extent
+        warnings.append(f"board.size is not given: the LiDAR's board returns are judged and trimmed by the "
+                        f"pattern's extent and {100 * dataset.board.unknown_margin:.0f} cm on each side ({w:.2f} x "
+                        f"{h:.2f} m), the border beyond the pattern kept as far as it stays in the pattern's plane; "
+                        "give board.size in dataset.yaml (the backing board's) to trim to the board itself")
+    if hints.static_scene and scene.note:
+        warnings.append(f"static scene: {scene.note}")
+
+    def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
+        cam_obs = cams[k][0]
+        if cam_obs is None:
+            return [], [], None
+        t1 = time.perf_counter()
+        s = sweeps[k]
+        fg = scene.frame_foreground(good.index(k))
+        try:
+            cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
+        except MeasurementError as exc:
+            return [], [], exc.message
+        finally:
+            _add_time(timings, "segmentation", time.perf_counter() - t1)
+        if hints.initial_guess is not None:
+            cands, off = _gate_by_guess(cands, cam_obs, hints)
+            rejected = rejected + off
+        return cands, rejected, None
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        found = list(pool.map(search, range(n)))
+    t0 = time.perf_counter()
+    assoc, choice = _consensus(
+        cams, [[c.observation for c in f[0]] for f in found], warnings, "board candidates",
+        lambda planes, poses, cands, ks: associate(planes, poses, cands, dataset.board, rngs[-1], AssociationParams(),
+                                                   [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found[k][0]] for k in ks]))
+    _add_time(timings, "association", time.perf_counter() - t0)
+    frames, ambiguous = [], {}
+    for k, frame in enumerate(dataset.frames):
+        cam_obs, why = cams[k]
+        cands, rejected, error = found[k]
+        if cam_obs is None:
+            frames.append(FrameMeasurement(frame.name, None, None, why))
+        elif assoc is not None:
+            frames.append(_consensus_frame(frame.name, cam_obs, cands, rejected, error, choice[k], assoc,
+                                           dataset.board, params, (sweeps[k], scene)))
+        else:
+            frames.append(_alone_frame(frame.name, cam_obs, cands, rejected, error, dataset.board, params,
+                                       ambiguous))
+    if ambiguous:
+        frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
+    return [_with_beam_fields(f, sweeps[k]) for k, f in enumerate(frames)]
+
+
+def _read_or_reason(reader, path):
+    """What ``reader`` reads from ``path``, or the reason it cannot (a damaged scan skips its frame)."""
+    try:
+        return reader(path)
+    except ScanReadError as exc:
+        return f"scan: {exc.message}"
+
+
+def _without_damaged_scans(cams: list[tuple], scans: list) -> tuple[list[tuple], list[int]]:
+    """The camera observations with frames whose scan could not be read made unusable (with the reason), and
+    the indices of the frames whose scan was read."""
+    cams = [(None, s) if isinstance(s, str) else c for c, s in zip(cams, scans)]
+    return cams, [k for k, s in enumerate(scans) if not isinstance(s, str)]
+
+
+def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``points`` (taken from ``sweep``, exact coordinates) as its index in the sweep, and which were found.
+    Only the sweep's points in their bounding box can match: a tree over those, not the sweep."""
+    lo, hi = points.min(axis=0) - 1e-6, points.max(axis=0) + 1e-6
+    near = np.flatnonzero(np.all((sweep >= lo) & (sweep <= hi), axis=1))
+    if len(near) == 0:
+        return np.zeros(len(points), dtype=np.int64), np.zeros(len(points), dtype=bool)
+    dist, found = cKDTree(sweep[near]).query(points, distance_upper_bound=1e-6)
+    ok = np.isfinite(dist)
+    return near[np.where(ok, found, 0)], ok
+
+
+def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
+    """The frame with its board points' ring and intensity looked up in the sweep they came from (exact
+    coordinates), for the range model's per-ring and reflectivity terms."""
+    if not frame.usable or (sweep.ring is None and sweep.intensity is None):
+        return frame
+    idx, found = _in_sweep(frame.lidar.points, sweep.points)
+    if not found.all():
+        return frame
+    lidar = replace(frame.lidar, rings=None if sweep.ring is None else sweep.ring[idx],
+                    intensity=None if sweep.intensity is None else sweep.intensity[idx])
+    return replace(frame, lidar=lidar)
+
+
+CONSENSUS_FAILED = "the frames' joint choice of their boards failed: no extrinsic that enough frames'"
+
+
+def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], what: str, choose):
+    """The joint choice over the frames with a camera board (``choose(planes, poses, candidates, frame ids)``),
+    and each such frame's :class:`FrameChoice`; (None, {}) with a warning when there is no consensus."""
+    ks = [k for k, (c, _) in enumerate(cams) if c is not None]
+    if sum(1 for k in ks if candidates[k]) < 3:
+        return None, {}
+    try:
+        assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
+                       [candidates[k] for k in ks], ks)
+    except DegenerateLayoutError as exc:
+        warnings.append(f"{CONSENSUS_FAILED} {what} agree on ({exc.problem}); each frame's is chosen from its own "
+                        "cues")
+        return None, {}
+    return assoc, dict(zip(ks, assoc.choices))
+
+
+def _cropped(sweep, keep: np.ndarray):
+    return type(sweep)(sweep.points[keep], None if sweep.ring is None else sweep.ring[keep],
+                       None if sweep.intensity is None else sweep.intensity[keep])
+
+
+def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:
+    """The candidates whose planes, mapped through the initial guess, lie within its tolerance of the camera's
+    board plane; the others with their reason."""
+    kept, off = [], []
+    for c in cands:
+        angle, dist = plane_difference(c.observation.plane.transformed(hints.initial_guess), cam_obs.plane)
+        if angle <= hints.guess_angle_rad and abs(dist) <= hints.guess_distance_m:
+            kept.append(c)
+        else:
+            off.append(f"outside the initial guess's tolerance ({np.degrees(angle):.1f} deg, {1000 * dist:+.0f} mm)")
+    return kept, off
+
+
+def _no_candidate_reason(board, rejected: list[str], error: str | None) -> str:
+    if error is not None:
+        return f"LiDAR board: {error}"
+    detail = "; ".join(f"{n} {key}" for key, n in count_reasons(rejected).items()) or "none found"
+    return (f"LiDAR board: no planar segment that fits inside the board's {board.extent[0]:.2f} x "
+            f"{board.extent[1]:.2f} m where the camera puts it (planar pieces rejected: {detail})")
+
+
+def _candidate_dicts(cands: list[BoardCandidate], residuals=(), chosen: int | None = None) -> tuple[dict, ...]:
+    out = []
+    for i, c in enumerate(cands):
+        d = c.to_dict()
+        if i < len(residuals):
+            angle, dist, inside = residuals[i]
+            d.update({"normal_residual_deg": round(float(np.degrees(angle)), 3),
+                      "distance_residual_mm": round(1000 * dist, 1), "inside_board": round(inside, 3)})
+        d["status"] = "chosen" if i == chosen else "rejected"
+        out.append(d)
+    return tuple(out)
+
+
+def _consensus_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None,
+                     choice, assoc: Association, board, params: SegmentationParams,
+                     sweep: tuple | None = None) -> FrameMeasurement:
+    points = tuple(c.observation.points for c in cands)
+    method = f"consensus of {assoc.agreeing} frames"
+    if not cands:
+        reason = _no_candidate_reason(board, rejected, error)
+        return FrameMeasurement(name, cam_obs, None, reason, BoardDecision(method, (), None, reason, tuple(rejected)))
+    decision = BoardDecision(method, _candidate_dicts(cands, choice.residuals, choice.chosen), choice.chosen,
+                             choice.reason, tuple(rejected), points)
+    if choice.chosen is None:
+        return FrameMeasurement(name, cam_obs, None, f"LiDAR board: {choice.reason}", decision)
+    obs = cands[choice.chosen].observation
+    if sweep is not None:
+        obs = _every_return_on(obs, *sweep, params)
+    obs = _trim_to_outline(obs, assoc.T_camera_lidar, cam_obs.T_camera_board, board, len(cands), params)
+    return FrameMeasurement(name, cam_obs, obs, None, decision)
+
+
+def _every_return_on(obs, sweep, scene: StaticScene, params: SegmentationParams):
+    """The chosen candidate with every return of its sweep in the range image's cells that hold its points and
+    in its plane's noise band along the beam (``board_segmentation.noise_band``, as the candidate's own points
+    were gathered), whatever the static scene said of each return.
+
+    The static scene chooses which piece is the board, and which cells it covers; not which of a cell's returns
+    are measured. Where the board stands close in front of a surface (a table it stands on, a wall it leans on),
+    the scene calls the returns whose range noise carries them within its margin of that surface background and
+    keeps the others: a selection on the noise, which tilts the fitted plane. The returns of the board's own cells,
+    in a band symmetric in range, undo it; cells the board does not reach are not added."""
+    keys = scene.cell_keys(sweep.points, sweep.ring)
+    if not (keys >= 0).any():
+        return obs
+    idx, found = _in_sweep(obs.points, sweep.points)
+    own = np.unique(keys[idx[found]])
+    cells = np.flatnonzero(np.isin(keys, own[own >= 0]))
+    take = cells[noise_band(sweep.points[cells], obs.plane, obs.points)]
+    if len(take) <= obs.n_points:
+        return obs
+    return observe_lidar_board(sweep.points[take], obs.candidates)
+
+
+def _alone_frame(name: str, cam_obs, cands: list[BoardCandidate], rejected: list[str], error: str | None, board,
+                 params: SegmentationParams, ambiguous: dict) -> FrameMeasurement:
+    points = tuple(c.observation.points for c in cands)
+    if not cands:
+        reason = _no_candidate_reason(board, rejected, error)
+        return FrameMeasurement(name, cam_obs, None, reason,
+                                BoardDecision("this frame alone", (), None, reason, tuple(rejected)))
+    try:
+        obs = decide_alone(cands, True, params)
+    except AmbiguousBoardError as exc:
+        ambiguous[name] = exc.candidates
+        decision = BoardDecision("this frame alone", _candidate_dicts(cands), None, exc.message, tuple(rejected),
+                                 points)
+        return FrameMeasurement(name, cam_obs, None, f"LiDAR board: {exc.message}", decision)
+    decision = BoardDecision("this frame alone", _candidate_dicts(cands, chosen=0), 0,
+                             "the only candidate that agrees with the camera's board", tuple(rejected), points)
+    return FrameMeasurement(name, cam_obs, obs, None, decision)
+
+
+# Points of a chosen board farther than this outside the camera's board outline (under the consensus
+# extrinsic) are the holder's hands and arms, or a stand: trimmed.
+OUTLINE_TRIM_M = 0.05
+OUTLINE_BAND_M = 0.10  # and this far from the camera's board plane
+# A scan line's points farther than this outside the outline: a line holds no other check of where the board
+# ends, and the hands at its edges, in line with it, tilt it. At 0.05 m, 12 of 80 simulated office frames kept
+# such points and the 2D office's translation error was 1.13x the Cramer-Rao bound over 40 layouts (1.03 in
+# the empty room); at 0.01 m, 1.02 (0.98 in the empty room).
+LINE_TRIM_M = 0.01
+
+
+def _trim_to_outline(obs, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board, n_candidates: int,
+                     params: SegmentationParams):
+    """The observation cut to the camera's board outline (grown by ``OUTLINE_TRIM_M``) under the extrinsic,
+    and refitted robustly (the holder's points left in the plane band are outliers)."""
+    inside = inside_outline(obs.points, T_camera_lidar, T_camera_board, board, OUTLINE_TRIM_M + board.unknown_margin,
+                            OUTLINE_BAND_M)
+    if board.unknown_margin > 0 and inside.sum() >= params.min_points and not obs.is_scan_line:
+        inside &= _border(obs.points, inside, T_camera_lidar, T_camera_board, board, params)
+    if inside.all() or inside.sum() < params.min_points:
+        return obs
+    _, keep = robust_plane_fit(obs.points[inside])
+    return observe_lidar_board(obs.points[inside][keep], n_candidates)
+
+
+def _border(points: np.ndarray, inside: np.ndarray, T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, board,
+            params: SegmentationParams) -> np.ndarray:
+    """A board of unknown size: its points in the pattern's extent, and the border beyond it as far as it stays
+    in their plane (``board_segmentation.border_trim``); all True when the pattern holds too few points.
+
+    Each point is placed on the board where its beam meets the board's plane, not where its range puts it: a
+    return's range noise moves it across the board as well as off it at any incidence but square, so a cut by its
+    own position would keep the returns whose noise carries them inwards at one edge and outwards at the other,
+    and tilt the plane (by up to a degree on a board 18 cm wide at 1 cm noise)."""
+    _, keep = robust_plane_fit(points[inside])
+    q = transform_points(T_inverse(T_camera_board) @ T_camera_lidar,
+                         on_plane_along_beams(points, fit_plane_pca(points[inside][keep])))
+    w, h = board.extent
+    pattern = inside & np.all((q[:, :2] >= 0.0) & (q[:, :2] <= [w, h]), axis=1)
+    if pattern.sum() < params.min_points:
+        return np.ones(len(points), dtype=bool)
+    plane, keep = robust_plane_fit(points[pattern])
+    r = plane.signed_distances(points)
+    sigma = float(np.sqrt(np.mean(r[pattern][keep] ** 2)))
+    return border_trim(q[:, :2], r, (w, h), sigma)
+
+
+# A 2D frame's ambiguous scan segment is chosen when exactly one lies within this RMS distance (m) of the
+# camera's board plane under the clear frames' extrinsic.
+SEGMENT_FIT_M = 0.05
+
+
+def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings: list[str], board,
+                       camera: CameraModel) -> list[FrameMeasurement]:
+    """Choose among a frame's candidate boards by agreement with the extrinsic of the clear frames.
+
+    3D: needs at least 3 unambiguous frames whose normals span 3D. 2D: needs unambiguous frames whose
+    minimal-solution selection leaves a single refined minimum. Otherwise those
+    frames stay skipped.
+    """
+    clear = [f for f in frames if f.usable]
+    scan_lines = bool(clear) and clear[0].lidar.is_scan_line
+    try:
+        if scan_lines:
+            from ..solvers.solution_selection import refine_candidates, select_minimal
+
+            ref, modes = refine_candidates(clear, board, camera, select_minimal(clear, board))
+            if len(modes) != 1:
+                return frames
+            T_camera_lidar = ref.T_camera_lidar
+        else:
+            T_camera_lidar = solve_closed_form([f.camera.plane for f in clear], [f.lidar.plane for f in clear],
+                                               allow_weak=True).T_camera_lidar
+    except DegenerateLayoutError:
+        return frames
+    T_lidar_camera = np.linalg.inv(T_camera_lidar)
+    out = []
+    for f in frames:
+        if f.name in ambiguous:
+            if scan_lines:
+                chosen = _choose_segment(ambiguous[f.name], f.camera.plane, T_camera_lidar)
+            else:
+                chosen = choose_by_prediction(ambiguous[f.name], f.camera.plane.transformed(T_lidar_camera))
+            if chosen is not None:
+                warnings.append(f"frame {f.name}: {len(ambiguous[f.name])} candidate boards; chose the one "
+                                f"matching the extrinsic of the {len(clear)} unambiguous frames")
+                f = replace(f, lidar=chosen, reason=None)
+        out.append(f)
+    return out
+
+
+def _choose_segment(candidates: list, plane, T_camera_lidar: np.ndarray):
+    """The one scan segment whose points lie on the camera's board plane under ``T_camera_lidar`` (RMS within
+    ``SEGMENT_FIT_M``), or None if none or several do."""
+    fits = [c for c in candidates
+            if np.sqrt(np.mean(plane.signed_distances(transform_points(T_camera_lidar, c.points)) ** 2)) < SEGMENT_FIT_M]
+    return fits[0] if len(fits) == 1 else None
+
+
+def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = None,
+            params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(), cache: bool = False,
+            timings: dict | None = None) -> Measurements:
+    """Measure every frame of a dataset once, for :func:`solve` to take any number of times.
+
+    Parameters
+    ----------
+    dataset : Dataset, str or Path
+        A loaded :class:`Dataset` or its folder.
+    rng : numpy.random.Generator, optional
+        Drives the segmentation's RANSAC (a fixed seed when None).
+    params : SegmentationParams
+        The LiDAR board segmentation's settings.
+    hints : Hints
+        An initial guess and a region of interest, for scenes beyond automation.
+    cache : bool
+        Keep the measurements under the user's cache folder, keyed by the dataset files' content, the options and
+        the generator's state: a second call with the same inputs reads them back (``source`` is ``cache``).
+    timings : dict, optional
+        Filled with the stage times (s).
+
+    Returns
+    -------
+    Measurements
+
+    Raises
+    ------
+    DatasetError
+        A missing or corrupt file.
+    """
+    if not isinstance(dataset, Dataset):
+        dataset = load_dataset(dataset)
+    rng = np.random.default_rng(0) if rng is None else rng
+    key, folder = "", None
+    if cache:
+        ss = rng.bit_generator.seed_seq
+        options = {"params": params, "hints": hints, "version": __version__, "revision": MEASUREMENT_REVISION,
+                   "rng": rng.bit_generator.state,
+                   "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
+                            getattr(ss, "n_children_spawned", None)]}
+        key = dataset_key(dataset.root, [p for f in dataset.frames for p in (f.image, f.scan)], options)
+        folder = cache_dir() / key
+        if (folder / "measurements.json").is_file():
+            try:
+                m = load_measurements(folder)
+                rng.spawn(len(dataset.frames) + 1)  # as measuring would have: later draws stay the same
+                return replace(m, source="cache", dataset=str(dataset.root), key=key)
+            except DatasetError:
+                pass  # a damaged cache entry is measured again (and overwritten)
+    camera, frames, warnings = measure_frames(dataset, rng, params, timings, hints=hints)
+    m = Measurements(camera, dataset.board, dataset.lidar, tuple(frames), tuple(warnings), str(dataset.root),
+                     "measured", key)
+    if folder is not None:
+        try:
+            save_measurements(folder, m)
+        except OSError as exc:
+            m = replace(m, warnings=m.warnings + (f"the measurement cache {folder} is not writable ({exc})",))
+    return m
