@@ -26,7 +26,7 @@ from estimators.errors import DegenerateLayoutError, PosteriorSkippedError
 from estimators.solvers.posterior import PosteriorOptions, sample_posterior
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
-from estimators.solvers.refinement import RefinementOptions
+from estimators.solvers.refinement_options import RefinementOptions
 from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_inverse, T_log
 

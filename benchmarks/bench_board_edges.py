@@ -72,7 +72,8 @@ def _accuracy(args) -> dict:
     from estimators.solvers.closed_form import normal_spread, solve_closed_form
     from estimators.solvers.observation_model import cramer_rao_bound, simulate_measurements
     from estimators.solvers.posterior import PosteriorOptions, sample_posterior
-    from estimators.solvers.refinement import measurement_model_options, refine
+    from estimators.solvers.refinement import refine
+    from estimators.solvers.refinement_options import measurement_model_options
     from geometry.rotations import T_inverse, T_log
 
     lidar, seed, posterior, which = args
@@ -122,7 +123,8 @@ def _accuracy(args) -> dict:
 def _outline(args) -> tuple[bool, bool]:
     from estimators.solvers.closed_form import solve_closed_form
     from estimators.solvers.observation_model import simulate_measurements, with_outline_error
-    from estimators.solvers.refinement import measurement_model_options, refine
+    from estimators.solvers.refinement import refine
+    from estimators.solvers.refinement_options import measurement_model_options
 
     error, seed, lidar, weak = args
     layout = _layout(lidar, seed, "weak" if weak else "spread")

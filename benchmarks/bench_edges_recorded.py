@@ -33,7 +33,7 @@ from estimators.solvers import chi_square as chi2  # noqa: E402
 from estimators.solvers.board_edges import crossings  # noqa: E402
 from estimators.solvers.outline_check import outline_check  # noqa: E402
 from estimators.solvers.range_model import frame_rings  # noqa: E402
-from estimators.solvers.refinement import RefinementOptions  # noqa: E402
+from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 
 

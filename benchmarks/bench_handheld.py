@@ -33,7 +33,7 @@ def _trial(args) -> dict:
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import handheld_rig, sample_layout, simulate_frames, write_dataset
     from estimators.solvers.observation_model import Layout, cramer_rao_bound
-    from estimators.solvers.refinement import CORNER_ERROR_CORRELATION
+    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
     from geometry.rotations import T_inverse, T_log, transform_points
 
     seed, tmp = args

@@ -29,7 +29,7 @@ from estimators.calibration import solve  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.simulation.simulator import _pose_fits, board_pose, default_rig, one_way_poses, sample_board_poses  # noqa: E402
 from estimators.solvers.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
-from estimators.solvers.refinement import measurement_model_options  # noqa: E402
+from estimators.solvers.refinement_options import measurement_model_options  # noqa: E402
 from geometry.rotations import T_inverse, T_log, transform_points  # noqa: E402
 
 CORNER_NOISE_PX, RANGE_NOISE_M = 0.2, 0.02

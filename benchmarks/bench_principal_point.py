@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
-from estimators.solvers.refinement import RefinementOptions  # noqa: E402
+from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 SETS = ("acfr_ouster64_b", "acfr_vlp16_a")

@@ -44,7 +44,8 @@ def _trial(args) -> dict:
     from estimators.solvers.closed_form import solve_closed_form
     from estimators.solvers.observation_model import (Layout, cramer_rao_bound, layout_range_terms,
                                                       simulate_measurements)
-    from estimators.solvers.refinement import measurement_model_options, refine
+    from estimators.solvers.refinement import refine
+    from estimators.solvers.refinement_options import measurement_model_options
     from geometry.rotations import T_inverse, T_log, rotation_error
 
     lidar, inject, recorded, board_error, seed = args

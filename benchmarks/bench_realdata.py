@@ -27,7 +27,7 @@ from estimators.calibration import solve  # noqa: E402
 from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
-from estimators.solvers.refinement import RefinementOptions  # noqa: E402
+from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "acfr_vlp16_a"

@@ -36,7 +36,7 @@ from estimators.calibration import solve  # noqa: E402
 from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.io.pointcloud_io import read_sweep  # noqa: E402
 from estimators.solvers.range_model import frame_rings  # noqa: E402
-from estimators.solvers.refinement import RefinementOptions  # noqa: E402
+from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, transform_points  # noqa: E402
 
 PLANE_BAND_M = 0.03

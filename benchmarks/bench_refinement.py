@@ -48,12 +48,9 @@ from estimators.simulation.simulator import (  # noqa: E402
 from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
 from estimators.solvers.factors import corner_residuals  # noqa: E402
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
-from estimators.solvers.refinement import (  # noqa: E402
-    CORNER_ERROR_CORRELATION,
-    corner_residual_px,
-    measurement_model_options,
-    refine,
-)
+from estimators.solvers.noise_levels import corner_residual_px  # noqa: E402
+from estimators.solvers.refinement import refine  # noqa: E402
+from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, measurement_model_options  # noqa: E402
 from geometry.rotations import T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
 
 LAYOUT_SEED = 3

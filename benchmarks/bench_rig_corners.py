@@ -7,7 +7,7 @@ camera and every board it saw: the error of its board pose (PnP on the detected 
 its squared Mahalanobis distance under the pose covariance at the noise the graph gives that board's corners
 (`CameraViews.sigma`: the board's own residual, shrunk towards the camera's pooled one, times
 `rig_calibration.BOARD_CORNER_FACTOR`), and, beside it, at one pooled noise per camera as the single pair has it
-(the pooled residual times `refinement.CORNER_ERROR_CORRELATION`), in all 6 of the pose's
+(the pooled residual times `refinement_options.CORNER_ERROR_CORRELATION`), in all 6 of the pose's
 numbers (6 ideal), in the 3 that fix the board's plane (rotation about the board's x and y, translation along
 its normal: what a LiDAR sees; 3 ideal) and in the 3 in the plane (3 ideal). For two cameras that saw the same
 board: the d2 of the difference of their board-frame errors, what a camera-camera transform rests on (6 ideal if
@@ -39,7 +39,7 @@ PLANE, IN_PLANE = [0, 1, 5], [2, 3, 4]
 def _one(args) -> dict:
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip
-    from estimators.solvers.refinement import CORNER_ERROR_CORRELATION
+    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
     from estimators.simulation.rig_simulator import simulate_rig
     from estimators.solvers.factors import corner_residuals
     from geometry.rotations import T_log
@@ -78,7 +78,7 @@ def _one(args) -> dict:
 
 
 def main() -> None:
-    from estimators.solvers.refinement import CORNER_ERROR_CORRELATION
+    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--rigs", type=int, default=10)

@@ -25,9 +25,9 @@ from .pipeline.result import CalibrationResult, plane_residuals
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import refine_intrinsics
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
-from .solvers.refinement import Refinement, RefinementOptions
+from .solvers.refinement import Refinement
 from .solvers.refinement import refine as refine_graph
-
+from .solvers.refinement_options import RefinementOptions
 
 INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 REFINES = ("factor-graph", "none")

@@ -23,26 +23,27 @@ from geometry.rotations import T_log
 
 from . import __version__
 from .calibration import solve
-from .pipeline.measurement import detect_in_image, measure_frames
 from .camera.board_pose import estimate_board_pose
-from .camera.intrinsics import calibrate_intrinsics
 from .camera.detection import CornerDetection
+from .camera.intrinsics import calibrate_intrinsics
 from .errors import DegenerateLayoutError, LidarcamError
 from .io.dataset import FrameFiles
 from .io.output import write_json_atomic, write_npz_atomic
 from .io.rig_dataset import RigDataset, Sensor
-from .measurements import FrameMeasurement, lidar_whitener
-from .solvers import chi_square as chi2
-from .solvers.closed_form import describe_direction
-from .solvers.refinement import RefinementOptions, board_corner_residuals_px, pooled_range_noise_m
 from .lidar.lidar_models import range_accuracy_for
+from .measurements import FrameMeasurement, lidar_whitener
+from .pipeline.measurement import detect_in_image, measure_frames
+from .solvers import chi_square as chi2
 from .solvers.board_edges import crossings, edge_scatter
+from .solvers.closed_form import describe_direction
+from .solvers.noise_levels import board_corner_residuals_px, pooled_range_noise_m
 from .solvers.outline_check import outline_check
+from .solvers.posterior import heavy_tails
 from .solvers.range_model import (MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener,
                                   terms_for)
+from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import (CameraViews, LidarViews, RigSolution, outline_key, pair_board_covariance, solve_rig,
                                 spanning_tree, terms_fit, terms_test, translation_sd_in_first)
-from .solvers.posterior import heavy_tails
 from .solvers.rig_posterior import RigPosterior, sample_rig_posterior
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
@@ -51,7 +52,7 @@ MIN_PAIR_FRAMES = 3
 # measured by `make bench` (bench_rig_corners.py, 10 six-camera rigs, 702 boards: at 1.0, d2 mean 5.54 and median
 # 4.48 (chi-square 5.35), 1.7% beyond the 99% point; one pooled residual per camera times 1.28, the single pair's
 # model, gives mean 3.68 and median 2.23 with 2.6% beyond). The single pair keeps its pooled residual and
-# ``refinement.CORNER_ERROR_CORRELATION``.
+# ``refinement_options.CORNER_ERROR_CORRELATION``.
 BOARD_CORNER_FACTOR = 1.0
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
 # (``rig_graph.solve_rig``); the warning that its factors disagree beyond their noise is given when its chi-square
@@ -219,7 +220,7 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
 
 def _camera_views(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
     """The camera's corners for the graph, each board's with its own pixel noise (its per-axis PnP residual,
-    shrunk towards the camera's pooled one: ``refinement.board_corner_residuals_px``) times
+    shrunk towards the camera's pooled one: ``noise_levels.board_corner_residuals_px``) times
     ``BOARD_CORNER_FACTOR``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
     asks)."""
     stems = list(poses)
@@ -617,7 +618,7 @@ def _range_models(rig: RigDataset, names: tuple, camera_views: list, lidar_views
     offsets, the black squares' offset; priors from its range accuracy, dataset.yaml's ``range_accuracy_m`` or its
     family's), and per LiDAR the record (:func:`_range_record`).
 
-    ``auto`` chooses as the single pair does (``refinement._choose_range_model``): a global offset against none,
+    ``auto`` chooses as the single pair does (``range_terms_choice.choose_range_model``): a global offset against none,
     then the per-ring and the black-square blocks each against the offset (against none, with the offset in the
     block, when the offset alone is not supported); both when both pass. Each test is a likelihood ratio on the
     joint graph at the graph's noise scales (``rig_graph.terms_test``: an overdispersed sensor's statistic is

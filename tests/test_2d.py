@@ -14,7 +14,8 @@ from estimators.io.dataset import load_dataset
 from estimators.io.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
 from estimators.simulation.simulator import default_rig_2d, sample_board_poses
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.refinement import RefinementOptions, refine
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import RefinementOptions
 from estimators.solvers.solution_selection import refine_candidates, select_minimal, solution_distances
 from geometry.rotations import T_from_Rt, T_inverse, T_log
 
@@ -226,7 +227,7 @@ def test_2d_posterior_agrees_with_the_laplace_covariance():
     """The sampled posterior of a well-determined 2D calibration is close to Gaussian: its standard deviations
     are within 20% of the factor graph's Laplace ones on every axis."""
     from estimators.solvers.posterior import PosteriorOptions
-    from estimators.solvers.refinement import measurement_model_options
+    from estimators.solvers.refinement_options import measurement_model_options
 
     rig, frames = _measured_2d(0, 6)
     result = solve(frames, rig.board, rig.camera, options=measurement_model_options(),

@@ -9,7 +9,8 @@ from estimators.simulation.simulator import rig_2d, sample_board_poses
 from estimators.solvers.board_edges import (HIDDEN_END_SHARE, MAX_END_OFFSET_M, crossings, edge_residuals,
                                             end_loss)
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.refinement import RefinementOptions, refine
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import RefinementOptions
 from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_exp, T_inverse, T_log
 
@@ -115,7 +116,7 @@ def test_the_bound_with_segment_ends_matches_their_error_and_the_layout_analysis
     on 60 draws), which is below the planes' alone; ``lidarcam layout``'s analysis reports it for a 2D scan."""
     from estimators.analysis.layout_analysis import analyse
     from estimators.solvers.observation_model import cramer_rao_bound
-    from estimators.solvers.refinement import measurement_model_options
+    from estimators.solvers.refinement_options import measurement_model_options
 
     rng = np.random.default_rng(5)
     rig = rig_2d("default", rng, 0.01)
@@ -247,7 +248,7 @@ def test_a_scan_lines_planes_are_not_tested_against_their_ends():
 def test_the_planes_consistency_with_segment_ends_counts_the_dof_the_ends_leave_it():
     """Three or four scan lines give their planes 2 rows each, which alone (6 rows, 6 unknowns) would fit the
     extrinsic exactly; with the segment ends fixing much of it, the planes' and corners' cost at the joint
-    estimate has more degrees of freedom than ``2 N - 6`` (``_Problem.edge_leverage``). Over 3 layouts x 30 noise
+    estimate has more degrees of freedom than ``2 N - 6`` (``plane_graph.PlaneProblem.edge_leverage``). Over 3 layouts x 30 noise
     draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of the mean dof
     counted (measured 0.72-0.92 per layout, 0.84 pooled), while the count without the ends' leverage is below
     the mean statistic by more than 1.3 times (measured 1.75); at most 3% of the draws reject at 1% (measured

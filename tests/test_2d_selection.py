@@ -13,7 +13,8 @@ from estimators.errors import DegenerateLayoutError
 from estimators.simulation.simulator import default_rig_2d, rig_2d, sample_board_poses, varied_rig_2d
 from estimators.solvers.minimal_solver import MIN_LINE_SIN, solve_three_boards
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.refinement import pooled_range_noise_m, refine
+from estimators.solvers.noise_levels import pooled_range_noise_m
+from estimators.solvers.refinement import refine
 from estimators.solvers.solution_selection import (MIN_MODE_MASS, SHARED_OPTIMUM_RATIO, _merge_by_joint_optimum,
                                                    laser_costs, marginal_laser_costs, multistart_candidates,
                                                    outline_costs, refine_candidates, select_minimal,

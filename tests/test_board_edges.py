@@ -12,7 +12,8 @@ from estimators.solvers.observation_model import (Layout, board_returns, cramer_
                                                   with_outline_error)
 from estimators.solvers.chi_square import isf as chi2_isf
 from estimators.solvers.outline_check import shift_fit
-from estimators.solvers.refinement import measurement_model_options, refine
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import measurement_model_options
 from geometry.board import BoardModel
 from geometry.rotations import T_exp, T_inverse, T_log
 
@@ -342,7 +343,7 @@ def test_a_measured_dataset_with_edges_has_their_bound_and_report(tmp_path):
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
 
-    from estimators.solvers.refinement import RefinementOptions
+    from estimators.solvers.refinement_options import RefinementOptions
 
     path = simulate_dataset(tmp_path / "sim", n_poses=5, seed=3, lidar="vlp16")
     ds = load_dataset(path)

@@ -13,7 +13,7 @@ from estimators.calibration import calibrate
 from estimators.errors import DatasetError
 from estimators.io.dataset import load_dataset
 from estimators.solvers.factors import corner_residuals_intrinsics
-from estimators.solvers.refinement import RefinementOptions
+from estimators.solvers.refinement_options import RefinementOptions
 from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, T_log
 

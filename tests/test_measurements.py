@@ -38,7 +38,7 @@ def test_camera_planes_match_truth_within_reported_uncertainty(sim_hdl64e, sim_v
     point of chi-square with 3 dof (16.27); the 16 together within the 0.1-99.9% points of chi-square with 48 dof
     (23.3-84.0), so that a covariance 2x too small in variance (a mean of 96) fails 69% of the time and one 2x too
     large (a mean of 24) 44%, a right one 0.2%."""
-    from estimators.solvers.refinement import CORNER_ERROR_CORRELATION
+    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
 
     total = 0.0
     for path in (sim_hdl64e, sim_vlp16):

@@ -9,7 +9,8 @@ from estimators.simulation.simulator import default_rig, sample_board_poses
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
 from estimators.solvers.posterior import PlaneLikelihood, Posterior, PosteriorOptions, run_ensemble, sample_posterior
-from estimators.solvers.refinement import measurement_model_options, refine
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import measurement_model_options
 
 from .numeric import likelihood_gradient, likelihood_hessian
 

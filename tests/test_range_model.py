@@ -17,7 +17,8 @@ from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
 from estimators.analysis.layout_analysis import OFFSET_TERMS
 from estimators.solvers.range_model import RangeTerms, frame_whitener, terms_for
-from estimators.solvers.refinement import measurement_model_options, refine
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import measurement_model_options
 from geometry.rotations import T_inverse, T_log
 
 from .numeric import likelihood_hessian
@@ -226,7 +227,7 @@ def test_with_range_terms_the_range_noise_excludes_the_structure_they_explain():
     a few mm of an edge carry part of the 5 cm term as error, about 6% of the noise here; the plane-only pooled
     value is at least 20% higher, so the check can fail), and without terms the former."""
     from estimators.simulation.range_bias import RangeBias
-    from estimators.solvers.refinement import pooled_range_noise_m
+    from estimators.solvers.noise_levels import pooled_range_noise_m
 
     rng = np.random.default_rng(12)
     rig = default_rig(rng, "vlp16", 0.02)

@@ -126,7 +126,7 @@ def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards
     """Refined without a prior: on the Ouster set they lower the boards' plane disagreement and are kept; on the
     VLP-16 set they do not (the planes' other errors pull them), and the result's first warning says to keep the
     given intrinsics."""
-    from estimators.solvers.refinement import RefinementOptions
+    from estimators.solvers.refinement_options import RefinementOptions
 
     options = RefinementOptions(refine_intrinsics=True)
     ds, camera, frames = ouster

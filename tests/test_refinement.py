@@ -22,7 +22,9 @@ from estimators.solvers.observation_model import (
     fisher_information,
     simulate_measurements,
 )
-from estimators.solvers.refinement import RefinementOptions, pooled_range_noise_m, refine
+from estimators.solvers.noise_levels import pooled_range_noise_m
+from estimators.solvers.refinement import refine
+from estimators.solvers.refinement_options import RefinementOptions
 from geometry.camera import CameraModel
 from geometry.planes import Plane, moment_matrix, sqrt_excess_moment
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, T_retract, random_rotation

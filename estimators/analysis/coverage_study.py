@@ -42,7 +42,7 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
     from ..io.dataset import load_dataset
     from ..simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
     from ..solvers.observation_model import Layout, simulate_measurements
-    from ..solvers.refinement import measurement_model_options
+    from ..solvers.refinement_options import measurement_model_options
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)

@@ -174,12 +174,13 @@ def run_trial(args: tuple) -> list[dict]:
     from geometry.rotations import T_inverse, T_log
 
     from ..calibration import solve
-    from ..pipeline.measurement import measure_frames
     from ..io.dataset import load_dataset
     from ..lidar.board_segmentation import SegmentationParams
+    from ..pipeline.measurement import measure_frames
     from ..simulation.simulator import default_rig, rig_2d, sample_layout, simulate_frames, write_dataset
     from ..solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements
-    from ..solvers.refinement import RefinementOptions, measurement_model_options, refine
+    from ..solvers.refinement import refine
+    from ..solvers.refinement_options import RefinementOptions, measurement_model_options
     from ..solvers.solution_selection import solution_distances
 
     spec, cell, k, seed, family, n, noise, corner = args

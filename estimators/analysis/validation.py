@@ -26,8 +26,8 @@ from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
 from ..solvers import chi_square as chi2
 from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
+from ..solvers.noise_levels import _plane_noise, frame_noise, pooled_range_noise_m
 from ..solvers.range_model import RangeTerms, frame_labels, frame_whiteners
-from ..solvers.refinement import _plane_noise, frame_noise, pooled_range_noise_m
 
 SIGNIFICANCE = 0.01
 

@@ -8,6 +8,7 @@ accuracy and normalisation flags; then the classic detector with sub-pixel refin
 from __future__ import annotations
 
 import multiprocessing
+
 import cv2
 import numpy as np
 

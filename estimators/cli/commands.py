@@ -73,10 +73,10 @@ def _calibrate_with(args, ds, figures) -> int:
     import numpy as np
 
     from ..calibration import calibrate, solve
-    from ..pipeline.result import write_calibration
     from ..errors import DatasetError
     from ..io.measurement_store import Measurements, load_measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
+    from ..pipeline.result import write_calibration
 
     if args.measurements:
         m = load_measurements(args.measurements)
@@ -185,11 +185,11 @@ def validate_command(args) -> int:
     import numpy as np
 
     from ..analysis.validation import score_frames, terms_from_json, verdict
-    from ..pipeline.measurement import measure_frames
     from ..errors import DatasetError
     from ..io.dataset import load_dataset
     from ..io.input_files import load_json
     from ..io.output import write_json_atomic
+    from ..pipeline.measurement import measure_frames
 
     cal_path = Path(args.calibration)
     if cal_path.is_dir():
@@ -426,8 +426,8 @@ def _demo_with(args, figures) -> int:
     import numpy as np
 
     from ..calibration import calibrate, import_sampler_ahead
-    from ..pipeline.result import write_calibration
     from ..io.dataset import load_dataset
+    from ..pipeline.result import write_calibration
     from ..simulation.simulator import simulate_dataset
 
     base = Path(args.out)

@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidarcam", description="Camera-LiDAR extrinsic calibration from planar boards.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -275,7 +274,7 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def refinement_options(args):
-    from ..solvers.refinement import RefinementOptions
+    from ..solvers.refinement_options import RefinementOptions
 
     return RefinementOptions(robust=args.robust, outliers=args.outliers, corner_noise_px=args.corner_noise_px,
                              range_noise_m=args.range_noise_m, range_model=args.range_model,

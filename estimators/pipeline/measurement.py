@@ -26,20 +26,17 @@ from ..camera.intrinsics import calibrate_intrinsics
 from ..errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
                       ImageReadError, MeasurementError, ScanReadError)
 from ..io.dataset import Dataset, load_dataset
-from ..io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
+from ..io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
 from ..io.pointcloud_io import read_scan_2d, read_sweep
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
-                                       choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
+                                        choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
 from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from ..lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
-from ..measurements import (BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board,
-                           observe_lidar_line)
+from ..measurements import BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board, observe_lidar_line
 from ..solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
 from ..solvers.closed_form import solve_closed_form
-
-
 
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation).

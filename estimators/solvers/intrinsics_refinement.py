@@ -27,7 +27,9 @@ from geometry.camera import CameraModel
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from .factors import corner_intrinsics_factor, plane_factor
-from .refinement import EXTRINSIC, Refinement, RefinementOptions, _Problem, board_key
+from .plane_graph import EXTRINSIC, PlaneProblem, board_key
+from .refinement import Refinement
+from .refinement_options import RefinementOptions
 
 INTRINSICS = gtsam.symbol("k", 0)
 
@@ -105,7 +107,7 @@ def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel
     """
     dropped = {f.name for f in ref.frames if f.dropped}
     used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
-    prob = _Problem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options)
+    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options)
     given = camera.params
     calibrated_here = camera.source.startswith("calibrated")
     prior_sd = None if calibrated_here or camera.param_std is None else np.asarray(camera.param_std, dtype=float)

@@ -46,8 +46,9 @@ from . import chi_square as chi2
 from .board_edges import outline_prior_sd
 from .factors import corner_residuals, lidar_plane, lidar_residual
 from .range_model import frame_whiteners
-from .refinement import (POSTERIOR_REFUSAL_FACTOR, Refinement, frame_noise, own_fit_residuals, pooled_range_noise_m,
-                         scan_refusal)
+from .noise_levels import frame_noise, own_fit_residuals, pooled_range_noise_m
+from .refinement import Refinement
+from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 
 LIKELIHOODS = ("gaussian", "student-t")
 
@@ -377,7 +378,7 @@ class PlaneLikelihood:
         self.range_scale = bool(self.scan.any())
         self.floors, self.floor_dof = floors, floor_dof
         # The board's edges, when used: their share of the log-posterior to second order about the MAP (their
-        # nuisances profiled out; ``refinement._edge_share``).
+        # nuisances profiled out; ``edges_in_graph.edges_information``).
         self.edge_H, self.edge_eta = ref.edge_share if ref.edge_share is not None else (None, None)
         # A 2D scan's segment ends: their own likelihood (``board_edges.end_loss``), not its quadratic, with the
         # dataset's outline sampled under its prior (the frames' outline shifts held at the MAP). An end hidden
@@ -516,7 +517,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
     sampled contributes its Laplace approximation (with a warning). A nearly degenerate problem at the MAP raises
     :class:`PosteriorSkippedError` with the reason (``unsampled_reason``) instead of sampling; a 2D MAP mode
     whose samples spread ``POSTERIOR_REFUSAL_FACTOR`` times as far as the refinement refuses
-    (:func:`refinement.scan_refusal`) raises :class:`DegenerateLayoutError`."""
+    (:func:`refusal.scan_refusal`) raises :class:`DegenerateLayoutError`."""
     cells = ModeCells([ref] + [r for r, _ in other_modes]) if other_modes else None
     main = _sample_mode(frames, board, camera, ref, rng, options, cells, 0)
     usable = [f for f in frames if f.usable]

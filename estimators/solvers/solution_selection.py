@@ -40,7 +40,9 @@ from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement, lidar_whitener
 from .closed_form import MIN_SCAN_NORMAL_SPREAD, describe_direction, normal_spread
 from .minimal_solver import solve_triples
-from .refinement import Refinement, RefinementOptions, pooled_range_noise_m
+from .noise_levels import pooled_range_noise_m
+from .refinement import Refinement
+from .refinement_options import RefinementOptions
 from .refinement import refine as refine_graph
 
 THETA0_RAD = np.deg2rad(2.0)

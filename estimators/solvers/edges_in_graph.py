@@ -1,0 +1,203 @@
+"""The boards' edges in the plane graph: the ends of each ring or scan segment on the board's outline as factors
+(``--edges``, a 2D scan's segment ends by default), their share of the information, the outline check and the
+edges' record.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from geometry.rotations import T_log
+
+from ..measurements import FrameMeasurement
+from . import chi_square as chi2
+from .board_edges import MAX_END_OFFSET_M, OUTLINE, crossings, edge_scatter, end_noise, shift_key
+from .outline_check import outline_check, outline_warnings
+from .plane_graph import EXTRINSIC, PlaneProblem, board_key, extrinsic_information
+
+
+def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray,
+                    boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
+    """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards``, those
+    within ``max_offset_m`` of their side (None when no frame has any)."""
+    from .range_model import frame_rings
+
+    # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
+    rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
+             for f, r in zip(frames, frame_rings(frames))]
+    noise = end_noise([(frames[i].lidar.points, rings[i]) for i in active if rings[i] is not None])
+    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
+                       max_offset_m, noise.position_sd_m)
+             if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
+    return edges if any(e is not None and e.size for e in edges) else None
+
+
+# Of the ring ends within half the board's smaller side of their sides under the planes' estimate, fewer than
+# this share within ``MAX_END_OFFSET_M``: the estimate is further off along the boards than the ends' cut (weakly
+# spread normals: boards facing the rig), and the ends are first fitted with the wide cut.
+MIN_CUT_SHARE = 0.5
+
+
+def _ends(edges: list | None) -> int:
+    return 0 if edges is None else sum(e.size for e in edges if e is not None)
+
+
+def _cut_ends(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list
+              ) -> tuple[list | None, list | None]:
+    """The ends under ``T`` within ``MAX_END_OFFSET_M`` of their sides, and those within half the board's smaller
+    side when the first are fewer than ``MIN_CUT_SHARE`` of them (else None): ``T`` is then further off along
+    the boards than the cut."""
+    edges = edge_crossings(prob, frames, active, T, boards)
+    wide = edge_crossings(prob, frames, active, T, boards, max_offset_m=0.5 * min(prob.board.extent))
+    return edges, (wide if _ends(edges) < MIN_CUT_SHARE * _ends(wide) else None)
+
+
+def add_edges(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
+               floor: float) -> tuple[np.ndarray, list]:
+    """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
+    their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
+    model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Where the planes' estimate
+    lies further from the outlines than the ends' cut (``MIN_CUT_SHARE``; 3D), the ends within half the board's
+    smaller side are fitted first and assigned again under that estimate. Returns ``T`` and ``boards``."""
+    edges, wide = _cut_ends(prob, frames, active, T, boards)
+    # A 2D scan's ends are in the graph from the first solve (assigned under the start), so its estimate fits
+    # them already; the wide cut is for 3D ends found after the planes' solve.
+    if wide is not None and not any(f.lidar.is_scan_line for f in frames):
+        start = prob.edge_tau, prob.edge_scale
+        prob.edges = wide
+        T_wide, b_wide = _solve_with_edges(prob, active, T, list(boards), floor)
+        edges = edge_crossings(prob, frames, active, T_wide, b_wide)
+        if edges is not None:  # the ends' scale and scatter are estimated again from the ends under the cut
+            T, boards = T_wide, b_wide
+            prob.edge_tau, prob.edge_scale = start
+    if edges is None:
+        if prob.edges is not None:  # ends assigned before, none under the estimate: planes alone
+            prob.edges = None
+            b = list(boards)
+            prob.solved = prob.solve(active, T, b, floor)[:2]
+            return prob.solved[1].atPose3(EXTRINSIC).matrix(), b
+        return T, boards
+    prob.edges = edges
+    return _solve_with_edges(prob, active, T, list(boards), floor)
+
+
+def _solve_with_edges(prob: PlaneProblem, active: list[int], T: np.ndarray, b: list, floor: float
+                      ) -> tuple[np.ndarray, list]:
+    """Solve with ``prob``'s ends, their scale and the boards' in-plane scatter estimated in turn."""
+    for _ in range(4):
+        prob.solved = prob.solve(active, T, b, floor)[:2]
+        T = prob.solved[1].atPose3(EXTRINSIC).matrix()
+        tau, scale = _edge_scatter(prob, active, T, b)
+        if abs(np.log(max(tau, 1e-4) / max(prob.edge_tau, 1e-4))) < 0.1 and abs(np.log(scale / prob.edge_scale)) < 0.05:
+            break
+        prob.edge_tau, prob.edge_scale = tau, scale
+    return T, b
+
+
+def _edge_scatter(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list) -> tuple[float, float]:
+    """The boards' in-plane scatter (m) and the ends' scale at the solve (``board_edges.edge_scatter``)."""
+    return edge_scatter([(T, boards[i], prob.edges[i]) for i in active if prob.has_edges(i)], prob.board,
+                        prob.outline, prob.edge_scale, prob.edge_tau)
+
+
+def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float, cov: np.ndarray,
+                  marginals: gtsam.Marginals, quasi_scale: float) -> tuple[dict, list[str]]:
+    """What the edges say, for calibration.json: the ends used, their scale and the boards' in-plane scatter,
+    the growth of the outline's sides, each frame's outline shift (board axes) and their mean in camera axes
+    against its 99% limit, and the planes-only estimate against this one (a Hausman test: their difference
+    against the difference of their covariances, which is the edges' share)."""
+    warnings = []
+    shift_keys = [(j, i) for j, i in enumerate(active) if prob.has_edges(i)]
+    keys = gtsam.KeyVector([OUTLINE] + [shift_key(j) for j, _ in shift_keys])
+    J = marginals.jointMarginalCovariance(keys).fullMatrix() * quasi_scale
+    outline_sd = np.sqrt(np.diag(J[:4, :4]))
+    # The mean shift in camera axes: each frame's board axes mapped by its board pose.
+    A = np.zeros((3, 2 * len(shift_keys)))
+    shifts, per_frame = [], []
+    for k, (j, i) in enumerate(shift_keys):
+        A[:, 2 * k:2 * k + 2] = boards[i][:3, :2] / len(shift_keys)
+        d = prob.shifts.get(i, np.zeros(2))
+        shifts.append(d)
+        sd = np.sqrt(np.diag(J[4 + 2 * k:6 + 2 * k, 4 + 2 * k:6 + 2 * k]))
+        per_frame.append({"frame": prob.frames[i].name, "ends": int(prob.edges[i].size),
+                          "shift_board_xy_m": d.tolist(), "shift_sd_m": sd.tolist()})
+    mean = A @ np.concatenate(shifts)
+    # The shifts are estimated random effects (each 0 +- the scatter a priori): under the model their estimates
+    # vary by the prior's covariance less the posterior's.
+    C = A @ (prob.edge_tau**2 * quasi_scale * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
+    d2, dof = chi2.mahalanobis(mean, C)
+    mean_p = float(chi2.sf(d2, dof)) if dof else 1.0
+    g, o = prob.outline[:2], prob.outline[2:]
+    # The planes alone, from this estimate, with the same noise model. Not for a 2D scan: its lines alone have
+    # up to 8 exact solutions for three boards (and several minima for a few more), so their refit from this
+    # estimate may land in another, and a difference between minima is no test of a bias (simulated 3-board
+    # layouts: p < 0.001 on 8 of 97 right answers).
+    cov_p = planes_check = None
+    if not any(prob.frames[i].lidar.is_scan_line for i in active):
+        planes = prob.variant(edges=False)
+        b = list(boards)
+        graph, result, _ = planes.solve(active, T, b, floor)
+        T_p = result.atPose3(EXTRINSIC).matrix()
+        try:
+            marginals_p = gtsam.Marginals(graph, result)
+            cov_p = marginals_p.marginalCovariance(EXTRINSIC)
+        except RuntimeError:  # the planes alone leave a direction unobservable: the edges fix it
+            cov_p = None
+    test = None
+    if cov_p is not None:
+        # The outline check of the planes alone too: with the edges in the graph, a pattern placed off where
+        # dataset.yaml says pulls the estimate along with the outline, and the shifts about it shrink.
+        planes_check, _ = check_outline(planes, active, T_p, b, marginals_p, quasi_scale, quasi_scale * cov_p)
+        if planes_check is not None:
+            warnings.extend(outline_warnings(planes_check, used=False, beside_edges=True))
+        delta = T_log(np.linalg.inv(T_p) @ T)
+        h2, h_dof = chi2.mahalanobis(delta, cov_p - cov)
+        h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
+        test = {"planes_only_T_camera_lidar": T_p.tolist(), "difference_tangent": delta.tolist(),
+                "d2": h2, "dof": h_dof, "p_value": h_p}
+        if h_dof and h_p < 0.01:
+            warnings.append(f"board edges: the planes alone and the planes with the edges differ by "
+                            f"{np.degrees(np.linalg.norm(delta[:3])):.2f} deg and "
+                            f"{1000 * np.linalg.norm(delta[3:]):.0f} mm, beyond what the edges' information "
+                            f"explains (d2 {h2:.1f} on {h_dof} dof, p = {h_p:.1g}): the boards' planes or their "
+                            "outlines carry a bias (range error with incidence, intrinsics, the board's real size); "
+                            "both estimates are in calibration.json")
+    record = {"used": True, "ends": int(sum(prob.edges[i].size for _, i in shift_keys)),
+              "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(), "growth_sd_m": outline_sd[:2].tolist(),
+              "outline_offset_m": o.tolist(), "outline_offset_sd_m": outline_sd[2:].tolist(), "frames": per_frame,
+              "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(),
+              "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
+              "planes_against_edges": test, "planes_only_check": planes_check}
+    return record, outline_warnings(record, used=True) + warnings
+
+
+def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,
+                   quasi_scale: float, cov: np.ndarray) -> tuple[dict | None, list[str]]:
+    """The board's edges as a check of this planes-only estimate (``solvers.outline_check``): each frame's ring
+    ends found under it, and its joint covariance with the board poses from the graph (scaled like ``cov``, the
+    extrinsic's block widened to ``cov`` where the range terms' or the intrinsics' propagation widened it). Where
+    the estimate lies further from the outlines than the ends' cut, the ends within half the board's side."""
+    edges, wide = _cut_ends(prob, prob.frames, active, T, boards)
+    edges = edges if wide is None else wide
+    if edges is None:
+        return None, []
+    used = [(j, i) for j, i in enumerate(active) if edges[i] is not None and edges[i].size]
+    keys = gtsam.KeyVector([EXTRINSIC] + [board_key(j) for j, _ in used])
+    joint = marginals.jointMarginalCovariance(keys).fullMatrix() * quasi_scale
+    ev, V = np.linalg.eigh(0.5 * (cov + cov.T) - joint[:6, :6])
+    joint[:6, :6] += (V * np.maximum(ev, 0.0)) @ V.T
+    return outline_check(T, [boards[i] for _, i in used], [edges[i] for _, i in used], prob.board,
+                         [prob.frames[i].name for _, i in used], joint)
+
+
+def edges_information(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float, quasi_scale: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """What the edges add to the extrinsic's log-posterior about this estimate, to second order: ``eta^T xi -
+    0.5 xi^T H xi`` in the tangent ``xi`` (the posterior's). ``H``: the information with the edges less that of
+    the planes alone, every other variable profiled out; ``eta``: minus the planes' pull at the estimate, which
+    the edges balance (the whole graph's is zero there). Scaled like the covariance by ``quasi_scale``."""
+    H_all, _ = extrinsic_information(prob.graph(active, floor), prob.values(active, T, boards), len(active))
+    planes = prob.variant(edges=False)
+    H_p, eta_p = extrinsic_information(planes.graph(active, floor), planes.values(active, T, boards), len(active))
+    ev, V = np.linalg.eigh(0.5 * (H_all - H_p + (H_all - H_p).T))
+    return (V * np.maximum(ev, 0.0)) @ V.T / quasi_scale, -eta_p / quasi_scale
