@@ -196,3 +196,18 @@ def test_no_import_cycle_between_modules():
         if node not in order:
             visit(node)
     assert len(graph) > 30 and not loops, loops
+
+
+def test_the_module_map_names_every_module_once():
+    """DEVELOPERS.md's module map has a line per module of ``geometry`` and ``estimators`` (``__main__`` and the
+    subpackages' ``__init__`` aside) and names no module that does not exist."""
+    import re
+
+    text = (ROOT / "DEVELOPERS.md").read_text()
+    listed = re.findall(r"^\| `((?:estimators|geometry)/[\w/]+\.py)` \|", text, flags=re.M)
+    assert len(listed) == len(set(listed)), sorted(p for p in listed if listed.count(p) > 1)
+    mapped_packages = ("cli", "estimators")  # packages whose __init__ holds code of its own
+    modules = {str(p.relative_to(ROOT)) for folder in ("estimators", "geometry") for p in sources(folder)
+               if p.name != "__main__.py" and (p.name != "__init__.py" or p.parent.name in mapped_packages)}
+    assert sorted(modules - set(listed)) == [], "modules missing from DEVELOPERS.md's module map"
+    assert sorted(set(listed) - modules) == [], "DEVELOPERS.md's module map names modules that do not exist"
