@@ -529,6 +529,41 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
                                    atol=1e-9)
 
 
+@pytest.mark.parametrize("given, named", [(["--robust", "cauchy"], "--robust is"),
+                                          (["--strict", "--split", "halves"], "--strict, --split are"),
+                                          (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
+def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
+    """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
+    (exit 2, nothing written), not silently ignored; the options a rig takes are not."""
+    from estimators.cli import main
+    from estimators.cli.commands import RIG_UNSUPPORTED
+
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(rig_folder), "--out", str(out), *given]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"{named} not taken by a rig folder" in err and str(rig_folder) in err, err
+    assert not out.exists()
+    assert "samples" not in RIG_UNSUPPORTED and "range_model" not in RIG_UNSUPPORTED and "edges" not in RIG_UNSUPPORTED
+
+
+def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
+    """layout and validate (and the pair's Python calibrate) on a rig folder: a one-line error saying it is a rig
+    folder and which commands take one, exit 2."""
+    from estimators import calibrate
+    from estimators.cli import main
+    from estimators.errors import DatasetError
+
+    (tmp_path / "calibration.json").write_text(json.dumps({
+        "T_camera_lidar": np.eye(4).tolist(), "covariance": (1e-4 * np.eye(6)).tolist(),
+        "noise": {"corner_noise_px": 0.2, "range_noise_m": 0.01}}))
+    for argv in (["layout", str(rig_folder)], ["validate", str(rig_folder), "--calibration", str(tmp_path)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "this is a rig folder" in err and "take a pair folder" in err, err
+    with pytest.raises(DatasetError, match="this is a rig folder"):
+        calibrate(rig_folder)
+
+
 def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path):
     out = tmp_path / "cal"
     run = subprocess.run([sys.executable, "-m", "estimators", "calibrate", str(rig_folder), "--out", str(out)],

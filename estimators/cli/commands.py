@@ -27,6 +27,7 @@ def _calibrate_rig(args) -> int:
     from ..io.rig_dataset import load_rig
     from ..rig_calibration import calibrate_rig, write_rig_calibration
 
+    _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
                            samples=args.samples, range_model=args.range_model, edges=bool(args.edges))
@@ -39,6 +40,29 @@ def _calibrate_rig(args) -> int:
         print(f"wrote {write_rig_report(result, args.out)}")
     print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
     return 0
+
+
+# The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
+# given with another value than the default, they are refused rather than ignored.
+RIG_UNSUPPORTED = {"init": "--init", "strict": "--strict", "refine": "--refine", "robust": "--robust",
+                   "outliers": "--outliers", "corner_noise_px": "--corner-noise-px", "range_noise_m": "--range-noise-m",
+                   "range_accuracy_m": "--range-accuracy", "likelihood": "--likelihood",
+                   "max_sensor_separation": "--max-sensor-separation", "initial_guess": "--initial-guess",
+                   "guess_tolerance": "--guess-tolerance", "roi": "--roi", "measurements": "--measurements",
+                   "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}
+
+
+def _refuse_what_a_rig_ignores(args) -> None:
+    """A one-line error naming the options given that a rig folder would ignore."""
+    from ..errors import LidarcamError
+    from .parser import build_parser
+
+    default = build_parser().parse_args(["calibrate", str(args.dataset), "--out", str(args.out)])
+    given = [flag for name, flag in RIG_UNSUPPORTED.items() if getattr(args, name) != getattr(default, name)]
+    if given:
+        raise LidarcamError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} not taken by a rig folder "
+                            "(sensors: in dataset.yaml) and would be ignored", path=args.dataset,
+                            hint="calibrate without it, or calibrate the camera-LiDAR pair from a pair folder")
 
 
 def _figure_process(args, report: bool):

@@ -109,6 +109,10 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     if not isinstance(spec, dict):
         raise DatasetError("expected a mapping with keys lidar, board, camera", path=ypath,
                            hint="see docs/reference/dataset.md")
+    if "sensors" in spec:
+        raise DatasetError("this is a rig folder (sensors: in dataset.yaml), where one camera-LiDAR pair's folder is "
+                           "expected", path=ypath, hint="lidarcam calibrate and estimators.load_rig take a rig "
+                           "folder; validate, layout and estimators.calibrate take a pair folder")
     lidar, family, accuracy = _parse_lidar(spec.get("lidar", "3d"), ypath)
     board = parse_board(spec.get("board"), ypath)
     camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
