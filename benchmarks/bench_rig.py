@@ -104,7 +104,7 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     the Cramer-Rao bound of the rig's measurement model for the views measured (``rig_graph.rig_bound``). A board
     numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise.
     ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values."""
-    from estimators.rig_calibration import pattern_flip
+    from estimators.pipeline.rig_measurement import pattern_flip
     from estimators.solvers.rig_graph import rig_bound
 
     sol = res.solution

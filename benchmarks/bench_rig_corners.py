@@ -6,7 +6,7 @@ the first camera's view) is calibrated from its folder (`rig_calibration.calibra
 camera and every board it saw: the error of its board pose (PnP on the detected corners) against the truth, and
 its squared Mahalanobis distance under the pose covariance at the noise the graph gives that board's corners
 (`CameraViews.sigma`: the board's own residual, shrunk towards the camera's pooled one, times
-`rig_calibration.BOARD_CORNER_FACTOR`), and, beside it, at one pooled noise per camera as the single pair has it
+`pipeline.rig_measurement.BOARD_CORNER_FACTOR`), and, beside it, at one pooled noise per camera as the single pair has it
 (the pooled residual times `refinement_options.CORNER_ERROR_CORRELATION`), in all 6 of the pose's
 numbers (6 ideal), in the 3 that fix the board's plane (rotation about the board's x and y, translation along
 its normal: what a LiDAR sees; 3 ideal) and in the 3 in the plane (3 ideal). For two cameras that saw the same
@@ -38,7 +38,8 @@ PLANE, IN_PLANE = [0, 1, 5], [2, 3, 4]
 
 def _one(args) -> dict:
     from estimators.io.rig_dataset import load_rig
-    from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip
+    from estimators.pipeline.rig_measurement import BOARD_CORNER_FACTOR, pattern_flip
+    from estimators.rig_calibration import calibrate_rig
     from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
     from estimators.simulation.rig_simulator import simulate_rig
     from estimators.solvers.factors import corner_residuals

@@ -53,7 +53,7 @@ _API = {
     "load_calibration": ("io.export", "load_calibration"),
     "load_rig": ("io.rig_dataset", "load_rig"),
     "calibrate_rig": ("rig_calibration", "calibrate_rig"),
-    "write_rig_calibration": ("rig_calibration", "write_rig_calibration"),
+    "write_rig_calibration": ("pipeline.rig_result", "write_rig_calibration"),
     "simulate_rig": ("simulation.rig_simulator", "simulate_rig"),
     "extract_rig_bag": ("io.rig_bag_extract", "extract_rig_bag"),
 }

@@ -161,7 +161,8 @@ def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16,
     import yaml
 
     from estimators.io.rig_dataset import load_rig
-    from estimators.rig_calibration import MAX_TERMS_DISPERSION, calibrate_rig
+    from estimators.pipeline.rig_terms import MAX_TERMS_DISPERSION
+    from estimators.rig_calibration import calibrate_rig
 
     ds, camera, frames = vlp16
     spec = yaml.safe_load((VLP16 / "dataset.yaml").read_text())

@@ -12,7 +12,9 @@ import pytest
 
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
-from estimators.rig_calibration import BOARD_CORNER_FACTOR, calibrate_rig, pattern_flip, range_model_words
+from estimators.pipeline.rig_measurement import BOARD_CORNER_FACTOR, pattern_flip
+from estimators.pipeline.rig_result import range_model_words
+from estimators.rig_calibration import calibrate_rig
 from estimators.simulation.range_bias import RangeBias
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
@@ -619,7 +621,7 @@ def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
 
     from estimators.errors import LidarcamError
     from estimators.io.export import export_calibration
-    from estimators.rig_calibration import write_rig_calibration
+    from estimators.pipeline.rig_result import write_rig_calibration
     from geometry.rotations import R_from_quat_xyzw
 
     path = write_rig_calibration(rig_result, tmp_path)

@@ -56,7 +56,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
              f"{html.escape(sol.reference)}; {how}.</p>"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
-    from ..rig_calibration import range_model_words
+    from ..pipeline.rig_result import range_model_words
 
     rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
              f"{sol.noise_scale.get(s.name, 1.0):.2f}",

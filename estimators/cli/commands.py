@@ -25,7 +25,8 @@ def _calibrate_rig(args) -> int:
     import numpy as np
 
     from ..io.rig_dataset import load_rig
-    from ..rig_calibration import calibrate_rig, write_rig_calibration
+    from ..pipeline.rig_result import write_rig_calibration
+    from ..rig_calibration import calibrate_rig
 
     _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)

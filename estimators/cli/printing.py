@@ -138,7 +138,7 @@ def _print_range_model(fit) -> None:
 def print_rig(result) -> None:
     import numpy as np
 
-    from ..rig_calibration import range_model_words
+    from ..pipeline.rig_result import range_model_words
     from ..solvers.outline_check import outline_shift_words
     from ..solvers.rig_graph import translation_sd_in_first
 

@@ -1,0 +1,123 @@
+"""A rig's board edges: every LiDAR's ring or segment ends in the joint graph (``--edges``), or each 3D
+camera-LiDAR pair's outline check under the joint estimate.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import LidarcamError
+from ..io.rig_dataset import RigDataset
+from ..solvers.board_edges import crossings, edge_scatter
+from ..solvers.outline_check import outline_check
+from ..solvers.range_model import frame_rings
+from ..solvers.rig_graph import RigSolution, outline_key, pair_board_covariance, solve_rig
+from .rig_measurement import Framed
+
+
+def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool
+                ) -> tuple[list, RigSolution, dict]:
+    """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
+    (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
+    the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
+    per LiDAR (its sides' growth and the pattern's offset, under their priors); the scatter and the ends' scale
+    estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
+    Returns the views, the solution and per LiDAR its record (ends, scale, scatter, outline)."""
+    views = []
+    for lv in lidar_views:
+        obs = lidar_obs[lv.name]
+        T_l = solution.T_ref[lv.name]
+        stems = [st for st in lv.W if st in solution.T_ref_board]
+        ends = _lidar_ends([obs[st] for st in stems],
+                           [np.linalg.inv(solution.T_ref_board[st]) @ T_l for st in stems], rig.board)
+        found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
+        views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
+    if not any(v.edges for v in views):
+        return lidar_views, solution, {}
+    planes = solution
+    for _ in range(4):
+        try:
+            solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
+        except LidarcamError:
+            return lidar_views, planes, {}
+        settled, new = True, []
+        for lv in views:
+            if not lv.edges:
+                new.append(lv)
+                continue
+            k = names.index(lv.name)
+            outline = solution.vectors[outline_key(k)]
+            T_l = solution.T_ref[lv.name]
+            frames = [(np.eye(4), np.linalg.inv(T_l) @ solution.T_ref_board[st], e) for st, e in lv.edges.items()]
+            tau, scale = edge_scatter(frames, rig.board, outline, lv.edge_scale, lv.edge_tau_m)
+            settled &= (abs(np.log(max(tau, 1e-4) / max(lv.edge_tau_m, 1e-4))) < 0.1
+                        and abs(np.log(scale / lv.edge_scale)) < 0.05)
+            new.append(replace(lv, edge_tau_m=tau, edge_scale=scale))
+        views = new
+        if settled:
+            break
+    records = {}
+    for lv in views:
+        if lv.edges:
+            outline = solution.vectors[outline_key(names.index(lv.name))]
+            records[lv.name] = {"used": True, "frames": len(lv.edges), "ends": int(sum(e.size for e in lv.edges.values())),
+                                "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
+                                "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist()}
+    return views, solution, records
+
+
+def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
+    """Each LiDAR board observation's ring ends on the board's outline (a scan line's two segment ends; rings from
+    the scan's field or clustered over these observations, ``range_model.frame_rings``), sides assigned under its
+    ``T_board_lidar``; None where the rings are unknown."""
+    if not observations:
+        return []
+    rings = frame_rings([Framed(o) for o in observations])
+    return [crossings(o.points, np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r, T, board)
+            if o.is_scan_line or r is not None else None for o, r, T in zip(observations, rings, T_board_lidar)]
+
+
+def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
+                    pair_frames: dict, warnings: list) -> dict:
+    """Each camera-LiDAR pair's board-edges check under the joint estimate (``solvers.outline_check``, as every
+    single 3D pair's result has): the ring ends of the LiDAR's boards against the outline the camera places, each
+    frame's shift and their mean against its 99% limit, with the joint covariance of the pair's transform and
+    its board poses from the graph. 3D LiDARs with ``board.size`` given; a pair whose frames show no ring ends
+    has none. Warnings (prefixed with the pair) are added to ``warnings``."""
+    if not rig.board.size_known:
+        return {}
+    scan = {lv.name: lv.scan_line or bool(lv.edges) for lv in lidar_views}  # with the edges used: not a check
+    seen = {cv.name: set(cv.corners_px) for cv in camera_views}
+    jobs, found = [], {}  # a LiDAR's ends in a frame are the same with every camera (T_board_lidar is the rig's)
+    for (cam, lid), frames in (pair_frames or {}).items():
+        if scan.get(lid, True) or cam not in seen:
+            continue
+        frames = [f for f in frames if f.name in seen[cam] and f.name in solution.T_ref_board]
+        T_cl = solution.transform(cam, lid)[0]
+        T_c = solution.T_ref[cam]
+        boards = [np.linalg.inv(T_c) @ solution.T_ref_board[f.name] for f in frames]
+        new = [(f, B) for f, B in zip(frames, boards) if (lid, f.name) not in found]
+        ends = _lidar_ends([f.lidar for f, _ in new], [np.linalg.inv(B) @ T_cl for _, B in new], rig.board)
+        found.update({(lid, f.name): e for (f, _), e in zip(new, ends)})
+        edges = [found[(lid, f.name)] for f in frames]
+        used = [j for j, e in enumerate(edges) if e is not None and e.size]
+        if used:
+            jobs.append((cam, lid, T_cl, [frames[j].name for j in used], [boards[j] for j in used],
+                         [edges[j] for j in used]))
+    if not jobs:
+        return {}
+    try:
+        covs = pair_board_covariance(names, rig.reference, camera_views, lidar_views, solution,
+                                     [(cam, lid, stems) for cam, lid, _, stems, _, _ in jobs])
+    except (RuntimeError, np.linalg.LinAlgError) as exc:
+        warnings.append(f"board edges: the joint estimate is not checked by them (its covariance with the board "
+                        f"poses could not be formed: {exc})")
+        return {}
+    out = {}
+    for (cam, lid, T_cl, stems, boards, edges), cov in zip(jobs, covs):
+        record, found = outline_check(T_cl, boards, edges, rig.board, stems, cov)
+        out[(cam, lid)] = record
+        warnings.extend(f"{cam}-{lid}: {w}" for w in found)
+    return out

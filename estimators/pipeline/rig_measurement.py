@@ -1,0 +1,197 @@
+"""A rig's measurements: each camera's boards (corners at each board's own residual, the pattern's numbering
+aligned across cameras), each LiDAR's board found once with the first camera sharing the frame, and the start of
+every pose along the links that share the most frames.
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import T_log
+
+from ..camera.board_pose import estimate_board_pose
+from ..camera.detection import CornerDetection
+from ..camera.intrinsics import calibrate_intrinsics
+from ..errors import DegenerateLayoutError, LidarcamError
+from ..io.dataset import FrameFiles
+from ..io.rig_dataset import Sensor
+from ..measurements import FrameMeasurement
+from ..pipeline.measurement import detect_in_image, measure_frames
+from ..solvers.noise_levels import board_corner_residuals_px
+from ..solvers.rig_graph import CameraViews
+
+# Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
+MIN_PAIR_FRAMES = 3
+# A rig camera's board pose error over what its corners' own residual (each board's, ``camera_views_of``) predicts:
+# measured by `make bench` (bench_rig_corners.py, 10 six-camera rigs, 702 boards: at 1.0, d2 mean 5.54 and median
+# 4.48 (chi-square 5.35), 1.7% beyond the 99% point; one pooled residual per camera times 1.28, the single pair's
+# model, gives mean 3.68 and median 2.23 with 2.6% beyond). The single pair keeps its pooled residual and
+# ``refinement_options.CORNER_ERROR_CORRELATION``.
+BOARD_CORNER_FACTOR = 1.0
+
+
+def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str], dict]:
+    """One camera's board poses by stem, the frames skipped with their reasons, its intrinsics (calibrated from
+    its frames when the rig's dataset.yaml gives none) and its images' corners by stem (for the pairs)."""
+    warnings: list[str] = []
+    frames = [FrameFiles(stem, path, path) for stem, path in sensor.files]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        detections = list(pool.map(lambda f: detect_in_image(f, board, {}), frames))
+    camera = sensor.camera
+    if camera is None:
+        found = [d for _, d in detections if isinstance(d, CornerDetection)]
+        sizes = {s for s, _ in detections if s is not None}
+        if len(sizes) != 1 or len(found) < 3:
+            raise DegenerateLayoutError(f"camera {sensor.name}: intrinsics cannot be calibrated from "
+                                        f"{len(found)} board view(s) of {len(sizes)} image size(s)",
+                                        hint=f"give K, width and height for {sensor.name} in dataset.yaml, or more "
+                                             "frames")
+        camera, _ = calibrate_intrinsics([d.corners_px for d in found], board, *sizes.pop(),
+                                         corner_ids=[d.corner_ids for d in found])
+        warnings.append(f"camera {sensor.name}: no intrinsics in dataset.yaml: {camera.source}")
+    poses, skipped = {}, {}
+    for f, (size, det) in zip(frames, detections):
+        if isinstance(det, str):
+            skipped[f.name] = det
+        elif det is None:
+            skipped[f.name] = "board not found in the image"
+        elif size != (camera.width, camera.height):
+            skipped[f.name] = f"image is {size[0]}x{size[1]} but the camera is {camera.width}x{camera.height}"
+        else:
+            try:
+                poses[f.name] = estimate_board_pose(det, board, camera)
+            except LidarcamError as exc:
+                skipped[f.name] = f"board pose: {exc.message}"
+    return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}
+
+
+def camera_views_of(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
+    """The camera's corners for the graph, each board's with its own pixel noise (its per-axis PnP residual,
+    shrunk towards the camera's pooled one: ``noise_levels.board_corner_residuals_px``) times
+    ``BOARD_CORNER_FACTOR``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
+    asks)."""
+    stems = list(poses)
+    pooled, per_board = board_corner_residuals_px(((poses[s].T_camera_board, poses[s].corners_board(board),
+                                                    poses[s].corners_px) for s in stems), camera)
+    return CameraViews(name, camera, max(pooled, 1e-3) * BOARD_CORNER_FACTOR,
+                       {s: poses[s].corners_board(board) for s in stems}, {s: poses[s].corners_px for s in stems},
+                       {s: poses[s].T_camera_board for s in stems},
+                       {s: max(v, 1e-3) * BOARD_CORNER_FACTOR for s, v in zip(stems, per_board)})
+
+
+def pattern_flip(board) -> np.ndarray | None:
+    """The board-frame transform that turns a checkerboard's pattern by 180 degrees about its centre, when the
+    pattern looks the same turned (an even sum of squares: the detector may then number its corners from
+    either end, each camera on its own); None for a ChArUco board (its ids fix the numbering) or an asymmetric
+    pattern. A pose found with the corners numbered from the other end is ``T_camera_board @ flip``."""
+    if board.is_charuco or sum(board.squares) % 2:
+        return None
+    c = board.inner_corners().mean(axis=0)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    flip[:2, 3] = 2 * c[:2]
+    return flip
+
+
+def _flipped(obs, flip: np.ndarray):
+    """The camera's observation with its corners numbered from the other end (:func:`pattern_flip`)."""
+    return replace(obs, corners_px=obs.corners_px[::-1].copy(), T_camera_board=obs.T_camera_board @ flip)
+
+
+def align_numbering(cams: list[str], poses: dict, T_ref: dict, flip: np.ndarray) -> dict:
+    """Each frame's boards numbered alike in every camera: as the first camera (in the rig's order) that saw the
+    frame numbers it, each other camera's numbering the one whose pose lies nearer to where the start
+    (``T_ref``, composed of numbering-free links: a LiDAR's plane, or the consensus of two cameras' frames) puts
+    that board."""
+    out = {c: dict(poses[c]) for c in cams}
+    first: dict = {}
+    for c in cams:
+        for st in out[c]:
+            first.setdefault(st, c)
+    for c in cams:
+        for st, obs in out[c].items():
+            if first[st] == c:
+                continue
+            c0 = first[st]
+            predicted = np.linalg.inv(T_ref[c]) @ T_ref[c0] @ out[c0][st].T_camera_board
+            angle = [np.linalg.norm(T_log(np.linalg.inv(predicted) @ T)[:3])
+                     for T in (obs.T_camera_board, obs.T_camera_board @ flip)]
+            if angle[1] < angle[0]:
+                out[c][st] = _flipped(obs, flip)
+    return out
+
+
+def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
+    """The relative pose most frames agree with (within 2 degrees and 5 cm), each frame giving its candidates
+    (one per numbering of the board), and its candidate nearest that."""
+    def close(A, B):
+        xi = T_log(np.linalg.inv(A) @ B)
+        return np.linalg.norm(xi[:3]) < np.deg2rad(2.0) and np.linalg.norm(xi[3:]) < 0.05
+
+    hyps = [T for cands in rels for T in cands]
+    return max(hyps, key=lambda H: (sum(any(close(H, T) for T in cands) for cands in rels),
+                                    -sum(min(np.linalg.norm(T_log(np.linalg.inv(H) @ T)) for T in cands)
+                                         for cands in rels)))
+
+
+def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
+                 workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
+    """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
+    it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
+    frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
+    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found."""
+    new = [st for st in stems if st not in measured]
+    now = {}
+    if new:
+        keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
+        _, frames, w = measure_frames(replace(ds, frames=tuple(f for f in ds.frames if f.name in keep)), rng,
+                                      workers=workers, detections=found, board_poses=poses)
+        warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
+        now = {f.name: f for f in frames}
+        for f in frames:
+            if f.camera is not None:  # the LiDAR side was tried (it needs the camera's board)
+                measured.setdefault(f.name, (camera_name, f))
+    out = []
+    for st in stems:
+        if st in now:
+            out.append(now[st])
+        elif st in measured and st in poses:
+            f = measured[st][1]
+            out.append(FrameMeasurement(st, poses[st], f.lidar, None if f.lidar is not None else f.reason))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Framed:
+    """A LiDAR observation in the shape ``pooled_range_noise_m`` reads (``frame.lidar``)."""
+
+    lidar: object
+
+
+def start_poses(names, reference, parent, poses, pairwise, flip) -> dict:
+    """Each sensor's starting pose in the reference's frame, composed along the tree from the reference."""
+    T_ref = {reference: np.eye(4)}
+    pending = [n for n in names if n != reference]
+    while pending:
+        for n in list(pending):
+            p = parent[n]
+            if p not in T_ref:
+                continue
+            T_ref[n] = T_ref[p] @ _relative(p, n, poses, pairwise, flip)
+            pending.remove(n)
+    return T_ref
+
+
+def _relative(a: str, b: str, poses, pairwise, flip) -> np.ndarray:
+    """``T_a_b`` from the pairwise solution (camera-LiDAR) or the shared boards' consensus (camera-camera; both
+    numberings of a board that looks the same turned, ``flip``)."""
+    if (a, b) in pairwise:
+        return pairwise[(a, b)][0]
+    if (b, a) in pairwise:
+        return np.linalg.inv(pairwise[(b, a)][0])
+    shared = [st for st in poses[a] if st in poses[b]]
+    flips = [np.eye(4)] if flip is None else [np.eye(4), flip]
+    return _consensus_relative([[poses[a][st].T_camera_board @ np.linalg.inv(poses[b][st].T_camera_board @ F)
+                                 for F in flips] for st in shared])

@@ -1,0 +1,187 @@
+"""A rig's result: the record (``RigResult``), the words for a LiDAR's range terms, and the rig's
+calibration.json.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..io.output import write_json_atomic, write_npz_atomic
+from ..io.rig_dataset import RigDataset
+from ..solvers.closed_form import describe_direction
+from ..solvers.rig_graph import RigSolution, translation_sd_in_first
+from ..solvers.rig_posterior import RigPosterior
+from .rig_measurement import MIN_PAIR_FRAMES
+
+# A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
+# (``rig_graph.solve_rig``); the warning that its factors disagree beyond their noise is given when its chi-square
+# is beyond this tail probability.
+NOISE_WARNING_P = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class RigResult:
+    """A rig's calibration: the joint solution, each camera's intrinsics, the pairwise-only estimates of the
+    camera-LiDAR pairs (``(camera, lidar) -> (T, covariance, frames)``), the frames each sensor contributed,
+    the frames skipped with their reasons (``sensor -> {stem: reason}``) and the warnings."""
+
+    rig: RigDataset
+    solution: RigSolution
+    cameras: dict
+    pairwise: dict
+    frames_used: dict
+    skipped: dict
+    warnings: tuple[str, ...]
+    timings_s: dict
+    # Each camera-LiDAR pair's measured frames (``(camera, lidar) -> [FrameMeasurement]``), for the report.
+    pair_frames: dict | None = None
+    # The frames each pair of sensors shares where both found the board (``(a, b) -> count``; a camera-LiDAR
+    # pair's usable frames, a camera pair's frames both saw).
+    links: dict | None = None
+    # The rig's posterior (``solvers.rig_posterior``) when sampled, and the views the graph was solved from.
+    posterior: RigPosterior | None = None
+    camera_views: tuple = ()
+    lidar_views: tuple = ()
+    # The board pose that most helps the weakest camera-LiDAR pair (``analysis.rig_layout``), with that pair's
+    # predicted standard deviations before and after it; None when none was computed or none is feasible.
+    next_pose: dict | None = None
+    # Each LiDAR's range model: ``model`` (``none``, ``offset``, ``per-ring``, ``offset+dark`` or ``full``),
+    # ``prior_sd_m``, the tests under ``auto``, and with terms each one's estimate (:func:`choose_range_models`).
+    range_models: dict = field(default_factory=dict)
+    # Each 3D camera-LiDAR pair's board-edges check under the joint estimate (``(camera, lidar) -> record``, as a
+    # single pair's ``board_edges``; :func:`pairs_outline_checks`).
+    outline_checks: dict = field(default_factory=dict)
+    # With ``--edges``: each LiDAR's board-edges record (:func:`with_edges`).
+    edges: dict = field(default_factory=dict)
+
+    def layout(self) -> dict:
+        """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
+        joint graph's) and the direction (camera axes) and advice for it (``closed_form.describe_direction``),
+        the weakest pair, and the sensor pairs that share some frames but fewer than ``MIN_PAIR_FRAMES`` (a
+        camera-LiDAR pair is then not solved alone; two cameras rest on one or two boards)."""
+        pairs = {}
+        for c in self.rig.cameras:
+            for lid in self.rig.lidars:
+                T, C = self.solution.transform(c.name, lid.name)
+                ev, V = np.linalg.eigh(C[3:, 3:])
+                weak = T[:3, :3] @ V[:, -1]  # along the LiDAR's axes, into the camera's
+                axis, advice = describe_direction(weak)
+                pairs[f"T_{c.name}_{lid.name}"] = {"max_translation_sd_mm": float(1000 * np.sqrt(max(ev[-1], 0.0))),
+                                                   "weakest_direction_camera": weak.tolist(), "axis": axis,
+                                                   "advice": advice}
+        weakest = max(pairs, key=lambda k: pairs[k]["max_translation_sd_mm"]) if pairs else None
+        few = {f"{a}-{b}": n for (a, b), n in (self.links or {}).items() if 0 < n < MIN_PAIR_FRAMES}
+        return {"pairs": pairs, "weakest_pair": weakest, "links_with_few_frames": few, "next_pose": self.next_pose}
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every camera-LiDAR pair, every camera-camera and every LiDAR-LiDAR pair (earlier sensor first), in
+        sensor order."""
+        cams, lidars = [s.name for s in self.rig.cameras], [s.name for s in self.rig.lidars]
+        out = [(c, lid) for c in cams for lid in lidars]
+        out += [(a, b) for i, a in enumerate(cams) for b in cams[i + 1:]]
+        out += [(a, b) for i, a in enumerate(lidars) for b in lidars[i + 1:]]
+        return out
+
+    def to_json(self) -> dict:
+        sol, ref = self.solution, self.rig.reference
+
+        def entry(T, cov) -> dict:
+            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": np.degrees(sd[:3]).tolist(),
+                    "std_translation_mm": (1000 * sd[3:]).tolist(),
+                    "std_translation_of_t_mm": (1000 * translation_sd_in_first(T, cov)).tolist()}
+
+        sensors = []
+        for s in self.rig.sensors:
+            e = entry(sol.T_ref[s.name], sol.covariance(s.name))
+            sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
+                            "frames_used": len(self.frames_used.get(s.name, ())),
+                            "noise_scale": sol.noise_scale.get(s.name, 1.0)})
+            if s.name in self.edges:
+                sensors[-1]["board_edges"] = self.edges[s.name]
+            if s.name in self.range_models:
+                record = sensors[-1]["range_model"] = copy.deepcopy(self.range_models[s.name])
+                if self.posterior is not None and s.name in self.posterior.range_terms:
+                    q = np.percentile(self.posterior.range_terms[s.name], [2.5, 97.5], axis=0)
+                    record["posterior_95%_m"] = q[:, 0].tolist()
+                    for k, term in enumerate(record["terms"].values()):
+                        term["posterior_95%_m"] = q[:, k].tolist()
+        transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
+        for (a, b), record in self.outline_checks.items():
+            transforms[f"T_{a}_{b}"]["board_edges"] = record
+        posterior = None
+        if self.posterior is not None:
+            for a, b in self.pairs():
+                transforms[f"T_{a}_{b}"]["posterior"] = self.posterior.pair_summary(a, b)
+            posterior = {**self.posterior.diagnostics(), "covariance_joint": self.posterior.covariance_joint.tolist(),
+                         "file": "posterior.npz"}
+        pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}
+        cameras = {n: {"model": m.model, "width": m.width, "height": m.height, "K": m.K.tolist(),
+                       "dist": m.dist.tolist(), "source": m.source} for n, m in self.cameras.items()}
+        for n, (p, sd) in (sol.intrinsics or {}).items():
+            refined = self.cameras[n].with_params(p)
+            cameras[n].update({"given_params": self.cameras[n].params.tolist(), "refined_params": p.tolist(),
+                               "refined_params_sd": sd.tolist(), "K": refined.K.tolist(),
+                               "dist": refined.dist.tolist(), "source": "refined with the rig"})
+        return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms, "layout": self.layout(),
+                "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
+                "pairwise_only": pairwise, "cameras": cameras,
+                "frames_used": {n: list(v) for n, v in self.frames_used.items()},
+                "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
+                "version": __version__,
+                "convention": "T_a_b maps points from b's frame into a's: p_a = R p_b + t. Covariances are 6x6 in "
+                              "GTSAM's Pose3 right tangent, T_true = T_hat * Exp(xi), xi = [rot; trans]; "
+                              "covariance_joint holds every sensor's T_<reference>_<sensor> in the order of "
+                              "sensors (the reference's block is zero)."}
+
+
+def range_model_words(record: dict) -> str:
+    """A LiDAR's range model in words (:func:`choose_range_models`' record)."""
+    tests = list(record.get("tests", ()))
+    said = ", ".join(f"{t['model']} p = {t['p_value']:.2g}" for t in tests)
+    how = f"tests at {record['test_p']:g}: {said}" if tests else "requested"
+    how += "".join(f"; {n['model']} terms not tested: with them the planes still disagree with the rig's boards "
+                   f"{n['variance_factor']:.1f}x beyond their noise in variance, board-to-board structure the rig's "
+                   "graph does not model (a camera-LiDAR pair calibrated alone has its per-board plane error)"
+                   for n in record.get("inconsistent", ()))
+    terms = record.get("terms") or {}
+    if not terms:
+        return f"no range terms ({how})" if tests else "no range terms (--range-model none)"
+    parts = [f"range offset {1000 * terms['offset']['value_m']:+.1f} +- {1000 * terms['offset']['sd_m']:.1f} mm"]
+    rings = [v["value_m"] for n, v in terms.items() if n.startswith("ring ")]
+    if rings:
+        parts.append(f"{len(rings)} ring offsets, spread (sd) {1000 * float(np.std(rings)):.1f} mm")
+    if "dark" in terms:
+        parts.append(f"black squares {1000 * terms['dark']['value_m']:+.1f} +- {1000 * terms['dark']['sd_m']:.1f} mm")
+    return "; ".join(parts) + f" ({how}; prior sd {1000 * record['prior_sd_m']:.0f} mm)"
+
+
+def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
+    """Write a rig's ``calibration.json`` atomically.
+
+    Parameters
+    ----------
+    result : RigResult
+        From :func:`calibrate_rig`.
+    out : str or Path
+        The output folder (created when absent).
+
+    Returns
+    -------
+    Path
+        The file written (docs/reference/calibration_json.md, rigs); with a posterior, ``posterior.npz`` beside it
+        first (``xi``: the samples of every sensor's pose, ``names``, ``T_ref``: the MAP poses in that order).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    post = result.posterior
+    if post is not None:
+        write_npz_atomic(out / "posterior.npz", xi=post.xi, names=np.array(post.names),
+                         T_ref=np.array([post.T_ref[n] for n in post.names]), reference=np.array(post.reference))
+    path = out / "calibration.json"
+    write_json_atomic(path, result.to_json())
+    return path
