@@ -3,8 +3,8 @@ solve jointly (``solvers.rig_graph``), and write every pair's transform with its
 
 Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
 its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
-sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it (``pipeline.measurement.measure_frames`` on that
-pair) and paired with every other camera's board pose of the frame. Each such camera-LiDAR pair is
+sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it
+(``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board pose of the frame. Each such camera-LiDAR pair is
 also solved alone (planes, no range terms and no segment ends: the joint graph's model), which starts the joint graph
 and is reported beside it ("pairwise only"). Two cameras are linked by every frame both saw.
 """
@@ -100,7 +100,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             if len(stems) < MIN_PAIR_FRAMES:
                 continue
             frames = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name, lid.name, stems,
-                                  poses[cam.name], measured, rng, workers, found[cam.name], warnings)
+                                         poses[cam.name], measured, rng, workers, found[cam.name], warnings)
             usable = [f for f in frames if f.usable]
             for f in frames:
                 if not f.usable and f.name not in lidar_obs[lid.name]:
@@ -147,7 +147,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     range_models: dict = {}
     if range_model != "none" and lidar_views:
         lidar_views, range_models = choose_range_models(rig, names, camera_views, lidar_views, lidar_obs, pair_frames,
-                                                  solution, range_model)
+                                                        solution, range_model)
         if any(lv.has_terms for lv in lidar_views):
             solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                  refine_intrinsics)
@@ -167,7 +167,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         warnings.append("--edges: the board's size is not in dataset.yaml (board.size): planes alone")
     elif edges:
         lidar_views, solution, edge_records = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution,
-                                                          T_ref, T_ref_board, refine_intrinsics)
+                                                         T_ref, T_ref_board, refine_intrinsics)
         if not edge_records:
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")

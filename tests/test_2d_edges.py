@@ -248,8 +248,8 @@ def test_a_scan_lines_planes_are_not_tested_against_their_ends():
 def test_the_planes_consistency_with_segment_ends_counts_the_dof_the_ends_leave_it():
     """Three or four scan lines give their planes 2 rows each, which alone (6 rows, 6 unknowns) would fit the
     extrinsic exactly; with the segment ends fixing much of it, the planes' and corners' cost at the joint
-    estimate has more degrees of freedom than ``2 N - 6`` (``plane_graph.PlaneProblem.edge_leverage``). Over 3 layouts x 30 noise
-    draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of the mean dof
+    estimate has more degrees of freedom than ``2 N - 6`` (``plane_graph.PlaneProblem.edge_leverage``). Over 3
+    layouts x 30 noise draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of the mean dof
     counted (measured 0.72-0.92 per layout, 0.84 pooled), while the count without the ends' leverage is below
     the mean statistic by more than 1.3 times (measured 1.75); at most 3% of the draws reject at 1% (measured
     none). That test adds a plane error: counted on 1 dof, bench_2d_honesty's mounted seed 2103088077 was

@@ -19,7 +19,8 @@ from estimators.simulation.range_bias import RangeBias
 from estimators.simulation.rig_simulator import simulate_rig
 from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.factors import corner_residuals
-from estimators.solvers.noise_levels import BOARD_NOISE_PRIOR_DOF, board_corner_residuals_px, corner_residual_px, pooled_corner_residual_px
+from estimators.solvers.noise_levels import (BOARD_NOISE_PRIOR_DOF, board_corner_residuals_px, corner_residual_px,
+                                             pooled_corner_residual_px)
 from estimators.solvers.rig_graph import (_graph, _values, change_reference, graph_reference, pair_transform, redundancy,
                                          rig_bound, rig_corner_factor, spanning_tree)
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior

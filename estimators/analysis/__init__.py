@@ -4,5 +4,6 @@ solver-comparison studies (``study``), uncertainty coverage studies (``coverage_
 leaves a notebook's plotting state alone.
 
 May import everything below the CLI: ``geometry``, ``io``, ``camera``, ``lidar``, ``solvers``, ``simulation``,
-the pipeline (``estimators.calibration`` and its stages, ``estimators.pipeline``) and the top-level records; never the CLI.
+the pipelines (``estimators.calibration``, ``estimators.rig_calibration`` and their stages, ``estimators.pipeline``)
+and the top-level records; never the CLI.
 """

@@ -63,7 +63,7 @@ _PYRAMID_ATTEMPTS = (
 
 
 def detect_chessboard(gray: np.ndarray, board: BoardModel, budget_s: float | None = CLASSIC_BUDGET_S
-                   ) -> CornerDetection | None:
+                      ) -> CornerDetection | None:
     """Inner corners of the checkerboard ``board`` in an 8-bit greyscale image, or None when no setting finds
     them all.
 

@@ -120,8 +120,8 @@ def _calibrate_with(args, ds, figures) -> int:
                        on_refined=_draw_ahead(figures))
     else:
         result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
-                           SegmentationParams(max_sensor_separation_m=args.max_sensor_separation), refinement_options(args),
-                           posterior_options(args), hints=hints(args), cache=not args.no_cache,
+                           SegmentationParams(max_sensor_separation_m=args.max_sensor_separation),
+                           refinement_options(args), posterior_options(args), hints=hints(args), cache=not args.no_cache,
                            on_refined=_draw_ahead(figures))
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
                          result.measurements_source)

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
-from geometry.planes import fit_plane_pca, on_plane_along_beams, plane_difference
+from geometry.planes import on_plane_along_beams, plane_difference
 from geometry.rotations import T_inverse, transform_points
 
 from .. import __version__
@@ -145,8 +145,8 @@ def measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmentat
     3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
     candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
     board segment, with the other scans as the static background. ``detections``: the images' corners already
-    found (frame name -> what ``detect_in_image`` returns; a rig's cameras are searched once); ``board_poses``: the board
-    poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera)."""
+    found (frame name -> what ``detect_in_image`` returns; a rig's cameras are searched once); ``board_poses``: the
+    board poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera)."""
     # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
     # (their own pools on top of ours would oversubscribe the cores).
     with threadpool_limits(1 if workers > 1 else None):
@@ -646,9 +646,8 @@ def _border(points: np.ndarray, inside: np.ndarray, T_camera_lidar: np.ndarray, 
     return's range noise moves it across the board as well as off it at any incidence but square, so a cut by its
     own position would keep the returns whose noise carries them inwards at one edge and outwards at the other,
     and tilt the plane (by up to a degree on a board 18 cm wide at 1 cm noise)."""
-    _, keep = robust_plane_fit(points[inside])
     q = transform_points(T_inverse(T_camera_board) @ T_camera_lidar,
-                         on_plane_along_beams(points, fit_plane_pca(points[inside][keep])))
+                         on_plane_along_beams(points, robust_plane_fit(points[inside])[0]))
     w, h = board.extent
     pattern = inside & np.all((q[:, :2] >= 0.0) & (q[:, :2] <= [w, h]), axis=1)
     if pattern.sum() < params.min_points:
@@ -706,8 +705,9 @@ def _resolve_ambiguous(frames: list[FrameMeasurement], ambiguous: dict, warnings
 def _choose_segment(candidates: list, plane, T_camera_lidar: np.ndarray):
     """The one scan segment whose points lie on the camera's board plane under ``T_camera_lidar`` (RMS within
     ``SEGMENT_FIT_M``), or None if none or several do."""
-    fits = [c for c in candidates
-            if np.sqrt(np.mean(plane.signed_distances(transform_points(T_camera_lidar, c.points)) ** 2)) < SEGMENT_FIT_M]
+    rms = [np.sqrt(np.mean(plane.signed_distances(transform_points(T_camera_lidar, c.points)) ** 2))
+           for c in candidates]
+    fits = [c for c, e in zip(candidates, rms) if e < SEGMENT_FIT_M]
     return fits[0] if len(fits) == 1 else None
 
 

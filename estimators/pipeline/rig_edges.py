@@ -17,8 +17,8 @@ from .rig_measurement import Framed
 
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool
-                ) -> tuple[list, RigSolution, dict]:
+               solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool
+               ) -> tuple[list, RigSolution, dict]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
@@ -62,7 +62,8 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
     for lv in views:
         if lv.edges:
             outline = solution.vectors[outline_key(names.index(lv.name))]
-            records[lv.name] = {"used": True, "frames": len(lv.edges), "ends": int(sum(e.size for e in lv.edges.values())),
+            records[lv.name] = {"used": True, "frames": len(lv.edges),
+                                "ends": int(sum(e.size for e in lv.edges.values())),
                                 "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
                                 "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist()}
     return views, solution, records
@@ -80,7 +81,7 @@ def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
 
 
 def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
-                    pair_frames: dict, warnings: list) -> dict:
+                         pair_frames: dict, warnings: list) -> dict:
     """Each camera-LiDAR pair's board-edges check under the joint estimate (``solvers.outline_check``, as every
     single 3D pair's result has): the ring ends of the LiDAR's boards against the outline the camera places, each
     frame's shift and their mean against its 99% limit, with the joint covariance of the pair's transform and

@@ -137,7 +137,7 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
-                 workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
+                        workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The

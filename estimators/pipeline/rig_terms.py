@@ -54,7 +54,7 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
 
 
 def choose_range_models(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                  pair_frames: dict, solution: RigSolution, range_model: str) -> tuple[list, dict]:
+                        pair_frames: dict, solution: RigSolution, range_model: str) -> tuple[list, dict]:
     """Each LiDAR's views with the range terms of its model (``solvers.range_model``: a global offset, per-ring
     offsets, the black squares' offset; priors from its range accuracy, dataset.yaml's ``range_accuracy_m`` or its
     family's), and per LiDAR the record (:func:`range_record`).
@@ -106,7 +106,8 @@ def choose_range_models(rig: RigDataset, names: tuple, camera_views: list, lidar
 
 def _choose_terms(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,
                   views, name: str) -> tuple:
-    """``auto``'s choice for LiDAR ``name`` (:func:`choose_range_models`): its chosen views (``views(model, solution)``),
+    """``auto``'s choice for LiDAR ``name`` (:func:`choose_range_models`): its chosen views
+    (``views(model, solution)``),
     the tests (``model``, ``against``, ``statistic``, ``dof``, ``p_value``; the offset's estimate with it,
     ``offset_m`` and ``sd_m``), and the terms not tested (``model``, ``variance_factor``: the LiDAR's under its
     largest model, above ``MAX_TERMS_DISPERSION``).
@@ -158,7 +159,7 @@ def _choose_terms(names: tuple, reference: str, camera_views: list, lidar_views:
 
 
 def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.ndarray, warnings: list,
-                  name: str) -> None:
+                 name: str) -> None:
     """A LiDAR's range record with its terms' final estimates (``terms``: by name, ``value_m``, ``sd_m``,
     ``prior_sd_m``; the global offset's also as ``value_m`` and ``sd_m``), and a warning for each term beyond 3
     prior standard deviations (a wrong board in some frames, or a range accuracy too small for the sensor)."""

@@ -17,7 +17,7 @@ MAX_BOARD_SCATTER_M = 10.0
 
 
 def estimate_board_scatter(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                            floor: float) -> tuple:
+                           floor: float) -> tuple:
     """``prob.tau``, the boards' scatter along their weak directions, by the method of moments on the term
     consistency statistic (:meth:`PlaneProblem.term_consistency`); returns the solve ``(T, boards, graph, result,
     iterations)``."""
@@ -28,12 +28,12 @@ def estimate_board_scatter(prob: PlaneProblem, active: list[int], inliers: list[
         return floor
 
     prob.tau, solve = match_moments(prob, active, T, boards, (1e-4, MAX_BOARD_SCATTER_M), with_tau,
-                                     lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
+                                    lambda v, T_v, b_v: prob.term_consistency(inliers, T_v, b_v, floor)[0] / t_dof)
     return solve
 
 
 def match_moments(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, bounds: tuple[float, float],
-                   floor_for, excess) -> tuple:
+                  floor_for, excess) -> tuple:
     """A noise parameter by the method of moments: ``floor_for(v)`` sets it (returning the per-board plane error
     to solve with) and ``excess(v, T, boards)`` is the consistency statistic over its degrees of freedom, which
     falls as ``v`` grows. The root of its logarithm is found by Brent's method in ``log v`` within ``bounds``, to

@@ -17,7 +17,7 @@ from .plane_graph import EXTRINSIC, PlaneProblem, board_key, extrinsic_informati
 
 
 def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray,
-                    boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
+                   boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
     """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards``, those
     within ``max_offset_m`` of their side (None when no frame has any)."""
     from .range_model import frame_rings
@@ -53,7 +53,7 @@ def _cut_ends(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[i
 
 
 def add_edges(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
-               floor: float) -> tuple[np.ndarray, list]:
+              floor: float) -> tuple[np.ndarray, list]:
     """Find each frame's ring ends on the board's edges under the planes' estimate and solve again with them;
     their standard deviations are scaled when the ends scatter beyond them (quasi-likelihood, never below the
     model's), and the boards' in-plane scatter estimated (:func:`_edge_scatter`). Where the planes' estimate
@@ -163,7 +163,8 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
                             "outlines carry a bias (range error with incidence, intrinsics, the board's real size); "
                             "both estimates are in calibration.json")
     record = {"used": True, "ends": int(sum(prob.edges[i].size for _, i in shift_keys)),
-              "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(), "growth_sd_m": outline_sd[:2].tolist(),
+              "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(),
+              "growth_sd_m": outline_sd[:2].tolist(),
               "outline_offset_m": o.tolist(), "outline_offset_sd_m": outline_sd[2:].tolist(), "frames": per_frame,
               "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(),
               "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
@@ -172,7 +173,7 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
 
 
 def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,
-                   quasi_scale: float, cov: np.ndarray) -> tuple[dict | None, list[str]]:
+                  quasi_scale: float, cov: np.ndarray) -> tuple[dict | None, list[str]]:
     """The board's edges as a check of this planes-only estimate (``solvers.outline_check``): each frame's ring
     ends found under it, and its joint covariance with the board poses from the graph (scaled like ``cov``, the
     extrinsic's block widened to ``cov`` where the range terms' or the intrinsics' propagation widened it). Where
@@ -190,8 +191,8 @@ def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
                          [prob.frames[i].name for _, i in used], joint)
 
 
-def edges_information(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float, quasi_scale: float
-                ) -> tuple[np.ndarray, np.ndarray]:
+def edges_information(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,
+                      quasi_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """What the edges add to the extrinsic's log-posterior about this estimate, to second order: ``eta^T xi -
     0.5 xi^T H xi`` in the tangent ``xi`` (the posterior's). ``H``: the information with the edges less that of
     the planes alone, every other variable profiled out; ``eta``: minus the planes' pull at the estimate, which

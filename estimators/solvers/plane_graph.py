@@ -178,7 +178,7 @@ class PlaneProblem:
         """The same problem and state (terms and their values, scatter, pinned terms, edges) with another camera
         model or labels, or without the edges."""
         p = PlaneProblem(self.frames, self.board, camera or self.camera, self.sigma_px, self.sigma_r, self.options,
-                     self.terms, labels or self.labels)
+                         self.terms, labels or self.labels)
         p.beta, p.tau, p.pinned = self.beta.copy(), self.tau, self.pinned
         if edges:
             p.copy_edges(self)

@@ -37,7 +37,7 @@ def _fit_model(prob: PlaneProblem, model: str, labels: FrameLabels, active: list
     terms = terms_for(model, labels, options.range_accuracy_m)
     # The model without terms in the same (range) form, so that the objectives compare.
     p = PlaneProblem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
-                 terms if terms is not None else RangeTerms((), ()), labels)
+                     terms if terms is not None else RangeTerms((), ()), labels)
     p.copy_edges(prob)
     b = list(boards)
     graph, result, _ = p.solve(active, T, b, floor)
@@ -118,7 +118,7 @@ def _relative_consistency(fit: _ModelFit, base: _ModelFit, active: list[int], in
 
 
 def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                        floor: float, options: RefinementOptions, labels: FrameLabels) -> tuple:
+                       floor: float, options: RefinementOptions, labels: FrameLabels) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
     terms the data support (:func:`_model_test`): a global offset against none, then the per-ring and the
     black-square terms each against the offset (against none, with the offset, when the offset alone is not
@@ -229,7 +229,7 @@ def with_uncertainty(fit: RangeModelFit, prob: PlaneProblem, marginals: gtsam.Ma
 
 
 def consider_pinned(prob: PlaneProblem, active: list[int], result: gtsam.Values, floor: float, fit: RangeModelFit
-                     ) -> tuple[np.ndarray, RangeModelFit]:
+                    ) -> tuple[np.ndarray, RangeModelFit]:
     """The extrinsic's covariance with the pinned terms held at 0 and their prior variance propagated (a
     "consider" covariance): ``A^-1 + A^-1 B P B^T A^-1`` over the other variables, with ``A`` their information,
     ``B`` its coupling to the pinned terms and ``P`` the pinned terms' prior covariance. Also returns the record
@@ -254,7 +254,7 @@ def consider_pinned(prob: PlaneProblem, active: list[int], result: gtsam.Values,
 
 
 def consider_placement(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,
-                        cov: np.ndarray, fit: RangeModelFit) -> tuple[np.ndarray, RangeModelFit, np.ndarray]:
+                       cov: np.ndarray, fit: RangeModelFit) -> tuple[np.ndarray, RangeModelFit, np.ndarray]:
     """The black squares' placement propagated: the colours are placed under the estimate, itself uncertain, and
     a pattern placed a few millimetres off gives the returns near the squares' edges the wrong colour, which
     shrinks the black-square term (and, through it, moves the rest). Placed again under the extrinsic moved by

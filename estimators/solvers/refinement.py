@@ -24,11 +24,11 @@ Noise levels:
 LiDAR range model (``RefinementOptions.range_model``; ``solvers.range_model``): nuisance terms of the plane
 factors (a global offset, per-ring offsets, a black-square offset) in one vector variable with priors from the
 LiDAR's range accuracy. Under ``auto`` each block is added while a likelihood-ratio test at 0.1% supports it,
-made with the boards' disagreement modelled when they disagree beyond the noise (:func:`range_terms_choice._model_test`). Per-ring
-and black-square terms that leave the boards inconsistent where the offset alone does not fall back to smaller
+made with the boards' disagreement modelled when they disagree beyond the noise
+(:func:`range_terms_choice._model_test`). Per-ring and black-square terms that leave the boards inconsistent where the offset alone does not fall back to smaller
 combinations. A term beyond 3 prior standard deviations is held at 0 with its prior variance propagated
-(:func:`range_terms_choice.consider_pinned`); what a plane error of physical size and the boards' scatter leave scales the
-covariance (quasi-likelihood).
+(:func:`range_terms_choice.consider_pinned`); what a plane error of physical size and the boards' scatter leave
+scales the covariance (quasi-likelihood).
 
 The covariance is ``gtsam.Marginals`` of the extrinsic, in GTSAM's right tangent: ``T_true = T_hat Exp(xi)``,
 ``xi = [rot; trans]``.
