@@ -27,7 +27,8 @@ from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
 from .solvers.refinement_options import RefinementOptions
-from .solvers.rig_graph import LidarViews, solve_rig, spanning_tree
+from .solvers.factor_graph import LidarViews
+from .solvers.rig_graph import solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
 # The pairwise solves start the joint graph and are reported beside it: no range terms, no edges and no check by

@@ -21,8 +21,9 @@ from estimators.simulation.simulator import default_board, default_camera
 from estimators.solvers.factors import corner_residuals
 from estimators.solvers.noise_levels import (BOARD_NOISE_PRIOR_DOF, board_corner_residuals_px, corner_residual_px,
                                              pooled_corner_residual_px)
-from estimators.solvers.rig_graph import (_graph, _values, change_reference, graph_reference, pair_transform, redundancy,
-                                         rig_bound, rig_corner_factor, spanning_tree)
+from estimators.solvers.factor_graph import build_graph, graph_values, rig_corner_factor
+from estimators.solvers.rig_graph import (change_reference, graph_reference, pair_transform, redundancy, rig_bound,
+                                         spanning_tree)
 from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
 
@@ -243,9 +244,9 @@ def test_each_sensors_share_of_the_unknowns_adds_up_to_them_all(rig_result):
     inner = graph_reference(sol.reference, [c.name for c in cameras])
     stems = sorted(sol.T_ref_board)
     owners: list = []
-    graph = _graph(sol.names, cameras, lidars, stems, sol.noise_scale, inner, False, owners)
+    graph = build_graph(sol.names, cameras, lidars, stems, sol.noise_scale, inner, False, owners)
     assert len(owners) == graph.size() and None not in owners
-    shares = redundancy(graph, _values(sol.names, inner, stems, sol.T_ref, sol.T_ref_board), owners)
+    shares = redundancy(graph, graph_values(sol.names, inner, stems, sol.T_ref, sol.T_ref_board), owners)
     assert sum(shares.values()) == pytest.approx(6 * (len(sol.names) - 1) + 6 * len(stems), rel=1e-8)
     for lv in lidars:
         residuals = sum(W.shape[0] for st, W in lv.W.items() if st in stems)

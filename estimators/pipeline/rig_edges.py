@@ -12,7 +12,8 @@ from ..io.rig_dataset import RigDataset
 from ..solvers.board_edges import crossings, edge_scatter
 from ..solvers.outline_check import outline_check
 from ..solvers.range_model import frame_rings
-from ..solvers.rig_graph import RigSolution, outline_key, pair_board_covariance, solve_rig
+from ..solvers.graph_keys import outline_key
+from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
 from .rig_measurement import Framed
 
 

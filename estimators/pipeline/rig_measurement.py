@@ -21,7 +21,7 @@ from ..io.rig_dataset import Sensor
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import detect_in_image, measure_frames
 from ..solvers.noise_levels import board_corner_residuals_px
-from ..solvers.rig_graph import CameraViews
+from ..solvers.factor_graph import CameraViews
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3

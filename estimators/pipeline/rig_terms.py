@@ -13,7 +13,8 @@ from ..lidar.lidar_models import range_accuracy_for
 from ..solvers import chi_square as chi2
 from ..solvers.range_model import (MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener,
                                    terms_for)
-from ..solvers.rig_graph import LidarViews, RigSolution, solve_rig, terms_fit, terms_test
+from ..solvers.factor_graph import LidarViews
+from ..solvers.rig_graph import RigSolution, solve_rig, terms_fit, terms_test
 from .rig_measurement import Framed
 from .rig_result import NOISE_WARNING_P
 

@@ -20,10 +20,10 @@ its two ends are the same measurement, and the same factor serves both LiDARs.
 
 Residual (per end): the mid-beam's ray cut with the board's plane, in the board's frame, and its signed
 distance outward of the side of the outline it crosses (``sides``: x = 0, x = w, y = 0, y = h), less two
-nuisances: the dataset's outline (:data:`OUTLINE`, one per dataset: the growth of the x and the y sides, as a
+nuisances: the dataset's outline (``graph_keys.outline_key``, one per dataset and LiDAR: the growth of the x and the y sides, as a
 beam footprint or mixed returns make the LiDAR's board look larger than the given size, and the outline's offset
 from where the dataset puts it; priors 0 +- ``GROWTH_PRIOR_SD_M`` and ``OFFSET_PRIOR_SD_M``) and the frame's
-outline shift (:func:`shift_key`, 0 +- the boards' in-plane scatter, estimated by the refinement).
+outline shift (``graph_keys.edge_shift_key``, 0 +- the boards' in-plane scatter, estimated by the refinement).
 Its Jacobians by the extrinsic and the board pose (right tangents, ``T Exp(xi)``, ``xi = [rot; trans]``):
 with ``q = R (s b) + t`` the cut in the board frame (``R, t`` of ``T_board_lidar``), ``P`` the projection
 along the ray onto the board's plane and ``w = P^T [a; 0]`` (``a`` the side's outward normal),
@@ -67,9 +67,8 @@ MIN_CROSSING_SINE = 0.3
 MIN_RING_POINTS = 4
 # The pattern's offset on the board from where the dataset puts it (m): printing and mounting, a few mm.
 OFFSET_PRIOR_SD_M = 0.01
-# The board's outline against the dataset's, one per dataset: ``[growth of the x = 0, w sides, of the y = 0, h
-# sides, the outline's offset along the board's x, y]`` (m).
-OUTLINE = gtsam.symbol("g", 0)
+# The board's outline against the dataset's (``graph_keys.outline_key``), one per dataset and LiDAR: ``[growth of
+# the x = 0, w sides, of the y = 0, h sides, the outline's offset along the board's x, y]`` (m).
 
 # Outward normals and offsets of the outline's sides in the board frame: x = 0, x = w, y = 0, y = h.
 SIDE_NORMALS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
@@ -322,7 +321,7 @@ def _edge_error(edges, board, scale, keys, this, values, H):
 
 
 def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeCrossings, board: BoardModel,
-                scale: float = 1.0, key_outline: int = OUTLINE) -> gtsam.CustomFactor:
+                scale: float, key_outline: int) -> gtsam.CustomFactor:
     """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift and the
     dataset's outline (``key_outline``); whitened inside by :func:`end_loss` (``scale`` multiplies the ends'
     standard deviations)."""
@@ -331,7 +330,7 @@ def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeC
                               partial(_edge_error, edges, board, scale, keys))
 
 
-def outline_prior(key: int = OUTLINE) -> gtsam.PriorFactorVector:
+def outline_prior(key: int) -> gtsam.PriorFactorVector:
     """The board's outline against the dataset's: its sides' growth (x and y sides) 0 +- ``GROWTH_PRIOR_SD_M``,
     the pattern's offset from where the dataset puts it 0 +- ``OFFSET_PRIOR_SD_M``."""
     return gtsam.PriorFactorVector(key, np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(outline_prior_sd()))
@@ -374,15 +373,11 @@ def shift_prior(key_shift: int, sd_m: float) -> gtsam.PriorFactorVector:
     return gtsam.PriorFactorVector(key_shift, np.zeros(2), gtsam.noiseModel.Isotropic.Sigma(2, max(sd_m, 1e-5)))
 
 
-def shift_key(j: int) -> int:
-    return gtsam.symbol("e", j)
-
-
 def frame_shift(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,
                 board: BoardModel, outline=(0.0, 0.0, 0.0, 0.0), scale: float = 1.0
                 ) -> tuple[np.ndarray, np.ndarray, int]:
     """The shift ``(dx, dy)`` (m, board axes) of the board's outline that the frame's ends call for under the
-    estimate and the dataset's ``outline`` (:data:`OUTLINE`'s growth and offset), by weighted least squares over
+    estimate and the dataset's ``outline`` (its growth and offset), by weighted least squares over
     the ends (outward normals against residuals); its covariance (2x2) and the rank the sides give it (1 when
     every end crosses sides of one direction)."""
     outline = np.asarray(outline, dtype=float)
@@ -398,7 +393,7 @@ def frame_shift(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: E
 @dataclass(frozen=True, eq=False)
 class EndTerms:
     """A refinement's ends and their nuisances at its estimate, by frame name: the ends used, the frames' outline
-    shifts (m, board axes), the dataset's outline (:data:`OUTLINE`) and the scale of the ends' standard
+    shifts (m, board axes), the dataset's outline and the scale of the ends' standard
     deviations."""
 
     edges: dict
@@ -475,5 +470,5 @@ class EndSet:
 
 
 def outline_prior_sd() -> np.ndarray:
-    """The standard deviations of :data:`OUTLINE`'s prior: growth of the x and y sides, offset along x and y (m)."""
+    """The standard deviations of the outline's prior: growth of the x and y sides, offset along x and y (m)."""
     return np.array([GROWTH_PRIOR_SD_M, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M, OFFSET_PRIOR_SD_M])

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .plane_graph import EXTRINSIC, PlaneProblem
+from .graph_keys import EXTRINSIC
+from .plane_graph import PlaneProblem
 
 BOARD_SCATTER_MEANING = (
     "standard deviation (m) of each board's apparent own range offset about the shared terms, along the board's "

@@ -11,9 +11,10 @@ from geometry.rotations import T_log
 
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import MAX_END_OFFSET_M, OUTLINE, crossings, edge_scatter, end_noise, shift_key
+from .board_edges import MAX_END_OFFSET_M, crossings, edge_scatter, end_noise
 from .outline_check import outline_check, outline_warnings
-from .plane_graph import EXTRINSIC, PlaneProblem, board_key, extrinsic_information
+from .graph_keys import EXTRINSIC, OUTLINE, board_key, shift_key
+from .plane_graph import PlaneProblem, extrinsic_information
 
 
 def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray,

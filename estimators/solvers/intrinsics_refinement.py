@@ -27,7 +27,8 @@ from geometry.camera import CameraModel
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from .factors import corner_intrinsics_factor, plane_factor
-from .plane_graph import EXTRINSIC, PlaneProblem, board_key
+from .graph_keys import EXTRINSIC, board_key
+from .plane_graph import PlaneProblem
 from .refinement import Refinement
 from .refinement_options import RefinementOptions
 

@@ -12,20 +12,16 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
-from .board_edges import OUTLINE, edge_factor, outline_prior, shift_key, shift_prior
 from .closed_form import describe_direction
-from .factors import (affine_plane_factor, corner_factor, corner_residuals, lidar_plane, lidar_residual,
-                      nuisance_plane_factor, nuisance_residual, plane_factor)
+from .factor_graph import CameraViews, LidarViews, build_graph, graph_values
+from .factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
+from .graph_keys import EXTRINSIC, OUTLINE, RANGE, board_key, shift_key
 from .noise_levels import frame_noise, pooled_range_noise_m, robust_noise
 from .range_model import FrameLabels, RangeTerms, frame_whiteners
 from .refinement_options import PINNED_SD_M, RefinementOptions
 
-EXTRINSIC = gtsam.symbol("x", 0)
-RANGE = gtsam.symbol("r", 0)  # the LiDAR range model's nuisance vector
-
-
-def board_key(i: int) -> int:
-    return gtsam.symbol("b", i)
+# A pair is the rig of its camera (the graph's reference) and its LiDAR (``graph_keys.EXTRINSIC``).
+PAIR_NAMES = ("cam0", "lidar0")
 
 
 def pooled_range_noise_with_terms_m(prob: "PlaneProblem", frames: list[int]) -> float:
@@ -112,35 +108,31 @@ class PlaneProblem:
 
     def graph(self, active: list[int], floor_m: float, robust: bool = True, free_pinned: bool = False
               ) -> gtsam.NonlinearFactorGraph:
-        graph = gtsam.NonlinearFactorGraph()
+        """The graph of the ``active`` frames (``factor_graph.build_graph``, frame ``j`` the ``j``-th of them): the
+        corners at the pooled pixel noise, each plane at its frame's covariance (:meth:`plane_cov`, robust unless
+        ``robust`` is False), the terms under their priors (pinned ones at ``PINNED_SD_M`` unless
+        ``free_pinned``)."""
+        stems = [self.frames[i].name for i in active]
+        camera = CameraViews(PAIR_NAMES[0], self.camera, self.sigma_px,
+                             {s: self.corners_board[i] for s, i in zip(stems, active)},
+                             {s: self.frames[i].camera.corners_px for s, i in zip(stems, active)})
+        noise = {}
+        for s, i in zip(stems, active):
+            n = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
+            noise[s] = robust_noise(n, self.options, self.whitener(i).shape[0]) if robust else n
+        prior_sd = None
         if self.has_beta:
-            sd = np.array(self.terms.prior_sd, dtype=float)
+            prior_sd = np.array(self.terms.prior_sd, dtype=float)
             if self.pinned and not free_pinned:
-                sd[list(self.pinned)] = PINNED_SD_M
-            graph.add(gtsam.PriorFactorVector(RANGE, np.zeros(self.terms.size),
-                                              gtsam.noiseModel.Diagonal.Sigmas(sd)))
-        if self.edges is not None:
-            graph.add(outline_prior())
-        for j, i in enumerate(active):
-            f = self.frames[i]
-            key = board_key(j)
-            if self.has_edges(i):
-                graph.add(shift_prior(shift_key(j), self.edge_tau))
-                graph.add(edge_factor(EXTRINSIC, key, shift_key(j), self.edges[i], self.board, self.edge_scale))
-            graph.add(corner_factor(key, self.corners_board[i], f.camera.corners_px, self.camera,
-                                    gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size, self.sigma_px)))
-            noise = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
-            noise = robust_noise(noise, self.options, self.whitener(i).shape[0]) if robust else noise
-            if self.terms is None:
-                graph.add(plane_factor(EXTRINSIC, key, self.whitener(i), noise, f.lidar.is_scan_line))
-            elif not self.has_beta:
-                fw = self.fw[i]
-                graph.add(affine_plane_factor(EXTRINSIC, key, fw.W, fw.m_away, fw.e0, noise, f.lidar.is_scan_line))
-            else:
-                fw = self.fw[i]
-                graph.add(nuisance_plane_factor(EXTRINSIC, key, RANGE, fw.W, fw.S, fw.m_away, fw.e0, noise,
-                                                f.lidar.is_scan_line))
-        return graph
+                prior_sd[list(self.pinned)] = PINNED_SD_M
+        lidar = LidarViews(PAIR_NAMES[1], self.sigma_r, {s: self.whitener(i) for s, i in zip(stems, active)},
+                           any(self.frames[i].lidar.is_scan_line for i in active),
+                           None if self.terms is None else {s: self.fw[i] for s, i in zip(stems, active)},
+                           self.terms,
+                           None if self.edges is None else {s: self.edges[i] for s, i in zip(stems, active)
+                                                            if self.has_edges(i)},
+                           self.board, self.edge_tau, self.edge_scale, noise, prior_sd)
+        return build_graph(PAIR_NAMES, [camera], [lidar], stems, {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0])
 
     def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         e = self.residual(i, T, T_board)
@@ -157,18 +149,17 @@ class PlaneProblem:
         return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
     def values(self, active: list[int], T: np.ndarray, boards: list) -> gtsam.Values:
-        values = gtsam.Values()
-        values.insert(EXTRINSIC, gtsam.Pose3(T))
-        for j, i in enumerate(active):
-            values.insert(board_key(j), gtsam.Pose3(boards[i]))
-        if self.has_beta:
-            values.insert(RANGE, self.beta.copy())
-        if self.edges is not None:
-            values.insert(OUTLINE, np.array(self.outline, dtype=float))
-            for j, i in enumerate(active):
-                if self.has_edges(i):
-                    values.insert(shift_key(j), self.shifts.get(i, np.zeros(2)))
-        return values
+        """The graph's variables (:meth:`graph`): the extrinsic, the active frames' boards, the range terms, the
+        outline and the frames' outline shifts at their current values."""
+        vectors = {RANGE: self.beta.copy(), OUTLINE: np.array(self.outline, dtype=float)}
+        vectors.update({shift_key(j): self.shifts.get(i, np.zeros(2)) for j, i in enumerate(active)})
+        stems = [self.frames[i].name for i in active]
+        lidar = LidarViews(PAIR_NAMES[1], self.sigma_r, terms=self.terms if self.has_beta else None,
+                           ranged={} if self.has_beta else None,
+                           edges=None if self.edges is None else {self.frames[i].name: None for i in active
+                                                                  if self.has_edges(i)})
+        return graph_values(PAIR_NAMES, PAIR_NAMES[0], stems, {PAIR_NAMES[0]: np.eye(4), PAIR_NAMES[1]: T},
+                            {s: boards[i] for s, i in zip(stems, active)}, [lidar], vectors)
 
     def has_edges(self, i: int) -> bool:
         return self.edges is not None and self.edges[i] is not None and self.edges[i].size > 0

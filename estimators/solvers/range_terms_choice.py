@@ -14,7 +14,8 @@ from geometry.rotations import T_exp
 from . import chi_square as chi2
 from .board_scatter import estimate_board_scatter, match_moments
 from .chi_square import fdtrc
-from .plane_graph import EXTRINSIC, RANGE, PlaneProblem, hessian, objective
+from .graph_keys import EXTRINSIC, RANGE
+from .plane_graph import PlaneProblem, hessian, objective
 from .range_model import (CONFOUNDED_CORRELATION, MODEL_TEST_P, FrameLabels, RangeModelFit, RangeTerms, frame_labels,
                           terms_for)
 from .refinement_options import MAX_PLANE_ERROR_M, RefinementOptions

@@ -59,7 +59,8 @@ from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, match_
 from .closed_form import solve_closed_form
 from .edges_in_graph import add_edges, check_outline, edge_crossings, edges_information, edges_summary
 from .noise_levels import corner_residual_px, pooled_range_noise_m, robust_weight
-from .plane_graph import EXTRINSIC, MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
+from .graph_keys import EXTRINSIC
+from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
                           frame_labels)
 from .range_terms_choice import choose_range_model, consider_pinned, consider_placement, with_uncertainty

@@ -2,17 +2,8 @@
 
 Variables: ``T_ref_s`` for every sensor but the reference (the identity), and ``T_ref_board`` for every frame stem
 that a camera saw. The graph's reference is a camera (the first when the rig's reference is a LiDAR, whose frame
-the poses and their covariance are then carried into: :func:`change_reference`). Factors:
-
-- each camera's corners in each frame it saw: the pair's corner factor through ``T_s_board = T_ref_s^-1
-  T_ref_board``. With right tangents, ``T_s_board`` moves by ``xi_board`` for the board's and by
-  ``-Ad(T_s_board^-1) xi_s`` for the sensor's (:func:`_rig_corner_error`);
-- each LiDAR's board points in each frame it saw: the pair's plane factor, unchanged, with the reference frame in
-  the camera's place (it maps the board's plane into the LiDAR frame through ``T_ref_s`` and ``T_ref_board``).
-
-With ``refine_intrinsics`` each camera's intrinsics ``[fx, fy, cx, cy, dist...]`` are a vector variable of its
-corner factors too (the corners' Jacobians by them from ``geometry.camera``), under a prior of the camera's
-``param_std`` when it has one.
+the poses and their covariance are then carried into: :func:`change_reference`); its factors are
+``factor_graph``'s.
 
 The noise: each camera's corners with its own effective pixel noise, each LiDAR's points with its own range noise
 (``W`` whitens by it); a sensor whose chi-square per degree of freedom is above 1 has its noise scaled by it and
@@ -26,96 +17,16 @@ Loops close exactly: every pair's transform is composed of the same sensor poses
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import partial
 
 import gtsam
 import numpy as np
 
-from geometry.camera import CameraModel
-
 from ..errors import DegenerateLayoutError
 from . import chi_square as chi2
-from .board_edges import edge_factor, outline_prior, shift_prior
-from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
-                      corner_residuals_intrinsics, lidar_plane, lidar_residual, nuisance_plane_factor,
-                      nuisance_residual, plane_factor)
-from .range_model import RangeTerms
-
-
-def sensor_key(k: int) -> int:
-    return gtsam.symbol("s", k)
-
-
-def frame_key(k: int) -> int:
-    return gtsam.symbol("f", k)
-
-
-def intrinsics_key(k: int) -> int:
-    return gtsam.symbol("k", k)
-
-
-def terms_key(k: int) -> int:
-    """A LiDAR's range terms (a vector, m: ``range_model.RangeTerms``, the global offset first)."""
-    return gtsam.symbol("o", k)
-
-
-def outline_key(k: int) -> int:
-    """A LiDAR's view of the board's outline (``board_edges.OUTLINE``: its sides' growth, the pattern's offset)."""
-    return gtsam.symbol("g", k)
-
-
-def edge_shift_key(k: int, j: int) -> int:
-    """Sensor ``k``'s outline shift in frame ``j`` (``board_edges.shift_key``)."""
-    return gtsam.symbol("e", 100000 * k + j)
-
-
-@dataclass(frozen=True, eq=False)
-class CameraViews:
-    """One camera's frames: per stem the board's corners (board frame, (M, 3)) and their detections (M, 2), the
-    board's pose from them alone (``T_camera_board``, the start) and its corners' pixel noise (``sigma_board``;
-    ``sigma_px`` where a stem has none, and for a board not recorded)."""
-
-    name: str
-    camera: CameraModel
-    sigma_px: float
-    corners_board: dict = field(default_factory=dict)
-    corners_px: dict = field(default_factory=dict)
-    T_camera_board: dict = field(default_factory=dict)
-    sigma_board: dict = field(default_factory=dict)
-
-    def sigma(self, stem: str) -> float:
-        """The pixel noise of the corners of frame ``stem``."""
-        return float(self.sigma_board.get(stem, self.sigma_px))
-
-
-@dataclass(frozen=True, eq=False)
-class LidarViews:
-    """One LiDAR's frames: per stem the square root ``W`` of its board points' range moment
-    (``measurements.lidar_whitener``: ``|W pi|^2`` is their sum of squared range errors), its range noise (m),
-    and whether it is a scan line (2D).
-
-    ``ranged``: per stem the frame's ``range_model.FrameWhitener`` in the range model's form (the residual
-    ``W [s pi; S beta] + e0`` from the points' ranges), used instead of ``W`` when given: with the range terms
-    ``terms`` when they are set and not empty (the global offset, per-ring offsets, the black squares' offset: one
-    vector variable of the graph under their priors), else without terms (``affine``: the form the terms are
-    tested against)."""
-
-    name: str
-    sigma_m: float
-    W: dict = field(default_factory=dict)
-    scan_line: bool = False
-    ranged: dict | None = None
-    terms: RangeTerms | None = None
-    # With the board's edges (``--edges``): per stem the frame's ends (``board_edges.EdgeCrossings``), the board,
-    # the boards' in-plane scatter (m, each frame's shift prior) and the ends' scale (``board_edges.edge_factor``).
-    edges: dict | None = None
-    board: object = None
-    edge_tau_m: float = 0.0
-    edge_scale: float = 1.0
-
-    @property
-    def has_terms(self) -> bool:
-        return self.ranged is not None and self.terms is not None and self.terms.size > 0
+from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_values, lidar_frame_residual,
+                           vector_keys)
+from .factors import corner_residuals, lidar_plane
+from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,11 +64,6 @@ class RigSolution:
         return pair_transform(self.T_ref[a], self.T_ref[b], self.covariance_joint[np.ix_(idx, idx)])
 
 
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """GTSAM's Pose3 adjoint in ``[rot; trans]`` order: ``T Exp(xi) T^-1 = Exp(Ad(T) xi)``."""
-    return gtsam.Pose3(T).AdjointMap()
-
-
 def pair_transform(T_ref_a: np.ndarray, T_ref_b: np.ndarray, cov_ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``T_a_b = T_ref_a^-1 T_ref_b`` and its covariance from the joint covariance ``cov_ab`` (12 x 12) of the two
     poses' right tangents: ``T_a_b Exp(xi_b - Ad(T_a_b^-1) xi_a)`` to first order."""
@@ -170,111 +76,6 @@ def translation_sd_in_first(T_ab: np.ndarray, cov_ab: np.ndarray) -> np.ndarray:
     """The standard deviations of ``T_a_b``'s translation in a's frame (its covariance's tangent translation is
     along b's axes: ``R C R^T``)."""
     return np.sqrt(np.maximum(np.diag(T_ab[:3, :3] @ cov_ab[3:, 3:] @ T_ab[:3, :3].T), 0.0))
-
-
-def rig_corner_residuals(T_rs: np.ndarray, T_rb: np.ndarray, corners_board: np.ndarray, corners_px: np.ndarray,
-                         camera: CameraModel, jacobian: bool = True) -> tuple:
-    """A camera's corner residuals through its pose ``T_rs`` and the board's ``T_rb`` (both in the reference's
-    frame), and their Jacobians by the sensor's and the board's right tangents (module docstring; None without
-    ``jacobian``)."""
-    T_sb = np.linalg.inv(T_rs) @ T_rb
-    r, J = corner_residuals(T_sb, corners_board, corners_px, camera, jacobian)
-    if not jacobian:
-        return r, None, None
-    return r, -J @ adjoint(np.linalg.inv(T_sb)), J
-
-
-def _rig_corner_error(corners_board, corners_px, camera, this, values, H):
-    keys = this.keys()
-    r, H_s, H_b = rig_corner_residuals(values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix(),
-                                       corners_board, corners_px, camera, H is not None)
-    if H is not None:
-        H[0], H[1] = H_s, H_b
-    return r
-
-
-def _rig_corner_intrinsics_error(corners_board, corners_px, camera, this, values, H):
-    keys = this.keys()
-    T_rs, T_rb = values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix()
-    T_sb = np.linalg.inv(T_rs) @ T_rb
-    cam = camera.with_params(values.atVector(keys[2]))
-    r, J, J_k = corner_residuals_intrinsics(T_sb, corners_board, corners_px, cam, H is not None)
-    if H is not None:
-        H[0] = -J @ adjoint(np.linalg.inv(T_sb))
-        H[1] = J
-        H[2] = J_k
-    return r
-
-
-def rig_corner_factor(key_sensor: int, key_board: int, corners_board: np.ndarray, corners_px: np.ndarray,
-                      camera: CameraModel, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
-    """A camera's corners of one frame through its pose in the rig and the board's (module docstring)."""
-    return gtsam.CustomFactor(noise, [key_sensor, key_board],
-                              partial(_rig_corner_error, np.asarray(corners_board, dtype=float),
-                                      np.asarray(corners_px, dtype=float).reshape(-1, 2), camera))
-
-
-def _graph(names, cameras, lidars, stems, scale, reference, refine_intrinsics=False, owners: list | None = None):
-    """The rig's factor graph; ``owners`` (a list, filled): per factor the sensor whose measurement residuals it
-    holds (the residuals :func:`_chi2` counts: corners, LiDAR planes), None for the others (priors, edges)."""
-    factors = gtsam.NonlinearFactorGraph()
-
-    def add(factor, owner: str | None = None) -> None:
-        factors.add(factor)
-        if owners is not None:
-            owners.append(owner)
-
-    for c in cameras:
-        k = names.index(c.name)
-        if refine_intrinsics and c.camera.param_std is not None:
-            add(gtsam.PriorFactorVector(intrinsics_key(k), c.camera.params,
-                                        gtsam.noiseModel.Diagonal.Sigmas(np.asarray(c.camera.param_std))))
-        for stem in c.corners_px:
-            px = c.corners_px[stem]
-            noise = gtsam.noiseModel.Isotropic.Sigma(px.size, c.sigma(stem) * np.sqrt(scale[c.name]))
-            fk = frame_key(stems.index(stem))
-            if refine_intrinsics and c.name == reference:
-                add(corner_intrinsics_factor(fk, intrinsics_key(k), c.corners_board[stem], px, c.camera, noise),
-                    c.name)
-            elif refine_intrinsics:
-                add(gtsam.CustomFactor(noise, [sensor_key(k), fk, intrinsics_key(k)],
-                                       partial(_rig_corner_intrinsics_error,
-                                               np.asarray(c.corners_board[stem], dtype=float),
-                                               np.asarray(px, dtype=float).reshape(-1, 2), c.camera)), c.name)
-            elif c.name == reference:
-                add(corner_factor(fk, c.corners_board[stem], px, c.camera, noise), c.name)
-            else:
-                add(rig_corner_factor(sensor_key(k), fk, c.corners_board[stem], px, c.camera, noise), c.name)
-    for lv in lidars:
-        k = names.index(lv.name)
-        sd = lv.sigma_m * np.sqrt(scale[lv.name])
-        if lv.has_terms:
-            add(gtsam.PriorFactorVector(terms_key(k), np.zeros(lv.terms.size),
-                                        gtsam.noiseModel.Diagonal.Sigmas(np.asarray(lv.terms.prior_sd))))
-        if lv.edges:
-            add(outline_prior(outline_key(k)))
-            for stem, e in lv.edges.items():
-                if stem in stems:
-                    j = stems.index(stem)
-                    add(shift_prior(edge_shift_key(k, j), lv.edge_tau_m))
-                    add(edge_factor(sensor_key(k), frame_key(j), edge_shift_key(k, j), e, lv.board,
-                                    lv.edge_scale, outline_key(k)))
-        for stem, W in lv.W.items():
-            if stem not in stems:
-                continue
-            fk = frame_key(stems.index(stem))
-            if lv.ranged is None:
-                add(plane_factor(sensor_key(k), fk, W, gtsam.noiseModel.Isotropic.Sigma(W.shape[0], sd),
-                                 lv.scan_line), lv.name)
-                continue
-            fw = lv.ranged[stem]
-            noise = gtsam.noiseModel.Isotropic.Sigma(fw.W.shape[0], sd)
-            if lv.has_terms:
-                add(nuisance_plane_factor(sensor_key(k), fk, terms_key(k), fw.W, fw.S, fw.m_away, fw.e0, noise,
-                                          lv.scan_line), lv.name)
-            else:
-                add(affine_plane_factor(sensor_key(k), fk, fw.W, fw.m_away, fw.e0, noise, lv.scan_line), lv.name)
-    return factors
 
 
 def redundancy(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, owners: list) -> dict:
@@ -293,17 +94,6 @@ def redundancy(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, owners: 
         A = factor.getA()
         out[owner] = out.get(owner, 0.0) + float(np.sum((A @ cov[np.ix_(idx, idx)]) * A))
     return out
-
-
-def lidar_frame_residual(lv: LidarViews, stem: str, pi: np.ndarray, beta: np.ndarray | None = None) -> np.ndarray:
-    """The LiDAR's residual of frame ``stem`` (m) at the board plane ``pi`` (in the LiDAR frame) and its range
-    terms ``beta`` (ignored without them)."""
-    if lv.ranged is None:
-        return lidar_residual(lv.W[stem], pi, lv.scan_line)[0]
-    fw = lv.ranged[stem]
-    beta = np.asarray(beta, dtype=float) if lv.has_terms else np.zeros(0)
-    S = fw.S if lv.has_terms else np.zeros((0, 0))
-    return nuisance_residual(fw.W, S, fw.m_away, pi, beta, lv.scan_line, fw.e0)[0]
 
 
 def _pose(values, names, reference, name) -> np.ndarray:
@@ -370,7 +160,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     camera_names = [c.name for c in cameras]
     inner = graph_reference(reference, camera_names)
     stems = sorted(T_ref_board_init)
-    values = _values(names, inner, stems, T_ref_init, T_ref_board_init, lidars)
+    values = graph_values(names, inner, stems, T_ref_init, T_ref_board_init, lidars)
     if refine_intrinsics:
         for c in cameras:
             values.insert(intrinsics_key(names.index(c.name)), np.asarray(c.camera.params, dtype=float))
@@ -380,7 +170,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     iterations = 0
     for _ in range(3):
         owners: list = []
-        graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics, owners)
+        graph = build_graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics, owners)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         try:
             values = opt.optimize()
@@ -397,7 +187,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         scale = new
         if converged:
             break
-    graph = _graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
+    graph = build_graph(names, cameras, lidars, stems, scale, inner, refine_intrinsics)
     marginals, cov = _joint_marginal(graph, values, names, inner)
     ranged = [lv for lv in lidars if lv.has_terms]
     keys = [sensor_key(k) for k, n in enumerate(names) if n != inner] + [terms_key(names.index(lv.name))
@@ -426,41 +216,10 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         T_inner_ref = T[reference]
         T, cov = change_reference(tuple(names), T, cov, reference)
         boards = {s: np.linalg.inv(T_inner_ref) @ B for s, B in boards.items()}
-    vectors = {key: values.atVector(key).copy() for key in _vector_keys(names, stems, lidars)}
+    vectors = {key: values.atVector(key).copy() for key in vector_keys(names, stems, lidars)}
     return RigSolution(tuple(names), reference, T, 0.5 * (cov + cov.T), boards, scale,
                        {n: (float(ss), float(dof)) for n, (ss, dof) in stats.items()}, iterations, intrinsics,
                        range_terms, 0.5 * (cov_inner + cov_inner.T), vectors)
-
-
-def _vector_keys(names, stems: list[str], lidars) -> dict:
-    """The graph's vector variables of the ``lidars`` (each key and its size): range terms, and with the
-    board's edges each LiDAR's outline and its frames' outline shifts."""
-    out = {}
-    for lv in lidars:
-        k = names.index(lv.name)
-        if lv.has_terms:
-            out[terms_key(k)] = lv.terms.size
-        if lv.edges:
-            out[outline_key(k)] = 4
-            out.update({edge_shift_key(k, stems.index(st)): 2 for st in lv.edges if st in stems})
-    return out
-
-
-def _values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict, lidars=(),
-            vectors: dict | None = None) -> gtsam.Values:
-    """The graph's pose variables in the frame of its reference camera ``inner``, and the vector variables of the
-    ``lidars`` (:func:`_vector_keys`) at ``vectors`` (by key; 0 where not given or of another size)."""
-    T_inner = np.linalg.inv(T_ref[inner])
-    values = gtsam.Values()
-    for key, size in _vector_keys(names, stems, lidars).items():
-        given = np.asarray((vectors or {}).get(key, np.zeros(size)), dtype=float)
-        values.insert(key, given if given.size == size else np.zeros(size))  # another model's terms: from 0
-    for k, n in enumerate(names):
-        if n != inner:
-            values.insert(sensor_key(k), gtsam.Pose3(T_inner @ T_ref[n]))
-    for j, s in enumerate(stems):
-        values.insert(frame_key(j), gtsam.Pose3(T_inner @ T_ref_board[s]))
-    return values
 
 
 def _joint_marginal(graph, values, names, inner: str) -> tuple:
@@ -493,10 +252,10 @@ def rig_bound(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     inner = graph_reference(reference, [c.name for c in cameras])
     stems = sorted(T_ref_board)
     scale = {n: (noise_scale or {}).get(n, 1.0) for n in names}
-    graph = _graph(names, cameras, lidars, stems, scale, inner, intrinsics is not None)
+    graph = build_graph(names, cameras, lidars, stems, scale, inner, intrinsics is not None)
     vectors = {terms_key(names.index(n)): np.atleast_1d(np.asarray(v, dtype=float))
                for n, v in (range_terms or {}).items()}
-    values = _values(names, inner, stems, T_ref, T_ref_board, lidars, vectors)
+    values = graph_values(names, inner, stems, T_ref, T_ref_board, lidars, vectors)
     for c in cameras if intrinsics is not None else ():
         values.insert(intrinsics_key(names.index(c.name)), np.asarray(intrinsics[c.name], dtype=float))
     _, cov = _joint_marginal(graph, values, names, inner)
@@ -579,8 +338,8 @@ def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     inner = graph_reference(reference, [c.name for c in cameras])
     stems = sorted(solution.T_ref_board)
     refine = solution.intrinsics is not None
-    graph = _graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
-    values = _values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
+    graph = build_graph(names, cameras, lidars, stems, solution.noise_scale, inner, refine)
+    values = graph_values(names, inner, stems, solution.T_ref, solution.T_ref_board, lidars, solution.vectors)
     for c in cameras if refine else ():
         values.insert(intrinsics_key(names.index(c.name)), solution.intrinsics[c.name][0])
     return graph, values, inner, stems

@@ -36,8 +36,8 @@ from geometry.rotations import exp_batch, log_batch
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
 from .posterior import ChainResult, regions, run_ensemble
-from .rig_graph import (CameraViews, LidarViews, RigSolution, change_reference, graph_reference,
-                        rig_corner_residuals)
+from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
+from .rig_graph import RigSolution, change_reference, graph_reference
 
 # Samples kept for the pairs' intervals and covariances (thinned evenly from the chain after burn-in).
 MAX_KEPT = 20000
