@@ -38,6 +38,7 @@ def edge_shift_key(k: int, j: int) -> int:
 PAIR_LIDAR = 1
 EXTRINSIC = sensor_key(PAIR_LIDAR)
 RANGE = terms_key(PAIR_LIDAR)
+INTRINSICS = intrinsics_key(0)  # the pair's camera's
 OUTLINE = outline_key(PAIR_LIDAR)
 
 

@@ -26,13 +26,10 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
-from .factors import corner_intrinsics_factor, plane_factor
-from .graph_keys import EXTRINSIC, board_key
+from .graph_keys import INTRINSICS
 from .plane_graph import PlaneProblem
 from .refinement import Refinement
 from .refinement_options import RefinementOptions
-
-INTRINSICS = gtsam.symbol("k", 0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,21 +109,11 @@ def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel
     given = camera.params
     calibrated_here = camera.source.startswith("calibrated")
     prior_sd = None if calibrated_here or camera.param_std is None else np.asarray(camera.param_std, dtype=float)
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    values.insert(EXTRINSIC, gtsam.Pose3(ref.T_camera_lidar))
+    prob.camera = replace(camera, param_std=None if prior_sd is None else prior_sd)  # the prior, where one
+    active = list(range(len(used)))
+    graph = prob.graph(active, plane_floor_m, robust=False, intrinsics=True)
+    values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used])
     values.insert(INTRINSICS, given.copy())
-    if prior_sd is not None:
-        graph.add(gtsam.PriorFactorVector(INTRINSICS, given.copy(), gtsam.noiseModel.Diagonal.Sigmas(prior_sd)))
-    for j, f in enumerate(used):
-        key = board_key(j)
-        values.insert(key, gtsam.Pose3(ref.T_camera_board[f.name]))
-        graph.add(corner_intrinsics_factor(key, INTRINSICS, prob.corners_board[j], f.camera.corners_px, camera,
-                                           gtsam.noiseModel.Isotropic.Sigma(f.camera.corners_px.size,
-                                                                            ref.corner_noise_px)))
-        graph.add(plane_factor(EXTRINSIC, key, prob.whitener(j),
-                               gtsam.noiseModel.Gaussian.Covariance(prob.plane_cov(j, plane_floor_m)),
-                               f.lidar.is_scan_line))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(1e-9)

@@ -106,12 +106,13 @@ class PlaneProblem:
             dof += 1
         return stat, max(dof, 1)
 
-    def graph(self, active: list[int], floor_m: float, robust: bool = True, free_pinned: bool = False
-              ) -> gtsam.NonlinearFactorGraph:
+    def graph(self, active: list[int], floor_m: float, robust: bool = True, free_pinned: bool = False,
+              intrinsics: bool = False) -> gtsam.NonlinearFactorGraph:
         """The graph of the ``active`` frames (``factor_graph.build_graph``, frame ``j`` the ``j``-th of them): the
         corners at the pooled pixel noise, each plane at its frame's covariance (:meth:`plane_cov`, robust unless
         ``robust`` is False), the terms under their priors (pinned ones at ``PINNED_SD_M`` unless
-        ``free_pinned``)."""
+        ``free_pinned``); with ``intrinsics`` the camera's intrinsics a variable too (``graph_keys.INTRINSICS``,
+        under a prior of its ``param_std`` when it has them)."""
         stems = [self.frames[i].name for i in active]
         camera = CameraViews(PAIR_NAMES[0], self.camera, self.sigma_px,
                              {s: self.corners_board[i] for s, i in zip(stems, active)},
@@ -132,7 +133,8 @@ class PlaneProblem:
                            None if self.edges is None else {s: self.edges[i] for s, i in zip(stems, active)
                                                             if self.has_edges(i)},
                            self.board, self.edge_tau, self.edge_scale, noise, prior_sd)
-        return build_graph(PAIR_NAMES, [camera], [lidar], stems, {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0])
+        return build_graph(PAIR_NAMES, [camera], [lidar], stems, {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0],
+                           intrinsics)
 
     def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         e = self.residual(i, T, T_board)
