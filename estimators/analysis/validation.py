@@ -26,7 +26,7 @@ from ..errors import DegenerateLayoutError, LidarcamError
 from ..measurements import FrameMeasurement
 from ..solvers import chi_square as chi2
 from ..solvers.factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
-from ..solvers.noise_levels import _plane_noise, frame_noise, pooled_range_noise_m
+from ..solvers.noise_levels import frame_noise, plane_noise, pooled_range_noise_m
 from ..solvers.range_model import RangeTerms, frame_labels, frame_whiteners
 
 SIGNIFICANCE = 0.01
@@ -72,7 +72,7 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
         pi, H_x, H_b = lidar_plane(T_camera_lidar, b)
         if range_terms is None:
             e, D = lidar_residual(W, pi, f.lidar.is_scan_line)
-            C = _plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half, centre=fw.centre)
+            C = plane_noise(D, f.lidar.plane.normal, sigma_r, plane_floor_m, half, centre=fw.centre)
         else:
             e, D, H_beta = nuisance_residual(W, fw.S, fw.m_away, pi, beta, f.lidar.is_scan_line, fw.e0)
             C = frame_noise(fw, f.lidar.plane.normal, sigma_r, plane_floor_m, half, tau_m=range_scatter_m)

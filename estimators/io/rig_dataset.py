@@ -10,7 +10,8 @@ reference: cam0               # optional; default the first sensor
 ```
 
 A frame is a file stem; a sensor without a file for a stem did not see the board then. The single camera-LiDAR
-folder (``io.dataset``) stays as it is; :func:`is_rig` tells them apart.
+folder (``io.dataset``) is the rig of ``cam0`` and ``lidar0`` (:meth:`RigDataset.of_pair`; :func:`load_rig` reads
+either); :func:`is_rig` tells the two folders apart.
 """
 from __future__ import annotations
 
@@ -23,12 +24,14 @@ from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
 from ..errors import DatasetError
-from .dataset import (IMAGE_SUFFIXES, Dataset, FrameFiles, _parse_lidar, parse_board, parse_camera,
+from .dataset import (IMAGE_SUFFIXES, Dataset, FrameFiles, _parse_lidar, load_dataset, parse_board, parse_camera,
                       read_dataset_yaml)
 from .input_files import load_yaml
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 SENSOR_TYPES = ("camera", "lidar")
+# A single camera-LiDAR dataset's sensors as a rig's.
+PAIR_CAMERA, PAIR_LIDAR = "cam0", "lidar0"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 
 
@@ -81,6 +84,16 @@ class RigDataset:
     def lidars(self) -> tuple[Sensor, ...]:
         return tuple(s for s in self.sensors if not s.is_camera)
 
+    @classmethod
+    def of_pair(cls, dataset: Dataset) -> "RigDataset":
+        """A single camera-LiDAR dataset as the rig of ``cam0`` (the reference) and ``lidar0``, frame by frame
+        (``rig.pair("cam0", "lidar0")`` gives it back)."""
+        camera = Sensor(PAIR_CAMERA, "camera", camera=dataset.camera,
+                        files=tuple((f.name, f.image) for f in dataset.frames))
+        lidar = Sensor(PAIR_LIDAR, "lidar", lidar=dataset.lidar, lidar_family=dataset.lidar_family,
+                       range_accuracy_m=dataset.range_accuracy_m, files=tuple((f.name, f.scan) for f in dataset.frames))
+        return cls(dataset.root, dataset.board, (camera, lidar), PAIR_CAMERA)
+
     def pair(self, camera: str, lidar: str, camera_model: CameraModel | None = None) -> Dataset:
         """The camera-LiDAR pair as a single-pair :class:`~estimators.io.dataset.Dataset` over the stems both
         saw (``camera_model`` replaces the camera's entry, for intrinsics calibrated from its frames)."""
@@ -125,7 +138,8 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
     Parameters
     ----------
     path : str or os.PathLike
-        The rig folder: ``dataset.yaml`` with ``sensors:`` and a folder of files per sensor.
+        The rig folder: ``dataset.yaml`` with ``sensors:`` and a folder of files per sensor; or a single
+        camera-LiDAR dataset folder, read as the rig of ``cam0`` and ``lidar0`` (:meth:`RigDataset.of_pair`).
 
     Returns
     -------
@@ -138,6 +152,8 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
         A missing folder, a bad sensor entry (named, with what to write), a sensor folder missing or empty.
     """
     root, ypath, spec = read_dataset_yaml(path)
+    if isinstance(spec, dict) and "sensors" not in spec:
+        return RigDataset.of_pair(load_dataset(root))
     if not isinstance(spec, dict) or not isinstance(spec.get("sensors"), list) or not spec["sensors"]:
         raise DatasetError("sensors must be a non-empty list", path=ypath,
                            hint="list each sensor as {name: cam0, type: camera, ...} (docs/howto/rig.md)")

@@ -15,9 +15,9 @@ Factors:
 - with the board's edges, each LiDAR's ring ends on the board's outline (``board_edges.edge_factor``), with its
   outline and each frame's outline shift as vector variables under their priors.
 
-The noise: each camera's corners isotropic at their frame's pixel noise; each LiDAR's planes at the frame's own
-noise model when given (``LidarViews.noise``: the pair's plane covariance, robust), else isotropic at its range
-noise; both times the sensor's scale (quasi-likelihood, ``rig_graph.solve_rig``).
+The noise: each camera's corners isotropic at their frame's pixel noise; each LiDAR's planes at its range noise
+with the board's plane error (``LidarViews.plane_cov``), under a robust loss when given; both times the sensor's
+scale (quasi-likelihood, ``rig_graph.solve_rig``).
 """
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_fact
                       corner_residuals_intrinsics, lidar_residual, nuisance_plane_factor, nuisance_residual,
                       plane_factor)
 from .graph_keys import edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
+from .noise_levels import frame_noise, plane_noise, robust_noise
 from .range_model import RangeTerms
 
 
@@ -80,15 +81,49 @@ class LidarViews:
     board: object = None
     edge_tau_m: float = 0.0
     edge_scale: float = 1.0
-    # Per stem the plane factor's own noise model (a frame's plane covariance, robust or not), used instead of the
-    # isotropic ``sigma_m`` times the sensor's scale; and the range terms' prior sds instead of ``terms.prior_sd``.
-    noise: dict | None = None
+    # Per stem the board's plane error beyond the points' range noise (:class:`PlaneError`; a stem without one:
+    # the range noise alone), the robust loss on each plane (``RefinementOptions``; None: none), the boards'
+    # scatter along their range terms' weak direction (m) and the terms' prior sds (None: ``terms.prior_sd``).
+    plane_error: dict | None = None
+    robust: object = None
+    tau_m: float = 0.0
     terms_prior_sd: np.ndarray | None = None
 
     @property
     def has_terms(self) -> bool:
         return self.ranged is not None and self.terms is not None and self.terms.size > 0
 
+    def plane_cov(self, stem: str, scale: float = 1.0) -> np.ndarray | None:
+        """The covariance of frame ``stem``'s plane residual in the form the graph uses (``W pi``, or the range
+        model's), times ``scale``: the range noise, with the board's plane error and the boards' scatter
+        (``noise_levels.frame_noise``); None when the frame has no plane error (the range noise alone)."""
+        pe = None if self.plane_error is None else self.plane_error.get(stem)
+        if pe is None:
+            return None
+        if self.ranged is not None:
+            return scale * frame_noise(self.ranged[stem], pe.normal, self.sigma_m, pe.floor_m, pe.half_m, pe.scale_m,
+                                       self.tau_m)
+        return scale * plane_noise(self.W[stem], pe.normal, self.sigma_m, pe.floor_m, pe.half_m, pe.scale_m,
+                                   pe.centre)
+
+    def chi2(self, stem: str, e: np.ndarray, scale: float = 1.0) -> float:
+        """The frame's residual ``e`` (:func:`lidar_frame_residual`) squared in units of its covariance."""
+        C = self.plane_cov(stem, scale)
+        return float(e @ e) / (self.sigma_m**2 * scale) if C is None else float(e @ np.linalg.solve(C, e))
+
+
+@dataclass(frozen=True)
+class PlaneError:
+    """A board's plane error beyond its points' range noise (``noise_levels.plane_noise``): the LiDAR board's
+    normal and centroid (LiDAR frame), the board's half-size, the per-board plane error (m at the board's edge
+    and along its normal, estimated from the planes' disagreement) and the camera board's distance error from a
+    scale error of its pattern (m)."""
+
+    normal: np.ndarray
+    centre: np.ndarray | None
+    half_m: float
+    floor_m: float
+    scale_m: float
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -203,8 +238,13 @@ def _plane_factor(lv, k: int, stem: str, fk: int, scale: float):
     """LiDAR ``lv``'s (sensor ``k``) board points of frame ``stem`` (key ``fk``): its plane, in the range model's
     form when it has one (with its terms as a variable, or without terms: the form they are tested against)."""
     rows = (lv.W[stem] if lv.ranged is None else lv.ranged[stem].W).shape[0]
-    noise = (lv.noise[stem] if lv.noise is not None else
-             gtsam.noiseModel.Isotropic.Sigma(rows, lv.sigma_m * np.sqrt(scale)))
+    C = lv.plane_cov(stem, scale)
+    if C is None:
+        noise = gtsam.noiseModel.Isotropic.Sigma(rows, lv.sigma_m * np.sqrt(scale))
+    else:
+        noise = gtsam.noiseModel.Gaussian.Covariance(C)
+    if lv.robust is not None:
+        noise = robust_noise(noise, lv.robust, rows)
     if lv.ranged is None:
         return plane_factor(sensor_key(k), fk, lv.W[stem], noise, lv.scan_line)
     fw = lv.ranged[stem]

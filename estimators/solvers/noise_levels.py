@@ -84,7 +84,7 @@ def robust_weight(e_norm: float, options: RefinementOptions, dof: int = 3) -> fl
     return 1.0
 
 
-def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
+def plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
                  scale_m: float = 0.0, centre: np.ndarray | None = None) -> np.ndarray:
     """Covariance of a plane factor's residual ``W pi``: the points' range noise, plus a per-board plane
     error when the data call for one (the board tilted about its centre by ``floor_m`` over its half-size and
@@ -106,13 +106,13 @@ def _plane_noise(W: np.ndarray, normal: np.ndarray, sigma_r: float, floor_m: flo
 
 def frame_noise(fw: FrameWhitener, normal: np.ndarray, sigma_r: float, floor_m: float, half_size_m: float,
                 scale_m: float = 0.0, tau_m: float = 0.0) -> np.ndarray:
-    """Covariance of a frame's whitened LiDAR residual (:func:`_plane_noise`). In the range model's form
+    """Covariance of a frame's whitened LiDAR residual (:func:`plane_noise`). In the range model's form
     (``fw.R`` set) the per-board plane error acts on the board's own plane (its tilt about its centre,
     ``floor_m`` at the board's edge, and its distance), and ``tau_m`` is the scatter of the board's own offset
     along its weak direction (``fw.weak``: its distance and offsets trading, told apart only by incidence
     across the board)."""
     if fw.R is None:
-        return _plane_noise(fw.W, normal, sigma_r, floor_m, half_size_m, scale_m, fw.centre)
+        return plane_noise(fw.W, normal, sigma_r, floor_m, half_size_m, scale_m, fw.centre)
     k = fw.R.shape[1]
     V = np.zeros((k, k))
     s2 = (floor_m / half_size_m) ** 2

@@ -13,10 +13,10 @@ from geometry.camera import CameraModel
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from .closed_form import describe_direction
-from .factor_graph import CameraViews, LidarViews, build_graph, graph_values
+from .factor_graph import CameraViews, LidarViews, PlaneError, build_graph, graph_values
 from .factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
 from .graph_keys import EXTRINSIC, OUTLINE, RANGE, board_key, shift_key
-from .noise_levels import frame_noise, pooled_range_noise_m, robust_noise
+from .noise_levels import frame_noise, pooled_range_noise_m
 from .range_model import FrameLabels, RangeTerms, frame_whiteners
 from .refinement_options import PINNED_SD_M, RefinementOptions
 
@@ -84,11 +84,15 @@ class PlaneProblem:
         fw = self.fw[i]
         return nuisance_residual(fw.W, fw.S, fw.m_away, pi, self.beta, scan, fw.e0)[0]
 
-    def plane_cov(self, i: int, floor_m: float) -> np.ndarray:
+    def plane_error(self, i: int, floor_m: float) -> PlaneError:
+        """Frame ``i``'s board plane error (``factor_graph.PlaneError``) at the per-board plane error ``floor_m``."""
         f = self.frames[i]
-        return frame_noise(self.fw[i], f.lidar.plane.normal, self.sigma_r, floor_m,
-                           0.5 * float(np.mean(self.board.extent)),
-                           self.options.corner_scale_sd * f.camera.plane.distance, self.tau)
+        return PlaneError(f.lidar.plane.normal, self.fw[i].centre, 0.5 * float(np.mean(self.board.extent)), floor_m,
+                          self.options.corner_scale_sd * f.camera.plane.distance)
+
+    def plane_cov(self, i: int, floor_m: float) -> np.ndarray:
+        pe = self.plane_error(i, floor_m)
+        return frame_noise(self.fw[i], pe.normal, self.sigma_r, floor_m, pe.half_m, pe.scale_m, self.tau)
 
     def term_consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> tuple[float, int]:
         """How far each board's residual lies along its weak direction (its distance against its offsets, told
@@ -117,10 +121,6 @@ class PlaneProblem:
         camera = CameraViews(PAIR_NAMES[0], self.camera, self.sigma_px,
                              {s: self.corners_board[i] for s, i in zip(stems, active)},
                              {s: self.frames[i].camera.corners_px for s, i in zip(stems, active)})
-        noise = {}
-        for s, i in zip(stems, active):
-            n = gtsam.noiseModel.Gaussian.Covariance(self.plane_cov(i, floor_m))
-            noise[s] = robust_noise(n, self.options, self.whitener(i).shape[0]) if robust else n
         prior_sd = None
         if self.has_beta:
             prior_sd = np.array(self.terms.prior_sd, dtype=float)
@@ -132,7 +132,9 @@ class PlaneProblem:
                            self.terms,
                            None if self.edges is None else {s: self.edges[i] for s, i in zip(stems, active)
                                                             if self.has_edges(i)},
-                           self.board, self.edge_tau, self.edge_scale, noise, prior_sd)
+                           self.board, self.edge_tau, self.edge_scale,
+                           {s: self.plane_error(i, floor_m) for s, i in zip(stems, active)},
+                           self.options if robust else None, self.tau, prior_sd)
         return build_graph(PAIR_NAMES, [camera], [lidar], stems, {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0],
                            intrinsics)
 
