@@ -39,6 +39,7 @@ bench: $(STAMP)
 	$(RECORD) handheld -- $(PY) benchmarks/bench_handheld.py
 	$(RECORD) stands -- $(PY) benchmarks/bench_stands.py
 	$(RECORD) pair_vs_rig -- $(PY) benchmarks/bench_pair_vs_rig.py
+	$(RECORD) noise_models -- $(PY) benchmarks/bench_noise_models.py
 	$(RECORD) range_model -- $(PY) benchmarks/bench_range_model.py
 	$(RECORD) range_model_scenes -- $(PY) benchmarks/bench_range_model_scenes.py
 	$(RECORD) range_model_scenes_inject -- $(PY) benchmarks/bench_range_model_scenes.py --inject 100

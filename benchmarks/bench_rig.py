@@ -1,6 +1,6 @@
 """Rigs in one graph against each camera-LiDAR pair alone, on simulated rig folders
 (make bench; `python benchmarks/bench_rig.py [--rigs N] [--cameras C] [--lidars L] [--scanners S] [--poses P]
-[--posterior N] [--range-offset M] [--range-bias OFF,RING,DARK] [--lidar L] [--edges] [--timed K]`).
+[--posterior N] [--range-offset M] [--range-bias OFF,RING,DARK] [--lidar L] [--edges | --no-edges] [--timed K]`).
 
 Each rig (`simulation.rig_simulator`): C cameras and an HDL-64E-like LiDAR, P board poses sampled in the first
 camera's view: cameras 1 and 2 pinhole beside the first; 3 a fisheye looking backwards, 4 a fisheye looking right,
@@ -13,7 +13,7 @@ offsets drawn with sd RING, the black squares' offset) and adds each term's erro
 beams (HDL-64E, VLP-16 or OS1-64 like). `--posterior N`
 samples the rig's posterior (`solvers.rig_posterior`, N effective samples) and adds the mean d2 of the truth under
 each pair's posterior covariance and the posterior's time. `--edges` puts every LiDAR's board edges in the graph
-(the bound then has them too).
+(the bound then has them too), as the default does a 2D scanner's segment ends; `--no-edges` the planes alone.
 Rendered and ray-cast, then calibrated from its folder (`rig_calibration.calibrate_rig`). Per pair: the RMS
 rotation and translation error of the joint graph and of the pair alone (camera-LiDAR pairs), the mean frames
 the camera saw, the joint errors over the RMS Cramer-Rao bound (`rig_graph.rig_bound`: the graph's information at
@@ -145,7 +145,10 @@ def main() -> None:
                     help="range errors (m) injected into lidar0: a global offset, per-ring offsets drawn with this "
                          "sd, the black squares' offset (as the single pair's --range-bias)")
     ap.add_argument("--lidar", default="hdl64e", choices=["hdl64e", "vlp16", "os64"], help="lidar0's beams")
-    ap.add_argument("--edges", action="store_true", help="every LiDAR's board edges in the graph")
+    edges = ap.add_mutually_exclusive_group()
+    edges.add_argument("--edges", action="store_true", default=None,
+                       help="every LiDAR's board edges in the graph (default: a 2D scanner's segment ends)")
+    edges.add_argument("--no-edges", dest="edges", action="store_false", default=None, help="the boards' planes alone")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--timed", type=int, default=0, metavar="K",
                     help="then time the first K rigs one at a time with both cores, as the command runs a rig")
@@ -155,7 +158,8 @@ def main() -> None:
         runs = list(pool.map(_one, [(s, args.cameras, args.poses, args.lidars, args.scanners, args.posterior,
                                      args.range_offset, args.edges, bias, args.lidar) for s in range(args.rigs)]))
     more = (" + a VLP-16-like LiDAR" if args.lidars == 2 else "") + (" + a 2D scanner" if args.scanners else "")
-    more += "; every LiDAR's board edges in the graph (--edges)" if args.edges else ""
+    more += {True: "; every LiDAR's board edges in the graph (--edges)", False: "; planes alone (--no-edges)",
+             None: "; a 2D scanner's segment ends in the graph" if args.scanners else ""}[args.edges]
     frames = np.mean([r["frames_total"] for r in runs])
     family = {"hdl64e": "an HDL-64E", "vlp16": "a VLP-16", "os64": "an OS1-64"}[args.lidar]
     print(f"{args.rigs} simulated rigs: {args.cameras} cameras + {family}-like LiDAR{more}, {args.poses} board poses "

@@ -11,33 +11,34 @@ and is reported beside it ("pairwise only"). Two cameras are linked by every fra
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from .calibration import solve
 from .errors import DegenerateLayoutError
 from .io.rig_dataset import RigDataset
-from .measurements import lidar_whitener
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
-from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, measure_camera,
-                                       measure_pair_frames, pattern_flip, start_poses)
+from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
+                                       measure_camera, measure_pair_frames, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import choose_range_models, range_record
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
 from .solvers.refinement_options import RefinementOptions
-from .solvers.factor_graph import LidarViews
 from .solvers.rig_graph import solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
-# The pairwise solves start the joint graph and are reported beside it: no range terms, no edges and no check by
-# the edges (the joint estimate is checked).
-PAIR_OPTIONS = RefinementOptions(range_model="none", edges=False, outline_check=False)
+# Each camera-LiDAR pair is solved alone first, as the single pair is (its robust loss and outlier frames, its range
+# terms chosen before its per-board plane error is estimated, which the joint graph then weighs the LiDAR's boards
+# with): its estimate starts the joint graph and is reported beside it. No edges and no check by the edges (the
+# joint graph has its own).
+PAIR_OPTIONS = RefinementOptions(edges=False, outline_check=False)
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
-                  samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool = False
+                  samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None
                   ) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
@@ -61,10 +62,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         ``per-ring``, ``offset+dark``, ``full`` (the terms under priors from its range accuracy, dataset.yaml's
         ``range_accuracy_m`` or its family's), or ``auto``: the terms that likelihood-ratio tests at
         ``MODEL_TEST_P`` support (:func:`choose_range_models`).
-    edges : bool
-        The board's edges as measurements too (``--edges``): each LiDAR's ring ends (a 2D scanner's segment ends)
-        on the board's outline, in the joint graph (:func:`with_edges`); the posterior holds their share to
-        second order about the estimate (``rig_posterior.edges_quadratic``).
+    edges : bool or None
+        The board's edges as measurements too: each LiDAR's ring ends (a 2D scanner's segment ends) on the board's
+        outline, in the joint graph (:func:`with_edges`); the posterior holds their share to second order about
+        the estimate (``rig_posterior.edges_quadratic``). True (``--edges``): every LiDAR's; None (the default, as
+        for a single pair): the 2D scanners' segment ends, where the board's size is given; False (``--no-edges``):
+        none.
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -90,6 +93,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     t_cam = time.perf_counter()
     # Each LiDAR with each camera that shares enough frames: its boards chosen with that camera, the pair solved.
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
+    # Per LiDAR and stem the frame its board was used from and the per-board plane error of that frame's pair.
+    plane_frames: dict = {s.name: {} for s in rig.lidars}
     sigma_r: dict = {}
     pairwise, links, pair_frames = {}, {}, {}
     for lid in rig.lidars:
@@ -111,15 +116,23 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam.name], options=PAIR_OPTIONS, use_extent=False)
+                res = solve(usable, rig.board, cameras[cam.name], options=replace(PAIR_OPTIONS, range_model=range_model),
+                            use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
             pairwise[(cam.name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam.name, lid.name)] = usable
             links[(cam.name, lid.name)] = len(usable)
+            dropped = {fit.name: fit.reason for fit in res.refinement.frames if fit.dropped}
             for f in usable:
-                lidar_obs[lid.name].setdefault(f.name, f.lidar)
+                if f.name in lidar_obs[lid.name] or f.name in skipped[lid.name] and f.name in dropped:
+                    continue
+                if f.name in dropped:  # the pair's outlier: its LiDAR board or its board pose is not this board
+                    skipped[lid.name][f.name] = f"with {cam.name}: {dropped[f.name]}"
+                    continue
+                lidar_obs[lid.name][f.name] = f.lidar
+                plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
                 skipped[lid.name].pop(f.name, None)
         if lidar_obs[lid.name]:
             sigma_r[lid.name] = pooled_range_noise_m([Framed(o) for o in lidar_obs[lid.name].values()])
@@ -140,9 +153,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         for st, p in poses[c].items():
             T_ref_board.setdefault(st, T_ref[c] @ p.T_camera_board)
     camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board) for c in cams if poses[c]]
-    lidar_views = [LidarViews(lid.name, sigma_r[lid.name],
-                              {st: lidar_whitener(o, sigma_r[lid.name]) for st, o in lidar_obs[lid.name].items()
-                               if st in T_ref_board}, lid.lidar == "2d")
+    lidar_views = [lidar_views_of(lid.name, sigma_r[lid.name], plane_frames[lid.name], T_ref_board, rig.board,
+                                  lid.lidar == "2d", PAIR_OPTIONS)
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     range_models: dict = {}
@@ -164,12 +176,13 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof:.0f} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
     edge_records: dict = {}
+    edged = {lv.name for lv in lidar_views if edges or edges is None and lv.scan_line}
     if edges and not rig.board.size_known:
         warnings.append("--edges: the board's size is not in dataset.yaml (board.size): planes alone")
-    elif edges:
+    elif edged and rig.board.size_known:
         lidar_views, solution, edge_records = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution,
-                                                         T_ref, T_ref_board, refine_intrinsics)
-        if not edge_records:
+                                                         T_ref, T_ref_board, refine_intrinsics, edged)
+        if not edge_records and edges:
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)

@@ -31,7 +31,7 @@ def _calibrate_rig(args) -> int:
     _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
-                           samples=args.samples, range_model=args.range_model, edges=bool(args.edges))
+                           samples=args.samples, range_model=args.range_model, edges=args.edges)
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     print(f"wrote {path}")

@@ -18,16 +18,20 @@ from .rig_measurement import Framed
 
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-               solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool
+               solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
                ) -> tuple[list, RigSolution, dict]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
     per LiDAR (its sides' growth and the pattern's offset, under their priors); the scatter and the ends' scale
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
-    Returns the views, the solution and per LiDAR its record (ends, scale, scatter, outline)."""
+    Only the LiDARs named in ``which`` have their edges. Returns the views, the solution and per LiDAR its record
+    (ends, scale, scatter, outline)."""
     views = []
     for lv in lidar_views:
+        if lv.name not in which:
+            views.append(lv)
+            continue
         obs = lidar_obs[lv.name]
         T_l = solution.T_ref[lv.name]
         stems = [st for st in lv.W if st in solution.T_ref_board]

@@ -20,8 +20,10 @@ from ..io.dataset import FrameFiles
 from ..io.rig_dataset import Sensor
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import detect_in_image, measure_frames
+from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import board_corner_residuals_px
-from ..solvers.factor_graph import CameraViews
+from ..solvers.range_model import frame_whitener
+from ..solvers.refinement_options import RefinementOptions
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3
@@ -161,6 +163,23 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
             f = measured[st][1]
             out.append(FrameMeasurement(st, poses[st], f.lidar, None if f.lidar is not None else f.reason))
     return out
+
+
+def lidar_views_of(name: str, sigma_m: float, frames: dict, T_ref_board: dict, board, scan_line: bool,
+                   options: RefinementOptions) -> LidarViews:
+    """A LiDAR's board points for the graph, as a single pair's refinement weighs them: by stem the frame (its
+    LiDAR board, and the camera board it was found with) and the per-board plane error its pair estimated
+    (``frames``: stem -> (FrameMeasurement, floor_m)), each plane at the range noise ``sigma_m`` with that error
+    (``factor_graph.PlaneError``) under ``options``' robust loss; the stems a camera saw (``T_ref_board``)."""
+    W, errors = {}, {}
+    for st, (f, floor_m) in frames.items():
+        if st not in T_ref_board:
+            continue
+        fw = frame_whitener(f.lidar, sigma_m, None)
+        W[st] = fw.W
+        errors[st] = PlaneError(f.lidar.plane.normal, fw.centre, 0.5 * float(np.mean(board.extent)), floor_m,
+                                options.corner_scale_sd * f.camera.plane.distance)
+    return LidarViews(name, sigma_m, W, scan_line, plane_error=errors, robust=options)
 
 
 @dataclass(frozen=True, eq=False)

@@ -5,9 +5,10 @@ that a camera saw. The graph's reference is a camera (the first when the rig's r
 the poses and their covariance are then carried into: :func:`change_reference`); its factors are
 ``factor_graph``'s.
 
-The noise: each camera's corners with its own effective pixel noise, each LiDAR's points with its own range noise
-(``W`` whitens by it); a sensor whose chi-square per degree of freedom is above 1 has its noise scaled by it and
-the graph is solved again (quasi-likelihood, a variance factor per sensor). Its degrees of freedom are its
+The noise: each camera's corners with each board's own pixel noise, each LiDAR's points with its range noise and
+each board's plane error (``factor_graph.LidarViews.plane_cov``); a sensor whose chi-square exceeds its degrees of
+freedom beyond chance (:data:`QUASI_LIKELIHOOD_P`) has its noise scaled by their ratio and the graph is solved
+again (quasi-likelihood, a variance factor per sensor). Its degrees of freedom are its
 residuals less its share of the unknowns (:func:`redundancy`): a LiDAR's planes also fix the board poses that
 few cameras saw, so residuals less 6 would count its chi-square against too many and miss its excess.
 The joint covariance of all sensor poses is the graph's marginal; any pair's transform ``T_a_b = T_ref_a^-1
@@ -27,6 +28,12 @@ from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_
                            vector_keys)
 from .factors import corner_residuals, lidar_plane
 from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
+
+# A sensor's noise is scaled by its chi-square per degree of freedom (quasi-likelihood) only when its factors
+# disagree beyond their noise at this level: the single pair's plane test, which estimates a per-board plane error
+# there instead (each LiDAR's, carried into the graph by its ``PlaneError``). Scaling every excess, significant or
+# not, made the covariance too wide (`make bench`, noise_models.md).
+QUASI_LIKELIHOOD_P = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,7 +123,7 @@ def change_reference(names: tuple[str, ...], T_ref: dict, cov: np.ndarray, new: 
 
 
 def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, shares: dict) -> dict:
-    """Each sensor's chi-square of its factors at ``values`` (unit noise) and its degrees of freedom: its
+    """Each sensor's chi-square of its factors at ``values`` (unit scale) and its degrees of freedom: its
     residuals less the share of the unknowns they fix (``shares``, by sensor: :func:`redundancy`)."""
     out = {}
     for c in cameras:
@@ -140,7 +147,7 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, s
                 continue
             pi, _, _ = lidar_plane(T_rs, values.atPose3(frame_key(stems.index(stem))).matrix())
             e = lidar_frame_residual(lv, stem, pi, beta)
-            ss += float(e @ e) / lv.sigma_m**2
+            ss += lv.chi2(stem, e)
             n += e.size
         out[lv.name] = (ss, max(n - shares[lv.name], 1.0))
     return out
@@ -181,7 +188,8 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         iterations += opt.iterations()
         stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics,
                       redundancy(graph, values, owners))
-        new = {n: max(1.0, ss / dof) for n, (ss, dof) in stats.items()}
+        new = {n: ss / dof if ss > dof and chi2.sf(ss, dof) < QUASI_LIKELIHOOD_P else 1.0
+               for n, (ss, dof) in stats.items()}
         new = {n: new.get(n, 1.0) for n in names}
         converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
         scale = new

@@ -8,8 +8,8 @@ scales, with each frame's board pose integrated out:
   Jacobians): hundreds of corners per board at sub-pixel noise, whose second order is far below their first, as
   the pair's posterior assumes for its camera board fit;
 - a LiDAR's board points enter exactly in the LiDAR's pose (the board's plane turned and moved into the LiDAR
-  through ``T_ref_l Exp(xi_l)``, whitened by the frame's ``W``; a scan line divided by ``|n_xy|``) and linearly in
-  the board's tangent.
+  through ``T_ref_l Exp(xi_l)``, through the frame's ``W`` (a scan line divided by ``|n_xy|``) and whitened by its
+  plane covariance at the MAP, ``LidarViews.plane_cov``) and linearly in the board's tangent.
 
 The board tangent ``b_j`` of frame ``j`` then enters quadratically with a Hessian ``H_j`` that does not depend on
 the sensor poses, and integrates out in closed form:
@@ -155,7 +155,7 @@ class RigLikelihood:
         self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
         #                                    signs (F_l,), e0 (F_l, k), terms' Jacobians (F_l, k, K), their columns)
         for lv in lidars:
-            s = lv.sigma_m * np.sqrt(solution.noise_scale.get(lv.name, 1.0))
+            scale = solution.noise_scale.get(lv.name, 1.0)
             idx, Ws, G, normals, points, signs, E0, Hb = [], [], [], [], [], [], [], []
             rows = {st: (lv.ranged[st].W.shape[0] if lv.ranged is not None else W.shape[0]) for st, W in lv.W.items()}
             width = max((k for st, k in rows.items() if st in frame), default=0)
@@ -170,16 +170,19 @@ class RigLikelihood:
                 # The range model's form orients the plane like the fitted one (``factors.nuisance_residual``).
                 sign = 1.0 if fw is None or float(pi[:3] @ fw.m_away) >= 0 else -1.0
                 k = W4.shape[0]
+                C = lv.plane_cov(stem, scale)  # the residual whitened by its covariance's Cholesky factor
+                Li = (np.eye(k) / (lv.sigma_m * np.sqrt(scale)) if C is None else
+                      np.linalg.inv(np.linalg.cholesky(C)))
                 Gj = np.zeros((width, 6))
-                Gj[:k] = sign * D @ H_b / s
+                Gj[:k] = sign * Li @ D @ H_b
                 H[j] += Gj.T @ Gj
                 Wp = np.zeros((width, 4))
-                Wp[:k] = W4 / s
+                Wp[:k] = Li @ W4
                 e0, hb = np.zeros(width), np.zeros((width, lv.terms.size if lv.has_terms else 0))
                 if fw is not None:
-                    e0[:k] = fw.e0 / s
+                    e0[:k] = Li @ fw.e0
                     if lv.has_terms:
-                        hb[:k] = fw.W_nuisance / s
+                        hb[:k] = Li @ fw.W_nuisance
                 idx.append(j)
                 Ws.append(Wp)
                 G.append(Gj)
