@@ -736,3 +736,42 @@ def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):
     assert main(args[:-1] + [str(tmp_path / "missing")] + ["--image-topic", "/cam9/image_raw"]) == 2
     assert "/cam9/image_raw" in capsys.readouterr().err and not (tmp_path / "missing").exists()
     assert not (tmp_path / "twice").exists()
+
+
+@pytest.mark.parametrize("data", ["sim_vlp16", "sim_2d"])
+def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_the_one_graph_with_the_pairs_noise_is_the_pair(
+        data, request, monkeypatch):
+    # A single camera-LiDAR folder loads as the rig of cam0 (the reference) and lidar0, frame by frame, and its
+    # rig calibration.json keeps the pair's T_camera_lidar and covariance. The one graph weighs the LiDAR's
+    # boards as the pair's refinement does (its robust loss, per-board plane error and outlier frames); given
+    # the pair's corner noise too (the camera's pooled residual times CORNER_ERROR_CORRELATION: the one concept
+    # the two still differ in), it lands on the pair's estimate within 0.001 of its standard deviations and on
+    # its covariance within 0.1% (the two solvers' stopping tolerances), a 3D LiDAR's and a 2D scanner's (planes
+    # alone: the edges enter each engine in its own steps).
+    from estimators import rig_calibration
+    from estimators.calibration import calibrate
+    from estimators.io.dataset import load_dataset
+    from estimators.solvers.factor_graph import CameraViews
+    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
+
+    folder = request.getfixturevalue(data)
+    rig = load_rig(folder)
+    assert [(s.name, s.type) for s in rig.sensors] == [("cam0", "camera"), ("lidar0", "lidar")]
+    assert rig.reference == "cam0" and rig.pair("cam0", "lidar0").frames == load_dataset(folder).frames
+    per_board = rig_calibration.camera_views_of
+
+    def pooled(name, camera, poses, board):
+        v = per_board(name, camera, poses, board)
+        return CameraViews(v.name, v.camera, v.sigma_px * CORNER_ERROR_CORRELATION, v.corners_board, v.corners_px,
+                           v.T_camera_board, {})
+
+    monkeypatch.setattr(rig_calibration, "camera_views_of", pooled)
+    res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False)
+    T, C = res.solution.transform("cam0", "lidar0")
+    cal = res.to_json()
+    np.testing.assert_array_equal(np.array(cal["T_camera_lidar"]), T)
+    np.testing.assert_array_equal(np.array(cal["covariance"]), C)
+    pair = calibrate(folder, samples=0, options=RefinementOptions(edges=False))
+    xi = T_log(np.linalg.inv(pair.T_camera_lidar) @ T)
+    assert np.all(np.abs(xi) < 1e-3 * np.sqrt(np.diag(pair.covariance))), xi
+    np.testing.assert_allclose(C, pair.covariance, rtol=1e-3, atol=1e-14)

@@ -127,7 +127,12 @@ class RigResult:
             cameras[n].update({"given_params": self.cameras[n].params.tolist(), "refined_params": p.tolist(),
                                "refined_params_sd": sd.tolist(), "K": refined.K.tolist(),
                                "dist": refined.dist.tolist(), "source": "refined with the rig"})
-        return {"rig": True, "reference": ref, "sensors": sensors, "transforms": transforms, "layout": self.layout(),
+        pair = {}
+        if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
+            T, C = sol.transform(self.rig.cameras[0].name, self.rig.lidars[0].name)
+            pair = {"T_camera_lidar": T.tolist(), "covariance": C.tolist()}
+        return {"rig": True, **pair, "reference": ref, "sensors": sensors, "transforms": transforms,
+                "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
                 "pairwise_only": pairwise, "cameras": cameras,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
