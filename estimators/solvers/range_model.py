@@ -35,6 +35,7 @@ explain is not read as a range term.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -438,7 +439,11 @@ def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: Rang
         W, floor = (sqrt_excess_moment_scan if obs.is_scan_line else sqrt_excess_moment)(M)
         return FrameWhitener(W, np.zeros((0, 0)), m_away, floor, np.zeros(W.shape[0]), centre=P.mean(0))
     A, S = frame_design(len(P), terms, rings, dark)
-    W, e0, floor, R, T = _range_fit(np.linalg.norm(P, axis=1), beams, A, m_away, obs.is_scan_line)
+    rho = np.linalg.norm(P, axis=1)
+    plane = _PLANE_FITS.get(obs)
+    if plane is None:
+        plane = _PLANE_FITS[obs] = _plane_fit(rho, beams, m_away, obs.is_scan_line)
+    W, e0, floor, R, T = _range_fit(rho, beams, A, m_away, obs.is_scan_line, plane)
     nt = 1 if obs.is_scan_line else 2
     vals, vecs = np.linalg.eigh(R.T @ R)
     weak = vecs[:, 0]
@@ -458,38 +463,55 @@ def _tangent(m: np.ndarray, scan_line: bool) -> np.ndarray:
     return np.linalg.svd(m[None, :])[2][1:].T
 
 
-def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray, scan_line: bool,
-               iterations: int = 8) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """One board's plane and range terms from its ranges, compressed to a residual.
-
-    The model of each return is ``rho = d / (m . b) + a . beta + noise``: the ranges are the observations and
-    the beams are known, so Gauss-Newton on it is plain least squares (no errors in the variables, and no
-    spurious minimum where an offset mimics a rescaled normal, as it does in a moment's quadratic form).
-    The plane alone is fitted first (``beta = 0``); about that point, with ``x = [tangent part of the
-    normal; d; beta]``, the cost is ``floor + |R (x - x*)|^2`` to second order (Gauss-Newton; ``beta`` stays
-    near 0, while within one board an offset and the plane's distance can trade far along a flat valley).
-    Returned as ``W = R P`` and ``e0`` with ``x = P theta`` read from ``theta = [n; -d; beta]`` (the normal's
-    tangent part), the floor, ``R`` and the tangent basis.
-    """
+def _plane_fit(rho: np.ndarray, beams: np.ndarray, m0: np.ndarray, scan_line: bool, iterations: int = 8
+               ) -> tuple[np.ndarray, float]:
+    """A board's plane alone (``beta = 0``) from its ranges by Gauss-Newton (:func:`_range_fit`): its unit normal
+    and distance, started at the normal ``m0``."""
     m = m0 / np.linalg.norm(m0)
     mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
     d = float(np.sum(rho / mb) / np.sum(1.0 / mb**2))  # least squares d for the initial normal
-
-    def jacobian(m, d):
-        T = _tangent(m, scan_line)
-        mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
-        return T, rho - d / mb, np.hstack([(d / mb**2)[:, None] * (beams @ T), -(1.0 / mb)[:, None], -A])
-
     nt = 1 if scan_line else 2
     for _ in range(iterations):
-        T, r, J = jacobian(m, d)
+        T, r, J = _range_jacobian(rho, beams, m, d, np.zeros((len(rho), 0)), scan_line)
         step = np.linalg.lstsq(J[:, :nt + 1], -r, rcond=None)[0]
         m = m + T @ step[:nt]
         m /= np.linalg.norm(m)
         d += step[nt]
         if np.max(np.abs(step)) < 1e-10:
             break
-    T, r, J = jacobian(m, d)
+    return m, d
+
+
+def _range_jacobian(rho, beams, m, d, A, scan_line):
+    """The tangent basis at ``m``, the ranges' residuals at the plane ``(m, d)`` and their Jacobian by ``[tangent
+    part of the normal; d; beta]``."""
+    T = _tangent(m, scan_line)
+    mb = np.maximum(beams @ m, MIN_INCIDENCE_COS)
+    return T, rho - d / mb, np.hstack([(d / mb**2)[:, None] * (beams @ T), -(1.0 / mb)[:, None], -A])
+
+
+# Each board observation's plane fit (:func:`_plane_fit`), the same for every range model it is put in: a rig's
+# pairs try several models, each over every frame.
+_PLANE_FITS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray, scan_line: bool,
+               plane: tuple[np.ndarray, float] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """One board's plane and range terms from its ranges, compressed to a residual.
+
+    The model of each return is ``rho = d / (m . b) + a . beta + noise``: the ranges are the observations and
+    the beams are known, so Gauss-Newton on it is plain least squares (no errors in the variables, and no
+    spurious minimum where an offset mimics a rescaled normal, as it does in a moment's quadratic form).
+    The plane alone is fitted first (``beta = 0``; ``plane``: that fit, :func:`_plane_fit`, when made already);
+    about that point, with ``x = [tangent part of the normal; d; beta]``, the cost is ``floor + |R (x - x*)|^2``
+    to second order (Gauss-Newton; ``beta`` stays near 0, while within one board an offset and the plane's
+    distance can trade far along a flat valley). Returned as ``W = R P`` and ``e0`` with ``x = P theta`` read from
+    ``theta = [n; -d; beta]`` (the normal's tangent part), the floor, ``R`` and the tangent basis.
+    """
+    m, d = plane if plane is not None else _plane_fit(rho, beams, m0, scan_line)
+    nt = 1 if scan_line else 2
+    T, r, J = _range_jacobian(rho, beams, m, d, A, scan_line)
     vals, vecs = np.linalg.eigh(J.T @ J)
     keep = vals > 1e-10 * vals[-1]
     g = J.T @ r
