@@ -32,7 +32,8 @@ from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
 # A sensor's noise is scaled by its chi-square per degree of freedom (quasi-likelihood) only when its factors
 # disagree beyond their noise at this level: the single pair's plane test, which estimates a per-board plane error
 # there instead (each LiDAR's, carried into the graph by its ``PlaneError``). Scaling every excess, significant or
-# not, made the covariance too wide (`make bench`, noise_models.md).
+# not, made the covariance too wide (`make bench`, noise_models.md); a LiDAR whose boards carry no plane error
+# (the range terms' tests, ``pipeline.rig_terms``) has every excess scaled, the only account of it it has.
 QUASI_LIKELIHOOD_P = 0.01
 
 
@@ -172,6 +173,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         for c in cameras:
             values.insert(intrinsics_key(names.index(c.name)), np.asarray(c.camera.params, dtype=float))
     scale = {n: 1.0 for n in names}
+    plain = {lv.name for lv in lidars if lv.plane_error is None}  # no plane error: every excess scaled
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     iterations = 0
@@ -188,7 +190,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         iterations += opt.iterations()
         stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics,
                       redundancy(graph, values, owners))
-        new = {n: ss / dof if ss > dof and chi2.sf(ss, dof) < QUASI_LIKELIHOOD_P else 1.0
+        new = {n: ss / dof if ss > dof and (n in plain or chi2.sf(ss, dof) < QUASI_LIKELIHOOD_P) else 1.0
                for n, (ss, dof) in stats.items()}
         new = {n: new.get(n, 1.0) for n in names}
         converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
