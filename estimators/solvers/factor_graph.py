@@ -60,7 +60,7 @@ class CameraViews:
 @dataclass(frozen=True, eq=False)
 class LidarViews:
     """One LiDAR's frames: per stem the square root ``W`` of its board points' range moment
-    (``measurements.lidar_whitener``: ``|W pi|^2`` is their sum of squared range errors), its range noise (m),
+    (``range_model.frame_whitener``: ``|W pi|^2`` is their sum of squared range errors), its range noise (m),
     and whether it is a scan line (2D).
 
     ``ranged``: per stem the frame's ``range_model.FrameWhitener`` in the range model's form (the residual
