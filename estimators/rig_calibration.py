@@ -126,7 +126,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             pairwise[(cam.name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam.name, lid.name)] = usable
             links[(cam.name, lid.name)] = len(usable)
-            dropped = {fit.name: fit.reason for fit in res.refinement.frames if fit.dropped}
+            dropped = {fit.name: fit.outlier for fit in res.refinement.frames if fit.dropped}
             fit = res.refinement.range_model
             board_scatter.setdefault(lid.name, float(fit.term_consistency.get("board_scatter_m", 0.0)) if fit else 0.0)
             for f in usable:
