@@ -775,3 +775,26 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_the_one_graph_with_the_
     xi = T_log(np.linalg.inv(pair.T_camera_lidar) @ T)
     assert np.all(np.abs(xi) < 1e-3 * np.sqrt(np.diag(pair.covariance))), xi
     np.testing.assert_allclose(C, pair.covariance, rtol=1e-3, atol=1e-14)
+
+
+def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph(sim_vlp16, monkeypatch):
+    # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):
+    # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames.
+    from dataclasses import replace
+
+    from estimators import rig_calibration
+
+    real = rig_calibration.solve
+
+    def dropping(frames, *args, **kwargs):
+        res = real(frames, *args, **kwargs)
+        fits = list(res.refinement.frames)
+        fits[0] = replace(fits[0], dropped=True, outlier="its laser line is off the camera's board (a test)")
+        return replace(res, refinement=replace(res.refinement, frames=tuple(fits)))
+
+    monkeypatch.setattr(rig_calibration, "solve", dropping)
+    res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none")
+    first = sorted(res.skipped["lidar0"])
+    assert len(first) == 1 and "with cam0: its laser line is off the camera's board (a test)" in res.skipped["lidar0"][
+        first[0]]
+    assert first[0] not in res.frames_used["lidar0"] and len(res.frames_used["lidar0"]) >= 3
