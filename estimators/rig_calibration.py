@@ -4,9 +4,11 @@ solve jointly (``solvers.rig_graph``), and write every pair's transform with its
 Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
 its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
 sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it
-(``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board pose of the frame. Each such camera-LiDAR pair is
-also solved alone (planes, no range terms and no segment ends: the joint graph's model), which starts the joint graph
-and is reported beside it ("pairwise only"). Two cameras are linked by every frame both saw.
+(``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board pose of the
+frame. Each such camera-LiDAR pair is also solved alone as a single pair is (``PAIR_OPTIONS``): its estimate starts
+the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the LiDAR's boards in the
+joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two cameras are linked by
+every frame both saw.
 """
 from __future__ import annotations
 
@@ -118,8 +120,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam.name], options=replace(PAIR_OPTIONS, range_model=range_model),
-                            use_extent=False)
+                res = solve(usable, rig.board, cameras[cam.name],
+                            options=replace(PAIR_OPTIONS, range_model=range_model), use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
