@@ -103,7 +103,11 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     """The graph's information at the truth (every sensor's and board's pose), at the noise levels the graph used:
     the Cramer-Rao bound of the rig's measurement model for the views measured (``rig_graph.rig_bound``). A board
     numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise.
-    ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values."""
+    ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values. The bound is the
+    Gaussian model's: without the robust loss, whose weights at the truth would depend on the range terms' values
+    there (0 in the bound's graph, not the injected errors)."""
+    from dataclasses import replace
+
     from estimators.pipeline.rig_measurement import pattern_flip
     from estimators.solvers.rig_graph import rig_bound
 
@@ -111,8 +115,8 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     flip = pattern_flip(res.rig.board)
     boards = {st: numbered_as(B, np.array(gt["T_cam0_board"][st]), flip) for st, B in sol.T_ref_board.items()}
     truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
-    return rig_bound(sol.names, "cam0", list(res.camera_views), list(res.lidar_views), truth, boards,
-                     sol.noise_scale, intrinsics)
+    return rig_bound(sol.names, "cam0", list(res.camera_views), [replace(lv, robust=None) for lv in res.lidar_views],
+                     truth, boards, sol.noise_scale, intrinsics)
 
 
 def _timed(seed: int, cameras, poses, lidars, scanners, samples, offset, edges, bias, lidar) -> float:
