@@ -177,8 +177,7 @@ def lidar_views_of(name: str, sigma_m: float, frames: dict, T_ref_board: dict, b
             continue
         fw = frame_whitener(f.lidar, sigma_m, None)
         W[st] = fw.W
-        errors[st] = PlaneError(f.lidar.plane.normal, fw.centre, 0.5 * float(np.mean(board.extent)), floor_m,
-                                options.corner_scale_sd * f.camera.plane.distance)
+        errors[st] = PlaneError.of_frame(f, fw.centre, board, floor_m, options.corner_scale_sd)
     return LidarViews(name, sigma_m, W, scan_line, plane_error=errors, robust=options)
 
 

@@ -125,6 +125,14 @@ class PlaneError:
     floor_m: float
     scale_m: float
 
+    @classmethod
+    def of_frame(cls, frame, centre: np.ndarray | None, board, floor_m: float, corner_scale_sd: float) -> "PlaneError":
+        """A frame's (``FrameMeasurement``) plane error: its LiDAR board's normal, the board points' ``centre``,
+        half the board's mean extent, ``floor_m``, and the pattern-scale error ``corner_scale_sd`` (relative) at
+        the camera board's distance."""
+        return cls(frame.lidar.plane.normal, centre, 0.5 * float(np.mean(board.extent)), floor_m,
+                   corner_scale_sd * frame.camera.plane.distance)
+
 
 def adjoint(T: np.ndarray) -> np.ndarray:
     """GTSAM's Pose3 adjoint in ``[rot; trans]`` order: ``T Exp(xi) T^-1 = Exp(Ad(T) xi)``."""

@@ -86,9 +86,7 @@ class PlaneProblem:
 
     def plane_error(self, i: int, floor_m: float) -> PlaneError:
         """Frame ``i``'s board plane error (``factor_graph.PlaneError``) at the per-board plane error ``floor_m``."""
-        f = self.frames[i]
-        return PlaneError(f.lidar.plane.normal, self.fw[i].centre, 0.5 * float(np.mean(self.board.extent)), floor_m,
-                          self.options.corner_scale_sd * f.camera.plane.distance)
+        return PlaneError.of_frame(self.frames[i], self.fw[i].centre, self.board, floor_m, self.options.corner_scale_sd)
 
     def plane_cov(self, i: int, floor_m: float) -> np.ndarray:
         pe = self.plane_error(i, floor_m)
