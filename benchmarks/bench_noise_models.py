@@ -8,10 +8,11 @@ for reference, without posterior and without the board's edges:
 - `one graph`: each board's corners at their own residual (shrunk towards the camera's pooled one) times 1.0, each
   LiDAR board's plane at the range noise plus the per-board plane error its pair's consistency test calls for
   (robust loss, outlier frames dropped), a sensor's noise scaled only when its chi-square exceeds its dof at 1%;
-- `pooled corners`: the camera's pooled residual times `CORNER_ERROR_CORRELATION` (1.28) for every board;
+- `pooled corners`: the camera's pooled residual times 1.28 for every board (`POOLED_FACTOR`, the single pair's
+  model before the one graph);
 - `scaled planes`: each LiDAR board's plane at the range noise alone, every sensor's excess chi-square scaled away
   (no per-board plane error, no robust loss, no test);
-- `pair engine`: the single pair's refinement (pooled corners, per-board plane error).
+- `pair engine`: the single pair's refinement.
 
 Over five generators (the rig simulator with an HDL-64E-like and a VLP-16-like LiDAR; the pair simulator with an
 HDL-64E in its default scene, a VLP-16 in its office, and its varied 2D scanner), N seeds each: the squared
@@ -42,6 +43,8 @@ from estimators.solvers import rig_graph  # noqa: E402
 from estimators.solvers.chi_square import ppf  # noqa: E402
 from estimators.solvers.factor_graph import CameraViews  # noqa: E402
 from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions  # noqa: E402
+
+POOLED_FACTOR = 1.28
 from estimators.simulation.rig_simulator import simulate_rig  # noqa: E402
 from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
@@ -59,8 +62,8 @@ VARIANTS = ("one graph", "pooled corners", "scaled planes", "pair engine")
 def _pooled_views(original):
     def views(name, camera, poses, board):
         v = original(name, camera, poses, board)
-        return CameraViews(v.name, v.camera, v.sigma_px * CORNER_ERROR_CORRELATION, v.corners_board, v.corners_px,
-                           v.T_camera_board, {})
+        return CameraViews(v.name, v.camera, v.sigma_px / CORNER_ERROR_CORRELATION * POOLED_FACTOR, v.corners_board,
+                           v.corners_px, v.T_camera_board, {})
     return views
 
 

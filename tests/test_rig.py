@@ -12,7 +12,8 @@ import pytest
 
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
-from estimators.pipeline.rig_measurement import BOARD_CORNER_FACTOR, pattern_flip
+from estimators.pipeline.rig_measurement import pattern_flip
+from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
 from estimators.pipeline.rig_result import range_model_words
 from estimators.rig_calibration import calibrate_rig
 from estimators.simulation.range_bias import RangeBias
@@ -176,12 +177,12 @@ def test_each_cameras_corner_noise_is_the_single_pairs_pooled_and_each_boards_ow
         if {f.name for f in frames} != set(cv.corners_px):
             continue
         pooled = corner_residual_px(frames, rig_result.rig.board, cv.camera)
-        assert cv.sigma_px == pytest.approx(pooled * BOARD_CORNER_FACTOR, rel=1e-9), cv.name
+        assert cv.sigma_px == pytest.approx(pooled * CORNER_ERROR_CORRELATION, rel=1e-9), cv.name
         for f in frames:
             r, _ = corner_residuals(f.camera.T_camera_board, f.camera.corners_board(rig_result.rig.board),
                                     f.camera.corners_px, cv.camera, jacobian=False)
             own = (r @ r + BOARD_NOISE_PRIOR_DOF * pooled**2) / (r.size - 6 + BOARD_NOISE_PRIOR_DOF)
-            assert cv.sigma(f.name) == pytest.approx(np.sqrt(own) * BOARD_CORNER_FACTOR, rel=1e-9), f.name
+            assert cv.sigma(f.name) == pytest.approx(np.sqrt(own) * CORNER_ERROR_CORRELATION, rel=1e-9), f.name
         break
     else:
         pytest.fail("no camera with all its frames in its pair with lidar0")
@@ -739,33 +740,21 @@ def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("data", ["sim_vlp16", "sim_2d"])
-def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_the_one_graph_with_the_pairs_noise_is_the_pair(
-        data, request, monkeypatch):
+def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(data, request):
     # A single camera-LiDAR folder loads as the rig of cam0 (the reference) and lidar0, frame by frame, and its
-    # rig calibration.json keeps the pair's T_camera_lidar and covariance. The one graph weighs the LiDAR's
-    # boards as the pair's refinement does (its robust loss, per-board plane error and outlier frames); given
-    # the pair's corner noise too (the camera's pooled residual times CORNER_ERROR_CORRELATION: the one concept
-    # the two still differ in), it lands on the pair's estimate within 0.001 of its standard deviations and on
-    # its covariance within 0.1% (the two solvers' stopping tolerances), a 3D LiDAR's and a 2D scanner's (planes
-    # alone: the edges enter each engine in its own steps).
-    from estimators import rig_calibration
+    # rig calibration.json keeps the pair's T_camera_lidar and covariance. The one graph weighs the rig's
+    # boards as the pair's refinement does (each board's corner noise, the LiDAR's robust loss, per-board plane
+    # error and outlier frames): the rig lands on the pair's estimate within 0.001 of its standard deviations and
+    # on its covariance within 0.1% (the two solvers' stopping tolerances), a 3D LiDAR's and a 2D scanner's
+    # (planes alone: the edges enter each engine in its own steps).
     from estimators.calibration import calibrate
     from estimators.io.dataset import load_dataset
-    from estimators.solvers.factor_graph import CameraViews
-    from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
+    from estimators.solvers.refinement_options import RefinementOptions
 
     folder = request.getfixturevalue(data)
     rig = load_rig(folder)
     assert [(s.name, s.type) for s in rig.sensors] == [("cam0", "camera"), ("lidar0", "lidar")]
     assert rig.reference == "cam0" and rig.pair("cam0", "lidar0").frames == load_dataset(folder).frames
-    per_board = rig_calibration.camera_views_of
-
-    def pooled(name, camera, poses, board):
-        v = per_board(name, camera, poses, board)
-        return CameraViews(v.name, v.camera, v.sigma_px * CORNER_ERROR_CORRELATION, v.corners_board, v.corners_px,
-                           v.T_camera_board, {})
-
-    monkeypatch.setattr(rig_calibration, "camera_views_of", pooled)
     res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False)
     T, C = res.solution.transform("cam0", "lidar0")
     cal = res.to_json()

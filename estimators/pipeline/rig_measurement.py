@@ -23,16 +23,10 @@ from ..pipeline.measurement import detect_in_image, measure_frames
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import board_corner_residuals_px
 from ..solvers.range_model import frame_whitener
-from ..solvers.refinement_options import RefinementOptions
+from ..solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3
-# A rig camera's board pose error over what its corners' own residual (each board's, ``camera_views_of``) predicts:
-# measured by `make bench` (bench_rig_corners.py, 10 six-camera rigs, 702 boards: at 1.0, d2 mean 5.54 and median
-# 4.48 (chi-square 5.35), 1.7% beyond the 99% point; one pooled residual per camera times 1.28, the single pair's
-# model, gives mean 3.68 and median 2.23 with 2.6% beyond). The single pair keeps its pooled residual and
-# ``refinement_options.CORNER_ERROR_CORRELATION``.
-BOARD_CORNER_FACTOR = 1.0
 
 
 def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str], dict]:
@@ -73,15 +67,15 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
 def camera_views_of(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
     """The camera's corners for the graph, each board's with its own pixel noise (its per-axis PnP residual,
     shrunk towards the camera's pooled one: ``noise_levels.board_corner_residuals_px``) times
-    ``BOARD_CORNER_FACTOR``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
+    ``CORNER_ERROR_CORRELATION``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
     asks)."""
     stems = list(poses)
     pooled, per_board = board_corner_residuals_px(((poses[s].T_camera_board, poses[s].corners_board(board),
                                                     poses[s].corners_px) for s in stems), camera)
-    return CameraViews(name, camera, max(pooled, 1e-3) * BOARD_CORNER_FACTOR,
+    return CameraViews(name, camera, max(pooled, 1e-3) * CORNER_ERROR_CORRELATION,
                        {s: poses[s].corners_board(board) for s in stems}, {s: poses[s].corners_px for s in stems},
                        {s: poses[s].T_camera_board for s in stems},
-                       {s: max(v, 1e-3) * BOARD_CORNER_FACTOR for s, v in zip(stems, per_board)})
+                       {s: max(v, 1e-3) * CORNER_ERROR_CORRELATION for s, v in zip(stems, per_board)})
 
 
 def pattern_flip(board) -> np.ndarray | None:

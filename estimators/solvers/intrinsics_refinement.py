@@ -105,7 +105,10 @@ def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel
     """
     dropped = {f.name for f in ref.frames if f.dropped}
     used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
-    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options)
+    fits = {f.name: f for f in ref.frames}
+    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options,
+                        sigma_board=[fits[f.name].corner_noise_px for f in used] if options.corner_noise_px is None
+                        else None)
     given = camera.params
     calibrated_here = camera.source.startswith("calibrated")
     prior_sd = None if calibrated_here or camera.param_std is None else np.asarray(camera.param_std, dtype=float)

@@ -38,7 +38,7 @@ class PlaneProblem:
 
     def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, sigma_px: float,
                  sigma_r: float, options: RefinementOptions, terms: RangeTerms | None = None,
-                 labels: FrameLabels | None = None, edges: list | None = None):
+                 labels: FrameLabels | None = None, edges: list | None = None, sigma_board: list | None = None):
         self.frames, self.board, self.camera = frames, board, camera
         # Per frame, its ring ends used as the board's edges (``solvers.board_edges``; None: planes only), and
         # the edges' shared growth (m) and the scale of their standard deviations.
@@ -48,7 +48,9 @@ class PlaneProblem:
         self.edge_tau = 1e-3  # the boards' in-plane scatter (m), estimated with the edges
         self.solved = None  # the last solve's (graph, values) when a step beyond the first solves again
         self.shifts: dict[int, np.ndarray] = {}
+        # The corners' effective pixel noise: the camera's, and each frame's own (None: the camera's for all).
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
+        self.sigma_board = sigma_board
         self.terms, self.labels = terms, labels
         # Noise-corrected at the noise the data show (not at a given sigma_r, which sets the weights only).
         self.fw = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
@@ -118,7 +120,8 @@ class PlaneProblem:
         stems = [self.frames[i].name for i in active]
         camera = CameraViews(PAIR_NAMES[0], self.camera, self.sigma_px,
                              {s: self.corners_board[i] for s, i in zip(stems, active)},
-                             {s: self.frames[i].camera.corners_px for s, i in zip(stems, active)})
+                             {s: self.frames[i].camera.corners_px for s, i in zip(stems, active)},
+                             sigma_board={s: self.sigma(i) for s, i in zip(stems, active)})
         prior_sd = None
         if self.has_beta:
             prior_sd = np.array(self.terms.prior_sd, dtype=float)
@@ -143,7 +146,11 @@ class PlaneProblem:
     def corner_chi2(self, i: int, T_board: np.ndarray) -> float:
         f = self.frames[i]
         r, _ = corner_residuals(T_board, self.corners_board[i], f.camera.corners_px, self.camera, jacobian=False)
-        return float(r @ r) / self.sigma_px**2
+        return float(r @ r) / self.sigma(i)**2
+
+    def sigma(self, i: int) -> float:
+        """The effective pixel noise of frame ``i``'s corners."""
+        return self.sigma_px if self.sigma_board is None else self.sigma_board[i]
 
     def frame_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         """The frame's share of the consistency statistic: its plane residual plus how far its board had
@@ -171,7 +178,7 @@ class PlaneProblem:
         """The same problem and state (terms and their values, scatter, pinned terms, edges) with another camera
         model or labels, or without the edges."""
         p = PlaneProblem(self.frames, self.board, camera or self.camera, self.sigma_px, self.sigma_r, self.options,
-                         self.terms, labels or self.labels)
+                         self.terms, labels or self.labels, sigma_board=self.sigma_board)
         p.beta, p.tau, p.pinned = self.beta.copy(), self.tau, self.pinned
         if edges:
             p.copy_edges(self)

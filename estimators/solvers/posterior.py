@@ -322,7 +322,8 @@ class PlaneLikelihood:
                 continue
             b = f.camera.T_camera_board
             _, J = corner_residuals(b, f.camera.corners_board(board), f.camera.corners_px, camera)
-            cov_b = ref.corner_noise_px**2 * np.linalg.inv(J.T @ J)
+            sigma = fit.corner_noise_px if np.isfinite(fit.corner_noise_px) else ref.corner_noise_px
+            cov_b = sigma**2 * np.linalg.inv(J.T @ J)
             board_covariances[f.name] = cov_b
             k = W.shape[0]
             if k < (2 if f.lidar.is_scan_line else 3):

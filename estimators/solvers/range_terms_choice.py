@@ -38,7 +38,7 @@ def _fit_model(prob: PlaneProblem, model: str, labels: FrameLabels, active: list
     terms = terms_for(model, labels, options.range_accuracy_m)
     # The model without terms in the same (range) form, so that the objectives compare.
     p = PlaneProblem(prob.frames, prob.board, prob.camera, prob.sigma_px, prob.sigma_r, options,
-                     terms if terms is not None else RangeTerms((), ()), labels)
+                     terms if terms is not None else RangeTerms((), ()), labels, sigma_board=prob.sigma_board)
     p.copy_edges(prob)
     b = list(boards)
     graph, result, _ = p.solve(active, T, b, floor)

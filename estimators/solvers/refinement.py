@@ -58,7 +58,7 @@ from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, match_moments
 from .closed_form import solve_closed_form
 from .edges_in_graph import add_edges, check_outline, edge_crossings, edges_information, edges_summary
-from .noise_levels import corner_residual_px, pooled_range_noise_m, robust_weight
+from .noise_levels import board_corner_residuals_px, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
@@ -82,6 +82,7 @@ class FrameFit:
     weight: float
     outlier: str | None = None
     dropped: bool = False
+    corner_noise_px: float = float("nan")  # the effective noise its corners were weighed with
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,10 +145,13 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                   and options.edges is not False) else 3
     if len(frames) < least:
         raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); refinement needs at least {least}")
-    resid_px = corner_residual_px(frames, board, camera)
+    resid_px, per_board = board_corner_residuals_px(((f.camera.T_camera_board, f.camera.corners_board(board),
+                                                      f.camera.corners_px) for f in frames), camera)
     sigma_px = options.corner_noise_px or max(resid_px, 1e-3) * options.corner_error_correlation
+    sigma_board = None if options.corner_noise_px else [max(v, 1e-3) * options.corner_error_correlation
+                                                        for v in per_board]
     sigma_r = options.range_noise_m or max(pooled_range_noise_m(frames), 1e-5)
-    prob = PlaneProblem(frames, board, camera, sigma_px, sigma_r, options)
+    prob = PlaneProblem(frames, board, camera, sigma_px, sigma_r, options, sigma_board=sigma_board)
     warnings: list[str] = []
     floor = options.plane_floor_m or 0.0
 
@@ -368,9 +372,9 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         corner = prob.corner_chi2(i, boards[i])
         why = dropped.get(i) or flagged.get(i)
         fits.append(FrameFit(f.name, c2, c2 + corner - prob.pnp_chi2[i], int(prob.whitener(i).shape[0]),
-                             float(sigma_px * np.sqrt(corner / f.camera.corners_px.size)),
+                             float(prob.sigma(i) * np.sqrt(corner / f.camera.corners_px.size)),
                              0.0 if i in dropped else robust_weight(np.sqrt(c2), options, prob.whitener(i).shape[0]),
-                             why, i in dropped))
+                             why, i in dropped, prob.sigma(i)))
         if why:
             action = "dropped" if i in dropped else "down-weighted"
             warnings.append(f"frame {f.name}: {why}; {action}")
