@@ -125,7 +125,7 @@ def region_d2(samples: np.ndarray, level: float) -> float:
     Gaussian's (the chi-square point, 6 dof). A posterior with heavy tails (a 2D layout's curved valley, the
     sampled range noise, a minor mode) needs a larger distance than the Gaussian's: the covariance's chi-square
     ellipsoid would leave the truth outside more often than ``1 - level``."""
-    return float(max(chi2.ppf(level, 6), np.quantile(mahalanobis_d2(samples, samples), level)))
+    return float(max(chi2.ppf(level, 6), np.quantile(mahalanobis_d2(samples, samples), level, method="higher")))
 
 
 def heavy_tails(samples: np.ndarray, level: float = 0.999, what: str = "posterior") -> str | None:
