@@ -305,15 +305,16 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
     ref = result.refinement
     fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
                   corner_residual_given_px=float(first.refinement.corner_residual_px),
-                  variance_factor_refined=float(ref.variance_factor),
+                  variance_factor_refined=float(ref.variance_factor), consistency_dof=float(ref.consistency_dof),
                   corner_residual_refined_px=float(ref.corner_residual_px))
     warned = result.warnings
     if not fit.lowers_overdispersion:
         # The planes' other errors pull the intrinsics: said first, as the refined camera is then not to be used.
         moved = float(np.max(np.abs(fit.params - fit.given_params) / fit.std))
-        warned = (f"refining the intrinsics did not lower the boards' plane disagreement (variance factor "
-                  f"{fit.variance_factor_given:.2f} under the given intrinsics, {fit.variance_factor_refined:.2f} "
-                  f"refined) while moving them by up to {moved:.1f} standard deviations (corner residual "
+        warned = (f"refining the intrinsics did not lower the boards' plane disagreement beyond what freed "
+                  f"intrinsics fit of its noise (variance factor {fit.variance_factor_given:.2f} under the given "
+                  f"intrinsics, {fit.variance_factor_refined:.2f} refined, F test p = {fit.overdispersion_p:.2g}) "
+                  f"while moving them by up to {moved:.1f} standard deviations (corner residual "
                   f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px): the camera's "
                   "calibration is not what the boards disagree about; keep the given intrinsics (calibrate without "
                   "--refine-intrinsics) unless a calibration made for the camera confirms the refined ones",

@@ -81,13 +81,15 @@ def test_wrong_given_intrinsics_are_refined_back_and_the_boards_agree_again(sim_
 
 def test_a_stated_param_std_is_the_intrinsics_prior(sim_hdl64e, tmp_path):
     """The right intrinsics stated with tight standard deviations (0.05 px; distortion 1e-5) stay within a
-    fraction of them, and the fit records the prior."""
+    fraction of them, the fit records the prior, and the right intrinsics are not said to lower the boards'
+    disagreement."""
     std = [0.05, 0.05, 0.05, 0.05, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5]
     path = _with_camera(sim_hdl64e, tmp_path / "prior", param_std=std)
     assert np.allclose(load_dataset(path).camera.param_std, std)
     fit = calibrate(path, posterior=None, options=RefinementOptions(refine_intrinsics=True)).intrinsics_refinement
     assert fit.prior_sd is not None
     assert np.all(np.abs(fit.params - fit.given_params) < 3 * np.asarray(std)), fit.params - fit.given_params
+    assert not fit.lowers_overdispersion and fit.overdispersion_p > 0.05
 
 
 def test_a_param_std_of_the_wrong_length_is_refused_with_the_file_named(sim_hdl64e, tmp_path):

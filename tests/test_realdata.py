@@ -123,19 +123,18 @@ def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, v
 
 
 def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards_overdispersion(vlp16, ouster):
-    """Refined without a prior: on the Ouster set they lower the boards' plane disagreement and are kept; on the
-    VLP-16 set they do not (the planes' other errors pull them), and the result's first warning says to keep the
-    given intrinsics."""
+    """Refined without a prior, the intrinsics lower neither recorded set's plane disagreement beyond what freed
+    intrinsics fit of the noise (the Ouster's by 30%, F test p about 0.5; the VLP-16's by 1%), and the result's
+    first warning says to keep the given intrinsics."""
     from estimators.solvers.refinement_options import RefinementOptions
 
     options = RefinementOptions(refine_intrinsics=True)
-    ds, camera, frames = ouster
-    fit = solve(frames, ds.board, camera, options=options).intrinsics_refinement
-    assert fit.lowers_overdispersion and fit.variance_factor_refined < 0.9 * fit.variance_factor_given
-    ds, camera, frames = vlp16
-    result = solve(frames, ds.board, camera, options=options)
-    assert not result.intrinsics_refinement.lowers_overdispersion
-    assert result.warnings[0].startswith("refining the intrinsics did not lower")
+    for ds, camera, frames in (ouster, vlp16):
+        result = solve(frames, ds.board, camera, options=options)
+        fit = result.intrinsics_refinement
+        assert fit.variance_factor_refined < fit.variance_factor_given and fit.overdispersion_p > 0.05
+        assert not fit.lowers_overdispersion
+        assert result.warnings[0].startswith("refining the intrinsics did not lower")
 
 
 @pytest.mark.skipif(not (RPG / "dataset.yaml").is_file(), reason="shared/realdata/acfr_rpg_2d is absent")

@@ -75,7 +75,8 @@ def _print_intrinsics(fit) -> None:
     verdict = "lowers" if fit.lowers_overdispersion else "does not lower"
     print(f"intrinsics refined ({'with the given param_std as prior' if fit.prior_sd is not None else 'no prior'}): "
           f"plane consistency {fit.variance_factor_given:.2f} under the given intrinsics, "
-          f"{fit.variance_factor_refined:.2f} refined ({verdict} the overdispersion); corner residual "
+          f"{fit.variance_factor_refined:.2f} refined ({verdict} the overdispersion, F test p = "
+          f"{fit.overdispersion_p:.2g}); corner residual "
           f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px")
     for n, g, v, sd in zip(fit.names, fit.given_params, fit.params, fit.std):
         print(f"  {n:3s} {g:12.5g} -> {v:12.5g}  (sd {sd:.3g}, moved {(v - g) / sd:+.1f} sd)")
