@@ -201,7 +201,7 @@ def test_a_two_mode_posterior_covers_both_modes():
 
 
 def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_exits_non_zero(capsys):
-    """Three boards (varied configuration) whose data leave a second minimum with 13% of the mass: the printed
+    """Three boards (varied configuration) whose data leave a second minimum with 16% of the mass: the printed
     result begins with the ambiguity, calibration.json lists each mode with its covariance, and ``--strict``
     exits with code 3."""
     from estimators.calibration import EXIT_AMBIGUOUS, solve
@@ -209,7 +209,7 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     from estimators.cli.parser import build_parser
     from estimators.cli.printing import print_result
 
-    rig, frames = _frames(7, "varied")
+    rig, frames = _frames(52, "varied")
     result = solve(frames, rig.board, rig.camera)
     assert result.ambiguous and len(result.modes) == 2 and result.modes[1].mass >= 0.05
     modes = result.to_dict()["modes"]
