@@ -5,10 +5,10 @@ Measurement reuses the single pair's pipeline: each camera's corners and board p
 its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
 sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it
 (``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board pose of the
-frame. Each such camera-LiDAR pair is also solved alone as a single pair is (``PAIR_OPTIONS``): its estimate starts
-the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the LiDAR's boards in the
-joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two cameras are linked by
-every frame both saw.
+frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`): its estimate
+starts the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the LiDAR's boards in
+the joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two cameras are linked
+by every frame both saw.
 """
 from __future__ import annotations
 
@@ -32,16 +32,17 @@ from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
-# Each camera-LiDAR pair is solved alone first, as the single pair is (its robust loss and outlier frames, its range
-# terms chosen before its per-board plane error is estimated, which the joint graph then weighs the LiDAR's boards
-# with): its estimate starts the joint graph and is reported beside it. No edges and no check by the edges (the
-# joint graph has its own).
-PAIR_OPTIONS = RefinementOptions(edges=False, outline_check=False)
+def pair_options(options: RefinementOptions, range_model: str) -> RefinementOptions:
+    """The options each camera-LiDAR pair is solved alone with first, as a single pair is (its robust loss and
+    outlier frames, its range terms chosen before its per-board plane error is estimated, which the joint graph then
+    weighs the LiDAR's boards with): its estimate starts the joint graph and is reported beside it. No edges, no
+    check by the edges and no intrinsics (the joint graph has its own)."""
+    return replace(options, edges=False, outline_check=False, range_model=range_model, refine_intrinsics=False)
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
-                  samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None
-                  ) -> RigResult:
+                  samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
+                  options: RefinementOptions = RefinementOptions()) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -70,6 +71,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         the estimate (``rig_posterior.edges_quadratic``). True (``--edges``): every LiDAR's; None (the default, as
         for a single pair): the 2D scanners' segment ends, where the board's size is given; False (``--no-edges``):
         none.
+    options : RefinementOptions
+        The solver's settings that every camera-LiDAR pair and the joint graph share (``--robust``, ``--outliers``,
+        ``--corner-noise-px``, ``--range-noise-m``, ``--range-accuracy``, ``--max-sensor-separation``); its
+        ``range_model``, ``edges`` and ``refine_intrinsics`` are this function's own arguments.
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -87,6 +92,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         A sensor with no path to the reference (named), or a graph whose information is singular.
     """
     t0 = time.perf_counter()
+    alone = pair_options(options, range_model)
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
     for s in rig.cameras:
@@ -120,8 +126,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam.name],
-                            options=replace(PAIR_OPTIONS, range_model=range_model), use_extent=False)
+                res = solve(usable, rig.board, cameras[cam.name], options=alone, use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
@@ -141,7 +146,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
                 skipped[lid.name].pop(f.name, None)
         if lidar_obs[lid.name]:
-            sigma_r[lid.name] = pooled_range_noise_m([Framed(o) for o in lidar_obs[lid.name].values()])
+            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m([Framed(o) for o in
+                                                                               lidar_obs[lid.name].values()])
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
     for i, a in enumerate(cams):
@@ -158,9 +164,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     for c in cams:
         for st, p in poses[c].items():
             T_ref_board.setdefault(st, T_ref[c] @ p.T_camera_board)
-    camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board) for c in cams if poses[c]]
+    camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board, options.corner_noise_px)
+                    for c in cams if poses[c]]
     lidar_views = [lidar_views_of(lid.name, sigma_r[lid.name], plane_frames[lid.name], T_ref_board, rig.board,
-                                  lid.lidar == "2d", PAIR_OPTIONS)
+                                  lid.lidar == "2d", alone)
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     range_models: dict = {}
@@ -173,7 +180,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         plain = [replace(lv, plane_error=None, robust=None) for lv in lidar_views]
         plain_solution = solve_rig(names, rig.reference, camera_views, plain, T_ref, T_ref_board, refine_intrinsics)
         chosen, range_models = choose_range_models(rig, names, camera_views, plain, lidar_obs, pair_frames,
-                                                   plain_solution, range_model)
+                                                   plain_solution, range_model, options.range_accuracy_m)
         lidar_views = [replace(lv, plane_error=weighed[lv.name].plane_error, robust=weighed[lv.name].robust,
                                tau_m=board_scatter.get(lv.name, 0.0)) for lv in chosen]
         if any(lv.has_terms for lv in lidar_views):

@@ -13,7 +13,7 @@ import pytest
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.rig_dataset import is_rig, load_rig
 from estimators.pipeline.rig_measurement import pattern_flip
-from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION
+from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
 from estimators.pipeline.rig_result import range_model_words
 from estimators.rig_calibration import calibrate_rig
 from estimators.simulation.range_bias import RangeBias
@@ -535,7 +535,7 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
                                    atol=1e-9)
 
 
-@pytest.mark.parametrize("given, named", [(["--robust", "cauchy"], "--robust is"),
+@pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
                                           (["--strict", "--split", "halves"], "--strict, --split are"),
                                           (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
@@ -549,7 +549,8 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and f"{named} not taken by a rig folder" in err and str(rig_folder) in err, err
     assert not out.exists()
-    assert "samples" not in RIG_UNSUPPORTED and "range_model" not in RIG_UNSUPPORTED and "edges" not in RIG_UNSUPPORTED
+    assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
+                "range_accuracy_m"} & set(RIG_UNSUPPORTED)
 
 
 def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
@@ -766,24 +767,34 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     np.testing.assert_allclose(C, pair.covariance, rtol=1e-3, atol=1e-14)
 
 
-def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph(sim_vlp16, monkeypatch):
+def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_the_pairs_take_the_rigs_options(
+        sim_vlp16, monkeypatch):
     # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):
-    # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames.
+    # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames. The solver options a rig
+    # takes (--robust, --outliers, --corner-noise-px, --range-noise-m) reach each pair's solve and the joint graph.
     from dataclasses import replace
 
     from estimators import rig_calibration
 
-    real = rig_calibration.solve
+    real, seen = rig_calibration.solve, []
 
     def dropping(frames, *args, **kwargs):
+        seen.append(kwargs["options"])
         res = real(frames, *args, **kwargs)
         fits = list(res.refinement.frames)
         fits[0] = replace(fits[0], dropped=True, outlier="its laser line is off the camera's board (a test)")
         return replace(res, refinement=replace(res.refinement, frames=tuple(fits)))
 
     monkeypatch.setattr(rig_calibration, "solve", dropping)
-    res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none")
+    given = RefinementOptions(robust="cauchy", outliers="downweight", corner_noise_px=0.3, range_noise_m=0.025)
+    res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none",
+                        options=given)
     first = sorted(res.skipped["lidar0"])
     assert len(first) == 1 and "with cam0: its laser line is off the camera's board (a test)" in res.skipped["lidar0"][
         first[0]]
     assert first[0] not in res.frames_used["lidar0"] and len(res.frames_used["lidar0"]) >= 3
+    assert [(o.robust, o.outliers, o.corner_noise_px, o.range_noise_m, o.edges) for o in seen] == [
+        ("cauchy", "downweight", 0.3, 0.025, False)]
+    (cv,), (lv,) = res.camera_views, res.lidar_views
+    assert cv.sigma_px == 0.3 and set(cv.sigma_board.values()) == {0.3}
+    assert lv.sigma_m == 0.025 and lv.robust.robust == "cauchy"

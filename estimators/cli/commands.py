@@ -31,7 +31,8 @@ def _calibrate_rig(args) -> int:
     _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
-                           samples=args.samples, range_model=args.range_model, edges=args.edges)
+                           samples=args.samples, range_model=args.range_model, edges=args.edges,
+                           options=refinement_options(args))
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     print(f"wrote {path}")
@@ -45,9 +46,7 @@ def _calibrate_rig(args) -> int:
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
-RIG_UNSUPPORTED = {"init": "--init", "strict": "--strict", "refine": "--refine", "robust": "--robust",
-                   "outliers": "--outliers", "corner_noise_px": "--corner-noise-px", "range_noise_m": "--range-noise-m",
-                   "range_accuracy_m": "--range-accuracy", "likelihood": "--likelihood",
+RIG_UNSUPPORTED = {"init": "--init", "strict": "--strict", "refine": "--refine", "likelihood": "--likelihood",
                    "max_sensor_separation": "--max-sensor-separation", "initial_guess": "--initial-guess",
                    "guess_tolerance": "--guess-tolerance", "roi": "--roi", "measurements": "--measurements",
                    "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}

@@ -64,18 +64,24 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
     return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}
 
 
-def camera_views_of(name: str, camera: CameraModel, poses: dict, board) -> CameraViews:
+def camera_views_of(name: str, camera: CameraModel, poses: dict, board,
+                    corner_noise_px: float | None = None) -> CameraViews:
     """The camera's corners for the graph, each board's with its own pixel noise (its per-axis PnP residual,
     shrunk towards the camera's pooled one: ``noise_levels.board_corner_residuals_px``) times
     ``CORNER_ERROR_CORRELATION``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
-    asks)."""
+    asks). ``corner_noise_px`` (``--corner-noise-px``): every board's effective noise, as given."""
     stems = list(poses)
-    pooled, per_board = board_corner_residuals_px(((poses[s].T_camera_board, poses[s].corners_board(board),
-                                                    poses[s].corners_px) for s in stems), camera)
-    return CameraViews(name, camera, max(pooled, 1e-3) * CORNER_ERROR_CORRELATION,
+    if corner_noise_px is not None:
+        pooled, per_board = corner_noise_px, [corner_noise_px] * len(stems)
+        factor = 1.0
+    else:
+        pooled, per_board = board_corner_residuals_px(((poses[s].T_camera_board, poses[s].corners_board(board),
+                                                        poses[s].corners_px) for s in stems), camera)
+        factor = CORNER_ERROR_CORRELATION
+    return CameraViews(name, camera, max(pooled, 1e-3) * factor,
                        {s: poses[s].corners_board(board) for s in stems}, {s: poses[s].corners_px for s in stems},
                        {s: poses[s].T_camera_board for s in stems},
-                       {s: max(v, 1e-3) * CORNER_ERROR_CORRELATION for s, v in zip(stems, per_board)})
+                       {s: max(v, 1e-3) * factor for s, v in zip(stems, per_board)})
 
 
 def pattern_flip(board) -> np.ndarray | None:

@@ -55,10 +55,12 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
 
 
 def choose_range_models(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                        pair_frames: dict, solution: RigSolution, range_model: str) -> tuple[list, dict]:
+                        pair_frames: dict, solution: RigSolution, range_model: str,
+                        range_accuracy_m: float | None = None) -> tuple[list, dict]:
     """Each LiDAR's views with the range terms of its model (``solvers.range_model``: a global offset, per-ring
-    offsets, the black squares' offset; priors from its range accuracy, dataset.yaml's ``range_accuracy_m`` or its
-    family's), and per LiDAR the record (:func:`range_record`).
+    offsets, the black squares' offset; priors from its range accuracy: ``range_accuracy_m`` (``--range-accuracy``,
+    every LiDAR's) or dataset.yaml's ``range_accuracy_m`` or its family's), and per LiDAR the record
+    (:func:`range_record`).
 
     ``auto`` chooses as the single pair does (``range_terms_choice.choose_range_model``): a global offset against none,
     then the per-ring and the black-square blocks each against the offset (against none, with the offset in the
@@ -70,7 +72,7 @@ def choose_range_models(rig: RigDataset, names: tuple, camera_views: list, lidar
     out, records = [], {}
     for lv in lidar_views:
         sensor = rig.sensor(lv.name)
-        acc = float(sensor.range_accuracy_m or range_accuracy_for(sensor.lidar_family))
+        acc = float(range_accuracy_m or sensor.range_accuracy_m or range_accuracy_for(sensor.lidar_family))
         obs = lidar_obs[lv.name]
         record: dict = {"requested": range_model, "prior_sd_m": acc}
         placed: dict = {}  # the labels under each solution, placed once
