@@ -55,6 +55,8 @@ class RigPosterior:
     run: ChainResult
     # Each LiDAR's range terms (m, (M, K) in its ``RangeTerms`` order) per sample, where the graph has them.
     range_terms: dict = field(default_factory=dict)
+    # Each pair's samples once composed (the warnings, the record, the printout and the report all read them).
+    _pairs: dict = field(default_factory=dict, repr=False)
 
     @property
     def covariance_joint(self) -> np.ndarray:
@@ -62,7 +64,13 @@ class RigPosterior:
         return np.cov(self.xi, rowvar=False)
 
     def pair_samples(self, a: str, b: str) -> np.ndarray:
-        """Samples (M, 6) of ``T_a_b``'s right tangent at its MAP, each composed from one joint sample."""
+        """Samples (M, 6) of ``T_a_b``'s right tangent at its MAP, each composed from one joint sample (read-only)."""
+        if (a, b) not in self._pairs:
+            self._pairs[(a, b)] = self._compose(a, b)
+            self._pairs[(a, b)].setflags(write=False)
+        return self._pairs[(a, b)]
+
+    def _compose(self, a: str, b: str) -> np.ndarray:
         Ra, ta = _poses(self.T_ref[a], self._block(a))
         Rb, tb = _poses(self.T_ref[b], self._block(b))
         R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
