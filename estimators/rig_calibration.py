@@ -1,11 +1,11 @@
 """A whole rig in one graph: measure every sensor, start each pose along the links that share the most frames,
 solve jointly (``solvers.rig_graph``), and write every pair's transform with its covariance.
 
-Measurement reuses the single pair's pipeline: each camera's corners and board poses (intrinsics calibrated from
-its frames when dataset.yaml gives none); each LiDAR's board in a frame, found once with the first camera (the one
-sharing most frames) that shares at least ``MIN_PAIR_FRAMES`` frames with it
-(``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board pose of the
-frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`): its estimate
+Measurement (``pipeline.rig_measurement.measure_rig``, cached) reuses the single pair's pipeline: each camera's
+corners and board poses (intrinsics calibrated from its frames when dataset.yaml gives none); each LiDAR's board in
+a frame, found once with the first camera (the one sharing most frames) that shares at least ``MIN_PAIR_FRAMES``
+frames with it (``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board
+pose of the frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`): its estimate
 starts the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the LiDAR's boards in
 the joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two cameras are linked
 by every frame both saw.
@@ -22,7 +22,7 @@ from .errors import DegenerateLayoutError
 from .io.rig_dataset import RigDataset
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
-                                       measure_camera, measure_pair_frames, pattern_flip, start_poses)
+                                       measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import choose_range_models, range_record
 from .solvers import chi_square as chi2
@@ -42,7 +42,7 @@ def pair_options(options: RefinementOptions, range_model: str) -> RefinementOpti
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
                   samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
-                  options: RefinementOptions = RefinementOptions()) -> RigResult:
+                  options: RefinementOptions = RefinementOptions(), cache: bool = False) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -75,6 +75,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         The solver's settings that every camera-LiDAR pair and the joint graph share (``--robust``, ``--outliers``,
         ``--corner-noise-px``, ``--range-noise-m``, ``--range-accuracy``, ``--max-sensor-separation``); its
         ``range_model``, ``edges`` and ``refine_intrinsics`` are this function's own arguments.
+    cache : bool
+        Keep the measurements under the user's cache folder and read them back on a second call with the same
+        files, code and generator (``pipeline.rig_measurement.measured_rig``).
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -93,13 +96,15 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     """
     t0 = time.perf_counter()
     alone = pair_options(options, range_model)
-    warnings: list[str] = []
-    cameras, poses, skipped, found = {}, {}, {}, {}
-    for s in rig.cameras:
-        cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
-        warnings.extend(w)
-    t_cam = time.perf_counter()
-    # Each LiDAR with each camera that shares enough frames: its boards chosen with that camera, the pair solved.
+    measured = measured_rig(rig, rng, workers, cache)
+    cameras, poses = measured.cameras, measured.poses
+    skipped = {c: dict(v) for c, v in measured.skipped.items()}
+    warnings: list[str] = list(measured.warnings)
+    if measured.source == "cache":
+        warnings.append("measurements taken from the cache: images and sweeps were not read again (--no-cache "
+                        "measures them again)")
+    t_meas = time.perf_counter()
+    # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     # Per LiDAR and stem the frame its board was used from and the per-board plane error of that frame's pair; per
     # LiDAR the boards' scatter along their range terms' weak direction, from its first pair.
@@ -109,30 +114,25 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     pairwise, links, pair_frames = {}, {}, {}
     for lid in rig.lidars:
         skipped[lid.name] = {}
-        shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
-        measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
-        for cam in shared:
-            stems = [st for st in poses[cam.name] if lid.file(st) is not None]
-            if len(stems) < MIN_PAIR_FRAMES:
+        for (cam_name, lid_name), frames in measured.pairs.items():
+            if lid_name != lid.name:
                 continue
-            frames = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name, lid.name, stems,
-                                         poses[cam.name], measured, rng, workers, found[cam.name], warnings)
             usable = [f for f in frames if f.usable]
             for f in frames:
                 if not f.usable and f.name not in lidar_obs[lid.name]:
-                    by = measured[f.name][0] if f.name in measured else cam.name
+                    by = measured.measured_by[(cam_name, lid_name)].get(f.name, cam_name)
                     skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
             if len(usable) < MIN_PAIR_FRAMES:
-                warnings.append(f"{cam.name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
+                warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam.name], options=alone, use_extent=False)
+                res = solve(usable, rig.board, cameras[cam_name], options=alone, use_extent=False)
             except DegenerateLayoutError as exc:
-                warnings.append(f"{cam.name}-{lid.name}: not solved as a pair ({exc.message})")
+                warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
-            pairwise[(cam.name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
-            pair_frames[(cam.name, lid.name)] = usable
-            links[(cam.name, lid.name)] = len(usable)
+            pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
+            pair_frames[(cam_name, lid.name)] = usable
+            links[(cam_name, lid.name)] = len(usable)
             dropped = {fit.name: fit.outlier for fit in res.refinement.frames if fit.dropped}
             fit = res.refinement.range_model
             board_scatter.setdefault(lid.name, float(fit.term_consistency.get("board_scatter_m", 0.0)) if fit else 0.0)
@@ -140,7 +140,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 if f.name in lidar_obs[lid.name] or f.name in skipped[lid.name] and f.name in dropped:
                     continue
                 if f.name in dropped:  # the pair's outlier: its LiDAR board or its board pose is not this board
-                    skipped[lid.name][f.name] = f"with {cam.name}: {dropped[f.name]}"
+                    skipped[lid.name][f.name] = f"with {cam_name}: {dropped[f.name]}"
                     continue
                 lidar_obs[lid.name][f.name] = f.lidar
                 plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
@@ -229,7 +229,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
-    timings = {"cameras": t_cam - t0, "lidars_and_pairs": t_pairs - t_cam, "joint": t_joint - t_pairs}
+    timings = {"measurements": t_meas - t0, "pairs": t_pairs - t_meas, "joint": t_joint - t_pairs}
     if posterior is not None:
         timings["posterior"] = t_post - t_joint
     if advise:

@@ -741,13 +741,15 @@ def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("data", ["sim_vlp16", "sim_2d"])
-def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(data, request):
+def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(data, request, tmp_path,
+                                                                                 monkeypatch):
     # A single camera-LiDAR folder loads as the rig of cam0 (the reference) and lidar0, frame by frame, and its
     # rig calibration.json keeps the pair's T_camera_lidar and covariance. The one graph weighs the rig's
     # boards as the pair's refinement does (each board's corner noise, the LiDAR's robust loss, per-board plane
     # error and outlier frames): the rig lands on the pair's estimate within 0.001 of its standard deviations and
     # on its covariance within 0.1% (the two solvers' stopping tolerances), a 3D LiDAR's and a 2D scanner's
-    # (planes alone: the edges enter each engine in its own steps).
+    # (planes alone: the edges enter each engine in its own steps). Measured once: a second call reads the
+    # measurements back from the cache and lands on the same estimate and covariance, bit for bit.
     from estimators.calibration import calibrate
     from estimators.io.dataset import load_dataset
     from estimators.solvers.refinement_options import RefinementOptions
@@ -756,8 +758,13 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     rig = load_rig(folder)
     assert [(s.name, s.type) for s in rig.sensors] == [("cam0", "camera"), ("lidar0", "lidar")]
     assert rig.reference == "cam0" and rig.pair("cam0", "lidar0").frames == load_dataset(folder).frames
-    res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False)
+    monkeypatch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path))
+    res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
     T, C = res.solution.transform("cam0", "lidar0")
+    again = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
+    assert not any("cache" in w for w in res.warnings) and again.warnings[0].startswith("measurements taken from")
+    for got, want in zip(again.solution.transform("cam0", "lidar0"), (T, C)):
+        np.testing.assert_array_equal(got, want)
     cal = res.to_json()
     np.testing.assert_array_equal(np.array(cal["T_camera_lidar"]), T)
     np.testing.assert_array_equal(np.array(cal["covariance"]), C)

@@ -32,7 +32,7 @@ def _calibrate_rig(args) -> int:
     rig = load_rig(args.dataset)
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
                            samples=args.samples, range_model=args.range_model, edges=args.edges,
-                           options=refinement_options(args))
+                           options=refinement_options(args), cache=not args.no_cache)
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     print(f"wrote {path}")

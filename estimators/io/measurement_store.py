@@ -65,6 +65,88 @@ class Measurements:
     key: str = ""
 
 
+@dataclass(frozen=True, eq=False)
+class RigMeasurements:
+    """A rig's sensors measured once (``pipeline.rig_measurement.measure_rig``), for its solve to take.
+
+    Attributes
+    ----------
+    cameras : dict
+        Camera name -> the ``CameraModel`` its boards were measured with.
+    poses, skipped : dict
+        Camera name -> stem -> its board (``CameraBoardObservation``), or the reason it has none.
+    pairs : dict
+        ``(camera, lidar)`` -> that pair's frames (``FrameMeasurement``, usable or with their reason), in the
+        order they were measured.
+    measured_by : dict
+        ``(camera, lidar)`` -> stem -> the camera the LiDAR's board in that frame had been found with when the
+        pair was measured (an earlier camera's, or this one's).
+    warnings : tuple of str
+    spawned : tuple of int
+        The generators each pair's measurement drew (a cached rig draws as many, so that later draws match).
+    source : str
+        ``measured`` or ``cache``.
+    """
+
+    cameras: dict
+    poses: dict
+    skipped: dict
+    pairs: dict
+    measured_by: dict
+    warnings: tuple = ()
+    spawned: tuple = ()
+    source: str = "measured"
+
+
+RIG_FORMAT = "lidarcam-rig-measurements-1"
+
+
+def save_rig_measurements(folder: str | Path, rm: RigMeasurements, board: BoardModel, lidar_kinds: dict) -> Path:
+    """Each camera's boards and each pair's frames as :func:`save_measurements` folders under ``folder``, then
+    ``index.json`` (written last: a folder without it is incomplete). ``lidar_kinds``: LiDAR name -> ``3d``/``2d``."""
+    folder = Path(folder)
+    cams = list(rm.cameras)
+    for k, c in enumerate(cams):
+        frames = [FrameMeasurement(st, obs, None) for st, obs in rm.poses[c].items()]
+        frames += [FrameMeasurement(st, None, None, why) for st, why in rm.skipped[c].items()]
+        save_measurements(folder / f"camera{k}", Measurements(rm.cameras[c], board, "3d", tuple(frames)))
+    pairs = list(rm.pairs)
+    for k, (c, lid) in enumerate(pairs):
+        save_measurements(folder / f"pair{k}", Measurements(rm.cameras[c], board, lidar_kinds[lid],
+                                                             tuple(rm.pairs[(c, lid)])))
+    index = {"format": RIG_FORMAT, "cameras": cams, "pairs": [list(p) for p in pairs],
+             "measured_by": [rm.measured_by[p] for p in pairs], "warnings": list(rm.warnings),
+             "spawned": list(rm.spawned)}
+    return write_json_atomic(folder / "index.json", index)
+
+
+def load_rig_measurements(folder: str | Path) -> RigMeasurements:
+    """What :func:`save_rig_measurements` wrote; :class:`DatasetError` for a missing, incomplete or foreign
+    folder."""
+    folder = Path(folder)
+    index = load_json(folder / "index.json", "rig measurements index", "measure the rig again")
+    try:
+        if index.get("format") != RIG_FORMAT:
+            raise ValueError(f"format {index.get('format')!r}, expected {RIG_FORMAT!r}")
+        cameras, poses, skipped = {}, {}, {}
+        for k, c in enumerate(index["cameras"]):
+            m = load_measurements(folder / f"camera{k}")
+            cameras[str(c)] = m.camera
+            poses[str(c)] = {f.name: f.camera for f in m.frames if f.camera is not None}
+            skipped[str(c)] = {f.name: f.reason for f in m.frames if f.camera is None}
+        pairs = {(str(c), str(lid)): list(load_measurements(folder / f"pair{k}").frames)
+                 for k, (c, lid) in enumerate(index["pairs"])}
+        measured_by = {p: {str(st): str(c) for st, c in by.items()} for p, by in zip(pairs, index["measured_by"])}
+        return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(map(str, index["warnings"])),
+                               tuple(int(n) for n in index["spawned"]), "cache")
+    except DatasetError:
+        raise
+    except Exception as exc:
+        raise DatasetError(f"not a readable lidarcam rig measurements folder ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=folder,
+                           hint="measure the rig again (calibrate without --no-cache rewrites the cache)") from None
+
+
 @functools.lru_cache(maxsize=1)
 def code_key() -> str:
     """SHA-256 over the source of the package that measures (every module of ``estimators`` and ``geometry``):

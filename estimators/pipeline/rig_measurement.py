@@ -15,9 +15,11 @@ from geometry.rotations import T_log
 from ..camera.board_pose import estimate_board_pose
 from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
-from ..errors import DegenerateLayoutError, LidarcamError
+from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import FrameFiles
-from ..io.rig_dataset import Sensor
+from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, load_rig_measurements,
+                                     save_rig_measurements)
+from ..io.rig_dataset import RigDataset, Sensor
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import detect_in_image, measure_frames
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
@@ -138,18 +140,73 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
                                          for cands in rels)))
 
 
+def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True
+                 ) -> RigMeasurements:
+    """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
+    keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
+    would have drawn are drawn, so that later draws (the posterior's) are the same either way."""
+    folder = None
+    if cache:
+        ss = rng.bit_generator.seed_seq
+        options = {"format": RIG_FORMAT, "rng": rng.bit_generator.state,
+                   "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
+                            getattr(ss, "n_children_spawned", None)]}
+        files = [path for s in rig.sensors for _, path in s.files]
+        folder = cache_dir() / f"rig-{dataset_key(rig.root, files, options)}"
+        if (folder / "index.json").is_file():
+            try:
+                rm = load_rig_measurements(folder)
+                for n in rm.spawned:
+                    rng.spawn(n)
+                return rm
+            except DatasetError:
+                pass  # a damaged cache entry is measured again (and overwritten)
+    rm = measure_rig(rig, rng, workers)
+    if folder is not None:
+        try:
+            save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
+        except OSError as exc:
+            rm = replace(rm, warnings=rm.warnings + (f"the measurement cache {folder} is not writable ({exc})",))
+    return rm
+
+
+def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigMeasurements:
+    """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
+    camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared."""
+    warnings: list[str] = []
+    cameras, poses, skipped, found = {}, {}, {}, {}
+    for s in rig.cameras:
+        cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
+        warnings.extend(w)
+    pairs, measured_by, spawned = {}, {}, []
+    for lid in rig.lidars:
+        shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
+        measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
+        for cam in shared:
+            stems = [st for st in poses[cam.name] if lid.file(st) is not None]
+            if len(stems) >= MIN_PAIR_FRAMES:
+                key = (cam.name, lid.name)
+                pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
+                                                 lid.name, stems, poses[cam.name], measured, rng, workers,
+                                                 found[cam.name], warnings, spawned)
+                measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
+    return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
+
+
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
-                        workers: int, found: dict, warnings: list) -> list[FrameMeasurement]:
+                        workers: int, found: dict, warnings: list, spawned: list) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
-    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found."""
+    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found. ``spawned``
+    gets the number of generators drawn from ``rng`` (a cached rig draws as many)."""
     new = [st for st in stems if st not in measured]
     now = {}
     if new:
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
-        _, frames, w = measure_frames(replace(ds, frames=tuple(f for f in ds.frames if f.name in keep)), rng,
-                                      workers=workers, detections=found, board_poses=poses)
+        subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
+        spawned.append(len(subset.frames) + 1)
+        _, frames, w = measure_frames(subset, rng, workers=workers, detections=found, board_poses=poses)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:
