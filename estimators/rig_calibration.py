@@ -5,10 +5,10 @@ Measurement (``pipeline.rig_measurement.measure_rig``, cached) reuses the single
 corners and board poses (intrinsics calibrated from its frames when dataset.yaml gives none); each LiDAR's board in
 a frame, found once with the first camera (the one sharing most frames) that shares at least ``MIN_PAIR_FRAMES``
 frames with it (``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board
-pose of the frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`): its estimate
-starts the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the LiDAR's boards in
-the joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two cameras are linked
-by every frame both saw.
+pose of the frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`):
+its estimate starts the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the
+LiDAR's boards in the joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two
+cameras are linked by every frame both saw.
 """
 from __future__ import annotations
 
@@ -19,10 +19,11 @@ import numpy as np
 
 from .calibration import solve
 from .errors import DegenerateLayoutError
+from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
-                                       measured_rig, pattern_flip, start_poses)
+                                       given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import choose_range_models, range_record
 from .solvers import chi_square as chi2
@@ -42,7 +43,8 @@ def pair_options(options: RefinementOptions, range_model: str) -> RefinementOpti
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
                   samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
-                  options: RefinementOptions = RefinementOptions(), cache: bool = False) -> RigResult:
+                  options: RefinementOptions = RefinementOptions(), cache: bool = False,
+                  measurements: RigMeasurements | None = None) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -78,6 +80,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     cache : bool
         Keep the measurements under the user's cache folder and read them back on a second call with the same
         files, code and generator (``pipeline.rig_measurement.measured_rig``).
+    measurements : RigMeasurements or None
+        Solve from these (``result.measurements`` of an earlier call, or ``load_rig_measurements``) instead of
+        measuring.
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -96,13 +101,14 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     """
     t0 = time.perf_counter()
     alone = pair_options(options, range_model)
-    measured = measured_rig(rig, rng, workers, cache)
+    measured = measured_rig(rig, rng, workers, cache) if measurements is None else given_measurements(
+        rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
     skipped = {c: dict(v) for c, v in measured.skipped.items()}
     warnings: list[str] = list(measured.warnings)
-    if measured.source == "cache":
-        warnings.append("measurements taken from the cache: images and sweeps were not read again (--no-cache "
-                        "measures them again)")
+    if measured.source != "measured":
+        warnings.append(f"measurements taken from {'the cache' if measured.source == 'cache' else measured.source}:"
+                        " images and sweeps were not read again")
     t_meas = time.perf_counter()
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
@@ -236,7 +242,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["next_pose"] = time.perf_counter() - t_post
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records)
+                     tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
+                     measured)
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

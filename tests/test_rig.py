@@ -600,6 +600,26 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert "emcee over 30 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
     assert shown and all(name in page for name in shown)
+    # every sensor's measurements are written beside it, and a re-solve from them reads no image or sweep
+    from dataclasses import replace
+
+    from estimators.cli import main
+    from estimators.io.measurement_store import load_rig_measurements
+    from estimators.pipeline.rig_measurement import given_measurements
+
+    assert cal["measurements_source"] in ("measured", "cache")
+    again = tmp_path / "again"
+    assert main(["calibrate", str(rig_folder), "--out", str(again), "--measurements", str(out / "measurements"),
+                 "--samples", "0", "--no-report"]) == 0
+    cal2 = json.loads((again / "calibration.json").read_text())
+    assert cal2["measurements_source"] == str(out / "measurements")
+    assert cal2["warnings"][0].startswith(f"measurements taken from {out / 'measurements'}")
+    for k, v in cal["transforms"].items():
+        np.testing.assert_allclose(cal2["transforms"][k]["T"], v["T"], atol=1e-9)
+    rm = load_rig_measurements(out / "measurements")
+    with pytest.raises(DatasetError, match="sensors this rig does not have"):
+        given_measurements(load_rig(rig_folder), replace(rm, cameras={"camX": rm.cameras["cam0"]}),
+                           np.random.default_rng(0))
 
 
 def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):

@@ -24,17 +24,22 @@ def _calibrate_rig(args) -> int:
     """A rig folder (``sensors:`` in dataset.yaml): one graph for every sensor (``rig_calibration``)."""
     import numpy as np
 
+    from ..io.measurement_store import load_rig_measurements, save_rig_measurements
     from ..io.rig_dataset import load_rig
     from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
     _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)
+    given = load_rig_measurements(args.measurements) if args.measurements else None
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
                            samples=args.samples, range_model=args.range_model, edges=args.edges,
-                           options=refinement_options(args), cache=not args.no_cache)
+                           options=refinement_options(args), cache=not args.no_cache, measurements=given)
     path = write_rig_calibration(result, args.out)
     print_rig(result)
+    stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
+                                   {s.name: s.lidar for s in rig.lidars})
+    print(f"measurements: {source_words(result.measurements.source)}; wrote {stored.parent}")
     print(f"wrote {path}")
     if not args.no_report:
         from ..analysis.rig_report import write_rig_report
@@ -48,7 +53,7 @@ def _calibrate_rig(args) -> int:
 # given with another value than the default, they are refused rather than ignored.
 RIG_UNSUPPORTED = {"init": "--init", "strict": "--strict", "refine": "--refine", "likelihood": "--likelihood",
                    "max_sensor_separation": "--max-sensor-separation", "initial_guess": "--initial-guess",
-                   "guess_tolerance": "--guess-tolerance", "roi": "--roi", "measurements": "--measurements",
+                   "guess_tolerance": "--guess-tolerance", "roi": "--roi",
                    "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}
 
 

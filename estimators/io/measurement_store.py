@@ -85,7 +85,7 @@ class RigMeasurements:
     spawned : tuple of int
         The generators each pair's measurement drew (a cached rig draws as many, so that later draws match).
     source : str
-        ``measured`` or ``cache``.
+        ``measured``, ``cache`` or the folder they were read from.
     """
 
     cameras: dict
@@ -124,7 +124,10 @@ def load_rig_measurements(folder: str | Path) -> RigMeasurements:
     """What :func:`save_rig_measurements` wrote; :class:`DatasetError` for a missing, incomplete or foreign
     folder."""
     folder = Path(folder)
-    index = load_json(folder / "index.json", "rig measurements index", "measure the rig again")
+    if folder.name == "index.json":
+        folder = folder.parent
+    index = load_json(folder / "index.json", "rig measurements index",
+                      "give the measurements folder that `lidarcam calibrate RIG` wrote (it holds index.json)")
     try:
         if index.get("format") != RIG_FORMAT:
             raise ValueError(f"format {index.get('format')!r}, expected {RIG_FORMAT!r}")
@@ -138,13 +141,14 @@ def load_rig_measurements(folder: str | Path) -> RigMeasurements:
                  for k, (c, lid) in enumerate(index["pairs"])}
         measured_by = {p: {str(st): str(c) for st, c in by.items()} for p, by in zip(pairs, index["measured_by"])}
         return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(map(str, index["warnings"])),
-                               tuple(int(n) for n in index["spawned"]), "cache")
+                               tuple(int(n) for n in index["spawned"]), str(folder))
     except DatasetError:
         raise
     except Exception as exc:
         raise DatasetError(f"not a readable lidarcam rig measurements folder ({type(exc).__name__}: "
                            f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=folder,
-                           hint="measure the rig again (calibrate without --no-cache rewrites the cache)") from None
+                           hint="measure the rig again: `lidarcam calibrate RIG --out OUT` writes OUT/measurements"
+                           ) from None
 
 
 @functools.lru_cache(maxsize=1)

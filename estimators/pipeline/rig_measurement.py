@@ -158,7 +158,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                 rm = load_rig_measurements(folder)
                 for n in rm.spawned:
                     rng.spawn(n)
-                return rm
+                return replace(rm, source="cache")
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
     rm = measure_rig(rig, rng, workers)
@@ -167,6 +167,19 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
         except OSError as exc:
             rm = replace(rm, warnings=rm.warnings + (f"the measurement cache {folder} is not writable ({exc})",))
+    return rm
+
+
+def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Generator) -> RigMeasurements:
+    """``rm`` checked against the rig (its cameras and LiDARs among the rig's, of the same kinds) and the
+    generators measuring drew drawn; :class:`DatasetError` naming the rig's dataset.yaml when they do not fit."""
+    cams, lidars = {s.name for s in rig.cameras}, {s.name: s.lidar for s in rig.lidars}
+    foreign = sorted(set(rm.cameras) - cams) + sorted({lid for _, lid in rm.pairs} - set(lidars))
+    if foreign:
+        raise DatasetError(f"the measurements name sensors this rig does not have ({', '.join(foreign)})",
+                           path=rig.yaml_path, hint="give the rig folder the measurements came from")
+    for n in rm.spawned:
+        rng.spawn(n)
     return rm
 
 

@@ -57,6 +57,8 @@ class RigResult:
     outline_checks: dict = field(default_factory=dict)
     # With ``--edges``: each LiDAR's board-edges record (:func:`with_edges`).
     edges: dict = field(default_factory=dict)
+    # What every sensor measured (``io.measurement_store.RigMeasurements``): ``source`` says measured or cache.
+    measurements: object = None
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -137,7 +139,7 @@ class RigResult:
                 "pairwise_only": pairwise, "cameras": cameras,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
                 "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
-                "version": __version__,
+                "measurements_source": getattr(self.measurements, "source", None), "version": __version__,
                 "convention": "T_a_b maps points from b's frame into a's: p_a = R p_b + t. Covariances are 6x6 in "
                               "GTSAM's Pose3 right tangent, T_true = T_hat * Exp(xi), xi = [rot; trans]; "
                               "covariance_joint holds every sensor's T_<reference>_<sensor> in the order of "
