@@ -57,6 +57,7 @@ class RigPosterior:
     range_terms: dict = field(default_factory=dict)
     # Each pair's samples once composed (the warnings, the record, the printout and the report all read them).
     _pairs: dict = field(default_factory=dict, repr=False)
+    _sensor_T: dict = field(default_factory=dict, repr=False)
 
     @property
     def covariance_joint(self) -> np.ndarray:
@@ -71,8 +72,8 @@ class RigPosterior:
         return self._pairs[(a, b)]
 
     def _compose(self, a: str, b: str) -> np.ndarray:
-        Ra, ta = _poses(self.T_ref[a], self._block(a))
-        Rb, tb = _poses(self.T_ref[b], self._block(b))
+        Ra, ta = self._sensor_poses(a)
+        Rb, tb = self._sensor_poses(b)
         R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
         t_ab = np.einsum("nji,nj->ni", Ra, tb - ta)
         T_hat = np.linalg.inv(self.T_ref[a]) @ self.T_ref[b]
@@ -100,6 +101,12 @@ class RigPosterior:
                 "parameters": int(r.chain.shape[2]), "burn_in": r.burn, "tau_steps_max": float(np.max(r.tau)),
                 "acceptance_fraction": r.acceptance, "effective_samples": r.ess, "converged": r.converged,
                 "seconds": r.seconds, "samples_kept": int(self.xi.shape[0])}
+
+    def _sensor_poses(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample's ``T_ref_name`` (rotations, translations), made once."""
+        if name not in self._sensor_T:
+            self._sensor_T[name] = _poses(self.T_ref[name], self._block(name))
+        return self._sensor_T[name]
 
     def _block(self, name: str) -> np.ndarray:
         k = self.names.index(name)
