@@ -117,7 +117,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     board_scatter: dict = {}
     sigma_r: dict = {}
-    pairwise, links, pair_frames = {}, {}, {}
+    pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
     for lid in rig.lidars:
         skipped[lid.name] = {}
         for (cam_name, lid_name), frames in measured.pairs.items():
@@ -136,6 +136,13 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
+            if res.ambiguous:
+                ambiguous[(cam_name, lid.name)] = tuple(res.modes)
+                masses = ", ".join(f"{m.mass:.0%}" for m in res.modes)
+                warnings.insert(0, f"{cam_name}-{lid.name}: {len(res.modes)} distinct solutions fit its boards "
+                                   f"(posterior mass {masses}); the rig starts from the most probable, and its "
+                                   "covariance and posterior hold that one alone: add boards tilted in other "
+                                   "directions to decide")
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam_name, lid.name)] = usable
             links[(cam_name, lid.name)] = len(usable)
@@ -243,7 +250,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
-                     measured)
+                     measured, ambiguous)
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

@@ -536,7 +536,8 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
 
 
 @pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
-                                          (["--strict", "--split", "halves"], "--strict, --split are"),
+                                          (["--init", "minimal-lower-bound", "--split", "halves"],
+                                           "--init, --split are"),
                                           (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
     """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
@@ -795,13 +796,18 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
 
 
 def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_the_pairs_take_the_rigs_options(
-        sim_vlp16, monkeypatch):
+        sim_vlp16, monkeypatch, capsys):
     # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):
     # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames. The solver options a rig
     # takes (--robust, --outliers, --corner-noise-px, --range-noise-m) reach each pair's solve and the joint graph.
+    # A pair whose own boards leave two answers makes the rig's answer ambiguous, said first.
     from dataclasses import replace
 
     from estimators import rig_calibration
+    from estimators.cli.commands import exit_code
+    from estimators.cli.parser import build_parser
+    from estimators.cli.printing import print_rig
+    from estimators.solvers.solution_selection import Mode
 
     real, seen = rig_calibration.solve, []
 
@@ -810,7 +816,11 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
         res = real(frames, *args, **kwargs)
         fits = list(res.refinement.frames)
         fits[0] = replace(fits[0], dropped=True, outlier="its laser line is off the camera's board (a test)")
-        return replace(res, refinement=replace(res.refinement, frames=tuple(fits)))
+        # and, as a 2D scanner's few boards can, a second minimum with 30% of the mass
+        second = T_exp(np.array([0.05, 0, 0, 0, 0.1, 0])) @ res.T_camera_lidar
+        modes = tuple(Mode(T, 0.0, 0.0, 0.0, mass, res.refinement) for T, mass in ((res.T_camera_lidar, 0.7),
+                                                                                    (second, 0.3)))
+        return replace(res, refinement=replace(res.refinement, frames=tuple(fits)), modes=modes)
 
     monkeypatch.setattr(rig_calibration, "solve", dropping)
     given = RefinementOptions(robust="cauchy", outliers="downweight", corner_noise_px=0.3, range_noise_m=0.025)
@@ -825,3 +835,11 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     (cv,), (lv,) = res.camera_views, res.lidar_views
     assert cv.sigma_px == 0.3 and set(cv.sigma_board.values()) == {0.3}
     assert lv.sigma_m == 0.025 and lv.robust.robust == "cauchy"
+    # A pair's ambiguity is said first, each mode is recorded, and --strict exits 3
+    assert res.ambiguous and res.warnings[0].startswith("cam0-lidar0: 2 distinct solutions fit its boards")
+    assert [m["posterior_mass"] for m in res.to_json()["ambiguous_pairs"]["T_cam0_lidar0"]] == [0.7, 0.3]
+    capsys.readouterr()
+    print_rig(res)
+    assert capsys.readouterr().out.startswith("AMBIGUOUS: T_cam0_lidar0: 2 distinct solutions")
+    strict = build_parser().parse_args(["calibrate", str(sim_vlp16), "--out", "out", "--strict"])
+    assert exit_code(strict, res) == 3

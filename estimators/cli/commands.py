@@ -46,12 +46,12 @@ def _calibrate_rig(args) -> int:
 
         print(f"wrote {write_rig_report(result, args.out)}")
     print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
-    return 0
+    return exit_code(args, result)
 
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
-RIG_UNSUPPORTED = {"init": "--init", "strict": "--strict", "refine": "--refine", "likelihood": "--likelihood",
+RIG_UNSUPPORTED = {"init": "--init", "refine": "--refine", "likelihood": "--likelihood",
                    "max_sensor_separation": "--max-sensor-separation", "initial_guess": "--initial-guess",
                    "guess_tolerance": "--guess-tolerance", "roi": "--roi",
                    "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}

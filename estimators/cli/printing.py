@@ -144,7 +144,12 @@ def print_rig(result) -> None:
     from ..solvers.rig_graph import translation_sd_in_first
 
     sol = result.solution
-    for w in result.warnings[:1]:
+    for (cam, lid), modes in result.ambiguous_pairs.items():
+        print(f"AMBIGUOUS: T_{cam}_{lid}: {len(modes)} distinct solutions fit its boards (posterior mass "
+              f"{', '.join(f'{m.mass:.0%}' for m in modes)}); the most probable is shown, and every interval below "
+              "holds that one alone (calibration.json lists each with its covariance). Add boards tilted in other "
+              "directions to decide.")
+    for w in result.warnings[:0 if result.ambiguous else 1]:
         print(f"warning: {w}")
     post = result.posterior
     if post is not None:

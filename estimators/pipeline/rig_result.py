@@ -59,6 +59,22 @@ class RigResult:
     edges: dict = field(default_factory=dict)
     # What every sensor measured (``io.measurement_store.RigMeasurements``): ``source`` says measured or cache.
     measurements: object = None
+    # The camera-LiDAR pairs (a 2D scanner's, with few boards) whose own boards leave a second minimum with at
+    # least ``AMBIGUOUS_MASS`` of the posterior mass: ``(camera, lidar) -> modes`` (``solution_selection.Mode``).
+    # The joint graph starts from the most probable, and its covariance and posterior hold that one alone.
+    ambiguous_pairs: dict = field(default_factory=dict)
+
+    @property
+    def ambiguous(self) -> bool:
+        """A camera-LiDAR pair's boards leave two answers (:attr:`ambiguous_pairs`): the printout starts with it
+        and ``--strict`` exits non-zero."""
+        return bool(self.ambiguous_pairs)
+
+    @property
+    def contradicted(self) -> str | None:
+        """As a single pair's result: a rig's edges enter its graph or check it, and are not tested against its
+        planes as one answer (None)."""
+        return None
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -133,7 +149,11 @@ class RigResult:
         if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
             T, C = sol.transform(self.rig.cameras[0].name, self.rig.lidars[0].name)
             pair = {"T_camera_lidar": T.tolist(), "covariance": C.tolist()}
-        return {"rig": True, **pair, "reference": ref, "sensors": sensors, "transforms": transforms,
+        ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
+                                       "covariance": m.refinement.covariance.tolist()} for m in modes]
+                     for (c, lid), modes in self.ambiguous_pairs.items()}
+        return {"rig": True, **pair, "reference": ref, "ambiguous_pairs": ambiguous, "sensors": sensors,
+                "transforms": transforms,
                 "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
                 "pairwise_only": pairwise, "cameras": cameras,
