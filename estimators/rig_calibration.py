@@ -18,9 +18,10 @@ from dataclasses import replace
 import numpy as np
 
 from .calibration import solve
-from .errors import DegenerateLayoutError
+from .errors import DatasetError, DegenerateLayoutError
 from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
+from .lidar.board_segmentation import SegmentationParams
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
@@ -44,7 +45,8 @@ def pair_options(options: RefinementOptions, range_model: str) -> RefinementOpti
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
                   samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
-                  measurements: RigMeasurements | None = None) -> RigResult:
+                  measurements: RigMeasurements | None = None, init: str = "closed-form",
+                  params: SegmentationParams = SegmentationParams()) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -83,6 +85,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     measurements : RigMeasurements or None
         Solve from these (``result.measurements`` of an earlier call, or ``load_rig_measurements``) instead of
         measuring.
+    init : str
+        How each 2D scanner's pairs start (``--init``: ``closed-form``, which for a scanner means
+        ``minimal-lower-bound``, or ``minimal-min-residual``); a 3D LiDAR's pairs start in closed form.
+    params : SegmentationParams
+        The LiDAR board search's settings (``--max-sensor-separation``: also the bound on a scanner's minimal
+        solutions).
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -100,8 +108,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         A sensor with no path to the reference (named), or a graph whose information is singular.
     """
     t0 = time.perf_counter()
-    alone = pair_options(options, range_model)
-    measured = measured_rig(rig, rng, workers, cache) if measurements is None else given_measurements(
+    if init != "closed-form" and not any(s.lidar == "2d" for s in rig.lidars):
+        raise DatasetError(f"init {init!r} is for 2D LiDARs, and this rig has none", path=rig.yaml_path,
+                           hint="use --init closed-form")
+    alone = replace(pair_options(options, range_model), max_sensor_separation_m=params.max_sensor_separation_m)
+    measured = measured_rig(rig, rng, workers, cache, params) if measurements is None else given_measurements(
         rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
     skipped = {c: dict(v) for c, v in measured.skipped.items()}
@@ -132,7 +143,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
-                res = solve(usable, rig.board, cameras[cam_name], options=alone, use_extent=False)
+                res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
+                            options=alone, use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue

@@ -536,8 +536,7 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
 
 
 @pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
-                                          (["--init", "minimal-lower-bound", "--split", "halves"],
-                                           "--init, --split are"),
+                                          (["--refine", "none", "--split", "halves"], "--refine, --split are"),
                                           (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
     """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
@@ -551,7 +550,7 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     assert err.count("\n") == 0 and f"{named} not taken by a rig folder" in err and str(rig_folder) in err, err
     assert not out.exists()
     assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
-                "range_accuracy_m"} & set(RIG_UNSUPPORTED)
+                "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation"} & set(RIG_UNSUPPORTED)
 
 
 def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
@@ -799,7 +798,8 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
         sim_vlp16, monkeypatch, capsys):
     # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):
     # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames. The solver options a rig
-    # takes (--robust, --outliers, --corner-noise-px, --range-noise-m) reach each pair's solve and the joint graph.
+    # takes (--robust, --outliers, --corner-noise-px, --range-noise-m, --max-sensor-separation) reach each pair's
+    # solve and the joint graph; --init is for a rig with a 2D scanner.
     # A pair whose own boards leave two answers makes the rig's answer ambiguous, said first.
     from dataclasses import replace
 
@@ -807,6 +807,7 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     from estimators.cli.commands import exit_code
     from estimators.cli.parser import build_parser
     from estimators.cli.printing import print_rig
+    from estimators.lidar.board_segmentation import SegmentationParams
     from estimators.solvers.solution_selection import Mode
 
     real, seen = rig_calibration.solve, []
@@ -824,14 +825,16 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
 
     monkeypatch.setattr(rig_calibration, "solve", dropping)
     given = RefinementOptions(robust="cauchy", outliers="downweight", corner_noise_px=0.3, range_noise_m=0.025)
+    with pytest.raises(DatasetError, match="is for 2D LiDARs, and this rig has none"):
+        calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), init="minimal-lower-bound")
     res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none",
-                        options=given)
+                        options=given, params=SegmentationParams(max_sensor_separation_m=0.8))
     first = sorted(res.skipped["lidar0"])
     assert len(first) == 1 and "with cam0: its laser line is off the camera's board (a test)" in res.skipped["lidar0"][
         first[0]]
     assert first[0] not in res.frames_used["lidar0"] and len(res.frames_used["lidar0"]) >= 3
-    assert [(o.robust, o.outliers, o.corner_noise_px, o.range_noise_m, o.edges) for o in seen] == [
-        ("cauchy", "downweight", 0.3, 0.025, False)]
+    assert [(o.robust, o.outliers, o.corner_noise_px, o.range_noise_m, o.edges, o.max_sensor_separation_m)
+            for o in seen] == [("cauchy", "downweight", 0.3, 0.025, False, 0.8)]
     (cv,), (lv,) = res.camera_views, res.lidar_views
     assert cv.sigma_px == 0.3 and set(cv.sigma_board.values()) == {0.3}
     assert lv.sigma_m == 0.025 and lv.robust.robust == "cauchy"

@@ -26,6 +26,7 @@ def _calibrate_rig(args) -> int:
 
     from ..io.measurement_store import load_rig_measurements, save_rig_measurements
     from ..io.rig_dataset import load_rig
+    from ..lidar.board_segmentation import SegmentationParams
     from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
@@ -34,7 +35,9 @@ def _calibrate_rig(args) -> int:
     given = load_rig_measurements(args.measurements) if args.measurements else None
     result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
                            samples=args.samples, range_model=args.range_model, edges=args.edges,
-                           options=refinement_options(args), cache=not args.no_cache, measurements=given)
+                           options=refinement_options(args), cache=not args.no_cache, measurements=given,
+                           init=args.init,
+                           params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
@@ -51,8 +54,7 @@ def _calibrate_rig(args) -> int:
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
-RIG_UNSUPPORTED = {"init": "--init", "refine": "--refine", "likelihood": "--likelihood",
-                   "max_sensor_separation": "--max-sensor-separation", "initial_guess": "--initial-guess",
+RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood", "initial_guess": "--initial-guess",
                    "guess_tolerance": "--guess-tolerance", "roi": "--roi",
                    "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}
 

@@ -20,6 +20,7 @@ from ..io.dataset import FrameFiles
 from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, load_rig_measurements,
                                      save_rig_measurements)
 from ..io.rig_dataset import RigDataset, Sensor
+from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import detect_in_image, measure_frames
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
@@ -140,15 +141,15 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
                                          for cands in rels)))
 
 
-def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True
-                 ) -> RigMeasurements:
+def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
+                 params: SegmentationParams = SegmentationParams()) -> RigMeasurements:
     """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
     keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
     would have drawn are drawn, so that later draws (the posterior's) are the same either way."""
     folder = None
     if cache:
         ss = rng.bit_generator.seed_seq
-        options = {"format": RIG_FORMAT, "rng": rng.bit_generator.state,
+        options = {"format": RIG_FORMAT, "params": params, "rng": rng.bit_generator.state,
                    "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
                             getattr(ss, "n_children_spawned", None)]}
         files = [path for s in rig.sensors for _, path in s.files]
@@ -161,7 +162,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                 return replace(rm, source="cache")
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
-    rm = measure_rig(rig, rng, workers)
+    rm = measure_rig(rig, rng, workers, params)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
@@ -183,9 +184,11 @@ def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Gene
     return rm
 
 
-def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> RigMeasurements:
+def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
+                params: SegmentationParams = SegmentationParams()) -> RigMeasurements:
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
-    camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared."""
+    camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
+    the board search's ``params``."""
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
     for s in rig.cameras:
@@ -201,13 +204,14 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2) -> 
                 key = (cam.name, lid.name)
                 pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
                                                  lid.name, stems, poses[cam.name], measured, rng, workers,
-                                                 found[cam.name], warnings, spawned)
+                                                 found[cam.name], warnings, spawned, params)
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
 
 
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
-                        workers: int, found: dict, warnings: list, spawned: list) -> list[FrameMeasurement]:
+                        workers: int, found: dict, warnings: list, spawned: list,
+                        params: SegmentationParams = SegmentationParams()) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
@@ -219,7 +223,7 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
         spawned.append(len(subset.frames) + 1)
-        _, frames, w = measure_frames(subset, rng, workers=workers, detections=found, board_poses=poses)
+        _, frames, w = measure_frames(subset, rng, params, workers=workers, detections=found, board_poses=poses)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:
