@@ -22,6 +22,7 @@ from .errors import DatasetError, DegenerateLayoutError
 from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
+from .pipeline.measurement import Hints
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
@@ -46,7 +47,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                   samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
                   measurements: RigMeasurements | None = None, init: str = "closed-form",
-                  params: SegmentationParams = SegmentationParams()) -> RigResult:
+                  params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -91,6 +92,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     params : SegmentationParams
         The LiDAR board search's settings (``--max-sensor-separation``: also the bound on a scanner's minimal
         solutions).
+    hints : Hints
+        A region of interest (``--roi``, in each LiDAR's own frame) and ``--no-static-scene``; an initial guess is
+        one pair's, and refused.
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
@@ -112,8 +116,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         raise DatasetError(f"init {init!r} is for 2D LiDARs, and this rig has none", path=rig.yaml_path,
                            hint="use --init closed-form")
     alone = replace(pair_options(options, range_model), max_sensor_separation_m=params.max_sensor_separation_m)
-    measured = measured_rig(rig, rng, workers, cache, params) if measurements is None else given_measurements(
-        rig, measurements, rng)
+    measured = measured_rig(rig, rng, workers, cache, params, hints) if measurements is None else \
+        given_measurements(rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
     skipped = {c: dict(v) for c, v in measured.skipped.items()}
     warnings: list[str] = list(measured.warnings)

@@ -550,7 +550,8 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     assert err.count("\n") == 0 and f"{named} not taken by a rig folder" in err and str(rig_folder) in err, err
     assert not out.exists()
     assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
-                "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation"} & set(RIG_UNSUPPORTED)
+                "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation", "roi",
+                "no_static_scene"} & set(RIG_UNSUPPORTED)
 
 
 def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
@@ -799,7 +800,8 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):
     # the joint graph leaves them out too, and says why beside the LiDAR's skipped frames. The solver options a rig
     # takes (--robust, --outliers, --corner-noise-px, --range-noise-m, --max-sensor-separation) reach each pair's
-    # solve and the joint graph; --init is for a rig with a 2D scanner.
+    # solve and the joint graph, the measurement hints (--roi, --no-static-scene) its board search; --init is for a
+    # rig with a 2D scanner, an initial guess for a pair.
     # A pair whose own boards leave two answers makes the rig's answer ambiguous, said first.
     from dataclasses import replace
 
@@ -808,6 +810,8 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     from estimators.cli.parser import build_parser
     from estimators.cli.printing import print_rig
     from estimators.lidar.board_segmentation import SegmentationParams
+    from estimators.pipeline import rig_measurement
+    from estimators.pipeline.measurement import Hints
     from estimators.solvers.solution_selection import Mode
 
     real, seen = rig_calibration.solve, []
@@ -827,8 +831,19 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     given = RefinementOptions(robust="cauchy", outliers="downweight", corner_noise_px=0.3, range_noise_m=0.025)
     with pytest.raises(DatasetError, match="is for 2D LiDARs, and this rig has none"):
         calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), init="minimal-lower-bound")
+    with pytest.raises(DatasetError, match="an initial guess is one camera-LiDAR pair's"):
+        calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), hints=Hints(initial_guess=np.eye(4)))
+    measuring, hinted = rig_measurement.measure_frames, []
+
+    def measure_frames(*args, **kwargs):
+        hinted.append(kwargs["hints"])
+        return measuring(*args, **kwargs)
+
+    monkeypatch.setattr(rig_measurement, "measure_frames", measure_frames)
     res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none",
-                        options=given, params=SegmentationParams(max_sensor_separation_m=0.8))
+                        options=given, params=SegmentationParams(max_sensor_separation_m=0.8),
+                        hints=Hints(static_scene=False))
+    assert [h.static_scene for h in hinted] == [False]
     first = sorted(res.skipped["lidar0"])
     assert len(first) == 1 and "with cam0: its laser line is off the camera's board (a test)" in res.skipped["lidar0"][
         first[0]]

@@ -37,7 +37,8 @@ def _calibrate_rig(args) -> int:
                            samples=args.samples, range_model=args.range_model, edges=args.edges,
                            options=refinement_options(args), cache=not args.no_cache, measurements=given,
                            init=args.init,
-                           params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
+                           params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation),
+                           hints=hints(args))
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
@@ -55,8 +56,7 @@ def _calibrate_rig(args) -> int:
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
 RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood", "initial_guess": "--initial-guess",
-                   "guess_tolerance": "--guess-tolerance", "roi": "--roi",
-                   "cross_validate": "--cross-validate", "split": "--split", "no_static_scene": "--no-static-scene"}
+                   "guess_tolerance": "--guess-tolerance", "cross_validate": "--cross-validate", "split": "--split"}
 
 
 def _refuse_what_a_rig_ignores(args) -> None:

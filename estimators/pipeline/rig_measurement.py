@@ -22,7 +22,7 @@ from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, data
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import detect_in_image, measure_frames
+from ..pipeline.measurement import Hints, detect_in_image, measure_frames
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import board_corner_residuals_px
 from ..solvers.range_model import frame_whitener
@@ -142,14 +142,14 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
-                 params: SegmentationParams = SegmentationParams()) -> RigMeasurements:
+                 params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigMeasurements:
     """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
     keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
     would have drawn are drawn, so that later draws (the posterior's) are the same either way."""
     folder = None
     if cache:
         ss = rng.bit_generator.seed_seq
-        options = {"format": RIG_FORMAT, "params": params, "rng": rng.bit_generator.state,
+        options = {"format": RIG_FORMAT, "params": params, "hints": hints, "rng": rng.bit_generator.state,
                    "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
                             getattr(ss, "n_children_spawned", None)]}
         files = [path for s in rig.sensors for _, path in s.files]
@@ -162,7 +162,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                 return replace(rm, source="cache")
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
-    rm = measure_rig(rig, rng, workers, params)
+    rm = measure_rig(rig, rng, workers, params, hints)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
@@ -185,10 +185,14 @@ def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Gene
 
 
 def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
-                params: SegmentationParams = SegmentationParams()) -> RigMeasurements:
+                params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigMeasurements:
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
     camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
-    the board search's ``params``."""
+    the board search's ``params`` and ``hints`` (a region of interest, in each LiDAR's own frame, and whether the
+    static scene is used; an initial guess is one pair's, and refused here)."""
+    if hints.initial_guess is not None:
+        raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
+                           path=rig.yaml_path, hint="calibrate the pair from a pair folder with its guess")
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
     for s in rig.cameras:
@@ -204,14 +208,15 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                 key = (cam.name, lid.name)
                 pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
                                                  lid.name, stems, poses[cam.name], measured, rng, workers,
-                                                 found[cam.name], warnings, spawned, params)
+                                                 found[cam.name], warnings, spawned, params, hints)
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
 
 
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
                         workers: int, found: dict, warnings: list, spawned: list,
-                        params: SegmentationParams = SegmentationParams()) -> list[FrameMeasurement]:
+                        params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()
+                        ) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
@@ -223,7 +228,8 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
         spawned.append(len(subset.frames) + 1)
-        _, frames, w = measure_frames(subset, rng, params, workers=workers, detections=found, board_poses=poses)
+        _, frames, w = measure_frames(subset, rng, params, workers=workers, hints=hints, detections=found,
+                                      board_poses=poses)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:
