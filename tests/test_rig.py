@@ -861,3 +861,30 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     assert capsys.readouterr().out.startswith("AMBIGUOUS: T_cam0_lidar0: 2 distinct solutions")
     strict = build_parser().parse_args(["calibrate", str(sim_vlp16), "--out", "out", "--strict"])
     assert exit_code(strict, res) == 3
+
+
+def test_two_halves_of_a_rig_are_tested_against_their_covariances(rig_result):
+    # --split on a rig: every sensor's pose of one half against the other's, under the sum of their joint
+    # covariances (6 dof per sensor but the reference), and each camera-LiDAR pair alone. Two identical halves
+    # agree; lidar0 moved by 12 of its standard deviations along its weakest direction in one half is caught by
+    # the joint test (d2 at least 12^2 / 2: the halves' covariances add) and by lidar0's pairs alone (the joint
+    # test on 30 dof misses 6 sd). The halves come from the measurements, restricted to their frames.
+    from dataclasses import replace
+
+    from estimators.analysis.validation import split_rig_halves
+
+    sol, rm = rig_result.solution, rig_result.measurements
+    stems = rm.stems
+    half = rm.restricted(stems[0::2])
+    assert half.stems == stems[0::2] and half.spawned == ()
+    assert all(f.name in stems[0::2] for frames in half.pairs.values() for f in frames)
+    ev, V = np.linalg.eigh(sol.covariance("lidar0"))
+    moved = replace(sol, T_ref={**sol.T_ref, "lidar0": sol.T_ref["lidar0"] @ T_exp(12 * np.sqrt(ev[-1]) * V[:, -1])})
+    halves = iter([rig_result, rig_result, rig_result, replace(rig_result, solution=moved)])
+    same = split_rig_halves(stems, lambda part: next(halves), "interleaved")
+    assert same["mahalanobis_d2"] < 1e-9 and same["dof"] == 6 * (len(sol.names) - 1)
+    assert same["verdict"].startswith("the halves agree") and same["halves"] == [stems[0::2], stems[1::2]]
+    apart = split_rig_halves(stems, lambda part: next(halves), "halves")
+    assert apart["verdict"].startswith("the halves disagree") and apart["mahalanobis_d2"] > 72 * (1 - 1e-6)
+    assert all((v["p_value"] < 1e-6) == k.endswith("_lidar0") for k, v in apart["pairs"].items())
+    assert apart["pairs"]["T_cam0_lidar0"]["mahalanobis_d2"] == pytest.approx(72, rel=1e-6)

@@ -155,6 +155,46 @@ def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve)
 SPLITS = ("halves", "interleaved")
 
 
+def split_rig_halves(stems: list[str], solve, how: str = "halves") -> dict:
+    """A rig's frames (``stems``, in name order) in two halves as :func:`split_halves` makes them, each calibrated
+    apart (``solve(stems)`` -> a ``RigResult``), and their difference tested against the sum of their covariances:
+    every sensor's pose together (chi-square on 6 per sensor but the reference) and each camera-LiDAR pair alone
+    (6 dof each: the sharper test of one sensor that moved, which the joint test's many degrees of freedom dilute)."""
+    if how not in SPLITS:
+        raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
+    if len(stems) < 6:
+        raise LidarcamError(f"--split {how} needs at least 6 frames with a board (3 per half), got {len(stems)}",
+                            hint="record more board poses")
+    h = len(stems) // 2
+    halves = [stems[:h], stems[h:]] if how == "halves" else [stems[0::2], stems[1::2]]
+    res = []
+    for part in halves:
+        try:
+            res.append(solve(part))
+        except DegenerateLayoutError as exc:
+            return {"split": how, "halves": halves, "verdict": f"a half could not be calibrated alone ({exc.message})"}
+    sol = res[0].solution
+    names = [n for n in sol.names if n != sol.reference]
+    xi = np.concatenate([T_log(T_inverse(sol.T_ref[n]) @ res[1].solution.T_ref[n]) for n in names])
+    idx = np.concatenate([np.arange(6 * k, 6 * k + 6) for k, n in enumerate(sol.names) if n != sol.reference])
+    d2, dof = chi2.mahalanobis(xi, sum(r.solution.covariance_joint[np.ix_(idx, idx)] for r in res))
+    pairs = {}
+    for a, b in res[0].pairs():
+        if a in res[0].cameras and b not in res[0].cameras:
+            (T1, C1), (T2, C2) = (r.solution.transform(a, b) for r in res)
+            x = T_log(T_inverse(T1) @ T2)
+            pd2, pdof = chi2.mahalanobis(x, C1 + C2)
+            pairs[f"T_{a}_{b}"] = {"difference_rotation_deg": float(np.degrees(np.linalg.norm(x[:3]))),
+                                   "difference_translation_mm": float(1000 * np.linalg.norm(x[3:])),
+                                   "mahalanobis_d2": pd2, "dof": pdof, "p_value": float(chi2.sf(pd2, pdof))}
+    limit = float(chi2.ppf(1 - SIGNIFICANCE, dof))
+    return {"split": how, "halves": halves, "mahalanobis_d2": d2, "dof": dof, "limit_99": limit,
+            "p_value": float(chi2.sf(d2, dof)), "pairs": pairs,
+            "verdict": ("the halves agree within their covariances" if d2 <= limit else
+                        "the halves disagree beyond their covariances: an error the model does not hold "
+                        "(range biases, intrinsics, a moved sensor)")}
+
+
 def split_halves(frames: list[FrameMeasurement], solve, how: str = "halves") -> dict:
     """Calibrate two halves of the usable frames apart and test their difference against the sum of their
     covariances (chi-square, 6 dof): the first and last halves (``halves``: what drifts over a recording), or

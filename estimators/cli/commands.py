@@ -45,6 +45,8 @@ def _calibrate_rig(args) -> int:
                                    {s.name: s.lidar for s in rig.lidars})
     print(f"measurements: {source_words(result.measurements.source)}; wrote {stored.parent}")
     print(f"wrote {path}")
+    if args.split:
+        _split_rig(args, rig, result)
     if not args.no_report:
         from ..analysis.rig_report import write_rig_report
 
@@ -53,10 +55,37 @@ def _calibrate_rig(args) -> int:
     return exit_code(args, result)
 
 
+def _split_rig(args, rig, result) -> None:
+    """--split on a rig: each half of its frames calibrated from the measurements already made
+    (``analysis.validation.split_rig_halves``), validation.json written."""
+    import numpy as np
+
+    from ..analysis.validation import split_rig_halves
+    from ..io.output import write_json_atomic
+    from ..lidar.board_segmentation import SegmentationParams
+    from ..rig_calibration import calibrate_rig
+
+    def solve_half(stems):
+        return calibrate_rig(rig, np.random.default_rng(args.seed), samples=0, advise=False,
+                             range_model=args.range_model, edges=args.edges, options=refinement_options(args),
+                             refine_intrinsics=args.refine_intrinsics, init=args.init,
+                             measurements=result.measurements.restricted(stems),
+                             params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
+
+    sh = split_rig_halves(result.measurements.stems, solve_half, args.split)
+    extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f} on {sh['dof']} dof, 99% limit "
+             f"{sh['limit_99']:.1f})" if "mahalanobis_d2" in sh else "")
+    print(f"split ({args.split}): {sh['verdict']}{extra}")
+    for k, v in sh.get("pairs", {}).items():
+        print(f"  {k}: {v['difference_rotation_deg']:.2f} deg, {v['difference_translation_mm']:.0f} mm apart "
+              f"(d2 {v['mahalanobis_d2']:.1f}, p = {v['p_value']:.2g})")
+    print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', {'split_halves': sh})}")
+
+
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
 RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood", "initial_guess": "--initial-guess",
-                   "guess_tolerance": "--guess-tolerance", "cross_validate": "--cross-validate", "split": "--split"}
+                   "guess_tolerance": "--guess-tolerance", "cross_validate": "--cross-validate"}
 
 
 def _refuse_what_a_rig_ignores(args) -> None:

@@ -97,6 +97,21 @@ class RigMeasurements:
     spawned: tuple = ()
     source: str = "measured"
 
+    @property
+    def stems(self) -> list[str]:
+        """The frames any camera found the board in, in name order."""
+        return sorted({st for v in self.poses.values() for st in v})
+
+    def restricted(self, stems) -> "RigMeasurements":
+        """These measurements of the frames ``stems`` alone (nothing drawn from a generator to use them)."""
+        keep = set(stems)
+
+        def only(d: dict) -> dict:
+            return {k: {st: v for st, v in by.items() if st in keep} for k, by in d.items()}
+
+        return replace(self, poses=only(self.poses), skipped=only(self.skipped), measured_by=only(self.measured_by),
+                       pairs={k: [f for f in v if f.name in keep] for k, v in self.pairs.items()}, spawned=())
+
 
 RIG_FORMAT = "lidarcam-rig-measurements-1"
 
