@@ -536,7 +536,8 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
 
 
 @pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
-                                          (["--refine", "none", "--split", "halves"], "--refine, --split are"),
+                                          (["--refine", "none", "--cross-validate", "3"],
+                                           "--refine, --cross-validate are"),
                                           (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
     """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
@@ -551,7 +552,7 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     assert not out.exists()
     assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
                 "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation", "roi",
-                "no_static_scene"} & set(RIG_UNSUPPORTED)
+                "no_static_scene", "split"} & set(RIG_UNSUPPORTED)
 
 
 def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
