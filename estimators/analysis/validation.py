@@ -155,24 +155,30 @@ def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve)
 SPLITS = ("halves", "interleaved")
 
 
+def _solved_halves(items: list, solve, how: str, what: str) -> tuple[list, list | str]:
+    """``items`` (in name order) in two halves, the first and last (``halves``) or the even and odd
+    (``interleaved``), and ``solve`` of each; the reason instead of the solutions when a half cannot be solved."""
+    if how not in SPLITS:
+        raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
+    if len(items) < 6:
+        raise LidarcamError(f"--split {how} needs at least 6 {what} (3 per half), got {len(items)}",
+                            hint="record more board poses")
+    h = len(items) // 2
+    halves = [items[:h], items[h:]] if how == "halves" else [items[0::2], items[1::2]]
+    try:
+        return halves, [solve(part) for part in halves]
+    except DegenerateLayoutError as exc:
+        return halves, f"a half could not be calibrated alone ({exc.message})"
+
+
 def split_rig_halves(stems: list[str], solve, how: str = "halves") -> dict:
     """A rig's frames (``stems``, in name order) in two halves as :func:`split_halves` makes them, each calibrated
     apart (``solve(stems)`` -> a ``RigResult``), and their difference tested against the sum of their covariances:
     every sensor's pose together (chi-square on 6 per sensor but the reference) and each camera-LiDAR pair alone
     (6 dof each: the sharper test of one sensor that moved, which the joint test's many degrees of freedom dilute)."""
-    if how not in SPLITS:
-        raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
-    if len(stems) < 6:
-        raise LidarcamError(f"--split {how} needs at least 6 frames with a board (3 per half), got {len(stems)}",
-                            hint="record more board poses")
-    h = len(stems) // 2
-    halves = [stems[:h], stems[h:]] if how == "halves" else [stems[0::2], stems[1::2]]
-    res = []
-    for part in halves:
-        try:
-            res.append(solve(part))
-        except DegenerateLayoutError as exc:
-            return {"split": how, "halves": halves, "verdict": f"a half could not be calibrated alone ({exc.message})"}
+    halves, res = _solved_halves(stems, solve, how, "frames with a board")
+    if isinstance(res, str):
+        return {"split": how, "halves": halves, "verdict": res}
     sol = res[0].solution
     names = [n for n in sol.names if n != sol.reference]
     xi = np.concatenate([T_log(T_inverse(sol.T_ref[n]) @ res[1].solution.T_ref[n]) for n in names])
@@ -199,21 +205,10 @@ def split_halves(frames: list[FrameMeasurement], solve, how: str = "halves") -> 
     """Calibrate two halves of the usable frames apart and test their difference against the sum of their
     covariances (chi-square, 6 dof): the first and last halves (``halves``: what drifts over a recording), or
     the even and odd frames (``interleaved``: two layouts alike)."""
-    if how not in SPLITS:
-        raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
     usable = sorted([f for f in frames if f.usable], key=lambda f: f.name)
-    if len(usable) < 6:
-        raise LidarcamError(f"--split {how} needs at least 6 usable frames (3 per half), got {len(usable)}",
-                            hint="record more board poses")
-    h = len(usable) // 2
-    halves = [usable[:h], usable[h:]] if how == "halves" else [usable[0::2], usable[1::2]]
-    res = []
-    for part in halves:
-        try:
-            res.append(solve(part))
-        except DegenerateLayoutError as exc:
-            return {"halves": [[f.name for f in p] for p in halves],
-                    "verdict": f"a half could not be calibrated alone ({exc.message})"}
+    halves, res = _solved_halves(usable, solve, how, "usable frames")
+    if isinstance(res, str):
+        return {"halves": [[f.name for f in p] for p in halves], "verdict": res}
     xi = T_log(T_inverse(res[0].T_camera_lidar) @ res[1].T_camera_lidar)
     S = res[0].refinement.covariance + res[1].refinement.covariance
     d2 = float(xi @ np.linalg.solve(S, xi))
