@@ -60,8 +60,8 @@ VARIANTS = ("one graph", "pooled corners", "scaled planes", "pair engine")
 
 
 def _pooled_views(original):
-    def views(name, camera, poses, board):
-        v = original(name, camera, poses, board)
+    def views(name, camera, poses, board, *options):
+        v = original(name, camera, poses, board, *options)
         return CameraViews(v.name, v.camera, v.sigma_px / CORNER_ERROR_CORRELATION * POOLED_FACTOR, v.corners_board,
                            v.corners_px, v.T_camera_board, {})
     return views

@@ -35,12 +35,14 @@ from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
-def pair_options(options: RefinementOptions, range_model: str) -> RefinementOptions:
+def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams) -> RefinementOptions:
     """The options each camera-LiDAR pair is solved alone with first, as a single pair is (its robust loss and
     outlier frames, its range terms chosen before its per-board plane error is estimated, which the joint graph then
-    weighs the LiDAR's boards with): its estimate starts the joint graph and is reported beside it. No edges, no
-    check by the edges and no intrinsics (the joint graph has its own)."""
-    return replace(options, edges=False, outline_check=False, range_model=range_model, refine_intrinsics=False)
+    weighs the LiDAR's boards with, and the board search's bound on the sensors' separation): its estimate starts
+    the joint graph and is reported beside it. No edges, no check by the edges and no intrinsics (the joint graph
+    has its own)."""
+    return replace(options, edges=False, outline_check=False, range_model=range_model, refine_intrinsics=False,
+                   max_sensor_separation_m=params.max_sensor_separation_m)
 
 
 def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, refine_intrinsics: bool = False,
@@ -115,7 +117,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     if init != "closed-form" and not any(s.lidar == "2d" for s in rig.lidars):
         raise DatasetError(f"init {init!r} is for 2D LiDARs, and this rig has none", path=rig.yaml_path,
                            hint="use --init closed-form")
-    alone = replace(pair_options(options, range_model), max_sensor_separation_m=params.max_sensor_separation_m)
+    alone = pair_options(options, range_model, params)
     measured = measured_rig(rig, rng, workers, cache, params, hints) if measurements is None else \
         given_measurements(rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
@@ -193,8 +195,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     for c in cams:
         for st, p in poses[c].items():
             T_ref_board.setdefault(st, T_ref[c] @ p.T_camera_board)
-    camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board, options.corner_noise_px)
-                    for c in cams if poses[c]]
+    camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board, options) for c in cams if poses[c]]
     lidar_views = [lidar_views_of(lid.name, sigma_r[lid.name], plane_frames[lid.name], T_ref_board, rig.board,
                                   lid.lidar == "2d", alone)
                    for lid in rig.lidars if lidar_obs[lid.name]]

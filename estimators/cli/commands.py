@@ -26,19 +26,14 @@ def _calibrate_rig(args) -> int:
 
     from ..io.measurement_store import load_rig_measurements, save_rig_measurements
     from ..io.rig_dataset import load_rig
-    from ..lidar.board_segmentation import SegmentationParams
     from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
     _refuse_what_a_rig_ignores(args)
     rig = load_rig(args.dataset)
     given = load_rig_measurements(args.measurements) if args.measurements else None
-    result = calibrate_rig(rig, np.random.default_rng(args.seed), refine_intrinsics=args.refine_intrinsics,
-                           samples=args.samples, range_model=args.range_model, edges=args.edges,
-                           options=refinement_options(args), cache=not args.no_cache, measurements=given,
-                           init=args.init,
-                           params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation),
-                           hints=hints(args))
+    result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
+                           measurements=given, hints=hints(args), **_rig_settings(args))
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
@@ -62,15 +57,11 @@ def _split_rig(args, rig, result) -> None:
 
     from ..analysis.validation import split_rig_halves
     from ..io.output import write_json_atomic
-    from ..lidar.board_segmentation import SegmentationParams
     from ..rig_calibration import calibrate_rig
 
     def solve_half(stems):
         return calibrate_rig(rig, np.random.default_rng(args.seed), samples=0, advise=False,
-                             range_model=args.range_model, edges=args.edges, options=refinement_options(args),
-                             refine_intrinsics=args.refine_intrinsics, init=args.init,
-                             measurements=result.measurements.restricted(stems),
-                             params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
+                             measurements=result.measurements.restricted(stems), **_rig_settings(args))
 
     sh = split_rig_halves(result.measurements.stems, solve_half, args.split)
     extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f} on {sh['dof']} dof, 99% limit "
@@ -80,6 +71,16 @@ def _split_rig(args, rig, result) -> None:
         print(f"  {k}: {v['difference_rotation_deg']:.2f} deg, {v['difference_translation_mm']:.0f} mm apart "
               f"(d2 {v['mahalanobis_d2']:.1f}, p = {v['p_value']:.2g})")
     print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', {'split_halves': sh})}")
+
+
+def _rig_settings(args) -> dict:
+    """The solver's settings of ``calibrate_rig`` from the command line (the whole calibration and each half of
+    ``--split`` take the same)."""
+    from ..lidar.board_segmentation import SegmentationParams
+
+    return dict(refine_intrinsics=args.refine_intrinsics, range_model=args.range_model, edges=args.edges,
+                options=refinement_options(args), init=args.init,
+                params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
 
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:

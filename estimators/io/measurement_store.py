@@ -178,6 +178,13 @@ def code_key() -> str:
     return h.hexdigest()
 
 
+def generator_key(rng: np.random.Generator) -> dict:
+    """The generator's state and seed, for a cache key: measurements drawn with another stream are not returned."""
+    ss = rng.bit_generator.seed_seq
+    return {"rng": rng.bit_generator.state, "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
+                                                     getattr(ss, "n_children_spawned", None)]}
+
+
 def dataset_key(root: Path, files: list[Path], options: dict) -> str:
     """SHA-256 over ``dataset.yaml``, every frame file's bytes (in order), the measurement options and the code
     that measures (:func:`code_key`)."""

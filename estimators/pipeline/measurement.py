@@ -28,7 +28,8 @@ from ..errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetErr
 from ..io.dataset import Dataset, load_dataset
 from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
-from ..io.measurement_store import Measurements, cache_dir, dataset_key, load_measurements, save_measurements
+from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
+                                     save_measurements)
 from ..io.pointcloud_io import read_scan_2d, read_sweep
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
                                         choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
@@ -746,11 +747,8 @@ def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = Non
     rng = np.random.default_rng(0) if rng is None else rng
     key, folder = "", None
     if cache:
-        ss = rng.bit_generator.seed_seq
         options = {"params": params, "hints": hints, "version": __version__, "revision": MEASUREMENT_REVISION,
-                   "rng": rng.bit_generator.state,
-                   "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
-                            getattr(ss, "n_children_spawned", None)]}
+                   **generator_key(rng)}
         key = dataset_key(dataset.root, [p for f in dataset.frames for p in (f.image, f.scan)], options)
         folder = cache_dir() / key
         if (folder / "measurements.json").is_file():

@@ -17,16 +17,16 @@ from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import FrameFiles
-from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, load_rig_measurements,
-                                     save_rig_measurements)
+from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, generator_key,
+                                     load_rig_measurements, save_rig_measurements)
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import Hints, detect_in_image, measure_frames
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
-from ..solvers.noise_levels import board_corner_residuals_px
+from ..solvers.noise_levels import corner_noise_levels
 from ..solvers.range_model import frame_whitener
-from ..solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
+from ..solvers.refinement_options import RefinementOptions
 
 # Fewest frames a camera and a LiDAR must share (their boards found in both) to be linked and solved as a pair.
 MIN_PAIR_FRAMES = 3
@@ -68,23 +68,17 @@ def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel
 
 
 def camera_views_of(name: str, camera: CameraModel, poses: dict, board,
-                    corner_noise_px: float | None = None) -> CameraViews:
-    """The camera's corners for the graph, each board's with its own pixel noise (its per-axis PnP residual,
-    shrunk towards the camera's pooled one: ``noise_levels.board_corner_residuals_px``) times
-    ``CORNER_ERROR_CORRELATION``; ``sigma_px`` the pooled one times the factor (a board not yet recorded, as the advice
-    asks). ``corner_noise_px`` (``--corner-noise-px``): every board's effective noise, as given."""
+                    options: RefinementOptions = RefinementOptions()) -> CameraViews:
+    """The camera's corners for the graph, each board's with its own effective pixel noise and ``sigma_px`` the
+    camera's (a board not yet recorded, as the advice asks), as a single pair's refinement weighs them
+    (``noise_levels.corner_noise_levels``: the residuals times the corner-error correlation, or
+    ``--corner-noise-px`` for every board)."""
     stems = list(poses)
-    if corner_noise_px is not None:
-        pooled, per_board = corner_noise_px, [corner_noise_px] * len(stems)
-        factor = 1.0
-    else:
-        pooled, per_board = board_corner_residuals_px(((poses[s].T_camera_board, poses[s].corners_board(board),
-                                                        poses[s].corners_px) for s in stems), camera)
-        factor = CORNER_ERROR_CORRELATION
-    return CameraViews(name, camera, max(pooled, 1e-3) * factor,
+    _, sigma_px, per_board = corner_noise_levels(((poses[s].T_camera_board, poses[s].corners_board(board),
+                                                   poses[s].corners_px) for s in stems), camera, options)
+    return CameraViews(name, camera, sigma_px,
                        {s: poses[s].corners_board(board) for s in stems}, {s: poses[s].corners_px for s in stems},
-                       {s: poses[s].T_camera_board for s in stems},
-                       {s: max(v, 1e-3) * factor for s, v in zip(stems, per_board)})
+                       {s: poses[s].T_camera_board for s in stems}, dict(zip(stems, per_board)))
 
 
 def pattern_flip(board) -> np.ndarray | None:
@@ -148,18 +142,12 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
     would have drawn are drawn, so that later draws (the posterior's) are the same either way."""
     folder = None
     if cache:
-        ss = rng.bit_generator.seed_seq
-        options = {"format": RIG_FORMAT, "params": params, "hints": hints, "rng": rng.bit_generator.state,
-                   "seed": [getattr(ss, "entropy", None), getattr(ss, "spawn_key", None),
-                            getattr(ss, "n_children_spawned", None)]}
+        options = {"format": RIG_FORMAT, "params": params, "hints": hints, **generator_key(rng)}
         files = [path for s in rig.sensors for _, path in s.files]
         folder = cache_dir() / f"rig-{dataset_key(rig.root, files, options)}"
         if (folder / "index.json").is_file():
             try:
-                rm = load_rig_measurements(folder)
-                for n in rm.spawned:
-                    rng.spawn(n)
-                return replace(rm, source="cache")
+                return replace(given_measurements(rig, load_rig_measurements(folder), rng), source="cache")
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
     rm = measure_rig(rig, rng, workers, params, hints)

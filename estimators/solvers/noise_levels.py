@@ -41,6 +41,18 @@ def board_corner_residuals_px(views, camera: CameraModel, prior_dof: float = BOA
     return pooled, [float(np.sqrt((s + prior_dof * pooled**2) / (d + prior_dof))) for s, d in zip(ss, dofs)]
 
 
+def corner_noise_levels(views, camera: CameraModel, options: RefinementOptions) -> tuple[float, float, list[float]]:
+    """The corners' effective pixel noise for the graph: the pooled residual (:func:`board_corner_residuals_px`),
+    the camera's effective noise (for a board not recorded) and each board's, both the residuals times
+    ``options.corner_error_correlation``; or ``options.corner_noise_px`` for every board when given."""
+    views = list(views)
+    pooled, per_board = board_corner_residuals_px(views, camera)
+    if options.corner_noise_px:
+        return pooled, options.corner_noise_px, [options.corner_noise_px] * len(views)
+    k = options.corner_error_correlation
+    return pooled, max(pooled, 1e-3) * k, [max(v, 1e-3) * k for v in per_board]
+
+
 def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel) -> float:
     """Pooled per-axis corner residual of the frames' board poses (:func:`pooled_corner_residual_px`)."""
     return pooled_corner_residual_px(((f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px)

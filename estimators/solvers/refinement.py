@@ -58,7 +58,7 @@ from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, match_moments
 from .closed_form import solve_closed_form
 from .edges_in_graph import add_edges, check_outline, edge_crossings, edges_information, edges_summary
-from .noise_levels import board_corner_residuals_px, pooled_range_noise_m, robust_weight
+from .noise_levels import corner_noise_levels, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
@@ -145,11 +145,9 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                   and options.edges is not False) else 3
     if len(frames) < least:
         raise DegenerateLayoutError(f"only {len(frames)} usable frame(s); refinement needs at least {least}")
-    resid_px, per_board = board_corner_residuals_px(((f.camera.T_camera_board, f.camera.corners_board(board),
-                                                      f.camera.corners_px) for f in frames), camera)
-    sigma_px = options.corner_noise_px or max(resid_px, 1e-3) * options.corner_error_correlation
-    sigma_board = None if options.corner_noise_px else [max(v, 1e-3) * options.corner_error_correlation
-                                                        for v in per_board]
+    resid_px, sigma_px, sigma_board = corner_noise_levels(
+        ((f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px) for f in frames), camera,
+        options)
     sigma_r = options.range_noise_m or max(pooled_range_noise_m(frames), 1e-5)
     prob = PlaneProblem(frames, board, camera, sigma_px, sigma_r, options, sigma_board=sigma_board)
     warnings: list[str] = []

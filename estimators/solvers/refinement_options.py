@@ -16,7 +16,7 @@ OUTLIER_POLICIES = ("drop", "downweight")
 # camera's pooled one: ``noise_levels.board_corner_residuals_px``). Measured by `make bench`: bench_rig_corners.py
 # (702 boards of 60 cameras against the truth: d2 mean 5.54 at 1.0) and bench_noise_models.py (100 one-camera
 # one-LiDAR datasets, five generators: the extrinsic's mean d2 5.82 with each board's residual at 1.0, 5.18 with
-# the camera's pooled residual at 1.28, the single pair's model until this one).
+# the camera's pooled residual at 1.28).
 CORNER_ERROR_CORRELATION = 1.0
 # A per-board plane error (m) beyond which the boards' disagreement is not a plane error (a bent or held board,
 # intrinsics: millimetres to a centimetre or two): the model test scales by what remains.
