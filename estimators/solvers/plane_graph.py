@@ -9,6 +9,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
+from geometry.rotations import T_exp
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
@@ -212,6 +213,53 @@ class PlaneProblem:
     def plane_cost(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
         """The cost the camera alone cannot explain, summed over ``frames``."""
         return sum(self.frame_chi2(i, T, boards[i], floor_m) for i in frames)
+
+    def plane_directions(self, i: int, floor_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``i``'s noise square root ``L`` (``plane_cov = L L^T``) and an orthonormal basis ``Q`` of the
+        whitened residual's directions a per-board plane error can move (the board's normal and distance; with
+        range terms the rest is the board's own terms against the shared ones, which no plane error holds)."""
+        L = np.linalg.cholesky(self.plane_cov(i, floor_m))
+        fw = self.fw[i]
+        if fw.R is None:
+            return L, np.eye(L.shape[0])
+        return L, np.linalg.qr(np.linalg.solve(L, fw.R[:, :fw.nt + 1]))[0]
+
+    def plane_moment(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
+        """The share of :meth:`plane_cost` a per-board plane error can explain: each frame's plane residual
+        in its plane directions (:meth:`plane_directions`) plus its corners' move."""
+        stat = 0.0
+        for i in frames:
+            L, Q = self.plane_directions(i, floor_m)
+            p = Q.T @ np.linalg.solve(L, self.residual(i, T, boards[i]))
+            stat += float(p @ p) + self.corner_chi2(i, boards[i]) - self.pnp_chi2[i]
+        return stat
+
+    def plane_moment_dof(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float) -> float:
+        """The degrees of freedom of :meth:`plane_moment`: the frames' plane directions less their share of the
+        extrinsic's and free range terms' leverage (the hat matrix's trace over those rows)."""
+        blocks, Qs = [], []
+        free = [k for k in range(self.terms.size) if k not in self.pinned] if self.has_beta else []
+        for i in frames:
+            L, Q = self.plane_directions(i, floor_m)
+            e = self.residual(i, T, boards[i])
+            J = np.empty((len(e), 6))
+            for k in range(6):  # the extrinsic's tangent, T Exp(xi), by central differences
+                xi = np.zeros(6)
+                xi[k] = 1e-6
+                J[:, k] = (self.residual(i, T @ T_exp(xi), boards[i])
+                           - self.residual(i, T @ T_exp(-xi), boards[i])) / 2e-6
+            if free:
+                J = np.hstack([J, self.fw[i].W_nuisance[:, free]])
+            blocks.append(np.linalg.solve(L, J))
+            Qs.append(Q)
+        J = np.vstack(blocks)
+        U = np.linalg.svd(J, full_matrices=False)[0][:, :_rank(J)]
+        lev, r = 0.0, 0
+        for Jb, Q in zip(blocks, Qs):
+            Ub = U[r:r + len(Jb)]
+            lev += float(np.sum((Q.T @ Ub) ** 2))
+            r += len(Jb)
+        return max(sum(Q.shape[1] for Q in Qs) - lev, 1.0)
 
     def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float,
                     active: list[int]) -> tuple[float, float]:

@@ -267,11 +267,22 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             # consistency statistic equals its degrees of freedom (method of moments), then solve again.
             first = floor == 0
             # With range terms the residual also has the terms' directions, which a plane error cannot hold: its
-            # size is bounded by what a plane error can physically be, and what it leaves scales the covariance.
-            cap = MAX_PLANE_ERROR_M if prob.has_beta else 0.5
+            # moment is taken in the planes' own directions, its size bounded by what a plane error can
+            # physically be, and what the terms leave scales the covariance (below).
+            if prob.has_beta:
+                cap, plane_dof = MAX_PLANE_ERROR_M, prob.plane_moment_dof(inliers, T, boards, floor)
+                if prob.edges is not None:
+                    plane_dof += dof - prob.consistency(inliers, T, boards, floor, [])[1]
+
+                def excess(v, T_v, b_v):
+                    return prob.plane_moment(inliers, T_v, b_v, v) / plane_dof
+            else:
+                cap = 0.5
+
+                def excess(v, T_v, b_v):
+                    return prob.plane_cost(inliers, T_v, b_v, v) / dof
             floor, (T, boards, graph, result, its) = match_moments(
-                prob, active, T, boards, (1e-5, cap), lambda v: v,
-                lambda v, T_v, b_v: prob.plane_cost(inliers, T_v, b_v, v) / dof)
+                prob, active, T, boards, (1e-5, cap), lambda v: v, excess)
             prob.solved = (graph, result)
             iterations += its
             if first:
