@@ -5,7 +5,6 @@ Quaternions appear only at the boundary and always say their order (``_xyzw``).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -24,16 +23,19 @@ def skew_batch(v: np.ndarray) -> np.ndarray:
 
 def R_from_rotvec(omega: np.ndarray) -> np.ndarray:
     """SO(3) exponential of an axis-angle vector (radians)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.from_rotvec(np.asarray(omega, dtype=float)).as_matrix()
 
 
 def rotvec_from_R(R: np.ndarray) -> np.ndarray:
     """SO(3) logarithm: the axis-angle vector (radians) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
 
 
 def rotation_angle(R: np.ndarray) -> float:
     """Angle (radians) of a rotation matrix, in [0, pi]."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return float(Rotation.from_matrix(np.asarray(R, dtype=float)).magnitude())
 
 
@@ -44,27 +46,32 @@ def rotation_error(R_est: np.ndarray, R_true: np.ndarray) -> float:
 
 def quat_xyzw_from_R(R: np.ndarray) -> np.ndarray:
     """Unit quaternion, scalar last, with non-negative w."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     q = Rotation.from_matrix(R).as_quat()  # scipy: scalar last
     return q if q[3] >= 0 else -q
 
 
 def R_from_quat_xyzw(q: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
 
 
 def rpy_from_R(R: np.ndarray) -> np.ndarray:
     """``[roll, pitch, yaw]`` (radians) with ``R = Rz(yaw) Ry(pitch) Rx(roll)``: URDF's ``rpy`` and the
     ``yaw pitch roll`` of ROS's ``static_transform_publisher`` (fixed axes x, y, z in that order)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
 
 
 def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
     """Inverse of ``rpy_from_R``."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A rotation drawn uniformly from SO(3)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     return Rotation.random(random_state=rng).as_matrix()
 
 
@@ -142,6 +149,7 @@ def exp_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def log_batch(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """SE(3) logarithm of each pose (rotations (n, 3, 3), translations (n, 3)): rows ``[omega; v]`` (n, 6), the
     inverse of :func:`exp_batch` (GTSAM's ``Pose3.Logmap``)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
     R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
     omega = Rotation.from_matrix(R).as_rotvec()
     th2 = np.sum(omega**2, axis=1)

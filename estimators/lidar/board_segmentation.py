@@ -17,8 +17,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
@@ -73,6 +71,7 @@ def _ransac_plane(P: np.ndarray, threshold: float, hypotheses: int, rng: np.rand
 def _pieces(P: np.ndarray, normal: np.ndarray, radius_per_m: float) -> list[np.ndarray]:
     """Index arrays of the connected pieces of coplanar points: occupancy of a grid in the plane whose
     cell follows the range (so ring gaps are bridged), labelled with 8-connectivity."""
+    from scipy import ndimage  # here: scipy.ndimage, unused from the cache
     if len(P) == 0:
         return []
     cell = max(0.08, radius_per_m * float(np.median(np.linalg.norm(P, axis=1)))) / 1.5
@@ -350,6 +349,7 @@ def _one_per_board(found: list[tuple[LidarBoardObservation, float]], P: np.ndarr
 
 
 def _same_board(a: LidarBoardObservation, b: LidarBoardObservation) -> bool:
+    from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
     small, large = (a, b) if len(a.points) <= len(b.points) else (b, a)
     gap = cKDTree(large.points).query(small.points, distance_upper_bound=SAME_BOARD_GAP_M)[0]
     if np.mean(gap < 1e-9) >= SAME_BOARD_SHARED:  # the same returns
@@ -386,6 +386,7 @@ def decide_alone(candidates: list[BoardCandidate], with_camera: bool, params: Se
 
 
 def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: int) -> LidarBoardObservation:
+    from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
     # Gather again every gated point near the chosen piece and its plane (RANSAC's band was centred on a
     # noisy three-point plane and cut the noise unevenly), then refit robustly.
     near = cKDTree(points).query(P, distance_upper_bound=0.03)[0] < np.inf

@@ -16,15 +16,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from geometry.board import BoardModel
 from geometry.lines import fit_line_tls
 
 from ..errors import AmbiguousBoardError, MeasurementError
 from ..measurements import CameraBoardObservation, LidarBoardObservation, observe_lidar_line
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import ndimage
 
 
 @dataclass(frozen=True)
@@ -209,6 +208,7 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
                        bin_rad: float | None = None) -> StaticScene:
     """The range image of the sweeps, rows by beam (``rings``) or, given ``bin_rad``, by elevation bin (the
     columns then as wide)."""
+    from scipy import ndimage  # here: scipy.ndimage, unused from the cache
     if bin_rad is not None:
         rings = [_elevation_rows(P, bin_rad) for P in points]
     rows = np.unique(np.concatenate([np.zeros(1, np.int64) if r is None else np.unique(r) for r in rings]))
@@ -272,6 +272,7 @@ def _displaced(points: np.ndarray, on: np.ndarray, image: np.ndarray, row: np.nd
     one such box: a board on its stand and its holder left at one place for a few frames make one place, a rig
     moved half-way shows pieces of its scene all round (regions of fewer than ``min_object_returns`` returns
     are not weighed in that box)."""
+    from scipy import ndimage  # here: scipy.ndimage, unused from the cache
     out = np.zeros(len(points), dtype=bool)
     if not on.any():
         return out

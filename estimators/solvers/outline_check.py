@@ -26,7 +26,6 @@ terms add. A mean beyond its 99% limit says the estimate and the edges disagree:
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
 
 from geometry.board import BoardModel
 
@@ -52,6 +51,7 @@ def _fit(r0: np.ndarray, A: np.ndarray, sd: np.ndarray, prior_sd: np.ndarray, it
     deviations inside its side (it may have been hidden), so from ``theta = 0`` a side that every end sees
     inside (a board.size too large in dataset.yaml) gives no gradient, and a frame's shift could run off to where
     none of its ends pulls."""
+    from scipy import sparse  # here: scipy.sparse, rarely needed
     P = np.diag(1.0 / prior_sd)
     As = sparse.csr_matrix(A)  # each end touches its sides' growth and its frame's shift: 4 of the columns
     p2 = 1.0 / prior_sd**2
