@@ -105,7 +105,9 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     numbered from its other end (a checkerboard that looks the same turned) is taken turned likewise.
     ``intrinsics`` (camera -> true params): the cameras' intrinsics unknowns too, at these values. The bound is the
     Gaussian model's: without the robust loss, whose weights at the truth would depend on the range terms' values
-    there (0 in the bound's graph, not the injected errors)."""
+    there (0 in the bound's graph, not the injected errors); and without the per-board plane errors and the boards'
+    scatter the calibration estimated from the data (the simulation has none): the measurement model's bound (the
+    points' range noise, the corners, the pattern's scale error), not the estimate's own noise model's."""
     from dataclasses import replace
 
     from estimators.pipeline.rig_measurement import pattern_flip
@@ -115,7 +117,9 @@ def _bound(res, gt, intrinsics: dict | None = None) -> np.ndarray:
     flip = pattern_flip(res.rig.board)
     boards = {st: numbered_as(B, np.array(gt["T_cam0_board"][st]), flip) for st, B in sol.T_ref_board.items()}
     truth = {n: np.array(gt[f"T_cam0_{n}"]) for n in sol.names}
-    return rig_bound(sol.names, "cam0", list(res.camera_views), [replace(lv, robust=None) for lv in res.lidar_views],
+    lidars = [replace(lv, robust=None, tau_m=0.0, plane_error=None if lv.plane_error is None else
+                      {st: replace(pe, floor_m=0.0) for st, pe in lv.plane_error.items()}) for lv in res.lidar_views]
+    return rig_bound(sol.names, "cam0", list(res.camera_views), lidars,
                      truth, boards, sol.noise_scale, intrinsics)
 
 
