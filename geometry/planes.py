@@ -124,13 +124,6 @@ def fit_plane_pca(points: np.ndarray, weights: np.ndarray | None = None) -> Plan
     return Plane(n, n @ c).facing_away()
 
 
-def plane_spread(points: np.ndarray) -> np.ndarray:
-    """Square roots of the scatter eigenvalues (ascending), per point: thickness, then in-plane spreads."""
-    P = np.asarray(points, dtype=float)
-    Q = P - P.mean(0)
-    return np.sqrt(np.maximum(np.linalg.eigvalsh(Q.T @ Q / len(P)), 0.0))
-
-
 def plane_basis(normal: np.ndarray) -> np.ndarray:
     """A 3x2 orthonormal basis of the plane orthogonal to ``normal``."""
     n = np.asarray(normal, dtype=float)

@@ -38,13 +38,6 @@ class SegmentationParams:
     ambiguity_ratio: float = 2.0
 
 
-@dataclass(frozen=True, eq=False)
-class _Candidate:
-    points: np.ndarray
-    plane: Plane
-    cost: float
-
-
 def _ransac_plane(P: np.ndarray, threshold: float, hypotheses: int, rng: np.random.Generator
                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """Best plane (normal, d) by inlier count over random triples, evaluated in one batch."""

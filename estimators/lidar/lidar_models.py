@@ -2,10 +2,9 @@
 accuracy of sensor families (the range model's priors, ``solvers.range_model``)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
-
 
 # A systematic range error's standard deviation (m) by sensor family, from the makers' accuracy figures
 # (VLP-16 and Ouster OS: +-3 cm typical; HDL-64E, Hesai Pandar and Livox: 2 cm), and a conservative default.
@@ -51,9 +50,6 @@ class BeamModel:
         d = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)], axis=-1).reshape(-1, 3)
         ring = np.repeat(np.arange(len(self.elevations_rad)), len(az))
         return d, ring
-
-    def with_noise(self, sigma_range_m: float) -> "BeamModel":
-        return replace(self, sigma_range_m=sigma_range_m)
 
 
 def hdl64e(sigma_range_m: float = 0.02) -> BeamModel:

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from geometry.rotations import transform_points
-
 from .scene import Patch, infinite_plane, rectangle
 
 SCENES = ("default", "office", "hall")
@@ -157,6 +155,3 @@ def board_fraction_in_fov(board_outline_lidar: np.ndarray, elevations_rad: np.nd
     el = np.arctan2(pts[:, 2], np.linalg.norm(pts[:, :2], axis=1))
     return float(np.mean((el >= elevations_rad.min()) & (el <= elevations_rad.max())))
 
-
-def outline_in_lidar(T_lidar_board: np.ndarray, board) -> np.ndarray:
-    return transform_points(T_lidar_board, board.outline())

@@ -49,8 +49,6 @@ from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObserv
 
 RANGE_MODELS = ("none", "offset", "per-ring", "offset+dark", "full", "auto")
 OFFSET_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
-RING_PRIOR_SD_M = RING_PRIOR_SHARE * DEFAULT_RANGE_ACCURACY_M
-DARK_PRIOR_SD_M = DEFAULT_RANGE_ACCURACY_M
 # A term further than this many prior standard deviations from its prior mean is not believed (confounding, a
 # wrong segment, a moving board): it is held at the prior and its prior variance propagated instead.
 MAX_PRIOR_SIGMAS = 3.0
