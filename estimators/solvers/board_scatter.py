@@ -7,6 +7,7 @@ import numpy as np
 
 from .graph_keys import EXTRINSIC
 from .plane_graph import PlaneProblem
+from .refinement_options import MAX_PLANE_ERROR_M
 
 BOARD_SCATTER_MEANING = (
     "standard deviation (m) of each board's apparent own range offset about the shared terms, along the board's "
@@ -15,6 +16,24 @@ BOARD_SCATTER_MEANING = (
     "and the offset then rests on the camera's board distances across boards")
 # Upper bound of that scatter (m): past it, no board's own offset information is left.
 MAX_BOARD_SCATTER_M = 10.0
+
+
+def estimate_plane_error(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
+                         floor: float, dof: float) -> tuple:
+    """The per-board plane error by the method of moments (:func:`match_moments`), so that the statistic it
+    can explain equals its degrees of freedom; ``dof`` those of the whole consistency statistic at ``floor``.
+    Planes only: the whole statistic, within 0.5 m. With range terms the residual also has the terms' own
+    directions, which no plane error holds (matched on the whole, the error would run to its cap and sink the
+    planes): the planes' own directions (:meth:`PlaneProblem.plane_moment`), within ``MAX_PLANE_ERROR_M``, a
+    plane error's physical size. Returns the error and its solve ``(T, boards, graph, result, iterations)``."""
+    if not prob.has_beta:
+        return match_moments(prob, active, T, boards, (1e-5, 0.5), lambda v: v,
+                             lambda v, T_v, b_v: prob.plane_cost(inliers, T_v, b_v, v) / dof)
+    plane_dof = prob.plane_moment_dof(inliers, T, boards, floor)
+    if prob.edges is not None:  # the edges' leverage (:meth:`PlaneProblem.edge_leverage`) is the extrinsic's
+        plane_dof += dof - prob.consistency(inliers, T, boards, floor, [])[1]
+    return match_moments(prob, active, T, boards, (1e-5, MAX_PLANE_ERROR_M), lambda v: v,
+                         lambda v, T_v, b_v: prob.plane_moment(inliers, T_v, b_v, v) / plane_dof)
 
 
 def estimate_board_scatter(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,

@@ -12,13 +12,13 @@ import numpy as np
 from geometry.rotations import T_exp
 
 from . import chi_square as chi2
-from .board_scatter import estimate_board_scatter, match_moments
+from .board_scatter import estimate_board_scatter, estimate_plane_error
 from .chi_square import fdtrc
 from .graph_keys import EXTRINSIC, RANGE
 from .plane_graph import PlaneProblem, hessian, objective
 from .range_model import (CONFOUNDED_CORRELATION, MODEL_TEST_P, FrameLabels, RangeModelFit, RangeTerms, frame_labels,
                           terms_for)
-from .refinement_options import MAX_PLANE_ERROR_M, RefinementOptions
+from .refinement_options import RefinementOptions
 
 
 @dataclass
@@ -73,9 +73,7 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
             T_l, b_l = estimate_board_scatter(p_l, active, inliers, T_l, b_l, floor)[:2]
         if p_s.has_beta:
             p_s.tau = p_l.tau
-        fl, (T_l, b_l, graph_l, result_l, _) = match_moments(
-            p_l, active, T_l, b_l, (1e-5, MAX_PLANE_ERROR_M), lambda v: v,
-            lambda v, T_v, b_v: p_l.plane_cost(inliers, T_v, b_v, v) / cdof)
+        fl, (T_l, b_l, graph_l, result_l, _) = estimate_plane_error(p_l, active, inliers, T_l, b_l, floor, cdof)
         # What the plane error leaves (structure in the terms' own directions, or beyond a plane error's physical
         # size) scales the test as a quasi-likelihood.
         scale = max(p_l.plane_cost(inliers, T_l, b_l, fl) / cdof, 1.0)

@@ -55,7 +55,7 @@ from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
 from .board_edges import EndTerms
-from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, match_moments
+from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
 from .closed_form import solve_closed_form
 from .edges_in_graph import add_edges, check_outline, edge_crossings, edges_information, edges_summary
 from .noise_levels import corner_noise_levels, pooled_range_noise_m, robust_weight
@@ -64,7 +64,7 @@ from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
                           frame_labels)
 from .range_terms_choice import choose_range_model, consider_pinned, consider_placement, with_uncertainty
-from .refinement_options import MAX_PLANE_ERROR_M, RefinementOptions
+from .refinement_options import RefinementOptions
 from .refusal import check_scan_directions, scan_refusal
 
 
@@ -266,23 +266,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             # imperfect intrinsics). Model it as a per-board plane error, its size estimated so that the
             # consistency statistic equals its degrees of freedom (method of moments), then solve again.
             first = floor == 0
-            # With range terms the residual also has the terms' directions, which a plane error cannot hold: its
-            # moment is taken in the planes' own directions, its size bounded by what a plane error can
-            # physically be, and what the terms leave scales the covariance (below).
-            if prob.has_beta:
-                cap, plane_dof = MAX_PLANE_ERROR_M, prob.plane_moment_dof(inliers, T, boards, floor)
-                if prob.edges is not None:
-                    plane_dof += dof - prob.consistency(inliers, T, boards, floor, [])[1]
-
-                def excess(v, T_v, b_v):
-                    return prob.plane_moment(inliers, T_v, b_v, v) / plane_dof
-            else:
-                cap = 0.5
-
-                def excess(v, T_v, b_v):
-                    return prob.plane_cost(inliers, T_v, b_v, v) / dof
-            floor, (T, boards, graph, result, its) = match_moments(
-                prob, active, T, boards, (1e-5, cap), lambda v: v, excess)
+            # With range terms what the terms leave scales the covariance (below).
+            floor, (T, boards, graph, result, its) = estimate_plane_error(prob, active, inliers, T, boards, floor, dof)
             prob.solved = (graph, result)
             iterations += its
             if first:
