@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
 
@@ -51,6 +52,7 @@ def _import_quietly(module: str) -> None:
         pass
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # as the command line runs (rig_calibration.calibrate_rig)
 def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),

@@ -65,6 +65,7 @@ class PlaneProblem:
         self.pinned: tuple[int, ...] = ()
         self.corners_board = [f.camera.corners_board(board) for f in frames]  # the corners each frame saw
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
+        self._ranks: dict[tuple, int] = {}
 
     def whitener(self, i: int) -> np.ndarray:
         return self.whiteners[i]
@@ -73,6 +74,12 @@ class PlaneProblem:
         """How many combinations of the nuisance terms the frames' points determine."""
         if self.terms is None:
             return 0
+        key = tuple(frames)
+        if key not in self._ranks:  # the whiteners are fixed with the problem
+            self._ranks[key] = self._nuisance_rank(frames)
+        return self._ranks[key]
+
+    def _nuisance_rank(self, frames: list[int]) -> int:
         rows = []
         for i in frames:
             rows.append(self.fw[i].W_nuisance if self.fw[i].S.size else np.zeros((self.whiteners[i].shape[0],

@@ -436,6 +436,17 @@ def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: Rang
         M[:3, :3] -= sigma_range_m**2 * (beams / c[:, None] ** 2).T @ beams
         W, floor = (sqrt_excess_moment_scan if obs.is_scan_line else sqrt_excess_moment)(M)
         return FrameWhitener(W, np.zeros((0, 0)), m_away, floor, np.zeros(W.shape[0]), centre=P.mean(0))
+    key = (terms.names, terms.rings, None if rings is None else np.asarray(rings).tobytes(),
+           None if dark is None else np.asarray(dark, dtype=float).tobytes())
+    known = _WHITENERS.setdefault(obs, {})
+    if key not in known:
+        known[key] = _terms_whitener(obs, P, beams, m_away, terms, rings, dark)
+    return known[key]
+
+
+def _terms_whitener(obs: LidarBoardObservation, P: np.ndarray, beams: np.ndarray, m_away: np.ndarray,
+                    terms: RangeTerms, rings: np.ndarray | None, dark: np.ndarray | None) -> FrameWhitener:
+    """:func:`frame_whitener` with terms, made once per observation, terms and labels (``_WHITENERS``)."""
     A, S = frame_design(len(P), terms, rings, dark)
     rho = np.linalg.norm(P, axis=1)
     plane = _PLANE_FITS.get(obs)
@@ -491,6 +502,9 @@ def _range_jacobian(rho, beams, m, d, A, scan_line):
 # Each board observation's plane fit (:func:`_plane_fit`), the same for every range model it is put in: a rig's
 # pairs try several models, each over every frame.
 _PLANE_FITS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+# Each board observation's whiteners with terms, by the terms and labels they were made for: a pair's
+# refinement, its range-term tests and a rig's joint choice build the same ones many times over.
+_WHITENERS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def _range_fit(rho: np.ndarray, beams: np.ndarray, A: np.ndarray, m0: np.ndarray, scan_line: bool,
