@@ -40,8 +40,12 @@ def machine() -> str:
 
 def revision() -> str:
     try:
-        out = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True, cwd=ROOT)
-        return out.stdout.strip() or "unknown"
+        out = subprocess.run(["git", "describe", "--always"], capture_output=True, text=True, cwd=ROOT)
+        # Dirty when anything but the pages differs from the commit: a run of `make bench` writes them one by one.
+        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                  ":(exclude)docs/bench"], capture_output=True, text=True, cwd=ROOT)
+        rev = out.stdout.strip() or "unknown"
+        return rev + ("-dirty" if changed.stdout.strip() else "")
     except OSError:
         return "unknown"
 
