@@ -31,7 +31,7 @@ def estimate_plane_error(prob: PlaneProblem, active: list[int], inliers: list[in
                              lambda v, T_v, b_v: prob.plane_cost(inliers, T_v, b_v, v) / dof)
     plane_dof = prob.plane_moment_dof(inliers, T, boards, floor)
     if prob.edges is not None:  # the edges' leverage (:meth:`PlaneProblem.edge_leverage`) is the extrinsic's
-        plane_dof += dof - prob.consistency(inliers, T, boards, floor, [])[1]
+        plane_dof += dof - prob.planes_dof(inliers)
     return match_moments(prob, active, T, boards, (1e-5, MAX_PLANE_ERROR_M), lambda v: v,
                          lambda v, T_v, b_v: prob.plane_moment(inliers, T_v, b_v, v) / plane_dof)
 

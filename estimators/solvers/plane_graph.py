@@ -268,11 +268,16 @@ class PlaneProblem:
             r += len(Jb)
         return max(sum(Q.shape[1] for Q in Qs) - lev, 1.0)
 
+    def planes_dof(self, frames: list[int]) -> int:
+        """The frames' whitened rows less the extrinsic's 6 and the range terms' rank: :meth:`consistency`'s
+        degrees of freedom without the edges."""
+        return sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames)
+
     def consistency(self, frames: list[int], T: np.ndarray, boards: list, floor_m: float,
                     active: list[int]) -> tuple[float, float]:
         """:meth:`plane_cost` and its degrees of freedom under the model: the frames' whitened rows less 6 and
         the range terms' rank; with the edges in the graph of the ``active`` frames, more (:meth:`edge_leverage`)."""
-        dof = sum(self.whitener(i).shape[0] for i in frames) - 6 - self.nuisance_rank(frames)
+        dof = self.planes_dof(frames)
         if self.edges is not None:
             dof += self.edge_leverage(active, T, boards, floor_m)
         return self.plane_cost(frames, T, boards, floor_m), max(dof, 1)
