@@ -219,6 +219,19 @@ def test_posterior_with_a_range_offset_has_the_marginal_laplace_covariance():
                                atol=0.03 * np.abs(ref.covariance).max())
 
 
+def _biased(seed: int, lidar: str, ring_sd_m: float, dark_m: float, noise_seed: int):
+    """Measurement-level frames of 12 boards whose ranges carry a 3 cm offset, per-ring offsets drawn with
+    ``ring_sd_m`` and ``dark_m`` on the black squares (2 cm range noise)."""
+    from estimators.simulation.range_bias import RangeBias
+
+    rng = np.random.default_rng(seed)
+    rig = default_rig(rng, lidar, 0.02)
+    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 12, rng)),
+                    0.2, 0.02)
+    bias = RangeBias.drawn(rng, len(rig.beams.elevations_rad), 0.03, ring_sd_m, dark_m)
+    return layout, simulate_measurements(layout, np.random.default_rng(noise_seed), bias)
+
+
 def test_with_range_terms_the_range_noise_excludes_the_structure_they_explain():
     """Black squares 5 cm long and rings 1 cm apart on a VLP-16 with 2 cm range noise: about each board's own
     plane alone the returns scatter by 2.5-3 cm, about its plane and terms by the noise. With the full model
@@ -226,15 +239,9 @@ def test_with_range_terms_the_range_noise_excludes_the_structure_they_explain():
     return's black share averaged over its footprint, while these simulated beams are points, so returns within
     a few mm of an edge carry part of the 5 cm term as error, about 6% of the noise here; the plane-only pooled
     value is at least 20% higher, so the check can fail), and without terms the former."""
-    from estimators.simulation.range_bias import RangeBias
     from estimators.solvers.noise_levels import pooled_range_noise_m
 
-    rng = np.random.default_rng(12)
-    rig = default_rig(rng, "vlp16", 0.02)
-    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 12, rng)),
-                    0.2, 0.02)
-    bias = RangeBias.drawn(rng, len(rig.beams.elevations_rad), 0.03, 0.01, 0.05)
-    frames = simulate_measurements(layout, np.random.default_rng(13), bias)
+    layout, frames = _biased(12, "vlp16", 0.01, 0.05, 13)
     plane_only = pooled_range_noise_m([f for f in frames if f.usable])
     assert plane_only > 1.2 * 0.02
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
@@ -398,14 +405,7 @@ def test_term_structure_beyond_the_noise_does_not_sink_the_planes():
     move). Matched on the whole statistic, the per-board plane error ran to its 50 mm cap and the planes, so
     weighted, let the translation drift 15 mm (d2 0.0); matched on the planes' own directions it stays near
     1 mm and the translation within 5 mm of the truth and inside its 99% region."""
-    from estimators.simulation.range_bias import RangeBias
-
-    rng = np.random.default_rng(11)
-    rig = default_rig(rng, "hdl64e", 0.02)
-    layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(sample_board_poses(rig, 12, rng)),
-                    0.2, 0.02)
-    bias = RangeBias.drawn(rng, len(rig.beams.elevations_rad), 0.03, 0.005, 0.01)
-    frames = simulate_measurements(layout, np.random.default_rng(12), bias)
+    layout, frames = _biased(11, "hdl64e", 0.005, 0.01, 12)
     ref = _refine(layout, frames, "auto")
     assert ref.range_model.chosen == "full"
     assert ref.plane_floor_m < 0.005
