@@ -9,7 +9,6 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import T_exp
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
@@ -248,15 +247,13 @@ class PlaneProblem:
         free = [k for k in range(self.terms.size) if k not in self.pinned] if self.has_beta else []
         for i in frames:
             L, Q = self.plane_directions(i, floor_m)
-            e = self.residual(i, T, boards[i])
-            J = np.empty((len(e), 6))
-            for k in range(6):  # the extrinsic's tangent, T Exp(xi), by central differences
-                xi = np.zeros(6)
-                xi[k] = 1e-6
-                J[:, k] = (self.residual(i, T @ T_exp(xi), boards[i])
-                           - self.residual(i, T @ T_exp(-xi), boards[i])) / 2e-6
-            if free:
-                J = np.hstack([J, self.fw[i].W_nuisance[:, free]])
+            pi, H_x, _ = lidar_plane(T, boards[i])  # the factors' own Jacobians, in the extrinsic's right tangent
+            fw, scan = self.fw[i], self.frames[i].lidar.is_scan_line
+            if self.terms is None:
+                J = lidar_residual(self.whitener(i), pi, scan)[1] @ H_x
+            else:
+                _, J_pi, H_beta = nuisance_residual(fw.W, fw.S, fw.m_away, pi, self.beta, scan, fw.e0)
+                J = np.hstack([J_pi @ H_x, H_beta[:, free]])
             blocks.append(np.linalg.solve(L, J))
             Qs.append(Q)
         J = np.vstack(blocks)
