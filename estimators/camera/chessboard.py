@@ -56,6 +56,9 @@ MIN_SQUARE_PX_REDUCED = 12.0
 # Flag sets for each level of the pyramid, most often successful first. Without the accuracy flag (which
 # makes the detector 4x slower) and with the two ``cornerSubPix`` passes that follow, the corners are as
 # accurate: 0.053 px RMS against the truth either way on 30 rendered 1024x768 boards, 0.057 px at 1920x1208.
+# A finer copy's search around the pattern a coarser one saw: this many of that copy's squares beyond its outer
+# inner corners (the board's outer squares and border must be in view).
+CROP_MARGIN_SQUARES = 4.0
 _PYRAMID_ATTEMPTS = (
     ("SB exhaustive", cv2.CALIB_CB_EXHAUSTIVE),
     ("SB normalize+exhaustive", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
@@ -85,23 +88,38 @@ def detect_chessboard(gray: np.ndarray, board: BoardModel, budget_s: float | Non
     return CornerDetection(found.corners_px, found.method, square_gray=square_gray(gray, found.corners_px, pattern))
 
 
+def _found(level: np.ndarray, pattern: tuple[int, int], flags: int, box: tuple | None) -> np.ndarray | None:
+    """The sector detector's corners in ``level`` (in its pixels), searched first within ``box`` (x0, y0, x1,
+    y1) when given, then in the whole copy; None when not found."""
+    for x0, y0, x1, y1 in ([box] if box is not None else []) + [(0, 0, level.shape[1], level.shape[0])]:
+        ok, corners = cv2.findChessboardCornersSB(level[y0:y1, x0:x1], pattern, flags=flags)
+        if ok and corners is not None and len(corners) == pattern[0] * pattern[1]:
+            return corners.reshape(-1, 2).astype(float) + (x0, y0)
+    return None
+
+
 def _detect_pyramid(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
     copies, level = [gray], gray
     while max(level.shape) >= 1000:
         level = cv2.pyrDown(level)
         copies.append(level)
+    box = None  # where a coarser copy saw the pattern too small to trust: the finer copy searches there first
     for level in reversed(copies):  # coarsest first, the full image last
         scale = gray.shape[1] / level.shape[1]
         for name, flags in _PYRAMID_ATTEMPTS:
-            ok, corners = cv2.findChessboardCornersSB(level, pattern, flags=flags)
-            if not ok or corners is None or len(corners) != pattern[0] * pattern[1]:
+            c = _found(level, pattern, flags, box)
+            if c is None:
                 continue
-            c = corners.reshape(-1, 2).astype(float)
             grid = c.reshape(pattern[1], pattern[0], 2)
             side = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
                        np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
             if side < MIN_SQUARE_PX_REDUCED and level is not gray:
-                break  # too small here to trust: try a finer copy
+                # Too small here to trust: the next finer copy (twice the size) searches the pattern's box with a
+                # margin of CROP_MARGIN_SQUARES squares first, a fraction of the whole image's cost.
+                m = CROP_MARGIN_SQUARES * side
+                lo, hi = 2 * (c.min(axis=0) - m), 2 * (c.max(axis=0) + m)
+                box = (max(int(lo[0]), 0), max(int(lo[1]), 0), int(hi[0]) + 1, int(hi[1]) + 1)
+                break
             # Pixel centres: x_full = (x_reduced + 0.5) * scale - 0.5.
             full = (c + 0.5) * scale - 0.5
             # Two refinements at full resolution: a wide window pulls the corners in from the reduced copy's
