@@ -254,8 +254,12 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
         # In front of a settled surface on a surface of its own that m frames (3 at least) return: a second
         # static scene (a board left at one place for two frames is not one), when it is larger than an object
         # that can stand still in front of the scene for a few frames (a board on its stand, its holder).
+        # (counted on the cells in front of the scene alone: a few of them, where all frames would cost F^2)
+        cells_k = np.flatnonzero(front[k])
+        repeated = np.zeros(front[k].shape, dtype=bool)
         with np.errstate(invalid="ignore"):
-            repeated = front[k] & (np.sum(np.abs(stack - stack[k]) <= 0.5 * margin, axis=0) >= max(m, 3))
+            near = np.abs(stack.reshape(F, -1)[:, cells_k] - stack[k].ravel()[cells_k]) <= 0.5 * margin
+        repeated.ravel()[cells_k] = np.sum(near, axis=0) >= max(m, 3)
         row, col, _ = cells[k]
         on = fg & (row >= 0) & repeated[np.maximum(row, 0), col]
         judged.append((static, beyond | (on & _displaced(P, on, repeated, row, col, params))))
