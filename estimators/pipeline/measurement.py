@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -138,37 +138,47 @@ def detect_in_image(frame, board, timings) -> tuple[tuple[int, int] | None, Corn
 
 def measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams = SegmentationParams(),
                    timings: dict | None = None, workers: int = 2, hints: Hints = Hints(),
-                   detections: dict | None = None, board_poses: dict | None = None
-                   ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                   detections: dict | None = None, board_poses: dict | None = None,
+                   sweeps: "LidarSweeps | None" = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     """Detect the board in every frame, in the image and in the scan; frames that fail keep a reason.
 
     3D: the static scene of all sweeps, every frame's board candidates in front of it, and the choice of one
     candidate per frame by the extrinsic most frames agree with (``solvers.association``). 2D: each scan's
     board segment, with the other scans as the static background. ``detections``: the images' corners already
     found (frame name -> what ``detect_in_image`` returns; a rig's cameras are searched once); ``board_poses``: the
-    board poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera)."""
+    board poses already estimated from them (frame name -> ``estimate_board_pose``'s result, by this dataset's camera);
+    ``sweeps``: a 3D LiDAR's sweeps already read and its static scene built (:func:`read_sweeps`, over these frames
+    or more: a rig's LiDAR is read once for every camera it shares frames with)."""
     # One worker budget: frames run in ``workers`` threads, each with one OpenCV thread and one BLAS thread
     # (their own pools on top of ours would oversubscribe the cores).
     with threadpool_limits(1 if workers > 1 else None):
-        return _measure_frames(dataset, rng, params, timings, workers, hints, detections, board_poses)
+        return _measure_frames(dataset, rng, params, timings, workers, hints, detections, board_poses, sweeps)
 
 
 def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict | None,
-                    workers: int, hints: Hints, detections: dict | None = None, board_poses: dict | None = None
-                    ) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
+                    workers: int, hints: Hints, detections: dict | None = None, board_poses: dict | None = None,
+                    sweeps: "LidarSweeps | None" = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
     timings = {} if timings is None else timings
     with ThreadPoolExecutor(max_workers=1) as ahead:
         # A 3D dataset's sweeps are read and its static scene built (they need no camera) while the images
         # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
         # stage that keeps one core idle.
-        sweeps = ahead.submit(_sweeps_and_scene, dataset, hints, timings) if dataset.lidar != "2d" else None
+        if dataset.lidar != "2d":
+            sweeps = ahead.submit(read_sweeps, dataset, hints, timings) if sweeps is None else _done(sweeps)
         return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections, board_poses)
+
+
+def _done(value) -> Future:
+    """A future that holds ``value`` already."""
+    f: Future = Future()
+    f.set_result(value)
+    return f
 
 
 def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
                          workers: int, hints: Hints, sweeps_ahead, found: dict | None = None,
                          board_poses: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
-    """:func:`_measure_frames` given the future of :func:`_sweeps_and_scene` (None for a 2D dataset)."""
+    """:func:`_measure_frames` given the future of :func:`read_sweeps` (None for a 2D dataset)."""
     warnings: list[str] = []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
@@ -375,33 +385,44 @@ def _trim_scan_lines(frames: list[FrameMeasurement], board) -> list[FrameMeasure
     return out
 
 
-def _sweeps_and_scene(dataset: Dataset, hints: Hints, timings: dict) -> tuple[list, StaticScene]:
-    """A 3D dataset's sweeps (or, for each one that cannot be read, the reason) and the static scene of those
-    read (``hints``: the region of interest, and whether to build the scene at all)."""
+@dataclass(frozen=True, eq=False)
+class LidarSweeps:
+    """A 3D LiDAR's sweeps by frame name (or, for each one that cannot be read, the reason), the static scene of
+    those read, and each one's index among the scene's frames."""
+
+    sweeps: dict
+    scene: StaticScene
+    scene_index: dict
+
+
+def read_sweeps(dataset: Dataset, hints: Hints, timings: dict | None = None) -> LidarSweeps:
+    """A 3D dataset's sweeps and the static scene of those read (``hints``: the region of interest, and whether to
+    build the scene at all)."""
+    timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    sweeps = [_read_or_reason(read_sweep, f.scan) for f in dataset.frames]
+    sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in dataset.frames}
     if hints.roi_min is not None or hints.roi_max is not None:
-        sweeps = [_cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for s in sweeps]
-    good = [s for s in sweeps if not isinstance(s, str)]
+        sweeps = {n: _cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
+    good = [n for n, s in sweeps.items() if not isinstance(s, str)]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     t0 = time.perf_counter()
     if hints.static_scene:
-        scene = build_static_scene([s.points for s in good], [s.ring for s in good])
+        scene = build_static_scene([sweeps[n].points for n in good], [sweeps[n].ring for n in good])
     else:
         scene = StaticScene("none", StaticSceneParams(), note="not used (each frame judged alone)")
     _add_time(timings, "static_scene", time.perf_counter() - t0)
-    return sweeps, scene
+    return LidarSweeps(sweeps, scene, {n: i for i, n in enumerate(good)})
 
 
 def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rngs: list[np.random.Generator],
                        params: SegmentationParams, hints: Hints, timings: dict, warnings: list[str],
-                       workers: int, sweeps_and_scene: tuple[list, StaticScene]) -> list[FrameMeasurement]:
-    """Candidates per frame in its sweep, over the static scene (:func:`_sweeps_and_scene`), and the joint
+                       workers: int, read: LidarSweeps) -> list[FrameMeasurement]:
+    """Candidates per frame in its sweep, over the static scene (:func:`read_sweeps`), and the joint
     choice (module docstring of ``solvers.association``); without a consensus (fewer than 3 frames with
     candidates spanning 3D), each frame decides alone."""
     n = len(dataset.frames)
-    sweeps, scene = sweeps_and_scene
-    cams, good = _without_damaged_scans(cams, sweeps)
+    sweeps, scene = [read.sweeps[f.name] for f in dataset.frames], read.scene
+    cams, _ = _without_damaged_scans(cams, sweeps)
     if not dataset.board.size_known:
         w, h = dataset.board.judged_extent
         warnings.append(f"board.size is not given: the LiDAR's board returns are judged and trimmed by the "
@@ -417,7 +438,7 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
             return [], [], None
         t1 = time.perf_counter()
         s = sweeps[k]
-        fg = scene.frame_foreground(good.index(k))
+        fg = scene.frame_foreground(read.scene_index[dataset.frames[k].name])
         try:
             cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
         except MeasurementError as exc:

@@ -22,7 +22,7 @@ from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, data
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import Hints, detect_in_image, measure_frames
+from ..pipeline.measurement import Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels
 from ..solvers.range_model import frame_whitener
@@ -190,26 +190,31 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     for lid in rig.lidars:
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
         measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
+        sweeps = None  # a 3D LiDAR's sweeps, read and their static scene built once, for every camera
         for cam in shared:
             stems = [st for st in poses[cam.name] if lid.file(st) is not None]
             if len(stems) >= MIN_PAIR_FRAMES:
                 key = (cam.name, lid.name)
-                pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
-                                                 lid.name, stems, poses[cam.name], measured, rng, workers,
-                                                 found[cam.name], warnings, spawned, params, hints)
+                ds = rig.pair(cam.name, lid.name, cameras[cam.name])
+                if sweeps is None and lid.lidar != "2d":
+                    sweeps = read_sweeps(replace(ds, frames=tuple(FrameFiles(st, None, path) for st, path in
+                                                                  lid.files)), hints)
+                pairs[key] = measure_pair_frames(ds, cam.name, lid.name, stems, poses[cam.name], measured, rng,
+                                                 workers, found[cam.name], warnings, spawned, params, hints, sweeps)
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
 
 
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
                         workers: int, found: dict, warnings: list, spawned: list,
-                        params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()
-                        ) -> list[FrameMeasurement]:
+                        params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
+                        sweeps: LidarSweeps | None = None) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
-    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found. ``spawned``
-    gets the number of generators drawn from ``rng`` (a cached rig draws as many)."""
+    camera's corners (``found``) and board poses (``poses``) are those ``measure_camera`` found, a 3D LiDAR's
+    sweeps and static scene (``sweeps``) those of all its frames. ``spawned`` gets the number of generators drawn
+    from ``rng`` (a cached rig draws as many)."""
     new = [st for st in stems if st not in measured]
     now = {}
     if new:
@@ -217,7 +222,7 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
         spawned.append(len(subset.frames) + 1)
         _, frames, w = measure_frames(subset, rng, params, workers=workers, hints=hints, detections=found,
-                                      board_poses=poses)
+                                      board_poses=poses, sweeps=sweeps)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:
