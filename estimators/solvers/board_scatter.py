@@ -58,14 +58,17 @@ def match_moments(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
     to solve with) and ``excess(v, T, boards)`` is the consistency statistic over its degrees of freedom, which
     falls as ``v`` grows. The root of its logarithm is found by Brent's method in ``log v`` within ``bounds``, to
     0.1% in ``v`` (a geometric bisection to the same precision needs twice the solves); each trial starts from
-    the fit without it. Returns the value and its solve ``(T, boards, graph, result, iterations)``."""
+    the fit at the nearest value tried (the first from the fit without it). Returns the value and its solve ``(T, boards, graph, result, iterations)``."""
     start = (T, list(boards), prob.beta.copy())
     solves: dict[float, tuple] = {}
 
     def solve_at(u):
         if u not in solves:
-            b, prob.beta = list(start[1]), start[2].copy()
-            graph, result, n = prob.solve(active, start[0], b, floor_for(float(np.exp(u))))
+            # from the nearest value's fit (the fit without it first): a few iterations, not a solve from afar
+            near = solves[min(solves, key=lambda w: abs(w - u))] if solves else None
+            T0, b, prob.beta = (start[0], list(start[1]), start[2].copy()) if near is None else \
+                (near[0], list(near[1]), near[5].copy())
+            graph, result, n = prob.solve(active, T0, b, floor_for(float(np.exp(u))))
             T_u = result.atPose3(EXTRINSIC).matrix()
             ratio = excess(float(np.exp(u)), T_u, b)
             solves[u] = (T_u, b, graph, result, n, prob.beta.copy(), float(np.log(max(ratio, 1e-300))))
