@@ -142,6 +142,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
     for lid in rig.lidars:
         skipped[lid.name] = {}
+        # The LiDAR's range model is chosen once, by its pair with the camera that shares the most frames (the
+        # first): its other pairs are solved with that model, not tested again on fewer frames.
+        chosen = None
         for (cam_name, lid_name), frames in measured.pairs.items():
             if lid_name != lid.name:
                 continue
@@ -155,7 +158,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 continue
             try:
                 res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
-                            options=alone, use_extent=False)
+                            options=alone if chosen is None else replace(alone, range_model=chosen),
+                            use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
@@ -166,6 +170,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                    f"(posterior mass {masses}); the rig starts from the most probable, and its "
                                    "covariance and posterior hold that one alone: add boards tilted in other "
                                    "directions to decide")
+            if chosen is None and res.refinement.range_model is not None:
+                chosen = res.refinement.range_model.chosen
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam_name, lid.name)] = usable
             links[(cam_name, lid.name)] = len(usable)
