@@ -183,24 +183,27 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                            path=rig.yaml_path, hint="calibrate the pair from a pair folder with its guess")
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
-    for s in rig.cameras:
-        cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
-        warnings.extend(w)
+    with ThreadPoolExecutor(max_workers=1) as ahead:
+        # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
+        # own while the cameras' images are searched, for every camera it shares frames with.
+        sweeps = {lid.name: ahead.submit(read_sweeps, replace(rig.pair(rig.cameras[0].name, lid.name), frames=tuple(
+            FrameFiles(st, None, path) for st, path in lid.files)), hints) for lid in rig.lidars if lid.lidar != "2d"}
+        for s in rig.cameras:
+            cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
+            warnings.extend(w)
+        sweeps = {name: f.result() for name, f in sweeps.items()}
     pairs, measured_by, spawned = {}, {}, []
     for lid in rig.lidars:
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
         measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
-        sweeps = None  # a 3D LiDAR's sweeps, read and their static scene built once, for every camera
         for cam in shared:
             stems = [st for st in poses[cam.name] if lid.file(st) is not None]
             if len(stems) >= MIN_PAIR_FRAMES:
                 key = (cam.name, lid.name)
-                ds = rig.pair(cam.name, lid.name, cameras[cam.name])
-                if sweeps is None and lid.lidar != "2d":
-                    sweeps = read_sweeps(replace(ds, frames=tuple(FrameFiles(st, None, path) for st, path in
-                                                                  lid.files)), hints)
-                pairs[key] = measure_pair_frames(ds, cam.name, lid.name, stems, poses[cam.name], measured, rng,
-                                                 workers, found[cam.name], warnings, spawned, params, hints, sweeps)
+                pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
+                                                 lid.name, stems, poses[cam.name], measured, rng, workers,
+                                                 found[cam.name], warnings, spawned, params, hints,
+                                                 sweeps.get(lid.name))
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
 
