@@ -121,9 +121,9 @@ def _choose_terms(names: tuple, reference: str, camera_views: list, lidar_views:
     extrinsic's covariance, which would scale down the very statistic that tests it (quasi-likelihood's
     dispersion is estimated under the largest model) and smear the squares' placement."""
     ss, dof = solution.chi2_dof.get(name, (0.0, 1.0))
-    largest = views("full", solution, blurred=False)
     models, notes = ("none", "offset", "per-ring", "offset+dark"), []
-    if largest.has_terms and chi2.sf(ss, dof) < NOISE_WARNING_P:  # without a significant excess: as they are
+    if chi2.sf(ss, dof) < NOISE_WARNING_P:  # without a significant excess: as they are
+        largest = views("full", solution, blurred=False)  # the full model holds the offset at least
         planes = solution
         solution = solve_rig(names, reference, camera_views,
                              [largest if v.name == largest.name else v for v in lidar_views], solution.T_ref,
