@@ -494,7 +494,8 @@ def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.nda
     """Each of ``points`` (taken from ``sweep``, exact coordinates) as its index in the sweep, and which were found.
     Only the sweep's points in their bounding box can match: a tree over those, not the sweep."""
     lo, hi = points.min(axis=0) - 1e-6, points.max(axis=0) + 1e-6
-    near = np.flatnonzero(np.all((sweep >= lo) & (sweep <= hi), axis=1))
+    near = np.flatnonzero((sweep[:, 0] >= lo[0]) & (sweep[:, 0] <= hi[0]))  # x first: one column of the sweep
+    near = near[np.all((sweep[near] >= lo) & (sweep[near] <= hi), axis=1)]
     if len(near) == 0:
         return np.zeros(len(points), dtype=np.int64), np.zeros(len(points), dtype=bool)
     from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import, unused from the cache
@@ -604,13 +605,15 @@ def _every_return_on(obs, sweep, scene: StaticScene, params: SegmentationParams)
     the scene calls the returns whose range noise carries them within its margin of that surface background and
     keeps the others: a selection on the noise, which tilts the fitted plane. The returns of the board's own cells,
     in a band symmetric in range, undo it; cells the board does not reach are not added."""
-    keys = scene.cell_keys(sweep.points, sweep.ring)
-    if not (keys >= 0).any():
-        return obs
+    def keys(at: np.ndarray) -> np.ndarray:  # the cells of the sweep's returns ``at`` (indices)
+        return scene.cell_keys(sweep.points[at], None if sweep.ring is None else sweep.ring[at])
+
     idx, found = _in_sweep(obs.points, sweep.points)
-    own = np.unique(keys[idx[found]])
-    cells = np.flatnonzero(np.isin(keys, own[own >= 0]))
-    take = cells[noise_band(sweep.points[cells], obs.plane, obs.points)]
+    own = np.unique(keys(idx[found]))
+    # The returns in the band, then those of them in the board's cells (every return's cell is a whole sweep's
+    # work; the band's, a few thousand's).
+    band = np.flatnonzero(noise_band(sweep.points, obs.plane, obs.points))
+    take = band[np.isin(keys(band), own[own >= 0])]
     if len(take) <= obs.n_points:
         return obs
     return observe_lidar_board(sweep.points[take], obs.candidates)
