@@ -75,7 +75,7 @@ def main() -> None:
 def _outline_shift(frames, board, T: np.ndarray) -> dict:
     """The outlines' mean shift under ``T`` (the check's fit, with the camera's board poses; no covariance of
     ``T``: only the shift is printed)."""
-    rings = frame_rings(frames)
+    rings = frame_rings([f.lidar for f in frames])
     used = [(f, crossings(f.lidar.points, r, T_inverse(f.camera.T_camera_board) @ T, board))
             for f, r in zip(frames, rings) if r is not None]
     used = [(f, e) for f, e in used if e.size]

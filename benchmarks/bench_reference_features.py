@@ -101,7 +101,7 @@ def main() -> None:
             continue
         camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
         frames = [f for f in frames if f.usable]
-        rings = frame_rings(frames)
+        rings = frame_rings([f.lidar for f in frames])
         w, h = ds.board.size
         results = [(label, solve(frames, ds.board, camera, options=RefinementOptions(edges=edges)))
                    for label, edges in (("planes", False), ("planes + edges", True))]

@@ -25,7 +25,7 @@ from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
 from .pipeline.measurement import Hints
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
-from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, Framed, align_numbering, camera_views_of, lidar_views_of,
+from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import choose_range_models, range_record
@@ -188,8 +188,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
                 skipped[lid.name].pop(f.name, None)
         if lidar_obs[lid.name]:
-            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m([Framed(o) for o in
-                                                                               lidar_obs[lid.name].values()])
+            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
     for i, a in enumerate(cams):

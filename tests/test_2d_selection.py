@@ -45,7 +45,7 @@ def test_outline_cost_is_small_at_the_truth_and_grows_when_the_chord_slides():
     every end scores near the mode; sliding the LiDAR 10 cm along a board's scan line moves the ends off
     the board's edges and costs far more than chi-square noise."""
     rig, frames = _frames("default", 4, 1, noise=1e-4)
-    sigma = pooled_range_noise_m(frames)
+    sigma = pooled_range_noise_m([f.lidar for f in frames])
     T = rig.T_camera_lidar
     at_truth = outline_costs(T[None], frames, rig.board, sigma)[0]
     assert at_truth < 4 * len(frames)  # each of 2N ends within about 1.4 sd of its expected depth
@@ -146,7 +146,7 @@ def test_multistart_search_finds_the_true_basin_without_the_minimal_solver():
         rig, frames = _frames("default", n, seed)
         basin = _truth_basin(rig, frames)
         assert basin is not None
-        starts = multistart_candidates(frames, pooled_range_noise_m(frames))
+        starts = multistart_candidates(frames, pooled_range_noise_m([f.lidar for f in frames]))
         refined = []
         for T0 in starts:
             try:  # a start in a wrong basin can refine to a degenerate minimum, which the pipeline skips too

@@ -242,7 +242,7 @@ def test_with_range_terms_the_range_noise_excludes_the_structure_they_explain():
     from estimators.solvers.noise_levels import pooled_range_noise_m
 
     layout, frames = _biased(12, "vlp16", 0.01, 0.05, 13)
-    plane_only = pooled_range_noise_m([f for f in frames if f.usable])
+    plane_only = pooled_range_noise_m([f.lidar for f in frames if f.usable])
     assert plane_only > 1.2 * 0.02
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
     full = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="full"))

@@ -128,7 +128,7 @@ def test_covariance_is_the_inverse_hessian_of_the_cost_and_matches_the_bound():
     T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
     ref = refine(frames, layout.board, layout.camera, T0, opts)
     boards = [ref.T_camera_board[f.name] for f in frames]
-    measured = pooled_range_noise_m(frames)
+    measured = pooled_range_noise_m([f.lidar for f in frames])
     whiteners = [sqrt_excess_moment(f.lidar.unbiased_range_moment(measured))[0] for f in frames]
 
     def cost(theta):

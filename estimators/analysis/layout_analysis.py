@@ -282,7 +282,7 @@ def layout_from_result(result, board, beams_model: str = "hdl64e") -> tuple[Layo
     from ..solvers.range_model import frame_rings
 
     used = [f for f in result.frames if f.usable and f.name in ref.T_camera_board]
-    rings = frame_rings(used) if used else []
+    rings = frame_rings([f.lidar for f in used]) if used else []
     hits = tuple((f.lidar.points / np.linalg.norm(f.lidar.points, axis=1, keepdims=True),
                   np.linalg.norm(f.lidar.points, axis=1), r) for f, r in zip(used, rings))
     beams = BEAM_MODELS[beams_model](ref.range_noise_m)

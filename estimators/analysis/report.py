@@ -15,6 +15,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from geometry.camera import CameraModel
 from geometry.rotations import quat_xyzw_from_R, transform_points
 
 from ..io.dataset import Dataset
@@ -97,15 +98,15 @@ def _intrinsics_section(fit) -> str:
             + _table(rows, ["parameter", "given", "refined", "sd", "moved [sd]"]))
 
 
-def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def board_outline_offset(cam: CameraModel, T_camera_lidar: np.ndarray, frame, board
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The camera's board outline and the LiDAR's (pixels), and the pixel offset ``(du, dv)`` of the LiDAR's.
 
     The LiDAR points, mapped by the estimate into the camera's board frame, span ``[x0, x1] x [y0, y1]``
     (0.5% / 99.5% quantiles, so stray stand points do not count); the beams' spacing shrinks that span
     alike on opposite sides, so its centre against the board's centre is the offset, which is then shown
     as the board outline shifted by it and measured in pixels."""
-    cam = result.camera
-    T_board_lidar = np.linalg.inv(frame.camera.T_camera_board) @ result.T_camera_lidar
+    T_board_lidar = np.linalg.inv(frame.camera.T_camera_board) @ T_camera_lidar
     pb = transform_points(T_board_lidar, frame.lidar.points)
     lo, hi = np.percentile(pb[:, :2], [0.5, 99.5], axis=0)
     w, h = board.extent
@@ -117,15 +118,17 @@ def board_outline_offset(result, frame, board) -> tuple[np.ndarray, np.ndarray, 
     return board_px, lidar_px, centre[1] - centre[0]
 
 
-def projection_figure(result, frame, board, image_path, scan_path) -> tuple[bytes, np.ndarray]:
-    cam = result.camera
+def projection_figure(cam: CameraModel, T_camera_lidar: np.ndarray, frame, board, image_path, scan_path
+                      ) -> tuple[bytes, np.ndarray]:
+    """A frame's image with the LiDAR's points under ``T_camera_lidar`` (coloured by depth), the camera's board
+    outline and the LiDAR's, as PNG bytes, and the LiDAR outline's pixel offset (:func:`board_outline_offset`)."""
     gray = read_gray(image_path)
     if frame.lidar.is_scan_line:
         xy = read_scan_2d(scan_path)
         scan = np.column_stack([xy, np.zeros(len(xy))])
     else:
         scan = read_scan(scan_path)
-    pc = transform_points(result.T_camera_lidar, scan)
+    pc = transform_points(T_camera_lidar, scan)
     front = pc[:, 2] > 0.3
     uv = cam.project(pc[front])
     inside = cam.in_image(uv)
@@ -158,7 +161,7 @@ def projection_figure(result, frame, board, image_path, scan_path) -> tuple[byte
         board_px = cam.project(transform_points(frame.camera.T_camera_board, board.outline()))
         outlines, offset = ((board_px, _LIME, "board (camera)"),), np.full(2, np.nan)
     else:
-        board_px, lidar_px, offset = board_outline_offset(result, frame, board)
+        board_px, lidar_px, offset = board_outline_offset(cam, T_camera_lidar, frame, board)
         outlines = ((board_px, _LIME, "board (camera)"), (lidar_px, _RED, "board (LiDAR)"))
     # The board's inner corners: the ones the detector saw as small circles, the others (a ChArUco board
     # cut by the image's edge or hidden) in grey where the board pose puts them inside the image.
@@ -304,8 +307,8 @@ def _figures(result, dataset: Dataset, process: FigureProcess
     offsets = []
     for frame in result.frames:
         if frame.usable and frame.name in files:
-            png, off = projection_figure(result, frame, dataset.board, files[frame.name].image,
-                                         files[frame.name].scan)
+            png, off = projection_figure(result.camera, result.T_camera_lidar, frame, dataset.board,
+                                         files[frame.name].image, files[frame.name].scan)
             if np.all(np.isfinite(off)):
                 offsets.append((frame.name, off))
             projections.append((f"projection_{frame.name}.png", f"Frame {frame.name}: LiDAR points in the image",

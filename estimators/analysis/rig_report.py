@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import html
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -112,12 +111,11 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     out = Path(out_dir)
     for (cam, lidar), frames in (result.pair_frames or {}).items():
         T, _ = sol.transform(cam, lidar)
-        view = SimpleNamespace(camera=result.cameras[cam], T_camera_lidar=T)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
                      "image (joint estimate)</h2>")
         for f in frames:
-            png, _ = projection_figure(view, f, result.rig.board, c.file(f.name), lid.file(f.name))
+            png, _ = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name), lid.file(f.name))
             name = f"projection_{cam}_{lidar}_{f.name}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
             parts.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")

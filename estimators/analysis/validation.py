@@ -56,13 +56,13 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
     usable = [f for f in frames if f.usable]
     if not usable:
         return []
-    sigma_r = range_noise_m or pooled_range_noise_m(usable)
+    sigma_r = range_noise_m or pooled_range_noise_m([f.lidar for f in usable])
     half = 0.5 * float(np.mean(board.extent))
     beta = None if range_terms is None else np.asarray(range_values_m, dtype=float)
     # Held-out frames: their black squares placed by geometry under the calibration and blurred by its
     # covariance, as the calibration's own were.
     labels = frame_labels(usable, board, T_camera_lidar, placement_cov=covariance) if range_terms is not None else None
-    fws = frame_whiteners(usable, pooled_range_noise_m(usable), range_terms, labels)
+    fws = frame_whiteners(usable, pooled_range_noise_m([f.lidar for f in usable]), range_terms, labels)
     out = []
     for f, fw in zip(usable, fws):
         b = f.camera.T_camera_board

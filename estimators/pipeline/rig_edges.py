@@ -14,7 +14,6 @@ from ..solvers.outline_check import outline_check
 from ..solvers.range_model import frame_rings
 from ..solvers.graph_keys import outline_key
 from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
-from .rig_measurement import Framed
 
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
@@ -80,7 +79,7 @@ def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
     ``T_board_lidar``; None where the rings are unknown."""
     if not observations:
         return []
-    rings = frame_rings([Framed(o) for o in observations])
+    rings = frame_rings(observations)
     return [crossings(o.points, np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r, T, board)
             if o.is_scan_line or r is not None else None for o, r, T in zip(observations, rings, T_board_lidar)]
 

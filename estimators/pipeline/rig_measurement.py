@@ -5,7 +5,7 @@ every pose along the links that share the most frames.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -255,13 +255,6 @@ def lidar_views_of(name: str, sigma_m: float, frames: dict, T_ref_board: dict, b
         W[st] = fw.W
         errors[st] = PlaneError.of_frame(f, fw.centre, board, floor_m, options.corner_scale_sd)
     return LidarViews(name, sigma_m, W, scan_line, plane_error=errors, robust=options)
-
-
-@dataclass(frozen=True, eq=False)
-class Framed:
-    """A LiDAR observation in the shape ``pooled_range_noise_m`` reads (``frame.lidar``)."""
-
-    lidar: object
 
 
 def start_poses(names, reference, parent, poses, pairwise, flip) -> dict:

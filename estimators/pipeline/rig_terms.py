@@ -15,7 +15,6 @@ from ..solvers.range_model import (MODEL_TEST_P, FrameLabels, RangeTerms, frame_
                                    terms_for)
 from ..solvers.factor_graph import LidarViews
 from ..solvers.rig_graph import RigSolution, solve_rig, terms_fit, terms_test
-from .rig_measurement import Framed
 from .rig_result import NOISE_WARNING_P
 
 # Above this variance factor of a LiDAR's planes under its largest range model (every term in), its per-ring and
@@ -40,7 +39,7 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
             if f.name in obs and obs[f.name] is f.lidar:
                 measured.setdefault(f.name, (cam, f))
     stems = list(obs)
-    rings = dict(zip(stems, frame_rings([Framed(obs[st]) for st in stems])))
+    rings = dict(zip(stems, frame_rings([obs[st] for st in stems])))
     dark = dict.fromkeys(stems)
     for cam in sorted({c for c, _ in measured.values()}):
         group = [st for st in stems if st in measured and measured[st][0] == cam]

@@ -58,7 +58,8 @@ def match_moments(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
     to solve with) and ``excess(v, T, boards)`` is the consistency statistic over its degrees of freedom, which
     falls as ``v`` grows. The root of its logarithm is found by Brent's method in ``log v`` within ``bounds``, to
     0.1% in ``v`` (a geometric bisection to the same precision needs twice the solves); each trial starts from
-    the fit at the nearest value tried (the first from the fit without it). Returns the value and its solve ``(T, boards, graph, result, iterations)``."""
+    the fit at the nearest value tried (the first from the fit without it). Returns the value and its solve
+    ``(T, boards, graph, result, iterations)``."""
     start = (T, list(boards), prob.beta.copy())
     solves: dict[float, tuple] = {}
 

@@ -25,7 +25,7 @@ def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: l
 
     # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
     rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
-             for f, r in zip(frames, frame_rings(frames))]
+             for f, r in zip(frames, frame_rings([f.lidar for f in frames]))]
     noise = end_noise([(frames[i].lidar.points, rings[i]) for i in active if rings[i] is not None])
     edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
                        max_offset_m, noise.position_sd_m)

@@ -59,16 +59,16 @@ def corner_residual_px(frames: list[FrameMeasurement], board: BoardModel, camera
                                       for f in frames), camera)
 
 
-def own_fit_residuals(f: FrameMeasurement) -> tuple[float, int]:
-    """A frame's squared range residuals about its own best-fit plane (a scan line's: its line) (m^2) and their
-    degrees of freedom (``n - 3``; ``n - 2`` for a scan line)."""
-    dof = max(f.lidar.n_points - (2 if f.lidar.is_scan_line else 3), 1)
-    return f.lidar.range_rms_m**2 * dof, dof
+def own_fit_residuals(obs) -> tuple[float, int]:
+    """A LiDAR board observation's squared range residuals about its own best-fit plane (a scan line's: its line)
+    (m^2) and their degrees of freedom (``n - 3``; ``n - 2`` for a scan line)."""
+    dof = max(obs.n_points - (2 if obs.is_scan_line else 3), 1)
+    return obs.range_rms_m**2 * dof, dof
 
 
-def pooled_range_noise_m(frames: list[FrameMeasurement]) -> float:
-    """Range noise pooled over the frames' best-fit plane residuals (:func:`own_fit_residuals`)."""
-    ss, dof = np.sum([own_fit_residuals(f) for f in frames], axis=0)
+def pooled_range_noise_m(observations: list) -> float:
+    """Range noise pooled over LiDAR board observations' best-fit plane residuals (:func:`own_fit_residuals`)."""
+    ss, dof = np.sum([own_fit_residuals(o) for o in observations], axis=0)
     return float(np.sqrt(ss / dof))
 
 

@@ -53,7 +53,7 @@ class PlaneProblem:
         self.sigma_board = sigma_board
         self.terms, self.labels = terms, labels
         # Noise-corrected at the noise the data show (not at a given sigma_r, which sets the weights only).
-        self.fw = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
+        self.fw = frame_whiteners(frames, pooled_range_noise_m([f.lidar for f in frames]), terms, labels)
         self.whiteners = [w.W for w in self.fw]
         self.beta = np.zeros(terms.size if terms else 0)
         self.has_beta = bool(terms is not None and terms.size)

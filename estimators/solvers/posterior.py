@@ -313,7 +313,7 @@ class PlaneLikelihood:
         beta = np.asarray(rm.values_m) if terms is not None else np.zeros(0)
         tau = float(rm.term_consistency.get("board_scatter_m", 0.0)) if terms is not None else 0.0
         labels = rm.labels_for(frames, board, ref.T_camera_lidar) if terms is not None else None
-        fws = frame_whiteners(frames, pooled_range_noise_m(frames), terms, labels)
+        fws = frame_whiteners(frames, pooled_range_noise_m([f.lidar for f in frames]), terms, labels)
         width = max(fw.W.shape[0] for fw in fws) if fws else 3
         for f, fw in zip(frames, fws):
             W = fw.W_plane
@@ -361,7 +361,7 @@ class PlaneLikelihood:
             dims.append(k)
             scan.append(f.lidar.is_scan_line)
             if f.lidar.is_scan_line:
-                ss, dof = own_fit_residuals(f)
+                ss, dof = own_fit_residuals(f.lidar)
                 floors += fit.weight * ss / ref.range_noise_m**2
                 floor_dof += fit.weight * dof
         least = 2 if ref.end_terms is not None and all(scan) else 3  # scan lines with their segment ends: 2

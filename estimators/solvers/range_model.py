@@ -228,7 +228,7 @@ def frame_labels(frames: list[FrameMeasurement], board=None, T_camera_lidar: np.
     black squares are placed by geometry (:func:`geometric_dark`, on each frame's board pose: ``boards`` or
     the camera's own; ``placement_cov`` the extrinsic's 6 x 6 covariance, whose spread blurs the placement) and
     the intensities only cross-check them; else they come from intensity."""
-    rings = tuple(frame_rings(frames))
+    rings = tuple(frame_rings([f.lidar for f in frames]))
     if board is None or T_camera_lidar is None:
         return FrameLabels(rings, tuple(dark_labels(f.lidar) for f in frames), names=tuple(f.name for f in frames))
     from ..camera.charuco import pattern_reflectance  # the printed pattern, a ChArUco board's markers included
@@ -314,17 +314,17 @@ def _two_colours(dark: np.ndarray | None) -> bool:
     return dark is not None and bool(np.any(dark > 0.5)) and bool(np.any(dark < 0.5))
 
 
-def frame_rings(frames: list[FrameMeasurement]) -> list[np.ndarray | None]:
-    """Each frame's board points' ring ids: the scan's own, or the beams' elevations clustered over every frame
-    (one ring per cluster; None for 2D scans, and for a board that no separate beams swept)."""
-    if any(f.lidar.is_scan_line for f in frames):
-        return [None] * len(frames)
-    if all(f.lidar.rings is not None for f in frames):
-        return [np.asarray(f.lidar.rings, dtype=np.int64) for f in frames]
+def frame_rings(observations: list) -> list[np.ndarray | None]:
+    """Each LiDAR board observation's points' ring ids: the scan's own, or the beams' elevations clustered over
+    every observation (one ring per cluster; None for 2D scans, and for a board that no separate beams swept)."""
+    if any(o.is_scan_line for o in observations):
+        return [None] * len(observations)
+    if all(o.rings is not None for o in observations):
+        return [np.asarray(o.rings, dtype=np.int64) for o in observations]
     # No ring field: cluster the beams' elevations over every frame's board points (one ring per cluster). A board
     # whose elevations span several gaps' widths yet fall in fewer than three clusters was not swept by separate
     # beams (a non-repetitive pattern fills the elevations between them): it has no rings.
-    elev = [np.arctan2(f.lidar.points[:, 2], np.hypot(f.lidar.points[:, 0], f.lidar.points[:, 1])) for f in frames]
+    elev = [np.arctan2(o.points[:, 2], np.hypot(o.points[:, 0], o.points[:, 1])) for o in observations]
     allv = np.sort(np.concatenate(elev))
     edges = allv[:-1][np.diff(allv) > RING_GAP_RAD] if len(allv) > 1 else np.array([])
     rings = [np.searchsorted(edges, e, side="left").astype(np.int64) for e in elev]

@@ -148,7 +148,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     resid_px, sigma_px, sigma_board = corner_noise_levels(
         ((f.camera.T_camera_board, f.camera.corners_board(board), f.camera.corners_px) for f in frames), camera,
         options)
-    sigma_r = options.range_noise_m or max(pooled_range_noise_m(frames), 1e-5)
+    sigma_r = options.range_noise_m or max(pooled_range_noise_m([f.lidar for f in frames]), 1e-5)
     prob = PlaneProblem(frames, board, camera, sigma_px, sigma_r, options, sigma_board=sigma_board)
     warnings: list[str] = []
     floor = options.plane_floor_m or 0.0

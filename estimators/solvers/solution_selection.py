@@ -351,7 +351,7 @@ def select_minimal(frames: list[FrameMeasurement], board: BoardModel, method: st
                if use_extent else " (2 with the board's size in dataset.yaml)"),
             hint="record more boards; if frames were skipped as ambiguous, a tighter --max-sensor-separation "
                  "(the camera-LiDAR distance bound) leaves fewer scan segments where the camera puts the board")
-    sigma_r = max(pooled_range_noise_m(frames), 1e-5)
+    sigma_r = max(pooled_range_noise_m([f.lidar for f in frames]), 1e-5)
     planes = [f.camera.plane for f in frames]
     lines = [f.lidar.line for f in frames]
     spread, weak = normal_spread(np.array([p.normal for p in planes]))
@@ -609,7 +609,7 @@ def refine_candidates(used: list[FrameMeasurement], board: BoardModel, camera, s
     if use_extent is None:
         use_extent = board.size_known
     usable = [f for f in used if f.usable]
-    sigma_r = max(pooled_range_noise_m(usable), 1e-5)
+    sigma_r = max(pooled_range_noise_m([f.lidar for f in usable]), 1e-5)
     refined: list = []
     error: list = []
     unrefined: list = []  # the starts whose refinement was refused as unobservable
@@ -784,7 +784,7 @@ def _with_tilts(frames, board, camera, method, options, use_extent, ambiguous: l
         except DegenerateLayoutError:
             continue
         used = [f for f in out[0] if f.usable]
-        sigma_r = max(pooled_range_noise_m(used), 1e-5)
+        sigma_r = max(pooled_range_noise_m([f.lidar for f in used]), 1e-5)
         if use_extent:
             # The least joint cost near each minimum (``outline_evidence``), not at it: an ambiguous board's
             # camera pose is weak along its tilt, and the factor graph's minimum, which moves that pose, can sit
