@@ -231,20 +231,27 @@ def _build_range_image(points: list[np.ndarray], rings: list[np.ndarray | None],
         far = ndimage.maximum_filter(img.reshape(len(rows), n_cols), size=(1, 3), mode="wrap")
         stack[k] = np.where(np.isfinite(far), far, np.nan)
     m = min(F, max(params.seen_through, int(np.ceil(params.support_share * F))))
-    ordered = -np.sort(-np.nan_to_num(stack, nan=-np.inf), axis=0)  # farthest first; no return last
+    # Farthest first, no return last (sorted in place: the stack is the largest array here, F of the image).
+    ordered = np.nan_to_num(stack, nan=-np.inf)
+    np.negative(ordered, out=ordered)
+    ordered.sort(axis=0)
+    np.negative(ordered, out=ordered)
     # The farthest range that m frames return within half the margin of each other: a surface that stays.
     background = np.full(ordered.shape[1:], np.nan)
-    with np.errstate(invalid="ignore"):  # -inf - -inf where no frame returns
-        spans = [ordered[i] - ordered[i + m - 1] for i in range(F - m + 1)]
     for i in range(F - m, -1, -1):  # nearest first, so the farthest qualifying cluster is written last
-        ok = (spans[i] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
+        with np.errstate(invalid="ignore"):  # -inf - -inf where no frame returns
+            ok = (ordered[i] - ordered[i + m - 1] <= 0.5 * params.margin_m) & np.isfinite(ordered[i + m - 1])
         background[ok] = ordered[i][ok]
+    del ordered
     # Settled: returned by m frames and by more than half of those that see nothing nearer there. A board held
     # at one place in a few frames of a cloud cropped to the boards is not (the other frames return nothing).
     margin = params.margin_m
     with np.errstate(invalid="ignore"):
         front = stack < background - margin
-        returned = np.sum(np.abs(stack - background) <= margin, axis=0)
+        near = np.subtract(stack, background)
+        np.abs(near, out=near)
+        returned = np.sum(near <= margin, axis=0)
+        del near
         background[(returned < m) | (returned <= 0.5 * (F - front.sum(axis=0)))] = np.nan
     scene = StaticScene("range-image" if bin_rad is None else "direction-bins", params, _background=background,
                         _column_rad=column, _rows=rows, _bin_rad=bin_rad)
