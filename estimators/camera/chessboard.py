@@ -53,11 +53,11 @@ CLASSIC_BUDGET_S = 20.0
 # Reduced copies are searched first: the detector's cost grows with the pixel count, while the pattern is
 # found as well once its squares are this many pixels wide or more.
 MIN_SQUARE_PX_REDUCED = 12.0
-# Images of this many pixels or more are halved (and halved again) for that first search. Below it, a reduced
-# copy does not pay: where the pattern is not found there (a small board, a fisheye's edge), the failed
-# search costs more than the whole image's (1024 x 800 fisheye images: 130 + 210 ms failing at half size,
-# 65 ms found at full size), and where it is found it saves some 45 ms.
-MIN_PIXELS_REDUCED = 1.2e6
+# Images of this many pixels or more try both settings on their reduced copies. Below it, the second does not
+# pay: where the pattern is not found in a reduced copy (a small board, a fisheye's edge), each failed search
+# there costs more than the whole image's (1024 x 800 fisheye images: 130 and 210 ms failing at half size, 65 ms
+# found at full size), while the first, where it finds the pattern, saves some 45 ms.
+MIN_PIXELS_BOTH_REDUCED = 1.2e6
 # Flag sets for each level of the pyramid, most often successful first. Without the accuracy flag (which
 # makes the detector 4x slower) and with the two ``cornerSubPix`` passes that follow, the corners are as
 # accurate: 0.053 px RMS against the truth either way on 30 rendered 1024x768 boards, 0.057 px at 1920x1208.
@@ -75,7 +75,7 @@ def detect_chessboard(gray: np.ndarray, board: BoardModel, budget_s: float | Non
     """Inner corners of the checkerboard ``board`` in an 8-bit greyscale image, or None when no setting finds
     them all.
 
-    First on a pyramid with the fast flags: reduced copies (halved while the copy has ``MIN_PIXELS_REDUCED``),
+    First on a pyramid with the fast flags: reduced copies (halved while the image is 1000 px or larger),
     then the full image, the corners refined at full resolution; then at full resolution with every
     setting. The sector-based detector's
     corners carry a systematic, board-wide error (in simulation a scale error of about 4e-4 that moves each
@@ -105,13 +105,17 @@ def _found(level: np.ndarray, pattern: tuple[int, int], flags: int, box: tuple |
 
 def _detect_pyramid(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetection | None:
     copies, level = [gray], gray
-    while level.size >= MIN_PIXELS_REDUCED:
+    while max(level.shape) >= 1000:
         level = cv2.pyrDown(level)
         copies.append(level)
     box = None  # where a coarser copy saw the pattern too small to trust: the finer copy searches there first
     for level in reversed(copies):  # coarsest first, the full image last
         scale = gray.shape[1] / level.shape[1]
-        for name, flags in _PYRAMID_ATTEMPTS:
+        # A small image's reduced copy gets the first setting alone: a failed search there costs more than the
+        # whole image's (below).
+        attempts = _PYRAMID_ATTEMPTS if level is gray or gray.size >= MIN_PIXELS_BOTH_REDUCED else \
+            _PYRAMID_ATTEMPTS[:1]
+        for name, flags in attempts:
             c = _found(level, pattern, flags, box)
             if c is None:
                 continue
