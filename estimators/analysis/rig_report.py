@@ -115,7 +115,8 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
                      "image (joint estimate)</h2>")
         for f in frames:
-            png, _ = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name), lid.file(f.name))
+            png, _ = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name),
+                                       lid.file(f.name))
             name = f"projection_{cam}_{lidar}_{f.name}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
             parts.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")

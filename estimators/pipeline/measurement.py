@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -164,21 +164,15 @@ def _measure_frames(dataset: Dataset, rng: np.random.Generator, params: Segmenta
         # are searched for the pattern, in a thread of their own: the static scene's build is otherwise a
         # stage that keeps one core idle.
         if dataset.lidar != "2d":
-            sweeps = ahead.submit(read_sweeps, dataset, hints, timings) if sweeps is None else _done(sweeps)
+            sweeps = ahead.submit(read_sweeps, dataset.frames, hints, timings).result if sweeps is None else \
+                (lambda given=sweeps: given)
         return _measure_frames_with(dataset, rng, params, timings, workers, hints, sweeps, detections, board_poses)
-
-
-def _done(value) -> Future:
-    """A future that holds ``value`` already."""
-    f: Future = Future()
-    f.set_result(value)
-    return f
 
 
 def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: SegmentationParams, timings: dict,
                          workers: int, hints: Hints, sweeps_ahead, found: dict | None = None,
                          board_poses: dict | None = None) -> tuple[CameraModel, list[FrameMeasurement], list[str]]:
-    """:func:`_measure_frames` given the future of :func:`read_sweeps` (None for a 2D dataset)."""
+    """:func:`_measure_frames` given a call that returns :func:`read_sweeps`'s result (None for a 2D dataset)."""
     warnings: list[str] = []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1 if workers > 1 else cv_threads)
@@ -235,7 +229,7 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
                                    alternatives)
     else:
         frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers,
-                                    sweeps_ahead.result())
+                                    sweeps_ahead())
     return camera, frames, warnings
 
 
@@ -395,12 +389,12 @@ class LidarSweeps:
     scene_index: dict
 
 
-def read_sweeps(dataset: Dataset, hints: Hints, timings: dict | None = None) -> LidarSweeps:
-    """A 3D dataset's sweeps and the static scene of those read (``hints``: the region of interest, and whether to
-    build the scene at all)."""
+def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweeps:
+    """The 3D sweeps of ``frames`` (``FrameFiles``: their ``name`` and ``scan``) and the static scene of those read
+    (``hints``: the region of interest, and whether to build the scene at all)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in dataset.frames}
+    sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in frames}
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: _cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]

@@ -186,8 +186,8 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     with ThreadPoolExecutor(max_workers=1) as ahead:
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
-        sweeps = {lid.name: ahead.submit(read_sweeps, replace(rig.pair(rig.cameras[0].name, lid.name), frames=tuple(
-            FrameFiles(st, None, path) for st, path in lid.files)), hints) for lid in rig.lidars if lid.lidar != "2d"}
+        sweeps = {lid.name: ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints)
+                  for lid in rig.lidars if lid.lidar != "2d"}
         for s in rig.cameras:
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
             warnings.extend(w)
