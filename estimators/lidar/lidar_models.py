@@ -3,6 +3,7 @@ accuracy of sensor families (the range model's priors, ``solvers.range_model``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -44,11 +45,18 @@ class BeamModel:
         return np.arange(lo, hi + 0.5 * self.azimuth_step_rad, self.azimuth_step_rad) + self.azimuth_phase_rad
 
     def directions(self) -> tuple[np.ndarray, np.ndarray]:
-        """Unit beam directions (N, 3) in the LiDAR frame (x forward, y left, z up) and ring ids (N,)."""
+        """Unit beam directions (N, 3) in the LiDAR frame (x forward, y left, z up) and ring ids (N,), read-only."""
+        return self._directions
+
+    @cached_property
+    def _directions(self) -> tuple[np.ndarray, np.ndarray]:
+        # Made once per model: a layout's information casts its beams at every candidate pose.
         az = self.azimuths()
         el, a = np.meshgrid(self.elevations_rad, az, indexing="ij")
         d = np.stack([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)], axis=-1).reshape(-1, 3)
         ring = np.repeat(np.arange(len(self.elevations_rad)), len(az))
+        d.setflags(write=False)
+        ring.setflags(write=False)
         return d, ring
 
 
