@@ -556,8 +556,8 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
 
 
 def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
-    """layout and validate (and the pair's Python calibrate) on a rig folder: a one-line error saying it is a rig
-    folder and which commands take one, exit 2."""
+    """layout (and the pair's Python calibrate) on a rig folder: a one-line error saying it is a rig folder and which
+    commands take one, exit 2; validate with a single pair's calibration.json: a one-line error saying so."""
     from estimators import calibrate
     from estimators.cli import main
     from estimators.errors import DatasetError
@@ -565,12 +565,51 @@ def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tm
     (tmp_path / "calibration.json").write_text(json.dumps({
         "T_camera_lidar": np.eye(4).tolist(), "covariance": (1e-4 * np.eye(6)).tolist(),
         "noise": {"corner_noise_px": 0.2, "range_noise_m": 0.01}}))
-    for argv in (["layout", str(rig_folder)], ["validate", str(rig_folder), "--calibration", str(tmp_path)]):
+    for argv, said in ((["layout", str(rig_folder)], "this is a rig folder"),
+                       (["validate", str(rig_folder), "--calibration", str(tmp_path)],
+                        "a rig folder is given with a single pair's calibration")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
-        assert "\n" not in err and "this is a rig folder" in err and "take a pair folder" in err, err
+        assert "\n" not in err and said in err, err
     with pytest.raises(DatasetError, match="this is a rig folder"):
         calibrate(rig_folder)
+
+
+def test_validate_scores_each_camera_lidar_pair_of_a_rig_on_the_frames_its_calibration_did_not_use(
+        rig_folder, rig_result, tmp_path):
+    """The rig calibrated on its first 6 frames: `validate` scores every camera-LiDAR pair's other frames under
+    that calibration.json (each pair consistent at p > 0.001, as the simulation's noise is the model's), and the
+    same calibration with T_cam0_lidar0 moved 30 mm is caught for that pair (p < 1e-6) and no other."""
+    from estimators.cli import main
+    from estimators.io.measurement_store import save_rig_measurements
+    from estimators.pipeline.rig_result import write_rig_calibration
+
+    rig = load_rig(rig_folder)
+    stems = sorted(rig_result.measurements.stems)[:6]
+    part = calibrate_rig(rig, np.random.default_rng(0), samples=0, advise=False, edges=False,
+                         measurements=rig_result.measurements.restricted(stems))
+    write_rig_calibration(part, tmp_path / "cal")
+    meas = save_rig_measurements(tmp_path / "m", rig_result.measurements, rig.board,
+                                 {s.name: s.lidar for s in rig.lidars})
+
+    def validate(cal):
+        argv = ["validate", str(rig_folder), "--calibration", str(cal), "--measurements", str(meas), "--out",
+                str(tmp_path / "v")]
+        assert main(argv) == 0
+        return json.loads((tmp_path / "v" / "validation.json").read_text())["pairs"]
+
+    pairs = validate(tmp_path / "cal")
+    assert {"T_cam0_lidar0", "T_cam0_lidar1", "T_cam0_scan0"} <= set(pairs)
+    for name, v in pairs.items():
+        assert v["frames"] and all(f["name"] not in stems for f in v["frame_scores"]), name
+        assert v["held_out"] == "frames the calibration did not use" and v["p_value"] > 1e-3, (name, v["p_value"])
+    cal = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    cal["transforms"]["T_cam0_lidar0"]["T"][0][3] += 0.03
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "moved" / "calibration.json").write_text(json.dumps(cal))
+    moved = validate(tmp_path / "moved")
+    assert moved["T_cam0_lidar0"]["p_value"] < 1e-6
+    assert all(moved[n]["p_value"] == v["p_value"] for n, v in pairs.items() if n != "T_cam0_lidar0")
 
 
 def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path):

@@ -102,17 +102,69 @@ def range_arguments(fit) -> tuple:
     return fit.terms, fit.values_m, fit.terms_covariance, float(fit.term_consistency.get("board_scatter_m", 0.0))
 
 
-def terms_from_json(section: dict | None) -> tuple:
-    """``score_frames``'s range-model arguments from calibration.json's ``lidar_range_model`` section."""
+def terms_from_json(section: dict | None, scatter_m: float | None = None) -> tuple:
+    """``score_frames``'s range-model arguments from a pair calibration.json's ``lidar_range_model`` section (a
+    list of terms in mm) or a rig LiDAR's ``range_model`` (terms by name, in m; its boards' scatter given)."""
     terms = (section or {}).get("terms") or []
     if not terms:
         return None, None, None, 0.0
-    names = tuple(str(t["term"]) for t in terms)
+    if isinstance(terms, dict):
+        names = tuple(terms)
+        values = np.array([float(t["value_m"]) for t in terms.values()])
+        sd = np.array([float(t["sd_m"]) for t in terms.values()])
+    else:
+        names = tuple(str(t["term"]) for t in terms)
+        values = np.array([float(t["value_mm"]) for t in terms]) / 1000.0
+        sd = np.array([float(t["std_mm"]) for t in terms]) / 1000.0
     rings = tuple(int(n.split()[1]) for n in names if n.startswith("ring "))
-    values = np.array([float(t["value_mm"]) for t in terms]) / 1000.0
-    sd = np.array([float(t["std_mm"]) for t in terms]) / 1000.0
-    scatter = float(((section or {}).get("board_terms_consistency") or {}).get("board_scatter_m", 0.0))
-    return RangeTerms(names, tuple(sd.tolist()), rings), values, np.diag(sd**2), scatter
+    if scatter_m is None:
+        scatter_m = float(((section or {}).get("board_terms_consistency") or {}).get("board_scatter_m", 0.0))
+    return RangeTerms(names, tuple(sd.tolist()), rings), values, np.diag(sd**2), scatter_m
+
+
+@dataclass(frozen=True, eq=False)
+class PairCalibration:
+    """What scoring a camera-LiDAR pair's frames takes from a calibration.json: the transform and its covariance,
+    the noise levels it was weighed with, its LiDAR range terms (``score_frames``' arguments), the frames it
+    used and the folder it calibrated."""
+
+    T_camera_lidar: np.ndarray
+    covariance: np.ndarray
+    corner_noise_px: float
+    range_noise_m: float
+    plane_floor_m: float
+    range_terms: tuple
+    used: frozenset
+    dataset: str
+
+
+def pair_calibration(cal: dict, camera: str | None = None, lidar: str | None = None) -> PairCalibration:
+    """A camera-LiDAR pair's :class:`PairCalibration` from a pair's calibration.json, or from a rig's (``rig:
+    true``) for its sensors ``camera`` and ``lidar`` (None: its one camera and one LiDAR). Raises KeyError,
+    TypeError or ValueError on a file that lacks what it needs, and LidarcamError for a rig of several cameras
+    or LiDARs without the pair named."""
+    if not cal.get("rig"):
+        noise = cal["noise"]
+        return PairCalibration(np.array(cal["T_camera_lidar"], dtype=float).reshape(4, 4),
+                               np.array(cal["covariance"], dtype=float).reshape(6, 6),
+                               float(noise["corner_noise_px"]), float(noise["range_noise_m"]),
+                               float(noise.get("plane_floor_m") or 0.0), terms_from_json(cal.get("lidar_range_model")),
+                               frozenset(f["name"] for f in cal.get("frames", []) if f.get("used")),
+                               str(cal.get("dataset", "")))
+    sensors = {s["name"]: s for s in cal["sensors"]}
+    if camera is None or lidar is None:
+        cams = [n for n, s in sensors.items() if s["type"] == "camera"]
+        lidars = [n for n, s in sensors.items() if s["type"] != "camera"]
+        if len(cams) != 1 or len(lidars) != 1:
+            raise LidarcamError(f"a rig's calibration of {len(cams)} camera(s) and {len(lidars)} LiDAR(s), where a "
+                                "camera-LiDAR pair's folder is given", hint="validate the rig's folder with it")
+        camera, lidar = cams[0], lidars[0]
+    pair, cam, lid = cal["transforms"][f"T_{camera}_{lidar}"], sensors[camera]["noise"], sensors[lidar]["noise"]
+    return PairCalibration(np.array(pair["T"], dtype=float).reshape(4, 4),
+                           np.array(pair["covariance"], dtype=float).reshape(6, 6), float(cam["corner_noise_px"]),
+                           float(lid["range_noise_m"]), float(lid["plane_floor_m"]),
+                           terms_from_json(sensors[lidar].get("range_model"), float(lid["board_scatter_m"])),
+                           frozenset(cal["frames_used"][lidar]), str(cal.get("dataset", "")))
 
 
 def verdict(scores: list[FrameScore]) -> dict:

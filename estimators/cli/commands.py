@@ -243,56 +243,91 @@ def _validation_runs(args, ds, result) -> None:
 
 
 def validate_command(args) -> int:
+    """Each camera-LiDAR pair's frames scored under the calibration (``analysis.validation``): a pair folder's one
+    pair, or every camera-LiDAR pair of a rig folder under a rig's calibration.json."""
     import numpy as np
 
-    from ..analysis.validation import score_frames, terms_from_json, verdict
-    from ..errors import DatasetError
-    from ..io.dataset import load_dataset
+    from ..analysis.validation import pair_calibration, score_frames, verdict
+    from ..errors import DatasetError, LidarcamError
     from ..io.input_files import load_json
     from ..io.output import write_json_atomic
-    from ..pipeline.measurement import measure_frames
+    from ..io.rig_dataset import is_rig
 
     cal_path = Path(args.calibration)
     if cal_path.is_dir():
         cal_path = cal_path / "calibration.json"
     cal = load_json(cal_path, "calibration file", "give the calibration.json that lidarcam calibrate wrote")
-    try:
-        T = np.array(cal["T_camera_lidar"], dtype=float).reshape(4, 4)
-        cov = np.array(cal["covariance"], dtype=float).reshape(6, 6)
-        noise = cal["noise"]
-        used = {f["name"] for f in cal.get("frames", []) if f.get("used")}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise DatasetError(f"not a calibration.json with a covariance ({type(exc).__name__}: {exc})", path=cal_path,
-                           hint="give the calibration.json written by `lidarcam calibrate` (refined)") from None
-    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
-        raise DatasetError("the calibration's transform or covariance is not finite", path=cal_path,
-                           hint="recalibrate")
-    ds = load_dataset(args.dataset)
-    camera, frames, _ = measure_frames(ds, np.random.default_rng(args.seed))
-    same = Path(str(cal.get("dataset", ""))).resolve() == Path(ds.root).resolve()
-    held = [f for f in frames if f.usable and not (same and f.name in used)]
-    note = "frames the calibration did not use"
-    if not held:
-        held = [f for f in frames if f.usable]
-        note = "every frame was used by the calibration: these scores are NOT held out (optimistic)"
-    scores = score_frames(held, ds.board, camera, T, cov, float(noise["corner_noise_px"]),
-                          float(noise["range_noise_m"]), float(noise.get("plane_floor_m") or 0.0),
-                          *terms_from_json(cal.get("lidar_range_model")))
-    v = verdict(scores)
-    print(f"validate: {len(scores)} frame(s) scored ({note})")
-    for s_ in scores:
-        print(f"  {s_.name}: chi-square {s_.chi2:6.1f} on {s_.dof} dof (p = {s_.p_value:.2g}); plane offset "
-              f"{s_.plane_offset_mm:+6.1f} mm (predicted sd {s_.predicted_offset_sd_mm:.1f}); centre offset "
-              f"{s_.outline_offset_px:.1f} px{'  FLAGGED' if s_.flagged else ''}")
-    print(f"verdict: {v['verdict']}" + (f" (chi-square {v['chi2']:.1f} on {v['dof']} dof, p = {v['p_value']:.2g})"
-                                         if "chi2" in v else ""))
-    for f in frames:
-        if not f.usable:
-            print(f"  {f.name}: skipped: {f.reason}")
+    rng = np.random.default_rng(args.seed)
+    if is_rig(args.dataset):
+        from ..io.rig_dataset import load_rig
+        from ..pipeline.rig_measurement import measured_rig
+
+        if not isinstance(cal, dict) or not cal.get("rig"):
+            raise DatasetError("a rig folder is given with a single pair's calibration", path=cal_path,
+                               hint="give the calibration.json that lidarcam calibrate wrote for this rig")
+        rig = load_rig(args.dataset)
+        if args.measurements:
+            from ..io.measurement_store import load_rig_measurements
+            from ..pipeline.rig_measurement import given_measurements
+
+            measured = given_measurements(rig, load_rig_measurements(args.measurements), rng)
+        else:  # the calibration's own measurements, from the cache where it made them
+            measured = measured_rig(rig, rng)
+        root, board = rig.root, rig.board
+        pairs = [(c, lid, measured.cameras[c], frames) for (c, lid), frames in measured.pairs.items()]
+    else:
+        from ..io.dataset import load_dataset
+        from ..pipeline.measurement import measure_frames
+
+        ds = load_dataset(args.dataset)
+        if args.measurements:
+            from ..io.measurement_store import load_measurements
+
+            m = load_measurements(args.measurements)
+            camera, frames = m.camera, list(m.frames)
+        else:
+            camera, frames, _ = measure_frames(ds, rng)
+        root, board, pairs = ds.root, ds.board, [(None, None, camera, frames)]
+    report = {}
+    for cam, lid, camera, frames in pairs:
+        name = "T_camera_lidar" if cam is None else f"T_{cam}_{lid}"
+        try:
+            pc = pair_calibration(cal, cam, lid)
+        except LidarcamError as exc:  # a rig's calibration.json for one pair's folder
+            raise DatasetError(exc.problem, path=cal_path, hint=exc.hint) from None
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise DatasetError(f"not a calibration.json with {name} and its covariance and noise "
+                               f"({type(exc).__name__}: {exc})", path=cal_path,
+                               hint="give the calibration.json written by `lidarcam calibrate` (refined) for this "
+                                    "folder") from None
+        if not (np.all(np.isfinite(pc.T_camera_lidar)) and np.all(np.isfinite(pc.covariance))):
+            raise DatasetError(f"the calibration's {name} or its covariance is not finite", path=cal_path,
+                               hint="recalibrate")
+        same = Path(pc.dataset).resolve() == Path(root).resolve()
+        held = [f for f in frames if f.usable and not (same and f.name in pc.used)]
+        note = "frames the calibration did not use"
+        if not held:
+            held = [f for f in frames if f.usable]
+            note = "every frame was used by the calibration: these scores are NOT held out (optimistic)"
+        scores = score_frames(held, board, camera, pc.T_camera_lidar, pc.covariance, pc.corner_noise_px,
+                              pc.range_noise_m, pc.plane_floor_m, *pc.range_terms)
+        v = verdict(scores)
+        print(f"validate{'' if cam is None else ' ' + name}: {len(scores)} frame(s) scored ({note})")
+        for s_ in scores:
+            print(f"  {s_.name}: chi-square {s_.chi2:6.1f} on {s_.dof} dof (p = {s_.p_value:.2g}); plane offset "
+                  f"{s_.plane_offset_mm:+6.1f} mm (predicted sd {s_.predicted_offset_sd_mm:.1f}); centre offset "
+                  f"{s_.outline_offset_px:.1f} px{'  FLAGGED' if s_.flagged else ''}")
+        print(f"verdict: {v['verdict']}" + (f" (chi-square {v['chi2']:.1f} on {v['dof']} dof, p = "
+                                             f"{v['p_value']:.2g})" if "chi2" in v else ""))
+        for f in frames:
+            if not f.usable:
+                print(f"  {f.name}: skipped: {f.reason}")
+        report[name] = {"held_out": note, **v, "frame_scores": [x.to_dict() for x in scores]}
+    # A pair folder's validation.json as before; a rig's, one entry per camera-LiDAR pair (their verdicts apart: two
+    # pairs share a LiDAR's boards, so their chi-squares are not independent).
+    body = report["T_camera_lidar"] if len(pairs) == 1 and pairs[0][0] is None else {"pairs": report}
     out = Path(args.out) if args.out else cal_path.parent
-    path = write_json_atomic(out / "validation.json", {"calibration": str(cal_path), "dataset": str(ds.root),
-                                                       "held_out": note, "frames": [x.to_dict() for x in scores],
-                                                       **v})
+    path = write_json_atomic(out / "validation.json", {"calibration": str(cal_path), "dataset": str(root), **body})
     print(f"wrote {path}")
     return 0
 

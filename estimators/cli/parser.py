@@ -62,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--calibration", required=True, help="calibration.json (or the folder holding it)")
     v.add_argument("--out", default=None, help="folder for validation.json (default: the calibration's folder)")
     v.add_argument("--seed", type=int, default=0, help="seed of the board segmentation's RANSAC")
+    v.add_argument("--measurements", default=None, metavar="PATH",
+                   help="score the measurements an earlier calibrate wrote (OUT/measurements.npz for a pair folder, "
+                        "OUT/measurements/ for a rig) instead of measuring the images and scans again")
 
     s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json",
                        description="Write a simulated dataset folder (rendered images, ray-cast scans) with its "

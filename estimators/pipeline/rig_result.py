@@ -104,6 +104,22 @@ class RigResult:
         out += [(a, b) for i, a in enumerate(lidars) for b in lidars[i + 1:]]
         return out
 
+    def _noise(self, name: str) -> dict:
+        """The noise levels a sensor was weighed with, at its noise scale (what ``lidarcam validate`` scores held-out
+        frames against): a camera's corner noise (px); a LiDAR's range noise, its boards' median plane error
+        (m) and their scatter along the range terms' weak direction (m)."""
+        scale = float(np.sqrt(self.solution.noise_scale.get(name, 1.0)))
+        for c in self.camera_views:
+            if c.name == name:
+                return {"corner_noise_px": float(c.sigma_px) * scale}
+        for lv in self.lidar_views:
+            if lv.name == name:
+                floors = [pe.floor_m for pe in (lv.plane_error or {}).values() if pe is not None]
+                return {"range_noise_m": float(lv.sigma_m) * scale,
+                        "plane_floor_m": float(np.median(floors)) if floors else 0.0,
+                        "board_scatter_m": float(lv.tau_m)}
+        return {}
+
     def to_json(self) -> dict:
         sol, ref = self.solution, self.rig.reference
 
@@ -119,6 +135,9 @@ class RigResult:
             sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
                             "frames_used": len(self.frames_used.get(s.name, ())),
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
+            noise = self._noise(s.name)
+            if noise:
+                sensors[-1]["noise"] = noise
             if s.name in self.edges:
                 sensors[-1]["board_edges"] = self.edges[s.name]
             if s.name in self.range_models:
@@ -152,7 +171,7 @@ class RigResult:
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}
-        return {"rig": True, **pair, "reference": ref, "ambiguous_pairs": ambiguous, "sensors": sensors,
+        return {"rig": True, **pair, "dataset": str(self.rig.root), "reference": ref, "ambiguous_pairs": ambiguous, "sensors": sensors,
                 "transforms": transforms,
                 "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
