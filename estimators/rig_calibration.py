@@ -282,27 +282,13 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:
     """The board pose that most lowers the weakest camera-LiDAR pair's largest translation standard deviation
-    (``analysis.rig_layout.next_pose_for_pair``, at the noise levels the graph weighed the two sensors with), with
-    ``pair``, ``camera`` and ``lidar`` added; None without a weakest pair or a feasible pose."""
-    from .analysis.rig_layout import beam_model_name, next_pose_for_pair
+    (``analysis.rig_layout.pair_next_pose``), with ``pair``, ``camera`` and ``lidar``; None without a weakest pair
+    or a feasible pose."""
+    from .analysis.rig_layout import pair_next_pose
 
     weakest = result.layout()["weakest_pair"]
     if weakest is None:
         return None
     cam, lid = next((c.name, d.name) for c in result.rig.cameras for d in result.rig.lidars
                     if f"T_{c.name}_{d.name}" == weakest)
-    sol = result.solution
-    cv = next((v for v in result.camera_views if v.name == cam), None)
-    lv = next((v for v in result.lidar_views if v.name == lid), None)
-    if cv is None or lv is None:
-        return None
-    rings = [len(np.unique(f.lidar.rings)) for (_, d), frames in (result.pair_frames or {}).items() if d == lid
-             for f in frames if f.lidar is not None and f.lidar.rings is not None]
-    T, P = sol.transform(cam, lid)
-    camera = result.cameras[cam]
-    if sol.intrinsics and cam in sol.intrinsics:
-        camera = camera.with_params(sol.intrinsics[cam][0])
-    found = next_pose_for_pair(camera, result.rig.board, T, P, cv.sigma_px * np.sqrt(sol.noise_scale.get(cam, 1.0)),
-                               lv.sigma_m * np.sqrt(sol.noise_scale.get(lid, 1.0)),
-                               beam_model_name(lv.scan_line, max(rings) if rings else None), rng, candidates)
-    return None if found is None else {"pair": weakest, "camera": cam, "lidar": lid, **found}
+    return pair_next_pose(result, cam, lid, result.solution.transform(cam, lid)[1], rng, candidates)

@@ -555,9 +555,9 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
                 "no_static_scene", "split"} & set(RIG_UNSUPPORTED)
 
 
-def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
-    """layout (and the pair's Python calibrate) on a rig folder: a one-line error saying it is a rig folder and which
-    commands take one, exit 2; validate with a single pair's calibration.json: a one-line error saying so."""
+def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
+    """The pair's Python calibrate on a rig folder: an error saying it is a rig folder and what takes one; validate
+    with a single pair's calibration.json, and layout's pair-only options: a one-line error saying so, exit 2."""
     from estimators import calibrate
     from estimators.cli import main
     from estimators.errors import DatasetError
@@ -565,14 +565,31 @@ def test_commands_that_take_a_pair_folder_say_so_for_a_rig_folder(rig_folder, tm
     (tmp_path / "calibration.json").write_text(json.dumps({
         "T_camera_lidar": np.eye(4).tolist(), "covariance": (1e-4 * np.eye(6)).tolist(),
         "noise": {"corner_noise_px": 0.2, "range_noise_m": 0.01}}))
-    for argv, said in ((["layout", str(rig_folder)], "this is a rig folder"),
+    for argv, said in ((["layout", str(rig_folder), "--range-offset"], "--range-offset is not taken by a rig folder"),
                        (["validate", str(rig_folder), "--calibration", str(tmp_path)],
                         "a rig folder is given with a single pair's calibration")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and said in err, err
-    with pytest.raises(DatasetError, match="this is a rig folder"):
+    with pytest.raises(DatasetError, match="this is a rig folder.*calibrate_rig"):
         calibrate(rig_folder)
+
+
+def test_a_rigs_suggested_poses_each_tighten_the_pair_then_weakest(rig_result):
+    """``layout RIG --suggest K``'s poses: each for the camera-LiDAR pair whose predicted largest translation sd is
+    then the largest (the first: the layout's weakest pair), each lowering it, as the single next pose does."""
+    from estimators.analysis.rig_layout import suggest_rig_poses
+
+    found = suggest_rig_poses(rig_result, 3, np.random.default_rng(0), candidates=30)
+    assert len(found) == 3 and found[0]["pair"] == rig_result.layout()["weakest_pair"]
+    for f in found:
+        assert f["max_translation_sd_mm_after"] < f["max_translation_sd_mm_before"], f["pair"]
+    # the second pose is for the pair then weakest: none other is predicted above it
+    after = {p: v["max_translation_sd_mm"] for p, v in rig_result.layout()["pairs"].items()}
+    after[found[0]["pair"]] = found[0]["max_translation_sd_mm_after"]
+    assert found[1]["max_translation_sd_mm_before"] == pytest.approx(max(after.values()), rel=1e-6)
+    loose = suggest_rig_poses(rig_result, 3, np.random.default_rng(0), target=(90.0, 1e3), candidates=30)
+    assert loose == []  # every pair already meets a loose target
 
 
 def test_validate_scores_each_camera_lidar_pair_of_a_rig_on_the_frames_its_calibration_did_not_use(

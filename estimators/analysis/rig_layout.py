@@ -69,9 +69,9 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
     Returns
     -------
     dict or None
-        ``T_camera_board`` (4x4 list), ``board_centre_camera_m``, ``board_normal_camera``, ``distance_m``, and the
+        ``T_camera_board`` (4x4 list), ``board_centre_camera_m``, ``board_normal_camera``, ``distance_m``, the
         pair's largest translation standard deviation (mm) and rotation standard deviations (deg) before and
-        after it.
+        after it, and its covariance after it (``covariance_after``).
     """
     beams = BEAM_MODELS[beams_model](range_noise_m)
     rig = Rig(camera, beams, board, T_camera_lidar)
@@ -102,7 +102,56 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
                                      + T_inverse(T_camera_lidar)[:3, 3]).tolist(),
             "max_translation_sd_mm_before": 1000 * _max_translation_sd(P), "max_translation_sd_mm_after": 1000 * best_sd,
             "std_rotation_deg_before": np.degrees(np.sqrt(np.maximum(np.diag(P)[:3], 0.0))).tolist(),
-            "std_rotation_deg_after": np.degrees(np.sqrt(np.maximum(np.diag(best_C)[:3], 0.0))).tolist()}
+            "std_rotation_deg_after": np.degrees(np.sqrt(np.maximum(np.diag(best_C)[:3], 0.0))).tolist(),
+            "covariance_after": best_C.tolist()}
+
+
+def pair_next_pose(result, cam: str, lid: str, P: np.ndarray, rng: np.random.Generator, candidates: int = 60
+                   ) -> dict | None:
+    """:func:`next_pose_for_pair` for a rig's (``RigResult``) camera ``cam`` and LiDAR ``lid`` whose pair's
+    covariance is ``P``, at the noise levels the graph weighed the two with, with ``pair``, ``camera`` and
+    ``lidar`` added; None when either has no views in the graph or no candidate is feasible."""
+    sol = result.solution
+    cv = next((v for v in result.camera_views if v.name == cam), None)
+    lv = next((v for v in result.lidar_views if v.name == lid), None)
+    if cv is None or lv is None:
+        return None
+    rings = [len(np.unique(f.lidar.rings)) for (_, d), frames in (result.pair_frames or {}).items() if d == lid
+             for f in frames if f.lidar is not None and f.lidar.rings is not None]
+    camera = result.cameras[cam]
+    if sol.intrinsics and cam in sol.intrinsics:
+        camera = camera.with_params(sol.intrinsics[cam][0])
+    found = next_pose_for_pair(camera, result.rig.board, sol.transform(cam, lid)[0], P,
+                               cv.sigma_px * np.sqrt(sol.noise_scale.get(cam, 1.0)),
+                               lv.sigma_m * np.sqrt(sol.noise_scale.get(lid, 1.0)),
+                               beam_model_name(lv.scan_line, max(rings) if rings else None), rng, candidates)
+    return None if found is None else {"pair": f"T_{cam}_{lid}", "camera": cam, "lidar": lid, **found}
+
+
+def suggest_rig_poses(result, k: int, rng: np.random.Generator, target: tuple[float, float] | None = None,
+                      candidates: int = 60) -> list[dict]:
+    """Up to ``k`` board poses to add to a rig, greedily: each for the camera-LiDAR pair whose predicted largest
+    translation standard deviation is then the largest (:func:`pair_next_pose`), that pair's covariance updated
+    to its prediction after it (the others' kept: a pose seen by two sensors tightens the rest of the rig only
+    through them, so their predictions are conservative). ``target``: ``(deg, mm)``, stop as soon as every
+    camera-LiDAR pair's rotation and translation standard deviations meet it. Each pose is
+    :func:`pair_next_pose`'s."""
+    covs = {(c.name, d.name): result.solution.transform(c.name, d.name)[1] for c in result.rig.cameras
+            for d in result.rig.lidars}
+    out: list[dict] = []
+    while len(out) < k and covs:
+        sd_t = {p: _max_translation_sd(C) for p, C in covs.items()}
+        if target is not None and all(np.degrees(np.sqrt(max(np.diag(C)[:3].max(), 0.0))) <= target[0]
+                                      and 1000 * sd_t[p] <= target[1] for p, C in covs.items()):
+            break
+        cam, lid = max(sd_t, key=sd_t.get)
+        found = pair_next_pose(result, cam, lid, covs[(cam, lid)], rng, candidates)
+        if found is None:  # no feasible pose for it: the next weakest pair
+            covs.pop((cam, lid))
+            continue
+        covs[(cam, lid)] = np.array(found["covariance_after"])
+        out.append(found)
+    return out
 
 
 def next_pose_words(found: dict) -> str:

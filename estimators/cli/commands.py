@@ -389,6 +389,10 @@ def layout_command(args) -> int:
     from ..io.output import write_json_atomic
 
     src = Path(args.source)
+    from ..io.rig_dataset import is_rig
+
+    if src.is_dir() and is_rig(src):
+        return _layout_rig(args)
     if src.is_dir():
         from ..analysis.layout_analysis import layout_from_result
         from ..calibration import calibrate
@@ -435,6 +439,48 @@ def layout_command(args) -> int:
                   + " ".join(f"{v:.2f}" for v in after.std_translation_mm) + " mm")
             out["suggestions"].append({"T_camera_board": T.tolist(), "centre_m": c.tolist(),
                                        "std_after": after.to_dict()["predicted_std"]})
+    if args.json:
+        print(f"wrote {write_json_atomic(args.json, out)}")
+    return 0
+
+
+def _layout_rig(args) -> int:
+    """``layout`` on a rig folder: the rig calibrated (no posterior), each camera-LiDAR pair's largest translation
+    standard deviation and its direction, and with ``--suggest``/``--target`` the poses to add, each for the pair
+    then weakest (``analysis.rig_layout.suggest_rig_poses``)."""
+    import numpy as np
+
+    from ..analysis.rig_layout import next_pose_words, suggest_rig_poses
+    from ..errors import LidarcamError
+    from ..io.output import write_json_atomic
+    from ..io.rig_dataset import load_rig
+    from ..rig_calibration import calibrate_rig
+
+    if args.range_offset or args.lidar_model != "hdl64e":
+        raise LidarcamError(f"{'--range-offset' if args.range_offset else '--lidar-model'} is not taken by a rig "
+                            "folder (each LiDAR's beams are read from its boards' rings)", path=args.source,
+                            hint="leave it out")
+    result = calibrate_rig(load_rig(args.source), np.random.default_rng(args.seed), samples=0, advise=False)
+    layout = result.layout()
+    print(f"rig: {len(result.solution.names)} sensors; each camera-LiDAR pair's largest translation standard "
+          "deviation (the joint graph's):")
+    for name, p in layout["pairs"].items():
+        print(f"  {name}: {p['max_translation_sd_mm']:.2f} mm along {p['axis']}")
+    if layout["weakest_pair"]:
+        w = layout["pairs"][layout["weakest_pair"]]
+        print(f"weakest pair: {layout['weakest_pair']}; to constrain it, {w['advice']}")
+    for link, n in layout["links_with_few_frames"].items():
+        print(f"  {link} share {n} frame(s) with the board found in both")
+    out = {k: v for k, v in layout.items() if k != "next_pose"}
+    if args.suggest > 0 or args.target:
+        target = tuple(args.target) if args.target else None
+        found = suggest_rig_poses(result, args.suggest if not target else max(args.suggest, 40),
+                                  np.random.default_rng(args.seed), target)
+        print(f"suggested poses (greedy, each for the pair then weakest, among sampled feasible poses, seed "
+              f"{args.seed}):")
+        for k, f in enumerate(found):
+            print(f"  {k + 1}: {next_pose_words(f)}")
+        out["suggestions"] = found
     if args.json:
         print(f"wrote {write_json_atomic(args.json, out)}")
     return 0

@@ -111,8 +111,8 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
                            hint="see docs/reference/dataset.md")
     if "sensors" in spec:
         raise DatasetError("this is a rig folder (sensors: in dataset.yaml), where one camera-LiDAR pair's folder is "
-                           "expected", path=ypath, hint="lidarcam calibrate and estimators.load_rig take a rig "
-                           "folder; validate, layout and estimators.calibrate take a pair folder")
+                           "expected", path=ypath, hint="lidarcam calibrate, validate and layout take a rig folder, "
+                           "and in Python estimators.calibrate_rig(estimators.load_rig(folder), rng)")
     lidar, family, accuracy = _parse_lidar(spec.get("lidar", "3d"), ypath)
     board = parse_board(spec.get("board"), ypath)
     camera = parse_camera(spec["camera"], ypath) if spec.get("camera") is not None else None
