@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimators.errors import DatasetError, DegenerateLayoutError
+from estimators.errors import DatasetError, DegenerateLayoutError, LidarcamError
 from estimators.io.rig_dataset import is_rig, load_rig
 from estimators.pipeline.rig_measurement import pattern_flip
 from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, RefinementOptions
@@ -536,8 +536,8 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
 
 
 @pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
-                                          (["--refine", "none", "--cross-validate", "3"],
-                                           "--refine, --cross-validate are"),
+                                          (["--refine", "none", "--likelihood", "student-t"],
+                                           "--refine, --likelihood are"),
                                           (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
     """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
@@ -552,7 +552,7 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     assert not out.exists()
     assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
                 "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation", "roi",
-                "no_static_scene", "split"} & set(RIG_UNSUPPORTED)
+                "no_static_scene", "split", "cross_validate"} & set(RIG_UNSUPPORTED)
 
 
 def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
@@ -704,7 +704,6 @@ def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
 def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
     import xml.etree.ElementTree as ET
 
-    from estimators.errors import LidarcamError
     from estimators.io.export import export_calibration
     from estimators.pipeline.rig_result import write_rig_calibration
     from geometry.rotations import R_from_quat_xyzw
@@ -920,6 +919,31 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     assert capsys.readouterr().out.startswith("AMBIGUOUS: T_cam0_lidar0: 2 distinct solutions")
     strict = build_parser().parse_args(["calibrate", str(sim_vlp16), "--out", "out", "--strict"])
     assert exit_code(strict, res) == 3
+
+
+def test_a_rigs_k_fold_scores_each_camera_lidar_pairs_held_out_frames_under_the_others(rig_result):
+    """--cross-validate K on a rig: each fold's frames scored, pair by pair, under the rig calibrated from the other
+    folds (here every fold's calibration is the whole rig's, so the scores are consistent); a fold whose lidar0 is
+    moved 12 of its standard deviations along its weakest direction makes every lidar0 pair's verdict fail and no
+    other's."""
+    from dataclasses import replace
+
+    from estimators.analysis.validation import cross_validate_rig
+
+    sol, rm = rig_result.solution, rig_result.measurements
+    cv = cross_validate_rig(rm, rig_result.rig.board, 3, lambda stems: rig_result)
+    assert [f["held_out"] for f in cv["folds"]] == [sorted(rm.stems)[j::3] for j in range(3)]
+    assert {"T_cam0_lidar0", "T_cam1_lidar1", "T_cam0_scan0"} <= set(cv["pairs"])
+    assert all(v["p_value"] > 1e-3 for v in cv["pairs"].values()), cv["pairs"]
+    for f in cv["folds"]:
+        assert all(x["name"] in f["held_out"] for scores in f["pairs"].values() for x in scores)
+    ev, V = np.linalg.eigh(sol.covariance("lidar0"))
+    moved = replace(rig_result, solution=replace(sol, T_ref={
+        **sol.T_ref, "lidar0": sol.T_ref["lidar0"] @ T_exp(12 * np.sqrt(ev[-1]) * V[:, -1])}))
+    bad = cross_validate_rig(rm, rig_result.rig.board, 3, lambda stems: moved)
+    assert all((v["p_value"] < 1e-6) == k.endswith("_lidar0") for k, v in bad["pairs"].items()), bad["pairs"]
+    with pytest.raises(LidarcamError, match="--cross-validate 1"):
+        cross_validate_rig(rm, rig_result.rig.board, 1, lambda stems: rig_result)
 
 
 def test_two_halves_of_a_rig_are_tested_against_their_covariances(rig_result):

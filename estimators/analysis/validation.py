@@ -204,6 +204,38 @@ def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve)
     return {"k": k, "folds": folds, **verdict(scores)}
 
 
+def cross_validate_rig(measurements, board, k: int, solve) -> dict:
+    """K-fold over a rig's frames (``measurements``: ``RigMeasurements``; its stems in name order, round robin):
+    each fold's camera-LiDAR pairs scored on their held-out frames under the rig calibrated from the others
+    (``solve(stems)`` -> a ``RigResult``), as ``lidarcam validate`` scores a rig (:func:`pair_calibration` of the
+    fold's calibration.json). One verdict per camera-LiDAR pair (two pairs share a LiDAR's boards)."""
+    stems = sorted(measurements.stems)
+    if k < 2 or k > len(stems):
+        raise LidarcamError(f"--cross-validate {k}: needs 2 <= K <= the rig's {len(stems)} frames with a board",
+                            hint="choose a smaller K")
+    folds, scores = [], {}
+    for j in range(k):
+        held = [st for i, st in enumerate(stems) if i % k == j]
+        try:
+            cal = solve([st for i, st in enumerate(stems) if i % k != j]).to_json()
+        except DegenerateLayoutError as exc:
+            folds.append({"fold": j, "held_out": held, "error": exc.message})
+            continue
+        fold = {}
+        for (cam, lid), frames in measurements.pairs.items():
+            try:
+                pc = pair_calibration(cal, cam, lid)
+            except KeyError:  # a sensor the fold's graph could not hold
+                continue
+            s = score_frames([f for f in frames if f.usable and f.name in held], board, measurements.cameras[cam],
+                             pc.T_camera_lidar, pc.covariance, pc.corner_noise_px, pc.range_noise_m,
+                             pc.plane_floor_m, *pc.range_terms)
+            scores.setdefault(f"T_{cam}_{lid}", []).extend(s)
+            fold[f"T_{cam}_{lid}"] = [x.to_dict() for x in s]
+        folds.append({"fold": j, "held_out": held, "pairs": fold})
+    return {"k": k, "folds": folds, "pairs": {n: verdict(s) for n, s in scores.items()}}
+
+
 SPLITS = ("halves", "interleaved")
 
 

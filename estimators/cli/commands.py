@@ -40,8 +40,8 @@ def _calibrate_rig(args) -> int:
                                    {s.name: s.lidar for s in rig.lidars})
     print(f"measurements: {source_words(result.measurements.source)}; wrote {stored.parent}")
     print(f"wrote {path}")
-    if args.split:
-        _split_rig(args, rig, result)
+    if args.split or args.cross_validate:
+        _rig_validation_runs(args, rig, result)
     if not args.no_report:
         from ..analysis.rig_report import write_rig_report
 
@@ -50,27 +50,36 @@ def _calibrate_rig(args) -> int:
     return exit_code(args, result)
 
 
-def _split_rig(args, rig, result) -> None:
-    """--split on a rig: each half of its frames calibrated from the measurements already made
-    (``analysis.validation.split_rig_halves``), validation.json written."""
+def _rig_validation_runs(args, rig, result) -> None:
+    """--split and --cross-validate K on a rig: subsets of its frames calibrated from the measurements already made
+    (``analysis.validation.split_rig_halves``, ``cross_validate_rig``), validation.json written."""
     import numpy as np
 
-    from ..analysis.validation import split_rig_halves
+    from ..analysis.validation import cross_validate_rig, split_rig_halves
     from ..io.output import write_json_atomic
     from ..rig_calibration import calibrate_rig
 
-    def solve_half(stems):
+    def solve_subset(stems):
         return calibrate_rig(rig, np.random.default_rng(args.seed), samples=0, advise=False,
                              measurements=result.measurements.restricted(stems), **_rig_settings(args))
 
-    sh = split_rig_halves(result.measurements.stems, solve_half, args.split)
-    extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f} on {sh['dof']} dof, 99% limit "
-             f"{sh['limit_99']:.1f})" if "mahalanobis_d2" in sh else "")
-    print(f"split ({args.split}): {sh['verdict']}{extra}")
-    for k, v in sh.get("pairs", {}).items():
-        print(f"  {k}: {v['difference_rotation_deg']:.2f} deg, {v['difference_translation_mm']:.0f} mm apart "
-              f"(d2 {v['mahalanobis_d2']:.1f}, p = {v['p_value']:.2g})")
-    print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', {'split_halves': sh})}")
+    out = {}
+    if args.cross_validate:
+        cv = out["cross_validation"] = cross_validate_rig(result.measurements, rig.board, args.cross_validate,
+                                                          solve_subset)
+        print(f"cross-validation ({cv['k']} folds), each camera-LiDAR pair's held-out frames:")
+        for k, v in cv["pairs"].items():
+            print(f"  {k}: {v['verdict']}" + (f" (chi-square {v['chi2']:.1f} on {v['dof']} dof, p = "
+                                              f"{v['p_value']:.2g})" if "chi2" in v else ""))
+    if args.split:
+        sh = out["split_halves"] = split_rig_halves(result.measurements.stems, solve_subset, args.split)
+        extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f} on {sh['dof']} dof, 99% limit "
+                 f"{sh['limit_99']:.1f})" if "mahalanobis_d2" in sh else "")
+        print(f"split ({args.split}): {sh['verdict']}{extra}")
+        for k, v in sh.get("pairs", {}).items():
+            print(f"  {k}: {v['difference_rotation_deg']:.2f} deg, {v['difference_translation_mm']:.0f} mm apart "
+                  f"(d2 {v['mahalanobis_d2']:.1f}, p = {v['p_value']:.2g})")
+    print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', out)}")
 
 
 def _rig_settings(args) -> dict:
@@ -86,7 +95,7 @@ def _rig_settings(args) -> dict:
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
 RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood", "initial_guess": "--initial-guess",
-                   "guess_tolerance": "--guess-tolerance", "cross_validate": "--cross-validate"}
+                   "guess_tolerance": "--guess-tolerance"}
 
 
 def _refuse_what_a_rig_ignores(args) -> None:
