@@ -528,6 +528,16 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
         region = post.pair_summary(a, b)["credible_regions"]["99.9%"]
         inside = np.mean(np.einsum("ni,ni->n", s, np.linalg.solve(np.cov(s, rowvar=False), s.T).T) <= region["d2"])
         assert region["d2"] >= region["gaussian_d2"] and inside >= 0.999 and d2 <= region["d2"], (a, b)
+    # the result's pair gives it as a single pair's result does: its estimate, the samples' covariance, the frames
+    from dataclasses import replace
+
+    pe = replace(rig_result, posterior=post).pair("cam1", "lidar0")
+    assert pe.samples is post.pair_samples("cam1", "lidar0") and pe.frames == rig_result.links[("cam1", "lidar0")] > 0
+    np.testing.assert_array_equal(pe.T_camera_lidar, sol.transform("cam1", "lidar0")[0])
+    np.testing.assert_allclose(pe.covariance, np.cov(pe.samples, rowvar=False))
+    np.testing.assert_allclose(pe.std_translation_mm, 1000 * np.sqrt(np.diag(pe.covariance)[3:]))
+    with pytest.raises(KeyError, match="cam7"):
+        rig_result.pair("cam7", "lidar0")
     s01, s0l, s1l = (post.pair_samples(*p)[:50] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
     T01, T0l, T1l = (sol.transform(*p)[0] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
     for k in range(50):
@@ -838,7 +848,7 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     assert rig.reference == "cam0" and rig.pair("cam0", "lidar0").frames == load_dataset(folder).frames
     monkeypatch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path))
     res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
-    T, C = res.solution.transform("cam0", "lidar0")
+    T, C = res.pair("cam0", "lidar0").T_camera_lidar, res.pair("cam0", "lidar0").covariance
     again = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
     assert not any("cache" in w for w in res.warnings) and again.warnings[0].startswith("measurements taken from")
     for got, want in zip(again.solution.transform("cam0", "lidar0"), (T, C)):

@@ -24,6 +24,40 @@ NOISE_WARNING_P = 0.01
 
 
 @dataclass(frozen=True, eq=False)
+class PairEstimate:
+    """One pair of a rig's sensors, as a single pair's result gives it: ``T`` (``T_a_b``: maps b's points into
+    a's frame; for a camera and a LiDAR, ``T_camera_lidar``) and its 6x6 ``covariance`` in the right tangent (the
+    posterior samples' when the rig's posterior was sampled, else the joint graph's), the tangent ``samples``
+    (M x 6, or None), and the frames the two share with the board found in both."""
+
+    a: str
+    b: str
+    T: np.ndarray
+    covariance: np.ndarray
+    samples: np.ndarray | None
+    frames: int
+
+    @property
+    def T_camera_lidar(self) -> np.ndarray:
+        return self.T
+
+    @property
+    def std_rotation_deg(self) -> np.ndarray:
+        """About b's axes (degrees)."""
+        return np.degrees(np.sqrt(np.maximum(np.diag(self.covariance)[:3], 0.0)))
+
+    @property
+    def std_translation_mm(self) -> np.ndarray:
+        """Along b's axes (millimetres): the right tangent's."""
+        return 1000 * np.sqrt(np.maximum(np.diag(self.covariance)[3:], 0.0))
+
+    @property
+    def std_translation_camera_mm(self) -> np.ndarray:
+        """Of the entries of ``T``'s translation, in a's frame (millimetres)."""
+        return 1000 * translation_sd_in_first(self.T, self.covariance)
+
+
+@dataclass(frozen=True, eq=False)
 class RigResult:
     """A rig's calibration: the joint solution, each camera's intrinsics, the pairwise-only estimates of the
     camera-LiDAR pairs (``(camera, lidar) -> (T, covariance, frames)``), the frames each sensor contributed,
@@ -63,6 +97,21 @@ class RigResult:
     # least ``AMBIGUOUS_MASS`` of the posterior mass: ``(camera, lidar) -> modes`` (``solution_selection.Mode``).
     # The joint graph starts from the most probable, and its covariance and posterior hold that one alone.
     ambiguous_pairs: dict = field(default_factory=dict)
+
+    def pair(self, a: str, b: str) -> PairEstimate:
+        """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
+        "lidar0").T_camera_lidar``)."""
+        names = self.solution.names
+        for n in (a, b):
+            if n not in names:
+                raise KeyError(f"{n!r} is not a sensor of this rig's solution ({', '.join(names)})")
+        T, C = self.solution.transform(a, b)
+        samples = None
+        if self.posterior is not None:
+            samples = self.posterior.pair_samples(a, b)
+            C = np.cov(samples, rowvar=False)
+        links = self.links or {}
+        return PairEstimate(a, b, T, C, samples, int(links.get((a, b), links.get((b, a), 0))))
 
     @property
     def ambiguous(self) -> bool:
