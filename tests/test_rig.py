@@ -763,28 +763,6 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     assert 1000 * np.linalg.norm(xi[3:]) < 6.0 and xi @ np.linalg.solve(C, xi) < 22.5
 
 
-def test_the_laplace_independence_proposal_samples_a_target_it_does_not_match():
-    # The proposal's covariance half the target's along one axis and twice along another: with its Metropolis-
-    # Hastings correction the chain still has the target's covariance (within 10%, 3 parameters, 40000 draws).
-    import emcee
-
-    from estimators.solvers.posterior import run_ensemble
-    from estimators.solvers.rig_posterior import LaplaceProposal
-
-    target = np.diag([1.0, 4.0, 0.25])
-    P = np.linalg.inv(target)
-
-    def log_prob(x):
-        return -0.5 * np.einsum("wi,ij,wj->w", x, P, x)
-
-    moves = [(emcee.moves.MHMove(LaplaceProposal(np.diag([1.0, 2.0, 0.5]))), 0.7), (emcee.moves.DEMove(), 0.3)]
-    rng = np.random.default_rng(5)
-    run = run_ensemble(log_prob, rng.normal(0, 0.3, (32, 3)), rng, min_ess=4000, moves=moves)
-    assert run.converged
-    np.testing.assert_allclose(np.cov(run.samples, rowvar=False), target, atol=0.1 * np.sqrt(np.outer(
-        np.diag(target), np.diag(target))).max(), rtol=0.1)
-
-
 def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):
     # Five frames of two cameras (cam2 misses one), the VLP-16-like LiDAR and the 2D scanner, recorded as one ROS 1
     # bag (each pose held 1.5 s, images at 4 Hz, scans at 5 Hz 11 ms later): the command writes a rig folder with

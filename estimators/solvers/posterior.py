@@ -32,7 +32,7 @@ end hidden before its edge moves the posterior beyond what a quadratic holds.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -282,6 +282,61 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
     return ChainResult(samples=chain[burn:].reshape(-1, ndim), chain=chain, tau=np.asarray(tau, dtype=float),
                        acceptance=float(np.mean(sampler.acceptance_fraction)), ess=float(ess), burn=burn,
                        converged=converged, seconds=time.perf_counter() - t0)
+
+
+class LaplaceProposal:
+    """An independence proposal for emcee's ``MHMove``: a multivariate Student-t about ``centre`` (default the
+    origin: the MAP in tangent parameters) with a covariance near the posterior's (scaled by ``scale``), whatever
+    the walker's position. Where the posterior is near Gaussian, nearly every proposal is an independent draw
+    accepted with high probability, so the chain's autocorrelation stays a few steps in any dimension (an
+    ensemble move's grows with it); the t's tails keep the sampler exact where the posterior's are heavier."""
+
+    def __init__(self, covariance: np.ndarray, nu: float = 30.0, scale: float = 1.05,
+                 centre: np.ndarray | None = None):
+        self.L = np.linalg.cholesky(covariance) * scale
+        self.nu = nu
+        self.centre = np.zeros(len(covariance)) if centre is None else np.asarray(centre, dtype=float)
+
+    def log_density(self, x: np.ndarray) -> np.ndarray:
+        u = np.linalg.solve(self.L, (x - self.centre).T)
+        return -0.5 * (self.nu + x.shape[1]) * np.log1p(np.sum(u * u, axis=0) / self.nu)
+
+    def __call__(self, coords: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
+        n, d = coords.shape
+        w = random.chisquare(self.nu, n) / self.nu
+        new = self.centre + (random.randn(n, d) / np.sqrt(w)[:, None]) @ self.L.T
+        return new, self.log_density(coords) - self.log_density(new)
+
+
+def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, covariance: np.ndarray | None = None,
+                      min_ess: int = 2000, max_steps: int = 40000, chunk: int = 500, progress: bool = False,
+                      label: str = "posterior") -> ChainResult:
+    """:func:`run_ensemble` with most moves drawn from a :class:`LaplaceProposal` of ``covariance`` (about the
+    origin) and the rest by differential evolution (for what the proposal misses). Without ``covariance``
+    (parameters beyond the Laplace approximation's: a noise scale, a board outline), a pilot of ``PILOT_STEPS``
+    ensemble steps gives the proposal its centre and covariance (the second half of its samples' mean and
+    covariance) and the chain starts where the pilot ends; its time is counted in ``seconds``. The target is the
+    same: only how fast the chain mixes changes (autocorrelation 25 -> 6 steps on the simulated default pair,
+    40 -> 10-40 on 2D layouts)."""
+    import emcee
+
+    pilot, centre = None, None
+    if covariance is None:
+        pilot = run_ensemble(log_prob, initial, rng, min_ess=1, max_steps=PILOT_STEPS, chunk=PILOT_STEPS)
+        tail = pilot.chain[len(pilot.chain) // 2:].reshape(-1, initial.shape[1])
+        covariance, centre = np.cov(tail, rowvar=False), tail.mean(axis=0)
+        initial = pilot.chain[-1]
+    try:
+        proposal = LaplaceProposal(0.5 * (covariance + covariance.T), centre=centre)
+    except np.linalg.LinAlgError:  # a direction the pilot did not move in: the ensemble moves alone
+        return run_ensemble(log_prob, initial, rng, min_ess, max_steps, chunk, progress, label)
+    moves = [(emcee.moves.MHMove(proposal), 0.7), (emcee.moves.DEMove(), 0.3)]
+    run = run_ensemble(log_prob, initial, rng, min_ess, max_steps, chunk, progress, label, moves=moves)
+    return run if pilot is None else replace(run, seconds=run.seconds + pilot.seconds)
+
+
+# Steps of the pilot that tunes :func:`run_with_proposal`'s proposal when no covariance is given.
+PILOT_STEPS = 300
 
 
 class PlaneLikelihood:
@@ -576,7 +631,8 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
     # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
     start = model.start(rng, ref.covariance, options.walkers)
     try:
-        run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
+        run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
+                                options.progress)
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the Laplace one") from exc

@@ -35,7 +35,7 @@ from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
-from .posterior import ChainResult, regions, run_ensemble
+from .posterior import ChainResult, regions, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
 from .rig_graph import RigSolution, change_reference, graph_reference
 
@@ -260,28 +260,6 @@ class RigLikelihood:
         return out
 
 
-class LaplaceProposal:
-    """An independence proposal for emcee's ``MHMove``: a multivariate Student-t about the MAP with the Laplace
-    covariance (scaled by ``scale``), whatever the walker's position. Where the posterior is near its Laplace
-    approximation, as a rig's is, nearly every proposal is an independent draw accepted with high probability,
-    so the chain's autocorrelation stays a few steps in any dimension (an ensemble move's grows with it); the
-    t's tails keep the sampler exact where the posterior's are heavier."""
-
-    def __init__(self, covariance: np.ndarray, nu: float = 30.0, scale: float = 1.05):
-        self.L = np.linalg.cholesky(covariance) * scale
-        self.nu = nu
-
-    def log_density(self, x: np.ndarray) -> np.ndarray:
-        u = np.linalg.solve(self.L, x.T)
-        return -0.5 * (self.nu + x.shape[1]) * np.log1p(np.sum(u * u, axis=0) / self.nu)
-
-    def __call__(self, coords: np.ndarray, random) -> tuple[np.ndarray, np.ndarray]:
-        n, d = coords.shape
-        w = random.chisquare(self.nu, n) / self.nu
-        new = (random.randn(n, d) / np.sqrt(w)[:, None]) @ self.L.T
-        return new, self.log_density(coords) - self.log_density(new)
-
-
 def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[CameraViews],
                     lidars: list[LidarViews], h: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
     """The board edges' share of the log-posterior to second order about the MAP, as the single pair's posterior
@@ -341,11 +319,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
             raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
     walkers = max(64, 2 * like.ndim + 16)
     start = rng.multivariate_normal(np.zeros(like.ndim), 0.25 * (cov + cov.T), walkers)
-    import emcee
-
-    # Mostly independent draws from the Laplace approximation; differential evolution for what it misses.
-    moves = [(emcee.moves.MHMove(LaplaceProposal(cov)), 0.7), (emcee.moves.DEMove(), 0.3)]
-    run = run_ensemble(like, start, rng, min_ess=min_ess, max_steps=max_steps, label="rig posterior", moves=moves)
+    run = run_with_proposal(like, start, rng, cov, min_ess=min_ess, max_steps=max_steps, label="rig posterior")
     keep = run.samples[np.linspace(0, len(run.samples) - 1, min(MAX_KEPT, len(run.samples))).astype(int)]
     # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     m = len(keep)
