@@ -668,6 +668,9 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert "emcee over 30 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
     assert shown and all(name in page for name in shown)
+    # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)
+    assert all((out / f"corner_cam{k}_{s}.png").stat().st_size > 10000 and f"corner_cam{k}_{s}.png" in page
+               for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
     # every sensor's measurements are written beside it, and a re-solve from them reads no image or sweep
     from dataclasses import replace
 

@@ -163,8 +163,14 @@ def range_residuals_pngs(range_m: np.ndarray, ring: np.ndarray, dark: np.ndarray
 
 
 # Each figure by name: a function of named arrays to named PNGs.
+def corner_pngs(xi: np.ndarray, covariance_laplace: np.ndarray) -> dict[str, bytes]:
+    """``corner.png`` alone: a rig pair's samples, composed from the rig's chain (whose traces are the sensors')."""
+    return {"corner.png": corner_png(xi, covariance_laplace)}
+
+
 DRAWERS: dict[str, Callable[..., dict[str, bytes]]] = {
-    "posterior": posterior_pngs, "residuals": residuals_pngs, "range_residuals": range_residuals_pngs}
+    "posterior": posterior_pngs, "corner": corner_pngs, "residuals": residuals_pngs,
+    "range_residuals": range_residuals_pngs}
 
 
 def warm_up() -> None:

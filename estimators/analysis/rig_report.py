@@ -1,6 +1,7 @@
 """A rig's report: every sensor and every pair from the joint graph beside each camera-LiDAR pair alone, the
-warnings, and each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image
-under the joint estimate (the single pair's overlay, ``analysis.report.projection_figure``)."""
+warnings, each camera-LiDAR pair's posterior (the single pair's corner plot, ``analysis.report_figures``) and its
+frames with the LiDAR's points and board outline drawn into the image under the joint estimate (the single pair's
+overlay, ``analysis.report.projection_figure``)."""
 from __future__ import annotations
 
 import html
@@ -109,6 +110,33 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     if skipped:
         parts.append("<h2>Frames skipped</h2>" + _table(skipped, ["sensor", "frame", "why"]))
     out = Path(out_dir)
+    if post is not None:  # each camera-LiDAR pair's posterior, drawn in a child while the overlays are drawn here
+        from .figure_process import FigureProcess
+
+        with FigureProcess() as figures:
+            jobs = {(c.name, d.name): figures.draw("corner", xi=post.pair_samples(c.name, d.name),
+                                                   covariance_laplace=sol.transform(c.name, d.name)[1])
+                    for c in result.rig.cameras for d in result.rig.lidars}
+            overlays = _overlays(result, out)
+            corners = {pair: job()["corner.png"] for pair, job in jobs.items()}
+        parts.append("<h2>Each camera-LiDAR pair's posterior</h2><p>Its samples (composed from the rig's joint "
+                     "samples; tangent offsets from the estimate about and along the LiDAR's axes) against the joint "
+                     "graph's Laplace covariance (red).</p>")
+        for (cam, lidar), png in corners.items():
+            name = f"corner_{cam}_{lidar}.png"
+            write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+            parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3><img alt='{html.escape(name)}' "
+                         f"src='{html.escape(name)}'>")
+    else:
+        overlays = _overlays(result, out)
+    parts += overlays
+    return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
+
+
+def _overlays(result, out: Path) -> list[str]:
+    """Each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image under the
+    joint estimate (``projection_<camera>_<lidar>_<frame>.png``, written here), as the page's parts."""
+    sol, parts = result.solution, []
     for (cam, lidar), frames in (result.pair_frames or {}).items():
         T, _ = sol.transform(cam, lidar)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
@@ -120,4 +148,4 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             name = f"projection_{cam}_{lidar}_{f.name}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
             parts.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
-    return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
+    return parts
