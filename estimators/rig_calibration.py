@@ -33,7 +33,7 @@ from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
 from .solvers.refinement_options import RefinementOptions
-from .solvers.rig_graph import solve_rig, spanning_tree
+from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
 def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams) -> RefinementOptions:
@@ -248,6 +248,17 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
+    test = None
+    if refine_intrinsics and solution.intrinsics:
+        test = intrinsics_test(solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, False),
+                               solution)
+        if not test["lowers_disagreement"]:  # said first: the refined intrinsics are then not to be used
+            warnings.insert(0, f"refining the intrinsics did not lower the rig's disagreement beyond what "
+                               f"{test['parameters']} freed parameters fit of its noise (chi-square "
+                               f"{test['chi_square_given']:.0f} -> {test['chi_square_refined']:.0f} on "
+                               f"{test['dof']:.0f} dof, F test p = {test['p_value']:.2g}): keep the given intrinsics "
+                               "(calibrate without --refine-intrinsics) unless a calibration made for the cameras "
+                               "confirms the refined ones")
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
@@ -277,7 +288,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
-                     measured, ambiguous)
+                     measured, ambiguous, test)
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

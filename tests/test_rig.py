@@ -759,11 +759,24 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     plain = calibrate_rig(rig, np.random.default_rng(0))
     assert any(w.startswith("cam1: ") and "--refine-intrinsics" in w for w in plain.warnings)
     refined = calibrate_rig(rig, np.random.default_rng(0), refine_intrinsics=True)
+    # the refined intrinsics lower the rig's disagreement far beyond what freed parameters fit of its noise
+    test = refined.to_json()["intrinsics_test"]
+    assert test["lowers_disagreement"] and test["p_value"] < 1e-6 and test["parameters"] == 3 * 9
+    assert not any(w.startswith("refining the intrinsics did not lower") for w in refined.warnings)
     p, sd = refined.solution.intrinsics["cam1"]
     assert abs(p[0] - true_f) < 3 * sd[0] and abs(p[1] - true_f) < 3 * sd[1]
     T, C = refined.solution.transform("cam1", "lidar0")
     xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, "cam1", "lidar0"))
     assert 1000 * np.linalg.norm(xi[3:]) < 6.0 and xi @ np.linalg.solve(C, xi) < 22.5
+
+
+def test_right_intrinsics_refined_with_the_rig_are_not_credited(rig_folder):
+    # The simulated rig's own intrinsics freed: their drop in chi-square is what 27 free parameters fit of the
+    # noise (F test p > 0.05), so the refined ones are not credited, and the answer says so first.
+    res = calibrate_rig(load_rig(rig_folder), np.random.default_rng(0), refine_intrinsics=True, advise=False,
+                        edges=False)
+    assert res.intrinsics_test["p_value"] > 0.05 and not res.intrinsics_test["lowers_disagreement"]
+    assert res.warnings[0].startswith("refining the intrinsics did not lower the rig's disagreement")
 
 
 def test_a_rig_bag_gives_each_sensors_frames_back(rig_folder, tmp_path, capsys):

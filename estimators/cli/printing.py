@@ -194,6 +194,12 @@ def print_rig(result) -> None:
               "camera axes:")
         for (a, b), e in result.outline_checks.items():
             print(f"  T_{a}_{b}: {outline_shift_words(e, ends=True)}")
+    if result.intrinsics_test is not None:
+        t = result.intrinsics_test
+        print(f"intrinsics refined with the rig ({t['parameters']} parameters): chi-square {t['chi_square_given']:.0f} "
+              f"under the given, {t['chi_square_refined']:.0f} refined, on {t['dof']:.0f} dof ("
+              f"{'lowers' if t['lowers_disagreement'] else 'does not lower'} the disagreement, F test p = "
+              f"{t['p_value']:.2g})")
     for n, (p, sd) in (sol.intrinsics or {}).items():
         given = result.cameras[n].params
         print(f"  {n} intrinsics refined: " + ", ".join(f"{g:.5g} -> {v:.5g} (sd {e:.2g})"

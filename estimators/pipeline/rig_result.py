@@ -97,6 +97,9 @@ class RigResult:
     # least ``AMBIGUOUS_MASS`` of the posterior mass: ``(camera, lidar) -> modes`` (``solution_selection.Mode``).
     # The joint graph starts from the most probable, and its covariance and posterior hold that one alone.
     ambiguous_pairs: dict = field(default_factory=dict)
+    # With the intrinsics refined: whether that lowers the rig's disagreement beyond chance
+    # (``rig_graph.intrinsics_test``).
+    intrinsics_test: dict | None = None
 
     def pair(self, a: str, b: str) -> PairEstimate:
         """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
@@ -224,7 +227,7 @@ class RigResult:
                 "transforms": transforms,
                 "layout": self.layout(),
                 "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
-                "pairwise_only": pairwise, "cameras": cameras,
+                "pairwise_only": pairwise, "cameras": cameras, "intrinsics_test": self.intrinsics_test,
                 "frames_used": {n: list(v) for n, v in self.frames_used.items()},
                 "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
                 "measurements_source": getattr(self.measurements, "source", None), "version": __version__,

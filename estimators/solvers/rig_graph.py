@@ -154,6 +154,24 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, s
     return out
 
 
+def intrinsics_test(given: "RigSolution", refined: "RigSolution") -> dict:
+    """Whether refining the cameras' intrinsics with the rig (``refined``) lowers its factors' disagreement beyond
+    what freed intrinsics fit of their noise, against the same views under the given ones (``given``): the F test
+    of the drop in the sensors' total chi-square (unit scale) against the intrinsics' count of parameters ``k``,
+    over the refined chi-square per degree of freedom (the single pair's test, ``IntrinsicsFit.overdispersion_p``,
+    on every sensor's factors: a rig's other cameras see a camera's wrong intrinsics in its corners too)."""
+    k = sum(len(p) for p, _ in refined.intrinsics.values())
+    ss_g = sum(ss for ss, _ in given.chi2_dof.values())
+    ss_r, dof = (sum(v[i] for v in refined.chi2_dof.values()) for i in (0, 1))
+    p = float(chi2.fdtrc(k, dof, max(ss_g - ss_r, 0.0) / k / (ss_r / dof))) if k and dof > 0 and ss_r > 0 \
+        else float("nan")
+    return {"parameters": k, "chi_square_given": ss_g, "chi_square_refined": ss_r, "dof": dof, "p_value": p,
+            "lowers_disagreement": bool(p < 0.05),
+            "meaning": "every sensor's chi-square under the given intrinsics and the refined ones (the same views and "
+                       "noise); refined intrinsics are credited when the F test of the drop against their number "
+                       "of parameters has p < 0.05 (freed intrinsics fit part of the noise)"}
+
+
 def graph_reference(reference: str, camera_names: list[str]) -> str:
     """The camera whose frame the graph is solved in: the rig's reference when it is a camera, else the first
     camera (module docstring)."""
