@@ -547,8 +547,7 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
 
 @pytest.mark.parametrize("given, named", [(["--likelihood", "student-t"], "--likelihood is"),
                                           (["--refine", "none", "--likelihood", "student-t"],
-                                           "--refine, --likelihood are"),
-                                          (["--initial-guess", "0", "0", "0", "0", "0", "0"], "--initial-guess is")])
+                                           "--refine, --likelihood are")])
 def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, tmp_path, capsys, given, named):
     """The calibrate options a rig's engine has no setting for are refused with a one-line error naming them
     (exit 2, nothing written), not silently ignored; the options a rig takes are not."""
@@ -562,7 +561,11 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
     assert not out.exists()
     assert not {"samples", "range_model", "edges", "robust", "outliers", "corner_noise_px", "range_noise_m",
                 "range_accuracy_m", "init", "strict", "measurements", "max_sensor_separation", "roi",
-                "no_static_scene", "split", "cross_validate"} & set(RIG_UNSUPPORTED)
+                "no_static_scene", "split", "cross_validate", "initial_guess", "guess_tolerance"} & set(RIG_UNSUPPORTED)
+    # a rig's initial guess is a rig's calibration.json: six numbers (one pair's guess) are refused in one line
+    assert main(["calibrate", str(rig_folder), "--out", str(out), "--initial-guess", *"000000"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--initial-guess for a rig takes one file, got 6 value(s)" in err, err
 
 
 def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
@@ -902,10 +905,12 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
         return measuring(*args, **kwargs)
 
     monkeypatch.setattr(rig_measurement, "measure_frames", measure_frames)
+    # a rig's initial guess (an earlier calibration.json's transforms) reaches its camera-LiDAR pair's board search
+    guess = np.array(json.loads((sim_vlp16 / "ground_truth.json").read_text())["T_camera_lidar"])
     res = calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), samples=0, advise=False, range_model="none",
                         options=given, params=SegmentationParams(max_sensor_separation_m=0.8),
-                        hints=Hints(static_scene=False))
-    assert [h.static_scene for h in hinted] == [False]
+                        hints=Hints(static_scene=False, pair_guesses={"T_cam0_lidar0": guess}))
+    assert [h.static_scene for h in hinted] == [False] and hinted[0].initial_guess is guess
     first = sorted(res.skipped["lidar0"])
     assert len(first) == 1 and "with cam0: its laser line is off the camera's board (a test)" in res.skipped["lidar0"][
         first[0]]

@@ -33,7 +33,7 @@ def _calibrate_rig(args) -> int:
     rig = load_rig(args.dataset)
     given = load_rig_measurements(args.measurements) if args.measurements else None
     result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
-                           measurements=given, hints=hints(args), **_rig_settings(args))
+                           measurements=given, hints=hints(args, rig=True), **_rig_settings(args))
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
@@ -94,8 +94,7 @@ def _rig_settings(args) -> dict:
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
-RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood", "initial_guess": "--initial-guess",
-                   "guess_tolerance": "--guess-tolerance"}
+RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood"}
 
 
 def _refuse_what_a_rig_ignores(args) -> None:

@@ -33,7 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--initial-guess", nargs="+", default=None, metavar="V",
                    help="optional hint for scenes beyond automation: a rough T_camera_lidar as 'x y z roll pitch "
                         "yaw' (m, deg; R = Rz(yaw) Ry(pitch) Rx(roll)) or a file (calibration.json, or a 4x4 "
-                        "matrix as .json/.txt/.npy); LiDAR candidates farther than --guess-tolerance from it are "
+                        "matrix as .json/.txt/.npy); for a rig folder, a rig's calibration.json (each camera-LiDAR "
+                        "pair's transform its guess); LiDAR candidates farther than --guess-tolerance from it are "
                         "rejected (it is never a factor)")
     c.add_argument("--guess-tolerance", nargs=2, type=float, default=(10.0, 0.30), metavar=("DEG", "M"),
                    help="plane angle and distance a candidate may differ by under --initial-guess (10 deg 0.30 m)")
@@ -297,12 +298,18 @@ def posterior_options(args):
     return PosteriorOptions(min_ess=args.samples, likelihood=args.likelihood, progress=sys.stderr.isatty())
 
 
-def hints(args):
+def hints(args, rig: bool = False):
+    """The board search's hints from the command line; for a rig (``rig``) its initial guess is a rig's
+    calibration.json, each camera-LiDAR pair's transform that pair's guess."""
     import numpy as np
 
-    from ..pipeline.measurement import Hints, parse_initial_guess
+    from ..pipeline.measurement import Hints, parse_initial_guess, parse_rig_guess
 
-    guess = None if args.initial_guess is None else parse_initial_guess(args.initial_guess)
+    guess = pairs = None
+    if args.initial_guess is not None and rig:
+        pairs = parse_rig_guess(args.initial_guess)
+    elif args.initial_guess is not None:
+        guess = parse_initial_guess(args.initial_guess)
     roi = (None, None) if args.roi is None else (np.array(args.roi[:3]), np.array(args.roi[3:]))
     if args.roi is not None and np.any(roi[0] >= roi[1]):
         from ..errors import LidarcamError
@@ -311,7 +318,7 @@ def hints(args):
                                                                     "minimum below its maximum")
     return Hints(initial_guess=guess, guess_angle_rad=float(np.deg2rad(args.guess_tolerance[0])),
                  guess_distance_m=float(args.guess_tolerance[1]), roi_min=roi[0], roi_max=roi[1],
-                 static_scene=not args.no_static_scene)
+                 static_scene=not args.no_static_scene, pair_guesses=pairs)
 
 
 def study_spec_parser() -> argparse.ArgumentParser:

@@ -50,7 +50,9 @@ class Hints:
     ``initial_guess``: a rough ``T_camera_lidar``; a candidate whose plane, mapped through it, differs from the
     camera's board plane by more than ``guess_angle_rad`` or ``guess_distance_m`` is rejected.
     ``roi_min`` / ``roi_max``: a box in the LiDAR frame (m) outside which points are ignored.
-    ``static_scene``: build the background model from all frames (default) or judge each frame alone."""
+    ``static_scene``: build the background model from all frames (default) or judge each frame alone.
+    ``pair_guesses``: a rig's rough transforms by pair name (``T_<camera>_<lidar>``), each the initial guess of that
+    camera-LiDAR pair's board search."""
 
     initial_guess: np.ndarray | None = None
     guess_angle_rad: float = float(np.deg2rad(10.0))
@@ -58,6 +60,7 @@ class Hints:
     roi_min: np.ndarray | None = None
     roi_max: np.ndarray | None = None
     static_scene: bool = True
+    pair_guesses: dict | None = None
 
     def in_roi(self, points: np.ndarray) -> np.ndarray:
         keep = np.ones(len(points), dtype=bool)
@@ -96,16 +99,43 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
             T = data["T_camera_lidar"] if isinstance(data, dict) else data
         else:
             T = np.loadtxt(path)
-        T = np.asarray(T, dtype=float)
     except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
                            hint="give a calibration.json or a 4x4 matrix") from None
+    return _rigid(T, path, "initial guess")
+
+
+def parse_rig_guess(values: list[str]) -> dict:
+    """A rig's rough transforms from the command line: one file, a rig's ``calibration.json`` (its ``transforms``:
+    every camera-LiDAR pair's ``T``), as a pair name -> 4x4 mapping (:attr:`Hints.pair_guesses`)."""
+    if len(values) != 1:
+        raise DatasetError(f"--initial-guess for a rig takes one file, got {len(values)} value(s)",
+                           hint="give the calibration.json of an earlier calibration of this rig")
+    path = regular_file(values[0], "initial guess file", hint="give a rig's calibration.json")
+    data = load_json(path, "initial guess file")
+    if not isinstance(data, dict) or not isinstance(data.get("transforms"), dict):
+        raise DatasetError("initial guess for a rig has no transforms", path=path,
+                           hint="give the calibration.json of an earlier calibration of this rig")
+    try:
+        return {name: _rigid(t["T"], path, f"initial guess {name}") for name, t in data["transforms"].items()}
+    except (KeyError, TypeError) as exc:
+        raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
+                           hint="give the calibration.json of an earlier calibration of this rig") from None
+
+
+def _rigid(T, path, what: str) -> np.ndarray:
+    """``T`` as a finite 4x4 rigid transform, or a one-line error naming ``path`` and ``what``."""
+    try:
+        T = np.asarray(T, dtype=float)
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f"{what} unreadable ({type(exc).__name__}: {exc})", path=path,
+                           hint="give a calibration.json or a 4x4 matrix") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise DatasetError(f"initial guess is not a finite 4x4 matrix (shape {T.shape})", path=path,
+        raise DatasetError(f"{what} is not a finite 4x4 matrix (shape {T.shape})", path=path,
                            hint="give a calibration.json or a 4x4 matrix")
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-        raise DatasetError("initial guess is not a rigid transform (its rotation is not orthonormal)", path=path,
+        raise DatasetError(f"{what} is not a rigid transform (its rotation is not orthonormal)", path=path,
                            hint="give T_camera_lidar as a 4x4 rigid transform")
     return T
 

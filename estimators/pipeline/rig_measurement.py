@@ -177,10 +177,11 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
     camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
     the board search's ``params`` and ``hints`` (a region of interest, in each LiDAR's own frame, and whether the
-    static scene is used; an initial guess is one pair's, and refused here)."""
+    static scene is used; a rig's initial guesses, ``hints.pair_guesses``, each its camera-LiDAR pair's; one
+    ``initial_guess`` is refused, as a rig has several pairs)."""
     if hints.initial_guess is not None:
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
-                           path=rig.yaml_path, hint="calibrate the pair from a pair folder with its guess")
+                           path=rig.yaml_path, hint="give a rig's calibration.json as the guess")
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
     with ThreadPoolExecutor(max_workers=1) as ahead:
@@ -200,9 +201,11 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
             stems = [st for st in poses[cam.name] if lid.file(st) is not None]
             if len(stems) >= MIN_PAIR_FRAMES:
                 key = (cam.name, lid.name)
+                guess = (hints.pair_guesses or {}).get(f"T_{cam.name}_{lid.name}")
                 pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,
                                                  lid.name, stems, poses[cam.name], measured, rng, workers,
-                                                 found[cam.name], warnings, spawned, params, hints,
+                                                 found[cam.name], warnings, spawned, params,
+                                                 replace(hints, initial_guess=guess, pair_guesses=None),
                                                  sweeps.get(lid.name))
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
