@@ -32,6 +32,7 @@ from .pipeline.rig_terms import choose_range_models, range_record
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
+from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
@@ -277,6 +278,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         note = heavy_tails(posterior.pair_samples(a, b), what=f"T_{a}_{b} posterior")
         if note is not None:
             warnings.append(note)
+    warnings[:0] = unobservable_scanners(replace(result, posterior=posterior), edged)
     next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
@@ -289,6 +291,25 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
                      measured, ambiguous, test)
+
+
+def unobservable_scanners(result: RigResult, edged: set) -> list[str]:
+    """A warning for each camera-scanner pair whose transform the rig leaves nearly unobservable, as a single
+    pair's answer would be refused (``refusal.scan_refusal``): its posterior's spread beyond
+    ``POSTERIOR_REFUSAL_FACTOR`` times the limits when sampled, else the graph's covariance beyond them. The rest
+    of the rig stands; that pair's transform is not an answer. ``edged``: the LiDARs whose ends are in the graph."""
+    out = []
+    for c in result.rig.cameras:
+        for d in result.rig.lidars:
+            if d.lidar != "2d" or d.name not in result.solution.names:
+                continue
+            pair = result.pair(c.name, d.name)
+            weak = scan_refusal(pair.covariance, pair.T, (result.links or {}).get((c.name, d.name), 0), d.name in edged,
+                                POSTERIOR_REFUSAL_FACTOR if pair.samples is not None else 1.0)
+            if weak is not None:
+                out.append(f"T_{c.name}_{d.name}: {'sampled, ' if pair.samples is not None else ''}{weak.problem}: "
+                           f"not an answer, though the rest of the rig stands; {weak.hint}")
+    return out
 
 
 def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int = 60) -> dict | None:

@@ -588,6 +588,24 @@ def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path,
         calibrate(rig_folder)
 
 
+def test_a_scanner_the_rig_leaves_unobservable_is_said_first_as_a_single_pairs_answer_would_be_refused(rig_result):
+    # The simulated rig's scanner is well fixed: no warning. With its pose's covariance 10^4 times as large (100 x
+    # its standard deviations: degrees), each camera-scanner pair is named as not an answer, the LiDARs' are not.
+    from dataclasses import replace
+
+    from estimators.rig_calibration import unobservable_scanners
+
+    sol = rig_result.solution
+    assert unobservable_scanners(rig_result, {"scan0"}) == []
+    k = sol.names.index("scan0")
+    C = sol.covariance_joint.copy()
+    C[6 * k:6 * k + 6, :] *= 100.0
+    C[:, 6 * k:6 * k + 6] *= 100.0
+    said = unobservable_scanners(replace(rig_result, solution=replace(sol, covariance_joint=C)), {"scan0"})
+    assert [w.split(":")[0] for w in said] == ["T_cam0_scan0", "T_cam1_scan0", "T_cam2_scan0"]
+    assert all("nearly unobservable" in w and "not an answer" in w for w in said)
+
+
 def test_a_rigs_suggested_poses_each_tighten_the_pair_then_weakest(rig_result):
     """``layout RIG --suggest K``'s poses: each for the camera-LiDAR pair whose predicted largest translation sd is
     then the largest (the first: the layout's weakest pair), each lowering it, as the single next pose does."""
