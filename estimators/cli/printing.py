@@ -141,7 +141,6 @@ def print_rig(result) -> None:
 
     from ..pipeline.rig_result import range_model_words
     from ..solvers.outline_check import outline_shift_words
-    from ..solvers.rig_graph import translation_sd_in_first
 
     sol = result.solution
     for (cam, lid), modes in result.ambiguous_pairs.items():
@@ -169,13 +168,11 @@ def print_rig(result) -> None:
           "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
           + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")
     for a, b in result.pairs():
-        T, C = sol.transform(a, b)
-        C = C if post is None else np.cov(post.pair_samples(a, b), rowvar=False)
-        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-        sd_t = translation_sd_in_first(T, C)
+        p = result.pair(a, b)  # the posterior's covariance when sampled
+        T = p.T
         line = (f"  T_{a}_{b}: t = (" + ", ".join(f"{1000 * v:.1f}" for v in T[:3, 3]) + ") +- ("
-                + ", ".join(f"{1000 * v:.1f}" for v in sd_t) + ") mm, rotation sd ("
-                + ", ".join(f"{np.degrees(v):.3f}" for v in sd[:3]) + ") deg")
+                + ", ".join(f"{v:.1f}" for v in p.std_translation_camera_mm) + ") mm, rotation sd ("
+                + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg")
         if (a, b) in result.pairwise:
             from geometry.rotations import T_log
 
