@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from estimators.analysis.layout_analysis import analyse, layout_from_plan
 from estimators.analysis.study import parse_spec
-from estimators.pipeline.measurement import parse_initial_guess
+from estimators.pipeline.measurement import parse_initial_guess, parse_rig_guess
 from estimators.io.dataset import load_dataset
 from estimators.io.export import FORMATS, export_calibration, load_calibration
 from estimators.io.image_io import read_gray
@@ -172,6 +172,13 @@ def _calibration_json() -> bytes:
                       indent=1).encode()
 
 
+def _rig_calibration_json() -> bytes:
+    """A rig's calibration.json as far as its initial guess reads it: every pair's transform."""
+    T = json.loads(_calibration_json())["T_camera_lidar"]
+    return json.dumps({"rig": True, "transforms": {"T_cam0_lidar0": {"T": T}, "T_cam0_cam1": {"T": np.eye(4).tolist()}}},
+                      indent=1).encode()
+
+
 # --- readers -------------------------------------------------------------------------------------------------
 
 def _read_dataset(path: Path):
@@ -238,6 +245,8 @@ FILE_TARGETS = (
     FileTarget("calibration_json", ".json", lambda t: _calibration_json(), _read_calibration),
     FileTarget("initial_guess_json", ".json", lambda t: _calibration_json(),
                lambda p: parse_initial_guess([str(p)])),
+    FileTarget("rig_initial_guess_json", ".json", lambda t: _rig_calibration_json(),
+               lambda p: parse_rig_guess([str(p)])),
 )
 
 
