@@ -4,8 +4,12 @@
     tau, effective samples per second.
 (e) Coverage of the 68% and 95% intervals over 200 measurement-level trials and 30 end-to-end trials
     (target: 95% intervals cover 93-97%), as `lidarcam study coverage` prints it.
+(f) The two samplers on the same posteriors (simulated 3D and 2D datasets, end to end): the pilot-tuned
+    independence proposal (the default) against the ensemble moves alone, their autocorrelation and time, and
+    the proposal's samples' standard deviations and 99.9% region over the ensemble's (1 when they sample the same
+    posterior; each ratio's noise about 2%).
 
-Usage: python benchmarks/bench_posterior.py [--trials 200] [--trials-e2e 30] [--workers 2]
+Usage: python benchmarks/bench_posterior.py [--trials 200] [--trials-e2e 30] [--workers 2] [--samplers 4]
 """
 from __future__ import annotations
 
@@ -62,13 +66,58 @@ def table_e(trials: int, trials_e2e: int, workers: int) -> None:
                 print()
 
 
+def table_f(per_kind: int) -> None:
+    """The samplers compared (module docstring, (f)) on ``per_kind`` datasets of each kind."""
+    from dataclasses import replace
+
+    from estimators.calibration import solve
+    from estimators.io.dataset import load_dataset
+    from estimators.pipeline.measurement import measure
+    from estimators.simulation.simulator import simulate_dataset
+
+    kinds = (("3D default, 8 poses", dict(n_poses=8)), ("2D default, 5 boards", dict(n_poses=5, lidar="2d")),
+             ("2D mounted, 8 boards", dict(n_poses=8, lidar="2d", rig_config="mounted")))
+    print("(f) the samplers on the same posteriors: proposal (default) against ensemble moves alone, 2000 effective "
+          "samples")
+    print(f"  {'dataset':24s}{'seed':>5s}{'tau ens':>8s}{'tau prop':>9s}{'s ens':>7s}{'s prop':>7s}"
+          f"{'sd ratio (rot x y z, trans x y z)':>40s}{'r99.9 ratio':>12s}")
+    ratios = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, kw in kinds:
+            for seed in range(1, per_kind + 1):
+                folder = simulate_dataset(Path(tmp) / f"{label.split(',')[0].replace(' ', '_')}{seed}", seed=seed,
+                                          **kw)
+                m = measure(load_dataset(folder), np.random.default_rng(0))
+                runs = {}
+                for sampler in ("ensemble", "proposal"):
+                    res = solve(m, posterior=replace(PosteriorOptions(), sampler=sampler),
+                                rng=np.random.default_rng(seed))
+                    runs[sampler] = res.posterior
+                e, p = runs["ensemble"], runs["proposal"]
+                if e is None or p is None:
+                    print(f"  {label:24s}{seed:5d}  not sampled")
+                    continue
+                sd = np.std(p.xi, axis=0) / np.std(e.xi, axis=0)
+                r = p.region_d2(0.999) / e.region_d2(0.999)
+                ratios.append(np.append(sd, r))
+                print(f"  {label:24s}{seed:5d}{np.max(e.run.tau):8.1f}{np.max(p.run.tau):9.1f}{e.run.seconds:7.2f}"
+                      f"{p.run.seconds:7.2f}{' '.join(f'{v:4.2f}' for v in sd):>40s}{r:12.2f}")
+    if ratios:
+        a = np.array(ratios)
+        print(f"  mean ratios over {len(a)} datasets: sd " + " ".join(f"{v:.3f}" for v in a[:, :6].mean(0))
+              + f", 99.9% region {a[:, 6].mean():.3f}")
+    print()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--trials-e2e", type=int, default=30)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--samplers", type=int, default=4, help="datasets of each kind in table (f)")
     args = ap.parse_args()
     table_d()
+    table_f(args.samplers)
     table_e(args.trials, args.trials_e2e, args.workers)
 
 

@@ -51,6 +51,7 @@ from .refinement import Refinement
 from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 
 LIKELIHOODS = ("gaussian", "student-t")
+SAMPLERS = ("proposal", "ensemble")
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,9 @@ class PosteriorOptions:
         Steps between convergence checks.
     progress : bool
         Show a progress bar.
+    sampler : str
+        ``proposal`` (:func:`run_with_proposal`: most moves from a pilot-tuned independence proposal) or
+        ``ensemble`` (differential evolution and the stretch move alone; slower to mix, for comparison).
     """
 
     min_ess: int = 2000  # effective samples wanted (of the slowest-mixing parameter)
@@ -82,10 +86,13 @@ class PosteriorOptions:
     max_steps: int = 40000
     chunk: int = 500
     progress: bool = False
+    sampler: str = "proposal"
 
     def __post_init__(self):
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"Expected likelihood in {LIKELIHOODS}, got {self.likelihood!r}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"Expected sampler in {SAMPLERS}, got {self.sampler!r}")
         if self.min_ess < 1 or self.walkers < 24:
             raise ValueError(f"Expected min_ess >= 1 and walkers >= 24 (at least twice the up to 11 parameters), got "
                              f"{self.min_ess} and {self.walkers}")
@@ -636,8 +643,11 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
     # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
     start = model.start(rng, ref.covariance, options.walkers)
     try:
-        run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
-                                options.progress)
+        if options.sampler == "proposal":
+            run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
+                                    options.progress)
+        else:
+            run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the Laplace one") from exc
