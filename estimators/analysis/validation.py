@@ -137,6 +137,11 @@ class PairCalibration:
     used: frozenset
     dataset: str
 
+    def score(self, frames: list[FrameMeasurement], board, camera) -> list[FrameScore]:
+        """``frames`` scored under this calibration (:func:`score_frames`)."""
+        return score_frames(frames, board, camera, self.T_camera_lidar, self.covariance, self.corner_noise_px,
+                            self.range_noise_m, self.plane_floor_m, *self.range_terms)
+
 
 def pair_calibration(cal: dict, camera: str | None = None, lidar: str | None = None) -> PairCalibration:
     """A camera-LiDAR pair's :class:`PairCalibration` from a pair's calibration.json, or from a rig's (``rig:
@@ -227,9 +232,7 @@ def cross_validate_rig(measurements, board, k: int, solve) -> dict:
                 pc = pair_calibration(cal, cam, lid)
             except KeyError:  # a sensor the fold's graph could not hold
                 continue
-            s = score_frames([f for f in frames if f.usable and f.name in held], board, measurements.cameras[cam],
-                             pc.T_camera_lidar, pc.covariance, pc.corner_noise_px, pc.range_noise_m,
-                             pc.plane_floor_m, *pc.range_terms)
+            s = pc.score([f for f in frames if f.usable and f.name in held], board, measurements.cameras[cam])
             scores.setdefault(f"T_{cam}_{lid}", []).extend(s)
             fold[f"T_{cam}_{lid}"] = [x.to_dict() for x in s]
         folds.append({"fold": j, "held_out": held, "pairs": fold})

@@ -255,7 +255,7 @@ def validate_command(args) -> int:
     pair, or every camera-LiDAR pair of a rig folder under a rig's calibration.json."""
     import numpy as np
 
-    from ..analysis.validation import pair_calibration, score_frames, verdict
+    from ..analysis.validation import pair_calibration, verdict
     from ..errors import DatasetError, LidarcamError
     from ..io.input_files import load_json
     from ..io.output import write_json_atomic
@@ -317,8 +317,7 @@ def validate_command(args) -> int:
         if not held:
             held = [f for f in frames if f.usable]
             note = "every frame was used by the calibration: these scores are NOT held out (optimistic)"
-        scores = score_frames(held, board, camera, pc.T_camera_lidar, pc.covariance, pc.corner_noise_px,
-                              pc.range_noise_m, pc.plane_floor_m, *pc.range_terms)
+        scores = pc.score(held, board, camera)
         v = verdict(scores)
         print(f"validate{'' if cam is None else ' ' + name}: {len(scores)} frame(s) scored ({note})")
         for s_ in scores:

@@ -36,6 +36,15 @@ def fdtrc(dfn, dfd, x):
     return _fdtrc(dfn, dfd, x)
 
 
+def drop_p(k: int, ss_given: float, ss_freed: float, dof: float) -> float:
+    """The F test of a chi-square's drop from ``ss_given`` to ``ss_freed`` when ``k`` parameters are freed, ``dof``
+    the freed fit's degrees of freedom: the chance that freed parameters fitting noise alone drop it this far (NaN
+    where the test is not defined)."""
+    if not (np.isfinite(ss_given) and np.isfinite(ss_freed)) or k <= 0 or dof <= 0 or ss_freed <= 0:
+        return float("nan")
+    return float(fdtrc(k, dof, max(ss_given - ss_freed, 0.0) / k / (ss_freed / dof)))
+
+
 def mahalanobis(x, C, max_var: float = np.inf) -> tuple[float, int]:
     """``x^T C^+ x`` over the directions ``C`` holds (eigenvalues above 1e-9 of its largest, and at most
     ``max_var``: wider ones carry no test) and their count (the chi-square's degrees of freedom)."""

@@ -26,7 +26,7 @@ from geometry.camera import CameraModel
 
 from ..errors import DegenerateLayoutError
 from ..measurements import FrameMeasurement
-from .chi_square import fdtrc
+from .chi_square import drop_p
 from .graph_keys import INTRINSICS
 from .plane_graph import PlaneProblem
 from .refinement import Refinement
@@ -78,10 +78,7 @@ class IntrinsicsFit:
         0.62-0.99 of it, over twelve simulated 12-board VLP-16 sets); only a drop beyond that says the given ones
         were part of the disagreement."""
         k, dof = len(self.params), self.consistency_dof
-        given, refined = self.variance_factor_given * dof, self.variance_factor_refined * dof
-        if not (np.isfinite(given) and np.isfinite(refined)) or dof <= k or refined <= 0:
-            return float("nan")
-        return float(fdtrc(k, dof - k, max(given - refined, 0.0) / k / (refined / (dof - k))))
+        return drop_p(k, self.variance_factor_given * dof, self.variance_factor_refined * dof, dof - k)
 
     @property
     def lowers_overdispersion(self) -> bool:

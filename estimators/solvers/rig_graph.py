@@ -163,8 +163,7 @@ def intrinsics_test(given: "RigSolution", refined: "RigSolution") -> dict:
     k = sum(len(p) for p, _ in refined.intrinsics.values())
     ss_g = sum(ss for ss, _ in given.chi2_dof.values())
     ss_r, dof = (sum(v[i] for v in refined.chi2_dof.values()) for i in (0, 1))
-    p = float(chi2.fdtrc(k, dof, max(ss_g - ss_r, 0.0) / k / (ss_r / dof))) if k and dof > 0 and ss_r > 0 \
-        else float("nan")
+    p = chi2.drop_p(k, ss_g, ss_r, dof)
     return {"parameters": k, "chi_square_given": ss_g, "chi_square_refined": ss_r, "dof": dof, "p_value": p,
             "lowers_disagreement": bool(p < 0.05),
             "meaning": "every sensor's chi-square under the given intrinsics and the refined ones (the same views and "
