@@ -263,7 +263,7 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
     board = dataset_spec(m.lidar, m.board, None)["board"]  # the dataset.yaml board entry
     meta = {"format": FORMAT, "dataset": m.dataset, "key": m.key, "lidar": m.lidar, "board": board,
             "camera": m.camera.as_dict(), "warnings": list(m.warnings), "frames": frames}
-    write_npz_atomic(out / "measurements.npz", **arrays)
+    write_npz_atomic(out / "measurements.npz", arrays)
     return write_json_atomic(out / "measurements.json", _jsonable(meta))
 
 

@@ -311,6 +311,7 @@ def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
     if result.posterior is not None:
         p = result.posterior
         extra = {} if p.mode_index is None else {"mode_index": p.mode_index}
-        write_npz_atomic(out / "posterior.npz", xi=p.xi, noise_scale=p.scale, T_map=p.T_map,
-                         chain=p.run.chain, convention=np.array(COVARIANCE_CONVENTION), **extra)
+        write_npz_atomic(out / "posterior.npz", {"xi": p.xi, "noise_scale": p.scale, "T_map": p.T_map,
+                                                 "chain": p.run.chain, "convention": np.array(COVARIANCE_CONVENTION),
+                                                 **extra}, compress=False)
     return write_json_atomic(out / "calibration.json", result.to_dict())

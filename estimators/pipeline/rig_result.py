@@ -278,8 +278,9 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     post = result.posterior
     if post is not None:
-        write_npz_atomic(out / "posterior.npz", xi=post.xi, names=np.array(post.names),
-                         T_ref=np.array([post.T_ref[n] for n in post.names]), reference=np.array(post.reference))
+        write_npz_atomic(out / "posterior.npz", {"xi": post.xi, "names": np.array(post.names),
+                                                 "T_ref": np.array([post.T_ref[n] for n in post.names]),
+                                                 "reference": np.array(post.reference)}, compress=False)
     path = out / "calibration.json"
     write_json_atomic(path, result.to_json())
     return path
