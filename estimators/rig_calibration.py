@@ -28,10 +28,11 @@ from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import choose_range_models, range_record
+from .pipeline.rig_terms import range_record, ranged_views
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
+from .solvers.range_model import MODEL_TEST_P
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
@@ -77,7 +78,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         Each LiDAR's range model, as the single pair's ``--range-model``: ``none`` (planes), ``offset``,
         ``per-ring``, ``offset+dark``, ``full`` (the terms under priors from its range accuracy, dataset.yaml's
         ``range_accuracy_m`` or its family's), or ``auto``: the terms that likelihood-ratio tests at
-        ``MODEL_TEST_P`` support (:func:`choose_range_models`).
+        ``MODEL_TEST_P`` support, as its first camera-LiDAR pair tests them (``rig_terms.ranged_views``).
     edges : bool or None
         The board's edges as measurements too: each LiDAR's ring ends (a 2D scanner's segment ends) on the board's
         outline, in the joint graph (:func:`with_edges`); the posterior holds their share to second order about
@@ -141,6 +142,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     board_scatter: dict = {}
     sigma_r: dict = {}
     pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
+    chosen_fits, chosen_by = {}, {}  # per LiDAR its range model's choice (RangeModelFit) and the pair that chose it
     for lid in rig.lidars:
         skipped[lid.name] = {}
         # The LiDAR's range model is chosen once, by its pair with the camera that shares the most frames (the
@@ -173,6 +175,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                    "directions to decide")
             if chosen is None and res.refinement.range_model is not None:
                 chosen = res.refinement.range_model.chosen
+                chosen_fits[lid.name], chosen_by[lid.name] = res.refinement.range_model, f"{cam_name}-{lid.name}"
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam_name, lid.name)] = usable
             links[(cam_name, lid.name)] = len(usable)
@@ -213,20 +216,28 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     range_models: dict = {}
     if range_model != "none" and lidar_views:
-        # The terms are tested on the boards' planes at the range noise, each LiDAR's excess scaled: a per-board
-        # plane error estimated under another model would hold part of what the terms explain (on the recorded
-        # VLP-16 it let every term pass, which moves its translation by 25 mm), and the tests' dispersion limit
-        # (rig_terms.MAX_TERMS_DISPERSION) is set on such planes. The model chosen is then weighed as any board is.
-        weighed = {lv.name: lv for lv in lidar_views}
-        plain = [replace(lv, plane_error=None, robust=None) for lv in lidar_views]
-        plain_solution = solve_rig(names, rig.reference, camera_views, plain, T_ref, T_ref_board, refine_intrinsics)
-        chosen, range_models = choose_range_models(rig, names, camera_views, plain, lidar_obs, pair_frames,
-                                                   plain_solution, range_model, options.range_accuracy_m)
-        lidar_views = [replace(lv, plane_error=weighed[lv.name].plane_error, robust=weighed[lv.name].robust,
-                               tau_m=board_scatter.get(lv.name, 0.0)) for lv in chosen]
+        # One choice of range terms, the single pair's: each LiDAR's first pair chose its model (its tests, with the
+        # per-board plane error and the boards' scatter modelled, are in the record), placed here on the joint
+        # board poses and weighed as any board is.
+        asked = {n: fit.chosen if range_model == "auto" else range_model for n, fit in chosen_fits.items()}
+        lidar_views, range_models = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked,
+                                                 options.range_accuracy_m)
+        lidar_views = [replace(lv, tau_m=board_scatter.get(lv.name, 0.0)) for lv in lidar_views]
+        for name, record in range_models.items():
+            fit = chosen_fits[name]
+            record.update(requested=range_model, chosen_by=chosen_by[name])
+            if range_model == "auto":
+                record.update(reason=fit.reason, tests=list(fit.tests), test_p=MODEL_TEST_P)
         if any(lv.has_terms for lv in lidar_views):
             solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                  refine_intrinsics)
+            if any("dark" in lv.terms.names for lv in lidar_views if lv.has_terms):
+                # The black squares placed again on the solution with the terms, blurred by its covariance: a range
+                # offset that the planes absorb moves their placement and would shrink their term.
+                lidar_views = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked,
+                                           options.range_accuracy_m, blurred=True)[0]
+                solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
+                                     refine_intrinsics)
         for lv in lidar_views:
             if lv.has_terms:
                 range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)

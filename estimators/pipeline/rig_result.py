@@ -84,7 +84,8 @@ class RigResult:
     # predicted standard deviations before and after it; None when none was computed or none is feasible.
     next_pose: dict | None = None
     # Each LiDAR's range model: ``model`` (``none``, ``offset``, ``per-ring``, ``offset+dark`` or ``full``),
-    # ``prior_sd_m``, the tests under ``auto``, and with terms each one's estimate (:func:`choose_range_models`).
+    # ``prior_sd_m``, ``chosen_by`` (the camera-LiDAR pair whose refinement chose it), its ``reason`` and ``tests``
+    # under ``auto``, and with terms each one's estimate (``rig_terms.ranged_views``).
     range_models: dict = field(default_factory=dict)
     # Each 3D camera-LiDAR pair's board-edges check under the joint estimate (``(camera, lidar) -> record``, as a
     # single pair's ``board_edges``; :func:`pairs_outline_checks`).
@@ -238,14 +239,10 @@ class RigResult:
 
 
 def range_model_words(record: dict) -> str:
-    """A LiDAR's range model in words (:func:`choose_range_models`' record)."""
+    """A LiDAR's range model in words (its record: ``rig_terms.ranged_views``, the pair's tests)."""
     tests = list(record.get("tests", ()))
     said = ", ".join(f"{t['model']} p = {t['p_value']:.2g}" for t in tests)
-    how = f"tests at {record['test_p']:g}: {said}" if tests else "requested"
-    how += "".join(f"; {n['model']} terms not tested: with them the planes still disagree with the rig's boards "
-                   f"{n['variance_factor']:.1f}x beyond their noise in variance, board-to-board structure the rig's "
-                   "graph does not model (a camera-LiDAR pair calibrated alone has its per-board plane error)"
-                   for n in record.get("inconsistent", ()))
+    how = f"{record.get('chosen_by', 'its pair')}'s tests at {record['test_p']:g}: {said}" if tests else "requested"
     terms = record.get("terms") or {}
     if not terms:
         return f"no range terms ({how})" if tests else "no range terms (--range-model none)"

@@ -317,47 +317,6 @@ def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
     return {names[k]: (names[pred[k]] if pred[k] >= 0 else None) for k in range(n)}
 
 
-def terms_fit(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
-              solution: RigSolution, views: LidarViews) -> dict:
-    """The graph solved with one LiDAR's frames as ``views`` (in the range model's form: ``ranged`` given, with
-    or without terms), every other view as in ``lidars``, at the noise scales of ``solution`` (quasi-likelihood:
-    an overdispersed sensor's costs are scaled down by its excess), started from ``solution``.
-
-    Returns ``cost`` (the total cost, each of the LiDAR's frames' floor included: its points' scatter about
-    their own best fit under these terms), ``size`` (the terms' count), and with terms ``values_m`` and ``sd_m``
-    (marginal; inf where the graph's marginals cannot be formed)."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    k = names.index(views.name)
-    graph, values, _, stems = _graph_at(names, reference, cameras,
-                                        [views if v.name == views.name else v for v in lidars], solution)
-    try:
-        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    except RuntimeError as exc:
-        raise DegenerateLayoutError(f"{views.name}: its range terms cannot be tested (the graph with them cannot be "
-                                    "solved)", hint="calibrate with --range-model none") from exc
-    floor = sum(fw.floor for st, fw in views.ranged.items() if st in stems)
-    out = {"cost": 2.0 * graph.error(values) + floor / (views.sigma_m**2 * solution.noise_scale.get(views.name, 1.0)),
-           "size": views.terms.size if views.has_terms else 0}
-    if views.has_terms:
-        out["values_m"] = values.atVector(terms_key(k)).copy()
-        try:
-            out["sd_m"] = np.sqrt(np.maximum(np.diag(gtsam.Marginals(graph, values).marginalCovariance(terms_key(k))),
-                                             0.0))
-        except RuntimeError:
-            out["sd_m"] = np.full(out["size"], np.inf)
-    return out
-
-
-def terms_test(smaller: dict, larger: dict) -> dict:
-    """The likelihood-ratio test of a LiDAR's larger range model against its smaller one (two :func:`terms_fit`
-    results of nested models): the drop of the total cost, chi-square with the added terms' count as its dof.
-    Returns ``statistic``, ``dof`` and ``p_value``."""
-    stat = smaller["cost"] - larger["cost"]
-    dof = max(larger["size"] - smaller["size"], 1)
-    return {"statistic": float(stat), "dof": int(dof), "p_value": float(chi2.sf(max(stat, 0.0), dof))}
-
-
 def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
               solution: RigSolution) -> tuple:
     """The graph of these views at ``solution``'s noise scales and its values at ``solution`` (its poses, vector
