@@ -32,13 +32,17 @@ from ..solvers.refinement_options import RefinementOptions
 MIN_PAIR_FRAMES = 3
 
 
-def measure_camera(sensor: Sensor, board, workers: int = 2) -> tuple[CameraModel, dict, dict, list[str], dict]:
+def camera_frames(sensor: Sensor) -> list[FrameFiles]:
+    """A camera's frames, each image's path as both of its files (a LiDAR's are looked up apart)."""
+    return [FrameFiles(stem, path, path) for stem, path in sensor.files]
+
+
+def measure_camera(sensor: Sensor, board, detections: list) -> tuple[CameraModel, dict, dict, list[str], dict]:
     """One camera's board poses by stem, the frames skipped with their reasons, its intrinsics (calibrated from
-    its frames when the rig's dataset.yaml gives none) and its images' corners by stem (for the pairs)."""
+    its frames when the rig's dataset.yaml gives none) and its images' corners by stem (for the pairs), from each
+    of its frames' ``detect_in_image`` (``detections``, in :func:`camera_frames`' order)."""
     warnings: list[str] = []
-    frames = [FrameFiles(stem, path, path) for stem, path in sensor.files]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        detections = list(pool.map(lambda f: detect_in_image(f, board, {}), frames))
+    frames = camera_frames(sensor)
     camera = sensor.camera
     if camera is None:
         found = [d for _, d in detections if isinstance(d, CornerDetection)]
@@ -184,13 +188,18 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                            path=rig.yaml_path, hint="give a rig's calibration.json as the guess")
     warnings: list[str] = []
     cameras, poses, skipped, found = {}, {}, {}, {}
-    with ThreadPoolExecutor(max_workers=1) as ahead:
+    with ThreadPoolExecutor(max_workers=1) as ahead, ThreadPoolExecutor(max_workers=workers) as pool:
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
         sweeps = {lid.name: ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints)
                   for lid in rig.lidars if lid.lidar != "2d"}
+        # Every camera's images searched in one pool: no camera waits on its slowest image with a core idle, and
+        # each camera's board poses are solved while the next cameras' images are searched.
+        pending = {s.name: [pool.submit(detect_in_image, f, rig.board, {}) for f in camera_frames(s)]
+                   for s in rig.cameras}
         for s in rig.cameras:
-            cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(s, rig.board, workers)
+            cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(
+                s, rig.board, [p.result() for p in pending[s.name]])
             warnings.extend(w)
         sweeps = {name: f.result() for name, f in sweeps.items()}
     pairs, measured_by, spawned = {}, {}, []
