@@ -2,14 +2,15 @@
 
 (d) emcee on a 16-frame layout (measurement level): time to >= 2000 effective samples (target < 5 s),
     tau, effective samples per second.
-(e) Coverage of the 68% and 95% intervals over 200 measurement-level trials and 30 end-to-end trials
-    (target: 95% intervals cover 93-97%), as `lidarcam study coverage` prints it.
+(e) Coverage of the 68% and 95% intervals over 200 measurement-level trials and 100 end-to-end trials
+    (target: 95% intervals cover 93-97% on average over the axes, each axis within a true 95%'s binomial 99% band
+    for the trials run), as `lidarcam study coverage` prints it.
 (f) The two samplers on the same posteriors (simulated 3D and 2D datasets, end to end): the pilot-tuned
     independence proposal (the default) against the ensemble moves alone, their autocorrelation and time, and
     the proposal's samples' standard deviations and 99.9% region over the ensemble's (1 when they sample the same
     posterior; each ratio's noise about 2%).
 
-Usage: python benchmarks/bench_posterior.py [--trials 200] [--trials-e2e 30] [--workers 2] [--samplers 4]
+Usage: python benchmarks/bench_posterior.py [--trials 200] [--trials-e2e 100] [--workers 2] [--samplers 4]
 """
 from __future__ import annotations
 
@@ -60,9 +61,16 @@ def table_e(trials: int, trials_e2e: int, workers: int) -> None:
                 axes = [a for a in c95 if a != "joint_chi2"]
                 worst = min(c95[a]["fraction"] for a in axes)
                 best = max(c95[a]["fraction"] for a in axes)
-                verdict = "met" if 0.93 <= worst and best <= 0.97 else "NOT met"
-                print(f"  95% coverage range over the axes and the joint region: {100 * worst:.1f}-{100 * best:.1f}% "
-                      f"(target 93-97%): {verdict}")
+                pooled = float(np.mean([c95[a]["fraction"] for a in axes]))
+                # Each share is a binomial over the trials: with n of them an axis's share of a true 95% lies
+                # within +-2.58 sqrt(0.95 0.05 / n) of it 99% of the time (4.7 points at n = 100), so the target
+                # reads the mean over the axes and the joint region, and each share against that band.
+                band = 2.58 * np.sqrt(0.95 * 0.05 / n)
+                met = 0.93 <= pooled <= 0.97 and 0.95 - band <= worst and best <= 0.95 + band
+                verdict = "met" if met else "NOT met"
+                print(f"  95% coverage: mean over the axes and the joint region {100 * pooled:.1f}% (target 93-97%), "
+                      f"each {100 * worst:.1f}-{100 * best:.1f}% (a true 95%'s 99% band over {n} trials: "
+                      f"{100 * (0.95 - band):.1f}-{100 * min(0.95 + band, 1.0):.1f}%): {verdict}")
                 print()
 
 
@@ -112,7 +120,7 @@ def table_f(per_kind: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=200)
-    ap.add_argument("--trials-e2e", type=int, default=30)
+    ap.add_argument("--trials-e2e", type=int, default=100)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--samplers", type=int, default=4, help="datasets of each kind in table (f)")
     args = ap.parse_args()

@@ -47,13 +47,13 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
 def ranged_views(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution,
                  models: dict, range_accuracy_m: float | None = None, blurred: bool = False) -> tuple[list, dict]:
     """Each LiDAR's views with the range terms of its model in ``models`` (by name: ``none``, ``per-ring``,
-    ``offset+dark``, ...; a LiDAR not named keeps its planes, without a record), under priors from its range accuracy (``range_accuracy_m``,
-    ``--range-accuracy``, every LiDAR's; else dataset.yaml's ``range_accuracy_m`` or its family's), its black
-    squares placed on ``solution``'s board poses (``blurred``: by its covariance, for a solution with the terms in),
-    and per LiDAR the start of its record (``prior_sd_m``, ``model``:
-    the terms the data allow of those asked, ``reason`` where none could be formed). Under ``auto`` the model is the
-    one its first camera-LiDAR pair chose (``range_terms_choice.choose_range_model``): the rig has one choice of
-    range terms, the single pair's."""
+    ``offset+dark``, ...; a LiDAR not named keeps its planes, without a record), under priors from its range
+    accuracy (``range_accuracy_m``, ``--range-accuracy``, every LiDAR's; else dataset.yaml's ``range_accuracy_m`` or
+    its family's), its black squares placed on ``solution``'s board poses (``blurred``: by its covariance, for a
+    solution with the terms in), and per LiDAR the start of its record (``prior_sd_m``, ``model``: the terms the
+    data allow of those asked, ``reason`` where none could be formed). Under ``auto`` the model is the one its
+    first camera-LiDAR pair chose (``range_terms_choice.choose_range_model``): the rig has one choice of range
+    terms, the single pair's."""
     out, records = [], {}
     for lv in lidar_views:
         if lv.name not in models:
