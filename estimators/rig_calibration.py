@@ -227,7 +227,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             fit = chosen_fits[name]
             record.update(requested=range_model, chosen_by=chosen_by[name])
             if range_model == "auto":
-                record.update(reason=fit.reason, tests=list(fit.tests), test_p=MODEL_TEST_P)
+                record.setdefault("reason", fit.reason)  # unless its terms could not be formed here
+                record.update(tests=list(fit.tests), test_p=MODEL_TEST_P)
         if any(lv.has_terms for lv in lidar_views):
             solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                  refine_intrinsics)

@@ -33,7 +33,7 @@ from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
 # disagree beyond their noise at this level: the single pair's plane test, which estimates a per-board plane error
 # there instead (each LiDAR's, carried into the graph by its ``PlaneError``). Scaling every excess, significant or
 # not, made the covariance too wide (`make bench`, noise_models.md); a LiDAR whose boards carry no plane error
-# (the range terms' tests, ``pipeline.rig_terms``) has every excess scaled, the only account of it it has.
+# has every excess scaled, the only account of it it has.
 QUASI_LIKELIHOOD_P = 0.01
 
 
