@@ -121,6 +121,14 @@ class CameraModel:
             ok[np.nonzero(ok)[0]] = np.linalg.norm(back - P[ok, :2] / P[ok, 2:], axis=1) < 1e-4
         return ok
 
+    def field_angle(self) -> float:
+        """The widest angle (rad) from the optical axis of the rays through the image's border: beyond it the
+        camera images nothing (a point there that projects into the image is the distortion folding back)."""
+        u, v = np.linspace(0, self.width - 1, 33), np.linspace(0, self.height - 1, 25)
+        border = np.vstack([np.column_stack([u, np.zeros_like(u)]), np.column_stack([u, np.full_like(u, v[-1])]),
+                            np.column_stack([np.zeros_like(v), v]), np.column_stack([np.full_like(v, u[-1]), v])])
+        return float(np.max(np.arccos(np.clip(self.rays(border)[:, 2], -1.0, 1.0))))
+
     @property
     def params(self) -> np.ndarray:
         """``[fx, fy, cx, cy, dist...]``."""

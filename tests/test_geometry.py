@@ -208,3 +208,10 @@ def test_a_point_far_outside_the_field_that_distortion_folds_into_the_image_is_n
     uv = cam.project(np.array([folded, near]))
     assert np.all(cam.in_image(uv))  # both land in the image...
     assert cam.sees(np.array([folded, near, behind])).tolist() == [False, True, False]  # ...one is really there
+    # Its field: the widest ray through the image's border (a corner's, undistorted), which the folded point lies
+    # beyond and the near one within; without distortion, the corner's angle exactly.
+    field = cam.field_angle()
+    assert np.arctan(np.hypot(640, 400) / 640) < field < np.radians(69)
+    assert np.arctan(np.hypot(*folded[:2])) > field > np.arctan(np.hypot(*near[:2]))
+    plain = CameraModel(K=cam.K, dist=np.zeros(5), width=1280, height=800)
+    assert plain.field_angle() == pytest.approx(np.arctan(np.hypot(640, 400) / 640), abs=1e-9)
