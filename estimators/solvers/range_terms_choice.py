@@ -125,16 +125,20 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     planes worse than the offset alone (:func:`_relative_consistency`, at 1%) tries the smaller ones before
     the offset alone. Returns the problem (solved at its estimate), the estimate and the record."""
     wanted = options.range_model
-    models = ["none", "offset", "per-ring", "offset+dark", "full"] if wanted == "auto" else [wanted]
     fits: dict[str, _ModelFit] = {}
     seen = set()
-    for model in models:  # a requested model is fitted, not tested
+
+    def fit(model: str) -> None:
         terms = terms_for(model, labels, options.range_accuracy_m)
         key = terms.names if terms is not None else ()
-        if key in seen:  # per-ring without rings, black squares without both colours: nothing new to test
-            continue
-        seen.add(key)
-        fits[model] = _fit_model(prob, model, labels, active, inliers, T, boards, floor, options)
+        if key not in seen:  # per-ring without rings, black squares without both colours: nothing new to test
+            seen.add(key)
+            fits[model] = _fit_model(prob, model, labels, active, inliers, T, boards, floor, options)
+
+    # A requested model is fitted, not tested; under auto every model but ``full``, which is fitted only when
+    # both of its blocks pass (a fifth of the choice's time where they do not).
+    for model in ["none", "offset", "per-ring", "offset+dark"] if wanted == "auto" else [wanted]:
+        fit(model)
     record = dict(requested=wanted, range_accuracy_m=float(options.range_accuracy_m))
     if wanted != "auto":
         f = fits[wanted]
@@ -159,6 +163,8 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
         return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
+    if len(blocks) == 2:
+        fit("full")
     candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + [base]
     if candidates[0] == "full":
         by_model["full"] = _model_test(fits[base], fits["full"], active, inliers, floor, options)
