@@ -28,11 +28,11 @@ from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import range_record, ranged_views
+from .pipeline.rig_terms import hold_pinned, range_record, ranged_views
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
-from .solvers.range_model import MODEL_TEST_P
+from .solvers.range_model import MAX_PRIOR_SIGMAS, MODEL_TEST_P
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
@@ -215,6 +215,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     range_models: dict = {}
+    pinned_share = None  # the range terms held at 0: their prior's share of the sensors' joint covariance
     if range_model != "none" and lidar_views:
         # One choice of range terms, the single pair's: each LiDAR's first pair chose its model (its tests, with the
         # per-board plane error and the boards' scatter modelled, are in the record), placed here on the joint
@@ -239,6 +240,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                            options.range_accuracy_m, blurred=True)[0]
                 solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                      refine_intrinsics)
+        pins = {n: fit.pinned for n, fit in chosen_fits.items() if fit.pinned and n in range_models}
+        if pins and any(lv.has_terms for lv in lidar_views):
+            lidar_views, solution, pinned_share = hold_pinned(names, rig.reference, camera_views, lidar_views,
+                                                              solution, pins, refine_intrinsics)
+            for n in pins:
+                fit = chosen_fits[n]
+                range_models[n]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}
+                                                    for t, v in zip(fit.pinned, fit.pinned_values_m)]
+                said = ", ".join(f"{t} {1000 * v:+.0f} mm" for t, v in zip(fit.pinned, fit.pinned_values_m))
+                warnings.append(f"{n}: its range terms {said} (as {chosen_by[n]} estimated them) lie beyond "
+                                f"{MAX_PRIOR_SIGMAS:.0f} prior standard deviations of its range accuracy: held at 0 "
+                                "with their prior variance propagated into the covariance, as a single pair holds them "
+                                "(likely a term confounded with the extrinsic, a wrong LiDAR segment or a board that "
+                                "moved; set the LiDAR's range_accuracy_m if it is known to err more)")
         for lv in lidar_views:
             if lv.has_terms:
                 range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
@@ -280,6 +295,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                         "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
     elif samples > 0:
         posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples)
+        if pinned_share is not None:  # the held terms' prior, convolved in as the single pair's posterior does
+            posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
+                np.zeros(len(pinned_share)), pinned_share, len(posterior.xi), method="eigh"))
         if not posterior.run.converged:
             warnings.append(f"the rig's posterior did not converge in {posterior.run.chain.shape[0]} steps "
                             f"({posterior.run.ess:.0f} effective samples): its intervals are rough")

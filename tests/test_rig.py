@@ -877,6 +877,32 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     assert np.max(np.abs(C - pair.covariance) / np.outer(sd, sd)) < 1e-6
 
 
+def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
+    # Returns 20 cm long on a LiDAR whose range accuracy is 5 cm: the pair's offset estimate (+208 mm) lies beyond
+    # 3 prior standard deviations, so the pair holds it at 0 with its prior variance propagated into the covariance
+    # (range_terms_choice.consider_pinned). The rig of the same folder holds it too (rig_terms.hold_pinned), says
+    # so first in its record and warnings, and lands on the pair's estimate within 1e-4 of its standard deviations
+    # and on its covariance within 1e-6 of its scale (before, the rig kept the term free: 2.5 sd off along the
+    # LiDAR's x, that sd a third narrower). Its posterior gets the held term's share convolved in, as the pair's.
+    from estimators.calibration import calibrate
+    from estimators.simulation.simulator import simulate_dataset
+
+    folder = simulate_dataset(tmp_path / "long", n_poses=8, seed=2, range_bias=(0.2, 0.0, 0.0))
+    pair = calibrate(folder, samples=0, options=RefinementOptions(edges=False))
+    assert pair.refinement.range_model.pinned == ("offset",)
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=300)
+    rec = res.range_models["lidar0"]
+    assert rec["held_at_prior"][0]["term"] == "offset" and rec["held_at_prior"][0]["estimate_mm"] > 150
+    assert abs(rec["value_m"]) < 1e-6 and rec["sd_m"] == pytest.approx(rec["prior_sd_m"], rel=1e-3)
+    assert any("held at 0" in w for w in res.warnings)
+    T, C = res.solution.transform("cam0", "lidar0")
+    sd = np.sqrt(np.diag(pair.covariance))
+    assert np.all(np.abs(T_log(np.linalg.inv(pair.T_camera_lidar) @ T)) < 1e-4 * sd)
+    assert np.max(np.abs(C - pair.covariance) / np.outer(sd, sd)) < 1e-6
+    post = np.std(res.pair("cam0", "lidar0").samples, axis=0)
+    np.testing.assert_allclose(post, sd, rtol=0.1)
+
+
 def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_the_pairs_take_the_rigs_options(
         sim_vlp16, monkeypatch, capsys):
     # Each camera-LiDAR pair's refinement decides its outlier frames (a wrong LiDAR segment, a board that moved):

@@ -11,7 +11,10 @@ from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from ..lidar.lidar_models import range_accuracy_for
 from ..solvers.range_model import FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener, terms_for
-from ..solvers.rig_graph import RigSolution
+from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, inner_covariance, solve_rig
+
+# The prior standard deviation (m) that holds a pinned range term at 0 in the graph.
+HELD_SD_M = 1e-7
 
 
 def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solution: RigSolution,
@@ -98,3 +101,53 @@ def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.nd
         warnings.append(f"{name}: its range terms {said} lie beyond 3 times their prior sd (range accuracy "
                         f"{1000 * record['prior_sd_m']:.0f} mm): a wrong board in some frames, or a "
                         "range_accuracy_m in dataset.yaml too small for this sensor")
+
+
+def hold_pinned(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,
+                pinned: dict, refine_intrinsics: bool) -> tuple[list, RigSolution, np.ndarray]:
+    """The LiDARs' range terms named in ``pinned`` (by LiDAR, the names its first pair's refinement held at 0:
+    estimates beyond ``range_model.MAX_PRIOR_SIGMAS`` prior standard deviations) held at 0, as the single pair holds
+    them (``range_terms_choice.consider_pinned``): the graph solved with them held (a prior of ``HELD_SD_M``), and its
+    covariance with their prior variance propagated, ``A^-1 + G P G^T`` with ``G = A^-1 B`` (``A`` the information
+    of everything else, ``B`` its coupling to the held terms, ``P`` their prior covariance). Both come from the
+    joint marginal ``M`` of the free poses and the terms at the held estimate under the terms' own priors: ``A^-1``
+    restricted to them is ``M - M_p M_pp^-1 M_p^T`` and ``G = -M_p M_pp^-1``. Returns the views (the held terms'
+    priors at ``HELD_SD_M``, as the posterior samples them), the solution (its joint covariance and the terms' sds
+    with the propagated share; its inner covariance without it, the posterior's curvature) and that share of the
+    sensors' joint covariance (6N x 6N, ``names`` order, the reference's frame), which the posterior's samples get
+    convolved with."""
+    held = []
+    for lv in lidar_views:
+        idx = [k for k, n in enumerate(lv.terms.names) if n in pinned.get(lv.name, ())] if lv.has_terms else []
+        sd = np.array(lv.terms.prior_sd, dtype=float) if idx else None
+        if idx:
+            sd[idx] = HELD_SD_M
+        held.append(replace(lv, terms_prior_sd=sd) if idx else lv)
+    solution = solve_rig(names, reference, camera_views, held, solution.T_ref, solution.T_ref_board, refine_intrinsics)
+    M = inner_covariance(names, reference, camera_views, lidar_views, solution)
+    inner = graph_reference(reference, [c.name for c in camera_views])
+    at, p, prior = 6 * (len(names) - 1), [], []
+    for lv in (v for v in lidar_views if v.has_terms):
+        for k, n in enumerate(lv.terms.names):
+            if n in pinned.get(lv.name, ()):
+                p.append(at + k)
+                prior.append(lv.terms.prior_sd[k])
+        at += lv.terms.size
+    G = -M[:, p] @ np.linalg.inv(M[np.ix_(p, p)])
+    share_inner = G @ np.diag(np.square(prior)) @ G.T
+    full = M + G @ M[p, :] + share_inner  # A^-1 (the held terms' rows zero) and the share
+    # The share of the sensors' joint covariance, carried from the graph's reference camera into the rig's.
+    share = np.zeros((6 * len(names), 6 * len(names)))
+    free = [k for k, n in enumerate(names) if n != inner]
+    cols = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in free])
+    share[np.ix_(cols, cols)] = share_inner[:6 * len(free), :6 * len(free)]
+    if inner != reference:
+        T_inner = {n: np.linalg.inv(solution.T_ref[inner]) @ solution.T_ref[n] for n in names}
+        share = change_reference(names, T_inner, share, reference)[1]
+    terms, at = dict(solution.range_terms), 6 * (len(names) - 1)
+    for lv in (v for v in held if v.has_terms):
+        K = lv.terms.size
+        terms[lv.name] = (terms[lv.name][0], np.sqrt(np.maximum(np.diag(full)[at:at + K], 0.0)))
+        at += K
+    cov = solution.covariance_joint + 0.5 * (share + share.T)
+    return held, replace(solution, covariance_joint=cov, range_terms=terms), 0.5 * (share + share.T)

@@ -213,7 +213,8 @@ class RigLikelihood:
                                          np.transpose(np.array(Ws), (0, 2, 1)), normals,
                                          np.sum(normals * points, axis=1), lv.scan_line, np.array(G),
                                          np.array(signs), np.array(E0), np.array(Hb), beta))
-        self.terms_prior_sd = np.concatenate([lv.terms.prior_sd for lv in ranged]) if ranged else np.zeros(0)
+        self.terms_prior_sd = np.concatenate([lv.terms.prior_sd if lv.terms_prior_sd is None else lv.terms_prior_sd
+                                              for lv in ranged]) if ranged else np.zeros(0)
         self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
             else np.zeros(0)
         try:
