@@ -895,6 +895,7 @@ def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     assert rec["held_at_prior"][0]["term"] == "offset" and rec["held_at_prior"][0]["estimate_mm"] > 150
     assert abs(rec["value_m"]) < 1e-6 and rec["sd_m"] == pytest.approx(rec["prior_sd_m"], rel=1e-3)
     assert any("held at 0" in w for w in res.warnings)
+    assert "offset held at 0 (estimated +2" in range_model_words(rec)
     T, C = res.solution.transform("cam0", "lidar0")
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(T_log(np.linalg.inv(pair.T_camera_lidar) @ T)) < 1e-4 * sd)

@@ -253,6 +253,8 @@ def range_model_words(record: dict) -> str:
         parts.append(f"{len(rings)} ring offsets, spread (sd) {1000 * float(np.std(rings)):.1f} mm")
     if "dark" in terms:
         parts.append(f"black squares {1000 * terms['dark']['value_m']:+.1f} +- {1000 * terms['dark']['sd_m']:.1f} mm")
+    parts += [f"{h['term']} held at 0 (estimated {h['estimate_mm']:+.0f} mm, beyond 3 prior sds)"
+              for h in record.get("held_at_prior", ())]
     return "; ".join(parts) + f" ({how}; prior sd {1000 * record['prior_sd_m']:.0f} mm)"
 
 
