@@ -28,7 +28,7 @@ from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import hold_pinned, range_record, ranged_views
+from .pipeline.rig_terms import held_views, range_record, ranged_views, with_held_share
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
@@ -215,7 +215,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
     range_models: dict = {}
-    pinned_share = None  # the range terms held at 0: their prior's share of the sensors' joint covariance
+    pinned_share, pins = None, {}  # the range terms held at 0, by LiDAR, and their prior's share of the covariance
     if range_model != "none" and lidar_views:
         # One choice of range terms, the single pair's: each LiDAR's first pair chose its model (its tests, with the
         # per-board plane error and the boards' scatter modelled, are in the record), placed here on the joint
@@ -240,10 +240,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                            options.range_accuracy_m, blurred=True)[0]
                 solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
                                      refine_intrinsics)
-        pins = {n: fit.pinned for n, fit in chosen_fits.items() if fit.pinned and n in range_models}
-        if pins and any(lv.has_terms for lv in lidar_views):
-            lidar_views, solution, pinned_share = hold_pinned(names, rig.reference, camera_views, lidar_views,
-                                                              solution, pins, refine_intrinsics)
+        ranged = {lv.name for lv in lidar_views if lv.has_terms}
+        pins = {n: fit.pinned for n, fit in chosen_fits.items() if fit.pinned and n in ranged}
+        if pins:
+            lidar_views = held_views(lidar_views, pins)
+            solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
+                                 refine_intrinsics)
             for n in pins:
                 fit = chosen_fits[n]
                 range_models[n]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}
@@ -254,9 +256,6 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                 "with their prior variance propagated into the covariance, as a single pair holds them "
                                 "(likely a term confounded with the extrinsic, a wrong LiDAR segment or a board that "
                                 "moved; set the LiDAR's range_accuracy_m if it is known to err more)")
-        for lv in lidar_views:
-            if lv.has_terms:
-                range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
     for n, s in solution.noise_scale.items():
         ss, dof = solution.chi2_dof[n]
         if s > 1.0 and chi2.sf(ss, dof) < NOISE_WARNING_P:
@@ -275,6 +274,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if not edge_records and edges:
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")
+    if pins:  # after every solve: the held terms' prior propagated into the covariance, as the pair's
+        solution, pinned_share = with_held_share(names, rig.reference, camera_views, lidar_views, solution, pins)
+    for lv in lidar_views:
+        if lv.has_terms:
+            range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     test = None
     if refine_intrinsics and solution.intrinsics:

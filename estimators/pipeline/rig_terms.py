@@ -11,7 +11,7 @@ from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from ..lidar.lidar_models import range_accuracy_for
 from ..solvers.range_model import FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener, terms_for
-from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, inner_covariance, solve_rig
+from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, inner_covariance
 
 # The prior standard deviation (m) that holds a pinned range term at 0 in the graph.
 HELD_SD_M = 1e-7
@@ -103,31 +103,34 @@ def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.nd
                         "range_accuracy_m in dataset.yaml too small for this sensor")
 
 
-def hold_pinned(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,
-                pinned: dict, refine_intrinsics: bool) -> tuple[list, RigSolution, np.ndarray]:
-    """The LiDARs' range terms named in ``pinned`` (by LiDAR, the names its first pair's refinement held at 0:
-    estimates beyond ``range_model.MAX_PRIOR_SIGMAS`` prior standard deviations) held at 0, as the single pair holds
-    them (``range_terms_choice.consider_pinned``): the graph solved with them held (a prior of ``HELD_SD_M``), and its
-    covariance with their prior variance propagated, ``A^-1 + G P G^T`` with ``G = A^-1 B`` (``A`` the information
-    of everything else, ``B`` its coupling to the held terms, ``P`` their prior covariance). Both come from the
-    joint marginal ``M`` of the free poses and the terms at the held estimate under the terms' own priors: ``A^-1``
-    restricted to them is ``M - M_p M_pp^-1 M_p^T`` and ``G = -M_p M_pp^-1``. Returns the views (the held terms'
-    priors at ``HELD_SD_M``, as the posterior samples them), the solution (its joint covariance and the terms' sds
-    with the propagated share; its inner covariance without it, the posterior's curvature) and that share of the
-    sensors' joint covariance (6N x 6N, ``names`` order, the reference's frame), which the posterior's samples get
-    convolved with."""
-    held = []
+def held_views(lidar_views: list, pinned: dict) -> list:
+    """The views with the range terms named in ``pinned`` (by LiDAR, the names its first pair's refinement held at
+    0: estimates beyond ``range_model.MAX_PRIOR_SIGMAS`` prior standard deviations) held at 0 in the graph, as the
+    single pair holds them, by a prior of ``HELD_SD_M`` (the posterior samples them under it too)."""
+    out = []
     for lv in lidar_views:
         idx = [k for k, n in enumerate(lv.terms.names) if n in pinned.get(lv.name, ())] if lv.has_terms else []
-        sd = np.array(lv.terms.prior_sd, dtype=float) if idx else None
-        if idx:
-            sd[idx] = HELD_SD_M
-        held.append(replace(lv, terms_prior_sd=sd) if idx else lv)
-    solution = solve_rig(names, reference, camera_views, held, solution.T_ref, solution.T_ref_board, refine_intrinsics)
-    M = inner_covariance(names, reference, camera_views, lidar_views, solution)
+        sd = np.array(lv.terms.prior_sd, dtype=float)
+        sd[idx] = HELD_SD_M
+        out.append(replace(lv, terms_prior_sd=sd) if idx else lv)
+    return out
+
+
+def with_held_share(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,
+                    pinned: dict) -> tuple[RigSolution, np.ndarray]:
+    """``solution`` (solved with :func:`held_views`) with the held terms' prior variance propagated into its joint
+    covariance and their standard deviations, as the single pair's ``range_terms_choice.consider_pinned`` does:
+    ``A^-1 + G P G^T`` with ``G = A^-1 B`` (``A`` the information of everything else, ``B`` its coupling to the held
+    terms, ``P`` their prior covariance). Both come from the joint marginal ``M`` of the free poses and the terms
+    at the held estimate under the terms' own priors: ``A^-1`` restricted to them is ``M - M_p M_pp^-1 M_p^T`` and
+    ``G = -M_p M_pp^-1``. Also returns that share of the sensors' joint covariance (6N x 6N, ``names`` order, the
+    reference's frame), which the posterior's samples get convolved with; the solution's inner covariance, the
+    posterior's curvature, is left without it."""
+    free_terms = [replace(lv, terms_prior_sd=None) for lv in lidar_views]
+    M = inner_covariance(names, reference, camera_views, free_terms, solution)
     inner = graph_reference(reference, [c.name for c in camera_views])
     at, p, prior = 6 * (len(names) - 1), [], []
-    for lv in (v for v in lidar_views if v.has_terms):
+    for lv in (v for v in free_terms if v.has_terms):
         for k, n in enumerate(lv.terms.names):
             if n in pinned.get(lv.name, ()):
                 p.append(at + k)
@@ -144,10 +147,10 @@ def hold_pinned(names: tuple, reference: str, camera_views: list, lidar_views: l
     if inner != reference:
         T_inner = {n: np.linalg.inv(solution.T_ref[inner]) @ solution.T_ref[n] for n in names}
         share = change_reference(names, T_inner, share, reference)[1]
+    share = 0.5 * (share + share.T)
     terms, at = dict(solution.range_terms), 6 * (len(names) - 1)
-    for lv in (v for v in held if v.has_terms):
+    for lv in (v for v in free_terms if v.has_terms):
         K = lv.terms.size
         terms[lv.name] = (terms[lv.name][0], np.sqrt(np.maximum(np.diag(full)[at:at + K], 0.0)))
         at += K
-    cov = solution.covariance_joint + 0.5 * (share + share.T)
-    return held, replace(solution, covariance_joint=cov, range_terms=terms), 0.5 * (share + share.T)
+    return replace(solution, covariance_joint=solution.covariance_joint + share, range_terms=terms), share
