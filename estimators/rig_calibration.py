@@ -7,8 +7,9 @@ a frame, found once with the first camera (the one sharing most frames) that sha
 frames with it (``pipeline.measurement.measure_frames`` on that pair) and paired with every other camera's board
 pose of the frame. Each such camera-LiDAR pair is also solved alone as a single pair is (:func:`pair_options`):
 its estimate starts the joint graph and is reported beside it ("pairwise only"), and its refinement weighs the
-LiDAR's boards in the joint graph (each board's plane error, the boards' scatter, its outlier frames left out). Two
-cameras are linked by every frame both saw.
+LiDAR's boards in the joint graph (each board's plane error, the boards' scatter, its outlier frames left out) and
+chooses the LiDAR's range terms (those it held at 0 held there too). Two cameras are linked by every frame both
+saw.
 """
 from __future__ import annotations
 
