@@ -896,6 +896,12 @@ def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     assert abs(rec["value_m"]) < 1e-6 and rec["sd_m"] == pytest.approx(rec["prior_sd_m"], rel=1e-3)
     assert any("held at 0" in w for w in res.warnings)
     assert "offset held at 0 (estimated +2" in range_model_words(rec)
+    # A LiDAR of the same rig without terms (another's held) is left as it is.
+    from dataclasses import replace
+
+    from estimators.pipeline.rig_terms import held_views
+    plain = replace(res.lidar_views[0], ranged=None, terms=None, terms_prior_sd=None)
+    assert held_views([plain], {"lidar0": ("offset",)}) == [plain]
     T, C = res.solution.transform("cam0", "lidar0")
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(T_log(np.linalg.inv(pair.T_camera_lidar) @ T)) < 1e-4 * sd)

@@ -110,9 +110,11 @@ def held_views(lidar_views: list, pinned: dict) -> list:
     out = []
     for lv in lidar_views:
         idx = [k for k, n in enumerate(lv.terms.names) if n in pinned.get(lv.name, ())] if lv.has_terms else []
-        sd = np.array(lv.terms.prior_sd, dtype=float)
-        sd[idx] = HELD_SD_M
-        out.append(replace(lv, terms_prior_sd=sd) if idx else lv)
+        if idx:
+            sd = np.array(lv.terms.prior_sd, dtype=float)
+            sd[idx] = HELD_SD_M
+            lv = replace(lv, terms_prior_sd=sd)
+        out.append(lv)
     return out
 
 
