@@ -29,11 +29,10 @@ from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import held_views, range_record, ranged_views, with_held_share
+from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
-from .solvers.range_model import MAX_PRIOR_SIGMAS, MODEL_TEST_P
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
@@ -143,12 +142,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     board_scatter: dict = {}
     sigma_r: dict = {}
     pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
-    chosen_fits, chosen_by = {}, {}  # per LiDAR its range model's choice (RangeModelFit) and the pair that chose it
+    term_choices: dict = {}  # per LiDAR its range model's choice (RangeModelFit) and the pair that chose it
     for lid in rig.lidars:
         skipped[lid.name] = {}
         # The LiDAR's range model is chosen once, by its pair with the camera that shares the most frames (the
         # first): its other pairs are solved with that model, not tested again on fewer frames.
-        chosen = None
         for (cam_name, lid_name), frames in measured.pairs.items():
             if lid_name != lid.name:
                 continue
@@ -162,7 +160,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 continue
             try:
                 res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
-                            options=alone if chosen is None else replace(alone, range_model=chosen),
+                            options=alone if lid.name not in term_choices else
+                            replace(alone, range_model=term_choices[lid.name][0].chosen),
                             use_extent=False)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
@@ -174,9 +173,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                    f"(posterior mass {masses}); the rig starts from the most probable, and its "
                                    "covariance and posterior hold that one alone: add boards tilted in other "
                                    "directions to decide")
-            if chosen is None and res.refinement.range_model is not None:
-                chosen = res.refinement.range_model.chosen
-                chosen_fits[lid.name], chosen_by[lid.name] = res.refinement.range_model, f"{cam_name}-{lid.name}"
+            if lid.name not in term_choices and res.refinement.range_model is not None:
+                term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             pair_frames[(cam_name, lid.name)] = usable
             links[(cam_name, lid.name)] = len(usable)
@@ -215,48 +213,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                   lid.lidar == "2d", alone)
                    for lid in rig.lidars if lidar_obs[lid.name]]
     solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
-    range_models: dict = {}
-    pinned_share, pins = None, {}  # the range terms held at 0, by LiDAR, and their prior's share of the covariance
+    range_models, pins, pinned_share = {}, {}, None
     if range_model != "none" and lidar_views:
-        # One choice of range terms, the single pair's: each LiDAR's first pair chose its model (its tests, with the
-        # per-board plane error and the boards' scatter modelled, are in the record), placed here on the joint
-        # board poses and weighed as any board is.
-        asked = {n: fit.chosen if range_model == "auto" else range_model for n, fit in chosen_fits.items()}
-        lidar_views, range_models = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked,
-                                                 options.range_accuracy_m)
-        lidar_views = [replace(lv, tau_m=board_scatter.get(lv.name, 0.0)) for lv in lidar_views]
-        for name, record in range_models.items():
-            fit = chosen_fits[name]
-            record.update(requested=range_model, chosen_by=chosen_by[name])
-            if range_model == "auto":
-                record.setdefault("reason", fit.reason)  # unless its terms could not be formed here
-                record.update(tests=list(fit.tests), test_p=MODEL_TEST_P)
-        if any(lv.has_terms for lv in lidar_views):
-            solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
-                                 refine_intrinsics)
-            if any("dark" in lv.terms.names for lv in lidar_views if lv.has_terms):
-                # The black squares placed again on the solution with the terms, blurred by its covariance: a range
-                # offset that the planes absorb moves their placement and would shrink their term.
-                lidar_views = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked,
-                                           options.range_accuracy_m, blurred=True)[0]
-                solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
-                                     refine_intrinsics)
-        ranged = {lv.name for lv in lidar_views if lv.has_terms}
-        pins = {n: fit.pinned for n, fit in chosen_fits.items() if fit.pinned and n in ranged}
-        if pins:
-            lidar_views = held_views(lidar_views, pins)
-            solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board,
-                                 refine_intrinsics)
-            for n in pins:
-                fit = chosen_fits[n]
-                range_models[n]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}
-                                                    for t, v in zip(fit.pinned, fit.pinned_values_m)]
-                said = ", ".join(f"{t} {1000 * v:+.0f} mm" for t, v in zip(fit.pinned, fit.pinned_values_m))
-                warnings.append(f"{n}: its range terms {said} (as {chosen_by[n]} estimated them) lie beyond "
-                                f"{MAX_PRIOR_SIGMAS:.0f} prior standard deviations of its range accuracy: held at 0 "
-                                "with their prior variance propagated into the covariance, as a single pair holds them "
-                                "(likely a term confounded with the extrinsic, a wrong LiDAR segment or a board that "
-                                "moved; set the LiDAR's range_accuracy_m if it is known to err more)")
+        lidar_views, solution, range_models, pins = with_range_terms(
+            rig, lidar_views, lidar_obs, pair_frames, solution, term_choices, range_model, board_scatter,
+            options.range_accuracy_m, warnings,
+            lambda views: solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics))
     for n, s in solution.noise_scale.items():
         ss, dof = solution.chi2_dof[n]
         if s > 1.0 and chi2.sf(ss, dof) < NOISE_WARNING_P:

@@ -1,5 +1,5 @@
 """A rig's LiDAR range terms: each LiDAR's model (its first camera-LiDAR pair's choice under ``auto``), its black
-squares placed on the joint board poses, and its record.
+squares placed on the joint board poses, the terms its pair held at 0 held here too, and its record.
 """
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import numpy as np
 from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from ..lidar.lidar_models import range_accuracy_for
-from ..solvers.range_model import FrameLabels, RangeTerms, frame_labels, frame_rings, frame_whitener, terms_for
+from ..solvers.range_model import (MAX_PRIOR_SIGMAS, MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels,
+                                   frame_rings, frame_whitener, terms_for)
 from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, inner_covariance
 
 # The prior standard deviation (m) that holds a pinned range term at 0 in the graph.
@@ -101,6 +102,48 @@ def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.nd
         warnings.append(f"{name}: its range terms {said} lie beyond 3 times their prior sd (range accuracy "
                         f"{1000 * record['prior_sd_m']:.0f} mm): a wrong board in some frames, or a "
                         "range_accuracy_m in dataset.yaml too small for this sensor")
+
+
+def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution,
+                     choices: dict, range_model: str, board_scatter: dict, range_accuracy_m: float | None,
+                     warnings: list, solve) -> tuple[list, RigSolution, dict, dict]:
+    """The joint graph with every LiDAR's range terms: one choice of them, the single pair's. ``choices``: per
+    LiDAR its first camera-LiDAR pair's ``(RangeModelFit, "<camera>-<lidar>")``, whose model ``auto`` takes (its
+    tests, with the per-board plane error and the boards' scatter modelled, go into the record) and whose held
+    terms (an estimate beyond ``MAX_PRIOR_SIGMAS`` prior sds) are held at 0 here too (:func:`held_views`); a
+    requested ``range_model`` is every LiDAR's. The terms are placed on ``solution``'s board poses (the black
+    squares again on the solution with the terms, blurred by its covariance: a range offset the planes absorb
+    moves their placement and would shrink their term), with ``board_scatter`` (per LiDAR, m) as their pair
+    weighed them; ``solve(views)`` solves the joint graph. Returns the views, the solution, per LiDAR its record
+    and the held terms' names (for :func:`with_held_share`, once every solve is done); warnings are added."""
+    asked = {n: fit.chosen if range_model == "auto" else range_model for n, (fit, _) in choices.items()}
+    views, records = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked, range_accuracy_m)
+    ranged = {lv.name for lv in views if lv.has_terms}
+    pins = {n: fit.pinned for n, (fit, _) in choices.items() if fit.pinned and n in ranged}
+    views = held_views([replace(lv, tau_m=board_scatter.get(lv.name, 0.0)) for lv in views], pins)
+    for name, record in records.items():
+        fit, by = choices[name]
+        record.update(requested=range_model, chosen_by=by)
+        if range_model == "auto":
+            record.setdefault("reason", fit.reason)  # unless its terms could not be formed here
+            record.update(tests=list(fit.tests), test_p=MODEL_TEST_P)
+    for name in pins:
+        fit, by = choices[name]
+        records[name]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}
+                                          for t, v in zip(fit.pinned, fit.pinned_values_m)]
+        said = ", ".join(f"{t} {1000 * v:+.0f} mm" for t, v in zip(fit.pinned, fit.pinned_values_m))
+        warnings.append(f"{name}: its range terms {said} (as {by} estimated them) lie beyond {MAX_PRIOR_SIGMAS:.0f} "
+                        "prior standard deviations of its range accuracy: held at 0 with their prior variance "
+                        "propagated into the covariance, as a single pair holds them (likely a term confounded with "
+                        "the extrinsic, a wrong LiDAR segment or a board that moved; set the LiDAR's "
+                        "range_accuracy_m if it is known to err more)")
+    if ranged:
+        solution = solve(views)
+        if any("dark" in lv.terms.names for lv in views if lv.has_terms):
+            views = held_views(ranged_views(rig, views, lidar_obs, pair_frames, solution, asked, range_accuracy_m,
+                                            blurred=True)[0], pins)
+            solution = solve(views)
+    return views, solution, records, pins
 
 
 def held_views(lidar_views: list, pinned: dict) -> list:

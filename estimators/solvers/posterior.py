@@ -334,7 +334,8 @@ def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, c
         covariance, centre = np.cov(tail, rowvar=False), tail.mean(axis=0)
         initial = pilot.chain[-1]
     try:
-        proposal = LaplaceProposal(0.5 * (covariance + covariance.T), centre=centre, **({} if pilot is None else PILOT_TUNED))
+        proposal = LaplaceProposal(0.5 * (covariance + covariance.T), centre=centre,
+                                   **({} if pilot is None else PILOT_TUNED))
     except np.linalg.LinAlgError:  # a direction the pilot did not move in: the ensemble moves alone
         return run_ensemble(log_prob, initial, rng, min_ess, max_steps, chunk, progress, label)
     moves = [(emcee.moves.MHMove(proposal), 0.7), (emcee.moves.DEMove(), 0.3)]
