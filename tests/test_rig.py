@@ -514,6 +514,9 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
     post = sample_rig_posterior(sol, list(rig_result.camera_views), list(rig_result.lidar_views),
                                 np.random.default_rng(3), min_ess=300)
     assert post.run.converged and post.xi.shape[1] == 36 and np.all(post.xi[:, :6] == 0.0)
+    from dataclasses import replace
+
+    sampled = replace(rig_result, posterior=post)
     for a, b in rig_result.pairs():
         T, C = sol.transform(a, b)
         s = post.pair_samples(a, b)
@@ -524,17 +527,17 @@ def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one
         d2 = xi @ np.linalg.solve(np.cov(s, rowvar=False), xi)
         assert d2 < 22.5, (a, b)
         # the pair's credible region holds its share of the pair's samples, never below a Gaussian's, and the truth
-        region = post.pair_summary(a, b)["credible_regions"]["99.9%"]
+        region = sampled.pair(a, b).summary()["credible_regions"]["99.9%"]
         inside = np.mean(np.einsum("ni,ni->n", s, np.linalg.solve(np.cov(s, rowvar=False), s.T).T) <= region["d2"])
         assert region["d2"] >= region["gaussian_d2"] and inside >= 0.999 and d2 <= region["d2"], (a, b)
     # the result's pair gives it as a single pair's result does: its estimate, the samples' covariance, the frames
-    from dataclasses import replace
-
-    pe = replace(rig_result, posterior=post).pair("cam1", "lidar0")
+    pe = sampled.pair("cam1", "lidar0")
     assert pe.samples is post.pair_samples("cam1", "lidar0") and pe.frames == rig_result.links[("cam1", "lidar0")] > 0
     np.testing.assert_array_equal(pe.T_camera_lidar, sol.transform("cam1", "lidar0")[0])
     np.testing.assert_allclose(pe.covariance, np.cov(pe.samples, rowvar=False))
     np.testing.assert_allclose(pe.std_translation_mm, 1000 * np.sqrt(np.diag(pe.covariance)[3:]))
+    # the reverse pair's samples are each joint sample's, composed the other way: -Ad_T of the forward ones
+    np.testing.assert_allclose(pe.inverse().samples, sampled.pair("lidar0", "cam1").samples, atol=1e-12)
     with pytest.raises(KeyError, match="cam7"):
         rig_result.pair("cam7", "lidar0")
     s01, s0l, s1l = (post.pair_samples(*p)[:50] for p in (("cam0", "cam1"), ("cam0", "lidar0"), ("cam1", "lidar0")))
@@ -676,6 +679,9 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 30 and "posterior (emcee" in run.stdout
     iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
     assert all(lo < 0 < hi for lo, hi in iv)
+    # printed under each camera-LiDAR pair as a single pair prints its own (PairEstimate.intervals)
+    assert run.stdout.count("    95% intervals: rotation [") == 9
+    assert f"translation [{iv[0][0]:+.2f}, {iv[0][1]:+.2f}]" in run.stdout
     assert cal["transforms"]["T_cam2_lidar0"]["posterior"]["credible_regions"]["99.9%"]["d2"] >= 22.45
     with np.load(out / "posterior.npz") as npz:
         assert npz["xi"].shape[1] == 36 and list(npz["names"]) == [s["name"] for s in cal["sensors"]]
@@ -686,6 +692,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
     assert "emcee over 30 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
+    assert all(f"T_cam{k}_{s}: Intervals" in page for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
     assert shown and all(name in page for name in shown)
     # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)
@@ -875,6 +882,14 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(xi) < 1e-5 * sd), xi / sd
     assert np.max(np.abs(C - pair.covariance) / np.outer(sd, sd)) < 1e-6
+    # both records give either order of the pair alike (T_lidar_camera: the tangent carried by -Ad_T, exactly)
+    for a, b in (("cam0", "lidar0"), ("lidar0", "cam0")):
+        mine, theirs = pair.pair(a, b), res.pair(a, b)
+        sd_ab = np.sqrt(np.diag(theirs.covariance))
+        assert np.all(np.abs(T_log(np.linalg.inv(mine.T) @ theirs.T)) < 1e-5 * sd_ab)
+        assert np.max(np.abs(mine.covariance - theirs.covariance) / np.outer(sd_ab, sd_ab)) < 1e-6
+    with pytest.raises(KeyError, match="cam0"):
+        pair.pair("cam1", "lidar0")
 
 
 def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):

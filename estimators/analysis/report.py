@@ -24,6 +24,7 @@ from ..io.output import write_atomic
 from ..io.pointcloud_io import read_scan, read_scan_2d
 from ..solvers.closed_form import describe_direction
 from ..solvers.factors import lidar_plane
+from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.range_model import frame_labels, point_residuals
 from .figure_process import FigureProcess
 from .top_view import top_view_png
@@ -345,23 +346,8 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
              f"{np.round(T[:3, 3], 4).tolist()} m; frames used {result.frames_used} of {len(result.frames)}; "
              f"refine {result.refine}</p>"]
     if result.covariance is not None:
-        kind = "posterior" if result.posterior is not None else "Laplace"
-        rows = [["rotation about LiDAR x/y/z [deg]"] + [f"{v:.4f}" for v in result.std_rotation_deg],
-                ["translation along LiDAR x/y/z [mm]"] + [f"{v:.2f}" for v in result.std_translation_mm],
-                ["t in camera x/y/z [mm]"] + [f"{v:.2f}" for v in result.std_translation_camera_mm]]
-        parts.append(f"<h2>Standard deviations ({kind})</h2>" + _table(rows, ["", "x", "y", "z"]))
+        parts.append(spread_section(result.pair(), "posterior" if result.posterior is not None else "Laplace"))
     if result.posterior is not None:
-        rows = []
-        for level, iv in result.posterior.summary().items():
-            for key, unit in (("rotation_deg_about_lidar_xyz", "deg"), ("translation_mm_along_lidar_xyz", "mm")):
-                rows.append([f"{level} {key.split('_')[0]} [{unit}]"]
-                            + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv[key]])
-        parts.append("<h2>Intervals (offsets from the estimate, GTSAM tangent)</h2>" + _table(rows, ["", "x", "y", "z"]))
-        regions = result.posterior.regions()
-        parts.append("<p>Credible regions: the covariance's ellipsoid about the estimate holding 99% / 99.9% of the "
-                     f"samples reaches a squared Mahalanobis distance of {regions['99%']['d2']:.1f} / "
-                     f"{regions['99.9%']['d2']:.1f} (a Gaussian's: {regions['99%']['gaussian_d2']:.1f} / "
-                     f"{regions['99.9%']['gaussian_d2']:.1f}).</p>")
         d = result.posterior.diagnostics()
         parts.append(f"<p>MCMC ({d['likelihood']}): {d['walkers']} walkers x {d['steps']} steps, burn-in "
                      f"{d['burn_in']}, tau {max(d['tau_steps']):.1f} steps, acceptance "
@@ -433,6 +419,29 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         data = base64.b64encode(png).decode("ascii")
         parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
     return html_page("lidarcam report", parts)
+
+
+def spread_section(p, kind: str, title: str = "") -> str:
+    """A camera-LiDAR pair's standard deviations (``kind``: posterior or Laplace) and, when sampled, its intervals
+    and credible regions, as HTML (``p``: a ``PairEstimate``; a single pair's and each of a rig's alike)."""
+    rows = [["rotation about LiDAR x/y/z [deg]"] + [f"{v:.4f}" for v in p.std_rotation_deg],
+            ["translation along LiDAR x/y/z [mm]"] + [f"{v:.2f}" for v in p.std_translation_mm],
+            ["t in camera x/y/z [mm]"] + [f"{v:.2f}" for v in p.std_translation_camera_mm]]
+    out = f"<h2>{title}Standard deviations ({kind})</h2>" + _table(rows, ["", "x", "y", "z"])
+    summary = p.summary()
+    if summary is None:
+        return out
+    rows = []
+    for level in INTERVAL_LEVELS:
+        iv = summary[f"{round(100 * level)}%"]
+        rows.append([f"{round(100 * level)}% rotation [deg]"] + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv["rotation_deg"]])
+        rows.append([f"{round(100 * level)}% translation [mm]"]
+                    + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv["translation_mm"]])
+    regions = summary["credible_regions"]
+    return (out + f"<h2>{title}Intervals (offsets from the estimate, GTSAM tangent)</h2>" + _table(rows, ["", "x", "y", "z"])
+            + "<p>Credible regions: the covariance's ellipsoid about the estimate holding 99% / 99.9% of the samples "
+            f"reaches a squared Mahalanobis distance of {regions['99%']['d2']:.1f} / {regions['99.9%']['d2']:.1f} (a "
+            f"Gaussian's: {regions['99%']['gaussian_d2']:.1f} / {regions['99.9%']['gaussian_d2']:.1f}).</p>")
 
 
 def html_page(title: str, parts: list[str]) -> str:

@@ -1,7 +1,7 @@
 """A rig's report: every sensor and every pair from the joint graph beside each camera-LiDAR pair alone, the
-warnings, each camera-LiDAR pair's posterior (the single pair's corner plot, ``analysis.report_figures``) and its
-frames with the LiDAR's points and board outline drawn into the image under the joint estimate (the single pair's
-overlay, ``analysis.report.projection_figure``)."""
+warnings, each camera-LiDAR pair's spread and posterior (the single pair's tables, ``analysis.report.spread_section``,
+and corner plot, ``analysis.report_figures``) and its frames with the LiDAR's points and board outline drawn into
+the image under the joint estimate (the single pair's overlay, ``analysis.report.projection_figure``)."""
 from __future__ import annotations
 
 import html
@@ -13,7 +13,7 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import _table, html_page, projection_figure
+from .report import _table, html_page, projection_figure, spread_section
 from .rig_layout import next_pose_words
 
 
@@ -33,7 +33,7 @@ def _pair_rows(result) -> list[list[str]]:
         else:
             row += ["-", "-", "-"]
         if result.posterior is not None:
-            summary = result.posterior.pair_summary(a, b)
+            summary = result.pair(a, b).summary()
             row.append(", ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in summary["95%"]["translation_mm"]))
             row.append(f"{summary['credible_regions']['99.9%']['d2']:.1f}")
         rows.append(row)
@@ -82,6 +82,11 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                                                "pair alone: away", "pair alone: t sd [mm]"]
                           + (["posterior 95%: t [mm]", "99.9% region: d2 (a Gaussian's 22.5)"]
                              if post is not None else [])))
+    kind = "posterior" if post is not None else "Laplace"
+    for c in result.rig.cameras:  # each camera-LiDAR pair's spread as a single pair's report gives it
+        for lid in result.rig.lidars:
+            parts.append(spread_section(result.pair(c.name, lid.name), kind,
+                                        f"T_{html.escape(c.name)}_{html.escape(lid.name)}: "))
     if result.outline_checks:
         rows = []
         for (a, b), e in result.outline_checks.items():

@@ -1,4 +1,5 @@
-"""What the command line prints of a result: a pair's estimate, noise, range terms, edges and posterior; a rig's."""
+"""What the command line prints of a result: a pair's estimate, noise, range terms, edges and posterior; a rig's,
+each camera-LiDAR pair's intervals as a single pair's (``PairEstimate``)."""
 from __future__ import annotations
 
 
@@ -49,11 +50,10 @@ def print_result(result, truth=None) -> None:
               f"{max(d['tau_steps']):.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s; "
               f"99.9% region: squared Mahalanobis distance up to {post.region_d2(0.999):.1f} under the covariance "
               "(a Gaussian's 22.5)")
-        for level, iv in post.summary().items():
-            rot = iv["rotation_deg_about_lidar_xyz"]
-            tr = iv["translation_mm_along_lidar_xyz"]
-            print(f"  {level} intervals: rotation " + "  ".join(f"[{a:+.3f}, {b:+.3f}]" for a, b in rot) + " deg")
-            print(f"  {'':14s}translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in tr) + " mm")
+        from ..solvers.posterior import INTERVAL_LEVELS
+
+        for level in INTERVAL_LEVELS:
+            _print_intervals(result.pair(), level)
     if truth is not None:
         rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
         tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
@@ -67,6 +67,17 @@ def print_result(result, truth=None) -> None:
                   f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
     for w in result.warnings:
         print(f"warning: {w}")
+
+
+def _print_intervals(p, level: float, indent: str = "  ") -> None:
+    """A pair's equal-tailed posterior intervals at ``level`` (``PairEstimate.intervals``): degrees about, and
+    millimetres along, its second sensor's axes."""
+    import numpy as np
+
+    iv = p.intervals(level)
+    head = f"{indent}{round(100 * level)}% intervals: "
+    print(head + "rotation " + "  ".join(f"[{a:+.3f}, {b:+.3f}]" for a, b in np.degrees(iv[:3])) + " deg")
+    print(" " * len(head) + "translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in 1000 * iv[3:]) + " mm")
 
 
 def _print_intrinsics(fit) -> None:
@@ -181,6 +192,8 @@ def print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
+        if p.samples is not None and (a, b) in result.pairwise:  # a camera-LiDAR pair's, as a single pair's
+            _print_intervals(p, 0.95, indent="    ")
     for n, e in result.edges.items():
         print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
               f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "

@@ -18,6 +18,7 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.intrinsics_refinement import IntrinsicsFit
 from ..solvers.posterior import Posterior
 from ..solvers.refinement import Refinement, contradiction
+from .pair_estimate import PairEstimate
 
 if TYPE_CHECKING:  # the 2D solvers are imported where they are used (they load scipy.optimize)
     from ..solvers.solution_selection import MinimalSelection
@@ -141,6 +142,16 @@ class CalibrationResult:
             return None
         R = self.T_camera_lidar[:3, :3]
         return 1000 * np.sqrt(np.diag(R @ c[3:, 3:] @ R.T))
+
+    def pair(self, a: str = "cam0", b: str = "lidar0") -> PairEstimate:
+        """The pair as a rig's result gives it (``RigResult.pair``): a single pair's sensors are ``cam0`` and
+        ``lidar0``, the names its folder takes as a rig; ``pair("lidar0", "cam0")`` gives ``T_lidar_camera``."""
+        est = PairEstimate("cam0", "lidar0", self.T_camera_lidar, self.covariance, self.samples, self.frames_used)
+        if (a, b) == ("cam0", "lidar0"):
+            return est
+        if (a, b) == ("lidar0", "cam0"):
+            return est.inverse()
+        raise KeyError(f"{a!r}, {b!r}: a single pair's sensors are 'cam0' and 'lidar0'")
 
     def report(self, out_dir: str | Path) -> Path:
         """Write ``OUT/report.html`` and its figures (needs the dataset folder this result came from)."""

@@ -15,46 +15,13 @@ from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
 from ..solvers.rig_graph import RigSolution, translation_sd_in_first
 from ..solvers.rig_posterior import RigPosterior
+from .pair_estimate import PairEstimate
 from .rig_measurement import MIN_PAIR_FRAMES
 
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
 # (``rig_graph.solve_rig``); the warning that its factors disagree beyond their noise is given when its chi-square
 # is beyond this tail probability.
 NOISE_WARNING_P = 0.01
-
-
-@dataclass(frozen=True, eq=False)
-class PairEstimate:
-    """One pair of a rig's sensors, as a single pair's result gives it: ``T`` (``T_a_b``: maps b's points into
-    a's frame; for a camera and a LiDAR, ``T_camera_lidar``) and its 6x6 ``covariance`` in the right tangent (the
-    posterior samples' when the rig's posterior was sampled, else the joint graph's), the tangent ``samples``
-    (M x 6, or None), and the frames the two share with the board found in both."""
-
-    a: str
-    b: str
-    T: np.ndarray
-    covariance: np.ndarray
-    samples: np.ndarray | None
-    frames: int
-
-    @property
-    def T_camera_lidar(self) -> np.ndarray:
-        return self.T
-
-    @property
-    def std_rotation_deg(self) -> np.ndarray:
-        """About b's axes (degrees)."""
-        return np.degrees(np.sqrt(np.maximum(np.diag(self.covariance)[:3], 0.0)))
-
-    @property
-    def std_translation_mm(self) -> np.ndarray:
-        """Along b's axes (millimetres): the right tangent's."""
-        return 1000 * np.sqrt(np.maximum(np.diag(self.covariance)[3:], 0.0))
-
-    @property
-    def std_translation_camera_mm(self) -> np.ndarray:
-        """Of the entries of ``T``'s translation, in a's frame (millimetres)."""
-        return 1000 * translation_sd_in_first(self.T, self.covariance)
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,7 +173,7 @@ class RigResult:
         posterior = None
         if self.posterior is not None:
             for a, b in self.pairs():
-                transforms[f"T_{a}_{b}"]["posterior"] = self.posterior.pair_summary(a, b)
+                transforms[f"T_{a}_{b}"]["posterior"] = self.pair(a, b).summary()
             posterior = {**self.posterior.diagnostics(), "covariance_joint": self.posterior.covariance_joint.tolist(),
                          "file": "posterior.npz"}
         pairwise = {f"T_{c}_{lid}": {**entry(T, cov), "frames": n} for (c, lid), (T, cov, n) in self.pairwise.items()}

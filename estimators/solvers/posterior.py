@@ -119,6 +119,10 @@ class ChainResult:
 HEAVY_TAIL_FACTOR = 2.0
 
 
+# The equal-tailed intervals every posterior summary gives (calibration.json, printout, reports).
+INTERVAL_LEVELS = (0.68, 0.95)
+
+
 def mahalanobis_d2(samples: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance of tangent offsets ``xi`` (rows; from the estimate the samples' tangent is
     taken at) under the covariance of ``samples`` (M, 6)."""
@@ -203,7 +207,7 @@ class Posterior:
     def summary(self) -> dict:
         """Intervals in degrees (rotation about the LiDAR's axes) and millimetres (translation along them)."""
         out = {}
-        for level in (0.68, 0.95):
+        for level in INTERVAL_LEVELS:
             iv = self.intervals(level)
             out[f"{round(100 * level)}%"] = {"rotation_deg_about_lidar_xyz": np.degrees(iv[:3]).tolist(),
                                             "translation_mm_along_lidar_xyz": (1000 * iv[3:]).tolist()}

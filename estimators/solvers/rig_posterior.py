@@ -35,7 +35,7 @@ from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
-from .posterior import ChainResult, regions, run_with_proposal
+from .posterior import ChainResult, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
 from .rig_graph import RigSolution, change_reference, graph_reference
 
@@ -79,21 +79,6 @@ class RigPosterior:
         T_hat = np.linalg.inv(self.T_ref[a]) @ self.T_ref[b]
         Rh, th = T_hat[:3, :3], T_hat[:3, 3]
         return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
-
-    def pair_summary(self, a: str, b: str) -> dict:
-        """``T_a_b``'s posterior standard deviations, equal-tailed 68% and 95% intervals (degrees about, and
-        millimetres along, b's axes: the right tangent) and credible regions (``posterior.regions``: the
-        covariance's ellipsoid about the estimate holding 99% and 99.9% of the samples)."""
-        s = self.pair_samples(a, b)
-        sd = np.std(s, axis=0, ddof=1)
-        out = {"std_rotation_deg": np.degrees(sd[:3]).tolist(), "std_translation_mm": (1000 * sd[3:]).tolist()}
-        for level in (0.68, 0.95):
-            q = 100 * (1 - level) / 2
-            iv = np.percentile(s, [q, 100 - q], axis=0).T
-            out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
-                                            "translation_mm": (1000 * iv[3:]).tolist()}
-        out["credible_regions"] = regions(s)
-        return out
 
     def diagnostics(self) -> dict:
         r = self.run

@@ -1,0 +1,81 @@
+"""One pair of sensors' estimate, as every result gives it (``result.pair(a, b)``, a single pair's and a rig's
+alike): the transform, its covariance and samples, and what is read from them (standard deviations, intervals,
+credible regions). The printout and the reports show a pair from this record alone."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.rotations import skew
+
+from ..solvers.posterior import INTERVAL_LEVELS, regions
+from ..solvers.rig_graph import translation_sd_in_first
+
+
+@dataclass(frozen=True, eq=False)
+class PairEstimate:
+    """Sensors ``a`` and ``b``: ``T`` (``T_a_b``: maps b's points into a's frame; for a camera and a LiDAR,
+    ``T_camera_lidar``) and its 6x6 ``covariance`` in the right tangent (the posterior samples' when sampled, else
+    the graph's Laplace one; None without a refinement), the tangent ``samples`` (M x 6, or None), and the frames
+    the two share with the board found in both."""
+
+    a: str
+    b: str
+    T: np.ndarray
+    covariance: np.ndarray | None
+    samples: np.ndarray | None
+    frames: int
+
+    @property
+    def T_camera_lidar(self) -> np.ndarray:
+        return self.T
+
+    @property
+    def std_rotation_deg(self) -> np.ndarray | None:
+        """About b's axes (degrees)."""
+        c = self.covariance
+        return None if c is None else np.degrees(np.sqrt(np.maximum(np.diag(c)[:3], 0.0)))
+
+    @property
+    def std_translation_mm(self) -> np.ndarray | None:
+        """Along b's axes (millimetres): the right tangent's."""
+        c = self.covariance
+        return None if c is None else 1000 * np.sqrt(np.maximum(np.diag(c)[3:], 0.0))
+
+    @property
+    def std_translation_camera_mm(self) -> np.ndarray | None:
+        """Of the entries of ``T``'s translation, in a's frame (millimetres)."""
+        return None if self.covariance is None else 1000 * translation_sd_in_first(self.T, self.covariance)
+
+    def intervals(self, level: float) -> np.ndarray | None:
+        """The samples' equal-tailed intervals (6, 2) of each tangent axis at ``level``, or None unsampled."""
+        if self.samples is None:
+            return None
+        q = 100 * (1 - level) / 2
+        return np.percentile(self.samples, [q, 100 - q], axis=0).T
+
+    def summary(self) -> dict | None:
+        """The samples' standard deviations, equal-tailed intervals at ``INTERVAL_LEVELS`` (degrees about, and
+        millimetres along, b's axes: the right tangent) and credible regions (``posterior.regions``: the
+        covariance's ellipsoid about the estimate holding 99% and 99.9% of the samples); None unsampled."""
+        if self.samples is None:
+            return None
+        sd = np.std(self.samples, axis=0, ddof=1)
+        out = {"std_rotation_deg": np.degrees(sd[:3]).tolist(), "std_translation_mm": (1000 * sd[3:]).tolist()}
+        for level in INTERVAL_LEVELS:
+            iv = self.intervals(level)
+            out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
+                                            "translation_mm": (1000 * iv[3:]).tolist()}
+        out["credible_regions"] = regions(self.samples)
+        return out
+
+    def inverse(self) -> "PairEstimate":
+        """``T_b_a``: exactly, ``(T Exp(xi))^-1 = T^-1 Exp(-Ad_T xi)``, so the tangent maps by ``-Ad_T``."""
+        R, t = self.T[:3, :3], self.T[:3, 3]
+        ad = np.zeros((6, 6))
+        ad[:3, :3] = ad[3:, 3:] = R
+        ad[3:, :3] = skew(t) @ R
+        cov = None if self.covariance is None else ad @ self.covariance @ ad.T
+        samples = None if self.samples is None else -self.samples @ ad.T
+        return PairEstimate(self.b, self.a, np.linalg.inv(self.T), cov, samples, self.frames)
