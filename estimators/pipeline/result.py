@@ -124,24 +124,18 @@ class CalibrationResult:
 
     @property
     def std_rotation_deg(self) -> np.ndarray | None:
-        """Standard deviations of the rotation about the LiDAR's x, y, z axes (degrees)."""
-        c = self.covariance
-        return None if c is None else np.degrees(np.sqrt(np.diag(c)[:3]))
+        """Standard deviations of the rotation about the LiDAR's x, y, z axes (degrees): :meth:`pair`'s."""
+        return self.pair().std_rotation_deg
 
     @property
     def std_translation_mm(self) -> np.ndarray | None:
-        """Standard deviations of the translation along the LiDAR's x, y, z axes (millimetres)."""
-        c = self.covariance
-        return None if c is None else 1000 * np.sqrt(np.diag(c)[3:])
+        """Standard deviations of the translation along the LiDAR's x, y, z axes (millimetres): :meth:`pair`'s."""
+        return self.pair().std_translation_mm
 
     @property
     def std_translation_camera_mm(self) -> np.ndarray | None:
         """Standard deviations of the entries of ``t`` in ``T_camera_lidar`` (camera axes, millimetres)."""
-        c = self.covariance
-        if c is None:
-            return None
-        R = self.T_camera_lidar[:3, :3]
-        return 1000 * np.sqrt(np.diag(R @ c[3:, 3:] @ R.T))
+        return self.pair().std_translation_camera_mm
 
     def pair(self, a: str = "cam0", b: str = "lidar0") -> PairEstimate:
         """The pair as a rig's result gives it (``RigResult.pair``): a single pair's sensors are ``cam0`` and
