@@ -217,6 +217,9 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     capsys.readouterr()
     print_result(result)
     assert capsys.readouterr().out.startswith("AMBIGUOUS: 2 distinct solutions")
+    from estimators.analysis.report import alarm_parts  # the report opens with it too
+
+    assert alarm_parts(result)[0].startswith("<p><b>AMBIGUOUS</b>: 2 distinct solutions fit the boards")
     args = build_parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
     assert exit_code(args, result) == EXIT_AMBIGUOUS
     assert exit_code(build_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0

@@ -991,6 +991,9 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     capsys.readouterr()
     print_rig(res)
     assert capsys.readouterr().out.startswith("AMBIGUOUS: T_cam0_lidar0: 2 distinct solutions")
+    from estimators.analysis.report import alarm_parts  # the rig's report opens with it, as a single pair's does
+
+    assert alarm_parts(res)[0].startswith("<p><b>AMBIGUOUS</b>: T_cam0_lidar0: 2 distinct solutions fit its boards")
     strict = build_parser().parse_args(["calibrate", str(sim_vlp16), "--out", "out", "--strict"])
     assert exit_code(strict, res) == 3
 

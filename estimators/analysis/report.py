@@ -338,7 +338,7 @@ def _figures(result, dataset: Dataset, process: FigureProcess
 
 def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> str:
     T = result.T_camera_lidar
-    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>",
+    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>", *alarm_parts(result),
              "<h2>Estimate</h2><p>T_camera_lidar maps LiDAR points into the camera frame: "
              "p_camera = R p_lidar + t.</p><pre>" + "\n".join("  ".join(f"{v:+.6f}" for v in row) for row in T)
              + "</pre>",
@@ -419,6 +419,12 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         data = base64.b64encode(png).decode("ascii")
         parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
     return html_page("lidarcam report", parts)
+
+
+def alarm_parts(result) -> list[str]:
+    """The result's alarms (``alarms()``: UNTRUSTED, AMBIGUOUS), each a bold paragraph, for the page's top."""
+    return [f"<p><b>{html.escape(a.split(':', 1)[0])}</b>:{html.escape(a.split(':', 1)[1])}</p>"
+            for a in result.alarms()]
 
 
 def spread_section(p, kind: str, title: str = "") -> str:

@@ -10,14 +10,8 @@ def print_result(result, truth=None) -> None:
 
     T = result.T_camera_lidar
     np.set_printoptions(precision=5, suppress=True)
-    if result.contradicted:
-        print(f"UNTRUSTED: {result.contradicted}. Both estimates are in calibration.json (board_edges, "
-              "planes_against_edges); check board.size and the boards' outlines in the report, and add boards.")
-    if result.ambiguous:
-        masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
-        print(f"AMBIGUOUS: {len(result.modes)} distinct solutions fit the boards (posterior mass {masses}); the most "
-              "probable is shown, the intervals cover every mode, and calibration.json lists each with its "
-              "covariance. Add boards tilted in other directions to decide.")
+    for line in result.alarms():
+        print(line)
     print(f"T_camera_lidar (p_camera = R p_lidar + t), {result.init}, refine {result.refine}:")
     for row in T:
         print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
@@ -154,11 +148,8 @@ def print_rig(result) -> None:
     from ..solvers.outline_check import outline_shift_words
 
     sol = result.solution
-    for (cam, lid), modes in result.ambiguous_pairs.items():
-        print(f"AMBIGUOUS: T_{cam}_{lid}: {len(modes)} distinct solutions fit its boards (posterior mass "
-              f"{', '.join(f'{m.mass:.0%}' for m in modes)}); the most probable is shown, and every interval below "
-              "holds that one alone (calibration.json lists each with its covariance). Add boards tilted in other "
-              "directions to decide.")
+    for line in result.alarms():
+        print(line)
     for w in result.warnings[:0 if result.ambiguous else 1]:
         print(f"warning: {w}")
     post = result.posterior

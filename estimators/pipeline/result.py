@@ -33,6 +33,17 @@ COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m
                          "T_true = T_hat * Exp(xi), so both parts are along the LiDAR's axes")
 
 
+def ambiguity_words(modes, which: str = "the boards", mixed: bool = True) -> str:
+    """What an ambiguous answer says first (``modes``: ``solution_selection.Mode``, the most probable first):
+    ``mixed`` when its intervals cover every mode (a single pair's posterior mixes them), else they hold the most
+    probable alone (a rig's joint graph starts from it)."""
+    masses = ", ".join(f"{m.mass:.0%}" for m in modes)
+    held = "the intervals cover every mode" if mixed else "every interval holds that one alone"
+    return (f"{len(modes)} distinct solutions fit {which} (posterior mass {masses}); the most probable is shown, "
+            f"{held}, and calibration.json lists each with its covariance. Add boards tilted in other directions to "
+            "decide.")
+
+
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
     """The estimate and everything a reader needs to judge it; frames keep their measurements.
@@ -209,6 +220,19 @@ class CalibrationResult:
         """A second minimum holds at least ``AMBIGUOUS_MASS`` of the posterior mass: the printed result starts
         with it, and ``--strict`` exits non-zero."""
         return any(m.mass >= AMBIGUOUS_MASS for m in self.modes[1:])
+
+    def alarms(self) -> list[str]:
+        """What the printout and the report say before the estimate: an answer its edges contradict
+        (``UNTRUSTED``) or that its boards leave ambiguous (``AMBIGUOUS``); ``--strict`` exits non-zero on
+        either."""
+        out = []
+        if self.contradicted:
+            out.append(f"UNTRUSTED: {self.contradicted}. Both estimates are in calibration.json (board_edges, "
+                       "planes_against_edges); check board.size and the boards' outlines in the report, and add "
+                       "boards.")
+        if self.ambiguous:
+            out.append("AMBIGUOUS: " + ambiguity_words(self.modes))
+        return out
 
     def _minimal_dict(self) -> dict:
         sel = self.selection

@@ -16,6 +16,7 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.rig_graph import RigSolution, translation_sd_in_first
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
+from .result import ambiguity_words
 from .rig_measurement import MIN_PAIR_FRAMES
 
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
@@ -95,6 +96,12 @@ class RigResult:
         """As a single pair's result: a rig's edges enter its graph or check it, and are not tested against its
         planes as one answer (None)."""
         return None
+
+    def alarms(self) -> list[str]:
+        """What the printout and the report say first, as a single pair's result does: each camera-LiDAR pair
+        whose own boards leave it ambiguous (``AMBIGUOUS``; ``--strict`` exits non-zero)."""
+        return [f"AMBIGUOUS: T_{c}_{lid}: " + ambiguity_words(modes, "its boards", mixed=False)
+                for (c, lid), modes in self.ambiguous_pairs.items()]
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
