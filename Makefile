@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(RECORD) pipeline -- $(PY) benchmarks/bench_pipeline.py
 	$(RECORD) refinement -- $(PY) benchmarks/bench_refinement.py
 	$(RECORD) posterior -- $(PY) benchmarks/bench_posterior.py
+	$(RECORD) e2e_bias -- $(PY) benchmarks/bench_e2e_bias.py
 	$(RECORD) layout -- $(PY) benchmarks/bench_layout.py
 	$(RECORD) realdata -- $(PY) benchmarks/bench_realdata.py
 	$(RECORD) scenes -- $(PY) benchmarks/bench_scenes.py
