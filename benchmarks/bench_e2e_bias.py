@@ -1,6 +1,8 @@
-"""Is the end-to-end chain biased? The truth's offsets from the estimate, in standard deviations, over simulated
-datasets (rendered images, ray-cast sweeps, the pipeline's defaults), and where a shift would come from: each
-frame's camera board-plane distance and LiDAR plane distance (mapped by the true extrinsic) against the true board.
+"""End-to-end bias: the truth's offsets from the estimate over independent sets of simulated datasets.
+
+In standard deviations, over datasets rendered and ray cast end to end (the pipeline's defaults), and where a
+shift would come from: each frame's camera board-plane distance and LiDAR plane distance (mapped by the true
+extrinsic) against the true board.
 
 Trials draw their seeds as ``lidarcam study coverage`` does (``SeedSequence(seed)``), so ``--seed 0`` holds the
 posterior page's end-to-end datasets (its first N) and other seeds independent ones.
