@@ -183,8 +183,8 @@ def print_rig(result) -> None:
             line += (f" [pairwise {np.degrees(np.linalg.norm(xi[:3])):.3f} deg, {1000 * np.linalg.norm(xi[3:]):.1f} mm "
                      "away]")
         print(line)
-        if p.samples is not None and (a, b) in result.pairwise:  # a camera-LiDAR pair's, as a single pair's
-            _print_intervals(p, 0.95, indent="    ")
+        if p.samples is not None and result.rig.sensor(a).is_camera and not result.rig.sensor(b).is_camera:
+            _print_intervals(p, 0.95, indent="    ")  # a camera-LiDAR pair's, as a single pair prints its own
     for n, e in result.edges.items():
         print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
               f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "
