@@ -680,7 +680,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
     assert all(lo < 0 < hi for lo, hi in iv)
     # printed under each camera-LiDAR pair as a single pair prints its own (PairEstimate.intervals)
-    assert run.stdout.count("    95% intervals: rotation [") == 9
+    assert run.stdout.count("    95% intervals (about/along ") == 9
     assert f"translation [{iv[0][0]:+.2f}, {iv[0][1]:+.2f}]" in run.stdout
     assert cal["transforms"]["T_cam2_lidar0"]["posterior"]["credible_regions"]["99.9%"]["d2"] >= 22.45
     with np.load(out / "posterior.npz") as npz:

@@ -63,13 +63,13 @@ def print_result(result, truth=None) -> None:
         print(f"warning: {w}")
 
 
-def _print_intervals(p, level: float, indent: str = "  ") -> None:
+def _print_intervals(p, level: float, indent: str = "  ", axes: str = "") -> None:
     """A pair's equal-tailed posterior intervals at ``level`` (``PairEstimate.intervals``): degrees about, and
-    millimetres along, its second sensor's axes."""
+    millimetres along, its second sensor's axes (named by ``axes`` where the lines above do not)."""
     import numpy as np
 
     iv = p.intervals(level)
-    head = f"{indent}{round(100 * level)}% intervals: "
+    head = f"{indent}{round(100 * level)}% intervals{axes}: "
     print(head + "rotation " + "  ".join(f"[{a:+.3f}, {b:+.3f}]" for a, b in np.degrees(iv[:3])) + " deg")
     print(" " * len(head) + "translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in 1000 * iv[3:]) + " mm")
 
@@ -184,7 +184,8 @@ def print_rig(result) -> None:
                      "away]")
         print(line)
         if p.samples is not None and result.rig.sensor(a).is_camera and not result.rig.sensor(b).is_camera:
-            _print_intervals(p, 0.95, indent="    ")  # a camera-LiDAR pair's, as a single pair prints its own
+            # a camera-LiDAR pair's, as a single pair prints its own
+            _print_intervals(p, 0.95, indent="    ", axes=f" (about/along {b}'s x y z)")
     for n, e in result.edges.items():
         print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
               f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "
