@@ -8,6 +8,7 @@ Pose3 tangent (``T_true = T_hat Exp(xi)``, ``xi = [rotation; translation]``, alo
     path = simulate("/tmp/sim", n_poses=8, seed=1)           # or lidar="2d"
     result = calibrate(load_dataset(path), samples=2000)     # frozen CalibrationResult
     result.T_camera_lidar, result.covariance, result.samples, result.diagnostics
+    result.pair("cam0", "lidar0").intervals(0.95)            # as a rig's result.pair(a, b) gives any pair
     result.report("/tmp/sim-out")                            # report.html and its figures
     write_calibration(result, "/tmp/sim-out")                # calibration.json (+ posterior.npz)
 
@@ -33,6 +34,7 @@ _API = {
     "load_measurements": ("io.measurement_store", "load_measurements"),
     "write_calibration": ("pipeline.result", "write_calibration"),
     "CalibrationResult": ("pipeline.result", "CalibrationResult"),
+    "PairEstimate": ("pipeline.pair_estimate", "PairEstimate"),
     "RefinementOptions": ("solvers.refinement", "RefinementOptions"),
     "PosteriorOptions": ("solvers.posterior", "PosteriorOptions"),
     "simulate": ("simulation.simulator", "simulate_dataset"),
@@ -53,6 +55,7 @@ _API = {
     "load_calibration": ("io.export", "load_calibration"),
     "load_rig": ("io.rig_dataset", "load_rig"),
     "calibrate_rig": ("rig_calibration", "calibrate_rig"),
+    "RigResult": ("pipeline.rig_result", "RigResult"),
     "write_rig_calibration": ("pipeline.rig_result", "write_rig_calibration"),
     "simulate_rig": ("simulation.rig_simulator", "simulate_rig"),
     "extract_rig_bag": ("io.rig_bag_extract", "extract_rig_bag"),

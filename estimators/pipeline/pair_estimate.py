@@ -15,10 +15,22 @@ from ..solvers.rig_graph import translation_sd_in_first
 
 @dataclass(frozen=True, eq=False)
 class PairEstimate:
-    """Sensors ``a`` and ``b``: ``T`` (``T_a_b``: maps b's points into a's frame; for a camera and a LiDAR,
-    ``T_camera_lidar``) and its 6x6 ``covariance`` in the right tangent (the posterior samples' when sampled, else
-    the graph's Laplace one; None without a refinement), the tangent ``samples`` (M x 6, or None), and the frames
-    the two share with the board found in both."""
+    """Two sensors' estimate: ``T_a_b`` with its covariance and samples (``result.pair(a, b)``).
+
+    Attributes
+    ----------
+    a, b : str
+        The sensors' names (a single pair's are ``cam0`` and ``lidar0``).
+    T : numpy.ndarray
+        4x4 ``T_a_b``: maps b's points into a's frame (for a camera and a LiDAR, ``T_camera_lidar``).
+    covariance : numpy.ndarray or None
+        6x6 in the right tangent (``T_true = T Exp(xi)``, about and along b's axes): the posterior samples' when
+        sampled, else the graph's Laplace one; None without a refinement.
+    samples : numpy.ndarray or None
+        The posterior's tangent samples (M x 6), or None.
+    frames : int
+        The frames the two share with the board found in both.
+    """
 
     a: str
     b: str

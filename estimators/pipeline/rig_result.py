@@ -27,9 +27,26 @@ NOISE_WARNING_P = 0.01
 
 @dataclass(frozen=True, eq=False)
 class RigResult:
-    """A rig's calibration: the joint solution, each camera's intrinsics, the pairwise-only estimates of the
-    camera-LiDAR pairs (``(camera, lidar) -> (T, covariance, frames)``), the frames each sensor contributed,
-    the frames skipped with their reasons (``sensor -> {stem: reason}``) and the warnings."""
+    """A rig's calibration (``calibrate_rig``): every sensor's pose from one graph; ``pair(a, b)`` gives any two.
+
+    Attributes
+    ----------
+    rig : RigDataset
+        The rig folder calibrated.
+    solution : RigSolution
+        The joint graph's estimate: every sensor's pose in the reference's frame, the joint covariance, the noise
+        scales (``solvers.rig_graph``).
+    cameras : dict
+        Each camera's intrinsics (``CameraModel``) used.
+    pairwise : dict
+        The camera-LiDAR pairs solved alone: ``(camera, lidar) -> (T, covariance, frames)``.
+    frames_used, skipped : dict
+        Per sensor, the frames it contributed, and those skipped with their reasons (``stem -> reason``).
+    warnings : tuple of str
+        Everything that limits trust in the result, most important first.
+    timings_s : dict
+        Stage times (s).
+    """
 
     rig: RigDataset
     solution: RigSolution
