@@ -693,6 +693,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
     assert "emcee over 30 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
     assert all(f"T_cam{k}_{s}: Intervals" in page for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
+    assert "T_cam2_lidar0: Board outline offsets" in page  # the single pair's check, under the joint estimate
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
     assert shown and all(name in page for name in shown)
     # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)

@@ -394,13 +394,7 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                  f"{result.condition_number:.2f}; weakest direction: {html.escape(axis)} (to constrain it "
                  f"further, {html.escape(advice)})</p>")
     if offsets:
-        rows = [[n, f"{o[0]:+.1f}", f"{o[1]:+.1f}"] for n, o in offsets]
-        parts.append("<h2>Board outline offsets (LiDAR board mapped into the image vs the camera's board)</h2>"
-                     "<p>Offset of the board as the LiDAR sees it (its points mapped by the estimate into the "
-                     "camera's board frame: the centre of their extent) from the camera's board, in pixels: the "
-                     "planar method's re-projection check, horizontal and vertical. Sparse rings leave a few "
-                     "pixels of sampling error even when the extrinsic is right.</p>"
-                     + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
+        parts.append(offsets_section(offsets))
     edges = result.refinement.edges if result.refinement is not None else None
     if edges:
         parts.append(_edges_section(edges))
@@ -419,6 +413,16 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         data = base64.b64encode(png).decode("ascii")
         parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
     return html_page("lidarcam report", parts)
+
+
+def offsets_section(offsets: list[tuple[str, np.ndarray]], title: str = "") -> str:
+    """Each frame's board outline offset in pixels (``projection_figure``'s), as an HTML section."""
+    rows = [[n, f"{o[0]:+.1f}", f"{o[1]:+.1f}"] for n, o in offsets]
+    return (f"<h2>{title}Board outline offsets (LiDAR board mapped into the image vs the camera's board)</h2>"
+            "<p>Offset of the board as the LiDAR sees it (its points mapped by the estimate into the camera's board "
+            "frame: the centre of their extent) from the camera's board, in pixels: the planar method's "
+            "re-projection check, horizontal and vertical. Sparse rings leave a few pixels of sampling error even "
+            "when the extrinsic is right.</p>" + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
 
 
 def alarm_parts(result) -> list[str]:

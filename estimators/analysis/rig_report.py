@@ -13,7 +13,7 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import _table, alarm_parts, html_page, projection_figure, spread_section
+from .report import _table, alarm_parts, html_page, offsets_section, projection_figure, spread_section
 from .rig_layout import next_pose_words
 
 
@@ -141,12 +141,18 @@ def _overlays(result, out: Path) -> list[str]:
     for (cam, lidar), frames in (result.pair_frames or {}).items():
         T, _ = sol.transform(cam, lidar)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
-        parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
-                     "image (joint estimate)</h2>")
+        images, offsets = [], []
         for f in frames:
-            png, _ = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name),
-                                       lid.file(f.name))
+            png, off = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name),
+                                         lid.file(f.name))
+            if np.all(np.isfinite(off)):
+                offsets.append((f.name, off))
             name = f"projection_{cam}_{lidar}_{f.name}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
-            parts.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
+            images.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
+        if offsets:  # the single pair's table of the outline offsets, under the joint estimate
+            parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
+        parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
+                     "image (joint estimate)</h2>")
+        parts += images
     return parts
