@@ -51,13 +51,14 @@ def revision() -> str:
 
 
 def title_of(command: list[str]) -> str:
-    """The first line of the benchmark script's docstring, or the command."""
+    """The benchmark script's docstring's first paragraph up to its first parenthesis, or the command."""
     for arg in command:
         if arg.endswith(".py") and (ROOT / arg).is_file():
             text = (ROOT / arg).read_text()
             for quote in ('"""', "'''"):
                 if text.lstrip().startswith(quote):
-                    return text.lstrip()[3:].split("\n")[0].split(" (")[0].strip().rstrip(".:")
+                    first = " ".join(text.lstrip()[3:].split("\n\n")[0].split(quote)[0].split())
+                    return first.split(" (")[0].strip().rstrip(".:")
     return " ".join(command)
 
 
