@@ -9,7 +9,7 @@ import numpy as np
 
 from geometry.rotations import skew
 
-from ..solvers.posterior import INTERVAL_LEVELS, regions
+from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed, regions
 from ..solvers.rig_graph import translation_sd_in_first
 
 
@@ -62,10 +62,7 @@ class PairEstimate:
 
     def intervals(self, level: float) -> np.ndarray | None:
         """The samples' equal-tailed intervals (6, 2) of each tangent axis at ``level``, or None unsampled."""
-        if self.samples is None:
-            return None
-        q = 100 * (1 - level) / 2
-        return np.percentile(self.samples, [q, 100 - q], axis=0).T
+        return None if self.samples is None else equal_tailed(self.samples, level)
 
     def summary(self) -> dict | None:
         """The samples' standard deviations, equal-tailed intervals at ``INTERVAL_LEVELS`` (degrees about, and

@@ -13,7 +13,7 @@ from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
-from ..solvers.rig_graph import RigSolution, translation_sd_in_first
+from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
 from .result import ambiguity_words
@@ -167,11 +167,11 @@ class RigResult:
     def to_json(self) -> dict:
         sol, ref = self.solution, self.rig.reference
 
-        def entry(T, cov) -> dict:
-            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": np.degrees(sd[:3]).tolist(),
-                    "std_translation_mm": (1000 * sd[3:]).tolist(),
-                    "std_translation_of_t_mm": (1000 * translation_sd_in_first(T, cov)).tolist()}
+        def entry(T, cov) -> dict:  # a pair's spread as PairEstimate gives it
+            p = PairEstimate("", "", T, cov, None, 0)
+            return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": p.std_rotation_deg.tolist(),
+                    "std_translation_mm": p.std_translation_mm.tolist(),
+                    "std_translation_of_t_mm": p.std_translation_camera_mm.tolist()}
 
         sensors = []
         for s in self.rig.sensors:

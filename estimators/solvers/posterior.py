@@ -123,6 +123,12 @@ HEAVY_TAIL_FACTOR = 2.0
 INTERVAL_LEVELS = (0.68, 0.95)
 
 
+def equal_tailed(samples: np.ndarray, level: float) -> np.ndarray:
+    """The equal-tailed intervals (K, 2) of each column of ``samples`` (M, K) at ``level`` (e.g. 0.95)."""
+    q = 100 * (1 - level) / 2
+    return np.percentile(samples, [q, 100 - q], axis=0).T
+
+
 def mahalanobis_d2(samples: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance of tangent offsets ``xi`` (rows; from the estimate the samples' tangent is
     taken at) under the covariance of ``samples`` (M, 6)."""
@@ -181,8 +187,7 @@ class Posterior:
 
     def intervals(self, level: float) -> np.ndarray:
         """Equal-tailed intervals (6, 2) of each tangent axis at ``level`` (e.g. 0.95)."""
-        q = 100 * (1 - level) / 2
-        return np.percentile(self.xi, [q, 100 - q], axis=0).T
+        return equal_tailed(self.xi, level)
 
     def d2(self, xi: np.ndarray) -> np.ndarray:
         """Squared Mahalanobis distance of tangent offsets ``xi`` (from the MAP, ``T = T_map Exp(xi)``) under
