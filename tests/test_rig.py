@@ -326,8 +326,8 @@ def test_the_rig_posteriors_curvature_at_the_map_is_the_graphs_information(rig_r
 def _assert_curvature_is(like, cov, h=1e-4):
     """The log-posterior ``like`` is flat at 0 (its gradient moves the mode by less than 0.01 sd) and its Hessian
     (central differences) inverts to ``cov`` within 1%, every correlation too."""
-    n = like.ndim
-    E = np.eye(n) * h
+    n = like.nx  # the poses and terms at the graph's noise (log s = 0: the camera side's scale last)
+    E = np.eye(n, like.ndim) * h
     grad = np.array([(like(E[i])[0] - like(-E[i])[0]) / (2 * h) for i in range(n)])
     H = np.empty((n, n))
     for i in range(n):
@@ -438,7 +438,7 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     xi = T_log(np.linalg.inv(T) @ truth)
     assert xi @ np.linalg.solve(C, xi) < 16.8 and 1000 * np.linalg.norm(xi[3:]) < 5.0
     like = RigLikelihood(res.solution, list(res.camera_views), list(res.lidar_views))
-    assert like.ndim == 13 and like.ranged == ["lidar0"]
+    assert like.nx == 13 and like.ndim == 14 and like.ranged == ["lidar0"]
     _assert_curvature_is(like, res.solution.covariance_inner)
     post = sample_rig_posterior(res.solution, list(res.camera_views), list(res.lidar_views),
                                 np.random.default_rng(4), min_ess=400)
@@ -675,8 +675,11 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert np.array(cal["covariance_joint"]).shape == (36, 36)
     # by default the scanner's segment ends are measurements (as a single pair's), the 3D LiDARs' edges a check
     assert {s["name"] for s in cal["sensors"] if (s.get("board_edges") or {}).get("used")} == {"scan0"}
-    # the posterior by default: each pair's intervals, the joint samples in posterior.npz
-    assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 30 and "posterior (emcee" in run.stdout
+    # the posterior by default: each pair's intervals, the joint samples in posterior.npz (5 free sensors' poses and
+    # the camera side's noise scale, whose samples are there too)
+    assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 31 and "posterior (emcee" in run.stdout
+    with np.load(out / "posterior.npz", allow_pickle=False) as npz:
+        assert npz["noise_scale"].shape == (npz["xi"].shape[0],) and 0.3 < np.median(npz["noise_scale"]) < 3
     iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
     assert all(lo < 0 < hi for lo, hi in iv)
     # printed under each camera-LiDAR pair as a single pair prints its own (PairEstimate.intervals)
@@ -691,7 +694,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert cal["layout"]["weakest_pair"] == max(sd, key=sd.get) and "weakest pair: " + max(sd, key=sd.get) in run.stdout
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
-    assert "emcee over 30 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
+    assert "emcee over 31 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
     assert all(f"T_cam{k}_{s}: Intervals" in page for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
     assert "T_cam2_lidar0: Board outline offsets" in page  # the single pair's check, under the joint estimate
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
@@ -891,6 +894,28 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
         assert np.max(np.abs(mine.covariance - theirs.covariance) / np.outer(sd_ab, sd_ab)) < 1e-6
     with pytest.raises(KeyError, match="cam0"):
         pair.pair("cam1", "lidar0")
+
+
+def test_a_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(tmp_path):
+    # One likelihood: the rig's posterior samples the camera side's noise scale s as the single pair's does (its
+    # corners' covariance and the boards' plane error times s^2, the board poses integrated out). On an 8-pose pair
+    # whose planes leave s uncertain, both posteriors are wider than the Laplace covariance (by 2-6% per axis; the
+    # rig's, at the graph's scales alone, was 0.98-1.00 of it), and they agree: every standard deviation within 4%
+    # (each from about 6,000 effective samples: 1.3% apart by chance) and s's 5%, 50% and 95% points within 5%.
+    from estimators.calibration import calibrate
+    from estimators.simulation.simulator import simulate_dataset
+
+    folder = simulate_dataset(tmp_path / "pair", n_poses=8, seed=3)
+    pair = calibrate(folder, samples=4000, options=RefinementOptions(edges=False))
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=4000)
+    laplace = np.sqrt(np.diag(pair.refinement.covariance))
+    sd_pair = np.std(pair.posterior.xi, axis=0)
+    sd_rig = np.std(res.pair("cam0", "lidar0").samples, axis=0)
+    assert np.mean(sd_pair / laplace) > 1.02 and np.mean(sd_rig / laplace) > 1.02
+    np.testing.assert_allclose(sd_rig, sd_pair, rtol=0.04)
+    q = [5, 50, 95]
+    np.testing.assert_allclose(np.percentile(res.posterior.camera_scale, q), np.percentile(pair.posterior.scale, q),
+                               rtol=0.05)
 
 
 def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):

@@ -271,7 +271,8 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
     if post is not None:
         write_npz_atomic(out / "posterior.npz", {"xi": post.xi, "names": np.array(post.names),
                                                  "T_ref": np.array([post.T_ref[n] for n in post.names]),
-                                                 "reference": np.array(post.reference)}, compress=False)
+                                                 "reference": np.array(post.reference),
+                                                 "noise_scale": post.camera_scale}, compress=False)
     path = out / "calibration.json"
     write_json_atomic(path, result.to_json())
     return path

@@ -106,6 +106,22 @@ class LidarViews:
         return scale * plane_noise(self.W[stem], pe.normal, self.sigma_m, pe.floor_m, pe.half_m, pe.scale_m,
                                    pe.centre)
 
+    def plane_cov_parts(self, stem: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`plane_cov` (the range noise alone when None) split into its LiDAR part (the range noise and the
+        boards' scatter) and its camera side (the per-board plane error and the pattern's scale error), whose scale
+        the posterior samples (``rig_posterior``)."""
+        k = (self.ranged[stem].W if self.ranged is not None else self.W[stem]).shape[0]
+        pe = None if self.plane_error is None else self.plane_error.get(stem)
+        if pe is None:
+            return scale * self.sigma_m**2 * np.eye(k), np.zeros((k, k))
+        if self.ranged is not None:
+            fw = self.ranged[stem]
+            return (scale * frame_noise(fw, pe.normal, self.sigma_m, 0.0, pe.half_m, 0.0, self.tau_m),
+                    scale * frame_noise(fw, pe.normal, 0.0, pe.floor_m, pe.half_m, pe.scale_m, 0.0))
+        W = self.W[stem]
+        return (scale * plane_noise(W, pe.normal, self.sigma_m, 0.0, pe.half_m, 0.0, pe.centre),
+                scale * plane_noise(W, pe.normal, 0.0, pe.floor_m, pe.half_m, pe.scale_m, pe.centre))
+
     def chi2(self, stem: str, e: np.ndarray, scale: float = 1.0) -> float:
         """The frame's residual ``e`` (:func:`lidar_frame_residual`) squared in units of its covariance."""
         C = self.plane_cov(stem, scale)

@@ -51,6 +51,8 @@ from .refinement import Refinement
 from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 
 LIKELIHOODS = ("gaussian", "student-t")
+# The prior's sd of ``log s``, the camera side's noise scale, in every posterior (a pair's and a rig's).
+LOG_SCALE_PRIOR_SD = 0.5
 SAMPLERS = ("proposal", "ensemble")
 
 
@@ -326,17 +328,19 @@ class LaplaceProposal:
 
 def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, covariance: np.ndarray | None = None,
                       min_ess: int = 2000, max_steps: int = 40000, chunk: int = 500, progress: bool = False,
-                      label: str = "posterior") -> ChainResult:
+                      label: str = "posterior", centre: np.ndarray | None = None,
+                      tails: dict | None = None) -> ChainResult:
     """:func:`run_ensemble` with most moves drawn from a :class:`LaplaceProposal` of ``covariance`` (about the
     origin) and the rest by differential evolution (for what the proposal misses). Without ``covariance``
     (parameters beyond the Laplace approximation's: a noise scale, a board outline), a pilot of ``PILOT_STEPS``
     ensemble steps gives the proposal its centre and covariance (the second half of its samples' mean and
     covariance) and the chain starts where the pilot ends; its time is counted in ``seconds``. The target is the
     same: only how fast the chain mixes changes (autocorrelation 25 -> 6 steps on the simulated default pair,
-    40 -> 10-40 on 2D layouts)."""
+    40 -> 10-40 on 2D layouts). ``centre`` and ``tails`` (a :class:`LaplaceProposal`'s ``nu`` and ``scale``) set the
+    proposal's centre and tails with a given ``covariance``."""
     import emcee
 
-    pilot, centre = None, None
+    pilot = None
     if covariance is None:
         pilot = run_ensemble(log_prob, initial, rng, min_ess=1, max_steps=PILOT_STEPS, chunk=PILOT_STEPS)
         tail = pilot.chain[len(pilot.chain) // 2:].reshape(-1, initial.shape[1])
@@ -344,7 +348,7 @@ def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, c
         initial = pilot.chain[-1]
     try:
         proposal = LaplaceProposal(0.5 * (covariance + covariance.T), centre=centre,
-                                   **({} if pilot is None else PILOT_TUNED))
+                                   **(tails or ({} if pilot is None else SCALED_TAILS)))
     except np.linalg.LinAlgError:  # a direction the pilot did not move in: the ensemble moves alone
         return run_ensemble(log_prob, initial, rng, min_ess, max_steps, chunk, progress, label)
     moves = [(emcee.moves.MHMove(proposal), 0.7), (emcee.moves.DEMove(), 0.3)]
@@ -352,13 +356,13 @@ def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, c
     return run if pilot is None else replace(run, seconds=run.seconds + pilot.seconds)
 
 
-# Steps of the pilot that tunes :func:`run_with_proposal`'s proposal when no covariance is given, and that
-# proposal's tails and scale: wider than the rig's (a pair's noise scales make its posterior a scale mixture, and a
-# 2D layout's has a curved valley; an independence proposal lighter-tailed than its target visits the tails too
-# rarely). On six simulated 8-board mounted 2D sets: autocorrelation 6-8 steps (4-5 with the rig's t(30) x 1.05),
-# the samples' standard deviations and 99.9% regions as the ensemble moves alone give them, within their noise.
+# Steps of the pilot that tunes :func:`run_with_proposal`'s proposal when no covariance is given, and the tails and
+# scale of a proposal whose target has a sampled noise scale (every pair's and rig's: a scale mixture, and a 2D
+# layout's has a curved valley; an independence proposal lighter-tailed than its target visits the tails too
+# rarely). On six simulated 8-board mounted 2D sets: autocorrelation 6-8 steps (4-5 with a t(30) x 1.05), the
+# samples' standard deviations and 99.9% regions as the ensemble moves alone give them, within their noise.
 PILOT_STEPS = 300
-PILOT_TUNED = {"nu": 5.0, "scale": 1.2}
+SCALED_TAILS = {"nu": 5.0, "scale": 1.2}
 
 
 class PlaneLikelihood:
@@ -372,7 +376,7 @@ class PlaneLikelihood:
     """
 
     def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
-                 likelihood: str = "gaussian", nu: float = 4.0, log_scale_prior_sd: float = 0.5,
+                 likelihood: str = "gaussian", nu: float = 4.0, log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD,
                  cells: "ModeCells | None" = None, cell: int = 0):
         fits = {f.name: f for f in ref.frames}
         # With several modes, each is sampled within its own cell (the points nearer to it than to any other).
