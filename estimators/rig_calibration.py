@@ -56,7 +56,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                   samples: int = 0, advise: bool = True, range_model: str = "auto", edges: bool | None = None,
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
                   measurements: RigMeasurements | None = None, init: str = "closed-form",
-                  params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigResult:
+                  params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
+                  likelihood: str = "gaussian") -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -74,6 +75,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         Effective posterior samples of every sensor's pose to draw with emcee (``solvers.rig_posterior``); 0
         skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
         covariance, which carries them, is then the uncertainty reported), with a warning saying so.
+    likelihood : str
+        The posterior's likelihood of each frame's planes against its boards, as the single pair's
+        ``--likelihood``: ``gaussian`` or ``student-t`` (4 degrees of freedom).
     range_model : str
         Each LiDAR's range model, as the single pair's ``--range-model``: ``none`` (planes), ``offset``,
         ``per-ring``, ``offset+dark``, ``full`` (the terms under priors from its range accuracy, dataset.yaml's
@@ -261,7 +265,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
                         "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
     elif samples > 0:
-        posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples)
+        posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples,
+                                         likelihood=likelihood)
         if pinned_share is not None:  # the held terms' prior, convolved in as the single pair's posterior does
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(pinned_share)), pinned_share, len(posterior.xi), method="eigh"))

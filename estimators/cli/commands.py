@@ -88,13 +88,14 @@ def _rig_settings(args) -> dict:
     from ..lidar.board_segmentation import SegmentationParams
 
     return dict(refine_intrinsics=args.refine_intrinsics, range_model=args.range_model, edges=args.edges,
+                likelihood=args.likelihood,
                 options=refinement_options(args), init=args.init,
                 params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
 
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
 # given with another value than the default, they are refused rather than ignored.
-RIG_UNSUPPORTED = {"refine": "--refine", "likelihood": "--likelihood"}
+RIG_UNSUPPORTED = {"refine": "--refine"}
 
 
 def _refuse_what_a_rig_ignores(args) -> None:

@@ -30,7 +30,9 @@ the poses and boards they fix (their residual about its own minimum, ``cam_dim``
 told by how well the LiDARs' planes agree with the cameras' boards, not by the corners' own scatter (which the
 graph's scale already holds); the samples then carry the noise level's uncertainty (1-6% wider than the Laplace
 covariance on 8-board pairs). With one camera and one LiDAR this is the single pair's likelihood
-(``posterior.PlaneLikelihood``) written over the board poses.
+(``posterior.PlaneLikelihood``) written over the board poses. With ``student-t``, as the pair's, each frame's share
+of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
+t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian.
 
 Samples are carried into the rig's reference frame exactly (``T_ref_s = T_ref_inner^-1 T_inner_s`` per sample) and
 any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sample by sample.
@@ -67,6 +69,7 @@ class RigPosterior:
     range_terms: dict = field(default_factory=dict)
     # The camera side's noise scale ``s`` per sample (module docstring).
     camera_scale: np.ndarray | None = None
+    likelihood: str = "gaussian"
     # Each pair's samples once composed (the warnings, the record, the printout and the report all read them).
     _pairs: dict = field(default_factory=dict, repr=False)
     _sensor_T: dict = field(default_factory=dict, repr=False)
@@ -94,7 +97,7 @@ class RigPosterior:
 
     def diagnostics(self) -> dict:
         r = self.run
-        return {"likelihood": "gaussian", "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
+        return {"likelihood": self.likelihood, "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
                 "parameters": int(r.chain.shape[2]), "burn_in": r.burn, "tau_steps_max": float(np.max(r.tau)),
                 "acceptance_fraction": r.acceptance, "effective_samples": r.ess, "converged": r.converged,
                 "seconds": r.seconds, "samples_kept": int(self.xi.shape[0])}
@@ -122,7 +125,7 @@ class RigLikelihood:
 
     def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                  quadratic: tuple[np.ndarray, np.ndarray] | None = None,
-                 log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD):
+                 log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD, likelihood: str = "gaussian", nu: float = 4.0):
         names = solution.names
         self.inner = graph_reference(solution.reference, [c.name for c in cameras])
         T_inner = np.linalg.inv(solution.T_ref[self.inner])
@@ -167,6 +170,7 @@ class RigLikelihood:
         for lv in ranged:
             self.term_columns[lv.name] = np.arange(at, at + lv.terms.size)
             at += lv.terms.size
+        self.rows = np.zeros(F)  # each frame's LiDAR rows (the Student-t's dimensions)
         self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
         #                                    signs (F_l,), e0 (F_l, k), terms' Jacobians (F_l, k, K), their columns,
         #                                    each row's camera-side variance lam (F_l, k))
@@ -201,6 +205,7 @@ class RigLikelihood:
                     e0[:k] = P @ fw.e0
                     if lv.has_terms:
                         hb[:k] = P @ fw.W_nuisance
+                self.rows[j] += k
                 idx.append(j)
                 Ws.append(Wp)
                 G.append(Gj)
@@ -236,6 +241,13 @@ class RigLikelihood:
         # Without a camera side in the LiDARs' rows, H_j(s) = H_cam_j / s^2 + H_lidar_j: with H_cam_j = M M^T and
         # M^-1 H_lidar_j M^-T = U diag(nu) U^T, H_j(s)^-1 = M^-T U diag(1 / (1/s^2 + nu)) U^T M^-1 for every s at
         # once (``_basis``: U^T M^-1 per frame; None when a board no camera saw leaves H_cam_j singular).
+        self.likelihood, self.nu = likelihood, nu
+        if likelihood == "student-t":
+            try:  # the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
+                self._cam_whitener = np.linalg.inv(np.linalg.cholesky(self.H_cam))
+            except np.linalg.LinAlgError as exc:
+                raise LidarcamError("a frame no camera saw leaves the Student-t likelihood undefined (it weighs each "
+                                    "frame's planes against its camera's board)") from exc
         self._basis = self._nu = None
         if not self.scaled:
             try:
@@ -324,6 +336,7 @@ class RigLikelihood:
             g_cam[idx] += x @ Kt
         g = g_cam / s2[None, :, None]
         c = c_cam / s2
+        c_lid = np.zeros((len(self.stems), n))  # each frame's LiDAR rows, squared and whitened
         logdet_c = np.zeros(n)
         for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, Hb, beta, lam in self.lidar_terms:
             R, t = _poses(T_hat, theta[:, k0:k0 + 6])
@@ -343,7 +356,9 @@ class RigLikelihood:
                 we = e / v
             else:
                 we = e
-            c += np.einsum("fwk,fwk->w", we, e)
+            cl = np.einsum("fwk,fwk->fw", we, e)
+            c_lid[idx] += cl
+            c += cl.sum(axis=0)
             g[idx] += we @ G
         if self.ranged:
             c += np.sum(((self.terms_hat + theta[:, 6 * len(self.free):self.nx]) / self.terms_prior_sd) ** 2, axis=1)
@@ -351,16 +366,23 @@ class RigLikelihood:
         if self._basis is not None:
             d = 1.0 / s2[None, :, None] + self._nu[:, None, :]  # (F, walkers, 6)
             y = np.einsum("fab,fwb->fwa", self._basis, g)
-            quad = np.sum(y * y / d, axis=(0, 2))
+            quad = np.sum(y * y / d, axis=2)  # (F, walkers)
             logdet_h = self._logdet_cam + np.sum(np.log(d), axis=(0, 2))
         else:
             H = self.H_cam[:, None] / s2[None, :, None, None] + (self._lidar_information(s2) if self.scaled
                                                                   else self.H_lidar[:, None])  # (F, walkers, 6, 6)
             L = np.linalg.cholesky(H)
             z = np.linalg.solve(L, g[..., None])[..., 0]  # g^T H^-1 g = |L^-1 g|^2
-            quad = np.einsum("fwa,fwa->w", z, z)
+            quad = np.einsum("fwa,fwa->fw", z, z)
             logdet_h = 2.0 * np.sum(np.log(np.diagonal(L, axis1=2, axis2=3)), axis=(0, 2))
-        out = (-0.5 * (c - quad) - 0.5 * logdet_h - 0.5 * logdet_c
+        chi2 = c - quad.sum(axis=0)
+        if self.likelihood == "student-t":
+            # Each frame's planes against its boards: its share of chi2 beyond the corners' own best board (the
+            # camera's g^T H_cam^-1 g), k_j rows, t-distributed (the pair's ``--likelihood student-t``).
+            y_c = np.einsum("fab,fwb->fwa", self._cam_whitener, g_cam)
+            q = np.maximum(c_lid + np.sum(y_c * y_c, axis=2) / s2[None, :] - quad, 0.0)  # (F, walkers)
+            chi2 = chi2 - q.sum(axis=0) + np.sum((self.nu + self.rows[:, None]) * np.log1p(q / self.nu), axis=0)
+        out = (-0.5 * chi2 - 0.5 * logdet_h - 0.5 * logdet_c
                - self.cam_dim * log_s - 0.5 * (log_s / self.prior_sd) ** 2)
         if self.quadratic is not None:
             A, b = self.quadratic
@@ -393,7 +415,8 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
 
 
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
-                         rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000) -> RigPosterior:
+                         rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000,
+                         likelihood: str = "gaussian", nu: float = 4.0) -> RigPosterior:
     """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
 
     Parameters
@@ -408,13 +431,16 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         Effective samples wanted (of the slowest-mixing parameter).
     max_steps : int
         Steps at most.
+    likelihood, nu : str, float
+        ``gaussian``, or ``student-t`` with ``nu`` degrees of freedom on each frame's planes against its boards (the
+        single pair's ``--likelihood``).
 
     Returns
     -------
     RigPosterior
         Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
     """
-    like = RigLikelihood(solution, cameras, lidars)
+    like = RigLikelihood(solution, cameras, lidars, likelihood=likelihood, nu=nu)
     if any(lv.edges for lv in lidars):
         like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
@@ -450,7 +476,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
         xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
     terms = {n: keep[:, like.term_columns[n]] + solution.range_terms[n][0] for n in like.ranged}
-    return RigPosterior(names, ref, dict(solution.T_ref), xi, run, terms, np.exp(keep[:, -1]))
+    return RigPosterior(names, ref, dict(solution.T_ref), xi, run, terms, np.exp(keep[:, -1]), likelihood)
 
 
 def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3) -> tuple[np.ndarray, np.ndarray]:
