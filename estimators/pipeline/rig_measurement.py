@@ -24,7 +24,7 @@ from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
-from ..solvers.noise_levels import corner_noise_levels
+from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
 from ..solvers.range_model import frame_whitener
 from ..solvers.refinement_options import RefinementOptions
 
@@ -259,14 +259,15 @@ def lidar_views_of(name: str, sigma_m: float, frames: dict, T_ref_board: dict, b
     LiDAR board, and the camera board it was found with) and the per-board plane error its pair estimated
     (``frames``: stem -> (FrameMeasurement, floor_m)), each plane at the range noise ``sigma_m`` with that error
     (``factor_graph.PlaneError``) under ``options``' robust loss; the stems a camera saw (``T_ref_board``)."""
-    W, errors = {}, {}
+    W, errors, own = {}, {}, {}
     for st, (f, floor_m) in frames.items():
         if st not in T_ref_board:
             continue
         fw = frame_whitener(f.lidar, sigma_m, None)
         W[st] = fw.W
         errors[st] = PlaneError.of_frame(f, fw.centre, board, floor_m, options.corner_scale_sd)
-    return LidarViews(name, sigma_m, W, scan_line, plane_error=errors, robust=options)
+        own[st] = own_fit_residuals(f.lidar)
+    return LidarViews(name, sigma_m, W, scan_line, plane_error=errors, robust=options, own_fit=own)
 
 
 def start_poses(names, reference, parent, poses, pairwise, flip) -> dict:

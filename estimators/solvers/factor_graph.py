@@ -88,6 +88,10 @@ class LidarViews:
     robust: object = None
     tau_m: float = 0.0
     terms_prior_sd: np.ndarray | None = None
+    # Per stem the board points' squared range residuals about their own best fit (m^2) and their dof
+    # (``noise_levels.own_fit_residuals``): a 2D scanner's range noise rests on them, and its posterior samples its
+    # scale (``rig_posterior``).
+    own_fit: dict | None = None
 
     @property
     def has_terms(self) -> bool:

@@ -32,7 +32,10 @@ graph's scale already holds); the samples then carry the noise level's uncertain
 covariance on 8-board pairs). With one camera and one LiDAR this is the single pair's likelihood
 (``posterior.PlaneLikelihood``) written over the board poses. With ``student-t``, as the pair's, each frame's share
 of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
-t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian.
+t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian. A 2D scanner's range noise,
+which rests on a few dozen points a board, has its scale ``r`` sampled too (a parameter per scanner before ``log s``,
+flat prior on ``log r`` within +-2), its own lines' residuals (``LidarViews.own_fit``) in its likelihood, as the
+single pair's posterior has it.
 
 Samples are carried into the rig's reference frame exactly (``T_ref_s = T_ref_inner^-1 T_inner_s`` per sample) and
 any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sample by sample.
@@ -173,9 +176,18 @@ class RigLikelihood:
         self.rows = np.zeros(F)  # each frame's LiDAR rows (the Student-t's dimensions)
         self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
         #                                    signs (F_l,), e0 (F_l, k), terms' Jacobians (F_l, k, K), their columns,
-        #                                    each row's camera-side variance lam (F_l, k))
+        #                                    each row's camera-side variance lam (F_l, k), its range scale's column)
+        # Each 2D scanner's range noise rests on a few dozen points per board: its scale r (to the graph's) is a
+        # parameter after the terms, its likelihood its lines' own residuals (``floors`` in units of the graph's range
+        # variance, ``dof``) with the rest, under a flat prior on log r (|log r| < 2), as the single pair's.
+        self.scans = [lv.name for lv in lidars if lv.scan_line and lv.own_fit]
+        self.scan_fit = {}
         for lv in lidars:
             scale = solution.noise_scale.get(lv.name, 1.0)
+            if lv.name in self.scans:
+                fits = [lv.own_fit[st] for st in lv.W if st in frame and st in lv.own_fit]
+                self.scan_fit[lv.name] = (sum(ss for ss, _ in fits) / (lv.sigma_m**2 * scale),
+                                          float(sum(d for _, d in fits)))
             idx, Ws, G, normals, points, signs, E0, Hb, lams = [], [], [], [], [], [], [], [], []
             rows = {st: (lv.ranged[st].W.shape[0] if lv.ranged is not None else W.shape[0]) for st, W in lv.W.items()}
             width = max((k for st, k in rows.items() if st in frame), default=0)
@@ -221,16 +233,18 @@ class RigLikelihood:
                 self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx),
                                          np.transpose(np.array(Ws), (0, 2, 1)), normals,
                                          np.sum(normals * points, axis=1), lv.scan_line, np.array(G),
-                                         np.array(signs), np.array(E0), np.array(Hb), beta, np.array(lams)))
+                                         np.array(signs), np.array(E0), np.array(Hb), beta, np.array(lams),
+                                         lv.name))
         # Whether a LiDAR row has a camera side (its frames' board information then changes with s row by row).
-        self.scaled = any(bool(np.any(t[-1] > 0)) for t in self.lidar_terms)
-        self.H_lidar = self._lidar_information(np.ones(1))[:, 0]  # (F, 6, 6) at s = 1
+        self.scaled = any(bool(np.any(t[12] > 0)) for t in self.lidar_terms) or bool(self.scans)
+        self.H_lidar = self._lidar_information(np.ones(1), {})[:, 0]  # (F, 6, 6) at s = 1, r = 1
         self.terms_prior_sd = np.concatenate([lv.terms.prior_sd if lv.terms_prior_sd is None else lv.terms_prior_sd
                                               for lv in ranged]) if ranged else np.zeros(0)
         self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
             else np.zeros(0)
-        self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log s follows
-        self.ndim = self.nx + 1
+        self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log r, log s follow
+        self.r_column = {n: self.nx + k for k, n in enumerate(self.scans)}
+        self.ndim = self.nx + len(self.scans) + 1
         self.alpha = np.zeros(self.nx)  # each coordinate's power of s in the sampled parameters (:meth:`fit_alpha`)
         self.prior_sd = log_scale_prior_sd
         try:
@@ -283,12 +297,13 @@ class RigLikelihood:
         u = U[:, keep].T @ v
         return self.c0 - float(u @ (u / ev[keep])), int(keep.sum())
 
-    def _lidar_information(self, s2: np.ndarray) -> np.ndarray:
-        """Every frame's board information from the LiDARs at each walker's ``s^2``: (F, walkers, 6, 6)."""
+    def _lidar_information(self, s2: np.ndarray, r2: dict) -> np.ndarray:
+        """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name;
+        1 where not given): (F, walkers, 6, 6)."""
         H = np.zeros((len(self.stems), len(s2), 6, 6))
         for terms in self.lidar_terms:
-            idx, G, lam = terms[2], terms[7], terms[-1]
-            w = 1.0 / (1.0 + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
+            idx, G, lam = terms[2], terms[7], terms[12]
+            w = 1.0 / (r2.get(terms[13], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
             H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
         return H
 
@@ -338,7 +353,8 @@ class RigLikelihood:
         c = c_cam / s2
         c_lid = np.zeros((len(self.stems), n))  # each frame's LiDAR rows, squared and whitened
         logdet_c = np.zeros(n)
-        for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, Hb, beta, lam in self.lidar_terms:
+        r2 = {n: np.exp(2.0 * theta[:, k])[None, :, None] for n, k in self.r_column.items()}
+        for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, Hb, beta, lam, name in self.lidar_terms:
             R, t = _poses(T_hat, theta[:, k0:k0 + 6])
             pi = np.empty((len(idx), n, 4))
             pi[..., :3] = np.tensordot(normals, R, axes=([1], [1]))  # R^T n
@@ -350,8 +366,8 @@ class RigLikelihood:
             if beta is not None:  # the terms' parameters are their departures from the MAP's
                 b = self.terms_hat[beta - 6 * len(self.free)] + theta[:, beta]  # (walkers, K)
                 e += np.einsum("fkK,wK->fwk", Hb, b)
-            if self.scaled:
-                v = 1.0 + lam[:, None, :] * s2[None, :, None]  # (F_l, walkers, k): each row's variance
+            if self.scaled:  # (F_l, walkers, k): each row's variance
+                v = r2.get(name, 1.0) + lam[:, None, :] * s2[None, :, None]
                 logdet_c += np.sum(np.log(v), axis=(0, 2))
                 we = e / v
             else:
@@ -369,7 +385,7 @@ class RigLikelihood:
             quad = np.sum(y * y / d, axis=2)  # (F, walkers)
             logdet_h = self._logdet_cam + np.sum(np.log(d), axis=(0, 2))
         else:
-            H = self.H_cam[:, None] / s2[None, :, None, None] + (self._lidar_information(s2) if self.scaled
+            H = self.H_cam[:, None] / s2[None, :, None, None] + (self._lidar_information(s2, r2) if self.scaled
                                                                   else self.H_lidar[:, None])  # (F, walkers, 6, 6)
             L = np.linalg.cholesky(H)
             z = np.linalg.solve(L, g[..., None])[..., 0]  # g^T H^-1 g = |L^-1 g|^2
@@ -384,6 +400,10 @@ class RigLikelihood:
             chi2 = chi2 - q.sum(axis=0) + np.sum((self.nu + self.rows[:, None]) * np.log1p(q / self.nu), axis=0)
         out = (-0.5 * chi2 - 0.5 * logdet_h - 0.5 * logdet_c
                - self.cam_dim * log_s - 0.5 * (log_s / self.prior_sd) ** 2)
+        for name, k in self.r_column.items():  # each scanner's own lines' residuals at its range scale
+            floors, dof = self.scan_fit[name]
+            log_r = theta[:, k]
+            out += -dof * log_r - 0.5 * floors * np.exp(-2.0 * log_r) + np.where(np.abs(log_r) < 2.0, 0.0, -np.inf)
         if self.quadratic is not None:
             A, b = self.quadratic
             x = theta[:, :self.nx]
@@ -487,13 +507,13 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
     graph's MAP would be too wide or too narrow in every direction at once (on a 6-camera rig, 49 parameters,
     the chain's autocorrelation was 170 steps with it)."""
     n = like.ndim
-    h = np.append(0.1 * np.sqrt(np.diag(cov)), 0.05)
+    h = np.append(0.1 * np.sqrt(np.diag(cov)), np.full(n - len(cov), 0.05))
     e = np.eye(n) * h
     i, j = np.triu_indices(n, 1)
     x0 = np.zeros(n)
     for _ in range(newton_steps):
         pts = np.vstack([x0, x0 + e, x0 - e, x0 + e[i] + e[j], x0 + e[i] - e[j], x0 - e[i] + e[j], x0 - e[i] - e[j]])
-        f = like(pts)
+        f = np.concatenate([like(pts[k:k + 256]) for k in range(0, len(pts), 256)])  # memory: 256 points at once
         f0, fp, fm = f[0], f[1:n + 1], f[n + 1:2 * n + 1]
         q = f[2 * n + 1:].reshape(4, -1)
         grad = (fp - fm) / (2 * h)
@@ -504,7 +524,8 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
             np.linalg.cholesky(full)
         except np.linalg.LinAlgError:  # not concave there: the graph's covariance, the scale at its prior's spread
             full = np.zeros((n, n))
-            full[:-1, :-1], full[-1, -1] = cov, like.prior_sd**2
+            full[:len(cov), :len(cov)] = cov
+            full[len(cov):, len(cov):] = np.eye(n - len(cov)) * like.prior_sd**2
             return np.zeros(n), full
         step = full @ grad
         x0 = x0 + step
