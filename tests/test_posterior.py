@@ -8,7 +8,8 @@ import pytest
 from estimators.simulation.simulator import default_rig, sample_board_poses
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.posterior import PlaneLikelihood, Posterior, PosteriorOptions, run_ensemble, sample_posterior
+from estimators.solvers.posterior import PlaneLikelihood, Posterior, PosteriorOptions, sample_posterior
+from estimators.solvers.sampler import run_ensemble
 from estimators.solvers.refinement import refine
 from estimators.solvers.refinement_options import measurement_model_options
 
@@ -55,7 +56,7 @@ def test_the_laplace_independence_proposal_samples_a_target_it_does_not_match():
     # Hastings correction the chain still has the target's covariance (within 10%, 3 parameters, 40000 draws).
     import emcee
 
-    from estimators.solvers.posterior import LaplaceProposal
+    from estimators.solvers.sampler import LaplaceProposal
 
     target = np.diag([1.0, 4.0, 0.25])
     P = np.linalg.inv(target)
@@ -75,7 +76,7 @@ def test_the_pilot_tuned_proposal_samples_a_known_gaussian_away_from_the_origin_
     # Without a covariance, a 300-step ensemble pilot gives the proposal its centre and covariance: the chain
     # still has the target's mean and covariance (a 7-dimensional Gaussian whose mean is off the origin, as a
     # board outline's is), and mixes faster than the ensemble moves alone (a shorter autocorrelation time).
-    from estimators.solvers.posterior import run_with_proposal
+    from estimators.solvers.sampler import run_with_proposal
 
     mean, cov, log_prob = _known_gaussian(4)
     start = np.random.default_rng(1).multivariate_normal(mean, cov, 48)

@@ -50,9 +50,12 @@ from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
-from .posterior import LOG_SCALE_PRIOR_SD, ChainResult, run_with_proposal
+from .sampler import ChainResult, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
 from .rig_graph import RigSolution, change_reference, graph_reference
+
+# The prior's sd of ``log s``, the camera side's noise scale, in every posterior (a pair's and a rig's).
+LOG_SCALE_PRIOR_SD = 0.5
 
 # Samples kept for the pairs' intervals and covariances (thinned evenly from the chain after burn-in).
 MAX_KEPT = 20000
