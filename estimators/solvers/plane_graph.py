@@ -16,7 +16,7 @@ from .closed_form import describe_direction
 from .factor_graph import CameraViews, LidarViews, PlaneError, build_graph, graph_values
 from .factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
 from .graph_keys import EXTRINSIC, OUTLINE, RANGE, board_key, shift_key
-from .noise_levels import frame_noise, pooled_range_noise_m
+from .noise_levels import frame_noise, own_fit_residuals, pooled_range_noise_m
 from .range_model import FrameLabels, RangeTerms, frame_whiteners
 from .refinement_options import PINNED_SD_M, RefinementOptions
 
@@ -124,6 +124,13 @@ class PlaneProblem:
         ``robust`` is False), the terms under their priors (pinned ones at ``PINNED_SD_M`` unless
         ``free_pinned``); with ``intrinsics`` the camera's intrinsics a variable too (``graph_keys.INTRINSICS``,
         under a prior of its ``param_std`` when it has them)."""
+        camera, lidar = self.views(active, floor_m, robust, free_pinned)
+        return build_graph(PAIR_NAMES, [camera], [lidar], [self.frames[i].name for i in active],
+                           {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0], intrinsics)
+
+    def views(self, active: list[int], floor_m: float, robust: bool = True, free_pinned: bool = False
+              ) -> tuple[CameraViews, LidarViews]:
+        """The camera's and the LiDAR's views of the ``active`` frames that :meth:`graph` is built from."""
         stems = [self.frames[i].name for i in active]
         camera = CameraViews(PAIR_NAMES[0], self.camera, self.sigma_px,
                              {s: self.corners_board[i] for s, i in zip(stems, active)},
@@ -142,9 +149,9 @@ class PlaneProblem:
                                                             if self.has_edges(i)},
                            self.board, self.edge_tau, self.edge_scale,
                            {s: self.plane_error(i, floor_m) for s, i in zip(stems, active)},
-                           self.options if robust else None, self.tau, prior_sd)
-        return build_graph(PAIR_NAMES, [camera], [lidar], stems, {n: 1.0 for n in PAIR_NAMES}, PAIR_NAMES[0],
-                           intrinsics)
+                           self.options if robust else None, self.tau, prior_sd,
+                           {s: own_fit_residuals(self.frames[i].lidar) for s, i in zip(stems, active)})
+        return camera, lidar
 
     def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         e = self.residual(i, T, T_board)

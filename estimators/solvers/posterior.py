@@ -48,7 +48,7 @@ from .range_model import frame_whiteners
 from .noise_levels import frame_noise, own_fit_residuals, pooled_range_noise_m
 from .refinement import Refinement
 from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
-from .rig_posterior import LOG_SCALE_PRIOR_SD
+from .rig_posterior import LOG_SCALE_PRIOR_SD, pair_likelihood, run_chain
 from .sampler import ChainResult, run_ensemble, run_with_proposal
 
 LIKELIHOODS = ("gaussian", "student-t")
@@ -505,16 +505,30 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
     if reason is not None:
         raise PosteriorSkippedError(reason, hint="the covariance is the Laplace one; add board poses that "
                                                  "constrain the weak direction")
-    model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood, options.nu,
-                            cells=cells, cell=index)
-    # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
-    start = model.start(rng, ref.covariance, options.walkers)
+    scan = any(f.lidar.is_scan_line for f in frames if f.usable)
     try:
-        if options.sampler == "proposal":
-            run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
-                                    options.progress)
+        if not scan and cells is None and ref.views is not None:
+            # A 3D pair: the rig's likelihood over its camera's and LiDAR's views (one likelihood for both).
+            rm = ref.range_model
+            like = pair_likelihood(ref.T_camera_lidar, ref.covariance, ref.T_camera_board, ref.views,
+                                   np.asarray(rm.values_m) if rm is not None and rm.terms is not None else None,
+                                   ref.edge_share,
+                                   options.likelihood, options.nu)
+            keep, run = run_chain(like, ref.covariance, rng, options.min_ess, options.max_steps, options.walkers,
+                                  options.sampler != "proposal", options.chunk, options.progress)
+            samples, scale = keep[:, :6], np.exp(keep[:, -1])
         else:
-            run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk, options.progress)
+            model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood,
+                                    options.nu, cells=cells, cell=index)
+            # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
+            start = model.start(rng, ref.covariance, options.walkers)
+            if options.sampler == "proposal":
+                run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
+                                        options.progress)
+            else:
+                run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk,
+                                   options.progress)
+            samples, scale = run.samples[:, :6], np.exp(run.samples[:, 6])
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the Laplace one") from exc
@@ -523,11 +537,11 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
         warnings.append(f"the posterior chain stopped at {run.chain.shape[0]} steps, before 50 autocorrelation times "
                         f"(tau {np.max(run.tau):.0f}) and {options.min_ess} effective samples ({run.ess:.0f}): "
                         "intervals are rough; raise the step limit")
-    xi = run.samples[:, :6]
+    xi = samples
     if ref.intrinsics_covariance is not None:
         # Intrinsics calibrated from the same images: their (first-order, Gaussian) effect is convolved in.
         xi = xi + rng.multivariate_normal(np.zeros(6), ref.intrinsics_covariance, len(xi))
     if ref.range_model is not None and ref.range_model.terms is not None:
         # The range terms were held at the MAP: their uncertainty's share is convolved in (marginal intervals).
         xi = xi + rng.multivariate_normal(np.zeros(6), ref.range_model.extrinsic_share, len(xi))
-    return Posterior(ref.T_camera_lidar, xi, np.exp(run.samples[:, 6]), run, options.likelihood, tuple(warnings))
+    return Posterior(ref.T_camera_lidar, xi, scale, run, options.likelihood, tuple(warnings))

@@ -26,10 +26,13 @@ The noise: each sensor's at the graph's scale (quasi-likelihood, by its chi-squa
 ``s`` sampled with the poses (last parameter, log-normal prior of sd ``LOG_SCALE_PRIOR_SD`` on ``log s``), as the
 single pair's posterior samples it: the corners' covariance and the boards' plane error (the per-board error and the
 pattern's scale error, ``LidarViews.plane_cov_parts``) times ``s^2``. The corners enter as a Gaussian measurement of
-the poses and boards they fix (their residual about its own minimum, ``cam_dim`` directions, normalised), so ``s`` is
-told by how well the LiDARs' planes agree with the cameras' boards, not by the corners' own scatter (which the
-graph's scale already holds); the samples then carry the noise level's uncertainty (1-6% wider than the Laplace
-covariance on 8-board pairs). With one camera and one LiDAR this is the single pair's likelihood
+each board's pose given the cameras' (each frame's corners about their own best board, 6 directions a frame,
+normalised), so ``s`` is told by how well the LiDARs' planes agree with the cameras' boards, not by the corners' own
+scatter (which the graph's scale already holds); the samples then carry the noise level's uncertainty (1-6% wider
+than the Laplace covariance on 8-board pairs). The cameras' poses relative to each other rest on the corners alone,
+at the graph's scale: ``s`` is how far the boards' planes, which the LiDARs see, are from where the corners put them
+(on a 6-camera rig s's posterior sits near 0.7, which applied to the camera-camera links would narrow them below
+their errors). With one camera and one LiDAR this is the single pair's likelihood
 (``posterior.PlaneLikelihood``) written over the board poses. With ``student-t``, as the pair's, each frame's share
 of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
 t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian. A 2D scanner's range noise,
@@ -42,7 +45,7 @@ any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -50,7 +53,8 @@ from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
 from .factors import lidar_plane, lidar_residual
-from .sampler import ChainResult, run_with_proposal
+from .noise_levels import robust_weight
+from .sampler import ChainResult, run_ensemble, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
 from .rig_graph import RigSolution, change_reference, graph_reference
 
@@ -168,7 +172,6 @@ class RigLikelihood:
                     K.append(B.T @ A)
             if c.name != self.inner and idx:  # K transposed: x @ K^T is K x for every walker
                 self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.transpose(np.array(K), (0, 2, 1))))
-        self.c_min, self.cam_dim = self._corners_minimum(6 * len(self.free))
         # Each LiDAR with range terms in the graph: its terms are parameters after the poses, under their priors.
         ranged = [lv for lv in lidars if lv.has_terms]
         self.ranged = [lv.name for lv in ranged]
@@ -201,7 +204,7 @@ class RigLikelihood:
                 fw = lv.ranged[stem] if lv.ranged is not None else None
                 W4 = fw.W[:, :4] if fw is not None else W
                 pi, _, H_b = lidar_plane(self.T[lv.name], boards[stem])
-                _, D = lidar_residual(W4, pi, lv.scan_line)
+                r_map, D = lidar_residual(W4, pi, lv.scan_line)
                 # The range model's form orients the plane like the fitted one (``factors.nuisance_residual``).
                 sign = 1.0 if fw is None or float(pi[:3] @ fw.m_away) >= 0 else -1.0
                 k = W4.shape[0]
@@ -211,6 +214,12 @@ class RigLikelihood:
                 Li = np.linalg.inv(np.linalg.cholesky(A_l))
                 lam, V = np.linalg.eigh(Li @ B_l @ Li.T)
                 P = V.T @ Li
+                if lv.robust is not None:  # the frame keeps the weight the graph's robust loss gave it at the MAP
+                    e = sign * r_map + (fw.e0 if fw is not None else 0.0)
+                    if lv.has_terms:
+                        e = e + fw.W_nuisance @ solution.range_terms[lv.name][0]
+                    u = P @ e
+                    P = P * np.sqrt(robust_weight(float(np.sqrt(u @ (u / (1.0 + np.maximum(lam, 0.0))))), lv.robust, k))
                 Gj, Wp, lam_j = np.zeros((width, 6)), np.zeros((width, 4)), np.zeros(width)
                 Gj[:k] = sign * P @ D @ H_b
                 Wp[:k] = P @ W4
@@ -259,12 +268,11 @@ class RigLikelihood:
         # M^-1 H_lidar_j M^-T = U diag(nu) U^T, H_j(s)^-1 = M^-T U diag(1 / (1/s^2 + nu)) U^T M^-1 for every s at
         # once (``_basis``: U^T M^-1 per frame; None when a board no camera saw leaves H_cam_j singular).
         self.likelihood, self.nu = likelihood, nu
-        if likelihood == "student-t":
-            try:  # the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
-                self._cam_whitener = np.linalg.inv(np.linalg.cholesky(self.H_cam))
-            except np.linalg.LinAlgError as exc:
-                raise LidarcamError("a frame no camera saw leaves the Student-t likelihood undefined (it weighs each "
-                                    "frame's planes against its camera's board)") from exc
+        try:  # the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
+            self._cam_whitener = np.linalg.inv(np.linalg.cholesky(self.H_cam))
+        except np.linalg.LinAlgError as exc:
+            raise LidarcamError("a frame's board is not fixed by the cameras' corners; the rig's posterior weighs each "
+                                "frame's planes against its cameras' board") from exc
         self._basis = self._nu = None
         if not self.scaled:
             try:
@@ -278,27 +286,6 @@ class RigLikelihood:
         # Measurements held to second order about the MAP (the board edges: :func:`edges_quadratic`): ``(A, b)``,
         # adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
         self.quadratic = quadratic
-
-    def _corners_minimum(self, n_free: int) -> tuple[float, int]:
-        """The corners' least squared whitened residual over the free cameras' poses and the boards (their
-        quadratic's minimum) and the number of directions they fix: the corners are a Gaussian measurement of
-        those, whose covariance the camera side's scale ``s`` multiplies by ``s^2``."""
-        F = len(self.stems)
-        M = np.zeros((n_free + 6 * F, n_free + 6 * F))
-        v = np.zeros(n_free + 6 * F)
-        for j in range(F):
-            M[n_free + 6 * j:n_free + 6 * j + 6, n_free + 6 * j:n_free + 6 * j + 6] = self.H_cam[j]
-        v[n_free:] = self.g0.ravel()
-        for k0, Q, q, idx, Kt in self.cam_terms:
-            M[k0:k0 + 6, k0:k0 + 6] += Q
-            v[k0:k0 + 6] += q
-            for j, KjT in zip(idx, Kt):  # K_j = B^T A: the board's row, the camera's column
-                M[n_free + 6 * j:n_free + 6 * j + 6, k0:k0 + 6] += KjT.T
-                M[k0:k0 + 6, n_free + 6 * j:n_free + 6 * j + 6] += KjT
-        ev, U = np.linalg.eigh(0.5 * (M + M.T))
-        keep = ev > ev[-1] * 1e-12
-        u = U[:, keep].T @ v
-        return self.c0 - float(u @ (u / ev[keep])), int(keep.sum())
 
     def _lidar_information(self, s2: np.ndarray, r2: dict) -> np.ndarray:
         """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name;
@@ -347,13 +334,17 @@ class RigLikelihood:
         s2 = np.exp(2.0 * log_s)
         # Frame-major batches (F, walkers, .): each product below is one batched matrix product over the frames.
         g_cam = np.broadcast_to(self.g0[:, None, :], (len(self.g0), n, 6)).copy()
-        c_cam = np.full(n, self.c0 - self.c_min)
+        c_cam = np.full(n, self.c0)
         for k0, Q, q, idx, Kt in self.cam_terms:
             x = theta[:, k0:k0 + 6]
             c_cam += np.sum((x @ Q) * x, axis=1) + 2.0 * x @ q
             g_cam[idx] += x @ Kt
         g = g_cam / s2[None, :, None]
-        c = c_cam / s2
+        # The corners: each board about its cameras' best board (scaled by s^2), and what is left, the cameras'
+        # poses against each other (at the graph's scale).
+        y_c = np.einsum("fab,fwb->fwa", self._cam_whitener, g_cam)
+        boards = np.sum(y_c * y_c, axis=2)  # (F, walkers)
+        c = c_cam - boards.sum(axis=0) + boards.sum(axis=0) / s2
         c_lid = np.zeros((len(self.stems), n))  # each frame's LiDAR rows, squared and whitened
         logdet_c = np.zeros(n)
         r2 = {n: np.exp(2.0 * theta[:, k])[None, :, None] for n, k in self.r_column.items()}
@@ -398,11 +389,10 @@ class RigLikelihood:
         if self.likelihood == "student-t":
             # Each frame's planes against its boards: its share of chi2 beyond the corners' own best board (the
             # camera's g^T H_cam^-1 g), k_j rows, t-distributed (the pair's ``--likelihood student-t``).
-            y_c = np.einsum("fab,fwb->fwa", self._cam_whitener, g_cam)
-            q = np.maximum(c_lid + np.sum(y_c * y_c, axis=2) / s2[None, :] - quad, 0.0)  # (F, walkers)
+            q = np.maximum(c_lid + boards / s2[None, :] - quad, 0.0)  # (F, walkers)
             chi2 = chi2 - q.sum(axis=0) + np.sum((self.nu + self.rows[:, None]) * np.log1p(q / self.nu), axis=0)
         out = (-0.5 * chi2 - 0.5 * logdet_h - 0.5 * logdet_c
-               - self.cam_dim * log_s - 0.5 * (log_s / self.prior_sd) ** 2)
+               - 6 * len(self.stems) * log_s - 0.5 * (log_s / self.prior_sd) ** 2)
         for name, k in self.r_column.items():  # each scanner's own lines' residuals at its range scale
             floors, dof = self.scan_fit[name]
             log_r = theta[:, k]
@@ -475,15 +465,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         cov = cov_inner[np.ix_(cols, cols)]
         if like.ranged:
             raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
-    cov = 0.5 * (cov + cov.T)
-    like.fit_alpha(np.sqrt(np.diag(cov)))
-    centre, cov = laplace_at_mode(like, cov)
-    walkers = max(64, 2 * like.ndim + 16)
-    start = rng.multivariate_normal(centre, 0.25 * cov, walkers)
-    run = run_with_proposal(like, start, rng, cov, min_ess=min_ess, max_steps=max_steps, label="rig posterior",
-                            centre=centre)
-    keep = like.to_poses(run.samples[np.linspace(0, len(run.samples) - 1,
-                                                 min(MAX_KEPT, len(run.samples))).astype(int)])
+    keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior")
     # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     m = len(keep)
     R_in, t_in = {like.inner: np.broadcast_to(np.eye(3), (m, 3, 3))}, {like.inner: np.zeros((m, 3))}
@@ -535,3 +517,48 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
         if np.all(np.abs(step) < 0.01 * np.sqrt(np.diag(full))):
             break
     return x0, full
+
+
+def run_chain(like: RigLikelihood, cov: np.ndarray, rng: np.random.Generator, min_ess: int, max_steps: int,
+              walkers: int | None = None, ensemble: bool = False, chunk: int = 500, progress: bool = False,
+              label: str = "posterior") -> tuple[np.ndarray, ChainResult]:
+    """Sample ``like`` from the graph's covariance ``cov`` of its poses and terms: each coordinate's power of ``s``
+    fitted (``RigLikelihood.fit_alpha``), the proposal at the joint mode (:func:`laplace_at_mode`), the chain run
+    (``sampler.run_with_proposal``; ``ensemble``: its ensemble moves alone). Returns the samples kept (at most
+    ``MAX_KEPT``, thinned evenly, in the poses' tangents: ``RigLikelihood.to_poses``) and the chain."""
+    cov = 0.5 * (cov + cov.T)
+    like.fit_alpha(np.sqrt(np.diag(cov)))
+    centre, cov = laplace_at_mode(like, cov)
+    walkers = walkers or max(64, 2 * like.ndim + 16)
+    start = rng.multivariate_normal(centre, 0.25 * cov, walkers)
+    if ensemble:
+        run = run_ensemble(like, start, rng, min_ess, max_steps, chunk, progress, label)
+    else:
+        run = run_with_proposal(like, start, rng, cov, min_ess, max_steps, chunk, progress, label, centre=centre)
+    keep = like.to_poses(run.samples[np.linspace(0, len(run.samples) - 1,
+                                                 min(MAX_KEPT, len(run.samples))).astype(int)])
+    return keep, run
+
+
+def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera_board: dict,
+                    views: tuple[CameraViews, LidarViews], range_terms: np.ndarray | None = None,
+                    quadratic: tuple[np.ndarray, np.ndarray] | None = None, likelihood: str = "gaussian",
+                    nu: float = 4.0) -> RigLikelihood:
+    """A single camera-LiDAR pair's likelihood: the rig of its camera (the reference) and its LiDAR at the
+    refinement's estimate, its covariance and board poses (by stem), from the views its graph was built from
+    (``PlaneProblem.views``); its range terms, when it has them, held at their estimate ``range_terms`` (the pair
+    convolves their share into the samples); ``quadratic``: the board edges' share about the estimate."""
+    camera, lidar = views
+    if range_terms is not None and lidar.ranged is not None and lidar.terms is not None:
+        beta = np.asarray(range_terms, dtype=float)
+        lidar = replace(lidar, terms=None, terms_prior_sd=None,
+                        ranged={st: replace(fw, e0=fw.e0 + fw.W_nuisance @ beta) for st, fw in lidar.ranged.items()})
+    elif lidar.terms is not None:
+        lidar = replace(lidar, terms=None, terms_prior_sd=None)
+    joint = np.zeros((12, 12))
+    joint[6:, 6:] = covariance
+    solution = RigSolution((camera.name, lidar.name), camera.name, {camera.name: np.eye(4),
+                                                                     lidar.name: T_camera_lidar},
+                           joint, {st: T_camera_board[st] for st in lidar.W}, {}, {}, 0,
+                           covariance_inner=covariance)
+    return RigLikelihood(solution, [camera], [lidar], quadratic, likelihood=likelihood, nu=nu)
