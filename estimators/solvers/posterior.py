@@ -1,5 +1,10 @@
 """The posterior of ``T_camera_lidar`` by MCMC (emcee), in GTSAM's tangent space around the MAP.
 
+A 3D pair's likelihood is the rig's (``rig_posterior.pair_likelihood``: the rig of its camera and its LiDAR, over
+the views its graph was built from, the board poses integrated out), the same model as below written over the
+board poses. A 2D pair's is :class:`PlaneLikelihood`, which also evaluates the segment ends exactly and samples
+each mode within its cell (:func:`sample_posterior`); the model:
+
 Parameters ``theta = [xi (6); log s]``: ``T = T_hat Exp(xi)`` and ``s`` the scale of the camera-side
 noise (the effective corner noise and any per-board plane error) relative to what the refinement
 assumed: that level is the least certain part of the noise model (corner errors correlate within a
