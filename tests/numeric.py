@@ -5,8 +5,9 @@ import numpy as np
 
 
 def likelihood_hessian(model, h: float = 1e-5) -> np.ndarray:
-    """The Hessian (6x6) of the negative log-posterior ``model`` (a ``PlaneLikelihood``) in the extrinsic's
-    tangent at the MAP, the noise scale held at 1 (central differences)."""
+    """The Hessian (6x6) of the negative log-posterior ``model`` (a 3D pair's ``PlaneLikelihood`` or rig likelihood:
+    the extrinsic's tangent, then ``log s``) in the extrinsic's tangent at the MAP, the noise scale held at 1
+    (central differences)."""
 
     def f(x):
         return -model(np.append(x, 0.0)[None])[0]

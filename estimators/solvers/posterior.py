@@ -400,6 +400,15 @@ class PlaneLikelihood:
         return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
 
 
+def rig_likelihood(ref: Refinement, likelihood: str = "gaussian", nu: float = 4.0):
+    """A 3D pair's likelihood, as its posterior samples it: the rig's over the views its graph was built from
+    (``rig_posterior.pair_likelihood``), its range terms held at their estimate, its edges' share as a quadratic."""
+    rm = ref.range_model
+    return pair_likelihood(ref.T_camera_lidar, ref.covariance, ref.T_camera_board, ref.views,
+                           np.asarray(rm.values_m) if rm is not None and rm.terms is not None else None,
+                           ref.edge_share, likelihood, nu)
+
+
 class ModeCells:
     """The cells of several refined minima: each point belongs to the minimum nearest to it, by the squared
     Mahalanobis distance of ``[rotation vector; translation]`` (the point relative to the minimum, in the
@@ -514,11 +523,7 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
     try:
         if not scan and cells is None and ref.views is not None:
             # A 3D pair: the rig's likelihood over its camera's and LiDAR's views (one likelihood for both).
-            rm = ref.range_model
-            like = pair_likelihood(ref.T_camera_lidar, ref.covariance, ref.T_camera_board, ref.views,
-                                   np.asarray(rm.values_m) if rm is not None and rm.terms is not None else None,
-                                   ref.edge_share,
-                                   options.likelihood, options.nu)
+            like = rig_likelihood(ref, options.likelihood, options.nu)
             keep, run = run_chain(like, ref.covariance, rng, options.min_ess, options.max_steps, options.walkers,
                                   options.sampler != "proposal", options.chunk, options.progress)
             samples, scale = keep[:, :6], np.exp(keep[:, -1])
