@@ -886,6 +886,12 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(xi) < 1e-5 * sd), xi / sd
     assert np.max(np.abs(C - pair.covariance) / np.outer(sd, sd)) < 1e-6
+    # the rig's calibration.json has the pair's keys for its transform, as the pair's file gives them
+    mine = pair.to_dict()
+    for key in ("quaternion_xyzw", "translation_m"):
+        np.testing.assert_allclose(cal[key], mine[key], atol=1e-9)
+    for key, v in mine["std"].items():
+        np.testing.assert_allclose(cal["std"][key], v, rtol=1e-5)
     # both records give either order of the pair alike (T_lidar_camera: the tangent carried by -Ad_T, exactly)
     for a, b in (("cam0", "lidar0"), ("lidar0", "cam0")):
         mine, theirs = pair.pair(a, b), res.pair(a, b)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.rotations import skew
+from geometry.rotations import quat_xyzw_from_R, skew
 
 from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed, regions
 from ..solvers.rig_graph import translation_sd_in_first
@@ -59,6 +59,20 @@ class PairEstimate:
     def std_translation_camera_mm(self) -> np.ndarray | None:
         """Of the entries of ``T``'s translation, in a's frame (millimetres)."""
         return None if self.covariance is None else 1000 * translation_sd_in_first(self.T, self.covariance)
+
+    def camera_lidar_keys(self) -> dict:
+        """The keys a single camera-LiDAR pair's calibration.json gives its transform (``T_camera_lidar``,
+        ``quaternion_xyzw``, ``translation_m``; with a covariance, ``covariance`` and ``std``): a pair's file and a
+        two-sensor rig's carry them alike (docs/reference/calibration_json.md)."""
+        R, t = self.T[:3, :3], self.T[:3, 3]
+        out = {"T_camera_lidar": self.T.tolist(), "quaternion_xyzw": quat_xyzw_from_R(R).tolist(),
+               "translation_m": t.tolist()}
+        if self.covariance is not None:
+            out["covariance"] = self.covariance.tolist()
+            out["std"] = {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
+                          "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist(),
+                          "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()}
+        return out
 
     def intervals(self, level: float) -> np.ndarray | None:
         """The samples' equal-tailed intervals (6, 2) of each tangent axis at ``level``, or None unsampled."""

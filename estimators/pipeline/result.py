@@ -9,7 +9,7 @@ import numpy as np
 
 from geometry.camera import CameraModel
 from geometry.planes import plane_difference
-from geometry.rotations import quat_xyzw_from_R, transform_points
+from geometry.rotations import transform_points
 
 from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
@@ -189,9 +189,7 @@ class CalibrationResult:
             "covariance": self.covariance.tolist(),
             "covariance_convention": COVARIANCE_CONVENTION,
             **sampled,
-            "std": {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
-                    "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist(),
-                    "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()},
+            "std": self.pair().camera_lidar_keys()["std"],
             "noise": {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
                       "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m},
             "consistency": {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
@@ -251,15 +249,12 @@ class CalibrationResult:
             "ambiguous": len(self.modes) > 1, "ambiguous_5_percent": self.ambiguous}
 
     def to_dict(self) -> dict:
-        R, t = self.T_camera_lidar[:3, :3], self.T_camera_lidar[:3, 3]
         fits = {f.name: f for f in self.refinement.frames} if self.refinement else {}
         axis, advice = describe_direction(self.weakest_direction_camera)
         return {
             "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
             "convention": CONVENTION,
-            "T_camera_lidar": self.T_camera_lidar.tolist(),
-            "quaternion_xyzw": quat_xyzw_from_R(R).tolist(),
-            "translation_m": t.tolist(),
+            **{k: v for k, v in self.pair().camera_lidar_keys().items() if k not in ("covariance", "std")},
             "init": self.init, "refine": self.refine,
             "frames_used": self.frames_used, "frames_total": len(self.frames),
             **self._uncertainty_dict(),

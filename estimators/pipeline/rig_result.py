@@ -210,8 +210,7 @@ class RigResult:
                                "dist": refined.dist.tolist(), "source": "refined with the rig"})
         pair = {}
         if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
-            T, C = sol.transform(self.rig.cameras[0].name, self.rig.lidars[0].name)
-            pair = {"T_camera_lidar": T.tolist(), "covariance": C.tolist()}
+            pair = self.pair(self.rig.cameras[0].name, self.rig.lidars[0].name).camera_lidar_keys()
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}
