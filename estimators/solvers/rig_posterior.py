@@ -257,6 +257,11 @@ class RigLikelihood:
         self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log r, log s follow
         self.r_column = {n: self.nx + k for k, n in enumerate(self.scans)}
         self.ndim = self.nx + len(self.scans) + 1
+        # The LiDARs whose rows change with neither s nor r (no camera side, not a scanner): summed once.
+        self._fixed_information = np.zeros((F, 6, 6))
+        for t in self.lidar_terms:
+            if not self._varies(t):
+                self._fixed_information[t[2]] += np.einsum("fka,fkb->fab", t[7], t[7])
         self.alpha = np.zeros(self.nx)  # each coordinate's power of s in the sampled parameters (:meth:`fit_alpha`)
         self.prior_sd = log_scale_prior_sd
         try:
@@ -287,15 +292,22 @@ class RigLikelihood:
         # adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
         self.quadratic = quadratic
 
-    def _lidar_information(self, s2: np.ndarray, r2: dict) -> np.ndarray:
+    def _varies(self, terms: tuple) -> bool:
+        """Whether a LiDAR's rows (an entry of ``lidar_terms``) change with ``s`` or its ``r``."""
+        return bool(np.any(terms[12] > 0)) or terms[13] in self.r_column
+
+    def _lidar_information(self, s2: np.ndarray, r2: dict, fixed: np.ndarray | None = None) -> np.ndarray:
         """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name;
-        1 where not given): (F, walkers, 6, 6)."""
+        1 where not given): (F, walkers, 6, 6). With ``fixed`` (F, 6, 6), the information of the LiDARs whose rows do
+        not change with ``s`` or ``r``: only the others are summed per walker."""
         H = np.zeros((len(self.stems), len(s2), 6, 6))
         for terms in self.lidar_terms:
             idx, G, lam = terms[2], terms[7], terms[12]
+            if fixed is not None and not self._varies(terms):
+                continue
             w = 1.0 / (r2.get(terms[13], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
             H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
-        return H
+        return H if fixed is None else H + fixed[:, None]
 
     def to_poses(self, theta: np.ndarray) -> np.ndarray:
         """The parameters as sampled (each pose or term coordinate ``i`` divided by ``s^alpha_i``) to the poses'
@@ -379,8 +391,8 @@ class RigLikelihood:
             quad = np.sum(y * y / d, axis=2)  # (F, walkers)
             logdet_h = self._logdet_cam + np.sum(np.log(d), axis=(0, 2))
         else:
-            H = self.H_cam[:, None] / s2[None, :, None, None] + (self._lidar_information(s2, r2) if self.scaled
-                                                                  else self.H_lidar[:, None])  # (F, walkers, 6, 6)
+            H_l = self._lidar_information(s2, r2, self._fixed_information) if self.scaled else self.H_lidar[:, None]
+            H = self.H_cam[:, None] / s2[None, :, None, None] + H_l  # (F, walkers, 6, 6)
             L = np.linalg.cholesky(H)
             z = np.linalg.solve(L, g[..., None])[..., 0]  # g^T H^-1 g = |L^-1 g|^2
             quad = np.einsum("fwa,fwa->fw", z, z)
