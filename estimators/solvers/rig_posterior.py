@@ -249,7 +249,6 @@ class RigLikelihood:
                                          lv.name))
         # Whether a LiDAR row has a camera side (its frames' board information then changes with s row by row).
         self.scaled = any(bool(np.any(t[12] > 0)) for t in self.lidar_terms) or bool(self.scans)
-        self.H_lidar = self._lidar_information(np.ones(1), {})[:, 0]  # (F, 6, 6) at s = 1, r = 1
         self.terms_prior_sd = np.concatenate([lv.terms.prior_sd if lv.terms_prior_sd is None else lv.terms_prior_sd
                                               for lv in ranged]) if ranged else np.zeros(0)
         self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
@@ -264,30 +263,22 @@ class RigLikelihood:
                 self._fixed_information[t[2]] += np.einsum("fka,fkb->fab", t[7], t[7])
         self.alpha = np.zeros(self.nx)  # each coordinate's power of s in the sampled parameters (:meth:`fit_alpha`)
         self.prior_sd = log_scale_prior_sd
-        try:
-            np.linalg.cholesky(self.H_cam + self.H_lidar)
-        except np.linalg.LinAlgError as exc:
-            raise LidarcamError("a frame's board pose is not fixed by its measurements; the rig's posterior cannot "
-                                "integrate it out") from exc
-        # Without a camera side in the LiDARs' rows, H_j(s) = H_cam_j / s^2 + H_lidar_j: with H_cam_j = M M^T and
-        # M^-1 H_lidar_j M^-T = U diag(nu) U^T, H_j(s)^-1 = M^-T U diag(1 / (1/s^2 + nu)) U^T M^-1 for every s at
-        # once (``_basis``: U^T M^-1 per frame; None when a board no camera saw leaves H_cam_j singular).
         self.likelihood, self.nu = likelihood, nu
-        try:  # the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
-            self._cam_whitener = np.linalg.inv(np.linalg.cholesky(self.H_cam))
+        try:  # H_cam_j = M M^T; the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
+            M = np.linalg.cholesky(self.H_cam)
         except np.linalg.LinAlgError as exc:
             raise LidarcamError("a frame's board is not fixed by the cameras' corners; the rig's posterior weighs each "
                                 "frame's planes against its cameras' board") from exc
+        self._cam_whitener = np.linalg.inv(M)
+        # Without a camera side in the LiDARs' rows and without a scanner, H_j(s) = H_cam_j / s^2 + H_lidar_j: with
+        # M^-1 H_lidar_j M^-T = U diag(nu) U^T, H_j(s)^-1 = M^-T U diag(1 / (1/s^2 + nu)) U^T M^-1 for every s at
+        # once (``_basis``: U^T M^-1 per frame).
         self._basis = self._nu = None
         if not self.scaled:
-            try:
-                Mi = np.linalg.inv(np.linalg.cholesky(self.H_cam))
-                self._nu, U = np.linalg.eigh(Mi @ self.H_lidar @ np.transpose(Mi, (0, 2, 1)))
-                self._basis = np.transpose(U, (0, 2, 1)) @ Mi
-                self._logdet_cam = float(2.0 * np.sum(np.log(np.diagonal(np.linalg.cholesky(self.H_cam),
-                                                                         axis1=1, axis2=2))))
-            except np.linalg.LinAlgError:
-                self._basis = None
+            Mi = self._cam_whitener
+            self._nu, U = np.linalg.eigh(Mi @ self._fixed_information @ np.transpose(Mi, (0, 2, 1)))
+            self._basis = np.transpose(U, (0, 2, 1)) @ Mi
+            self._logdet_cam = float(2.0 * np.sum(np.log(np.diagonal(M, axis1=1, axis2=2))))
         # Measurements held to second order about the MAP (the board edges: :func:`edges_quadratic`): ``(A, b)``,
         # adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
         self.quadratic = quadratic
@@ -296,18 +287,16 @@ class RigLikelihood:
         """Whether a LiDAR's rows (an entry of ``lidar_terms``) change with ``s`` or its ``r``."""
         return bool(np.any(terms[12] > 0)) or terms[13] in self.r_column
 
-    def _lidar_information(self, s2: np.ndarray, r2: dict, fixed: np.ndarray | None = None) -> np.ndarray:
-        """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name;
-        1 where not given): (F, walkers, 6, 6). With ``fixed`` (F, 6, 6), the information of the LiDARs whose rows do
-        not change with ``s`` or ``r``: only the others are summed per walker."""
+    def _lidar_information(self, s2: np.ndarray, r2: dict) -> np.ndarray:
+        """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name):
+        (F, walkers, 6, 6); the LiDARs whose rows change with neither are summed once (``_fixed_information``)."""
         H = np.zeros((len(self.stems), len(s2), 6, 6))
         for terms in self.lidar_terms:
-            idx, G, lam = terms[2], terms[7], terms[12]
-            if fixed is not None and not self._varies(terms):
-                continue
-            w = 1.0 / (r2.get(terms[13], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
-            H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
-        return H if fixed is None else H + fixed[:, None]
+            if self._varies(terms):
+                idx, G, lam = terms[2], terms[7], terms[12]
+                w = 1.0 / (r2.get(terms[13], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
+                H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
+        return H + self._fixed_information[:, None]
 
     def to_poses(self, theta: np.ndarray) -> np.ndarray:
         """The parameters as sampled (each pose or term coordinate ``i`` divided by ``s^alpha_i``) to the poses'
@@ -391,8 +380,7 @@ class RigLikelihood:
             quad = np.sum(y * y / d, axis=2)  # (F, walkers)
             logdet_h = self._logdet_cam + np.sum(np.log(d), axis=(0, 2))
         else:
-            H_l = self._lidar_information(s2, r2, self._fixed_information) if self.scaled else self.H_lidar[:, None]
-            H = self.H_cam[:, None] / s2[None, :, None, None] + H_l  # (F, walkers, 6, 6)
+            H = self.H_cam[:, None] / s2[None, :, None, None] + self._lidar_information(s2, r2)  # (F, walkers, 6, 6)
             L = np.linalg.cholesky(H)
             z = np.linalg.solve(L, g[..., None])[..., 0]  # g^T H^-1 g = |L^-1 g|^2
             quad = np.einsum("fwa,fwa->fw", z, z)
