@@ -5,7 +5,7 @@ import numpy as np
 
 
 def likelihood_hessian(model, h: float = 1e-5) -> np.ndarray:
-    """The Hessian (6x6) of the negative log-posterior ``model`` (a 3D pair's ``PlaneLikelihood`` or rig likelihood:
+    """The Hessian (6x6) of the negative log-posterior ``model`` (a pair's rig likelihood:
     the extrinsic's tangent, then ``log s``) in the extrinsic's tangent at the MAP, the noise scale held at 1
     (central differences)."""
 

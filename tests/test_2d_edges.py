@@ -143,7 +143,7 @@ def test_the_posterior_evaluates_the_ends_as_the_factor_does():
     sampled exactly (4 more parameters: the outline; and the range noise's scale) has standard deviations within
     0.8-1.25 of the Laplace ones. The range noise's scale ``r`` is sampled as a variance estimated from the
     lines' residuals is known: ``log r`` about 0 with standard deviation ``1 / sqrt(2 nu)`` (within 25%)."""
-    from estimators.solvers.posterior import PlaneLikelihood, PosteriorOptions, sample_posterior
+    from estimators.solvers.posterior import PosteriorOptions, rig_likelihood, sample_posterior
 
     rig, frames = _frames(5, n=6)
     ref = refine(frames, rig.board, rig.camera, rig.T_camera_lidar)
@@ -162,13 +162,13 @@ def test_the_posterior_evaluates_the_ends_as_the_factor_does():
         np.testing.assert_allclose(r[k], expected, atol=1e-9)
     e, _ = end_loss(r, np.broadcast_to(ends.sd_m, r.shape))
     np.testing.assert_allclose(ends.log_likelihood(Ts, outline), -0.5 * np.sum(e**2, axis=1), rtol=1e-12)
-    model = PlaneLikelihood(frames, rig.board, rig.camera, ref)
-    assert model.ndim == 12 and model.edge_H is None and model.range_scale
+    model = rig_likelihood(ref)  # the extrinsic, the outline, log r and log s; the ends' own, not the quadratic
+    assert model.ndim == 12 and model.ends is not None and model.quadratic is None and model.scans
     post = sample_posterior(frames, rig.board, rig.camera, ref, np.random.default_rng(1), PosteriorOptions(min_ess=600))
     ratio = np.sqrt(np.diag(post.covariance) / np.diag(ref.covariance))
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
-    log_r = post.run.samples[:, -1]
-    nu = model.floor_dof + model.dims.sum()  # the lines' own residuals and the frames' rows in the model
+    log_r = post.run.samples[:, model.r_column[model.scans[0]]]
+    nu = model.scan_fit[model.scans[0]][1] + model.rows.sum()  # the lines' own residuals and the frames' rows
     assert 20 < nu < 1000
     assert abs(np.median(log_r)) < 3 / np.sqrt(2 * nu)
     assert abs(np.std(log_r) * np.sqrt(2 * nu) - 1) < 0.25

@@ -8,7 +8,7 @@ import pytest
 from estimators.simulation.simulator import default_rig, sample_board_poses
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.posterior import (PlaneLikelihood, Posterior, PosteriorOptions, rig_likelihood,
+from estimators.solvers.posterior import (Posterior, PosteriorOptions, rig_likelihood,
                                           sample_posterior)
 from estimators.solvers.sampler import run_ensemble
 from estimators.solvers.refinement import refine
@@ -102,11 +102,10 @@ def measured():
     return layout, frames, ref
 
 
-@pytest.mark.parametrize("which", ["rig", "plane"])
-def test_posterior_log_density_peaks_at_the_map_with_the_laplace_curvature(measured, which):
-    # The likelihood a 3D pair samples (the rig's over its views) and the 2D pair's, on the same frames.
+def test_posterior_log_density_peaks_at_the_map_with_the_laplace_curvature(measured):
+    # The likelihood a pair samples (the rig's over its views).
     layout, frames, ref = measured
-    model = rig_likelihood(ref) if which == "rig" else PlaneLikelihood(frames, layout.board, layout.camera, ref)
+    model = rig_likelihood(ref)
     H = likelihood_hessian(model)
     np.testing.assert_allclose(np.linalg.inv(H), ref.covariance, rtol=0.02, atol=0.02 * np.abs(ref.covariance).max())
     grad = likelihood_gradient(model)

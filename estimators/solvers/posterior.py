@@ -1,22 +1,20 @@
 """The posterior of ``T_camera_lidar`` by MCMC (emcee), in GTSAM's tangent space around the MAP.
 
-A 3D pair's likelihood is the rig's (``rig_posterior.pair_likelihood``: the rig of its camera and its LiDAR, over
-the views its graph was built from, the board poses integrated out), the same model as below written over the
-board poses. A 2D pair's is :class:`PlaneLikelihood`, which also evaluates the segment ends exactly and samples
-each mode within its cell (:func:`sample_posterior`); the model:
+A pair's likelihood is the rig's (``rig_posterior.pair_likelihood``: the rig of its camera and its LiDAR, over
+the views its graph was built from), 3D or 2D. The model, in a pair's terms:
 
-Parameters ``theta = [xi (6); log s]``: ``T = T_hat Exp(xi)`` and ``s`` the scale of the camera-side
-noise (the effective corner noise and any per-board plane error) relative to what the refinement
-assumed: that level is the least certain part of the noise model (corner errors correlate within a
-board), so it is estimated with the extrinsic, under a log-normal prior (sd 0.5 on ``log s``). A 3D
-LiDAR's range noise is not sampled: thousands of board points pin it down. A 2D scan's rests on a few
-dozen: its scale ``r`` is sampled as well (last parameter, flat prior on ``log r``), the lines' residuals
+Parameters: ``xi`` (6), ``T = T_hat Exp(xi)``; for a 2D scan with its segment ends, the dataset's outline (4);
+for a 2D scan, ``log r``; last ``log s``, the scale of the camera-side noise (the effective corner noise and any
+per-board plane error) relative to what the refinement assumed: that level is the least certain part of the noise
+model (corner errors correlate within a board), so it is estimated with the extrinsic, under a log-normal prior
+(sd 0.5 on ``log s``). A 3D LiDAR's range noise is not sampled: thousands of board points pin it down. A 2D
+scan's rests on a few dozen: its scale ``r`` is sampled as well (flat prior on ``log r``), the lines' residuals
 about their own best fits carrying their share of its likelihood, so the intervals hold the range noise's
 uncertainty (a Student-t-like widening of the tails).
 
-Likelihood, per used frame ``i`` (MATH.md section 3), with the board pose marginalised: the camera's
-own board fit ``b_i`` (PnP on the corners) has covariance ``Sigma_b = sigma_px^2 (J^T J)^-1`` at the
-refinement's effective corner noise; linearising the board plane in the pose,
+Likelihood, per used frame ``i`` (MATH.md section 3), with the board pose integrated out: the corners fix the
+board pose ``b_i`` with covariance ``Sigma_b = sigma_px^2 (J^T J)^-1`` at the board's own corner noise;
+linearising the board plane in the board pose,
 
     e_i(T) = W_i pi(T, b_i),   C_i = sigma_r^2 I + W_i H_b Sigma_b H_b^T W_i^T (+ the per-board plane error),
 
@@ -31,8 +29,9 @@ the extrinsic's covariance is convolved in the same way, so the intervals are ma
 board's edges (``--edges``), their share of the log-posterior enters as a quadratic about the MAP (their
 nuisances and the board poses profiled out), second order like a Laplace approximation of that share alone:
 the ends' Huber weights are those of the refinement. A 2D scan's segment ends enter by their own likelihood
-(``board_edges.EndSet``) with the dataset's outline (4 more parameters) under its prior: with a few boards, an
-end hidden before its edge moves the posterior beyond what a quadratic holds.
+(``board_edges.EndSet``) with the dataset's outline under its prior: with a few boards, an end hidden before its
+edge moves the posterior beyond what a quadratic holds. Several refined minima are each sampled within their
+cell (:class:`ModeCells`) and mixed by mass (:func:`sample_posterior`).
 """
 from __future__ import annotations
 
@@ -47,14 +46,10 @@ from geometry.rotations import T_log, exp_batch
 from ..errors import DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import outline_prior_sd
-from .factors import corner_residuals, lidar_plane, lidar_residual
-from .range_model import frame_whiteners
-from .noise_levels import frame_noise, own_fit_residuals, pooled_range_noise_m
 from .refinement import Refinement
 from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
-from .rig_posterior import LOG_SCALE_PRIOR_SD, pair_likelihood, run_chain
-from .sampler import ChainResult, run_ensemble, run_with_proposal
+from .rig_posterior import pair_likelihood, run_chain
+from .sampler import ChainResult
 
 LIKELIHOODS = ("gaussian", "student-t")
 SAMPLERS = ("proposal", "ensemble")
@@ -223,190 +218,19 @@ class Posterior:
                 "mode_weights": list(self.mode_weights)}  # the diagnostics of the chain are the MAP mode's
 
 
-class PlaneLikelihood:
-    """The vectorised log-posterior of ``theta = [xi; log s]`` (and a 2D scan's outline, :attr:`ndim`; see the
-    module docstring).
-
-    Per frame ``C(s) = A + s^2 B`` with ``A`` the LiDAR part and ``B`` the camera (and per-board plane
-    error) part; a simultaneous diagonalisation ``A = L L^T``, ``L^-1 B L^-T = V diag(lam) V^T`` makes
-    ``e^T C^-1 e = sum_j z_j^2 / (1 + s^2 lam_j)`` with ``z = V^T L^-1 e`` and
-    ``log det C = log det A + sum_j log(1 + s^2 lam_j)``, for every walker at once.
-    """
-
-    def __init__(self, frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
-                 likelihood: str = "gaussian", nu: float = 4.0, log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD,
-                 cells: "ModeCells | None" = None, cell: int = 0):
-        fits = {f.name: f for f in ref.frames}
-        # With several modes, each is sampled within its own cell (the points nearer to it than to any other).
-        self.cells, self.cell = cells, cell
-        self.T_map = ref.T_camera_lidar
-        self.likelihood, self.nu, self.prior_sd = likelihood, nu, log_scale_prior_sd
-        half = 0.5 * float(np.mean(board.extent))
-        rows, lams, normals, dists, dims, scan, signs, consts = [], [], [], [], [], [], [], []
-        floors, floor_dof = 0.0, 0.0  # the scan lines' residuals about their own best lines, and their dof
-        board_covariances = {}
-        # With a range model, its terms are held at the MAP here and their uncertainty is convolved into the
-        # samples afterwards (``Refinement.range_model.extrinsic_share``; first order, like the intrinsics').
-        rm = ref.range_model
-        terms = rm.terms if rm is not None else None
-        beta = np.asarray(rm.values_m) if terms is not None else np.zeros(0)
-        tau = float(rm.term_consistency.get("board_scatter_m", 0.0)) if terms is not None else 0.0
-        labels = rm.labels_for(frames, board, ref.T_camera_lidar) if terms is not None else None
-        fws = frame_whiteners(frames, pooled_range_noise_m([f.lidar for f in frames]), terms, labels)
-        width = max(fw.W.shape[0] for fw in fws) if fws else 3
-        for f, fw in zip(frames, fws):
-            W = fw.W_plane
-            fit = fits.get(f.name)
-            if fit is None or fit.dropped or fit.weight <= 0:
-                continue
-            b = f.camera.T_camera_board
-            _, J = corner_residuals(b, f.camera.corners_board(board), f.camera.corners_px, camera)
-            sigma = fit.corner_noise_px if np.isfinite(fit.corner_noise_px) else ref.corner_noise_px
-            cov_b = sigma**2 * np.linalg.inv(J.T @ J)
-            board_covariances[f.name] = cov_b
-            k = W.shape[0]
-            if k < (2 if f.lidar.is_scan_line else 3):
-                raise LidarcamError(f"frame {f.name}: its board points do not span a "
-                                    f"{'line' if f.lidar.is_scan_line else 'plane'}; the posterior needs every "
-                                    "used board to")
-            pi_map, _, H_b = lidar_plane(self.T_map, b)
-            # A scan line's residual is W pi / |n_xy|: its camera part is linearised at the MAP.
-            g = float(np.hypot(pi_map[0], pi_map[1])) if f.lidar.is_scan_line else 1.0
-            _, D = lidar_residual(W, pi_map, f.lidar.is_scan_line)
-            # The LiDAR part: the range noise (and, with range terms, the boards' scatter along their weak
-            # direction); the camera part (scaled by s^2): the board pose and the per-board plane error.
-            A = frame_noise(fw, f.lidar.plane.normal, ref.range_noise_m, 0.0, half, 0.0, tau)
-            B = (frame_noise(fw, f.lidar.plane.normal, 0.0, ref.plane_floor_m, half,
-                             ref.corner_scale_sd * f.camera.plane.distance) / (g**2 if fw.R is None else 1.0)
-                 + D @ H_b @ cov_b @ H_b.T @ D.T)
-            A, B = A / fit.weight, B / fit.weight
-            L = np.linalg.cholesky(A)
-            Li = np.linalg.inv(L)
-            lam, V = np.linalg.eigh(Li @ B @ Li.T)
-            row = np.zeros((width, 4))
-            row[:k] = V.T @ Li @ W  # z = s row @ pi (divided by |n_xy| for a scan line) + const
-            lam3 = np.zeros(width)
-            lam3[:k] = np.maximum(lam, 0.0)
-            const = np.zeros(width)
-            if terms is not None:
-                const[:k] = V.T @ Li @ (fw.W_nuisance @ beta + fw.e0)
-            rows.append(row)
-            lams.append(lam3)
-            consts.append(const)
-            signs.append(1.0 if terms is None or pi_map[:3] @ fw.m_away >= 0 else -1.0)
-            n = b[:3, 2]
-            normals.append(n)
-            dists.append(float(n @ b[:3, 3]))
-            dims.append(k)
-            scan.append(f.lidar.is_scan_line)
-            if f.lidar.is_scan_line:
-                ss, dof = own_fit_residuals(f.lidar)
-                floors += fit.weight * ss / ref.range_noise_m**2
-                floor_dof += fit.weight * dof
-        least = 2 if ref.end_terms is not None and all(scan) else 3  # scan lines with their segment ends: 2
-        if len(rows) < least:
-            raise LidarcamError(f"only {len(rows)} frame(s) left for the posterior; it needs at least {least}")
-        # (F, k, 4), (F, k): zero rows pad a scan line's 2 and frames with fewer range terms
-        self.rows, self.lam = np.array(rows), np.array(lams)
-        self.signs, self.consts = np.array(signs), np.array(consts)
-        self.normals, self.dists = np.array(normals), np.array(dists)
-        self.dims, self.scan = np.array(dims, dtype=float), np.array(scan, dtype=bool)
-        self.valid = np.arange(width)[None, :] < self.dims[:, None]  # (F, k): the rows that are not padding
-        # A 2D scan's range noise rests on a few dozen points: its scale ``r`` (to the refinement's) is sampled
-        # too, its likelihood the lines' own residuals (``floor_dof`` of them, ``floors`` in units of the
-        # refinement's range variance) and the rest of the model, under a flat prior on ``log r``.
-        self.range_scale = bool(self.scan.any())
-        self.floors, self.floor_dof = floors, floor_dof
-        # The board's edges, when used: their share of the log-posterior to second order about the MAP (their
-        # nuisances profiled out; ``edges_in_graph.edges_information``).
-        self.edge_H, self.edge_eta = ref.edge_share if ref.edge_share is not None else (None, None)
-        # A 2D scan's segment ends: their own likelihood (``board_edges.end_loss``), not its quadratic, with the
-        # dataset's outline sampled under its prior (the frames' outline shifts held at the MAP). An end hidden
-        # before its edge then lets the posterior reach where the MAP's quadratic would not.
-        self.ends = None
-        if ref.end_terms is not None and any(n in ref.end_terms.edges for n in board_covariances):
-            self.ends = ref.end_terms.end_set(self.T_map, {f.name: f.camera.T_camera_board for f in frames
-                                                           if f.name in board_covariances}, board, board_covariances)
-            self.outline_map, self.outline_sd = ref.end_terms.outline, outline_prior_sd()
-            self.edge_H = self.edge_eta = None
-
-    @property
-    def ndim(self) -> int:
-        """Parameters: ``xi`` (6), ``log s``, with a 2D scan's ends the dataset's outline (4), and for a 2D scan
-        ``log r``, the range noise's scale (last)."""
-        return 7 + (4 if self.ends is not None else 0) + (1 if self.range_scale else 0)
-
-    def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
-        """Walkers' starting points: the extrinsic from its Laplace approximation, the scale near 1, the outline
-        near the MAP's (half its prior's spread)."""
-        start = np.empty((walkers, self.ndim))
-        start[:, :6] = rng.multivariate_normal(np.zeros(6), covariance, walkers)
-        start[:, 6] = rng.normal(0.0, 0.05, walkers)
-        if self.ends is not None:
-            start[:, 7:11] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
-        if self.range_scale:
-            start[:, -1] = rng.normal(0.0, 0.5 / np.sqrt(max(self.floor_dof, 1.0)), walkers)
-        for _ in range(20):  # within the mode's cell: a walker outside it is moved halfway to the mode
-            outside = ~np.isfinite(self(start))
-            if not outside.any():
-                break
-            start[outside, :6] *= 0.5
-        return start
-
-    @property
-    def n_frames(self) -> int:
-        return len(self.rows)
-
-    def __call__(self, theta: np.ndarray) -> np.ndarray:
-        theta = np.atleast_2d(theta)
-        dR, dt = exp_batch(theta[:, :6])
-        R = self.T_map[:3, :3] @ dR  # (w, 3, 3)
-        t = self.T_map[:3, 3] + dt @ self.T_map[:3, :3].T
-        log_s = theta[:, 6]
-        pi = np.empty((self.n_frames, 4, len(theta)))
-        pi[:, :3, :] = np.matmul(R.transpose(0, 2, 1), self.normals.T).transpose(2, 1, 0)  # R^T n per frame
-        pi[:, 3, :] = (t @ self.normals.T - self.dists).T
-        z = np.matmul(self.rows, pi).transpose(2, 0, 1)  # (w, F, 3)
-        if self.scan.any():
-            gxy = np.hypot(pi[:, 0, :], pi[:, 1, :]).T  # (w, F)
-            z = np.where(self.scan[None, :, None], z / gxy[:, :, None], z)
-        z = z * self.signs[None, :, None] + self.consts[None, :, :]
-        if self.range_scale:  # C = r^2 A + s^2 B: the whitened rows' variances r^2 + s^2 lam (padding: 1)
-            rho = np.exp(2 * theta[:, -1])
-            g = np.where(self.valid[None], rho[:, None, None] + np.exp(2 * log_s)[:, None, None] * self.lam, 1.0)
-        else:
-            g = 1.0 + np.exp(2 * log_s)[:, None, None] * self.lam  # (w, F, 3)
-        logdet = np.sum(np.log(g), axis=(1, 2))
-        if self.likelihood == "gaussian":
-            loglik = -0.5 * np.sum(z * z / g, axis=(1, 2))
-        else:
-            q = np.sum(z * z / g, axis=2)
-            loglik = -0.5 * np.sum((self.nu + self.dims) * np.log1p(q / self.nu), axis=1)
-        if self.edge_H is not None:
-            xi = theta[:, :6]
-            loglik = loglik + xi @ self.edge_eta - 0.5 * np.einsum("wi,ij,wj->w", xi, self.edge_H, xi)
-        if self.cells is not None:
-            loglik = np.where(self.cells.nearest(R, t) == self.cell, loglik, -np.inf)
-        if self.ends is not None:
-            Ts = np.tile(np.eye(4), (len(theta), 1, 1))
-            Ts[:, :3, :3], Ts[:, :3, 3] = R, t
-            outline = theta[:, 7:11]
-            loglik = loglik + self.ends.log_likelihood(Ts, outline) - 0.5 * np.sum((outline / self.outline_sd) ** 2,
-                                                                                   axis=1)
-        if self.range_scale:  # the lines' own residuals, each of variance r^2 (flat prior on log r, |log r| < 2)
-            log_r = theta[:, -1]
-            loglik = (loglik - self.floor_dof * log_r - 0.5 * self.floors * np.exp(-2 * log_r)
-                      + np.where(np.abs(log_r) < 2.0, 0.0, -np.inf))
-        return loglik - 0.5 * logdet - 0.5 * (log_s / self.prior_sd) ** 2
-
-
-def rig_likelihood(ref: Refinement, likelihood: str = "gaussian", nu: float = 4.0):
-    """A 3D pair's likelihood, as its posterior samples it: the rig's over the views its graph was built from
-    (``rig_posterior.pair_likelihood``), its range terms held at their estimate, its edges' share as a quadratic."""
+def rig_likelihood(ref: Refinement, likelihood: str = "gaussian", nu: float = 4.0, cells: "ModeCells | None" = None,
+                   cell: int = 0):
+    """A pair's likelihood, as its posterior samples it: the rig's over the views its graph was built from
+    (``rig_posterior.pair_likelihood``), its range terms held at their estimate, its edges' share as a quadratic, a
+    2D scan's segment ends by their own likelihood; within mode ``cell`` of ``cells`` when given."""
     rm = ref.range_model
+    lidar = ref.views[1]
+    least = 2 if ref.end_terms is not None and lidar.scan_line else 3  # scan lines with their segment ends: 2
+    if len(lidar.W) < least:
+        raise LidarcamError(f"only {len(lidar.W)} frame(s) left for the posterior; it needs at least {least}")
     return pair_likelihood(ref.T_camera_lidar, ref.covariance, ref.T_camera_board, ref.views,
                            np.asarray(rm.values_m) if rm is not None and rm.terms is not None else None,
-                           ref.edge_share, likelihood, nu)
+                           ref.edge_share, likelihood, nu, ref.end_terms, cells, cell)
 
 
 class ModeCells:
@@ -521,24 +345,14 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
                                                  "constrain the weak direction")
     scan = any(f.lidar.is_scan_line for f in frames if f.usable)
     try:
-        if not scan and cells is None and ref.views is not None:
-            # A 3D pair: the rig's likelihood over its camera's and LiDAR's views (one likelihood for both).
-            like = rig_likelihood(ref, options.likelihood, options.nu)
-            keep, run = run_chain(like, ref.covariance, rng, options.min_ess, options.max_steps, options.walkers,
-                                  options.sampler != "proposal", options.chunk, options.progress)
-            samples, scale = keep[:, :6], np.exp(keep[:, -1])
-        else:
-            model = PlaneLikelihood([f for f in frames if f.usable], board, camera, ref, options.likelihood,
-                                    options.nu, cells=cells, cell=index)
-            # Walkers start in the Laplace approximation (already the typical set: no long burn-in).
-            start = model.start(rng, ref.covariance, options.walkers)
-            if options.sampler == "proposal":
-                run = run_with_proposal(model, start, rng, None, options.min_ess, options.max_steps, options.chunk,
-                                        options.progress)
-            else:
-                run = run_ensemble(model, start, rng, options.min_ess, options.max_steps, options.chunk,
-                                   options.progress)
-            samples, scale = run.samples[:, :6], np.exp(run.samples[:, 6])
+        # The rig's likelihood over the pair's camera and LiDAR views (one likelihood for both). A 2D pair's
+        # posterior is not near its Laplace approximation (a curved valley, its segment ends): its proposal is
+        # tuned by a pilot run.
+        like = rig_likelihood(ref, options.likelihood, options.nu, cells, index)
+        keep, run = run_chain(like, ref.covariance, rng, options.min_ess, options.max_steps, options.walkers,
+                              options.sampler != "proposal", options.chunk, options.progress,
+                              pilot=scan or cells is not None)
+        samples, scale = keep[:, :6], np.exp(keep[:, -1])
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a NaN log-probability
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the Laplace one") from exc

@@ -32,8 +32,9 @@ scatter (which the graph's scale already holds); the samples then carry the nois
 than the Laplace covariance on 8-board pairs). The cameras' poses relative to each other rest on the corners alone,
 at the graph's scale: ``s`` is how far the boards' planes, which the LiDARs see, are from where the corners put them
 (on a 6-camera rig s's posterior sits near 0.7, which applied to the camera-camera links would narrow them below
-their errors). With one camera and one LiDAR this is the single pair's likelihood
-(``posterior.PlaneLikelihood``) written over the board poses. With ``student-t``, as the pair's, each frame's share
+their errors). With one camera and one LiDAR this is the single pair's likelihood (``pair_likelihood``): a 2D
+pair's segment ends then enter by their own likelihood, with the dataset's outline (4 parameters) under its prior,
+and with several minima each is sampled within its cell. With ``student-t``, as the pair's, each frame's share
 of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
 t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian. A 2D scanner's range noise,
 which rests on a few dozen points a board, has its scale ``r`` sampled too (a parameter per scanner before ``log s``,
@@ -52,6 +53,7 @@ import numpy as np
 from geometry.rotations import exp_batch, log_batch
 
 from ..errors import LidarcamError
+from .board_edges import EndTerms, outline_prior_sd
 from .factors import lidar_plane, lidar_residual
 from .noise_levels import robust_weight
 from .sampler import ChainResult, run_ensemble, run_with_proposal
@@ -135,7 +137,8 @@ class RigLikelihood:
 
     def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                  quadratic: tuple[np.ndarray, np.ndarray] | None = None,
-                 log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD, likelihood: str = "gaussian", nu: float = 4.0):
+                 log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD, likelihood: str = "gaussian", nu: float = 4.0,
+                 ends: EndTerms | None = None, cells=None, cell: int = 0):
         names = solution.names
         self.inner = graph_reference(solution.reference, [c.name for c in cameras])
         T_inner = np.linalg.inv(solution.T_ref[self.inner])
@@ -254,8 +257,24 @@ class RigLikelihood:
         self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
             else np.zeros(0)
         self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log r, log s follow
-        self.r_column = {n: self.nx + k for k, n in enumerate(self.scans)}
-        self.ndim = self.nx + len(self.scans) + 1
+        # A single pair's 2D segment ends (``ends``): their own likelihood at the LiDAR's pose, with the dataset's
+        # outline (4 parameters after the terms) under its prior; each end's variance grows by its board pose's
+        # (the corners' covariance at the graph's board). ``cells``: with several minima, the pair is sampled
+        # within its own (``posterior.ModeCells``, minimum ``cell``).
+        self.ends = self.outline_map = None
+        self.cells, self.cell = cells, cell
+        if ends is not None or cells is not None:
+            if len(self.free) != 1 or lidars[0].name != self.free[0]:
+                raise ValueError("segment ends and mode cells are a single camera-LiDAR pair's")
+            self.pair_lidar = lidars[0].name
+        if ends is not None and any(st in ends.edges for st in self.stems):
+            cov_b = {st: np.linalg.inv(self.H_cam[j]) for j, st in enumerate(self.stems)}
+            self.ends = ends.end_set(self.T[self.pair_lidar], {st: boards[st] for st in self.stems}, lidars[0].board,
+                                     cov_b)
+            self.outline_map, self.outline_sd = np.asarray(ends.outline, dtype=float), outline_prior_sd()
+        n_outline = 0 if self.ends is None else 4
+        self.r_column = {n: self.nx + n_outline + k for k, n in enumerate(self.scans)}
+        self.ndim = self.nx + n_outline + len(self.scans) + 1
         # The LiDARs whose rows change with neither s nor r (no camera side, not a scanner): summed once.
         self._fixed_information = np.zeros((F, 6, 6))
         for t in self.lidar_terms:
@@ -280,8 +299,8 @@ class RigLikelihood:
             self._basis = np.transpose(U, (0, 2, 1)) @ Mi
             self._logdet_cam = float(2.0 * np.sum(np.log(np.diagonal(M, axis1=1, axis2=2))))
         # Measurements held to second order about the MAP (the board edges: :func:`edges_quadratic`): ``(A, b)``,
-        # adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
-        self.quadratic = quadratic
+        # adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior; not with the ends' own.
+        self.quadratic = quadratic if self.ends is None else None
 
     def _varies(self, terms: tuple) -> bool:
         """Whether a LiDAR's rows (an entry of ``lidar_terms``) change with ``s`` or its ``r``."""
@@ -401,6 +420,43 @@ class RigLikelihood:
             A, b = self.quadratic
             x = theta[:, :self.nx]
             out += -0.5 * np.sum((x @ A) * x, axis=1) + x @ b
+        if self.ends is not None or self.cells is not None:
+            k0 = 0  # the pair's LiDAR is the one free sensor: its tangent is the first 6 parameters
+            R, t = _poses(self.T[self.pair_lidar], theta[:, k0:k0 + 6])
+            if self.ends is not None:
+                outline = theta[:, self.nx:self.nx + 4]
+                Ts = np.tile(np.eye(4), (n, 1, 1))
+                Ts[:, :3, :3], Ts[:, :3, 3] = R, t
+                out += (self.ends.log_likelihood(Ts, outline)
+                        - 0.5 * np.sum((outline / self.outline_sd) ** 2, axis=1))
+            if self.cells is not None:
+                out = np.where(self.cells.nearest(R, t) == self.cell, out, -np.inf)
+        return out
+
+    def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
+        """Walkers about the graph's estimate: the poses and terms from its covariance, ``log s`` near 0, the outline
+        near its estimate (half its prior's spread), each ``log r`` within its own residuals' spread; a walker
+        outside the mode's cell is moved halfway towards the estimate until it is inside."""
+        start = np.zeros((walkers, self.ndim))
+        start[:, :self.nx] = rng.multivariate_normal(np.zeros(self.nx), covariance, walkers)
+        start[:, -1] = rng.normal(0.0, 0.05, walkers)
+        if self.ends is not None:
+            start[:, self.nx:self.nx + 4] = self.outline_map + rng.normal(0.0, 0.5, (walkers, 4)) * self.outline_sd
+        for name, k in self.r_column.items():
+            start[:, k] = rng.normal(0.0, 0.5 / np.sqrt(max(self.scan_fit[name][1], 1.0)), walkers)
+        for _ in range(20):
+            outside = ~np.isfinite(self(start))
+            if not outside.any():
+                break
+            start[outside, :self.nx] *= 0.5
+        return start
+
+    def extra_sd(self) -> np.ndarray:
+        """A spread for each parameter after the poses and terms (the outline's prior's, then ``log r``'s and ``log
+        s``'s prior's): :func:`laplace_at_mode`'s steps and its fallback."""
+        out = np.full(self.ndim - self.nx, self.prior_sd)
+        if self.ends is not None:
+            out[:4] = self.outline_sd
         return out
 
 
@@ -492,13 +548,20 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
     graph's MAP would be too wide or too narrow in every direction at once (on a 6-camera rig, 49 parameters,
     the chain's autocorrelation was 170 steps with it)."""
     n = like.ndim
-    h = np.append(0.1 * np.sqrt(np.diag(cov)), np.full(n - len(cov), 0.05))
+    h = np.append(0.1 * np.sqrt(np.diag(cov)), 0.1 * like.extra_sd())
+    # Where the log-posterior is not concave, or a step leaves a mode's cell: the graph's covariance, the other
+    # parameters at their priors' spread.
+    fallback = np.zeros((n, n))
+    fallback[:len(cov), :len(cov)] = cov
+    fallback[len(cov):, len(cov):] = np.diag(like.extra_sd() ** 2)
     e = np.eye(n) * h
     i, j = np.triu_indices(n, 1)
-    x0 = np.zeros(n)
+    x0, full = np.zeros(n), None
     for _ in range(newton_steps):
         pts = np.vstack([x0, x0 + e, x0 - e, x0 + e[i] + e[j], x0 + e[i] - e[j], x0 - e[i] + e[j], x0 - e[i] - e[j]])
         f = np.concatenate([like(pts[k:k + 256]) for k in range(0, len(pts), 256)])  # memory: 256 points at once
+        if not np.all(np.isfinite(f)):
+            break
         f0, fp, fm = f[0], f[1:n + 1], f[n + 1:2 * n + 1]
         q = f[2 * n + 1:].reshape(4, -1)
         grad = (fp - fm) / (2 * h)
@@ -507,32 +570,37 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
         try:
             full = np.linalg.inv(-H)
             np.linalg.cholesky(full)
-        except np.linalg.LinAlgError:  # not concave there: the graph's covariance, the scale at its prior's spread
-            full = np.zeros((n, n))
-            full[:len(cov), :len(cov)] = cov
-            full[len(cov):, len(cov):] = np.eye(n - len(cov)) * like.prior_sd**2
-            return np.zeros(n), full
+        except np.linalg.LinAlgError:
+            return np.zeros(n), fallback
         step = full @ grad
         x0 = x0 + step
         if np.all(np.abs(step) < 0.01 * np.sqrt(np.diag(full))):
             break
-    return x0, full
+    return (x0, full) if full is not None else (np.zeros(n), fallback)
 
 
 def run_chain(like: RigLikelihood, cov: np.ndarray, rng: np.random.Generator, min_ess: int, max_steps: int,
               walkers: int | None = None, ensemble: bool = False, chunk: int = 500, progress: bool = False,
-              label: str = "posterior") -> tuple[np.ndarray, ChainResult]:
+              label: str = "posterior", pilot: bool = False) -> tuple[np.ndarray, ChainResult]:
     """Sample ``like`` from the graph's covariance ``cov`` of its poses and terms: each coordinate's power of ``s``
     fitted (``RigLikelihood.fit_alpha``), the proposal at the joint mode (:func:`laplace_at_mode`), the chain run
-    (``sampler.run_with_proposal``; ``ensemble``: its ensemble moves alone). Returns the samples kept (at most
-    ``MAX_KEPT``, thinned evenly, in the poses' tangents: ``RigLikelihood.to_poses``) and the chain."""
+    (``sampler.run_with_proposal``; ``ensemble``: its ensemble moves alone). ``pilot``, for a posterior the Laplace
+    approximation describes poorly (a 2D pair's curved valley and segment ends, a mode within its cell): the walkers
+    start about the graph's estimate (:meth:`RigLikelihood.start`) and a pilot run gives the proposal its centre,
+    covariance and heavier tails. Returns the samples kept (at most ``MAX_KEPT``, thinned
+    evenly, in the poses' tangents: ``RigLikelihood.to_poses``) and the chain."""
     cov = 0.5 * (cov + cov.T)
-    like.fit_alpha(np.sqrt(np.diag(cov)))
-    centre, cov = laplace_at_mode(like, cov)
     walkers = walkers or max(64, 2 * like.ndim + 16)
-    start = rng.multivariate_normal(centre, 0.25 * cov, walkers)
+    if pilot:  # about the graph's estimate, in the poses' own tangents
+        start = like.start(rng, cov, walkers)
+    else:
+        like.fit_alpha(np.sqrt(np.diag(cov)))
+        centre, cov = laplace_at_mode(like, cov)
+        start = rng.multivariate_normal(centre, 0.25 * cov, walkers)
     if ensemble:
         run = run_ensemble(like, start, rng, min_ess, max_steps, chunk, progress, label)
+    elif pilot:
+        run = run_with_proposal(like, start, rng, None, min_ess, max_steps, chunk, progress, label)
     else:
         run = run_with_proposal(like, start, rng, cov, min_ess, max_steps, chunk, progress, label, centre=centre)
     keep = like.to_poses(run.samples[np.linspace(0, len(run.samples) - 1,
@@ -543,7 +611,7 @@ def run_chain(like: RigLikelihood, cov: np.ndarray, rng: np.random.Generator, mi
 def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera_board: dict,
                     views: tuple[CameraViews, LidarViews], range_terms: np.ndarray | None = None,
                     quadratic: tuple[np.ndarray, np.ndarray] | None = None, likelihood: str = "gaussian",
-                    nu: float = 4.0) -> RigLikelihood:
+                    nu: float = 4.0, ends: EndTerms | None = None, cells=None, cell: int = 0) -> RigLikelihood:
     """A single camera-LiDAR pair's likelihood: the rig of its camera (the reference) and its LiDAR at the
     refinement's estimate, its covariance and board poses (by stem), from the views its graph was built from
     (``PlaneProblem.views``); its range terms, when it has them, held at their estimate ``range_terms`` (the pair
@@ -561,4 +629,5 @@ def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera
                                                                      lidar.name: T_camera_lidar},
                            joint, {st: T_camera_board[st] for st in lidar.W}, {}, {}, 0,
                            covariance_inner=covariance)
-    return RigLikelihood(solution, [camera], [lidar], quadratic, likelihood=likelihood, nu=nu)
+    return RigLikelihood(solution, [camera], [lidar], quadratic, likelihood=likelihood, nu=nu, ends=ends, cells=cells,
+                         cell=cell)
