@@ -148,10 +148,6 @@ class FrameWhitener:
     tangent: np.ndarray | None = None
 
     @property
-    def W_plane(self) -> np.ndarray:
-        return self.W[:, :4]
-
-    @property
     def W_nuisance(self) -> np.ndarray:
         """``dW/dbeta``: the residual's Jacobian by the shared terms (k x K)."""
         return self.W[:, 4:] @ self.S
