@@ -453,9 +453,12 @@ class EndSet:
         and (K, 4) outlines (growth x, y; offset x, y): (K, E). A beam that misses the board's plane (it cuts it
         behind the LiDAR) lies 1 m outward."""
         Tb = self.T_board_camera[self.frame]  # (E, 4, 4)
-        R = np.einsum("eij,kjl->keil", Tb[:, :3, :3], Ts[:, :3, :3])  # R_board_lidar per (K, E)
-        t = np.einsum("eij,kj->kei", Tb[:, :3, :3], Ts[:, :3, 3]) + Tb[None, :, :3, 3]
-        d = np.einsum("keij,ej->kei", R, self.beams)
+        Rb = Tb[:, :3, :3]
+        # Each beam and the LiDAR's origin in the board's frame, R_board_camera (R_camera_lidar beam) per (K, E): the
+        # walkers' rotations first (one batched product), then each end's board.
+        u = np.matmul(Ts[:, :3, :3], self.beams.T).transpose(0, 2, 1)  # (K, E, 3)
+        d = np.matmul(Rb[None], u[..., None])[..., 0]
+        t = np.tensordot(Ts[:, :3, 3], Rb, axes=([1], [2])) + Tb[None, :, :3, 3]
         dz = np.where(np.abs(d[..., 2]) < 1e-9, 1e-9, d[..., 2])
         s = -t[..., 2] / dz
         q = t[..., :2] + s[..., None] * d[..., :2]
