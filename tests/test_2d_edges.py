@@ -164,6 +164,11 @@ def test_the_posterior_evaluates_the_ends_as_the_factor_does():
     np.testing.assert_allclose(ends.log_likelihood(Ts, outline), -0.5 * np.sum(e**2, axis=1), rtol=1e-12)
     model = rig_likelihood(ref)  # the extrinsic, the outline, log r and log s; the ends' own, not the quadratic
     assert model.ndim == 12 and len(model.end_sets) == 1 and model.quadratic is None and model.scans
+    # A proposal far beyond the noise scales' range (log s 26.7 came from a pilot's differential-evolution move on a
+    # footprint layout, and the boards' information lost its definiteness) has no density; it raises nothing.
+    wild = np.zeros((3, model.ndim))
+    wild[0, -1], wild[1, -1], wild[2, model.r_column[model.scans[0]]] = 26.7, -30.0, 2.5
+    assert np.all(model(wild) == -np.inf) and np.isfinite(model(np.zeros((1, model.ndim))))
     post = sample_posterior(frames, rig.board, rig.camera, ref, np.random.default_rng(1), PosteriorOptions(min_ess=600))
     ratio = np.sqrt(np.diag(post.covariance) / np.diag(ref.covariance))
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio

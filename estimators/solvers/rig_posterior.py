@@ -64,6 +64,10 @@ from .rig_graph import RigSolution, change_reference, graph_reference
 # The prior's sd of ``log s``, the camera side's noise scale, in every posterior (a pair's and a rig's).
 LOG_SCALE_PRIOR_SD = 0.5
 
+# The camera side's noise scale ``s`` is sampled within ``exp(+-MAX_ABS_LOG_SCALE)`` of the graph's: 10 of its prior's
+# standard deviations, beyond which the prior holds no mass worth a sample (and a proposal there is refused).
+MAX_ABS_LOG_SCALE = 5.0
+
 # Samples kept for the pairs' intervals and covariances (thinned evenly from the chain after burn-in).
 MAX_KEPT = 20000
 
@@ -360,9 +364,18 @@ class RigLikelihood:
         self.alpha = np.clip(-np.log(ratio) / (4 * delta), 0.0, 1.0)
 
     def log_posterior(self, theta: np.ndarray) -> np.ndarray:
-        """The log-posterior at the poses' tangents, the terms and ``log s`` (not divided by ``s``)."""
+        """The log-posterior at the poses' tangents, the terms and ``log s`` (not divided by ``s``); none (-inf) where
+        a noise scale leaves its range (``|log s|`` beyond ``MAX_ABS_LOG_SCALE``, ``|log r|`` beyond 2), where the
+        boards' information would lose its definiteness too."""
         theta = np.atleast_2d(theta)
         n = theta.shape[0]
+        outside = np.abs(theta[:, -1]) > MAX_ABS_LOG_SCALE
+        for k in self.r_column.values():
+            outside |= np.abs(theta[:, k]) >= 2.0
+        if outside.any():  # evaluated at the graph's scales there, then dropped
+            theta = theta.copy()
+            theta[outside, -1] = 0.0
+            theta[np.ix_(outside, list(self.r_column.values()))] = 0.0
         log_s = theta[:, -1]
         s2 = np.exp(2.0 * log_s)
         # Frame-major batches (F, walkers, .): each product below is one batched matrix product over the frames.
@@ -428,7 +441,7 @@ class RigLikelihood:
         for name, k in self.r_column.items():  # each scanner's own lines' residuals at its range scale
             floors, dof = self.scan_fit[name]
             log_r = theta[:, k]
-            out += -dof * log_r - 0.5 * floors * np.exp(-2.0 * log_r) + np.where(np.abs(log_r) < 2.0, 0.0, -np.inf)
+            out += -dof * log_r - 0.5 * floors * np.exp(-2.0 * log_r)
         if self.quadratic is not None:
             A, b = self.quadratic
             x = theta[:, :self.nx]
@@ -442,7 +455,7 @@ class RigLikelihood:
         if self.cells is not None:  # the pair's LiDAR is the one free sensor
             R, t = _poses(self.T[self.free[0]], theta[:, :6])
             out = np.where(self.cells.nearest(R, t) == self.cell, out, -np.inf)
-        return out
+        return np.where(outside, -np.inf, out)
 
     def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
         """Walkers about the graph's estimate: the poses and terms from its covariance, ``log s`` near 0, the outline
