@@ -272,21 +272,30 @@ class RigLikelihood:
         self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
             else np.zeros(0)
         self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log r, log s follow
+        try:  # H_cam_j = M M^T; the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
+            M = np.linalg.cholesky(self.H_cam)
+        except np.linalg.LinAlgError as exc:
+            raise LidarcamError("a frame's board is not fixed by the cameras' corners; the rig's posterior weighs each "
+                                "frame's planes against its cameras' board") from exc
+        self._cam_whitener = np.linalg.inv(M)
         # A 2D scanner's segment ends (``ends``: its ``EndTerms`` by name, a pair's or each of a rig's scanners'): their
         # own likelihood at the scanner's pose, with its outline (4 parameters each, after the terms, its departure
-        # from the graph's estimate) under its prior; each end's variance grows by its board pose's (the corners' covariance at the graph's board).
-        # ``cells``: a single pair's minima, each sampled within its own (``posterior.ModeCells``, minimum ``cell``).
+        # from the graph's estimate) under its prior; each end's variance grows by its board pose's (the corners'
+        # covariance at the graph's board, H_cam_j^-1 = M^-T M^-1). ``cells``: a single pair's minima, each sampled
+        # within its own (``posterior.ModeCells``, minimum ``cell``).
         self.col = col
         self.cells, self.cell = cells, cell
         if cells is not None and len(self.free) != 1:
             raise ValueError("mode cells are a single camera-LiDAR pair's")
-        cov_b = {st: np.linalg.inv(self.H_cam[j]) for j, st in enumerate(self.stems)}
-        board = next((lv.board for lv in lidars if lv.board is not None), None)
         self.end_sets = []  # (scanner, its EndSet, its outline's first column)
-        for name, terms in (ends or {}).items():
-            if name in col and any(st in terms.edges for st in self.stems):
-                end_set = terms.end_set(self.T[name], {st: boards[st] for st in self.stems}, board, cov_b)
-                self.end_sets.append((name, end_set, self.nx + 4 * len(self.end_sets)))
+        if ends:
+            Mi = self._cam_whitener
+            cov_b = dict(zip(self.stems, np.transpose(Mi, (0, 2, 1)) @ Mi))
+            board = next(lv.board for lv in lidars if lv.board is not None)
+            for name, terms in ends.items():
+                if name in col and any(st in terms.edges for st in self.stems):
+                    end_set = terms.end_set(self.T[name], {st: boards[st] for st in self.stems}, board, cov_b)
+                    self.end_sets.append((name, end_set, self.nx + 4 * len(self.end_sets)))
         self.outline_map = {name: np.asarray(ends[name].outline, dtype=float) for name, _, _ in self.end_sets}
         self.outline_sd = outline_prior_sd()
         n_outline = 4 * len(self.end_sets)
@@ -300,12 +309,6 @@ class RigLikelihood:
         self.alpha = np.zeros(self.nx)  # each coordinate's power of s in the sampled parameters (:meth:`fit_alpha`)
         self.prior_sd = log_scale_prior_sd
         self.likelihood, self.nu = likelihood, nu
-        try:  # H_cam_j = M M^T; the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
-            M = np.linalg.cholesky(self.H_cam)
-        except np.linalg.LinAlgError as exc:
-            raise LidarcamError("a frame's board is not fixed by the cameras' corners; the rig's posterior weighs each "
-                                "frame's planes against its cameras' board") from exc
-        self._cam_whitener = np.linalg.inv(M)
         # Without a camera side in the LiDARs' rows and without a scanner, H_j(s) = H_cam_j / s^2 + H_lidar_j: with
         # M^-1 H_lidar_j M^-T = U diag(nu) U^T, H_j(s)^-1 = M^-T U diag(1 / (1/s^2 + nu)) U^T M^-1 for every s at
         # once (``_basis``: U^T M^-1 per frame).
@@ -339,7 +342,8 @@ class RigLikelihood:
         tangents and terms: a coordinate the corners alone fix spreads as ``s`` (``alpha`` 1), one the LiDARs alone
         fix does not (0); in these, the funnel the scale makes in the poses is near a cylinder."""
         x = np.array(np.atleast_2d(theta), dtype=float)
-        x[:, :self.nx] *= np.exp(np.outer(x[:, -1], self.alpha))
+        # (a scale beyond its range has no density, :meth:`log_posterior`: its poses are not blown up to overflow)
+        x[:, :self.nx] *= np.exp(np.outer(np.clip(x[:, -1], -MAX_ABS_LOG_SCALE, MAX_ABS_LOG_SCALE), self.alpha))
         return x
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
