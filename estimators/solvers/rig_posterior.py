@@ -58,7 +58,6 @@ from .factors import lidar_plane, lidar_residual
 from .noise_levels import robust_weight
 from .sampler import ChainResult, run_ensemble, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
-from .graph_keys import edge_shift_key, outline_key
 from .rig_graph import RigSolution, change_reference, graph_reference
 
 # The prior's sd of ``log s``, the camera side's noise scale, in every posterior (a pair's and a rig's).
@@ -278,7 +277,7 @@ class RigLikelihood:
             raise LidarcamError("a frame's board is not fixed by the cameras' corners; the rig's posterior weighs each "
                                 "frame's planes against its cameras' board") from exc
         self._cam_whitener = np.linalg.inv(M)
-        # A 2D scanner's segment ends (``ends``: its ``EndTerms`` by name, a pair's or each of a rig's scanners'): their
+        # A 2D scanner's segment ends (``ends``: its ``EndTerms`` by name; a single pair's): their
         # own likelihood at the scanner's pose, with its outline (4 parameters each, after the terms, its departure
         # from the graph's estimate) under its prior; each end's variance grows by its board pose's (the corners'
         # covariance at the graph's board, H_cam_j^-1 = M^-T M^-1). ``cells``: a single pair's minima, each sampled
@@ -318,7 +317,7 @@ class RigLikelihood:
             self._nu, U = np.linalg.eigh(Mi @ self._fixed_information @ np.transpose(Mi, (0, 2, 1)))
             self._basis = np.transpose(U, (0, 2, 1)) @ Mi
             self._logdet_cam = float(2.0 * np.sum(np.log(np.diagonal(M, axis1=1, axis2=2))))
-        # Measurements held to second order about the MAP (a 3D LiDAR's board edges: :func:`edges_quadratic`):
+        # Measurements held to second order about the MAP (a rig's board edges: :func:`edges_quadratic`):
         # ``(A, b)``, adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
         self.quadratic = quadratic
 
@@ -487,20 +486,6 @@ class RigLikelihood:
         return out
 
 
-def scanner_ends(solution: RigSolution, lidars: list[LidarViews]) -> dict:
-    """Each 2D scanner's segment ends in the joint graph as the posterior evaluates them (``board_edges.EndTerms``, by
-    name): its ends by frame, each frame's outline shift and its outline at the graph's estimate, its ends' scale."""
-    stems = sorted(solution.T_ref_board)
-    out = {}
-    for lv in lidars:
-        if lv.scan_line and lv.edges:
-            k = solution.names.index(lv.name)
-            out[lv.name] = EndTerms(dict(lv.edges), {st: solution.vectors[edge_shift_key(k, stems.index(st))]
-                                                     for st in lv.edges if st in stems},
-                                    np.asarray(solution.vectors[outline_key(k)], dtype=float), lv.edge_scale)
-    return out
-
-
 def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[CameraViews],
                     lidars: list[LidarViews], h: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
     """The board edges' share of the log-posterior to second order about the MAP, as the single pair's posterior
@@ -513,7 +498,7 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
 
     from .rig_graph import inner_covariance
 
-    planes = [replace(lv, edges=None) if lv.edges and not lv.scan_line else lv for lv in lidars]
+    planes = [replace(lv, edges=None) if lv.edges else lv for lv in lidars]
     C_p = inner_covariance(solution.names, solution.reference, cameras, planes, solution)
     A = np.linalg.inv(solution.covariance_inner) - np.linalg.inv(C_p)
     ev, V = np.linalg.eigh(0.5 * (A + A.T))
@@ -550,8 +535,8 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     RigPosterior
         Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
     """
-    like = RigLikelihood(solution, cameras, lidars, likelihood=likelihood, nu=nu, ends=scanner_ends(solution, lidars))
-    if any(lv.edges and not lv.scan_line for lv in lidars):  # a 3D LiDAR's ring ends: their share, to second order
+    like = RigLikelihood(solution, cameras, lidars, likelihood=likelihood, nu=nu)
+    if any(lv.edges for lv in lidars):
         like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
     if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == like.nx:
