@@ -31,6 +31,7 @@ docs: $(STAMP)
 
 bench: $(STAMP)
 	$(RECORD) pipeline -- $(PY) benchmarks/bench_pipeline.py
+	$(RECORD) verdict -- $(PY) benchmarks/bench_verdict.py
 	$(RECORD) refinement -- $(PY) benchmarks/bench_refinement.py
 	$(RECORD) posterior -- $(PY) benchmarks/bench_posterior.py
 	$(RECORD) e2e_bias -- $(PY) benchmarks/bench_e2e_bias.py

@@ -22,7 +22,8 @@ from .io.measurement_store import Measurements, cache_dir
 from .lidar.board_segmentation import SegmentationParams
 from .measurements import FrameMeasurement
 from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
-from .pipeline.result import CalibrationResult, plane_residuals
+from .pipeline.result import CalibrationResult
+from .pipeline.verdict import frame_disagrees, plane_residuals
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import refine_intrinsics
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
@@ -266,7 +267,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     dropped = {f.name for f in ref.frames if f.dropped} if ref else set()
     residuals = plane_residuals(T, [f for f in used if f.name not in dropped])
     for fname, (angle, dist) in residuals.items():
-        if angle > np.deg2rad(3.0) or abs(dist) > 0.05:
+        if frame_disagrees(angle, dist):
             tail.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
                         f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
     tail += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]

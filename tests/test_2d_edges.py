@@ -221,10 +221,12 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     assert len(modes) == 2 and all(np.shape(m["covariance"]) == (6, 6) for m in modes)
     capsys.readouterr()
     print_result(result)
-    assert capsys.readouterr().out.startswith("AMBIGUOUS: 2 distinct solutions")
-    from estimators.analysis.report import alarm_parts  # the report opens with it too
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("CHECK: ") and "2 solutions fit the boards (posterior mass" in first
+    assert result.to_dict()["verdict"]["level"] == "CHECK"
+    from estimators.analysis.report import verdict_part  # the report opens with it too
 
-    assert alarm_parts(result)[0].startswith("<p><b>AMBIGUOUS</b>: 2 distinct solutions fit the boards")
+    assert "<b style=\"color:#9a6700\">CHECK</b>: " in verdict_part(result) and "2 solutions fit" in verdict_part(result)
     args = build_parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
     assert exit_code(args, result) == EXIT_AMBIGUOUS
     assert exit_code(build_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0

@@ -428,6 +428,7 @@ def test_an_answer_its_boards_edges_contradict_is_said_first_and_strict_exits_no
         capsys.readouterr()
         print_result(moved)
         assert capsys.readouterr().out.startswith("UNTRUSTED: the boards' planes and their ring ends") == flagged
+        assert (moved.to_dict()["verdict"]["level"] == "UNTRUSTED") == flagged
         assert exit_code(strict, moved) == (EXIT_AMBIGUOUS if flagged else 0)
 
 

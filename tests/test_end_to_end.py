@@ -7,6 +7,7 @@ import re
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 from html.parser import HTMLParser
 
 import cv2
@@ -163,6 +164,15 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     rot, tr = map(float, re.search(r"rotation ([\d.]+) deg, translation ([\d.]+) mm", r.stdout).groups())
     d2 = float(re.search(r"squared Mahalanobis distance of the truth under the covariance: ([\d.]+)", r.stdout)[1])
     assert rot < 0.5 and tr < 10.0 and d2 < 22.5, r.stdout
+    # The README shows this printout's first lines (its verdict, then the estimate): the same to the last digit
+    # printed (2e-5, for another machine's rounding).
+    shown = re.search(r"opens with its verdict, then the estimate:\n\n```text\n(.*?)```",
+                      (Path(__file__).resolve().parents[1] / "README.md").read_text(), flags=re.S)[1].splitlines()
+    printed = r.stdout.splitlines()[1:1 + len(shown)]
+    assert printed[:2] == shown[:2] == ["OK", "T_camera_lidar (p_camera = R p_lidar + t), closed-form, refine "
+                                                "factor-graph:"], printed
+    np.testing.assert_allclose([[float(v) for v in line.strip(" []").split()] for line in printed[2:]],
+                               [[float(v) for v in line.strip(" []").split()] for line in shown[2:]], atol=2e-5)
 
 
 def test_missing_dataset_is_one_line_exit_2(tmp_path):

@@ -120,6 +120,12 @@ def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, v
     assert all("lidar_board_choice" in f for f in saved["frames"])
     assert (tmp_path / "corner.png").is_file() and (tmp_path / "board_choice_0000.png").is_file()
     assert "Which LiDAR points" in report.read_text()
+    # Its verdict opens the report and calibration.json: OK, or a CHECK whose reason says what to look at (the
+    # VLP-16's outlines sit 5 mm off the camera's boards, beyond their 99% limit)
+    assert saved["verdict"]["level"] == {"vlp16": "CHECK", "ouster": "OK"}[which], saved["verdict"]
+    if which == "vlp16":
+        assert "board outlines sit" in saved["verdict"]["line"]
+    assert f">{saved['verdict']['level']}</b>" in report.read_text()
 
 
 def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards_overdispersion(vlp16, ouster):

@@ -338,7 +338,7 @@ def _figures(result, dataset: Dataset, process: FigureProcess
 
 def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> str:
     T = result.T_camera_lidar
-    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>", *alarm_parts(result),
+    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>", verdict_part(result),
              "<h2>Estimate</h2><p>T_camera_lidar maps LiDAR points into the camera frame: "
              "p_camera = R p_lidar + t.</p><pre>" + "\n".join("  ".join(f"{v:+.6f}" for v in row) for row in T)
              + "</pre>",
@@ -425,10 +425,13 @@ def offsets_section(offsets: list[tuple[str, np.ndarray]], title: str = "") -> s
             "when the extrinsic is right.</p>" + _table(rows, ["frame", "horizontal du [px]", "vertical dv [px]"]))
 
 
-def alarm_parts(result) -> list[str]:
-    """The result's alarms (``alarms()``: UNTRUSTED, AMBIGUOUS), each a bold paragraph, for the page's top."""
-    return [f"<p><b>{html.escape(a.split(':', 1)[0])}</b>:{html.escape(a.split(':', 1)[1])}</p>"
-            for a in result.alarms()]
+def verdict_part(result) -> str:
+    """The result's verdict (``pipeline.verdict``: OK, CHECK or UNTRUSTED and why), the page's first paragraph."""
+    v = result.verdict
+    colour = {"OK": "#1a7f37", "CHECK": "#9a6700", "UNTRUSTED": "#cf222e"}[v.level]
+    said = "; ".join(v.reasons)
+    return (f'<p class="verdict" style="font-size:1.2em"><b style="color:{colour}">{v.level}</b>'
+            + (f": {html.escape(said)}" if said else "") + "</p>")
 
 
 def spread_section(p, kind: str, title: str = "") -> str:

@@ -13,7 +13,7 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import _table, alarm_parts, html_page, offsets_section, projection_figure, spread_section
+from .report import _table, html_page, offsets_section, projection_figure, spread_section, verdict_part
 from .rig_layout import next_pose_words
 
 
@@ -54,7 +54,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                f"acceptance {d['acceptance_fraction']:.2f}{'' if d['converged'] else ', NOT converged'})")
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
              f"{html.escape(sol.reference)}; {how}.</p>"]
-    parts += alarm_parts(result)
+    parts.append(verdict_part(result))
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
     from ..pipeline.rig_result import range_model_words

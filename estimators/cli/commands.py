@@ -189,14 +189,16 @@ def _calibrate_with(args, ds, figures) -> int:
 
 
 def exit_code(args, result) -> int:
-    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) for an ambiguous or contradicted answer under ``--strict``."""
+    """0, or ``EXIT_AMBIGUOUS`` (said on stderr) under ``--strict`` for an answer whose verdict is ``UNTRUSTED`` or
+    that its boards leave ambiguous."""
     from ..calibration import EXIT_AMBIGUOUS
 
-    if getattr(args, "strict", False) and (result.ambiguous or result.contradicted):
-        what = "ambiguous" if result.ambiguous else "contradicted by its boards' edges"
+    if getattr(args, "strict", False) and (result.verdict.untrusted or result.ambiguous):
+        what = "untrusted" if result.verdict.untrusted else "ambiguous"
         print(f"lidarcam: the answer is {what} (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
         return EXIT_AMBIGUOUS
     return 0
+
 
 
 def _with_separating_pose(result, board):

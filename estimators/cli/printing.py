@@ -10,8 +10,7 @@ def print_result(result, truth=None) -> None:
 
     T = result.T_camera_lidar
     np.set_printoptions(precision=5, suppress=True)
-    for line in result.alarms():
-        print(line)
+    print(result.verdict.line)
     print(f"T_camera_lidar (p_camera = R p_lidar + t), {result.init}, refine {result.refine}:")
     for row in T:
         print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
@@ -148,8 +147,7 @@ def print_rig(result) -> None:
     from ..solvers.outline_check import outline_shift_words
 
     sol = result.solution
-    for line in result.alarms():
-        print(line)
+    print(result.verdict.line)
     for w in result.warnings[:0 if result.ambiguous else 1]:
         print(f"warning: {w}")
     post = result.posterior

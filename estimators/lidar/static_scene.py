@@ -145,6 +145,9 @@ def _elevation_rows(points: np.ndarray, bin_rad: float) -> np.ndarray:
 
 
 # Candidate sides (degrees) of an unorganised cloud's direction bins, finest first.
+# How the note begins where the rig's stillness could not be judged (on every frame or some) or a turn would not show:
+# the verdict's CHECK (``pipeline.verdict``).
+STILLNESS_NOT_CHECKED = ("the rig's stillness could not be checked", "the rig's stillness is not checked")
 BIN_SIDES_DEG = (0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 
 
@@ -347,10 +350,10 @@ def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], fo
                      "board candidate")
         foreground = tuple(~judged[k][0] if k in moved else f for k, f in enumerate(foreground))
     if len(unjudged) == len(match):
-        notes.append(f"the rig's stillness could not be checked: no frame has {p.min_judged} returns on settled "
+        notes.append(f"{STILLNESS_NOT_CHECKED[0]}: no frame has {p.min_judged} returns on settled "
                      "background (a cloud cropped to the boards?)")
     elif unjudged:
-        notes.append(f"the rig's stillness could not be checked on frame(s) {_names(unjudged)}: fewer than "
+        notes.append(f"{STILLNESS_NOT_CHECKED[0]} on frame(s) {_names(unjudged)}: fewer than "
                      f"{p.min_judged} of their returns lie on settled background")
     if len(unjudged) < len(match) and not moved:
         # The power of the judgement: the best-judged frame turned by the checked angle either way.
@@ -361,7 +364,7 @@ def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], fo
             Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
             turns.append(_share(*_judged_masks(scene, points[k] @ Rz.T, rings[k]), p.min_judged))
         if not all(t < limit for t in turns):
-            notes.append(f"the rig's stillness is not checked: a {p.checked_turn_deg:g}-degree turn of the rig about "
+            notes.append(f"{STILLNESS_NOT_CHECKED[1]}: a {p.checked_turn_deg:g}-degree turn of the rig about "
                          "its vertical axis would not show against the background in view (too little of it changes "
                          "with a turn: the ground alone, a cloud cropped to the boards?)")
     return replace(scene, match=match, note="; ".join(notes), _frames=foreground, moved=moved, unchecked=unjudged)

@@ -8,8 +8,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from geometry.camera import CameraModel
-from geometry.planes import plane_difference
-from geometry.rotations import transform_points
 
 from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
@@ -19,6 +17,7 @@ from ..solvers.intrinsics_refinement import IntrinsicsFit
 from ..solvers.posterior import Posterior
 from ..solvers.refinement import Refinement, contradiction
 from .pair_estimate import PairEstimate
+from .verdict import Verdict, pair_verdict
 
 if TYPE_CHECKING:  # the 2D solvers are imported where they are used (they load scipy.optimize)
     from ..solvers.solution_selection import MinimalSelection
@@ -31,17 +30,6 @@ CONVENTION = ("T_camera_lidar maps LiDAR points into the camera frame: p_camera 
               "LiDAR x forward, y left, z up; camera x right, y down, z forward (OpenCV).")
 COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m)] in GTSAM's Pose3 tangent: "
                          "T_true = T_hat * Exp(xi), so both parts are along the LiDAR's axes")
-
-
-def ambiguity_words(modes, which: str = "the boards", mixed: bool = True) -> str:
-    """What an ambiguous answer says first (``modes``: ``solution_selection.Mode``, the most probable first):
-    ``mixed`` when its intervals cover every mode (a single pair's posterior mixes them), else they hold the most
-    probable alone (a rig's joint graph starts from it)."""
-    masses = ", ".join(f"{m.mass:.0%}" for m in modes)
-    held = "the intervals cover every mode" if mixed else "every interval holds that one alone"
-    return (f"{len(modes)} distinct solutions fit {which} (posterior mass {masses}); the most probable is shown, "
-            f"{held}, and calibration.json lists each with its covariance. Add boards tilted in other directions to "
-            "decide.")
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,18 +207,11 @@ class CalibrationResult:
         with it, and ``--strict`` exits non-zero."""
         return any(m.mass >= AMBIGUOUS_MASS for m in self.modes[1:])
 
-    def alarms(self) -> list[str]:
-        """What the printout and the report say before the estimate: an answer its edges contradict
-        (``UNTRUSTED``) or that its boards leave ambiguous (``AMBIGUOUS``); ``--strict`` exits non-zero on
-        either."""
-        out = []
-        if self.contradicted:
-            out.append(f"UNTRUSTED: {self.contradicted}. Both estimates are in calibration.json (board_edges, "
-                       "planes_against_edges); check board.size and the boards' outlines in the report, and add "
-                       "boards.")
-        if self.ambiguous:
-            out.append("AMBIGUOUS: " + ambiguity_words(self.modes))
-        return out
+    @property
+    def verdict(self) -> Verdict:
+        """``OK``, ``CHECK: ...`` or ``UNTRUSTED: ...`` (``pipeline.verdict``): the first line of the printout, the
+        report and calibration.json; ``--strict`` exits non-zero on ``UNTRUSTED`` or an ambiguous answer."""
+        return pair_verdict(self)
 
     def _minimal_dict(self) -> dict:
         sel = self.selection
@@ -252,6 +233,7 @@ class CalibrationResult:
         fits = {f.name: f for f in self.refinement.frames} if self.refinement else {}
         axis, advice = describe_direction(self.weakest_direction_camera)
         return {
+            "verdict": self.verdict.to_dict(),
             "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
             "convention": CONVENTION,
             **{k: v for k, v in self.pair().camera_lidar_keys().items() if k not in ("covariance", "std")},
@@ -273,21 +255,6 @@ class CalibrationResult:
             "measurements_source": self.measurements_source,
             "timings_s": self.timings_s,
         }
-
-
-def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) -> dict:
-    """Per used frame: angle (rad) between the camera normal and the mapped LiDAR normal, and the
-    difference of the plane distances (m), under ``T_camera_lidar``."""
-    out = {}
-    for f in frames:
-        if f.usable and f.lidar.is_scan_line:
-            # A laser line: the angle by which it leaves the board's plane, and its points' mean distance to it.
-            direction = T_camera_lidar[:3, :3] @ np.append(f.lidar.line.direction, 0.0)
-            dist = float(np.mean(f.camera.plane.signed_distances(transform_points(T_camera_lidar, f.lidar.points))))
-            out[f.name] = (float(np.arcsin(min(abs(direction @ f.camera.plane.normal), 1.0))), dist)
-        elif f.usable:
-            out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
-    return out
 
 
 def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None, fit=None) -> dict:

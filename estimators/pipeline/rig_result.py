@@ -16,8 +16,8 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
-from .result import ambiguity_words
 from .rig_measurement import MIN_PAIR_FRAMES
+from .verdict import Verdict, rig_verdict
 
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
 # (``rig_graph.solve_rig``); the warning that its factors disagree beyond their noise is given when its chi-square
@@ -114,11 +114,11 @@ class RigResult:
         planes as one answer (None)."""
         return None
 
-    def alarms(self) -> list[str]:
-        """What the printout and the report say first, as a single pair's result does: each camera-LiDAR pair
-        whose own boards leave it ambiguous (``AMBIGUOUS``; ``--strict`` exits non-zero)."""
-        return [f"AMBIGUOUS: T_{c}_{lid}: " + ambiguity_words(modes, "its boards", mixed=False)
-                for (c, lid), modes in self.ambiguous_pairs.items()]
+    @property
+    def verdict(self) -> Verdict:
+        """``OK``, ``CHECK: ...`` or ``UNTRUSTED: ...`` (``pipeline.verdict``), by the rules a single pair's takes,
+        each reason naming its sensor or pair."""
+        return rig_verdict(self)
 
     def layout(self) -> dict:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
@@ -214,7 +214,7 @@ class RigResult:
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}
-        return {"rig": True, **pair, "dataset": str(self.rig.root), "reference": ref, "ambiguous_pairs": ambiguous,
+        return {"verdict": self.verdict.to_dict(), "rig": True, **pair, "dataset": str(self.rig.root), "reference": ref, "ambiguous_pairs": ambiguous,
                 "sensors": sensors,
                 "transforms": transforms,
                 "layout": self.layout(),

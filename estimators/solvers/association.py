@@ -37,6 +37,9 @@ from ..lidar.board_segmentation import robust_plane_fit
 from .closed_form import MIN_NORMAL_SPREAD, WEAK_NORMAL_SPREAD, solve_closed_form
 
 GATE_CHI2_2DOF = 9.21  # 99% point of chi-square with 2 dof
+# How a frame skipped because none of its candidates agrees with the frames' extrinsic says so (the verdict counts
+# those frames as disagreeing: ``pipeline.verdict``).
+DISAGREES_WITH_CONSENSUS = "disagree with the extrinsic of"
 
 
 @dataclass(frozen=True)
@@ -290,7 +293,7 @@ def _explain(T, candidates, camera_planes, camera_poses, board, params, chosen: 
             j = int(np.argmin([s[3] for s in stats]))
             a, d, inside, _, _ = stats[j]
             out.append(FrameChoice(None, res,
-                                   f"its {len(cands)} candidate(s) all disagree with the extrinsic of {n} frames "
+                                   f"its {len(cands)} candidate(s) all {DISAGREES_WITH_CONSENSUS} {n} frames "
                                    f"(closest: {np.degrees(a):.1f} deg, {1000 * d:+.0f} mm, {100 * inside:.0f}% "
                                    "inside the board)"))
     return out

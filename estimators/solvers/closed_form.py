@@ -88,3 +88,56 @@ def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane], all
     delta = np.array([pc.distance - pl.distance for pc, pl in zip(camera_planes, lidar_planes)])
     t = np.linalg.lstsq(Nc, delta, rcond=None)[0]
     return ClosedFormSolution(T_from_Rt(R, t), s, weak)
+
+
+def distance_scale(T_camera_lidar: np.ndarray, camera_planes: list[Plane], lidar_planes: list[Plane]
+                   ) -> tuple[float, float] | None:
+    """How far the camera's board distances scale against the LiDAR's under ``T_camera_lidar``: ``(s, sd)`` with
+    the camera's distance ``d_c = (1 + s) d_l`` (``d_l`` the LiDAR plane's distance in the camera), a translation
+    correction fitted with it by least squares, ``sd`` from the residuals' scatter; None with fewer than 6 planes.
+
+    A LiDAR times its ranges to a few parts per million, so a percent-level ``s`` is the camera's: a wrong
+    ``board.square_size`` or focal length scales every board's distance by that share (``pipeline.verdict``)."""
+    if len(camera_planes) < 6:
+        return None
+    R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
+    rows, rhs = [], []
+    for pc, pl in zip(camera_planes, lidar_planes):
+        n = R @ pl.normal
+        d_l = pl.distance + n @ t  # the LiDAR's plane in the camera's frame
+        rows.append(np.append(pc.normal, d_l))
+        rhs.append(pc.distance - d_l)
+    A, b = np.array(rows), np.array(rhs)
+    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    r = b - A @ x
+    s2 = float(r @ r) / (len(b) - 4)
+    AtA = A.T @ A
+    if np.linalg.cond(AtA) > 1e12:
+        return None
+    return float(x[3]), float(np.sqrt(max(s2 * np.linalg.inv(AtA)[3, 3], 0.0)))
+
+
+def segment_distance_scale(T_camera_lidar: np.ndarray, camera_planes: list[Plane], segments: list[np.ndarray]
+                           ) -> tuple[float, float] | None:
+    """As :func:`distance_scale` for a 2D scanner, whose boards are segments (each a (2, 3) array of its ends in
+    the LiDAR's frame) on the camera's planes: the scale fitted with a rotation and translation correction (a
+    segment's two ends leave the rotation free), ``sd`` from the residuals' scatter; None with fewer than 5
+    boards."""
+    if len(camera_planes) < 5:
+        return None
+    R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
+    rows, rhs = [], []
+    for pc, ends in zip(camera_planes, segments):
+        m = R.T @ pc.normal
+        for p in np.asarray(ends, dtype=float):
+            # n . (R Exp(w) p + t + v) = d (1 - s), to first order in (w, v, s)
+            rows.append(np.concatenate([np.cross(p, m), pc.normal, [pc.distance]]))
+            rhs.append(pc.distance - pc.normal @ (R @ p + t))
+    A, b = np.array(rows), np.array(rhs)
+    AtA = A.T @ A
+    if np.linalg.cond(AtA) > 1e12:
+        return None
+    x = np.linalg.solve(AtA, A.T @ b)
+    r = b - A @ x
+    s2 = float(r @ r) / (len(b) - 7)
+    return float(x[6]), float(np.sqrt(max(s2 * np.linalg.inv(AtA)[6, 6], 0.0)))

@@ -115,6 +115,9 @@ class Refinement:
     # The camera's and the LiDAR's views of the used frames, as the final graph was built from them
     # (``PlaneProblem.views``): a 3D pair's posterior is the rig's likelihood over them (``rig_posterior``).
     views: tuple | None = None
+    # The LiDAR's range accuracy (m) the range terms' priors took: bounds the per-board plane error a sensor of its
+    # family can make (``pipeline.verdict``).
+    range_accuracy_m: float = float("nan")
 
 
 # The planes alone against the planes with the edges (``Refinement.edges['planes_against_edges']``): below this
@@ -378,7 +381,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value,
                       iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
-                      edge_share, end_terms, prob.views(active, floor))
+                      edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m))
 
 
 def _intrinsics_covariance(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,

@@ -1,0 +1,137 @@
+"""The verdict (issue 63): does a result whose answer is wrong ever say OK, and does a good one say UNTRUSTED?
+(make bench; `python benchmarks/bench_verdict.py [--datasets N] [--wrong M] [--workers W]`).
+
+Simulated datasets calibrated end to end as `lidarcam calibrate` does (measurement, graph, posterior), each
+judged by its verdict and by its truth: the squared Mahalanobis distance of the truth under the reported
+covariance, "off" beyond 20.06 (a 6-dof chi-square's 3-sigma point, 99.73%).
+
+Good datasets: several LiDARs and scenes (HDL-64E and VLP-16 in the default room, an OS-64 in an office with the
+board held, a VLP-16 in a hall, a 2D scanner in the default room and a mounted 2D rig). Wrong ones, made so after
+simulation, by what a user gets wrong: the square size 5% off (`scale`), the focal length 4% off (`focal`), the
+principal point 20 px off (`cx`), two frames' scans swapped (`swapped`, a wrong segment in each), the board's size
+10% off (`size`; only the edges use it).
+
+Targets: no OK on a dataset whose answer is off; UNTRUSTED on at most 1% of good datasets.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+GOOD = [  # label, simulate_dataset's keywords
+    ("HDL-64E room", dict(lidar="hdl64e")),
+    ("VLP-16 room", dict(lidar="vlp16", sigma_range_m=0.03)),
+    ("OS-64 office", dict(lidar="os64", scene="office")),
+    ("VLP-16 hall", dict(lidar="vlp16", scene="hall", sigma_range_m=0.03)),
+    ("2D room", dict(lidar="2d")),
+    ("2D mounted", dict(lidar="2d", rig_config="mounted")),
+]
+WRONG_3D = ("scale", "focal", "cx", "swapped", "size")
+WRONG_2D = ("scale", "swapped")
+OFF_D2 = 20.06  # chi-square, 6 dof, 99.73%
+
+
+def corrupt(folder: Path, how: str) -> None:
+    """Make the dataset wrong as ``how`` says (module docstring)."""
+    path = folder / "dataset.yaml"
+    spec = yaml.safe_load(path.read_text())
+    if how == "scale":
+        spec["board"]["square_size"] *= 1.05
+    elif how == "focal":
+        spec["camera"]["K"][0][0] *= 1.04
+        spec["camera"]["K"][1][1] *= 1.04
+    elif how == "cx":
+        spec["camera"]["K"][0][2] += 20.0
+    elif how == "size":
+        spec["board"]["size"] = [1.1 * v for v in spec["board"]["size"]]
+    elif how == "swapped":
+        scans = sorted(p for p in folder.iterdir() if p.stem.isdigit() and p.suffix not in (".png", ".jpg"))
+        a, b = scans[1], scans[3]
+        tmp = a.with_name("swap" + a.suffix)
+        a.rename(tmp)
+        b.rename(a)
+        tmp.rename(b)
+    path.write_text(yaml.safe_dump(spec))
+
+
+def trial(args) -> dict:
+    label, kw, seed, how, tmp = args
+    from estimators import calibrate
+    from estimators.errors import LidarcamError
+    from estimators.simulation.simulator import simulate_dataset
+    from geometry.rotations import T_inverse, T_log
+
+    folder = Path(tmp) / f"{label.replace(' ', '_')}_{seed}_{how}"
+    poses = 6 if kw.get("lidar") == "2d" else 8
+    simulate_dataset(folder, poses, seed, **kw)
+    truth = np.array(__import__("json").loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+    if how != "good":
+        corrupt(folder, how)
+    try:
+        result = calibrate(folder, rng=np.random.default_rng(seed))
+    except LidarcamError as exc:
+        return {"label": label, "how": how, "seed": seed, "level": "refused", "d2": np.nan, "why": exc.problem[:100]}
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    if result.covariance is None:
+        return {"label": label, "how": how, "seed": seed, "level": result.verdict.level, "d2": np.inf, "why": ""}
+    xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
+    return {"label": label, "how": how, "seed": seed, "level": result.verdict.level,
+            "d2": float(xi @ np.linalg.solve(result.covariance, xi)), "why": result.verdict.line[:160]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--datasets", type=int, default=12, help="good datasets per configuration")
+    ap.add_argument("--wrong", type=int, default=3, help="datasets per configuration and way of being wrong")
+    ap.add_argument("--workers", type=int, default=2)
+    a = ap.parse_args()
+    jobs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, kw in GOOD:
+            jobs += [(label, kw, s, "good", tmp) for s in range(a.datasets)]
+            for how in (WRONG_2D if kw.get("lidar") == "2d" else WRONG_3D):
+                jobs += [(label, kw, 100 + s, how, tmp) for s in range(a.wrong)]
+        with ProcessPoolExecutor(a.workers) as pool:
+            rows = list(pool.map(trial, jobs))
+    print(f"{a.datasets} good datasets per configuration (seeds 0..), {a.wrong} per way of being wrong (seeds 100..); "
+          f"'off': the truth beyond d2 {OFF_D2} under the reported covariance")
+    print(f"{'configuration':14s}{'data':>9s}{'n':>4s}{'OK':>5s}{'CHECK':>7s}{'UNTR.':>7s}{'refused':>9s}"
+          f"{'off':>5s}{'off and OK':>12s}")
+    for label, _ in GOOD:
+        for how in ("good",) + WRONG_3D:
+            sel = [r for r in rows if r["label"] == label and r["how"] == how]
+            if not sel:
+                continue
+            c = Counter(r["level"] for r in sel)
+            off = [r for r in sel if r["level"] != "refused" and not r["d2"] <= OFF_D2]
+            print(f"{label:14s}{how:>9s}{len(sel):4d}{c['OK']:5d}{c['CHECK']:7d}{c['UNTRUSTED']:7d}{c['refused']:9d}"
+                  f"{len(off):5d}{sum(r['level'] == 'OK' for r in off):12d}")
+    good = [r for r in rows if r["how"] == "good"]
+    wrong_ok = [r for r in rows if r["level"] == "OK" and not r["d2"] <= OFF_D2]
+    untrusted = [r for r in good if r["level"] == "UNTRUSTED"]
+    print(f"good datasets UNTRUSTED: {len(untrusted)} of {len(good)} ({100 * len(untrusted) / max(len(good), 1):.1f}%; "
+          "target at most 1%)")
+    print(f"answers off by more than 3 sd with an OK verdict: {len(wrong_ok)} (target 0)")
+    for r in untrusted + wrong_ok:
+        print(f"  {r['label']} {r['how']} seed {r['seed']}: {r['level']}, d2 {r['d2']:.1f}; {r['why']}")
+    for r in rows:
+        if r["how"] != "good" and r["level"] == "CHECK":
+            print(f"  {r['label']} {r['how']} seed {r['seed']}: CHECK, d2 {r['d2']:.1f}; {r['why']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,240 @@
+"""The verdict every result opens with: ``OK``, ``CHECK: <what to look at>`` or ``UNTRUSTED: <why>``.
+
+One set of rules for a pair's result and a rig's (docs/method.md, "The verdict"). Each rule reads the result's
+own record (the board choice, the plane error the graph needed, the edges' tests, the range terms, the modes, the
+posterior's run, the static scene's note), never the wording of a warning alone; the warnings keep the details.
+
+- ``UNTRUSTED`` (the answer may be further off than its intervals say; ``--strict`` exits 3):
+  the frames' joint choice of their boards failed; the boards' camera and LiDAR planes disagree by more per
+  board than the LiDAR's range accuracy allows (a wrong segment, a board that moved, a wrong camera model: no
+  sensor of that family errs so); two or more frames, and at least a quarter of them, disagree with the estimate
+  (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``; skipped or dropped for it, or kept); the camera's board distances
+  scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR times its ranges to parts per million,
+  so a wrong square size or focal length); the boards' planes and their edges contradict each other.
+- ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
+  a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
+  term estimated beyond its physical prior (held at 0); the LiDAR's board outlines off the camera's beyond their
+  99% limit; a posterior that did not converge or was not sampled; the rig's stillness not checked.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geometry.planes import plane_difference
+from geometry.rotations import transform_points
+
+from ..lidar.static_scene import STILLNESS_NOT_CHECKED
+from ..measurements import FrameMeasurement
+from ..solvers.association import DISAGREES_WITH_CONSENSUS
+from ..solvers.closed_form import distance_scale, segment_distance_scale
+from .measurement import CONSENSUS_FAILED
+
+OK, CHECK, UNTRUSTED = "OK", "CHECK", "UNTRUSTED"
+_RANK = {OK: 0, CHECK: 1, UNTRUSTED: 2}
+# The outline check's mean shift beyond this p-value is a CHECK (its 99% limit, ``outline_check.CHECK_P``).
+OUTLINE_P = 0.01
+# A frame disagrees with the estimate when its LiDAR board's plane (a 2D scan's line) leaves the camera's board by
+# more than this angle or this distance: beyond a board's pose error from its corners and the tilt and offset a
+# LiDAR's range biases (a few centimetres, ``lidar_models.RANGE_ACCURACY_M``) give a board of the usual size.
+FRAME_ANGLE_RAD = np.deg2rad(3.0)
+FRAME_DISTANCE_M = 0.05
+# The camera's distances against the LiDAR's (``closed_form.distance_scale``): beyond this share, and this many of
+# its standard deviations, a wrong square size or focal length.
+SCALE_LIMIT, SCALE_SIGMAS = 0.01, 5.0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A result's verdict: ``level`` (``OK``, ``CHECK`` or ``UNTRUSTED``) and its reasons, the gravest first."""
+
+    level: str
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def line(self) -> str:
+        """The first line of every printout and report: ``OK``, or the level and its reasons."""
+        return self.level if not self.reasons else f"{self.level}: " + "; ".join(self.reasons)
+
+    @property
+    def untrusted(self) -> bool:
+        return self.level == UNTRUSTED
+
+    def to_dict(self) -> dict:
+        return {"level": self.level, "reasons": list(self.reasons), "line": self.line}
+
+
+def verdict_of(concerns: list[tuple[str, str]]) -> Verdict:
+    """The verdict of ``(level, reason)`` concerns: the gravest level, its reasons first, then the milder ones'."""
+    if not concerns:
+        return Verdict(OK)
+    ordered = sorted(concerns, key=lambda c: -_RANK[c[0]])
+    return Verdict(ordered[0][0], tuple(dict.fromkeys(r for _, r in ordered)))
+
+
+def _common(warnings, converged: bool | None, sampled: bool) -> list[tuple[str, str]]:
+    """The concerns every result shares: the board choice, the stillness check and the posterior's run."""
+    out = []
+    if any(CONSENSUS_FAILED in w for w in warnings):
+        out.append((UNTRUSTED, "the frames' joint choice of their boards failed, so each frame's board was chosen on "
+                               "its own; look at the board choices in the report and remove the frames whose LiDAR "
+                               "board is not the camera's"))
+    if any("static scene: " in w and any(s in w for s in STILLNESS_NOT_CHECKED) for w in warnings):
+        out.append((CHECK, "the rig's stillness could not be checked against the scene (a cloud cropped to the "
+                           "boards?): make sure the sensors did not move between frames"))
+    if converged is False:
+        out.append((CHECK, "the posterior did not converge: its intervals are rough; sample longer (--samples)"))
+    if not sampled and any(w.startswith("posterior not sampled") for w in warnings):
+        out.append((CHECK, "the posterior was not sampled (a nearly degenerate layout): the intervals are the "
+                           "Laplace approximation's; add boards"))
+    return out
+
+
+def _plane_error(name: str, floor_m: float, accuracy_m: float) -> list[tuple[str, str]]:
+    """A per-board plane error beyond the LiDAR's range accuracy: no sensor of its family errs so."""
+    if not (np.isfinite(floor_m) and np.isfinite(accuracy_m)) or floor_m <= accuracy_m:
+        return []
+    return [(UNTRUSTED, f"{name}the boards' camera and LiDAR planes disagree by {1000 * floor_m:.0f} mm per board, "
+                        f"beyond the LiDAR's range accuracy ({1000 * accuracy_m:.0f} mm): a wrong LiDAR segment, a "
+                        "board that moved between the two sensors' captures, or a wrong camera model or board "
+                        "pattern")]
+
+
+def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
+    """The LiDAR's board outlines off the camera's board beyond their 99% limit (3D, planes alone)."""
+    if not record or not record.get("mean_shift_dof") or record.get("used"):
+        return []
+    if record["mean_shift_p_value"] >= OUTLINE_P:
+        return []
+    shift = 1000 * float(np.linalg.norm(record["mean_shift_camera_m"]))
+    return [(CHECK, f"{name}the LiDAR's board outlines sit {shift:.0f} mm off the camera's boards (beyond their 99% "
+                    f"limit, p = {record['mean_shift_p_value']:.2g}): check board.size and board.pattern_offset, and "
+                    "compare with --edges")]
+
+
+def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) -> dict:
+    """Per used frame: angle (rad) between the camera normal and the mapped LiDAR normal, and the
+    difference of the plane distances (m), under ``T_camera_lidar``."""
+    out = {}
+    for f in frames:
+        if f.usable and f.lidar.is_scan_line:
+            # A laser line: the angle by which it leaves the board's plane, and its points' mean distance to it.
+            direction = T_camera_lidar[:3, :3] @ np.append(f.lidar.line.direction, 0.0)
+            dist = float(np.mean(f.camera.plane.signed_distances(transform_points(T_camera_lidar, f.lidar.points))))
+            out[f.name] = (float(np.arcsin(min(abs(direction @ f.camera.plane.normal), 1.0))), dist)
+        elif f.usable:
+            out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
+    return out
+
+
+def frame_disagrees(angle_rad: float, distance_m: float) -> bool:
+    """A frame's planes off the estimate beyond ``FRAME_ANGLE_RAD`` or ``FRAME_DISTANCE_M``."""
+    return angle_rad > FRAME_ANGLE_RAD or abs(distance_m) > FRAME_DISTANCE_M
+
+
+def _frames(name: str, residuals: dict, set_aside: list[str]) -> list[tuple[str, str]]:
+    """Frames that disagree with the estimate: kept ones beyond the limits (``residuals``: name -> (angle,
+    distance)) and those ``set_aside`` (skipped or dropped for disagreeing). Two or more, a quarter of all or
+    more: UNTRUSTED (no consistent set of boards); one: CHECK."""
+    off = {k: v for k, v in residuals.items() if frame_disagrees(*v)}
+    bad = sorted(set(off) | set(set_aside))
+    total = len(residuals) + len(set(set_aside) - set(residuals))
+    if not bad:
+        return []
+    worst = (f" (up to {np.degrees(max(a for a, _ in off.values())):.1f} deg and "
+             f"{1000 * max(abs(d) for _, d in off.values()):.0f} mm)" if off else "")
+    said = ", ".join(bad[:8]) + (", ..." if len(bad) > 8 else "")
+    if len(bad) >= 2 and 4 * len(bad) >= total:
+        return [(UNTRUSTED, f"{name}{len(bad)} of {total} frames' boards disagree with the estimate{worst}, beyond "
+                            f"what the sensors' noise and range biases allow (frames {said}): no consistent set of "
+                            "boards; check the LiDAR segments in the report, the board and the camera model")]
+    return [(CHECK, f"{name}frame {said} disagrees with the estimate{worst}: check that its LiDAR segment is the "
+                    "board")]
+
+
+def segment_ends(frame: FrameMeasurement) -> np.ndarray:
+    """A 2D scan's board segment's two ends (LiDAR frame, z = 0): its points' extremes along its line."""
+    line = frame.lidar.line
+    u = line.coordinates(frame.lidar.points[:, :2])
+    ends = line.point + np.outer([u.min(), u.max()], line.direction)
+    return np.column_stack([ends, np.zeros(2)])
+
+
+def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement]) -> list[tuple[str, str]]:
+    """The camera's board distances scaled against the LiDAR's beyond ``SCALE_LIMIT`` (``frames``: the used
+    ones; a 3D LiDAR's planes or a 2D scanner's segments)."""
+    planes = [f.camera.plane for f in frames]
+    if frames and frames[0].lidar.is_scan_line:
+        fit = segment_distance_scale(T, planes, [segment_ends(f) for f in frames])
+    else:
+        fit = distance_scale(T, planes, [f.lidar.plane for f in frames])
+    if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_SIGMAS * fit[1]:
+        return []
+    return [(UNTRUSTED, f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off "
+                        "the LiDAR's ranges, which no LiDAR errs by: check board.square_size and the camera's focal "
+                        "length")]
+
+
+def pair_verdict(result) -> Verdict:
+    """A camera-LiDAR pair's verdict (``CalibrationResult``)."""
+    ref, post = result.refinement, result.posterior
+    concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
+    if result.contradicted:
+        concerns.append((UNTRUSTED, result.contradicted + " (both estimates are in calibration.json, board_edges; "
+                                                         "check board.size and the outlines in the report)"))
+    if ref is not None:
+        concerns += _plane_error("", ref.plane_floor_m, ref.range_accuracy_m)
+        fit = ref.range_model
+        if fit is not None and fit.pinned:
+            said = ", ".join(f"{n} {1000 * v:+.0f} mm" for n, v in zip(fit.pinned, fit.pinned_values_m))
+            concerns.append((CHECK, f"range terms estimated beyond their physical prior ({said}), held at 0: a term "
+                                    "confounded with the extrinsic, a wrong segment or a board that moved"))
+        concerns += _outline("", ref.edges)
+    dropped = [f.name for f in ref.frames if f.dropped] if ref is not None else []
+    aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
+    if ref is not None:
+        concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
+    concerns += _frames("", result.plane_residuals, aside + dropped)
+    if result.ambiguous:
+        masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
+        concerns.append((CHECK, f"{len(result.modes)} solutions fit the boards (posterior mass {masses}); the "
+                                "intervals cover them all; add boards tilted in other directions"))
+    return verdict_of(concerns)
+
+
+def rig_verdict(result) -> Verdict:
+    """A rig's verdict (``RigResult``): every LiDAR's and every camera-LiDAR pair's concerns, each named."""
+    post = result.posterior
+    concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
+    for s in result.rig.lidars:
+        floor = result._noise(s.name).get("plane_floor_m", 0.0)
+        accuracy = s.range_accuracy_m if s.range_accuracy_m is not None else _family_accuracy(s.lidar_family)
+        concerns += _plane_error(f"{s.name}: ", floor, accuracy)
+        held = result.range_models.get(s.name, {}).get("held_at_prior")
+        if held:
+            said = ", ".join(f"{h['term']} {h['estimate_mm']:+.0f} mm" for h in held)
+            concerns.append((CHECK, f"{s.name}: range terms estimated beyond their physical prior ({said}), held at "
+                                    "0: a term confounded with the extrinsic, a wrong segment or a board that moved"))
+    for (a, b), record in result.outline_checks.items():
+        concerns += _outline(f"T_{a}_{b}: ", record)
+    for (c, lid), frames in (result.pair_frames or {}).items():
+        T = result.solution.transform(c, lid)[0]
+        used = set(result.frames_used.get(lid, ())) & set(result.frames_used.get(c, ()))
+        kept = [f for f in frames if f.usable and f.name in used]
+        aside = [stem for stem, why in result.skipped.get(lid, {}).items()
+                 if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
+        concerns += _scale(f"T_{c}_{lid}: ", T, kept)
+        concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside)
+    for (c, lid), modes in result.ambiguous_pairs.items():
+        masses = ", ".join(f"{m.mass:.0%}" for m in modes)
+        concerns.append((CHECK, f"T_{c}_{lid}: {len(modes)} solutions fit its boards (posterior mass {masses}); the "
+                                "joint graph and its intervals hold the most probable alone; add boards tilted in "
+                                "other directions"))
+    return verdict_of(concerns)
+
+
+def _family_accuracy(family: str | None) -> float:
+    from ..lidar.lidar_models import range_accuracy_for
+
+    return range_accuracy_for(family)
