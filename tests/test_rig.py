@@ -745,6 +745,20 @@ def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
                                rtol=0.15, atol=1e-12)
 
 
+def test_a_rigs_verdict_takes_a_single_pairs_rules_and_names_the_sensor(rig_result):
+    """A simulated rig: OK. Its lidar0's boards given a plane error of 200 mm, beyond any LiDAR's range accuracy:
+    UNTRUSTED, naming lidar0; that written into calibration.json."""
+    from dataclasses import replace
+
+    assert rig_result.verdict.line == "OK" and rig_result.to_json()["verdict"]["level"] == "OK"
+    views = tuple(replace(lv, plane_error={k: replace(pe, floor_m=0.2) for k, pe in lv.plane_error.items()})
+                  if lv.name == "lidar0" else lv for lv in rig_result.lidar_views)
+    bad = replace(rig_result, lidar_views=views)
+    assert bad.verdict.level == "UNTRUSTED" and bad.verdict.reasons[0].startswith(
+        "lidar0: the boards' camera and LiDAR planes disagree by 200 mm per board"), bad.verdict
+    assert bad.to_json()["verdict"]["reasons"][0].startswith("lidar0: ")
+
+
 def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
     import xml.etree.ElementTree as ET
 

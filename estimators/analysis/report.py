@@ -1,6 +1,7 @@
 """A self-contained uncertainty report: ``OUT/report.html`` (figures embedded) and the PNGs beside it.
 
-Numbers a reader needs first (estimate, standard deviations, intervals, frames, warnings), then: the
+What a reader decides on first (the verdict, the estimate with its standard deviations and intervals, the frames
+whose LiDAR outline sits farthest off the camera's board), then the warnings and tables, then: the
 posterior corner plot with the Laplace ellipses, per-frame residuals with outliers marked, LiDAR points
 projected into every image with the camera's and the LiDAR's board outlines and their pixel offset, the
 MCMC traces and diagnostics, and the layout's conditioning.
@@ -347,6 +348,12 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
              f"refine {result.refine}</p>"]
     if result.covariance is not None:
         parts.append(spread_section(result.pair(), "posterior" if result.posterior is not None else "Laplace"))
+    first = _first_overlays(figures, offsets)
+    if first:
+        parts.append("<h2>Overlays</h2><p>The LiDAR's board points and outline (red) under the estimate on the camera's "
+                     "board (green): they should sit on each other. The frames whose outlines sit farthest off first; "
+                     "every frame's is below.</p>"
+                     + "".join(f"<p>{html.escape(title)}</p>" + _img(name, png) for name, title, png in first))
     if result.posterior is not None:
         d = result.posterior.diagnostics()
         parts.append(f"<p>MCMC ({d['likelihood']}): {d['walkers']} walkers x {d['steps']} steps, burn-in "
@@ -410,9 +417,28 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                      "calibration.json lists every candidate with its residuals.</p>"
                      + _table(rows, ["frame", "method", "candidates", "chosen", "why"]))
     for name, title, png in figures:
-        data = base64.b64encode(png).decode("ascii")
-        parts.append(f"<h2>{html.escape(title)}</h2><img alt='{name}' src='data:image/png;base64,{data}'>")
+        parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
     return html_page("lidarcam report", parts)
+
+
+# The overlays the report shows right after the estimate, before its tables.
+FIRST_OVERLAYS = 3
+
+
+def _first_overlays(figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> list:
+    """Up to ``FIRST_OVERLAYS`` frames' overlays for the page's top: those whose LiDAR outline sits farthest from
+    the camera's board (``offsets``, px), else the first ones."""
+    overlays = {name: (name, title, png) for name, title, png in figures if name.startswith("projection_")}
+    far = sorted(offsets, key=lambda o: -float(np.linalg.norm(o[1])))
+    names = [f"projection_{n}.png" for n, _ in far if f"projection_{n}.png" in overlays]
+    names += [n for n in overlays if n not in names]
+    return [overlays[n] for n in names[:FIRST_OVERLAYS]]
+
+
+def _img(name: str, png: bytes) -> str:
+    """A PNG embedded in the page."""
+    data = base64.b64encode(png).decode("ascii")
+    return f"<img alt='{name}' src='data:image/png;base64,{data}'>"
 
 
 def offsets_section(offsets: list[tuple[str, np.ndarray]], title: str = "") -> str:

@@ -1,5 +1,5 @@
-"""A rig's report: every sensor and every pair from the joint graph beside each camera-LiDAR pair alone, the
-warnings, each camera-LiDAR pair's spread and posterior (the single pair's tables, ``analysis.report.spread_section``,
+"""A rig's report: its verdict, every pair from the joint graph beside each camera-LiDAR pair alone, each pair's
+farthest-off overlay, then the warnings, every sensor, each camera-LiDAR pair's spread and posterior (the single pair's tables, ``analysis.report.spread_section``,
 and corner plot, ``analysis.report_figures``) and its frames with the LiDAR's points and board outline drawn into
 the image under the joint estimate (the single pair's overlay, ``analysis.report.projection_figure``)."""
 from __future__ import annotations
@@ -55,16 +55,6 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
              f"{html.escape(sol.reference)}; {how}.</p>"]
     parts.append(verdict_part(result))
-    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
-    parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
-    from ..pipeline.rig_result import range_model_words
-
-    rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
-             f"{sol.noise_scale.get(s.name, 1.0):.2f}",
-             range_model_words(result.range_models[s.name]) if s.name in result.range_models else "-"]
-            for s in result.rig.sensors]
-    parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
-                                                    "LiDAR range model"]))
     parts.append("<h2>Every pair</h2><p>From the joint graph: the translation (mm, in the first sensor's frame) "
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
@@ -83,6 +73,17 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
         for lid in result.rig.lidars:
             parts.append(spread_section(result.pair(c.name, lid.name), kind,
                                         f"T_{html.escape(c.name)}_{html.escape(lid.name)}: "))
+    top = len(parts)  # each pair's farthest-off overlay goes here, once drawn (below)
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
+    parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
+    from ..pipeline.rig_result import range_model_words
+
+    rows = [[s.name, s.type, len(result.frames_used.get(s.name, ())), len(result.skipped.get(s.name, {})),
+             f"{sol.noise_scale.get(s.name, 1.0):.2f}",
+             range_model_words(result.range_models[s.name]) if s.name in result.range_models else "-"]
+            for s in result.rig.sensors]
+    parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
+                                                    "LiDAR range model"]))
     if result.outline_checks:
         rows = []
         for (a, b), e in result.outline_checks.items():
@@ -118,7 +119,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             jobs = {(c.name, d.name): figures.draw("corner", xi=post.pair_samples(c.name, d.name),
                                                    covariance_laplace=sol.transform(c.name, d.name)[1])
                     for c in result.rig.cameras for d in result.rig.lidars}
-            overlays = _overlays(result, out)
+            overlays, first = _overlays(result, out)
             corners = {pair: job()["corner.png"] for pair, job in jobs.items()}
         parts.append("<h2>Each camera-LiDAR pair's posterior</h2><p>Its samples (composed from the rig's joint "
                      "samples; tangent offsets from the estimate about and along the LiDAR's axes) against the joint "
@@ -129,15 +130,20 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3><img alt='{html.escape(name)}' "
                          f"src='{html.escape(name)}'>")
     else:
-        overlays = _overlays(result, out)
+        overlays, first = _overlays(result, out)
+    if first:
+        parts.insert(top, "<h2>Overlays</h2><p>Each camera-LiDAR pair's frame whose LiDAR board outline (red) sits "
+                          "farthest from the camera's board (green) under the joint estimate; every frame's is "
+                          "below.</p>" + "".join(first))
     parts += overlays
     return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
 
 
-def _overlays(result, out: Path) -> list[str]:
+def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
     """Each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image under the
-    joint estimate (``projection_<camera>_<lidar>_<frame>.png``, written here), as the page's parts."""
-    sol, parts = result.solution, []
+    joint estimate (``projection_<camera>_<lidar>_<frame>.png``, written here), as the page's parts; and each
+    pair's farthest-off one (by its outline offset), titled, for the page's top."""
+    sol, parts, first = result.solution, [], []
     for (cam, lidar), frames in (result.pair_frames or {}).items():
         T, _ = sol.transform(cam, lidar)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
@@ -152,7 +158,11 @@ def _overlays(result, out: Path) -> list[str]:
             images.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         if offsets:  # the single pair's table of the outline offsets, under the joint estimate
             parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
+            worst = max(offsets, key=lambda o: float(np.linalg.norm(o[1])))[0]
+            name = f"projection_{cam}_{lidar}_{worst}.png"
+            first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
+                         f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
                      "image (joint estimate)</h2>")
         parts += images
-    return parts
+    return parts, first
