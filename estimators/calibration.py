@@ -25,7 +25,7 @@ from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
 from .pipeline.result import CalibrationResult
 from .pipeline.verdict import frame_disagrees, plane_residuals
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
-from .solvers.intrinsics_refinement import refine_intrinsics
+from .solvers.intrinsics_refinement import intrinsics_drop, refine_intrinsics
 from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
 from .solvers.refinement import Refinement
 from .solvers.refinement import refine as refine_graph
@@ -271,9 +271,13 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
             tail.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
                         f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
     tail += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
+    check = None
+    if ref is not None and ref.consistency_p < 0.01:  # overdispersed: do the intrinsics explain it?
+        check = intrinsics_drop(used, board, camera, ref, options)
     result = CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                                sol.weakest_direction_camera, name, tuple(warnings + tail),
-                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None)
+                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None,
+                               intrinsics_check=check)
     return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings, on_refined)
 
 

@@ -159,6 +159,23 @@ def test_two_frames_scans_swapped_are_not_ok(sim_hdl64e, tmp_path):
     assert result.verdict.level != OK and "0001" in result.verdict.line and "0003" in result.verdict.line
 
 
+def test_intrinsics_that_explain_the_planes_disagreement_are_a_check(sim_hdl64e, tmp_path, good):
+    """The principal point 20 px off acts nearly as a turn of the camera, which the extrinsic absorbs; the planes
+    then disagree in a way freed intrinsics explain (the F test of their drop), and the verdict says to check
+    them. The good simulation's planes agree: no such check is run."""
+    from estimators import calibrate
+
+    shutil.copytree(sim_hdl64e, tmp_path / "d")
+    spec = yaml.safe_load((tmp_path / "d" / "dataset.yaml").read_text())
+    spec["camera"]["K"][0][2] += 20.0
+    (tmp_path / "d" / "dataset.yaml").write_text(yaml.safe_dump(spec))
+    result = calibrate(tmp_path / "d", rng=np.random.default_rng(0), samples=0)
+    check = result.intrinsics_check
+    assert check is not None and check["explains"] and check["p_value"] < 1e-3, check
+    assert result.verdict.level != OK and "the camera's intrinsics explain" in result.verdict.line
+    assert good.intrinsics_check is None and good.to_dict()["intrinsics_check"] is None
+
+
 def test_a_held_range_term_and_a_shifted_outline_are_checks(good):
     ref = good.refinement
     assert ref.range_model is not None  # the range model's choice (auto) is recorded

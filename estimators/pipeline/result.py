@@ -97,6 +97,9 @@ class CalibrationResult:
     measurements_source: str = "measured"
     # The intrinsics refined with the extrinsic (``--refine-intrinsics``; ``camera`` is then the refined model).
     intrinsics_refinement: IntrinsicsFit | None = None
+    # When the planes disagree beyond their noise (3D): whether freeing the intrinsics explains it
+    # (``intrinsics_refinement.intrinsics_drop``), else None.
+    intrinsics_check: dict | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -251,6 +254,7 @@ class CalibrationResult:
             "intrinsics": self.camera.as_dict(),
             **({"intrinsics_refinement": self.intrinsics_refinement.to_dict()}
                if self.intrinsics_refinement is not None else {}),
+            "intrinsics_check": self.intrinsics_check,
             "warnings": list(self.warnings),
             "measurements_source": self.measurements_source,
             "timings_s": self.timings_s,

@@ -196,6 +196,13 @@ def pair_verdict(result) -> Verdict:
     if ref is not None:
         concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
     concerns += _frames("", result.plane_residuals, aside + dropped)
+    check = result.intrinsics_check
+    if check and check["explains"]:
+        concerns.append((CHECK, f"the boards' planes disagree in a way the camera's intrinsics explain (freed, they "
+                                f"drop the planes' chi-square from {check['chi_square_given']:.0f} to "
+                                f"{check['chi_square_refined']:.0f} on {check['dof']:.0f} dof, F test p = "
+                                f"{check['p_value']:.1g}): check the camera's calibration, or calibrate with "
+                                "--refine-intrinsics"))
     if result.ambiguous:
         masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
         concerns.append((CHECK, f"{len(result.modes)} solutions fit the boards (posterior mass {masses}); the "
