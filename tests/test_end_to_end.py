@@ -91,7 +91,9 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     assert {"corner.png", "residuals.png", "traces.png"} <= set(pngs)
     assert sum(n.startswith("projection_") for n in pngs) == data["frames_used"]
     embedded = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", page)
-    assert len(embedded) == len(pngs)
+    # every PNG once, and the three overlays the page opens with (right after the estimate) a second time
+    assert len(embedded) == len(pngs) + 3 and len(set(embedded)) == len(pngs)
+    assert page.index("<h2>Overlays</h2>") < page.index("<h2>Warnings</h2>")
     assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in embedded)
     HTMLParser().feed(page)  # well-formed enough to parse
     assert all((out / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)

@@ -8,7 +8,8 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   the frames' joint choice of their boards failed; the boards' camera and LiDAR planes disagree by more per
   board than the LiDAR's range accuracy allows (a wrong segment, a board that moved, a wrong camera model: no
   sensor of that family errs so); two or more frames, and at least a quarter of them, disagree with the estimate
-  (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``; skipped or dropped for it, or kept); the camera's board distances
+  (``FRAME_ANGLE_RAD`` or a short scan segment's own noise, ``FRAME_DISTANCE_M``; skipped or dropped for it, or
+  kept); the camera's board distances
   scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR times its ranges to parts per million,
   so a wrong square size or focal length); the boards' planes and their edges contradict each other.
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
@@ -80,7 +81,8 @@ def _common(warnings, converged: bool | None, sampled: bool) -> list[tuple[str, 
         out.append((UNTRUSTED, "the frames' joint choice of their boards failed, so each frame's board was chosen on "
                                "its own; look at the board choices in the report and remove the frames whose LiDAR "
                                "board is not the camera's"))
-    if any("static scene: " in w and any(s in w for s in STILLNESS_NOT_CHECKED) for w in warnings):
+    if any("static scene: " in w and (f"{STILLNESS_NOT_CHECKED[0]}: " in w or STILLNESS_NOT_CHECKED[1] in w)
+           for w in warnings):  # the check did not run at all (some frames unjudged: the frames' rule sees them)
         out.append((CHECK, "the rig's stillness could not be checked against the scene (a cloud cropped to the "
                            "boards?): make sure the sensors did not move between frames"))
     if converged is False:
@@ -128,16 +130,32 @@ def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) 
     return out
 
 
-def frame_disagrees(angle_rad: float, distance_m: float) -> bool:
-    """A frame's planes off the estimate beyond ``FRAME_ANGLE_RAD`` or ``FRAME_DISTANCE_M``."""
-    return angle_rad > FRAME_ANGLE_RAD or abs(distance_m) > FRAME_DISTANCE_M
+def frame_disagrees(angle_rad: float, distance_m: float, angle_limit_rad: float = FRAME_ANGLE_RAD) -> bool:
+    """A frame's planes off the estimate beyond ``angle_limit_rad`` (``FRAME_ANGLE_RAD``, or a short scan
+    segment's own: :func:`angle_limit`) or ``FRAME_DISTANCE_M``."""
+    return angle_rad > angle_limit_rad or abs(distance_m) > FRAME_DISTANCE_M
 
 
-def _frames(name: str, residuals: dict, set_aside: list[str]) -> list[tuple[str, str]]:
+def angle_limit(frame: FrameMeasurement) -> float:
+    """The angle beyond which a frame disagrees: ``FRAME_ANGLE_RAD``; for a 2D scan's segment at least 4 times its
+    direction's standard deviation from its fit (RMS over its length times the square root of its points over 12),
+    as a short segment's own noise turns it by degrees."""
+    if not frame.lidar.is_scan_line:
+        return FRAME_ANGLE_RAD
+    u = frame.lidar.line.coordinates(frame.lidar.points[:, :2])
+    length, n = float(np.ptp(u)), len(u)
+    if length <= 0 or n < 3:
+        return np.pi
+    return max(FRAME_ANGLE_RAD, 4.0 * float(np.arctan(frame.lidar.plane_rms_m / (length * np.sqrt(n / 12.0)))))
+
+
+def _frames(name: str, residuals: dict, set_aside: list[str], limits: dict | None = None) -> list[tuple[str, str]]:
     """Frames that disagree with the estimate: kept ones beyond the limits (``residuals``: name -> (angle,
-    distance)) and those ``set_aside`` (skipped or dropped for disagreeing). Two or more, a quarter of all or
-    more: UNTRUSTED (no consistent set of boards); one: CHECK."""
-    off = {k: v for k, v in residuals.items() if frame_disagrees(*v)}
+    distance); ``limits``: name -> its angle limit, :func:`angle_limit`) and those ``set_aside`` (skipped or
+    dropped for disagreeing). Two or more, a quarter of all or more: UNTRUSTED (no consistent set of boards); one:
+    CHECK."""
+    limits = limits or {}
+    off = {k: v for k, v in residuals.items() if frame_disagrees(*v, limits.get(k, FRAME_ANGLE_RAD))}
     bad = sorted(set(off) | set(set_aside))
     total = len(residuals) + len(set(set_aside) - set(residuals))
     if not bad:
@@ -195,7 +213,8 @@ def pair_verdict(result) -> Verdict:
     aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
     if ref is not None:
         concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
-    concerns += _frames("", result.plane_residuals, aside + dropped)
+    concerns += _frames("", result.plane_residuals, aside + dropped,
+                        {f.name: angle_limit(f) for f in result.frames if f.usable})
     check = result.intrinsics_check
     if check and check["explains"]:
         concerns.append((CHECK, f"the boards' planes disagree in a way the camera's intrinsics explain (freed, they "
@@ -232,7 +251,7 @@ def rig_verdict(result) -> Verdict:
         aside = [stem for stem, why in result.skipped.get(lid, {}).items()
                  if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
-        concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside)
+        concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), modes in result.ambiguous_pairs.items():
         masses = ", ".join(f"{m.mass:.0%}" for m in modes)
         concerns.append((CHECK, f"T_{c}_{lid}: {len(modes)} solutions fit its boards (posterior mass {masses}); the "
