@@ -53,7 +53,7 @@ def _footprint_trial(seed: int, boards: int):
 
 
 def one(args):
-    seed, config, pattern, posterior, boards, edges = args
+    seed, config, pattern, posterior, boards, edges, corner_factor = args
     try:
         rig, layout, frames, _ = (_footprint_trial(seed, boards) if config == "footprint" else
                                   B.trial_setup(seed, config, boards, 0.01, pattern))
@@ -67,7 +67,8 @@ def one(args):
     bound = tuple(b if np.isfinite(b) else np.inf for b in bound)
     out = {"seed": seed, "bound": bound, "degenerate": bool(bound[0] >= MAX_BOUND[0] or bound[1] >= MAX_BOUND[1])}
     try:
-        options = RefinementOptions() if edges else RefinementOptions(edges=False)
+        options = RefinementOptions(edges=None if edges else False,
+                                    **({} if corner_factor is None else {"corner_error_correlation": corner_factor}))
         used, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera, options=options)
     except DegenerateLayoutError as exc:
         return {**out, "refused": True, "why": exc.problem[:140]}
@@ -109,13 +110,17 @@ def main() -> None:
     ap.add_argument("--boards", type=int, default=3, help="boards per layout (default 3)")
     ap.add_argument("--no-edges", dest="edges", action="store_false",
                     help="the planes alone, as calibrate --no-edges (the bound stays the one with the ends)")
+    ap.add_argument("--corner-factor", type=float, default=None, metavar="K",
+                    help="the corners' noise at K times their residual (RefinementOptions.corner_error_correlation; "
+                         "default the pipeline's)")
     ap.add_argument("--no-posterior", dest="posterior", action="store_false",
                     help="the Laplace covariance alone (quick; not what the pipeline reports)")
     a = ap.parse_args()
     config, pattern = a.config, a.pattern
     seeds = a.seeds or np.random.SeedSequence([a.seed, 3]).generate_state(a.trials)
     with ProcessPoolExecutor(2) as pool:
-        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior, a.boards, a.edges) for s in seeds],
+        rows = list(pool.map(one, [(int(s), config, pattern, a.posterior, a.boards, a.edges, a.corner_factor)
+                                   for s in seeds],
                              chunksize=4))
     skipped = sum(r is None for r in rows)
     rows = [r for r in rows if r is not None]
