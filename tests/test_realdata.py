@@ -53,6 +53,16 @@ def test_recorded_vlp16_fisheye_calibrates_near_its_reference(vlp16, refine):
     assert rot < 2.0 and trans < 0.10, (rot, trans)
 
 
+def test_recorded_ouster_halves_agree_within_their_covariances(ouster):
+    """As the VLP-16's: the Ouster set's interleaved halves (5 and 6 frames) calibrated apart agree within the sum of
+    their covariances (lidarcam calibrate --split interleaved reads d2 6.0 against the 99% limit 16.8)."""
+    ds, camera, frames = ouster
+    halves = [solve(frames[k::2], ds.board, camera, samples=0) for k in (0, 1)]
+    xi = T_log(T_inverse(halves[0].T_camera_lidar) @ halves[1].T_camera_lidar)
+    d2 = float(xi @ np.linalg.solve(halves[0].covariance + halves[1].covariance, xi))
+    assert d2 < chi2.ppf(0.99, 6), d2
+
+
 def test_recorded_vlp16_halves_agree_within_their_covariances(vlp16):
     """Two disjoint halves, interleaved so that each spans the session's layout (frames 0, 2, 4, ... and
     1, 3, 5, ...), calibrated separately: their difference is consistent with the sum of their reported
