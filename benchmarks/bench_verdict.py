@@ -181,8 +181,8 @@ def main() -> None:
     print("CHECK verdicts, good and wrong datasets:")
     for r in rows:
         if r["level"] == "CHECK":
-            print(f"  {r['label']} {r['how']} seed {r['seed']}: d2 {r['d2']:.1f}, {r['px']:.1f} px; {r.get('fit', '')}; "
-                  f"{r['why']}")
+            print(f"  {r['label']} {r['how']} seed {r['seed']}: d2 {r['d2']:.1f}, {r['px']:.1f} px; "
+                  f"{r.get('fit', '')}; {r['why']}")
 
 
 if __name__ == "__main__":

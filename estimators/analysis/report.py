@@ -350,9 +350,9 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         parts.append(spread_section(result.pair(), "posterior" if result.posterior is not None else "Laplace"))
     first = _first_overlays(figures, offsets)
     if first:
-        parts.append("<h2>Overlays</h2><p>The LiDAR's board points and outline (red) under the estimate on the camera's "
-                     "board (green): they should sit on each other. The frames whose outlines sit farthest off first; "
-                     "every frame's is below.</p>"
+        parts.append("<h2>Overlays</h2><p>The LiDAR's board points and outline (red) under the estimate on the "
+                     "camera's board (green): they should sit on each other. The frames whose outlines sit farthest "
+                     "off first; every frame's is below.</p>"
                      + "".join(f"<p>{html.escape(title)}</p>" + _img(name, png) for name, title, png in first))
     if result.posterior is not None:
         d = result.posterior.diagnostics()

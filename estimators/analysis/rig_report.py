@@ -1,7 +1,8 @@
 """A rig's report: its verdict, every pair from the joint graph beside each camera-LiDAR pair alone, each pair's
-farthest-off overlay, then the warnings, every sensor, each camera-LiDAR pair's spread and posterior (the single pair's tables, ``analysis.report.spread_section``,
-and corner plot, ``analysis.report_figures``) and its frames with the LiDAR's points and board outline drawn into
-the image under the joint estimate (the single pair's overlay, ``analysis.report.projection_figure``)."""
+farthest-off overlay, then the warnings, every sensor, each camera-LiDAR pair's spread and posterior (the single
+pair's tables, ``analysis.report.spread_section``, and corner plot, ``analysis.report_figures``) and its frames
+with the LiDAR's points and board outline drawn into the image under the joint estimate (the single pair's
+overlay, ``analysis.report.projection_figure``)."""
 from __future__ import annotations
 
 import html

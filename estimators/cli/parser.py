@@ -23,9 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "or the 2D minimal-solution selections")
     c.add_argument("--no-report", action="store_true", help="skip report.html and its figures")
     c.add_argument("--strict", action="store_true",
-                   help="exit with code 3 (after writing the results) when the verdict is UNTRUSTED (docs/method.md, the "
-                        "verdict) or the answer is ambiguous (a 2D LiDAR's second solution holds at least 5%% of the "
-                        "posterior mass)")
+                   help="exit with code 3 (after writing the results) when the verdict is UNTRUSTED (docs/method.md, "
+                        "the verdict) or the answer is ambiguous (a 2D LiDAR's second solution holds at least 5%% "
+                        "of the posterior mass)")
     _solver_arguments(c)
     c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
     c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",

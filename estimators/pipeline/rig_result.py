@@ -214,7 +214,8 @@ class RigResult:
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}
-        return {"verdict": self.verdict.to_dict(), "rig": True, **pair, "dataset": str(self.rig.root), "reference": ref, "ambiguous_pairs": ambiguous,
+        return {"verdict": self.verdict.to_dict(), "rig": True, **pair, "dataset": str(self.rig.root), "reference": ref,
+                "ambiguous_pairs": ambiguous,
                 "sensors": sensors,
                 "transforms": transforms,
                 "layout": self.layout(),

@@ -9,13 +9,14 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   board than the LiDAR's range accuracy allows (a wrong segment, a board that moved, a wrong camera model: no
   sensor of that family errs so); two or more frames, and at least a quarter of them, disagree with the estimate
   (``FRAME_ANGLE_RAD`` or a short scan segment's own noise, ``FRAME_DISTANCE_M``; skipped or dropped for it, or
-  kept); the camera's board distances
-  scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR times its ranges to parts per million,
-  so a wrong square size or focal length); the boards' planes and their edges contradict each other.
+  kept); the camera's board distances scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR
+  times its ranges to parts per million, so a wrong square size or focal length); the boards' planes and their
+  edges contradict each other.
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
   a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
   term estimated beyond its physical prior (held at 0); the LiDAR's board outlines off the camera's beyond their
-  99% limit; a posterior that did not converge or was not sampled; the rig's stillness not checked.
+  99% limit; planes whose disagreement freed intrinsics explain; a posterior that did not converge or was not
+  sampled; the rig's stillness not checked on any frame.
 """
 from __future__ import annotations
 
@@ -26,16 +27,16 @@ import numpy as np
 from geometry.planes import plane_difference
 from geometry.rotations import transform_points
 
+from ..lidar.lidar_models import range_accuracy_for
 from ..lidar.static_scene import STILLNESS_NOT_CHECKED
 from ..measurements import FrameMeasurement
 from ..solvers.association import DISAGREES_WITH_CONSENSUS
 from ..solvers.closed_form import distance_scale, segment_distance_scale
+from ..solvers.outline_check import CHECK_P as OUTLINE_P
 from .measurement import CONSENSUS_FAILED
 
 OK, CHECK, UNTRUSTED = "OK", "CHECK", "UNTRUSTED"
 _RANK = {OK: 0, CHECK: 1, UNTRUSTED: 2}
-# The outline check's mean shift beyond this p-value is a CHECK (its 99% limit, ``outline_check.CHECK_P``).
-OUTLINE_P = 0.01
 # A frame disagrees with the estimate when its LiDAR board's plane (a 2D scan's line) leaves the camera's board by
 # more than this angle or this distance: beyond a board's pose error from its corners and the tilt and offset a
 # LiDAR's range biases (a few centimetres, ``lidar_models.RANGE_ACCURACY_M``) give a board of the usual size.
@@ -113,6 +114,20 @@ def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
     return [(CHECK, f"{name}the LiDAR's board outlines sit {shift:.0f} mm off the camera's boards (beyond their 99% "
                     f"limit, p = {record['mean_shift_p_value']:.2g}): check board.size and board.pattern_offset, and "
                     "compare with --edges")]
+
+
+def _held(name: str, said: str) -> list[tuple[str, str]]:
+    """Range terms estimated beyond their physical prior and held at 0 (``said``: each with its estimate)."""
+    return [(CHECK, f"{name}range terms estimated beyond their physical prior ({said}), held at 0: a term confounded "
+                    "with the extrinsic, a wrong segment or a board that moved")]
+
+
+def _ambiguous(name: str, modes, which: str, held: str) -> list[tuple[str, str]]:
+    """Two or more minima holding posterior mass (``modes``, the most probable first); ``held``: what the
+    intervals hold of them."""
+    masses = ", ".join(f"{m.mass:.0%}" for m in modes)
+    return [(CHECK, f"{name}{len(modes)} solutions fit {which} (posterior mass {masses}); {held}; add boards tilted "
+                    "in other directions")]
 
 
 def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) -> dict:
@@ -201,18 +216,16 @@ def pair_verdict(result) -> Verdict:
     if result.contradicted:
         concerns.append((UNTRUSTED, result.contradicted + " (both estimates are in calibration.json, board_edges; "
                                                          "check board.size and the outlines in the report)"))
+    dropped = []
     if ref is not None:
         concerns += _plane_error("", ref.plane_floor_m, ref.range_accuracy_m)
         fit = ref.range_model
         if fit is not None and fit.pinned:
-            said = ", ".join(f"{n} {1000 * v:+.0f} mm" for n, v in zip(fit.pinned, fit.pinned_values_m))
-            concerns.append((CHECK, f"range terms estimated beyond their physical prior ({said}), held at 0: a term "
-                                    "confounded with the extrinsic, a wrong segment or a board that moved"))
+            concerns += _held("", ", ".join(f"{n} {1000 * v:+.0f} mm" for n, v in zip(fit.pinned, fit.pinned_values_m)))
         concerns += _outline("", ref.edges)
-    dropped = [f.name for f in ref.frames if f.dropped] if ref is not None else []
-    aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
-    if ref is not None:
+        dropped = [f.name for f in ref.frames if f.dropped]
         concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
+    aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
     concerns += _frames("", result.plane_residuals, aside + dropped,
                         {f.name: angle_limit(f) for f in result.frames if f.usable})
     check = result.intrinsics_check
@@ -223,9 +236,7 @@ def pair_verdict(result) -> Verdict:
                                 f"{check['p_value']:.1g}): check the camera's calibration, or calibrate with "
                                 "--refine-intrinsics"))
     if result.ambiguous:
-        masses = ", ".join(f"{m.mass:.0%}" for m in result.modes)
-        concerns.append((CHECK, f"{len(result.modes)} solutions fit the boards (posterior mass {masses}); the "
-                                "intervals cover them all; add boards tilted in other directions"))
+        concerns += _ambiguous("", result.modes, "the boards", "the intervals cover them all")
     return verdict_of(concerns)
 
 
@@ -235,13 +246,11 @@ def rig_verdict(result) -> Verdict:
     concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
     for s in result.rig.lidars:
         floor = result._noise(s.name).get("plane_floor_m", 0.0)
-        accuracy = s.range_accuracy_m if s.range_accuracy_m is not None else _family_accuracy(s.lidar_family)
+        accuracy = s.range_accuracy_m if s.range_accuracy_m is not None else range_accuracy_for(s.lidar_family)
         concerns += _plane_error(f"{s.name}: ", floor, accuracy)
         held = result.range_models.get(s.name, {}).get("held_at_prior")
         if held:
-            said = ", ".join(f"{h['term']} {h['estimate_mm']:+.0f} mm" for h in held)
-            concerns.append((CHECK, f"{s.name}: range terms estimated beyond their physical prior ({said}), held at "
-                                    "0: a term confounded with the extrinsic, a wrong segment or a board that moved"))
+            concerns += _held(f"{s.name}: ", ", ".join(f"{h['term']} {h['estimate_mm']:+.0f} mm" for h in held))
     for (a, b), record in result.outline_checks.items():
         concerns += _outline(f"T_{a}_{b}: ", record)
     for (c, lid), frames in (result.pair_frames or {}).items():
@@ -253,14 +262,6 @@ def rig_verdict(result) -> Verdict:
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), modes in result.ambiguous_pairs.items():
-        masses = ", ".join(f"{m.mass:.0%}" for m in modes)
-        concerns.append((CHECK, f"T_{c}_{lid}: {len(modes)} solutions fit its boards (posterior mass {masses}); the "
-                                "joint graph and its intervals hold the most probable alone; add boards tilted in "
-                                "other directions"))
+        concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards",
+                               "the joint graph and its intervals hold the most probable alone")
     return verdict_of(concerns)
-
-
-def _family_accuracy(family: str | None) -> float:
-    from ..lidar.lidar_models import range_accuracy_for
-
-    return range_accuracy_for(family)

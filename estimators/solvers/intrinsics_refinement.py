@@ -105,6 +105,25 @@ class IntrinsicsFit:
                            "has p < 0.05 (freed intrinsics fit part of the planes' noise)"}
 
 
+def _intrinsics_graph(frames: list[FrameMeasurement], board, camera: CameraModel, ref: Refinement,
+                      options: RefinementOptions, plane_floor_m: float, prior_sd: np.ndarray | None):
+    """The frames ``ref`` kept, the graph of their corners and planes with the intrinsics a variable (under
+    ``prior_sd`` where given; the planes at ``plane_floor_m``, no robust loss) and its values at ``ref``'s solution
+    and ``camera``'s intrinsics."""
+    dropped = {f.name for f in ref.frames if f.dropped}
+    used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
+    fits = {f.name: f for f in ref.frames}
+    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options,
+                        sigma_board=[fits[f.name].corner_noise_px for f in used] if options.corner_noise_px is None
+                        else None)
+    prob.camera = replace(camera, param_std=prior_sd)  # the prior, where one
+    active = list(range(len(used)))
+    graph = prob.graph(active, plane_floor_m, robust=False, intrinsics=True)
+    values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used])
+    values.insert(INTRINSICS, np.asarray(camera.params, dtype=float).copy())
+    return used, graph, values
+
+
 def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel, ref: Refinement,
                       options: RefinementOptions = RefinementOptions(), plane_floor_m: float = 0.0) -> IntrinsicsFit:
     """The intrinsics, the extrinsic and the board poses solved together, started at ``ref`` (a refinement under
@@ -118,20 +137,10 @@ def refine_intrinsics(frames: list[FrameMeasurement], board, camera: CameraModel
         The board views do not determine the intrinsics (too few, or too alike in orientation) and no prior is
         given.
     """
-    dropped = {f.name for f in ref.frames if f.dropped}
-    used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
-    fits = {f.name: f for f in ref.frames}
-    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options,
-                        sigma_board=[fits[f.name].corner_noise_px for f in used] if options.corner_noise_px is None
-                        else None)
     given = camera.params
     calibrated_here = camera.source.startswith("calibrated")
     prior_sd = None if calibrated_here or camera.param_std is None else np.asarray(camera.param_std, dtype=float)
-    prob.camera = replace(camera, param_std=None if prior_sd is None else prior_sd)  # the prior, where one
-    active = list(range(len(used)))
-    graph = prob.graph(active, plane_floor_m, robust=False, intrinsics=True)
-    values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used])
-    values.insert(INTRINSICS, given.copy())
+    used, graph, values = _intrinsics_graph(frames, board, camera, ref, options, plane_floor_m, prior_sd)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(1e-9)
@@ -176,18 +185,9 @@ def intrinsics_drop(frames: list[FrameMeasurement], board, camera: CameraModel, 
     count over what the freed planes leave per degree of freedom. Two solves of the graph, no re-measurement: a
     quick check of every overdispersed result (``pipeline.verdict``), where ``--refine-intrinsics`` is the full
     procedure. None where the graph cannot be solved so."""
-    dropped = {f.name for f in ref.frames if f.dropped}
-    used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
-    fits = {f.name: f for f in ref.frames}
+    given = np.asarray(camera.params, dtype=float)
     try:
-        prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options,
-                            sigma_board=[fits[f.name].corner_noise_px for f in used])
-        prob.camera = replace(camera, param_std=None)
-        active = list(range(len(used)))
-        graph = prob.graph(active, ref.plane_floor_m, robust=False, intrinsics=True)
-        values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used])
-        given = np.asarray(camera.params, dtype=float)
-        values.insert(INTRINSICS, given.copy())
+        _, graph, values = _intrinsics_graph(frames, board, camera, ref, options, ref.plane_floor_m, None)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(options.max_iterations)
         held = gtsam.NonlinearFactorGraph(graph)
