@@ -757,6 +757,9 @@ def test_a_rigs_verdict_takes_a_single_pairs_rules_and_names_the_sensor(rig_resu
     assert bad.verdict.level == "UNTRUSTED" and bad.verdict.reasons[0].startswith(
         "lidar0: the boards' camera and LiDAR planes disagree by 200 mm per board"), bad.verdict
     assert bad.to_json()["verdict"]["reasons"][0].startswith("lidar0: ")
+    # a range accuracy given on the command line (--range-accuracy, in its range record) bounds the error instead
+    loose = replace(bad, range_models={**bad.range_models, "lidar0": {**bad.range_models["lidar0"], "prior_sd_m": 0.3}})
+    assert loose.verdict.line == "OK", loose.verdict
 
 
 def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):

@@ -246,7 +246,9 @@ def rig_verdict(result) -> Verdict:
     concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
     for s in result.rig.lidars:
         floor = result._noise(s.name).get("plane_floor_m", 0.0)
-        accuracy = s.range_accuracy_m if s.range_accuracy_m is not None else range_accuracy_for(s.lidar_family)
+        # the accuracy its range terms took (``--range-accuracy`` first: ``rig_terms.ranged_views``), else its own
+        accuracy = result.range_models.get(s.name, {}).get("prior_sd_m") or s.range_accuracy_m \
+            or range_accuracy_for(s.lidar_family)
         concerns += _plane_error(f"{s.name}: ", floor, accuracy)
         held = result.range_models.get(s.name, {}).get("held_at_prior")
         if held:
