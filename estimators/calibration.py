@@ -2,9 +2,6 @@
 solutions, the factor graph, the posterior) into its result (``pipeline.result``)."""
 from __future__ import annotations
 
-import importlib
-import sys
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -35,22 +32,6 @@ INITS = ("closed-form", "minimal-lower-bound", "minimal-min-residual")
 REFINES = ("factor-graph", "none")
 # ``lidarcam calibrate --strict`` exits with this code when the answer is ambiguous or contradicted.
 EXIT_AMBIGUOUS = 3
-
-
-def import_sampler_ahead() -> None:
-    """Start importing the posterior's sampler in a thread: emcee loads scipy.stats, about 0.4 s of
-    interpreter time, which then overlaps work that mostly waits on OpenCV and numpy with the interpreter
-    free (measuring frames, simulating them); the sampler's own import finds it done or waits for it."""
-    if "emcee" not in sys.modules:
-        threading.Thread(target=_import_quietly, args=("emcee",), daemon=True, name="import emcee").start()
-
-
-def _import_quietly(module: str) -> None:
-    """Import ``module`` ahead of its use; a failure is left to the real import to report."""
-    try:
-        importlib.import_module(module)
-    except Exception:  # noqa: BLE001 - reported where the module is used
-        pass
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")  # as the command line runs (rig_calibration.calibrate_rig)
@@ -127,8 +108,6 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     options = replace(options, max_sensor_separation_m=params.max_sensor_separation_m)
     timings: dict = {}
     t_start = time.perf_counter()
-    if posterior is not None and refine != "none":
-        import_sampler_ahead()  # while the frames are measured
     m = measure(dataset, rng, params, hints, cache=cache, timings=timings)
     camera, frames, warnings = m.camera, list(m.frames), list(m.warnings)
     if m.source == "cache":

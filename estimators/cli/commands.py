@@ -577,7 +577,7 @@ def demo_command(args) -> int:
 def _demo_with(args, figures) -> int:
     import numpy as np
 
-    from ..calibration import calibrate, import_sampler_ahead
+    from ..calibration import calibrate
     from ..io.dataset import load_dataset
     from ..pipeline.result import write_calibration
     from ..simulation.simulator import simulate_dataset
@@ -585,7 +585,6 @@ def _demo_with(args, figures) -> int:
     base = Path(args.out)
     data = base / "dataset"
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
-    import_sampler_ahead()  # while the frames are simulated
     simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
     ds = load_dataset(data)
     result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=refinement_options(args),
