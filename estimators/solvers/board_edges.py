@@ -242,25 +242,43 @@ def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
 
 
 def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,
-                   board: BoardModel, growth_m=(0.0, 0.0), shift_m=(0.0, 0.0), jacobian: bool = True
-                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+                   board: BoardModel, growth_m=(0.0, 0.0), shift_m=(0.0, 0.0), jacobian: bool = True,
+                   deviation=None) -> tuple:
     """Each end's signed distance (m) outward of its side, less the edge growth of its sides (``growth_m``: of
     the x = 0, w and the y = 0, h sides) and the frame's outline shift (``shift_m``, board axes) (K,), and its
     Jacobians by the extrinsic (K, 6) and the board pose (K, 6) (the growth's and the shift's:
-    :func:`nuisance_jacobians`)."""
-    T_bl = np.linalg.inv(T_camera_board) @ T_camera_lidar
+    :func:`nuisance_jacobians`). With the board's plane as the LiDAR sees it deviating from the camera's
+    (``deviation``, :func:`deviation_prior`), the ends lie on that plane, and a fourth element is returned: the
+    residuals' Jacobian by the deviation (K, 3)."""
+    R_cb = T_camera_board[:3, :3]  # the board's pose inverted as a rigid motion (this runs in every solve)
+    T_bl = np.eye(4)
+    T_bl[:3, :3] = R_cb.T @ T_camera_lidar[:3, :3]
+    T_bl[:3, 3] = R_cb.T @ (T_camera_lidar[:3, 3] - T_camera_board[:3, 3])
     q, s, Rb = cut_with_board(T_bl, edges.beams)
     a = SIDE_NORMALS[edges.sides]
-    r = (np.einsum("ij,ij->i", a, q[:, :2] - np.asarray(shift_m)) - side_offsets(board, edges.sides)
+    r = (a[:, 0] * (q[:, 0] - shift_m[0]) + a[:, 1] * (q[:, 1] - shift_m[1]) - side_offsets(board, edges.sides)
          - np.asarray(growth_m)[edges.sides // 2])
+    w = _outward_along_beams(edges.sides, Rb) if jacobian or deviation is not None else None  # P^T a
+    H_d = None
+    if deviation is not None:
+        # The end on the plane moved by delta along the board's z: its cut moves by delta Rb / Rb_z, outward by
+        # delta (a . Rb_xy) / Rb_z = -delta w_z; delta = d + tilt . (q - the board's centre).
+        c = 0.5 * np.asarray(board.extent, dtype=float)
+        H_d = -w[:, 2:3] * np.column_stack([np.ones(len(r)), q[:, :2] - c])
+        r = r + H_d @ np.asarray(deviation, dtype=float)
     if not jacobian:
-        return r, None, None
-    w = _outward_along_beams(edges.sides, Rb)  # P^T a
+        return (r, None, None) if H_d is None else (r, None, None, H_d)
     u = w @ T_bl[:3, :3]
     p = edges.beams * s[:, None]
-    H_x = np.hstack([np.cross(p, u), u])
-    H_b = np.hstack([np.cross(w, q), -w])
-    return r, H_x, H_b
+    H_x = np.hstack([_cross(p, u), u])
+    H_b = np.hstack([_cross(w, q), -w])
+    return (r, H_x, H_b) if H_d is None else (r, H_x, H_b, H_d)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (K, 3), without ``np.cross``'s overhead on small arrays."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
 
 
 def nuisance_jacobians(edges: EdgeCrossings) -> tuple[np.ndarray, np.ndarray]:
@@ -309,7 +327,9 @@ def _edge_error(edges, board, scale, keys, this, values, H):
     T = values.atPose3(keys[0]).matrix()
     Tb = values.atPose3(keys[1]).matrix()
     shift, outline = values.atVector(keys[2]), values.atVector(keys[3])
-    r, H_x, H_b = edge_residuals(T, Tb, edges, board, outline[:2], shift + outline[2:], jacobian=H is not None)
+    deviation = values.atVector(keys[4]) if len(keys) > 4 else None
+    r, H_x, H_b, *H_d = edge_residuals(T, Tb, edges, board, outline[:2], shift + outline[2:], H is not None,
+                                       deviation)
     e, f = end_loss(r, scale * edges.sd_m)
     if H is not None:
         H_g, H_s = nuisance_jacobians(edges)
@@ -317,17 +337,31 @@ def _edge_error(edges, board, scale, keys, this, values, H):
         H[1] = H_b * f[:, None]
         H[2] = H_s * f[:, None]
         H[3] = np.hstack([H_g, H_s]) * f[:, None]
+        if H_d:
+            H[4] = H_d[0] * f[:, None]
     return e
 
 
 def edge_factor(key_extrinsic: int, key_board: int, key_shift: int, edges: EdgeCrossings, board: BoardModel,
-                scale: float, key_outline: int) -> gtsam.CustomFactor:
-    """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift and the
-    dataset's outline (``key_outline``); whitened inside by :func:`end_loss` (``scale`` multiplies the ends'
-    standard deviations)."""
-    keys = [key_extrinsic, key_board, key_shift, key_outline]
+                scale: float, key_outline: int, key_deviation: int | None = None) -> gtsam.CustomFactor:
+    """One frame's ends as a GTSAM factor on the extrinsic, the board pose, the frame's outline shift, the
+    dataset's outline (``key_outline``) and, where the planes need a per-board plane error, the board's plane
+    as the LiDAR sees it (``key_deviation``, :func:`deviation_prior`); whitened inside by :func:`end_loss`
+    (``scale`` multiplies the ends' standard deviations)."""
+    keys = [key_extrinsic, key_board, key_shift, key_outline] + ([] if key_deviation is None else [key_deviation])
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(edges.size), keys,
                               partial(_edge_error, edges, board, scale, keys))
+
+
+def deviation_prior(key: int, floor_m: float, half_m: float) -> gtsam.PriorFactorVector:
+    """The board's plane as the LiDAR sees it against the camera's, for its ends: moved along the normal by
+    ``d`` and tilted about the board's centre by ``(a, b)`` (the deviation at the board's point ``(x, y)`` from
+    its centre is ``d + a x + b y``), under the per-board plane error the planes take (``floor_m`` along the
+    normal, ``floor_m`` over the half-size ``half_m`` in tilt: ``noise_levels.plane_noise``). A board bent or
+    held off its camera pose moves its ends along their beams, across its sides where the beams meet it
+    obliquely: one error shared by a frame's ends, which without it would be read as many independent ones."""
+    return gtsam.PriorFactorVector(key, np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([floor_m, floor_m / half_m, floor_m / half_m])))
 
 
 def outline_prior(key: int) -> gtsam.PriorFactorVector:

@@ -29,11 +29,11 @@ import numpy as np
 
 from geometry.camera import CameraModel
 
-from .board_edges import edge_factor, outline_prior, shift_prior
+from .board_edges import deviation_prior, edge_factor, outline_prior, shift_prior
 from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
                       corner_residuals_intrinsics, lidar_residual, nuisance_plane_factor, nuisance_residual,
                       plane_factor)
-from .graph_keys import edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
+from .graph_keys import edge_deviation_key, edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
 from .noise_levels import frame_noise, plane_noise, robust_noise
 from .range_model import RangeTerms
 
@@ -234,8 +234,11 @@ def build_graph(names, cameras, lidars, stems, scale, reference, refine_intrinsi
             if lv.edges is not None and stem in lv.edges:
                 k = names.index(lv.name)
                 add(shift_prior(edge_shift_key(k, j), lv.edge_tau_m))
+                pe = deviating(lv, stem)
+                if pe is not None:
+                    add(deviation_prior(edge_deviation_key(k, j), pe.floor_m, pe.half_m))
                 add(edge_factor(sensor_key(k), fk, edge_shift_key(k, j), lv.edges[stem], lv.board, lv.edge_scale,
-                                outline_key(k)))
+                                outline_key(k), None if pe is None else edge_deviation_key(k, j)))
         for c in cameras:
             if stem in c.corners_px:
                 add(_corner_factor(c, names.index(c.name), stem, fk, scale[c.name], reference, refine_intrinsics),
@@ -305,7 +308,16 @@ def vector_keys(names, stems: list[str], lidars) -> dict:
         if lv.edges is not None:
             out[outline_key(k)] = 4
             out.update({edge_shift_key(k, stems.index(st)): 2 for st in lv.edges if st in stems})
+            out.update({edge_deviation_key(k, stems.index(st)): 3 for st in lv.edges
+                        if st in stems and deviating(lv, st) is not None})
     return out
+
+
+def deviating(lv: LidarViews, stem: str) -> "PlaneError | None":
+    """Frame ``stem``'s plane error where its ends take it too (``board_edges.deviation_prior``): a 3D LiDAR's
+    frame with edges whose planes need a per-board plane error; else None."""
+    pe = None if lv.plane_error is None or lv.scan_line else lv.plane_error.get(stem)
+    return pe if pe is not None and pe.floor_m > 0 else None
 
 
 def graph_values(names, inner: str, stems: list[str], T_ref: dict, T_ref_board: dict, lidars=(),

@@ -34,6 +34,11 @@ def edge_shift_key(k: int, j: int) -> int:
     return gtsam.symbol("e", 100000 * k + j)
 
 
+def edge_deviation_key(k: int, j: int) -> int:
+    """Sensor ``k``'s board plane against the camera's in frame ``j``, for its ends (``board_edges.deviation_prior``)."""
+    return gtsam.symbol("d", 100000 * k + j)
+
+
 # A pair's LiDAR is sensor 1 of the rig of two: its pose in the camera's frame is ``T_camera_lidar``.
 PAIR_LIDAR = 1
 EXTRINSIC = sensor_key(PAIR_LIDAR)
@@ -45,6 +50,11 @@ OUTLINE = outline_key(PAIR_LIDAR)
 def shift_key(j: int) -> int:
     """The pair's LiDAR's outline shift in frame ``j``."""
     return edge_shift_key(PAIR_LIDAR, j)
+
+
+def deviation_key(j: int) -> int:
+    """The pair's LiDAR's board plane deviation in frame ``j``."""
+    return edge_deviation_key(PAIR_LIDAR, j)
 
 
 board_key = frame_key

@@ -119,7 +119,7 @@ def _intrinsics_graph(frames: list[FrameMeasurement], board, camera: CameraModel
     prob.camera = replace(camera, param_std=prior_sd)  # the prior, where one
     active = list(range(len(used)))
     graph = prob.graph(active, plane_floor_m, robust=False, intrinsics=True)
-    values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used])
+    values = prob.values(active, ref.T_camera_lidar, [ref.T_camera_board[f.name] for f in used], plane_floor_m)
     values.insert(INTRINSICS, np.asarray(camera.params, dtype=float).copy())
     return used, graph, values
 

@@ -15,7 +15,7 @@ from ..measurements import FrameMeasurement
 from .closed_form import describe_direction
 from .factor_graph import CameraViews, LidarViews, PlaneError, build_graph, graph_values
 from .factors import corner_residuals, lidar_plane, lidar_residual, nuisance_residual
-from .graph_keys import EXTRINSIC, OUTLINE, RANGE, board_key, shift_key
+from .graph_keys import EXTRINSIC, OUTLINE, RANGE, board_key, deviation_key, shift_key
 from .noise_levels import frame_noise, own_fit_residuals, pooled_range_noise_m
 from .range_model import FrameLabels, RangeTerms, frame_whiteners
 from .refinement_options import PINNED_SD_M, RefinementOptions
@@ -171,16 +171,20 @@ class PlaneProblem:
         to move from the camera's own fit (a cheap camera lets a bad LiDAR plane drag the board)."""
         return self.plane_chi2(i, T, T_board, floor_m) + self.corner_chi2(i, T_board) - self.pnp_chi2[i]
 
-    def values(self, active: list[int], T: np.ndarray, boards: list) -> gtsam.Values:
-        """The graph's variables (:meth:`graph`): the extrinsic, the active frames' boards, the range terms, the
-        outline and the frames' outline shifts at their current values."""
+    def values(self, active: list[int], T: np.ndarray, boards: list, floor_m: float = 0.0) -> gtsam.Values:
+        """The graph's variables (:meth:`graph` at ``floor_m``): the extrinsic, the active frames' boards, the range
+        terms, the outline and the frames' outline shifts at their current values, and with a per-board plane
+        error the deviations of the planes the ends lie on (0)."""
         vectors = {RANGE: self.beta.copy(), OUTLINE: np.array(self.outline, dtype=float)}
         vectors.update({shift_key(j): self.shifts.get(i, np.zeros(2)) for j, i in enumerate(active)})
         stems = [self.frames[i].name for i in active]
         lidar = LidarViews(PAIR_NAMES[1], self.sigma_r, terms=self.terms if self.has_beta else None,
                            ranged={} if self.has_beta else None,
                            edges=None if self.edges is None else {self.frames[i].name: None for i in active
-                                                                  if self.has_edges(i)})
+                                                                  if self.has_edges(i)},
+                           scan_line=any(self.frames[i].lidar.is_scan_line for i in active),
+                           plane_error=None if self.edges is None or floor_m <= 0 else
+                           {self.frames[i].name: self.plane_error(i, floor_m) for i in active})
         return graph_values(PAIR_NAMES, PAIR_NAMES[0], stems, {PAIR_NAMES[0]: np.eye(4), PAIR_NAMES[1]: T},
                             {s: boards[i] for s, i in zip(stems, active)}, [lidar], vectors)
 
@@ -204,7 +208,7 @@ class PlaneProblem:
 
     def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
-        values = self.values(active, T, boards)
+        values = self.values(active, T, boards, floor_m)
         graph = self.graph(active, floor_m)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.options.max_iterations)
@@ -295,9 +299,9 @@ class PlaneProblem:
         fit the extrinsic exactly, while the segment ends fix much of it. Kept within 0-6: the corners fix the
         board poses far better than the edges can, so what the edges take is the extrinsic's."""
         n = len(active)
-        H_all = hessian(self.graph(active, floor_m), self.values(active, T, boards), n)[0]
+        H_all = hessian(self.graph(active, floor_m), self.values(active, T, boards, floor_m), n)[0]
         planes = self.variant(edges=False)
-        H_cp = hessian(planes.graph(active, floor_m), planes.values(active, T, boards), n)[0]
+        H_cp = hessian(planes.graph(active, floor_m), planes.values(active, T, boards, floor_m), n)[0]
         k = 6 + 6 * n  # extrinsic and board poses, first in both orderings; range terms last in both
         idx = np.r_[0:k, H_all.shape[0] - (H_cp.shape[0] - k):H_all.shape[0]]
         Sigma = np.linalg.pinv(H_all, hermitian=True)[np.ix_(idx, idx)]
@@ -319,7 +323,8 @@ def hessian(graph, values, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
     ordering.push_back(EXTRINSIC)
     for j in range(n_frames):
         ordering.push_back(board_key(j))
-    for key in [shift_key(j) for j in range(n_frames)] + [OUTLINE, RANGE]:
+    for key in [shift_key(j) for j in range(n_frames)] + [deviation_key(j) for j in range(n_frames)] + [OUTLINE,
+                                                                                                      RANGE]:
         if values.exists(key):
             ordering.push_back(key)
     return graph.linearize(values).hessian(ordering)

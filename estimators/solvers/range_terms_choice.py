@@ -269,7 +269,7 @@ def consider_placement(prob: PlaneProblem, active: list[int], T: np.ndarray, boa
     causes on average (second order): it is taken off the terms and the extrinsic, and its square kept in the
     covariance. Returns the covariance, the record and the extrinsic."""
     ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    values = prob.values(active, T, boards)
+    values = prob.values(active, T, boards, floor)
     K = prob.terms.size
     extra = np.zeros((6 + K, 6 + K))
     bias = np.zeros(6 + K)
