@@ -31,6 +31,7 @@ from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
+from .solvers.edges_in_graph import conflict_words
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
@@ -86,9 +87,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     edges : bool or None
         The board's edges as measurements too: each LiDAR's ring ends (a 2D scanner's segment ends) on the board's
         outline, in the joint graph (:func:`with_edges`); the posterior holds their share to second order about
-        the estimate (``rig_posterior.edges_quadratic``). True (``--edges``): every LiDAR's; None (the default, as
-        for a single pair): the 2D scanners' segment ends, where the board's size is given; False (``--no-edges``):
-        none.
+        the estimate (``rig_posterior.edges_quadratic``); each 3D LiDAR's planes are tested against its edges, and
+        where they conflict the joint covariance holds both answers (``rig_edges.conflict_share``). None (the
+        default, as for a single pair) or True (``--edges``): every LiDAR's, where the board's size is given;
+        False (``--no-edges``): none (each 3D camera-LiDAR pair is then checked by its ring ends).
     options : RefinementOptions
         The solver's settings that every camera-LiDAR pair and the joint graph share (``--robust``, ``--outliers``,
         ``--corner-noise-px``, ``--range-noise-m``, ``--range-accuracy``, ``--max-sensor-separation``); its
@@ -232,12 +234,18 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             warnings.append(f"{n}: its factors disagree beyond their noise (chi-square {ss:.0f} on {dof:.0f} dof): its "
                             f"noise is scaled by {s:.2f}{hint}")
     edge_records: dict = {}
-    edged = {lv.name for lv in lidar_views if edges or edges is None and lv.scan_line}
+    conflict = None
+    edged = {lv.name for lv in lidar_views if edges or edges is None and rig.board.size_known}
     if edges and not rig.board.size_known:
         warnings.append("--edges: the board's size is not in dataset.yaml (board.size): planes alone")
     elif edged and rig.board.size_known:
-        lidar_views, solution, edge_records = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution,
-                                                         T_ref, T_ref_board, refine_intrinsics, edged)
+        lidar_views, solution, edge_records, conflict = with_edges(rig, names, camera_views, lidar_views, lidar_obs,
+                                                                   solution, T_ref, T_ref_board, refine_intrinsics,
+                                                                   edged)
+        for name, record in edge_records.items():
+            if (said := conflict_words(record)) is not None:
+                warnings.append(f"{name}: {said}: the covariance holds both answers (their difference added along "
+                                "it); the planes-only pose is in calibration.json (board_edges)")
         if not edge_records and edges:
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")
@@ -267,9 +275,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif samples > 0:
         posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples,
                                          likelihood=likelihood)
-        if pinned_share is not None:  # the held terms' prior, convolved in as the single pair's posterior does
+        # The held terms' prior and the planes' conflict with the edges, convolved in as a single pair's
+        # posterior does.
+        for share in (s for s in (pinned_share, conflict) if s is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
-                np.zeros(len(pinned_share)), pinned_share, len(posterior.xi), method="eigh"))
+                np.zeros(len(share)), share, len(posterior.xi), method="eigh"))
         if not posterior.run.converged:
             warnings.append(f"the rig's posterior did not converge in {posterior.run.chain.shape[0]} steps "
                             f"({posterior.run.ess:.0f} effective samples): its intervals are rough")

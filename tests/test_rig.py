@@ -378,7 +378,7 @@ def test_each_3d_pair_is_checked_by_its_board_edges_and_a_wrong_board_size_is_ca
     spec = yaml.safe_load(ypath.read_text())
     spec["board"]["size"] = [1.05, 1.0]
     ypath.write_text(yaml.safe_dump(spec, sort_keys=False))
-    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False)
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False)
     assert len(res.outline_checks) == 6
     for (cam, lidar), e in res.outline_checks.items():
         assert abs(e["growth_m"][0] + 0.025) < 0.003 and e["mean_shift_p_value"] > 0.01, (cam, lidar)
@@ -430,7 +430,8 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     T, C = plain.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
     assert xi @ np.linalg.solve(C, xi) > 100 and plain.range_models == {}
-    res = calibrate_rig(rig, np.random.default_rng(0), advise=False)
+    # The planes alone (the likelihood below is the planes'; the edges enter the posterior as a quadratic).
+    res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False)
     rec = res.range_models["lidar0"]
     assert rec["model"] == "offset" and rec["tests"][0]["p_value"] < 1e-3 and list(rec["terms"]) == ["offset"]
     assert abs(rec["value_m"] - 0.03) < 3 * rec["sd_m"] and rec["sd_m"] < 0.005
@@ -673,8 +674,9 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert set(cal["transforms"]) == {f"T_cam{k}_{s}" for k in range(3) for s in ("lidar0", "lidar1", "scan0")} | {
         "T_cam0_cam1", "T_cam0_cam2", "T_cam1_cam2", "T_lidar0_lidar1", "T_lidar0_scan0", "T_lidar1_scan0"}
     assert np.array(cal["covariance_joint"]).shape == (36, 36)
-    # by default the scanner's segment ends are measurements (as a single pair's), the 3D LiDARs' edges a check
-    assert {s["name"] for s in cal["sensors"] if (s.get("board_edges") or {}).get("used")} == {"scan0"}
+    # by default every LiDAR's board edges are measurements (as a single pair's): the board's size is given
+    assert {s["name"] for s in cal["sensors"] if (s.get("board_edges") or {}).get("used")} == {"lidar0", "lidar1",
+                                                                                                  "scan0"}
     # the posterior by default: each pair's intervals, the joint samples in posterior.npz (5 free sensors' poses, the
     # scanner's range noise scale and the camera side's noise scale, whose samples are there too)
     assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 32 and "posterior (emcee" in run.stdout
@@ -760,6 +762,33 @@ def test_a_rigs_verdict_takes_a_single_pairs_rules_and_names_the_sensor(rig_resu
     # a range accuracy given on the command line (--range-accuracy, in its range record) bounds the error instead
     loose = replace(bad, range_models={**bad.range_models, "lidar0": {**bad.range_models["lidar0"], "prior_sd_m": 0.3}})
     assert loose.verdict.line == "OK", loose.verdict
+
+
+def test_a_lidars_planes_and_edges_in_conflict_are_held_by_the_rigs_covariance(rig_result):
+    """lidar0's pose with its edges moved 12 mm along x from its planes-only pose, with a covariance a quarter of
+    the planes': the test finds the conflict (p < 0.01), the joint covariance with the conflict's share holds the
+    planes-only pose within one standard deviation, and the rig's verdict is a CHECK naming lidar0."""
+    from dataclasses import replace
+
+    from estimators.pipeline.rig_edges import conflict_share, planes_against_edges
+    from geometry.rotations import T_retract
+
+    planes = rig_result.solution
+    moved = dict(planes.T_ref)
+    moved["lidar0"] = T_retract(planes.T_ref["lidar0"], np.r_[0.0, 0.0, 0.0, 0.012, 0.0, 0.0])
+    edged = replace(planes, T_ref=moved, covariance_joint=0.25 * planes.covariance_joint)
+    test = planes_against_edges(planes, edged, "lidar0")
+    assert test["p_value"] < 0.01 and planes_against_edges(planes, edged, "cam0") is None  # the reference's is fixed
+    records = {"lidar0": {"used": True, "planes_against_edges": test}}
+    share = conflict_share(planes, edged, records)
+    k = planes.names.index("lidar0")
+    C = (edged.covariance_joint + share)[6 * k:6 * k + 6, 6 * k:6 * k + 6]
+    xi = np.asarray(test["difference_tangent"])
+    assert float(xi @ np.linalg.solve(C, xi)) <= 1.0 + 1e-6
+    held = replace(rig_result, solution=replace(edged, covariance_joint=edged.covariance_joint + share), edges=records)
+    assert held.verdict.level == "CHECK" and held.verdict.reasons[0].startswith("lidar0: the boards' planes and their "
+                                                                                "ring ends"), held.verdict
+    assert "the covariance holds both answers" in held.verdict.line and held.contradicted.startswith("lidar0: ")
 
 
 def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):

@@ -257,15 +257,15 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                         "hesai and livox 0.02, else 0.05)")
     edges = p.add_mutually_exclusive_group()
     edges.add_argument("--edges", action="store_true", default=None,
-                       help="also use a 3D LiDAR's board edges (where each ring leaves the board; needs board.size): "
-                            "they fix the translation along the boards' planes, which planes leave weak. The result "
-                            "tests the planes against the edges and checks the outlines' mean shift (calibration.json "
-                            "'board_edges'); the posterior holds their share to second order about the estimate. "
-                            "Without it they check a 3D estimate (the outlines' mean shift, a warning beyond its 99%% "
-                            "limit). A 2D scan's segment ends are used by default")
+                       help="use the board's edges (where each ring or a 2D scan's line leaves the board; needs "
+                            "board.size), and warn where they cannot be: the default where board.size is given. They "
+                            "fix the translation along the boards' planes, which planes leave weak; the result tests "
+                            "the planes against the edges, and where they conflict the covariance holds both answers "
+                            "and the verdict says CHECK (calibration.json 'board_edges'); the posterior holds their "
+                            "share to second order about the estimate")
     edges.add_argument("--no-edges", dest="edges", action="store_false",
-                       help="use the boards' planes alone, also for a 2D scan (whose segment ends are otherwise used "
-                            "when board.size is given)")
+                       help="use the boards' planes alone; a 3D estimate is then checked by its ring ends (the "
+                            "outlines' mean shift, a warning beyond its 99%% limit)")
     p.add_argument("--refine-intrinsics", action="store_true",
                    help="refine the camera's intrinsics with the extrinsic (camera.param_std in dataset.yaml is their "
                         "prior; without it they are estimated from the frames): the result gives them, propagates "

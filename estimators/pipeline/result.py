@@ -199,9 +199,9 @@ class CalibrationResult:
 
     @property
     def contradicted(self) -> str | None:
-        """Why the answer cannot be trusted as its intervals say (``refinement.contradiction``: the boards'
-        planes and their edges disagree far beyond their noise), or None. The printed result begins with it, and
-        ``--strict`` exits non-zero."""
+        """How the boards' planes and their edges conflict beyond their noise (``refinement.contradiction``; the
+        covariance then holds both answers), or None. The verdict says it (``CHECK``, or ``UNTRUSTED`` beyond what
+        a frame may disagree by)."""
         return contradiction(self.refinement) if self.refinement is not None else None
 
     @property

@@ -9,7 +9,11 @@ import numpy as np
 
 from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
+from geometry.rotations import T_log
+
+from ..solvers import chi_square as chi2
 from ..solvers.board_edges import crossings, edge_scatter
+from ..solvers.edges_in_graph import conflict_covariance
 from ..solvers.outline_check import outline_check
 from ..solvers.range_model import frame_rings
 from ..solvers.graph_keys import outline_key
@@ -18,14 +22,17 @@ from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
-               ) -> tuple[list, RigSolution, dict]:
+               ) -> tuple[list, RigSolution, dict, np.ndarray | None]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
     per LiDAR (its sides' growth and the pattern's offset, under their priors); the scatter and the ends' scale
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
-    Only the LiDARs named in ``which`` have their edges. Returns the views, the solution and per LiDAR its record
-    (ends, scale, scatter, outline)."""
+    Only the LiDARs named in ``which`` have their edges. Each 3D LiDAR's pose is tested against the planes alone
+    (:func:`planes_against_edges`); where they conflict, the joint covariance holds both answers
+    (:func:`conflict_share`, added to the solution's). Returns the views, the solution, per LiDAR its record (ends,
+    scale, scatter, outline, the test) and the conflict's share (None when none), which the posterior's samples
+    are convolved with."""
     views = []
     for lv in lidar_views:
         if lv.name not in which:
@@ -39,13 +46,13 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
         found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
         views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
     if not any(v.edges for v in views):
-        return lidar_views, solution, {}
+        return lidar_views, solution, {}, None
     planes = solution
     for _ in range(4):
         try:
             solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
         except LidarcamError:
-            return lidar_views, planes, {}
+            return lidar_views, planes, {}, None
         settled, new = True, []
         for lv in views:
             if not lv.edges:
@@ -69,8 +76,37 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
             records[lv.name] = {"used": True, "frames": len(lv.edges),
                                 "ends": int(sum(e.size for e in lv.edges.values())),
                                 "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
-                                "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist()}
-    return views, solution, records
+                                "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist(),
+                                "planes_against_edges": None if lv.scan_line else
+                                planes_against_edges(planes, solution, lv.name)}
+    share = conflict_share(planes, solution, records)
+    if share is not None:
+        solution = replace(solution, covariance_joint=solution.covariance_joint + share)
+    return views, solution, records, share
+
+
+def planes_against_edges(planes: RigSolution, edged: RigSolution, name: str) -> dict | None:
+    """The LiDAR ``name``'s pose with the edges against the planes alone, as a single pair's
+    (``edges_in_graph.edges_summary``): their difference (tangent, the reference's frame) against the difference
+    of their covariances, which is the edges' share (a Hausman test). None for the rig's reference, whose pose is
+    fixed. Not for a 2D scanner, whose lines alone have several minima."""
+    C = planes.covariance(name) - edged.covariance(name)
+    if not np.any(C):
+        return None
+    delta = T_log(np.linalg.inv(planes.T_ref[name]) @ edged.T_ref[name])
+    d2, dof = chi2.mahalanobis(delta, C)
+    return {"planes_only_T_ref": planes.T_ref[name].tolist(), "difference_tangent": delta.tolist(), "d2": d2,
+            "dof": dof, "p_value": float(chi2.sf(d2, dof)) if dof else 1.0}
+
+
+def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np.ndarray | None:
+    """Where any LiDAR's planes conflict with its edges (``edges_in_graph.conflict_covariance``), the share of the
+    joint covariance (6N x 6N, ``names`` order) that holds both answers, the planes-only and this one: the outer
+    product of the joint difference of every sensor's pose. None when they agree."""
+    if not any(conflict_covariance(r) is not None for r in records.values()):
+        return None
+    delta = np.concatenate([T_log(np.linalg.inv(planes.T_ref[n]) @ edged.T_ref[n]) for n in edged.names])
+    return np.outer(delta, delta)
 
 
 def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:

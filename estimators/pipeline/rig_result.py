@@ -13,6 +13,7 @@ from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
+from ..solvers.edges_in_graph import conflict_words
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
@@ -110,9 +111,10 @@ class RigResult:
 
     @property
     def contradicted(self) -> str | None:
-        """As a single pair's result: a rig's edges enter its graph or check it, and are not tested against its
-        planes as one answer (None)."""
-        return None
+        """As a single pair's result: how a LiDAR's planes and edges conflict beyond their noise, each named
+        (``edges_in_graph.conflict_words``; the joint covariance then holds both answers), or None."""
+        said = [f"{name}: {w}" for name, r in self.edges.items() if (w := conflict_words(r)) is not None]
+        return "; ".join(said) or None
 
     @property
     def verdict(self) -> Verdict:

@@ -11,10 +11,11 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   (``FRAME_ANGLE_RAD`` or a short scan segment's own noise, ``FRAME_DISTANCE_M``; skipped or dropped for it, or
   kept); the camera's board distances scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR
   times its ranges to parts per million, so a wrong square size or focal length); the boards' planes and their
-  edges contradict each other.
+  edges conflict by more than a frame may disagree (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``).
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
   a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
-  term estimated beyond its physical prior (held at 0); the LiDAR's board outlines off the camera's beyond their
+  term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
+  their noise (the covariance holds both answers); the LiDAR's board outlines off the camera's beyond their
   99% limit; planes whose disagreement freed intrinsics explain; a posterior that did not converge or was not
   sampled; the rig's stillness not checked on any frame.
 """
@@ -28,6 +29,7 @@ from geometry.planes import plane_difference
 from geometry.rotations import transform_points
 
 from ..lidar.lidar_models import range_accuracy_for
+from ..solvers.edges_in_graph import conflict_words
 from ..lidar.static_scene import STILLNESS_NOT_CHECKED
 from ..measurements import FrameMeasurement
 from ..solvers.association import DISAGREES_WITH_CONSENSUS
@@ -112,8 +114,21 @@ def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
         return []
     shift = 1000 * float(np.linalg.norm(record["mean_shift_camera_m"]))
     return [(CHECK, f"{name}the LiDAR's board outlines sit {shift:.0f} mm off the camera's boards (beyond their 99% "
-                    f"limit, p = {record['mean_shift_p_value']:.2g}): check board.size and board.pattern_offset, and "
-                    "compare with --edges")]
+                    f"limit, p = {record['mean_shift_p_value']:.2g}): check board.size and board.pattern_offset "
+                    "(without --no-edges the edges are in the estimate)")]
+
+
+def _conflict(name: str, said: str, delta) -> list[tuple[str, str]]:
+    """The planes alone and the planes with the edges in conflict beyond their noise (``said``: how far apart):
+    the covariance holds both answers, so CHECK; UNTRUSTED beyond what a frame may disagree by."""
+    delta = np.asarray(delta, dtype=float)
+    far = np.linalg.norm(delta[:3]) > FRAME_ANGLE_RAD or np.linalg.norm(delta[3:]) > FRAME_DISTANCE_M
+    if far:
+        return [(UNTRUSTED, f"{name}{said}: further apart than any good calibration's; check board.size, "
+                            "board.pattern_offset and the outlines in the report (both estimates are in "
+                            "calibration.json, board_edges)")]
+    return [(CHECK, f"{name}{said}: the covariance holds both answers; check board.size, board.pattern_offset and "
+                    "the outlines in the report (--no-edges: the planes alone)")]
 
 
 def _held(name: str, said: str) -> list[tuple[str, str]]:
@@ -214,8 +229,7 @@ def pair_verdict(result) -> Verdict:
     ref, post = result.refinement, result.posterior
     concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
     if result.contradicted:
-        concerns.append((UNTRUSTED, result.contradicted + " (both estimates are in calibration.json, board_edges; "
-                                                         "check board.size and the outlines in the report)"))
+        concerns += _conflict("", result.contradicted, ref.edges["planes_against_edges"]["difference_tangent"])
     dropped = []
     if ref is not None:
         concerns += _plane_error("", ref.plane_floor_m, ref.range_accuracy_m)
@@ -253,6 +267,9 @@ def rig_verdict(result) -> Verdict:
         held = result.range_models.get(s.name, {}).get("held_at_prior")
         if held:
             concerns += _held(f"{s.name}: ", ", ".join(f"{h['term']} {h['estimate_mm']:+.0f} mm" for h in held))
+    for name, record in result.edges.items():
+        if (said := conflict_words(record)) is not None:
+            concerns += _conflict(f"{name}: ", said, record["planes_against_edges"]["difference_tangent"])
     for (a, b), record in result.outline_checks.items():
         concerns += _outline(f"T_{a}_{b}: ", record)
     for (c, lid), frames in (result.pair_frames or {}).items():

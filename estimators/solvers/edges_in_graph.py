@@ -1,6 +1,6 @@
 """The boards' edges in the plane graph: the ends of each ring or scan segment on the board's outline as factors
-(``--edges``, a 2D scan's segment ends by default), their share of the information, the outline check and the
-edges' record.
+(by default where the board's size is given), their share of the information, the outline check, the
+edges' record, and the planes' conflict with the edges (the covariance that holds both answers).
 """
 from __future__ import annotations
 
@@ -162,7 +162,8 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
                             f"{1000 * np.linalg.norm(delta[3:]):.0f} mm, beyond what the edges' information "
                             f"explains (d2 {h2:.1f} on {h_dof} dof, p = {h_p:.1g}): the boards' planes or their "
                             "outlines carry a bias (range error with incidence, intrinsics, the board's real size); "
-                            "both estimates are in calibration.json")
+                            "the covariance holds both answers (their difference added along it); both estimates "
+                            "are in calibration.json")
     record = {"used": True, "ends": int(sum(prob.edges[i].size for _, i in shift_keys)),
               "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(),
               "growth_sd_m": outline_sd[:2].tolist(),
@@ -198,8 +199,41 @@ def edges_information(prob: PlaneProblem, active: list[int], T: np.ndarray, boar
     0.5 xi^T H xi`` in the tangent ``xi`` (the posterior's). ``H``: the information with the edges less that of
     the planes alone, every other variable profiled out; ``eta``: minus the planes' pull at the estimate, which
     the edges balance (the whole graph's is zero there). Scaled like the covariance by ``quasi_scale``."""
-    H_all, _ = extrinsic_information(prob.graph(active, floor), prob.values(active, T, boards), len(active))
+    H_all, _ = extrinsic_information(prob.graph(active, floor), prob.values(active, T, boards, floor), len(active))
     planes = prob.variant(edges=False)
-    H_p, eta_p = extrinsic_information(planes.graph(active, floor), planes.values(active, T, boards), len(active))
+    H_p, eta_p = extrinsic_information(planes.graph(active, floor), planes.values(active, T, boards, floor),
+                                       len(active))
     ev, V = np.linalg.eigh(0.5 * (H_all - H_p + (H_all - H_p).T))
     return (V * np.maximum(ev, 0.0)) @ V.T / quasi_scale, -eta_p / quasi_scale
+
+
+# The planes alone against the planes with the edges (``planes_against_edges`` of an edges record): below this
+# p-value they conflict beyond their noise; the covariance holds both answers (:func:`conflict_covariance`) and the
+# verdict says so.
+CONFLICT_P = 0.01
+
+
+def conflict_covariance(edges: dict | None) -> np.ndarray | None:
+    """Where the planes alone and the planes with the edges conflict beyond their noise (3D; the Hausman test of
+    :func:`edges_summary` below ``CONFLICT_P``), the covariance that holds both answers: the outer product of their
+    difference ``delta`` (tangent), an error of the model along it with one standard deviation ``|delta|``, so
+    that the planes-only answer lies within one standard deviation of the estimate. None when they agree."""
+    test = (edges or {}).get("planes_against_edges")
+    if not test or not test.get("dof") or test["p_value"] >= CONFLICT_P:
+        return None
+    delta = np.asarray(test["difference_tangent"], dtype=float)
+    return np.outer(delta, delta)
+
+
+def conflict_words(edges: dict | None) -> str | None:
+    """What the planes' conflict with the edges is (:func:`conflict_covariance`), or None: the boards' planes and
+    their rings' ends disagree beyond their noise, so one of them carries what the model does not hold (a wrong
+    board size or pattern offset, a plane error) and the two pull the answer apart. A 2D scan's planes are not
+    tested against its ends (:func:`edges_summary`)."""
+    if conflict_covariance(edges) is None:
+        return None
+    test = edges["planes_against_edges"]
+    delta = np.asarray(test["difference_tangent"], dtype=float)
+    return (f"the boards' planes and their ring ends on the boards' edges disagree beyond their noise "
+            f"({np.degrees(np.linalg.norm(delta[:3])):.2f} deg and {1000 * np.linalg.norm(delta[3:]):.0f} mm apart; "
+            f"d2 {test['d2']:.1f} on {test['dof']} dof, p = {test['p_value']:.1g})")

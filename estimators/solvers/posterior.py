@@ -365,6 +365,9 @@ def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: Came
     if ref.intrinsics_covariance is not None:
         # Intrinsics calibrated from the same images: their (first-order, Gaussian) effect is convolved in.
         xi = xi + rng.multivariate_normal(np.zeros(6), ref.intrinsics_covariance, len(xi))
+    if ref.conflict_covariance is not None:
+        # The planes and the edges conflict: the samples hold both answers, as the covariance does.
+        xi = xi + rng.multivariate_normal(np.zeros(6), ref.conflict_covariance, len(xi), method="eigh")
     if ref.range_model is not None and ref.range_model.terms is not None:
         # The range terms were held at the MAP: their uncertainty's share is convolved in (marginal intervals).
         xi = xi + rng.multivariate_normal(np.zeros(6), ref.range_model.extrinsic_share, len(xi))

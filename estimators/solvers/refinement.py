@@ -57,7 +57,8 @@ from . import chi_square as chi2
 from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
 from .closed_form import solve_closed_form
-from .edges_in_graph import add_edges, check_outline, edge_crossings, edges_information, edges_summary
+from .edges_in_graph import (add_edges, check_outline, conflict_covariance, conflict_words, edge_crossings,
+                             edges_information, edges_summary)
 from .noise_levels import corner_noise_levels, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
@@ -118,26 +119,15 @@ class Refinement:
     # The LiDAR's range accuracy (m) the range terms' priors took: bounds the per-board plane error a sensor of its
     # family can make (``pipeline.verdict``).
     range_accuracy_m: float = float("nan")
-
-
-# The planes alone against the planes with the edges (``Refinement.edges['planes_against_edges']``): below this
-# p-value the data contradict the model the estimate rests on, and the answer says so first (``contradiction``).
-CONTRADICTION_P = 1e-3
+    # The part of ``covariance`` that holds the planes' conflict with the edges (``conflict_covariance``; None
+    # when they agree): the posterior's samples are convolved with it too.
+    conflict_covariance: np.ndarray | None = None
 
 
 def contradiction(ref: Refinement) -> str | None:
-    """Why the estimate cannot be trusted as its covariance says, or None: with ``--edges`` (3D), the boards'
-    planes and their rings' ends disagree far beyond their noise (p below ``CONTRADICTION_P``), so one of them
-    carries what the model does not hold (a wrong board size or pattern offset, a plane error) and the two pull
-    the answer apart. A 2D scan's planes are not tested against its ends (:func:`edges_summary`)."""
-    test = (ref.edges or {}).get("planes_against_edges")
-    if not test or not test.get("dof") or test["p_value"] >= CONTRADICTION_P:
-        return None
-    delta = np.asarray(test["difference_tangent"], dtype=float)
-    return (f"the boards' planes and their ring ends on the boards' edges disagree far beyond their noise "
-            f"({np.degrees(np.linalg.norm(delta[:3])):.1f} deg and {1000 * np.linalg.norm(delta[3:]):.0f} mm apart; "
-            f"d2 {test['d2']:.1f} on {test['dof']} dof, p = {test['p_value']:.1g}): the answer may be further off "
-            "than its intervals say")
+    """How the boards' planes and their rings' ends conflict beyond their noise (:func:`conflict_words`; the
+    covariance then holds both answers), or None."""
+    return conflict_words(ref.edges)
 
 
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
@@ -165,7 +155,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     T, boards = T_init, [f.camera.T_camera_board for f in frames]
     iterations = 0
     scan_lines = all(f.lidar.is_scan_line for f in frames)
-    use_edges = scan_lines if options.edges is None else options.edges
+    use_edges = board.size_known if options.edges is None else options.edges
     if use_edges and board.size_known and scan_lines:
         # A few scan lines leave a direction along the boards loose, where the planes alone drift far from the
         # start: the segment ends hold it from the first solve (sides assigned under the start).
@@ -197,20 +187,28 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         boards = [f.camera.T_camera_board for f in frames]
 
     inliers = [i for i in active if i not in flagged]
-    if use_edges:
-        if board.size_known:
-            T, boards = add_edges(prob, frames, active, T, boards, floor)
-            if prob.solved is not None:
-                graph, result = prob.solved
-            if prob.edges is None:
-                warnings.append("board edges: no ring end of the boards' points could be used as an edge (none "
-                                "crosses the board's outline within half its side under the planes' estimate): "
-                                "the estimate rests on the planes alone; check board.size in dataset.yaml")
-            if scan_lines and prob.edges is not None:
-                check_scan_directions(prob, active, boards)
-        else:
+
+    def with_edges(T, boards, graph, result):
+        """The ends on the board's outline added and solved with (``edges_in_graph.add_edges``)."""
+        if not board.size_known:
             warnings.append("the board's size is not given (board.size in dataset.yaml): its edges are not used, "
                             "so the translation along the boards' planes rests on the planes alone")
+            return T, boards, graph, result
+        T, boards = add_edges(prob, frames, active, T, boards, floor)
+        if prob.solved is not None:
+            graph, result = prob.solved
+        if prob.edges is None:
+            warnings.append("board edges: no ring end of the boards' points could be used as an edge (none "
+                            "crosses the board's outline within half its side under the planes' estimate): "
+                            "the estimate rests on the planes alone; check board.size in dataset.yaml")
+        if scan_lines and prob.edges is not None:
+            check_scan_directions(prob, active, boards)
+        return T, boards, graph, result
+
+    # A 2D scan's ends are in before its range terms are chosen (a few lines leave the extrinsic loose without
+    # them); a 3D LiDAR's terms are chosen on the planes, as without the edges, and the ends added after.
+    if use_edges and scan_lines:
+        T, boards, graph, result = with_edges(T, boards, graph, result)
     labels = None
     if options.range_model != "none":
         labels = frame_labels(frames, board, T, boards)
@@ -237,6 +235,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 warnings.append(f"range model: {model_fit.reason}")
     else:
         model_fit = None
+    if use_edges and not scan_lines:
+        T, boards, graph, result = with_edges(T, boards, graph, result)
     if prob.has_beta and options.range_noise_m is None:
         # With range terms, the range noise is the points' scatter about each board's own plane and terms: the
         # plane-only residuals pooled above also hold the within-board structure the terms explain (rings,
@@ -342,12 +342,15 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     if model_fit is not None and labels is not None and labels.source == "geometry" and prob.has_beta \
             and "dark" in prob.terms.names and "dark" not in model_fit.pinned:
         cov, model_fit, T = consider_placement(prob, active, T, boards, floor, cov, model_fit)
-    edges_record = edge_share = end_terms = None
+    edges_record = edge_share = end_terms = conflict = None
     if prob.edges is not None:
         edges_record, edge_warnings = edges_summary(prob, active, T, boards, floor, cov / quasi_scale, marginals,
                                                     quasi_scale)
         warnings.extend(edge_warnings)
         edge_share = edges_information(prob, active, T, boards, floor, quasi_scale)
+        conflict = conflict_covariance(edges_record)
+        if conflict is not None:
+            cov = cov + conflict
         if all(frames[i].lidar.is_scan_line for i in active):
             end_terms = EndTerms({frames[i].name: prob.edges[i] for i in active if prob.has_edges(i)},
                                  {frames[i].name: prob.shifts.get(i, np.zeros(2)) for i in active},
@@ -381,7 +384,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
                       resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value,
                       iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
-                      edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m))
+                      edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m), conflict)
 
 
 def _intrinsics_covariance(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,

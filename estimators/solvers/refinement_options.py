@@ -61,8 +61,8 @@ class RefinementOptions:
         The sensor's range accuracy (m, 1 sd of a systematic error) that sets the range terms' priors; None: a
         conservative default.
     edges : bool or None
-        Use the board's edges where the rings (a 2D scan's line) leave it; None: a 2D scan's segment ends are used,
-        a 3D LiDAR's ring ends only when True.
+        Use the board's edges where the rings (a 2D scan's line) leave it; None: where the board's size is known
+        (True: also warn where they cannot be used; False: the planes alone, the ends a check).
     max_sensor_separation_m : float or None
         2D: a solution with the sensors farther apart than this (m) is not a solution; None: no bound.
     refine_intrinsics : bool
@@ -96,8 +96,8 @@ class RefinementOptions:
     # only starts another solve, as a rig's pairwise solves).
     outline_check: bool = True
     # The board's edges where the rings (a 2D scan's line) leave it (``solvers.board_edges``), when the board's
-    # size is known. None: a 2D scan's segment ends are used (a few scan lines leave directions along the boards
-    # that their planes hardly fix), a 3D LiDAR's ring ends only when asked (True).
+    # size is known. None: used where it is (the default); True: asked for (a warning where they cannot be used);
+    # False: the planes alone.
     edges: bool | None = None
     # 2D: a minimal solution or refined minimum whose sensors are farther apart than this (m) is not a solution
     # (``solution_selection.physical``); None: no bound. ``calibrate`` uses its segmentation parameters' bound.
