@@ -183,7 +183,7 @@ def intrinsics_drop(frames: list[FrameMeasurement], board, camera: CameraModel, 
     chi-square (weighed with the per-board plane error ``ref`` estimated) with the intrinsics held as given and with
     them freed, the extrinsic and board poses solved in both, and the F test of the drop against the intrinsics'
     count over what the freed planes leave per degree of freedom. Two solves of the graph, no re-measurement: a
-    quick check of every overdispersed result (``pipeline.verdict``), where ``--refine-intrinsics`` is the full
+    quick check of every 3D result (``pipeline.verdict``), where ``--refine-intrinsics`` is the full
     procedure. None where the graph cannot be solved so."""
     given = np.asarray(camera.params, dtype=float)
     try:
