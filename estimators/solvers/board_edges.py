@@ -181,12 +181,13 @@ def _scatter(points: np.ndarray) -> float:
 
 
 def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, board: BoardModel,
-              beam_sd_rad: float = BEAM_SD_RAD, max_offset_m: float = MAX_END_OFFSET_M, position_sd_m: float = 0.0
-              ) -> EdgeCrossings:
+              beam_sd_rad: float = BEAM_SD_RAD, max_offset_m: float = MAX_END_OFFSET_M, position_sd_m: float = 0.0,
+              ends: list | None = None) -> EdgeCrossings:
     """The ring ends of one frame's board points that cross the board's outline (module docstring), with
     sides assigned under ``T_board_lidar``; ends further than ``max_offset_m`` from their side are not used.
-    ``beam_sd_rad`` and ``position_sd_m``: the ends' noise across the beam (:class:`EndNoise`)."""
-    ends = ring_ends(points, rings)
+    ``beam_sd_rad`` and ``position_sd_m``: the ends' noise across the beam (:class:`EndNoise`); ``ends``: the
+    points' :func:`ring_ends` when found already."""
+    ends = ring_ends(points, rings) if ends is None else ends
     w, h = board.extent
     keep_b, keep_s, keep_r, keep_sd = [], [], [], []
     for ring, beam, step in ends:

@@ -11,7 +11,7 @@ from geometry.rotations import T_log
 
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import MAX_END_OFFSET_M, crossings, edge_scatter, end_noise
+from .board_edges import MAX_END_OFFSET_M, crossings, edge_scatter, end_noise, ring_ends
 from .outline_check import outline_check, outline_warnings
 from .graph_keys import EXTRINSIC, OUTLINE, board_key, shift_key
 from .plane_graph import PlaneProblem, extrinsic_information
@@ -21,16 +21,30 @@ def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: l
                    boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
     """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards``, those
     within ``max_offset_m`` of their side (None when no frame has any)."""
+    rings, noise, ends = _rings_and_noise(prob, frames, active)
+    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
+                       max_offset_m, noise.position_sd_m, ends[i])
+             if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
+    return edges if any(e is not None and e.size for e in edges) else None
+
+
+def _rings_and_noise(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int]
+                     ) -> tuple[list, object, list]:
+    """Each frame's rings, the ends' noise (``board_edges.end_noise``) of the ``active`` frames and each frame's
+    ring ends (``board_edges.ring_ends``; None without rings): the points' own, whatever the extrinsic, so found
+    once per problem and frame set (kept on ``prob``, and passed on by ``PlaneProblem.variant``)."""
     from .range_model import frame_rings
 
+    key = (tuple(id(f) for f in frames), tuple(active))
+    if prob.ends_cache is not None and prob.ends_cache[0] == key:
+        return prob.ends_cache[1:]
     # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
     rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
              for f, r in zip(frames, frame_rings([f.lidar for f in frames]))]
     noise = end_noise([(frames[i].lidar.points, rings[i]) for i in active if rings[i] is not None])
-    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
-                       max_offset_m, noise.position_sd_m)
-             if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
-    return edges if any(e is not None and e.size for e in edges) else None
+    ends = [None if r is None else ring_ends(f.lidar.points, r) for f, r in zip(frames, rings)]
+    prob.ends_cache = (key, rings, noise, ends)
+    return rings, noise, ends
 
 
 # Of the ring ends within half the board's smaller side of their sides under the planes' estimate, fewer than

@@ -48,6 +48,7 @@ class PlaneProblem:
         self.edge_tau = 1e-3  # the boards' in-plane scatter (m), estimated with the edges
         self.solved = None  # the last solve's (graph, values) when a step beyond the first solves again
         self.shifts: dict[int, np.ndarray] = {}
+        self.ends_cache = None  # the rings and the ends' noise (``edges_in_graph._rings_and_noise``)
         # The corners' effective pixel noise: the camera's, and each frame's own (None: the camera's for all).
         self.sigma_px, self.sigma_r, self.options = sigma_px, sigma_r, options
         self.sigma_board = sigma_board
@@ -197,7 +198,7 @@ class PlaneProblem:
         model or labels, or without the edges."""
         p = PlaneProblem(self.frames, self.board, camera or self.camera, self.sigma_px, self.sigma_r, self.options,
                          self.terms, labels or self.labels, sigma_board=self.sigma_board)
-        p.beta, p.tau, p.pinned = self.beta.copy(), self.tau, self.pinned
+        p.beta, p.tau, p.pinned, p.ends_cache = self.beta.copy(), self.tau, self.pinned, self.ends_cache
         if edges:
             p.copy_edges(self)
         return p
