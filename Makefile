@@ -17,9 +17,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
-# Two test processes, one per core (pytest-xdist): the suite takes about 8 minutes on this 2-core machine.
+# Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
+# tests take 30-45 s each): the suite takes about 8 minutes on this 2-core machine.
 test: $(STAMP)
-	$(PY) -m pytest -n 2
+	$(PY) -m pytest -n 2 --dist worksteal
 
 # Every benchmark through benchmarks/record.py, which writes its output as a page of the docs (docs/bench/).
 RECORD := $(PY) benchmarks/record.py
