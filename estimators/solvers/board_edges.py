@@ -189,35 +189,35 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
     points' :func:`ring_ends` when found already."""
     ends = ring_ends(points, rings) if ends is None else ends
     w, h = board.extent
-    keep_b, keep_s, keep_r, keep_sd = [], [], [], []
-    for ring, beam, step in ends:
-        q, s, Rb = cut_with_board(T_board_lidar, beam[None])
-        if not s[0] > 0:
-            continue
-        # The cut's motion in the board's plane per radian of azimuth (the beam turning about the LiDAR's z).
-        db = np.array([-beam[1], beam[0], 0.0]) * np.sign(step)
-        R = T_board_lidar[:3, :3]
-        dq = _project(R @ db * s[0], Rb[0])
-        travel = dq[:2] / max(np.linalg.norm(dq[:2]), 1e-12)
-        cosines = SIDE_NORMALS @ travel
-        # The side it leaves by: outward along its travel, the nearest such.
-        offsets = SIDE_NORMALS @ q[0, :2] - np.array([0.0, w, 0.0, h])
-        ok = cosines > MIN_CROSSING_SINE
-        if not ok.any():
-            continue
-        side = int(np.flatnonzero(ok)[np.argmin(np.abs(offsets[ok]))])
-        along = q[0, 1] if side < 2 else q[0, 0]
-        length = h if side < 2 else w
-        if abs(offsets[side]) > max_offset_m or not (CORNER_MARGIN_M < along < length - CORNER_MARGIN_M):
-            continue
-        rate = abs(float(SIDE_NORMALS[side] @ dq[:2]))  # m across the side per radian of azimuth
-        keep_b.append(beam)
-        keep_s.append(side)
-        keep_r.append(ring)
-        across = ((s[0] * beam_sd_rad) ** 2 + position_sd_m**2) * _across(side, Rb[0])
-        keep_sd.append(np.sqrt((rate * step) ** 2 / 12.0 + across))
-    return EdgeCrossings(np.array(keep_b).reshape(-1, 3), np.array(keep_s, dtype=np.int64),
-                         np.array(keep_r, dtype=np.int64), np.array(keep_sd))
+    if not ends:
+        return EdgeCrossings(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
+    # Every end at once (this runs in every search for the ends).
+    ring = np.array([e[0] for e in ends], dtype=np.int64)
+    beam = np.array([e[1] for e in ends], dtype=float)
+    step = np.array([e[2] for e in ends], dtype=float)
+    q, s, Rb = cut_with_board(T_board_lidar, beam)
+    # The cut's motion in the board's plane per radian of azimuth (the beam turning about the LiDAR's z).
+    db = np.column_stack([-beam[:, 1], beam[:, 0], np.zeros(len(beam))]) * np.sign(step)[:, None]
+    v = (db @ T_board_lidar[:3, :3].T) * s[:, None]
+    rz = np.where(np.abs(Rb[:, 2]) < 1e-9, 1e-9, Rb[:, 2])  # a beam parallel to the board: cut far away
+    dq = v - Rb * (v[:, 2] / rz)[:, None]  # projected along each beam onto the board's plane
+    travel = dq[:, :2] / np.maximum(np.linalg.norm(dq[:, :2], axis=1), 1e-12)[:, None]
+    cosines = travel @ SIDE_NORMALS.T  # (K, 4)
+    # The side it leaves by: outward along its travel, the nearest such.
+    offsets = q[:, :2] @ SIDE_NORMALS.T - np.array([0.0, w, 0.0, h])
+    ok = cosines > MIN_CROSSING_SINE
+    side = np.argmin(np.where(ok, np.abs(offsets), np.inf), axis=1)
+    k = np.arange(len(side))
+    along = np.where(side < 2, q[:, 1], q[:, 0])
+    length = np.where(side < 2, h, w)
+    keep = ((s > 0) & ok.any(axis=1) & (np.abs(offsets[k, side]) <= max_offset_m)
+            & (CORNER_MARGIN_M < along) & (along < length - CORNER_MARGIN_M))
+    rate = np.abs(np.einsum("ij,ij->i", SIDE_NORMALS[side], dq[:, :2]))  # m across the side per radian of azimuth
+    wv = _outward_along_beams(side, Rb)
+    across = ((s * beam_sd_rad) ** 2 + position_sd_m**2) * (np.einsum("ij,ij->i", wv, wv)
+                                                           - np.einsum("ij,ij->i", wv, Rb) ** 2)
+    sd = np.sqrt((rate * step) ** 2 / 12.0 + across)
+    return EdgeCrossings(beam[keep].reshape(-1, 3), side[keep].astype(np.int64), ring[keep], sd[keep])
 
 
 def _across(side: int, b: np.ndarray) -> float:
