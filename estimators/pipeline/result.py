@@ -15,7 +15,8 @@ from ..measurements import FrameMeasurement
 from ..solvers.closed_form import describe_direction
 from ..solvers.intrinsics_refinement import IntrinsicsFit
 from ..solvers.posterior import Posterior
-from ..solvers.refinement import Refinement, contradiction
+from ..solvers.edges_in_graph import conflict_words
+from ..solvers.refinement import Refinement
 from .pair_estimate import PairEstimate
 from .verdict import Verdict, pair_verdict
 
@@ -199,10 +200,10 @@ class CalibrationResult:
 
     @property
     def contradicted(self) -> str | None:
-        """How the boards' planes and their edges conflict beyond their noise (``refinement.contradiction``; the
+        """How the boards' planes and their edges conflict beyond their noise (``edges_in_graph.conflict_words``; the
         covariance then holds both answers), or None. The verdict says it (``CHECK``, or ``UNTRUSTED`` beyond what
         a frame may disagree by)."""
-        return contradiction(self.refinement) if self.refinement is not None else None
+        return conflict_words(self.refinement.edges) if self.refinement is not None else None
 
     @property
     def ambiguous(self) -> bool:

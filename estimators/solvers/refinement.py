@@ -57,8 +57,8 @@ from . import chi_square as chi2
 from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
 from .closed_form import solve_closed_form
-from .edges_in_graph import (add_edges, check_outline, conflict_covariance, conflict_words, edge_crossings,
-                             edges_information, edges_summary)
+from .edges_in_graph import (add_edges, check_outline, conflict_covariance, edge_crossings, edges_information,
+                             edges_summary)
 from .noise_levels import corner_noise_levels, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
@@ -122,12 +122,6 @@ class Refinement:
     # The part of ``covariance`` that holds the planes' conflict with the edges (``conflict_covariance``; None
     # when they agree): the posterior's samples are convolved with it too.
     conflict_covariance: np.ndarray | None = None
-
-
-def contradiction(ref: Refinement) -> str | None:
-    """How the boards' planes and their rings' ends conflict beyond their noise (:func:`conflict_words`; the
-    covariance then holds both answers), or None."""
-    return conflict_words(ref.edges)
 
 
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
