@@ -42,7 +42,8 @@ def print_result(result, truth=None) -> None:
         print(f"posterior ({d['likelihood']}): {d['effective_samples']:.0f} effective samples, tau "
               f"{max(d['tau_steps']):.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s; "
               f"99.9% region: squared Mahalanobis distance up to {post.region_d2(0.999):.1f} under the covariance "
-              "(a Gaussian's 22.5)")
+              + ("(a Gaussian's 22.5)" if post.mode_index is None else
+                 f"of the nearest of its {len(post.mode_weights)} modes (each its own; a Gaussian's 22.5)"))
         from ..solvers.posterior import INTERVAL_LEVELS
 
         for level in INTERVAL_LEVELS:

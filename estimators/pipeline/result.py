@@ -306,7 +306,7 @@ def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
     out = Path(out_dir)
     if result.posterior is not None:
         p = result.posterior
-        extra = {} if p.mode_index is None else {"mode_index": p.mode_index}
+        extra = {} if p.mode_index is None else {"mode_index": p.mode_index, "mode_centers_xi": p.mode_centers}
         write_npz_atomic(out / "posterior.npz", {"xi": p.xi, "noise_scale": p.scale, "T_map": p.T_map,
                                                  "chain": p.run.chain, "convention": np.array(COVARIANCE_CONVENTION),
                                                  **extra}, compress=False)

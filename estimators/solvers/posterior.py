@@ -41,7 +41,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import T_log, exp_batch
+from geometry.rotations import T_exp, T_log, exp_batch
 
 from ..errors import DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
@@ -123,13 +123,38 @@ def mahalanobis_d2(samples: np.ndarray, xi: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ni->n", xi, np.linalg.solve(np.cov(samples, rowvar=False), xi.T).T)
 
 
-def region_d2(samples: np.ndarray, level: float) -> float:
+def region_d2(samples: np.ndarray, level: float, index: np.ndarray | None = None,
+              centers: np.ndarray | None = None) -> float:
     """The credible region at ``level`` of posterior ``samples`` (M, 6; tangent offsets from the estimate): the
     ellipsoid of their covariance, about the estimate, that holds ``level`` of them, never smaller than a
     Gaussian's (the chi-square point, 6 dof). A posterior with heavy tails (a 2D layout's curved valley, the
     sampled range noise, a minor mode) needs a larger distance than the Gaussian's: the covariance's chi-square
-    ellipsoid would leave the truth outside more often than ``1 - level``."""
-    return float(max(chi2.ppf(level, 6), np.quantile(mahalanobis_d2(samples, samples), level, method="higher")))
+    ellipsoid would leave the truth outside more often than ``1 - level``. With several modes (each sample's mode
+    ``index``, the modes' minima at tangent offsets ``centers``), the region is the union of one ellipsoid per mode
+    (:func:`mode_distance`), at the one distance that holds ``level`` of all samples."""
+    d2 = (mahalanobis_d2(samples, samples) if index is None
+          else mode_distance(samples, index, centers, samples, own=True))
+    return float(max(chi2.ppf(level, 6), np.quantile(d2, level, method="higher")))
+
+
+# A mode with fewer samples than this has its covariance taken from all samples (its own would be noise).
+MIN_MODE_SAMPLES = 60
+
+
+def mode_distance(samples: np.ndarray, index: np.ndarray, centers: np.ndarray, xi: np.ndarray,
+                  own: bool = False) -> np.ndarray:
+    """The squared Mahalanobis distance of tangent offsets ``xi`` (rows) from the nearest mode of a mixture:
+    mode ``k``'s minimum at ``centers[k]``, its covariance that of its samples (``index == k``). Each mode is
+    described by its own ellipsoid, not the mixture's one: a minor mode far along a curved valley lies beyond
+    the mixture's ellipsoid that holds 99.9% of the samples, yet well inside its own. ``own``: ``xi`` are the
+    samples themselves, each measured from its own mode."""
+    xi = np.atleast_2d(xi)
+    info = []
+    for k in range(len(centers)):
+        mine = samples[index == k]
+        info.append(np.linalg.pinv(np.cov(mine if len(mine) >= MIN_MODE_SAMPLES else samples, rowvar=False)))
+    d2 = np.stack([np.einsum("ni,ij,nj->n", xi - c, P, xi - c) for c, P in zip(centers, info)], axis=1)
+    return d2[np.arange(len(xi)), index] if own else d2.min(axis=1)
 
 
 def heavy_tails(samples: np.ndarray, level: float = 0.999, what: str = "posterior") -> str | None:
@@ -167,6 +192,7 @@ class Posterior:
     # sample's mode (index into the weights; None: one mode).
     mode_weights: tuple[float, ...] = ()
     mode_index: np.ndarray | None = None
+    mode_centers: np.ndarray | None = None  # (K, 6): each mode's minimum, a tangent offset from T_map
 
     @property
     def covariance(self) -> np.ndarray:
@@ -182,14 +208,21 @@ class Posterior:
         return mahalanobis_d2(self.xi, xi)
 
     def region_d2(self, level: float) -> float:
-        """The credible region at ``level`` (:func:`region_d2`): ``T = T_map Exp(xi)`` with ``d2(xi)`` at most
-        this."""
-        return region_d2(self.xi, level)
+        """The credible region at ``level`` (:func:`region_d2`): ``T = T_map Exp(xi)`` with
+        ``region_distance(xi)`` at most this."""
+        return region_d2(self.xi, level, self.mode_index, self.mode_centers)
+
+    def region_distance(self, xi: np.ndarray) -> np.ndarray:
+        """The distance the credible region bounds, of tangent offsets ``xi`` (rows): :meth:`d2` for one mode,
+        the distance from the nearest mode under that mode's covariance for several (:func:`mode_distance`)."""
+        if self.mode_index is None:
+            return self.d2(xi)
+        return mode_distance(self.xi, self.mode_index, self.mode_centers, xi)
 
     def contains(self, T: np.ndarray, level: float) -> bool:
         """Whether the pose ``T`` (``T_camera_lidar``) lies in the credible region at ``level``."""
         xi = T_log(np.linalg.inv(self.T_map) @ T)
-        return bool(self.d2(xi)[0] <= self.region_d2(level))
+        return bool(self.region_distance(xi)[0] <= self.region_d2(level))
 
     def heavy_tails(self, level: float = 0.999) -> str | None:
         """A note when the region at ``level`` reaches beyond ``HEAVY_TAIL_FACTOR`` times a Gaussian's distance
@@ -206,8 +239,23 @@ class Posterior:
         return out
 
     def regions(self) -> dict:
-        """The credible regions (:func:`regions`) at 99% and 99.9%, beside a Gaussian's."""
-        return regions(self.xi)
+        """The credible regions (:func:`regions`) at 99% and 99.9%, beside a Gaussian's; with several modes, each
+        mode's minimum and covariance (the region is the union of their ellipsoids)."""
+        if self.mode_index is None:
+            return regions(self.xi)
+        modes = []
+        for k, c in enumerate(self.mode_centers):
+            mine = self.xi[self.mode_index == k]
+            modes.append({"T_camera_lidar": (self.T_map @ T_exp(c)).tolist(), "posterior_mass": self.mode_weights[k],
+                          "covariance": np.cov(mine if len(mine) >= MIN_MODE_SAMPLES else self.xi,
+                                               rowvar=False).tolist()})
+        return {"definition": "T = T_mode * Exp(xi) with xi^T covariance^-1 xi at most d2 for one of the modes "
+                              "(each its minimum and the covariance of its samples): the union of the modes' "
+                              "ellipsoids holding the level's share of the samples, never below a Gaussian's "
+                              "chi-square point",
+                **{f"{100 * level:g}%": {"d2": self.region_d2(level), "gaussian_d2": float(chi2.ppf(level, 6))}
+                   for level in (0.99, 0.999)},
+                "modes": modes}
 
     def diagnostics(self) -> dict:
         r = self.run
@@ -303,7 +351,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
             raise DegenerateLayoutError(f"sampled, {weak.problem}", hint=weak.hint)
     if not other_modes:
         return main
-    parts, warnings = [(main.xi, main.scale, mass)], list(main.warnings)
+    parts, warnings, centers = [(main.xi, main.scale, mass)], list(main.warnings), [np.zeros(6)]
     for k, (r, m) in enumerate(other_modes, start=2):
         try:
             p = _sample_mode(frames, board, camera, r, rng, options, cells, k - 1)
@@ -320,6 +368,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
         T[:, :3, :3], T[:, :3, 3] = R, t
         rel = np.linalg.inv(ref.T_camera_lidar) @ r.T_camera_lidar
         parts.append((np.array([T_log(rel @ Tk) for Tk in T]), scale_k, m))
+        centers.append(T_log(rel))
     w = np.array([m for _, _, m in parts], dtype=float)
     w = w / w.sum()
     n = len(main.xi)
@@ -331,7 +380,7 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
         scale.append(sc[pick])
         index.append(np.full(c, m))
     return Posterior(ref.T_camera_lidar, np.concatenate(xi), np.concatenate(scale), main.run, options.likelihood,
-                     tuple(warnings), tuple(float(v) for v in w), np.concatenate(index))
+                     tuple(warnings), tuple(float(v) for v in w), np.concatenate(index), np.array(centers))
 
 
 def _sample_mode(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, ref: Refinement,
