@@ -12,10 +12,9 @@ from ..io.rig_dataset import RigDataset
 from geometry.rotations import T_log
 
 from ..solvers import chi_square as chi2
-from ..solvers.board_edges import crossings, edge_scatter
-from ..solvers.edges_in_graph import conflict_covariance
+from ..solvers.board_edges import edge_scatter
+from ..solvers.edges_in_graph import conflict_covariance, lidar_crossings
 from ..solvers.outline_check import outline_check
-from ..solvers.range_model import frame_rings
 from ..solvers.graph_keys import outline_key
 from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
 
@@ -110,14 +109,10 @@ def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np
 
 
 def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
-    """Each LiDAR board observation's ring ends on the board's outline (a scan line's two segment ends; rings from
-    the scan's field or clustered over these observations, ``range_model.frame_rings``), sides assigned under its
-    ``T_board_lidar``; None where the rings are unknown."""
-    if not observations:
-        return []
-    rings = frame_rings(observations)
-    return [crossings(o.points, np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r, T, board)
-            if o.is_scan_line or r is not None else None for o, r, T in zip(observations, rings, T_board_lidar)]
+    """Each LiDAR board observation's ring ends on the board's outline (a scan line's two segment ends), sides
+    assigned under its ``T_board_lidar``, the ends' noise measured on these observations as a single pair's
+    (``edges_in_graph.lidar_crossings``); None where the rings are unknown."""
+    return lidar_crossings(observations, T_board_lidar, board) if observations else []
 
 
 def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,

@@ -21,30 +21,48 @@ def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: l
                    boards: list, max_offset_m: float = MAX_END_OFFSET_M) -> list | None:
     """Each active frame's ring ends on the board's edges, sides assigned under ``T`` and ``boards``, those
     within ``max_offset_m`` of their side (None when no frame has any)."""
-    rings, noise, ends = _rings_and_noise(prob, frames, active)
-    edges = [crossings(f.lidar.points, rings[i], np.linalg.inv(boards[i]) @ T, prob.board, noise.beam_sd_rad,
-                       max_offset_m, noise.position_sd_m, ends[i])
-             if i in active and rings[i] is not None else None for i, f in enumerate(frames)]
+    found = _rings_and_noise(prob, frames, active)
+    T_board_lidar = [np.linalg.inv(boards[i]) @ T if i in active else None for i in range(len(frames))]
+    edges = lidar_crossings([f.lidar for f in frames], T_board_lidar, prob.board, found, max_offset_m)
     return edges if any(e is not None and e.size for e in edges) else None
+
+
+def rings_and_noise(observations: list, noise_from: list[int] | None = None) -> tuple[list, object, list]:
+    """Of LiDAR board observations: each one's rings (a 2D scan's board segment is one ring: its two ends are
+    where the scan line leaves the board; None where unknown), the ends' noise (``board_edges.end_noise``) of
+    those at ``noise_from`` (default all) and each one's ring ends (``board_edges.ring_ends``). The points' own,
+    whatever the extrinsic: every engine finds them once per set of observations."""
+    from .range_model import frame_rings
+
+    rings = [np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r
+             for o, r in zip(observations, frame_rings(observations))]
+    picked = range(len(observations)) if noise_from is None else noise_from
+    noise = end_noise([(observations[i].points, rings[i]) for i in picked if rings[i] is not None])
+    ends = [None if r is None else ring_ends(o.points, r) for o, r in zip(observations, rings)]
+    return rings, noise, ends
+
+
+def lidar_crossings(observations: list, T_board_lidar: list, board, found: tuple | None = None,
+                    max_offset_m: float = MAX_END_OFFSET_M) -> list:
+    """Each observation's ring ends on the board's outline (``board_edges.crossings``, the ends' noise measured
+    on the observations, :func:`rings_and_noise`, or ``found`` from it), sides assigned under its
+    ``T_board_lidar``; None where its rings are unknown or its ``T_board_lidar`` is None."""
+    rings, noise, ends = rings_and_noise(observations) if found is None else found
+    return [crossings(o.points, r, T, board, noise.beam_sd_rad, max_offset_m, noise.position_sd_m, e)
+            if r is not None and T is not None else None
+            for o, r, T, e in zip(observations, rings, T_board_lidar, ends)]
 
 
 def _rings_and_noise(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int]
                      ) -> tuple[list, object, list]:
-    """Each frame's rings, the ends' noise (``board_edges.end_noise``) of the ``active`` frames and each frame's
-    ring ends (``board_edges.ring_ends``; None without rings): the points' own, whatever the extrinsic, so found
-    once per problem and frame set (kept on ``prob``, and passed on by ``PlaneProblem.variant``)."""
-    from .range_model import frame_rings
-
+    """:func:`rings_and_noise` of the frames, the noise of the ``active`` ones, kept on ``prob`` (and passed on
+    by ``PlaneProblem.variant``)."""
     key = (tuple(id(f) for f in frames), tuple(active))
     if prob.ends_cache is not None and prob.ends_cache[0] == key:
         return prob.ends_cache[1:]
-    # A 2D scan's board segment is one ring: its two ends are where the scan line leaves the board.
-    rings = [np.zeros(len(f.lidar.points), dtype=np.int64) if f.lidar.is_scan_line else r
-             for f, r in zip(frames, frame_rings([f.lidar for f in frames]))]
-    noise = end_noise([(frames[i].lidar.points, rings[i]) for i in active if rings[i] is not None])
-    ends = [None if r is None else ring_ends(f.lidar.points, r) for f, r in zip(frames, rings)]
-    prob.ends_cache = (key, rings, noise, ends)
-    return rings, noise, ends
+    found = rings_and_noise([f.lidar for f in frames], active)
+    prob.ends_cache = (key, *found)
+    return found
 
 
 # Of the ring ends within half the board's smaller side of their sides under the planes' estimate, fewer than
