@@ -220,26 +220,11 @@ def crossings(points: np.ndarray, rings: np.ndarray, T_board_lidar: np.ndarray, 
     return EdgeCrossings(beam[keep].reshape(-1, 3), side[keep].astype(np.int64), ring[keep], sd[keep])
 
 
-def _across(side: int, b: np.ndarray) -> float:
-    """The variance across ``side`` (m^2, per rad^2 and m^2 of range) of where a beam ``b`` (board frame) cuts the
-    board when it is turned off its direction by an isotropic angle of unit variance per axis across it (a
-    footprint is a cone: its elevation counts as much as its azimuth, and most on a side the ring runs nearly
-    along): ``|w|^2 - (w . b)^2`` with ``w = P^T a``, ``a`` the side's outward normal and ``P`` the projection
-    along the beam onto the board."""
-    w = _outward_along_beams(np.array([side]), b[None])[0]
-    return float(w @ w - (w @ b) ** 2)
-
-
 def _outward_along_beams(sides: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     """``w = P^T a`` per end (K, 3): ``a`` its side's outward normal (board frame), ``P`` the projection along its
     beam ``Rb`` (board frame) onto the board's plane; ``w . dq`` moves the end outward for a cut moved by ``dq``."""
     a3 = np.column_stack([SIDE_NORMALS[sides], np.zeros(len(sides))])
     return a3 - np.outer(np.einsum("ij,ij->i", a3, Rb) / Rb[:, 2], [0.0, 0.0, 1.0])
-
-
-def _project(v: np.ndarray, Rb: np.ndarray) -> np.ndarray:
-    """``v`` projected along the ray ``Rb`` onto the board's plane (z = 0)."""
-    return v - Rb * (v[2] / Rb[2])
 
 
 def edge_residuals(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray, edges: EdgeCrossings,
