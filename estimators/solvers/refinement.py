@@ -200,7 +200,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         return T, boards, graph, result
 
     # A 2D scan's ends are in before its range terms are chosen (a few lines leave the extrinsic loose without
-    # them); a 3D LiDAR's terms are chosen on the planes, as without the edges, and the ends added after.
+    # them); a 3D LiDAR's terms and plane error are chosen on the planes, as without the edges, and the ends added
+    # after (below).
     if use_edges and scan_lines:
         T, boards, graph, result = with_edges(T, boards, graph, result)
     labels = None
@@ -229,8 +230,6 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 warnings.append(f"range model: {model_fit.reason}")
     else:
         model_fit = None
-    if use_edges and not scan_lines:
-        T, boards, graph, result = with_edges(T, boards, graph, result)
     if prob.has_beta and options.range_noise_m is None:
         # With range terms, the range noise is the points' scatter about each board's own plane and terms: the
         # plane-only residuals pooled above also hold the within-board structure the terms explain (rings,
@@ -297,6 +296,11 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         prob.solved = (graph, result)
         T, boards = result.atPose3(EXTRINSIC).matrix(), b
         iterations += its
+    if use_edges and not scan_lines:
+        # A 3D LiDAR's ends are added to the planes' final noise model (their range terms and per-board plane
+        # error), as a rig adds them: their scatter and scale are estimated under that model, and each frame's
+        # ends take its plane error as a nuisance from the first solve with them.
+        T, boards, graph, result = with_edges(T, boards, graph, result)
 
     try:
         marginals = gtsam.Marginals(graph, result)
