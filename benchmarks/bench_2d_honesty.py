@@ -9,8 +9,8 @@ Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layo
 degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
 layouts (bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported
 99.9% region (``Posterior.region_d2``: the posterior covariance's ellipsoid about the estimate that holds 99.9% of
-the samples; with several modes, the union of each mode's own ellipsoid about its minimum; beside it the Laplace covariance's chi-square ellipsoid of the most probable
-mode), those flagged ambiguous (a second mode with at least 5% of the mass), those confidently wrong (outside
+the samples; with several modes, the union of each mode's own ellipsoid about its minimum; beside it the
+Laplace covariance's chi-square ellipsoid of the most probable mode), those flagged ambiguous (a second mode with at least 5% of the mass), those confidently wrong (outside
 the region and not flagged), each listed, and how often the posterior's 95% intervals hold the truth. Targets
 (issue 35): confidently wrong at most 0.2%; refusals only where the bound is degenerate; elsewhere the truth
 inside the region in at least 95%; the 95% intervals cover 93-97%."""
