@@ -1,19 +1,19 @@
 """2D, three boards or --boards N: is every answer honest? (`python benchmarks/bench_2d_honesty.py CONFIG TRIALS [SEED]
-[--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py, or footprint: the second
-2D generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
+[--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py, or footprint: the second 2D
+generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
 
-Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared
-one by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal solutions,
-multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is the
-Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
-degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of
-layouts (bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported
-99.9% region (``Posterior.region_d2``: the posterior covariance's ellipsoid about the estimate that holds 99.9% of
-the samples; with several modes, the union of each mode's own ellipsoid about its minimum; beside it the
-Laplace covariance's chi-square ellipsoid of the most probable mode), those flagged ambiguous (a second mode with at least 5% of the mass), those confidently wrong (outside
-the region and not flagged), each listed, and how often the posterior's 95% intervals hold the truth. Targets
-(issue 35): confidently wrong at most 0.2%; refusals only where the bound is degenerate; elsewhere the truth
-inside the region in at least 95%; the 95% intervals cover 93-97%."""
+Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared one
+by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal
+solutions, multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is
+the Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
+degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of layouts
+(bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported 99.9% region
+(``Posterior.region_d2``: the posterior covariance's ellipsoid about the estimate that holds 99.9% of the samples;
+with several modes, the union of each mode's own ellipsoid about its minimum; beside it the Laplace covariance's
+chi-square ellipsoid of the most probable mode), those flagged ambiguous (a second mode with at least 5% of the
+mass), those confidently wrong (outside the region and not flagged), each listed, and how often the posterior's 95%
+intervals hold the truth. Targets (issue 35): confidently wrong at most 0.2%; refusals only where the bound is
+degenerate; elsewhere the truth inside the region in at least 95%; the 95% intervals cover 93-97%."""
 import argparse, sys, os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from pathlib import Path
