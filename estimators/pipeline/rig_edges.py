@@ -40,7 +40,7 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
         obs = lidar_obs[lv.name]
         T_l = solution.T_ref[lv.name]
         stems = [st for st in lv.W if st in solution.T_ref_board]
-        ends = _lidar_ends([obs[st] for st in stems],
+        ends = lidar_crossings([obs[st] for st in stems],
                            [np.linalg.inv(solution.T_ref_board[st]) @ T_l for st in stems], rig.board)
         found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
         views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
@@ -108,13 +108,6 @@ def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np
     return np.outer(delta, delta)
 
 
-def _lidar_ends(observations: list, T_board_lidar: list, board) -> list:
-    """Each LiDAR board observation's ring ends on the board's outline (a scan line's two segment ends), sides
-    assigned under its ``T_board_lidar``, the ends' noise measured on these observations as a single pair's
-    (``edges_in_graph.lidar_crossings``); None where the rings are unknown."""
-    return lidar_crossings(observations, T_board_lidar, board) if observations else []
-
-
 def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
                          pair_frames: dict, warnings: list) -> dict:
     """Each camera-LiDAR pair's board-edges check under the joint estimate (``solvers.outline_check``, as every
@@ -135,7 +128,7 @@ def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lida
         T_c = solution.T_ref[cam]
         boards = [np.linalg.inv(T_c) @ solution.T_ref_board[f.name] for f in frames]
         new = [(f, B) for f, B in zip(frames, boards) if (lid, f.name) not in found]
-        ends = _lidar_ends([f.lidar for f, _ in new], [np.linalg.inv(B) @ T_cl for _, B in new], rig.board)
+        ends = lidar_crossings([f.lidar for f, _ in new], [np.linalg.inv(B) @ T_cl for _, B in new], rig.board)
         found.update({(lid, f.name): e for (f, _), e in zip(new, ends)})
         edges = [found[(lid, f.name)] for f in frames]
         used = [j for j, e in enumerate(edges) if e is not None and e.size]

@@ -47,6 +47,8 @@ def lidar_crossings(observations: list, T_board_lidar: list, board, found: tuple
     """Each observation's ring ends on the board's outline (``board_edges.crossings``, the ends' noise measured
     on the observations, :func:`rings_and_noise`, or ``found`` from it), sides assigned under its
     ``T_board_lidar``; None where its rings are unknown or its ``T_board_lidar`` is None."""
+    if not observations:
+        return []
     rings, noise, ends = rings_and_noise(observations) if found is None else found
     return [crossings(o.points, r, T, board, noise.beam_sd_rad, max_offset_m, noise.position_sd_m, e)
             if r is not None and T is not None else None

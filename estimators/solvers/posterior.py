@@ -141,6 +141,16 @@ def region_d2(samples: np.ndarray, level: float, index: np.ndarray | None = None
 MIN_MODE_SAMPLES = 60
 
 
+def mode_covariances(samples: np.ndarray, index: np.ndarray, modes: int) -> list[np.ndarray]:
+    """Each mode's covariance: that of its samples (``index == k``), or of all samples for a mode with fewer than
+    ``MIN_MODE_SAMPLES``."""
+    out = []
+    for k in range(modes):
+        mine = samples[index == k]
+        out.append(np.cov(mine if len(mine) >= MIN_MODE_SAMPLES else samples, rowvar=False))
+    return out
+
+
 def mode_distance(samples: np.ndarray, index: np.ndarray, centers: np.ndarray, xi: np.ndarray,
                   own: bool = False) -> np.ndarray:
     """The squared Mahalanobis distance of tangent offsets ``xi`` (rows) from the nearest mode of a mixture:
@@ -149,10 +159,7 @@ def mode_distance(samples: np.ndarray, index: np.ndarray, centers: np.ndarray, x
     the mixture's ellipsoid that holds 99.9% of the samples, yet well inside its own. ``own``: ``xi`` are the
     samples themselves, each measured from its own mode."""
     xi = np.atleast_2d(xi)
-    info = []
-    for k in range(len(centers)):
-        mine = samples[index == k]
-        info.append(np.linalg.pinv(np.cov(mine if len(mine) >= MIN_MODE_SAMPLES else samples, rowvar=False)))
+    info = [np.linalg.pinv(C) for C in mode_covariances(samples, index, len(centers))]
     d2 = np.stack([np.einsum("ni,ij,nj->n", xi - c, P, xi - c) for c, P in zip(centers, info)], axis=1)
     return d2[np.arange(len(xi)), index] if own else d2.min(axis=1)
 
@@ -243,12 +250,9 @@ class Posterior:
         mode's minimum and covariance (the region is the union of their ellipsoids)."""
         if self.mode_index is None:
             return regions(self.xi)
-        modes = []
-        for k, c in enumerate(self.mode_centers):
-            mine = self.xi[self.mode_index == k]
-            modes.append({"T_camera_lidar": (self.T_map @ T_exp(c)).tolist(), "posterior_mass": self.mode_weights[k],
-                          "covariance": np.cov(mine if len(mine) >= MIN_MODE_SAMPLES else self.xi,
-                                               rowvar=False).tolist()})
+        covs = mode_covariances(self.xi, self.mode_index, len(self.mode_centers))
+        modes = [{"T_camera_lidar": (self.T_map @ T_exp(c)).tolist(), "posterior_mass": w, "covariance": C.tolist()}
+                 for c, w, C in zip(self.mode_centers, self.mode_weights, covs)]
         return {"definition": "T = T_mode * Exp(xi) with xi^T covariance^-1 xi at most d2 for one of the modes "
                               "(each its minimum and the covariance of its samples): the union of the modes' "
                               "ellipsoids holding the level's share of the samples, never below a Gaussian's "
