@@ -19,6 +19,14 @@ from .refinement_options import RefinementOptions
 # camera's pooled residual by this many degrees of freedom (a 7 x 10 board's residuals have 134).
 BOARD_NOISE_PRIOR_DOF = 30.0
 
+# A sensor's noise is scaled by its chi-square per degree of freedom (quasi-likelihood) only when its factors
+# disagree beyond their noise at this level: the single pair's plane test, which estimates a per-board plane error
+# there instead (each LiDAR's, carried into the graph by its ``PlaneError``). Scaling every excess, significant or
+# not, made the covariance too wide (`make bench`, noise_models.md); a LiDAR whose boards carry no plane error
+# has every excess scaled, the only account of it it has. A rig's sensors (``rig_graph.solve_rig``) and a pair's
+# boards with range terms (``refinement``, the terms' priors weighed against it) take the same level.
+QUASI_LIKELIHOOD_P = 0.01
+
 
 def pooled_corner_residual_px(views, camera: CameraModel) -> float:
     """Pooled per-axis corner residual of board poses (``2M - 6`` dof each); ``views``: ``(T_camera_board,

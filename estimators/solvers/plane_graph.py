@@ -63,6 +63,10 @@ class PlaneProblem:
         self.tau = 0.0
         # Indices of terms held at their prior mean (0): not believed, their prior variance propagated instead.
         self.pinned: tuple[int, ...] = ()
+        # The boards' variance factor beyond every modelled error (quasi-likelihood): the data's information is
+        # divided by it, which for the solve is the terms' prior information multiplied by it (the covariance is
+        # then scaled by it whole, ``refinement``).
+        self.dispersion = 1.0
         self.corners_board = [f.camera.corners_board(board) for f in frames]  # the corners each frame saw
         self.pnp_chi2 = [self.corner_chi2(i, f.camera.T_camera_board) for i, f in enumerate(frames)]
         self._ranks: dict[tuple, int] = {}
@@ -139,7 +143,7 @@ class PlaneProblem:
                              sigma_board={s: self.sigma(i) for s, i in zip(stems, active)})
         prior_sd = None
         if self.has_beta:
-            prior_sd = np.array(self.terms.prior_sd, dtype=float)
+            prior_sd = self.terms_prior_sd()
             if self.pinned and not free_pinned:
                 prior_sd[list(self.pinned)] = PINNED_SD_M
         lidar = LidarViews(PAIR_NAMES[1], self.sigma_r, {s: self.whitener(i) for s, i in zip(stems, active)},
@@ -153,6 +157,11 @@ class PlaneProblem:
                            self.options if robust else None, self.tau, prior_sd,
                            {s: own_fit_residuals(self.frames[i].lidar) for s, i in zip(stems, active)})
         return camera, lidar
+
+    def terms_prior_sd(self) -> np.ndarray:
+        """The range terms' prior standard deviations in the graph: their priors over the square root of the
+        boards' dispersion (:attr:`dispersion`)."""
+        return np.array(self.terms.prior_sd, dtype=float) / np.sqrt(self.dispersion)
 
     def plane_chi2(self, i: int, T: np.ndarray, T_board: np.ndarray, floor_m: float) -> float:
         e = self.residual(i, T, T_board)
@@ -199,6 +208,7 @@ class PlaneProblem:
         p = PlaneProblem(self.frames, self.board, camera or self.camera, self.sigma_px, self.sigma_r, self.options,
                          self.terms, labels or self.labels, sigma_board=self.sigma_board)
         p.beta, p.tau, p.pinned, p.ends_cache = self.beta.copy(), self.tau, self.pinned, self.ends_cache
+        p.dispersion = self.dispersion
         if edges:
             p.copy_edges(self)
         return p

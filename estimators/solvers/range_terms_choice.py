@@ -245,7 +245,7 @@ def consider_pinned(prob: PlaneProblem, active: list[int], result: gtsam.Values,
     pinned = [n + k for k in prob.pinned]
     rest = [i for i in range(H.shape[0]) if i not in pinned]
     A, B = H[np.ix_(rest, rest)], H[np.ix_(rest, pinned)]
-    P = np.diag(np.array(prob.terms.prior_sd)[list(prob.pinned)] ** 2)
+    P = np.diag(prob.terms_prior_sd()[list(prob.pinned)] ** 2)
     Ainv = np.linalg.pinv(A)  # A is the information of a solve that succeeded; pinv keeps a rank loss finite
     G = Ainv @ B
     cov_rest = Ainv + G @ P @ G.T
@@ -253,7 +253,7 @@ def consider_pinned(prob: PlaneProblem, active: list[int], result: gtsam.Values,
     cond = np.linalg.pinv(H[:n, :n])[:6, :6]  # every term known
     std = list(fit.std_m)
     for k in prob.pinned:
-        std[k] = float(prob.terms.prior_sd[k])
+        std[k] = float(prob.terms_prior_sd()[k])
     share = cov - cond
     return 0.5 * (cov + cov.T), replace(fit, std_m=tuple(std), extrinsic_share=0.5 * (share + share.T))
 

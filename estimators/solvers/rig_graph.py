@@ -28,13 +28,7 @@ from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_
                            vector_keys)
 from .factors import corner_residuals, lidar_plane
 from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
-
-# A sensor's noise is scaled by its chi-square per degree of freedom (quasi-likelihood) only when its factors
-# disagree beyond their noise at this level: the single pair's plane test, which estimates a per-board plane error
-# there instead (each LiDAR's, carried into the graph by its ``PlaneError``). Scaling every excess, significant or
-# not, made the covariance too wide (`make bench`, noise_models.md); a LiDAR whose boards carry no plane error
-# has every excess scaled, the only account of it it has.
-QUASI_LIKELIHOOD_P = 0.01
+from .noise_levels import QUASI_LIKELIHOOD_P
 
 
 @dataclass(frozen=True, eq=False)
