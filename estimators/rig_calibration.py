@@ -74,8 +74,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         dataset.yaml when given); the refined ones are in ``result.solution.intrinsics``.
     samples : int
         Effective posterior samples of every sensor's pose to draw with emcee (``solvers.rig_posterior``); 0
-        skips sampling. Not drawn with ``refine_intrinsics`` (the intrinsics are not sampled; the graph's
-        covariance, which carries them, is then the uncertainty reported), with a warning saying so.
+        skips sampling. With ``refine_intrinsics`` the poses are sampled with the intrinsics held at their refined
+        values and the samples convolved with the intrinsics' share of the joint covariance
+        (:func:`_at_refined_intrinsics`).
     likelihood : str
         The posterior's likelihood of each frame's planes against its boards, as the single pair's
         ``--likelihood``: ``gaussian`` or ``student-t`` (4 degrees of freedom).
@@ -269,15 +270,15 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     t_joint = time.perf_counter()
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
-    if samples > 0 and refine_intrinsics:
-        warnings.append("the posterior is not sampled with --refine-intrinsics for a rig (the intrinsics would be "
-                        "held fixed): the uncertainty given is the joint graph's, which carries the intrinsics'")
-    elif samples > 0:
-        posterior = sample_rig_posterior(solution, camera_views, lidar_views, rng, min_ess=samples,
-                                         likelihood=likelihood)
-        # The held terms' prior and the planes' conflict with the edges, convolved in as a single pair's
-        # posterior does.
-        for share in (s for s in (pinned_share, conflict) if s is not None):
+    if samples > 0:
+        sampled, views, intrinsics_share = solution, camera_views, None
+        if refine_intrinsics and solution.intrinsics:
+            sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
+                                                                      solution, (pinned_share, conflict))
+        posterior = sample_rig_posterior(sampled, views, lidar_views, rng, min_ess=samples, likelihood=likelihood)
+        # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,
+        # convolved in as a single pair's posterior does.
+        for share in (s for s in (pinned_share, conflict, intrinsics_share) if s is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(share)), share, len(posterior.xi), method="eigh"))
         if not posterior.run.converged:
@@ -303,6 +304,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
                      measured, ambiguous, test)
+
+
+def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lidar_views: list, solution, shares
+                           ) -> tuple:
+    """What a rig's posterior is sampled from when its intrinsics were refined (the intrinsics are not sampled): the
+    graph solved again with every camera at its refined intrinsics, held; those views; and the intrinsics' share of
+    the sensors' joint covariance, the joint graph's (``shares``, the covariances already added to it, taken out)
+    less the held graph's, which the samples are convolved with, as a single pair's posterior takes its refined
+    intrinsics' uncertainty."""
+    views = [replace(c, camera=c.camera.with_params(solution.intrinsics[c.name][0])) for c in camera_views]
+    held = solve_rig(names, reference, views, lidar_views, solution.T_ref, solution.T_ref_board, False)
+    free = solution.covariance_joint - sum(s for s in shares if s is not None)
+    ev, V = np.linalg.eigh(0.5 * (free - held.covariance_joint + (free - held.covariance_joint).T))
+    return held, views, (V * np.maximum(ev, 0.0)) @ V.T
 
 
 def unobservable_scanners(result: RigResult, edged: set) -> list[str]:
