@@ -257,8 +257,9 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 iterations += its
                 warnings.append(
                     f"the boards' ranges vary with incidence unlike a range offset (chi-square {t_stat:.0f} on "
-                    f"{t_dof} dof; each board's apparent offset scatters by {1000 * prob.tau:.0f} mm): the offset is "
-                    "taken from the camera's board distances across boards, not from the incidence across each board")
+                    f"{t_dof} dof): the offset is taken from the camera's board distances across boards, not from the "
+                    "incidence across each board (which barely tells a board's offset from its distance: read so, "
+                    f"each board's own offset would scatter by {1000 * prob.tau:.0f} mm)")
             model_fit = replace(model_fit, term_consistency={
                 "chi2": t_stat, "dof": t_dof, "p_value": float(chi2.sf(t_stat, t_dof)), "board_scatter_m": prob.tau,
                 "board_scatter_meaning": BOARD_SCATTER_MEANING})
