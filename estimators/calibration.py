@@ -12,7 +12,7 @@ from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
 
-from .camera.board_pose import reobserve
+from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir
@@ -277,9 +277,7 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
     ref, floor = first.refinement, options.plane_floor_m or 0.0
     for _ in range(INTRINSICS_ROUNDS):
         fit = refine_intrinsics(list(first.frames), board, camera, ref, plain, floor)
-        again = [replace(f, camera=reobserve(f.camera, board, fit.camera) if f.camera is not None else None,
-                         camera_alternatives=tuple(reobserve(a, board, fit.camera) for a in f.camera_alternatives))
-                 for f in frames]
+        again = reobserve_frames(frames, board, fit.camera)
         ref = solve(again, board, fit.camera, init, "factor-graph", plain, name, [], None, None, rng,
                     use_extent).refinement
         if abs(ref.plane_floor_m - floor) <= max(0.1 * floor, 1e-4):  # the plane error settled (0.1 mm)

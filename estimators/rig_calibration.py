@@ -20,6 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .calibration import solve
+from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError
 from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
@@ -255,6 +256,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     for lv in lidar_views:
         if lv.has_terms:
             range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
+    if refine_intrinsics and solution.intrinsics:  # each pair's boards as the refined intrinsics see them
+        refined = {c: cameras[c].with_params(p) for c, (p, _) in solution.intrinsics.items()}
+        pair_frames = {(c, d): reobserve_frames(frames, rig.board, refined[c]) for (c, d), frames in pair_frames.items()}
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     test = None
     if refine_intrinsics and solution.intrinsics:

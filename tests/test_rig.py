@@ -842,6 +842,9 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     for a, b in (("cam1", "lidar0"), ("cam0", "cam1")):
         C = refined.solution.transform(a, b)[1]
         np.testing.assert_allclose(np.sqrt(np.diag(refined.pair(a, b).covariance) / np.diag(C)), 1.0, atol=0.08)
+    # Each pair's boards are judged as the refined intrinsics see them: the answer reads OK (it read UNTRUSTED, the
+    # camera's boards posed under the wrong intrinsics disagreeing with the refined estimate)
+    assert refined.verdict.line == "OK", refined.verdict.line
     # the refined intrinsics lower the rig's disagreement far beyond what freed parameters fit of its noise
     test = refined.to_json()["intrinsics_test"]
     assert test["lowers_disagreement"] and test["p_value"] < 1e-6 and test["parameters"] == 3 * 9

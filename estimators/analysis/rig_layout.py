@@ -118,9 +118,7 @@ def pair_next_pose(result, cam: str, lid: str, P: np.ndarray, rng: np.random.Gen
         return None
     rings = [len(np.unique(f.lidar.rings)) for (_, d), frames in (result.pair_frames or {}).items() if d == lid
              for f in frames if f.lidar is not None and f.lidar.rings is not None]
-    camera = result.cameras[cam]
-    if sol.intrinsics and cam in sol.intrinsics:
-        camera = camera.with_params(sol.intrinsics[cam][0])
+    camera = result.camera_model(cam)
     found = next_pose_for_pair(camera, result.rig.board, sol.transform(cam, lid)[0], P,
                                cv.sigma_px * np.sqrt(sol.noise_scale.get(cam, 1.0)),
                                lv.sigma_m * np.sqrt(sol.noise_scale.get(lid, 1.0)),

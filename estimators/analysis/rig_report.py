@@ -150,7 +150,7 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
         images, offsets = [], []
         for f in frames:
-            png, off = projection_figure(result.cameras[cam], T, f, result.rig.board, c.file(f.name),
+            png, off = projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
                                          lid.file(f.name))
             if np.all(np.isfinite(off)):
                 offsets.append((f.name, off))

@@ -142,6 +142,14 @@ def reobserve(obs: CameraBoardObservation, board: BoardModel, camera: CameraMode
     return replace(new, pattern_inverted=obs.pattern_inverted)
 
 
+def reobserve_frames(frames: list, board: BoardModel, camera: CameraModel) -> list:
+    """The frames (``FrameMeasurement``) with their boards' detected corners observed under ``camera`` (refined
+    intrinsics, :func:`reobserve`): the board pose and each ambiguous board's alternatives; the LiDAR side kept."""
+    return [replace(f, camera=reobserve(f.camera, board, camera) if f.camera is not None else None,
+                    camera_alternatives=tuple(reobserve(a, board, camera) for a in f.camera_alternatives))
+            for f in frames]
+
+
 def pattern_inverted(squares: np.ndarray | None, board: BoardModel) -> bool | None:
     """Whether the image shows white where the board model has black (square (0, 0) of the pattern white):
     the mean grey level of the squares between the inner corners that the model makes black against the others'

@@ -103,6 +103,12 @@ class RigResult:
         links = self.links or {}
         return PairEstimate(a, b, T, C, samples, int(links.get((a, b), links.get((b, a), 0))))
 
+    def camera_model(self, name: str):
+        """Camera ``name``'s model as the solution has it: its refined intrinsics where they were refined, else the
+        ones given (``cameras``)."""
+        refined = (self.solution.intrinsics or {}).get(name)
+        return self.cameras[name] if refined is None else self.cameras[name].with_params(refined[0])
+
     @property
     def ambiguous(self) -> bool:
         """A camera-LiDAR pair's boards leave two answers (:attr:`ambiguous_pairs`): the printout starts with it
