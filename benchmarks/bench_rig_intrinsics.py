@@ -82,7 +82,7 @@ def _one(args) -> dict:
                                       float(xi @ np.linalg.solve(C, xi)), float(np.trace(Cb[:3, :3])),
                                       float(np.trace(Cb[3:, 3:])))
             warned = any(w.startswith("cam1: ") for w in res.warnings)
-            out[variant] = {"rows": rows, "warned": warned}
+            out[variant] = {"rows": rows, "warned": warned, "verdict": res.verdict.line.split(":")[0]}
     return out
 
 
@@ -106,7 +106,9 @@ def main() -> None:
                   f"{rot / np.sqrt(r[:, 3].mean()):9.2f}{tr / np.sqrt(r[:, 4].mean()):8.2f}{r[:, 2].mean():10.2f}")
     for variant in VARIANTS:
         n = sum(run[variant]["warned"] for run in runs)
-        print(f"{variant}: the warning that cam1's corners disagree with the rest in {n} of {len(runs)} rigs")
+        verdicts = [run[variant]["verdict"] for run in runs]
+        print(f"{variant}: the warning that cam1's corners disagree with the rest in {n} of {len(runs)} rigs; "
+              "verdicts " + ", ".join(f"{v} {verdicts.count(v)}" for v in ("OK", "CHECK", "UNTRUSTED")))
 
 
 if __name__ == "__main__":
