@@ -14,6 +14,9 @@ boards' returns. Rows, each refined with `auto` (the terms the data support):
   overdispersion of recorded sets), where a test on the raw point noise reads that structure as a range offset.
 - VLP-16 drawn from the priors (`velodyne`, 3 cm accuracy): every term drawn from the model's own prior, so that
   the intervals' coverage is their nominal 95% where the priors, not the data, set them.
+The planes alone (no board edges, which the calibration adds by default where the board's size is given): the bound
+is the planes' and the terms' (``observation_model.cramer_rao_bound`` has no edges with terms); the edges'
+accuracy is bench_board_edges.py's.
 """
 from __future__ import annotations
 
@@ -68,7 +71,7 @@ def _trial(args) -> dict:
     for m in (["auto", "none"] if not inject else ["auto"]):
         t0 = time.perf_counter()
         ref = refine(frames, layout.board, layout.camera, T0,
-                     measurement_model_options(range_model=m, range_accuracy_m=accuracy))
+                     measurement_model_options(range_model=m, range_accuracy_m=accuracy, edges=False))
         T = ref.T_camera_lidar
         xi = T_log(T_inverse(T) @ rig.T_camera_lidar)
         sd = np.sqrt(np.diag(ref.covariance))
@@ -127,7 +130,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     print(f"LiDAR range model, measurement level: {args.trials} trials per row, {POSES} poses, "
-          f"{100 * NOISE_M:.0f} cm range noise, {CORNER_PX} px corners; `auto` in every row")
+          f"{100 * NOISE_M:.0f} cm range noise, {CORNER_PX} px corners; `auto` in every row; the planes alone "
+          "(--no-edges: the bound is the planes' and the terms')")
     head = (f"{'row':48s}{'rot/CRB':>8s}{'tr/CRB':>8s}{'d2':>6s}{'>4sd':>6s}{'offset in':>10s}{'rings in':>10s}"
             f"{'dark in':>10s}{'terms':>7s}{'err/none':>9s}")
     print(head)
