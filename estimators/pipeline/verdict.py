@@ -16,8 +16,9 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
   term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
   their noise (the covariance holds both answers); the LiDAR's board outlines off the camera's beyond their
-  99% limit; planes whose disagreement freed intrinsics explain; a posterior that did not converge or was not
-  sampled; the rig's stillness not checked on any frame.
+  99% limit; planes whose disagreement freed intrinsics explain; a rig's camera whose corners disagree with the
+  rest of the rig beyond their noise (given intrinsics); a posterior that did not converge or was not sampled; the
+  rig's stillness not checked on any frame.
 """
 from __future__ import annotations
 
@@ -104,6 +105,16 @@ def _plane_error(name: str, floor_m: float, accuracy_m: float) -> list[tuple[str
                         f"beyond the LiDAR's range accuracy ({1000 * accuracy_m:.0f} mm): a wrong LiDAR segment, a "
                         "board that moved between the two sensors' captures, or a wrong camera model or board "
                         "pattern")]
+
+
+def _corners(name: str, scale: float, chi2_dof: tuple[float, float]) -> list[tuple[str, str]]:
+    """A rig's camera whose corners disagree with the rest of the rig beyond their noise (its noise scaled,
+    ``rig_graph.solve_rig``): the other sensors see its boards elsewhere than its intrinsics place them."""
+    if scale <= 1.0:
+        return []
+    return [(CHECK, f"{name}: its corners disagree with the rest of the rig beyond their noise (chi-square "
+                    f"{chi2_dof[0]:.0f} on {chi2_dof[1]:.0f} dof, its noise scaled by {scale:.2f}): its intrinsics "
+                    "may be wrong, and every pair with it then off; --refine-intrinsics estimates them with the rig")]
 
 
 def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
@@ -280,6 +291,9 @@ def rig_verdict(result) -> Verdict:
                  if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
+    for c in result.rig.cameras if not result.solution.intrinsics else ():
+        concerns += _corners(c.name, result.solution.noise_scale.get(c.name, 1.0),
+                             result.solution.chi2_dof.get(c.name, (0.0, 0.0)))
     for (c, lid), modes in result.ambiguous_pairs.items():
         concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards",
                                "the joint graph and its intervals hold the most probable alone")
