@@ -838,10 +838,11 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     # and the verdict says so: a camera whose corners disagree with the rest is never OK (6 of 30 simulated rigs
     # with cam1's focal lengths 1% long read OK, 62 mm off, before the rule)
     assert plain.verdict.level != "OK" and "cam1: its corners disagree with the rest" in plain.verdict.line
-    refined = calibrate_rig(rig, np.random.default_rng(0), refine_intrinsics=True, samples=1000)
+    refined = calibrate_rig(rig, np.random.default_rng(0), refine_intrinsics=True, samples=400)
     # The posterior is sampled with the intrinsics held at their refined values and convolved with their share of
     # the joint covariance, as a single pair's: each pair's posterior sd within 8% of the joint graph's, which
-    # carries the intrinsics (measured within 2.2%; held, the graph's sd were 1.1-61 times narrower)
+    # carries the intrinsics (400 effective samples: each sd within about 4% by chance; held, the graph's sd were
+    # 1.1-61 times narrower)
     for a, b in (("cam1", "lidar0"), ("cam0", "cam1")):
         C = refined.solution.transform(a, b)[1]
         np.testing.assert_allclose(np.sqrt(np.diag(refined.pair(a, b).covariance) / np.diag(C)), 1.0, atol=0.08)
