@@ -75,18 +75,18 @@ def _plain_planes(original):
 
 
 def _rig_answer(folder: Path, variant: str) -> tuple[np.ndarray, np.ndarray]:
-    saved = (rig_calibration.camera_views_of, rig_calibration.lidar_views_of, rig_graph.QUASI_LIKELIHOOD_P)
+    saved = (rig_calibration.camera_views_of, rig_calibration.lidar_views_of, rig_graph.excess_scale)
     try:
         if variant == "pooled corners":
             rig_calibration.camera_views_of = _pooled_views(saved[0])
         if variant == "scaled planes":
             rig_calibration.lidar_views_of = _plain_planes(saved[1])
-            rig_graph.QUASI_LIKELIHOOD_P = 1.0  # every excess scaled
+            rig_graph.excess_scale = lambda ss, dof: max(ss / dof, 1.0)  # every excess scaled
         res = rig_calibration.calibrate_rig(load_rig(folder), np.random.default_rng(0), samples=0, advise=False,
                                             edges=False)
         return res.solution.transform("cam0", "lidar0")
     finally:
-        rig_calibration.camera_views_of, rig_calibration.lidar_views_of, rig_graph.QUASI_LIKELIHOOD_P = saved
+        rig_calibration.camera_views_of, rig_calibration.lidar_views_of, rig_graph.excess_scale = saved
 
 
 def _one(task) -> dict:

@@ -257,8 +257,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if lv.has_terms:
             range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
     if refine_intrinsics and solution.intrinsics:  # each pair's boards as the refined intrinsics see them
-        refined = {c: cameras[c].with_params(p) for c, (p, _) in solution.intrinsics.items()}
-        pair_frames = {(c, d): reobserve_frames(frames, rig.board, refined[c]) for (c, d), frames in pair_frames.items()}
+        pair_frames = {(c, d): reobserve_frames(frames, rig.board, solution.camera_model(c, cameras[c]))
+                       for (c, d), frames in pair_frames.items()}
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     test = None
     if refine_intrinsics and solution.intrinsics:
@@ -317,7 +317,7 @@ def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lid
     the sensors' joint covariance, the joint graph's (``shares``, the covariances already added to it, taken out)
     less the held graph's, which the samples are convolved with, as a single pair's posterior takes its refined
     intrinsics' uncertainty."""
-    views = [replace(c, camera=c.camera.with_params(solution.intrinsics[c.name][0])) for c in camera_views]
+    views = [replace(c, camera=solution.camera_model(c.name, c.camera)) for c in camera_views]
     held = solve_rig(names, reference, views, lidar_views, solution.T_ref, solution.T_ref_board, False)
     free = solution.covariance_joint - sum(s for s in shares if s is not None)
     ev, V = np.linalg.eigh(0.5 * (free - held.covariance_joint + (free - held.covariance_joint).T))

@@ -106,8 +106,7 @@ class RigResult:
     def camera_model(self, name: str):
         """Camera ``name``'s model as the solution has it: its refined intrinsics where they were refined, else the
         ones given (``cameras``)."""
-        refined = (self.solution.intrinsics or {}).get(name)
-        return self.cameras[name] if refined is None else self.cameras[name].with_params(refined[0])
+        return self.solution.camera_model(name, self.cameras[name])
 
     @property
     def ambiguous(self) -> bool:

@@ -28,6 +28,12 @@ BOARD_NOISE_PRIOR_DOF = 30.0
 QUASI_LIKELIHOOD_P = 0.01
 
 
+def excess_scale(stat: float, dof: float) -> float:
+    """A chi-square statistic's variance factor ``stat / dof`` when it exceeds its degrees of freedom at
+    ``QUASI_LIKELIHOOD_P``, else 1: what a sensor's noise (a pair's terms' priors) is scaled by."""
+    return stat / dof if stat > dof and chi2.sf(stat, dof) < QUASI_LIKELIHOOD_P else 1.0
+
+
 def pooled_corner_residual_px(views, camera: CameraModel) -> float:
     """Pooled per-axis corner residual of board poses (``2M - 6`` dof each); ``views``: ``(T_camera_board,
     corners_board, corners_px)`` per board."""

@@ -63,7 +63,7 @@ from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estima
 from .closed_form import solve_closed_form
 from .edges_in_graph import (add_edges, check_outline, conflict_covariance, edge_crossings, edges_information,
                              edges_summary)
-from .noise_levels import QUASI_LIKELIHOOD_P, corner_noise_levels, pooled_range_noise_m, robust_weight
+from .noise_levels import corner_noise_levels, excess_scale, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
@@ -338,9 +338,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         # The graph weighed the terms' priors against the data at ``prob.dispersion``; its covariance is scaled by
         # that, or by what the final estimate leaves if more (the edges' step moves it).
         stat_f, dof_f = prob.consistency(inliers, T, boards, floor, active)
-        late = stat_f / dof_f if chi2.sf(stat_f, dof_f) < QUASI_LIKELIHOOD_P else 1.0
-        if max(late, prob.dispersion) > 1.0:
-            quasi_scale = max(late, prob.dispersion)
+        quasi_scale = max(excess_scale(stat_f, dof_f), prob.dispersion)
+        if quasi_scale > 1.0:
             cov = cov * quasi_scale
             warnings.append(f"the boards disagree beyond what the range terms and a per-board plane error of physical "
                             f"size explain (chi-square {stat_f:.0f} on {dof_f:.3g} dof): the range terms' priors are "
@@ -433,7 +432,7 @@ def _settle_dispersion(prob: PlaneProblem, active: list[int], inliers: list[int]
     iterations = 0
     for _ in range(3):
         stat, dof = prob.consistency(inliers, T, boards, floor, active)
-        new = stat / dof if stat > dof and chi2.sf(stat, dof) < QUASI_LIKELIHOOD_P else 1.0
+        new = excess_scale(stat, dof)
         if abs(np.log(new / prob.dispersion)) < 0.05:
             break
         prob.dispersion = new

@@ -7,7 +7,7 @@ the poses and their covariance are then carried into: :func:`change_reference`);
 
 The noise: each camera's corners with each board's own pixel noise, each LiDAR's points with its range noise and
 each board's plane error (``factor_graph.LidarViews.plane_cov``); a sensor whose chi-square exceeds its degrees of
-freedom beyond chance (:data:`QUASI_LIKELIHOOD_P`) has its noise scaled by their ratio and the graph is solved
+freedom beyond chance (``noise_levels.excess_scale``) has its noise scaled by their ratio and the graph is solved
 again (quasi-likelihood, a variance factor per sensor). Its degrees of freedom are its
 residuals less its share of the unknowns (:func:`redundancy`): a LiDAR's planes also fix the board poses that
 few cameras saw, so residuals less 6 would count its chi-square against too many and miss its excess.
@@ -28,7 +28,7 @@ from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_
                            vector_keys)
 from .factors import corner_residuals, lidar_plane
 from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
-from .noise_levels import QUASI_LIKELIHOOD_P
+from .noise_levels import excess_scale
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,6 +54,12 @@ class RigSolution:
     covariance_inner: np.ndarray | None = None
     # The graph's vector variables at the estimate (range terms, outlines, outline shifts; by key).
     vectors: dict = field(default_factory=dict)
+
+    def camera_model(self, name: str, given):
+        """Camera ``name``'s model (``given``: its ``CameraModel`` as measured) at the solution's refined intrinsics,
+        where they were refined, else ``given``."""
+        refined = (self.intrinsics or {}).get(name)
+        return given if refined is None else given.with_params(refined[0])
 
     def covariance(self, name: str) -> np.ndarray:
         k = self.names.index(name)
@@ -201,8 +207,7 @@ def solve_rig(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
         iterations += opt.iterations()
         stats = _chi2(names, cameras, lidars, stems, values, inner, refine_intrinsics,
                       redundancy(graph, values, owners))
-        new = {n: ss / dof if ss > dof and (n in plain or chi2.sf(ss, dof) < QUASI_LIKELIHOOD_P) else 1.0
-               for n, (ss, dof) in stats.items()}
+        new = {n: ss / dof if n in plain and ss > dof else excess_scale(ss, dof) for n, (ss, dof) in stats.items()}
         new = {n: new.get(n, 1.0) for n in names}
         converged = all(abs(np.log(new[n] / scale[n])) < 0.05 for n in names)
         scale = new
