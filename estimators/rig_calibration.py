@@ -14,12 +14,12 @@ saw.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .calibration import solve
+from .calibration import INTRINSICS_ROUNDS, solve
 from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError
 from .io.measurement_store import RigMeasurements
@@ -49,6 +49,117 @@ def pair_options(options: RefinementOptions, range_model: str, params: Segmentat
     return replace(options, edges=False, outline_check=False, range_model=range_model, refine_intrinsics=False,
                    max_sensor_separation_m=params.max_sensor_separation_m)
 
+
+
+@dataclass(frozen=True)
+class PairsAlone:
+    """Each camera-LiDAR pair that shares enough frames, solved alone as a single pair is (:func:`solve_pairs_alone`):
+    what the joint graph takes from them.
+
+    Attributes
+    ----------
+    pairwise : dict
+        ``(camera, lidar) -> (T_camera_lidar, covariance, frames)``: each pair's own estimate.
+    pair_frames, links : dict
+        Each pair's usable frames and their number.
+    lidar_obs, plane_frames : dict
+        Per LiDAR and stem: the board it was used from, and ``(frame, per-board plane error)`` of that frame's pair.
+    board_scatter, sigma_r : dict
+        Per LiDAR: its boards' scatter along their range terms' weak direction (its first pair's) and its range noise.
+    term_choices : dict
+        Per LiDAR: its range model's choice (``RangeModelFit``) and the pair that chose it.
+    ambiguous : dict
+        The pairs whose own boards leave a second minimum: ``(camera, lidar) -> modes``.
+    skipped : dict
+        Per LiDAR: ``stem -> reason`` for the frames it does not give the joint graph.
+    first, warnings : tuple of str
+        What to say before every other warning (an ambiguous pair), and the rest.
+    """
+
+    pairwise: dict
+    pair_frames: dict
+    links: dict
+    lidar_obs: dict
+    plane_frames: dict
+    board_scatter: dict
+    sigma_r: dict
+    term_choices: dict
+    ambiguous: dict
+    skipped: dict
+    first: tuple
+    warnings: tuple
+
+    def settled(self, before: "PairsAlone") -> bool:
+        """Every board's plane error within a tenth of ``before``'s (or 0.1 mm) and the same boards used: the
+        rounds of a refinement of the intrinsics stop there (``INTRINSICS_ROUNDS``, as a single pair's)."""
+        now = {(n, st): e for n, frames in self.plane_frames.items() for st, (_, e) in frames.items()}
+        then = {(n, st): e for n, frames in before.plane_frames.items() for st, (_, e) in frames.items()}
+        return now.keys() == then.keys() and all(abs(now[k] - then[k]) <= max(0.1 * then[k], 1e-4) for k in now)
+
+
+def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, cameras: dict,
+                      alone: RefinementOptions, init: str, options: RefinementOptions) -> PairsAlone:
+    """Each camera-LiDAR pair of ``frames_by_pair`` (``(camera, lidar) -> frames``, measured or observed again under
+    refined intrinsics, ``cameras`` the models they were observed under) with at least ``MIN_PAIR_FRAMES`` usable
+    frames solved alone with ``alone`` (:func:`pair_options`). A LiDAR's range model is chosen once, by its pair
+    with the camera that shares the most frames (the first): its other pairs are solved with that model, not tested
+    again on fewer frames. Each LiDAR board enters the joint graph once, from the first pair that used it; a pair's
+    outlier frame is left out."""
+    lidar_obs: dict = {s.name: {} for s in rig.lidars}
+    plane_frames: dict = {s.name: {} for s in rig.lidars}
+    skipped: dict = {s.name: {} for s in rig.lidars}
+    board_scatter, sigma_r, term_choices = {}, {}, {}
+    pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
+    first: list[str] = []
+    warnings: list[str] = []
+    for lid in rig.lidars:
+        for (cam_name, lid_name), frames in frames_by_pair.items():
+            if lid_name != lid.name:
+                continue
+            usable = [f for f in frames if f.usable]
+            for f in frames:
+                if not f.usable and f.name not in lidar_obs[lid.name]:
+                    by = measured_by[(cam_name, lid_name)].get(f.name, cam_name)
+                    skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
+            if len(usable) < MIN_PAIR_FRAMES:
+                warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
+                continue
+            try:
+                res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
+                            options=alone if lid.name not in term_choices else
+                            replace(alone, range_model=term_choices[lid.name][0].chosen),
+                            use_extent=False)
+            except DegenerateLayoutError as exc:
+                warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
+                continue
+            if res.ambiguous:
+                ambiguous[(cam_name, lid.name)] = tuple(res.modes)
+                masses = ", ".join(f"{m.mass:.0%}" for m in res.modes)
+                first.insert(0, f"{cam_name}-{lid.name}: {len(res.modes)} distinct solutions fit its boards "
+                                f"(posterior mass {masses}); the rig starts from the most probable, and its "
+                                "covariance and posterior hold that one alone: add boards tilted in other "
+                                "directions to decide")
+            if lid.name not in term_choices and res.refinement.range_model is not None:
+                term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
+            pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
+            pair_frames[(cam_name, lid.name)] = usable
+            links[(cam_name, lid.name)] = len(usable)
+            dropped = {fit.name: fit.outlier for fit in res.refinement.frames if fit.dropped}
+            fit = res.refinement.range_model
+            board_scatter.setdefault(lid.name, float(fit.term_consistency.get("board_scatter_m", 0.0)) if fit else 0.0)
+            for f in usable:
+                if f.name in lidar_obs[lid.name] or f.name in skipped[lid.name] and f.name in dropped:
+                    continue
+                if f.name in dropped:  # the pair's outlier: its LiDAR board or its board pose is not this board
+                    skipped[lid.name][f.name] = f"with {cam_name}: {dropped[f.name]}"
+                    continue
+                lidar_obs[lid.name][f.name] = f.lidar
+                plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
+                skipped[lid.name].pop(f.name, None)
+        if lidar_obs[lid.name]:
+            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
+    return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
+                      ambiguous, skipped, tuple(first), tuple(warnings))
 
 # One BLAS thread, as the command line runs: the solves' matrices are small, and OpenBLAS's own threads cost more
 # than they give there (a 6-camera rig's camera-LiDAR pairs, solved in two threads, took 6x as long with two BLAS
@@ -143,72 +254,17 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                         " images and sweeps were not read again")
     t_meas = time.perf_counter()
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
-    lidar_obs: dict = {s.name: {} for s in rig.lidars}
-    # Per LiDAR and stem the frame its board was used from and the per-board plane error of that frame's pair; per
-    # LiDAR the boards' scatter along their range terms' weak direction, from its first pair.
-    plane_frames: dict = {s.name: {} for s in rig.lidars}
-    board_scatter: dict = {}
-    sigma_r: dict = {}
-    pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
-    term_choices: dict = {}  # per LiDAR its range model's choice (RangeModelFit) and the pair that chose it
-    for lid in rig.lidars:
-        skipped[lid.name] = {}
-        # The LiDAR's range model is chosen once, by its pair with the camera that shares the most frames (the
-        # first): its other pairs are solved with that model, not tested again on fewer frames.
-        for (cam_name, lid_name), frames in measured.pairs.items():
-            if lid_name != lid.name:
-                continue
-            usable = [f for f in frames if f.usable]
-            for f in frames:
-                if not f.usable and f.name not in lidar_obs[lid.name]:
-                    by = measured.measured_by[(cam_name, lid_name)].get(f.name, cam_name)
-                    skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
-            if len(usable) < MIN_PAIR_FRAMES:
-                warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
-                continue
-            try:
-                res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
-                            options=alone if lid.name not in term_choices else
-                            replace(alone, range_model=term_choices[lid.name][0].chosen),
-                            use_extent=False)
-            except DegenerateLayoutError as exc:
-                warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
-                continue
-            if res.ambiguous:
-                ambiguous[(cam_name, lid.name)] = tuple(res.modes)
-                masses = ", ".join(f"{m.mass:.0%}" for m in res.modes)
-                warnings.insert(0, f"{cam_name}-{lid.name}: {len(res.modes)} distinct solutions fit its boards "
-                                   f"(posterior mass {masses}); the rig starts from the most probable, and its "
-                                   "covariance and posterior hold that one alone: add boards tilted in other "
-                                   "directions to decide")
-            if lid.name not in term_choices and res.refinement.range_model is not None:
-                term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
-            pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
-            pair_frames[(cam_name, lid.name)] = usable
-            links[(cam_name, lid.name)] = len(usable)
-            dropped = {fit.name: fit.outlier for fit in res.refinement.frames if fit.dropped}
-            fit = res.refinement.range_model
-            board_scatter.setdefault(lid.name, float(fit.term_consistency.get("board_scatter_m", 0.0)) if fit else 0.0)
-            for f in usable:
-                if f.name in lidar_obs[lid.name] or f.name in skipped[lid.name] and f.name in dropped:
-                    continue
-                if f.name in dropped:  # the pair's outlier: its LiDAR board or its board pose is not this board
-                    skipped[lid.name][f.name] = f"with {cam_name}: {dropped[f.name]}"
-                    continue
-                lidar_obs[lid.name][f.name] = f.lidar
-                plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
-                skipped[lid.name].pop(f.name, None)
-        if lidar_obs[lid.name]:
-            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
+    alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options)
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
+    links = dict(alone_fit.links)
     for i, a in enumerate(cams):
         for b in cams[i + 1:]:
             links[(a, b)] = sum(1 for st in poses[a] if st in poses[b])
     names = tuple(s.name for s in rig.sensors)
     parent = spanning_tree(names, rig.reference, links)
     flip = pattern_flip(rig.board)
-    T_ref = start_poses(names, rig.reference, parent, poses, pairwise, flip)
+    T_ref = start_poses(names, rig.reference, parent, poses, alone_fit.pairwise, flip)
     if flip is not None:
         poses = align_numbering(cams, poses, T_ref, flip)
     # Each frame a camera saw starts from the first camera (in the rig's order) that saw it.
@@ -217,15 +273,37 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         for st, p in poses[c].items():
             T_ref_board.setdefault(st, T_ref[c] @ p.T_camera_board)
     camera_views = [camera_views_of(c, cameras[c], poses[c], rig.board, options) for c in cams if poses[c]]
-    lidar_views = [lidar_views_of(lid.name, sigma_r[lid.name], plane_frames[lid.name], T_ref_board, rig.board,
-                                  lid.lidar == "2d", alone)
-                   for lid in rig.lidars if lidar_obs[lid.name]]
-    solution = solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, refine_intrinsics)
+
+    def joint(fit: PairsAlone):
+        views = [lidar_views_of(lid.name, fit.sigma_r[lid.name], fit.plane_frames[lid.name], T_ref_board, rig.board,
+                                lid.lidar == "2d", alone) for lid in rig.lidars if fit.lidar_obs[lid.name]]
+        return views, solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
+
+    lidar_views, solution = joint(alone_fit)
+    # Refined intrinsics, in rounds as a single pair's: each pair solved again with its boards observed under them
+    # gives the LiDAR boards' plane errors the next joint solve weighs them with (errors estimated under wrong
+    # intrinsics hold their error, and would weaken the planes that reveal it), until those settle.
+    for _ in range(INTRINSICS_ROUNDS if refine_intrinsics else 0):
+        if not solution.intrinsics:
+            break
+        seen = {c: solution.camera_model(c, cameras[c]) for c in cameras}
+        again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
+                                        for (c, d), frames in measured.pairs.items()},
+                                  measured.measured_by, seen, alone, init, options)
+        settled, alone_fit = again.settled(alone_fit), again
+        lidar_views, solution = joint(alone_fit)
+        if settled:
+            break
+    pairwise, pair_frames, lidar_obs = alone_fit.pairwise, alone_fit.pair_frames, alone_fit.lidar_obs
+    ambiguous = alone_fit.ambiguous
+    skipped.update(alone_fit.skipped)
+    warnings[:0] = alone_fit.first
+    warnings += alone_fit.warnings
     range_models, pins, pinned_share = {}, {}, None
     if range_model != "none" and lidar_views:
         lidar_views, solution, range_models, pins = with_range_terms(
-            rig, lidar_views, lidar_obs, pair_frames, solution, term_choices, range_model, board_scatter,
-            options.range_accuracy_m, warnings,
+            rig, lidar_views, lidar_obs, pair_frames, solution, alone_fit.term_choices, range_model,
+            alone_fit.board_scatter, options.range_accuracy_m, warnings,
             lambda views: solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics))
     for n, s in solution.noise_scale.items():
         ss, dof = solution.chi2_dof[n]
