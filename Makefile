@@ -55,6 +55,7 @@ bench: $(STAMP)
 	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 80 --posterior 1000
 	$(RECORD) rig_6_cameras_speed -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 0 --posterior 1000 --timed 10
 	$(RECORD) rig_intrinsics -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30
+	$(RECORD) rig_intrinsics_first_camera -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30 --wrong cam0
 	$(RECORD) rig_corners -- $(PY) benchmarks/bench_rig_corners.py --rigs 10
 	$(RECORD) rig_range_offset -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000 --range-offset 0.03
 	$(RECORD) rig_range_terms -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000 --range-bias 0.03,0.005,0.01
