@@ -502,7 +502,7 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
     C_p = inner_covariance(solution.names, solution.reference, cameras, planes, solution)
     A = np.linalg.inv(solution.covariance_inner) - np.linalg.inv(C_p)
     ev, V = np.linalg.eigh(0.5 * (A + A.T))
-    A = (V * np.maximum(ev, 0.0)) @ V.T
+    A = ((V * np.maximum(ev, 0.0)) @ V.T)[:like.nx, :like.nx]  # the terms, when held, at their MAP
     E = np.eye(like.nx, like.ndim) * h
     f = like(np.vstack([E, -E]))
     grad = (f[:like.nx] - f[like.nx:]) / (2 * h)
@@ -535,21 +535,32 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     RigPosterior
         Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
     """
-    like = RigLikelihood(solution, cameras, lidars, likelihood=likelihood, nu=nu)
+    # Each LiDAR's range terms held at the MAP, as a single pair's posterior holds them: their share of the poses'
+    # covariance is convolved into the samples below (marginal intervals), with the terms' own samples.
+    held = [hold_terms(lv, solution.range_terms[lv.name][0]) if lv.has_terms else lv for lv in lidars]
+    like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu)
     if any(lv.edges for lv in lidars):
         like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
-    if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == like.nx:
-        cov = solution.covariance_inner
+    n_p = like.nx
+    ranged = [lv.name for lv in lidars if lv.has_terms]
+    n_t = sum(lv.terms.size for lv in lidars if lv.has_terms)
+    if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == n_p + n_t:
+        full = solution.covariance_inner  # the poses', then each ranged LiDAR's terms in the order of ``lidars``
+        S_pt, S_tt = full[:n_p, n_p:], full[n_p:, n_p:]
+        gain = S_pt @ np.linalg.pinv(S_tt, rcond=1e-12, hermitian=True) if ranged else np.zeros((n_p, 0))
+        cov = full[:n_p, :n_p] - gain @ S_pt.T  # the poses' given the terms
     else:
+        if ranged:
+            raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
-        cov = cov_inner[np.ix_(cols, cols)]
-        if like.ranged:
-            raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
+        cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
     keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior")
-    # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     m = len(keep)
+    dt = rng.multivariate_normal(np.zeros(len(S_tt)), S_tt, m, method="eigh") if ranged else np.zeros((m, 0))
+    keep[:, :n_p] += dt @ gain.T
+    # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     R_in, t_in = {like.inner: np.broadcast_to(np.eye(3), (m, 3, 3))}, {like.inner: np.zeros((m, 3))}
     for k, n in enumerate(like.free):
         R_in[n], t_in[n] = _poses(like.T[n], keep[:, 6 * k:6 * k + 6])
@@ -562,7 +573,11 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         t = np.einsum("nji,nj->ni", R_in[ref], t_in[n] - t_in[ref])
         Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
         xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
-    terms = {n: keep[:, like.term_columns[n]] + solution.range_terms[n][0] for n in like.ranged}
+    terms, at = {}, 0
+    for lv in lidars:
+        if lv.has_terms:
+            terms[lv.name] = dt[:, at:at + lv.terms.size] + solution.range_terms[lv.name][0]
+            at += lv.terms.size
     return RigPosterior(names, ref, dict(solution.T_ref), xi, run, terms, np.exp(keep[:, -1]), likelihood)
 
 
@@ -634,6 +649,14 @@ def run_chain(like: RigLikelihood, cov: np.ndarray, rng: np.random.Generator, mi
     return keep, run
 
 
+def hold_terms(lidar: LidarViews, values: np.ndarray) -> LidarViews:
+    """The LiDAR's views with its range terms held at ``values`` (their residual's constant part), no longer
+    parameters: how every posterior takes them (a rig's and a pair's), their share convolved in by the caller."""
+    beta = np.asarray(values, dtype=float)
+    return replace(lidar, terms=None, terms_prior_sd=None,
+                   ranged={st: replace(fw, e0=fw.e0 + fw.W_nuisance @ beta) for st, fw in lidar.ranged.items()})
+
+
 def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera_board: dict,
                     views: tuple[CameraViews, LidarViews], range_terms: np.ndarray | None = None,
                     quadratic: tuple[np.ndarray, np.ndarray] | None = None, likelihood: str = "gaussian",
@@ -644,9 +667,7 @@ def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera
     convolves their share into the samples); ``quadratic``: the board edges' share about the estimate."""
     camera, lidar = views
     if range_terms is not None and lidar.ranged is not None and lidar.terms is not None:
-        beta = np.asarray(range_terms, dtype=float)
-        lidar = replace(lidar, terms=None, terms_prior_sd=None,
-                        ranged={st: replace(fw, e0=fw.e0 + fw.W_nuisance @ beta) for st, fw in lidar.ranged.items()})
+        lidar = hold_terms(lidar, range_terms)
     elif lidar.terms is not None:
         lidar = replace(lidar, terms=None, terms_prior_sd=None)
     joint = np.zeros((12, 12))
