@@ -25,7 +25,7 @@ from estimators.solvers.noise_levels import (BOARD_NOISE_PRIOR_DOF, board_corner
 from estimators.solvers.factor_graph import build_graph, graph_values, rig_corner_factor
 from estimators.solvers.rig_graph import (change_reference, graph_reference, pair_transform, redundancy, rig_bound,
                                          spanning_tree)
-from estimators.solvers.rig_posterior import RigLikelihood, sample_rig_posterior
+from estimators.solvers.rig_posterior import RigLikelihood, hold_terms, sample_rig_posterior
 from geometry.rotations import T_exp, T_log
 
 
@@ -422,8 +422,8 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     # lidar0's returns all 3 cm long. Planes alone put the truth far outside the covariance (d2 above 100); under
     # auto the likelihood-ratio test includes the offset (p < 0.001) and no other term, its estimate is within 3 sd
     # of 3 cm, and the camera-LiDAR transform is back: the truth's d2 below 16.8 (99% of chi-square 6) and within
-    # 5 mm. The posterior samples the offset too: its Hessian at the MAP is the graph's information of the poses
-    # and the offset (within 1%), and its samples' offset agrees with the graph's.
+    # 5 mm. The posterior holds the offset at its estimate: its Hessian at the MAP is the graph's information of the
+    # poses given the offset (within 1%), and the offset's draws, convolved in, agree with the graph's.
     rig = load_rig(offset_rig)
     truth = _truth(offset_rig, "cam0", "lidar0")
     plain = calibrate_rig(rig, np.random.default_rng(0), range_model="none", advise=False)
@@ -438,9 +438,16 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     T, C = res.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
     assert xi @ np.linalg.solve(C, xi) < 16.8 and 1000 * np.linalg.norm(xi[3:]) < 5.0
-    like = RigLikelihood(res.solution, list(res.camera_views), list(res.lidar_views))
-    assert like.nx == 13 and like.ndim == 14 and like.ranged == ["lidar0"]
-    _assert_curvature_is(like, res.solution.covariance_inner)
+    # Held at its estimate (as every posterior holds the terms), the likelihood's curvature is the graph's
+    # information of the poses given the offset; the offset's share is convolved into the samples.
+    lv = next(v for v in res.lidar_views if v.name == "lidar0")
+    like = RigLikelihood(res.solution, list(res.camera_views),
+                         [hold_terms(lv, res.solution.range_terms["lidar0"][0])])
+    full = res.solution.covariance_inner
+    assert like.nx == 12 and like.ndim == 13 and full.shape == (13, 13)
+    _assert_curvature_is(like, full[:12, :12] - np.outer(full[:12, 12], full[12, :12]) / full[12, 12])
+    with pytest.raises(ValueError, match="hold_terms"):
+        RigLikelihood(res.solution, list(res.camera_views), list(res.lidar_views))
     post = sample_rig_posterior(res.solution, list(res.camera_views), list(res.lidar_views),
                                 np.random.default_rng(4), min_ess=400)
     o = post.range_terms["lidar0"][:, 0]

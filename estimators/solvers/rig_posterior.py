@@ -146,8 +146,8 @@ def _poses(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class RigLikelihood:
-    """The vectorised log-posterior of the free sensors' tangents, the LiDARs' range terms and the camera side's
-    noise scale ``log s`` (last; module docstring), built at the MAP."""
+    """The vectorised log-posterior of the free sensors' tangents and the camera side's noise scale ``log s`` (last;
+    module docstring), built at the MAP; a LiDAR's range terms held (:func:`hold_terms`)."""
 
     def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                  quadratic: tuple[np.ndarray, np.ndarray] | None = None,
@@ -189,20 +189,16 @@ class RigLikelihood:
                     K.append(B.T @ A)
             if c.name != self.inner and idx:  # K transposed: x @ K^T is K x for every walker
                 self.cam_terms.append((col[c.name], Q, q, np.array(idx), np.transpose(np.array(K), (0, 2, 1))))
-        # Each LiDAR with range terms in the graph: its terms are parameters after the poses, under their priors.
-        ranged = [lv for lv in lidars if lv.has_terms]
-        self.ranged = [lv.name for lv in ranged]
-        at, self.term_columns = 6 * len(self.free), {}
-        for lv in ranged:
-            self.term_columns[lv.name] = np.arange(at, at + lv.terms.size)
-            at += lv.terms.size
+        if any(lv.has_terms for lv in lidars):
+            raise ValueError("a LiDAR's range terms are held at the estimate in every posterior: hold_terms first")
         self.rows = np.zeros(F)  # each frame's LiDAR rows (the Student-t's dimensions)
         self.lidar_terms = []  # per LiDAR: (column, T_hat, frame indices, W^T (F_l, 4, k), normals, offsets, scan, G,
-        #                                    signs (F_l,), e0 (F_l, k), terms' Jacobians (F_l, k, K), their columns,
-        #                                    each row's camera-side variance lam (F_l, k), its range scale's column)
+        #                                    signs (F_l,), e0 (F_l, k), each row's camera-side variance lam (F_l, k),
+        #                                    its name)
         # Each 2D scanner's range noise rests on a few dozen points per board: its scale r (to the graph's) is a
-        # parameter after the terms, its likelihood its lines' own residuals (``floors`` in units of the graph's range
-        # variance, ``dof``) with the rest, under a flat prior on log r (|log r| < 2), as the single pair's.
+        # parameter after the poses and outlines, its likelihood its lines' own residuals (``floors`` in units of
+        # the graph's range variance, ``dof``) with the rest, under a flat prior on log r (|log r| < 2), as the
+        # single pair's.
         self.scans = [lv.name for lv in lidars if lv.scan_line and lv.own_fit]
         self.scan_fit = {}
         for lv in lidars:
@@ -211,7 +207,7 @@ class RigLikelihood:
                 fits = [lv.own_fit[st] for st in lv.W if st in frame and st in lv.own_fit]
                 self.scan_fit[lv.name] = (sum(ss for ss, _ in fits) / (lv.sigma_m**2 * scale),
                                           float(sum(d for _, d in fits)))
-            idx, Ws, G, normals, points, signs, E0, Hb, lams = [], [], [], [], [], [], [], [], []
+            idx, Ws, G, normals, points, signs, E0, lams = [], [], [], [], [], [], [], []
             rows = {st: (lv.ranged[st].W.shape[0] if lv.ranged is not None else W.shape[0]) for st, W in lv.W.items()}
             width = max((k for st, k in rows.items() if st in frame), default=0)
             for stem, W in lv.W.items():
@@ -233,19 +229,15 @@ class RigLikelihood:
                 P = V.T @ Li
                 if lv.robust is not None:  # the frame keeps the weight the graph's robust loss gave it at the MAP
                     e = sign * r_map + (fw.e0 if fw is not None else 0.0)
-                    if lv.has_terms:
-                        e = e + fw.W_nuisance @ solution.range_terms[lv.name][0]
                     u = P @ e
                     P = P * np.sqrt(robust_weight(float(np.sqrt(u @ (u / (1.0 + np.maximum(lam, 0.0))))), lv.robust, k))
                 Gj, Wp, lam_j = np.zeros((width, 6)), np.zeros((width, 4)), np.zeros(width)
                 Gj[:k] = sign * P @ D @ H_b
                 Wp[:k] = P @ W4
                 lam_j[:k] = np.maximum(lam, 0.0)
-                e0, hb = np.zeros(width), np.zeros((width, lv.terms.size if lv.has_terms else 0))
+                e0 = np.zeros(width)
                 if fw is not None:
                     e0[:k] = P @ fw.e0
-                    if lv.has_terms:
-                        hb[:k] = P @ fw.W_nuisance
                 self.rows[j] += k
                 idx.append(j)
                 Ws.append(Wp)
@@ -254,23 +246,16 @@ class RigLikelihood:
                 points.append(boards[stem][:3, 3])
                 signs.append(sign)
                 E0.append(e0)
-                Hb.append(hb)
                 lams.append(lam_j)
             if idx:  # W transposed (pi^T W^T is (W pi)^T); each plane's offset n . t_board
                 normals, points = np.array(normals), np.array(points)
-                beta = self.term_columns.get(lv.name)
                 self.lidar_terms.append((col[lv.name], self.T[lv.name], np.array(idx),
                                          np.transpose(np.array(Ws), (0, 2, 1)), normals,
                                          np.sum(normals * points, axis=1), lv.scan_line, np.array(G),
-                                         np.array(signs), np.array(E0), np.array(Hb), beta, np.array(lams),
-                                         lv.name))
+                                         np.array(signs), np.array(E0), np.array(lams), lv.name))
         # Whether a LiDAR row has a camera side (its frames' board information then changes with s row by row).
-        self.scaled = any(bool(np.any(t[12] > 0)) for t in self.lidar_terms) or bool(self.scans)
-        self.terms_prior_sd = np.concatenate([lv.terms.prior_sd if lv.terms_prior_sd is None else lv.terms_prior_sd
-                                              for lv in ranged]) if ranged else np.zeros(0)
-        self.terms_hat = np.concatenate([solution.range_terms[n][0] for n in self.ranged]) if ranged \
-            else np.zeros(0)
-        self.nx = 6 * len(self.free) + len(self.terms_hat)  # the poses and the range terms: log r, log s follow
+        self.scaled = any(bool(np.any(t[10] > 0)) for t in self.lidar_terms) or bool(self.scans)
+        self.nx = 6 * len(self.free)  # the poses: the outlines, log r and log s follow
         try:  # H_cam_j = M M^T; the corners' own best board per frame: g_cam^T H_cam^-1 g_cam = |M^-1 g_cam|^2
             M = np.linalg.cholesky(self.H_cam)
         except np.linalg.LinAlgError as exc:
@@ -278,7 +263,7 @@ class RigLikelihood:
                                 "frame's planes against its cameras' board") from exc
         self._cam_whitener = np.linalg.inv(M)
         # A 2D scanner's segment ends (``ends``: its ``EndTerms`` by name; a single pair's): their
-        # own likelihood at the scanner's pose, with its outline (4 parameters each, after the terms, its departure
+        # own likelihood at the scanner's pose, with its outline (4 parameters each, after the poses, its departure
         # from the graph's estimate) under its prior; each end's variance grows by its board pose's (the corners'
         # covariance at the graph's board, H_cam_j^-1 = M^-T M^-1). ``cells``: a single pair's minima, each sampled
         # within its own (``posterior.ModeCells``, minimum ``cell``).
@@ -318,12 +303,12 @@ class RigLikelihood:
             self._basis = np.transpose(U, (0, 2, 1)) @ Mi
             self._logdet_cam = float(2.0 * np.sum(np.log(np.diagonal(M, axis1=1, axis2=2))))
         # Measurements held to second order about the MAP (a rig's board edges: :func:`edges_quadratic`):
-        # ``(A, b)``, adding ``-1/2 x^T A x + b^T x`` (``x`` the poses and terms) to the log-posterior.
+        # ``(A, b)``, adding ``-1/2 x^T A x + b^T x`` (``x`` the poses) to the log-posterior.
         self.quadratic = quadratic
 
     def _varies(self, terms: tuple) -> bool:
         """Whether a LiDAR's rows (an entry of ``lidar_terms``) change with ``s`` or its ``r``."""
-        return bool(np.any(terms[12] > 0)) or terms[13] in self.r_column
+        return bool(np.any(terms[10] > 0)) or terms[11] in self.r_column
 
     def _lidar_information(self, s2: np.ndarray, r2: dict) -> np.ndarray:
         """Every frame's board information from the LiDARs at each walker's ``s^2`` and scanners' ``r^2`` (by name):
@@ -331,14 +316,14 @@ class RigLikelihood:
         H = np.zeros((len(self.stems), len(s2), 6, 6))
         for terms in self.lidar_terms:
             if self._varies(terms):
-                idx, G, lam = terms[2], terms[7], terms[12]
-                w = 1.0 / (r2.get(terms[13], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
+                idx, G, lam = terms[2], terms[7], terms[10]
+                w = 1.0 / (r2.get(terms[11], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
                 H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
         return H + self._fixed_information[:, None]
 
     def to_poses(self, theta: np.ndarray) -> np.ndarray:
-        """The parameters as sampled (each pose or term coordinate ``i`` divided by ``s^alpha_i``) to the poses'
-        tangents and terms: a coordinate the corners alone fix spreads as ``s`` (``alpha`` 1), one the LiDARs alone
+        """The parameters as sampled (each pose coordinate ``i`` divided by ``s^alpha_i``) to the poses'
+        tangents: a coordinate the corners alone fix spreads as ``s`` (``alpha`` 1), one the LiDARs alone
         fix does not (0); in these, the funnel the scale makes in the poses is near a cylinder."""
         x = np.array(np.atleast_2d(theta), dtype=float)
         # (a scale beyond its range has no density, :meth:`log_posterior`: its poses are not blown up to overflow)
@@ -367,7 +352,7 @@ class RigLikelihood:
         self.alpha = np.clip(-np.log(ratio) / (4 * delta), 0.0, 1.0)
 
     def log_posterior(self, theta: np.ndarray) -> np.ndarray:
-        """The log-posterior at the poses' tangents, the terms and ``log s`` (not divided by ``s``); none (-inf) where
+        """The log-posterior at the poses' tangents and ``log s`` (not divided by ``s``); none (-inf) where
         a noise scale leaves its range (``|log s|`` beyond ``MAX_ABS_LOG_SCALE``, ``|log r|`` beyond 2), where the
         boards' information would lose its definiteness too."""
         theta = np.atleast_2d(theta)
@@ -397,7 +382,7 @@ class RigLikelihood:
         c_lid = np.zeros((len(self.stems), n))  # each frame's LiDAR rows, squared and whitened
         logdet_c = np.zeros(n)
         r2 = {n: np.exp(2.0 * theta[:, k])[None, :, None] for n, k in self.r_column.items()}
-        for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, Hb, beta, lam, name in self.lidar_terms:
+        for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, lam, name in self.lidar_terms:
             R, t = _poses(T_hat, theta[:, k0:k0 + 6])
             pi = np.empty((len(idx), n, 4))
             pi[..., :3] = np.tensordot(normals, R, axes=([1], [1]))  # R^T n
@@ -406,9 +391,6 @@ class RigLikelihood:
             if scan:
                 e /= np.hypot(pi[..., 0], pi[..., 1])[..., None]
             e = e * signs[:, None, None] + E0[:, None, :]
-            if beta is not None:  # the terms' parameters are their departures from the MAP's
-                b = self.terms_hat[beta - 6 * len(self.free)] + theta[:, beta]  # (walkers, K)
-                e += np.einsum("fkK,wK->fwk", Hb, b)
             if self.scaled:  # (F_l, walkers, k): each row's variance
                 v = r2.get(name, 1.0) + lam[:, None, :] * s2[None, :, None]
                 logdet_c += np.sum(np.log(v), axis=(0, 2))
@@ -419,8 +401,6 @@ class RigLikelihood:
             c_lid[idx] += cl
             c += cl.sum(axis=0)
             g[idx] += we @ G
-        if self.ranged:
-            c += np.sum(((self.terms_hat + theta[:, 6 * len(self.free):self.nx]) / self.terms_prior_sd) ** 2, axis=1)
         # Each board pose integrated out: H_j(s) = H_cam_j / s^2 + H_lidar_j(s).
         if self._basis is not None:
             d = 1.0 / s2[None, :, None] + self._nu[:, None, :]  # (F, walkers, 6)
@@ -461,7 +441,7 @@ class RigLikelihood:
         return np.where(outside, -np.inf, out)
 
     def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
-        """Walkers about the graph's estimate: the poses and terms from its covariance, ``log s`` near 0, the outline
+        """Walkers about the graph's estimate: the poses from its covariance, ``log s`` near 0, the outline
         near its estimate (half its prior's spread), each ``log r`` within its own residuals' spread; a walker
         outside the mode's cell is moved halfway towards the estimate until it is inside."""
         start = np.zeros((walkers, self.ndim))
@@ -479,7 +459,7 @@ class RigLikelihood:
         return start
 
     def extra_sd(self) -> np.ndarray:
-        """A spread for each parameter after the poses and terms (the outline's prior's, then ``log r``'s and ``log
+        """A spread for each parameter after the poses (the outline's prior's, then ``log r``'s and ``log
         s``'s prior's): :func:`laplace_at_mode`'s steps and its fallback."""
         out = np.full(self.ndim - self.nx, self.prior_sd)
         out[:4 * len(self.end_sets)] = np.tile(self.outline_sd, len(self.end_sets))
