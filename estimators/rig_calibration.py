@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from .calibration import INTRINSICS_ROUNDS, solve
 from .camera.board_pose import reobserve_frames
-from .errors import DatasetError, DegenerateLayoutError
+from .errors import DatasetError, DegenerateLayoutError, LidarcamError
 from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
@@ -287,11 +287,17 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if not solution.intrinsics:
             break
         seen = {c: solution.camera_model(c, cameras[c]) for c in cameras}
-        again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
-                                        for (c, d), frames in measured.pairs.items()},
-                                  measured.measured_by, seen, alone, init, options)
-        settled, alone_fit = again.settled(alone_fit), again
-        lidar_views, solution = joint(alone_fit)
+        try:
+            again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
+                                            for (c, d), frames in measured.pairs.items()},
+                                      measured.measured_by, seen, alone, init, options)
+            settled = again.settled(alone_fit)
+            views, joint_again = joint(again)
+        except LidarcamError as exc:  # the last round that could be solved stands
+            warnings.append(f"refined intrinsics: the boards observed under them could not be solved again "
+                            f"({exc.message}); their plane errors are those of the round before")
+            break
+        alone_fit, lidar_views, solution = again, views, joint_again
         if settled:
             break
     pairwise, pair_frames, lidar_obs = alone_fit.pairwise, alone_fit.pair_frames, alone_fit.lidar_obs
