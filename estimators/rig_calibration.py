@@ -170,7 +170,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
                   measurements: RigMeasurements | None = None, init: str = "closed-form",
                   params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                  likelihood: str = "gaussian") -> RigResult:
+                  likelihood: str = "gaussian", remeasure: bool = True) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -226,6 +226,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     advise : bool
         Find the board pose that most helps the weakest camera-LiDAR pair (:func:`rig_next_pose`, in
         ``result.next_pose``; about a second).
+    remeasure : bool
+        With ``refine_intrinsics`` and the rig measured here (not ``measurements``): the LiDARs' boards measured
+        again under the refined intrinsics (chosen under the given ones, their points follow the given ones'
+        error) and the rig solved again from them, the cameras' side as before; False: measured once.
 
     Returns
     -------
@@ -300,6 +304,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         alone_fit, lidar_views, solution = again, views, joint_again
         if settled:
             break
+    if refine_intrinsics and solution.intrinsics and measurements is None and remeasure:
+        refined = replace(rig, sensors=tuple(
+            replace(s, camera=replace(solution.camera_model(s.name, cameras[s.name]),
+                                      source=f"refined with the rig (given: {cameras[s.name].source})"))
+            if s.name in solution.intrinsics else s for s in rig.sensors))
+        again = measured_rig(refined, rng, workers, cache, params, hints)
+        merged = replace(measured, pairs={k: reobserve_frames(frames, rig.board, cameras[k[0]])
+                                          for k, frames in again.pairs.items()},
+                         measured_by=again.measured_by, spawned=measured.spawned + again.spawned)
+        result = calibrate_rig(rig, rng, workers, True, samples, advise, range_model, edges, options, cache, merged,
+                               init, params, hints, likelihood, remeasure=False)
+        timings = dict(result.timings_s, measurements=round(time.perf_counter() - t0 - sum(
+            v for k, v in result.timings_s.items() if k != "measurements"), 3))
+        return replace(result, timings_s=timings)
     pairwise, pair_frames, lidar_obs = alone_fit.pairwise, alone_fit.pair_frames, alone_fit.lidar_obs
     ambiguous = alone_fit.ambiguous
     skipped.update(alone_fit.skipped)

@@ -798,6 +798,8 @@ def measure(dataset: Dataset | str | Path, rng: np.random.Generator | None = Non
     if cache:
         options = {"params": params, "hints": hints, "version": __version__, "revision": MEASUREMENT_REVISION,
                    **generator_key(rng)}
+        if dataset.camera is not None and dataset.camera.source.startswith("refined"):  # measured again under it
+            options["camera"] = dataset.camera.as_dict()
         key = dataset_key(dataset.root, [p for f in dataset.frames for p in (f.image, f.scan)], options)
         folder = cache_dir() / key
         if (folder / "measurements.json").is_file():

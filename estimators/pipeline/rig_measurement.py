@@ -147,6 +147,10 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
     folder = None
     if cache:
         options = {"format": RIG_FORMAT, "params": params, "hints": hints, **generator_key(rng)}
+        refined = {s.name: s.camera.as_dict() for s in rig.cameras
+                   if s.camera is not None and s.camera.source.startswith("refined")}
+        if refined:  # measured again under refined intrinsics (``calibrate_rig``)
+            options["cameras"] = refined
         files = [path for s in rig.sensors for _, path in s.files]
         folder = cache_dir() / f"rig-{dataset_key(rig.root, files, options)}"
         if (folder / "index.json").is_file():
