@@ -268,9 +268,10 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                             "outlines' mean shift, a warning beyond its 99%% limit)")
     p.add_argument("--refine-intrinsics", action="store_true",
                    help="refine the camera's intrinsics with the extrinsic (camera.param_std in dataset.yaml is their "
-                        "prior; without it they are estimated from the frames): the result gives them, propagates "
-                        "their uncertainty, and says whether they lower the boards' overdispersion "
-                        "(calibration.json 'intrinsics_refinement')")
+                        "prior; without it they are estimated from the frames), then measure the LiDAR's boards "
+                        "again under them and solve again: the result gives them, propagates their uncertainty, and "
+                        "says whether they lower the boards' overdispersion (calibration.json "
+                        "'intrinsics_refinement')")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
