@@ -21,14 +21,13 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-import yaml  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate  # noqa: E402
 from estimators.io.rig_dataset import load_rig  # noqa: E402
 from estimators.rig_calibration import calibrate_rig  # noqa: E402
-from estimators.simulation.rig_simulator import simulate_rig  # noqa: E402
+from estimators.simulation.rig_simulator import miscalibrate_camera, simulate_rig  # noqa: E402
 from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 
@@ -53,12 +52,7 @@ def main() -> None:
         for seed in range(a.rigs):
             folder = simulate_rig(Path(tmp) / f"rig{seed}", n_poses=10, seed=seed, cameras=1, lidars=1)
             if a.refine_intrinsics:
-                spec = yaml.safe_load((folder / "dataset.yaml").read_text())
-                cam = next(s for s in spec["sensors"] if s["name"] == "cam0")
-                cam["K"][0][0] *= 1.01
-                cam["K"][1][1] *= 1.01
-                cam["dist"][0] *= 0.5
-                (folder / "dataset.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
+                miscalibrate_camera(folder, "cam0")
             truth = json.loads((folder / "ground_truth.json").read_text())
             T_true = np.linalg.inv(np.array(truth["T_cam0_cam0"])) @ np.array(truth["T_cam0_lidar0"])
             rig = load_rig(folder)

@@ -41,12 +41,10 @@ K1_FACTOR = 0.5
 def _one(args) -> dict:
     import shutil
 
-    import yaml
-
     from bench_rig import _bound
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
-    from estimators.simulation.rig_simulator import simulate_rig
+    from estimators.simulation.rig_simulator import miscalibrate_camera, simulate_rig
     from geometry.rotations import T_log
     from estimators.solvers.rig_graph import pair_transform
 
@@ -58,13 +56,7 @@ def _one(args) -> dict:
         true_rig = load_rig(folder)
         wrong = Path(tmp) / "wrong"
         shutil.copytree(folder, wrong)
-        spec = yaml.safe_load((wrong / "dataset.yaml").read_text())
-        cam = next(s for s in spec["sensors"] if s["name"] == wrong_name)
-        cam["K"][0][0] *= FOCAL_ERROR
-        cam["K"][1][1] *= FOCAL_ERROR
-        cam["dist"][0] *= K1_FACTOR
-        (wrong / "dataset.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
-        wrong_rig = load_rig(wrong)
+        wrong_rig = load_rig(miscalibrate_camera(wrong, wrong_name, FOCAL_ERROR, K1_FACTOR))
         for variant in VARIANTS:
             rig = true_rig if variant == "true intrinsics" else wrong_rig
             refine = variant == "wrong, refined"

@@ -313,8 +313,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         merged = replace(measured, pairs={k: reobserve_frames(frames, rig.board, cameras[k[0]])
                                           for k, frames in again.pairs.items()},
                          measured_by=again.measured_by, spawned=measured.spawned + again.spawned)
-        result = calibrate_rig(rig, rng, workers, True, samples, advise, range_model, edges, options, cache, merged,
-                               init, params, hints, likelihood, remeasure=False)
+        result = calibrate_rig(rig, rng, workers=workers, refine_intrinsics=True, samples=samples, advise=advise,
+                               range_model=range_model, edges=edges, options=options, cache=cache,
+                               measurements=merged, init=init, params=params, hints=hints, likelihood=likelihood,
+                               remeasure=False)
         timings = dict(result.timings_s, measurements=round(time.perf_counter() - t0 - sum(
             v for k, v in result.timings_s.items() if k != "measurements"), 3))
         return replace(result, timings_s=timings)

@@ -827,19 +827,12 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     # the intrinsics free) and inside its 99.9% region (d2 below 22.5).
     import shutil
 
-    import yaml
+    from estimators.simulation.rig_simulator import miscalibrate_camera
 
     folder = tmp_path / "rig"
     shutil.copytree(rig_folder, folder)
-    ypath = folder / "dataset.yaml"
-    spec = yaml.safe_load(ypath.read_text())
-    cam1 = next(s for s in spec["sensors"] if s["name"] == "cam1")
-    true_f = cam1["K"][0][0]
-    cam1["K"][0][0] *= 1.01
-    cam1["K"][1][1] *= 1.01
-    cam1["dist"][0] *= 0.5
-    ypath.write_text(yaml.safe_dump(spec, sort_keys=False))
-    rig = load_rig(folder)
+    true_f = float(load_rig(rig_folder).sensor("cam1").camera.K[0, 0])
+    rig = load_rig(miscalibrate_camera(folder, "cam1"))
     plain = calibrate_rig(rig, np.random.default_rng(0))
     assert any(w.startswith("cam1: ") and "--refine-intrinsics" in w for w in plain.warnings)
     # and the verdict says so: a camera whose corners disagree with the rest is never OK (6 of 30 simulated rigs

@@ -222,3 +222,18 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
     return Path(out)
 
+
+
+def miscalibrate_camera(folder: str | Path, name: str, focal_factor: float = 1.01, k1_factor: float = 0.5) -> Path:
+    """A simulated rig folder whose camera ``name`` is given wrong intrinsics in dataset.yaml: its focal lengths
+    times ``focal_factor`` and its k1 times ``k1_factor`` (the images are as simulated). Returns the folder."""
+    import yaml
+
+    path = Path(folder) / "dataset.yaml"
+    spec = yaml.safe_load(path.read_text())
+    cam = next(s for s in spec["sensors"] if s["name"] == name)
+    cam["K"][0][0] *= focal_factor
+    cam["K"][1][1] *= focal_factor
+    cam["dist"][0] *= k1_factor
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return Path(folder)

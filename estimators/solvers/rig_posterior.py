@@ -523,22 +523,21 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
     n_p = like.nx
-    ranged = [lv.name for lv in lidars if lv.has_terms]
-    n_t = sum(lv.terms.size for lv in lidars if lv.has_terms)
+    n_t = sum(lv.terms.size for lv in lidars if lv.has_terms)  # the held terms' count
     if solution.covariance_inner is not None and solution.covariance_inner.shape[0] == n_p + n_t:
         full = solution.covariance_inner  # the poses', then each ranged LiDAR's terms in the order of ``lidars``
         S_pt, S_tt = full[:n_p, n_p:], full[n_p:, n_p:]
-        gain = S_pt @ np.linalg.pinv(S_tt, rcond=1e-12, hermitian=True) if ranged else np.zeros((n_p, 0))
+        gain = S_pt @ np.linalg.pinv(S_tt, rcond=1e-12, hermitian=True) if n_t else np.zeros((n_p, 0))
         cov = full[:n_p, :n_p] - gain @ S_pt.T  # the poses' given the terms
     else:
-        if ranged:
+        if n_t:
             raise LidarcamError("the rig's solution has no covariance of its range terms to start the posterior")
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
     keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior")
     m = len(keep)
-    dt = rng.multivariate_normal(np.zeros(len(S_tt)), S_tt, m, method="eigh") if ranged else np.zeros((m, 0))
+    dt = rng.multivariate_normal(np.zeros(n_t), S_tt, m, method="eigh") if n_t else np.zeros((m, 0))
     keep[:, :n_p] += dt @ gain.T
     # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     R_in, t_in = {like.inner: np.broadcast_to(np.eye(3), (m, 3, 3))}, {like.inner: np.zeros((m, 3))}
