@@ -3,6 +3,7 @@ the rig corner factor's Jacobians, the pair transforms' covariance, a change of 
 a simulated rig of three cameras, two 3D LiDARs and a 2D scanner against its ground truth, and the rig's
 posterior."""
 import json
+import re
 import subprocess
 import sys
 
@@ -703,9 +704,14 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert cal["layout"]["weakest_pair"] == max(sd, key=sd.get) and "weakest pair: " + max(sd, key=sd.get) in run.stdout
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
-    assert "emcee over 32 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
+    assert "emcee, 32 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
     assert all(f"T_cam{k}_{s}: Intervals" in page for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
     assert "T_cam2_lidar0: Board outline offsets" in page  # the single pair's check, under the joint estimate
+    # each 3D LiDAR's edges in the joint graph, printed and reported as a single pair's are (with the test of its
+    # planes against them)
+    assert "lidar0: Board edges" in page and "ring ends on the boards' outlines, used in the estimate" in page
+    assert re.search(r"\n  lidar0 board edges \(used\): \d+ ring ends in \d+ frames; growth .*\n    planes alone "
+                     r"against planes \+ edges: d2", run.stdout)
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
     assert shown and all(name in page for name in shown)
     # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)
@@ -820,7 +826,7 @@ def test_a_rigs_tree_exports_every_sensor(rig_result, tmp_path):
         export_calibration(path, "kitti")
 
 
-def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tmp_path):
+def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tmp_path, capsys):
     # cam1's focal lengths 1% too long and its k1 halved in dataset.yaml: its corners disagree with the rest
     # (a warning says so, and names the remedy); with the intrinsics in the graph its focal length comes back
     # within 3 standard deviations and its LiDAR transform within 6 mm of the truth (its sd along x is 3 mm with
@@ -855,6 +861,13 @@ def test_a_cameras_wrong_intrinsics_are_refined_back_with_the_rig(rig_folder, tm
     assert not any(w.startswith("refining the intrinsics did not lower") for w in refined.warnings)
     p, sd = refined.solution.intrinsics["cam1"]
     assert abs(p[0] - true_f) < 3 * sd[0] and abs(p[1] - true_f) < 3 * sd[1]
+    # printed as a single pair's refined intrinsics are: each parameter given and refined, its sd and its move
+    from estimators.cli.printing import print_rig
+
+    print_rig(refined)
+    given = rig.sensor("cam1").camera.params
+    assert (f"  cam1 intrinsics refined:\n    fx  {given[0]:12.5g} -> {p[0]:12.5g}  (sd {sd[0]:.3g}, moved "
+            f"{(p[0] - given[0]) / sd[0]:+.1f} sd)") in capsys.readouterr().out
     T, C = refined.solution.transform("cam1", "lidar0")
     xi = T_log(np.linalg.inv(T) @ _truth(rig_folder, "cam1", "lidar0"))
     assert 1000 * np.linalg.norm(xi[3:]) < 6.0 and xi @ np.linalg.solve(C, xi) < 22.5

@@ -25,6 +25,7 @@ from ..io.output import write_atomic
 from ..io.pointcloud_io import read_scan, read_scan_2d
 from ..solvers.closed_form import describe_direction
 from ..solvers.factors import lidar_plane
+from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.range_model import frame_labels, point_residuals
 from .figure_process import FigureProcess
@@ -48,25 +49,28 @@ def residual_arrays(result) -> dict[str, np.ndarray]:
                                      else np.nan for n in names], float)}
 
 
-def _edges_section(edges: dict) -> str:
-    """The board's edges, used (``--edges``) or as a check of the planes' estimate: the outlines' mean shift with
-    its 99% test, the outline's growth (and offset, when used), the test of the planes against the edges, and
-    each frame's shift."""
-    m = 1000 * np.array(edges["mean_shift_camera_m"])
-    sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(edges["mean_shift_covariance"])), 0.0))
-    g, gs = 1000 * np.array(edges["growth_m"]), 1000 * np.array(edges["growth_sd_m"])
+def edges_section(edges: dict, title: str = "") -> str:
+    """A board-edges record (``edges_in_graph``: a single pair's, a rig LiDAR's used in its graph, or a rig pair's
+    check), used or as a check of the planes' estimate: the outlines' mean shift with its 99% test (where the
+    record is a pair's), the outline's growth (and offset, when used), the test of the planes against the edges,
+    and each frame's shift (where listed)."""
+    def pm(key: str, k: int, factor: float = 1.0) -> str:  # a value with its sd where the record has one
+        sd = edges.get(key.replace("_m", "_sd_m"))
+        return f"{factor * 1000 * edges[key][k]:+.1f}" + (f" ± {factor * 1000 * sd[k]:.1f}" if sd else "")
+
     how = ("used in the estimate" if edges["used"] else "not used in the estimate: they check it (calibrate with "
            "--edges to use them)")
-    text = (f"<p>{edges['ends']} ring ends on the boards' outlines, {how}. The LiDAR's outlines sit "
-            f"{np.linalg.norm(m):.1f} mm off the camera's on average (camera x y z: "
-            + ", ".join(f"{v:+.1f} ± {e:.1f}" for v, e in zip(m, sd))
-            + f" mm; p = {edges['mean_shift_p_value']:.2g}: "
-            + ("beyond" if edges["mean_shift_p_value"] < 0.01 else "within") + " its 99% limit). The board looks "
-            f"{2 * g[0]:+.1f} ± {2 * gs[0]:.1f} mm wider and {2 * g[1]:+.1f} ± {2 * gs[1]:.1f} mm "
-            "taller than board.size")
+    text = f"<p>{edges['ends']} ring ends on the boards' outlines, {how}."
+    if "mean_shift_camera_m" in edges:
+        m = 1000 * np.array(edges["mean_shift_camera_m"])
+        sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(edges["mean_shift_covariance"])), 0.0))
+        text += (f" The LiDAR's outlines sit {np.linalg.norm(m):.1f} mm off the camera's on average (camera x y z: "
+                 + ", ".join(f"{v:+.1f} ± {e:.1f}" for v, e in zip(m, sd))
+                 + f" mm; p = {edges['mean_shift_p_value']:.2g}: "
+                 + ("beyond" if edges["mean_shift_p_value"] < 0.01 else "within") + " its 99% limit).")
+    text += f" The board looks {pm('growth_m', 0, 2)} mm wider and {pm('growth_m', 1, 2)} mm taller than board.size"
     if edges["used"]:
-        o, os_ = 1000 * np.array(edges["outline_offset_m"]), 1000 * np.array(edges["outline_offset_sd_m"])
-        text += (f"; its pattern sits {o[0]:+.1f} ± {os_[0]:.1f} / {o[1]:+.1f} ± {os_[1]:.1f} mm (x / y) from where "
+        text += (f"; its pattern sits {pm('outline_offset_m', 0)} / {pm('outline_offset_m', 1)} mm (x / y) from where "
                  "dataset.yaml puts it")
     text += ".</p>"
     test = edges.get("planes_against_edges")
@@ -79,9 +83,18 @@ def _edges_section(edges: dict) -> str:
         v, e = f["shift_board_xy_m"][k], f["shift_sd_m"][k]
         return "-" if v is None else f"{1000 * v:+.1f} ± {1000 * e:.1f}"
 
-    rows = [[f["frame"], f["ends"], cell(f, 0), cell(f, 1)] for f in edges["frames"]]
-    return ("<h2>Board edges</h2>" + text
-            + _table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]))
+    frames = edges["frames"] if isinstance(edges.get("frames"), list) else []
+    rows = [[f["frame"], f["ends"], cell(f, 0), cell(f, 1)] for f in frames]
+    return (f"<h2>{title}Board edges</h2>" + text
+            + (_table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]) if rows else ""))
+
+
+def params_table(given, refined, sd) -> str:
+    """Intrinsics ``[fx, fy, cx, cy, dist...]`` given and refined, each with its standard deviation and how many of
+    them it moved (a single pair's and each camera of a rig's)."""
+    rows = [[n, f"{g:.6g}", f"{v:.6g}", f"{e:.3g}", f"{(v - g) / e:+.1f}"]
+            for n, g, v, e in zip(param_names(len(refined)), given, refined, sd)]
+    return _table(rows, ["parameter", "given", "refined", "sd", "moved [sd]"])
 
 
 def _intrinsics_section(fit) -> str:
@@ -94,10 +107,8 @@ def _intrinsics_section(fit) -> str:
     text = (f"<p>Prior: {'the given camera.param_std' if fit.prior_sd is not None else 'none'}. The boards' plane "
             f"consistency (chi-square per dof) is {fit.variance_factor_given:.2f} under the given intrinsics and "
             f"{fit.variance_factor_refined:.2f} under the refined ones; refining {verdict}.</p>")
-    rows = [[n, f"{g:.6g}", f"{v:.6g}", f"{sd:.3g}", f"{(v - g) / sd:+.1f}"]
-            for n, g, v, sd in zip(fit.names, fit.given_params, fit.params, fit.std)]
     return ("<h2>Intrinsics refined with the extrinsic</h2>" + text
-            + _table(rows, ["parameter", "given", "refined", "sd", "moved [sd]"]))
+            + params_table(fit.given_params, fit.params, fit.std))
 
 
 def board_outline_offset(cam: CameraModel, T_camera_lidar: np.ndarray, frame, board
@@ -355,12 +366,8 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                      "off first; every frame's is below.</p>"
                      + "".join(f"<p>{html.escape(title)}</p>" + _img(name, png) for name, title, png in first))
     if result.posterior is not None:
-        d = result.posterior.diagnostics()
-        parts.append(f"<p>MCMC ({d['likelihood']}): {d['walkers']} walkers x {d['steps']} steps, burn-in "
-                     f"{d['burn_in']}, tau {max(d['tau_steps']):.1f} steps, acceptance "
-                     f"{d['acceptance_fraction']:.2f}, {d['effective_samples']:.0f} effective samples, "
-                     f"converged: {d['converged']}, {d['seconds']:.1f} s; camera-noise scale (median) "
-                     f"{d['noise_scale_median']:.2f}</p>")
+        parts.append(mcmc_part(result.posterior) + f"<p>Camera-noise scale (median) "
+                     f"{np.median(result.posterior.scale):.2f}.</p>")
     fit = result.refinement.range_model if result.refinement is not None else None
     if fit is not None:
         prior = fit.terms.prior_sd if fit.terms is not None else [float("nan")] * len(fit.names)
@@ -404,7 +411,7 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         parts.append(offsets_section(offsets))
     edges = result.refinement.edges if result.refinement is not None else None
     if edges:
-        parts.append(_edges_section(edges))
+        parts.append(edges_section(edges))
     if result.intrinsics_refinement is not None:
         parts.append(_intrinsics_section(result.intrinsics_refinement))
     decided = [f for f in result.frames if f.decision is not None]
@@ -458,6 +465,14 @@ def verdict_part(result) -> str:
     said = "; ".join(v.reasons)
     return (f'<p class="verdict" style="font-size:1.2em"><b style="color:{colour}">{v.level}</b>'
             + (f": {html.escape(said)}" if said else "") + "</p>")
+
+
+def mcmc_part(posterior) -> str:
+    """How a posterior was sampled (a single pair's or a rig's: ``ChainResult.words``), with its walkers, steps and
+    burn-in, as a paragraph."""
+    r = posterior.run
+    return (f"<p>Posterior sampled with {html.escape(r.words(posterior.likelihood))}; {r.chain.shape[1]} walkers x "
+            f"{r.chain.shape[0]} steps, burn-in {r.burn}.</p>")
 
 
 def spread_section(p, kind: str, title: str = "") -> str:

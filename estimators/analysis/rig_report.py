@@ -14,7 +14,8 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import _table, html_page, offsets_section, projection_figure, spread_section, verdict_part
+from .report import (_table, edges_section, html_page, mcmc_part, offsets_section, params_table, projection_figure,
+                     spread_section, verdict_part)
 from .rig_layout import next_pose_words
 
 
@@ -46,16 +47,12 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     <frame>.png``), each file atomically."""
     sol = result.solution
     post = result.posterior
-    if post is None:
-        how = "one graph, Laplace covariance (posterior not sampled)"
-    else:
-        d = post.diagnostics()
-        how = (f"one graph; its posterior sampled with emcee over {d['parameters']} parameters ("
-               f"{d['effective_samples']:.0f} effective samples, autocorrelation {d['tau_steps_max']:.1f} steps, "
-               f"acceptance {d['acceptance_fraction']:.2f}{'' if d['converged'] else ', NOT converged'})")
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
-             f"{html.escape(sol.reference)}; {how}.</p>"]
+             f"{html.escape(sol.reference)}; one graph"
+             + ("" if post is not None else ", Laplace covariance (posterior not sampled)") + ".</p>"]
     parts.append(verdict_part(result))
+    if post is not None:
+        parts.append(mcmc_part(post))
     parts.append("<h2>Every pair</h2><p>From the joint graph: the translation (mm, in the first sensor's frame) "
                  "with its standard deviations, the rotation's standard deviations (deg); for a camera-LiDAR pair, "
                  "the frames it shares, how far the pair solved alone lies, and that estimate's translation "
@@ -85,19 +82,21 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             for s in result.rig.sensors]
     parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
                                                     "LiDAR range model"]))
-    if result.outline_checks:
-        rows = []
-        for (a, b), e in result.outline_checks.items():
-            m = 1000 * np.array(e["mean_shift_camera_m"])
-            sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(e["mean_shift_covariance"])), 0.0))
-            rows.append([f"T_{a}_{b}", len(e["frames"]), e["ends"], ", ".join(f"{v:+.1f}" for v in m),
-                         ", ".join(f"{v:.1f}" for v in sd), f"{e['mean_shift_p_value']:.2g}"])
-        parts.append("<h2>Board edges</h2><p>A check of the joint estimate, which does not use them: under it, each "
-                     "3D LiDAR's ring ends draw the board's outline, which should sit on the outline the camera "
-                     "places. The mean shift over the frames (camera axes) with its standard deviation; a p-value "
-                     "below 0.01 is warned about (a wrong board.size or pattern_offset, or an extrinsic the edges "
-                     "contradict).</p>"
-                     + _table(rows, ["pair", "frames", "ring ends", "mean shift [mm]", "sd [mm]", "p"]))
+    # Each LiDAR's edges in the joint graph, and each 3D pair's edges as a check of the joint estimate: the single
+    # pair's section (a p-value of the outlines' shift below 0.01 is warned about: a wrong board.size or
+    # pattern_offset, or an extrinsic the edges contradict)
+    parts += [edges_section(e, f"{html.escape(n)}: ") for n, e in result.edges.items()]
+    parts += [edges_section(e, f"T_{html.escape(a)}_{html.escape(b)}: ") for (a, b), e in result.outline_checks.items()]
+    if result.intrinsics_test is not None:
+        t = result.intrinsics_test
+        parts.append(f"<h2>Intrinsics refined with the rig</h2><p>Every sensor's chi-square is "
+                     f"{t['chi_square_given']:.0f} under the given intrinsics and {t['chi_square_refined']:.0f} under "
+                     f"the refined ones, on {t['dof']:.0f} dof: refining "
+                     + ("lowers the disagreement beyond what freed intrinsics fit of its noise" if
+                        t["lowers_disagreement"] else "does not lower the disagreement beyond what freed intrinsics "
+                        "fit of its noise: keep the given intrinsics") + f" (F test p = {t['p_value']:.2g}).</p>"
+                     + "".join(f"<h3>{html.escape(n)}</h3>" + params_table(result.cameras[n].params, p, sd)
+                               for n, (p, sd) in (sol.intrinsics or {}).items()))
     layout = result.layout()
     if layout["weakest_pair"]:
         w = layout["pairs"][layout["weakest_pair"]]

@@ -38,9 +38,7 @@ def print_result(result, truth=None) -> None:
         _print_intrinsics(result.intrinsics_refinement)
     if result.posterior is not None:
         post = result.posterior
-        d = post.diagnostics()
-        print(f"posterior ({d['likelihood']}): {d['effective_samples']:.0f} effective samples, tau "
-              f"{max(d['tau_steps']):.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s; "
+        print(f"posterior ({post.run.words(post.likelihood)}); "
               f"99.9% region: squared Mahalanobis distance up to {post.region_d2(0.999):.1f} under the covariance "
               + ("(a Gaussian's 22.5)" if post.mode_index is None else
                  f"of the nearest of its {len(post.mode_weights)} modes (each its own; a Gaussian's 22.5)"))
@@ -83,25 +81,41 @@ def _print_intrinsics(fit) -> None:
           f"{fit.variance_factor_refined:.2f} refined ({verdict} the overdispersion, F test p = "
           f"{fit.overdispersion_p:.2g}); corner residual "
           f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px")
-    for n, g, v, sd in zip(fit.names, fit.given_params, fit.params, fit.std):
-        print(f"  {n:3s} {g:12.5g} -> {v:12.5g}  (sd {sd:.3g}, moved {(v - g) / sd:+.1f} sd)")
+    _print_params(fit.given_params, fit.params, fit.std)
 
 
-def _print_edges(edges) -> None:
-    if not edges or "mean_shift_camera_m" not in edges:
+def _print_params(given, refined, sd, indent: str = "  ") -> None:
+    """Intrinsics ``[fx, fy, cx, cy, dist...]`` given and refined, each with its standard deviation and how many
+    of them it moved (a single pair's and each camera of a rig's)."""
+    from ..solvers.intrinsics_refinement import param_names
+
+    for n, g, v, e in zip(param_names(len(refined)), given, refined, sd):
+        print(f"{indent}{n:3s} {g:12.5g} -> {v:12.5g}  (sd {e:.3g}, moved {(v - g) / e:+.1f} sd)")
+
+
+def _print_edges(edges, name: str = "", indent: str = "") -> None:
+    """A LiDAR's board-edges record (``edges_in_graph``; a single pair's ``board_edges`` or a rig LiDAR's): its
+    ends, where its outlines sit against the camera's (a single pair's; a rig gives each pair's outline check
+    apart), the outline's growth and offset, the boards' in-plane scatter, and the test of the planes against the
+    edges."""
+    if not edges or "growth_m" not in edges:
         return
     from ..solvers.outline_check import outline_shift_words
 
     what = "used" if edges["used"] else "a check, not used in the estimate"
-    print(f"board edges ({what}): {edges['ends']} ring ends; the LiDAR's outlines sit (camera axes) "
-          + outline_shift_words(edges) + "; growth "
+    frames = edges.get("frames")
+    frames = len(frames) if isinstance(frames, list) else frames
+    print(f"{indent}{name + ' ' if name else ''}board edges ({what}): {edges['ends']} ring ends"
+          + (f" in {frames} frames" if frames else "")
+          + (f"; the LiDAR's outlines sit (camera axes) {outline_shift_words(edges)}"
+             if "mean_shift_camera_m" in edges else "") + "; growth "
           f"{1000 * edges['growth_m'][0]:+.1f} / {1000 * edges['growth_m'][1]:+.1f} mm per side"
           + (f", outline offset {1000 * edges['outline_offset_m'][0]:+.1f} / "
              f"{1000 * edges['outline_offset_m'][1]:+.1f} mm" if edges["used"] else "")
           + f"; in-plane board scatter {1000 * edges['board_scatter_in_plane_m']:.1f} mm")
     test = edges.get("planes_against_edges")
     if test:
-        print(f"  planes alone against planes + edges: d2 {test['d2']:.1f} on {test['dof']} dof (p = "
+        print(f"{indent}  planes alone against planes + edges: d2 {test['d2']:.1f} on {test['dof']} dof (p = "
               f"{test['p_value']:.2g})")
 
 
@@ -153,10 +167,8 @@ def print_rig(result) -> None:
         print(f"warning: {w}")
     post = result.posterior
     if post is not None:
-        d = post.diagnostics()
-        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph; posterior (emcee, "
-              f"{d['parameters']} parameters): {d['effective_samples']:.0f} effective samples, tau "
-              f"{d['tau_steps_max']:.0f} steps, acceptance {d['acceptance_fraction']:.2f}, {d['seconds']:.1f} s")
+        print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph; posterior "
+              f"({post.run.words(post.likelihood)})")
     else:
         print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph, Laplace covariance (posterior "
               "not sampled)")
@@ -186,10 +198,7 @@ def print_rig(result) -> None:
             # a camera-LiDAR pair's, as a single pair prints its own
             _print_intervals(p, 0.95, indent="    ", axes=f" (about/along {b}'s x y z)")
     for n, e in result.edges.items():
-        print(f"  {n} board edges (used): {e['ends']} ends in {e['frames']} frames, scale {e['end_scale']:.2f}, "
-              f"in-plane board scatter {1000 * e['board_scatter_in_plane_m']:.1f} mm, growth "
-              f"{1000 * e['growth_m'][0]:+.1f} / {1000 * e['growth_m'][1]:+.1f} mm per side, outline offset "
-              f"{1000 * e['outline_offset_m'][0]:+.1f} / {1000 * e['outline_offset_m'][1]:+.1f} mm")
+        _print_edges(e, n, indent="  ")
     if result.outline_checks:
         print("board edges (a check of the joint estimate, not used in it): each 3D pair's LiDAR board outlines, "
               "camera axes:")
@@ -202,9 +211,8 @@ def print_rig(result) -> None:
               f"{'lowers' if t['lowers_disagreement'] else 'does not lower'} the disagreement, F test p = "
               f"{t['p_value']:.2g})")
     for n, (p, sd) in (sol.intrinsics or {}).items():
-        given = result.cameras[n].params
-        print(f"  {n} intrinsics refined: " + ", ".join(f"{g:.5g} -> {v:.5g} (sd {e:.2g})"
-                                                       for g, v, e in zip(given[:4], p[:4], sd[:4])) + " (fx fy cx cy)")
+        print(f"  {n} intrinsics refined:")
+        _print_params(result.cameras[n].params, p, sd, indent="    ")
     layout = result.layout()
     if layout["weakest_pair"]:
         w = layout["pairs"][layout["weakest_pair"]]

@@ -33,6 +33,11 @@ from .refinement import Refinement
 from .refinement_options import RefinementOptions
 
 
+def param_names(n: int) -> list[str]:
+    """The names of a camera's ``n`` intrinsics ``[fx, fy, cx, cy, dist...]`` (a single pair's and a rig's)."""
+    return ["fx", "fy", "cx", "cy"] + [f"d{k}" for k in range(n - 4)]
+
+
 @dataclass(frozen=True, eq=False)
 class IntrinsicsFit:
     """The intrinsics refined with the extrinsic.
@@ -69,7 +74,7 @@ class IntrinsicsFit:
 
     @property
     def names(self) -> list[str]:
-        return ["fx", "fy", "cx", "cy"] + [f"d{k}" for k in range(len(self.params) - 4)]
+        return param_names(len(self.params))
 
     @property
     def overdispersion_p(self) -> float:

@@ -262,10 +262,7 @@ class Posterior:
                 "modes": modes}
 
     def diagnostics(self) -> dict:
-        r = self.run
-        return {"likelihood": self.likelihood, "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
-                "burn_in": r.burn, "tau_steps": r.tau.tolist(), "acceptance_fraction": r.acceptance,
-                "effective_samples": r.ess, "converged": r.converged, "seconds": r.seconds,
+        return {"likelihood": self.likelihood, **self.run.diagnostics(),
                 "noise_scale_median": float(np.median(self.scale)),
                 "mode_weights": list(self.mode_weights)}  # the diagnostics of the chain are the MAP mode's
 

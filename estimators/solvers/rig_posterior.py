@@ -112,11 +112,7 @@ class RigPosterior:
         return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
 
     def diagnostics(self) -> dict:
-        r = self.run
-        return {"likelihood": self.likelihood, "walkers": int(r.chain.shape[1]), "steps": int(r.chain.shape[0]),
-                "parameters": int(r.chain.shape[2]), "burn_in": r.burn, "tau_steps_max": float(np.max(r.tau)),
-                "acceptance_fraction": r.acceptance, "effective_samples": r.ess, "converged": r.converged,
-                "seconds": r.seconds, "samples_kept": int(self.xi.shape[0])}
+        return {"likelihood": self.likelihood, **self.run.diagnostics(), "samples_kept": int(self.xi.shape[0])}
 
     def _sensor_poses(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Every sample's ``T_ref_name`` (rotations, translations), made once."""

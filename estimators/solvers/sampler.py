@@ -23,6 +23,20 @@ class ChainResult:
     converged: bool
     seconds: float
 
+    def diagnostics(self) -> dict:
+        """The run's diagnostics as every posterior's record gives them (calibration.json's ``posterior``, a single
+        pair's and a rig's alike)."""
+        return {"walkers": int(self.chain.shape[1]), "steps": int(self.chain.shape[0]),
+                "parameters": int(self.chain.shape[2]), "burn_in": self.burn, "tau_steps": self.tau.tolist(),
+                "tau_steps_max": float(np.max(self.tau)), "acceptance_fraction": self.acceptance,
+                "effective_samples": self.ess, "converged": self.converged, "seconds": self.seconds}
+
+    def words(self, likelihood: str) -> str:
+        """The run in a line, as the printout and the reports say it."""
+        return (f"emcee, {self.chain.shape[2]} parameters, {likelihood} likelihood: {self.ess:.0f} effective samples, "
+                f"tau {float(np.max(self.tau)):.1f} steps, acceptance {self.acceptance:.2f}, {self.seconds:.1f} s"
+                + ("" if self.converged else ", NOT converged"))
+
 
 class _NoBar:
     """What :func:`run_ensemble` asks of a progress bar, doing nothing."""
