@@ -709,6 +709,10 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert "T_cam2_lidar0: Board outline offsets" in page  # the single pair's check, under the joint estimate
     # each 3D LiDAR's edges in the joint graph, printed and reported as a single pair's are (with the test of its
     # planes against them)
+    # each sensor's noise as calibration.json gives it (at its noise scale), in a single pair's words
+    noise = {x["name"]: x["noise"] for x in cal["sensors"]}
+    assert f"noise corners {noise['cam2']['corner_noise_px']:.3f} px" in run.stdout
+    assert f"noise range {1000 * noise['lidar1']['range_noise_m']:.1f} mm" in run.stdout
     assert "lidar0: Board edges" in page and "ring ends on the boards' outlines, used in the estimate" in page
     assert re.search(r"\n  lidar0 board edges \(used\): \d+ ring ends in \d+ frames; growth .*\n    planes alone "
                      r"against planes \+ edges: d2", run.stdout)

@@ -29,10 +29,10 @@ def print_result(result, truth=None) -> None:
         print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
         print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
         print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
-        print(f"noise: corners {ref.corner_noise_px:.3f} px effective ({ref.corner_residual_px:.3f} px residual), "
-              f"range {1000 * ref.range_noise_m:.1f} mm; plane consistency {ref.variance_factor:.2f} "
-              f"(chi-square/dof, {ref.consistency_dof:g} dof, p = {ref.consistency_p:.2g})"
-              + (f"; per-board plane error {1000 * ref.plane_floor_m:.1f} mm" if ref.plane_floor_m else ""))
+        noise = {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
+                 "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m}
+        print("noise: " + noise_words(noise) + f"; plane consistency {ref.variance_factor:.2f} "
+              f"(chi-square/dof, {ref.consistency_dof:g} dof, p = {ref.consistency_p:.2g})")
         _print_range_model(ref.range_model)
         _print_edges(ref.edges)
         _print_intrinsics(result.intrinsics_refinement)
@@ -59,6 +59,23 @@ def print_result(result, truth=None) -> None:
                   f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
     for w in result.warnings:
         print(f"warning: {w}")
+
+
+def noise_words(noise: dict) -> str:
+    """The noise levels a sensor was weighed with (calibration.json's ``noise``: a single pair's, or a rig sensor's
+    at its noise scale): corners, range, the boards' plane error and scatter, those it has."""
+    said = []
+    if "corner_noise_px" in noise:
+        said.append(f"corners {noise['corner_noise_px']:.3f} px"
+                    + (f" effective ({noise['corner_residual_px']:.3f} px residual)" if "corner_residual_px" in noise
+                       else ""))
+    if "range_noise_m" in noise:
+        said.append(f"range {1000 * noise['range_noise_m']:.1f} mm")
+    if noise.get("plane_floor_m"):
+        said.append(f"per-board plane error {1000 * noise['plane_floor_m']:.1f} mm")
+    if noise.get("board_scatter_m"):
+        said.append(f"boards' scatter along their range terms' weak direction {1000 * noise['board_scatter_m']:.1f} mm")
+    return ", ".join(said)
 
 
 def _print_intervals(p, level: float, indent: str = "  ", axes: str = "") -> None:
@@ -175,7 +192,10 @@ def print_rig(result) -> None:
     for s in result.rig.sensors:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
+        scale = sol.noise_scale.get(s.name, 1.0)
         print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else "")
+              + (f"; noise {noise_words(result.noise(s.name))}" if result.noise(s.name) else "")
+              + (f" (its noise scale {np.sqrt(scale):.2f} included)" if scale > 1.0 else "")
               + (f"; {range_model_words(result.range_models[s.name])}" if s.name in result.range_models else ""))
     print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
           "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")

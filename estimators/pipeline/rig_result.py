@@ -155,7 +155,7 @@ class RigResult:
         out += [(a, b) for i, a in enumerate(lidars) for b in lidars[i + 1:]]
         return out
 
-    def _noise(self, name: str) -> dict:
+    def noise(self, name: str) -> dict:
         """The noise levels a sensor was weighed with, at its noise scale (what ``lidarcam validate`` scores held-out
         frames against): a camera's corner noise (px); a LiDAR's range noise, its boards' median plane error
         (m) and their scatter along the range terms' weak direction (m)."""
@@ -186,7 +186,7 @@ class RigResult:
             sensors.append({"name": s.name, "type": s.type, f"T_{ref}_{s.name}": e.pop("T"), **e,
                             "frames_used": len(self.frames_used.get(s.name, ())),
                             "noise_scale": sol.noise_scale.get(s.name, 1.0)})
-            noise = self._noise(s.name)
+            noise = self.noise(s.name)
             if noise:
                 sensors[-1]["noise"] = noise
             if s.name in self.edges:

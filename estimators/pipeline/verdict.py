@@ -270,7 +270,7 @@ def rig_verdict(result) -> Verdict:
     post = result.posterior
     concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
     for s in result.rig.lidars:
-        floor = result._noise(s.name).get("plane_floor_m", 0.0)
+        floor = result.noise(s.name).get("plane_floor_m", 0.0)
         # the accuracy its range terms took (``--range-accuracy`` first: ``rig_terms.ranged_views``), else its own
         accuracy = result.range_models.get(s.name, {}).get("prior_sd_m") or s.range_accuracy_m \
             or range_accuracy_for(s.lidar_family)
