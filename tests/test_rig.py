@@ -455,6 +455,12 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     assert abs(o.mean() - rec["value_m"]) < 0.2 * rec["sd_m"] and o.std() == pytest.approx(rec["sd_m"], rel=0.15)
     rows = res.to_json()["sensors"]
     assert next(r for r in rows if r["name"] == "lidar0")["range_model"]["model"] == "offset"
+    # the report lists the terms as a single pair's does
+    from estimators.analysis.rig_report import range_terms_parts
+
+    page = "".join(range_terms_parts(res))
+    assert "lidar0: LiDAR range terms" in page
+    assert f"<td>offset</td><td>{1000 * rec['value_m']:+.1f}</td><td>{1000 * rec['sd_m']:.1f}</td>" in page
 
 
 @pytest.fixture(scope="module")

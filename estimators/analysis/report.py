@@ -89,6 +89,14 @@ def edges_section(edges: dict, title: str = "") -> str:
             + (_table(rows, ["frame", "ring ends", "outline shift x [mm]", "outline shift y [mm]"]) if rows else ""))
 
 
+def terms_table(terms: list[tuple]) -> str:
+    """A LiDAR's range terms ``(name, value m, sd m, prior sd m, held at the prior)`` as a table (a single pair's
+    and each of a rig's LiDARs), or nothing without terms."""
+    rows = [[n, f"{1000 * v:+.1f}", f"{1000 * sd:.1f}", f"{1000 * p:.1f}", "held at the prior" if held else "estimated"]
+            for n, v, sd, p, held in terms]
+    return _table(rows, ["term", "value [mm]", "std [mm]", "prior sd [mm]", ""]) if rows else ""
+
+
 def params_table(given, refined, sd) -> str:
     """Intrinsics ``[fx, fy, cx, cy, dist...]`` given and refined, each with its standard deviation and how many of
     them it moved (a single pair's and each camera of a rig's)."""
@@ -371,9 +379,7 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
     fit = result.refinement.range_model if result.refinement is not None else None
     if fit is not None:
         prior = fit.terms.prior_sd if fit.terms is not None else [float("nan")] * len(fit.names)
-        rows = [[n, f"{1000 * v:+.1f}", f"{1000 * sd:.1f}", f"{1000 * p:.1f}",
-                 "held at the prior" if n in fit.pinned else "estimated"]
-                for n, v, sd, p in zip(fit.names, fit.values_m, fit.std_m, prior)]
+        terms = [(n, v, sd, p, n in fit.pinned) for n, v, sd, p in zip(fit.names, fit.values_m, fit.std_m, prior)]
         notes = [f"Priors from a range accuracy of {1000 * fit.range_accuracy_m:.0f} mm; black squares placed by "
                  f"{html.escape(fit.labels_from)}"
                  + (f" (the intensities agree on {100 * fit.intensity_agreement:.0f}% of clearly placed returns)"
@@ -399,7 +405,7 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
                              + " ".join(f"{v:.1f}" for v in then) + " mm.")
         parts.append(f"<h2>LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
                      + "".join(f"<p>{t}</p>" for t in notes)
-                     + (_table(rows, ["term", "value [mm]", "std [mm]", "prior sd [mm]", ""]) if rows else ""))
+                     + terms_table(terms))
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
     axis, advice = describe_direction(result.weakest_direction_camera)

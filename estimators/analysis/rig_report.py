@@ -15,7 +15,7 @@ from geometry.rotations import T_log
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
 from .report import (_table, edges_section, html_page, mcmc_part, offsets_section, params_table, projection_figure,
-                     spread_section, verdict_part)
+                     spread_section, terms_table, verdict_part)
 from .rig_layout import next_pose_words
 
 
@@ -82,6 +82,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             for s in result.rig.sensors]
     parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
                                                     "LiDAR range model"]))
+    parts += range_terms_parts(result)
     # Each LiDAR's edges in the joint graph, and each 3D pair's edges as a check of the joint estimate: the single
     # pair's section (a p-value of the outlines' shift below 0.01 is warned about: a wrong board.size or
     # pattern_offset, or an extrinsic the edges contradict)
@@ -137,6 +138,17 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                           "below.</p>" + "".join(first))
     parts += overlays
     return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
+
+
+def range_terms_parts(result) -> list[str]:
+    """Each LiDAR's range terms in the joint graph, as a single pair's report lists its own (``terms_table``)."""
+    parts = []
+    for name, record in result.range_models.items():
+        held = {h["term"] for h in record.get("held_at_prior", ())}
+        terms = [(n, t["value_m"], t["sd_m"], t["prior_sd_m"], n in held) for n, t in record.get("terms", {}).items()]
+        if terms:
+            parts.append(f"<h2>{html.escape(name)}: LiDAR range terms</h2>" + terms_table(terms))
+    return parts
 
 
 def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
