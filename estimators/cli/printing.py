@@ -21,7 +21,7 @@ def print_result(result, truth=None) -> None:
             print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
                   f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
         else:
-            print(f"  {f.name}: skipped: {f.reason}")
+            _print_skipped(f.name, f.reason)
     if result.covariance is not None:
         ref = result.refinement
         kind = "posterior" if result.posterior is not None else "Laplace"
@@ -59,6 +59,11 @@ def print_result(result, truth=None) -> None:
                   f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
     for w in result.warnings:
         print(f"warning: {w}")
+
+
+def _print_skipped(frame: str, reason: str, indent: str = "  ") -> None:
+    """A frame not used, with the reason (a single pair's frame, or a rig sensor's)."""
+    print(f"{indent}{frame}: skipped: {reason}")
 
 
 def noise_words(noise: dict) -> str:
@@ -197,6 +202,8 @@ def print_rig(result) -> None:
               + (f"; noise {noise_words(result.noise(s.name))}" if result.noise(s.name) else "")
               + (f" (its noise scale {np.sqrt(scale):.2f} included)" if scale > 1.0 else "")
               + (f"; {range_model_words(result.range_models[s.name])}" if s.name in result.range_models else ""))
+        for stem, why in sorted(result.skipped.get(s.name, {}).items()):
+            _print_skipped(stem, why, indent="      ")
     print("every pair (joint graph; t and its standard deviations in the first sensor's frame, mm; rotation's about "
           "the second sensor's axes, deg; " + ("posterior" if post is not None else "Laplace")
           + " standard deviations; pairwise-only estimate in brackets, as far from the joint one):")
