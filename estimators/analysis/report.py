@@ -55,7 +55,7 @@ def edges_section(edges: dict, title: str = "") -> str:
     record is a pair's), the outline's growth (and offset, when used), the test of the planes against the edges,
     and each frame's shift (where listed)."""
     def pm(key: str, k: int, factor: float = 1.0) -> str:  # a value with its sd where the record has one
-        sd = edges.get(key.replace("_m", "_sd_m"))
+        sd = edges.get(key[:-len("_m")] + "_sd_m")
         return f"{factor * 1000 * edges[key][k]:+.1f}" + (f" ± {factor * 1000 * sd[k]:.1f}" if sd else "")
 
     how = ("used in the estimate" if edges["used"] else "not used in the estimate: they check it (calibrate with "
