@@ -166,6 +166,15 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     rot, tr = map(float, re.search(r"rotation ([\d.]+) deg, translation ([\d.]+) mm", r.stdout).groups())
     d2 = float(re.search(r"squared Mahalanobis distance of the truth under the covariance: ([\d.]+)", r.stdout)[1])
     assert rot < 0.5 and tr < 10.0 and d2 < 22.5, r.stdout
+    # where the translation is least certain, and the board that constrains it, from the written covariance (as a
+    # rig prints its weakest pair)
+    cal = json.loads((tmp_path / "demo" / "calibration.json").read_text())
+    ev, V = np.linalg.eigh(np.array(cal["covariance"])[3:, 3:])
+    weak = np.array(cal["T_camera_lidar"])[:3, :3] @ V[:, -1]
+    said = re.search(r"\n  weakest: translation sd up to ([\d.]+) mm along camera ([xyz]) .*; to constrain it, add a "
+                     r"board ", r.stdout)
+    assert said and float(said[1]) == pytest.approx(1000 * np.sqrt(ev[-1]), abs=0.051)
+    assert said[2] == "xyz"[int(np.argmax(np.abs(weak)))]
     # The README shows this printout's first lines (its verdict, then the estimate): the same to the last digit
     # printed (2e-5, for another machine's rounding).
     shown = re.search(r"opens with its verdict, then the estimate:\n\n```text\n(.*?)```",

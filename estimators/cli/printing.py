@@ -29,6 +29,7 @@ def print_result(result, truth=None) -> None:
         print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
         print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
         print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
+        _print_weakest("  weakest: ", result.pair().weakest_translation())
         noise = {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
                  "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m}
         print("noise: " + noise_words(noise) + f"; plane consistency {ref.variance_factor:.2f} "
@@ -59,6 +60,13 @@ def print_result(result, truth=None) -> None:
                   f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
     for w in result.warnings:
         print(f"warning: {w}")
+
+
+def _print_weakest(what: str, w: dict) -> None:
+    """Where a pair's translation is least certain and the board pose that constrains it
+    (``PairEstimate.weakest_translation``): a single pair's, and a rig's weakest pair."""
+    print(f"{what}translation sd up to {w['max_translation_sd_mm']:.1f} mm along {w['axis']}; to constrain it, "
+          f"{w['advice']}")
 
 
 def _print_skipped(frame: str, reason: str, indent: str = "  ") -> None:
@@ -242,9 +250,7 @@ def print_rig(result) -> None:
         _print_params(result.cameras[n].params, p, sd, indent="    ")
     layout = result.layout()
     if layout["weakest_pair"]:
-        w = layout["pairs"][layout["weakest_pair"]]
-        print(f"weakest pair: {layout['weakest_pair']}, translation sd up to {w['max_translation_sd_mm']:.1f} mm "
-              f"along {w['axis']}; to constrain it, {w['advice']}")
+        _print_weakest(f"weakest pair: {layout['weakest_pair']}, ", layout["pairs"][layout["weakest_pair"]])
         if layout["next_pose"]:
             from ..analysis.rig_layout import next_pose_words
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from geometry.rotations import quat_xyzw_from_R, skew
 
+from ..solvers.closed_form import describe_direction
 from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed, regions
 from ..solvers.rig_graph import translation_sd_in_first
 
@@ -59,6 +60,18 @@ class PairEstimate:
     def std_translation_camera_mm(self) -> np.ndarray | None:
         """Of the entries of ``T``'s translation, in a's frame (millimetres)."""
         return None if self.covariance is None else 1000 * translation_sd_in_first(self.T, self.covariance)
+
+    def weakest_translation(self) -> dict | None:
+        """Where the translation is least certain: its largest standard deviation (mm), that direction in a's frame
+        (the covariance is along b's axes) and its words and advice (``closed_form.describe_direction``); None
+        without a covariance. A single pair's printout and a rig's layout say it alike."""
+        if self.covariance is None:
+            return None
+        ev, V = np.linalg.eigh(self.covariance[3:, 3:])
+        weak = self.T[:3, :3] @ V[:, -1]
+        axis, advice = describe_direction(weak)
+        return {"max_translation_sd_mm": float(1000 * np.sqrt(max(ev[-1], 0.0))),
+                "weakest_direction_camera": weak.tolist(), "axis": axis, "advice": advice}
 
     def camera_lidar_keys(self) -> dict:
         """The keys a single camera-LiDAR pair's calibration.json gives its transform (``T_camera_lidar``,

@@ -12,7 +12,6 @@ import numpy as np
 from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
-from ..solvers.closed_form import describe_direction
 from ..solvers.edges_in_graph import conflict_words
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
@@ -132,16 +131,9 @@ class RigResult:
         joint graph's) and the direction (camera axes) and advice for it (``closed_form.describe_direction``),
         the weakest pair, and the sensor pairs that share some frames but fewer than ``MIN_PAIR_FRAMES`` (a
         camera-LiDAR pair is then not solved alone; two cameras rest on one or two boards)."""
-        pairs = {}
-        for c in self.rig.cameras:
-            for lid in self.rig.lidars:
-                T, C = self.solution.transform(c.name, lid.name)
-                ev, V = np.linalg.eigh(C[3:, 3:])
-                weak = T[:3, :3] @ V[:, -1]  # along the LiDAR's axes, into the camera's
-                axis, advice = describe_direction(weak)
-                pairs[f"T_{c.name}_{lid.name}"] = {"max_translation_sd_mm": float(1000 * np.sqrt(max(ev[-1], 0.0))),
-                                                   "weakest_direction_camera": weak.tolist(), "axis": axis,
-                                                   "advice": advice}
+        pairs = {f"T_{c.name}_{lid.name}": PairEstimate(c.name, lid.name, *self.solution.transform(c.name, lid.name),
+                                                        None, 0).weakest_translation()
+                 for c in self.rig.cameras for lid in self.rig.lidars}
         weakest = max(pairs, key=lambda k: pairs[k]["max_translation_sd_mm"]) if pairs else None
         few = {f"{a}-{b}": n for (a, b), n in (self.links or {}).items() if 0 < n < MIN_PAIR_FRAMES}
         return {"pairs": pairs, "weakest_pair": weakest, "links_with_few_frames": few, "next_pose": self.next_pose}
