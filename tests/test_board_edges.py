@@ -333,7 +333,7 @@ def test_the_bound_with_edges_matches_the_edges_error_and_the_layout_analysis_re
     a = analyse(layout)
     model = cramer_rao_bound(layout, edges=True)
     np.testing.assert_allclose(a.edges["translation_std_mm"], 1000 * np.sqrt(np.diag(model)[3:]), rtol=1e-9)
-    assert "with the board's edges" in a.format()
+    assert "with the ring ends on the boards' edges (used by default" in a.format()
 
 
 def test_a_measured_dataset_with_edges_has_their_bound_and_report(tmp_path):

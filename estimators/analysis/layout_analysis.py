@@ -104,7 +104,8 @@ class LayoutAnalysis:
         if self.edges is not None:
             e = self.edges
             lines += [("with the segment ends on the boards' edges (used by default): rotation " if e.get("scan_line")
-                       else "with the board's edges (--edges): rotation ")
+                       else "with the ring ends on the boards' edges (used by default; --no-edges: the planes alone): "
+                            "rotation ")
                       + "  ".join(f"{v:.3f}" for v in e["rotation_std_deg"]) + " deg; translation "
                       + "  ".join(f"{v:.2f}" for v in e["translation_std_mm"]) + " mm"]
             if "turned_45_deg" in e:
