@@ -13,7 +13,7 @@ from geometry.rotations import T_log
 
 from ..solvers import chi_square as chi2
 from ..solvers.board_edges import edge_scatter
-from ..solvers.edges_in_graph import conflict_covariance, lidar_crossings
+from ..solvers.edges_in_graph import conflict_covariance, edges_gain, lidar_crossings
 from ..solvers.outline_check import outline_check
 from ..solvers.graph_keys import outline_key
 from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
@@ -95,7 +95,8 @@ def planes_against_edges(planes: RigSolution, edged: RigSolution, name: str) -> 
     delta = T_log(np.linalg.inv(planes.T_ref[name]) @ edged.T_ref[name])
     d2, dof = chi2.mahalanobis(delta, C)
     return {"planes_only_T_ref": planes.T_ref[name].tolist(), "difference_tangent": delta.tolist(), "d2": d2,
-            "dof": dof, "p_value": float(chi2.sf(d2, dof)) if dof else 1.0}
+            "dof": dof, "p_value": float(chi2.sf(d2, dof)) if dof else 1.0,
+            "edges_gain": edges_gain(planes.covariance(name), edged.covariance(name))}
 
 
 def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np.ndarray | None:

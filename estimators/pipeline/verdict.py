@@ -48,6 +48,11 @@ FRAME_DISTANCE_M = 0.05
 # The camera's distances against the LiDAR's (``closed_form.distance_scale``): beyond this share, and this many of
 # its standard deviations, a wrong square size or focal length.
 SCALE_LIMIT, SCALE_SIGMAS = 0.01, 5.0
+# Beyond this, the answer rests on the boards' edges (``edges_in_graph.edges_gain``: the planes alone leave it this
+# many times less certain along some direction): CHECK. Small boards held up facing a VLP-16 (bench_handheld, 37
+# datasets): the answers whose truth lay beyond their 99.9% region had gains of 4-38 and every one that read OK
+# had one of 17.6; the right OK answers 2.9-8.0. On boards on stands the edges gain 1.5-4 (bench_board_edges).
+EDGES_CARRY = 10.0
 
 
 @dataclass(frozen=True)
@@ -127,6 +132,22 @@ def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
     return [(CHECK, f"{name}the LiDAR's board outlines sit {shift:.0f} mm off the camera's boards (beyond their 99% "
                     f"limit, p = {record['mean_shift_p_value']:.2g}): check board.size and board.pattern_offset "
                     "(without --no-edges the edges are in the estimate)")]
+
+
+def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
+    """The answer resting on the boards' edges: the planes alone leave it more than ``EDGES_CARRY`` times less
+    certain along some direction. The edges then decide it alone, and the planes cannot test them there
+    (``planes_against_edges`` has no power): a hand or a holder at a board's side moves the ends, and the estimate
+    with them, far beyond its interval."""
+    test = (record or {}).get("planes_against_edges") or {}
+    gain = test.get("edges_gain", 0.0)
+    if not (record or {}).get("used") or gain <= EDGES_CARRY:
+        return []
+    return [(CHECK, f"{name}the answer rests on the boards' edges (the planes alone leave it "
+                    f"{'unconstrained' if not np.isfinite(gain) else f'{gain:.0f} times less certain'} along one "
+                    "direction), which nothing else checks there: a hand or a holder at a board's side would bias "
+                    "it beyond its interval; check the LiDAR outlines in the report's overlays, or add boards "
+                    "tilted in other directions (--no-edges: the planes alone)")]
 
 
 def _conflict(name: str, said: str, delta) -> list[tuple[str, str]]:
@@ -247,7 +268,7 @@ def pair_verdict(result) -> Verdict:
         fit = ref.range_model
         if fit is not None and fit.pinned:
             concerns += _held("", ", ".join(f"{n} {1000 * v:+.0f} mm" for n, v in zip(fit.pinned, fit.pinned_values_m)))
-        concerns += _outline("", ref.edges)
+        concerns += _outline("", ref.edges) + _carried("", ref.edges)
         dropped = [f.name for f in ref.frames if f.dropped]
         concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
     aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
@@ -281,6 +302,7 @@ def rig_verdict(result) -> Verdict:
     for name, record in result.edges.items():
         if (said := conflict_words(record)) is not None:
             concerns += _conflict(f"{name}: ", said, record["planes_against_edges"]["difference_tangent"])
+        concerns += _carried(f"{name}: ", record)
     for (a, b), record in result.outline_checks.items():
         concerns += _outline(f"T_{a}_{b}: ", record)
     for (c, lid), frames in (result.pair_frames or {}).items():

@@ -189,7 +189,7 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
         h2, h_dof = chi2.mahalanobis(delta, cov_p - cov)
         h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
         test = {"planes_only_T_camera_lidar": T_p.tolist(), "difference_tangent": delta.tolist(),
-                "d2": h2, "dof": h_dof, "p_value": h_p}
+                "d2": h2, "dof": h_dof, "p_value": h_p, "edges_gain": edges_gain(cov_p, cov)}
         if h_dof and h_p < 0.01:
             warnings.append(f"board edges: the planes alone and the planes with the edges differ by "
                             f"{np.degrees(np.linalg.norm(delta[:3])):.2f} deg and "
@@ -206,6 +206,18 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
               "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
               "planes_against_edges": test, "planes_only_check": planes_check}
     return record, outline_warnings(record, used=True) + warnings
+
+
+def edges_gain(cov_planes: np.ndarray, cov: np.ndarray) -> float:
+    """How many times less certain the planes alone leave the estimate than the planes with the edges, along the
+    direction where that is largest (the square root of the largest generalized eigenvalue of the two
+    covariances): above ``pipeline.verdict.EDGES_CARRY`` the answer rests on the boards' edges there."""
+    try:
+        L = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    M = np.linalg.solve(L, np.linalg.solve(L, cov_planes).T)
+    return float(np.sqrt(max(np.max(np.linalg.eigvalsh(0.5 * (M + M.T))), 0.0)))
 
 
 def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,
