@@ -66,7 +66,9 @@ def _trial(args) -> dict:
     return {**out, "used": used, "wrong": wrong, "rot_sq": float(xi[:3] @ xi[:3]), "tr_sq": float(xi[3:] @ xi[3:]),
             "crb_rot": float(np.trace(crb[:3, :3])), "crb_tr": float(np.trace(crb[3:, 3:])),
             "d2": float(xi @ np.linalg.solve(res.covariance, xi)), "seed": seed, "verdict": res.verdict.line,
-            "err_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "err_mm": float(1000 * np.linalg.norm(xi[3:]))}
+            "err_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "err_mm": float(1000 * np.linalg.norm(xi[3:])),
+            "gain": ((res.refinement.edges or {}).get("planes_against_edges") or {}).get("edges_gain"),
+            "growth_mm": [1000 * g for g in (res.refinement.edges or {}).get("growth_m", [])]}
 
 
 def main() -> None:
@@ -95,9 +97,18 @@ def main() -> None:
         far = sorted((r for r in ok if r["d2"] > 22.46), key=lambda r: -r["d2"])
         print(f"  truth's d2 median {np.median([r['d2'] for r in ok]):.1f}; beyond 22.5 (the 99.9% point): "
               f"{len(far)} of {len(ok)}, of which {sum(r['verdict'] == 'OK' for r in far)} read OK")
+        def gain(r):  # how many times less certain the planes alone leave it (edges_in_graph.edges_gain)
+            return "-" if r["gain"] is None else f"{r['gain']:.1f}"
+
         for r in far:
-            print(f"    dataset {r['seed']}: d2 {r['d2']:.1f}, off {r['err_deg']:.2f} deg / {r['err_mm']:.0f} mm; "
-                  f"{r['verdict'][:150]}")
+            print(f"    dataset {r['seed']}: d2 {r['d2']:.1f}, off {r['err_deg']:.2f} deg / {r['err_mm']:.0f} mm; edges "
+                  f"gain {gain(r)}, board {2 * r['growth_mm'][0]:+.0f} mm wider (ends); {r['verdict'][:110]}")
+        held = [r for r in ok if r["d2"] <= 22.46 and r["gain"] is not None]
+        if held:
+            print(f"  the answers holding their truth: edges gain {min(r['gain'] for r in held):.1f}-"
+                  f"{max(r['gain'] for r in held):.1f}; verdicts " + ", ".join(
+                      f"{lvl} {sum(r['verdict'].split(':')[0] == lvl for r in held)}" for lvl in ("OK", "CHECK",
+                                                                                                   "UNTRUSTED")))
     for r in rows:
         if "failed" in r:
             print(f"  refused: {r['failed']}")
