@@ -108,7 +108,9 @@ def main() -> None:
             print(f"  the answers holding their truth: edges gain {min(r['gain'] for r in held):.1f}-"
                   f"{max(r['gain'] for r in held):.1f}; verdicts " + ", ".join(
                       f"{lvl} {sum(r['verdict'].split(':')[0] == lvl for r in held)}" for lvl in ("OK", "CHECK",
-                                                                                                   "UNTRUSTED")))
+                                                                                                   "UNTRUSTED"))
+                  + "".join(f" (those reading OK: edges gain {min(g):.1f}-{max(g):.1f})" for g in
+                            [[r["gain"] for r in held if r["verdict"] == "OK"]] if g))
     for r in rows:
         if "failed" in r:
             print(f"  refused: {r['failed']}")
