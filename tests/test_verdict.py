@@ -217,3 +217,18 @@ def test_an_answer_that_rests_on_the_boards_edges_alone_is_a_check(tmp_path):
     (wrong, verdict), (planes, alone) = d2[None], d2[False]
     assert wrong > 22.5 and verdict.level == CHECK and "rests on the boards' edges" in verdict.line, verdict.line
     assert planes < 22.5 and alone.level == OK, alone.line
+
+
+def test_the_rule_on_answers_resting_on_the_edges_reads_a_single_pairs_and_a_rig_lidars_record():
+    # the same record for both engines (edges_in_graph.edges_summary, rig_edges.planes_against_edges): beyond 10
+    # the answer rests on the edges; at or below, and where the edges are only a check, nothing is said
+    from estimators.pipeline.verdict import EDGES_CARRY, _carried
+
+    def record(gain, used=True):
+        return {"used": used, "planes_against_edges": {"edges_gain": gain}}
+
+    (level, why), = _carried("lidar0: ", record(12.0))
+    assert level == CHECK and why.startswith("lidar0: the answer rests on the boards' edges") and "12 times" in why
+    assert "unconstrained" in _carried("", record(float("inf")))[0][1]
+    assert _carried("", record(EDGES_CARRY)) == [] and _carried("", record(12.0, used=False)) == []
+    assert _carried("", {"used": True, "planes_against_edges": None}) == [] and _carried("", None) == []
