@@ -191,7 +191,7 @@ def table_b(draws: int, workers: int) -> None:
     C = np.mean([o[7] for o in out], axis=0)
     m = ref.mean(axis=0)
     models = [o[8] for o in out]
-    print(f"  the draws' mean error over the mean reported sd (rot x y z, trans x y z): "
+    print("  the draws' mean error over the mean reported sd (rot x y z, trans x y z): "
           + " ".join(f"{v:+.2f}" for v in m / np.sqrt(np.diag(C))) + f" (d2 {float(m @ np.linalg.solve(C, m)):.2f}); "
           "range models chosen: " + ", ".join(f"{k} {models.count(k)}" for k in sorted(set(models))))
     plain = [k for k, o in enumerate(out) if o[8] == "none"]
