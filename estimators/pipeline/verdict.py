@@ -142,8 +142,8 @@ def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
     ``EDGES_CARRY`` times less certain along some direction, so the edges decide it alone and the planes cannot
     test them there (``planes_against_edges`` has no power), and the ends make a board side grow beyond
     ``GROWTH_SIGMAS`` of its prior (a hand or a holder at the board's sides, whose ends move the estimate far
-    beyond its interval). Clean boards turned or facing the rig rest on their edges as much (gains of 10-50 on
-    bench_board_edges's layouts) and are right: their sides stay within the prior."""
+    beyond its interval). Clean boards turned or facing the rig can rest on their edges as much and be right
+    (bench_board_edges): their sides stay within the prior."""
     record = record or {}
     test = record.get("planes_against_edges") or {}
     gain = test.get("edges_gain", 0.0)
