@@ -205,9 +205,9 @@ def print_rig(result) -> None:
     for s in result.rig.sensors:
         n = len(result.frames_used.get(s.name, ()))
         skipped = len(result.skipped.get(s.name, {}))
-        scale = sol.noise_scale.get(s.name, 1.0)
+        scale, noise = sol.noise_scale.get(s.name, 1.0), result.noise(s.name)
         print(f"  {s.name:10s} {s.type:6s} {n:3d} frames used" + (f", {skipped} skipped" if skipped else "")
-              + (f"; noise {noise_words(result.noise(s.name))}" if result.noise(s.name) else "")
+              + (f"; noise {noise_words(noise)}" if noise else "")
               + (f" (its noise scale {np.sqrt(scale):.2f} included)" if scale > 1.0 else "")
               + (f"; {range_model_words(result.range_models[s.name])}" if s.name in result.range_models else ""))
         for stem, why in sorted(result.skipped.get(s.name, {}).items()):
