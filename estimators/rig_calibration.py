@@ -347,8 +347,13 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif edged and rig.board.size_known:
         lidar_views, solution, edge_records, conflict = with_edges(rig, names, camera_views, lidar_views, lidar_obs,
                                                                    solution, T_ref, T_ref_board, refine_intrinsics,
-                                                                   edged)
+                                                                   edged, default=edges is None)
         for name, record in edge_records.items():
+            if record.get("left_out"):
+                warnings.append(f"{name}: board edges left out: {record['left_out']}: a hand or a holder at the "
+                                "boards' sides, or a wrong board.size; its pose rests on the planes alone, with "
+                                "their covariance (its pose with the edges is in calibration.json, "
+                                "board_edges.with_edges)")
             if (said := conflict_words(record)) is not None:
                 warnings.append(f"{name}: {said}: the covariance holds both answers (their difference added along "
                                 "it); the planes-only pose is in calibration.json (board_edges)")

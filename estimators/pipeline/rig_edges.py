@@ -13,15 +13,37 @@ from geometry.rotations import T_log
 
 from ..solvers import chi_square as chi2
 from ..solvers.board_edges import edge_scatter
-from ..solvers.edges_in_graph import conflict_covariance, edges_gain, lidar_crossings
+from ..solvers.edges_in_graph import conflict_covariance, edges_gain, edges_left_out, lidar_crossings
 from ..solvers.outline_check import outline_check
 from ..solvers.graph_keys import outline_key
 from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
 
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-               solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
-               ) -> tuple[list, RigSolution, dict, np.ndarray | None]:
+               solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set,
+               default: bool = False) -> tuple[list, RigSolution, dict, np.ndarray | None]:
+    """:func:`_with_edges`; by ``default`` (``--edges`` not given), a 3D LiDAR whose edges carry its pose while
+    something at the boards' sides moved them (``edges_in_graph.edges_left_out``) has them left out, as a single
+    pair's, and the rest solved again: its record then says why (``left_out``) and keeps its pose and record with
+    the edges (``with_edges``)."""
+    out = _with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref, T_ref_board,
+                      refine_intrinsics, which)
+    left = {n: why for n, r in out[2].items() if default and (why := edges_left_out(r)) is not None}
+    if not left:
+        return out
+    again = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref, T_ref_board,
+                       refine_intrinsics, which - set(left), default) if which - set(left) else \
+        (lidar_views, solution, {}, None)
+    records = dict(again[2])
+    for n, why in left.items():
+        records[n] = {"used": False, "left_out": why,
+                      "with_edges": {"T_ref": out[1].T_ref[n].tolist(), **out[2][n]}}
+    return again[0], again[1], records, again[3]
+
+
+def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
+                ) -> tuple[list, RigSolution, dict, np.ndarray | None]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline

@@ -15,8 +15,9 @@ posterior's run, the static scene's note), never the wording of a warning alone;
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
   a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
   term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
-  their noise (the covariance holds both answers); the LiDAR's board outlines off the camera's beyond their
-  99% limit; planes whose disagreement freed intrinsics explain; a rig's camera whose corners disagree with the
+  their noise (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder
+  moved them (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines
+  off the camera's beyond their 99% limit; planes whose disagreement freed intrinsics explain; a rig's camera whose corners disagree with the
   rest of the rig beyond their noise (given intrinsics); a posterior that did not converge or was not sampled; the
   rig's stillness not checked on any frame.
 """
@@ -30,7 +31,7 @@ from geometry.planes import plane_difference
 from geometry.rotations import transform_points
 
 from ..lidar.lidar_models import range_accuracy_for
-from ..solvers.edges_in_graph import conflict_words
+from ..solvers.edges_in_graph import EDGES_CARRY, GROWTH_SIGMAS, conflict_words
 from ..lidar.static_scene import STILLNESS_NOT_CHECKED
 from ..measurements import FrameMeasurement
 from ..solvers.association import DISAGREES_WITH_CONSENSUS
@@ -49,13 +50,6 @@ FRAME_DISTANCE_M = 0.05
 # The camera's distances against the LiDAR's (``closed_form.distance_scale``): beyond this share, and this many of
 # its standard deviations, a wrong square size or focal length.
 SCALE_LIMIT, SCALE_SIGMAS = 0.01, 5.0
-# Beyond this, the answer rests on the boards' edges (``edges_in_graph.edges_gain``: the planes alone leave it this
-# many times less certain along some direction) and a side of the board grown beyond GROWTH_SIGMAS of its prior
-# (``board_edges.GROWTH_PRIOR_SD_M``): CHECK. Small boards held up facing a VLP-16 (bench_handheld, 37 datasets):
-# the one answer whose truth lay beyond its 99.9% region and that read OK had a gain of 17.6 and a side grown 34 mm;
-# those holding it that read OK gained 2.9-8.0. The recorded sets gain 5.1 and 5.6, their sides grown 7-8 mm.
-EDGES_CARRY = 10.0
-GROWTH_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -143,8 +137,13 @@ def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
     test them there (``planes_against_edges`` has no power), and the ends make a board side grow beyond
     ``GROWTH_SIGMAS`` of its prior (a hand or a holder at the board's sides, whose ends move the estimate far
     beyond its interval). Clean boards turned or facing the rig can rest on their edges as much and be right
-    (bench_board_edges): their sides stay within the prior."""
+    (bench_board_edges): their sides stay within the prior. By default such edges are left out
+    (``edges_in_graph.edges_left_out``), said first; this holds where ``--edges`` kept them."""
     record = record or {}
+    if record.get("left_out"):
+        return [(CHECK, f"{name}the boards' edges were left out: {record['left_out']}: the answer is the planes' "
+                        "alone, with their covariance; hold the boards away from their sides (a stand, or by the "
+                        "bottom edge) or check board.size")]
     test = record.get("planes_against_edges") or {}
     gain = test.get("edges_gain", 0.0)
     growth = 1000 * float(np.max(np.abs(record.get("growth_m", [0.0]))))

@@ -11,7 +11,7 @@ from geometry.rotations import T_log
 
 from ..measurements import FrameMeasurement
 from . import chi_square as chi2
-from .board_edges import MAX_END_OFFSET_M, crossings, edge_scatter, end_noise, ring_ends
+from .board_edges import GROWTH_PRIOR_SD_M, MAX_END_OFFSET_M, crossings, edge_scatter, end_noise, ring_ends
 from .outline_check import outline_check, outline_warnings
 from .graph_keys import EXTRINSIC, OUTLINE, board_key, shift_key
 from .plane_graph import PlaneProblem, extrinsic_information
@@ -211,13 +211,46 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
 def edges_gain(cov_planes: np.ndarray, cov: np.ndarray) -> float:
     """How many times less certain the planes alone leave the estimate than the planes with the edges, along the
     direction where that is largest (the square root of the largest generalized eigenvalue of the two
-    covariances): above ``pipeline.verdict.EDGES_CARRY`` the answer rests on the boards' edges there."""
+    covariances): above ``EDGES_CARRY`` the answer rests on the boards' edges there."""
     try:
         L = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
         return float("inf")
     M = np.linalg.solve(L, np.linalg.solve(L, cov_planes).T)
     return float(np.sqrt(max(np.max(np.linalg.eigvalsh(0.5 * (M + M.T))), 0.0)))
+
+
+# Beyond this gain (:func:`edges_gain`) the answer rests on the boards' edges: the planes alone leave it this many
+# times less certain along some direction, so they cannot test the edges there. Clean boards turned or facing the
+# rig gain 4-54 and are right with their edges (bench_board_edges); hand-held boards facing a VLP-16 (bench_handheld)
+# gain 10-38 where the hands at the boards' sides move the ends. Edges that carry the answer are left out where they
+# show what moved them (:func:`edges_left_out`): a side grown beyond GROWTH_SIGMAS of its prior
+# (``board_edges.GROWTH_PRIOR_SD_M``), or the planes in conflict with them (``CONFLICT_P``).
+EDGES_CARRY = 10.0
+GROWTH_SIGMAS = 3.0
+
+
+def edges_left_out(edges: dict | None) -> str | None:
+    """Why a 3D LiDAR's edges are left out of the default estimate (``--edges`` not given), or None: they carry the
+    answer (their gain beyond ``EDGES_CARRY``) and something at the boards' sides moved them: a side of the outline
+    grown beyond ``GROWTH_SIGMAS`` of its prior (a hand or a holder: hand-held boards' sides grew 17-105 mm), or the
+    planes alone in conflict with them. Where the edges carry the answer its error is theirs, beyond what the
+    planes can test: on hand-held boards the edges' answers lay beyond their 99.9% region in 20 of 37 datasets,
+    the planes' alone in none (bench_handheld)."""
+    edges = edges or {}
+    test = edges.get("planes_against_edges") or {}
+    gain = test.get("edges_gain", 0.0)
+    if not edges.get("used") or not gain > EDGES_CARRY:
+        return None
+    growth = float(np.max(np.abs(edges.get("growth_m", [0.0]))))
+    carried = ("the ring ends carry the answer, the planes alone leaving it "
+               + ("unconstrained" if not np.isfinite(gain) else f"{gain:.0f} times less certain") + " along one "
+               "direction,")
+    if growth > GROWTH_SIGMAS * GROWTH_PRIOR_SD_M:
+        return f"{carried} and make a side of the board {1000 * growth:.0f} mm longer than board.size says"
+    if conflict_covariance(edges) is not None:
+        return f"{carried} and the planes disagree with them beyond their noise (p = {test['p_value']:.1g})"
+    return None
 
 
 def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,

@@ -62,7 +62,7 @@ from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
 from .closed_form import solve_closed_form
 from .edges_in_graph import (add_edges, check_outline, conflict_covariance, edge_crossings, edges_information,
-                             edges_summary)
+                             edges_left_out, edges_summary)
 from .noise_levels import corner_noise_levels, excess_scale, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
@@ -390,10 +390,25 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
         if why:
             action = "dropped" if i in dropped else "down-weighted"
             warnings.append(f"frame {f.name}: {why}; {action}")
-    return Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
-                      resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value,
-                      iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
-                      edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m), conflict)
+    out = Refinement(T, cov, {f.name: boards[i] for i, f in enumerate(frames)}, tuple(fits), float(sigma_px),
+                     resid_px, float(sigma_r), float(floor), float(variance_factor), round(float(dof), 2), p_value,
+                     iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
+                     edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m), conflict)
+    if options.edges is None and (why := edges_left_out(edges_record)) is not None:
+        return planes_instead(out, refine(frames, board, camera, T_init, replace(options, edges=False)), why)
+    return out
+
+
+def planes_instead(edged: Refinement, planes: Refinement, why: str) -> Refinement:
+    """The planes' refinement given where the default's edges were left out (``edges_in_graph.edges_left_out``:
+    ``why``), its edges record the planes' outline check with ``left_out`` (why) and ``with_edges`` (the edges'
+    estimate and record) added, and a warning saying so."""
+    record = dict(planes.edges or {"used": False})
+    record.update(left_out=why, with_edges={"T_camera_lidar": edged.T_camera_lidar.tolist(), **edged.edges})
+    said = (f"board edges left out: {why}: a hand or a holder at the boards' sides, or a wrong board.size; the "
+            "answer is the planes' alone, with their covariance (the edges' answer is in calibration.json, "
+            "board_edges.with_edges)")
+    return replace(planes, edges=record, warnings=(said,) + tuple(planes.warnings))
 
 
 def _intrinsics_covariance(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,
