@@ -51,16 +51,22 @@ def residual_arrays(result) -> dict[str, np.ndarray]:
 
 def edges_section(edges: dict, title: str = "") -> str:
     """A board-edges record (``edges_in_graph``: a single pair's, a rig LiDAR's used in its graph, or a rig pair's
-    check), used or as a check of the planes' estimate: the outlines' mean shift with its 99% test (where the
+    check), used or as a check of the planes' estimate (and why the default left them out, where it did): the
+    outlines' mean shift with its 99% test (where the
     record is a pair's), the outline's growth (and offset, when used), the test of the planes against the edges,
     and each frame's shift (where listed)."""
     def pm(key: str, k: int, factor: float = 1.0) -> str:  # a value with its sd where the record has one
         sd = edges.get(key[:-len("_m")] + "_sd_m")
         return f"{factor * 1000 * edges[key][k]:+.1f}" + (f" ± {factor * 1000 * sd[k]:.1f}" if sd else "")
 
+    left = (f"<p>The board's edges were left out of the estimate: {html.escape(edges['left_out'])}. The answer is "
+            "the planes' alone; the edges' answer is in calibration.json (board_edges.with_edges).</p>"
+            if edges.get("left_out") else "")
+    if "ends" not in edges:  # no ring end found under the planes' estimate
+        return f"<h2>{title}Board edges</h2>" + left
     how = ("used in the estimate" if edges["used"] else "not used in the estimate: they check it (calibrate with "
            "--edges to use them)")
-    text = f"<p>{edges['ends']} ring ends on the boards' outlines, {how}."
+    text = left + f"<p>{edges['ends']} ring ends on the boards' outlines, {how}."
     if "mean_shift_camera_m" in edges:
         m = 1000 * np.array(edges["mean_shift_camera_m"])
         sd = 1000 * np.sqrt(np.maximum(np.diag(np.array(edges["mean_shift_covariance"])), 0.0))
