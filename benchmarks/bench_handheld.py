@@ -107,13 +107,6 @@ def main() -> None:
         far = sorted((r for r in ok if r["d2"] > 22.46), key=lambda r: -r["d2"])
         print(f"  truth's d2 median {np.median([r['d2'] for r in ok]):.1f}; beyond 22.5 (the 99.9% point): "
               f"{len(far)} of {len(ok)}, of which {sum(r['verdict'] == 'OK' for r in far)} read OK")
-        d2_p = [r["d2_planes"] for r in ok]
-        print(f"  planes alone (--no-edges): truth's mean d2 {np.mean(d2_p):.1f}, median {np.median(d2_p):.1f}; beyond "
-              f"22.5: {sum(d > 22.46 for d in d2_p)} of {len(ok)}")
-        out = [r for r in ok if r["left_out"]]
-        print(f"  edges left out by default (they carry the answer and a side grew beyond 3 prior sds or the planes "
-              f"conflict with them; the planes' answer given): {len(out)} of {len(ok)}; of those, beyond 22.5: "
-              f"{sum(r['d2'] > 22.46 for r in out)}, reading OK: {sum(r['verdict'] == 'OK' for r in out)}")
 
         def gain(r):  # how many times less certain the planes alone leave it (edges_in_graph.edges_gain)
             return "-" if r["gain"] is None else f"{r['gain']:.1f}"
@@ -129,6 +122,13 @@ def main() -> None:
                                                                                                    "UNTRUSTED"))
                   + "".join(f" (those reading OK: edges gain {min(g):.1f}-{max(g):.1f})" for g in
                             [[r["gain"] for r in held if r["verdict"] == "OK"]] if g))
+        d2_p = [r["d2_planes"] for r in ok]
+        print(f"  planes alone (--no-edges): truth's mean d2 {np.mean(d2_p):.1f}, median {np.median(d2_p):.1f}; beyond "
+              f"22.5: {sum(d > 22.46 for d in d2_p)} of {len(ok)}")
+        out = [r for r in ok if r["left_out"]]
+        print(f"  edges left out by default (they carry the answer and a side grew beyond 3 prior sds or the planes "
+              f"conflict with them; the planes' answer given): {len(out)} of {len(ok)}; of those, beyond 22.5: "
+              f"{sum(r['d2'] > 22.46 for r in out)}, reading OK: {sum(r['verdict'] == 'OK' for r in out)}")
     for r in rows:
         if "failed" in r:
             print(f"  refused: {r['failed']}")

@@ -17,9 +17,9 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
   their noise (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder
   moved them (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines
-  off the camera's beyond their 99% limit; planes whose disagreement freed intrinsics explain; a rig's camera whose corners disagree with the
-  rest of the rig beyond their noise (given intrinsics); a posterior that did not converge or was not sampled; the
-  rig's stillness not checked on any frame.
+  off the camera's beyond their 99% limit; planes whose disagreement freed intrinsics explain; a rig's camera
+  whose corners disagree with the rest of the rig beyond their noise (given intrinsics); a posterior that did not
+  converge or was not sampled; the rig's stillness not checked on any frame.
 """
 from __future__ import annotations
 
@@ -138,7 +138,8 @@ def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
     ``GROWTH_SIGMAS`` of its prior (a hand or a holder at the board's sides, whose ends move the estimate far
     beyond its interval). Clean boards turned or facing the rig can rest on their edges as much and be right
     (bench_board_edges): their sides stay within the prior. By default such edges are left out
-    (``edges_in_graph.edges_left_out``), said first; this holds where ``--edges`` kept them."""
+    (``edges_in_graph.edges_left_out``) and the record says why, which is read first; the rest holds where
+    ``--edges`` kept them."""
     record = record or {}
     if record.get("left_out"):
         return [(CHECK, f"{name}the boards' edges were left out: {record['left_out']}: the answer is the planes' "

@@ -233,9 +233,9 @@ GROWTH_SIGMAS = 3.0
 def edges_left_out(edges: dict | None) -> str | None:
     """Why a 3D LiDAR's edges are left out of the default estimate (``--edges`` not given), or None: they carry the
     answer (their gain beyond ``EDGES_CARRY``) and something at the boards' sides moved them: a side of the outline
-    grown beyond ``GROWTH_SIGMAS`` of its prior (a hand or a holder: hand-held boards' sides grew 17-105 mm), or the
-    planes alone in conflict with them. Where the edges carry the answer its error is theirs, beyond what the
-    planes can test: on hand-held boards the edges' answers lay beyond their 99.9% region in 20 of 37 datasets,
+    grown beyond ``GROWTH_SIGMAS`` of its prior (a hand or a holder: hand-held boards looked 17-105 mm wider by
+    their ends), or the planes alone in conflict with them. Where the edges carry the answer its error is theirs,
+    beyond what the planes can test: on hand-held boards the edges' answers lay beyond their 99.9% region in 20 of 37 datasets,
     the planes' alone in none (bench_handheld)."""
     edges = edges or {}
     test = edges.get("planes_against_edges") or {}
