@@ -68,7 +68,7 @@ def _trial(args) -> dict:
     xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)
     # where the default left the edges out (edges_in_graph.edges_left_out), their record is kept beside the planes'
     edges = res.refinement.edges or {}
-    left_out = bool(edges.get("left_out"))
+    left_out = edges.get("left_out")  # why, or None
     edges = edges.get("with_edges", edges)
     crb = cramer_rao_bound(Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses),
                                   0.2 * CORNER_ERROR_CORRELATION, 0.02))
@@ -127,7 +127,8 @@ def main() -> None:
               f"22.5: {sum(d > 22.46 for d in d2_p)} of {len(ok)}")
         out = [r for r in ok if r["left_out"]]
         print(f"  edges left out by default (they carry the answer and a side grew beyond 3 prior sds or the planes "
-              f"conflict with them; the planes' answer given): {len(out)} of {len(ok)}; of those, beyond 22.5: "
+              f"conflict with them; the planes' answer given): {len(out)} of {len(ok)} "
+              f"({sum('disagree' in r['left_out'] for r in out)} by the conflict alone); of those, beyond 22.5: "
               f"{sum(r['d2'] > 22.46 for r in out)}, reading OK: {sum(r['verdict'] == 'OK' for r in out)}")
     for r in rows:
         if "failed" in r:
