@@ -262,7 +262,11 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                             "fix the translation along the boards' planes, which planes leave weak; the result tests "
                             "the planes against the edges, and where they conflict the covariance holds both answers "
                             "and the verdict says CHECK (calibration.json 'board_edges'); the posterior holds their "
-                            "share to second order about the estimate")
+                            "share to second order about the estimate. By default a 3D LiDAR's edges are left out "
+                            "where they carry the answer (the planes alone over 10 times less certain along a "
+                            "direction) and a side grew beyond its prior or the planes conflict with them (a hand or "
+                            "a holder at the boards' sides): the planes' answer is given, reading CHECK; --edges "
+                            "keeps them")
     edges.add_argument("--no-edges", dest="edges", action="store_false",
                        help="use the boards' planes alone; a 3D estimate is then checked by its ring ends (the "
                             "outlines' mean shift, a warning beyond its 99%% limit)")
