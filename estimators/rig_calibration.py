@@ -32,7 +32,7 @@ from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
-from .solvers.edges_in_graph import conflict_words
+from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import heavy_tails
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
@@ -350,10 +350,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                                                    edged, default=edges is None)
         for name, record in edge_records.items():
             if record.get("left_out"):
-                warnings.append(f"{name}: board edges left out: {record['left_out']}: a hand or a holder at the "
-                                "boards' sides, or a wrong board.size; its pose rests on the planes alone, with "
-                                "their covariance (its pose with the edges is in calibration.json, "
-                                "board_edges.with_edges)")
+                warnings.append(f"{name}: {left_out_warning(record['left_out'])}")
             if (said := conflict_words(record)) is not None:
                 warnings.append(f"{name}: {said}: the covariance holds both answers (their difference added along "
                                 "it); the planes-only pose is in calibration.json (board_edges)")

@@ -31,14 +31,14 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
     left = {n: why for n, r in out[2].items() if default and (why := edges_left_out(r)) is not None}
     if not left:
         return out
-    again = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref, T_ref_board,
-                       refine_intrinsics, which - set(left), default) if which - set(left) else \
+    rest = which - set(left)  # the others' edges, solved again without the left-out ones
+    views, solved, records, share = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref,
+                                               T_ref_board, refine_intrinsics, rest, default) if rest else \
         (lidar_views, solution, {}, None)
-    records = dict(again[2])
+    records = dict(records)
     for n, why in left.items():
-        records[n] = {"used": False, "left_out": why,
-                      "with_edges": {"T_ref": out[1].T_ref[n].tolist(), **out[2][n]}}
-    return again[0], again[1], records, again[3]
+        records[n] = {"used": False, "left_out": why, "with_edges": {"T_ref": out[1].T_ref[n].tolist(), **out[2][n]}}
+    return views, solved, records, share
 
 
 def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,

@@ -31,7 +31,7 @@ from geometry.planes import plane_difference
 from geometry.rotations import transform_points
 
 from ..lidar.lidar_models import range_accuracy_for
-from ..solvers.edges_in_graph import EDGES_CARRY, GROWTH_SIGMAS, conflict_words
+from ..solvers.edges_in_graph import GROWTH_SIGMAS, carrying, conflict_words, gain_words
 from ..lidar.static_scene import STILLNESS_NOT_CHECKED
 from ..measurements import FrameMeasurement
 from ..solvers.association import DISAGREES_WITH_CONSENSUS
@@ -132,12 +132,12 @@ def _outline(name: str, record: dict | None) -> list[tuple[str, str]]:
 
 
 def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
-    """The answer resting on edges that something at the boards' sides moved: the planes alone leave it more than
-    ``EDGES_CARRY`` times less certain along some direction, so the edges decide it alone and the planes cannot
-    test them there (``planes_against_edges`` has no power), and the ends make a board side grow beyond
-    ``GROWTH_SIGMAS`` of its prior (a hand or a holder at the board's sides, whose ends move the estimate far
-    beyond its interval). Clean boards turned or facing the rig can rest on their edges as much and be right
-    (bench_board_edges): their sides stay within the prior. By default such edges are left out
+    """The answer resting on edges that something at the boards' sides moved: they carry it
+    (``edges_in_graph.carrying``: the planes alone leave it more than ``EDGES_CARRY`` times less certain along some
+    direction), so the planes cannot test them there (``planes_against_edges`` has no power), and the ends make a
+    board side grow beyond ``GROWTH_SIGMAS`` of its prior (a hand or a holder at the board's sides, whose ends move
+    the estimate far beyond its interval). Clean boards turned or facing the rig can rest on their edges as much
+    and be right (bench_board_edges): their sides stay within the prior. By default such edges are left out
     (``edges_in_graph.edges_left_out``) and the record says why, which is read first; the rest holds where
     ``--edges`` kept them."""
     record = record or {}
@@ -145,16 +145,15 @@ def _carried(name: str, record: dict | None) -> list[tuple[str, str]]:
         return [(CHECK, f"{name}the boards' edges were left out: {record['left_out']}: the answer is the planes' "
                         "alone, with their covariance; hold the boards away from their sides (a stand, or by the "
                         "bottom edge) or check board.size")]
-    test = record.get("planes_against_edges") or {}
-    gain = test.get("edges_gain", 0.0)
-    growth = 1000 * float(np.max(np.abs(record.get("growth_m", [0.0]))))
-    if not record.get("used") or gain <= EDGES_CARRY or growth <= 1000 * GROWTH_SIGMAS * GROWTH_PRIOR_SD_M:
+    carried = carrying(record)
+    if carried is None or carried[1] <= GROWTH_SIGMAS * GROWTH_PRIOR_SD_M:
         return []
-    return [(CHECK, f"{name}the answer rests on the boards' edges (the planes alone leave it "
-                    f"{'unconstrained' if not np.isfinite(gain) else f'{gain:.0f} times less certain'} along one "
-                    f"direction), and their ends make a side {growth:.0f} mm longer than board.size says, beyond "
-                    "its prior: a hand or a holder at the boards' sides, which biases the answer beyond its interval; "
-                    "check the LiDAR outlines in the report's overlays and board.size (--no-edges: the planes alone)")]
+    gain, growth = carried
+    return [(CHECK, f"{name}the answer rests on the boards' edges (the planes alone leave it {gain_words(gain)} "
+                    f"along one direction), and their ends make a side {1000 * growth:.0f} mm longer than "
+                    "board.size says, beyond its prior: a hand or a holder at the boards' sides, which biases the "
+                    "answer beyond its interval; check the LiDAR outlines in the report's overlays and board.size "
+                    "(--no-edges: the planes alone)")]
 
 
 def _conflict(name: str, said: str, delta) -> list[tuple[str, str]]:

@@ -230,27 +230,47 @@ EDGES_CARRY = 10.0
 GROWTH_SIGMAS = 3.0
 
 
-def edges_left_out(edges: dict | None) -> str | None:
-    """Why a 3D LiDAR's edges are left out of the default estimate (``--edges`` not given), or None: they carry the
-    answer (their gain beyond ``EDGES_CARRY``) and something at the boards' sides moved them: a side of the outline
-    grown beyond ``GROWTH_SIGMAS`` of its prior (a hand or a holder: hand-held boards looked 17-105 mm wider by
-    their ends), or the planes alone in conflict with them. Where the edges carry the answer its error is theirs,
-    beyond what the planes can test: on hand-held boards the edges' answers lay beyond their 99.9% region in 20 of 37 datasets,
-    the planes' alone in none (bench_handheld)."""
+def carrying(edges: dict | None) -> tuple[float, float] | None:
+    """Where a used edges record carries the answer (its ``edges_gain`` beyond ``EDGES_CARRY``): that gain and the
+    largest growth of a side of the outline (m); else None. :func:`edges_left_out` and the verdict read it."""
     edges = edges or {}
-    test = edges.get("planes_against_edges") or {}
-    gain = test.get("edges_gain", 0.0)
+    gain = (edges.get("planes_against_edges") or {}).get("edges_gain", 0.0)
     if not edges.get("used") or not gain > EDGES_CARRY:
         return None
-    growth = float(np.max(np.abs(edges.get("growth_m", [0.0]))))
-    carried = ("the ring ends carry the answer, the planes alone leaving it "
-               + ("unconstrained" if not np.isfinite(gain) else f"{gain:.0f} times less certain") + " along one "
-               "direction,")
+    return gain, float(np.max(np.abs(edges.get("growth_m", [0.0]))))
+
+
+def gain_words(gain: float) -> str:
+    """How much less certain the planes alone leave the answer (:func:`edges_gain`), in words."""
+    return "unconstrained" if not np.isfinite(gain) else f"{gain:.0f} times less certain"
+
+
+def edges_left_out(edges: dict | None) -> str | None:
+    """Why a 3D LiDAR's edges are left out of the default estimate (``--edges`` not given), or None: they carry the
+    answer (:func:`carrying`) and something at the boards' sides moved them: a side of the outline grown beyond
+    ``GROWTH_SIGMAS`` of its prior (a hand or a holder: hand-held boards looked 17-105 mm wider by their ends), or
+    the planes alone in conflict with them. Where the edges carry the answer its error is theirs, beyond what the
+    planes can test: on hand-held boards the edges' answers lay beyond their 99.9% region in 20 of 37 datasets,
+    the planes' alone in none (bench_handheld)."""
+    carried = carrying(edges)
+    if carried is None:
+        return None
+    gain, growth = carried
+    said = f"the ring ends carry the answer, the planes alone leaving it {gain_words(gain)} along one direction,"
     if growth > GROWTH_SIGMAS * GROWTH_PRIOR_SD_M:
-        return f"{carried} and make a side of the board {1000 * growth:.0f} mm longer than board.size says"
+        return f"{said} and make a side of the board {1000 * growth:.0f} mm longer than board.size says"
     if conflict_covariance(edges) is not None:
-        return f"{carried} and the planes disagree with them beyond their noise (p = {test['p_value']:.1g})"
+        return (f"{said} and the planes disagree with them beyond their noise "
+                f"(p = {edges['planes_against_edges']['p_value']:.1g})")
     return None
+
+
+def left_out_warning(why: str) -> str:
+    """The warning where the default left a LiDAR's edges out (:func:`edges_left_out`: ``why``), a single pair's
+    and a rig LiDAR's (prefixed with its name)."""
+    return (f"board edges left out: {why}: a hand or a holder at the boards' sides, or a wrong board.size; the "
+            "answer rests on the planes alone, with their covariance (the answer with the edges is in "
+            "calibration.json, board_edges.with_edges)")
 
 
 def check_outline(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, marginals: gtsam.Marginals,

@@ -62,7 +62,7 @@ from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
 from .closed_form import solve_closed_form
 from .edges_in_graph import (add_edges, check_outline, conflict_covariance, edge_crossings, edges_information,
-                             edges_left_out, edges_summary)
+                             edges_left_out, edges_summary, left_out_warning)
 from .noise_levels import corner_noise_levels, excess_scale, pooled_range_noise_m, robust_weight
 from .graph_keys import EXTRINSIC
 from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled_range_noise_with_terms_m
@@ -405,10 +405,7 @@ def planes_instead(edged: Refinement, planes: Refinement, why: str) -> Refinemen
     estimate and record) added, and a warning saying so."""
     record = dict(planes.edges or {"used": False})
     record.update(left_out=why, with_edges={"T_camera_lidar": edged.T_camera_lidar.tolist(), **edged.edges})
-    said = (f"board edges left out: {why}: a hand or a holder at the boards' sides, or a wrong board.size; the "
-            "answer is the planes' alone, with their covariance (the edges' answer is in calibration.json, "
-            "board_edges.with_edges)")
-    return replace(planes, edges=record, warnings=(said,) + tuple(planes.warnings))
+    return replace(planes, edges=record, warnings=(left_out_warning(why),) + tuple(planes.warnings))
 
 
 def _intrinsics_covariance(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: list, floor: float,
