@@ -22,6 +22,8 @@ class Plane:
         norm = np.linalg.norm(n)
         if not np.isfinite(norm) or norm < 1e-12:
             raise ValueError(f"Expected a non-zero finite plane normal, got {n}")
+        if abs(norm - 1.0) <= 4e-16:  # a unit normal kept as it is: a plane made again from its own normal (read
+            norm = 1.0  # back from a file) is the same to the bit, where dividing by a norm an ulp off 1 is not
         object.__setattr__(self, "normal", n / norm)
         object.__setattr__(self, "distance", float(self.distance) / norm)
 
