@@ -8,6 +8,13 @@ Mahalanobis distance under the pair's covariance), the ratio of the rig's standa
 tangent, rotation then translation), and each engine's distance from the truth. Two engines that were one would
 print zeros and ratios of 1. `--refine-intrinsics`: the camera is given focal lengths 1% too long and half its k1
 (as in bench_rig_intrinsics.py), and both engines refine the intrinsics.
+
+`--scanner --poses N --samples S`: a 2D scanner's pair folder of N boards (`simulate_dataset`, lidar 2d), each
+engine with its posterior (S effective samples) as `lidarcam calibrate` runs it (segment ends by default): per
+folder each engine's verdict, the masses of the minima it found, and the truth's squared Mahalanobis distance under
+its reported covariance against its 99.9% region (the pair's `Posterior.region_d2`, with several minima each one's
+own ellipsoid; the rig's, the samples' covariance's ellipsoid about the estimate holding 99.9% of them); then the
+answers whose truth lies outside the region while the verdict reads OK (confidently wrong), per engine.
 """
 from __future__ import annotations
 
@@ -37,12 +44,66 @@ def d2(T_hat: np.ndarray, cov: np.ndarray, T: np.ndarray) -> float:
     return float(xi @ np.linalg.solve(cov, xi))
 
 
+def scanner_rows(n: int, poses: int, samples: int) -> None:
+    """``--scanner``: each 2D pair folder calibrated as a pair and as a rig, with the posterior (module docstring)."""
+    from estimators.errors import LidarcamError
+    from estimators.simulation.simulator import simulate_dataset
+    from estimators.solvers.posterior import region_d2
+
+    print(f"A camera and a 2D scanner, {poses} boards, as a pair and as a rig, posterior of {samples} effective "
+          f"samples: {n} folders (seeds 0-{n - 1})")
+    print("seed  verdict rig / pair  masses rig / pair            rig-pair deg  rig-pair mm  "
+          "truth d2/99.9% rig      pair")
+    wrong = {"rig": [], "pair": []}
+    inside = {"rig": 0, "pair": 0}
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(n):
+            folder = simulate_dataset(Path(tmp) / f"pair{seed}", n_poses=poses, seed=seed, lidar="2d")
+            T_true = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+            try:
+                pair = calibrate(folder, samples=samples)
+                rig = calibrate_rig(load_rig(folder), np.random.default_rng(0), samples=samples, advise=False)
+            except LidarcamError as exc:
+                print(f"{seed:4d}  refused: {exc.message[:100]}")
+                continue
+            pe = rig.pair("cam0", "lidar0")
+            x_rig = T_log(T_inverse(pe.T) @ T_true)
+            got = {"rig": (float(x_rig @ np.linalg.solve(pe.covariance, x_rig)), region_d2(pe.samples, 0.999),
+                           rig.verdict.level)}
+            x_pair = T_log(T_inverse(pair.T_camera_lidar) @ T_true)
+            post = pair.posterior
+            if post is not None:
+                got["pair"] = (float(post.region_distance(x_pair[None])[0]), post.region_d2(0.999), pair.verdict.level)
+            else:
+                got["pair"] = (d2(pair.T_camera_lidar, pair.covariance, T_true), 22.458, pair.verdict.level)
+            for k, (dist, limit, level) in got.items():
+                inside[k] += dist <= limit
+                if dist > limit and level == "OK":
+                    wrong[k].append(seed)
+            modes = rig.ambiguous_pairs.get(("cam0", "lidar0"), ())
+            masses = ("/".join(f"{m.mass:.2f}" for m in modes) or "1") + " / " + "/".join(
+                f"{m.mass:.2f}" for m in pair.modes)
+            xi = T_log(T_inverse(pair.T_camera_lidar) @ pe.T)
+            print(f"{seed:4d}  {got['rig'][2]:>7s} / {got['pair'][2]:<7s}  {masses:27s}  "
+                  f"{np.degrees(np.linalg.norm(xi[:3])):12.4f}  {1000 * np.linalg.norm(xi[3:]):11.2f}  "
+                  f"{got['rig'][0]:7.1f}/{got['rig'][1]:<7.1f} {got['pair'][0]:7.1f}/{got['pair'][1]:.1f}")
+    for k in ("rig", "pair"):
+        print(f"{k}: truth inside its 99.9% region in {inside[k]}; confidently wrong (outside, verdict OK): "
+              f"{len(wrong[k])} {wrong[k]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rigs", type=int, default=5, help="simulated rigs (seeds 0..N-1)")
     ap.add_argument("--refine-intrinsics", action="store_true",
                     help="give the camera wrong intrinsics and refine them in both engines")
+    ap.add_argument("--scanner", action="store_true", help="a 2D scanner's pair folders (see the docstring)")
+    ap.add_argument("--poses", type=int, default=3, help="boards per scanner folder (default 3)")
+    ap.add_argument("--samples", type=int, default=500, help="effective posterior samples per engine (--scanner)")
     a = ap.parse_args()
+    if a.scanner:
+        scanner_rows(a.rigs, a.poses, a.samples)
+        return
     options = RefinementOptions(refine_intrinsics=a.refine_intrinsics)
     print(f"One camera and one HDL-64E-like LiDAR, 10 poses, as a rig and as a pair: {a.rigs} rigs "
           f"(seeds 0-{a.rigs - 1})" + ("; the camera given focal lengths x1.01 and k1 x0.5, refined by both"

@@ -29,6 +29,7 @@ from .pipeline.measurement import Hints
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
+from .pipeline.rig_modes import mixed_posterior
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
@@ -69,7 +70,11 @@ class PairsAlone:
     term_choices : dict
         Per LiDAR: its range model's choice (``RangeModelFit``) and the pair that chose it.
     ambiguous : dict
-        The pairs whose own boards leave a second minimum: ``(camera, lidar) -> modes``.
+        The pairs whose own boards leave a second minimum with at least ``AMBIGUOUS_MASS``: ``(camera, lidar) ->
+        modes``.
+    minima : dict
+        Every pair solved with its segment ends whose boards leave more than one minimum holding mass, ``(camera,
+        lidar) -> modes``: the rig's posterior mixes them (``pipeline.rig_modes``), as a single pair's does.
     skipped : dict
         Per LiDAR: ``stem -> reason`` for the frames it does not give the joint graph.
     first, warnings : tuple of str
@@ -85,6 +90,7 @@ class PairsAlone:
     sigma_r: dict
     term_choices: dict
     ambiguous: dict
+    minima: dict
     skipped: dict
     first: tuple
     warnings: tuple
@@ -98,21 +104,30 @@ class PairsAlone:
 
 
 def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, cameras: dict,
-                      alone: RefinementOptions, init: str, options: RefinementOptions) -> PairsAlone:
+                      alone: RefinementOptions, init: str, options: RefinementOptions,
+                      scanner_ends: bool = False) -> PairsAlone:
     """Each camera-LiDAR pair of ``frames_by_pair`` (``(camera, lidar) -> frames``, measured or observed again under
     refined intrinsics, ``cameras`` the models they were observed under) with at least ``MIN_PAIR_FRAMES`` usable
     frames solved alone with ``alone`` (:func:`pair_options`). A LiDAR's range model is chosen once, by its pair
     with the camera that shares the most frames (the first): its other pairs are solved with that model, not tested
     again on fewer frames. Each LiDAR board enters the joint graph once, from the first pair that used it; a pair's
-    outlier frame is left out."""
+    outlier frame is left out. With ``scanner_ends`` (the board's size known and the edges not refused), a 2D
+    scanner that saw at most ``REFINE_ALL_UP_TO`` boards in all has its pairs solved as the single pair is, the
+    segment ends in the graph and in the weighing of the minima (``solution_selection``): with so few boards they
+    alone tell its minima apart (without them a 3-board pair folder's rig started from a planes-only minimum 5
+    degrees and 24 cm off, which its joint graph kept, and read ``OK``). With more boards, its joint graph decides
+    among them and the planes alone start it: weighed with the ends, a 6-camera rig's 3- and 4-board scanner
+    pairs took 17 s, the whole rig's solve 2.4 s without them."""
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}
     board_scatter, sigma_r, term_choices = {}, {}, {}
-    pairwise, links, pair_frames, ambiguous = {}, {}, {}, {}
+    pairwise, links, pair_frames, ambiguous, minima = {}, {}, {}, {}, {}
     first: list[str] = []
     warnings: list[str] = []
     for lid in rig.lidars:
+        seen = {f.name for (_, d), frames in frames_by_pair.items() if d == lid.name for f in frames if f.usable}
+        ends = scanner_ends and lid.lidar == "2d" and len(seen) <= _few_boards()
         for (cam_name, lid_name), frames in frames_by_pair.items():
             if lid_name != lid.name:
                 continue
@@ -125,20 +140,21 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:
+                opts = alone if lid.name not in term_choices else \
+                    replace(alone, range_model=term_choices[lid.name][0].chosen)
                 res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
-                            options=alone if lid.name not in term_choices else
-                            replace(alone, range_model=term_choices[lid.name][0].chosen),
-                            use_extent=False)
+                            options=replace(opts, edges=True) if ends else opts, use_extent=ends)
             except DegenerateLayoutError as exc:
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
+            if ends and len(res.modes) > 1:  # weighed by the ends, as the joint graph has them
+                minima[(cam_name, lid.name)] = tuple(res.modes)
             if res.ambiguous:
                 ambiguous[(cam_name, lid.name)] = tuple(res.modes)
                 masses = ", ".join(f"{m.mass:.0%}" for m in res.modes)
                 first.insert(0, f"{cam_name}-{lid.name}: {len(res.modes)} distinct solutions fit its boards "
-                                f"(posterior mass {masses}); the rig starts from the most probable, and its "
-                                "covariance and posterior hold that one alone: add boards tilted in other "
-                                "directions to decide")
+                                f"(posterior mass {masses}); the rig starts from the most probable: add boards "
+                                "tilted in other directions to decide")
             if lid.name not in term_choices and res.refinement.range_model is not None:
                 term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
@@ -159,7 +175,16 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
         if lidar_obs[lid.name]:
             sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
-                      ambiguous, skipped, tuple(first), tuple(warnings))
+                      ambiguous, minima, skipped, tuple(first), tuple(warnings))
+
+
+def _few_boards() -> int:
+    """The boards up to which a scanner's minima may fit alike (``solution_selection.REFINE_ALL_UP_TO``; imported
+    here, with a scanner: it loads scipy.optimize)."""
+    from .solvers.solution_selection import REFINE_ALL_UP_TO
+
+    return REFINE_ALL_UP_TO
+
 
 # One BLAS thread, as the command line runs: the solves' matrices are small, and OpenBLAS's own threads cost more
 # than they give there (a 6-camera rig's camera-LiDAR pairs, solved in two threads, took 6x as long with two BLAS
@@ -258,7 +283,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                         " images and sweeps were not read again")
     t_meas = time.perf_counter()
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
-    alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options)
+    scanner_ends = edges is not False and rig.board.size_known
+    alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options,
+                                  scanner_ends)
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
     links = dict(alone_fit.links)
@@ -294,7 +321,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         try:
             again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
                                             for (c, d), frames in measured.pairs.items()},
-                                      measured.measured_by, seen, alone, init, options)
+                                      measured.measured_by, seen, alone, init, options, scanner_ends)
             settled = again.settled(alone_fit)
             views, joint_again = joint(again)
         except LidarcamError as exc:  # the last round that could be solved stands
@@ -385,7 +412,15 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict))
-        posterior = sample_rig_posterior(sampled, views, lidar_views, rng, min_ess=samples, likelihood=likelihood)
+        # A pair's minima are the rig's where that pair holds every board its scanner gives the graph (its masses
+        # are then the rig's); elsewhere the other pairs' boards may decide, and the first alone is sampled.
+        mixable = {(c, d): modes for (c, d), modes in alone_fit.minima.items()
+                   if set(lidar_obs[d]) <= {f.name for f in pair_frames[(c, d)]}}
+        posterior = mixed_posterior(
+            sampled, mixable,
+            lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
+            lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
+                                                    likelihood=likelihood, cells=cells), rng, warnings)
         # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,
         # convolved in as a single pair's posterior does.
         for share in (s for s in (pinned_share, conflict, intrinsics_share) if s is not None):
@@ -441,7 +476,10 @@ def unobservable_scanners(result: RigResult, edged: set) -> list[str]:
             if d.lidar != "2d" or d.name not in result.solution.names:
                 continue
             pair = result.pair(c.name, d.name)
-            weak = scan_refusal(pair.covariance, pair.T, (result.links or {}).get((c.name, d.name), 0), d.name in edged,
+            cov = pair.covariance
+            if pair.samples is not None and result.posterior.mode_index is not None:  # the estimate's minimum's
+                cov = np.cov(pair.samples[result.posterior.mode_index == 0], rowvar=False)
+            weak = scan_refusal(cov, pair.T, (result.links or {}).get((c.name, d.name), 0), d.name in edged,
                                 POSTERIOR_REFUSAL_FACTOR if pair.samples is not None else 1.0)
             if weak is not None:
                 out.append(f"T_{c.name}_{d.name}: {'sampled, ' if pair.samples is not None else ''}{weak.problem}: "

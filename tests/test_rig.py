@@ -1047,6 +1047,46 @@ def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d):
                                rtol=0.04)
 
 
+def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_posterior_covers_both(tmp_path):
+    # A 3-board 2D pair folder (seed 1) whose boards leave two minima, 67% and 33% of the mass by their segment ends;
+    # the truth is the second's, 5 deg and 24 cm from the first. As a rig its scanner pair is solved as the single
+    # pair is (its ends weigh the minima), so the rig reads CHECK naming both. When its scanner pairs were solved
+    # from the planes alone it read OK, with the truth at d2 199 under its covariance. It lands on the pair's first
+    # minimum, and its posterior mixes both by the pair's masses (each sampled within its own cell), so the truth is
+    # within its 99.9% region (measured: d2 9.6 under the mixture's covariance).
+    from dataclasses import replace
+
+    from estimators.simulation.simulator import simulate_dataset
+    from estimators.solvers.posterior import region_d2
+
+    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=1, lidar="2d")
+    truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, samples=500)
+    modes = res.ambiguous_pairs[("cam0", "lidar0")]
+    assert len(modes) == 2 and 0.25 < modes[1].mass < 0.45
+    assert res.verdict.level == "CHECK", res.verdict
+    assert res.verdict.reasons[0].startswith("T_cam0_lidar0: 2 solutions fit its boards") and \
+        "the intervals cover them all" in res.verdict.reasons[0]
+    # without the posterior the covariance is the first minimum's alone, and the verdict says so
+    assert "the covariance and intervals are the most probable one's" in replace(res, posterior=None).verdict.line
+    pe = res.pair("cam0", "lidar0")
+    T_lap, C_lap = res.solution.transform("cam0", "lidar0")
+    sd = np.sqrt(np.diag(C_lap))
+    assert np.all(np.abs(T_log(np.linalg.inv(modes[0].T_camera_lidar) @ pe.T)) < 1e-3 * sd)
+    x = T_log(np.linalg.inv(pe.T) @ truth)
+    assert x @ np.linalg.solve(C_lap, x) > 100  # the first minimum's covariance leaves the truth out
+    assert x @ np.linalg.solve(pe.covariance, x) <= region_d2(pe.samples, 0.999)
+    post = res.posterior
+    np.testing.assert_allclose(post.mode_weights, [m.mass for m in modes], atol=1e-12)
+    assert post.mixed == (("cam0", "lidar0"),)
+    assert abs(np.mean(post.mode_index == 1) - modes[1].mass) < 0.02
+    # the second minimum's samples lie about it (in the first's tangent)
+    x2 = T_log(np.linalg.inv(pe.T) @ modes[1].T_camera_lidar)
+    d = pe.samples[post.mode_index == 1] - x2
+    C2 = modes[1].refinement.covariance
+    assert np.median(np.einsum("ij,ij->i", d, np.linalg.solve(C2, d.T).T)) < 20
+
+
 def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     # Returns 20 cm long on a LiDAR whose range accuracy is 5 cm: the pair's offset estimate (+208 mm) lies beyond
     # 3 prior standard deviations, so the pair holds it at 0 with its prior variance propagated into the covariance

@@ -81,7 +81,7 @@ class RigResult:
     measurements: object = None
     # The camera-LiDAR pairs (a 2D scanner's, with few boards) whose own boards leave a second minimum with at
     # least ``AMBIGUOUS_MASS`` of the posterior mass: ``(camera, lidar) -> modes`` (``solution_selection.Mode``).
-    # The joint graph starts from the most probable, and its covariance and posterior hold that one alone.
+    # The joint graph starts from the most probable; its covariance is that one's, its posterior mixes them all.
     ambiguous_pairs: dict = field(default_factory=dict)
     # With the intrinsics refined: whether that lowers the rig's disagreement beyond chance
     # (``rig_graph.intrinsics_test``).

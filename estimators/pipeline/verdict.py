@@ -175,10 +175,11 @@ def _held(name: str, said: str) -> list[tuple[str, str]]:
                     "with the extrinsic, a wrong segment or a board that moved")]
 
 
-def _ambiguous(name: str, modes, which: str, held: str) -> list[tuple[str, str]]:
-    """Two or more minima holding posterior mass (``modes``, the most probable first); ``held``: what the
-    intervals hold of them."""
+def _ambiguous(name: str, modes, which: str, covered: bool) -> list[tuple[str, str]]:
+    """Two or more minima holding posterior mass (``modes``, the most probable first); ``covered``: the posterior
+    mixes them (else the covariance and intervals are the most probable one's)."""
     masses = ", ".join(f"{m.mass:.0%}" for m in modes)
+    held = "the intervals cover them all" if covered else "the covariance and intervals are the most probable one's"
     return [(CHECK, f"{name}{len(modes)} solutions fit {which} (posterior mass {masses}); {held}; add boards tilted "
                     "in other directions")]
 
@@ -288,7 +289,8 @@ def pair_verdict(result) -> Verdict:
                                 f"{check['p_value']:.1g}): check the camera's calibration, or calibrate with "
                                 "--refine-intrinsics"))
     if result.ambiguous:
-        concerns += _ambiguous("", result.modes, "the boards", "the intervals cover them all")
+        post = result.posterior
+        concerns += _ambiguous("", result.modes, "the boards", post is not None and post.mode_index is not None)
     return verdict_of(concerns)
 
 
@@ -323,6 +325,5 @@ def rig_verdict(result) -> Verdict:
         concerns += _corners(c.name, result.solution.noise_scale.get(c.name, 1.0),
                              result.solution.chi2_dof.get(c.name, (0.0, 0.0)))
     for (c, lid), modes in result.ambiguous_pairs.items():
-        concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards",
-                               "the joint graph and its intervals hold the most probable alone")
+        concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards", post is not None and (c, lid) in post.mixed)
     return verdict_of(concerns)

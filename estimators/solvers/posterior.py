@@ -49,7 +49,7 @@ from . import chi_square as chi2
 from .refinement import Refinement
 from .refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .rig_posterior import pair_likelihood, run_chain
-from .sampler import ChainResult
+from .sampler import ChainResult, mixture_picks
 
 LIKELIHOODS = ("gaussian", "student-t")
 SAMPLERS = ("proposal", "ensemble")
@@ -372,14 +372,12 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
         centers.append(T_log(rel))
     w = np.array([m for _, _, m in parts], dtype=float)
     w = w / w.sum()
-    n = len(main.xi)
-    counts = rng.multinomial(n, w)
     xi, scale, index = [], [], []
-    for m, ((x, sc, _), c) in enumerate(zip(parts, counts)):
-        pick = rng.choice(len(x), size=c, replace=c > len(x))
+    for m, ((x, sc, _), pick) in enumerate(zip(parts, mixture_picks([len(x) for x, _, _ in parts], w,
+                                                                     len(main.xi), rng))):
         xi.append(x[pick])
         scale.append(sc[pick])
-        index.append(np.full(c, m))
+        index.append(np.full(len(pick), m))
     return Posterior(ref.T_camera_lidar, np.concatenate(xi), np.concatenate(scale), main.run, options.likelihood,
                      tuple(warnings), tuple(float(v) for v in w), np.concatenate(index), np.array(centers))
 

@@ -34,7 +34,9 @@ at the graph's scale: ``s`` is how far the boards' planes, which the LiDARs see,
 (on a 6-camera rig s's posterior sits near 0.7, which applied to the camera-camera links would narrow them below
 their errors). With one camera and one LiDAR this is the single pair's likelihood (``pair_likelihood``): a 2D
 pair's segment ends then enter by their own likelihood, with the dataset's outline (4 parameters) under its prior,
-and with several minima each is sampled within its cell. With ``student-t``, as the pair's, each frame's share
+and with several minima each is sampled within its cell, as a rig's are where a camera-scanner pair's boards leave
+several (``pipeline.rig_modes``: each joint minimum within its cell of that pair's transform, mixed by
+:func:`mix_modes`). With ``student-t``, as the pair's, each frame's share
 of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
 t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian. A 2D scanner's range noise,
 which rests on a few dozen points a board, has its scale ``r`` sampled too (a parameter per scanner before ``log s``,
@@ -56,7 +58,7 @@ from ..errors import LidarcamError
 from .board_edges import EndTerms, outline_prior_sd
 from .factors import lidar_plane, lidar_residual
 from .noise_levels import robust_weight
-from .sampler import ChainResult, run_ensemble, run_with_proposal
+from .sampler import ChainResult, mixture_picks, run_ensemble, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
 from .rig_graph import RigSolution, change_reference, graph_reference
 
@@ -86,6 +88,11 @@ class RigPosterior:
     # The camera side's noise scale ``s`` per sample (module docstring).
     camera_scale: np.ndarray | None = None
     likelihood: str = "gaussian"
+    # Where a camera-LiDAR pair's boards leave several minima (``mix_modes``): each joint minimum's share of the
+    # samples (the estimate's first) and each sample's minimum; else empty and None.
+    mode_weights: tuple[float, ...] = ()
+    mode_index: np.ndarray | None = None
+    mixed: tuple = ()  # those pairs, ``(camera, lidar)``
     # Each pair's samples once composed (the warnings, the record, the printout and the report all read them).
     _pairs: dict = field(default_factory=dict, repr=False)
     _sensor_T: dict = field(default_factory=dict, repr=False)
@@ -112,7 +119,10 @@ class RigPosterior:
         return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
 
     def diagnostics(self) -> dict:
-        return {"likelihood": self.likelihood, **self.run.diagnostics(), "samples_kept": int(self.xi.shape[0])}
+        out = {"likelihood": self.likelihood, **self.run.diagnostics(), "samples_kept": int(self.xi.shape[0])}
+        if self.mode_weights:  # the chain's diagnostics are the estimate's minimum's
+            out["mode_weights"] = list(self.mode_weights)
+        return out
 
     def _sensor_poses(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Every sample's ``T_ref_name`` (rotations, translations), made once."""
@@ -148,7 +158,7 @@ class RigLikelihood:
     def __init__(self, solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                  quadratic: tuple[np.ndarray, np.ndarray] | None = None,
                  log_scale_prior_sd: float = LOG_SCALE_PRIOR_SD, likelihood: str = "gaussian", nu: float = 4.0,
-                 ends: dict | None = None, cells=None, cell: int = 0):
+                 ends: dict | None = None, cells: tuple = ()):
         names = solution.names
         self.inner = graph_reference(solution.reference, [c.name for c in cameras])
         T_inner = np.linalg.inv(solution.T_ref[self.inner])
@@ -261,12 +271,11 @@ class RigLikelihood:
         # A 2D scanner's segment ends (``ends``: its ``EndTerms`` by name; a single pair's): their
         # own likelihood at the scanner's pose, with its outline (4 parameters each, after the poses, its departure
         # from the graph's estimate) under its prior; each end's variance grows by its board pose's (the corners'
-        # covariance at the graph's board, H_cam_j^-1 = M^-T M^-1). ``cells``: a single pair's minima, each sampled
-        # within its own (``posterior.ModeCells``, minimum ``cell``).
+        # covariance at the graph's board, H_cam_j^-1 = M^-T M^-1). ``cells``: for each camera-LiDAR pair whose
+        # boards leave several minima, ``(ModeCells, camera, lidar, k)``: the samples kept within minimum ``k``'s
+        # cell of that pair's transform (``posterior.ModeCells``).
         self.col = col
-        self.cells, self.cell = cells, cell
-        if cells is not None and len(self.free) != 1:
-            raise ValueError("mode cells are a single camera-LiDAR pair's")
+        self.cells = tuple(cells)
         self.end_sets = []  # (scanner, its EndSet, its outline's first column)
         if ends:
             Mi = self._cam_whitener
@@ -431,10 +440,18 @@ class RigLikelihood:
             Ts[:, :3, :3], Ts[:, :3, 3] = R, t
             outline = self.outline_map[name] + theta[:, k:k + 4]  # sampled as its departure from the estimate
             out += end_set.log_likelihood(Ts, outline) - 0.5 * np.sum((outline / self.outline_sd) ** 2, axis=1)
-        if self.cells is not None:  # the pair's LiDAR is the one free sensor
-            R, t = _poses(self.T[self.free[0]], theta[:, :6])
-            out = np.where(self.cells.nearest(R, t) == self.cell, out, -np.inf)
+        for mode_cells, a, b, k in self.cells:  # each ambiguous pair's T_a_b within its minimum k's cell
+            (Ra, ta), (Rb, tb) = (self._pose_of(n, theta) for n in (a, b))
+            R = np.einsum("wji,wjk->wik", Ra, Rb)
+            t = np.einsum("wji,wj->wi", Ra, tb - ta)
+            out = np.where(mode_cells.nearest(R, t) == k, out, -np.inf)
         return np.where(outside, -np.inf, out)
+
+    def _pose_of(self, name: str, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor ``name``'s pose in the graph's reference camera's frame at each walker's tangents."""
+        if name == self.inner:
+            return np.broadcast_to(np.eye(3), (len(theta), 3, 3)), np.zeros((len(theta), 3))
+        return _poses(self.T[name], theta[:, self.col[name]:self.col[name] + 6])
 
     def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
         """Walkers about the graph's estimate: the poses from its covariance, ``log s`` near 0, the outline
@@ -487,7 +504,7 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
 
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                          rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000,
-                         likelihood: str = "gaussian", nu: float = 4.0) -> RigPosterior:
+                         likelihood: str = "gaussian", nu: float = 4.0, cells: tuple = ()) -> RigPosterior:
     """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
 
     Parameters
@@ -505,6 +522,10 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     likelihood, nu : str, float
         ``gaussian``, or ``student-t`` with ``nu`` degrees of freedom on each frame's planes against its boards (the
         single pair's ``--likelihood``).
+    cells : tuple
+        For each camera-LiDAR pair whose boards leave several minima, ``(ModeCells, camera, lidar, k)``: sampled
+        within minimum ``k``'s cell (:class:`RigLikelihood`), the walkers started about the estimate and the
+        proposal tuned by a pilot run.
 
     Returns
     -------
@@ -514,7 +535,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     # Each LiDAR's range terms held at the MAP, as a single pair's posterior holds them: their share of the poses'
     # covariance is convolved into the samples below (marginal intervals), with the terms' own samples.
     held = [hold_terms(lv, solution.range_terms[lv.name][0]) if lv.has_terms else lv for lv in lidars]
-    like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu)
+    like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu, cells=cells)
     if any(lv.edges for lv in lidars):
         like.quadratic = edges_quadratic(like, solution, cameras, lidars)
     names = solution.names
@@ -531,7 +552,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
-    keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior")
+    keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior", pilot=bool(cells))
     m = len(keep)
     dt = rng.multivariate_normal(np.zeros(n_t), S_tt, m, method="eigh") if n_t else np.zeros((m, 0))
     keep[:, :n_p] += dt @ gain.T
@@ -554,6 +575,33 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
             terms[lv.name] = dt[:, at:at + lv.terms.size] + solution.range_terms[lv.name][0]
             at += lv.terms.size
     return RigPosterior(names, ref, dict(solution.T_ref), xi, run, terms, np.exp(keep[:, -1]), likelihood)
+
+
+def mix_modes(parts: list[tuple[RigPosterior, float]], rng: np.random.Generator) -> RigPosterior:
+    """The posteriors about several joint minima (``(posterior, mass)``, the estimate's first), each sampled within
+    its cell, mixed by their masses as a single pair's minima are (``sampler.mixture_picks``): every sample carried
+    into the first's right tangents (``T_ref_s = T_ref_s^k Exp(xi^k) = T_ref_s^1 Exp(xi)``), so the intervals and
+    the covariance cover every minimum; ``mode_index`` says whose each sample is."""
+    first = parts[0][0]
+    picks = mixture_picks([len(p.xi) for p, _ in parts], [m for _, m in parts], len(first.xi), rng)
+    xi, scale, index, terms = [], [], [], {n: [] for n in first.range_terms}
+    for k, ((p, _), pick) in enumerate(zip(parts, picks)):
+        x = p.xi[pick].copy()
+        for j, n in enumerate(p.names):
+            if n != p.reference and k > 0:
+                R, t = _poses(p.T_ref[n], x[:, 6 * j:6 * j + 6])
+                Rh, th = first.T_ref[n][:3, :3], first.T_ref[n][:3, 3]
+                x[:, 6 * j:6 * j + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
+        xi.append(x)
+        scale.append(p.camera_scale[pick])
+        index.append(np.full(len(pick), k))
+        for n in terms:
+            terms[n].append(p.range_terms[n][pick])
+    w = np.array([m for _, m in parts], dtype=float)
+    return replace(first, xi=np.concatenate(xi), camera_scale=np.concatenate(scale),
+                   range_terms={n: np.concatenate(v) for n, v in terms.items()},
+                   mode_weights=tuple(float(v) for v in w / w.sum()), mode_index=np.concatenate(index),
+                   _pairs={}, _sensor_T={})
 
 
 def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -653,4 +701,5 @@ def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera
                            covariance_inner=covariance)
     # A scan's segment ends enter by their own likelihood, not by the edges' quadratic.
     return RigLikelihood(solution, [camera], [lidar], None if ends is not None else quadratic, likelihood=likelihood,
-                         nu=nu, ends=None if ends is None else {lidar.name: ends}, cells=cells, cell=cell)
+                         nu=nu, ends=None if ends is None else {lidar.name: ends},
+                         cells=() if cells is None else ((cells, camera.name, lidar.name, cell),))

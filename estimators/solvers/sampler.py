@@ -168,3 +168,12 @@ def run_with_proposal(log_prob, initial: np.ndarray, rng: np.random.Generator, c
     moves = [(emcee.moves.MHMove(proposal), 0.7), (emcee.moves.DEMove(), 0.3)]
     run = run_ensemble(log_prob, initial, rng, min_ess, max_steps, chunk, progress, label, moves=moves)
     return run if pilot is None else replace(run, seconds=run.seconds + pilot.seconds)
+
+
+def mixture_picks(sizes: list[int], weights, n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Which samples of each of several modes' runs (``sizes`` samples each) make ``n`` samples of their mixture by
+    ``weights`` (normalised here): each mode's count drawn from the multinomial, its samples drawn from its run
+    (with replacement only when it has fewer than its count). Every multimodal posterior mixes its modes so."""
+    w = np.asarray(weights, dtype=float)
+    counts = rng.multinomial(n, w / w.sum())
+    return [rng.choice(size, size=c, replace=c > size) for size, c in zip(sizes, counts)]
