@@ -29,7 +29,7 @@ from .pipeline.measurement import Hints
 from .pipeline.rig_edges import pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
-from .pipeline.rig_modes import mixed_posterior
+from .pipeline.rig_modes import mixable_minima, mixed_posterior
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
@@ -412,12 +412,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict))
-        # A pair's minima are the rig's where that pair holds every board its scanner gives the graph (its masses
-        # are then the rig's); elsewhere the other pairs' boards may decide, and the first alone is sampled.
-        mixable = {(c, d): modes for (c, d), modes in alone_fit.minima.items()
-                   if set(lidar_obs[d]) <= {f.name for f in pair_frames[(c, d)]}}
         posterior = mixed_posterior(
-            sampled, mixable,
+            sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
             lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
             lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
                                                     likelihood=likelihood, cells=cells), rng, warnings)

@@ -1087,6 +1087,39 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
     assert np.median(np.einsum("ij,ij->i", d, np.linalg.solve(C2, d.T).T)) < 20
 
 
+def test_the_rigs_minima_are_one_pair_a_scanner_and_every_combination_of_two_scanners_minima():
+    # Which pairs' minima the rig's posterior mixes (rig_modes.mixable_minima): one holding all its scanner's boards,
+    # one pair a scanner (a second camera that saw the same boards sees the same minima); and the joint starts
+    # (rig_modes.joint_starts): the estimate first, then each combination of two scanners' minima by the product of
+    # their masses, each scanner moved to its minimum's transform from its camera.
+    from types import SimpleNamespace
+
+    from estimators.pipeline.rig_modes import joint_starts, mixable_minima
+
+    def mode(mass, T):
+        return SimpleNamespace(mass=mass, T_camera_lidar=T, refinement=SimpleNamespace(T_camera_lidar=T,
+                                                                                       covariance=1e-4 * np.eye(6)))
+
+    T = {n: T_exp(np.r_[0.1 * k, 0.0, 0.0, k, 0.0, 0.0]) for k, n in enumerate(("cam0", "cam1", "scan0", "scan1"))}
+    two = (mode(0.7, T_exp(np.r_[0, 0, 0, 0.1, 0, 0])), mode(0.3, T_exp(np.r_[0, 0.2, 0, 0.1, 0.3, 0])))
+    other = (mode(0.9, T_exp(np.r_[0, 0, 0, 0, 0.1, 0])), mode(0.1, T_exp(np.r_[0.3, 0, 0, 0, 0.1, 0.2])))
+    frames = {st: SimpleNamespace(name=st) for st in "abcd"}
+    pair_frames = {("cam0", "scan0"): [frames[x] for x in "abc"], ("cam1", "scan0"): [frames[x] for x in "abc"],
+                   ("cam1", "scan1"): [frames[x] for x in "ab"], ("cam0", "scan1"): [frames[x] for x in "abd"]}
+    boards = {"scan0": dict.fromkeys("abc"), "scan1": dict.fromkeys("abd")}
+    minima = {("cam0", "scan0"): two, ("cam1", "scan0"): two, ("cam1", "scan1"): other, ("cam0", "scan1"): other}
+    kept = mixable_minima(minima, boards, pair_frames)
+    assert list(kept) == [("cam0", "scan0"), ("cam0", "scan1")]
+    starts = joint_starts(kept, T, "cam0")
+    assert [round(m, 6) for _, m, _ in starts] == [0.63, 0.27, 0.07, 0.03]
+    assert [tuple(k for *_, k in cells) for _, _, cells in starts] == [(0, 0), (1, 0), (0, 1), (1, 1)]
+    start = starts[3][0]
+    np.testing.assert_allclose(start["scan0"], T["cam0"] @ two[1].T_camera_lidar, atol=1e-12)
+    np.testing.assert_allclose(start["scan1"], T["cam0"] @ other[1].T_camera_lidar, atol=1e-12)
+    assert start["cam1"] is T["cam1"]
+    assert joint_starts({("cam0", "scan0"): two}, T, "scan0") == []  # the reference is not moved
+
+
 def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     # Returns 20 cm long on a LiDAR whose range accuracy is 5 cm: the pair's offset estimate (+208 mm) lies beyond
     # 3 prior standard deviations, so the pair holds it at 0 with its prior variance propagated into the covariance

@@ -22,6 +22,18 @@ from ..solvers.rig_posterior import mix_modes
 MAX_JOINT_MODES = 8
 
 
+def mixable_minima(minima: dict, boards: dict, pair_frames: dict) -> dict:
+    """The pairs of ``minima`` (``(camera, lidar) -> modes``) whose minima are the rig's: the pair holds every board
+    its scanner gives the graph (``boards``: per LiDAR, by stem; ``pair_frames``: each pair's frames), so its masses
+    are the rig's (elsewhere the other pairs' boards may decide); one pair a scanner, as two cameras that saw the
+    same boards see the same minima of it, not two to multiply."""
+    out: dict = {}
+    for (c, d), modes in minima.items():
+        if set(boards[d]) <= {f.name for f in pair_frames[(c, d)]} and all(d != e for _, e in out):
+            out[(c, d)] = modes
+    return out
+
+
 def joint_starts(minima: dict, T_ref: dict, reference: str) -> list[tuple[dict, float, tuple]]:
     """Every combination of the pairs' minima (``minima``: ``(camera, lidar) -> modes``, the most probable first)
     holding at least ``MIN_MODE_MASS`` of their product, most probable first, at most ``MAX_JOINT_MODES``: the
