@@ -9,12 +9,13 @@ tangent, rotation then translation), and each engine's distance from the truth. 
 print zeros and ratios of 1. `--refine-intrinsics`: the camera is given focal lengths 1% too long and half its k1
 (as in bench_rig_intrinsics.py), and both engines refine the intrinsics.
 
-`--scanner --poses N --samples S`: a 2D scanner's pair folder of N boards (`simulate_dataset`, lidar 2d), each
-engine with its posterior (S effective samples) as `lidarcam calibrate` runs it (segment ends by default): per
-folder each engine's verdict, the masses of the minima it found, and the truth's squared Mahalanobis distance under
-its reported covariance against its 99.9% region (the pair's `Posterior.region_d2`, with several minima each one's
-own ellipsoid; the rig's, the samples' covariance's ellipsoid about the estimate holding 99.9% of them); then the
-answers whose truth lies outside the region while the verdict reads OK (confidently wrong), per engine.
+`--scanner --poses N --samples S [--config C]`: a 2D scanner's pair folder of N boards (`simulate_dataset`, lidar
+2d, the simulator's configuration C), each engine with its posterior (S effective samples) as `lidarcam calibrate`
+runs it (segment ends by default): per folder each engine's verdict, the masses of the minima it found, and the
+truth's squared Mahalanobis distance under its reported covariance against its 99.9% region (the pair's
+`Posterior.region_d2`, with several minima each one's own ellipsoid; the rig's, the samples' covariance's ellipsoid
+about the estimate holding 99.9% of them); then the answers whose truth lies outside the region while the verdict
+reads OK (confidently wrong), per engine.
 """
 from __future__ import annotations
 
@@ -44,21 +45,22 @@ def d2(T_hat: np.ndarray, cov: np.ndarray, T: np.ndarray) -> float:
     return float(xi @ np.linalg.solve(cov, xi))
 
 
-def scanner_rows(n: int, poses: int, samples: int) -> None:
+def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> None:
     """``--scanner``: each 2D pair folder calibrated as a pair and as a rig, with the posterior (module docstring)."""
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.posterior import region_d2
 
-    print(f"A camera and a 2D scanner, {poses} boards, as a pair and as a rig, posterior of {samples} effective "
-          f"samples: {n} folders (seeds 0-{n - 1})")
+    print(f"A camera and a 2D scanner ({config} configuration), {poses} boards, as a pair and as a rig, posterior of "
+          f"{samples} effective samples: {n} folders (seeds 0-{n - 1})")
     print("seed  verdict rig / pair  masses rig / pair            rig-pair deg  rig-pair mm  "
           "truth d2/99.9% rig      pair")
     wrong = {"rig": [], "pair": []}
     inside = {"rig": 0, "pair": 0}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(n):
-            folder = simulate_dataset(Path(tmp) / f"pair{seed}", n_poses=poses, seed=seed, lidar="2d")
+            folder = simulate_dataset(Path(tmp) / f"pair{seed}", n_poses=poses, seed=seed, lidar="2d",
+                                      rig_config=config)
             T_true = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
             try:
                 pair = calibrate(folder, samples=samples)
@@ -100,9 +102,11 @@ def main() -> None:
     ap.add_argument("--scanner", action="store_true", help="a 2D scanner's pair folders (see the docstring)")
     ap.add_argument("--poses", type=int, default=3, help="boards per scanner folder (default 3)")
     ap.add_argument("--samples", type=int, default=500, help="effective posterior samples per engine (--scanner)")
+    ap.add_argument("--config", default="default", help="the simulator's 2D configuration (--scanner): default, "
+                                                         "varied or mounted")
     a = ap.parse_args()
     if a.scanner:
-        scanner_rows(a.rigs, a.poses, a.samples)
+        scanner_rows(a.rigs, a.poses, a.samples, a.config)
         return
     options = RefinementOptions(refine_intrinsics=a.refine_intrinsics)
     print(f"One camera and one HDL-64E-like LiDAR, 10 poses, as a rig and as a pair: {a.rigs} rigs "
