@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..errors import LidarcamError
 from ..solvers.posterior import ModeCells
 from ..solvers.rig_posterior import mix_modes
 
@@ -72,18 +73,21 @@ def in_cells(solution, cells: tuple) -> bool:
 def mixed_posterior(solution, minima: dict, solve, sample, rng: np.random.Generator, warnings: list[str]):
     """The rig's posterior about ``solution`` (``sample(solution, cells)`` draws one), mixed over the joint minima
     of the pairs with several (``minima``; module docstring) that ``solve(T_ref_start)`` reaches within their
-    cells; a minimum that slides to another's is said in ``warnings`` and its mass given to the rest."""
+    cells; a minimum that slides to another's, or cannot be solved or sampled, is said in ``warnings`` and its mass
+    given to the rest."""
     starts = joint_starts(minima, solution.T_ref, solution.reference)
     if not starts or not in_cells(solution, starts[0][2]):  # (the joint graph moved off its pair's first minimum)
         return sample(solution, ())
     parts = [(sample(solution, starts[0][2]), starts[0][1])]
     for start, mass, cells in starts[1:]:
-        other = solve(start)
-        if not in_cells(other, cells):
-            warnings.append(f"a joint minimum ({mass:.0%} of the mass) slid to another when solved from its pair's: "
+        try:
+            other = solve(start)
+            if not in_cells(other, cells):
+                raise LidarcamError("solved from its pair's, it slid to another")
+            parts.append((sample(other, cells), mass))
+        except LidarcamError as exc:
+            warnings.append(f"a joint minimum ({mass:.0%} of the mass) is not in the posterior ({exc.message}): "
                             "the posterior mixes the others")
-            continue
-        parts.append((sample(other, cells), mass))
     if len(parts) == 1:
         return parts[0][0]
     return replace(mix_modes(parts, rng), mixed=tuple(sorted({(c, d) for _, c, d, _ in starts[0][2]})))
