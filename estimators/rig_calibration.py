@@ -72,6 +72,8 @@ class PairsAlone:
     ambiguous : dict
         The pairs whose own boards leave a second minimum with at least ``AMBIGUOUS_MASS``: ``(camera, lidar) ->
         modes``.
+    with_ends : frozenset
+        The scanners whose pairs were solved with their segment ends (few boards).
     minima : dict
         Every pair solved with its segment ends whose boards leave more than one minimum holding mass, ``(camera,
         lidar) -> modes``: the rig's posterior mixes them (``pipeline.rig_modes``), as a single pair's does.
@@ -90,6 +92,7 @@ class PairsAlone:
     sigma_r: dict
     term_choices: dict
     ambiguous: dict
+    with_ends: frozenset
     minima: dict
     skipped: dict
     first: tuple
@@ -125,9 +128,12 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     pairwise, links, pair_frames, ambiguous, minima = {}, {}, {}, {}, {}
     first: list[str] = []
     warnings: list[str] = []
+    with_ends = set()
     for lid in rig.lidars:
         seen = {f.name for (_, d), frames in frames_by_pair.items() if d == lid.name for f in frames if f.usable}
         ends = scanner_ends and lid.lidar == "2d" and len(seen) <= _few_boards()
+        if ends:
+            with_ends.add(lid.name)
         for (cam_name, lid_name), frames in frames_by_pair.items():
             if lid_name != lid.name:
                 continue
@@ -175,7 +181,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
         if lidar_obs[lid.name]:
             sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
-                      ambiguous, minima, skipped, tuple(first), tuple(warnings))
+                      ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings))
 
 
 def _few_boards() -> int:
@@ -374,7 +380,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif edged and rig.board.size_known:
         lidar_views, solution, edge_records, conflict = with_edges(rig, names, camera_views, lidar_views, lidar_obs,
                                                                    solution, T_ref, T_ref_board, refine_intrinsics,
-                                                                   edged, default=edges is None)
+                                                                   edged, edges is None, alone_fit.with_ends)
         for name, record in edge_records.items():
             if record.get("left_out"):
                 warnings.append(f"{name}: {left_out_warning(record['left_out'])}")
@@ -432,7 +438,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         note = heavy_tails(posterior.pair_samples(a, b), what=f"T_{a}_{b} posterior")
         if note is not None:
             warnings.append(note)
-    warnings[:0] = unobservable_scanners(replace(result, posterior=posterior), edged)
+    warnings[:0] = unobservable_scanners(replace(result, posterior=posterior), {lv.name for lv in lidar_views
+                                                                                if lv.edges})
     next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
@@ -465,7 +472,8 @@ def unobservable_scanners(result: RigResult, edged: set) -> list[str]:
     """A warning for each camera-scanner pair whose transform the rig leaves nearly unobservable, as a single
     pair's answer would be refused (``refusal.scan_refusal``): its posterior's spread beyond
     ``POSTERIOR_REFUSAL_FACTOR`` times the limits when sampled, else the graph's covariance beyond them. The rest
-    of the rig stands; that pair's transform is not an answer. ``edged``: the LiDARs whose ends are in the graph."""
+    of the rig stands; that pair's transform is not an answer. ``edged``: the LiDARs whose ends are in the graph
+    (found on their boards, not merely asked for)."""
     out = []
     for c in result.rig.cameras:
         for d in result.rig.lidars:
