@@ -26,7 +26,7 @@ from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
 from .pipeline.measurement import Hints
-from .pipeline.rig_edges import pairs_outline_checks, with_edges
+from .pipeline.rig_edges import ends_view, pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_modes import mixable_minima, mixed_posterior
@@ -314,6 +314,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     def joint(fit: PairsAlone):
         views = [lidar_views_of(lid.name, fit.sigma_r[lid.name], fit.plane_frames[lid.name], T_ref_board, rig.board,
                                 lid.lidar == "2d", alone) for lid in rig.lidars if fit.lidar_obs[lid.name]]
+        # A scanner of so few boards that its pairs took their segment ends has them from the first joint solve
+        # (under its start): its planes alone leave its pose free (the graph's information singular, or the pose
+        # astray), which the single pair never solves without them either.
+        views = [ends_view(lv, rig.board, fit.lidar_obs[lv.name], T_ref[lv.name], T_ref_board)
+                 if lv.name in fit.with_ends else lv for lv in views]
         return views, solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
 
     lidar_views, solution = joint(alone_fit)
@@ -380,7 +385,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif edged and rig.board.size_known:
         lidar_views, solution, edge_records, conflict = with_edges(rig, names, camera_views, lidar_views, lidar_obs,
                                                                    solution, T_ref, T_ref_board, refine_intrinsics,
-                                                                   edged, edges is None, alone_fit.with_ends)
+                                                                   edged, default=edges is None)
         for name, record in edge_records.items():
             if record.get("left_out"):
                 warnings.append(f"{name}: {left_out_warning(record['left_out'])}")

@@ -21,20 +21,19 @@ from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set,
-               default: bool = False, started: frozenset = frozenset()) -> tuple[list, RigSolution, dict,
-                                                                                 np.ndarray | None]:
+               default: bool = False) -> tuple[list, RigSolution, dict, np.ndarray | None]:
     """:func:`_with_edges`; by ``default`` (``--edges`` not given), a 3D LiDAR whose edges carry its pose while
     something at the boards' sides moved them (``edges_in_graph.edges_left_out``) has them left out, as a single
     pair's, and the rest solved again: its record then says why (``left_out``) and keeps its pose and record with
     the edges (``with_edges``)."""
     out = _with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref, T_ref_board,
-                      refine_intrinsics, which, started)
+                      refine_intrinsics, which)
     left = {n: why for n, r in out[2].items() if default and (why := edges_left_out(r)) is not None}
     if not left:
         return out
     rest = which - set(left)  # the others' edges, solved again without the left-out ones
     views, solved, records, share = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref,
-                                               T_ref_board, refine_intrinsics, rest, default, started) if rest else \
+                                               T_ref_board, refine_intrinsics, rest, default) if rest else \
         (lidar_views, solution, {}, None)
     records = dict(records)
     for n, why in left.items():
@@ -43,34 +42,21 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
 
 
 def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set,
-                started: frozenset = frozenset()) -> tuple[list, RigSolution, dict, np.ndarray | None]:
+                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
+                ) -> tuple[list, RigSolution, dict, np.ndarray | None]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
     per LiDAR (its sides' growth and the pattern's offset, under their priors); the scatter and the ends' scale
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
-    Only the LiDARs named in ``which`` have their edges. A LiDAR in ``started`` (a scanner of so few boards that its
-    pairs were solved with their segment ends, which its planes alone cannot replace) has its ends assigned under
-    its start (``T_ref``, ``T_ref_board``): under the joint planes alone a 3-board scanner's pose went 12 degrees
-    and 1.2 m astray, no end was found on a board and the graph kept that pose. Each 3D LiDAR's pose is tested
-    against the planes alone (:func:`planes_against_edges`); where they conflict, the joint covariance holds both
-    answers (:func:`conflict_share`, added to the solution's). Returns the views, the solution, per LiDAR its record (ends,
+    Only the LiDARs named in ``which`` have their edges. Each 3D LiDAR's pose is tested against the planes alone
+    (:func:`planes_against_edges`); where they conflict, the joint covariance holds both answers
+    (:func:`conflict_share`, added to the solution's). Returns the views, the solution, per LiDAR its record (ends,
     scale, scatter, outline, the test) and the conflict's share (None when none), which the posterior's samples
-    are convolved with."""
-    views = []
-    for lv in lidar_views:
-        if lv.name not in which:
-            views.append(lv)
-            continue
-        obs = lidar_obs[lv.name]
-        T_l, boards = (T_ref[lv.name], T_ref_board) if lv.name in started else \
-            (solution.T_ref[lv.name], solution.T_ref_board)
-        stems = [st for st in lv.W if st in boards]
-        ends = lidar_crossings([obs[st] for st in stems], [np.linalg.inv(boards[st]) @ T_l for st in stems],
-                               rig.board)
-        found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
-        views.append(replace(lv, edges=found or None, board=rig.board, edge_tau_m=1e-3, edge_scale=1.0))
+    are convolved with. (A scanner of so few boards that its pairs took their ends has them in ``solution``
+    already, from ``rig_calibration``'s first joint solve.)"""
+    views = [ends_view(lv, rig.board, lidar_obs[lv.name], solution.T_ref[lv.name], solution.T_ref_board)
+             if lv.name in which else lv for lv in lidar_views]
     if not any(v.edges for v in views):
         return lidar_views, solution, {}, None
     planes = solution
@@ -109,6 +95,17 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     if share is not None:
         solution = replace(solution, covariance_joint=solution.covariance_joint + share)
     return views, solution, records, share
+
+
+def ends_view(lv, board, obs: dict, T_ref_l: np.ndarray, T_ref_board: dict):
+    """LiDAR view ``lv`` with its ring or segment ends (``obs``: its board observations by stem) assigned to the
+    board's sides under its pose ``T_ref_l`` and the boards' ``T_ref_board``, at the edges' starting scatter and
+    scale (``_with_edges`` estimates them)."""
+    stems = [st for st in lv.W if st in T_ref_board]
+    ends = lidar_crossings([obs[st] for st in stems], [np.linalg.inv(T_ref_board[st]) @ T_ref_l for st in stems],
+                           board)
+    found = {st: e for st, e in zip(stems, ends) if e is not None and e.size}
+    return replace(lv, edges=found or None, board=board, edge_tau_m=1e-3, edge_scale=1.0)
 
 
 def planes_against_edges(planes: RigSolution, edged: RigSolution, name: str) -> dict | None:
