@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from .calibration import INTRINSICS_ROUNDS, solve
 from .camera.board_pose import reobserve_frames
-from .errors import DatasetError, DegenerateLayoutError, LidarcamError
+from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from .io.measurement_store import RigMeasurements
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
@@ -423,17 +423,20 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict))
-        posterior = mixed_posterior(
-            sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
-            lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
-            lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
-                                                    likelihood=likelihood, cells=cells), rng, warnings)
+        try:
+            posterior = mixed_posterior(
+                sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
+                lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
+                lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
+                                                        likelihood=likelihood, cells=cells), rng, warnings)
+        except PosteriorSkippedError as exc:
+            warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,
         # convolved in as a single pair's posterior does.
-        for share in (s for s in (pinned_share, conflict, intrinsics_share) if s is not None):
+        for share in (s for s in (pinned_share, conflict, intrinsics_share) if s is not None and posterior is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(share)), share, len(posterior.xi), method="eigh"))
-        if not posterior.run.converged:
+        if posterior is not None and not posterior.run.converged:
             warnings.append(f"the rig's posterior did not converge in {posterior.run.chain.shape[0]} steps "
                             f"({posterior.run.ess:.0f} effective samples): its intervals are rough")
     t_post = time.perf_counter()

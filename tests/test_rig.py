@@ -1107,6 +1107,23 @@ def test_a_scanner_of_three_boards_keeps_the_start_its_segment_ends_gave_it_in_t
     assert x @ np.linalg.solve(C, x) < 22.5
 
 
+def test_a_posterior_the_sampler_refuses_is_said_and_the_graphs_covariance_stands(sim_2d, monkeypatch):
+    # emcee raised a ValueError (no autocorrelation time: NaN) on a 3-board scanner's second minimum (varied seed
+    # 16), and calibrate_rig let it through. A refused chain is a PosteriorSkippedError: a second minimum is left out
+    # of the mixture with its reason, and a rig whose only chain is refused keeps the graph's covariance, said.
+    import estimators.solvers.rig_posterior as rp
+
+    def refuse(*args, **kwargs):
+        raise ValueError("cannot convert float NaN to integer")
+
+    monkeypatch.setattr(rp, "run_chain", refuse)
+    res = calibrate_rig(load_rig(sim_2d), np.random.default_rng(0), advise=False, samples=200)
+    assert res.posterior is None
+    assert any("the rig's posterior was not sampled (the sampler refused the problem" in w for w in res.warnings)
+    T, C = res.solution.transform("cam0", "lidar0")
+    np.testing.assert_allclose(res.pair("cam0", "lidar0").covariance, C)
+
+
 def test_the_rigs_minima_are_one_pair_a_scanner_and_every_combination_of_two_scanners_minima():
     # Which pairs' minima the rig's posterior mixes (rig_modes.mixable_minima): one holding all its scanner's boards,
     # one pair a scanner (a second camera that saw the same boards sees the same minima); and the joint starts

@@ -54,7 +54,7 @@ import numpy as np
 
 from geometry.rotations import exp_batch, log_batch
 
-from ..errors import LidarcamError
+from ..errors import LidarcamError, PosteriorSkippedError
 from .board_edges import EndTerms, outline_prior_sd
 from .factors import lidar_plane, lidar_residual
 from .noise_levels import robust_weight
@@ -552,7 +552,11 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
-    keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior", pilot=bool(cells))
+    try:
+        keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior", pilot=bool(cells))
+    except ValueError as exc:  # emcee refuses a degenerate ensemble or a chain without an autocorrelation time
+        raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
+                                    hint="the covariance is the graph's Laplace one") from exc
     m = len(keep)
     dt = rng.multivariate_normal(np.zeros(n_t), S_tt, m, method="eigh") if n_t else np.zeros((m, 0))
     keep[:, :n_p] += dt @ gain.T
