@@ -428,7 +428,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
                 lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
                 lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
-                                                        likelihood=likelihood, cells=cells), rng, warnings)
+                                                        likelihood=likelihood, cells=cells,
+                                                        exact_ends=alone_fit.with_ends), rng, warnings)
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,

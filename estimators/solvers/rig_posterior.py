@@ -60,6 +60,7 @@ from .factors import lidar_plane, lidar_residual
 from .noise_levels import robust_weight
 from .sampler import ChainResult, mixture_picks, run_ensemble, run_with_proposal
 from .factor_graph import CameraViews, LidarViews, rig_corner_residuals
+from .graph_keys import edge_shift_key, outline_key
 from .rig_graph import RigSolution, change_reference, graph_reference
 
 # The prior's sd of ``log s``, the camera side's noise scale, in every posterior (a pair's and a rig's).
@@ -479,19 +480,31 @@ class RigLikelihood:
         return out
 
 
+def scan_end_terms(lv: LidarViews, solution: RigSolution) -> EndTerms:
+    """A scanner's segment ends in the joint graph as a single pair's refinement gives them (``EndTerms``): its ends,
+    its frames' outline shifts and its outline at ``solution``, and the ends' scale."""
+    k, stems = solution.names.index(lv.name), sorted(solution.T_ref_board)
+    shifts = {st: np.asarray(solution.vectors.get(edge_shift_key(k, stems.index(st)), np.zeros(2)), dtype=float)
+              for st in lv.edges if st in stems}
+    return EndTerms(dict(lv.edges), shifts, np.asarray(solution.vectors[outline_key(k)], dtype=float),
+                    float(lv.edge_scale))
+
+
 def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[CameraViews],
-                    lidars: list[LidarViews], h: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+                    lidars: list[LidarViews], exact: set = frozenset(), h: float = 1e-5
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The board edges' share of the log-posterior to second order about the MAP, as the single pair's posterior
     holds them: the information they add to the free sensors' tangents (the graph's with them less the graph's
     without them, both at the MAP, each sensor's own outline shifts and outline marginalised; negative
     directions clipped) and the gradient that makes the MAP stationary (the planes' and corners' gradient at it,
-    which the edges balance, by central differences of ``like``). Returns ``(A, b)`` for
+    which the edges balance, by central differences of ``like``). The LiDARs in ``exact`` (scanners whose ends
+    ``like`` holds by their own likelihood) keep their ends on both sides of the difference. Returns ``(A, b)`` for
     ``RigLikelihood.quadratic``."""
     from dataclasses import replace
 
     from .rig_graph import inner_covariance
 
-    planes = [replace(lv, edges=None) if lv.edges else lv for lv in lidars]
+    planes = [replace(lv, edges=None) if lv.edges and lv.name not in exact else lv for lv in lidars]
     C_p = inner_covariance(solution.names, solution.reference, cameras, planes, solution)
     A = np.linalg.inv(solution.covariance_inner) - np.linalg.inv(C_p)
     ev, V = np.linalg.eigh(0.5 * (A + A.T))
@@ -504,7 +517,8 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
 
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                          rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000,
-                         likelihood: str = "gaussian", nu: float = 4.0, cells: tuple = ()) -> RigPosterior:
+                         likelihood: str = "gaussian", nu: float = 4.0, cells: tuple = (),
+                         exact_ends: frozenset = frozenset()) -> RigPosterior:
     """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
 
     Parameters
@@ -526,6 +540,10 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         For each camera-LiDAR pair whose boards leave several minima, ``(ModeCells, camera, lidar, k)``: sampled
         within minimum ``k``'s cell (:class:`RigLikelihood`), the walkers started about the estimate and the
         proposal tuned by a pilot run.
+    exact_ends : frozenset
+        The scanners whose segment ends enter by their own likelihood, as a single pair's do (its outline sampled
+        too, the walkers started about the estimate and the proposal tuned by a pilot run), not to second order
+        about the estimate: a scanner of few boards, whose ends' likelihood is far from a Gaussian's.
 
     Returns
     -------
@@ -535,9 +553,10 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     # Each LiDAR's range terms held at the MAP, as a single pair's posterior holds them: their share of the poses'
     # covariance is convolved into the samples below (marginal intervals), with the terms' own samples.
     held = [hold_terms(lv, solution.range_terms[lv.name][0]) if lv.has_terms else lv for lv in lidars]
-    like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu, cells=cells)
-    if any(lv.edges for lv in lidars):
-        like.quadratic = edges_quadratic(like, solution, cameras, lidars)
+    ends = {lv.name: scan_end_terms(lv, solution) for lv in lidars if lv.name in exact_ends and lv.edges}
+    like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu, cells=cells, ends=ends)
+    if any(lv.edges and lv.name not in ends for lv in lidars):
+        like.quadratic = edges_quadratic(like, solution, cameras, lidars, set(ends))
     names = solution.names
     n_p = like.nx
     n_t = sum(lv.terms.size for lv in lidars if lv.has_terms)  # the held terms' count
@@ -553,7 +572,8 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
     try:
-        keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior", pilot=bool(cells))
+        keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior",
+                              pilot=bool(cells) or bool(ends))
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a chain without an autocorrelation time
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the graph's Laplace one") from exc
