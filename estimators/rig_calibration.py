@@ -423,13 +423,18 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict))
+        def from_start(start: dict):  # a scanner's ends assigned under this minimum, at their scatter and scale
+            lvs = [replace(ends_view(lv, rig.board, lidar_obs[lv.name], start[lv.name], sampled.T_ref_board),
+                           edge_tau_m=lv.edge_tau_m, edge_scale=lv.edge_scale)
+                   if lv.edges and lv.name in alone_fit.with_ends else lv for lv in lidar_views]
+            return solve_rig(names, rig.reference, views, lvs, start, sampled.T_ref_board, False), lvs
+
         try:
             posterior = mixed_posterior(
-                sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
-                lambda start: solve_rig(names, rig.reference, views, lidar_views, start, sampled.T_ref_board, False),
-                lambda sol, cells: sample_rig_posterior(sol, views, lidar_views, rng, min_ess=samples,
-                                                        likelihood=likelihood, cells=cells,
-                                                        exact_ends=alone_fit.with_ends), rng, warnings)
+                sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames), from_start,
+                lambda sol, lvs, cells: sample_rig_posterior(sol, views, lidar_views if lvs is None else lvs, rng,
+                                                             min_ess=samples, likelihood=likelihood, cells=cells,
+                                                             exact_ends=alone_fit.with_ends), rng, warnings)
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,

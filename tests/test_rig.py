@@ -1087,6 +1087,25 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
     assert np.median(np.einsum("ij,ij->i", d, np.linalg.solve(C2, d.T).T)) < 20
 
 
+def test_a_scanners_second_minimum_is_solved_with_its_ends_assigned_under_it(tmp_path):
+    # A 3-board varied folder (seed 23) whose boards leave two minima (66%, 34%; the truth the second's): solved from
+    # the second with the ends assigned to the board's sides under the first, the joint graph slid back to the
+    # first, and the posterior held the first alone (the truth at d2 178 beyond its region of 42). Each joint
+    # minimum now has the scanner's ends assigned under it, as its pair's refinement had them: both are mixed, and
+    # the truth lies within the region.
+    from estimators.simulation.simulator import simulate_dataset
+    from estimators.solvers.posterior import region_d2
+
+    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=23, lidar="2d", rig_config="varied")
+    truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, samples=200)
+    assert res.posterior.mixed == (("cam0", "lidar0"),) and len(res.posterior.mode_weights) == 2
+    assert "the intervals cover them all" in res.verdict.line
+    pe = res.pair("cam0", "lidar0")
+    x = T_log(np.linalg.inv(pe.T) @ truth)
+    assert x @ np.linalg.solve(pe.covariance, x) <= region_d2(pe.samples, 0.999)
+
+
 @pytest.mark.parametrize("seed", [7, 8])
 def test_a_scanner_of_three_boards_keeps_the_start_its_segment_ends_gave_it_in_the_joint_graph(tmp_path, seed):
     # 3-board 2D pair folders whose pair, solved with its segment ends, lands near the truth (d2 3.8 and 5.1). The

@@ -71,20 +71,22 @@ def in_cells(solution, cells: tuple) -> bool:
 
 
 def mixed_posterior(solution, minima: dict, solve, sample, rng: np.random.Generator, warnings: list[str]):
-    """The rig's posterior about ``solution`` (``sample(solution, cells)`` draws one), mixed over the joint minima
-    of the pairs with several (``minima``; module docstring) that ``solve(T_ref_start)`` reaches within their
-    cells; a minimum that slides to another's, or cannot be solved or sampled, is said in ``warnings`` and its mass
-    given to the rest."""
+    """The rig's posterior about ``solution`` (``sample(solution, views, cells)`` draws one; ``views`` None: the
+    LiDAR views of the estimate), mixed over the joint minima of the pairs with several (``minima``; module
+    docstring) that ``solve(T_ref_start)`` reaches within their cells (it returns the minimum and the LiDAR views
+    it was solved with: a scanner's ends assigned to the board's sides under that start, as its pair's refinement
+    of that minimum assigned them); a minimum that slides to another's, or cannot be solved or sampled, is said in
+    ``warnings`` and its mass given to the rest."""
     starts = joint_starts(minima, solution.T_ref, solution.reference)
     if not starts or not in_cells(solution, starts[0][2]):  # (the joint graph moved off its pair's first minimum)
-        return sample(solution, ())
-    parts = [(sample(solution, starts[0][2]), starts[0][1])]
+        return sample(solution, None, ())
+    parts = [(sample(solution, None, starts[0][2]), starts[0][1])]
     for start, mass, cells in starts[1:]:
         try:
-            other = solve(start)
+            other, views = solve(start)
             if not in_cells(other, cells):
                 raise LidarcamError("solved from its pair's, it slid to another")
-            parts.append((sample(other, cells), mass))
+            parts.append((sample(other, views, cells), mass))
         except LidarcamError as exc:
             warnings.append(f"a joint minimum ({mass:.0%} of the mass) is not in the posterior ({exc.message}): "
                             "the posterior mixes the others")
