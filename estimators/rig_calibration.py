@@ -29,7 +29,7 @@ from .pipeline.measurement import Hints
 from .pipeline.rig_edges import ends_view, pairs_outline_checks, with_edges
 from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_views_of, lidar_views_of,
                                        given_measurements, measured_rig, pattern_flip, start_poses)
-from .pipeline.rig_modes import mixable_minima, mixed_posterior
+from .pipeline.rig_modes import minimum_solver, mixable_minima, mixed_posterior
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
@@ -423,15 +423,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict))
-        def from_start(start: dict):  # a scanner's ends assigned under this minimum, at their scatter and scale
-            lvs = [replace(ends_view(lv, rig.board, lidar_obs[lv.name], start[lv.name], sampled.T_ref_board),
-                           edge_tau_m=lv.edge_tau_m, edge_scale=lv.edge_scale)
-                   if lv.edges and lv.name in alone_fit.with_ends else lv for lv in lidar_views]
-            return solve_rig(names, rig.reference, views, lvs, start, sampled.T_ref_board, False), lvs
-
         try:
             posterior = mixed_posterior(
-                sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames), from_start,
+                sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
+                minimum_solver(sampled, views, lidar_views, alone_fit.with_ends, rig.board, lidar_obs),
                 lambda sol, lvs, cells: sample_rig_posterior(sol, views, lidar_views if lvs is None else lvs, rng,
                                                              min_ess=samples, likelihood=likelihood, cells=cells,
                                                              exact_ends=alone_fit.with_ends), rng, warnings)

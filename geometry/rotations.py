@@ -185,6 +185,25 @@ def log_batch(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.hstack([omega, np.einsum("nij,nj->ni", J_inv, np.asarray(t, dtype=float).reshape(-1, 3))])
 
 
+def retract_batch(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T_hat Exp(xi)`` for each row of (n, 6) ``xi``: rotations (n, 3, 3) and translations (n, 3)."""
+    dR, dt = exp_batch(xi)
+    return T_hat[:3, :3] @ dR, T_hat[:3, 3] + dt @ T_hat[:3, :3].T
+
+
+def local_batch(T_hat: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The rows ``xi`` with ``T_hat Exp(xi) = (R, t)`` for each pose (rotations (n, 3, 3), translations (n, 3)):
+    :func:`T_local` of a stack, the inverse of :func:`retract_batch`."""
+    Rh, th = T_hat[:3, :3], T_hat[:3, 3]
+    return log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
+
+
+def retangent_batch(T_from: np.ndarray, xi: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """Right tangents at ``T_from`` carried to ``T_to``: the rows ``x`` with ``T_to Exp(x) = T_from Exp(xi)`` (one
+    minimum's samples in another's tangent)."""
+    return local_batch(T_to, *retract_batch(T_from, xi))
+
+
 def T_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """Right perturbation ``T Exp(xi)``, the tangent convention of every covariance in lidarcam."""
     return T @ T_exp(xi)

@@ -22,9 +22,12 @@ from geometry.rotations import (
     T_log,
     T_retract,
     exp_batch,
+    local_batch,
     log_batch,
     quat_xyzw_from_R,
     random_rotation,
+    retangent_batch,
+    retract_batch,
     rotation_error,
     transform_points,
 )
@@ -56,6 +59,23 @@ def test_the_batched_se3_log_matches_gtsam_and_inverts_the_batched_exp(seed):
     for k in range(8):
         np.testing.assert_allclose(log_batch(R[k], t[k])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T_from_Rt(R[k], t[k]))),
                                    atol=1e-8)
+
+
+@given(seeds)
+def test_batched_retract_and_local_are_gtsams_and_carry_samples_between_tangents(seed):
+    # A sample T_a Exp(xi) read in another pose's tangent (one minimum's samples in another's): the x with
+    # T_b Exp(x) = T_a Exp(xi), as gtsam's retract and localCoordinates give it, to 1e-8.
+    rng = np.random.default_rng(seed)
+    T_a, T_b = (T_from_Rt(random_rotation(rng), rng.normal(size=3)) for _ in range(2))
+    T_b = T_a @ T_exp(rng.normal(0, 0.3, 6))  # near, as two minima of one transform are
+    xi = rng.normal(0, 0.05, (5, 6))
+    R, t = retract_batch(T_a, xi)
+    x = retangent_batch(T_a, xi, T_b)
+    for k in range(5):
+        T_k = gtsam.Pose3(T_a).retract(xi[k])
+        np.testing.assert_allclose(T_from_Rt(R[k], t[k]), T_k.matrix(), atol=1e-10)
+        np.testing.assert_allclose(x[k], gtsam.Pose3(T_b).localCoordinates(T_k), atol=1e-8)
+    np.testing.assert_allclose(local_batch(T_a, R, t), xi, atol=1e-8)
 
 
 @given(seeds)

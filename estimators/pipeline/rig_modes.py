@@ -17,7 +17,9 @@ import numpy as np
 
 from ..errors import LidarcamError
 from ..solvers.posterior import ModeCells
+from ..solvers.rig_graph import solve_rig
 from ..solvers.rig_posterior import mix_modes
+from .rig_edges import ends_view
 
 # Joint minima sampled at most (the most probable), when two ambiguous pairs multiply their minima.
 MAX_JOINT_MODES = 8
@@ -68,6 +70,20 @@ def in_cells(solution, cells: tuple) -> bool:
         if mode_cells.nearest(T[None, :3, :3], T[None, :3, 3])[0] != k:
             return False
     return True
+
+
+def minimum_solver(solution, camera_views: list, lidar_views: list, with_ends: frozenset, board, lidar_obs: dict):
+    """The ``solve(T_ref_start)`` of :func:`mixed_posterior`: the joint graph of ``solution`` solved again from a
+    start, each scanner of ``with_ends`` (its pairs solved with their segment ends) with its ends assigned to the
+    board's sides under that start (``rig_edges.ends_view``, its boards ``lidar_obs``), at the ends' scatter and
+    scale of the estimate; it returns the minimum and the LiDAR views it was solved with."""
+    def solve(start: dict):
+        lvs = [replace(ends_view(lv, board, lidar_obs[lv.name], start[lv.name], solution.T_ref_board),
+                       edge_tau_m=lv.edge_tau_m, edge_scale=lv.edge_scale)
+               if lv.edges and lv.name in with_ends else lv for lv in lidar_views]
+        return solve_rig(solution.names, solution.reference, camera_views, lvs, start, solution.T_ref_board,
+                         False), lvs
+    return solve
 
 
 def mixed_posterior(solution, minima: dict, solve, sample, rng: np.random.Generator, warnings: list[str]):

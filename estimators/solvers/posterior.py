@@ -41,7 +41,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
-from geometry.rotations import T_exp, T_log, exp_batch
+from geometry.rotations import T_exp, T_log, retangent_batch
 
 from ..errors import DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from ..measurements import FrameMeasurement
@@ -364,12 +364,8 @@ def sample_posterior(frames: list[FrameMeasurement], board: BoardModel, camera: 
             xi_k = rng.multivariate_normal(np.zeros(6), r.covariance, len(main.xi))
             scale_k = np.ones(len(xi_k))
         # Each sample T_k Exp(xi) in the MAP's tangent.
-        R, t = exp_batch(xi_k)
-        T = np.tile(np.eye(4), (len(xi_k), 1, 1))
-        T[:, :3, :3], T[:, :3, 3] = R, t
-        rel = np.linalg.inv(ref.T_camera_lidar) @ r.T_camera_lidar
-        parts.append((np.array([T_log(rel @ Tk) for Tk in T]), scale_k, m))
-        centers.append(T_log(rel))
+        parts.append((retangent_batch(r.T_camera_lidar, xi_k, ref.T_camera_lidar), scale_k, m))
+        centers.append(T_log(np.linalg.inv(ref.T_camera_lidar) @ r.T_camera_lidar))
     w = np.array([m for _, _, m in parts], dtype=float)
     w = w / w.sum()
     xi, scale, index = [], [], []

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from geometry.rotations import exp_batch, log_batch
+from geometry.rotations import local_batch, retangent_batch, retract_batch
 
 from ..errors import LidarcamError, PosteriorSkippedError
 from .board_edges import EndTerms, outline_prior_sd
@@ -115,9 +115,7 @@ class RigPosterior:
         Rb, tb = self._sensor_poses(b)
         R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
         t_ab = np.einsum("nji,nj->ni", Ra, tb - ta)
-        T_hat = np.linalg.inv(self.T_ref[a]) @ self.T_ref[b]
-        Rh, th = T_hat[:3, :3], T_hat[:3, 3]
-        return log_batch(np.einsum("ji,njk->nik", Rh, R_ab), (t_ab - th) @ Rh)
+        return local_batch(np.linalg.inv(self.T_ref[a]) @ self.T_ref[b], R_ab, t_ab)
 
     def diagnostics(self) -> dict:
         out = {"likelihood": self.likelihood, **self.run.diagnostics(), "samples_kept": int(self.xi.shape[0])}
@@ -128,7 +126,7 @@ class RigPosterior:
     def _sensor_poses(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Every sample's ``T_ref_name`` (rotations, translations), made once."""
         if name not in self._sensor_T:
-            self._sensor_T[name] = _poses(self.T_ref[name], self._block(name))
+            self._sensor_T[name] = retract_batch(self.T_ref[name], self._block(name))
         return self._sensor_T[name]
 
     def _block(self, name: str) -> np.ndarray:
@@ -144,12 +142,6 @@ def _forward(L: np.ndarray, b: np.ndarray) -> np.ndarray:
     for i in range(b.shape[-1]):
         z[..., i] = (b[..., i] - np.einsum("...j,...j->...", L[..., i, :i], z[..., :i])) / L[..., i, i]
     return z
-
-
-def _poses(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``T_hat Exp(xi)`` for each row of ``xi``: rotations (n, 3, 3) and translations (n, 3)."""
-    dR, dt = exp_batch(xi)
-    return T_hat[:3, :3] @ dR, T_hat[:3, 3] + dt @ T_hat[:3, :3].T
 
 
 class RigLikelihood:
@@ -389,7 +381,7 @@ class RigLikelihood:
         logdet_c = np.zeros(n)
         r2 = {n: np.exp(2.0 * theta[:, k])[None, :, None] for n, k in self.r_column.items()}
         for k0, T_hat, idx, Wt, normals, offsets, scan, G, signs, E0, lam, name in self.lidar_terms:
-            R, t = _poses(T_hat, theta[:, k0:k0 + 6])
+            R, t = retract_batch(T_hat, theta[:, k0:k0 + 6])
             pi = np.empty((len(idx), n, 4))
             pi[..., :3] = np.tensordot(normals, R, axes=([1], [1]))  # R^T n
             pi[..., 3] = normals @ t.T - offsets[:, None]
@@ -436,7 +428,7 @@ class RigLikelihood:
             x = theta[:, :self.nx]
             out += -0.5 * np.sum((x @ A) * x, axis=1) + x @ b
         for name, end_set, k in self.end_sets:  # each scanner's segment ends at its pose, its outline under its prior
-            R, t = _poses(self.T[name], theta[:, self.col[name]:self.col[name] + 6])
+            R, t = retract_batch(self.T[name], theta[:, self.col[name]:self.col[name] + 6])
             Ts = np.tile(np.eye(4), (n, 1, 1))
             Ts[:, :3, :3], Ts[:, :3, 3] = R, t
             outline = self.outline_map[name] + theta[:, k:k + 4]  # sampled as its departure from the estimate
@@ -452,7 +444,7 @@ class RigLikelihood:
         """Sensor ``name``'s pose in the graph's reference camera's frame at each walker's tangents."""
         if name == self.inner:
             return np.broadcast_to(np.eye(3), (len(theta), 3, 3)), np.zeros((len(theta), 3))
-        return _poses(self.T[name], theta[:, self.col[name]:self.col[name] + 6])
+        return retract_batch(self.T[name], theta[:, self.col[name]:self.col[name] + 6])
 
     def start(self, rng: np.random.Generator, covariance: np.ndarray, walkers: int) -> np.ndarray:
         """Walkers about the graph's estimate: the poses from its covariance, ``log s`` near 0, the outline
@@ -583,7 +575,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     # Each sample's poses in the graph's frame, then in the rig's reference frame, as right tangents at the MAP.
     R_in, t_in = {like.inner: np.broadcast_to(np.eye(3), (m, 3, 3))}, {like.inner: np.zeros((m, 3))}
     for k, n in enumerate(like.free):
-        R_in[n], t_in[n] = _poses(like.T[n], keep[:, 6 * k:6 * k + 6])
+        R_in[n], t_in[n] = retract_batch(like.T[n], keep[:, 6 * k:6 * k + 6])
     ref = solution.reference
     xi = np.zeros((m, 6 * len(names)))
     for k, n in enumerate(names):
@@ -591,8 +583,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
             continue
         R = np.einsum("nji,njk->nik", R_in[ref], R_in[n])
         t = np.einsum("nji,nj->ni", R_in[ref], t_in[n] - t_in[ref])
-        Rh, th = solution.T_ref[n][:3, :3], solution.T_ref[n][:3, 3]
-        xi[:, 6 * k:6 * k + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
+        xi[:, 6 * k:6 * k + 6] = local_batch(solution.T_ref[n], R, t)
     terms, at = {}, 0
     for lv in lidars:
         if lv.has_terms:
@@ -613,9 +604,7 @@ def mix_modes(parts: list[tuple[RigPosterior, float]], rng: np.random.Generator)
         x = p.xi[pick].copy()
         for j, n in enumerate(p.names):
             if n != p.reference and k > 0:
-                R, t = _poses(p.T_ref[n], x[:, 6 * j:6 * j + 6])
-                Rh, th = first.T_ref[n][:3, :3], first.T_ref[n][:3, 3]
-                x[:, 6 * j:6 * j + 6] = log_batch(np.einsum("ji,njk->nik", Rh, R), (t - th) @ Rh)
+                x[:, 6 * j:6 * j + 6] = retangent_batch(p.T_ref[n], x[:, 6 * j:6 * j + 6], first.T_ref[n])
         xi.append(x)
         scale.append(p.camera_scale[pick])
         index.append(np.full(len(pick), k))
