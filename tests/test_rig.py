@@ -1048,22 +1048,22 @@ def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d):
 
 
 def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_posterior_covers_both(tmp_path):
-    # A 3-board 2D pair folder (seed 1) whose boards leave two minima, 67% and 33% of the mass by their segment ends;
-    # the truth is the second's, 5 deg and 24 cm from the first. As a rig its scanner pair is solved as the single
-    # pair is (its ends weigh the minima), so the rig reads CHECK naming both. When its scanner pairs were solved
-    # from the planes alone it read OK, with the truth at d2 199 under its covariance. It lands on the pair's first
-    # minimum, and its posterior mixes both by the pair's masses (each sampled within its own cell), so the truth is
-    # within its 99.9% region (measured: d2 9.6 under the mixture's covariance).
+    # A 3-board 2D pair folder (seed 35) whose boards leave two minima, 84% and 16% of the mass by their segment ends;
+    # the truth is the second's. As a rig its scanner pair is solved as the single pair is (its ends weigh the
+    # minima), so the rig reads CHECK naming both (from the planes alone, a rig read OK on such a folder, seed 1
+    # before its segments kept their ends, with the truth at d2 199). It lands on the pair's first minimum (the
+    # truth at d2 201 under its covariance), and its posterior mixes both by the pair's masses (each sampled within
+    # its own cell), so the truth is within its 99.9% region (measured: d2 15 of 33 under the mixture's covariance).
     from dataclasses import replace
 
     from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.posterior import region_d2
 
-    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=1, lidar="2d")
+    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=35, lidar="2d")
     truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, samples=500)
     modes = res.ambiguous_pairs[("cam0", "lidar0")]
-    assert len(modes) == 2 and 0.25 < modes[1].mass < 0.45
+    assert len(modes) == 2 and 0.1 < modes[1].mass < 0.25
     assert res.verdict.level == "CHECK", res.verdict
     assert res.verdict.reasons[0].startswith("T_cam0_lidar0: 2 solutions fit its boards") and \
         "the intervals cover them all" in res.verdict.reasons[0]
@@ -1088,15 +1088,15 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
 
 
 def test_a_scanners_second_minimum_is_solved_with_its_ends_assigned_under_it(tmp_path):
-    # A 3-board varied folder (seed 23) whose boards leave two minima (66%, 34%; the truth the second's): solved from
-    # the second with the ends assigned to the board's sides under the first, the joint graph slid back to the
-    # first, and the posterior held the first alone (the truth at d2 178 beyond its region of 42). Each joint
-    # minimum now has the scanner's ends assigned under it, as its pair's refinement had them: both are mixed, and
-    # the truth lies within the region.
+    # A 3-board varied folder (seed 25) whose boards leave two minima (65%, 35%; the truth the second's). Solved
+    # from the second with the ends assigned to the board's sides under the first, the joint graph slid back to the
+    # first on such a folder (seed 23, before its segments kept their ends), and the posterior held the first alone
+    # (the truth at d2 178 beyond its region of 42). Each joint minimum has the scanner's ends assigned under it, as
+    # its pair's refinement had them: both are mixed, and the truth lies within the region (measured: d2 8.6 of 51).
     from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.posterior import region_d2
 
-    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=23, lidar="2d", rig_config="varied")
+    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=25, lidar="2d", rig_config="varied")
     truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, samples=200)
     assert res.posterior.mixed == (("cam0", "lidar0"),) and len(res.posterior.mode_weights) == 2

@@ -216,6 +216,29 @@ def marginal_laser_costs(Ts: np.ndarray, frames: list[FrameMeasurement], sigma_r
     return total
 
 
+def plane_covariance(T: np.ndarray, frames: list[FrameMeasurement], sigma_r: float, step: float = 1e-3
+                     ) -> np.ndarray | None:
+    """The covariance (6 x 6, right tangent) of ``T_camera_lidar`` about ``T`` that the boards' planes give: the
+    inverse of half the Hessian of :func:`marginal_laser_costs` (a chi-square), by central differences of
+    ``step`` (rad, m); None where that Hessian is not positive definite (``T`` off a minimum, or a direction the
+    planes leave free)."""
+    eye = step * np.eye(6)
+    xi = [np.zeros(6)] + [s * eye[i] for i in range(6) for s in (1, -1)]
+    pairs = list(itertools.combinations(range(6), 2))
+    xi += [a * eye[i] + b * eye[j] for i, j in pairs for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
+    f = marginal_laser_costs(_retract(T, np.array(xi)), frames, sigma_r)
+    H = np.empty((6, 6))
+    for i in range(6):
+        H[i, i] = (f[1 + 2 * i] - 2 * f[0] + f[2 + 2 * i]) / step**2
+    for k, (i, j) in enumerate(pairs):
+        pp, pm, mp, mm = f[13 + 4 * k:17 + 4 * k]
+        H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4 * step**2)
+    ev, V = np.linalg.eigh(0.5 * H)
+    if not np.all(np.isfinite(ev)) or ev[0] <= 1e-9 * max(ev[-1], 1e-300):
+        return None
+    return (V / ev) @ V.T
+
+
 def extent_violation(Ts: np.ndarray, frames: list[FrameMeasurement], board: BoardModel) -> np.ndarray:
     """Largest distance (m) by which any board's laser segment end point, mapped by each ``T_camera_lidar``
     into the board's frame, falls outside the board's outline (0 when every end point is inside)."""
