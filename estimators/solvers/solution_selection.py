@@ -227,14 +227,18 @@ def plane_covariance(T: np.ndarray, frames: list[FrameMeasurement], sigma_r: flo
     pairs = list(itertools.combinations(range(6), 2))
     xi += [a * eye[i] + b * eye[j] for i, j in pairs for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
     f = marginal_laser_costs(_retract(T, np.array(xi)), frames, sigma_r)
+    if not np.all(np.isfinite(f)):
+        return None
     H = np.empty((6, 6))
     for i in range(6):
         H[i, i] = (f[1 + 2 * i] - 2 * f[0] + f[2 + 2 * i]) / step**2
     for k, (i, j) in enumerate(pairs):
         pp, pm, mp, mm = f[13 + 4 * k:17 + 4 * k]
         H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4 * step**2)
+    if not np.all(np.isfinite(H)):
+        return None
     ev, V = np.linalg.eigh(0.5 * H)
-    if not np.all(np.isfinite(ev)) or ev[0] <= 1e-9 * max(ev[-1], 1e-300):
+    if ev[0] <= 1e-9 * max(ev[-1], 1e-300):
         return None
     return (V / ev) @ V.T
 
