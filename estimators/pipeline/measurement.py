@@ -699,8 +699,8 @@ OUTLINE_BAND_M = 0.10  # and this far from the camera's board plane
 LINE_TRIM_M = 0.01
 # ... beyond TRIM_SDS standard deviations of where the extrinsic the cut is made under puts the segment's ends (the
 # minimal solution of three boards, a few centimetres off): cut at 0.01 m alone, real ends of the board went, the
-# segment ends then biased inward on one side, and 4 of 20 simulated 5-board scanner folders of the varied
-# configuration read OK with the truth beyond their 99.9% region (d2 28-51; uncut, 4-10).
+# segment ends then biased inward on one side, and 3 of 20 simulated 5-board scanner folders of the varied
+# configuration read OK with the truth beyond their 99.9% region (d2 28-51; cut so, 4-8).
 TRIM_SDS = 3.0
 
 
