@@ -12,6 +12,7 @@ from estimators.solvers.closed_form import normal_spread, solve_closed_form
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import Plane, fit_plane_pca, moment_matrix, sum_squared_distances
+from geometry.differences import central_hessian
 from geometry.rotations import (
     R_from_quat_xyzw,
     R_from_rotvec,
@@ -235,3 +236,16 @@ def test_a_point_far_outside_the_field_that_distortion_folds_into_the_image_is_n
     assert np.arctan(np.hypot(*folded[:2])) > field > np.arctan(np.hypot(*near[:2]))
     plain = CameraModel(K=cam.K, dist=np.zeros(5), width=1280, height=800)
     assert plain.field_angle() == pytest.approx(np.arctan(np.hypot(640, 400) / 640), abs=1e-9)
+
+
+def test_central_differences_give_a_quadratics_gradient_and_hessian_and_refuse_a_non_finite_value():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(4, 4))
+    A = A @ A.T
+    b = rng.normal(size=4)
+    x0 = rng.normal(size=4)
+    f0, grad, H = central_hessian(lambda X: 0.5 * np.einsum("ki,ij,kj->k", X, A, X) + X @ b, x0, np.full(4, 1e-3))
+    np.testing.assert_allclose(f0, 0.5 * x0 @ A @ x0 + x0 @ b, rtol=1e-12)
+    np.testing.assert_allclose(grad, A @ x0 + b, atol=1e-8)
+    np.testing.assert_allclose(H, A, atol=1e-6)
+    assert central_hessian(lambda X: np.where(X[:, 0] > x0[0], np.inf, 0.0), x0, np.full(4, 1e-3)) is None

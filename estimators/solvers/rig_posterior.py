@@ -52,6 +52,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from geometry.differences import central_hessian
 from geometry.rotations import local_batch, retangent_batch, retract_batch
 
 from ..errors import LidarcamError, PosteriorSkippedError
@@ -631,19 +632,13 @@ def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3)
     fallback = np.zeros((n, n))
     fallback[:len(cov), :len(cov)] = cov
     fallback[len(cov):, len(cov):] = np.diag(like.extra_sd() ** 2)
-    e = np.eye(n) * h
-    i, j = np.triu_indices(n, 1)
     x0, full = np.zeros(n), None
     for _ in range(newton_steps):
-        pts = np.vstack([x0, x0 + e, x0 - e, x0 + e[i] + e[j], x0 + e[i] - e[j], x0 - e[i] + e[j], x0 - e[i] - e[j]])
-        f = np.concatenate([like(pts[k:k + 256]) for k in range(0, len(pts), 256)])  # memory: 256 points at once
-        if not np.all(np.isfinite(f)):
+        found = central_hessian(lambda pts: np.concatenate([like(pts[k:k + 256]) for k in range(0, len(pts), 256)]),
+                                x0, h)  # memory: 256 points at once
+        if found is None:
             break
-        f0, fp, fm = f[0], f[1:n + 1], f[n + 1:2 * n + 1]
-        q = f[2 * n + 1:].reshape(4, -1)
-        grad = (fp - fm) / (2 * h)
-        H = np.diag((fp - 2 * f0 + fm) / h**2)
-        H[i, j] = H[j, i] = (q[0] - q[1] - q[2] + q[3]) / (4 * h[i] * h[j])
+        _, grad, H = found
         try:
             full = np.linalg.inv(-H)
             np.linalg.cholesky(full)

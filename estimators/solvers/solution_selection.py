@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 from . import chi_square as chi2
 
 from geometry.board import BoardModel
+from geometry.differences import central_hessian
 from geometry.rotations import T_inverse, exp_batch
 
 from ..errors import DegenerateLayoutError
@@ -222,21 +223,11 @@ def plane_covariance(T: np.ndarray, frames: list[FrameMeasurement], sigma_r: flo
     inverse of half the Hessian of :func:`marginal_laser_costs` (a chi-square), by central differences of
     ``step`` (rad, m); None where that Hessian is not positive definite (``T`` off a minimum, or a direction the
     planes leave free)."""
-    eye = step * np.eye(6)
-    xi = [np.zeros(6)] + [s * eye[i] for i in range(6) for s in (1, -1)]
-    pairs = list(itertools.combinations(range(6), 2))
-    xi += [a * eye[i] + b * eye[j] for i, j in pairs for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
-    f = marginal_laser_costs(_retract(T, np.array(xi)), frames, sigma_r)
-    if not np.all(np.isfinite(f)):
+    found = central_hessian(lambda xi: marginal_laser_costs(_retract(T, xi), frames, sigma_r), np.zeros(6),
+                            np.full(6, step))
+    if found is None or not np.all(np.isfinite(found[2])):
         return None
-    H = np.empty((6, 6))
-    for i in range(6):
-        H[i, i] = (f[1 + 2 * i] - 2 * f[0] + f[2 + 2 * i]) / step**2
-    for k, (i, j) in enumerate(pairs):
-        pp, pm, mp, mm = f[13 + 4 * k:17 + 4 * k]
-        H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4 * step**2)
-    if not np.all(np.isfinite(H)):
-        return None
+    H = found[2]
     ev, V = np.linalg.eigh(0.5 * H)
     if ev[0] <= 1e-9 * max(ev[-1], 1e-300):
         return None
