@@ -8,8 +8,9 @@ import numpy as np
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """The 3x3 matrix ``[v]_x`` with ``[v]_x w = v x w``."""
-    return skew_batch(np.asarray(v, dtype=float).reshape(1, 3))[0]
+    """The 3x3 matrix ``[v]_x`` with ``[v]_x w = v x w`` (written out: the graph's factors call it per evaluation)."""
+    x, y, z = np.asarray(v, dtype=float).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def skew_batch(v: np.ndarray) -> np.ndarray:

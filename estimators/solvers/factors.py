@@ -45,15 +45,16 @@ def corner_residuals_intrinsics(T_camera_board: np.ndarray, corners_board: np.nd
     if not jacobian:
         return r, None, None
     # d(point)/d xi for R Exp(w) X + t + R v is [-R [X]x, R]; with A = d uv/d point R, each row a of
-    # A [X]x is (a x X)^T, so the rotation block is X x a row by row (written out: np.cross is slow).
-    A = duv_dp @ R
-    H = np.empty((len(X), 2, 6))
-    x, y, z = X[:, None, 0], X[:, None, 1], X[:, None, 2]
-    H[:, :, 0] = y * A[:, :, 2] - z * A[:, :, 1]
-    H[:, :, 1] = z * A[:, :, 0] - x * A[:, :, 2]
-    H[:, :, 2] = x * A[:, :, 1] - y * A[:, :, 0]
-    H[:, :, 3:] = A
-    return r, H.reshape(-1, 6), duv_dk.reshape(len(r), -1)
+    # A [X]x is (a x X)^T, so the rotation block is X x a row by row (written out, on the 2M rows as one
+    # 2-D array: np.cross and 3-D broadcasting are slow at this size, and the graph calls this per evaluation).
+    A = duv_dp.reshape(-1, 3) @ R
+    x, y, z = np.repeat(X, 2, axis=0).T
+    H = np.empty((len(A), 6))
+    H[:, 0] = y * A[:, 2] - z * A[:, 1]
+    H[:, 1] = z * A[:, 0] - x * A[:, 2]
+    H[:, 2] = x * A[:, 1] - y * A[:, 0]
+    H[:, 3:] = A
+    return r, H, duv_dk.reshape(len(r), -1)
 
 
 def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
@@ -61,20 +62,22 @@ def lidar_plane(T_camera_lidar: np.ndarray, T_camera_board: np.ndarray
     """The board plane ``pi = [m; -d_l]`` in the LiDAR frame, and its Jacobians (4, 6) by the extrinsic
     and by the board pose."""
     R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
-    Rb, tb = T_camera_board[:3, :3], T_camera_board[:3, 3]
+    Rb = T_camera_board[:3, :3]
     n = Rb[:, 2]
-    m = R.T @ n
+    dt = t - T_camera_board[:3, 3]
+    m = n @ R
     pi = np.empty(4)
     pi[:3] = m
-    pi[3] = n @ (t - tb)
+    pi[3] = n @ dt
     H_x = np.zeros((4, 6))
     H_x[:3, :3] = skew(m)
     H_x[3, 3:] = m
-    dn = np.empty((3, 3))  # d n / d w_b = -Rb [e3]x: columns -Rb[:, 1], Rb[:, 0], 0
-    dn[:, 0], dn[:, 1], dn[:, 2] = -Rb[:, 1], Rb[:, 0], 0.0
+    # d n / d w_b = -Rb [e3]x: columns -Rb[:, 1], Rb[:, 0], 0 (the graph calls this per evaluation: written out)
     H_b = np.zeros((4, 6))
-    H_b[:3, :3] = R.T @ dn
-    H_b[3, :3] = (t - tb) @ dn
+    H_b[:3, 0] = -(Rb[:, 1] @ R)
+    H_b[:3, 1] = Rb[:, 0] @ R
+    H_b[3, 0] = -(dt @ Rb[:, 1])
+    H_b[3, 1] = dt @ Rb[:, 0]
     H_b[3, 5] = -1.0
     return pi, H_x, H_b
 

@@ -23,6 +23,7 @@ of every triple is scored by the laser cost over all boards and the least one is
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from dataclasses import dataclass, replace
 
@@ -287,44 +288,71 @@ def outline_residuals(Ts: np.ndarray, frames: list[FrameMeasurement], board: Boa
     spacing ``s`` inside its end of the chord (uniform, approximated by a Gaussian of mean ``s / 2`` and
     variance ``s^2 / 12`` plus edge blur and range noise), or anywhere (share ``EDGE_OUTLIER``) when the
     board's edge was hidden. Among the up to 8 solutions of 3 boards, which fit the planes alike, this
-    tells the true one: a wrong solution slides or turns the chord against the segment."""
+    tells the true one: a wrong solution slides or turns the chord against the segment. Every board at once
+    (the search calls it thousands of times on one set of frames, :func:`_outline_data`)."""
     w, h = board.extent
+    Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
     K = len(Ts)
-    out = []
-    for f in frames:
-        ends, spacing = _segment_ends(f)
-        T_bc = T_inverse(f.camera.T_camera_board)
-        pc = np.einsum("kij,mj->kmi", Ts[:, :3, :3], ends) + Ts[:, None, :3, 3]
-        pb = (pc @ T_bc[:3, :3].T + T_bc[:3, 3])[..., :2]  # (K, 2, 2) end points on the board
-        d = pb[:, 1] - pb[:, 0]
-        length = np.linalg.norm(d, axis=1)
-        d = d / np.maximum(length, 1e-12)[:, None]
-        # The chord: the segment's line clipped to [0, w] x [0, h] (slabs), as positions s from end 0.
-        lo, hi = np.full(K, -np.inf), np.full(K, np.inf)
-        for axis, size in ((0, w), (1, h)):
-            dk, ok = d[:, axis], np.abs(d[:, axis]) > 1e-12
-            with np.errstate(divide="ignore", invalid="ignore"):
-                a = np.where(ok, (0.0 - pb[:, 0, axis]) / dk, -np.inf)
-                b = np.where(ok, (size - pb[:, 0, axis]) / dk, np.inf)
-            inside = (pb[:, 0, axis] >= 0) & (pb[:, 0, axis] <= size)
-            a = np.where(ok, a, np.where(inside, -np.inf, np.inf))
-            b = np.where(ok, b, np.where(inside, np.inf, -np.inf))
-            lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
-        missed = ~(hi > lo)
-        # Depth of each end inside its end of the chord (negative: the end lies beyond the outline).
-        depth = np.stack([0.0 - lo, hi - length], axis=1)
-        depth = np.where(missed[:, None] | ~np.isfinite(depth), -np.maximum(w, h), depth)
-        var = spacing**2 / 12 + EDGE_BLUR_M**2 + sigma_r**2
-        z2 = (depth - spacing / 2) ** 2 / var
-        chord = np.maximum(np.where(missed, 0.0, hi - lo), 1e-3)[:, None]
-        # -2 log of the mixture, relative to its value at the mode of the Gaussian part. A hidden edge leaves
-        # the end anywhere on the chord, never beyond the outline.
-        log_gauss = np.log(1 - EDGE_OUTLIER) - 0.5 * z2 - 0.5 * np.log(2 * np.pi * var)
-        log_uniform = np.where(depth >= -EXTENT_TOLERANCE_M, np.log(EDGE_OUTLIER / chord), -np.inf)
-        log_peak = np.logaddexp(np.log(1 - EDGE_OUTLIER) - 0.5 * np.log(2 * np.pi * var), np.log(EDGE_OUTLIER / chord))
-        cost = np.maximum(-2 * (np.logaddexp(log_gauss, log_uniform) - log_peak), 0.0)
-        out.append(np.where(depth >= spacing / 2, 1.0, -1.0) * np.sqrt(cost))
-    return np.concatenate(out, axis=1) if out else np.zeros((K, 0))
+    if not frames:
+        return np.zeros((K, 0))
+    ends, spacing, A, b = _outline_data(frames)  # (F, 2, 3), (F, 2), (F, 2, 3), (F, 2)
+    # End points on the board (K, F, 2 ends, 2 coordinates): the board's first two rows of T_board_camera
+    # applied to T_camera_lidar p.
+    pc = np.einsum("kij,fmj->kfmi", Ts[:, :3, :3], ends) + Ts[:, None, None, :3, 3]
+    pb = np.einsum("fij,kfmj->kfmi", A, pc) + b[:, None, :]
+    d = pb[:, :, 1] - pb[:, :, 0]
+    length = np.linalg.norm(d, axis=-1)
+    d = d / np.maximum(length, 1e-12)[..., None]
+    start = pb[:, :, 0]
+    # The chord: the segment's line clipped to [0, w] x [0, h] (slabs), as positions s from end 0.
+    lo, hi = np.full((K, len(frames)), -np.inf), np.full((K, len(frames)), np.inf)
+    for axis, size in ((0, w), (1, h)):
+        dk, ok = d[..., axis], np.abs(d[..., axis]) > 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a_ = np.where(ok, (0.0 - start[..., axis]) / dk, -np.inf)
+            b_ = np.where(ok, (size - start[..., axis]) / dk, np.inf)
+        inside = (start[..., axis] >= 0) & (start[..., axis] <= size)
+        a_ = np.where(ok, a_, np.where(inside, -np.inf, np.inf))
+        b_ = np.where(ok, b_, np.where(inside, np.inf, -np.inf))
+        lo, hi = np.maximum(lo, np.minimum(a_, b_)), np.minimum(hi, np.maximum(a_, b_))
+    missed = ~(hi > lo)
+    # Depth of each end inside its end of the chord (negative: the end lies beyond the outline).
+    depth = np.stack([0.0 - lo, hi - length], axis=-1)
+    depth = np.where(missed[..., None] | ~np.isfinite(depth), -np.maximum(w, h), depth)
+    var = spacing**2 / 12 + EDGE_BLUR_M**2 + sigma_r**2
+    z2 = (depth - spacing / 2) ** 2 / var
+    chord = np.maximum(np.where(missed, 0.0, hi - lo), 1e-3)[..., None]
+    # -2 log of the mixture, relative to its value at the mode of the Gaussian part. A hidden edge leaves
+    # the end anywhere on the chord, never beyond the outline.
+    log_gauss = np.log(1 - EDGE_OUTLIER) - 0.5 * z2 - 0.5 * np.log(2 * np.pi * var)
+    log_uniform = np.where(depth >= -EXTENT_TOLERANCE_M, np.log(EDGE_OUTLIER / chord), -np.inf)
+    log_peak = np.logaddexp(np.log(1 - EDGE_OUTLIER) - 0.5 * np.log(2 * np.pi * var), np.log(EDGE_OUTLIER / chord))
+    cost = np.maximum(-2 * (np.logaddexp(log_gauss, log_uniform) - log_peak), 0.0)
+    return (np.where(depth >= spacing / 2, 1.0, -1.0) * np.sqrt(cost)).reshape(K, -1)
+
+
+# The last frames' outline arrays: the search scores one set of frames thousands of times.
+_OUTLINE_CACHE: dict = {}
+_OUTLINE_LOCK = threading.Lock()
+
+
+def _outline_data(frames: list[FrameMeasurement]) -> tuple:
+    """Per frame: its segment's two ends (F, 2, 3) and beam spacings (F, 2) (:func:`_segment_ends`), and the
+    board's frame's first two rows (F, 2, 3) and offsets (F, 2) of ``T_board_camera``; kept for the last few
+    sets of frames (held by the cache, so the identities it is keyed by stay theirs)."""
+    key = tuple(id(f) for f in frames)
+    with _OUTLINE_LOCK:
+        hit = _OUTLINE_CACHE.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], frames)):
+        return hit[1]
+    ends, spacing = zip(*(_segment_ends(f) for f in frames))
+    T_bc = np.array([T_inverse(f.camera.T_camera_board) for f in frames])
+    data = (np.array(ends), np.array(spacing), T_bc[:, :2, :3].copy(), T_bc[:, :2, 3].copy())
+    with _OUTLINE_LOCK:
+        if len(_OUTLINE_CACHE) >= 8:
+            _OUTLINE_CACHE.pop(next(iter(_OUTLINE_CACHE)))
+        _OUTLINE_CACHE[key] = (tuple(frames), data)
+    return data
 
 
 def solution_distances(Ts: np.ndarray) -> np.ndarray:
