@@ -1,6 +1,7 @@
 """Rendering anti-aliased camera images of a simulated scene through a distorted camera model."""
 from __future__ import annotations
 
+import threading
 from concurrent.futures import Executor
 
 import cv2
@@ -12,6 +13,9 @@ from geometry.rotations import transform_points
 from .scene import Background, Patch, cast
 
 _GRID_CACHE: dict[tuple, np.ndarray] = {}
+# About a dozen 1280 x 960 cameras' grids, or a 4K camera's and a few more (the last one is always kept).
+_GRID_CACHE_BYTES = 256 * 2**20
+_GRID_LOCK = threading.Lock()  # frames are rendered on several threads
 _PARTS = 4  # blocks of rows for a pool's threads (fixed: the result never depends on the pool)
 SKY_REFLECTANCE = 0.85
 
@@ -25,14 +29,23 @@ def _in_parts(f, rows: np.ndarray, pool: Executor | None) -> np.ndarray:
 
 
 def _normalized_grid(camera: CameraModel, pool: Executor | None = None) -> np.ndarray:
-    """Undistorted normalized coordinates of every pixel centre, (H+1, W+1, 2) (one extra row/column)."""
+    """Undistorted normalized coordinates of every pixel centre, (H+1, W+1, 2) (one extra row/column); kept for
+    the cameras rendered last, up to ``_GRID_CACHE_BYTES`` in all (a rig renders its cameras in turn, frame by
+    frame: keeping only the last camera's grid undistorted every pixel again for each camera of each frame)."""
     key = (camera.model, camera.K.tobytes(), camera.dist.tobytes(), camera.width, camera.height)
-    if key not in _GRID_CACHE:
-        u, v = np.meshgrid(np.arange(camera.width + 1, dtype=float), np.arange(camera.height + 1, dtype=float))
-        xy = _in_parts(camera.normalized_from_pixels, np.column_stack([u.ravel(), v.ravel()]), pool)
-        _GRID_CACHE.clear()
-        _GRID_CACHE[key] = xy.reshape(camera.height + 1, camera.width + 1, 2)
-    return _GRID_CACHE[key]
+    with _GRID_LOCK:
+        if key in _GRID_CACHE:
+            _GRID_CACHE[key] = _GRID_CACHE.pop(key)  # the most recently used last
+            return _GRID_CACHE[key]
+    u, v = np.meshgrid(np.arange(camera.width + 1, dtype=float), np.arange(camera.height + 1, dtype=float))
+    xy = _in_parts(camera.normalized_from_pixels, np.column_stack([u.ravel(), v.ravel()]), pool)
+    grid = xy.reshape(camera.height + 1, camera.width + 1, 2)
+    with _GRID_LOCK:
+        _GRID_CACHE.pop(key, None)
+        while _GRID_CACHE and sum(g.nbytes for g in _GRID_CACHE.values()) + grid.nbytes > _GRID_CACHE_BYTES:
+            _GRID_CACHE.pop(next(iter(_GRID_CACHE)))
+        _GRID_CACHE[key] = grid
+    return grid
 
 
 def _interp(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
