@@ -41,6 +41,11 @@ from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
+# Fewest boards a camera and a 2D scanner whose segment ends are measurements must share to be linked: a single
+# pair of them is solved from two (``solution_selection.select_minimal``).
+MIN_SCANNER_FRAMES_WITH_ENDS = 2
+
+
 def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams) -> RefinementOptions:
     """The options each camera-LiDAR pair is solved alone with first, as a single pair is (its robust loss and
     outlier frames, its range terms chosen before its per-board plane error is estimated, which the joint graph then
@@ -111,7 +116,8 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                       scanner_ends: bool = False) -> PairsAlone:
     """Each camera-LiDAR pair of ``frames_by_pair`` (``(camera, lidar) -> frames``, measured or observed again under
     refined intrinsics, ``cameras`` the models they were observed under) with at least ``MIN_PAIR_FRAMES`` usable
-    frames solved alone with ``alone`` (:func:`pair_options`). A LiDAR's range model is chosen once, by its pair
+    frames (``MIN_SCANNER_FRAMES_WITH_ENDS`` for a scanner taking its segment ends, below) solved alone with
+    ``alone`` (:func:`pair_options`). A LiDAR's range model is chosen once, by its pair
     with the camera that shares the most frames (the first): its other pairs are solved with that model, not tested
     again on fewer frames. Each LiDAR board enters the joint graph once, from the first pair that used it; a pair's
     outlier frame is left out. With ``scanner_ends`` (the board's size known and the edges not refused), a 2D
@@ -142,7 +148,9 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 if not f.usable and f.name not in lidar_obs[lid.name]:
                     by = measured_by[(cam_name, lid_name)].get(f.name, cam_name)
                     skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
-            if len(usable) < MIN_PAIR_FRAMES:
+            # Two boards link a scanner whose segment ends are measurements, as they solve a single pair
+            # (``solution_selection.select_minimal``): their ends hold what two planes leave.
+            if len(usable) < (MIN_SCANNER_FRAMES_WITH_ENDS if ends else MIN_PAIR_FRAMES):
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
             try:

@@ -1126,6 +1126,28 @@ def test_a_scanner_of_three_boards_keeps_the_start_its_segment_ends_gave_it_in_t
     assert x @ np.linalg.solve(C, x) < 22.5
 
 
+def test_a_scanner_that_found_two_of_its_three_boards_is_linked_as_its_pair_is_solved(tmp_path):
+    # A 3-board pair folder whose third scan holds no board segment (varied seed 2): the single pair solves its two
+    # boards by their segment ends and reads OK (the truth at d2 0.76). The rig needed 3 frames for every
+    # camera-LiDAR link and refused the folder ("share no usable frames with the rest of the rig"). A scanner taking
+    # its ends is now linked by two, and the rig lands on the pair's answer (within 1e-3 of its standard
+    # deviations), its covariance the pair's within 1%.
+    from estimators.calibration import calibrate
+    from estimators.simulation.simulator import simulate_dataset
+
+    folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=2, lidar="2d", rig_config="varied")
+    truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+    pair = calibrate(folder, samples=0)
+    assert sum(f.usable for f in pair.frames) == 2 and pair.verdict.line == "OK"
+    res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False)
+    assert res.links[("cam0", "lidar0")] == 2 and res.verdict.line == "OK", res.verdict.line
+    T, C = res.solution.transform("cam0", "lidar0")
+    assert np.all(np.abs(T_log(np.linalg.inv(pair.T_camera_lidar) @ T)) < 1e-3 * np.sqrt(np.diag(C)))
+    assert np.allclose(np.diag(C), np.diag(pair.covariance), rtol=0.01)
+    x = T_log(np.linalg.inv(T) @ truth)
+    assert x @ np.linalg.solve(C, x) < 22.5
+
+
 def test_a_posterior_the_sampler_refuses_is_said_and_the_graphs_covariance_stands(sim_2d, monkeypatch):
     # emcee raised a ValueError (no autocorrelation time: NaN) on a 3-board scanner's second minimum (varied seed
     # 16), and calibrate_rig let it through. A refused chain is a PosteriorSkippedError: a second minimum is left out

@@ -130,7 +130,8 @@ class RigResult:
         """Where the rig is weakest: each camera-LiDAR pair's largest translation standard deviation (mm, the
         joint graph's) and the direction (camera axes) and advice for it (``closed_form.describe_direction``),
         the weakest pair, and the sensor pairs that share some frames but fewer than ``MIN_PAIR_FRAMES`` (a
-        camera-LiDAR pair is then not solved alone; two cameras rest on one or two boards)."""
+        camera-LiDAR pair is then not solved alone, but for a scanner solved from two boards' segment ends; two
+        cameras rest on one or two boards)."""
         pairs = {f"T_{c.name}_{lid.name}": PairEstimate(c.name, lid.name, *self.solution.transform(c.name, lid.name),
                                                         None, 0).weakest_translation()
                  for c in self.rig.cameras for lid in self.rig.lidars}

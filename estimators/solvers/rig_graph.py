@@ -312,7 +312,8 @@ def spanning_tree(names: tuple[str, ...], reference: str, links: dict) -> dict:
         raise DegenerateLayoutError(f"sensor(s) {', '.join(missing)} share no usable frames with the rest of the rig "
                                     f"(no path to the reference {reference})",
                                     hint="record board poses that they and a connected camera see together (a "
-                                         "LiDAR needs 3 or more with a camera; two cameras 1 or more)")
+                                         "LiDAR needs 3 or more with a camera, a 2D scanner 2 where the board's "
+                                         "size is given; two cameras 1 or more)")
     return {names[k]: (names[pred[k]] if pred[k] >= 0 else None) for k in range(n)}
 
 
