@@ -55,6 +55,12 @@ class DegenerateLayoutError(LidarcamError):
     """The usable frames cannot determine the transform (too few, or normals that do not span 3D)."""
 
 
+class NoHypothesisError(DegenerateLayoutError):
+    """The frames' joint choice of their boards has no extrinsic to test them by (too few frames with a candidate,
+    none three of whose normals span 3D, or no minimal solution): a property of the layout, which says nothing
+    against the candidates (unlike a choice whose extrinsics no frames agree on)."""
+
+
 class BagError(LidarcamError):
     """A ROS bag, one of its topics or messages cannot be used (missing topic, unknown encoding, no overlap)."""
 

@@ -23,7 +23,7 @@ from ..camera.corners import detect_corners
 from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
 from ..errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
-                      ImageReadError, MeasurementError, ScanReadError)
+                      ImageReadError, MeasurementError, NoHypothesisError, ScanReadError)
 from ..io.dataset import Dataset, load_dataset
 from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
@@ -581,6 +581,12 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
         assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
                        [candidates[k] for k in ks], ks)
     except DegenerateLayoutError as exc:
+        if isinstance(exc, NoHypothesisError) and all(len(candidates[k]) <= 1 for k in ks):
+            # No frame had a choice to make, and the layout gave no extrinsic to test the candidates by: each
+            # frame keeps its one, as three frames' consensus keeps them; the solve's own checks judge them.
+            warnings.append(f"the frames' {what} were not checked against each other before solving "
+                            f"({exc.problem}); each frame has one")
+            return None, {}
         warnings.append(f"{CONSENSUS_FAILED} {what} agree on ({exc.problem}); each frame's is chosen from its own "
                         "cues")
         return None, {}

@@ -32,7 +32,7 @@ from geometry.board import BoardModel
 from geometry.planes import Plane
 from geometry.rotations import T_from_Rt, transform_points
 
-from ..errors import DegenerateLayoutError
+from ..errors import DegenerateLayoutError, NoHypothesisError
 from ..lidar.board_segmentation import robust_plane_fit
 from .closed_form import MIN_NORMAL_SPREAD, WEAK_NORMAL_SPREAD, solve_closed_form
 
@@ -122,13 +122,13 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
     """Choose one candidate (or none) per frame. ``candidates[k]``: frame k's LiDAR board observations (each
     with ``plane`` and ``points``); ``weights[k]``: relative sampling weights of its candidates.
 
-    Raises :class:`DegenerateLayoutError` when fewer than ``min_frames`` frames with candidates span 3D or no
-    hypothesis is supported by that many frames."""
+    Raises :class:`NoHypothesisError` when fewer than ``min_frames`` frames with candidates span 3D, and
+    :class:`DegenerateLayoutError` when no hypothesis is supported by that many frames."""
     t0 = time.perf_counter()
     frames = [k for k, c in enumerate(candidates) if c]
     if len(frames) < params.min_frames:
-        raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a board candidate; choosing among them "
-                                    f"needs {params.min_frames}")
+        raise NoHypothesisError(f"only {len(frames)} frame(s) have a board candidate; choosing among them "
+                                f"needs {params.min_frames}")
     cand_frame = np.array([k for k in frames for _ in candidates[k]])
     nl = np.array([c.plane.normal for k in frames for c in candidates[k]])
     dl = np.array([c.plane.distance for k in frames for c in candidates[k]])
@@ -139,9 +139,9 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
     # rig) those above the factor graph's weak limit
     H, limit = _hypotheses(frames, candidates, ncam, rng, params, weights)
     if len(H) == 0:
-        raise DegenerateLayoutError(f"no three of the {len(frames)} frames with board candidates have camera "
-                                    f"normals that span 3D (the best triple's spread is {limit:.3f}; the "
-                                    f"consensus needs {WEAK_NORMAL_SPREAD})")
+        raise NoHypothesisError(f"no three of the {len(frames)} frames with board candidates have camera "
+                                f"normals that span 3D (the best triple's spread is {limit:.3f}; the "
+                                f"consensus needs {WEAK_NORMAL_SPREAD})")
     first = np.zeros(max(frames) + 1, dtype=int)
     first[frames] = np.searchsorted(cand_frame, frames)
     flat = first[H[:, :, 0]] + H[:, :, 1]
@@ -149,7 +149,7 @@ def associate(camera_planes: list[Plane], camera_poses: list[np.ndarray], candid
                                   limit)
     R, t = R[ok], t[ok]
     if len(R) == 0:
-        raise DegenerateLayoutError("no triple of frames with board candidates has normals that span 3D")
+        raise NoHypothesisError("no triple of frames with board candidates has normals that span 3D")
     cost, agree = _score(R, t, nl, cl, ncam[cand_frame], dcam[cand_frame], cand_frame, frames, params)
     best = int(np.argmin(cost))
     if agree[best] < params.min_frames:
@@ -308,22 +308,23 @@ def associate_lines(camera_planes: list[Plane], camera_poses: list[np.ndarray], 
     (frame, segment) from frames whose camera normals span 3D; a segment agrees with one when its points,
     mapped into the camera frame, lie on the frame's board plane (RMS distance within ``3 sigma_line_m``) and
     inside its outline. The hypothesis most frames agree with chooses each frame's segment (the fullest that
-    agrees); a frame whose segments all disagree is skipped with the reason. Raises
-    :class:`DegenerateLayoutError` when no hypothesis has ``min_frames`` frames agreeing."""
+    agrees); a frame whose segments all disagree is skipped with the reason. Raises :class:`NoHypothesisError`
+    when there is no hypothesis (too few frames, no triple spanning 3D, no minimal solution) and
+    :class:`DegenerateLayoutError` when none has ``min_frames`` frames agreeing."""
     from .minimal_solver import solve_triples
 
     t0 = time.perf_counter()
     frames = [k for k, c in enumerate(candidates) if c]
     if len(frames) < params.min_frames:
-        raise DegenerateLayoutError(f"only {len(frames)} frame(s) have a scan segment; choosing among them "
-                                    f"needs {params.min_frames}")
+        raise NoHypothesisError(f"only {len(frames)} frame(s) have a scan segment; choosing among them "
+                                f"needs {params.min_frames}")
     ncam = np.array([p.normal for p in camera_planes])
     # Triples spanning 3D well only: the weak ones' minimal solutions would multiply near-degenerate roots.
     H, _ = _hypotheses(frames, candidates, ncam, rng, replace(params, max_hypotheses=max_triples), None,
                        allow_weak=False)
     if len(H) == 0:
-        raise DegenerateLayoutError(f"no three of the {len(frames)} frames with scan segments have camera normals "
-                                    "that span 3D")
+        raise NoHypothesisError(f"no three of the {len(frames)} frames with scan segments have camera normals "
+                                "that span 3D")
     flat = [(k, i) for k in frames for i in range(len(candidates[k]))]
     where = {fc: j for j, fc in enumerate(flat)}
     planes = [camera_planes[k] for k, _ in flat]
@@ -331,7 +332,7 @@ def associate_lines(camera_planes: list[Plane], camera_poses: list[np.ndarray], 
     triples = [tuple(where[(int(k), int(i))] for k, i in row) for row in H]
     Ts = [T for sol in solve_triples(planes, lines, triples) for T in sol.T_camera_lidar]
     if not Ts:
-        raise DegenerateLayoutError(f"no minimal solution from {len(triples)} triple(s) of scan segments")
+        raise NoHypothesisError(f"no minimal solution from {len(triples)} triple(s) of scan segments")
     Ts = np.array(Ts)
     # Each segment's points (a subsample), with its frame's camera plane and board pose.
     seg_pts, seg_of = [], []
