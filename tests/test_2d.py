@@ -170,8 +170,9 @@ def test_simulated_2d_dataset_calibrates_end_to_end(sim_2d):
 def test_three_boards_with_one_segment_each_and_no_minimal_solution_are_not_untrusted(tmp_path):
     """Three boards, each frame one candidate segment, and the frames' joint choice has no extrinsic to test them
     by (its one triple has no minimal root; the solver's multi-start finds the answer): no frame had a choice,
-    so nothing was "chosen on its own". That read UNTRUSTED on 9 of 40 simulated 3-board folders whose truth lay
-    inside their region (default seed 4 among them); it is now a note, and the answer's own checks judge it."""
+    so nothing was "chosen on its own". That read UNTRUSTED on 10 of 40 simulated 3-board folders whose truth
+    lay inside their region (default seed 4 among them); it is now a note, and the answer's own checks judge
+    it."""
     from estimators.pipeline.measurement import CONSENSUS_FAILED
     from estimators.simulation.simulator import simulate_dataset
 
@@ -186,8 +187,9 @@ def test_three_boards_with_one_segment_each_and_no_minimal_solution_are_not_untr
 
 def test_a_failed_joint_choice_is_untrusted_where_a_frame_had_a_choice_or_the_frames_disagreed():
     """The joint choice's failure leaves the verdict UNTRUSTED when a frame had more than one candidate, or when
-    extrinsics existed and the frames' candidates disagreed with every one; only where no frame had a choice
-    and no extrinsic could be formed is it a note."""
+    extrinsics existed and four or more frames' candidates disagreed with every one. Where no frame had a choice
+    and either no extrinsic could be formed or only three frames have a candidate (the consensus keeps all three
+    or none), it is a note."""
     from types import SimpleNamespace
 
     from estimators.errors import NoHypothesisError
@@ -202,8 +204,9 @@ def test_a_failed_joint_choice_is_untrusted_where_a_frame_had_a_choice_or_the_fr
         assert _consensus(cams, candidates, warnings, "scan segments", choose) == (None, {})
         return warnings[0]
 
-    single, double = [["a"]] * 4, [["a"], ["a", "b"], ["a"], ["a"]]
-    assert said(single, NoHypothesisError).startswith("the frames' scan segments were not checked")
+    single, double, three = [["a"]] * 4, [["a"], ["a", "b"], ["a"], ["a"]], [["a"], [], ["a"], ["a"]]
+    for candidates, error in ((single, NoHypothesisError), (three, DegenerateLayoutError)):
+        assert said(candidates, error).startswith("the frames' scan segments were not checked")
     for candidates, error in ((double, NoHypothesisError), (single, DegenerateLayoutError)):
         assert said(candidates, error).startswith(CONSENSUS_FAILED)
 

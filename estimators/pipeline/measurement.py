@@ -581,9 +581,13 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
         assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
                        [candidates[k] for k in ks], ks)
     except DegenerateLayoutError as exc:
-        if isinstance(exc, NoHypothesisError) and all(len(candidates[k]) <= 1 for k in ks):
-            # No frame had a choice to make, and the layout gave no extrinsic to test the candidates by: each
-            # frame keeps its one, as three frames' consensus keeps them; the solve's own checks judge them.
+        with_one = sum(1 for k in ks if len(candidates[k]) == 1)
+        if with_one == sum(1 for k in ks if candidates[k]) and (
+                isinstance(exc, NoHypothesisError) or with_one <= AssociationParams.min_frames):
+            # No frame had a choice to make, and either the layout gave no extrinsic to test the candidates by,
+            # or too few frames have one for the consensus to leave any out (it keeps all three or none): each
+            # frame keeps its one, as the consensus would have; the solve's own checks judge them (a 2D answer's
+            # segment ends on the outlines among them, which the consensus tests on rougher minimal roots).
             warnings.append(f"the frames' {what} were not checked against each other before solving "
                             f"({exc.problem}); each frame has one")
             return None, {}
