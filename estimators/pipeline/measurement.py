@@ -575,15 +575,14 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
     """The joint choice over the frames with a camera board (``choose(planes, poses, candidates, frame ids)``),
     and each such frame's :class:`FrameChoice`; (None, {}) with a warning when there is no consensus."""
     ks = [k for k, (c, _) in enumerate(cams) if c is not None]
-    if sum(1 for k in ks if candidates[k]) < 3:
+    counts = [len(candidates[k]) for k in ks if candidates[k]]  # each frame's candidates, where it has some
+    if len(counts) < 3:
         return None, {}
     try:
         assoc = choose([cams[k][0].plane for k in ks], [cams[k][0].T_camera_board for k in ks],
                        [candidates[k] for k in ks], ks)
     except DegenerateLayoutError as exc:
-        with_one = sum(1 for k in ks if len(candidates[k]) == 1)
-        if with_one == sum(1 for k in ks if candidates[k]) and (
-                isinstance(exc, NoHypothesisError) or with_one <= AssociationParams.min_frames):
+        if max(counts) == 1 and (isinstance(exc, NoHypothesisError) or len(counts) <= AssociationParams.min_frames):
             # No frame had a choice to make, and either the layout gave no extrinsic to test the candidates by,
             # or too few frames have one for the consensus to leave any out (it keeps all three or none): each
             # frame keeps its one, as the consensus would have; the solve's own checks judge them (a 2D answer's
