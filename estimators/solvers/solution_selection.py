@@ -603,10 +603,11 @@ def outline_evidence(ref: Refinement, frames: list[FrameMeasurement], board: Boa
     the factor graph's cost is not comparable between minima (its per-board plane error, estimated at each
     minimum, absorbs a wrong minimum's misfit); ``J`` takes the same noise at every minimum. Searched in the
     minimum's whitened coordinates (its covariance): 2 x 1024 draws at 1.5 and 4 sigma, then a Powell polish
-    of the ``n_polish`` best."""
+    of the ``n_polish`` best. The whitening is the covariance's symmetric square root: unique and continuous in
+    the covariance, where eigenvectors' arbitrary signs would mirror the draws on a last-bit change."""
     rng = np.random.default_rng(0) if rng is None else rng
     w, V = np.linalg.eigh(0.5 * (ref.covariance + ref.covariance.T))
-    L = V * np.sqrt(np.maximum(w, 0.0))
+    L = (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
     T = ref.T_camera_lidar
 
     def cost(Z: np.ndarray) -> np.ndarray:
