@@ -19,9 +19,10 @@ demo: $(STAMP)
 
 # Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
 # tests take 30-80 s each): 12.3-13.9 minutes of pytest on a clean clone on this 2-core machine (736 s at 216f348,
-# 834 s at c2acfa4), which runs Python about 2.4 times slower than the one the suite took 7-8 minutes on.
+# 834 s at c2acfa4), which runs Python about 2.4 times slower than the one the suite took 7-8 minutes on. The
+# twenty slowest tests are listed at the end of every run, where time is to be won.
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist worksteal
+	$(PY) -m pytest -n 2 --dist worksteal --durations=20
 
 # Every benchmark through benchmarks/record.py, which writes its output as a page of the docs (docs/bench/).
 RECORD := $(PY) benchmarks/record.py
