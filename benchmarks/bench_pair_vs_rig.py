@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import calibrate  # noqa: E402
+from estimators.errors import LidarcamError  # noqa: E402
 from estimators.io.rig_dataset import load_rig  # noqa: E402
 from estimators.rig_calibration import calibrate_rig  # noqa: E402
 from estimators.simulation.rig_simulator import miscalibrate_camera, simulate_rig  # noqa: E402
@@ -47,7 +48,6 @@ def d2(T_hat: np.ndarray, cov: np.ndarray, T: np.ndarray) -> float:
 
 def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> None:
     """``--scanner``: each 2D pair folder calibrated as a pair and as a rig, with the posterior (module docstring)."""
-    from estimators.errors import LidarcamError
     from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.posterior import region_d2
 
@@ -113,8 +113,6 @@ def main() -> None:
           f"(seeds 0-{a.rigs - 1})" + ("; the camera given focal lengths x1.01 and k1 x0.5, refined by both"
                                        if a.refine_intrinsics else ""))
     print("seed  rig-pair deg  rig-pair mm  d2 (pair cov)  sd rig/pair (rot x y z, trans x y z)  truth d2 rig / pair")
-    from estimators.errors import LidarcamError
-
     truth_d2: dict = {"rig": [], "pair": []}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(a.rigs):
