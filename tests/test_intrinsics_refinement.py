@@ -114,14 +114,16 @@ def test_a_param_std_of_the_wrong_length_is_refused_with_the_file_named(sim_hdl6
 def test_the_lidar_side_is_measured_again_under_the_refined_intrinsics(tmp_path):
     # A two-camera rig whose first camera (the one the LiDAR's boards are found with) is given focal lengths 1% long
     # and half its k1, refined: the LiDAR's board points, chosen in the band of the camera's plane under the given
-    # intrinsics, keep part of their error, and measured once the refined planes and ring ends disagree (rig d2 29
+    # intrinsics, keep part of their error, and measured once the refined planes and ring ends disagree (rig d2 98
     # on 6 dof, CHECK). Measured again under the refined intrinsics, the rig and the camera-LiDAR pair read OK,
-    # their planes and ends within 99% of chi-square 6 (measured: d2 4.2 and 4.0).
+    # their planes and ends within 99% of chi-square 6 (measured: d2 4.5 and 6.0). 10 poses, seed 5: with 8 poses
+    # (seeds 3, 12) or seed 12 at 10 poses the error does not show once measured; at 12 poses, seed 12, it did
+    # (d2 29), at twice this test's time.
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
     from estimators.simulation.rig_simulator import miscalibrate_camera, simulate_rig
 
-    rig = load_rig(miscalibrate_camera(simulate_rig(tmp_path / "rig", 12, 12, 2), "cam0"))
+    rig = load_rig(miscalibrate_camera(simulate_rig(tmp_path / "rig", 10, 5, 2), "cam0"))
     limit = chi2.ppf(0.99, 6)
 
     def d2(edges_record):
