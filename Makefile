@@ -69,8 +69,12 @@ bench: $(STAMP)
 	$(RECORD) rig_scanner -- $(PY) benchmarks/bench_rig.py --cameras 2 --scanners 1 --rigs 40 --posterior 1000
 	$(RECORD) corners -- $(PY) benchmarks/bench_corners.py
 	$(RECORD) speed -- $(PY) benchmarks/bench_speed.py
-	$(RECORD) 2d -- $(PY) benchmarks/bench_2d.py
-	$(RECORD) 2d_charuco -- $(PY) benchmarks/bench_2d.py --pattern charuco
+	$(RECORD) 2d_default -- $(PY) benchmarks/bench_2d.py --configs default
+	$(RECORD) 2d_varied -- $(PY) benchmarks/bench_2d.py --configs varied
+	$(RECORD) 2d_mounted -- $(PY) benchmarks/bench_2d.py --configs mounted
+	$(RECORD) 2d_charuco_default -- $(PY) benchmarks/bench_2d.py --pattern charuco --configs default
+	$(RECORD) 2d_charuco_varied -- $(PY) benchmarks/bench_2d.py --pattern charuco --configs varied
+	$(RECORD) 2d_charuco_mounted -- $(PY) benchmarks/bench_2d.py --pattern charuco --configs mounted
 	$(RECORD) 2d_honesty_default -- $(PY) benchmarks/bench_2d_honesty.py default 100
 	$(RECORD) 2d_honesty_varied -- $(PY) benchmarks/bench_2d_honesty.py varied 100
 	$(RECORD) 2d_honesty_mounted -- $(PY) benchmarks/bench_2d_honesty.py mounted 100

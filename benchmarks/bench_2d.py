@@ -18,7 +18,8 @@ count a nearby second minimum of the same basin as a miss. Trials whose truth-st
   counts runs that report more than one mode, "unambiguous-hit" the hit rate of the others.
 
 Run: ``python benchmarks/bench_2d.py [--trials N] [--workers W] [--pattern charuco] [--boards 3 4]
-[--no-noise-rows]`` (``make bench`` runs both patterns; a part of the table keeps the full table's seeds).
+[--no-noise-rows] [--configs default]`` (``make bench`` runs both patterns, a page per configuration; a part of
+the table keeps the full table's seeds).
 """
 from __future__ import annotations
 
@@ -174,6 +175,9 @@ def main() -> None:
                     help="the board-count rows (1 cm) to run; each row keeps the seeds it has in the full table")
     ap.add_argument("--noise-rows", action=argparse.BooleanOptionalAction, default=True,
                     help="the rows of 4 boards at other range noises (checkerboard only)")
+    ap.add_argument("--configs", nargs="+", default=list(RIGS_2D), choices=list(RIGS_2D),
+                    help="the simulator configurations to run (make bench: one page each); each row keeps the "
+                         "seeds it has in the full table")
     a = ap.parse_args()
     t0 = time.perf_counter()
     print(f"pattern: {a.pattern}")
@@ -181,7 +185,7 @@ def main() -> None:
     if a.pattern == "checkerboard":
         cells += [(c, 4, s) for c in RIGS_2D for s in (0.005, 0.02, 0.03)]  # with 4 boards at 1 cm from above
     def keep(cell):
-        return cell[1] in a.boards if cell[2] == 0.01 else a.noise_rows
+        return cell[0] in a.configs and (cell[1] in a.boards if cell[2] == 0.01 else a.noise_rows)
     rows = run(cells, a.trials, a.workers, pattern=a.pattern, keep=keep)
     labels = [s[0] for s in SELECTIONS]
     default = labels[-1]
