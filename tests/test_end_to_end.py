@@ -85,22 +85,28 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
         region = data["credible_regions"][level]
         assert region["d2"] >= region["gaussian_d2"]
         assert np.mean(d2 <= region["d2"]) >= share - 1e-9
-    # The report: self-contained (every figure embedded) with the PNGs beside it.
+    # The report: self-contained (every figure embedded) with the figures beside it: the plots as PNG, the
+    # overlays (photographs) as JPEG.
     page = (out / "report.html").read_text()
     pngs = sorted(p.name for p in out.glob("*.png"))
+    jpgs = sorted(p.name for p in out.glob("*.jpg"))
     assert {"corner.png", "residuals.png", "traces.png"} <= set(pngs)
-    assert sum(n.startswith("projection_") for n in pngs) == data["frames_used"]
-    embedded = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", page)
-    # every PNG once, and the three overlays the page opens with (right after the estimate) a second time
-    assert len(embedded) == len(pngs) + 3 and len(set(embedded)) == len(pngs)
+    assert len(jpgs) == data["frames_used"] and all(n.startswith("projection_") for n in jpgs)
+    assert not any(n.startswith("projection_") for n in pngs)
+    magic = {"png": b"\x89PNG\r\n\x1a\n", "jpeg": b"\xff\xd8\xff"}
+    embedded = re.findall(r"src='data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)'", page)
+    # every figure once, and the three overlays the page opens with (right after the estimate) a second time
+    assert len(embedded) == len(pngs) + len(jpgs) + 3 and len({b for _, b in embedded}) == len(pngs) + len(jpgs)
+    assert sum(kind == "jpeg" for kind, _ in embedded) == len(jpgs) + 3
     assert page.index("<h2>Overlays</h2>") < page.index("<h2>Warnings</h2>")
-    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in embedded)
+    assert all(base64.b64decode(b).startswith(magic[kind]) for kind, b in embedded)
     HTMLParser().feed(page)  # well-formed enough to parse
-    assert all((out / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)
+    assert all((out / n).read_bytes().startswith(magic["png"]) for n in pngs)
+    assert all((out / n).read_bytes().startswith(magic["jpeg"]) for n in jpgs)
     # A projection: the grey image at the report's width under a caption strip, with the LiDAR's points
-    # painted in colour (a grey image has equal channels everywhere else).
+    # painted in colour (a grey image has equal channels everywhere else; JPEG's chroma noise stays far below).
     cam = data["intrinsics"]
-    proj = cv2.imread(str(out / next(n for n in pngs if n.startswith("projection_"))), cv2.IMREAD_COLOR)
+    proj = cv2.imread(str(out / jpgs[0]), cv2.IMREAD_COLOR)
     scale = min(1.0, 1200 / cam["width"])
     assert proj.shape[1] == round(cam["width"] * scale) and proj.shape[0] == 48 + round(cam["height"] * scale)
     body = proj[48:].astype(int)
@@ -161,7 +167,7 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     r = _run_cli("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr
     for name in ("dataset/dataset.yaml", "calibration.json", "report.html", "corner.png", "traces.png",
-                 "residuals.png", "projection_0000.png"):
+                 "residuals.png", "projection_0000.jpg"):
         assert (tmp_path / "demo" / name).is_file(), name
     rot, tr = map(float, re.search(r"rotation ([\d.]+) deg, translation ([\d.]+) mm", r.stdout).groups())
     d2 = float(re.search(r"squared Mahalanobis distance of the truth under the covariance: ([\d.]+)", r.stdout)[1])

@@ -13,7 +13,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
-# A cell plots when it draws with pyplot or an axes, or displays a PNG the library wrote.
+# A cell plots when it draws with pyplot or an axes, or displays a figure the library wrote (PNG, or JPEG: the
+# overlays).
 PLOTS = re.compile(r"\bplt\.\w|\.(plot|bar|hist|scatter|imshow)\(|\bImage\(")
 
 
@@ -42,8 +43,9 @@ def test_notebook_runs_top_to_bottom(path, monkeypatch):
     assert any(c.get("outputs") for c in nb.cells if c.cell_type == "code")
     # Every plotting cell leaves its figure: the library must not have switched the notebook's backend.
     plotting = [c for c in nb.cells if c.cell_type == "code" and PLOTS.search(c.source)]
+    shown = ("image/png", "image/jpeg")
     missing = [c.source.splitlines()[0] for c in plotting
-               if not any("image/png" in o.get("data", {}) for o in c.get("outputs", []))]
+               if not any(kind in o.get("data", {}) for o in c.get("outputs", []) for kind in shown)]
     assert plotting, f"{path.name}: no plotting cell found"
     assert not missing, f"{path.name}: cells that plot but show no figure: {missing}"
 

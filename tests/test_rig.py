@@ -727,7 +727,7 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     assert "lidar0: Board edges" in page and "ring ends on the boards' outlines, used in the estimate" in page
     assert re.search(r"\n  lidar0 board edges \(used\): \d+ ring ends in \d+ frames; growth .*\n    planes alone "
                      r"against planes \+ edges: d2", run.stdout)
-    shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.png"))
+    shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.jpg"))
     assert shown and all(name in page for name in shown)
     # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)
     assert all((out / f"corner_cam{k}_{s}.png").stat().st_size > 10000 and f"corner_cam{k}_{s}.png" in page

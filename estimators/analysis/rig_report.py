@@ -44,7 +44,7 @@ def _pair_rows(result) -> list[list[str]]:
 
 def write_rig_report(result, out_dir: str | Path) -> Path:
     """Write ``OUT/report.html`` for a rig (module docstring) and its overlays (``projection_<camera>_<lidar>_
-    <frame>.png``), each file atomically."""
+    <frame>.jpg``), each file atomically."""
     sol = result.solution
     post = result.posterior
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
@@ -153,7 +153,7 @@ def range_terms_parts(result) -> list[str]:
 
 def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
     """Each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image under the
-    joint estimate (``projection_<camera>_<lidar>_<frame>.png``, written here), as the page's parts; and each
+    joint estimate (``projection_<camera>_<lidar>_<frame>.jpg``, written here), as the page's parts; and each
     pair's farthest-off one (by its outline offset), titled, for the page's top."""
     sol, parts, first = result.solution, [], []
     for (cam, lidar), frames in (result.pair_frames or {}).items():
@@ -161,17 +161,17 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
         images, offsets = [], []
         for f in frames:
-            png, off = projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
+            jpg, off = projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
                                          lid.file(f.name))
             if np.all(np.isfinite(off)):
                 offsets.append((f.name, off))
-            name = f"projection_{cam}_{lidar}_{f.name}.png"
-            write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+            name = f"projection_{cam}_{lidar}_{f.name}.jpg"
+            write_atomic(out / name, lambda fh, jpg=jpg: fh.write(jpg), mode="wb")
             images.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         if offsets:  # the single pair's table of the outline offsets, under the joint estimate
             parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
             worst = max(offsets, key=lambda o: float(np.linalg.norm(o[1])))[0]
-            name = f"projection_{cam}_{lidar}_{worst}.png"
+            name = f"projection_{cam}_{lidar}_{worst}.jpg"
             first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
                          f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
