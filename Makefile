@@ -18,9 +18,9 @@ demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
 # Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
-# tests take 30-80 s each): 12.3-13.9 minutes of pytest on a clean clone on this 2-core machine (736 s at 216f348,
-# 834 s at c2acfa4), which runs Python about 2.4 times slower than the one the suite took 7-8 minutes on. The
-# twenty slowest tests are listed at the end of every run, where time is to be won.
+# tests take 20-50 s each): 9.3-11.7 minutes of pytest on this 2-core machine at 460c330 (556 s on a clean clone,
+# 702 s in another run; 13.1-13.9 minutes before the 2D sweeps moved to make bench's pages), over the budget of 8.
+# The twenty slowest tests are listed at the end of every run, where time is to be won.
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal --durations=20
 
