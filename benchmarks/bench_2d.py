@@ -44,7 +44,7 @@ from estimators.simulation.simulator import RIGS_2D, as_charuco, rig_2d, sample_
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement import refine  # noqa: E402
 from estimators.solvers.solution_selection import select_and_refine, solution_distances  # noqa: E402
-from geometry.rotations import T_exp, T_inverse, T_log, exp_batch, log_batch  # noqa: E402
+from geometry.rotations import T_inverse, T_log, exp_batch, log_batch  # noqa: E402
 
 SELECTIONS = (("min-residual", "minimal-min-residual", False), ("lower-bound", "minimal-lower-bound", False),
               ("lower-bound+extent", "minimal-lower-bound", True))
