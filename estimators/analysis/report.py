@@ -39,6 +39,11 @@ _PROJECTION_WIDTH_PX = 1200  # the projection figures' image width: 8 in at 90 d
 _OVERLAY_JPEG_QUALITY = 90
 
 
+def overlay_name(*parts: str) -> str:
+    """The file of a :func:`projection_figure`: ``projection_<parts joined by _>.jpg``."""
+    return f"projection_{'_'.join(parts)}.jpg"
+
+
 def residual_arrays(result) -> dict[str, np.ndarray]:
     """What ``report_figures.residuals_pngs`` draws: per used frame, its plane consistency chi-square (NaN where
     the refinement has none), outlier flag, corner RMS and the camera-vs-LiDAR plane angle and distance."""
@@ -347,7 +352,7 @@ def _figures(result, dataset: Dataset, process: FigureProcess
                                          files[frame.name].image, files[frame.name].scan)
             if np.all(np.isfinite(off)):
                 offsets.append((frame.name, off))
-            projections.append((f"projection_{frame.name}.jpg", f"Frame {frame.name}: LiDAR points in the image",
+            projections.append((overlay_name(frame.name), f"Frame {frame.name}: LiDAR points in the image",
                                 jpg))
     for frame in result.frames:
         if frame.decision is not None and frame.decision.candidate_points and frame.name in files:
@@ -455,7 +460,7 @@ def _first_overlays(figures: list[tuple[str, str, bytes]], offsets: list[tuple[s
     the camera's board (``offsets``, px), else the first ones."""
     overlays = {name: (name, title, png) for name, title, png in figures if name.startswith("projection_")}
     far = sorted(offsets, key=lambda o: -float(np.linalg.norm(o[1])))
-    names = [f"projection_{n}.jpg" for n, _ in far if f"projection_{n}.jpg" in overlays]
+    names = [overlay_name(n) for n, _ in far if overlay_name(n) in overlays]
     names += [n for n in overlays if n not in names]
     return [overlays[n] for n in names[:FIRST_OVERLAYS]]
 

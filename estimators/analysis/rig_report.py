@@ -14,8 +14,8 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import (_table, edges_section, html_page, mcmc_part, offsets_section, params_table, projection_figure,
-                     spread_section, terms_table, verdict_part)
+from .report import (_table, edges_section, html_page, mcmc_part, offsets_section, overlay_name, params_table,
+                     projection_figure, spread_section, terms_table, verdict_part)
 from .rig_layout import next_pose_words
 
 
@@ -165,13 +165,13 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
                                          lid.file(f.name))
             if np.all(np.isfinite(off)):
                 offsets.append((f.name, off))
-            name = f"projection_{cam}_{lidar}_{f.name}.jpg"
+            name = overlay_name(cam, lidar, f.name)
             write_atomic(out / name, lambda fh, jpg=jpg: fh.write(jpg), mode="wb")
             images.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         if offsets:  # the single pair's table of the outline offsets, under the joint estimate
             parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
             worst = max(offsets, key=lambda o: float(np.linalg.norm(o[1])))[0]
-            name = f"projection_{cam}_{lidar}_{worst}.jpg"
+            name = overlay_name(cam, lidar, worst)
             first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
                          f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
