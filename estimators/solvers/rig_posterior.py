@@ -317,7 +317,7 @@ class RigLikelihood:
             if self._varies(terms):
                 idx, G, lam = terms[2], terms[7], terms[10]
                 w = 1.0 / (r2.get(terms[11], 1.0) + lam[:, None, :] * s2[None, :, None])  # (F_l, walkers, k)
-                H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G)
+                H[idx] += np.einsum("fka,fwk,fkb->fwab", G, w, G, optimize=True)  # a quarter of the time unoptimised
         return H + self._fixed_information[:, None]
 
     def to_poses(self, theta: np.ndarray) -> np.ndarray:
@@ -375,7 +375,7 @@ class RigLikelihood:
         g = g_cam / s2[None, :, None]
         # The corners: each board about its cameras' best board (scaled by s^2), and what is left, the cameras'
         # poses against each other (at the graph's scale).
-        y_c = np.einsum("fab,fwb->fwa", self._cam_whitener, g_cam)
+        y_c = g_cam @ np.swapaxes(self._cam_whitener, 1, 2)  # batched matmul: a tenth of einsum's time
         boards = np.sum(y_c * y_c, axis=2)  # (F, walkers)
         c = c_cam - boards.sum(axis=0) + boards.sum(axis=0) / s2
         c_lid = np.zeros((len(self.stems), n))  # each frame's LiDAR rows, squared and whitened
@@ -403,7 +403,7 @@ class RigLikelihood:
         # Each board pose integrated out: H_j(s) = H_cam_j / s^2 + H_lidar_j(s).
         if self._basis is not None:
             d = 1.0 / s2[None, :, None] + self._nu[:, None, :]  # (F, walkers, 6)
-            y = np.einsum("fab,fwb->fwa", self._basis, g)
+            y = g @ np.swapaxes(self._basis, 1, 2)
             quad = np.sum(y * y / d, axis=2)  # (F, walkers)
             logdet_h = self._logdet_cam + np.sum(np.log(d), axis=(0, 2))
         else:
