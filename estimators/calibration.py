@@ -266,7 +266,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
                         f"and {1000 * dist:.0f} mm; check that the right LiDAR segment was taken as the board")
     tail += [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
     check = None
-    if ref is not None:  # do the intrinsics explain the planes' disagreement? (two solves of the planes' graph)
+    if ref is not None and options.checks:  # do the intrinsics explain the planes' disagreement? (two solves)
         check = intrinsics_drop(used, board, camera, ref, options)
     result = CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                                sol.weakest_direction_camera, name, tuple(warnings + tail),

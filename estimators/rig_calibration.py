@@ -50,9 +50,9 @@ def pair_options(options: RefinementOptions, range_model: str, params: Segmentat
     """The options each camera-LiDAR pair is solved alone with first, as a single pair is (its robust loss and
     outlier frames, its range terms chosen before its per-board plane error is estimated, which the joint graph then
     weighs the LiDAR's boards with, and the board search's bound on the sensors' separation): its estimate starts
-    the joint graph and is reported beside it. No edges, no check by the edges and no intrinsics (the joint graph
-    has its own)."""
-    return replace(options, edges=False, outline_check=False, range_model=range_model, refine_intrinsics=False,
+    the joint graph and is reported beside it. No edges, no checks (by the edges, by the intrinsics) and no intrinsics
+    (the joint graph has its own)."""
+    return replace(options, edges=False, checks=False, range_model=range_model, refine_intrinsics=False,
                    max_sensor_separation_m=params.max_sensor_separation_m)
 
 

@@ -374,7 +374,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 else "the intrinsics were estimated from the same images; their uncertainty")
         warnings.append(f"{what} is propagated into the covariance (first order, {how})")
 
-    if prob.edges is None and board.size_known and not scan_lines and options.outline_check:
+    if prob.edges is None and board.size_known and not scan_lines and options.checks:
         edges_record, check_warnings = check_outline(prob, active, T, boards, marginals, quasi_scale, cov)
         warnings.extend(check_warnings)
 

@@ -92,9 +92,10 @@ class RefinementOptions:
     # by test), and the sensor's range accuracy (m, 1 sd of a systematic error) that sets the terms' priors.
     range_model: str = "auto"
     range_accuracy_m: float | None = None  # None: the conservative default (DEFAULT_RANGE_ACCURACY_M)
-    # Without the edges, check a 3D estimate by its ring ends (``solvers.outline_check``; off where the estimate
-    # only starts another solve, as a rig's pairwise solves).
-    outline_check: bool = True
+    # Check a 3D estimate by its ring ends, without the edges (``solvers.outline_check``), and by its camera's
+    # intrinsics (``intrinsics_refinement.intrinsics_drop``): off where the estimate only starts another solve, as
+    # a rig's pairwise solves, whose joint graph has its own checks.
+    checks: bool = True
     # The board's edges where the rings (a 2D scan's line) leave it (``solvers.board_edges``), when the board's
     # size is known. None: used where it is (the default); True: asked for (a warning where they cannot be used);
     # False: the planes alone.
