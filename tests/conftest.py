@@ -26,6 +26,17 @@ from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _measurement_cache(tmp_path_factory):
+    """Every calibration the tests run, the command line's in child processes too, keeps its measurement cache in
+    the session's own folder: never the user's (``~/.cache/lidarcam``, which the suite filled with 130 MB of test
+    rigs), and no test reads measurements an earlier run left there."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path_factory.mktemp("measurement_cache")))
+    yield
+    patch.undo()
+
+
 @pytest.fixture(scope="session")
 def sim_hdl64e(tmp_path_factory) -> Path:
     """8 poses, HDL-64E-like, 2 cm range noise (the issue's acceptance setting)."""

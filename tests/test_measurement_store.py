@@ -19,6 +19,16 @@ def cache(tmp_path, monkeypatch):
     return folder
 
 
+def test_the_suite_keeps_its_measurement_cache_out_of_the_users_home(tmp_path_factory):
+    # conftest's session folder, which child processes inherit: not ~/.cache/lidarcam or $XDG_CACHE_HOME's
+    from pathlib import Path
+
+    from estimators.io.measurement_store import cache_dir
+
+    assert cache_dir().is_relative_to(tmp_path_factory.getbasetemp())
+    assert not cache_dir().is_relative_to(Path.home() / ".cache")
+
+
 @pytest.mark.parametrize("which", ["sim_vlp16", "sim_2d"])
 def test_saved_measurements_solve_to_the_same_extrinsic(which, request, tmp_path):
     path = request.getfixturevalue(which)
