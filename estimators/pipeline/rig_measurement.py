@@ -129,7 +129,7 @@ def align_numbering(cams: list[str], poses: dict, T_ref: dict, flip: np.ndarray)
 def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
     """The relative pose most frames agree with (within 2 degrees and 5 cm), each frame giving its candidates
     (one per numbering of the board), and its candidate nearest that: every candidate against every other in one
-    batch of logarithms (a 40-frame pair of cameras: 0.1 s, against 2.8 s one by one)."""
+    batch of logarithms (40 frames of two numberings each: 7 ms, against 2.2 s one by one)."""
     hyps = np.array([T for cands in rels for T in cands])
     frame = np.array([i for i, cands in enumerate(rels) for _ in cands])
     rel = np.linalg.inv(hyps)[:, None] @ hyps[None, :]  # [h, j]: hypothesis h to candidate j
