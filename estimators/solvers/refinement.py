@@ -26,7 +26,8 @@ factors (a global offset, per-ring offsets, a black-square offset) in one vector
 LiDAR's range accuracy. Under ``auto`` each block is added while a likelihood-ratio test at 0.1% supports it,
 made with the boards' disagreement modelled when they disagree beyond the noise
 (:func:`range_terms_choice._model_test`). Per-ring and black-square terms that leave the boards inconsistent
-where the offset alone does not fall back to smaller combinations. A term beyond 3 prior standard deviations is held at 0 with its prior variance propagated
+where the offset alone does not fall back to smaller combinations. A term beyond 3 prior standard deviations is
+held at 0 with its prior variance propagated
 (:func:`range_terms_choice.consider_pinned`). What a plane error of physical size and the boards' scatter leave is
 a variance factor (quasi-likelihood), taken as a rig takes each sensor's: the terms' priors are weighed against data
 worth that much less (the graph solved again under it, before any term is judged against its prior), and the
