@@ -11,8 +11,9 @@ from the ground truth (refined twice, so that its noise terms are estimated at t
 miss. "Truth's root" (the default selection's): the minimum of the planes alone (the graph without the segment
 ends, whose minima are the minimal problem's roots) reached from the answer is the one reached from the truth:
 with the ends in the graph, nearby fixed points of one root (their outline shifts and noise terms estimated where
-each solve stops) count as misses by the first measure and as hits by this one. "In 99.9% region": the truth inside the reported modes' 99.9% region (``in_mixture``), which does not
-count a nearby second minimum of the same basin as a miss. Trials whose truth-started refinement is itself degenerate are skipped. Selections:
+each solve stops) count as misses by the first measure and as hits by this one. "In 99.9% region": the truth
+inside the reported modes' 99.9% region (``in_mixture``), which does not count a nearby second minimum of the same
+basin as a miss. Trials whose truth-started refinement is itself degenerate are skipped. Selections:
 - min-residual: the baseline (Vasconcelos et al.): the least laser cost over every solution, refined;
 - lower-bound: the lower-bound method (Peng et al.): clusters, effective lower bound, every kept
   candidate refined, least refined cost;
