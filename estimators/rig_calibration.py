@@ -85,7 +85,13 @@ class PairsAlone:
     skipped : dict
         Per LiDAR: ``stem -> reason`` for the frames it does not give the joint graph.
     first, warnings : tuple of str
-        What to say before every other warning (an ambiguous pair), and the rest.
+        What to say before every other warning (an ambiguous pair), and the rest: each pair's own, as a single
+        pair's result says them, prefixed with the pair.
+    failed : dict
+        ``(camera, lidar) -> DegenerateLayoutError``: the pairs whose boards could not be solved, and why.
+    intrinsics_checks : dict
+        ``(camera, lidar) -> record`` of ``intrinsics_refinement.intrinsics_drop``: for each 3D pair, whether its
+        planes disagree in a way the camera's intrinsics explain.
     """
 
     pairwise: dict
@@ -102,6 +108,8 @@ class PairsAlone:
     skipped: dict
     first: tuple
     warnings: tuple
+    failed: dict
+    intrinsics_checks: dict
 
     def settled(self, before: "PairsAlone") -> bool:
         """Every board's plane error within a tenth of ``before``'s (or 0.1 mm) and the same boards used: the
@@ -113,7 +121,7 @@ class PairsAlone:
 
 def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, cameras: dict,
                       alone: RefinementOptions, init: str, options: RefinementOptions,
-                      scanner_ends: bool = False) -> PairsAlone:
+                      scanner_ends: bool = False, check_intrinsics: bool = False) -> PairsAlone:
     """Each camera-LiDAR pair of ``frames_by_pair`` (``(camera, lidar) -> frames``, measured or observed again under
     refined intrinsics, ``cameras`` the models they were observed under) with at least ``MIN_PAIR_FRAMES`` usable
     frames (``MIN_SCANNER_FRAMES_WITH_ENDS`` for a scanner taking its segment ends, below) solved alone with
@@ -126,12 +134,14 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     alone tell its minima apart (without them a 3-board pair folder's rig started from a planes-only minimum 5
     degrees and 24 cm off, which its joint graph kept, and read ``OK``). With more boards, its joint graph decides
     among them and the planes alone start it: weighed with the ends, a 6-camera rig's 3- and 4-board scanner
-    pairs took 17 s, the whole rig's solve 2.4 s without them."""
+    pairs took 17 s, the whole rig's solve 2.4 s without them. With ``check_intrinsics``, each 3D pair's boards are checked
+    for planes that disagree in a way the camera's intrinsics explain (``intrinsics_refinement.intrinsics_drop``, as
+    every single 3D pair's result is; about 10 ms a pair)."""
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}
     board_scatter, sigma_r, term_choices = {}, {}, {}
-    pairwise, links, pair_frames, ambiguous, minima = {}, {}, {}, {}, {}
+    pairwise, links, pair_frames, ambiguous, minima, failed, checks = {}, {}, {}, {}, {}, {}, {}
     first: list[str] = []
     warnings: list[str] = []
     with_ends = set()
@@ -153,14 +163,25 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             if len(usable) < (MIN_SCANNER_FRAMES_WITH_ENDS if ends else MIN_PAIR_FRAMES):
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 continue
+            chooses = lid.name not in term_choices  # its range terms are the LiDAR's in the joint graph
             try:
-                opts = alone if lid.name not in term_choices else \
-                    replace(alone, range_model=term_choices[lid.name][0].chosen)
+                opts = alone if chooses else replace(alone, range_model=term_choices[lid.name][0].chosen)
                 res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
                             options=replace(opts, edges=True) if ends else opts, use_extent=ends)
             except DegenerateLayoutError as exc:
+                failed[(cam_name, lid.name)] = exc
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
+            # What its boards say of themselves, as a single pair's result says it (the joint graph weighs them
+            # as this refinement did): its range terms' choice, plane error, outliers, spread. Said elsewhere:
+            # its second minimum (``first``, below) and, where it chose them, terms held at 0 (``rig_terms``).
+            warnings.extend(f"{cam_name}-{lid.name}: {w}" for w in res.warnings if not w.startswith("ambiguous:")
+                            and not (chooses and w.startswith("range model: ") and " lie beyond " in w))
+            if check_intrinsics and lid.lidar != "2d":
+                from .solvers.intrinsics_refinement import intrinsics_drop
+
+                checks[(cam_name, lid.name)] = intrinsics_drop(usable, rig.board, cameras[cam_name], res.refinement,
+                                                               opts)
             if ends and len(res.modes) > 1:  # weighed by the ends, as the joint graph has them
                 minima[(cam_name, lid.name)] = tuple(res.modes)
             if res.ambiguous:
@@ -189,7 +210,24 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
         if lidar_obs[lid.name]:
             sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
-                      ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings))
+                      ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings), failed,
+                      {k: v for k, v in checks.items() if v is not None})
+
+
+def unlinked_lidar(rig: RigDataset, fit: PairsAlone, skipped: dict) -> None:
+    """A LiDAR left without a link to any camera because its pairs' boards could not be solved raises that pair's
+    reason (the first camera's: the one sharing most frames), as a single pair's calibration says it, with the
+    frames it skipped and why; a LiDAR that shares too few frames is left to ``spanning_tree``'s error."""
+    for lid in rig.lidars:
+        if any(d == lid.name for _, d in fit.links):
+            continue
+        reasons = [(c, exc) for (c, d), exc in fit.failed.items() if d == lid.name]
+        if reasons:
+            cam, exc = reasons[0]
+            frames = {**skipped.get(lid.name, {}), **fit.skipped.get(lid.name, {})}
+            said = "; ".join(f"{st}: {why}" for st, why in sorted(frames.items()))
+            raise DegenerateLayoutError(f"{cam}-{lid.name}: {exc.problem}" + (f" (skipped: {said})" if said else ""),
+                                        path=rig.root, hint=exc.hint)
 
 
 def _few_boards() -> int:
@@ -299,7 +337,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
     scanner_ends = edges is not False and rig.board.size_known
     alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options,
-                                  scanner_ends)
+                                  scanner_ends, check_intrinsics=not refine_intrinsics)
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
     links = dict(alone_fit.links)
@@ -307,6 +345,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         for b in cams[i + 1:]:
             links[(a, b)] = sum(1 for st in poses[a] if st in poses[b])
     names = tuple(s.name for s in rig.sensors)
+    unlinked_lidar(rig, alone_fit, skipped)
     parent = spanning_tree(names, rig.reference, links)
     flip = pattern_flip(rig.board)
     T_ref = start_poses(names, rig.reference, parent, poses, alone_fit.pairwise, flip)
@@ -468,7 +507,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
-                     measured, ambiguous, test)
+                     measured, ambiguous, test, alone_fit.intrinsics_checks)
 
 
 def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lidar_views: list, solution, shares

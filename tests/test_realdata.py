@@ -172,6 +172,14 @@ def test_recorded_2d_set_is_explained_as_degenerate_without_a_hint():
     with pytest.raises(DegenerateLayoutError) as exc:
         calibrate(load_dataset(RPG), samples=300)
     assert "unobservable" in exc.value.message
+    # its rig (cam0 and lidar0) says the same, naming the pair and the frame it skipped
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
+
+    with pytest.raises(DegenerateLayoutError) as rig_exc:
+        calibrate_rig(load_rig(RPG), np.random.default_rng(0), advise=False)
+    assert rig_exc.value.problem.startswith("cam0-lidar0: " + exc.value.problem.split(" (skipped")[0])
+    assert "(skipped: 0001: with cam0: " in rig_exc.value.problem and rig_exc.value.hint == exc.value.hint
 
 
 def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16):

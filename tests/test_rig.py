@@ -1148,6 +1148,22 @@ def test_a_scanner_that_found_two_of_its_three_boards_is_linked_as_its_pair_is_s
     assert x @ np.linalg.solve(C, x) < 22.5
 
 
+def test_a_lidar_whose_pairs_cannot_be_solved_raises_its_pairs_reason(sim_vlp16, monkeypatch):
+    # A LiDAR left without a link because its pair's boards cannot be solved (the recorded 2D set's upright boards)
+    # is refused with that pair's reason and hint, as the single pair's calibration refuses it, not as a sensor
+    # that "shares no usable frames" with the rig.
+    from estimators import rig_calibration
+
+    def degenerate(*args, **kwargs):
+        raise DegenerateLayoutError("the 4 board normals all lie in one plane (a test)", hint="tilt a board")
+
+    monkeypatch.setattr(rig_calibration, "solve", degenerate)
+    with pytest.raises(DegenerateLayoutError) as exc:
+        calibrate_rig(load_rig(sim_vlp16), np.random.default_rng(0), advise=False)
+    assert exc.value.problem == "cam0-lidar0: the 4 board normals all lie in one plane (a test)"
+    assert exc.value.hint == "tilt a board" and exc.value.path == str(sim_vlp16)
+
+
 def test_a_posterior_the_sampler_refuses_is_said_and_the_graphs_covariance_stands(sim_2d, monkeypatch):
     # emcee raised a ValueError (no autocorrelation time: NaN) on a 3-board scanner's second minimum (varied seed
     # 16), and calibrate_rig let it through. A refused chain is a PosteriorSkippedError: a second minimum is left out
@@ -1217,6 +1233,14 @@ def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     assert abs(rec["value_m"]) < 1e-6 and rec["sd_m"] == pytest.approx(rec["prior_sd_m"], rel=1e-3)
     assert any("held at 0" in w for w in res.warnings)
     assert "offset held at 0 (estimated +2" in range_model_words(rec)
+    # What the pair says of its boards the rig says too, once each, prefixed with the pair (the rig had dropped
+    # them: the plane error, the incidence structure, two frames 1.4-1.9 deg and 51-64 mm off); the held term once,
+    # by the rig's record.
+    said = [w for w in pair.warnings if not (w.startswith("range model: ") and " lie beyond " in w)]
+    assert len(said) == len(pair.warnings) - 1 >= 4
+    for w in said:
+        assert res.warnings.count(f"cam0-lidar0: {w}") == 1, w
+    assert sum("held at 0" in w for w in res.warnings) == 1
     # A LiDAR of the same rig without terms (another's held) is left as it is.
     from dataclasses import replace
 

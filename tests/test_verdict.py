@@ -178,6 +178,17 @@ def test_intrinsics_that_explain_the_planes_disagreement_are_a_check(sim_hdl64e,
     assert result.verdict.level != OK and "the camera's intrinsics explain" in result.verdict.line
     assert not good.intrinsics_check["explains"] and good.intrinsics_check["p_value"] > 0.01
     assert good.to_dict()["intrinsics_check"] == good.intrinsics_check
+    # The same folder as a rig (cam0, lidar0) checks its pair alike (the rig read OK, unchecked) and keeps the
+    # pair's key in calibration.json
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
+
+    rig = calibrate_rig(load_rig(tmp_path / "d"), np.random.default_rng(0), advise=False)
+    rig_check = rig.intrinsics_checks[("cam0", "lidar0")]
+    assert rig_check["explains"] and rig_check["p_value"] < 1e-3, rig_check
+    assert rig.verdict.level != OK and "T_cam0_lidar0: the boards' planes disagree in a way cam0's intrinsics " \
+                                       "explain" in rig.verdict.line
+    assert rig.to_json()["intrinsics_check"] == rig_check
 
 
 def test_a_held_range_term_and_a_shifted_outline_are_checks(good):

@@ -86,6 +86,9 @@ class RigResult:
     # With the intrinsics refined: whether that lowers the rig's disagreement beyond chance
     # (``rig_graph.intrinsics_test``).
     intrinsics_test: dict | None = None
+    # Without: each 3D camera-LiDAR pair's, whether its planes disagree in a way its camera's intrinsics explain
+    # (``(camera, lidar) -> record``, a single pair's ``intrinsics_check``).
+    intrinsics_checks: dict = field(default_factory=dict)
 
     def pair(self, a: str, b: str) -> PairEstimate:
         """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
@@ -194,6 +197,8 @@ class RigResult:
         transforms = {f"T_{a}_{b}": entry(*sol.transform(a, b)) for a, b in self.pairs()}
         for (a, b), record in self.outline_checks.items():
             transforms[f"T_{a}_{b}"]["board_edges"] = record
+        for (a, b), record in self.intrinsics_checks.items():
+            transforms[f"T_{a}_{b}"]["intrinsics_check"] = record
         posterior = None
         if self.posterior is not None:
             for a, b in self.pairs():
@@ -210,7 +215,8 @@ class RigResult:
                                "dist": refined.dist.tolist(), "source": "refined with the rig"})
         pair = {}
         if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
-            pair = self.pair(self.rig.cameras[0].name, self.rig.lidars[0].name).camera_lidar_keys()
+            c, lid = self.rig.cameras[0].name, self.rig.lidars[0].name
+            pair = {**self.pair(c, lid).camera_lidar_keys(), "intrinsics_check": self.intrinsics_checks.get((c, lid))}
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}

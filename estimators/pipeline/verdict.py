@@ -263,6 +263,17 @@ def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement]) -> list[tup
                         "length")]
 
 
+def _intrinsics(name: str, whose: str, check: dict | None) -> list[tuple[str, str]]:
+    """A pair's boards' planes disagree in a way its camera's intrinsics explain (``intrinsics_drop``'s
+    ``check``): a CHECK."""
+    if not check or not check["explains"]:
+        return []
+    return [(CHECK, f"{name}the boards' planes disagree in a way {whose} intrinsics explain (freed, they drop the "
+                    f"planes' chi-square from {check['chi_square_given']:.0f} to {check['chi_square_refined']:.0f} on "
+                    f"{check['dof']:.0f} dof, F test p = {check['p_value']:.1g}): check the camera's calibration, "
+                    "or calibrate with --refine-intrinsics")]
+
+
 def pair_verdict(result) -> Verdict:
     """A camera-LiDAR pair's verdict (``CalibrationResult``)."""
     ref, post = result.refinement, result.posterior
@@ -281,13 +292,7 @@ def pair_verdict(result) -> Verdict:
     aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
     concerns += _frames("", result.plane_residuals, aside + dropped,
                         {f.name: angle_limit(f) for f in result.frames if f.usable})
-    check = result.intrinsics_check
-    if check and check["explains"]:
-        concerns.append((CHECK, f"the boards' planes disagree in a way the camera's intrinsics explain (freed, they "
-                                f"drop the planes' chi-square from {check['chi_square_given']:.0f} to "
-                                f"{check['chi_square_refined']:.0f} on {check['dof']:.0f} dof, F test p = "
-                                f"{check['p_value']:.1g}): check the camera's calibration, or calibrate with "
-                                "--refine-intrinsics"))
+    concerns += _intrinsics("", "the camera's", result.intrinsics_check)
     if result.ambiguous:
         post = result.posterior
         concerns += _ambiguous("", result.modes, "the boards", post is not None and post.mode_index is not None)
@@ -321,6 +326,8 @@ def rig_verdict(result) -> Verdict:
                  if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
+    for (c, lid), check in result.intrinsics_checks.items():
+        concerns += _intrinsics(f"T_{c}_{lid}: ", f"{c}'s", check)
     for c in result.rig.cameras if not result.solution.intrinsics else ():
         concerns += _corners(c.name, result.solution.noise_scale.get(c.name, 1.0),
                              result.solution.chi2_dof.get(c.name, (0.0, 0.0)))
