@@ -92,6 +92,10 @@ class PairsAlone:
     intrinsics_checks : dict
         ``(camera, lidar) -> record`` of ``intrinsics_refinement.intrinsics_drop``: for each 3D pair, whether its
         planes disagree in a way the camera's intrinsics explain.
+    results : dict
+        ``(camera, lidar) -> CalibrationResult``: each pair's own solve (its start, its frames' fits, its range
+        model's choice, a scanner's minimal solutions), which a two-sensor rig's calibration.json reports as a
+        single pair's file does (``RigResult.pair_keys``).
     """
 
     pairwise: dict
@@ -110,6 +114,7 @@ class PairsAlone:
     warnings: tuple
     failed: dict
     intrinsics_checks: dict
+    results: dict
 
     def settled(self, before: "PairsAlone") -> bool:
         """Every board's plane error within a tenth of ``before``'s (or 0.1 mm) and the same boards used: the
@@ -141,7 +146,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}
     board_scatter, sigma_r, term_choices = {}, {}, {}
-    pairwise, links, pair_frames, ambiguous, minima, failed, checks = {}, {}, {}, {}, {}, {}, {}
+    pairwise, links, pair_frames, ambiguous, minima, failed, checks, results = {}, {}, {}, {}, {}, {}, {}, {}
     first: list[str] = []
     warnings: list[str] = []
     with_ends = set()
@@ -193,6 +198,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             if lid.name not in term_choices and res.refinement.range_model is not None:
                 term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
+            results[(cam_name, lid.name)] = res
             pair_frames[(cam_name, lid.name)] = usable
             links[(cam_name, lid.name)] = len(usable)
             dropped = {fit.name: fit.outlier for fit in res.refinement.frames if fit.dropped}
@@ -211,7 +217,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
                       ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings), failed,
-                      {k: v for k, v in checks.items() if v is not None})
+                      {k: v for k, v in checks.items() if v is not None}, results)
 
 
 def unlinked_lidar(rig: RigDataset, fit: PairsAlone, skipped: dict) -> None:
@@ -507,7 +513,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
                      {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                      tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
-                     measured, ambiguous, test, alone_fit.intrinsics_checks)
+                     measured, ambiguous, test, alone_fit.intrinsics_checks, alone_fit.results)
 
 
 def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lidar_views: list, solution, shares

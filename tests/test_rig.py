@@ -973,12 +973,32 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(xi) < 1e-5 * sd), xi / sd
     assert np.max(np.abs(C - pair.covariance) / np.outer(sd, sd)) < 1e-6
-    # the rig's calibration.json has the pair's keys for its transform, as the pair's file gives them
+    # the rig's calibration.json has every key of the pair's file, of the same type, and the same values: the
+    # transform's, the frames' (each one's measurements, planes, residuals and fit), the noise, consistency,
+    # start, range model, layout and intrinsics (the rig's own keys beside them)
     mine = pair.to_dict()
+    assert set(mine) <= set(cal), set(mine) - set(cal)
+    assert all(type(cal[k]) is type(mine[k]) for k in mine if mine[k] is not None), \
+        [k for k in mine if type(cal[k]) is not type(mine[k])]
     for key in ("quaternion_xyzw", "translation_m"):
         np.testing.assert_allclose(cal[key], mine[key], atol=1e-9)
     for key, v in mine["std"].items():
         np.testing.assert_allclose(cal["std"][key], v, rtol=1e-5)
+    for key in ("init", "refine", "frames_used", "frames_total", "intrinsics", "contradicted", "tool",
+                "intrinsics_check", "covariance_convention"):
+        assert cal[key] == mine[key], key
+    assert [{k: v for k, v in f.items() if not isinstance(v, float)} for f in cal["frames"]] == \
+        [{k: v for k, v in f.items() if not isinstance(v, float)} for f in mine["frames"]]
+    for got, want in zip(cal["frames"], mine["frames"]):
+        for k in ("normal_residual_deg", "distance_residual_m", "plane_chi2", "robust_weight"):
+            if k in want:
+                assert got[k] == pytest.approx(want[k], rel=1e-4, abs=1e-9), k
+    for key in ("noise", "consistency", "layout"):
+        for k, v in mine[key].items():
+            assert cal[key][k] == (v if isinstance(v, str) else pytest.approx(v, rel=1e-5)), (key, k)
+    assert cal["lidar_range_model"]["chosen"] == mine["lidar_range_model"]["chosen"]
+    assert cal["minimal_solutions"]["triples"] == mine["minimal_solutions"]["triples"] if data == "sim_2d" else \
+        "minimal_solutions" not in cal
     # both records give either order of the pair alike (T_lidar_camera: the tangent carried by -Ad_T, exactly)
     for a, b in (("cam0", "lidar0"), ("lidar0", "cam0")):
         mine, theirs = pair.pair(a, b), res.pair(a, b)

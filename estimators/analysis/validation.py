@@ -169,7 +169,8 @@ def pair_calibration(cal: dict, camera: str | None = None, lidar: str | None = N
                            np.array(pair["covariance"], dtype=float).reshape(6, 6), float(cam["corner_noise_px"]),
                            float(lid["range_noise_m"]), float(lid["plane_floor_m"]),
                            terms_from_json(sensors[lidar].get("range_model"), float(lid["board_scatter_m"])),
-                           frozenset(cal["frames_used"][lidar]), str(cal.get("dataset", "")))
+                           frozenset(sensors[lidar]["frames"] if "frames" in sensors[lidar] else
+                                     cal["frames_used"][lidar]), str(cal.get("dataset", "")))
 
 
 def verdict(scores: list[FrameScore]) -> dict:

@@ -217,7 +217,9 @@ class CalibrationResult:
         report and calibration.json; ``--strict`` exits non-zero on ``UNTRUSTED`` or an ambiguous answer."""
         return pair_verdict(self)
 
-    def _minimal_dict(self) -> dict:
+    def minimal_dict(self) -> dict:
+        """2D: how the minimal solutions were chosen and the minima that hold mass (calibration.json's
+        ``minimal_solutions`` and ``modes``); empty for a 3D LiDAR's."""
         sel = self.selection
         if sel is None:
             return {}
@@ -244,14 +246,14 @@ class CalibrationResult:
             "init": self.init, "refine": self.refine,
             "frames_used": self.frames_used, "frames_total": len(self.frames),
             **self._uncertainty_dict(),
-            "frames": [_frame_dict(f, self.plane_residuals.get(f.name), fits.get(f.name)) for f in self.frames],
+            "frames": [frame_dict(f, self.plane_residuals.get(f.name), fits.get(f.name)) for f in self.frames],
             "layout": {
                 "normal_singular_values": self.normal_singular_values.tolist(),
                 "condition_number": self.condition_number,
                 "weakest_direction_camera": self.weakest_direction_camera.tolist(),
                 "weakest_direction_words": f"{axis}: to constrain it further, {advice}",
             },
-            **self._minimal_dict(),
+            **self.minimal_dict(),
             "intrinsics": self.camera.as_dict(),
             **({"intrinsics_refinement": self.intrinsics_refinement.to_dict()}
                if self.intrinsics_refinement is not None else {}),
@@ -262,7 +264,9 @@ class CalibrationResult:
         }
 
 
-def _frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None, fit=None) -> dict:
+def frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None, fit=None) -> dict:
+    """One frame as calibration.json's ``frames`` give it: used or not and why, its measurements' sizes and planes,
+    its planes' ``residual`` under the estimate and its ``fit`` (``refinement.FrameFit``), where given."""
     used = f.usable and not (fit is not None and fit.dropped)
     reason = f.reason if fit is None or not fit.dropped else f"dropped as an outlier: {fit.outlier}"
     d = {"name": f.name, "used": used, "reason": reason,

@@ -12,11 +12,15 @@ import numpy as np
 from .. import __version__
 from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
+from ..solvers.closed_form import describe_direction
 from ..solvers.edges_in_graph import conflict_words
+from ..solvers.posterior import INTERVAL_LEVELS, regions
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
+from .result import CONVENTION, COVARIANCE_CONVENTION, frame_dict
 from .rig_measurement import MIN_PAIR_FRAMES
+from .verdict import plane_residuals
 from .verdict import Verdict, rig_verdict
 
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
@@ -89,6 +93,8 @@ class RigResult:
     # Without: each 3D camera-LiDAR pair's, whether its planes disagree in a way its camera's intrinsics explain
     # (``(camera, lidar) -> record``, a single pair's ``intrinsics_check``).
     intrinsics_checks: dict = field(default_factory=dict)
+    # Each camera-LiDAR pair's own solve (``(camera, lidar) -> CalibrationResult``, ``rig_calibration.PairsAlone``).
+    pair_results: dict = field(default_factory=dict)
 
     def pair(self, a: str, b: str) -> PairEstimate:
         """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
@@ -167,6 +173,69 @@ class RigResult:
                         "board_scatter_m": float(lv.tau_m)}
         return {}
 
+    def pair_keys(self, camera: str, lidar: str) -> dict:
+        """The keys a single pair's calibration.json gives (``CalibrationResult.to_dict``), for the camera-LiDAR
+        pair ``(camera, lidar)``: its transform, covariance and posterior intervals from the joint graph; its
+        noise, board edges, intrinsics and their check, as the rig weighed and checked them; and from the pair's own
+        solve (:attr:`pair_results`), its frames (each with its fit and its planes' residual under the joint
+        estimate), its start, consistency, range model's choice, normals' spread and a scanner's minimal
+        solutions. A two-sensor rig's file carries them at its top level (docs/reference/calibration_json.md)."""
+        est = self.pair(camera, lidar)
+        own = self.pair_results.get((camera, lidar))
+        ref = own.refinement if own is not None else None
+        out = {"tool": "lidarcam", "convention": CONVENTION, **est.camera_lidar_keys(),
+               "init": own.init if own is not None else "closed-form", "refine": "factor-graph",
+               "covariance_convention": COVARIANCE_CONVENTION}
+        if est.samples is not None:
+            out["covariance_laplace"] = self.solution.transform(camera, lidar)[1].tolist()
+            out["intervals"] = {f"{round(100 * level)}%": {
+                "rotation_deg_about_lidar_xyz": np.degrees(est.intervals(level)[:3]).tolist(),
+                "translation_mm_along_lidar_xyz": (1000 * est.intervals(level)[3:]).tolist()}
+                for level in INTERVAL_LEVELS}
+            out["credible_regions"] = regions(est.samples)
+        else:
+            out["covariance_note"] = "Laplace approximation (no posterior samples were drawn)"
+        lid_noise = self.noise(lidar)
+        out["noise"] = {"corner_noise_px": self.noise(camera).get("corner_noise_px"),
+                        "corner_residual_px": ref.corner_residual_px if ref is not None else None,
+                        "range_noise_m": lid_noise.get("range_noise_m"), "plane_floor_m": lid_noise.get("plane_floor_m")}
+        if ref is not None:
+            out["consistency"] = {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
+                                  "p_value": ref.consistency_p}
+        out["iterations"] = self.solution.iterations
+        fit = ref.range_model if ref is not None else None
+        out["lidar_range_model"] = fit.to_dict() if fit is not None else {
+            "requested": "none", "chosen": "none", "reason": "not requested", "terms": []}
+        joint = self.range_models.get(lidar, {}).get("terms") or {}
+        for term in out["lidar_range_model"]["terms"]:  # each term as the joint graph estimates it
+            if term["term"] in joint:
+                term.update(value_mm=1000 * joint[term["term"]]["value_m"], std_mm=1000 * joint[term["term"]]["sd_m"])
+        edges = self.edges.get(lidar) or self.outline_checks.get((camera, lidar))
+        out["board_edges"] = edges if edges is not None else {"used": False}
+        out["contradicted"] = conflict_words(self.edges.get(lidar) or {})
+        measured = getattr(self.measurements, "pairs", {}).get((camera, lidar)) or (self.pair_frames or {}).get(
+            (camera, lidar), [])
+        used = set(self.frames_used.get(lidar, ())) & set(self.frames_used.get(camera, ()))
+        residuals = plane_residuals(est.T, [f for f in measured if f.usable])
+        fits = {f.name: f for f in ref.frames} if ref is not None else {}
+        frames = []
+        for f in measured:
+            d = frame_dict(f, residuals.get(f.name), fits.get(f.name))
+            if f.usable and f.name not in used:  # the rig left it out: its reason is the rig's
+                d.update(used=False, reason=self.skipped.get(lidar, {}).get(f.name) or d["reason"])
+            frames.append(d)
+        out.update(frames_used=sum(d["used"] for d in frames), frames_total=len(frames), frames=frames)
+        if own is not None:
+            axis, advice = describe_direction(own.weakest_direction_camera)
+            out["layout"] = {"normal_singular_values": own.normal_singular_values.tolist(),
+                             "condition_number": own.condition_number,
+                             "weakest_direction_camera": own.weakest_direction_camera.tolist(),
+                             "weakest_direction_words": f"{axis}: to constrain it further, {advice}"}
+            out.update(own.minimal_dict())
+        out["intrinsics"] = self.camera_model(camera).as_dict()
+        out["intrinsics_check"] = self.intrinsics_checks.get((camera, lidar))
+        return out
+
     def to_json(self) -> dict:
         sol, ref = self.solution, self.rig.reference
 
@@ -215,19 +284,21 @@ class RigResult:
                                "dist": refined.dist.tolist(), "source": "refined with the rig"})
         pair = {}
         if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
-            c, lid = self.rig.cameras[0].name, self.rig.lidars[0].name
-            pair = {**self.pair(c, lid).camera_lidar_keys(), "intrinsics_check": self.intrinsics_checks.get((c, lid))}
+            pair = self.pair_keys(self.rig.cameras[0].name, self.rig.lidars[0].name)
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}
+        for s in sensors:
+            s["frames"] = list(self.frames_used.get(s["name"], ()))
         return {"verdict": self.verdict.to_dict(), "rig": True, **pair, "dataset": str(self.rig.root), "reference": ref,
                 "ambiguous_pairs": ambiguous,
                 "sensors": sensors,
                 "transforms": transforms,
-                "layout": self.layout(),
+                "layout": {**self.layout(), **pair.get("layout", {})},
                 "covariance_joint": sol.covariance_joint.tolist(), "posterior": posterior,
                 "pairwise_only": pairwise, "cameras": cameras, "intrinsics_test": self.intrinsics_test,
-                "frames_used": {n: list(v) for n, v in self.frames_used.items()},
+                # a two-sensor rig's: the pair's count (each sensor's frames are in ``sensors``)
+                "frames_used": pair.get("frames_used", {n: list(v) for n, v in self.frames_used.items()}),
                 "skipped": self.skipped, "warnings": list(self.warnings), "timings_s": self.timings_s,
                 "measurements_source": getattr(self.measurements, "source", None), "version": __version__,
                 "convention": "T_a_b maps points from b's frame into a's: p_a = R p_b + t. Covariances are 6x6 in "
