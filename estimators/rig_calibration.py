@@ -145,7 +145,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}
-    board_scatter, sigma_r, term_choices = {}, {}, {}
+    board_scatter, sigma_r, term_choices, terms_noise = {}, {}, {}, {}
     pairwise, links, pair_frames, ambiguous, minima, failed, checks, results = {}, {}, {}, {}, {}, {}, {}, {}
     first: list[str] = []
     warnings: list[str] = []
@@ -197,6 +197,8 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                                 "tilted in other directions to decide")
             if lid.name not in term_choices and res.refinement.range_model is not None:
                 term_choices[lid.name] = (res.refinement.range_model, f"{cam_name}-{lid.name}")
+                if res.refinement.range_model.names:  # its points' scatter about each board's plane and terms
+                    terms_noise[lid.name] = res.refinement.range_noise_m
             pairwise[(cam_name, lid.name)] = (res.T_camera_lidar, res.covariance, len(usable))
             results[(cam_name, lid.name)] = res
             pair_frames[(cam_name, lid.name)] = usable
@@ -214,7 +216,10 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 plane_frames[lid.name][f.name] = (f, res.refinement.plane_floor_m)
                 skipped[lid.name].pop(f.name, None)
         if lidar_obs[lid.name]:
-            sigma_r[lid.name] = options.range_noise_m or pooled_range_noise_m(list(lidar_obs[lid.name].values()))
+            # With range terms, the range noise is the scatter the terms leave, as the pair that chose them
+            # estimated it: the scatter about each board's plane also holds the structure they explain.
+            sigma_r[lid.name] = options.range_noise_m or terms_noise.get(lid.name) or \
+                pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
                       ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings), failed,
                       {k: v for k, v in checks.items() if v is not None}, results)

@@ -513,6 +513,14 @@ def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimate
         T, C = res.solution.transform(cam, "lidar0")
         xi = T_log(np.linalg.inv(T) @ _truth(ranged_rig, cam, "lidar0"))
         assert xi @ np.linalg.solve(C, xi) < 16.8, cam
+    # its points weighed with the scatter the terms leave, as the pair that chose them estimated it (the scatter
+    # about each board's plane, which the rig took before, holds the rings and black squares too)
+    from estimators.solvers.noise_levels import pooled_range_noise_m
+
+    lv = next(v for v in res.lidar_views if v.name == "lidar0")
+    chooser = res.pair_results[("cam0", "lidar0")].refinement
+    assert lv.sigma_m == chooser.range_noise_m < 0.99 * pooled_range_noise_m(
+        [f.lidar for f in res.pair_frames[("cam0", "lidar0")]])
     dark = res.posterior.range_terms["lidar0"][:, list(terms).index("dark")]
     assert abs(dark.mean() - terms["dark"]["value_m"]) < 0.25 * terms["dark"]["sd_m"]
     assert dark.std() == pytest.approx(terms["dark"]["sd_m"], rel=0.2)
