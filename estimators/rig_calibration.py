@@ -443,10 +443,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     elif edged and rig.board.size_known:
         lidar_views, solution, edge_records, conflict = with_edges(rig, names, camera_views, lidar_views, lidar_obs,
                                                                    solution, T_ref, T_ref_board, refine_intrinsics,
-                                                                   edged, default=edges is None)
+                                                                   edged, default=edges is None,
+                                                                   pair_frames=alone_fit.pair_frames)
         for name, record in edge_records.items():
             if record.get("left_out"):
                 warnings.append(f"{name}: {left_out_warning(record['left_out'])}")
+            warnings.extend(f"{name}: {w}" for w in edge_warnings(record))
             if (said := conflict_words(record)) is not None:
                 warnings.append(f"{name}: {said}: the covariance holds both answers (their difference added along "
                                 "it); the planes-only pose is in calibration.json (board_edges)")
@@ -533,6 +535,21 @@ def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lid
     free = solution.covariance_joint - sum(s for s in shares if s is not None)
     ev, V = np.linalg.eigh(0.5 * (free - held.covariance_joint + (free - held.covariance_joint).T))
     return held, views, (V * np.maximum(ev, 0.0)) @ V.T
+
+
+def edge_warnings(record: dict) -> list[str]:
+    """What a LiDAR's board-edges record with the edges used warns of, as a single pair's does
+    (``outline_check.outline_warnings``): its outlines' mean shift, its sides' growth and its outline's offset
+    beyond their limits, and the planes alone's outlines beside them (with its first camera)."""
+    from .solvers.outline_check import outline_warnings
+
+    if not record.get("used") or "mean_shift_dof" not in record:
+        return []
+    out = outline_warnings(record, used=True)
+    if record.get("planes_only_check"):
+        out += [f"with {record['planes_only_camera']}: {w}"
+                for w in outline_warnings(record["planes_only_check"], used=False, beside_edges=True)]
+    return out
 
 
 def unobservable_scanners(result: RigResult, edged: set) -> list[str]:

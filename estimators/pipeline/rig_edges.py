@@ -16,24 +16,27 @@ from ..solvers.board_edges import edge_scatter
 from ..solvers.edges_in_graph import conflict_covariance, edges_gain, edges_left_out, lidar_crossings
 from ..solvers.outline_check import outline_check
 from ..solvers.graph_keys import outline_key
-from ..solvers.rig_graph import RigSolution, pair_board_covariance, solve_rig
+from ..solvers.graph_keys import edge_shift_key
+from ..solvers.rig_graph import RigSolution, outline_covariance, pair_board_covariance, solve_rig
 
 
 def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set,
-               default: bool = False) -> tuple[list, RigSolution, dict, np.ndarray | None]:
+               default: bool = False, pair_frames: dict | None = None) -> tuple[list, RigSolution, dict,
+                                                                              np.ndarray | None]:
     """:func:`_with_edges`; by ``default`` (``--edges`` not given), a 3D LiDAR whose edges carry its pose while
     something at the boards' sides moved them (``edges_in_graph.edges_left_out``) has them left out, as a single
     pair's, and the rest solved again: its record then says why (``left_out``) and keeps its pose and record with
     the edges (``with_edges``)."""
     out = _with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref, T_ref_board,
-                      refine_intrinsics, which)
+                      refine_intrinsics, which, pair_frames)
     left = {n: why for n, r in out[2].items() if default and (why := edges_left_out(r)) is not None}
     if not left:
         return out
     rest = which - set(left)  # the others' edges, solved again without the left-out ones
     views, solved, records, share = with_edges(rig, names, camera_views, lidar_views, lidar_obs, solution, T_ref,
-                                               T_ref_board, refine_intrinsics, rest, default) if rest else \
+                                               T_ref_board, refine_intrinsics, rest, default, pair_frames) if rest \
+        else \
         (lidar_views, solution, {}, None)
     records = dict(records)
     for n, why in left.items():
@@ -42,8 +45,8 @@ def with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: l
 
 
 def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set
-                ) -> tuple[list, RigSolution, dict, np.ndarray | None]:
+                solution: RigSolution, T_ref: dict, T_ref_board: dict, refine_intrinsics: bool, which: set,
+                pair_frames: dict | None = None) -> tuple[list, RigSolution, dict, np.ndarray | None]:
     """The joint graph with every LiDAR's board edges, as the single pair's ``--edges`` has them
     (``solvers.board_edges``): each frame's ring ends (a scan's segment ends) assigned to the board's sides under
     the planes' estimate, an outline shift per LiDAR and frame (0 +- the boards' in-plane scatter) and an outline
@@ -51,7 +54,10 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
     Only the LiDARs named in ``which`` have their edges. Each 3D LiDAR's pose is tested against the planes alone
     (:func:`planes_against_edges`); where they conflict, the joint covariance holds both answers
-    (:func:`conflict_share`, added to the solution's). Returns the views, the solution, per LiDAR its record (ends,
+    (:func:`conflict_share`, added to the solution's). Its record states the outline's uncertainty and the mean
+    outline shift (:func:`outline_statistics`) and, with ``pair_frames`` (each camera-LiDAR pair's frames), a 3D
+    LiDAR's outline check under the planes alone with its first camera (``planes_only_check``, with
+    ``planes_only_camera``), as a single pair's record does. Returns the views, the solution, per LiDAR its record (ends,
     scale, scatter, outline, the test) and the conflict's share (None when none), which the posterior's samples
     are convolved with. (A scanner of so few boards that its pairs took their ends has them in ``solution``
     already, from ``rig_calibration``'s first joint solve.)"""
@@ -82,19 +88,56 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
         if settled:
             break
     records = {}
+    first = {}  # each LiDAR's first pair (its camera sharing the most frames): the ends are the LiDAR's own
+    for (c, d), frames in (pair_frames or {}).items():
+        first.setdefault(d, (c, frames))
+    checks = pairs_outline_checks(rig, names, camera_views, lidar_views, planes,
+                                  {(c, d): frames for d, (c, frames) in first.items() if d in which}, [])
+    covariances = outline_covariance(names, rig.reference, camera_views, views, solution)
     for lv in views:
         if lv.edges:
             outline = solution.vectors[outline_key(names.index(lv.name))]
-            records[lv.name] = {"used": True, "frames": len(lv.edges),
+            records[lv.name] = {"used": True,
                                 "ends": int(sum(e.size for e in lv.edges.values())),
                                 "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
                                 "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist(),
+                                **outline_statistics(names, solution, lv, *covariances[lv.name]),
                                 "planes_against_edges": None if lv.scan_line else
                                 planes_against_edges(planes, solution, lv.name)}
+            # the planes alone's outline check beside it, with its first camera (the single pair's)
+            own = [(c, r) for (c, d), r in checks.items() if d == lv.name]
+            if own:
+                records[lv.name].update(planes_only_check=own[0][1], planes_only_camera=own[0][0])
     share = conflict_share(planes, solution, records)
     if share is not None:
         solution = replace(solution, covariance_joint=solution.covariance_joint + share)
     return views, solution, records, share
+
+
+def outline_statistics(names: tuple, solution: RigSolution, lv, J: np.ndarray, stems: list) -> dict:
+    """A LiDAR's outline with its standard deviations, each frame's outline shift, and their mean in the
+    reference's axes (a camera's: for a pair folder, its camera's) tested against its 99% limit, as a single pair's
+    edges record gives them (``edges_in_graph.edges_summary``; ``outline_check.outline_warnings`` reads them). The
+    shifts are estimated random effects, each 0 +- the boards' in-plane scatter: under the model their estimates
+    vary by that prior's covariance less their posterior's. ``J``: the joint covariance of its outline and its
+    shifts in ``stems`` (``rig_graph.outline_covariance``)."""
+    k = names.index(lv.name)
+    sd = np.sqrt(np.maximum(np.diag(J[:4, :4]), 0.0))
+    A = np.zeros((3, 2 * len(stems)))
+    shifts, per_frame = [], []
+    for j, st in enumerate(stems):
+        A[:, 2 * j:2 * j + 2] = solution.T_ref_board[st][:3, :2] / len(stems)
+        d = solution.vectors.get(edge_shift_key(k, sorted(solution.T_ref_board).index(st)), np.zeros(2))
+        shifts.append(d)
+        per_frame.append({"frame": st, "ends": int(lv.edges[st].size), "shift_board_xy_m": np.asarray(d).tolist(),
+                          "shift_sd_m": np.sqrt(np.maximum(np.diag(J[4 + 2 * j:6 + 2 * j, 4 + 2 * j:6 + 2 * j]),
+                                                           0.0)).tolist()})
+    mean = A @ np.concatenate(shifts) if stems else np.zeros(3)
+    C = A @ (lv.edge_tau_m**2 * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
+    d2, dof = chi2.mahalanobis(mean, C)
+    return {"growth_sd_m": sd[:2].tolist(), "outline_offset_sd_m": sd[2:].tolist(), "frames": per_frame,
+            "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(), "mean_shift_d2": d2,
+            "mean_shift_dof": dof, "mean_shift_p_value": float(chi2.sf(d2, dof)) if dof else 1.0}
 
 
 def ends_view(lv, board, obs: dict, T_ref_l: np.ndarray, T_ref_board: dict):

@@ -27,7 +27,7 @@ from . import chi_square as chi2
 from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_values, lidar_frame_residual,
                            vector_keys)
 from .factors import corner_residuals, lidar_plane
-from .graph_keys import frame_key, intrinsics_key, sensor_key, terms_key
+from .graph_keys import edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
 from .noise_levels import excess_scale
 
 
@@ -379,6 +379,26 @@ def pair_board_covariance(names: tuple[str, ...], reference: str, cameras: list[
                 J[rows, col[cam]:col[cam] + 6] = -adjoint(np.linalg.inv(T_cb))
         C = J @ S @ J.T
         out.append(0.5 * (C + C.T))
+    return out
+
+
+def outline_covariance(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+                       solution: RigSolution) -> dict:
+    """Each LiDAR with edges: its outline (4) and its outline shifts (2 each) jointly, with the stems they are in the
+    order of, from one inversion of the graph of these views at ``solution`` (``name -> (covariance, stems)``): what
+    its board-edges record states their uncertainty and tests its mean shift with (``pipeline.rig_edges``), as a
+    single pair's (``edges_in_graph.edges_summary``)."""
+    graph, values, _, stems = _graph_at(names, reference, cameras, lidars, solution)
+    full, index = dense_covariance(graph, values)
+    out = {}
+    for lv in lidars:
+        k = names.index(lv.name)
+        if outline_key(k) not in index:
+            continue
+        shifted = [st for j, st in enumerate(stems) if edge_shift_key(k, j) in index]
+        idx = np.concatenate([index[outline_key(k)]] + [index[edge_shift_key(k, stems.index(st))] for st in shifted])
+        C = full[np.ix_(idx, idx)]
+        out[lv.name] = (0.5 * (C + C.T), shifted)
     return out
 
 
