@@ -737,6 +737,12 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
                      r"\(camera axes\) .* growth .*\n    planes alone against planes \+ edges: d2", run.stdout)
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.jpg"))
     assert shown and all(name in page for name in shown)
+    # what a single pair's report shows of its boards, each pair's or LiDAR's: the residuals of each pair solved
+    # alone, its normals' spread, each LiDAR's board choices (a top view a frame); traces only for a rig of two
+    assert "cam2-lidar0 solved alone: per-frame residuals" in page and "cam0-lidar1: Layout" in page
+    assert "lidar0 (with cam0): Which LiDAR points are the board" in page
+    assert (out / "residuals_cam1_scan0.png").is_file() and sorted(out.glob("board_choice_lidar1_*.png"))
+    assert not (out / "traces.png").exists()
     # each camera-LiDAR pair's posterior drawn as a single pair's is (its samples against the graph's covariance)
     assert all((out / f"corner_cam{k}_{s}.png").stat().st_size > 10000 and f"corner_cam{k}_{s}.png" in page
                for k in range(3) for s in ("lidar0", "lidar1", "scan0"))
@@ -1071,7 +1077,7 @@ def test_a_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(tmp_path):
     assert np.max(np.abs(sd_t / sd_rig - 1)) > 0.02  # not the Gaussian's
 
 
-def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d):
+def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d, tmp_path):
     # A 2D scanner's range noise rests on a few dozen points a board: both posteriors sample its scale r with the
     # camera side's s (the lines' own residuals in r's likelihood, flat prior on log r): planes alone, 8 parameters
     # for the rig, and every standard deviation within 4% of the pair's (measured within 2% on three sets).
@@ -1084,6 +1090,15 @@ def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d):
     assert res.posterior.diagnostics()["parameters"] == 8
     np.testing.assert_allclose(np.std(res.pair("cam0", "lidar0").samples, axis=0), np.std(pair.posterior.xi, axis=0),
                                rtol=0.04)
+    # Its report, as a single pair's, has the chain's traces: the pose's tangent first and log s last (r between)
+    from estimators.analysis.rig_report import write_rig_report
+
+    run = res.posterior.run
+    np.testing.assert_allclose(np.percentile(np.exp(run.chain[run.burn:, :, -1]), q := [5, 50, 95]),
+                               np.percentile(res.posterior.camera_scale, q), rtol=0.02)  # the kept ones' are a subset
+    page = write_rig_report(res, tmp_path).read_text()
+    assert (tmp_path / "traces.png").is_file() and "MCMC traces" in page
+    assert "cam0-lidar0 solved alone: per-frame residuals" in page and "cam0-lidar0: Layout" in page
 
 
 def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_posterior_covers_both(tmp_path):

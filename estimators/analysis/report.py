@@ -373,6 +373,58 @@ def _figures(result, dataset: Dataset, process: FigureProcess
     return figures, offsets
 
 
+def range_model_part(fit, title: str = "") -> str:
+    """A LiDAR's range model (``RangeModelFit``) as the report's section opens: the model chosen and why, the
+    priors, the terms held at 0, and the confounding of a term with the extrinsic with the pose that best separates
+    them (the terms' table follows it: the single pair's own, a rig's from its joint graph)."""
+    notes = [f"Priors from a range accuracy of {1000 * fit.range_accuracy_m:.0f} mm; black squares placed by "
+             f"{html.escape(fit.labels_from)}"
+             + (f" (the intensities agree on {100 * fit.intensity_agreement:.0f}% of clearly placed returns)"
+                if fit.intensity_agreement is not None else "") + "."]
+    for n, v in zip(fit.pinned, fit.pinned_values_m):
+        notes.append(f"{html.escape(n)} was estimated at {1000 * v:+.1f} mm, beyond 3 prior standard deviations: "
+                     "held at 0 with its prior variance in the covariance.")
+    if fit.confounding:
+        c = fit.confounding
+        notes.append(f"Confounded: the {html.escape(c['term'])} with {html.escape(c['direction'])} (correlation "
+                     f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd']:.1f} {c['unit']} with "
+                     f"the term marginalised, {c['sd_if_known']:.1f} were it known. {html.escape(c['advice'])}")
+        if c.get("separating_pose"):
+            sp = c["separating_pose"]
+            x, y, z = sp["board_centre_camera_m"]
+            nx, ny, nz = sp["board_normal_camera"]
+            now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
+            notes.append(f"The next pose that best separates them ({sp['beam_model']} beams assumed): the board's "
+                         f"centre at ({x:+.2f}, {y:+.2f}, {z:.2f}) m in the camera frame, its normal ({nx:+.2f}, "
+                         f"{ny:+.2f}, {nz:+.2f}); the predicted translation standard deviations along the LiDAR's "
+                         "x y z with the offset estimated, predicted from the point and corner noise alone (as "
+                         "`lidarcam layout` does), go from " + " ".join(f"{v:.1f}" for v in now) + " to "
+                         + " ".join(f"{v:.1f}" for v in then) + " mm.")
+    return (f"<h2>{title}LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
+            + "".join(f"<p>{t}</p>" for t in notes))
+
+
+def board_choice_part(frames: list, title: str = "") -> str:
+    """Which LiDAR points are each frame's board (``frames``: those with a board-choice record): the method, the
+    candidates, the one chosen and why."""
+    rows = [[f.name, f.decision.method, len(f.decision.candidates),
+             "-" if f.decision.chosen is None else f.decision.chosen, f.decision.reason] for f in frames]
+    return (f"<h2>{title}Which LiDAR points are the board</h2><p>Each frame's candidates are planar pieces in "
+            "front of the static scene that fit inside the board; one per frame is chosen by the "
+            "extrinsic most frames agree with (or, without enough frames, by the frame's own cues). "
+            "calibration.json lists every candidate with its residuals.</p>"
+            + _table(rows, ["frame", "method", "candidates", "chosen", "why"]))
+
+
+def layout_part(result, title: str = "") -> str:
+    """The board normals' spread (a pair's ``normal_singular_values``) and the direction it constrains least."""
+    axis, advice = describe_direction(result.weakest_direction_camera)
+    return (f"<h2>{title}Layout</h2><p>singular values of the board normals (per frame): "
+            f"{np.round(result.normal_singular_values, 3).tolist()}, condition number "
+            f"{result.condition_number:.2f}; weakest direction: {html.escape(axis)} (to constrain it "
+            f"further, {html.escape(advice)})</p>")
+
+
 def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> str:
     T = result.T_camera_lidar
     parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>", verdict_part(result),
@@ -397,39 +449,10 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
     if fit is not None:
         prior = fit.terms.prior_sd if fit.terms is not None else [float("nan")] * len(fit.names)
         terms = [(n, v, sd, p, n in fit.pinned) for n, v, sd, p in zip(fit.names, fit.values_m, fit.std_m, prior)]
-        notes = [f"Priors from a range accuracy of {1000 * fit.range_accuracy_m:.0f} mm; black squares placed by "
-                 f"{html.escape(fit.labels_from)}"
-                 + (f" (the intensities agree on {100 * fit.intensity_agreement:.0f}% of clearly placed returns)"
-                    if fit.intensity_agreement is not None else "") + "."]
-        for n, v in zip(fit.pinned, fit.pinned_values_m):
-            notes.append(f"{html.escape(n)} was estimated at {1000 * v:+.1f} mm, beyond 3 prior standard deviations: "
-                         "held at 0 with its prior variance in the covariance.")
-        if fit.confounding:
-            c = fit.confounding
-            notes.append(f"Confounded: the {html.escape(c['term'])} with {html.escape(c['direction'])} (correlation "
-                         f"{c['correlation']:.2f}); that direction's standard deviation is {c['sd']:.1f} {c['unit']} with "
-                         f"the term marginalised, {c['sd_if_known']:.1f} were it known. {html.escape(c['advice'])}")
-            if c.get("separating_pose"):
-                sp = c["separating_pose"]
-                x, y, z = sp["board_centre_camera_m"]
-                nx, ny, nz = sp["board_normal_camera"]
-                now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
-                notes.append(f"The next pose that best separates them ({sp['beam_model']} beams assumed): the board's "
-                             f"centre at ({x:+.2f}, {y:+.2f}, {z:.2f}) m in the camera frame, its normal ({nx:+.2f}, "
-                             f"{ny:+.2f}, {nz:+.2f}); the predicted translation standard deviations along the LiDAR's "
-                             "x y z with the offset estimated, predicted from the point and corner noise alone (as "
-                             "`lidarcam layout` does), go from " + " ".join(f"{v:.1f}" for v in now) + " to "
-                             + " ".join(f"{v:.1f}" for v in then) + " mm.")
-        parts.append(f"<h2>LiDAR range model: {html.escape(fit.chosen)}</h2><p>{html.escape(fit.reason)}</p>"
-                     + "".join(f"<p>{t}</p>" for t in notes)
-                     + terms_table(terms))
+        parts.append(range_model_part(fit) + terms_table(terms))
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
     parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
-    axis, advice = describe_direction(result.weakest_direction_camera)
-    parts.append("<h2>Layout</h2>" + f"<p>singular values of the board normals (per frame): "
-                 f"{np.round(result.normal_singular_values, 3).tolist()}, condition number "
-                 f"{result.condition_number:.2f}; weakest direction: {html.escape(axis)} (to constrain it "
-                 f"further, {html.escape(advice)})</p>")
+    parts.append(layout_part(result))
     if offsets:
         parts.append(offsets_section(offsets))
     edges = result.refinement.edges if result.refinement is not None else None
@@ -439,13 +462,7 @@ def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str
         parts.append(_intrinsics_section(result.intrinsics_refinement))
     decided = [f for f in result.frames if f.decision is not None]
     if decided:
-        rows = [[f.name, f.decision.method, len(f.decision.candidates),
-                 "-" if f.decision.chosen is None else f.decision.chosen, f.decision.reason] for f in decided]
-        parts.append("<h2>Which LiDAR points are the board</h2><p>Each frame's candidates are planar pieces in "
-                     "front of the static scene that fit inside the board; one per frame is chosen by the "
-                     "extrinsic most frames agree with (or, without enough frames, by the frame's own cues). "
-                     "calibration.json lists every candidate with its residuals.</p>"
-                     + _table(rows, ["frame", "method", "candidates", "chosen", "why"]))
+        parts.append(board_choice_part(decided))
     for name, title, png in figures:
         parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
     return html_page("lidarcam report", parts)

@@ -14,8 +14,9 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import (_table, edges_section, html_page, mcmc_part, offsets_section, overlay_name, params_table,
-                     projection_figure, spread_section, terms_table, verdict_part)
+from .report import (_img, _table, board_choice_figure, board_choice_part, edges_section, html_page, layout_part,
+                     mcmc_part, offsets_section, overlay_name, params_table, projection_figure, range_model_part,
+                     range_residual_arrays, residual_arrays, spread_section, terms_table, verdict_part)
 from .rig_layout import next_pose_words
 
 
@@ -83,6 +84,16 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     parts.append("<h2>Sensors</h2>" + _table(rows, ["sensor", "type", "frames used", "skipped", "noise scale",
                                                     "LiDAR range model"]))
     parts += range_terms_parts(result)
+    links = dict(result.pair_results or {})
+    for (c, lid), link in links.items():  # each pair solved alone: its normals' spread, as a single pair's
+        parts.append(layout_part(link, f"{html.escape(c)}-{html.escape(lid)}: "))
+    first_pairs = {}  # each LiDAR's board choices, with the first camera that measured it
+    for (c, lid), frames in (getattr(result.measurements, "pairs", None) or {}).items():
+        first_pairs.setdefault(lid, (c, frames))
+    for lid, (c, frames) in first_pairs.items():
+        decided = [f for f in frames if f.decision is not None]
+        if decided:
+            parts.append(board_choice_part(decided, f"{html.escape(lid)} (with {html.escape(c)}): "))
     # Each LiDAR's edges in the joint graph, and each 3D pair's edges as a check of the joint estimate: the single
     # pair's section (a p-value of the outlines' shift below 0.01 is warned about: a wrong board.size or
     # pattern_offset, or an extrinsic the edges contradict)
@@ -113,25 +124,47 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
     if skipped:
         parts.append("<h2>Frames skipped</h2>" + _table(skipped, ["sensor", "frame", "why"]))
     out = Path(out_dir)
-    if post is not None:  # each camera-LiDAR pair's posterior, drawn in a child while the overlays are drawn here
-        from .figure_process import FigureProcess
+    from .figure_process import FigureProcess
 
-        with FigureProcess() as figures:
-            jobs = {(c.name, d.name): figures.draw("corner", xi=post.pair_samples(c.name, d.name),
-                                                   covariance_laplace=sol.transform(c.name, d.name)[1])
-                    for c in result.rig.cameras for d in result.rig.lidars}
-            overlays, first = _overlays(result, out)
-            corners = {pair: job()["corner.png"] for pair, job in jobs.items()}
+    pictures = []  # (file, title, bytes): the matplotlib figures drawn in a child while the overlays are drawn here
+    two = len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1
+    with FigureProcess() as figures:
+        # a pair's chain holds the tangent of T_<camera>_<lidar> first and the camera's noise scale last: its
+        # traces are drawn as a single pair's (a larger rig's chain holds many sensors' tangents)
+        chain = np.concatenate([post.run.chain[:, :, :6], post.run.chain[:, :, -1:]], axis=2) if post else None
+        corners = {(c.name, d.name): figures.draw(
+            "posterior" if two else "corner", xi=post.pair_samples(c.name, d.name),
+            covariance_laplace=sol.transform(c.name, d.name)[1],
+            **({"chain": chain, "burn": np.array(post.run.burn)} if two else {}))
+            for c in result.rig.cameras for d in result.rig.lidars} if post is not None else {}
+        residuals = {k: figures.draw("residuals", **residual_arrays(link)) for k, link in links.items()
+                     if link.refinement is not None}
+        ranges = {k: figures.draw("range_residuals", **arrays) for k, link in links.items()
+                  if (arrays := range_residual_arrays(link)) is not None}
+        overlays, first = _overlays(result, out)
+        choices = _board_choices(result, first_pairs)
+        for (c, lid), job in residuals.items():
+            pictures.append((f"residuals_{c}_{lid}.png", f"{c}-{lid} solved alone: per-frame residuals",
+                             job()["residuals.png"]))
+        for (c, lid), job in ranges.items():
+            pictures.append((f"range_residuals_{c}_{lid}.png", f"{c}-{lid} solved alone: LiDAR range residuals by "
+                             "range, ring and square colour", job()["range_residuals.png"]))
+        drawn = {pair: job() for pair, job in corners.items()}
+        corner_pngs = {pair: pngs["corner.png"] for pair, pngs in drawn.items()}
+        pictures += choices
+        pictures += [("traces.png", "MCMC traces", pngs["traces.png"]) for pngs in drawn.values() if "traces.png" in pngs]
+    if corner_pngs:
         parts.append("<h2>Each camera-LiDAR pair's posterior</h2><p>Its samples (composed from the rig's joint "
                      "samples; tangent offsets from the estimate about and along the LiDAR's axes) against the joint "
                      "graph's Laplace covariance (red).</p>")
-        for (cam, lidar), png in corners.items():
+        for (cam, lidar), png in corner_pngs.items():
             name = f"corner_{cam}_{lidar}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
             parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3><img alt='{html.escape(name)}' "
                          f"src='{html.escape(name)}'>")
-    else:
-        overlays, first = _overlays(result, out)
+    for name, title, png in pictures:
+        write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
+        parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
     if first:
         parts.insert(top, "<h2>Overlays</h2><p>Each camera-LiDAR pair's frame whose LiDAR board outline (red) sits "
                           "farthest from the camera's board (green) under the joint estimate; every frame's is "
@@ -141,14 +174,34 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
 
 
 def range_terms_parts(result) -> list[str]:
-    """Each LiDAR's range terms in the joint graph, as a single pair's report lists its own (``terms_table``)."""
+    """Each LiDAR's range model as the pair that chose it reads it (``report.range_model_part``: why, the priors,
+    the terms held, a term confounded with the extrinsic) and its range terms in the joint graph, as a single pair's
+    report lists its own (``terms_table``)."""
     parts = []
     for name, record in result.range_models.items():
         held = {h["term"] for h in record.get("held_at_prior", ())}
         terms = [(n, t["value_m"], t["sd_m"], t["prior_sd_m"], n in held) for n, t in record.get("terms", {}).items()]
+        chooser = tuple(record.get("chosen_by", "").split("-", 1))
+        link = (result.pair_results or {}).get(chooser)
+        fit = link.refinement.range_model if link is not None and link.refinement is not None else None
+        if fit is not None:
+            parts.append(range_model_part(fit, f"{html.escape(name)} (as {html.escape('-'.join(chooser))} chose it): "))
         if terms:
             parts.append(f"<h2>{html.escape(name)}: LiDAR range terms</h2>" + terms_table(terms))
     return parts
+
+
+def _board_choices(result, first_pairs: dict) -> list[tuple[str, str, bytes]]:
+    """Each LiDAR's frames with a board choice: its sweep's top view with the candidates (``report.board_choice_
+    figure``), ``board_choice_<lidar>_<frame>.png``."""
+    out = []
+    for lid, (_, frames) in first_pairs.items():
+        sensor = result.rig.sensor(lid)
+        for f in frames:
+            if f.decision is not None and f.decision.candidate_points:
+                out.append((f"board_choice_{lid}_{f.name}.png", f"{lid}, frame {f.name}: LiDAR board candidates (top "
+                            "view)", board_choice_figure(f, sensor.file(f.name), sensor.lidar == "2d")))
+    return out
 
 
 def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
