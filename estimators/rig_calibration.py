@@ -88,7 +88,8 @@ class PairsAlone:
         What to say before every other warning (an ambiguous pair), and the rest: each pair's own, as a single
         pair's result says them, prefixed with the pair.
     failed : dict
-        ``(camera, lidar) -> DegenerateLayoutError``: the pairs whose boards could not be solved, and why.
+        ``(camera, lidar) -> DegenerateLayoutError``: the pairs not solved (too few usable frames, or boards that
+        leave the transform unobservable), and why.
     intrinsics_checks : dict
         ``(camera, lidar) -> record`` of ``intrinsics_refinement.intrinsics_drop``: for each 3D pair, whether its
         planes disagree in a way the camera's intrinsics explain.
@@ -165,8 +166,12 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                     skipped[lid.name].setdefault(f.name, f"with {by}: {f.reason}")
             # Two boards link a scanner whose segment ends are measurements, as they solve a single pair
             # (``solution_selection.select_minimal``): their ends hold what two planes leave.
-            if len(usable) < (MIN_SCANNER_FRAMES_WITH_ENDS if ends else MIN_PAIR_FRAMES):
+            least = MIN_SCANNER_FRAMES_WITH_ENDS if ends else MIN_PAIR_FRAMES
+            if len(usable) < least:
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
+                failed[(cam_name, lid.name)] = DegenerateLayoutError(
+                    f"only {len(usable)} usable frame(s); a camera-LiDAR pair needs at least {least}",
+                    hint="record more board poses that both sensors see")
                 continue
             chooses = lid.name not in term_choices  # its range terms are the LiDAR's in the joint graph
             try:
@@ -226,13 +231,23 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
 
 
 def unlinked_lidar(rig: RigDataset, fit: PairsAlone, skipped: dict) -> None:
-    """A LiDAR left without a link to any camera because its pairs' boards could not be solved raises that pair's
-    reason (the first camera's: the one sharing most frames), as a single pair's calibration says it, with the
-    frames it skipped and why; a LiDAR that shares too few frames is left to ``spanning_tree``'s error."""
+    """A LiDAR left without a link to any camera (too few usable frames, or boards that leave its transform
+    unobservable) raises its first pair's reason (the camera sharing most frames), as a single pair's calibration
+    says it, with the frames it skipped and why; one that no camera found the board with, the frames its camera
+    (the one that skipped most of its frames) skipped and why."""
     for lid in rig.lidars:
         if any(d == lid.name for _, d in fit.links):
             continue
         reasons = [(c, exc) for (c, d), exc in fit.failed.items() if d == lid.name]
+        if not reasons and rig.cameras:  # no camera found the board in a frame it has a scan of
+            cam = max((c.name for c in rig.cameras), key=lambda c: sum(
+                lid.file(st) is not None for st in skipped.get(c, {})))
+            said = "; ".join(f"{st}: {why}" for st, why in sorted(skipped.get(cam, {}).items())
+                             if lid.file(st) is not None)
+            raise DegenerateLayoutError(f"{cam}-{lid.name}: no frame where {cam} found the board has a {lid.name} "
+                                        "scan" + (f" (skipped: {said})" if said else ""), path=rig.root,
+                                        hint="record board poses that both sensors see (a LiDAR needs 3 or more with "
+                                             "a camera, a 2D scanner 2 where the board's size is given)")
         if reasons:
             cam, exc = reasons[0]
             frames = {**skipped.get(lid.name, {}), **fit.skipped.get(lid.name, {})}

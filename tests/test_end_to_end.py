@@ -90,7 +90,7 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     page = (out / "report.html").read_text()
     pngs = sorted(p.name for p in out.glob("*.png"))
     jpgs = sorted(p.name for p in out.glob("*.jpg"))
-    assert {"corner.png", "residuals.png", "traces.png"} <= set(pngs)
+    assert {"corner_cam0_lidar0.png", "residuals_cam0_lidar0.png", "traces.png"} <= set(pngs)
     assert len(jpgs) == data["frames_used"] and all(n.startswith("projection_") for n in jpgs)
     assert not any(n.startswith("projection_") for n in pngs)
     magic = {"png": b"\x89PNG\r\n\x1a\n", "jpeg": b"\xff\xd8\xff"}
@@ -117,14 +117,14 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
     assert {"name", "used", "reason", "board_points", "plane_rms_m", "corner_rms_px"} <= frame.keys()
     # 2 cm range noise over thousands of points: each board's planes agree to a fraction of a degree
     assert all(f["normal_residual_deg"] < 1.0 and abs(f["distance_residual_m"]) < 0.02 for f in data["frames"])
-    assert "frames used: 8 of 8" in capsys.readouterr().out
+    assert re.search(r"\n  lidar0 +lidar +8 frames used", capsys.readouterr().out)
 
 
 def test_cli_samples_zero_skips_the_posterior(sim_hdl64e, tmp_path):
     out = tmp_path / "out"
     assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0", "--no-report"]) == 0
     data = json.loads((out / "calibration.json").read_text())
-    assert not (out / "posterior.npz").exists() and "posterior" not in data
+    assert not (out / "posterior.npz").exists() and data.get("posterior") is None
     assert data["covariance"] is not None and "covariance_laplace" not in data
 
 
@@ -166,8 +166,8 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     of a chi-square with 6 dof, 22.5; the error itself under 0.5 deg and 1 cm)."""
     r = _run_cli("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr
-    for name in ("dataset/dataset.yaml", "calibration.json", "report.html", "corner.png", "traces.png",
-                 "residuals.png", "projection_0000.jpg"):
+    for name in ("dataset/dataset.yaml", "calibration.json", "report.html", "corner_cam0_lidar0.png", "traces.png",
+                 "residuals_cam0_lidar0.png", "projection_cam0_lidar0_0000.jpg"):
         assert (tmp_path / "demo" / name).is_file(), name
     rot, tr = map(float, re.search(r"rotation ([\d.]+) deg, translation ([\d.]+) mm", r.stdout).groups())
     d2 = float(re.search(r"squared Mahalanobis distance of the truth under the covariance: ([\d.]+)", r.stdout)[1])
@@ -177,8 +177,8 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     cal = json.loads((tmp_path / "demo" / "calibration.json").read_text())
     ev, V = np.linalg.eigh(np.array(cal["covariance"])[3:, 3:])
     weak = np.array(cal["T_camera_lidar"])[:3, :3] @ V[:, -1]
-    said = re.search(r"\n  weakest: translation sd up to ([\d.]+) mm along camera ([xyz]) .*; to constrain it, add a "
-                     r"board ", r.stdout)
+    said = re.search(r"\nweakest pair: T_cam0_lidar0, translation sd up to ([\d.]+) mm along camera ([xyz]) .*; to "
+                     r"constrain it, add a board ", r.stdout)
     assert said and float(said[1]) == pytest.approx(1000 * np.sqrt(ev[-1]), abs=0.051)
     assert said[2] == "xyz"[int(np.argmax(np.abs(weak)))]
     # The README shows this printout's first lines (its verdict, then the estimate): the same to the last digit
@@ -186,8 +186,7 @@ def test_demo_simulates_calibrates_and_reports_within_the_posterior(tmp_path):
     shown = re.search(r"opens with its verdict, then the estimate:\n\n```text\n(.*?)```",
                       (Path(__file__).resolve().parents[1] / "README.md").read_text(), flags=re.S)[1].splitlines()
     printed = r.stdout.splitlines()[1:1 + len(shown)]
-    assert printed[:2] == shown[:2] == ["OK", "T_camera_lidar (p_camera = R p_lidar + t), closed-form, refine "
-                                                "factor-graph:"], printed
+    assert printed[:2] == shown[:2] == ["OK", "T_cam0_lidar0 (T_camera_lidar: p_camera = R p_lidar + t):"], printed
     np.testing.assert_allclose([[float(v) for v in line.strip(" []").split()] for line in printed[2:]],
                                [[float(v) for v in line.strip(" []").split()] for line in shown[2:]], atol=2e-5)
 
@@ -247,15 +246,24 @@ def test_every_scan_format_calibrates(tmp_path, fmt):
     assert _d2(result, ds.ground_truth()) < CHI2_6_999
 
 
-def test_3d_scan_in_a_2d_dataset_is_refused_clearly(tmp_path):
-
-    (tmp_path / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n"
-                                           "camera: {width: 64, height: 48, K: [[50, 0, 32], [0, 50, 24], [0, 0, 1]]}\n")
-    cv2.imwrite(str(tmp_path / "0000.png"), np.zeros((48, 64), np.uint8))
-    np.save(tmp_path / "0000.npy", np.array([[1.0, 0.0, 0.4], [2.0, 0.5, -0.2], [3.0, 1.0, 0.1]]))
-    r = _run_cli("calibrate", str(tmp_path), "--out", str(tmp_path / "out"))
-    assert r.returncode == 2 and "0000.npy" in r.stderr and "not a 2D scan" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+def test_3d_scan_in_a_2d_dataset_is_refused_clearly(sim_2d, tmp_path):
+    # a frame whose scan is a 3D cloud is skipped, the file and the problem named; a folder of one frame whose
+    # board the camera does not find is refused in one line saying why no pair could be formed, the frame named
+    data = tmp_path / "d"
+    shutil.copytree(sim_2d, data)
+    (data / "0000.csv").unlink()
+    np.save(data / "0000.npy", np.array([[1.0, 0.0, 0.4], [2.0, 0.5, -0.2], [3.0, 1.0, 0.1]]))
+    r = _run_cli("calibrate", str(data), "--out", str(tmp_path / "out"), "--samples", "0", "--no-report")
+    assert r.returncode == 0 and re.search(r"0000: skipped: with cam0: scan: .*0000\.npy: not a 2D scan", r.stdout)
+    (tmp_path / "e" / "dataset.yaml").parent.mkdir()
+    (tmp_path / "e" / "dataset.yaml").write_text("lidar: 2d\nboard: {squares: [9, 12], square_size: 0.019}\n"
+                                                 "camera: {width: 64, height: 48, K: [[50, 0, 32], [0, 50, 24], "
+                                                 "[0, 0, 1]]}\n")
+    cv2.imwrite(str(tmp_path / "e" / "0000.png"), np.zeros((48, 64), np.uint8))
+    np.save(tmp_path / "e" / "0000.npy", np.array([[1.0, 0.0, 0.4], [2.0, 0.5, -0.2], [3.0, 1.0, 0.1]]))
+    r = _run_cli("calibrate", str(tmp_path / "e"), "--out", str(tmp_path / "out_e"))
+    assert r.returncode == 2 and "no frame where cam0 found the board has a lidar0 scan (skipped: 0000: " in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out_e").exists()
 
 def test_report_figures_from_the_child_match_in_process(monkeypatch):
     """The report's matplotlib figures drawn in the child process are the very PNGs drawn in this one; the
@@ -326,3 +334,30 @@ def test_top_view_draws_points_where_they_lie():
     assert tuple(img[v, u]) == (14, 127, 255)  # C1 (tab:orange)
     plot = img[_TOP + 1:_TOP + PLOT_PX, _LEFT + 1:_LEFT + PLOT_PX]
     assert 150 < np.all(plot == 170, axis=2).sum() < 260  # the sweep in view: about 5000 * (8/40)^2 = 200 returns
+
+
+def test_a_pair_folder_through_the_one_engine_keeps_the_pairs_options(sim_hdl64e, tmp_path):
+    """A pair folder on the command line is calibrated as the rig of cam0 and lidar0, and still takes its pair's
+    options: an initial guess of six numbers (its one camera-LiDAR pair's), its measurements.npz or the rig's
+    measurements folder back (the same estimate, bit for bit), and --refine none (the closed form alone, without
+    covariance, written as a single pair's file)."""
+    from geometry.rotations import rpy_from_R
+
+    truth = load_dataset(sim_hdl64e).ground_truth()
+    guess = [*truth[:3, 3], *np.degrees(rpy_from_R(truth[:3, :3]))]
+    out = tmp_path / "a"
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0", "--no-report",
+                 "--initial-guess", *[f"{v:.6f}" for v in guess]]) == 0
+    cal = json.loads((out / "calibration.json").read_text())
+    T = np.array(cal["T_camera_lidar"])
+    assert cal["rig"] and cal["frames_used"] == 8 and np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01
+    for k, given in enumerate((out / "measurements.npz", out / "measurements")):
+        again = tmp_path / f"again{k}"
+        assert main(["calibrate", str(sim_hdl64e), "--out", str(again), "--samples", "0", "--no-report",
+                     "--measurements", str(given)]) == 0
+        np.testing.assert_array_equal(json.loads((again / "calibration.json").read_text())["T_camera_lidar"], T)
+    closed = tmp_path / "closed"
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(closed), "--refine", "none"]) == 0
+    cal = json.loads((closed / "calibration.json").read_text())
+    assert cal["refine"] == "none" and cal["covariance"] is None and "rig" not in cal
+    assert np.linalg.norm(np.array(cal["T_camera_lidar"])[:3, 3] - truth[:3, 3]) < 0.05

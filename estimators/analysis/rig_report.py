@@ -14,7 +14,7 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import (_img, _table, board_choice_figure, board_choice_part, edges_section, html_page, layout_part,
+from .report import (FIRST_OVERLAYS, _img, _table, board_choice_figure, board_choice_part, edges_section, html_page, layout_part,
                      mcmc_part, offsets_section, overlay_name, params_table, projection_figure, range_model_part,
                      range_residual_arrays, residual_arrays, spread_section, terms_table, verdict_part)
 from .rig_layout import next_pose_words
@@ -160,8 +160,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
         for (cam, lidar), png in corner_pngs.items():
             name = f"corner_{cam}_{lidar}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
-            parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3><img alt='{html.escape(name)}' "
-                         f"src='{html.escape(name)}'>")
+            parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3>" + _img(name, png))
     for name, title, png in pictures:
         write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
         parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
@@ -206,13 +205,15 @@ def _board_choices(result, first_pairs: dict) -> list[tuple[str, str, bytes]]:
 
 def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
     """Each camera-LiDAR pair's frames with the LiDAR's points and board outline drawn into the image under the
-    joint estimate (``projection_<camera>_<lidar>_<frame>.jpg``, written here), as the page's parts; and each
-    pair's farthest-off one (by its outline offset), titled, for the page's top."""
+    joint estimate (``projection_<camera>_<lidar>_<frame>.jpg``, written here and embedded), as the page's parts;
+    and each pair's farthest-off one (by its outline offset; a rig of one pair, its ``FIRST_OVERLAYS``), titled,
+    for the page's top."""
     sol, parts, first = result.solution, [], []
+    shown = FIRST_OVERLAYS if len(result.pair_frames or {}) == 1 else 1  # at the top: a single pair's three
     for (cam, lidar), frames in (result.pair_frames or {}).items():
         T, _ = sol.transform(cam, lidar)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
-        images, offsets = [], []
+        images, offsets, jpgs = [], [], {}
         for f in frames:
             jpg, off = projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
                                          lid.file(f.name))
@@ -220,13 +221,13 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
                 offsets.append((f.name, off))
             name = overlay_name(cam, lidar, f.name)
             write_atomic(out / name, lambda fh, jpg=jpg: fh.write(jpg), mode="wb")
-            images.append(f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
+            images.append(_img(name, jpg))
+            jpgs[f.name] = jpg
         if offsets:  # the single pair's table of the outline offsets, under the joint estimate
             parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
-            worst = max(offsets, key=lambda o: float(np.linalg.norm(o[1])))[0]
-            name = overlay_name(cam, lidar, worst)
-            first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
-                         f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>")
+            for worst, _ in sorted(offsets, key=lambda o: -float(np.linalg.norm(o[1])))[:shown]:
+                first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
+                             + _img(overlay_name(cam, lidar, worst), jpgs[worst]))
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
                      "image (joint estimate)</h2>")
         parts += images

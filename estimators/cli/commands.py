@@ -1,44 +1,68 @@
 """The command line's commands, each from parsed arguments to printed and written results and an exit code."""
 from __future__ import annotations
 
-import contextlib
 import sys
 from pathlib import Path
 
-from .parser import board_argument, hints, posterior_options, refinement_options, study_spec_parser
-from .printing import export_hint, print_result, print_rig, source_words
+from .parser import board_argument, hints, refinement_options, study_spec_parser
+from .printing import export_hint, print_result, print_rig, print_truth, source_words
 
 
 def calibrate_command(args) -> int:
+    """A rig folder, or a pair folder (the rig of ``cam0`` and ``lidar0``), through the one engine
+    (``rig_calibration``); a pair folder's ``--refine none`` (the closed form alone) through the pair's."""
     from ..io.dataset import load_dataset
     from ..io.rig_dataset import is_rig
 
-    if is_rig(args.dataset):
+    if is_rig(args.dataset) or args.refine != "none":
         return _calibrate_rig(args)
-    ds = load_dataset(args.dataset)
-    with _figure_process(args, not args.no_report) as figures:
-        return _calibrate_with(args, ds, figures)
+    return _closed_form_only(args, load_dataset(args.dataset))
 
 
 def _calibrate_rig(args) -> int:
-    """A rig folder (``sensors:`` in dataset.yaml): one graph for every sensor (``rig_calibration``)."""
+    """A rig folder (``sensors:`` in dataset.yaml) or a pair folder: one graph for every sensor
+    (``rig_calibration``). A pair folder's initial guess is its pair's, its earlier ``measurements.npz`` is taken
+    as its rig's, and its output keeps the pair's files (calibration.json with every key of the pair's,
+    measurements.npz beside the rig's measurements folder)."""
+    from dataclasses import replace
+
     import numpy as np
 
-    from ..io.measurement_store import load_rig_measurements, save_rig_measurements
-    from ..io.rig_dataset import load_rig
+    from ..io.measurement_store import (load_measurements, load_rig_measurements, pair_as_rig, rig_as_pair,
+                                        save_measurements, save_rig_measurements)
+    from ..io.rig_dataset import is_rig, load_rig
     from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
     _refuse_what_a_rig_ignores(args)
+    pair = not is_rig(args.dataset)
     rig = load_rig(args.dataset)
-    given = load_rig_measurements(args.measurements) if args.measurements else None
+    given = None
+    if args.measurements and pair and Path(args.measurements).is_file():
+        from ..errors import DatasetError
+
+        m = load_measurements(args.measurements)
+        if m.board != rig.board or m.lidar != rig.lidars[0].lidar:
+            raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
+                               path=args.measurements, hint="give the dataset the measurements came from")
+        given = pair_as_rig(m, rig.cameras[0].name, rig.lidars[0].name)
+    elif args.measurements:
+        given = load_rig_measurements(args.measurements)
+    guide = hints(args, rig=not pair)
+    if pair and guide.initial_guess is not None:  # the pair's guess is its one camera-LiDAR pair's
+        guide = replace(guide, initial_guess=None,
+                        pair_guesses={f"T_{rig.cameras[0].name}_{rig.lidars[0].name}": guide.initial_guess})
     result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
-                           measurements=given, hints=hints(args, rig=True), **_rig_settings(args))
+                           measurements=given, hints=guide, **_rig_settings(args))
+    result = _with_separating_poses(result)
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
                                    {s.name: s.lidar for s in rig.lidars})
-    print(f"measurements: {source_words(result.measurements.source)}; wrote {stored.parent}")
+    if pair:
+        save_measurements(args.out, rig_as_pair(result.measurements, rig.board, rig.lidars[0].lidar, str(rig.root)))
+    print(f"measurements: {source_words(result.measurements.source)}; wrote {stored.parent}"
+          + (f" (and {Path(args.out) / 'measurements.npz'})" if pair else ""))
     print(f"wrote {path}")
     if args.split or args.cross_validate:
         _rig_validation_runs(args, rig, result)
@@ -46,8 +70,22 @@ def _calibrate_rig(args) -> int:
         from ..analysis.rig_report import write_rig_report
 
         print(f"wrote {write_rig_report(result, args.out)}")
-    print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
+    if pair:
+        export_hint(path)
+    else:
+        print(f"for ROS tf, URDF or OpenCV: lidarcam export {path} --format ros-tf|urdf|opencv-yaml")
     return exit_code(args, result)
+
+
+def _with_separating_poses(result):
+    """A rig's result with, for each camera-LiDAR pair whose range offset its own solve found confounded with the
+    extrinsic, the board pose that best separates them in that record (``_with_separating_pose``), as a single
+    pair's result has it."""
+    from dataclasses import replace
+
+    board = result.rig.board
+    links = {k: _with_separating_pose(link, board) for k, link in (result.pair_results or {}).items()}
+    return replace(result, pair_results=links)
 
 
 def _rig_validation_runs(args, rig, result) -> None:
@@ -87,10 +125,11 @@ def _rig_settings(args) -> dict:
     ``--split`` take the same)."""
     from ..lidar.board_segmentation import SegmentationParams
 
+    if args.samples < 0:
+        raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
     return dict(refine_intrinsics=args.refine_intrinsics, range_model=args.range_model, edges=args.edges,
-                likelihood=args.likelihood,
-                options=refinement_options(args), init=args.init,
-                params=SegmentationParams(max_sensor_separation_m=args.max_sensor_separation))
+                likelihood=args.likelihood, options=refinement_options(args), init=getattr(args, "init", "closed-form"),
+                params=SegmentationParams(max_sensor_separation_m=getattr(args, "max_sensor_separation", 1.0)))
 
 
 # The calibrate options a rig folder does not take yet (its engine has no such setting), by argument name and flag:
@@ -111,79 +150,38 @@ def _refuse_what_a_rig_ignores(args) -> None:
                             hint="calibrate without it, or calibrate the camera-LiDAR pair from a pair folder")
 
 
-def _figure_process(args, report: bool):
-    """A child that loads matplotlib during the calibration and then draws the report's figures
-    (``analysis.figure_process.FigureProcess``), when a report will be drawn; else nothing to start."""
-    if report and args.refine != "none":
-        from ..analysis.figure_process import FigureProcess
-
-        return FigureProcess()
-    return contextlib.nullcontext()
-
-
-def _draw_ahead(figures):
-    """The pipeline's ``on_refined`` hook: the report's figures that need no posterior are drawn by the
-    figure process while the posterior is sampled (None without a figure process)."""
-    if figures is None:
-        return None
-    from ..analysis.report import draw_ahead
-
-    return lambda result: draw_ahead(result, figures)
-
-
-def _draw_posterior_ahead(result, figures) -> None:
-    """Start the posterior's figures (and any other not started yet) as soon as the calibration returns,
-    before anything is printed or written."""
-    hook = _draw_ahead(figures)
-    if hook is not None:
-        hook(result)
-
-
-def _calibrate_with(args, ds, figures) -> int:
+def _closed_form_only(args, ds) -> int:
+    """A pair folder's ``--refine none``: the closed form alone (no covariance, no posterior, no report), from the
+    images and scans or from ``--measurements`` (a pair's measurements.npz)."""
     import numpy as np
 
     from ..calibration import calibrate, solve
-    from ..errors import DatasetError
+    from ..errors import DatasetError, LidarcamError
     from ..io.measurement_store import Measurements, load_measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
     from ..pipeline.result import write_calibration
 
+    if args.cross_validate or args.split:
+        raise LidarcamError("--cross-validate and --split score frames against a covariance, which --refine none "
+                            "does not give", path=args.dataset, hint="calibrate without --refine none")
     if args.measurements:
         m = load_measurements(args.measurements)
         if m.board != ds.board or m.lidar != ds.lidar:
             raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
                                path=args.measurements, hint="give the dataset the measurements came from")
-        from dataclasses import replace
-
-        from ..calibration import dataset_range_accuracy
-
-        options = refinement_options(args)
-        if options.range_accuracy_m is None:  # as calibrate does: the dataset's LiDAR accuracy
-            options = replace(options, range_accuracy_m=dataset_range_accuracy(ds))
-        result = solve(m, init=args.init, refine=args.refine, options=options,
-                       posterior=posterior_options(args), rng=np.random.default_rng(args.seed),
-                       on_refined=_draw_ahead(figures))
+        result = solve(m, init=args.init, refine="none", options=refinement_options(args))
     else:
-        result = calibrate(ds, args.init, args.refine, np.random.default_rng(args.seed),
+        result = calibrate(ds, args.init, "none", np.random.default_rng(args.seed),
                            SegmentationParams(max_sensor_separation_m=args.max_sensor_separation),
-                           refinement_options(args), posterior_options(args), hints=hints(args), cache=not args.no_cache,
-                           on_refined=_draw_ahead(figures))
+                           refinement_options(args), None, hints=hints(args), cache=not args.no_cache)
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
                          result.measurements_source)
-    _draw_posterior_ahead(result, figures)
-    result = _with_separating_pose(result, ds.board)
     path = write_calibration(result, args.out)
     print_result(result)
     save_measurements(args.out, m)
     print(f"measurements: {source_words(result.measurements_source)}; wrote "
           f"{Path(args.out) / 'measurements.npz'} (and .json)")
     print(f"wrote {path}")
-    if not args.no_report and result.refinement is not None:
-        from ..analysis.report import write_report
-
-        print(f"wrote {write_report(result, ds, args.out, figures)} (and its figures)")
-    if args.cross_validate or args.split:
-        _validation_runs(args, ds, result)
     export_hint(path)
     return exit_code(args, result)
 
@@ -223,34 +221,6 @@ def _with_separating_pose(result, board):
         return result
     fit = replace(fit, confounding={**fit.confounding, "separating_pose": pose})
     return replace(result, refinement=replace(ref, range_model=fit))
-
-
-def _validation_runs(args, ds, result) -> None:
-    """--cross-validate K and --split halves on the frames already measured (validation.json)."""
-    from ..analysis.validation import cross_validate, split_halves
-    from ..calibration import solve
-    from ..io.output import write_json_atomic
-
-    options = refinement_options(args)
-
-    def solve_subset(frames):
-        return solve(frames, ds.board, result.camera, args.init, "factor-graph", options)
-
-    out = {}
-    if args.cross_validate:
-        cv = cross_validate(list(result.frames), ds.board, result.camera, args.cross_validate, solve_subset)
-        out["cross_validation"] = cv
-        print(f"cross-validation ({cv['k']} folds): {cv['verdict']}"
-              + (f" (chi-square {cv['chi2']:.1f} on {cv['dof']} dof, p = {cv['p_value']:.2g}; flagged: "
-                 f"{', '.join(cv['flagged']) or 'none'})" if "chi2" in cv else ""))
-    if args.split:
-        sh = split_halves(list(result.frames), solve_subset, args.split)
-        out["split_halves"] = sh
-        extra = (f" (squared Mahalanobis distance {sh['mahalanobis_d2']:.1f}, 99% limit {sh['limit_99']:.1f}; "
-                 f"{sh['difference_rotation_deg']:.2f} deg, {sh['difference_translation_mm']:.0f} mm apart)"
-                 if "mahalanobis_d2" in sh else "")
-        print(f"split ({args.split}): {sh['verdict']}{extra}")
-    print(f"wrote {write_json_atomic(Path(args.out) / 'validation.json', out)}")
 
 
 def validate_command(args) -> int:
@@ -569,17 +539,13 @@ def export_command(args) -> int:
 
 
 def demo_command(args) -> int:
-    # The figure process starts first: it loads matplotlib while this process loads the pipeline.
-    with _figure_process(args, True) as figures:
-        return _demo_with(args, figures)
+    """Simulate the default rig, calibrate its pair folder as every pair folder is (the one engine; ``--refine
+    none``: the closed form alone), print the result and its error against the truth, and write the results."""
+    import time
 
-
-def _demo_with(args, figures) -> int:
     import numpy as np
 
-    from ..calibration import calibrate
     from ..io.dataset import load_dataset
-    from ..pipeline.result import write_calibration
     from ..simulation.simulator import simulate_dataset
 
     base = Path(args.out)
@@ -587,16 +553,33 @@ def _demo_with(args, figures) -> int:
     print(f"simulating {args.poses} poses of the default rig ({args.model}, seed {args.seed}) into {data} ...")
     simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
     ds = load_dataset(data)
-    result = calibrate(ds, refine=args.refine, rng=np.random.default_rng(args.seed), options=refinement_options(args),
-                       posterior=posterior_options(args), on_refined=_draw_ahead(figures))
-    _draw_posterior_ahead(result, figures)
-    print_result(result, ds.ground_truth())
-    print(f"time: {result.timings_s['total_wall']:.1f} s for measurements and solve")
-    path = write_calibration(result, base)
-    print(f"wrote {path}")
-    if result.refinement is not None:
-        from ..analysis.report import write_report
+    if args.refine == "none":
+        from ..calibration import calibrate
+        from ..pipeline.result import write_calibration
 
-        print(f"wrote {write_report(result, ds, base, figures)} (open it in a browser)")
+        result = calibrate(ds, refine="none", rng=np.random.default_rng(args.seed), options=refinement_options(args))
+        print_result(result, ds.ground_truth())
+        path = write_calibration(result, base)
+        print(f"wrote {path}")
+        export_hint(path)
+        return 0
+    from ..io.rig_dataset import load_rig
+    from ..pipeline.rig_result import write_rig_calibration
+    from ..rig_calibration import calibrate_rig
+
+    t0 = time.perf_counter()
+    result = calibrate_rig(load_rig(data), np.random.default_rng(args.seed), samples=args.samples,
+                           **_rig_settings(args))
+    seconds = time.perf_counter() - t0
+    print_rig(result)
+    pair = result.pair("cam0", "lidar0")
+    print_truth(pair.T, pair.covariance, ds.ground_truth())
+    print(f"time: {seconds:.1f} s for measurements, solve and posterior")
+    path = write_rig_calibration(result, base)
+    print(f"wrote {path}")
+    if not getattr(args, "no_report", False):
+        from ..analysis.rig_report import write_rig_report
+
+        print(f"wrote {write_rig_report(result, base)} (open it in a browser)")
     export_hint(path)
     return 0

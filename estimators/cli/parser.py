@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 
@@ -291,16 +290,6 @@ def refinement_options(args):
                              edges=getattr(args, "edges", None),
                              max_sensor_separation_m=getattr(args, "max_sensor_separation", 1.0),
                              refine_intrinsics=getattr(args, "refine_intrinsics", False))
-
-
-def posterior_options(args):
-    from ..solvers.posterior import PosteriorOptions
-
-    if args.samples < 0:
-        raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
-    if args.samples == 0 or args.refine == "none":
-        return None
-    return PosteriorOptions(min_ess=args.samples, likelihood=args.likelihood, progress=sys.stderr.isatty())
 
 
 def hints(args, rig: bool = False):

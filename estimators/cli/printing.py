@@ -6,8 +6,6 @@ from __future__ import annotations
 def print_result(result, truth=None) -> None:
     import numpy as np
 
-    from geometry.rotations import rotation_error
-
     T = result.T_camera_lidar
     np.set_printoptions(precision=5, suppress=True)
     print(result.verdict.line)
@@ -48,18 +46,26 @@ def print_result(result, truth=None) -> None:
         for level in INTERVAL_LEVELS:
             _print_intervals(result.pair(), level)
     if truth is not None:
-        rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
-        tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
-        print(f"error against ground truth: rotation {rot:.3f} deg, translation {tr:.1f} mm")
-        if result.covariance is not None:
-            from geometry.rotations import T_inverse, T_log
-
-            xi = T_log(T_inverse(T) @ truth)
-            d2 = float(xi @ np.linalg.solve(result.covariance, xi))
-            print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
-                  f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
+        print_truth(T, result.covariance, truth)
     for w in result.warnings:
         print(f"warning: {w}")
+
+
+def print_truth(T, covariance, truth) -> None:
+    """A simulated pair's error against its ground truth ``truth`` (``T_camera_lidar``), and the truth's squared
+    Mahalanobis distance under ``covariance`` where there is one."""
+    import numpy as np
+
+    from geometry.rotations import T_inverse, T_log, rotation_error
+
+    rot = np.degrees(rotation_error(T[:3, :3], truth[:3, :3]))
+    tr = 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3])
+    print(f"error against ground truth: rotation {rot:.3f} deg, translation {tr:.1f} mm")
+    if covariance is not None:
+        xi = T_log(T_inverse(T) @ truth)
+        d2 = float(xi @ np.linalg.solve(covariance, xi))
+        print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
+              f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
 
 
 def _print_weakest(what: str, w: dict) -> None:
@@ -193,8 +199,8 @@ def print_rig(result) -> None:
 
     sol = result.solution
     print(result.verdict.line)
-    for w in result.warnings[:0 if result.ambiguous else 1]:
-        print(f"warning: {w}")
+    if len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1:
+        _print_pair_of_two(result)
     post = result.posterior
     if post is not None:
         print(f"rig: {len(sol.names)} sensors, reference {sol.reference}; one graph; posterior "
@@ -257,8 +263,34 @@ def print_rig(result) -> None:
             print("  next pose for it: " + next_pose_words(layout["next_pose"]))
     for link, n in layout["links_with_few_frames"].items():
         print(f"  {link} share {n} frame(s) with the board found in both")
-    for w in result.warnings[1:]:
+    for w in result.warnings[1 if result.ambiguous else 0:]:  # an ambiguous pair's, first, is the verdict's
         print(f"warning: {w}")
+
+
+def _print_pair_of_two(result) -> None:
+    """A rig of one camera and one LiDAR (a pair folder) printed as a single pair's result is, beside the rig's lines:
+    its transform, each frame's board, the 99.9% region of its posterior and its range term's confounding with the
+    extrinsic (as the pair solved alone found it)."""
+    cam, lid = result.rig.cameras[0].name, result.rig.lidars[0].name
+    p = result.pair(cam, lid)
+    print(f"T_{cam}_{lid} (T_camera_lidar: p_camera = R p_lidar + t):")
+    for row in p.T:
+        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+    for f in getattr(result.measurements, "pairs", {}).get((cam, lid), ()):
+        if f.usable and f.name in result.frames_used.get(lid, ()):
+            print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
+                  f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
+    if p.samples is not None:
+        regions = p.summary()["credible_regions"]
+        print(f"  posterior 99.9% region: squared Mahalanobis distance up to {regions['99.9%']['d2']:.1f} under its "
+              "covariance (a Gaussian's 22.5)")
+        _print_intervals(p, 0.68, indent="  ", axes=f" (about/along {lid}'s x y z)")
+    link = (result.pair_results or {}).get((cam, lid))
+    fit = link.refinement.range_model if link is not None and link.refinement is not None else None
+    if fit is not None and fit.confounding:
+        c = fit.confounding
+        print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f}, the pair "
+              "solved alone)")
 
 
 def source_words(source: str) -> str:

@@ -162,7 +162,7 @@ def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lida
         raise LidarcamError(f"frame names must be distinct and without spaces, got camera {camera_frame!r} and "
                             f"lidar {lidar_frame!r}", hint="set --camera-frame and --lidar-frame")
     cal = _as_calibration(calibration)
-    if cal.get("rig") is True:
+    if cal.get("rig") is True and "T_camera_lidar" not in cal:  # a rig of one camera and one LiDAR: the pair's
         return _rig_export(cal, fmt)
     try:
         T = _check_rigid(np.asarray(cal["T_camera_lidar"], dtype=float))
