@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -39,8 +38,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
               rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
               options: RefinementOptions = RefinementOptions(),
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
-              samples: int | None = None, hints: Hints = Hints(), cache: bool = False,
-              on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
+              samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
     """Estimate ``T_camera_lidar``, its covariance and posterior from a dataset.
 
     Measures every frame (the board in each image and scan), solves in closed form (3D) or by the minimal
@@ -72,8 +70,6 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
         An initial guess and a region of interest, for scenes beyond automation.
     cache : bool
         Keep and reuse the measurements (see :func:`measure`).
-    on_refined : callable, optional
-        Called with the refined result just before the posterior is sampled (see :func:`solve`).
 
     Returns
     -------
@@ -118,7 +114,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                        warnings=warnings, timings=timings, posterior=None if first_only else posterior, rng=rng,
-                       use_extent=use_extent, on_refined=None if first_only else on_refined)
+                       use_extent=use_extent)
         if result.intrinsics_refinement is not None:
             # The LiDAR's boards were chosen under the given intrinsics (each frame's board points taken in the
             # band of the camera's plane): measured again under the refined ones, the camera side observed under
@@ -131,7 +127,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
             timings["measure_again"] = time.perf_counter() - t0
             result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                            warnings=warnings + [w for w in again.warnings if w not in warnings], timings=timings,
-                           posterior=posterior, rng=rng, use_extent=use_extent, on_refined=on_refined)
+                           posterior=posterior, rng=rng, use_extent=use_extent)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -160,8 +156,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
           init: str = "closed-form", refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(),
           name: str = "", warnings: list[str] | None = None, timings: dict | None = None,
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-          use_extent: bool | None = None, samples: int | None = None,
-          on_refined: Callable[[CalibrationResult], None] | None = None) -> CalibrationResult:
+          use_extent: bool | None = None, samples: int | None = None) -> CalibrationResult:
     """The solver stage alone, on measured frames: initial solution, factor graph and posterior.
 
     Parameters
@@ -191,9 +186,6 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         As for :func:`calibrate`.
     samples : int, optional
         Effective posterior samples to draw; needs the factor graph.
-    on_refined : callable, optional
-        Called with the refined result (without the posterior) just before the posterior is sampled, e.g. to start
-        drawing the report's other figures meanwhile.
 
     Returns
     -------
@@ -212,8 +204,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     if isinstance(frames, Measurements):
         m = frames
         result = solve(list(m.frames), m.board, m.camera, init, refine, options, name or m.dataset,
-                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples,
-                       on_refined)
+                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples)
         return replace(result, measurements_source=m.source)
     if board is None or camera is None:
         raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
@@ -222,7 +213,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     _check_methods(init, refine)
     if options.refine_intrinsics and refine == "factor-graph":
         return _solve_with_intrinsics(frames, board, camera, init, options, name, warnings, timings, posterior, rng,
-                                      use_extent, on_refined)
+                                      use_extent)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
@@ -232,7 +223,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
                             hint="use init closed-form")
     if scan_lines or init.startswith("minimal"):
         return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng,
-                         use_extent, on_refined)
+                         use_extent)
     t0 = time.perf_counter()
     # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
     # what the full model determines (and names what it does not).
@@ -272,7 +263,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
                                sol.weakest_direction_camera, name, tuple(warnings + tail),
                                {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None,
                                intrinsics_check=check)
-    return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings, on_refined)
+    return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings)
 
 
 # Joint solves of the intrinsics at most (each followed by a refinement whose plane error weights the next).
@@ -280,7 +271,7 @@ INTRINSICS_ROUNDS = 3
 
 
 def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, options: RefinementOptions, name: str,
-                           warnings, timings, posterior, rng, use_extent, on_refined) -> CalibrationResult:
+                           warnings, timings, posterior, rng, use_extent) -> CalibrationResult:
     """:func:`solve` with the intrinsics refined (``solvers.intrinsics_refinement``): solved under the given
     intrinsics, then with them as variables, then, the boards observed again under the refined intrinsics, solved
     (and sampled) under those."""
@@ -300,7 +291,7 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
         floor = ref.plane_floor_m
     timings["intrinsics_refinement"] = time.perf_counter() - t0
     result = solve(again, board, fit.camera, init, "factor-graph", plain, name, warnings, timings, posterior, rng,
-                   use_extent, on_refined=on_refined)
+                   use_extent)
     ref = result.refinement
     fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
                   corner_residual_given_px=float(first.refinement.corner_residual_px),
@@ -322,14 +313,11 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
 
 
 def _with_posterior(result: CalibrationResult, used, board, camera: CameraModel, rng, options: PosteriorOptions | None,
-                    modes: tuple, head: list[str], tail: list[str], timings: dict,
-                    on_refined: Callable[[CalibrationResult], None] | None) -> CalibrationResult:
+                    modes: tuple, head: list[str], tail: list[str], timings: dict) -> CalibrationResult:
     """``result`` with its posterior sampled (when refined and ``options`` are given), the posterior's warnings
-    between ``head`` and ``tail``; ``on_refined`` sees ``result`` first."""
+    between ``head`` and ``tail``."""
     if result.refinement is None or options is None:
         return result
-    if on_refined is not None:
-        on_refined(result)
     t0 = time.perf_counter()
     notes: list[str] = []
     post = _posterior_or_warning(used, board, camera, result.refinement, rng, options, modes, notes)
@@ -358,8 +346,7 @@ def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
               options: RefinementOptions, name: str, warnings: list[str], timings: dict,
               posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-              use_extent: bool | None = None, on_refined: Callable[[CalibrationResult], None] | None = None
-              ) -> CalibrationResult:
+              use_extent: bool | None = None) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
     from .solvers.solution_selection import select_and_refine, select_minimal  # 2D only
@@ -404,5 +391,4 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
     result = CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
                                {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None, sel,
                                tuple(modes))
-    return _with_posterior(result, used, board, camera, rng, posterior, tuple(modes), warnings, tail, timings,
-                           on_refined)
+    return _with_posterior(result, used, board, camera, rng, posterior, tuple(modes), warnings, tail, timings)

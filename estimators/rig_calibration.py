@@ -273,7 +273,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
                   measurements: RigMeasurements | None = None, init: str = "closed-form",
                   params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                  likelihood: str = "gaussian", remeasure: bool = True) -> RigResult:
+                  likelihood: str = "gaussian", remeasure: bool = True, on_solved=None) -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -333,6 +333,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         With ``refine_intrinsics`` and the rig measured here (not ``measurements``): the LiDARs' boards measured
         again under the refined intrinsics (chosen under the given ones, their points follow the given ones'
         error) and the rig solved again from them, the cameras' side as before; False: measured once.
+    on_solved : callable, optional
+        Called with each camera-LiDAR pair's own result (``(camera, lidar) -> CalibrationResult``) once the joint
+        graph is solved, before the posterior is sampled: the command line starts the report's figures of them
+        then (``analysis.rig_report.draw_pairs_ahead``).
 
     Returns
     -------
@@ -427,7 +431,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         result = calibrate_rig(rig, rng, workers=workers, refine_intrinsics=True, samples=samples, advise=advise,
                                range_model=range_model, edges=edges, options=options, cache=cache,
                                measurements=merged, init=init, params=params, hints=hints, likelihood=likelihood,
-                               remeasure=False)
+                               remeasure=False, on_solved=on_solved)
         timings = dict(result.timings_s, measurements=round(time.perf_counter() - t0 - sum(
             v for k, v in result.timings_s.items() if k != "measurements"), 3))
         return replace(result, timings_s=timings)
@@ -491,6 +495,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                "(calibrate without --refine-intrinsics) unless a calibration made for the cameras "
                                "confirms the refined ones")
     t_joint = time.perf_counter()
+    if on_solved is not None:
+        on_solved(alone_fit.results)
     advice_rng = np.random.default_rng(rng.integers(2**32))  # the advice does not depend on the sampling
     posterior = None
     if samples > 0:

@@ -303,9 +303,8 @@ def range_residual_arrays(result) -> dict[str, np.ndarray] | None:
 
 def draw_ahead(result, figures: FigureProcess) -> dict[str, Callable[[], dict[str, bytes]]]:
     """Start the report's matplotlib figures of ``result`` in ``figures``' child; returns each one's waiter
-    by name (``posterior``, ``residuals``, ``range_residuals``: those the result has). Called as the
-    pipeline's ``on_refined`` hook, it starts the figures that need no posterior while the posterior is
-    sampled; the report asks for the same figures of the same arrays later and gets these."""
+    by name (``posterior``, ``residuals``, ``range_residuals``: those the result has), drawn while the report's
+    OpenCV figures are drawn here."""
     jobs = {}
     if result.posterior is not None:
         jobs["posterior"] = figures.draw("posterior", xi=result.posterior.xi,

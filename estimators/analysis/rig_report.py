@@ -5,6 +5,7 @@ with the LiDAR's points and board outline drawn into the image under the joint e
 overlay, ``analysis.report.projection_figure``)."""
 from __future__ import annotations
 
+import contextlib
 import html
 from pathlib import Path
 
@@ -43,9 +44,11 @@ def _pair_rows(result) -> list[list[str]]:
     return rows
 
 
-def write_rig_report(result, out_dir: str | Path) -> Path:
+def write_rig_report(result, out_dir: str | Path, figure_process=None) -> Path:
     """Write ``OUT/report.html`` for a rig (module docstring) and its overlays (``projection_<camera>_<lidar>_
-    <frame>.jpg``), each file atomically."""
+    <frame>.jpg``), each file atomically. ``figure_process``: the child that draws the matplotlib figures
+    (``analysis.figure_process.FigureProcess``, started ahead of the calibration by the command line so that it has
+    loaded matplotlib by now); without one, one is started here."""
     sol = result.solution
     post = result.posterior
     parts = [f"<h1>lidarcam rig report</h1><p>rig: {html.escape(str(result.rig.root))}; reference "
@@ -128,7 +131,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
 
     pictures = []  # (file, title, bytes): the matplotlib figures drawn in a child while the overlays are drawn here
     two = len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1
-    with FigureProcess() as figures:
+    with contextlib.nullcontext(figure_process) if figure_process is not None else FigureProcess() as figures:
         # a pair's chain holds the tangent of T_<camera>_<lidar> first and the camera's noise scale last: its
         # traces are drawn as a single pair's (a larger rig's chain holds many sensors' tangents)
         chain = np.concatenate([post.run.chain[:, :, :6], post.run.chain[:, :, -1:]], axis=2) if post else None
@@ -137,10 +140,7 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
             covariance_laplace=sol.transform(c.name, d.name)[1],
             **({"chain": chain, "burn": np.array(post.run.burn)} if two else {}))
             for c in result.rig.cameras for d in result.rig.lidars} if post is not None else {}
-        residuals = {k: figures.draw("residuals", **residual_arrays(link)) for k, link in links.items()
-                     if link.refinement is not None}
-        ranges = {k: figures.draw("range_residuals", **arrays) for k, link in links.items()
-                  if (arrays := range_residual_arrays(link)) is not None}
+        residuals, ranges = draw_pairs_ahead(links, figures)
         overlays, first = _overlays(result, out)
         choices = _board_choices(result, first_pairs)
         for (c, lid), job in residuals.items():
@@ -170,6 +170,18 @@ def write_rig_report(result, out_dir: str | Path) -> Path:
                           "below.</p>" + "".join(first))
     parts += overlays
     return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
+
+
+def draw_pairs_ahead(links: dict, figures) -> tuple[dict, dict]:
+    """Start each camera-LiDAR pair's own figures (``links``: ``(camera, lidar) -> CalibrationResult``) in the
+    figure process ``figures``: its per-frame residuals and its range residuals, each pair's waiter by pair. The
+    command line calls it once the joint graph is solved (``calibrate_rig``'s ``on_solved``), so that they are drawn
+    while the posterior is sampled; the report asks for the same figures later and gets these."""
+    residuals = {k: figures.draw("residuals", **residual_arrays(link)) for k, link in links.items()
+                 if link.refinement is not None}
+    ranges = {k: figures.draw("range_residuals", **arrays) for k, link in links.items()
+              if (arrays := range_residual_arrays(link)) is not None}
+    return residuals, ranges
 
 
 def range_terms_parts(result) -> list[str]:

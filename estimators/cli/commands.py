@@ -1,6 +1,7 @@
 """The command line's commands, each from parsed arguments to printed and written results and an exit code."""
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -28,10 +29,8 @@ def _calibrate_rig(args) -> int:
 
     import numpy as np
 
-    from ..io.measurement_store import (load_measurements, load_rig_measurements, pair_as_rig, rig_as_pair,
-                                        save_measurements, save_rig_measurements)
+    from ..io.measurement_store import load_measurements, load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
-    from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
     _refuse_what_a_rig_ignores(args)
@@ -52,9 +51,38 @@ def _calibrate_rig(args) -> int:
     if pair and guide.initial_guess is not None:  # the pair's guess is its one camera-LiDAR pair's
         guide = replace(guide, initial_guess=None,
                         pair_guesses={f"T_{rig.cameras[0].name}_{rig.lidars[0].name}": guide.initial_guess})
-    result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
-                           measurements=given, hints=guide, **_rig_settings(args))
-    result = _with_separating_poses(result)
+    with _figures_ahead(not args.no_report) as figures:
+        result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
+                               measurements=given, hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
+        return _write_rig(args, rig, pair, _with_separating_poses(result), figures)
+
+
+def _figures_ahead(report: bool):
+    """The child that draws the report's matplotlib figures (``analysis.figure_process.FigureProcess``), started
+    before the calibration so that it loads matplotlib meanwhile; nothing without a report."""
+    if not report:
+        return contextlib.nullcontext()
+    from ..analysis.figure_process import FigureProcess
+
+    return FigureProcess()
+
+
+def _draw_ahead(figures):
+    """``calibrate_rig``'s ``on_solved``: each camera-LiDAR pair's report figures started in the figure process
+    while the posterior is sampled (None without one)."""
+    if figures is None:
+        return None
+    from ..analysis.rig_report import draw_pairs_ahead
+
+    return lambda links: draw_pairs_ahead(links, figures)
+
+
+def _write_rig(args, rig, pair: bool, result, figures) -> int:
+    """A rig's result written (calibration.json, its measurements, the report), printed, validated on request, and
+    its exit code."""
+    from ..io.measurement_store import rig_as_pair, save_measurements, save_rig_measurements
+    from ..pipeline.rig_result import write_rig_calibration
+
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
@@ -69,7 +97,7 @@ def _calibrate_rig(args) -> int:
     if not args.no_report:
         from ..analysis.rig_report import write_rig_report
 
-        print(f"wrote {write_rig_report(result, args.out)}")
+        print(f"wrote {write_rig_report(result, args.out, figures)}")
     if pair:
         export_hint(path)
     else:
@@ -567,19 +595,19 @@ def demo_command(args) -> int:
     from ..pipeline.rig_result import write_rig_calibration
     from ..rig_calibration import calibrate_rig
 
-    t0 = time.perf_counter()
-    result = calibrate_rig(load_rig(data), np.random.default_rng(args.seed), samples=args.samples,
-                           **_rig_settings(args))
-    seconds = time.perf_counter() - t0
-    print_rig(result)
-    pair = result.pair("cam0", "lidar0")
-    print_truth(pair.T, pair.covariance, ds.ground_truth())
-    print(f"time: {seconds:.1f} s for measurements, solve and posterior")
-    path = write_rig_calibration(result, base)
-    print(f"wrote {path}")
-    if not getattr(args, "no_report", False):
+    with _figures_ahead(True) as figures:
+        t0 = time.perf_counter()
+        result = calibrate_rig(load_rig(data), np.random.default_rng(args.seed), samples=args.samples,
+                               on_solved=_draw_ahead(figures), **_rig_settings(args))
+        seconds = time.perf_counter() - t0
+        print_rig(result)
+        pair = result.pair("cam0", "lidar0")
+        print_truth(pair.T, pair.covariance, ds.ground_truth())
+        print(f"time: {seconds:.1f} s for measurements, solve and posterior")
+        path = write_rig_calibration(result, base)
+        print(f"wrote {path}")
         from ..analysis.rig_report import write_rig_report
 
-        print(f"wrote {write_rig_report(result, base)} (open it in a browser)")
+        print(f"wrote {write_rig_report(result, base, figures)} (open it in a browser)")
     export_hint(path)
     return 0
