@@ -140,9 +140,9 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     alone tell its minima apart (without them a 3-board pair folder's rig started from a planes-only minimum 5
     degrees and 24 cm off, which its joint graph kept, and read ``OK``). With more boards, its joint graph decides
     among them and the planes alone start it: weighed with the ends, a 6-camera rig's 3- and 4-board scanner
-    pairs took 17 s, the whole rig's solve 2.4 s without them. With ``check_intrinsics``, each 3D pair's boards are checked
-    for planes that disagree in a way the camera's intrinsics explain (``intrinsics_refinement.intrinsics_drop``, as
-    every single 3D pair's result is; about 10 ms a pair)."""
+    pairs took 17 s, the whole rig's solve 2.4 s without them. With ``check_intrinsics``, each 3D pair's boards are
+    checked for planes that disagree in a way the camera's intrinsics explain (``intrinsics_refinement.
+    intrinsics_drop``, as every single 3D pair's result is; about 10 ms a pair)."""
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}

@@ -15,9 +15,10 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import (FIRST_OVERLAYS, _img, _table, board_choice_figure, board_choice_part, edges_section, html_page, layout_part,
-                     mcmc_part, offsets_section, overlay_name, params_table, projection_figure, range_model_part,
-                     range_residual_arrays, residual_arrays, spread_section, terms_table, verdict_part)
+from .report import (FIRST_OVERLAYS, _img, _table, board_choice_figure, board_choice_part, edges_section, html_page,
+                     layout_part, mcmc_part, offsets_section, overlay_name, params_table, projection_figure,
+                     range_model_part, range_residual_arrays, residual_arrays, spread_section, terms_table,
+                     verdict_part)
 from .rig_layout import next_pose_words
 
 
@@ -152,7 +153,8 @@ def write_rig_report(result, out_dir: str | Path, figure_process=None) -> Path:
         drawn = {pair: job() for pair, job in corners.items()}
         corner_pngs = {pair: pngs["corner.png"] for pair, pngs in drawn.items()}
         pictures += choices
-        pictures += [("traces.png", "MCMC traces", pngs["traces.png"]) for pngs in drawn.values() if "traces.png" in pngs]
+        pictures += [("traces.png", "MCMC traces", pngs["traces.png"]) for pngs in drawn.values()
+                     if "traces.png" in pngs]
     if corner_pngs:
         parts.append("<h2>Each camera-LiDAR pair's posterior</h2><p>Its samples (composed from the rig's joint "
                      "samples; tangent offsets from the estimate about and along the LiDAR's axes) against the joint "

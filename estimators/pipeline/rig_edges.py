@@ -54,13 +54,13 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
     Only the LiDARs named in ``which`` have their edges. Each 3D LiDAR's pose is tested against the planes alone
     (:func:`planes_against_edges`); where they conflict, the joint covariance holds both answers
-    (:func:`conflict_share`, added to the solution's). Its record states the outline's uncertainty and the mean
-    outline shift (:func:`outline_statistics`) and, with ``pair_frames`` (each camera-LiDAR pair's frames), a 3D
-    LiDAR's outline check under the planes alone with its first camera (``planes_only_check``, with
-    ``planes_only_camera``), as a single pair's record does. Returns the views, the solution, per LiDAR its record (ends,
-    scale, scatter, outline, the test) and the conflict's share (None when none), which the posterior's samples
-    are convolved with. (A scanner of so few boards that its pairs took their ends has them in ``solution``
-    already, from ``rig_calibration``'s first joint solve.)"""
+    (:func:`conflict_share`, added to the solution's). Its record states the outline's uncertainty and the mean outline
+    shift (:func:`outline_statistics`) and, with ``pair_frames`` (each camera-LiDAR pair's frames), a 3D LiDAR's outline
+    check under the planes alone with its first camera (``planes_only_check``, with ``planes_only_camera``), as a single
+    pair's record does. Returns the views, the solution, per LiDAR its record (ends, scale, scatter, outline, the test)
+    and the conflict's share (None when none), which the posterior's samples are convolved with. (A scanner of so few
+    boards that its pairs took their ends has them in ``solution`` already, from ``rig_calibration``'s first joint
+    solve.)"""
     views = [ends_view(lv, rig.board, lidar_obs[lv.name], solution.T_ref[lv.name], solution.T_ref_board)
              if lv.name in which else lv for lv in lidar_views]
     if not any(v.edges for v in views):

@@ -198,7 +198,8 @@ class RigResult:
         lid_noise = self.noise(lidar)
         out["noise"] = {"corner_noise_px": self.noise(camera).get("corner_noise_px"),
                         "corner_residual_px": ref.corner_residual_px if ref is not None else None,
-                        "range_noise_m": lid_noise.get("range_noise_m"), "plane_floor_m": lid_noise.get("plane_floor_m")}
+                        "range_noise_m": lid_noise.get("range_noise_m"),
+                        "plane_floor_m": lid_noise.get("plane_floor_m")}
         if ref is not None:
             out["consistency"] = {"variance_factor": ref.variance_factor, "dof": ref.consistency_dof,
                                   "p_value": ref.consistency_p}
