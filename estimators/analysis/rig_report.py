@@ -162,16 +162,25 @@ def write_rig_report(result, out_dir: str | Path, figure_process=None) -> Path:
         for (cam, lidar), png in corner_pngs.items():
             name = f"corner_{cam}_{lidar}.png"
             write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
-            parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3>" + _img(name, png))
+            parts.append(f"<h3>T_{html.escape(cam)}_{html.escape(lidar)}</h3>" + _picture(result, name, png))
     for name, title, png in pictures:
         write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
-        parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
+        parts.append(f"<h2>{html.escape(title)}</h2>" + _picture(result, name, png))
     if first:
         parts.insert(top, "<h2>Overlays</h2><p>Each camera-LiDAR pair's frame whose LiDAR board outline (red) sits "
                           "farthest from the camera's board (green) under the joint estimate; every frame's is "
                           "below.</p>" + "".join(first))
     parts += overlays
     return write_atomic(out / "report.html", lambda fh: fh.write(html_page("lidarcam rig report", parts)))
+
+
+def _picture(result, name: str, data: bytes) -> str:
+    """A figure in the page: embedded for a rig of one camera-LiDAR pair (a pair folder's report is
+    self-contained, as a single pair's was), else the file beside it (a 6-camera rig's overlays alone would make a
+    page of tens of MB)."""
+    if len(result.pair_frames or {}) <= 1:
+        return _img(name, data)
+    return f"<img alt='{html.escape(name)}' src='{html.escape(name)}'>"
 
 
 def draw_pairs_ahead(links: dict, figures) -> tuple[dict, dict]:
@@ -235,13 +244,13 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
                 offsets.append((f.name, off))
             name = overlay_name(cam, lidar, f.name)
             write_atomic(out / name, lambda fh, jpg=jpg: fh.write(jpg), mode="wb")
-            images.append(_img(name, jpg))
+            images.append(_picture(result, name, jpg))
             jpgs[f.name] = jpg
         if offsets:  # the single pair's table of the outline offsets, under the joint estimate
             parts.append(offsets_section(offsets, f"T_{html.escape(cam)}_{html.escape(lidar)}: "))
             for worst, _ in sorted(offsets, key=lambda o: -float(np.linalg.norm(o[1])))[:shown]:
                 first.append(f"<p>T_{html.escape(cam)}_{html.escape(lidar)}, frame {html.escape(worst)}</p>"
-                             + _img(overlay_name(cam, lidar, worst), jpgs[worst]))
+                             + _picture(result, overlay_name(cam, lidar, worst), jpgs[worst]))
         parts.append(f"<h2>{html.escape(cam)} and {html.escape(lidar)}: the LiDAR's points and board outline in the "
                      "image (joint estimate)</h2>")
         parts += images
