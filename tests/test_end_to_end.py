@@ -361,3 +361,15 @@ def test_a_pair_folder_through_the_one_engine_keeps_the_pairs_options(sim_hdl64e
     cal = json.loads((closed / "calibration.json").read_text())
     assert cal["refine"] == "none" and cal["covariance"] is None and "rig" not in cal
     assert np.linalg.norm(np.array(cal["T_camera_lidar"])[:3, 3] - truth[:3, 3]) < 0.05
+
+
+def test_a_reader_that_closes_the_output_ends_the_command_quietly(tmp_path):
+    """``lidarcam ... | head``: the reader closes the pipe after a line; the command ends there with a Unix tool's
+    exit code (141, SIGPIPE's), its stderr free of a traceback (it printed one)."""
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"T_camera_lidar": np.eye(4).tolist()}))
+    proc = subprocess.Popen([sys.executable, "-m", "estimators", "export", str(cal), "--format", "ros-tf"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and "Traceback" not in err, err

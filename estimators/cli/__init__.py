@@ -13,12 +13,21 @@ from .commands import (calibrate_command, demo_command, export_command, extract_
 from .parser import build_parser
 
 
+# The exit code of a command whose reader closed its output (``lidarcam ... | head``): a Unix tool's, killed by
+# SIGPIPE (128 + 13).
+EXIT_PIPE_CLOSED = 141
+
+
 def run() -> None:
     """The ``lidarcam`` console script: :func:`main`, then the process ends at once with its exit code. Every
     file is written and closed by then; skipping the interpreter's orderly teardown of GTSAM, OpenCV, scipy
-    and the rest saves a quarter of a second per command."""
-    code = main()
-    sys.stdout.flush()
+    and the rest saves a quarter of a second per command. A reader that closes the output early ends the command
+    there, quietly, as it ends any Unix tool (``EXIT_PIPE_CLOSED``), not with a traceback."""
+    try:
+        code = main()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        code = EXIT_PIPE_CLOSED
     sys.stderr.flush()
     os._exit(code)
 
