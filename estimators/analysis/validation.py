@@ -186,30 +186,6 @@ def verdict(scores: list[FrameScore]) -> dict:
                         "and the noise (an unmodelled error, or wrong segments)")}
 
 
-def cross_validate(frames: list[FrameMeasurement], board, camera, k: int, solve) -> dict:
-    """K-fold over the usable frames (in name order, round robin): each fold scored under the calibration
-    of the others. ``solve(frames)`` calibrates a subset (the pipeline's solver stage with its options)."""
-    usable = [f for f in frames if f.usable]
-    if k < 2 or k > len(usable):
-        raise LidarcamError(f"--cross-validate {k}: needs 2 <= K <= the {len(usable)} usable frames",
-                            hint="choose a smaller K")
-    folds, scores = [], []
-    for j in range(k):
-        held = [f for i, f in enumerate(usable) if i % k == j]
-        rest = [f for i, f in enumerate(usable) if i % k != j]
-        try:
-            res = solve(rest)
-        except DegenerateLayoutError as exc:
-            folds.append({"fold": j, "held_out": [f.name for f in held], "error": exc.message})
-            continue
-        ref = res.refinement
-        s = score_frames(held, board, camera, res.T_camera_lidar, ref.covariance, ref.corner_noise_px,
-                         ref.range_noise_m, ref.plane_floor_m, *range_arguments(ref.range_model))
-        scores += s
-        folds.append({"fold": j, "held_out": [f.name for f in held], "scores": [x.to_dict() for x in s]})
-    return {"k": k, "folds": folds, **verdict(scores)}
-
-
 def cross_validate_rig(measurements, board, k: int, solve) -> dict:
     """K-fold over a rig's frames (``measurements``: ``RigMeasurements``; its stems in name order, round robin):
     each fold's camera-LiDAR pairs scored on their held-out frames under the rig calibrated from the others
@@ -260,7 +236,7 @@ def _solved_halves(items: list, solve, how: str, what: str) -> tuple[list, list 
 
 
 def split_rig_halves(stems: list[str], solve, how: str = "halves") -> dict:
-    """A rig's frames (``stems``, in name order) in two halves as :func:`split_halves` makes them, each calibrated
+    """A rig's frames (``stems``, in name order) in two halves (:func:`_solved_halves`), each calibrated
     apart (``solve(stems)`` -> a ``RigResult``), and their difference tested against the sum of their covariances:
     every sensor's pose together (chi-square on 6 per sensor but the reference) and each camera-LiDAR pair alone
     (6 dof each: the sharper test of one sensor that moved, which the joint test's many degrees of freedom dilute)."""
@@ -284,29 +260,6 @@ def split_rig_halves(stems: list[str], solve, how: str = "halves") -> dict:
     limit = float(chi2.ppf(1 - SIGNIFICANCE, dof))
     return {"split": how, "halves": halves, "mahalanobis_d2": d2, "dof": dof, "limit_99": limit,
             "p_value": float(chi2.sf(d2, dof)), "pairs": pairs,
-            "verdict": ("the halves agree within their covariances" if d2 <= limit else
-                        "the halves disagree beyond their covariances: an error the model does not hold "
-                        "(range biases, intrinsics, a moved sensor)")}
-
-
-def split_halves(frames: list[FrameMeasurement], solve, how: str = "halves") -> dict:
-    """Calibrate two halves of the usable frames apart and test their difference against the sum of their
-    covariances (chi-square, 6 dof): the first and last halves (``halves``: what drifts over a recording), or
-    the even and odd frames (``interleaved``: two layouts alike)."""
-    usable = sorted([f for f in frames if f.usable], key=lambda f: f.name)
-    halves, res = _solved_halves(usable, solve, how, "usable frames")
-    if isinstance(res, str):
-        return {"halves": [[f.name for f in p] for p in halves], "verdict": res}
-    xi = T_log(T_inverse(res[0].T_camera_lidar) @ res[1].T_camera_lidar)
-    S = res[0].refinement.covariance + res[1].refinement.covariance
-    d2 = float(xi @ np.linalg.solve(S, xi))
-    limit = float(chi2.ppf(1 - SIGNIFICANCE, 6))
-    p = float(chi2.sf(d2, 6))
-    return {"split": how, "halves": [[f.name for f in p_] for p_ in halves],
-            "T_camera_lidar": [r.T_camera_lidar.tolist() for r in res],
-            "difference_rotation_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
-            "difference_translation_mm": float(1000 * np.linalg.norm(xi[3:])),
-            "mahalanobis_d2": d2, "limit_99": limit, "p_value": p,
             "verdict": ("the halves agree within their covariances" if d2 <= limit else
                         "the halves disagree beyond their covariances: an error the model does not hold "
                         "(range biases, intrinsics, a moved sensor)")}
