@@ -27,11 +27,29 @@ def edge_crossings(prob: PlaneProblem, frames: list[FrameMeasurement], active: l
     return edges if any(e is not None and e.size for e in edges) else None
 
 
+# The last observations :func:`rings_and_noise` was given (held, so that their identities stay theirs) and its
+# answer: a rig's edges and its planes-alone outline check ask for the same LiDAR's boards in turn.
+_LAST_RINGS: list = []
+
+
 def rings_and_noise(observations: list, noise_from: list[int] | None = None) -> tuple[list, object, list]:
     """Of LiDAR board observations: each one's rings (a 2D scan's board segment is one ring: its two ends are
     where the scan line leaves the board; None where unknown), the ends' noise (``board_edges.end_noise``) of
     those at ``noise_from`` (default all) and each one's ring ends (``board_edges.ring_ends``). The points' own,
-    whatever the extrinsic: every engine finds them once per set of observations."""
+    whatever the extrinsic: found once per set of observations (the same objects asked again get the same
+    answer)."""
+    key = None if noise_from is not None else tuple(observations)
+    if key is not None and _LAST_RINGS and len(_LAST_RINGS[0]) == len(key) and all(
+            a is b for a, b in zip(_LAST_RINGS[0], key)):
+        return _LAST_RINGS[1]
+    found = _rings_and_noise_of(observations, noise_from)
+    if key is not None:
+        _LAST_RINGS[:] = [key, found]
+    return found
+
+
+def _rings_and_noise_of(observations: list, noise_from: list[int] | None) -> tuple[list, object, list]:
+    """:func:`rings_and_noise`, found."""
     from .range_model import frame_rings
 
     rings = [np.zeros(len(o.points), dtype=np.int64) if o.is_scan_line else r
