@@ -17,7 +17,9 @@ Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``
 Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export_calibration`` and
 ``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
 Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig``, ``write_rig_calibration``,
-``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and LiDARs).
+``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and LiDARs). The command line
+calibrates every folder with ``calibrate_rig`` (a pair folder as the rig of ``cam0`` and ``lidar0``:
+``calibrate_rig(load_rig(path), rng)``); ``calibrate`` is the pair's own solve, which lands on the same estimate.
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
