@@ -43,12 +43,6 @@ def test_saved_measurements_solve_to_the_same_extrinsic(which, request, tmp_path
     np.testing.assert_allclose(b.T_camera_lidar, a.T_camera_lidar, atol=1e-10)
     np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-14)
     assert b.measurements_source.endswith("measurements.npz")
-    # The hook before the posterior: the refined result, the same but for the posterior and its warnings.
-    seen = []
-    c = solve(back, rng=np.random.default_rng(1), samples=200, on_refined=seen.append)
-    assert len(seen) == 1 and seen[0].posterior is None and c.posterior is not None
-    np.testing.assert_array_equal(seen[0].T_camera_lidar, c.T_camera_lidar)
-    assert seen[0].refinement is c.refinement and set(seen[0].warnings) <= set(c.warnings)
 
 
 def test_cache_is_used_for_the_same_files_and_options_and_not_after_a_file_changed(sim_vlp16, tmp_path, cache):

@@ -85,15 +85,21 @@ def test_recorded_vlp16_ranges_are_short_and_the_offset_holds_out(vlp16):
     range by 2 cm lowers their disagreement, `bench_realdata.py`). The recording's source tool corrects the other
     way by hand (`distance_offset_mm: -30` shortens every range, +30 mm in this sign), to shrink a board that
     looks too large, which the board's edges put down to the beam's footprint (`docs/board_edges.md`). The
-    held-out frames of a 4-fold cross-validation are consistent with the covariance (p > 0.01)."""
-    from estimators.analysis.validation import cross_validate
+    held-out frames of a 4-fold cross-validation (the command line's: the folder as the rig of cam0 and lidar0)
+    are consistent with the covariance (p > 0.01)."""
+    from estimators.analysis.validation import cross_validate_rig
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
 
     ds, camera, frames = vlp16
     fit = solve(frames, ds.board, camera).refinement.range_model
     assert fit.chosen == "offset", fit.reason
     assert fit.values_m[0] + 2 * fit.std_m[0] < 0, (fit.values_m, fit.std_m)
-    cv = cross_validate(frames, ds.board, camera, 4, lambda fs: solve(fs, ds.board, camera))
-    assert cv["p_value"] > 0.01, cv["verdict"]
+    rig = load_rig(VLP16)
+    full = calibrate_rig(rig, np.random.default_rng(0), samples=0, advise=False)
+    cv = cross_validate_rig(full.measurements, rig.board, 4, lambda stems: calibrate_rig(
+        rig, np.random.default_rng(0), samples=0, advise=False, measurements=full.measurements.restricted(stems)))
+    assert cv["pairs"]["T_cam0_lidar0"]["p_value"] > 0.01, cv["pairs"]
 
 
 def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(ouster):
