@@ -29,7 +29,7 @@ def _calibrate_rig(args) -> int:
 
     import numpy as np
 
-    from ..io.measurement_store import load_measurements, load_rig_measurements, pair_as_rig
+    from ..io.measurement_store import load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
     from ..rig_calibration import calibrate_rig
 
@@ -38,12 +38,7 @@ def _calibrate_rig(args) -> int:
     rig = load_rig(args.dataset)
     given = None
     if args.measurements and pair and Path(args.measurements).is_file():
-        from ..errors import DatasetError
-
-        m = load_measurements(args.measurements)
-        if m.board != rig.board or m.lidar != rig.lidars[0].lidar:
-            raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
-                               path=args.measurements, hint="give the dataset the measurements came from")
+        m = _pair_measurements(args.measurements, rig.board, rig.lidars[0].lidar)
         given = pair_as_rig(m, rig.cameras[0].name, rig.lidars[0].name)
     elif args.measurements:
         given = load_rig_measurements(args.measurements)
@@ -178,14 +173,27 @@ def _refuse_what_a_rig_ignores(args) -> None:
                             hint="calibrate without it, or calibrate the camera-LiDAR pair from a pair folder")
 
 
+def _pair_measurements(path, board, lidar: str):
+    """A pair folder's earlier ``measurements.npz``, refused in one line when taken with another board or LiDAR
+    than the folder's dataset.yaml."""
+    from ..errors import DatasetError
+    from ..io.measurement_store import load_measurements
+
+    m = load_measurements(path)
+    if m.board != board or m.lidar != lidar:
+        raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
+                           path=path, hint="give the dataset the measurements came from")
+    return m
+
+
 def _closed_form_only(args, ds) -> int:
     """A pair folder's ``--refine none``: the closed form alone (no covariance, no posterior, no report), from the
     images and scans or from ``--measurements`` (a pair's measurements.npz)."""
     import numpy as np
 
     from ..calibration import calibrate, solve
-    from ..errors import DatasetError, LidarcamError
-    from ..io.measurement_store import Measurements, load_measurements, save_measurements
+    from ..errors import LidarcamError
+    from ..io.measurement_store import Measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
     from ..pipeline.result import write_calibration
 
@@ -193,10 +201,7 @@ def _closed_form_only(args, ds) -> int:
         raise LidarcamError("--cross-validate and --split score frames against a covariance, which --refine none "
                             "does not give", path=args.dataset, hint="calibrate without --refine none")
     if args.measurements:
-        m = load_measurements(args.measurements)
-        if m.board != ds.board or m.lidar != ds.lidar:
-            raise DatasetError("the measurements were taken with another board or LiDAR than this dataset.yaml",
-                               path=args.measurements, hint="give the dataset the measurements came from")
+        m = _pair_measurements(args.measurements, ds.board, ds.lidar)
         result = solve(m, init=args.init, refine="none", options=refinement_options(args))
     else:
         result = calibrate(ds, args.init, "none", np.random.default_rng(args.seed),

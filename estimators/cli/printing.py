@@ -10,14 +10,12 @@ def print_result(result, truth=None) -> None:
     np.set_printoptions(precision=5, suppress=True)
     print(result.verdict.line)
     print(f"T_camera_lidar (p_camera = R p_lidar + t), {result.init}, refine {result.refine}:")
-    for row in T:
-        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+    _print_matrix(T)
     print(f"frames used: {result.frames_used} of {len(result.frames)}; normal condition number "
           f"{result.condition_number:.2f}")
     for f in result.frames:
         if f.usable:
-            print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
-                  f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
+            _print_frame(f)
         else:
             _print_skipped(f.name, f.reason)
     if result.covariance is not None:
@@ -66,6 +64,18 @@ def print_truth(T, covariance, truth) -> None:
         d2 = float(xi @ np.linalg.solve(covariance, xi))
         print(f"  squared Mahalanobis distance of the truth under the covariance: {d2:.1f} "
               f"(chi-square, 6 dof: mean 6, 95% below 12.6)")
+
+
+def _print_matrix(T) -> None:
+    """A 4x4 transform, a row a line."""
+    for row in T:
+        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+
+
+def _print_frame(f) -> None:
+    """A used frame's board: its LiDAR points and plane RMS, its corners' RMS."""
+    print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
+          f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
 
 
 def _print_weakest(what: str, w: dict) -> None:
@@ -274,12 +284,10 @@ def _print_pair_of_two(result) -> None:
     cam, lid = result.rig.cameras[0].name, result.rig.lidars[0].name
     p = result.pair(cam, lid)
     print(f"T_{cam}_{lid} (T_camera_lidar: p_camera = R p_lidar + t):")
-    for row in p.T:
-        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+    _print_matrix(p.T)
     for f in getattr(result.measurements, "pairs", {}).get((cam, lid), ()):
         if f.usable and f.name in result.frames_used.get(lid, ()):
-            print(f"  {f.name}: {f.lidar.n_points:6d} board points, plane RMS {1000 * f.lidar.plane_rms_m:.1f} mm, "
-                  f"corner RMS {f.camera.reprojection_rms_px:.3f} px")
+            _print_frame(f)
     if p.samples is not None:
         regions = p.summary()["credible_regions"]
         print(f"  posterior 99.9% region: squared Mahalanobis distance up to {regions['99.9%']['d2']:.1f} under its "

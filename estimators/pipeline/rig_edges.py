@@ -13,10 +13,10 @@ from geometry.rotations import T_log
 
 from ..solvers import chi_square as chi2
 from ..solvers.board_edges import edge_scatter
-from ..solvers.edges_in_graph import conflict_covariance, edges_gain, edges_left_out, lidar_crossings
+from ..solvers.edges_in_graph import (conflict_covariance, edges_gain, edges_left_out, lidar_crossings,
+                                      outline_statistics)
 from ..solvers.outline_check import outline_check
-from ..solvers.graph_keys import outline_key
-from ..solvers.graph_keys import edge_shift_key
+from ..solvers.graph_keys import edge_shift_key, outline_key
 from ..solvers.rig_graph import RigSolution, outline_covariance, pair_board_covariance, solve_rig
 
 
@@ -54,13 +54,13 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     estimated by the method of moments (``board_edges.edge_scatter``), the graph solved again until they settle.
     Only the LiDARs named in ``which`` have their edges. Each 3D LiDAR's pose is tested against the planes alone
     (:func:`planes_against_edges`); where they conflict, the joint covariance holds both answers
-    (:func:`conflict_share`, added to the solution's). Its record states the outline's uncertainty and the mean outline
-    shift (:func:`outline_statistics`) and, with ``pair_frames`` (each camera-LiDAR pair's frames), a 3D LiDAR's outline
-    check under the planes alone with its first camera (``planes_only_check``, with ``planes_only_camera``), as a single
-    pair's record does. Returns the views, the solution, per LiDAR its record (ends, scale, scatter, outline, the test)
-    and the conflict's share (None when none), which the posterior's samples are convolved with. (A scanner of so few
-    boards that its pairs took their ends has them in ``solution`` already, from ``rig_calibration``'s first joint
-    solve.)"""
+    (:func:`conflict_share`, added to the solution's). Its record states the outline's uncertainty and the mean
+    outline shift (:func:`_outline_statistics`) and, with ``pair_frames`` (each camera-LiDAR pair's frames), a 3D
+    LiDAR's outline check under the planes alone with its first camera (``planes_only_check``, with
+    ``planes_only_camera``), as a single pair's record does. Returns the views, the solution, per LiDAR its record
+    (ends, scale, scatter, outline, the test) and the conflict's share (None when none), which the posterior's
+    samples are convolved with. (A scanner of so few boards that its pairs took their ends has them in ``solution``
+    already, from ``rig_calibration``'s first joint solve.)"""
     views = [ends_view(lv, rig.board, lidar_obs[lv.name], solution.T_ref[lv.name], solution.T_ref_board)
              if lv.name in which else lv for lv in lidar_views]
     if not any(v.edges for v in views):
@@ -101,7 +101,7 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
                                 "ends": int(sum(e.size for e in lv.edges.values())),
                                 "end_scale": lv.edge_scale, "board_scatter_in_plane_m": lv.edge_tau_m,
                                 "growth_m": outline[:2].tolist(), "outline_offset_m": outline[2:].tolist(),
-                                **outline_statistics(names, solution, lv, *covariances[lv.name]),
+                                **_outline_statistics(names, solution, lv, *covariances[lv.name]),
                                 "planes_against_edges": None if lv.scan_line else
                                 planes_against_edges(planes, solution, lv.name)}
             # the planes alone's outline check beside it, with its first camera (the single pair's)
@@ -114,30 +114,15 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     return views, solution, records, share
 
 
-def outline_statistics(names: tuple, solution: RigSolution, lv, J: np.ndarray, stems: list) -> dict:
-    """A LiDAR's outline with its standard deviations, each frame's outline shift, and their mean in the
-    reference's axes (a camera's: for a pair folder, its camera's) tested against its 99% limit, as a single pair's
-    edges record gives them (``edges_in_graph.edges_summary``; ``outline_check.outline_warnings`` reads them). The
-    shifts are estimated random effects, each 0 +- the boards' in-plane scatter: under the model their estimates
-    vary by that prior's covariance less their posterior's. ``J``: the joint covariance of its outline and its
-    shifts in ``stems`` (``rig_graph.outline_covariance``)."""
-    k = names.index(lv.name)
-    sd = np.sqrt(np.maximum(np.diag(J[:4, :4]), 0.0))
-    A = np.zeros((3, 2 * len(stems)))
-    shifts, per_frame = [], []
-    for j, st in enumerate(stems):
-        A[:, 2 * j:2 * j + 2] = solution.T_ref_board[st][:3, :2] / len(stems)
-        d = solution.vectors.get(edge_shift_key(k, sorted(solution.T_ref_board).index(st)), np.zeros(2))
-        shifts.append(d)
-        per_frame.append({"frame": st, "ends": int(lv.edges[st].size), "shift_board_xy_m": np.asarray(d).tolist(),
-                          "shift_sd_m": np.sqrt(np.maximum(np.diag(J[4 + 2 * j:6 + 2 * j, 4 + 2 * j:6 + 2 * j]),
-                                                           0.0)).tolist()})
-    mean = A @ np.concatenate(shifts) if stems else np.zeros(3)
-    C = A @ (lv.edge_tau_m**2 * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
-    d2, dof = chi2.mahalanobis(mean, C)
-    return {"growth_sd_m": sd[:2].tolist(), "outline_offset_sd_m": sd[2:].tolist(), "frames": per_frame,
-            "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(), "mean_shift_d2": d2,
-            "mean_shift_dof": dof, "mean_shift_p_value": float(chi2.sf(d2, dof)) if dof else 1.0}
+def _outline_statistics(names: tuple, solution: RigSolution, lv, J: np.ndarray, stems: list) -> dict:
+    """LiDAR ``lv``'s ``edges_in_graph.outline_statistics`` at the joint ``solution``: its frames' board poses in
+    the reference's frame (a camera's: for a pair folder, its camera's) and its outline shifts in ``stems``, ``J``
+    their joint covariance with its outline (``rig_graph.outline_covariance``)."""
+    k, order = names.index(lv.name), sorted(solution.T_ref_board)
+    return outline_statistics([(st, int(lv.edges[st].size)) for st in stems],
+                              [solution.T_ref_board[st] for st in stems],
+                              [solution.vectors.get(edge_shift_key(k, order.index(st)), np.zeros(2)) for st in stems],
+                              J, lv.edge_tau_m**2)
 
 
 def ends_view(lv, board, obs: dict, T_ref_l: np.ndarray, T_ref_board: dict):

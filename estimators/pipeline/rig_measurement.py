@@ -215,10 +215,9 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
         for k, cam in enumerate(shared):
             stems = [st for st in poses[cam.name] if lid.file(st) is not None]
-            # a LiDAR that shares too few frames with every camera is measured with the first one still, so that
-            # its solve can say why it is not linked (its frames' reasons, an unreadable file)
-            if len(stems) >= MIN_PAIR_FRAMES or k == 0 and stems and all(
-                    sum(1 for st in poses[c.name] if lid.file(st) is not None) < MIN_PAIR_FRAMES for c in shared):
+            # a LiDAR that shares too few frames with every camera (the first, sharing most, among them) is measured
+            # with the first still, so that its solve can say why it is not linked (its frames' reasons, a bad file)
+            if len(stems) >= MIN_PAIR_FRAMES or k == 0 and stems:
                 key = (cam.name, lid.name)
                 guess = (hints.pair_guesses or {}).get(f"T_{cam.name}_{lid.name}")
                 pairs[key] = measure_pair_frames(rig.pair(cam.name, lid.name, cameras[cam.name]), cam.name,

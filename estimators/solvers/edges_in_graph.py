@@ -163,23 +163,10 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
     shift_keys = [(j, i) for j, i in enumerate(active) if prob.has_edges(i)]
     keys = gtsam.KeyVector([OUTLINE] + [shift_key(j) for j, _ in shift_keys])
     J = marginals.jointMarginalCovariance(keys).fullMatrix() * quasi_scale
-    outline_sd = np.sqrt(np.diag(J[:4, :4]))
-    # The mean shift in camera axes: each frame's board axes mapped by its board pose.
-    A = np.zeros((3, 2 * len(shift_keys)))
-    shifts, per_frame = [], []
-    for k, (j, i) in enumerate(shift_keys):
-        A[:, 2 * k:2 * k + 2] = boards[i][:3, :2] / len(shift_keys)
-        d = prob.shifts.get(i, np.zeros(2))
-        shifts.append(d)
-        sd = np.sqrt(np.diag(J[4 + 2 * k:6 + 2 * k, 4 + 2 * k:6 + 2 * k]))
-        per_frame.append({"frame": prob.frames[i].name, "ends": int(prob.edges[i].size),
-                          "shift_board_xy_m": d.tolist(), "shift_sd_m": sd.tolist()})
-    mean = A @ np.concatenate(shifts)
-    # The shifts are estimated random effects (each 0 +- the scatter a priori): under the model their estimates
-    # vary by the prior's covariance less the posterior's.
-    C = A @ (prob.edge_tau**2 * quasi_scale * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
-    d2, dof = chi2.mahalanobis(mean, C)
-    mean_p = float(chi2.sf(d2, dof)) if dof else 1.0
+    stats = outline_statistics([(prob.frames[i].name, int(prob.edges[i].size)) for _, i in shift_keys],
+                               [boards[i] for _, i in shift_keys],
+                               [prob.shifts.get(i, np.zeros(2)) for _, i in shift_keys], J,
+                               prob.edge_tau**2 * quasi_scale)
     g, o = prob.outline[:2], prob.outline[2:]
     # The planes alone, from this estimate, with the same noise model. Not for a 2D scan: its lines alone have
     # up to 8 exact solutions for three boards (and several minima for a few more), so their refit from this
@@ -218,12 +205,32 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
                             "are in calibration.json")
     record = {"used": True, "ends": int(sum(prob.edges[i].size for _, i in shift_keys)),
               "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(),
-              "growth_sd_m": outline_sd[:2].tolist(),
-              "outline_offset_m": o.tolist(), "outline_offset_sd_m": outline_sd[2:].tolist(), "frames": per_frame,
-              "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(),
-              "mean_shift_d2": d2, "mean_shift_dof": dof, "mean_shift_p_value": mean_p,
-              "planes_against_edges": test, "planes_only_check": planes_check}
+              "outline_offset_m": o.tolist(), **stats, "planes_against_edges": test, "planes_only_check": planes_check}
     return record, outline_warnings(record, used=True) + warnings
+
+
+def outline_statistics(frames: list[tuple[str, int]], boards: list, shifts: list, J: np.ndarray, prior_var: float
+                       ) -> dict:
+    """An edges record's uncertainty and test, a pair's and a rig LiDAR's alike: the outline's standard deviations
+    (its growth's and offset's), each frame's outline shift (``frames``: name and ends; ``shifts``, board axes)
+    with its own, and their mean in camera axes (each frame's board axes mapped by its board pose, ``boards``)
+    against its 99% limit. ``J``: the joint covariance of the outline (4) and the shifts (2 each). The shifts are
+    estimated random effects, each 0 +- the boards' in-plane scatter (variance ``prior_var``): under the model their
+    estimates vary by that prior's covariance less their posterior's."""
+    sd = np.sqrt(np.maximum(np.diag(J[:4, :4]), 0.0))
+    A = np.zeros((3, 2 * len(frames)))
+    per_frame = []
+    for k, ((name, ends), B, d) in enumerate(zip(frames, boards, shifts)):
+        A[:, 2 * k:2 * k + 2] = B[:3, :2] / len(frames)
+        per_frame.append({"frame": name, "ends": ends, "shift_board_xy_m": np.asarray(d).tolist(),
+                          "shift_sd_m": np.sqrt(np.maximum(np.diag(J[4 + 2 * k:6 + 2 * k, 4 + 2 * k:6 + 2 * k]),
+                                                           0.0)).tolist()})
+    mean = A @ np.concatenate(shifts) if frames else np.zeros(3)
+    C = A @ (prior_var * np.eye(J.shape[0] - 4) - J[4:, 4:]) @ A.T
+    d2, dof = chi2.mahalanobis(mean, C)
+    return {"growth_sd_m": sd[:2].tolist(), "outline_offset_sd_m": sd[2:].tolist(), "frames": per_frame,
+            "mean_shift_camera_m": mean.tolist(), "mean_shift_covariance": C.tolist(), "mean_shift_d2": d2,
+            "mean_shift_dof": dof, "mean_shift_p_value": float(chi2.sf(d2, dof)) if dof else 1.0}
 
 
 def edges_gain(cov_planes: np.ndarray, cov: np.ndarray) -> float:
