@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate  # noqa: E402
+from estimators.calibration import calibrate_pair  # noqa: E402
 from estimators.camera.board_pose import estimate_board_pose  # noqa: E402
 from estimators.camera.corners import detect_corners  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
@@ -108,7 +108,7 @@ def accuracy(trials: int, tmp: Path) -> None:
             rig = rig0 if pattern == "checkerboard" else replace(rig0, board=as_charuco(rig0.board))
             frames = simulate_frames(rig, 8, np.random.default_rng([18, t, 1]), poses=poses)
             path = write_dataset(tmp / f"{pattern}_{t}", rig, frames)
-            res = calibrate(load_dataset(path), rng=np.random.default_rng(t), posterior=None)
+            res = calibrate_pair(load_dataset(path), rng=np.random.default_rng(t), posterior=None)
             xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)
             # The bound of this layout at the corner noise this pattern's detections actually have (their
             # per-axis RMS error against the true corners) and the simulated 2 cm range noise.
@@ -143,7 +143,7 @@ def partial(datasets: int, tmp: Path) -> None:
         path = simulate_dataset(tmp / f"cut_{k}", 8, seed=100 + k, lidar="vlp16", pattern="charuco")
         ds = load_dataset(path)
         truth = json.loads((path / "ground_truth.json").read_text())["T_camera_board"]
-        res = calibrate(ds, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate_pair(ds, rng=np.random.default_rng(k), posterior=None)
         used_names = {f.name for f in res.frames if f.usable}
         for f in ds.frames:
             uv = ds.camera.project(transform_points(np.array(truth[f.name]), ds.board.inner_corners()))

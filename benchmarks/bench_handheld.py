@@ -30,7 +30,7 @@ N_FRAMES = 8
 
 
 def _trial(args) -> dict:
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import handheld_rig, sample_layout, simulate_frames, write_dataset
     from estimators.solvers.observation_model import Layout, cramer_rao_bound
@@ -50,8 +50,8 @@ def _trial(args) -> dict:
     out = {"spread": spread, "eligible": [r >= 5 for r in rings]}
     os.environ["LIDARCAM_CACHE_DIR"] = str(Path(tmp) / "cache")  # measured once for both calibrations
     try:
-        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None, cache=True)
-        planes = calibrate(path, rng=np.random.default_rng(seed), posterior=None, cache=True,
+        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None, cache=True)
+        planes = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None, cache=True,
                            options=RefinementOptions(edges=False))
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}

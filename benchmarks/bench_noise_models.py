@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators import rig_calibration  # noqa: E402
-from estimators.calibration import calibrate  # noqa: E402
+from estimators.calibration import calibrate_pair  # noqa: E402
 from estimators.io.rig_dataset import load_rig  # noqa: E402
 from estimators.solvers import rig_graph  # noqa: E402
 from estimators.solvers.chi_square import ppf  # noqa: E402
@@ -106,7 +106,7 @@ def _one(task) -> dict:
         for variant in VARIANTS:
             try:
                 if variant == "pair engine":
-                    pair = calibrate(folder if kind == "pair" else load_rig(folder).pair("cam0", "lidar0"), samples=0,
+                    pair = calibrate_pair(folder if kind == "pair" else load_rig(folder).pair("cam0", "lidar0"), samples=0,
                                      options=RefinementOptions(edges=False))
                     T, C = pair.T_camera_lidar, pair.covariance
                 else:

@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate  # noqa: E402
+from estimators.calibration import calibrate_pair  # noqa: E402
 from estimators.errors import LidarcamError  # noqa: E402
 from estimators.io.rig_dataset import load_rig  # noqa: E402
 from estimators.rig_calibration import calibrate_rig  # noqa: E402
@@ -63,7 +63,7 @@ def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> N
                                       rig_config=config)
             T_true = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
             try:
-                pair = calibrate(folder, samples=samples)
+                pair = calibrate_pair(folder, samples=samples)
                 rig = calibrate_rig(load_rig(folder), np.random.default_rng(0), samples=samples, advise=False)
             except LidarcamError as exc:
                 print(f"{seed:4d}  refused: {exc.message[:100]}")
@@ -129,7 +129,7 @@ def main() -> None:
             except LidarcamError as exc:
                 refused.append(f"rig refused: {exc.problem[:70]}")
             try:
-                pair = calibrate(rig.pair("cam0", "lidar0"), samples=0, options=options)
+                pair = calibrate_pair(rig.pair("cam0", "lidar0"), samples=0, options=options)
             except LidarcamError as exc:
                 refused.append(f"pair refused: {exc.problem[:70]}")
             if refused:

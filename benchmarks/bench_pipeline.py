@@ -16,7 +16,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate, solve  # noqa: E402
+from estimators.calibration import calibrate_pair, solve  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
@@ -35,7 +35,7 @@ def main() -> None:
             t_sim = time.perf_counter() - t0
             ds = load_dataset(path)
             t0 = time.perf_counter()
-            res = calibrate(ds, rng=np.random.default_rng(seed))
+            res = calibrate_pair(ds, rng=np.random.default_rng(seed))
             wall = time.perf_counter() - t0
             G = ds.ground_truth()
             cf = solve(list(res.frames), ds.board, res.camera, refine="none").T_camera_lidar

@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate  # noqa: E402
+from estimators.calibration import calibrate_pair  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 
@@ -72,7 +72,7 @@ def main() -> None:
             p = ds.camera.params.copy()
             p[2] += dx
             p[3] += dy
-            res = calibrate(replace(ds, camera=ds.camera.with_params(p)), options=RefinementOptions(edges=True),
+            res = calibrate_pair(replace(ds, camera=ds.camera.with_params(p)), options=RefinementOptions(edges=True),
                             posterior=None, rng=np.random.default_rng(0))
             test = res.refinement.edges["planes_against_edges"] if res.refinement.edges else None
             t = 1000 * res.T_camera_lidar[:3, 3]

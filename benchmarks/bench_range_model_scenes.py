@@ -39,7 +39,7 @@ POSES = 10
 
 
 def _trial(args) -> dict:
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -49,7 +49,7 @@ def _trial(args) -> dict:
     path = Path(tmp) / f"{lidar}_{scene}_{seed}"
     simulate_dataset(path, POSES, seed, lidar, scene=scene, overwrite=True)
     try:
-        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:  # a refused calibration is a result of the benchmark
         return {"failed": str(exc)[:120]}
     res_truth = load_dataset(path).ground_truth()
@@ -68,7 +68,7 @@ def _trial(args) -> dict:
 def _injected(args) -> dict:
     import json
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -79,7 +79,7 @@ def _injected(args) -> dict:
     simulate_dataset(path, POSES, seed, lidar, range_bias=(0.03, 0.005, 0.01), intensity=intensity, ring_field=ring,
                      overwrite=True)
     try:
-        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:
         return {"failed": str(exc)[:120]}
     truth = load_dataset(path).ground_truth()
@@ -97,7 +97,7 @@ def _injected(args) -> dict:
 
 
 def _beyond_prior(args) -> dict:
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -107,7 +107,7 @@ def _beyond_prior(args) -> dict:
     path = Path(tmp) / f"beyond_{lidar}_{seed}"
     simulate_dataset(path, 8, seed, lidar, scene="office", range_bias=(0.0, 0.015, 0.0), overwrite=True)
     try:
-        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:
         return {"failed": str(exc)[:120]}
     xi = T_log(T_inverse(res.T_camera_lidar) @ load_dataset(path).ground_truth())

@@ -192,7 +192,7 @@ def without_size() -> None:
     import shutil
     import tempfile
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
 
     for root in (DATA, OFFICE):
         if not (root / "dataset.yaml").is_file():
@@ -202,8 +202,8 @@ def without_size() -> None:
             copy = Path(shutil.copytree(root, Path(tmp) / root.name))
             yaml = copy / "dataset.yaml"
             yaml.write_text(re.sub(r"(?m)^  size:.*\n", "", yaml.read_text()))
-            given = calibrate(root, rng=np.random.default_rng(0), samples=0)
-            unknown = calibrate(copy, rng=np.random.default_rng(0), samples=0)
+            given = calibrate_pair(root, rng=np.random.default_rng(0), samples=0)
+            unknown = calibrate_pair(copy, rng=np.random.default_rng(0), samples=0)
         dt = 1000 * (unknown.T_camera_lidar[:3, 3] - given.T_camera_lidar[:3, 3])
         print(f"recorded data: {root.name} with board.size left out: {unknown.frames_used}/{len(unknown.frames)} "
               f"frames used; translation {np.round(dt, 1).tolist()} mm from the sized estimate (its sd "

@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate, solve  # noqa: E402
+from estimators.calibration import calibrate_pair, solve  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
 from estimators.simulation.simulator import (  # noqa: E402
@@ -101,7 +101,7 @@ def _trial_b(args):
     with tempfile.TemporaryDirectory() as tmp:
         frames = simulate_frames(rig, len(poses), rng, poses=poses)
         ds = load_dataset(write_dataset(Path(tmp) / "ds", rig, frames))
-        res = calibrate(ds, rng=np.random.default_rng(seed))
+        res = calibrate_pair(ds, rng=np.random.default_rng(seed))
     used = [f for f in res.frames if f.usable]
     cf = solve(list(res.frames), rig.board, res.camera, refine="none").T_camera_lidar
     # PnP board-pose errors against the truth, in units of the unit-noise covariance (J^T J)^-1: over the

@@ -54,7 +54,7 @@ def _true_hits(rig, T_camera_board, sim) -> tuple[np.ndarray, np.ndarray]:
 def _trial(args) -> dict:
     from scipy.spatial import cKDTree
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.io.dataset import load_dataset
     from estimators.simulation.office import board_fraction_in_fov
     from estimators.simulation.simulator import (default_rig, default_rig_2d, sample_board_poses, simulate_frames,
@@ -74,7 +74,7 @@ def _trial(args) -> dict:
         write_dataset(path, rig, frames, "csv" if lidar == "2d" else "pcd", overwrite=True)
         ds = load_dataset(path)
         try:
-            res = calibrate(ds, rng=np.random.default_rng(seed), posterior=None)
+            res = calibrate_pair(ds, rng=np.random.default_rng(seed), posterior=None)
         except Exception as exc:  # a refused calibration is a result of the benchmark, recorded with its reason
             errors[kind] = None
             out[f"{kind}_failure"] = f"{type(exc).__name__}: {exc}"[:160]

@@ -44,7 +44,7 @@ CHI2_3_999 = 16.266  # chi-square, 3 degrees of freedom, 99.9% point
 def _stand_trial(args) -> dict:
     from dataclasses import replace
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, default_rig, simulate_frames, write_dataset
     from geometry.planes import Plane
@@ -62,7 +62,7 @@ def _stand_trial(args) -> dict:
     yaml.write_text(re.sub(r"  size: \[.*\]\n", "", yaml.read_text()))
     out = {"lidar": lidar, "stand": stand, "cropped": cropped}
     try:
-        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}
     T_lc = T_inverse(rig.T_camera_lidar)
@@ -81,7 +81,7 @@ def _stand_trial(args) -> dict:
 
 
 def _cropped_trial(args) -> dict:
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, default_rig, simulate_frames, write_dataset
 
@@ -93,7 +93,7 @@ def _cropped_trial(args) -> dict:
     fill = max(float(f.board_mask.mean()) for f in frames)
     path = write_dataset(Path(tmp) / f"cropped_{k}", rig, frames)
     try:
-        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {"lidar": lidar, "fill": fill, "failed": str(exc)[:160]}
     return {"lidar": lidar, "fill": fill, "used": res.frames_used, "frames": len(frames),
@@ -105,7 +105,7 @@ TABLE_VARIANTS = (("rosette", None), ("rosette", 0.3), ("sector", None), ("secto
 
 
 def _table_trial(args) -> dict:
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, write_dataset
     from estimators.simulation.table import declared, simulate_table_frames, table_rig
@@ -121,7 +121,7 @@ def _table_trial(args) -> dict:
     path = write_dataset(Path(tmp) / f"table_{k}", declared(rig), frames)
     out = {"variant": f"{lidar}{', cropped' if crop else ''}", "frames": len(frames)}
     try:
-        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}
     xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)

@@ -73,7 +73,7 @@ def corrupt(folder: Path, how: str) -> None:
 
 def trial(args) -> dict:
     label, kw, seed, how, tmp = args
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -87,7 +87,7 @@ def trial(args) -> dict:
     if how != "good":
         corrupt(folder, how)
     try:
-        result = calibrate(folder, rng=np.random.default_rng(seed))
+        result = calibrate_pair(folder, rng=np.random.default_rng(seed))
     except LidarcamError as exc:
         return {"label": label, "how": how, "seed": seed, "level": "refused", "d2": np.nan, "why": exc.problem[:100],
                 "px": np.nan}

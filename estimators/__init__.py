@@ -6,9 +6,9 @@ Pose3 tangent (``T_true = T_hat Exp(xi)``, ``xi = [rotation; translation]``, alo
 
     from estimators import simulate, load_dataset, calibrate
     path = simulate("/tmp/sim", n_poses=8, seed=1)           # or lidar="2d"
-    result = calibrate(load_dataset(path), samples=2000)     # frozen CalibrationResult
-    result.T_camera_lidar, result.covariance, result.samples, result.diagnostics
-    result.pair("cam0", "lidar0").intervals(0.95)            # as a rig's result.pair(a, b) gives any pair
+    result = calibrate(path, samples=2000)                   # the engine the command line runs: a RigResult
+    result.verdict, result.T_camera_lidar, result.covariance, result.samples   # a pair folder's pair
+    result.pair("cam0", "lidar0").intervals(0.95)            # any two sensors of a rig alike
     result.report("/tmp/sim-out")                            # report.html and its figures
     write_calibration(result, "/tmp/sim-out")                # calibration.json (+ posterior.npz)
 
@@ -16,10 +16,10 @@ Layout: ``analyse``, ``layout_from_plan``, ``layout_from_result``, ``suggest_pos
 Studies: ``parse_spec``, ``run_study`` (local processes or a Dask scheduler), ``run_coverage_study``.
 Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export_calibration`` and
 ``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
-Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig``, ``write_rig_calibration``,
-``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and LiDARs). The command line
-calibrates every folder with ``calibrate_rig`` (a pair folder as the rig of ``cam0`` and ``lidar0``:
-``calibrate_rig(load_rig(path), rng)``); ``calibrate`` is the pair's own solve, which lands on the same estimate.
+Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig`` (``calibrate``'s engine, from a loaded rig),
+``write_rig_calibration``, ``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and
+LiDARs). ``calibrate`` takes a pair folder as the rig of ``cam0`` and ``lidar0``; the pair's own solve, which starts
+each camera-LiDAR pair of the engine, is ``calibrate_pair`` (or ``solve`` on measured frames: a ``CalibrationResult``).
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
@@ -28,13 +28,14 @@ __version__ = "0.4.0"
 _API = {
     "load_dataset": ("io.dataset", "load_dataset"),
     "Dataset": ("io.dataset", "Dataset"),
-    "calibrate": ("calibration", "calibrate"),
+    "calibrate": ("rig_calibration", "calibrate"),
+    "calibrate_pair": ("calibration", "calibrate_pair"),
     "solve": ("calibration", "solve"),
     "measure": ("pipeline.measurement", "measure"),
     "Measurements": ("io.measurement_store", "Measurements"),
     "save_measurements": ("io.measurement_store", "save_measurements"),
     "load_measurements": ("io.measurement_store", "load_measurements"),
-    "write_calibration": ("pipeline.result", "write_calibration"),
+    "write_calibration": ("pipeline.rig_result", "write_calibration"),
     "CalibrationResult": ("pipeline.result", "CalibrationResult"),
     "PairEstimate": ("pipeline.pair_estimate", "PairEstimate"),
     "RefinementOptions": ("solvers.refinement", "RefinementOptions"),

@@ -1,5 +1,7 @@
-"""The calibration pipeline: a dataset measured (``pipeline.measurement``), solved (closed form or minimal
-solutions, the factor graph, the posterior) into its result (``pipeline.result``)."""
+"""A camera-LiDAR pair's own solve: a dataset measured (``pipeline.measurement``), solved (closed form or minimal
+solutions, the factor graph, the posterior) into its result (``pipeline.result``). It starts each camera-LiDAR pair
+of the engine (``rig_calibration``), gives ``--refine none``, and is kept as ``calibrate_pair`` for the studies
+and benchmark pages that measured it; ``estimators.calibrate`` is the engine's."""
 from __future__ import annotations
 
 import time
@@ -34,12 +36,13 @@ EXIT_AMBIGUOUS = 3
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")  # as the command line runs (rig_calibration.calibrate_rig)
-def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
-              rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
-              options: RefinementOptions = RefinementOptions(),
-              posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
-              samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
-    """Estimate ``T_camera_lidar``, its covariance and posterior from a dataset.
+def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
+                   rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
+                   options: RefinementOptions = RefinementOptions(),
+                   posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
+                   samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
+    """The pair's own solve of a dataset: ``T_camera_lidar``, its covariance and posterior (``estimators.calibrate``
+    gives the engine's, which starts from this).
 
     Measures every frame (the board in each image and scan), solves in closed form (3D) or by the minimal
     solutions (2D), refines in the factor graph and samples the posterior.
@@ -86,7 +89,7 @@ def calibrate(dataset: Dataset | str | Path, init: str = "closed-form", refine: 
     Examples
     --------
     >>> import estimators as lc
-    >>> result = lc.calibrate(lc.simulate("/tmp/sim", n_poses=8, seed=1), samples=500)  # doctest: +SKIP
+    >>> result = lc.calibrate_pair(lc.simulate("/tmp/sim", n_poses=8, seed=1), samples=500)  # doctest: +SKIP
     >>> result.std_rotation_deg, result.std_translation_mm  # doctest: +SKIP
     """
     _check_methods(init, refine)

@@ -35,7 +35,7 @@ from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
 from .solvers import chi_square as chi2
 from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
-from .solvers.posterior import heavy_tails
+from .solvers.posterior import PosteriorOptions, heavy_tails
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
@@ -608,3 +608,72 @@ def rig_next_pose(result: RigResult, rng: np.random.Generator, candidates: int =
     cam, lid = next((c.name, d.name) for c in result.rig.cameras for d in result.rig.lidars
                     if f"T_{c.name}_{d.name}" == weakest)
     return pair_next_pose(result, cam, lid, result.solution.transform(cam, lid)[1], rng, candidates)
+
+
+def pair_guess(rig: RigDataset, hints: Hints) -> Hints:
+    """``hints`` with a two-sensor rig's initial guess (one ``T_camera_lidar``) as its one camera-LiDAR pair's."""
+    if hints.initial_guess is None or len(rig.cameras) != 1 or len(rig.lidars) != 1:
+        return hints
+    name = f"T_{rig.cameras[0].name}_{rig.lidars[0].name}"
+    return replace(hints, initial_guess=None, pair_guesses={name: hints.initial_guess})
+
+
+def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", rng: np.random.Generator | None = None,
+              params: SegmentationParams = SegmentationParams(), options: RefinementOptions = RefinementOptions(),
+              posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
+              samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> RigResult:
+    """The Python API's calibration of any folder, by the engine the command line runs (:func:`calibrate_rig`): a
+    rig folder, or a pair folder (or a loaded :class:`~estimators.io.dataset.Dataset`) as the rig of ``cam0`` and
+    ``lidar0``. Its arguments are the pair's of old (``calibration.calibrate_pair``, the pair's own solve).
+
+    Parameters
+    ----------
+    dataset : Dataset, RigDataset, str or Path
+        A folder, or one loaded (a Dataset's camera model, replaced in memory, is the one used).
+    init : str
+        A 2D scanner's start: ``closed-form`` (for a scanner, ``minimal-lower-bound``) or ``minimal-min-residual``.
+    refine : str
+        ``factor-graph``; the closed form alone (``none``) is the pair's own solve's: ``estimators.solve(
+        estimators.measure(dataset, rng), refine="none")``.
+    rng : numpy.random.Generator, optional
+        Drives the board segmentation's random draws and the sampler; a fixed seed when None, so runs repeat.
+    params : SegmentationParams
+        The LiDAR board search's settings.
+    options : RefinementOptions
+        The graph's settings; its ``range_model``, ``edges`` and ``refine_intrinsics`` are the engine's.
+    posterior : PosteriorOptions or None
+        The sampler's effective samples (``min_ess``) and likelihood; None skips sampling.
+    use_extent : None
+        The pair's own 2D solve's option; the engine drops a scanner's minimal solutions whose segments leave the
+        boards' outlines whenever the board's size is known.
+    samples : int, optional
+        Effective posterior samples (0: none); overrides ``posterior``'s.
+    hints : Hints
+        A region of interest; a pair's ``initial_guess`` is that of its camera-LiDAR pair.
+    cache : bool
+        Keep and reuse the measurements (under the user's cache folder).
+
+    Returns
+    -------
+    RigResult
+        Every sensor's pose, one joint covariance and posterior; ``result.pair("cam0", "lidar0")`` gives a pair, and
+        for a pair folder ``result.T_camera_lidar``, ``result.covariance`` and ``result.samples`` give it directly.
+    """
+    from .io.dataset import Dataset
+    from .io.rig_dataset import load_rig
+
+    if refine != "factor-graph":
+        raise ValueError(f"refine {refine!r}: the engine refines in the factor graph; the closed form alone is "
+                         "estimators.solve(estimators.measure(dataset, rng), refine='none')")
+    if use_extent is not None:
+        raise ValueError("use_extent is the pair's own 2D solve's option (calibration.calibrate_pair); the engine "
+                         "uses the boards' outlines whenever the board's size is known")
+    rig = dataset if isinstance(dataset, RigDataset) else \
+        RigDataset.of_pair(dataset) if isinstance(dataset, Dataset) else load_rig(dataset)
+    if samples is None:
+        samples = 0 if posterior is None else posterior.min_ess
+    return calibrate_rig(rig, np.random.default_rng(0) if rng is None else rng, samples=max(int(samples), 0),
+                         refine_intrinsics=options.refine_intrinsics, range_model=options.range_model,
+                         edges=options.edges, options=options, cache=cache, init=init, params=params,
+                         hints=pair_guess(rig, hints),
+                         likelihood=posterior.likelihood if posterior is not None else "gaussian")

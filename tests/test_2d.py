@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimators.calibration import calibrate, solve
+from estimators.calibration import calibrate_pair, solve
 from estimators.errors import DegenerateLayoutError, LidarcamError, ScanReadError
 from estimators.io.dataset import load_dataset
 from estimators.io.pointcloud_io import read_scan_2d, write_scan, write_scan_2d
@@ -159,7 +159,7 @@ def test_simulated_2d_dataset_calibrates_end_to_end(sim_2d):
     within its own 99.9% region of the truth and within 1 deg / 5 cm."""
     ds = load_dataset(sim_2d)
     assert ds.lidar == "2d"
-    result = calibrate(ds, posterior=None)
+    result = calibrate_pair(ds, posterior=None)
     assert result.frames_used == 6 and result.init == "minimal-lower-bound"
     G = ds.ground_truth()
     xi = T_log(T_inverse(result.T_camera_lidar) @ G)
@@ -177,7 +177,7 @@ def test_three_boards_with_one_segment_each_and_no_minimal_solution_are_not_untr
     from estimators.simulation.simulator import simulate_dataset
 
     path = simulate_dataset(tmp_path / "three", n_poses=3, seed=4, lidar="2d", rig_config="default")
-    result = calibrate(path, posterior=None)
+    result = calibrate_pair(path, posterior=None)
     assert not any(CONSENSUS_FAILED in w for w in result.warnings)
     assert any("not checked against each other before solving (no minimal solution" in w for w in result.warnings)
     assert result.verdict.line == "OK", result.verdict.line
@@ -230,7 +230,7 @@ def test_the_3d_init_on_a_2d_dataset_is_the_minimal_solver_and_a_2d_init_on_a_3d
     with pytest.raises(LidarcamError, match="is for 2D LiDAR datasets; these frames hold a 3D LiDAR's boards"):
         solve(simulate_measurements(layout, rng), rig3.board, rig3.camera, init="minimal-lower-bound")
     with pytest.raises(DatasetError, match="is for 2D LiDAR datasets"):
-        calibrate(sim_vlp16, init="minimal-min-residual", posterior=None)
+        calibrate_pair(sim_vlp16, init="minimal-min-residual", posterior=None)
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata/acfr_rpg_2d is absent")
@@ -239,7 +239,7 @@ def test_recorded_vertical_boards_give_a_clear_error_not_a_6dof_answer(tmp_path)
 
     ds = load_dataset(REALDATA)
     with pytest.raises(LidarcamError) as exc:
-        calibrate(ds, params=SegmentationParams(max_sensor_separation_m=0.3), posterior=None)
+        calibrate_pair(ds, params=SegmentationParams(max_sensor_separation_m=0.3), posterior=None)
     text = exc.value.message
     assert "unobservable" in text or "usable" in text
 
@@ -294,7 +294,7 @@ def test_an_upside_down_tilted_scanner_is_simulated_in_the_level_world_and_calib
     assert z.min() > -rig.lidar_height_m - 0.01 and np.any(np.abs(z + rig.lidar_height_m) < 0.01)
     path = simulate_dataset(tmp_path / "mounted", n_poses=6, seed=3, lidar="2d", rig_config="mounted")
     ds = load_dataset(path)
-    result = calibrate(ds, posterior=None)
+    result = calibrate_pair(ds, posterior=None)
     assert result.frames_used == 6
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert xi @ np.linalg.solve(result.covariance, xi) < chi2.ppf(0.999, 6)

@@ -291,7 +291,7 @@ def test_a_scan_line_is_cut_to_its_board_within_the_rough_extrinsics_uncertainty
     # side at the truth (measured: 1.8 sd at most), and the truth inside the 99.9% region (measured: d2 4.9).
     import json
 
-    from estimators.calibration import calibrate, measure
+    from estimators.calibration import calibrate_pair, measure
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
 
@@ -308,7 +308,7 @@ def test_a_scan_line_is_cut_to_its_board_within_the_rough_extrinsics_uncertainty
         assert np.all(np.abs(r) < 3 * e.sd_m), (f.name, r / e.sd_m)
         used += e.size
     assert used >= 8
-    result = calibrate(folder, samples=0)
+    result = calibrate_pair(folder, samples=0)
     xi = T_log(T_inverse(result.T_camera_lidar) @ T)
     assert result.verdict.level == "OK"
     assert xi @ np.linalg.solve(result.covariance, xi) < CHI2_6_999

@@ -217,14 +217,14 @@ def test_a_rendered_dataset_of_the_varied_configuration_calibrates_end_to_end(tm
     the choice of rig is recorded in ground_truth.json."""
     from scipy.stats import chi2
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
     from geometry.rotations import T_log
 
     path = simulate_dataset(tmp_path / "varied", n_poses=5, seed=3, lidar="2d", rig_config="varied")
     ds = load_dataset(path)
-    result = calibrate(ds, posterior=None)
+    result = calibrate_pair(ds, posterior=None)
     assert result.frames_used >= 4 and len(result.modes) == 1
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert xi @ np.linalg.solve(result.covariance, xi) < chi2.ppf(0.999, 6)

@@ -25,10 +25,10 @@ FORBIDDEN = {
     "analysis": ("estimators.cli",),
     "pipeline": ("estimators.calibration", "estimators.rig_calibration", "estimators.cli"),
 }
-# The upward edges: ``CalibrationResult.report()`` is a convenience of the result record that draws the
-# report; it imports it inside the method, so importing the pipeline never loads ``analysis``. The rig's
-# pipeline asks the layout analysis for the next pose of its weakest pair in the same way.
-DEFERRED_UPWARD = {("estimators.pipeline.result", "estimators.analysis.report"),
+# The upward edges: ``RigResult.report()`` is a convenience of the result record that draws the report; it
+# imports it inside the method, so importing the pipeline never loads ``analysis``. The engine asks the layout
+# analysis for the next pose of its weakest pair in the same way.
+DEFERRED_UPWARD = {("estimators.pipeline.rig_result", "estimators.analysis.rig_report"),
                    ("estimators.rig_calibration", "estimators.analysis.rig_layout")}
 
 
@@ -90,7 +90,7 @@ def test_the_scan_sees_the_imports():
     """The scanner resolves relative imports (a rule over an empty edge list could never fail)."""
     found = edges()
     assert ("estimators.calibration", "estimators.solvers.refinement", True) in found
-    assert ("estimators.pipeline.result", "estimators.analysis.report", False) in found
+    assert ("estimators.pipeline.rig_result", "estimators.analysis.rig_report", False) in found
     assert ("estimators.solvers.posterior", "estimators.solvers.refinement", True) in found
     assert ("estimators.analysis.study", "estimators.calibration", False) in found
     assert len(found) > 100

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimators.calibration import calibrate
+from estimators.calibration import calibrate_pair
 from estimators.cli import main
 from estimators.errors import BagError
 from estimators.io.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
@@ -32,7 +32,7 @@ def sim5(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def folder_result(sim5):
-    return calibrate(load_dataset(sim5), posterior=None, rng=np.random.default_rng(0))
+    return calibrate_pair(load_dataset(sim5), posterior=None, rng=np.random.default_rng(0))
 
 
 def _errors(T, T_ref):
@@ -61,7 +61,7 @@ def test_bag_extracts_one_frame_per_still_pose_and_calibrates_like_the_folder(si
     # and the first of the next pose's, examined before its scan arrives 13 ms later.
     peak = record["peak_buffered_messages"]
     assert peak["scans"] <= 12 and peak["images_awaiting_a_scan"] <= 5, peak
-    result = calibrate(ds, posterior=None, rng=np.random.default_rng(0))
+    result = calibrate_pair(ds, posterior=None, rng=np.random.default_rng(0))
     assert result.frames_used == 5
     rot, trans = _errors(result.T_camera_lidar, truth.ground_truth())
     assert rot < MAX_ROT_DEG and trans < MAX_TRANS_M, (rot, trans)
@@ -85,7 +85,7 @@ def test_laser_scan_bag_gives_the_2d_dataset_back(sim_2d, tmp_path):
     assert ds.lidar == "2d"
     np.testing.assert_allclose(ds.camera.K, truth.camera.K)
     np.testing.assert_allclose(ds.camera.dist, truth.camera.dist)
-    result = calibrate(ds, posterior=None)
+    result = calibrate_pair(ds, posterior=None)
     rot, trans = _errors(result.T_camera_lidar, truth.ground_truth())
     assert rot < 1.0 and trans < 0.05, (rot, trans)
 

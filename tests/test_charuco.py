@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimators.calibration import calibrate, measure, solve
+from estimators.calibration import calibrate_pair, measure, solve
 from estimators.camera.board_pose import estimate_board_pose
 from estimators.camera.charuco import MIN_CHARUCO_CORNERS, detect_charuco, opencv_board, spans_plane
 from estimators.cli import main
@@ -144,7 +144,7 @@ def test_intrinsics_from_partial_charuco_views(tmp_path):
 def test_charuco_2d_calibrates_through_the_api_and_the_cli(tmp_path):
     data = simulate_dataset(tmp_path / "scan2d", n_poses=6, seed=23, lidar="2d", pattern="charuco")
     ds = load_dataset(data)
-    result = calibrate(ds, rng=np.random.default_rng(0), posterior=None)
+    result = calibrate_pair(ds, rng=np.random.default_rng(0), posterior=None)
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert result.frames_used == 6
     assert xi @ np.linalg.solve(result.covariance, xi) < 22.46  # chi-square, 6 dof, 99.9%

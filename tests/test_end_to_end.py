@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimators.calibration import calibrate
+from estimators.calibration import calibrate_pair
 from estimators.cli import main
 from estimators.io.dataset import load_dataset
 from geometry.rotations import T_inverse, T_log, rotation_error
@@ -41,7 +41,7 @@ def test_calibration_meets_accuracy_targets(request, fixture, refine):
     """Every board found, the closed form within the acceptance targets; refined, the truth inside the reported
     covariance's 99.9% region (the refined error is a few of its standard deviations, not millimetres)."""
     ds = load_dataset(request.getfixturevalue(fixture))
-    result = calibrate(ds, refine=refine, rng=np.random.default_rng(0))
+    result = calibrate_pair(ds, refine=refine, rng=np.random.default_rng(0))
     assert result.frames_used == len(ds.frames) == 8
     if refine == "none":
         rot, trans = _errors(result.T_camera_lidar, ds.ground_truth())
@@ -134,14 +134,14 @@ def test_intrinsics_calibrated_when_camera_absent(sim_hdl64e, tmp_path):
     text = (data / "dataset.yaml").read_text()
     (data / "dataset.yaml").write_text(text[:text.index("camera:")])
     ds = load_dataset(data)
-    result = calibrate(ds, rng=np.random.default_rng(0))
+    result = calibrate_pair(ds, rng=np.random.default_rng(0))
     assert "calibrated from 8 images" in result.camera.source
     assert any("intrinsics" in w for w in result.warnings)
     rot, trans = _errors(result.T_camera_lidar, ds.ground_truth())
     assert rot < 1.0 and trans < 0.06, (rot, trans)  # intrinsics from 8 views: looser
     # Their uncertainty is in the covariance: wider than with the given intrinsics, and covering the truth.
     assert result.camera.param_std is not None and any("propagated" in w for w in result.warnings)
-    given = calibrate(load_dataset(sim_hdl64e), rng=np.random.default_rng(0))
+    given = calibrate_pair(load_dataset(sim_hdl64e), rng=np.random.default_rng(0))
     assert np.all(np.diag(result.covariance) > np.diag(given.covariance))
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert xi @ np.linalg.solve(result.covariance, xi) < 22.5
@@ -217,7 +217,7 @@ def test_frame_without_board_is_skipped_with_reason(sim_hdl64e, tmp_path):
     data = tmp_path / "blank"
     shutil.copytree(sim_hdl64e, data)
     cv2.imwrite(str(data / "0003.png"), np.full((768, 1024), 128, np.uint8))
-    result = calibrate(load_dataset(data), rng=np.random.default_rng(0))
+    result = calibrate_pair(load_dataset(data), rng=np.random.default_rng(0))
     skipped = [f for f in result.frames if not f.usable]
     assert [f.name for f in skipped] == ["0003"] and "checkerboard not found" in skipped[0].reason
     assert result.frames_used == 7
@@ -241,7 +241,7 @@ def test_every_scan_format_calibrates(tmp_path, fmt):
     path = simulate_dataset(tmp_path / fmt, n_poses=5, seed=30, lidar="vlp16", scan_format=fmt)
     assert len(list(path.glob(f"*.{fmt}"))) == 5
     ds = load_dataset(path)
-    result = calibrate(ds, rng=np.random.default_rng(0), posterior=None)
+    result = calibrate_pair(ds, rng=np.random.default_rng(0), posterior=None)
     assert result.frames_used == 5
     assert _d2(result, ds.ground_truth()) < CHI2_6_999
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from estimators.calibration import calibrate
+from estimators.calibration import calibrate_pair
 from estimators.cli import main
 from estimators.errors import LidarcamError
 from estimators.io.dataset import load_dataset
@@ -209,7 +209,7 @@ def test_a_damaged_image_and_a_damaged_scan_skip_their_frames_and_the_rest_calib
 
     img = cv2.imread(str(frames[2].image), cv2.IMREAD_GRAYSCALE)
     cv2.imwrite(str(frames[2].image), cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2)))
-    result = calibrate(load_dataset(ds_path), posterior=None, rng=np.random.default_rng(0))
+    result = calibrate_pair(load_dataset(ds_path), posterior=None, rng=np.random.default_rng(0))
     reasons = {f.name: f.reason for f in result.frames}
     assert "image header declares" in reasons[frames[0].name]
     assert "scan:" in reasons[frames[1].name] and "truncated" in reasons[frames[1].name]

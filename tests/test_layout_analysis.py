@@ -101,14 +101,14 @@ def test_cli_layout_plan_writes_json_and_rejects_bad_plans(tmp_path, capsys):
 def test_cli_layout_on_a_measured_dataset_predicts_its_refined_covariance(sim_hdl64e, tmp_path):
     """For measured frames the analysis uses the refinement's poses, noise levels and board points: its
     prediction is the Laplace covariance of the same data (the same model, linearised alike)."""
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.io.dataset import load_dataset
 
     assert main(["layout", str(sim_hdl64e), "--json", str(tmp_path / "m.json")]) == 0
     data = json.loads((tmp_path / "m.json").read_text())
     assert len(data["frames"]) == 8
     # The prediction is the planes' (the edges' is beside it, ``with_edges``): the planes' refinement.
-    result = calibrate(load_dataset(sim_hdl64e), rng=np.random.default_rng(0), posterior=None,
+    result = calibrate_pair(load_dataset(sim_hdl64e), rng=np.random.default_rng(0), posterior=None,
                        options=RefinementOptions(edges=False))
     np.testing.assert_allclose(data["predicted_std"]["translation_mm_along_lidar_xyz"], result.std_translation_mm,
                                rtol=0.1)

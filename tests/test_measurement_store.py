@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from estimators.calibration import calibrate, measure, solve
+from estimators.calibration import calibrate_pair, measure, solve
 from estimators.cli import main
 from estimators.io.measurement_store import load_measurements, save_measurements
 
@@ -50,12 +50,12 @@ def test_cache_is_used_for_the_same_files_and_options_and_not_after_a_file_chang
 
     ds = tmp_path / "ds"
     shutil.copytree(sim_vlp16, ds)
-    first = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
-    second = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    first = calibrate_pair(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    second = calibrate_pair(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
     assert (first.measurements_source, second.measurements_source) == ("measured", "cache")
     np.testing.assert_allclose(second.T_camera_lidar, first.T_camera_lidar, atol=1e-12)
     # Other segmentation seed: another key.
-    other = calibrate(ds, rng=np.random.default_rng(5), posterior=None, cache=True)
+    other = calibrate_pair(ds, rng=np.random.default_rng(5), posterior=None, cache=True)
     assert other.measurements_source == "measured"
     # A scan rewritten (one point moved by 1 mm): the entry is stale and the dataset is measured again.
     from estimators.io.pointcloud_io import read_sweep, write_scan
@@ -65,7 +65,7 @@ def test_cache_is_used_for_the_same_files_and_options_and_not_after_a_file_chang
     pts = sweep.points.copy()
     pts[0] += 0.001
     write_scan(scan, pts, sweep.intensity, sweep.ring)
-    third = calibrate(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
+    third = calibrate_pair(ds, rng=np.random.default_rng(0), posterior=None, cache=True)
     assert third.measurements_source == "measured"
 
 

@@ -198,12 +198,12 @@ def test_end_to_end_simulation_with_injected_range_errors_recovers_them(tmp_path
     """Rendered images, ray-cast sweeps with a 3 cm offset, per-ring offsets (sd 5 mm) and 1 cm on the black
     squares, then the whole pipeline under auto: the full model is chosen and each term and the extrinsic land
     within 3 standard deviations (99% region for the extrinsic)."""
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
 
     path = simulate_dataset(tmp_path / "biased", n_poses=10, seed=4, range_bias=(0.03, 0.005, 0.01))
     truth = json.loads((path / "ground_truth.json").read_text())
-    res = calibrate(path, rng=np.random.default_rng(0), posterior=None)
+    res = calibrate_pair(path, rng=np.random.default_rng(0), posterior=None)
     fit = res.refinement.range_model
     assert fit.chosen == "full"
     values = dict(zip(fit.names, fit.values_m))
@@ -341,13 +341,13 @@ def test_overdispersed_boards_weigh_the_terms_priors_so_terms_held_at_zero_do_no
     the rig does (measured 0.04 deg / 8 mm): within 0.2 deg and 25 mm, and within 2 sd of the truth per axis."""
     import json as _json
 
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
 
     folder = simulate_dataset(tmp_path / "os64", n_poses=8, seed=5, lidar="os64", scene="office",
                               range_bias=(0.0, 0.015, 0.0))
     truth = np.array(_json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
-    res = calibrate(folder, samples=0)
+    res = calibrate_pair(folder, samples=0)
     fit = res.refinement.range_model
     assert fit.chosen == "per-ring" and set(fit.pinned) == {"ring 30", "ring 51"}
     xi = T_log(T_inverse(res.T_camera_lidar) @ truth)

@@ -130,18 +130,18 @@ def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(oust
 
 @pytest.mark.parametrize("which", ["vlp16", "ouster"])
 def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, vlp16, ouster, tmp_path):
-    """Posterior and report on each recorded 3D set (no hint): samples drawn, every figure written,
-    calibration.json holds each frame's board choice."""
-    from estimators.pipeline.result import write_calibration
+    """Posterior and report on each recorded 3D set (no hint), by the engine `lidarcam calibrate` runs: samples
+    drawn, every figure written, calibration.json holds each frame's board choice."""
+    from estimators import calibrate, write_calibration
 
-    ds, camera, frames = vlp16 if which == "vlp16" else ouster
-    result = solve(frames, ds.board, camera, posterior=PosteriorOptions(min_ess=300), name=str(ds.root))
+    ds = (vlp16 if which == "vlp16" else ouster)[0]
+    result = calibrate(ds.root, samples=300)
     assert result.posterior is not None and np.all(np.isfinite(result.covariance))
     write_calibration(result, tmp_path)
     report = result.report(tmp_path)
     saved = json.loads((tmp_path / "calibration.json").read_text())
     assert all("lidar_board_choice" in f for f in saved["frames"])
-    assert (tmp_path / "corner.png").is_file() and (tmp_path / "board_choice_0000.png").is_file()
+    assert (tmp_path / "corner_cam0_lidar0.png").is_file() and (tmp_path / "board_choice_lidar0_0000.png").is_file()
     assert "Which LiDAR points" in report.read_text()
     # Its verdict opens the report and calibration.json, never UNTRUSTED: a CHECK whose reasons say what to look
     # at. Both sets' planes and edges conflict (the VLP-16's 0.24 deg and 8 mm apart, p = 0.008, its outlines on
@@ -172,11 +172,11 @@ def test_refined_intrinsics_are_judged_by_whether_they_lower_the_recorded_boards
 def test_recorded_2d_set_is_explained_as_degenerate_without_a_hint():
     """All boards upright: with the static scan background (no hint) every board is found, and the answer is
     the degenerate layout's explanation, never a 6-DoF estimate or a crash."""
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.errors import DegenerateLayoutError
 
     with pytest.raises(DegenerateLayoutError) as exc:
-        calibrate(load_dataset(RPG), samples=300)
+        calibrate_pair(load_dataset(RPG), samples=300)
     assert "unobservable" in exc.value.message
     # its rig (cam0 and lidar0) says the same, naming the pair and the frame it skipped
     from estimators.io.rig_dataset import load_rig

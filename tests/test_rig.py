@@ -601,7 +601,7 @@ def test_options_a_rig_folder_would_ignore_are_refused_in_one_line(rig_folder, t
 def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path, capsys):
     """The pair's Python calibrate on a rig folder: an error saying it is a rig folder and what takes one; validate
     with a single pair's calibration.json, and layout's pair-only options: a one-line error saying so, exit 2."""
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.cli import main
     from estimators.errors import DatasetError
 
@@ -615,7 +615,7 @@ def test_what_takes_a_pair_folder_says_so_for_a_rig_folder(rig_folder, tmp_path,
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and said in err, err
     with pytest.raises(DatasetError, match="this is a rig folder.*calibrate_rig"):
-        calibrate(rig_folder)
+        calibrate_pair(rig_folder)
 
 
 def test_a_scanner_the_rig_leaves_unobservable_is_said_first_as_a_single_pairs_answer_would_be_refused(rig_result):
@@ -787,6 +787,15 @@ def test_a_lidar_as_the_rigs_reference(rig_folder, rig_result, tmp_path):
     assert np.all(post.xi[:, 18:24] == 0.0)
     np.testing.assert_allclose(np.sqrt(np.diag(post.covariance_joint)), np.sqrt(np.diag(sol.covariance_joint)),
                                rtol=0.15, atol=1e-12)
+
+
+def test_a_larger_rig_gives_its_pairs_by_name_only(rig_result):
+    # A pair folder's record reads its one pair directly (test_a_pair_folder_is_the_rig...); a rig of three cameras
+    # and three LiDARs has no single T_camera_lidar, and says which call gives one
+    for name in ("T_camera_lidar", "covariance", "samples", "std_rotation_deg", "std_translation_mm"):
+        with pytest.raises(AttributeError, match=r"3 camera\(s\) and 3 LiDAR\(s\).*result.pair\(camera, lidar\)"):
+            getattr(rig_result, name)
+    assert rig_result.pair("cam1", "lidar0").T.shape == (4, 4)
 
 
 def test_a_rigs_verdict_takes_a_single_pairs_rules_and_names_the_sensor(rig_result):
@@ -964,7 +973,7 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     # LiDAR's and a 2D scanner's
     # (planes alone: the edges enter each engine in its own steps). Measured once: a second call reads the
     # measurements back from the cache and lands on the same estimate and covariance, bit for bit.
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.io.dataset import load_dataset
     from estimators.solvers.refinement_options import RefinementOptions
 
@@ -982,7 +991,18 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     cal = res.to_json()
     np.testing.assert_array_equal(np.array(cal["T_camera_lidar"]), T)
     np.testing.assert_array_equal(np.array(cal["covariance"]), C)
-    pair = calibrate(folder, samples=0, options=RefinementOptions(edges=False))
+    # the Python API's calibrate is this engine: a folder or a loaded Dataset, the pair's transform and covariance
+    # read directly off its record; the closed form alone is the pair's own solve's, refused here in one line
+    import estimators
+
+    for given in (folder, load_dataset(folder)):
+        api = estimators.calibrate(given, samples=0, options=RefinementOptions(edges=False), cache=True)
+        np.testing.assert_array_equal(api.T_camera_lidar, T)
+        np.testing.assert_array_equal(api.covariance, C)
+        assert api.samples is None and api.std_translation_mm.shape == (3,)
+    with pytest.raises(ValueError, match="refine='none'"):
+        estimators.calibrate(folder, refine="none")
+    pair = calibrate_pair(folder, samples=0, options=RefinementOptions(edges=False))
     xi = T_log(np.linalg.inv(pair.T_camera_lidar) @ T)
     sd = np.sqrt(np.diag(pair.covariance))
     assert np.all(np.abs(xi) < 1e-5 * sd), xi / sd
@@ -1024,7 +1044,7 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     # With the board's edges (a 3D LiDAR's ring ends with --edges; a scanner's segment ends, on by default), each
     # engine takes them in its own steps: the same estimate within 1e-3 of its standard deviations and the same
     # standard deviations within 1e-3 (measured: 6e-4 and 2e-5)
-    edged = calibrate(folder, samples=0, options=RefinementOptions(edges=True))
+    edged = calibrate_pair(folder, samples=0, options=RefinementOptions(edges=True))
     rig_result = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=True, cache=True)
     rig_edged = rig_result.pair("cam0", "lidar0")
     sd = np.sqrt(np.diag(edged.covariance))
@@ -1051,12 +1071,12 @@ def test_a_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(tmp_path):
     # rig's, at the graph's scales alone, was 0.98-1.00 of it), and they agree: every standard deviation within 4%
     # (each from about 6,000 effective samples: 1.3% apart by chance; measured within 1.8%) and s's 5%, 50% and 95%
     # points within 5%; with --likelihood student-t, 22-31% wider than Laplace, every sd within 5%.
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.posterior import PosteriorOptions
 
     folder = simulate_dataset(tmp_path / "pair", n_poses=8, seed=3)
-    pair = calibrate(folder, samples=4000, options=RefinementOptions(edges=False))
+    pair = calibrate_pair(folder, samples=4000, options=RefinementOptions(edges=False))
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=4000)
     laplace = np.sqrt(np.diag(pair.refinement.covariance))
     sd_pair = np.std(pair.posterior.xi, axis=0)
@@ -1067,7 +1087,7 @@ def test_a_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(tmp_path):
     np.testing.assert_allclose(np.percentile(res.posterior.camera_scale, q), np.percentile(pair.posterior.scale, q),
                                rtol=0.05)
     # --likelihood student-t (4 dof on each frame's planes against its board) alike, as a pair and as a rig
-    t_pair = calibrate(folder, samples=4000, options=RefinementOptions(edges=False),
+    t_pair = calibrate_pair(folder, samples=4000, options=RefinementOptions(edges=False),
                        posterior=PosteriorOptions(likelihood="student-t", min_ess=4000))
     t_rig = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=4000,
                           measurements=res.measurements, likelihood="student-t")
@@ -1081,10 +1101,10 @@ def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d, 
     # A 2D scanner's range noise rests on a few dozen points a board: both posteriors sample its scale r with the
     # camera side's s (the lines' own residuals in r's likelihood, flat prior on log r): planes alone, 8 parameters
     # for the rig, and every standard deviation within 4% of the pair's (measured within 2% on three sets).
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.solvers.posterior import PosteriorOptions
 
-    pair = calibrate(sim_2d, samples=4000, options=RefinementOptions(edges=False),
+    pair = calibrate_pair(sim_2d, samples=4000, options=RefinementOptions(edges=False),
                      posterior=PosteriorOptions(min_ess=4000))
     res = calibrate_rig(load_rig(sim_2d), np.random.default_rng(0), advise=False, edges=False, samples=4000)
     assert res.posterior.diagnostics()["parameters"] == 8
@@ -1186,12 +1206,12 @@ def test_a_scanner_that_found_two_of_its_three_boards_is_linked_as_its_pair_is_s
     # camera-LiDAR link and refused the folder ("share no usable frames with the rest of the rig"). A scanner taking
     # its ends is now linked by two, and the rig lands on the pair's answer (within 1e-3 of its standard
     # deviations), its covariance the pair's within 1%.
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
 
     folder = simulate_dataset(tmp_path / "pair", n_poses=3, seed=2, lidar="2d", rig_config="varied")
     truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
-    pair = calibrate(folder, samples=0)
+    pair = calibrate_pair(folder, samples=0)
     assert sum(f.usable for f in pair.frames) == 2 and pair.verdict.line == "OK"
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False)
     assert res.links[("cam0", "lidar0")] == 2 and res.verdict.line == "OK", res.verdict.line
@@ -1275,11 +1295,11 @@ def test_a_range_term_its_pair_holds_at_zero_the_rig_holds_too(tmp_path):
     # so first in its record and warnings, and lands on the pair's estimate within 1e-4 of its standard deviations
     # and on its covariance within 1e-6 of its scale (before, the rig kept the term free: 2.5 sd off along the
     # LiDAR's x, that sd a third narrower). Its posterior gets the held term's share convolved in, as the pair's.
-    from estimators.calibration import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
 
     folder = simulate_dataset(tmp_path / "long", n_poses=8, seed=2, range_bias=(0.2, 0.0, 0.0))
-    pair = calibrate(folder, samples=0, options=RefinementOptions(edges=False))
+    pair = calibrate_pair(folder, samples=0, options=RefinementOptions(edges=False))
     assert pair.refinement.range_model.pinned == ("offset",)
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=300)
     rec = res.range_models["lidar0"]

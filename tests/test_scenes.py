@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from estimators.calibration import calibrate
+from estimators import calibrate
+from estimators.calibration import calibrate_pair
 from estimators.pipeline.measurement import Hints, measure_frames, parse_initial_guess
 from estimators.errors import DatasetError, DegenerateLayoutError
 from estimators.io.dataset import load_dataset
@@ -148,7 +149,7 @@ def test_a_cropped_cloud_calibrates_with_the_static_scene(tmp_path, office_frame
 
     rig, frames = office_frames
     path = write_dataset(tmp_path / "cropped", rig, cropped_to_boards(frames, 0.3))
-    result = calibrate(path, samples=0)
+    result = calibrate_pair(path, samples=0)
     assert result.frames_used == len(frames)
     assert not any("contradict the static scene" in w for w in result.warnings), result.warnings
     assert any("stillness could not be checked" in w for w in result.warnings), result.warnings
@@ -275,7 +276,7 @@ def _check_dataset(path, min_hit_share: float = 0.4):
     ds = load_dataset(path)
     truth = np.array(json.loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
     masks = np.load(path / "ground_truth_board_points.npz")
-    result = calibrate(ds, samples=300)
+    result = calibrate_pair(ds, samples=300)
     full = max(int(masks[n].sum()) for n in masks.files)
     for f, fr in zip(result.frames, ds.frames):
         if ds.lidar == "2d":
@@ -307,8 +308,9 @@ def test_office_scene_3d_uses_every_board_and_no_wrong_segment(tmp_path):
     assert all(f.decision is not None and f.decision.method.startswith("consensus") for f in result.frames)
     frame = result.to_dict()["frames"][0]
     assert {"method", "chosen", "reason", "candidates"} <= frame["lidar_board_choice"].keys()
-    report = result.report(tmp_path / "out")
-    assert (tmp_path / "out" / "board_choice_0000.png").is_file() and "Which LiDAR points" in report.read_text()
+    # the engine's report (a pair folder's, as `lidarcam calibrate` writes it) shows each frame's board choice
+    report = calibrate(path, samples=0).report(tmp_path / "out")
+    assert (tmp_path / "out" / "board_choice_lidar0_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 
 
 def test_small_hand_held_board_facing_the_rig_on_a_vlp16(tmp_path):
@@ -346,14 +348,14 @@ def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(t
     deviations of the truth."""
     path = simulate_dataset(tmp_path / "h2d", n_poses=8, seed=1, lidar="2d", scene="office")
     ds = load_dataset(path)
-    result = calibrate(ds, samples=300)
+    result = calibrate_pair(ds, samples=300)
     truth = np.array(json.loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
     assert result.posterior is not None and result.frames_used >= 6
     xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
     assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
     assert all(f.decision.method.startswith("consensus") for f in result.frames if f.decision is not None)
-    report = result.report(tmp_path / "out")
-    assert (tmp_path / "out" / "board_choice_0000.png").is_file() and "Which LiDAR points" in report.read_text()
+    report = calibrate(ds, samples=0).report(tmp_path / "out")
+    assert (tmp_path / "out" / "board_choice_lidar0_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 
 
 def test_initial_guess_gates_candidates_and_roi_crops(tmp_path):
@@ -550,7 +552,7 @@ def test_a_board_of_unknown_size_on_a_stand(tmp_path, lidar, stand, crop_m):
     path = write_dataset(tmp_path / "stand", rig, frames)
     yaml = path / "dataset.yaml"
     yaml.write_text(re.sub(r"  size: \[.*\]\n", "", yaml.read_text()))
-    result = calibrate(path, samples=0)
+    result = calibrate_pair(path, samples=0)
     assert result.frames_used == 8
     assert any("board.size is not given" in w for w in result.warnings)
     total = 0.0
@@ -637,7 +639,7 @@ def test_a_small_board_on_a_table_under_a_dense_laser_without_its_size(tmp_path,
     if crop_m is not None:
         frames = cropped_to_boards(frames, crop_m)
     path = write_dataset(tmp_path / "table", declared(rig), frames)
-    result = calibrate(path, samples=0)
+    result = calibrate_pair(path, samples=0)
     assert not any("contradict the static scene" in w for w in result.warnings), result.warnings
     assert any("board.size is not given" in w for w in result.warnings)
     assert result.frames_used == 15

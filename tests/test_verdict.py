@@ -114,9 +114,9 @@ def test_the_segments_distance_scale_finds_a_camera_that_scales_its_board_distan
 
 @pytest.fixture(scope="module")
 def good(sim_hdl64e):
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
 
-    return calibrate(sim_hdl64e, rng=np.random.default_rng(0), samples=0)
+    return calibrate_pair(sim_hdl64e, rng=np.random.default_rng(0), samples=0)
 
 
 def _wrong(src, dst, how):
@@ -142,11 +142,11 @@ def test_a_wrong_square_size_is_untrusted_and_strict_exits_non_zero(sim_hdl64e, 
     """The square size 5% long: every board's camera distance 5% long, which no LiDAR's range does. Here three of
     the eight frames' boards are set aside for disagreeing, which is reason enough; the scale itself is found where
     six frames or more remain (the unit test above, ``bench_verdict.py``)."""
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.cli.commands import exit_code
     from estimators.cli.parser import build_parser
 
-    result = calibrate(_wrong(sim_hdl64e, tmp_path / "d", "scale"), rng=np.random.default_rng(0), samples=0)
+    result = calibrate_pair(_wrong(sim_hdl64e, tmp_path / "d", "scale"), rng=np.random.default_rng(0), samples=0)
     v = result.verdict
     assert v.level == UNTRUSTED and ("board.square_size" in v.line or "the board and the camera model" in v.line), v
     assert exit_code(build_parser().parse_args(["calibrate", "d", "--out", "o", "--strict"]), result) == 3
@@ -155,9 +155,9 @@ def test_a_wrong_square_size_is_untrusted_and_strict_exits_non_zero(sim_hdl64e, 
 
 def test_two_frames_scans_swapped_are_not_ok(sim_hdl64e, tmp_path):
     """Frames 0001 and 0003 each given the other's scan: a wrong LiDAR board in two of eight frames."""
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
 
-    result = calibrate(_wrong(sim_hdl64e, tmp_path / "d", "swapped"), rng=np.random.default_rng(0), samples=0)
+    result = calibrate_pair(_wrong(sim_hdl64e, tmp_path / "d", "swapped"), rng=np.random.default_rng(0), samples=0)
     assert result.verdict.level != OK and "0001" in result.verdict.line and "0003" in result.verdict.line
 
 
@@ -166,13 +166,13 @@ def test_intrinsics_that_explain_the_planes_disagreement_are_a_check(sim_hdl64e,
     then disagree in a way freed intrinsics explain (the F test of their drop), and the verdict says to check
     them. The good simulation's planes agree, and freed intrinsics lower their chi-square by no more than their
     count."""
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
 
     shutil.copytree(sim_hdl64e, tmp_path / "d")
     spec = yaml.safe_load((tmp_path / "d" / "dataset.yaml").read_text())
     spec["camera"]["K"][0][2] += 20.0
     (tmp_path / "d" / "dataset.yaml").write_text(yaml.safe_dump(spec))
-    result = calibrate(tmp_path / "d", rng=np.random.default_rng(0), samples=0)
+    result = calibrate_pair(tmp_path / "d", rng=np.random.default_rng(0), samples=0)
     check = result.intrinsics_check
     assert check is not None and check["explains"] and check["p_value"] < 1e-3, check
     assert result.verdict.level != OK and "the camera's intrinsics explain" in result.verdict.line
@@ -214,7 +214,7 @@ def test_edges_that_carry_the_answer_and_were_moved_are_left_out_for_the_planes_
     record. A single pair and the rig of the same folder alike (within 1e-2 of the pair's standard deviations;
     measured 3.5e-3, the optimisers' stopping along a direction 18 times weaker than the edges left it).
     With --edges they are kept and the answer reads CHECK, naming the edges; with --no-edges it reads OK."""
-    from estimators import calibrate
+    from estimators.calibration import calibrate_pair
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
     from estimators.simulation.simulator import handheld_rig, sample_layout, simulate_frames, write_dataset
@@ -233,7 +233,7 @@ def test_edges_that_carry_the_answer_and_were_moved_are_left_out_for_the_planes_
 
     res = {}
     for edges in (None, True, False):
-        res[edges] = calibrate(path, rng=np.random.default_rng(8004), posterior=None, cache=True,
+        res[edges] = calibrate_pair(path, rng=np.random.default_rng(8004), posterior=None, cache=True,
                                options=RefinementOptions(edges=edges))
     default, kept, planes = res[None], res[True], res[False]
     assert d2(kept.T_camera_lidar, kept.covariance) > 22.5

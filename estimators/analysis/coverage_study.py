@@ -38,7 +38,7 @@ LEVELS = (0.68, 0.95)
 def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: int = 1000,
               likelihood: str = "gaussian", corner_noise_px: float = 0.2, range_noise_m: float = 0.02) -> dict:
     """One simulated calibration scored against its truth (a flat dict: one CSV row)."""
-    from ..calibration import calibrate, solve
+    from ..calibration import calibrate_pair, solve
     from ..io.dataset import load_dataset
     from ..simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
     from ..solvers.observation_model import Layout, simulate_measurements
@@ -59,7 +59,7 @@ def run_trial(seed: int, mode: str = "measurement", n_frames: int = 8, samples: 
         with tempfile.TemporaryDirectory() as tmp:
             sim = simulate_frames(rig, n_frames, rng, poses=poses)
             ds = load_dataset(write_dataset(Path(tmp) / "ds", rig, sim))
-            result = calibrate(ds, rng=rng, posterior=post_opts)
+            result = calibrate_pair(ds, rng=rng, posterior=post_opts)
     else:
         raise ValueError(f"Expected mode in {MODES}, got {mode!r}")
     T, G = result.T_camera_lidar, rig.T_camera_lidar

@@ -1,35 +1,26 @@
-"""A self-contained uncertainty report: ``OUT/report.html`` (figures embedded) and the figures beside it (PNG; the
-overlays JPEG).
-
-What a reader decides on first (the verdict, the estimate with its standard deviations and intervals, the frames
-whose LiDAR outline sits farthest off the camera's board), then the warnings and tables, then: the
-posterior corner plot with the Laplace ellipses, per-frame residuals with outliers marked, LiDAR points
-projected into every image with the camera's and the LiDAR's board outlines and their pixel offset, the
-MCMC traces and diagnostics, and the layout's conditioning.
+"""The report's parts (``analysis.rig_report`` writes the one report, a pair folder's too): the verdict, a pair's
+spread and intervals, the MCMC diagnostics, the board edges, the range model, the board choices, the layout, the
+outline offsets; the overlays (LiDAR points and both board outlines in the image, JPEG) and the board choices' top
+views; each pair's residual arrays for the matplotlib figures.
 """
 from __future__ import annotations
 
 import base64
 import html
-from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 
 from geometry.camera import CameraModel
-from geometry.rotations import quat_xyzw_from_R, transform_points
+from geometry.rotations import transform_points
 
-from ..io.dataset import Dataset
 from ..io.image_io import read_gray
-from ..io.output import write_atomic
 from ..io.pointcloud_io import read_scan, read_scan_2d
 from ..solvers.closed_form import describe_direction
 from ..solvers.factors import lidar_plane
 from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.range_model import frame_labels, point_residuals
-from .figure_process import FigureProcess
 from .top_view import top_view_png
 
 _PROJECTION_WIDTH_PX = 1200  # the projection figures' image width: 8 in at 90 dpi is 720 px, with room to zoom
@@ -119,20 +110,6 @@ def params_table(given, refined, sd) -> str:
     rows = [[n, f"{g:.6g}", f"{v:.6g}", f"{e:.3g}", f"{(v - g) / e:+.1f}"]
             for n, g, v, e in zip(param_names(len(refined)), given, refined, sd)]
     return _table(rows, ["parameter", "given", "refined", "sd", "moved [sd]"])
-
-
-def _intrinsics_section(fit) -> str:
-    """The intrinsics refined with the extrinsic (``--refine-intrinsics``): whether they lower the boards'
-    overdispersion, and each parameter given and refined."""
-    verdict = ("lowers it: the camera's calibration explains part of the boards' disagreement, and the refined "
-               "intrinsics belong with this extrinsic" if fit.lowers_overdispersion else
-               "does not lower it: the camera's calibration is not what the boards disagree about; keep the given "
-               "intrinsics")
-    text = (f"<p>Prior: {'the given camera.param_std' if fit.prior_sd is not None else 'none'}. The boards' plane "
-            f"consistency (chi-square per dof) is {fit.variance_factor_given:.2f} under the given intrinsics and "
-            f"{fit.variance_factor_refined:.2f} under the refined ones; refining {verdict}.</p>")
-    return ("<h2>Intrinsics refined with the extrinsic</h2>" + text
-            + params_table(fit.given_params, fit.params, fit.std))
 
 
 def board_outline_offset(cam: CameraModel, T_camera_lidar: np.ndarray, frame, board
@@ -301,77 +278,6 @@ def range_residual_arrays(result) -> dict[str, np.ndarray] | None:
             "chosen": np.array(fit.chosen if fit is not None else "none")}
 
 
-def draw_ahead(result, figures: FigureProcess) -> dict[str, Callable[[], dict[str, bytes]]]:
-    """Start the report's matplotlib figures of ``result`` in ``figures``' child; returns each one's waiter
-    by name (``posterior``, ``residuals``, ``range_residuals``: those the result has), drawn while the report's
-    OpenCV figures are drawn here."""
-    jobs = {}
-    if result.posterior is not None:
-        jobs["posterior"] = figures.draw("posterior", xi=result.posterior.xi,
-                                         covariance_laplace=result.covariance_laplace,
-                                         chain=result.posterior.run.chain, burn=result.posterior.run.burn)
-    if result.refinement is not None:
-        jobs["residuals"] = figures.draw("residuals", **residual_arrays(result))
-        arrays = range_residual_arrays(result)
-        if arrays is not None:
-            jobs["range_residuals"] = figures.draw("range_residuals", **arrays)
-    return jobs
-
-
-def write_report(result, dataset: Dataset, out_dir: str | Path, figure_process: FigureProcess | None = None
-                 ) -> Path:
-    """Write ``OUT/report.html`` and its figures (each file atomically). Needs the refinement; uses the
-    posterior when it was sampled. ``figure_process``: the child that draws the matplotlib figures
-    (:class:`~estimators.analysis.figure_process.FigureProcess`, perhaps started ahead and given some of them
-    by :func:`draw_ahead`); without one, one is started here for this report."""
-    own = FigureProcess() if figure_process is None else None
-    try:
-        figures, offsets = _figures(result, dataset, figure_process or own)
-    finally:
-        if own is not None:
-            own.close()
-    out = Path(out_dir)
-    for name, _, png in figures:
-        write_atomic(out / name, lambda fh, png=png: fh.write(png), mode="wb")
-    return write_atomic(out / "report.html", lambda fh: fh.write(_page(result, figures, offsets)))
-
-
-def _figures(result, dataset: Dataset, process: FigureProcess
-             ) -> tuple[list[tuple[str, str, bytes]], list[tuple[str, np.ndarray]]]:
-    """The report's figures in page order, ``(file name, title, PNG or JPEG bytes)``, and the frames' LiDAR outline
-    offsets (px): the matplotlib figures started in ``process`` first, the OpenCV ones drawn here meanwhile."""
-    jobs = draw_ahead(result, process)
-    posterior, residuals, ranges = (jobs.get(k) for k in ("posterior", "residuals", "range_residuals"))
-    files = {f.name: f for f in dataset.frames}
-    projections, choices = [], []
-    offsets = []
-    for frame in result.frames:
-        if frame.usable and frame.name in files:
-            jpg, off = projection_figure(result.camera, result.T_camera_lidar, frame, dataset.board,
-                                         files[frame.name].image, files[frame.name].scan)
-            if np.all(np.isfinite(off)):
-                offsets.append((frame.name, off))
-            projections.append((overlay_name(frame.name), f"Frame {frame.name}: LiDAR points in the image",
-                                jpg))
-    for frame in result.frames:
-        if frame.decision is not None and frame.decision.candidate_points and frame.name in files:
-            choices.append((f"board_choice_{frame.name}.png", f"Frame {frame.name}: LiDAR board candidates (top view)",
-                            board_choice_figure(frame, files[frame.name].scan, dataset.lidar == "2d")))
-    figures = []
-    if posterior is not None:
-        figures.append(("corner.png", "Posterior of the extrinsic (tangent offsets from the estimate)",
-                        posterior()["corner.png"]))
-    if residuals is not None:
-        figures.append(("residuals.png", "Per-frame residuals", residuals()["residuals.png"]))
-    if ranges is not None:
-        figures.append(("range_residuals.png", "LiDAR range residuals by range, ring and square colour",
-                        ranges()["range_residuals.png"]))
-    figures += projections + choices
-    if posterior is not None:
-        figures.append(("traces.png", "MCMC traces", posterior()["traces.png"]))
-    return figures, offsets
-
-
 def range_model_part(fit, title: str = "") -> str:
     """A LiDAR's range model (``RangeModelFit``) as the report's section opens: the model chosen and why, the
     priors, the terms held at 0, and the confounding of a term with the extrinsic with the pose that best separates
@@ -422,63 +328,6 @@ def layout_part(result, title: str = "") -> str:
             f"{np.round(result.normal_singular_values, 3).tolist()}, condition number "
             f"{result.condition_number:.2f}; weakest direction: {html.escape(axis)} (to constrain it "
             f"further, {html.escape(advice)})</p>")
-
-
-def _page(result, figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> str:
-    T = result.T_camera_lidar
-    parts = [f"<h1>lidarcam calibration report</h1><p>dataset: {html.escape(result.dataset)}</p>", verdict_part(result),
-             "<h2>Estimate</h2><p>T_camera_lidar maps LiDAR points into the camera frame: "
-             "p_camera = R p_lidar + t.</p><pre>" + "\n".join("  ".join(f"{v:+.6f}" for v in row) for row in T)
-             + "</pre>",
-             f"<p>quaternion (x, y, z, w): {np.round(quat_xyzw_from_R(T[:3, :3]), 6).tolist()}; translation "
-             f"{np.round(T[:3, 3], 4).tolist()} m; frames used {result.frames_used} of {len(result.frames)}; "
-             f"refine {result.refine}</p>"]
-    if result.covariance is not None:
-        parts.append(spread_section(result.pair(), "posterior" if result.posterior is not None else "Laplace"))
-    first = _first_overlays(figures, offsets)
-    if first:
-        parts.append("<h2>Overlays</h2><p>The LiDAR's board points and outline (red) under the estimate on the "
-                     "camera's board (green): they should sit on each other. The frames whose outlines sit farthest "
-                     "off first; every frame's is below.</p>"
-                     + "".join(f"<p>{html.escape(title)}</p>" + _img(name, png) for name, title, png in first))
-    if result.posterior is not None:
-        parts.append(mcmc_part(result.posterior) + f"<p>Camera-noise scale (median) "
-                     f"{np.median(result.posterior.scale):.2f}.</p>")
-    fit = result.refinement.range_model if result.refinement is not None else None
-    if fit is not None:
-        prior = fit.terms.prior_sd if fit.terms is not None else [float("nan")] * len(fit.names)
-        terms = [(n, v, sd, p, n in fit.pinned) for n, v, sd, p in zip(fit.names, fit.values_m, fit.std_m, prior)]
-        parts.append(range_model_part(fit) + terms_table(terms))
-    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings) or "<li>none</li>"
-    parts.append(f"<h2>Warnings</h2><ul>{warnings}</ul>")
-    parts.append(layout_part(result))
-    if offsets:
-        parts.append(offsets_section(offsets))
-    edges = result.refinement.edges if result.refinement is not None else None
-    if edges:
-        parts.append(edges_section(edges))
-    if result.intrinsics_refinement is not None:
-        parts.append(_intrinsics_section(result.intrinsics_refinement))
-    decided = [f for f in result.frames if f.decision is not None]
-    if decided:
-        parts.append(board_choice_part(decided))
-    for name, title, png in figures:
-        parts.append(f"<h2>{html.escape(title)}</h2>" + _img(name, png))
-    return html_page("lidarcam report", parts)
-
-
-# The overlays the report shows right after the estimate, before its tables.
-FIRST_OVERLAYS = 3
-
-
-def _first_overlays(figures: list[tuple[str, str, bytes]], offsets: list[tuple[str, np.ndarray]]) -> list:
-    """Up to ``FIRST_OVERLAYS`` frames' overlays for the page's top: those whose LiDAR outline sits farthest from
-    the camera's board (``offsets``, px), else the first ones."""
-    overlays = {name: (name, title, png) for name, title, png in figures if name.startswith("projection_")}
-    far = sorted(offsets, key=lambda o: -float(np.linalg.norm(o[1])))
-    names = [overlay_name(n) for n, _ in far if overlay_name(n) in overlays]
-    names += [n for n in overlays if n not in names]
-    return [overlays[n] for n in names[:FIRST_OVERLAYS]]
 
 
 def _img(name: str, data: bytes) -> str:

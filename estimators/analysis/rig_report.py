@@ -15,11 +15,15 @@ from geometry.rotations import T_log
 
 from ..io.output import write_atomic
 from ..solvers.rig_graph import translation_sd_in_first
-from .report import (FIRST_OVERLAYS, _img, _table, board_choice_figure, board_choice_part, edges_section, html_page,
+from .report import (_img, _table, board_choice_figure, board_choice_part, edges_section, html_page,
                      layout_part, mcmc_part, offsets_section, overlay_name, params_table, projection_figure,
                      range_model_part, range_residual_arrays, residual_arrays, spread_section, terms_table,
                      verdict_part)
 from .rig_layout import next_pose_words
+
+# The overlays a pair folder's report shows right after the estimate, before its tables (a larger rig's: each
+# pair's farthest-off one).
+FIRST_OVERLAYS = 3
 
 
 def _pair_rows(result) -> list[list[str]]:

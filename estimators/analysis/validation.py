@@ -95,13 +95,6 @@ def score_frames(frames: list[FrameMeasurement], board, camera, T_camera_lidar: 
     return out
 
 
-def range_arguments(fit) -> tuple:
-    """``score_frames``'s range-model arguments from a refinement's :class:`RangeModelFit` (or None)."""
-    if fit is None or fit.terms is None:
-        return None, None, None, 0.0
-    return fit.terms, fit.values_m, fit.terms_covariance, float(fit.term_consistency.get("board_scatter_m", 0.0))
-
-
 def terms_from_json(section: dict | None, scatter_m: float | None = None) -> tuple:
     """``score_frames``'s range-model arguments from a pair calibration.json's ``lidar_range_model`` section (a
     list of terms in mm) or a rig LiDAR's ``range_model`` (terms by name, in m; its boards' scatter given)."""

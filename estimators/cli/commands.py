@@ -25,13 +25,11 @@ def _calibrate_rig(args) -> int:
     (``rig_calibration``). A pair folder's initial guess is its pair's, its earlier ``measurements.npz`` is taken
     as its rig's, and its output keeps the pair's files (calibration.json with every key of the pair's,
     measurements.npz beside the rig's measurements folder)."""
-    from dataclasses import replace
-
     import numpy as np
 
     from ..io.measurement_store import load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
-    from ..rig_calibration import calibrate_rig
+    from ..rig_calibration import calibrate_rig, pair_guess
 
     _refuse_what_a_rig_ignores(args)
     pair = not is_rig(args.dataset)
@@ -42,10 +40,7 @@ def _calibrate_rig(args) -> int:
         given = pair_as_rig(m, rig.cameras[0].name, rig.lidars[0].name)
     elif args.measurements:
         given = load_rig_measurements(args.measurements)
-    guide = hints(args, rig=not pair)
-    if pair and guide.initial_guess is not None:  # the pair's guess is its one camera-LiDAR pair's
-        guide = replace(guide, initial_guess=None,
-                        pair_guesses={f"T_{rig.cameras[0].name}_{rig.lidars[0].name}": guide.initial_guess})
+    guide = pair_guess(rig, hints(args, rig=not pair))  # a pair's guess is its one camera-LiDAR pair's
     with _figures_ahead(not args.no_report) as figures:
         result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
                                measurements=given, hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
@@ -191,7 +186,7 @@ def _closed_form_only(args, ds) -> int:
     images and scans or from ``--measurements`` (a pair's measurements.npz)."""
     import numpy as np
 
-    from ..calibration import calibrate, solve
+    from ..calibration import calibrate_pair, solve
     from ..errors import LidarcamError
     from ..io.measurement_store import Measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
@@ -204,7 +199,7 @@ def _closed_form_only(args, ds) -> int:
         m = _pair_measurements(args.measurements, ds.board, ds.lidar)
         result = solve(m, init=args.init, refine="none", options=refinement_options(args))
     else:
-        result = calibrate(ds, args.init, "none", np.random.default_rng(args.seed),
+        result = calibrate_pair(ds, args.init, "none", np.random.default_rng(args.seed),
                            SegmentationParams(max_sensor_separation_m=args.max_sensor_separation),
                            refinement_options(args), None, hints=hints(args), cache=not args.no_cache)
         m = Measurements(result.camera, ds.board, ds.lidar, result.frames, (), str(ds.root),
@@ -408,11 +403,11 @@ def layout_command(args) -> int:
         return _layout_rig(args)
     if src.is_dir():
         from ..analysis.layout_analysis import layout_from_result
-        from ..calibration import calibrate
+        from ..calibration import calibrate_pair
         from ..io.dataset import load_dataset
 
         ds = load_dataset(src)
-        result = calibrate(ds, rng=np.random.default_rng(args.seed), posterior=None)
+        result = calibrate_pair(ds, rng=np.random.default_rng(args.seed), posterior=None)
         model = "2d" if ds.lidar == "2d" else args.lidar_model
         layout, rig, names = layout_from_result(result, ds.board, model)
     elif src.is_file():
@@ -587,10 +582,10 @@ def demo_command(args) -> int:
     simulate_dataset(data, args.poses, args.seed, args.model, overwrite=True)
     ds = load_dataset(data)
     if args.refine == "none":
-        from ..calibration import calibrate
+        from ..calibration import calibrate_pair
         from ..pipeline.result import write_calibration
 
-        result = calibrate(ds, refine="none", rng=np.random.default_rng(args.seed), options=refinement_options(args))
+        result = calibrate_pair(ds, refine="none", rng=np.random.default_rng(args.seed), options=refinement_options(args))
         print_result(result, ds.ground_truth())
         path = write_calibration(result, base)
         print(f"wrote {path}")

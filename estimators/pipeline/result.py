@@ -150,13 +150,6 @@ class CalibrationResult:
             return est.inverse()
         raise KeyError(f"{a!r}, {b!r}: a single pair's sensors are 'cam0' and 'lidar0'")
 
-    def report(self, out_dir: str | Path) -> Path:
-        """Write ``OUT/report.html`` and its figures (needs the dataset folder this result came from)."""
-        from ..analysis.report import write_report
-        from ..io.dataset import load_dataset
-
-        return write_report(self, load_dataset(self.dataset), out_dir)
-
     @property
     def frames_used(self) -> int:
         dropped = {f.name for f in self.refinement.frames if f.dropped} if self.refinement else set()

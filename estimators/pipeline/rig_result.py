@@ -111,6 +111,28 @@ class RigResult:
         links = self.links or {}
         return PairEstimate(a, b, T, C, samples, int(links.get((a, b), links.get((b, a), 0))))
 
+    def only_pair(self) -> PairEstimate:
+        """A two-sensor rig's (a pair folder's) one camera-LiDAR pair; AttributeError for a larger rig, whose pairs
+        :meth:`pair` gives by name."""
+        if len(self.rig.cameras) != 1 or len(self.rig.lidars) != 1:
+            raise AttributeError(f"a rig of {len(self.rig.cameras)} camera(s) and {len(self.rig.lidars)} LiDAR(s) has "
+                                 "no single T_camera_lidar: use result.pair(camera, lidar)")
+        return self.pair(self.rig.cameras[0].name, self.rig.lidars[0].name)
+
+    # A pair folder's estimate as the pair's own record gave it (``result.pair("cam0", "lidar0")``'s).
+    T_camera_lidar = property(lambda self: self.only_pair().T, doc="4x4, a pair folder's ``T_camera_lidar``.")
+    covariance = property(lambda self: self.only_pair().covariance,
+                          doc="6x6, its covariance: the posterior samples' when sampled, else the graph's.")
+    samples = property(lambda self: self.only_pair().samples, doc="M x 6 tangent samples of it, or None.")
+    std_rotation_deg = property(lambda self: self.only_pair().std_rotation_deg, doc="About the LiDAR's axes.")
+    std_translation_mm = property(lambda self: self.only_pair().std_translation_mm, doc="Along the LiDAR's axes.")
+
+    def report(self, out_dir: str | Path) -> Path:
+        """Write ``out_dir/report.html`` and its figures (``analysis.rig_report.write_rig_report``)."""
+        from ..analysis.rig_report import write_rig_report
+
+        return write_rig_report(self, out_dir)
+
     def camera_model(self, name: str):
         """Camera ``name``'s model as the solution has it: its refined intrinsics where they were refined, else the
         ones given (``cameras``)."""
@@ -358,3 +380,26 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
     path = out / "calibration.json"
     write_json_atomic(path, result.to_json())
     return path
+
+
+def write_calibration(result, out: str | Path) -> Path:
+    """Write ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each atomically.
+
+    Parameters
+    ----------
+    result : RigResult or CalibrationResult
+        The engine's (``estimators.calibrate``; :func:`write_rig_calibration`) or the pair's own solve's
+        (``calibrate_pair``, ``solve``).
+    out : str or Path
+        The output folder (created when missing).
+
+    Returns
+    -------
+    Path
+        The path of ``calibration.json``.
+    """
+    if isinstance(result, RigResult):
+        return write_rig_calibration(result, out)
+    from .result import write_calibration as write_pair
+
+    return write_pair(result, out)
