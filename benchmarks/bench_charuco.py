@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate_pair  # noqa: E402
+from estimators import calibrate  # noqa: E402
 from estimators.camera.board_pose import estimate_board_pose  # noqa: E402
 from estimators.camera.corners import detect_corners  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
@@ -108,7 +108,7 @@ def accuracy(trials: int, tmp: Path) -> None:
             rig = rig0 if pattern == "checkerboard" else replace(rig0, board=as_charuco(rig0.board))
             frames = simulate_frames(rig, 8, np.random.default_rng([18, t, 1]), poses=poses)
             path = write_dataset(tmp / f"{pattern}_{t}", rig, frames)
-            res = calibrate_pair(load_dataset(path), rng=np.random.default_rng(t), posterior=None)
+            res = calibrate(load_dataset(path), rng=np.random.default_rng(t), posterior=None)
             xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)
             # The bound of this layout at the corner noise this pattern's detections actually have (their
             # per-axis RMS error against the true corners) and the simulated 2 cm range noise.
@@ -119,7 +119,7 @@ def accuracy(trials: int, tmp: Path) -> None:
             bound = np.array([np.trace(crb[:3, :3]), np.trace(crb[3:, 3:])])
             errs[pattern].append(xi)
             scaled[pattern].append(np.array([xi[:3] @ xi[:3], xi[3:] @ xi[3:]]) / bound)
-            used[pattern] += res.frames_used
+            used[pattern] += len(res.frames_used["lidar0"])
     print("  ratio: RMS over trials of each trial's error against its layout's Cramer-Rao bound at the corner noise")
     print("  of the pattern's own detections (against the true corners) and 2 cm range noise; the 3 axes together")
     print(f"  {'pattern':14s}{'frames used':>12s}{'rot RMS deg':>13s}{'trans RMS mm':>14s}{'rot/CRB':>9s}"
@@ -143,8 +143,8 @@ def partial(datasets: int, tmp: Path) -> None:
         path = simulate_dataset(tmp / f"cut_{k}", 8, seed=100 + k, lidar="vlp16", pattern="charuco")
         ds = load_dataset(path)
         truth = json.loads((path / "ground_truth.json").read_text())["T_camera_board"]
-        res = calibrate_pair(ds, rng=np.random.default_rng(k), posterior=None)
-        used_names = {f.name for f in res.frames if f.usable}
+        res = calibrate(ds, rng=np.random.default_rng(k), posterior=None)
+        used_names = set(res.frames_used["lidar0"])
         for f in ds.frames:
             uv = ds.camera.project(transform_points(np.array(truth[f.name]), ds.board.inner_corners()))
             n_in = int(ds.camera.in_image(uv).sum())

@@ -30,7 +30,7 @@ AXES = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
 def trial(seed: int) -> tuple[np.ndarray, list[float], list[float]]:
     """One dataset: the truth's tangent offset from the estimate over the Laplace standard deviations, and its
     frames' camera and LiDAR plane distance errors (m)."""
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import default_rig, sample_board_poses, simulate_frames, write_dataset
     from geometry.rotations import T_inverse, T_log
@@ -40,7 +40,7 @@ def trial(seed: int) -> tuple[np.ndarray, list[float], list[float]]:
     poses = sample_board_poses(rig, 8, rng)
     with tempfile.TemporaryDirectory() as tmp:
         sim = simulate_frames(rig, 8, rng, poses=poses, workers=1)
-        result = calibrate_pair(load_dataset(write_dataset(Path(tmp) / "ds", rig, sim)), rng=rng, samples=0)
+        result = calibrate(load_dataset(write_dataset(Path(tmp) / "ds", rig, sim)), rng=rng, samples=0)
     truth = {f.name: f.T_camera_board for f in sim}
     cam, lid = [], []
     for f in result.frames:

@@ -30,7 +30,7 @@ N_FRAMES = 8
 
 
 def _trial(args) -> dict:
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import handheld_rig, sample_layout, simulate_frames, write_dataset
     from estimators.solvers.observation_model import Layout, cramer_rao_bound
@@ -50,8 +50,8 @@ def _trial(args) -> dict:
     out = {"spread": spread, "eligible": [r >= 5 for r in rings]}
     os.environ["LIDARCAM_CACHE_DIR"] = str(Path(tmp) / "cache")  # measured once for both calibrations
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None, cache=True)
-        planes = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None, cache=True,
+        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None, cache=True)
+        planes = calibrate(path, rng=np.random.default_rng(seed), posterior=None, cache=True,
                            options=RefinementOptions(edges=False))
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}
@@ -67,7 +67,7 @@ def _trial(args) -> dict:
             wrong += int(on.mean() < 0.8)
     xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)
     # where the default left the edges out (edges_in_graph.edges_left_out), their record is kept beside the planes'
-    edges = res.refinement.edges or {}
+    edges = res.edges.get("lidar0") or {}
     left_out = edges.get("left_out")  # why, or None
     edges = edges.get("with_edges", edges)
     crb = cramer_rao_bound(Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses),

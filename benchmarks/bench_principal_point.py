@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate_pair  # noqa: E402
+from estimators import calibrate  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 
@@ -72,12 +72,14 @@ def main() -> None:
             p = ds.camera.params.copy()
             p[2] += dx
             p[3] += dy
-            res = calibrate_pair(replace(ds, camera=ds.camera.with_params(p)), options=RefinementOptions(edges=True),
+            res = calibrate(replace(ds, camera=ds.camera.with_params(p)), options=RefinementOptions(edges=True),
                             posterior=None, rng=np.random.default_rng(0))
-            test = res.refinement.edges["planes_against_edges"] if res.refinement.edges else None
+            edges = res.edges.get("lidar0") or {}
+            test = edges.get("planes_against_edges")
+            vf = res.pair_results[("cam0", "lidar0")].refinement.variance_factor  # the pair's own planes
             t = 1000 * res.T_camera_lidar[:3, 3]
             d2 = f"{test['d2']:20.1f}{test['p_value']:8.3f}" if test else f"{'-':>20s}{'-':>8s}"
-            print(f"  {dx:7.0f}{dy:7.0f}{d2}{res.refinement.variance_factor:7.2f}   "
+            print(f"  {dx:7.0f}{dy:7.0f}{d2}{vf:7.2f}   "
                   f"({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f})")
 
 

@@ -39,7 +39,7 @@ POSES = 10
 
 
 def _trial(args) -> dict:
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -49,26 +49,25 @@ def _trial(args) -> dict:
     path = Path(tmp) / f"{lidar}_{scene}_{seed}"
     simulate_dataset(path, POSES, seed, lidar, scene=scene, overwrite=True)
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:  # a refused calibration is a result of the benchmark
         return {"failed": str(exc)[:120]}
     res_truth = load_dataset(path).ground_truth()
     T = res.T_camera_lidar
     xi = T_log(T_inverse(T) @ res_truth)
     sd = np.sqrt(np.diag(res.covariance))
-    fit = res.refinement.range_model
-    return {"chosen": fit.chosen if fit is not None else "none",
+    return {"chosen": res.range_models.get("lidar0", {}).get("model", "none"),
             "d2": float(xi @ np.linalg.solve(res.covariance, xi)),
             "max_sigmas": float(np.max(np.abs(xi[3:]) / sd[3:])),
             "rot": float(np.degrees(rotation_error(T[:3, :3], res_truth[:3, :3]))),
             "trans": float(1000 * np.linalg.norm(T[:3, 3] - res_truth[:3, 3])),
-            "vf": float(res.refinement.variance_factor)}
+            "vf": float(res.pair_results[("cam0", "lidar0")].refinement.variance_factor)}  # the pair's planes
 
 
 def _injected(args) -> dict:
     import json
 
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -79,17 +78,18 @@ def _injected(args) -> dict:
     simulate_dataset(path, POSES, seed, lidar, range_bias=(0.03, 0.005, 0.01), intensity=intensity, ring_field=ring,
                      overwrite=True)
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:
         return {"failed": str(exc)[:120]}
     truth = load_dataset(path).ground_truth()
     bias = json.loads((path / "ground_truth.json").read_text())["range_bias"]
     xi = T_log(T_inverse(res.T_camera_lidar) @ truth)
-    fit = res.refinement.range_model
-    names = fit.names if fit is not None else ()
-    v, sd = np.array(fit.values_m if fit else []), np.array(fit.std_m if fit else [])
+    record = res.range_models.get("lidar0", {})  # the terms as the joint graph estimates them
+    terms = record.get("terms") or {}
+    names = tuple(terms)
+    v, sd = np.array([t["value_m"] for t in terms.values()]), np.array([t["sd_m"] for t in terms.values()])
     out = {"lidar": lidar, "d2": float(xi @ np.linalg.solve(res.covariance, xi)),
-           "chosen": fit.chosen if fit else "none",
+           "chosen": record.get("model", "none"),
            "offset": bool(abs(v[0] - bias["offset_m"]) <= 1.96 * sd[0]) if "offset" in names else None,
            "dark": (bool(abs(v[names.index("dark")] - bias["dark_m"]) <= 1.96 * sd[names.index("dark")])
                     if "dark" in names else None)}
@@ -97,7 +97,7 @@ def _injected(args) -> dict:
 
 
 def _beyond_prior(args) -> dict:
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -107,12 +107,12 @@ def _beyond_prior(args) -> dict:
     path = Path(tmp) / f"beyond_{lidar}_{seed}"
     simulate_dataset(path, 8, seed, lidar, scene="office", range_bias=(0.0, 0.015, 0.0), overwrite=True)
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(seed), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(seed), posterior=None)
     except LidarcamError as exc:
         return {"failed": str(exc)[:120]}
     xi = T_log(T_inverse(res.T_camera_lidar) @ load_dataset(path).ground_truth())
-    fit = res.refinement.range_model
-    return {"held": bool(fit is not None and fit.pinned), "rot": float(np.degrees(np.linalg.norm(xi[:3]))),
+    return {"held": bool(res.range_models.get("lidar0", {}).get("held_at_prior")),
+            "rot": float(np.degrees(np.linalg.norm(xi[:3]))),
             "trans": float(1000 * np.linalg.norm(xi[3:])), "d2": float(xi @ np.linalg.solve(res.covariance, xi)),
             "verdict": res.verdict.line.split(":")[0]}
 

@@ -54,7 +54,7 @@ def _true_hits(rig, T_camera_board, sim) -> tuple[np.ndarray, np.ndarray]:
 def _trial(args) -> dict:
     from scipy.spatial import cKDTree
 
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.io.dataset import load_dataset
     from estimators.simulation.office import board_fraction_in_fov
     from estimators.simulation.simulator import (default_rig, default_rig_2d, sample_board_poses, simulate_frames,
@@ -74,7 +74,7 @@ def _trial(args) -> dict:
         write_dataset(path, rig, frames, "csv" if lidar == "2d" else "pcd", overwrite=True)
         ds = load_dataset(path)
         try:
-            res = calibrate_pair(ds, rng=np.random.default_rng(seed), posterior=None)
+            res = calibrate(ds, rng=np.random.default_rng(seed), posterior=None)
         except Exception as exc:  # a refused calibration is a result of the benchmark, recorded with its reason
             errors[kind] = None
             out[f"{kind}_failure"] = f"{type(exc).__name__}: {exc}"[:160]
@@ -84,7 +84,7 @@ def _trial(args) -> dict:
         # The bound of this scene's layout: the board returns it really has (partial views, the holder's
         # occlusions), at the corner noise the pipeline estimated.
         bound = np.sqrt(np.diag(cramer_rao_bound(Layout(
-            rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), res.refinement.corner_noise_px,
+            rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), res.noise("cam0")["corner_noise_px"],
             noise, hits=tuple(_true_hits(rig, T_cb, sim) for T_cb, sim in zip(poses, frames))))))
         errors[kind] = (np.degrees(rotation_error(T[:3, :3], rig.T_camera_lidar[:3, :3])),
                         1000 * np.linalg.norm(T[:3, 3] - rig.T_camera_lidar[:3, 3]),
@@ -94,7 +94,7 @@ def _trial(args) -> dict:
             continue
         layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), 0.1, noise)
         T_lc = T_inverse(rig.T_camera_lidar)
-        dropped = {f.name for f in res.refinement.frames if f.dropped}
+        in_graph = set(res.frames_used["lidar0"])  # the frames the joint graph weighs (outliers left out)
         for i, (f, sim) in enumerate(zip(res.frames, frames)):
             if lidar == "2d":
                 share = sim.board_mask.sum() / max(len(board_hits(layout, i)[0]), 1)
@@ -104,7 +104,7 @@ def _trial(args) -> dict:
                 share = board_fraction_in_fov(outline, rig.beams.elevations_rad) * min(
                     1.0, sim.board_mask.sum() / unoccluded / max(board_fraction_in_fov(
                         outline, rig.beams.elevations_rad), 1e-9))
-            used = f.usable and f.name not in dropped
+            used = f.usable and f.name in in_graph
             out["frames"] += 1
             out["eligible"] += share >= 0.4
             out["used_eligible"] += bool(used and share >= 0.4)

@@ -44,7 +44,7 @@ CHI2_3_999 = 16.266  # chi-square, 3 degrees of freedom, 99.9% point
 def _stand_trial(args) -> dict:
     from dataclasses import replace
 
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, default_rig, simulate_frames, write_dataset
     from geometry.planes import Plane
@@ -62,7 +62,7 @@ def _stand_trial(args) -> dict:
     yaml.write_text(re.sub(r"  size: \[.*\]\n", "", yaml.read_text()))
     out = {"lidar": lidar, "stand": stand, "cropped": cropped}
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}
     T_lc = T_inverse(rig.T_camera_lidar)
@@ -76,12 +76,12 @@ def _stand_trial(args) -> dict:
         pi_true = true.coefficients * np.sign(true.normal @ f.lidar.plane.normal)
         chi2.append(float(pi_true @ M @ pi_true - pi_hat @ M @ pi_hat))
         angle.append(float(np.degrees(np.arccos(min(1.0, abs(true.normal @ f.lidar.plane.normal))))))
-    return {**out, "used": res.frames_used, "frames": len(frames), "chi2": chi2, "angle": angle,
+    return {**out, "used": len(res.frames_used["lidar0"]), "frames": len(frames), "chi2": chi2, "angle": angle,
             "reasons": [f.reason for f in res.frames if not f.usable]}
 
 
 def _cropped_trial(args) -> dict:
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, default_rig, simulate_frames, write_dataset
 
@@ -93,10 +93,10 @@ def _cropped_trial(args) -> dict:
     fill = max(float(f.board_mask.mean()) for f in frames)
     path = write_dataset(Path(tmp) / f"cropped_{k}", rig, frames)
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {"lidar": lidar, "fill": fill, "failed": str(exc)[:160]}
-    return {"lidar": lidar, "fill": fill, "used": res.frames_used, "frames": len(frames),
+    return {"lidar": lidar, "fill": fill, "used": len(res.frames_used["lidar0"]), "frames": len(frames),
             "moved": any("contradict the static scene" in w for w in res.warnings),
             "unchecked": any("stillness" in w and "checked" in w for w in res.warnings)}
 
@@ -105,7 +105,7 @@ TABLE_VARIANTS = (("rosette", None), ("rosette", 0.3), ("sector", None), ("secto
 
 
 def _table_trial(args) -> dict:
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.simulation.simulator import cropped_to_boards, write_dataset
     from estimators.simulation.table import declared, simulate_table_frames, table_rig
@@ -121,14 +121,14 @@ def _table_trial(args) -> dict:
     path = write_dataset(Path(tmp) / f"table_{k}", declared(rig), frames)
     out = {"variant": f"{lidar}{', cropped' if crop else ''}", "frames": len(frames)}
     try:
-        res = calibrate_pair(path, rng=np.random.default_rng(k), posterior=None)
+        res = calibrate(path, rng=np.random.default_rng(k), posterior=None)
     except LidarcamError as exc:
         return {**out, "failed": str(exc)[:160]}
     xi = T_log(T_inverse(res.T_camera_lidar) @ rig.T_camera_lidar)
-    return {**out, "used": res.frames_used, "d2": float(xi @ np.linalg.solve(res.covariance, xi)),
+    return {**out, "used": len(res.frames_used["lidar0"]), "d2": float(xi @ np.linalg.solve(res.covariance, xi)),
             "err": (float(np.degrees(np.linalg.norm(xi[:3]))), float(1000 * np.linalg.norm(xi[3:]))),
             "moved": any("contradict the static scene" in w for w in res.warnings),
-            "offset": res.refinement.range_model is not None and res.refinement.range_model.chosen != "none"}
+            "offset": res.range_models.get("lidar0", {}).get("model", "none") != "none"}
 
 
 def main() -> None:

@@ -73,7 +73,7 @@ def corrupt(folder: Path, how: str) -> None:
 
 def trial(args) -> dict:
     label, kw, seed, how, tmp = args
-    from estimators.calibration import calibrate_pair
+    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.io.dataset import load_dataset
     from estimators.simulation.simulator import simulate_dataset
@@ -87,7 +87,7 @@ def trial(args) -> dict:
     if how != "good":
         corrupt(folder, how)
     try:
-        result = calibrate_pair(folder, rng=np.random.default_rng(seed))
+        result = calibrate(folder, rng=np.random.default_rng(seed))
     except LidarcamError as exc:
         return {"label": label, "how": how, "seed": seed, "level": "refused", "d2": np.nan, "why": exc.problem[:100],
                 "px": np.nan}
@@ -100,17 +100,18 @@ def trial(args) -> dict:
     return {"label": label, "how": how, "seed": seed, "level": result.verdict.level,
             "d2": float(xi @ np.linalg.solve(result.covariance, xi)), "why": result.verdict.line[:160],
             "px": projection_px(result, camera, truth), "fit": fit_words(result),
-            "p_planes": result.refinement.consistency_p,
-            "p_outline": (result.refinement.edges or {}).get("mean_shift_p_value")}
+            "p_planes": (result.to_json().get("consistency") or {}).get("p_value"),
+            "p_outline": (result.edges.get("lidar0") or result.outline_checks.get(("cam0", "lidar0")) or {}).get(
+                "mean_shift_p_value")}
 
 
 def fit_words(result) -> str:
     """What the data say of their own fit: the planes' consistency (chi-square/dof, p) and the board outlines'
     mean shift (p), as a good dataset's would read."""
-    ref = result.refinement
-    edges = ref.edges or {}
+    cal = result.to_json()  # the pair folder's calibration.json: its consistency and board edges
+    fit, edges = cal.get("consistency") or {}, cal.get("board_edges") or {}
     shift = edges.get("mean_shift_p_value")
-    return (f"planes {ref.variance_factor:.2f} (p = {ref.consistency_p:.2g})"
+    return (f"planes {fit.get('variance_factor', float('nan')):.2f} (p = {fit.get('p_value', float('nan')):.2g})"
             + (f", outlines p = {shift:.2g}" if shift is not None else ""))
 
 
@@ -120,11 +121,11 @@ def projection_px(result, camera, truth: np.ndarray) -> float:
     the median distance in pixels. What a user projecting the LiDAR into the image with that camera model gets."""
     from geometry.rotations import transform_points
 
-    pts = [f.lidar.points for f in result.frames if f.usable]
+    pts = [f.lidar.points for f in result.pair_frames[("cam0", "lidar0")] if f.usable]
     if not pts:
         return float("nan")
     p = np.vstack(pts)
-    uv_est = result.camera.project(transform_points(result.T_camera_lidar, p))
+    uv_est = result.camera_model("cam0").project(transform_points(result.T_camera_lidar, p))
     uv_true = camera.project(transform_points(truth, p))
     return float(np.median(np.linalg.norm(uv_est - uv_true, axis=1)))
 

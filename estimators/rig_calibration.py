@@ -355,7 +355,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         raise DatasetError(f"init {init!r} is for 2D LiDARs, and this rig has none", path=rig.yaml_path,
                            hint="use --init closed-form")
     alone = pair_options(options, range_model, params)
-    measured = measured_rig(rig, rng, workers, cache, params, hints) if measurements is None else \
+    stages: dict = {}  # the measurement's stage times, summed over its threads (as a single pair's)
+    measured = measured_rig(rig, rng, workers, cache, params, hints, stages) if measurements is None else \
         given_measurements(rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
     skipped = {c: dict(v) for c, v in measured.skipped.items()}
@@ -424,7 +425,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             replace(s, camera=replace(solution.camera_model(s.name, cameras[s.name]),
                                       source=f"refined with the rig (given: {cameras[s.name].source})"))
             if s.name in solution.intrinsics else s for s in rig.sensors))
-        again = measured_rig(refined, rng, workers, cache, params, hints)
+        again = measured_rig(refined, rng, workers, cache, params, hints, stages)
         merged = replace(measured, pairs={k: reobserve_frames(frames, rig.board, cameras[k[0]])
                                           for k, frames in again.pairs.items()},
                          measured_by=again.measured_by, spawned=measured.spawned + again.spawned)
@@ -432,8 +433,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                range_model=range_model, edges=edges, options=options, cache=cache,
                                measurements=merged, init=init, params=params, hints=hints, likelihood=likelihood,
                                remeasure=False, on_solved=on_solved)
-        timings = dict(result.timings_s, measurements=round(time.perf_counter() - t0 - sum(
-            v for k, v in result.timings_s.items() if k != "measurements"), 3))
+        solved = {k: v for k, v in result.timings_s.items() if k not in stages}
+        timings = dict(solved, **{k: round(v, 3) for k, v in stages.items()}, measurements=round(
+            time.perf_counter() - t0 - sum(v for k, v in solved.items() if k != "measurements"), 3))
         return replace(result, timings_s=timings)
     pairwise, pair_frames, lidar_obs = alone_fit.pairwise, alone_fit.pair_frames, alone_fit.lidar_obs
     ambiguous = alone_fit.ambiguous
@@ -533,7 +535,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     next_pose = rig_next_pose(result, advice_rng) if advise else None
     used = {c.name: tuple(c.corners_px) for c in camera_views}
     used.update({lv.name: tuple(lv.W) for lv in lidar_views})
-    timings = {"measurements": t_meas - t0, "pairs": t_pairs - t_meas, "joint": t_joint - t_pairs}
+    timings = {**stages, "measurements": t_meas - t0, "pairs": t_pairs - t_meas, "joint": t_joint - t_pairs}
     if posterior is not None:
         timings["posterior"] = t_post - t_joint
     if advise:

@@ -53,6 +53,30 @@ def test_sampler_stops_with_a_warning_state_when_the_step_limit_is_reached():
     assert not run.converged and run.chain.shape[0] == 600
 
 
+def test_walkers_that_start_where_the_target_is_zero_are_moved_inside():
+    # A half-Gaussian (x >= 0), half of the walkers drawn outside it: emcee never moves a walker from -inf (its
+    # acceptance is nan), which stayed in the samples at x < 0 and warned of invalid values. Moved inside, every
+    # sample has x >= 0, their mean is the half-Gaussian's sqrt(2/pi) within 0.05, and no warning is raised.
+    import warnings
+
+    def log_prob(x):
+        out = -0.5 * np.sum(x**2, axis=1)
+        out[x[:, 0] < 0] = -np.inf
+        return out
+
+    rng = np.random.default_rng(3)
+    initial = rng.standard_normal((32, 2))
+    assert (initial[:, 0] < 0).sum() > 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        run = run_ensemble(log_prob, initial, rng, min_ess=500, max_steps=4000)
+    assert run.samples[:, 0].min() >= 0 and abs(run.samples[:, 0].mean() - np.sqrt(2 / np.pi)) < 0.05
+    from estimators.errors import PosteriorSkippedError
+
+    with pytest.raises(PosteriorSkippedError, match="every walker"):
+        run_ensemble(log_prob, -np.abs(initial), rng, min_ess=10, max_steps=100)
+
+
 def test_the_laplace_independence_proposal_samples_a_target_it_does_not_match():
     # The proposal's covariance half the target's along one axis and twice along another: with its Metropolis-
     # Hastings correction the chain still has the target's covariance (within 10%, 3 parameters, 40000 draws).

@@ -143,10 +143,12 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
-                 params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigMeasurements:
+                 params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
+                 timings: dict | None = None) -> RigMeasurements:
     """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
     keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
-    would have drawn are drawn, so that later draws (the posterior's) are the same either way."""
+    would have drawn are drawn, so that later draws (the posterior's) are the same either way. ``timings`` gets
+    the measurement's stage times (:func:`measure_rig`)."""
     folder = None
     if cache:
         options = {"format": RIG_FORMAT, "params": params, "hints": hints, **generator_key(rng)}
@@ -161,7 +163,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                 return replace(given_measurements(rig, load_rig_measurements(folder), rng), source="cache")
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
-    rm = measure_rig(rig, rng, workers, params, hints)
+    rm = measure_rig(rig, rng, workers, params, hints, timings)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
@@ -184,12 +186,16 @@ def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Gene
 
 
 def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
-                params: SegmentationParams = SegmentationParams(), hints: Hints = Hints()) -> RigMeasurements:
+                params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
+                timings: dict | None = None) -> RigMeasurements:
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
     camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
     the board search's ``params`` and ``hints`` (a region of interest, in each LiDAR's own frame, and whether the
     static scene is used; a rig's initial guesses, ``hints.pair_guesses``, each its camera-LiDAR pair's; one
-    ``initial_guess`` is refused, as a rig has several pairs)."""
+    ``initial_guess`` is refused, as a rig has several pairs). ``timings`` gets each stage's seconds summed over
+    the threads (``load_images``, ``corners``, ``load_scans``, ``segmentation``), as a single pair's measurement
+    gives them."""
+    timings = {} if timings is None else timings
     if hints.initial_guess is not None:
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
                            path=rig.yaml_path, hint="give a rig's calibration.json as the guess")
@@ -198,11 +204,12 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     with ThreadPoolExecutor(max_workers=1) as ahead, ThreadPoolExecutor(max_workers=workers) as pool:
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
-        sweeps = {lid.name: ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints)
+        sweeps = {lid.name: ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints,
+                                             timings)
                   for lid in rig.lidars if lid.lidar != "2d"}
         # Every camera's images searched in one pool: no camera waits on its slowest image with a core idle, and
         # each camera's board poses are solved while the next cameras' images are searched.
-        pending = {s.name: [pool.submit(detect_in_image, f, rig.board, {}) for f in camera_frames(s)]
+        pending = {s.name: [pool.submit(detect_in_image, f, rig.board, timings) for f in camera_frames(s)]
                    for s in rig.cameras}
         for s in rig.cameras:
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(
@@ -224,7 +231,7 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                                                  lid.name, stems, poses[cam.name], measured, rng, workers,
                                                  found[cam.name], warnings, spawned, params,
                                                  replace(hints, initial_guess=guess, pair_guesses=None),
-                                                 sweeps.get(lid.name))
+                                                 sweeps.get(lid.name), timings)
                 measured_by[key] = {f.name: measured[f.name][0] for f in pairs[key] if f.name in measured}
     return RigMeasurements(cameras, poses, skipped, pairs, measured_by, tuple(warnings), tuple(spawned))
 
@@ -232,7 +239,7 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
 def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str], poses: dict, measured: dict, rng,
                         workers: int, found: dict, warnings: list, spawned: list,
                         params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                        sweeps: LidarSweeps | None = None) -> list[FrameMeasurement]:
+                        sweeps: LidarSweeps | None = None, timings: dict | None = None) -> list[FrameMeasurement]:
     """A camera-LiDAR pair's frames: the LiDAR's board in a frame is found once, with the first camera that shares
     it (``measured``, updated), and paired with each later camera's own board pose. A camera with only one or two
     frames not yet measured measures them with those it shares (choosing each frame's board takes three). The
@@ -245,7 +252,7 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
         spawned.append(len(subset.frames) + 1)
-        _, frames, w = measure_frames(subset, rng, params, workers=workers, hints=hints, detections=found,
+        _, frames, w = measure_frames(subset, rng, params, timings, workers=workers, hints=hints, detections=found,
                                       board_poses=poses, sweeps=sweeps)
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}

@@ -127,6 +127,19 @@ class RigResult:
     std_rotation_deg = property(lambda self: self.only_pair().std_rotation_deg, doc="About the LiDAR's axes.")
     std_translation_mm = property(lambda self: self.only_pair().std_translation_mm, doc="Along the LiDAR's axes.")
 
+    @property
+    def frames(self) -> list:
+        """A pair folder's frames as measured, in name order (each ``FrameMeasurement``: the board in the image and in
+        the scan, or why not): its one pair's ``pair_frames`` and the frames its camera skipped."""
+        from ..measurements import FrameMeasurement
+
+        p = self.only_pair()
+        frames = list((self.pair_frames or {}).get((p.a, p.b), []))
+        seen = {f.name for f in frames}
+        frames += [FrameMeasurement(st, None, None, why) for st, why in self.skipped.get(p.a, {}).items()
+                   if st not in seen]
+        return sorted(frames, key=lambda f: f.name)
+
     def report(self, out_dir: str | Path) -> Path:
         """Write ``out_dir/report.html`` and its figures (``analysis.rig_report.write_rig_report``)."""
         from ..analysis.rig_report import write_rig_report

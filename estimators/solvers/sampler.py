@@ -63,6 +63,29 @@ def _progress_bar(progress: bool, total: int, label: str):
     return tqdm(total=total, desc=label, unit="step", leave=False)
 
 
+def walkers_inside(log_prob, initial: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``initial`` with every walker that starts where the target is zero (its log-probability not finite) moved to
+    one that starts inside, plus a thousandth of the walkers' spread. Left there, such a walker never moves (emcee
+    compares a move's log-probability with its own, -inf: nan, never accepted) and stays in the samples at a point
+    the posterior excludes. :class:`~estimators.errors.PosteriorSkippedError` when no walker starts inside."""
+    lp = np.asarray(log_prob(initial), dtype=float)
+    out = ~np.isfinite(lp)
+    if not out.any():
+        return initial
+    inside = np.flatnonzero(~out)
+    if inside.size == 0:
+        from ..errors import PosteriorSkippedError
+
+        raise PosteriorSkippedError("every walker of the sampler starts where the posterior is zero",
+                                    hint="the covariance is the Laplace one")
+    moved = initial.copy()
+    spread = 1e-3 * initial[inside].std(axis=0)
+    moved[out] = initial[rng.choice(inside, out.sum())] + spread * rng.standard_normal((out.sum(), initial.shape[1]))
+    still = ~np.isfinite(np.asarray(log_prob(moved[out]), dtype=float))  # beside a wall: the walker itself
+    moved[np.flatnonzero(out)[still]] = initial[rng.choice(inside, still.sum())]
+    return moved
+
+
 def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_ess: int = 2000,
                  max_steps: int = 40000, chunk: int = 500, progress: bool = False, label: str = "posterior",
                  moves=None) -> ChainResult:
@@ -81,6 +104,7 @@ def run_ensemble(log_prob, initial: np.ndarray, rng: np.random.Generator, min_es
 
     moves = moves if moves is not None else [(emcee.moves.DEMove(), 0.8), (emcee.moves.StretchMove(), 0.2)]
     sampler = emcee.EnsembleSampler(nwalkers, ndim, log_prob, vectorize=True, moves=moves)
+    initial = walkers_inside(log_prob, initial, rng)
     state = emcee.State(initial, random_state=np.random.RandomState(int(rng.integers(2**32))).get_state())
     steps, converged, n = 0, False, chunk
     with _progress_bar(progress, max_steps, label) as bar:
