@@ -308,8 +308,11 @@ def test_office_scene_3d_uses_every_board_and_no_wrong_segment(tmp_path):
     assert all(f.decision is not None and f.decision.method.startswith("consensus") for f in result.frames)
     frame = result.to_dict()["frames"][0]
     assert {"method", "chosen", "reason", "candidates"} <= frame["lidar_board_choice"].keys()
-    # the engine's report (a pair folder's, as `lidarcam calibrate` writes it) shows each frame's board choice
-    report = calibrate(path, samples=0).report(tmp_path / "out")
+    # the engine's report (a pair folder's, as `lidarcam calibrate` writes it) shows each frame's board choice; its
+    # record lists every frame as measured, as the pair's does (those without a board too)
+    engine = calibrate(path, samples=0)
+    assert [(f.name, f.usable) for f in engine.frames] == [(f.name, f.usable) for f in result.frames]
+    report = engine.report(tmp_path / "out")
     assert (tmp_path / "out" / "board_choice_lidar0_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 
 
@@ -329,6 +332,23 @@ def test_small_hand_held_board_facing_the_rig_on_a_vlp16(tmp_path):
     assert result.frames_used >= 7
     xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
     assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
+
+
+def test_the_engines_record_lists_every_frame_as_measured(tmp_path, monkeypatch):
+    """bench_handheld's dataset 8011, three of whose eight frames leave no board in the sweep: the engine's record
+    lists all eight as the pair's does, in name order (it listed the five usable ones, and a benchmark that paired
+    them with its poses by order paired them wrong)."""
+    from estimators.simulation.simulator import handheld_rig, sample_layout, write_dataset
+
+    rng = np.random.default_rng(8011)
+    rig = handheld_rig(rng)
+    poses = sample_layout(rig, "handheld", 8, rng)
+    path = write_dataset(tmp_path / "handheld", rig, simulate_frames(rig, 8, rng, poses=poses, scene="office"))
+    monkeypatch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path / "cache"))
+    engine = calibrate(path, samples=0, cache=True)
+    pair = calibrate_pair(path, samples=0, cache=True)
+    assert [(f.name, f.usable) for f in engine.frames] == [(f.name, f.usable) for f in pair.frames]
+    assert len(engine.frames) == 8 and sum(f.usable for f in engine.frames) == 5
 
 
 def test_open_hall_with_3cm_noise_uses_every_frame(tmp_path):
@@ -354,7 +374,9 @@ def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(t
     xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
     assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
     assert all(f.decision.method.startswith("consensus") for f in result.frames if f.decision is not None)
-    report = calibrate(ds, samples=0).report(tmp_path / "out")
+    engine = calibrate(ds, samples=0)
+    assert [(f.name, f.usable) for f in engine.frames] == [(f.name, f.usable) for f in result.frames]
+    report = engine.report(tmp_path / "out")
     assert (tmp_path / "out" / "board_choice_lidar0_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 
 

@@ -130,11 +130,12 @@ class RigResult:
     @property
     def frames(self) -> list:
         """A pair folder's frames as measured, in name order (each ``FrameMeasurement``: the board in the image and in
-        the scan, or why not): its one pair's ``pair_frames`` and the frames its camera skipped."""
+        the scan, or why not): its one pair's measured frames and the frames its camera skipped."""
         from ..measurements import FrameMeasurement
 
         p = self.only_pair()
-        frames = list((self.pair_frames or {}).get((p.a, p.b), []))
+        measured = getattr(self.measurements, "pairs", {}).get((p.a, p.b))
+        frames = list(measured if measured is not None else (self.pair_frames or {}).get((p.a, p.b), []))
         seen = {f.name for f in frames}
         frames += [FrameMeasurement(st, None, None, why) for st, why in self.skipped.get(p.a, {}).items()
                    if st not in seen]

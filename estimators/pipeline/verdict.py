@@ -324,6 +324,9 @@ def rig_verdict(result) -> Verdict:
         kept = [f for f in frames if f.usable and f.name in used]
         aside = [stem for stem, why in result.skipped.get(lid, {}).items()
                  if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
+        own = (result.pair_results or {}).get((c, lid))  # the frames its own solve dropped, as a single pair's count
+        aside += [fit.name for fit in own.refinement.frames if fit.dropped] if own is not None and \
+            own.refinement is not None else []
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), check in result.intrinsics_checks.items():
