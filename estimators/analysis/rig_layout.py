@@ -19,7 +19,7 @@ from geometry.rotations import T_inverse
 
 from ..lidar.lidar_models import BEAM_MODELS
 from ..simulation.simulator import Rig, _pose_fits, min_in_image, sample_board_poses
-from ..solvers.observation_model import Layout, board_hits, frame_contribution, frame_information
+from ..solvers.observation_model import Layout, board_returns, frame_contribution, frame_information
 
 # Fewest beams on a candidate board (a 3D LiDAR's; a 2D scanner's line) for it to count as seen.
 MIN_HITS_3D = 50
@@ -84,10 +84,12 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
     best, best_sd, best_C = None, np.inf, None
     for T in pool:
         trial = replace(base, T_camera_board=(T,))
-        if len(board_hits(trial, 0)[0]) < (MIN_HITS_2D if beams.is_2d else MIN_HITS_3D):
+        dirs, ranges, rings, _ = board_returns(trial, 0)
+        if len(dirs) < (MIN_HITS_2D if beams.is_2d else MIN_HITS_3D):
             continue
-        try:
-            C = predicted_pair_covariance(P, frame_contribution(frame_information(trial, 0)))
+        try:  # its information from the returns just cast (no range terms: their colours are not needed)
+            F = frame_information(replace(trial, hits=((dirs, ranges, rings),)), 0)
+            C = predicted_pair_covariance(P, frame_contribution(F))
         except np.linalg.LinAlgError:  # a candidate whose frame fixes no direction of its own board
             continue
         sd = _max_translation_sd(C)
