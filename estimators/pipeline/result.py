@@ -286,20 +286,8 @@ def frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None,
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
-    """Write ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each atomically.
-
-    Parameters
-    ----------
-    result : CalibrationResult
-        From :func:`calibrate` or :func:`solve`.
-    out_dir : str or Path
-        The output folder (created when missing).
-
-    Returns
-    -------
-    Path
-        The path of ``calibration.json``.
-    """
+    """The pair's own solve's ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each
+    atomically; returns the latter's path (``estimators.write_calibration`` writes either record)."""
     out = Path(out_dir)
     if result.posterior is not None:
         p = result.posterior
