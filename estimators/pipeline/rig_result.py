@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..io.measurement_store import rig_as_pair
 from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
@@ -130,16 +131,9 @@ class RigResult:
     @property
     def frames(self) -> list:
         """A pair folder's frames as measured, in name order (each ``FrameMeasurement``: the board in the image and in
-        the scan, or why not): its one pair's measured frames and the frames its camera skipped."""
-        from ..measurements import FrameMeasurement
-
-        p = self.only_pair()
-        measured = getattr(self.measurements, "pairs", {}).get((p.a, p.b))
-        frames = list(measured if measured is not None else (self.pair_frames or {}).get((p.a, p.b), []))
-        seen = {f.name for f in frames}
-        frames += [FrameMeasurement(st, None, None, why) for st, why in self.skipped.get(p.a, {}).items()
-                   if st not in seen]
-        return sorted(frames, key=lambda f: f.name)
+        the scan, or why not), as its measurements.npz holds them (``io.measurement_store.rig_as_pair``)."""
+        self.only_pair()
+        return list(rig_as_pair(self.measurements, self.rig.board, self.rig.lidars[0].lidar).frames)
 
     def report(self, out_dir: str | Path) -> Path:
         """Write ``out_dir/report.html`` and its figures (``analysis.rig_report.write_rig_report``)."""
