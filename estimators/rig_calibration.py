@@ -31,7 +31,7 @@ from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_modes import minimum_solver, mixable_minima, mixed_posterior
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import range_record, with_held_share, with_range_terms
+from .pipeline.rig_terms import range_record, with_held_share, with_placement_share, with_range_terms
 from .solvers import chi_square as chi2
 from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
@@ -442,9 +442,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     skipped.update(alone_fit.skipped)
     warnings[:0] = alone_fit.first
     warnings += alone_fit.warnings
-    range_models, pins, pinned_share = {}, {}, None
+    range_models, pins, asked, pinned_share, placement_share = {}, {}, {}, None, None
     if range_model != "none" and lidar_views:
-        lidar_views, solution, range_models, pins = with_range_terms(
+        lidar_views, solution, range_models, pins, asked = with_range_terms(
             rig, lidar_views, lidar_obs, pair_frames, solution, alone_fit.term_choices, range_model,
             alone_fit.board_scatter, options.range_accuracy_m, warnings,
             lambda views: solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics))
@@ -478,6 +478,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                             "could not be solved): planes alone")
     if pins:  # after every solve: the held terms' prior propagated into the covariance, as the pair's
         solution, pinned_share = with_held_share(names, rig.reference, camera_views, lidar_views, solution, pins)
+    if asked:  # then the black squares' placement, as the pair's refinement ends
+        solution, placement_share = with_placement_share(
+            rig, names, camera_views, lidar_views, lidar_obs, pair_frames, solution, asked, options.range_accuracy_m,
+            pins)
     for lv in lidar_views:
         if lv.has_terms:
             range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
@@ -505,7 +509,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         sampled, views, intrinsics_share = solution, camera_views, None
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
-                                                                      solution, (pinned_share, conflict))
+                                                                      solution, (pinned_share, conflict,
+                                                                                 placement_share))
         try:
             posterior = mixed_posterior(
                 sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
@@ -515,9 +520,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                                              exact_ends=alone_fit.with_ends), rng, warnings)
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
-        # The held terms' prior, the planes' conflict with the edges and the refined intrinsics' uncertainty,
-        # convolved in as a single pair's posterior does.
-        for share in (s for s in (pinned_share, conflict, intrinsics_share) if s is not None and posterior is not None):
+        # The held terms' prior, the planes' conflict with the edges, the black squares' placement and the refined
+        # intrinsics' uncertainty, convolved in as a single pair's posterior does.
+        for share in (s for s in (pinned_share, conflict, placement_share, intrinsics_share)
+                      if s is not None and posterior is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(share)), share, len(posterior.xi), method="eigh"))
         if posterior is not None and not posterior.run.converged:

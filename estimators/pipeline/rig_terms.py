@@ -7,12 +7,15 @@ from dataclasses import replace
 
 import numpy as np
 
+from geometry.rotations import T_exp
+
 from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from ..lidar.lidar_models import range_accuracy_for
 from ..solvers.range_model import (MAX_PRIOR_SIGMAS, MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels,
                                    frame_rings, frame_whitener, terms_for)
-from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, inner_covariance
+from ..solvers.graph_keys import sensor_key, terms_key
+from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, graph_step, inner_covariance
 
 # The prior standard deviation (m) that holds a pinned range term at 0 in the graph.
 HELD_SD_M = 1e-7
@@ -106,7 +109,7 @@ def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.nd
 
 def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution,
                      choices: dict, range_model: str, board_scatter: dict, range_accuracy_m: float | None,
-                     warnings: list, solve) -> tuple[list, RigSolution, dict, dict]:
+                     warnings: list, solve) -> tuple[list, RigSolution, dict, dict, dict]:
     """The joint graph with every LiDAR's range terms: one choice of them, the single pair's. ``choices``: per
     LiDAR its first camera-LiDAR pair's ``(RangeModelFit, "<camera>-<lidar>")``, whose model ``auto`` takes (its
     tests, with the per-board plane error and the boards' scatter modelled, go into the record) and whose held
@@ -114,8 +117,9 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
     requested ``range_model`` is every LiDAR's. The terms are placed on ``solution``'s board poses (the black
     squares again on the solution with the terms, blurred by its covariance: a range offset the planes absorb
     moves their placement and would shrink their term), with ``board_scatter`` (per LiDAR, m) as their pair
-    weighed them; ``solve(views)`` solves the joint graph. Returns the views, the solution, per LiDAR its record
-    and the held terms' names (for :func:`with_held_share`, once every solve is done); warnings are added."""
+    weighed them; ``solve(views)`` solves the joint graph. Returns the views, the solution, per LiDAR its record,
+    the held terms' names (for :func:`with_held_share`, once every solve is done) and the model asked of each (for
+    :func:`with_placement_share`); warnings are added."""
     asked = {n: fit.chosen if range_model == "auto" else range_model for n, (fit, _) in choices.items()}
     views, records = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked, range_accuracy_m)
     ranged = {lv.name for lv in views if lv.has_terms}
@@ -143,7 +147,7 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
             views = held_views(ranged_views(rig, views, lidar_obs, pair_frames, solution, asked, range_accuracy_m,
                                             blurred=True)[0], pins)
             solution = solve(views)
-    return views, solution, records, pins
+    return views, solution, records, pins, asked
 
 
 def held_views(lidar_views: list, pinned: dict) -> list:
@@ -184,7 +188,20 @@ def with_held_share(names: tuple, reference: str, camera_views: list, lidar_view
     G = -M[:, p] @ np.linalg.inv(M[np.ix_(p, p)])
     share_inner = G @ np.diag(np.square(prior)) @ G.T
     full = M + G @ M[p, :] + share_inner  # A^-1 (the held terms' rows zero) and the share
-    # The share of the sensors' joint covariance, carried from the graph's reference camera into the rig's.
+    share = _sensors_share(names, reference, inner, solution, share_inner)
+    terms, at = dict(solution.range_terms), 6 * (len(names) - 1)
+    for lv in (v for v in free_terms if v.has_terms):
+        K = lv.terms.size
+        terms[lv.name] = (terms[lv.name][0], np.sqrt(np.maximum(np.diag(full)[at:at + K], 0.0)))
+        at += K
+    return replace(solution, covariance_joint=solution.covariance_joint + share, range_terms=terms), share
+
+
+def _sensors_share(names: tuple, reference: str, inner: str, solution: RigSolution, share_inner: np.ndarray
+                   ) -> np.ndarray:
+    """A share of the covariance over the free sensors' tangents in the graph's reference camera ``inner``'s frame
+    (``RigSolution.covariance_inner``'s order, range terms after them) as a share of the sensors' joint covariance
+    (6N x 6N, ``names`` order), carried into the rig's reference's frame."""
     share = np.zeros((6 * len(names), 6 * len(names)))
     free = [k for k, n in enumerate(names) if n != inner]
     cols = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in free])
@@ -192,10 +209,64 @@ def with_held_share(names: tuple, reference: str, camera_views: list, lidar_view
     if inner != reference:
         T_inner = {n: np.linalg.inv(solution.T_ref[inner]) @ solution.T_ref[n] for n in names}
         share = change_reference(names, T_inner, share, reference)[1]
-    share = 0.5 * (share + share.T)
-    terms, at = dict(solution.range_terms), 6 * (len(names) - 1)
-    for lv in (v for v in free_terms if v.has_terms):
+    return 0.5 * (share + share.T)
+
+
+def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
+                         pair_frames: dict, solution: RigSolution, models: dict, range_accuracy_m: float | None,
+                         pinned: dict) -> tuple[RigSolution, np.ndarray | None]:
+    """The black squares' placement propagated into the covariance ("consider" covariance, as for the held terms):
+    the squares are placed under the estimate, itself uncertain, and placed a few millimetres off they give the
+    returns near the squares' edges other colours, which move the black-square term and, through it, the rest. For
+    each LiDAR with a free black-square term, its squares are placed again with its pose moved by one standard
+    deviation each way along each principal direction of its transform to the camera it shares most frames with,
+    and the joint graph takes one Gauss-Newton step from the estimate under those colours; half the two steps'
+    difference, summed in outer product over the directions, is added to the covariance (the sensors' and the
+    terms' sds) and returned as the sensors' share, which the posterior's samples get convolved with.
+
+    Their mean is not taken off the estimate, as the single pair's ``range_terms_choice.consider_placement`` takes
+    it: the shares are blurred by the same covariance already (the chance of black given what is known of the
+    placement, Berkson's error model), so moved and blurred again they are blurred twice, and on simulated OS1-64
+    and HDL-64E datasets the mean moved the black-square term up, not down (docs/range_model.md). ``models``: the
+    range model per LiDAR, as :func:`ranged_views` takes them. Returns the solution and the share (None where no
+    LiDAR has the term)."""
+    darkened = [lv for lv in lidar_views if lv.has_terms and "dark" in lv.terms.names
+                and "dark" not in pinned.get(lv.name, ()) and lv.name in models]
+    if not darkened:
+        return solution, None
+    reference = solution.reference
+    inner = graph_reference(reference, [c.name for c in camera_views])
+    free = [k for k, n in enumerate(names) if n != inner]
+    ranged = [lv for lv in lidar_views if lv.has_terms]
+    order = [sensor_key(k) for k in free] + [terms_key(names.index(lv.name)) for lv in ranged]
+    size = 6 * len(free) + sum(lv.terms.size for lv in ranged)
+    extra = np.zeros((size, size))
+    for lv in darkened:
+        frames: dict = {}
+        for (cam, lid), fs in pair_frames.items():
+            if lid == lv.name:
+                frames[cam] = frames.get(cam, 0) + len(fs)
+        _, C = solution.transform(max(sorted(frames), key=frames.get), lv.name)
+        ev, V = np.linalg.eigh(0.5 * (C + C.T))
+        for lam, v in zip(ev, V.T):
+            steps = []
+            for sign in (1.0, -1.0):
+                T_moved = solution.T_ref[lv.name] @ T_exp(sign * np.sqrt(max(lam, 0.0)) * v)
+                moved = replace(solution, T_ref={**solution.T_ref, lv.name: T_moved})
+                views = ranged_views(rig, lidar_views, lidar_obs, pair_frames, moved, {lv.name: models[lv.name]},
+                                     range_accuracy_m, blurred=True)[0]
+                again = next(w for w in views if w.name == lv.name)
+                if not again.has_terms or again.terms.names != lv.terms.names:  # the colours left no such term
+                    break
+                step = graph_step(names, reference, camera_views, held_views(views, pinned), solution)
+                steps.append(np.concatenate([step[k] for k in order]))
+            if len(steps) == 2:
+                spread = 0.5 * (steps[0] - steps[1])
+                extra += np.outer(spread, spread)
+    at, terms = 6 * len(free), dict(solution.range_terms)
+    for lv in ranged:
         K = lv.terms.size
-        terms[lv.name] = (terms[lv.name][0], np.sqrt(np.maximum(np.diag(full)[at:at + K], 0.0)))
+        terms[lv.name] = (terms[lv.name][0], np.sqrt(np.square(terms[lv.name][1]) + np.diag(extra)[at:at + K]))
         at += K
+    share = _sensors_share(names, reference, inner, solution, extra)
     return replace(solution, covariance_joint=solution.covariance_joint + share, range_terms=terms), share

@@ -331,6 +331,17 @@ def _graph_at(names: tuple[str, ...], reference: str, cameras: list[CameraViews]
     return graph, values, inner, stems
 
 
+def graph_step(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+               solution: RigSolution) -> dict:
+    """One Gauss-Newton step of the graph of these views from ``solution``'s values (at its noise scales): by key,
+    each variable's step (a pose's right tangent in the graph's reference camera's frame). With views that differ
+    from the solution's in what they measure (their labels, say), the shift that difference calls for, to first
+    order."""
+    graph, values, _, _ = _graph_at(names, reference, cameras, lidars, solution)
+    delta = graph.linearize(values).optimize()
+    return {k: np.asarray(delta.at(k), dtype=float).copy() for k in values.keys() if delta.exists(k)}
+
+
 def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      linear: gtsam.GaussianFactorGraph | None = None) -> tuple[np.ndarray, dict]:
     """The graph's whole Laplace covariance at ``values`` (its information, dense, inverted: for a rig's few hundred
