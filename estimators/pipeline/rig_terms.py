@@ -226,10 +226,10 @@ def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lida
 
     Their mean is not taken off the estimate, as the single pair's ``range_terms_choice.consider_placement`` takes
     it: the shares are blurred by the same covariance already (the chance of black given what is known of the
-    placement, Berkson's error model), so moved and blurred again they are blurred twice, and on simulated OS1-64
-    and HDL-64E datasets the mean moved the black-square term up, not down (docs/range_model.md). ``models``: the
-    range model per LiDAR, as :func:`ranged_views` takes them. Returns the solution and the share (None where no
-    LiDAR has the term)."""
+    placement, Berkson's error model), so moved and blurred again they are blurred twice, and the pair's mean also
+    holds the move that placing them again under the estimate itself makes, once per direction
+    (docs/range_model.md). ``models``: the range model per LiDAR, as :func:`ranged_views` takes them. Returns the
+    solution and the share (None where no LiDAR has the term)."""
     darkened = [lv for lv in lidar_views if lv.has_terms and "dark" in lv.terms.names
                 and "dark" not in pinned.get(lv.name, ()) and lv.name in models]
     if not darkened:
