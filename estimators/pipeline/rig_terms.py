@@ -12,8 +12,9 @@ from geometry.rotations import T_exp
 from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from ..lidar.lidar_models import range_accuracy_for
+from ..measurements import observe_lidar_board
 from ..solvers.range_model import (MAX_PRIOR_SIGMAS, MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels,
-                                   frame_rings, frame_whitener, terms_for)
+                                   frame_rings, frame_whitener, symmetric_band, terms_for)
 from ..solvers.graph_keys import sensor_key, terms_key
 from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, graph_step, inner_covariance
 
@@ -52,7 +53,8 @@ def _lidar_labels(rig: RigDataset, name: str, obs: dict, pair_frames: dict, solu
 
 
 def ranged_views(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution,
-                 models: dict, range_accuracy_m: float | None = None, blurred: bool = False) -> tuple[list, dict]:
+                 models: dict, range_accuracy_m: float | None = None, blurred: bool = False, band: dict | None = None
+                 ) -> tuple[list, dict]:
     """Each LiDAR's views with the range terms of its model in ``models`` (by name: ``none``, ``per-ring``,
     ``offset+dark``, ...; a LiDAR not named keeps its planes, without a record), under priors from its range
     accuracy (``range_accuracy_m``, ``--range-accuracy``, every LiDAR's; else dataset.yaml's ``range_accuracy_m`` or
@@ -60,7 +62,7 @@ def ranged_views(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frame
     solution with the terms in), and per LiDAR the start of its record (``prior_sd_m``, ``model``: the terms the
     data allow of those asked, ``reason`` where none could be formed). Under ``auto`` the model is the one its
     first camera-LiDAR pair chose (``range_terms_choice.choose_range_model``): the rig has one choice of range
-    terms, the single pair's."""
+    terms, the single pair's. ``band``: per LiDAR, the frames whose returns :func:`banded` cut, by stem."""
     out, records = [], {}
     for lv in lidar_views:
         if lv.name not in models:
@@ -78,8 +80,15 @@ def ranged_views(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frame
             labels = _lidar_labels(rig, lv.name, obs, pair_frames, solution, blurred)
             known = FrameLabels(tuple(r for r, _ in labels.values()), tuple(d for _, d in labels.values()))
             terms = terms_for(models[lv.name], known, acc) or RangeTerms((), ())
-            chosen = replace(lv, ranged={st: frame_whitener(obs[st], lv.sigma_m, terms, *labels[st]) for st in lv.W},
-                             terms=terms)
+            cut = (band or {}).get(lv.name, {})
+
+            def whitener(st):  # a frame's returns, those its band kept where it cut them
+                if st not in cut:
+                    return frame_whitener(obs[st], lv.sigma_m, terms, *labels[st])
+                kept, keep = cut[st]
+                return frame_whitener(kept, lv.sigma_m, terms, *(None if a is None else a[keep] for a in labels[st]))
+
+            chosen = replace(lv, ranged={st: whitener(st) for st in lv.W}, terms=terms)
         except (LidarcamError, np.linalg.LinAlgError) as exc:
             why = exc.message if isinstance(exc, LidarcamError) else str(exc)
             records[lv.name] = {**record, "model": "none", "reason": f"its terms could not be formed: {why}"}
@@ -109,7 +118,7 @@ def range_record(record: dict, terms: RangeTerms, values: np.ndarray, sds: np.nd
 
 def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution,
                      choices: dict, range_model: str, board_scatter: dict, range_accuracy_m: float | None,
-                     warnings: list, solve) -> tuple[list, RigSolution, dict, dict, dict]:
+                     warnings: list, solve) -> tuple[list, RigSolution, dict, dict, tuple]:
     """The joint graph with every LiDAR's range terms: one choice of them, the single pair's. ``choices``: per
     LiDAR its first camera-LiDAR pair's ``(RangeModelFit, "<camera>-<lidar>")``, whose model ``auto`` takes (its
     tests, with the per-board plane error and the boards' scatter modelled, go into the record) and whose held
@@ -118,8 +127,9 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
     squares again on the solution with the terms, blurred by its covariance: a range offset the planes absorb
     moves their placement and would shrink their term), with ``board_scatter`` (per LiDAR, m) as their pair
     weighed them; ``solve(views)`` solves the joint graph. Returns the views, the solution, per LiDAR its record,
-    the held terms' names (for :func:`with_held_share`, once every solve is done) and the model asked of each (for
-    :func:`with_placement_share`); warnings are added."""
+    the held terms' names (for :func:`with_held_share`, once every solve is done) and how its terms were placed
+    (for :func:`with_placement_share`: the model asked of each LiDAR and the returns the terms' final solve kept,
+    :func:`banded`, cut under the first solve's terms); warnings are added."""
     asked = {n: fit.chosen if range_model == "auto" else range_model for n, (fit, _) in choices.items()}
     views, records = ranged_views(rig, lidar_views, lidar_obs, pair_frames, solution, asked, range_accuracy_m)
     ranged = {lv.name for lv in views if lv.has_terms}
@@ -141,13 +151,38 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
                         "propagated into the covariance, as a single pair holds them (likely a term confounded with "
                         "the extrinsic, a wrong LiDAR segment or a board that moved; set the LiDAR's "
                         "range_accuracy_m if it is known to err more)")
+    band: dict = {}
     if ranged:
         solution = solve(views)
-        if any("dark" in lv.terms.names for lv in views if lv.has_terms):
+        band = banded(rig, [lv for lv in views if lv.name not in pins], lidar_obs, pair_frames, solution)
+        if band or any("dark" in lv.terms.names for lv in views if lv.has_terms):
             views = held_views(ranged_views(rig, views, lidar_obs, pair_frames, solution, asked, range_accuracy_m,
-                                            blurred=True)[0], pins)
+                                            blurred=True, band=band)[0], pins)
             solution = solve(views)
-    return views, solution, records, pins, asked
+    return views, solution, records, pins, (asked, band)
+
+
+def banded(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dict, solution: RigSolution) -> dict:
+    """Per LiDAR with range terms, the frames whose returns ``range_model.symmetric_band`` cuts under
+    ``solution``'s terms (its colours placed on ``solution``, blurred): by stem, the observation of the returns
+    kept and their mask (for their labels). Not for a LiDAR with a term held at 0 (the caller leaves it out): its
+    returns are not where its held terms put them."""
+    out = {}
+    for lv in (v for v in lidar_views if v.has_terms):
+        obs = lidar_obs[lv.name]
+        labels = _lidar_labels(rig, lv.name, obs, pair_frames, solution, True)
+        beta = solution.range_terms[lv.name][0]
+        cut = {}
+        for st in lv.W:
+            keep = symmetric_band(obs[st], lv.terms, beta, *labels[st])
+            if keep is not None:
+                o = obs[st]
+                kept = observe_lidar_board(o.points[keep], o.candidates)
+                cut[st] = (replace(kept, rings=None if o.rings is None else o.rings[keep],
+                                   intensity=None if o.intensity is None else o.intensity[keep]), keep)
+        if cut:
+            out[lv.name] = cut
+    return out
 
 
 def held_views(lidar_views: list, pinned: dict) -> list:
@@ -213,7 +248,7 @@ def _sensors_share(names: tuple, reference: str, inner: str, solution: RigSoluti
 
 
 def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
-                         pair_frames: dict, solution: RigSolution, models: dict, range_accuracy_m: float | None,
+                         pair_frames: dict, solution: RigSolution, placing: tuple, range_accuracy_m: float | None,
                          pinned: dict) -> tuple[RigSolution, np.ndarray | None]:
     """The black squares' placement propagated into the covariance ("consider" covariance, as for the held terms):
     the squares are placed under the estimate, itself uncertain, and placed a few millimetres off they give the
@@ -228,8 +263,9 @@ def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lida
     it: the shares are blurred by the same covariance already (the chance of black given what is known of the
     placement, Berkson's error model), so moved and blurred again they are blurred twice, and the pair's mean also
     holds the move that placing them again under the estimate itself makes, once per direction
-    (docs/range_model.md). ``models``: the range model per LiDAR, as :func:`ranged_views` takes them. Returns the
-    solution and the share (None where no LiDAR has the term)."""
+    (docs/range_model.md). ``placing``: the range model per LiDAR, as :func:`ranged_views` takes them, and the
+    returns kept (:func:`with_range_terms`). Returns the solution and the share (None where no LiDAR has it)."""
+    models, band = placing
     darkened = [lv for lv in lidar_views if lv.has_terms and "dark" in lv.terms.names
                 and "dark" not in pinned.get(lv.name, ()) and lv.name in models]
     if not darkened:
@@ -254,7 +290,7 @@ def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lida
                 T_moved = solution.T_ref[lv.name] @ T_exp(sign * np.sqrt(max(lam, 0.0)) * v)
                 moved = replace(solution, T_ref={**solution.T_ref, lv.name: T_moved})
                 views = ranged_views(rig, lidar_views, lidar_obs, pair_frames, moved, {lv.name: models[lv.name]},
-                                     range_accuracy_m, blurred=True)[0]
+                                     range_accuracy_m, blurred=True, band=band)[0]
                 again = next(w for w in views if w.name == lv.name)
                 if not again.has_terms or again.terms.names != lv.terms.names:  # the colours left no such term
                     break

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geometry.planes import cut_with_board, sqrt_excess_moment, sqrt_excess_moment_scan
+from geometry.planes import cut_with_board, plane_basis, sqrt_excess_moment, sqrt_excess_moment_scan
 from geometry.rotations import T_exp
 
 from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
@@ -413,6 +413,39 @@ def frame_design(n_points: int, terms: RangeTerms, rings: np.ndarray | None, dar
         cols.append(np.asarray(dark, dtype=float))
         rows.append(np.eye(terms.size)[terms.names.index("dark")])
     return np.column_stack(cols), np.array(rows)
+
+
+def symmetric_band(obs: LidarBoardObservation, terms: RangeTerms, beta: np.ndarray, rings: np.ndarray | None,
+                   dark: np.ndarray | None) -> np.ndarray | None:
+    """Which of a 3D board's returns to keep so that each one's range noise is cut symmetrically about its own
+    expected range under the range terms ``beta`` (None: all of them, or too few left).
+
+    The segmentation keeps a board's returns within a band of its plane along their beams (``NOISE_BAND_SIGMA``
+    robust sd), a plane fitted without the terms: a return the terms put behind it (a black square's, 1 cm) has
+    the far tail of its noise cut more than the near one, which pulls its term towards 0
+    (``bench_range_model_scenes.py --dark-bias``). Here the band is the returns' own (``h``: the largest distance
+    along a beam from the observation's plane, which the band's own plane is close to); each return's expected
+    distance ``mu`` from that plane is its terms' offset plus the frame's own plane under them (fitted to the
+    ranges less the offsets: a board's own plane error and offset stay its own), and the returns kept are those
+    within ``h - |mu|`` of it, so that every return's noise is cut at the same distance on both sides, as the
+    terms' regression takes it."""
+    if obs.is_scan_line or not terms.size:
+        return None
+    A, S = frame_design(obs.n_points, terms, rings, dark)
+    if not A.size:
+        return None
+    P = obs.points
+    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    cos = beams @ obs.plane.normal
+    cos = np.where(cos < 0, -1.0, 1.0) * np.maximum(np.abs(cos), MIN_INCIDENCE_COS)
+    r = obs.plane.signed_distances(P) / cos  # along the beam from the observation's plane, longer ranges positive
+    m = A @ (S @ np.asarray(beta, dtype=float))
+    # A plane's change moves a return's range by (dd - dn . p) / cos with dn in the plane: [1, u, v] / cos.
+    uv = (P - P.mean(0)) @ plane_basis(obs.plane.normal)
+    Z = np.column_stack([np.ones(len(P)), uv]) / cos[:, None]
+    mu = m + Z @ np.linalg.lstsq(Z, r - m, rcond=None)[0]
+    keep = np.abs(r - mu) <= np.max(np.abs(r)) - np.abs(mu)
+    return None if keep.all() or keep.sum() < max(0.9 * len(P), 10) else keep
 
 
 def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: RangeTerms | None,
