@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
 # Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
-# tests take 10-30 s each): 5.6 minutes of pytest on a clean clone at bdda50a on a 2-core machine, under the
+# tests take 10-30 s each): 7.4 minutes of pytest on a clean clone at 993696a on a 2-core machine, under the
 # budget of 8 (the same tests took 11.7-13.1 on an earlier machine of the same description; the history of this
 # figure is in the commit messages). The twenty slowest tests are listed at the end of every run.
 test: $(STAMP)
