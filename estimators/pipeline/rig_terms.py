@@ -1,5 +1,6 @@
 """A rig's LiDAR range terms: each LiDAR's model (its first camera-LiDAR pair's choice under ``auto``), its black
-squares placed on the joint board poses, the terms its pair held at 0 held here too, and its record.
+squares placed on the joint board poses, its board returns cut again symmetrically about the terms, the terms its
+pair held at 0 held here too, the placement's and the held terms' shares of the covariance, and its record.
 """
 from __future__ import annotations
 
