@@ -43,6 +43,7 @@ import numpy as np
 from geometry.planes import cut_with_board, plane_basis, sqrt_excess_moment, sqrt_excess_moment_scan
 from geometry.rotations import T_exp
 
+from ..lidar.board_segmentation import along_beams
 from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
                                    range_accuracy_for)
 from ..measurements import MIN_INCIDENCE_COS, FrameMeasurement, LidarBoardObservation
@@ -435,13 +436,12 @@ def symmetric_band(obs: LidarBoardObservation, terms: RangeTerms, beta: np.ndarr
     if not A.size:
         return None
     P = obs.points
-    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
-    cos = beams @ obs.plane.normal
-    cos = np.where(cos < 0, -1.0, 1.0) * np.maximum(np.abs(cos), MIN_INCIDENCE_COS)
-    r = obs.plane.signed_distances(P) / cos  # along the beam from the observation's plane, longer ranges positive
+    plane = obs.plane.facing_away()  # its normal away from the LiDAR: longer ranges lie on its positive side
+    r = along_beams(P, plane)  # each return's distance from it along its beam
+    cos = np.maximum(P @ plane.normal / np.linalg.norm(P, axis=1), MIN_INCIDENCE_COS)
     m = A @ (S @ np.asarray(beta, dtype=float))
     # A plane's change moves a return's range by (dd - dn . p) / cos with dn in the plane: [1, u, v] / cos.
-    uv = (P - P.mean(0)) @ plane_basis(obs.plane.normal)
+    uv = (P - P.mean(0)) @ plane_basis(plane.normal)
     Z = np.column_stack([np.ones(len(P)), uv]) / cos[:, None]
     mu = m + Z @ np.linalg.lstsq(Z, r - m, rcond=None)[0]
     keep = np.abs(r - mu) <= np.max(np.abs(r)) - np.abs(mu)
