@@ -1,5 +1,6 @@
 """Posterior sampling speed and interval coverage (make bench).
 
+Every table samples the engine's posterior (``calibrate``: the pair a rig of two sensors).
 (d) emcee on a 16-frame layout (measurement level): time to >= 2000 effective samples (target < 5 s),
     tau, effective samples per second.
 (e) Coverage of the 68% and 95% intervals over 200 measurement-level trials and 100 end-to-end trials
@@ -29,23 +30,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_refinement import fixed_layout  # noqa: E402
 
 from estimators.analysis.coverage_study import format_summary, run_study  # noqa: E402
-from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
+from estimators.io.measurement_store import Measurements  # noqa: E402
+from estimators.rig_calibration import calibrate  # noqa: E402
 from estimators.solvers.observation_model import simulate_measurements  # noqa: E402
-from estimators.solvers.posterior import PosteriorOptions, sample_posterior  # noqa: E402
-from estimators.solvers.refinement import refine  # noqa: E402
+from estimators.solvers.posterior import PosteriorOptions, region_d2  # noqa: E402
+from estimators.solvers.refinement_options import measurement_model_options  # noqa: E402
 
 
 def table_d(repeats: int = 3) -> None:
     rig, layout = fixed_layout(16, seed=4)
-    frames = simulate_measurements(layout, np.random.default_rng(5))
-    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
-    ref = refine(frames, rig.board, rig.camera, T0)
+    measured = Measurements(rig.camera, rig.board, "3d", tuple(simulate_measurements(layout, np.random.default_rng(5))))
     print("(d) posterior sampling, 16 frames, >= 2000 effective samples (target < 5 s)")
     print(f"  {'run':>4s}{'seconds':>9s}{'steps':>7s}{'walkers':>9s}{'tau max':>9s}{'ESS':>7s}{'ESS/s':>8s}"
           f"{'accept':>8s}")
     for k in range(repeats):
-        post = sample_posterior(frames, rig.board, rig.camera, ref, np.random.default_rng(k), PosteriorOptions())
-        r = post.run
+        r = calibrate(measured, rng=np.random.default_rng(k), options=measurement_model_options(),
+                      posterior=PosteriorOptions()).posterior.run
         print(f"  {k:4d}{r.seconds:9.2f}{r.chain.shape[0]:7d}{r.chain.shape[1]:9d}{np.max(r.tau):9.1f}"
               f"{r.ess:7.0f}{r.ess / r.seconds:8.0f}{r.acceptance:8.2f}")
     print()
@@ -78,7 +78,6 @@ def table_f(per_kind: int) -> None:
     """The samplers compared (module docstring, (f)) on ``per_kind`` datasets of each kind."""
     from dataclasses import replace
 
-    from estimators.calibration import solve
     from estimators.io.dataset import load_dataset
     from estimators.pipeline.measurement import measure
     from estimators.simulation.simulator import simulate_dataset
@@ -98,15 +97,15 @@ def table_f(per_kind: int) -> None:
                 m = measure(load_dataset(folder), np.random.default_rng(0))
                 runs = {}
                 for sampler in ("ensemble", "proposal"):
-                    res = solve(m, posterior=replace(PosteriorOptions(), sampler=sampler),
-                                rng=np.random.default_rng(seed))
-                    runs[sampler] = res.posterior
-                e, p = runs["ensemble"], runs["proposal"]
+                    res = calibrate(m, posterior=replace(PosteriorOptions(), sampler=sampler),
+                                    rng=np.random.default_rng(seed))
+                    runs[sampler] = (res.posterior, res.samples)
+                (e, e_xi), (p, p_xi) = runs["ensemble"], runs["proposal"]
                 if e is None or p is None:
                     print(f"  {label:24s}{seed:5d}  not sampled")
                     continue
-                sd = np.std(p.xi, axis=0) / np.std(e.xi, axis=0)
-                r = p.region_d2(0.999) / e.region_d2(0.999)
+                sd = np.std(p_xi, axis=0) / np.std(e_xi, axis=0)
+                r = region_d2(p_xi, 0.999) / region_d2(e_xi, 0.999)
                 ratios.append(np.append(sd, r))
                 print(f"  {label:24s}{seed:5d}{np.max(e.run.tau):8.1f}{np.max(p.run.tau):9.1f}{e.run.seconds:7.2f}"
                       f"{p.run.seconds:7.2f}{' '.join(f'{v:4.2f}' for v in sd):>40s}{r:12.2f}")

@@ -273,7 +273,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                   options: RefinementOptions = RefinementOptions(), cache: bool = False,
                   measurements: RigMeasurements | None = None, init: str = "closed-form",
                   params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                  likelihood: str = "gaussian", remeasure: bool = True, on_solved=None) -> RigResult:
+                  likelihood: str = "gaussian", remeasure: bool = True, on_solved=None,
+                  sampler: str = "proposal") -> RigResult:
     """Measure and solve a rig in one graph (module docstring).
 
     Parameters
@@ -295,6 +296,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     likelihood : str
         The posterior's likelihood of each frame's planes against its boards, as the single pair's
         ``--likelihood``: ``gaussian`` or ``student-t`` (4 degrees of freedom).
+    sampler : str
+        ``proposal`` (the default: mostly moves from an independence proposal at the posterior's Laplace
+        approximation) or ``ensemble`` (emcee's ensemble moves alone: slower to mix, for comparison;
+        ``PosteriorOptions.sampler``).
     range_model : str
         Each LiDAR's range model, as the single pair's ``--range-model``: ``none`` (planes), ``offset``,
         ``per-ring``, ``offset+dark``, ``full`` (the terms under priors from its range accuracy, dataset.yaml's
@@ -432,7 +437,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         result = calibrate_rig(rig, rng, workers=workers, refine_intrinsics=True, samples=samples, advise=advise,
                                range_model=range_model, edges=edges, options=options, cache=cache,
                                measurements=merged, init=init, params=params, hints=hints, likelihood=likelihood,
-                               remeasure=False, on_solved=on_solved)
+                               remeasure=False, on_solved=on_solved, sampler=sampler)
         # the solve given the measurements timed no measuring stage: this call's stages are the measuring's
         timings = dict(result.timings_s, **{k: round(v, 3) for k, v in stages.items()}, measurements=round(
             time.perf_counter() - t0 - sum(v for k, v in result.timings_s.items() if k != "measurements"), 3))
@@ -517,7 +522,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                 minimum_solver(sampled, views, lidar_views, alone_fit.with_ends, rig.board, lidar_obs),
                 lambda sol, lvs, cells: sample_rig_posterior(sol, views, lidar_views if lvs is None else lvs, rng,
                                                              min_ess=samples, likelihood=likelihood, cells=cells,
-                                                             exact_ends=alone_fit.with_ends), rng, warnings)
+                                                             exact_ends=alone_fit.with_ends,
+                                                             ensemble=sampler == "ensemble"), rng, warnings)
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges, the black squares' placement and the refined
@@ -631,13 +637,15 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
               samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> RigResult:
     """The Python API's calibration of any folder, by the engine the command line runs (:func:`calibrate_rig`): a
-    rig folder, or a pair folder (or a loaded :class:`~estimators.io.dataset.Dataset`) as the rig of ``cam0`` and
+    rig folder, or a pair folder (or a loaded :class:`~estimators.io.dataset.Dataset`, or its frames measured:
+    ``estimators.measure``'s :class:`~estimators.io.measurement_store.Measurements`) as the rig of ``cam0`` and
     ``lidar0``. Its arguments are the pair's of old (``calibration.calibrate_pair``, the pair's own solve).
 
     Parameters
     ----------
-    dataset : Dataset, RigDataset, str or Path
-        A folder, or one loaded (a Dataset's camera model, replaced in memory, is the one used).
+    dataset : Dataset, RigDataset, Measurements, str or Path
+        A folder, or one loaded (a Dataset's camera model, replaced in memory, is the one used), or a pair's frames
+        measured (solved without measuring again; frames simulated at the measurement level alike).
     init : str
         A 2D scanner's start: ``closed-form`` (for a scanner, ``minimal-lower-bound``) or ``minimal-min-residual``.
     refine : str
@@ -650,7 +658,7 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
     options : RefinementOptions
         The graph's settings; its ``range_model``, ``edges`` and ``refine_intrinsics`` are the engine's.
     posterior : PosteriorOptions or None
-        The sampler's effective samples (``min_ess``) and likelihood; None skips sampling.
+        The sampler's effective samples (``min_ess``), likelihood and sampler; None skips sampling.
     use_extent : None
         The pair's own 2D solve's option; the engine drops a scanner's minimal solutions whose segments leave the
         boards' outlines whenever the board's size is known.
@@ -668,6 +676,7 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
         for a pair folder ``result.T_camera_lidar``, ``result.covariance`` and ``result.samples`` give it directly.
     """
     from .io.dataset import Dataset
+    from .io.measurement_store import Measurements, pair_as_rig
     from .io.rig_dataset import load_rig
 
     if refine != "factor-graph":
@@ -676,12 +685,14 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
     if use_extent is not None:
         raise ValueError("use_extent is the pair's own 2D solve's option (calibration.calibrate_pair); the engine "
                          "uses the boards' outlines whenever the board's size is known")
-    rig = dataset if isinstance(dataset, RigDataset) else \
+    given = pair_as_rig(dataset) if isinstance(dataset, Measurements) else None
+    rig = dataset if isinstance(dataset, RigDataset) else RigDataset.of_measurements(dataset) if given else \
         RigDataset.of_pair(dataset) if isinstance(dataset, Dataset) else load_rig(dataset)
     if samples is None:
         samples = 0 if posterior is None else posterior.min_ess
+    sampling = posterior if posterior is not None else PosteriorOptions()
     return calibrate_rig(rig, np.random.default_rng(0) if rng is None else rng, samples=max(int(samples), 0),
                          refine_intrinsics=options.refine_intrinsics, range_model=options.range_model,
                          edges=options.edges, options=options, cache=cache, init=init, params=params,
-                         hints=pair_guess(rig, hints),
-                         likelihood=posterior.likelihood if posterior is not None else "gaussian")
+                         hints=pair_guess(rig, hints), measurements=given, likelihood=sampling.likelihood,
+                         sampler=sampling.sampler)

@@ -337,7 +337,8 @@ def test_small_hand_held_board_facing_the_rig_on_a_vlp16(tmp_path):
 def test_the_engines_record_lists_every_frame_as_measured(tmp_path, monkeypatch):
     """bench_handheld's dataset 8011, three of whose eight frames leave no board in the sweep: the engine's record
     lists all eight as the pair's does, in name order (it listed the five usable ones, and a benchmark that paired
-    them with its poses by order paired them wrong)."""
+    them with its poses by order paired them wrong); its measurements given back in memory solve to the same."""
+    from estimators.io.measurement_store import rig_as_pair
     from estimators.simulation.simulator import handheld_rig, sample_layout, write_dataset
 
     rng = np.random.default_rng(8011)
@@ -349,6 +350,10 @@ def test_the_engines_record_lists_every_frame_as_measured(tmp_path, monkeypatch)
     pair = calibrate_pair(path, samples=0, cache=True)
     assert [(f.name, f.usable) for f in engine.frames] == [(f.name, f.usable) for f in pair.frames]
     assert len(engine.frames) == 8 and sum(f.usable for f in engine.frames) == 5
+    # its frames as measured, in memory (no file read again), solve to the same estimate and covariance
+    again = calibrate(rig_as_pair(engine.measurements, engine.rig.board, "3d"), samples=0)
+    assert np.allclose(again.T_camera_lidar, engine.T_camera_lidar, rtol=0, atol=1e-9)
+    assert np.allclose(again.covariance, engine.covariance, rtol=1e-6, atol=0)
 
 
 def test_open_hall_with_3cm_noise_uses_every_frame(tmp_path):

@@ -94,6 +94,16 @@ class RigDataset:
                        range_accuracy_m=dataset.range_accuracy_m, files=tuple((f.name, f.scan) for f in dataset.frames))
         return cls(dataset.root, dataset.board, (camera, lidar), PAIR_CAMERA)
 
+    @classmethod
+    def of_measurements(cls, m) -> "RigDataset":
+        """A pair's frames measured in memory (``io.measurement_store.Measurements``: ``estimators.measure``'s, or
+        simulated ones) as the rig of ``cam0`` and ``lidar0`` their solve needs: its frames named, no files to read
+        (its report has no images to draw on)."""
+        root = Path(m.dataset or ".")
+        stems = tuple((f.name, root / f.name) for f in m.frames)
+        return cls(root, m.board, (Sensor(PAIR_CAMERA, "camera", camera=m.camera, files=stems),
+                                   Sensor(PAIR_LIDAR, "lidar", lidar=m.lidar, files=stems)), PAIR_CAMERA)
+
     def pair(self, camera: str, lidar: str, camera_model: CameraModel | None = None) -> Dataset:
         """The camera-LiDAR pair as a single-pair :class:`~estimators.io.dataset.Dataset` over the stems both
         saw (``camera_model`` replaces the camera's entry, for intrinsics calibrated from its frames)."""

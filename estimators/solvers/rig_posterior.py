@@ -511,7 +511,7 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                          rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000,
                          likelihood: str = "gaussian", nu: float = 4.0, cells: tuple = (),
-                         exact_ends: frozenset = frozenset()) -> RigPosterior:
+                         exact_ends: frozenset = frozenset(), ensemble: bool = False) -> RigPosterior:
     """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
 
     Parameters
@@ -537,6 +537,9 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         The scanners whose segment ends enter by their own likelihood, as a single pair's do (its outline sampled
         too, the walkers started about the estimate and the proposal tuned by a pilot run), not to second order
         about the estimate: a scanner of few boards, whose ends' likelihood is far from a Gaussian's.
+    ensemble : bool
+        The ensemble moves alone (``PosteriorOptions.sampler`` ``ensemble``: slower to mix, for comparison) instead
+        of the tuned independence proposal.
 
     Returns
     -------
@@ -566,7 +569,7 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
     try:
         keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior",
-                              pilot=bool(cells) or bool(ends))
+                              pilot=bool(cells) or bool(ends), ensemble=ensemble)
     except ValueError as exc:  # emcee refuses a degenerate ensemble or a chain without an autocorrelation time
         raise PosteriorSkippedError(f"the sampler refused the problem ({exc})",
                                     hint="the covariance is the graph's Laplace one") from exc
