@@ -3,16 +3,16 @@
 generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
 
 Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared one
-by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as the pipeline does (minimal
-solutions, multi-start, the segment ends in the graph, the posterior sampled about every mode). The layout's bound is
-the Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout, edges=True)`); it is
-degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per group of layouts
-(bound degenerate or not): the trials, the refusals, the answers whose truth lies inside the reported 99.9% region
-(``Posterior.region_d2``: the posterior covariance's ellipsoid about the estimate that holds 99.9% of the samples;
-with several modes, the union of each mode's own ellipsoid about its minimum; beside it the Laplace covariance's
-chi-square ellipsoid of the most probable mode), those flagged ambiguous (a second mode with at least 5% of the
-mass), those confidently wrong (outside the region and not flagged), each listed, and how often the posterior's 95%
-intervals hold the truth. Targets (issue 35): confidently wrong at most 0.2%; refusals only where the bound is
+by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as ``calibrate`` does (the engine, from
+the measured frames: minimal solutions, multi-start, the segment ends in the graph, the posterior sampled about every
+minimum). The layout's bound is the Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout,
+edges=True)`); it is degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per
+group of layouts (bound degenerate or not): the trials, the refusals (an error, or a verdict UNTRUSTED: not an
+answer), the answers whose truth lies inside the reported 99.9% region (``posterior.region_d2`` of the samples: their
+covariance's ellipsoid about the estimate that holds 99.9% of them; beside it the graph's Laplace covariance's
+chi-square ellipsoid), those flagged ambiguous (a second minimum with at least 5% of the mass), those whose verdict
+reads CHECK, those confidently wrong (outside the region with the verdict OK), each listed, and how often the
+posterior's 95% intervals hold the truth. Targets (issue 35): confidently wrong at most 0.2%; refusals only where the bound is
 degenerate; elsewhere the truth inside the region in at least 95%; the 95% intervals cover 93-97%."""
 import argparse, sys, os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -22,22 +22,27 @@ sys.path.insert(0, str(ROOT)); sys.path.insert(0, str(ROOT / "benchmarks"))
 import numpy as np
 from concurrent.futures import ProcessPoolExecutor
 import bench_2d as B
-from estimators.errors import DegenerateLayoutError, PosteriorSkippedError
-from estimators.solvers.posterior import PosteriorOptions, sample_posterior
+from estimators.errors import LidarcamError
+from estimators.io.measurement_store import Measurements
+from estimators.rig_calibration import calibrate
+from estimators.solvers.posterior import PosteriorOptions, region_d2
 from estimators.simulation.simulator import RIGS_2D
 from estimators.solvers.observation_model import cramer_rao_bound
 from estimators.solvers.refinement_options import RefinementOptions
-from estimators.solvers.solution_selection import select_and_refine
 from geometry.rotations import T_inverse, T_log
 
 LIMIT = 22.458  # chi-square, 6 dof, 99.9%
 MAX_BOUND = (5.0, 500.0)  # deg, mm: a bound beyond either is degenerate
 
 
+def _d2_of(T_hat, cov, T_true) -> float:
+    x = T_log(T_inverse(T_hat) @ T_true)
+    return float(x @ np.linalg.solve(cov, x))
+
+
 def _d2(ref, T_true) -> float:
     """The truth's squared Mahalanobis distance under a mode's Laplace covariance, in its own tangent."""
-    x = T_log(T_inverse(ref.T_camera_lidar) @ T_true)
-    return float(x @ np.linalg.solve(ref.covariance, x))
+    return _d2_of(ref.T_camera_lidar, ref.covariance, T_true)
 
 
 def _footprint_trial(seed: int, boards: int):
@@ -66,36 +71,33 @@ def one(args):
         bound = (np.inf, np.inf)
     bound = tuple(b if np.isfinite(b) else np.inf for b in bound)
     out = {"seed": seed, "bound": bound, "degenerate": bool(bound[0] >= MAX_BOUND[0] or bound[1] >= MAX_BOUND[1])}
+    options = RefinementOptions(edges=None if edges else False,
+                                **({} if corner_factor is None else {"corner_error_correlation": corner_factor}))
     try:
-        options = RefinementOptions(edges=None if edges else False,
-                                    **({} if corner_factor is None else {"corner_error_correlation": corner_factor}))
-        used, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera, options=options)
-    except DegenerateLayoutError as exc:
+        res = calibrate(Measurements(rig.camera, rig.board, "2d", tuple(frames)), rng=np.random.default_rng(seed),
+                        options=options, posterior=PosteriorOptions() if posterior else None)
+    except LidarcamError as exc:
         return {**out, "refused": True, "why": exc.problem[:140]}
-    xi = T_log(T_inverse(ref.T_camera_lidar) @ rig.T_camera_lidar)
-    # As the pipeline reports it: the posterior's covariance (every mode, by mass), the Laplace one where the
-    # posterior is not sampled.
-    cov, covered, limit = ref.covariance, None, LIMIT
-    distance = float(xi @ np.linalg.solve(cov, xi))
-    try:
-        if not posterior:
-            raise PosteriorSkippedError("--no-posterior")
-        post = sample_posterior([f for f in used if f.usable], rig.board, rig.camera, ref, np.random.default_rng(seed),
-                                PosteriorOptions(), tuple((m.refinement, m.mass) for m in modes[1:]), modes[0].mass)
-        cov, limit = post.covariance, post.region_d2(0.999)
-        distance = float(post.region_distance(xi)[0])
-        lo, hi = post.intervals(0.95).T
+    if res.verdict.level == "UNTRUSTED":  # not an answer: said first, as a refusal is
+        return {**out, "refused": True, "why": "UNTRUSTED: " + "; ".join(res.verdict.reasons)[:130]}
+    pair = res.only_pair()
+    T_laplace, C_laplace = res.solution.transform("cam0", "lidar0")
+    xi = T_log(T_inverse(pair.T) @ rig.T_camera_lidar)
+    # As the engine reports it: the posterior's covariance (every minimum, by mass) and its 99.9% region (the samples'
+    # covariance's ellipsoid about the estimate that holds 99.9% of them), the Laplace one where it is not sampled.
+    cov, limit, covered = pair.covariance, LIMIT, None
+    if pair.samples is not None:
+        limit = region_d2(pair.samples, 0.999)
+        lo, hi = pair.intervals(0.95).T
         covered = ((xi >= lo) & (xi <= hi)).tolist()
-    except PosteriorSkippedError:
-        pass
-    except DegenerateLayoutError as exc:  # the sampled mode as wide as the refinement refuses: refused
-        return {**out, "refused": True, "why": exc.problem[:140]}
+    modes = res.ambiguous_pairs.get(("cam0", "lidar0"), ())
     sd = np.sqrt(np.diag(cov))
-    return {**out, "refused": False, "masses": [m.mass for m in modes], "covered": covered,
-            "d2_modes": [float(_d2(m.refinement, rig.T_camera_lidar)) for m in modes],
-            "in_mixture": B.in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])),
-            "d2_laplace": float(xi @ np.linalg.solve(ref.covariance, xi)),
-            "d2": distance, "limit": limit,
+    return {**out, "refused": False, "masses": [m.mass for m in modes] or [1.0], "covered": covered,
+            "verdict": res.verdict.level, "d2_modes": [float(_d2(m.refinement, rig.T_camera_lidar)) for m in modes],
+            "in_mixture": (B.in_mixture(modes, rig.T_camera_lidar, np.random.default_rng([seed, 5])) if modes
+                           else _d2_of(T_laplace, C_laplace, rig.T_camera_lidar) <= LIMIT),
+            "d2_laplace": _d2_of(T_laplace, C_laplace, rig.T_camera_lidar),
+            "d2": float(xi @ np.linalg.solve(cov, xi)), "limit": limit,
             "err": (float(np.degrees(np.linalg.norm(xi[:3]))), float(1000 * np.linalg.norm(xi[3:]))),
             "sd": (float(np.degrees(sd[:3].max())), float(1000 * sd[3:].max()))}
 
@@ -129,26 +131,27 @@ def main() -> None:
     print(f"{config}, {pattern}, {a.boards} boards{'' if a.edges else ', --no-edges'}: {len(rows)} trials ({skipped} "
           "rigs without a feasible pose skipped)")
     print(f"{'bound':12s} {'trials':>6s} {'refused':>7s} {'answered':>8s} {'in 99.9%':>9s} {'(Laplace)':>9s} "
-          f"{'ambiguous':>9s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
+          f"{'ambiguous':>9s} {'CHECK':>6s} {'confidently wrong':>17s} {'95% intervals cover':>19s}")
     wrong_all = []
     for label, degenerate in (("finite", False), ("degenerate", True)):
         group = [r for r in rows if r["degenerate"] == degenerate]
         answered = [r for r in group if not r["refused"]]
         flagged = [any(m >= 0.05 for m in r["masses"][1:]) for r in answered]
+        checked = [r["verdict"] == "CHECK" for r in answered]
         inside = [r["d2"] <= r["limit"] for r in answered]
-        wrong = [r for r, f, i in zip(answered, flagged, inside) if not f and not i]
+        wrong = [r for r, i in zip(answered, inside) if r["verdict"] == "OK" and not i]
         wrong_all += wrong
         covered = [c for r in answered if r["covered"] is not None for c in r["covered"]]
         share = f"{100 * sum(inside) / len(group):.1f}%" if group else "-"
         laplace = f"{100 * sum(r['d2_laplace'] <= LIMIT for r in answered) / len(group):.1f}%" if group else "-"
         cover = f"{100 * np.mean(covered):.1f}% ({len(covered) // 6})" if covered else "-"
         print(f"{label:12s} {len(group):6d} {len(group) - len(answered):7d} {len(answered):8d} {share:>9s} "
-              f"{laplace:>9s} {sum(flagged):9d} {len(wrong):8d} ({100 * len(wrong) / max(len(rows), 1):.1f}%) "
+              f"{laplace:>9s} {sum(flagged):9d} {sum(checked):6d} {len(wrong):8d} ({100 * len(wrong) / max(len(rows), 1):.1f}%) "
               f"{cover:>19s}")
     print("(in 99.9%: share of the group's trials, refusals counted as outside, in the reported 99.9% region (the "
-          "posterior's: its covariance's ellipsoid holding 99.9% of the samples, at least the chi-square point; with "
-          "several modes, each mode's own ellipsoid, d2 from the nearest), and "
-          "under the Laplace covariance (chi-square point); 95% intervals: the share of the 6 axes' equal-tailed posterior "
+          "posterior's: its covariance's ellipsoid about the estimate holding 99.9% of the samples, at least the "
+          "chi-square point), and under the graph's Laplace covariance (chi-square point); confidently wrong: outside "
+          "the region with the verdict OK; 95% intervals: the share of the 6 axes' equal-tailed posterior "
           "intervals holding the truth, over the answers sampled (their count))")
     for r in wrong_all:
         print(f"confidently wrong: seed {r['seed']} d2 {r['d2']:.1f} (region {r['limit']:.1f}), error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, "

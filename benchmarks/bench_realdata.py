@@ -1,7 +1,8 @@
 """The recorded VLP-16 + fisheye set against its reference and against itself, and the Ouster office set
 (make bench; each skipped when absent from ../shared/realdata).
 
-Prints: closed form and factor graph against the source tool's reference extrinsic; the plane-consistency
+Every estimate is the engine's (``calibrate``, as ``lidarcam calibrate`` gives it), solved again from its
+measurements for subsets of frames. Prints: closed form and factor graph against the source tool's reference extrinsic; the plane-consistency
 statistic; the squared Mahalanobis distance between estimates from two disjoint halves (interleaved, and
 first against last); the consistency statistic with every range shifted by a constant offset; and, on both
 sets, each LiDAR plane's tilt from the camera's about the board's axes against what the points' noise allows;
@@ -23,10 +24,12 @@ from scipy.stats import chi2  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import solve  # noqa: E402
-from estimators.pipeline.measurement import measure_frames  # noqa: E402
+from estimators.io.measurement_store import Measurements, pair_as_rig  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
+from estimators.rig_calibration import calibrate, calibrate_rig  # noqa: E402
+from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
+from estimators.solvers.intrinsics_refinement import param_names  # noqa: E402
 from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, T_log, rotation_error  # noqa: E402
 
@@ -34,9 +37,24 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "acfr_vlp16
 OFFICE = DATA.parent / "acfr_ouster64_b"
 
 
-def _halves_d2(frames, ds, camera, a, b, options=RefinementOptions()):
-    ra = solve([frames[i] for i in a], ds.board, camera, options=options)
-    rb = solve([frames[i] for i in b], ds.board, camera, options=options)
+def _again(res, stems=None, frames=None, **kw):
+    """The engine (``calibrate_rig``) on ``res``'s pair folder again, from its measurements (no frame measured
+    twice): those of the frames ``stems`` only, or the frames ``frames`` (measured, then changed) instead."""
+    rig = res.rig
+    m = res.measurements if frames is None else pair_as_rig(
+        Measurements(res.cameras["cam0"], rig.board, rig.lidars[0].lidar, tuple(frames)))
+    if stems is not None:
+        m = m.restricted(stems)
+    return calibrate_rig(rig, np.random.default_rng(0), advise=False, measurements=m, **kw)
+
+
+def _consistency(res) -> tuple[float, float]:
+    """The LiDAR's boards' chi-square and its degrees of freedom in the joint graph."""
+    return res.solution.chi2_dof["lidar0"]
+
+
+def _halves_d2(res, a, b) -> float:
+    ra, rb = _again(res, stems=a), _again(res, stems=b)
     xi = T_log(T_inverse(ra.T_camera_lidar) @ rb.T_camera_lidar)
     return float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
 
@@ -64,88 +82,95 @@ def _tilts(res, frames) -> None:
     print(f"    tilt / sd: median {np.median(ratios):.1f}, largest {np.max(ratios):.1f}")
 
 
-def _recorded(path: Path):
-    """A recorded set measured (``ds, camera, frames``) and its reference extrinsic, or None (said) when absent."""
+def _recorded(path: Path, **kw):
+    """A recorded set calibrated by the engine from its folder (``calibrate``, as ``lidarcam calibrate`` does, no
+    posterior unless asked) and its reference extrinsic, or None (said) when absent."""
     if not (path / "dataset.yaml").is_file():
         print(f"recorded data: {path} is absent; skipped")
         return None
-    ds = load_dataset(path)
-    camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-    return ds, camera, frames, np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
+    kw.setdefault("samples", 0)
+    res = calibrate(path, rng=np.random.default_rng(0), **kw)
+    return res, np.array(json.loads((path / "reference.json").read_text())["T_camera_lidar"])
+
+
+def _against(T, ref) -> str:
+    return (f"{np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
+            f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm")
 
 
 def main() -> None:
     if (recorded := _recorded(DATA)) is None:
         return
-    ds, camera, frames, ref = recorded
-    print(f"recorded data: {DATA.name}, {sum(f.usable for f in frames)}/{len(frames)} frames usable")
-    for label, method, model in (("closed form", "none", "none"), ("graph, no range model", "factor-graph", "none"),
-                                 ("graph, range model auto", "factor-graph", "auto")):
-        res = solve(frames, ds.board, camera, refine=method, options=RefinementOptions(range_model=model))
-        T = res.T_camera_lidar
-        print(f"  {label:24s} against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
-              f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm")
+    res, ref = recorded
+    frames = res.frames
+    used = [f for f in frames if f.usable]
+    print(f"recorded data: {DATA.name}, {len(used)}/{len(frames)} frames usable; the engine (calibrate)")
+    closed = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used]).T_camera_lidar
+    print(f"  {'closed form':24s} against the reference: {_against(closed, ref)}")
+    for label, r in (("graph, no range model", _again(res, range_model="none")), ("graph, range model auto", res)):
+        print(f"  {label:24s} against the reference: {_against(r.T_camera_lidar, ref)}")
     print("  the LiDAR planes' tilts from the camera's (range model auto):")
     _tilts(res, frames)
-    r = res.refinement
-    fit = r.range_model
-    print(f"  range model: {fit.chosen}" + "".join(f"; {n} {1000 * v:+.1f} +- {1000 * sd:.1f} mm"
-                                                for n, v, sd in zip(fit.names, fit.values_m, fit.std_m)
-                                                if not n.startswith("ring"))
+    fit = res.range_models.get("lidar0", {})
+    terms = fit.get("terms", {})
+    print(f"  range model: {fit.get('model', 'none')}" + "".join(
+        f"; {n} {1000 * t['value_m']:+.1f} +- {1000 * t['sd_m']:.1f} mm" for n, t in terms.items()
+        if not n.startswith("ring"))
           + " (the source tool's hand correction, distance_offset_mm -30, shortens every range: +30 mm in this sign)")
-    print(f"  consistency: chi-square {r.variance_factor * r.consistency_dof:.0f} on {r.consistency_dof} dof "
-          f"(p = {r.consistency_p:.1g}); per-board plane error estimated {1000 * r.plane_floor_m:.1f} mm")
-    n = len(frames)
+    ss, dof = _consistency(res)
+    floor = res.pair_results[("cam0", "lidar0")].refinement.plane_floor_m
+    print(f"  consistency: the LiDAR's chi-square {ss:.0f} on {dof:.0f} dof (p = {chi2.sf(ss, dof):.1g}); per-board "
+          f"plane error estimated {1000 * floor:.1f} mm")
+    stems = [f.name for f in used]
+    n = len(stems)
     limit = chi2.ppf(0.99, 6)
-    for label, a, b in (("interleaved", range(0, n, 2), range(1, n, 2)),
-                        ("first/last", range(n // 2), range(n // 2, n))):
-        d2 = _halves_d2(frames, ds, camera, list(a), list(b))
+    for label, a, b in (("interleaved", stems[0::2], stems[1::2]), ("first/last", stems[:n // 2], stems[n // 2:])):
+        d2 = _halves_d2(res, a, b)
         print(f"  halves {label:12s}: squared Mahalanobis distance {d2:5.1f} (p = {chi2.sf(d2, 6):.3f}; "
               f"99% limit {limit:.1f})")
-    print("  consistency (chi-square/dof, no plane error) with every range shifted by an offset:")
-    plain = RefinementOptions(estimate_plane_floor=False, range_model="none")
+    print("  consistency (the LiDAR's chi-square/dof, no plane error) with every range shifted by an offset:")
+    plain = RefinementOptions(estimate_plane_floor=False)
     for offset in (-0.02, 0.0, 0.02, 0.035, 0.05):
         shifted = []
         for f in frames:
+            if f.lidar is None:
+                shifted.append(f)
+                continue
             P = f.lidar.points
             beams = P / np.linalg.norm(P, axis=1, keepdims=True)
             shifted.append(FrameMeasurement(f.name, f.camera, observe_lidar_board(P + offset * beams)))
-        vf = solve(shifted, ds.board, camera, options=plain).refinement.variance_factor
-        print(f"    {100 * offset:+5.1f} cm: {vf:.2f}")
+        ss, dof = _consistency(_again(res, frames=shifted, range_model="none", options=plain))
+        print(f"    {100 * offset:+5.1f} cm: {ss / dof:.2f}")
 
 
 def office() -> None:
     """The Ouster office set: frames used, how each frame's board was chosen, and the estimate against the
-    reference (angle, distance, and the reference's squared Mahalanobis distance under the estimate)."""
-    if not (OFFICE / "dataset.yaml").is_file():
-        print(f"recorded data: {OFFICE} is absent; skipped")
+    reference (angle, distance, and the reference's squared Mahalanobis distance under the estimate's posterior)."""
+    if (recorded := _recorded(OFFICE, samples=2000)) is None:
         return
-    ds = load_dataset(OFFICE)
-    timings: dict = {}
-    camera, frames, warnings = measure_frames(ds, np.random.default_rng(0), timings=timings)
-    ref = np.array(json.loads((OFFICE / "reference.json").read_text())["T_camera_lidar"])
-    res = solve(frames, ds.board, camera)
+    res, ref = recorded
+    frames = res.frames
     T = res.T_camera_lidar
     xi = T_log(T_inverse(T) @ ref)
     d2 = float(xi @ np.linalg.solve(res.covariance, xi))
     cands = [len(f.decision.candidates) for f in frames if f.decision is not None]
-    print(f"recorded data: {OFFICE.name}, {res.frames_used}/{len(frames)} frames used; candidates per frame "
+    pair = res.only_pair()
+    print(f"recorded data: {OFFICE.name}, {pair.frames}/{len(frames)} frames used; candidates per frame "
           f"{min(cands)}-{max(cands)} (median {int(np.median(cands))}); "
           f"{frames[0].decision.method if frames[0].decision else '-'}")
-    print(f"  factor-graph  against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} deg, "
-          f"{1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm; reference's squared Mahalanobis distance under "
+    print(f"  the engine against the reference: {_against(T, ref)}; reference's squared Mahalanobis distance under "
           f"the estimate {d2:.1f} (99% limit {chi2.ppf(0.99, 6):.1f})")
     print("  the LiDAR planes' tilts from the camera's:")
     _tilts(res, frames)
     away = []
-    for leave in [f.name for f in frames if f.usable]:
-        T_k = solve([f for f in frames if f.name != leave], ds.board, camera, posterior=None).T_camera_lidar
+    kept = [f.name for f in frames if f.usable]
+    for leave in kept:
+        T_k = _again(res, stems=[s for s in kept if s != leave]).T_camera_lidar
         away.append((1000 * np.linalg.norm(T_k[:3, 3] - ref[:3, 3]), leave))
     print(f"  leaving one frame out, against the reference: {min(away)[0]:.0f} mm (without {min(away)[1]}) to "
           f"{max(away)[0]:.0f} mm (without {max(away)[1]})")
-    print(f"  std of t in camera x/y/z: {np.round(res.std_translation_camera_mm, 1).tolist()} mm; LiDAR side "
-          f"{sum(timings.get(k, 0.0) for k in ('load_scans', 'static_scene', 'segmentation', 'association')):.2f} s "
-          f"CPU for {len(frames)} frames")
+    print(f"  std of t in camera x/y/z: {np.round(pair.std_translation_camera_mm, 1).tolist()} mm; measuring "
+          f"{res.timings_s.get('measurements', float('nan')):.2f} s for {len(frames)} frames")
 
 
 def rig_moved() -> None:
@@ -187,12 +212,10 @@ def rig_moved() -> None:
 def without_size() -> None:
     """Both 3D sets calibrated as given and with board.size left out of dataset.yaml (the board judged by its
     pattern's extent and margin, its border kept as far as it stays in the pattern's plane): the translation's
-    difference, and the boards' plane consistency (chi-square per dof) of each."""
+    difference, and the boards' plane consistency (the LiDAR's chi-square per dof) of each."""
     import re
     import shutil
     import tempfile
-
-    from estimators.calibration import calibrate_pair
 
     for root in (DATA, OFFICE):
         if not (root / "dataset.yaml").is_file():
@@ -202,37 +225,40 @@ def without_size() -> None:
             copy = Path(shutil.copytree(root, Path(tmp) / root.name))
             yaml = copy / "dataset.yaml"
             yaml.write_text(re.sub(r"(?m)^  size:.*\n", "", yaml.read_text()))
-            given = calibrate_pair(root, rng=np.random.default_rng(0), samples=0)
-            unknown = calibrate_pair(copy, rng=np.random.default_rng(0), samples=0)
+            given = calibrate(root, rng=np.random.default_rng(0), samples=0)
+            unknown = calibrate(copy, rng=np.random.default_rng(0), samples=0)
         dt = 1000 * (unknown.T_camera_lidar[:3, 3] - given.T_camera_lidar[:3, 3])
-        print(f"recorded data: {root.name} with board.size left out: {unknown.frames_used}/{len(unknown.frames)} "
-              f"frames used; translation {np.round(dt, 1).tolist()} mm from the sized estimate (its sd "
-              f"{np.round(given.std_translation_mm, 1).tolist()} mm); plane consistency "
-              f"{unknown.refinement.variance_factor:.2f} (sized {given.refinement.variance_factor:.2f})")
+        (su, du), (sg, dg) = _consistency(unknown), _consistency(given)
+        print(f"recorded data: {root.name} with board.size left out: {unknown.only_pair().frames}/"
+              f"{len(unknown.frames)} frames used; translation {np.round(dt, 1).tolist()} mm from the sized estimate "
+              f"(its sd {np.round(given.std_translation_mm, 1).tolist()} mm); plane consistency {su / du:.2f} "
+              f"(sized {sg / dg:.2f})")
 
 
 def intrinsics() -> None:
     """Both 3D sets with the camera's intrinsics refined with the extrinsic (no prior: the sets state no
-    uncertainty for theirs): the boards' plane-consistency variance factor under the given and the refined
-    intrinsics, how far each parameter moved in its standard deviations, and the estimate against the reference
-    (the reference's squared Mahalanobis distance under each estimate's covariance)."""
+    uncertainty for theirs): the LiDAR's boards' chi-square per dof under the given and the refined intrinsics, how
+    far each parameter moved in its standard deviations, and the estimate against the reference (the reference's
+    squared Mahalanobis distance under each estimate's covariance)."""
     for path in (DATA, OFFICE):
         if (recorded := _recorded(path)) is None:
             continue
-        ds, camera, frames, ref = recorded
+        res, ref = recorded
         print(f"recorded data: {path.name}, the camera's intrinsics refined with the extrinsic (no prior)")
-        for label, refine in (("given intrinsics", False), ("refined intrinsics", True)):
-            res = solve(frames, ds.board, camera, options=RefinementOptions(refine_intrinsics=refine))
-            T = res.T_camera_lidar
+        for label, r in (("given intrinsics", res),
+                         ("refined intrinsics", calibrate(path, rng=np.random.default_rng(0), samples=0,
+                                                          options=RefinementOptions(refine_intrinsics=True)))):
+            T = r.T_camera_lidar
             xi = T_log(T_inverse(T) @ ref)
-            d2 = float(xi @ np.linalg.solve(res.covariance, xi))
-            print(f"  {label:18s} against the reference: {np.degrees(rotation_error(T[:3, :3], ref[:3, :3])):.2f} "
-                  f"deg, {1000 * np.linalg.norm(T[:3, 3] - ref[:3, 3]):.0f} mm (reference's d2 {d2:.1f}); plane "
-                  f"consistency {res.refinement.variance_factor:.2f}; std of t in camera x/y/z "
-                  f"{np.round(res.std_translation_camera_mm, 1).tolist()} mm")
-        fit = res.intrinsics_refinement
-        print("  moved (in their sd): " + ", ".join(f"{n} {(v - g) / sd:+.1f}" for n, g, v, sd in
-                                                   zip(fit.names, fit.given_params, fit.params, fit.std)))
+            d2 = float(xi @ np.linalg.solve(r.covariance, xi))
+            ss, dof = _consistency(r)
+            print(f"  {label:18s} against the reference: {_against(T, ref)} (reference's d2 {d2:.1f}); plane "
+                  f"consistency {ss / dof:.2f}; std of t in camera x/y/z "
+                  f"{np.round(r.only_pair().std_translation_camera_mm, 1).tolist()} mm")
+        params, sd = r.solution.intrinsics["cam0"]
+        given = res.cameras["cam0"].params
+        print("  moved (in their sd): " + ", ".join(f"{n} {(v - g) / s:+.1f}" for n, g, v, s in
+                                                   zip(param_names(len(params)), given, params, sd)))
 
 
 if __name__ == "__main__":
