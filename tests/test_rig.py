@@ -1137,7 +1137,8 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
     # minima), so the rig reads CHECK naming both (from the planes alone, a rig read OK on such a folder, seed 1
     # before its segments kept their ends, with the truth at d2 199). It lands on the pair's first minimum (the
     # truth at d2 201 under its covariance), and its posterior mixes both by the pair's masses (each sampled within
-    # its own cell), so the truth is within its 99.9% region (measured: d2 15 of 33 under the mixture's covariance).
+    # its own cell), so the truth is within its 99.9% region (measured: d2 15 of 33 under the mixture's covariance;
+    # the region is the union of each minimum's own ellipsoid).
     from dataclasses import replace
 
     from estimators.simulation.simulator import simulate_dataset
@@ -1169,6 +1170,13 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
     d = pe.samples[post.mode_index == 1] - x2
     C2 = modes[1].refinement.covariance
     assert np.median(np.einsum("ij,ij->i", d, np.linalg.solve(C2, d.T).T)) < 20
+    # its region is the union of each minimum's own ellipsoid (the second's centre is that minimum, to the joint
+    # graph's precision), which holds the truth nearer than the mixture's ellipsoid does
+    assert np.all(np.abs(pe.mode_centers[1] - x2) < 0.05 * np.sqrt(np.diag(C2)))
+    assert pe.region_distance(x)[0] < x @ np.linalg.solve(pe.covariance, x) and pe.contains(truth, 0.999)
+    regions = pe.summary()["credible_regions"]
+    assert [m["posterior_mass"] for m in regions["modes"]] == list(post.mode_weights)
+    assert regions["99.9%"]["d2"] == pe.region_d2(0.999)
 
 
 def test_a_scanners_second_minimum_is_solved_with_its_ends_assigned_under_it(tmp_path):

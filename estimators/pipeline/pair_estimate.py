@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.rotations import quat_xyzw_from_R, skew
+from geometry.rotations import T_log, quat_xyzw_from_R, skew
 
 from ..solvers.closed_form import describe_direction
-from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed, regions
+from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed, mahalanobis_d2, mode_distance, region_d2, regions
 from ..solvers.rig_graph import translation_sd_in_first
 
 
@@ -31,6 +31,9 @@ class PairEstimate:
         The posterior's tangent samples (M x 6), or None.
     frames : int
         The frames the two share with the board found in both.
+    mode_index, mode_centers, mode_weights
+        Where the samples mix several minima (a 2D scanner's few boards): each sample's minimum, each minimum as a
+        tangent offset of ``T`` (K, 6) and its mass; else None, None and ().
     """
 
     a: str
@@ -39,6 +42,26 @@ class PairEstimate:
     covariance: np.ndarray | None
     samples: np.ndarray | None
     frames: int
+    mode_index: np.ndarray | None = None
+    mode_centers: np.ndarray | None = None
+    mode_weights: tuple = ()
+
+    def region_d2(self, level: float) -> float:
+        """The credible region at ``level`` (``posterior.region_d2``): ``T Exp(xi)`` with
+        :meth:`region_distance` of ``xi`` at most this; with several minima, the union of each one's own ellipsoid."""
+        return region_d2(self.samples, level, self.mode_index, self.mode_centers)
+
+    def region_distance(self, xi: np.ndarray) -> np.ndarray:
+        """The distance the credible region bounds, of tangent offsets ``xi`` (rows) of ``T``: the squared
+        Mahalanobis distance under the samples' covariance, or with several minima from the nearest one under its
+        own samples' covariance (``posterior.mode_distance``)."""
+        if self.mode_index is None:
+            return mahalanobis_d2(self.samples, np.atleast_2d(xi))
+        return mode_distance(self.samples, self.mode_index, self.mode_centers, xi)
+
+    def contains(self, T: np.ndarray, level: float) -> bool:
+        """Whether the transform ``T`` lies in the sampled credible region at ``level``."""
+        return bool(self.region_distance(T_log(np.linalg.inv(self.T) @ T))[0] <= self.region_d2(level))
 
     @property
     def T_camera_lidar(self) -> np.ndarray:
@@ -103,7 +126,7 @@ class PairEstimate:
             iv = self.intervals(level)
             out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
                                             "translation_mm": (1000 * iv[3:]).tolist()}
-        out["credible_regions"] = regions(self.samples)
+        out["credible_regions"] = regions(self.samples, self.mode_index, self.mode_centers, self.T, self.mode_weights)
         return out
 
     def inverse(self) -> "PairEstimate":
@@ -114,4 +137,6 @@ class PairEstimate:
         ad[3:, :3] = skew(t) @ R
         cov = None if self.covariance is None else ad @ self.covariance @ ad.T
         samples = None if self.samples is None else -self.samples @ ad.T
-        return PairEstimate(self.b, self.a, np.linalg.inv(self.T), cov, samples, self.frames)
+        centers = None if self.mode_centers is None else -self.mode_centers @ ad.T
+        return PairEstimate(self.b, self.a, np.linalg.inv(self.T), cov, samples, self.frames, self.mode_index, centers,
+                            self.mode_weights)

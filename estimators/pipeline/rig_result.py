@@ -105,12 +105,15 @@ class RigResult:
             if n not in names:
                 raise KeyError(f"{n!r} is not a sensor of this rig's solution ({', '.join(names)})")
         T, C = self.solution.transform(a, b)
-        samples = None
+        samples, modes = None, {}
         if self.posterior is not None:
             samples = self.posterior.pair_samples(a, b)
             C = np.cov(samples, rowvar=False)
+            if self.posterior.mode_T_ref:
+                modes = dict(mode_index=self.posterior.mode_index, mode_centers=self.posterior.mode_centers(a, b),
+                             mode_weights=self.posterior.mode_weights)
         links = self.links or {}
-        return PairEstimate(a, b, T, C, samples, int(links.get((a, b), links.get((b, a), 0))))
+        return PairEstimate(a, b, T, C, samples, int(links.get((a, b), links.get((b, a), 0))), **modes)
 
     def only_pair(self) -> PairEstimate:
         """A two-sensor rig's (a pair folder's) one camera-LiDAR pair; AttributeError for a larger rig, whose pairs

@@ -175,14 +175,25 @@ def heavy_tails(samples: np.ndarray, level: float = 0.999, what: str = "posterio
             "probabilities by that region or the samples (posterior.npz), not by the covariance alone")
 
 
-def regions(samples: np.ndarray) -> dict:
+def regions(samples: np.ndarray, index: np.ndarray | None = None, centers: np.ndarray | None = None,
+            T: np.ndarray | None = None, weights: tuple = ()) -> dict:
     """The credible regions (:func:`region_d2`) of ``samples`` at 99% and 99.9%, beside a Gaussian's, for
-    calibration.json."""
-    return {"definition": "T = T_hat * Exp(xi) with xi^T covariance^-1 xi at most d2: the covariance's ellipsoid "
-                          "about the estimate holding the level's share of the samples, never below a "
-                          "Gaussian's chi-square point",
-            **{f"{100 * level:g}%": {"d2": region_d2(samples, level), "gaussian_d2": float(chi2.ppf(level, 6))}
-               for level in (0.99, 0.999)}}
+    calibration.json; with several modes (each sample's mode ``index``, the modes' minima at tangent offsets
+    ``centers`` of the estimate ``T``, their masses ``weights``), each mode's minimum and covariance: the region is
+    the union of their ellipsoids."""
+    levels = {f"{100 * level:g}%": {"d2": region_d2(samples, level, index, centers),
+                                    "gaussian_d2": float(chi2.ppf(level, 6))} for level in (0.99, 0.999)}
+    if index is None:
+        return {"definition": "T = T_hat * Exp(xi) with xi^T covariance^-1 xi at most d2: the covariance's "
+                              "ellipsoid about the estimate holding the level's share of the samples, never below a "
+                              "Gaussian's chi-square point", **levels}
+    covs = mode_covariances(samples, index, len(centers))
+    modes = [{"T": (T @ T_exp(c)).tolist(), "posterior_mass": float(w), "covariance": C.tolist()}
+             for c, w, C in zip(centers, weights, covs)]
+    return {"definition": "T = T_mode * Exp(xi) with xi^T covariance^-1 xi at most d2 for one of the modes (each its "
+                          "minimum and the covariance of its samples): the union of the modes' ellipsoids holding the "
+                          "level's share of the samples, never below a Gaussian's chi-square point",
+            **levels, "modes": modes}
 
 
 @dataclass(frozen=True, eq=False)

@@ -53,7 +53,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from geometry.differences import central_hessian
-from geometry.rotations import local_batch, retangent_batch, retract_batch
+from geometry.rotations import T_log, local_batch, retangent_batch, retract_batch
 
 from ..errors import LidarcamError, PosteriorSkippedError
 from .board_edges import EndTerms, outline_prior_sd
@@ -95,6 +95,7 @@ class RigPosterior:
     mode_weights: tuple[float, ...] = ()
     mode_index: np.ndarray | None = None
     mixed: tuple = ()  # those pairs, ``(camera, lidar)``
+    mode_T_ref: tuple = ()  # each joint minimum's sensor poses (``T_ref``), the estimate's first
     # Each pair's samples once composed (the warnings, the record, the printout and the report all read them).
     _pairs: dict = field(default_factory=dict, repr=False)
     _sensor_T: dict = field(default_factory=dict, repr=False)
@@ -117,6 +118,13 @@ class RigPosterior:
         R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
         t_ab = np.einsum("nji,nj->ni", Ra, tb - ta)
         return local_batch(np.linalg.inv(self.T_ref[a]) @ self.T_ref[b], R_ab, t_ab)
+
+    def mode_centers(self, a: str, b: str) -> np.ndarray | None:
+        """Each joint minimum's ``T_a_b`` as a tangent offset (K, 6) of the estimate's, or None for one minimum."""
+        if not self.mode_T_ref:
+            return None
+        T = np.linalg.inv(self.T_ref[a]) @ self.T_ref[b]
+        return np.array([T_log(np.linalg.inv(T) @ np.linalg.inv(m[a]) @ m[b]) for m in self.mode_T_ref])
 
     def diagnostics(self) -> dict:
         out = {"likelihood": self.likelihood, **self.run.diagnostics(), "samples_kept": int(self.xi.shape[0])}
@@ -618,7 +626,7 @@ def mix_modes(parts: list[tuple[RigPosterior, float]], rng: np.random.Generator)
     return replace(first, xi=np.concatenate(xi), camera_scale=np.concatenate(scale),
                    range_terms={n: np.concatenate(v) for n, v in terms.items()},
                    mode_weights=tuple(float(v) for v in w / w.sum()), mode_index=np.concatenate(index),
-                   _pairs={}, _sensor_T={})
+                   mode_T_ref=tuple(dict(p.T_ref) for p, _ in parts), _pairs={}, _sensor_T={})
 
 
 def laplace_at_mode(like: RigLikelihood, cov: np.ndarray, newton_steps: int = 3) -> tuple[np.ndarray, np.ndarray]:
