@@ -73,6 +73,7 @@ def test_cli_calibrate_writes_documented_json(sim_hdl64e, tmp_path, capsys):
         assert post["xi"].shape[1] == 6 and len(post["xi"]) >= 2000
         np.testing.assert_allclose(np.cov(post["xi"], rowvar=False), cov, rtol=1e-6, atol=1e-15)
         np.testing.assert_allclose(post["T_map"], T)
+        assert post["chain"].shape[1:] == (data["posterior"]["walkers"], data["posterior"]["parameters"])
     assert data["posterior"]["effective_samples"] >= 2000 and data["posterior"]["converged"]
     for level in ("68%", "95%"):
         iv = np.array(data["intervals"][level]["translation_mm_along_lidar_xyz"])

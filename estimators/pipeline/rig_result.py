@@ -375,8 +375,9 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
     Path
         The file written (docs/reference/calibration_json.md, rigs); with a posterior, ``posterior.npz`` beside it
         first (``xi``: the samples of every sensor's pose, ``names``, ``T_ref``: the MAP poses in that order; a rig
-        of one camera and one LiDAR writes a single pair's keys, ``xi`` its camera-LiDAR transform's samples and
-        ``T_map`` its estimate, the joint ones as ``xi_joint``).
+        of one camera and one LiDAR writes a single pair's keys, ``xi`` its camera-LiDAR transform's samples,
+        ``T_map`` its estimate and ``chain``, with several minima ``mode_index`` and ``mode_centers_xi``, the joint
+        samples as ``xi_joint``).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -386,7 +387,10 @@ def write_rig_calibration(result: RigResult, out: str | Path) -> Path:
                   "reference": np.array(post.reference), "noise_scale": post.camera_scale}
         if len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1:
             pair = result.pair(result.rig.cameras[0].name, result.rig.lidars[0].name)
-            arrays.update(xi_joint=post.xi, xi=pair.samples, T_map=pair.T, convention=np.array(COVARIANCE_CONVENTION))
+            arrays.update(xi_joint=post.xi, xi=pair.samples, T_map=pair.T, convention=np.array(COVARIANCE_CONVENTION),
+                          chain=post.run.chain)
+            if pair.mode_index is not None:
+                arrays.update(mode_index=pair.mode_index, mode_centers_xi=pair.mode_centers)
         write_npz_atomic(out / "posterior.npz", arrays, compress=False)
     path = out / "calibration.json"
     write_json_atomic(path, result.to_json())
