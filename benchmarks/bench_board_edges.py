@@ -1,7 +1,7 @@
 """The board's edges as measurements (`--edges`), at the measurement level (make bench;
 `python benchmarks/bench_board_edges.py [--datasets N] [--others N] [--workers W]`).
 
-Per dataset: a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12
+Per dataset (each calibrated by the engine, ``calibrate``, from the frames as measured): a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12
 degrees from the viewing axis (planes leave the translation along the boards weak; normal spreads 0.04-0.17),
 turned within 20 degrees about their normals; or (`--others` datasets each) the same tilts with every board
 turned 35-55 degrees ("diamond", as the shared recordings hold their boards), or 10 boards whose normals lie
@@ -69,10 +69,11 @@ def _seen_by_lidar(frames: list, real, rng: np.random.Generator, **kwargs) -> li
 
 def _accuracy(args) -> dict:
     from estimators.solvers.board_edges import BEAM_SD_RAD, GROWTH_PRIOR_SD_M, OFFSET_PRIOR_SD_M
-    from estimators.solvers.closed_form import normal_spread, solve_closed_form
+    from estimators.solvers.closed_form import normal_spread
     from estimators.solvers.observation_model import cramer_rao_bound, simulate_measurements
-    from estimators.solvers.posterior import PosteriorOptions, sample_posterior
-    from estimators.solvers.refinement import refine
+    from estimators.io.measurement_store import Measurements
+    from estimators.rig_calibration import calibrate
+    from estimators.solvers.posterior import PosteriorOptions
     from estimators.solvers.refinement_options import measurement_model_options
     from geometry.rotations import T_inverse, T_log
 
@@ -89,8 +90,6 @@ def _accuracy(args) -> dict:
                                                        draw.normal(0.0, OFFSET_PRIOR_SD_M, 2)]))
     frames = _seen_by_lidar(frames, real, np.random.default_rng(seed + 10**6), azimuth_phase=True,
                             beam_sd_rad=BEAM_SD_RAD)
-    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
-                           allow_weak=True).T_camera_lidar
     normal = np.mean([f.camera.plane.normal for f in frames], axis=0)
     normal /= np.linalg.norm(normal)
     across = np.eye(3) - np.outer(normal, normal)
@@ -98,45 +97,46 @@ def _accuracy(args) -> dict:
     out = {"spread": float(normal_spread([f.camera.plane.normal for f in frames])[0][-1])}
     # The simulated beams have the edge model's footprint and pointing spread (BEAM_SD_RAD), as its bound.
     bounds = {False: cramer_rao_bound(layout), True: cramer_rao_bound(layout, edges=True)}
-    for edges in (False, True):
-        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="none",
-                                                                                         edges=edges))
-        xi = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
-        dt = ref.T_camera_lidar[:3, 3] - layout.T_camera_lidar[:3, 3]
-        test = ref.edges.get("planes_against_edges") if ref.edges else None
-        shift_p = ref.edges["mean_shift_p_value"] if ref.edges else np.nan
+    measured = Measurements(layout.camera, layout.board, "3d", tuple(frames))
+    for edges in (False, True):  # the engine on the frames as measured (calibrate), as users run it
+        sampled = edges and posterior
+        res = calibrate(measured, rng=np.random.default_rng(seed),
+                        options=measurement_model_options(range_model="none", edges=edges),
+                        posterior=PosteriorOptions(min_ess=1000) if sampled else None)
+        T, cov = res.solution.transform("cam0", "lidar0")  # the graph's (Laplace) covariance
+        record = res.edges.get("lidar0") if edges else res.outline_checks.get(("cam0", "lidar0"))
+        xi = T_log(T_inverse(T) @ layout.T_camera_lidar)
+        dt = T[:3, 3] - layout.T_camera_lidar[:3, 3]
+        test = record.get("planes_against_edges") if record else None
+        shift_p = record["mean_shift_p_value"] if record else np.nan
         out[edges] = {"rot": np.degrees(np.linalg.norm(xi[:3])), "trans": 1000 * np.linalg.norm(dt),
                       "in_plane": 1000 * np.linalg.norm(dt - normal * (normal @ dt)),
-                      "d2": float(xi @ np.linalg.solve(ref.covariance, xi)),
+                      "d2": float(xi @ np.linalg.solve(cov, xi)),
                       "rejects": bool(test and test["p_value"] < 0.01), "shift_p": shift_p,
                       "crb_rot": float(np.trace(bounds[edges][:3, :3])), "crb_tr": float(np.trace(bounds[edges][3:, 3:])),
                       "crb_in_plane": float(np.trace(across @ R @ bounds[edges][3:, 3:] @ R.T @ across)),
                       "rot_sq": float(xi[:3] @ xi[:3]), "tr_sq": float(xi[3:] @ xi[3:])}
-        if edges and posterior:
-            post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(seed),
-                                    PosteriorOptions(min_ess=1000, progress=False))
-            lo, hi = np.percentile(post.xi, [2.5, 97.5], axis=0)
+        if sampled and res.samples is not None:
+            lo, hi = np.percentile(res.samples, [2.5, 97.5], axis=0)
             out[edges]["inside"] = float(np.mean((xi >= lo) & (xi <= hi)))
     return out
 
 
 def _outline(args) -> tuple[bool, bool]:
-    from estimators.solvers.closed_form import solve_closed_form
+    from estimators.io.measurement_store import Measurements
+    from estimators.rig_calibration import calibrate
     from estimators.solvers.observation_model import simulate_measurements, with_outline_error
-    from estimators.solvers.refinement import refine
     from estimators.solvers.refinement_options import measurement_model_options
 
     error, seed, lidar, weak = args
     layout = _layout(lidar, seed, "weak" if weak else "spread")
-    board = layout.board
     real = (with_outline_error(layout, pattern_shift_m=(0.03, 0.0)) if error == "pattern 3 cm off centre" else
             with_outline_error(layout, size_error_m=0.05) if error == "board 5 cm larger than given" else layout)
     frames = _seen_by_lidar(simulate_measurements(layout, np.random.default_rng(seed)), real,
                             np.random.default_rng(seed + 5))
-    T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames],
-                           allow_weak=weak).T_camera_lidar
-    return tuple(any(w.startswith("board edges:") for w in refine(
-        frames, board, layout.camera, T0, measurement_model_options(range_model="none", edges=edges)).warnings)
+    measured = Measurements(layout.camera, layout.board, "3d", tuple(frames))
+    return tuple(any("board edges:" in w for w in calibrate(
+        measured, options=measurement_model_options(range_model="none", edges=edges), samples=0).warnings)
                  for edges in (False, True))
 
 

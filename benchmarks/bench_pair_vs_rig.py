@@ -10,12 +10,12 @@ print zeros and ratios of 1. `--refine-intrinsics`: the camera is given focal le
 (as in bench_rig_intrinsics.py), and both engines refine the intrinsics.
 
 `--scanner --poses N --samples S [--config C]`: a 2D scanner's pair folder of N boards (`simulate_dataset`, lidar
-2d, the simulator's configuration C), each engine with its posterior (S effective samples) as `lidarcam calibrate`
-runs it (segment ends by default): per folder each engine's verdict, the masses of the minima it found, and the
-truth's squared Mahalanobis distance under its reported covariance against its 99.9% region (the pair's
-`Posterior.region_d2`, with several minima each one's own ellipsoid; the rig's, the samples' covariance's ellipsoid
-about the estimate holding 99.9% of them); then the answers whose truth lies outside the region while the verdict
-reads OK (confidently wrong), per engine.
+2d, the simulator's configuration C), the rig's engine with its posterior (S effective samples) as `lidarcam
+calibrate` runs it (segment ends by default), the pair's own solve with its Laplace covariance (it draws no
+posterior): per folder each one's verdict, the masses of the minima it found, and the truth's distance against its
+99.9% region (the rig's `PairEstimate.region_d2`: the samples' covariance's ellipsoid about the estimate holding
+99.9% of them, with several minima the union of each one's own; the pair's, its covariance's chi-square ellipsoid);
+then the answers whose truth lies outside the region while the verdict reads OK (confidently wrong), per engine.
 """
 from __future__ import annotations
 
@@ -49,7 +49,6 @@ def d2(T_hat: np.ndarray, cov: np.ndarray, T: np.ndarray) -> float:
 def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> None:
     """``--scanner``: each 2D pair folder calibrated as a pair and as a rig, with the posterior (module docstring)."""
     from estimators.simulation.simulator import simulate_dataset
-    from estimators.solvers.posterior import region_d2
 
     print(f"A camera and a 2D scanner ({config} configuration), {poses} boards, as a pair and as a rig, posterior of "
           f"{samples} effective samples: {n} folders (seeds 0-{n - 1})")
@@ -63,21 +62,15 @@ def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> N
                                       rig_config=config)
             T_true = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
             try:
-                pair = calibrate_pair(folder, samples=samples)
+                pair = calibrate_pair(folder)  # the pair's own solve draws no posterior: its Laplace covariance
                 rig = calibrate_rig(load_rig(folder), np.random.default_rng(0), samples=samples, advise=False)
             except LidarcamError as exc:
                 print(f"{seed:4d}  refused: {exc.message[:100]}")
                 continue
             pe = rig.pair("cam0", "lidar0")
             x_rig = T_log(T_inverse(pe.T) @ T_true)
-            got = {"rig": (float(x_rig @ np.linalg.solve(pe.covariance, x_rig)), region_d2(pe.samples, 0.999),
-                           rig.verdict.level)}
-            x_pair = T_log(T_inverse(pair.T_camera_lidar) @ T_true)
-            post = pair.posterior
-            if post is not None:
-                got["pair"] = (float(post.region_distance(x_pair[None])[0]), post.region_d2(0.999), pair.verdict.level)
-            else:
-                got["pair"] = (d2(pair.T_camera_lidar, pair.covariance, T_true), 22.458, pair.verdict.level)
+            got = {"rig": (float(pe.region_distance(x_rig)[0]), pe.region_d2(0.999), rig.verdict.level)}
+            got["pair"] = (d2(pair.T_camera_lidar, pair.covariance, T_true), 22.458, pair.verdict.level)
             for k, (dist, limit, level) in got.items():
                 inside[k] += dist <= limit
                 if dist > limit and level == "OK":

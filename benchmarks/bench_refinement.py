@@ -1,14 +1,17 @@
 """Refinement against the Cramer-Rao bound (make bench).
 
 (a) Measurement level: one fixed 8-frame layout, corner pixels and beam ranges drawn from exactly the
-    Gaussian model the bound assumes; both noise levels are estimated from the data, as in use. The factor graph
-    on the planes alone against the planes' bound, and as it runs by default (the board's edges in, where the
-    board's size is known) against the bound with the edges.
-(b) End to end: the same layout rendered and ray-cast anew for every draw, then the whole pipeline
-    (corner detection, board segmentation, closed form, factor graph with its default noise model).
+    Gaussian model the bound assumes; both noise levels are estimated from the data, as in use. The engine
+    (``calibrate`` on the frames as measured, its joint graph's covariance) on the planes alone against the
+    planes' bound, and as it runs by default (the board's edges in, where the board's size is known) against the
+    bound with the edges.
+(b) End to end: the same layout rendered and ray-cast anew for every draw, then the whole pipeline as
+    ``calibrate`` runs it (corner detection, board segmentation, closed form, the engine's joint graph with its
+    default noise model, its posterior's covariance).
     The bound uses the detector's effective pixel noise, estimated from the spread of the PnP board
     poses against the truth (larger than the per-corner scatter: corner errors correlate in a board).
-(c) Time of the refinement alone: 16 frames with 20k board points each, measurements already made.
+(c) Time of the engine's solve alone (``calibrate`` from measured frames, no posterior): 16 frames with 20k board
+    points each.
 (d) The effective corner noise over varied layouts (8 boards sampled anew for every draw, rendered and
     calibrated end to end): over the board's plane, against the corner residual, which is the pipeline's
     CORNER_ERROR_CORRELATION, with a bootstrap interval over the draws, and the truth's mean d2. The ratio in (b)
@@ -37,8 +40,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimators.calibration import calibrate_pair, solve  # noqa: E402
+from estimators.calibration import solve  # noqa: E402
 from estimators.io.dataset import load_dataset  # noqa: E402
+from estimators.io.measurement_store import Measurements  # noqa: E402
 from estimators.measurements import FrameMeasurement, observe_lidar_board  # noqa: E402
 from estimators.simulation.simulator import (  # noqa: E402
     default_rig,
@@ -52,8 +56,8 @@ from estimators.solvers.closed_form import solve_closed_form  # noqa: E402
 from estimators.solvers.factors import corner_residuals  # noqa: E402
 from estimators.solvers.observation_model import Layout, cramer_rao_bound, simulate_measurements  # noqa: E402
 from estimators.solvers.noise_levels import corner_residual_px  # noqa: E402
-from estimators.solvers.refinement import refine  # noqa: E402
 from estimators.solvers.refinement_options import CORNER_ERROR_CORRELATION, measurement_model_options  # noqa: E402
+from estimators.rig_calibration import calibrate  # noqa: E402
 from geometry.rotations import T_from_Rt, T_inverse, T_log, transform_points  # noqa: E402
 
 LAYOUT_SEED = 3
@@ -82,10 +86,11 @@ def _trial_a(args):
     frames = simulate_measurements(layout, rng, azimuth_phase=True, beam_sd_rad=BEAM_SD_RAD)
     cf = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
     out = [_xi(cf, layout.T_camera_lidar)]
-    for edges in (False, None):
-        ref = refine(frames, layout.board, layout.camera, cf, measurement_model_options(edges=edges))
-        xi = _xi(ref.T_camera_lidar, layout.T_camera_lidar)
-        out += [xi, float(xi @ np.linalg.solve(ref.covariance, xi))]
+    measured = Measurements(layout.camera, layout.board, "3d", tuple(frames))
+    for edges in (False, None):  # the engine from the frames as measured (calibrate), its graph's covariance
+        res = calibrate(measured, options=measurement_model_options(edges=edges), samples=0)
+        xi = _xi(res.T_camera_lidar, layout.T_camera_lidar)
+        out += [xi, float(xi @ np.linalg.solve(res.covariance, xi))]
     return tuple(out)
 
 
@@ -101,9 +106,10 @@ def _trial_b(args):
     with tempfile.TemporaryDirectory() as tmp:
         frames = simulate_frames(rig, len(poses), rng, poses=poses)
         ds = load_dataset(write_dataset(Path(tmp) / "ds", rig, frames))
-        res = calibrate_pair(ds, rng=np.random.default_rng(seed))
+        res = calibrate(ds, rng=np.random.default_rng(seed))  # the engine, with its posterior, as users run it
     used = [f for f in res.frames if f.usable]
-    cf = solve(list(res.frames), rig.board, res.camera, refine="none").T_camera_lidar
+    camera = res.cameras["cam0"]
+    cf = solve(list(res.frames), rig.board, camera, refine="none").T_camera_lidar
     # PnP board-pose errors against the truth, in units of the unit-noise covariance (J^T J)^-1: over the
     # whole pose (6 dof) and over its plane (rotation about the board's x and y, translation along its
     # normal: 3 dof, the part the LiDAR planes see).
@@ -118,7 +124,7 @@ def _trial_b(args):
         C = np.linalg.inv(J.T @ J)[np.ix_(plane, plane)]
         plane_terms.append(float(xi[plane] @ np.linalg.solve(C, xi[plane])))
     xi = _xi(res.T_camera_lidar, rig.T_camera_lidar)
-    model = res.refinement.range_model.chosen if res.refinement.range_model is not None else "none"
+    model = res.range_models.get("lidar0", {}).get("model", "none")
     return (_xi(cf, rig.T_camera_lidar), xi, float(xi @ np.linalg.solve(res.covariance, xi)), pose_terms,
             corner_residual_px(used, rig.board, rig.camera), len(used), plane_terms, res.covariance, model)
 
@@ -238,13 +244,13 @@ def table_c(repeats: int = 20) -> None:
         beams = P / np.linalg.norm(P, axis=1, keepdims=True)
         dense.append(FrameMeasurement(f.name, f.camera,
                                       observe_lidar_board(P + beams * rng.normal(0, RANGE_NOISE_M, (len(P), 1)))))
-    T0 = solve_closed_form([f.camera.plane for f in dense], [f.lidar.plane for f in dense]).T_camera_lidar
+    measured = Measurements(rig.camera, rig.board, "3d", tuple(dense))
     times = []
-    for _ in range(repeats):
+    for _ in range(repeats):  # the engine's whole solve from the measurements (closed form to covariance)
         t0 = time.perf_counter()
-        refine(dense, rig.board, rig.camera, T0)
+        calibrate(measured, samples=0)
         times.append(time.perf_counter() - t0)
-    print("(c) refinement time, measurements already made (target < 50 ms)")
+    print("(c) the engine's solve, measurements already made, no posterior (target < 1 s)")
     print(f"  {'frames':>8s}{'points/board':>14s}{'median ms':>11s}{'min ms':>9s}")
     print(f"  {16:8d}{20000:14d}{1000 * np.median(times):11.1f}{1000 * np.min(times):9.1f}")
     print()

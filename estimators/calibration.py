@@ -14,7 +14,7 @@ from threadpoolctl import threadpool_limits
 from geometry.camera import CameraModel
 
 from .camera.board_pose import reobserve_frames
-from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
+from .errors import DatasetError, DegenerateLayoutError, LidarcamError
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir
 from .lidar.board_segmentation import SegmentationParams
@@ -24,8 +24,7 @@ from .pipeline.result import CalibrationResult
 from .pipeline.verdict import frame_disagrees, plane_residuals
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import intrinsics_drop, refine_intrinsics
-from .solvers.posterior import Posterior, PosteriorOptions, sample_posterior
-from .solvers.refinement import Refinement
+from .solvers.posterior import PosteriorOptions
 from .solvers.refinement import refine as refine_graph
 from .solvers.refinement_options import RefinementOptions
 
@@ -39,13 +38,13 @@ EXIT_AMBIGUOUS = 3
 def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", refine: str = "factor-graph",
                    rng: np.random.Generator | None = None, params: SegmentationParams = SegmentationParams(),
                    options: RefinementOptions = RefinementOptions(),
-                   posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
+                   posterior: PosteriorOptions | None = None, use_extent: bool | None = None,
                    samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> CalibrationResult:
-    """The pair's own solve of a dataset: ``T_camera_lidar``, its covariance and posterior (``estimators.calibrate``
-    gives the engine's, which starts from this).
+    """The pair's own solve of a dataset: ``T_camera_lidar`` and its Laplace covariance (``estimators.calibrate``
+    gives the engine's, which starts from this, with its posterior).
 
     Measures every frame (the board in each image and scan), solves in closed form (3D) or by the minimal
-    solutions (2D), refines in the factor graph and samples the posterior.
+    solutions (2D) and refines in the factor graph.
 
     Parameters
     ----------
@@ -57,18 +56,18 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     refine : str
         ``factor-graph`` or ``none`` (the initial solution, without covariance).
     rng : numpy.random.Generator, optional
-        Drives the board segmentation's RANSAC and the MCMC; a fixed seed when None, so runs repeat.
+        Drives the board segmentation's RANSAC; a fixed seed when None, so runs repeat.
     params : SegmentationParams
         The LiDAR board segmentation's settings.
     options : RefinementOptions
         The factor graph's noise, robust loss, range model and edges.
-    posterior : PosteriorOptions or None
-        The sampler's settings; None skips sampling (the covariance is then the Laplace one).
+    posterior : None
+        The posterior is the engine's (``estimators.calibrate``); a request here is refused (:func:`_no_posterior`).
     use_extent : bool, optional
         2D only: drop minimal solutions whose laser segments leave the boards' outlines (default: when the board
         size is known).
     samples : int, optional
-        Effective posterior samples to draw (0: none); overrides ``posterior``'s.
+        0 or None: the engine samples the posterior.
     hints : Hints
         An initial guess and a region of interest, for scenes beyond automation.
     cache : bool
@@ -77,7 +76,7 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     Returns
     -------
     CalibrationResult
-        The estimate, its covariance and posterior, every frame's measurements and the warnings.
+        The estimate, its covariance, every frame's measurements and the warnings.
 
     Raises
     ------
@@ -89,14 +88,13 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     Examples
     --------
     >>> import estimators as lc
-    >>> result = lc.calibrate_pair(lc.simulate("/tmp/sim", n_poses=8, seed=1), samples=500)  # doctest: +SKIP
+    >>> result = lc.calibrate_pair(lc.simulate("/tmp/sim", n_poses=8, seed=1))  # doctest: +SKIP
     >>> result.std_rotation_deg, result.std_translation_mm  # doctest: +SKIP
     """
     _check_methods(init, refine)
+    _no_posterior(posterior, samples)
     if not isinstance(dataset, Dataset):
         dataset = load_dataset(dataset)
-    if samples is not None:
-        posterior = None if samples <= 0 else replace(posterior or PosteriorOptions(), min_ess=int(samples))
     if dataset.lidar == "3d" and init != "closed-form":
         raise DatasetError(f"init {init!r} is for 2D LiDAR datasets", path=dataset.yaml_path,
                            hint="use --init closed-form for lidar: 3d")
@@ -112,12 +110,9 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     if m.source == "cache":
         warnings.append(f"measurements taken from the cache ({cache_dir() / m.key[:16]}...): images and scans were "
                         "not read again")
-    # With the intrinsics refined, the first solve only refines them (the LiDAR side is measured again below).
-    first_only = options.refine_intrinsics and refine == "factor-graph"
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
-                       warnings=warnings, timings=timings, posterior=None if first_only else posterior, rng=rng,
-                       use_extent=use_extent)
+                       warnings=warnings, timings=timings, use_extent=use_extent)
         if result.intrinsics_refinement is not None:
             # The LiDAR's boards were chosen under the given intrinsics (each frame's board points taken in the
             # band of the camera's plane): measured again under the refined ones, the camera side observed under
@@ -130,7 +125,7 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
             timings["measure_again"] = time.perf_counter() - t0
             result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                            warnings=warnings + [w for w in again.warnings if w not in warnings], timings=timings,
-                           posterior=posterior, rng=rng, use_extent=use_extent)
+                           use_extent=use_extent)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -160,7 +155,8 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
           name: str = "", warnings: list[str] | None = None, timings: dict | None = None,
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
           use_extent: bool | None = None, samples: int | None = None) -> CalibrationResult:
-    """The solver stage alone, on measured frames: initial solution, factor graph and posterior.
+    """The pair's own solver stage alone, on measured frames: initial solution and factor graph (the posterior is
+    the engine's: ``estimators.calibrate`` takes measured frames too).
 
     Parameters
     ----------
@@ -181,14 +177,14 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         Warnings from measuring, carried into the result.
     timings : dict, optional
         Stage times (s) so far, carried into the result.
-    posterior : PosteriorOptions, optional
-        The sampler's settings; None (default) draws no samples unless ``samples`` asks.
+    posterior : None
+        The posterior is the engine's (``estimators.calibrate`` takes measured frames); a request here is refused.
     rng : numpy.random.Generator, optional
-        Drives the MCMC (a fixed seed when None).
-    use_extent : bool, optional
-        As for :func:`calibrate`.
+        Unused: the pair's own solve draws nothing at random.
     samples : int, optional
-        Effective posterior samples to draw; needs the factor graph.
+        0 or None (a request for samples is refused, as ``posterior``).
+    use_extent : bool, optional
+        As for :func:`calibrate_pair`.
 
     Returns
     -------
@@ -202,7 +198,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     Examples
     --------
     >>> m = lc.measure("/tmp/sim")                                           # doctest: +SKIP
-    >>> a = lc.solve(m, refine="none"); b = lc.solve(m, samples=1000)        # doctest: +SKIP
+    >>> a = lc.solve(m, refine="none"); b = lc.solve(m)                      # doctest: +SKIP
     """
     if isinstance(frames, Measurements):
         m = frames
@@ -211,12 +207,10 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         return replace(result, measurements_source=m.source)
     if board is None or camera is None:
         raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
-    if samples is not None:
-        posterior = None if samples <= 0 else replace(posterior or PosteriorOptions(), min_ess=int(samples))
+    _no_posterior(posterior, samples)
     _check_methods(init, refine)
     if options.refine_intrinsics and refine == "factor-graph":
-        return _solve_with_intrinsics(frames, board, camera, init, options, name, warnings, timings, posterior, rng,
-                                      use_extent)
+        return _solve_with_intrinsics(frames, board, camera, init, options, name, warnings, timings, use_extent)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
@@ -225,8 +219,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         raise LidarcamError(f"init {init!r} is for 2D LiDAR datasets; these frames hold a 3D LiDAR's boards",
                             hint="use init closed-form")
     if scan_lines or init.startswith("minimal"):
-        return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, posterior, rng,
-                         use_extent)
+        return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, use_extent)
     t0 = time.perf_counter()
     # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
     # what the full model determines (and names what it does not).
@@ -247,7 +240,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings
-    tail = []  # the warnings that follow the posterior's
+    tail = []  # the warnings after the refinement's
     if sol.condition_number > 10:
         axis, advice = describe_direction(sol.weakest_direction_camera)
         tail.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
@@ -262,11 +255,9 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     check = None
     if ref is not None and options.checks:  # do the intrinsics explain the planes' disagreement? (two solves)
         check = intrinsics_drop(used, board, camera, ref, options)
-    result = CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
-                               sol.weakest_direction_camera, name, tuple(warnings + tail),
-                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None,
-                               intrinsics_check=check)
-    return _with_posterior(result, used, board, camera, rng, posterior, (), warnings, tail, timings)
+    return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
+                             sol.weakest_direction_camera, name, tuple(warnings + tail),
+                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, intrinsics_check=check)
 
 
 # Joint solves of the intrinsics at most (each followed by a refinement whose plane error weights the next).
@@ -274,27 +265,25 @@ INTRINSICS_ROUNDS = 3
 
 
 def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, options: RefinementOptions, name: str,
-                           warnings, timings, posterior, rng, use_extent) -> CalibrationResult:
+                           warnings, timings, use_extent) -> CalibrationResult:
     """:func:`solve` with the intrinsics refined (``solvers.intrinsics_refinement``): solved under the given
     intrinsics, then with them as variables, then, the boards observed again under the refined intrinsics, solved
-    (and sampled) under those."""
+    under those."""
     plain = replace(options, refine_intrinsics=False)
     t0 = time.perf_counter()
-    first = solve(frames, board, camera, init, "factor-graph", plain, name, list(warnings or []), None, None, rng,
-                  use_extent)
+    first = solve(frames, board, camera, init, "factor-graph", plain, name, list(warnings or []), use_extent=use_extent)
     timings = {} if timings is None else timings
     ref, floor = first.refinement, options.plane_floor_m or 0.0
     for _ in range(INTRINSICS_ROUNDS):
         fit = refine_intrinsics(list(first.frames), board, camera, ref, plain, floor)
         again = reobserve_frames(frames, board, fit.camera)
-        ref = solve(again, board, fit.camera, init, "factor-graph", plain, name, [], None, None, rng,
-                    use_extent).refinement
+        ref = solve(again, board, fit.camera, init, "factor-graph", plain, name, [], use_extent=use_extent).refinement
         if abs(ref.plane_floor_m - floor) <= max(0.1 * floor, 1e-4):  # the plane error settled (0.1 mm)
             break
         floor = ref.plane_floor_m
     timings["intrinsics_refinement"] = time.perf_counter() - t0
-    result = solve(again, board, fit.camera, init, "factor-graph", plain, name, warnings, timings, posterior, rng,
-                   use_extent)
+    result = solve(again, board, fit.camera, init, "factor-graph", plain, name, warnings, timings,
+                   use_extent=use_extent)
     ref = result.refinement
     fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
                   corner_residual_given_px=float(first.refinement.corner_residual_px),
@@ -315,40 +304,15 @@ def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, option
     return replace(result, intrinsics_refinement=fit, warnings=warned)
 
 
-def _with_posterior(result: CalibrationResult, used, board, camera: CameraModel, rng, options: PosteriorOptions | None,
-                    modes: tuple, head: list[str], tail: list[str], timings: dict) -> CalibrationResult:
-    """``result`` with its posterior sampled (when refined and ``options`` are given), the posterior's warnings
-    between ``head`` and ``tail``."""
-    if result.refinement is None or options is None:
-        return result
-    t0 = time.perf_counter()
-    notes: list[str] = []
-    post = _posterior_or_warning(used, board, camera, result.refinement, rng, options, modes, notes)
-    timings["posterior"] = time.perf_counter() - t0
-    return replace(result, posterior=post, warnings=tuple(head + notes + tail),
-                   timings_s={k: round(v, 4) for k, v in timings.items()})
-
-
-def _posterior_or_warning(used, board, camera: CameraModel, ref: Refinement, rng, options: PosteriorOptions,
-                          modes: tuple, warnings: list[str]) -> Posterior | None:
-    """Posterior samples, or None with the reason among the warnings (a nearly degenerate problem)."""
-    try:
-        post = sample_posterior(used, board, camera, ref, np.random.default_rng(0) if rng is None else rng,
-                                options, tuple((m.refinement, m.mass) for m in modes[1:]),
-                                modes[0].mass if modes else 1.0)
-    except PosteriorSkippedError as exc:
-        warnings.append(f"posterior not sampled: {exc.message}")
-        return None
-    warnings.extend(post.warnings)
-    heavy = post.heavy_tails()
-    if heavy is not None:
-        warnings.append(heavy)
-    return post
+def _no_posterior(posterior: PosteriorOptions | None, samples: int | None) -> None:
+    """The pair's own solve draws no posterior: a request for one is refused with where it is (the engine's)."""
+    if posterior is not None or (samples or 0) > 0:
+        raise ValueError("the pair's own solve draws no posterior: the engine samples it (estimators.calibrate("
+                         "dataset or measurements, samples=N), as lidarcam calibrate does)")
 
 
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,
               options: RefinementOptions, name: str, warnings: list[str], timings: dict,
-              posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
               use_extent: bool | None = None) -> CalibrationResult:
     """2D LiDAR: candidates from the minimal solutions of all board triples (``solution_selection``), each
     refined by the factor graph; the least refined cost wins, and near-equal distinct minima are reported."""
@@ -391,7 +355,5 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
                             "calibration.json); add boards tilted in other directions to decide")
     residuals = plane_residuals(T, used)
     tail = [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
-    result = CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
-                               {k: round(v, 4) for k, v in timings.items()}, residuals, ref, None, sel,
-                               tuple(modes))
-    return _with_posterior(result, used, board, camera, rng, posterior, tuple(modes), warnings, tail, timings)
+    return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
+                             {k: round(v, 4) for k, v in timings.items()}, residuals, ref, sel, tuple(modes))

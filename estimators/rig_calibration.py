@@ -636,10 +636,10 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
               params: SegmentationParams = SegmentationParams(), options: RefinementOptions = RefinementOptions(),
               posterior: PosteriorOptions | None = PosteriorOptions(), use_extent: bool | None = None,
               samples: int | None = None, hints: Hints = Hints(), cache: bool = False) -> RigResult:
-    """The Python API's calibration of any folder, by the engine the command line runs (:func:`calibrate_rig`): a
-    rig folder, or a pair folder (or a loaded :class:`~estimators.io.dataset.Dataset`, or its frames measured:
-    ``estimators.measure``'s :class:`~estimators.io.measurement_store.Measurements`) as the rig of ``cam0`` and
-    ``lidar0``. Its arguments are the pair's of old (``calibration.calibrate_pair``, the pair's own solve).
+    """The Python API's calibration, by the engine the command line runs (:func:`calibrate_rig`): a rig folder, or a
+    pair folder (a loaded :class:`~estimators.io.dataset.Dataset`, or its frames measured: ``measure``'s
+    :class:`~estimators.io.measurement_store.Measurements`) as the rig of ``cam0`` and ``lidar0``. Its arguments
+    are the pair's own solve's (``calibrate_pair``).
 
     Parameters
     ----------

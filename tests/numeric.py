@@ -1,7 +1,10 @@
-"""Finite-difference helpers shared by the tests."""
+"""Finite-difference helpers shared by the tests, and a pair refinement's likelihood and samples of it."""
 from __future__ import annotations
 
 import numpy as np
+
+from estimators.errors import LidarcamError
+from estimators.solvers.rig_posterior import pair_likelihood
 
 
 def likelihood_hessian(model, h: float = 1e-5) -> np.ndarray:
@@ -22,3 +25,29 @@ def likelihood_gradient(model, h: float = 1e-7) -> np.ndarray:
         return -model(np.append(x, 0.0)[None])[0]
 
     return np.array([(f(e) - f(-e)) / (2 * h) for e in np.eye(6) * h])
+
+
+def rig_likelihood(ref, likelihood: str = "gaussian", nu: float = 4.0, cells=None, cell: int = 0):
+    """A pair refinement's likelihood (``refinement.Refinement``) as the engine samples a pair's: the rig's over the
+    views its graph was built from (``rig_posterior.pair_likelihood``), its range terms held at their estimate, its
+    edges' share as a quadratic, a 2D scan's segment ends by their own likelihood; within mode ``cell`` of ``cells``
+    when given."""
+    rm = ref.range_model
+    lidar = ref.views[1]
+    least = 2 if ref.end_terms is not None and lidar.scan_line else 3  # scan lines with their segment ends: 2
+    if len(lidar.W) < least:
+        raise LidarcamError(f"only {len(lidar.W)} frame(s) left for the posterior; it needs at least {least}")
+    return pair_likelihood(ref.T_camera_lidar, ref.covariance, ref.T_camera_board, ref.views,
+                           np.asarray(rm.values_m) if rm is not None and rm.terms is not None else None,
+                           ref.edge_share, likelihood, nu, ref.end_terms, cells, cell)
+
+
+def sampled(ref, rng: np.random.Generator, min_ess: int, pilot: bool = False, likelihood: str = "gaussian"):
+    """Samples of a pair refinement's likelihood (:func:`rig_likelihood`) by the engine's chain
+    (``rig_posterior.run_chain``; ``pilot`` for a 2D scan's, as the engine runs it): the extrinsic's tangent
+    samples (M, 6), the chain, the likelihood and the camera side's noise scale per sample."""
+    from estimators.solvers.rig_posterior import run_chain
+
+    model = rig_likelihood(ref, likelihood)
+    keep, run = run_chain(model, ref.covariance, rng, min_ess, 40000, pilot=pilot)
+    return keep[:, :6], run, model, np.exp(keep[:, -1])

@@ -268,15 +268,16 @@ def test_layout_analysis_of_a_2d_result_predicts_its_covariance():
 
 
 def test_2d_posterior_agrees_with_the_laplace_covariance():
-    """The sampled posterior of a well-determined 2D calibration is close to Gaussian: its standard deviations
-    are within 20% of the factor graph's Laplace ones on every axis."""
-    from estimators.solvers.posterior import PosteriorOptions
+    """The engine's sampled posterior of a well-determined 2D calibration (``calibrate`` on the frames as
+    measured) is close to Gaussian: its standard deviations are within 20% of its joint graph's Laplace ones on
+    every axis."""
+    from estimators import Measurements, PosteriorOptions, calibrate
     from estimators.solvers.refinement_options import measurement_model_options
 
     rig, frames = _measured_2d(0, 6)
-    result = solve(frames, rig.board, rig.camera, options=measurement_model_options(),
-                   posterior=PosteriorOptions(min_ess=800), rng=np.random.default_rng(1))
-    ratio = np.sqrt(np.diag(np.cov(result.posterior.xi.T)) / np.diag(result.refinement.covariance))
+    res = calibrate(Measurements(rig.camera, rig.board, "2d", tuple(frames)), options=measurement_model_options(),
+                    posterior=PosteriorOptions(min_ess=800), rng=np.random.default_rng(1))
+    ratio = np.sqrt(np.diag(res.covariance) / np.diag(res.solution.transform("cam0", "lidar0")[1]))
     assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
 
 

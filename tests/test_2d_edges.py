@@ -143,7 +143,7 @@ def test_the_posterior_evaluates_the_ends_as_the_factor_does():
     sampled exactly (4 more parameters: the outline; and the range noise's scale) has standard deviations within
     0.8-1.25 of the Laplace ones. The range noise's scale ``r`` is sampled as a variance estimated from the
     lines' residuals is known: ``log r`` about 0 with standard deviation ``1 / sqrt(2 nu)`` (within 25%)."""
-    from estimators.solvers.posterior import PosteriorOptions, rig_likelihood, sample_posterior
+    from .numeric import rig_likelihood, sampled
 
     rig, frames = _frames(5, n=6)
     ref = refine(frames, rig.board, rig.camera, rig.T_camera_lidar)
@@ -169,40 +169,14 @@ def test_the_posterior_evaluates_the_ends_as_the_factor_does():
     wild = np.zeros((3, model.ndim))
     wild[0, -1], wild[1, -1], wild[2, model.r_column[model.scans[0]]] = 26.7, -30.0, 2.5
     assert np.all(model(wild) == -np.inf) and np.isfinite(model(np.zeros((1, model.ndim))))
-    post = sample_posterior(frames, rig.board, rig.camera, ref, np.random.default_rng(1), PosteriorOptions(min_ess=600))
-    ratio = np.sqrt(np.diag(post.covariance) / np.diag(ref.covariance))
+    xi, run, *_ = sampled(ref, np.random.default_rng(1), 600, pilot=True)  # the engine's chain, as for a scanner
+    ratio = np.sqrt(np.diag(np.cov(xi, rowvar=False)) / np.diag(ref.covariance))
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
-    log_r = post.run.samples[:, model.r_column[model.scans[0]]]
+    log_r = run.samples[:, model.r_column[model.scans[0]]]
     nu = model.scan_fit[model.scans[0]][1] + model.rows.sum()  # the lines' own residuals and the frames' rows
     assert 20 < nu < 1000
     assert abs(np.median(log_r)) < 3 / np.sqrt(2 * nu)
     assert abs(np.std(log_r) * np.sqrt(2 * nu) - 1) < 0.25
-
-
-def test_a_two_mode_posterior_covers_both_modes():
-    """Two refined minima of one 3-board layout (planes alone: the mixing is what is tested), far apart (squared
-    Mahalanobis distance about 700), given masses 0.7 and 0.3: each is sampled from its own start within its cell
-    and the samples mixed by mass (30% of them the second's, which lie about it), and the 95% interval along the
-    axis that separates them spans both."""
-    from estimators.solvers.posterior import PosteriorOptions, sample_posterior
-    from estimators.solvers.solution_selection import select_minimal
-
-    rig, frames = _frames(4)
-    sel = select_minimal(frames, rig.board)
-    first, second = (refine(frames, rig.board, rig.camera, c.T_camera_lidar, RefinementOptions(edges=False))
-                     for c in sel.candidates + sel.reserve)
-    post = sample_posterior(frames, rig.board, rig.camera, first, np.random.default_rng(2), PosteriorOptions(min_ess=300),
-                            other_modes=((second, 0.3),), mass=0.7)
-    np.testing.assert_allclose(post.mode_weights, [0.7, 0.3], atol=1e-12)
-    x2 = T_log(T_inverse(first.T_camera_lidar) @ second.T_camera_lidar)
-    C1, C2 = first.covariance, second.covariance
-    assert x2 @ np.linalg.solve(C1, x2) > 100  # well apart
-    assert abs(np.mean(post.mode_index == 1) - 0.3) < 0.01
-    theirs = post.xi[post.mode_index == 1] - x2
-    assert np.median(np.einsum("ij,ij->i", theirs, np.linalg.solve(C2, theirs.T).T)) < 20  # about the second
-    k = int(np.argmax(np.abs(x2) / np.sqrt(np.diag(C1))))
-    lo, hi = post.intervals(0.95)[k]
-    assert lo <= min(0.0, x2[k]) and hi >= max(0.0, x2[k])
 
 
 def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_exits_non_zero(capsys):

@@ -1,5 +1,5 @@
-"""The emcee posterior: the sampler on a known Gaussian, and the calibration posterior against the Laplace
-approximation on a linear-Gaussian-like layout (measurement level, fixed seeds)."""
+"""The emcee posterior: the sampler on a known Gaussian, the engine's posterior against the Laplace approximation on
+a linear-Gaussian-like layout (measurement level, fixed seeds), and the credible regions read from samples."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,13 +9,15 @@ from estimators.simulation.simulator import default_rig, sample_board_poses
 from geometry.rotations import T_exp, T_log
 from estimators.solvers.closed_form import solve_closed_form
 from estimators.solvers.observation_model import Layout, simulate_measurements
-from estimators.solvers.posterior import (Posterior, PosteriorOptions, rig_likelihood,
-                                          sample_posterior)
+from estimators.io.measurement_store import Measurements
+from estimators.pipeline.pair_estimate import PairEstimate
+from estimators.rig_calibration import calibrate
+from estimators.solvers.posterior import PosteriorOptions, heavy_tails
 from estimators.solvers.sampler import run_ensemble
 from estimators.solvers.refinement import refine
 from estimators.solvers.refinement_options import measurement_model_options
 
-from .numeric import likelihood_gradient, likelihood_hessian
+from .numeric import likelihood_gradient, likelihood_hessian, rig_likelihood
 
 
 def _known_gaussian(seed=0, dim=7):
@@ -140,31 +142,32 @@ def test_posterior_log_density_peaks_at_the_map_with_the_laplace_curvature(measu
 
 @pytest.mark.parametrize("likelihood", ["gaussian", "student-t"])
 def test_calibration_posterior_matches_the_laplace_approximation(measured, likelihood):
-    """Near-linear and Gaussian: centred on the MAP, with the Laplace covariance up to the sampled
-    camera-noise scale s (which scales part of each frame's noise, so the standard deviations lie between
-    the Laplace ones and s times them), within the sampling error."""
-    layout, frames, ref = measured
-    post = sample_posterior(frames, layout.board, layout.camera, ref, np.random.default_rng(3),
-                            PosteriorOptions(likelihood=likelihood))
-    assert post.xi.shape[1] == 6 and post.run.converged
-    sd = np.sqrt(np.diag(ref.covariance))
-    ratio = np.sqrt(np.diag(post.covariance)) / sd
-    s = float(np.median(post.scale))
+    """The engine's posterior (``calibrate`` on the frames as measured), near-linear and Gaussian: centred on the
+    MAP, with the joint graph's Laplace covariance up to the sampled camera-noise scale s (which scales part of each
+    frame's noise, so the standard deviations lie between the Laplace ones and s times them), within the sampling
+    error."""
+    layout, frames, _ = measured
+    res = calibrate(Measurements(layout.camera, layout.board, "3d", tuple(frames)), rng=np.random.default_rng(3),
+                    options=measurement_model_options(), posterior=PosteriorOptions(likelihood=likelihood))
+    pair = res.only_pair()
+    assert pair.samples.shape[1] == 6 and res.posterior.run.converged
+    sd = np.sqrt(np.diag(res.solution.transform("cam0", "lidar0")[1]))
+    ratio = np.sqrt(np.diag(pair.covariance)) / sd
+    s = float(np.median(res.posterior.camera_scale))
     assert 0.6 < s < 1.6, s  # the independent-corner model is the true one here
     # Student-t (nu = 4) frames have variance nu / (nu - 2) times their scale: wider by up to sqrt(2).
     widen = 1.0 if likelihood == "gaussian" else np.sqrt(4.0 / 2.0)
     assert np.all((ratio > min(1.0, s) - 0.12) & (ratio < widen * max(1.0, s) + 0.12)), (ratio, s)
     # The Gaussian posterior is centred on the (Gaussian) MAP; the Student-t one weighs frames differently,
     # so its centre may move by a fraction of a standard deviation.
-    assert np.abs(post.xi.mean(0) / sd).max() < (0.2 if likelihood == "gaussian" else 0.6)
-    iv = post.intervals(0.95)
+    assert np.abs(pair.samples.mean(0) / sd).max() < (0.2 if likelihood == "gaussian" else 0.6)
+    iv = pair.intervals(0.95)
     assert np.all(iv[:, 0] < 0) and np.all(iv[:, 1] > 0)
-    summary = post.summary()
-    assert set(summary) == {"68%", "95%"}
+    assert {"68%", "95%", "credible_regions"} <= set(pair.summary())
 
 
-def _posterior_of(xi: np.ndarray) -> Posterior:
-    return Posterior(np.eye(4), xi, np.ones(len(xi)), None, "gaussian")
+def _posterior_of(xi: np.ndarray, **modes) -> PairEstimate:
+    return PairEstimate("cam0", "lidar0", np.eye(4), np.cov(xi, rowvar=False), xi, 8, **modes)
 
 
 def test_credible_region_is_the_gaussian_one_for_gaussian_samples_and_holds_heavy_tails():
@@ -175,17 +178,17 @@ def test_credible_region_is_the_gaussian_one_for_gaussian_samples_and_holds_heav
     gauss = _posterior_of(z @ A.T)
     # 400k independent draws: the 99.9% quantile of chi-square(6) (22.46) within 3%; never below it.
     assert 22.458 <= gauss.region_d2(0.999) < 1.03 * 22.458
-    assert abs(gauss.region_d2(0.99) - 16.81) < 0.03 * 16.81 + 1e-9 and gauss.heavy_tails() is None
+    assert abs(gauss.region_d2(0.99) - 16.81) < 0.03 * 16.81 + 1e-9 and heavy_tails(gauss.samples) is None
     # Multivariate Student-t, 4 dof: xi = z / sqrt(w / 4), w ~ chi-square(4), covariance 2 A A^T. Under the
     # covariance, d2 = (6 / 2) F(6, 4): its 99.9% point is 3 x 53.44 = 160.3 (F table), far beyond 22.46.
     w = rng.chisquare(4, n)
     heavy = _posterior_of((z / np.sqrt(w / 4)[:, None]) @ A.T)
     assert 0.85 * 160.3 < heavy.region_d2(0.999) < 1.15 * 160.3
-    assert "heavier than a Gaussian" in heavy.heavy_tails()
+    assert "heavier than a Gaussian" in heavy_tails(heavy.samples)
     # The region holds its share of fresh draws from the same distribution (coverage, 0.1% +- 0.03%).
     w2 = rng.chisquare(4, n)
     fresh = (rng.normal(size=(n, 6)) / np.sqrt(w2 / 4)[:, None]) @ A.T
-    outside = np.mean(heavy.d2(fresh) > heavy.region_d2(0.999))
+    outside = np.mean(heavy.region_distance(fresh) > heavy.region_d2(0.999))
     assert 0.0005 < outside < 0.0016
     # contains() on a pose: the MAP itself is in, a pose far along the tail is not.
     assert heavy.contains(np.eye(4), 0.999)
@@ -205,8 +208,8 @@ def test_credible_region_of_a_two_mode_mixture_holds_the_minor_mode():
         xi[:m] += np.array([0.0, 0.0, 0.0, 0.25, 0.0, 0.0])
         post = _posterior_of(xi)
         minor = np.array([0.0, 0.0, 0.0, 0.25, 0.0, 0.0])
-        assert post.d2(minor)[0] > 22.458
-        assert bool(post.d2(minor)[0] <= post.region_d2(0.999)) is inside
+        assert post.region_distance(minor)[0] > 22.458
+        assert bool(post.region_distance(minor)[0] <= post.region_d2(0.999)) is inside
 
 
 def test_credible_region_of_modes_is_each_modes_own_ellipsoid():
@@ -228,16 +231,16 @@ def test_credible_region_of_modes_is_each_modes_own_ellipsoid():
         return xi + np.where(index[:, None] == 1, centre, 0.0), index
 
     xi, index = draw(200_000)
-    post = Posterior(np.eye(4), xi, np.ones(len(xi)), None, "gaussian", (), (0.97, 0.03), index,
-                     np.array([np.zeros(6), centre]))
+    post = _posterior_of(xi, mode_index=index, mode_centers=np.array([np.zeros(6), centre]),
+                         mode_weights=(0.97, 0.03))
     truth = centre + np.array([3 * sd_minor[0], 0.0, 0.0, 0.0, 0.0, 0.0])
     mixture = _posterior_of(xi)
-    assert mixture.d2(truth)[0] > mixture.region_d2(0.999)  # the mixture's ellipsoid: outside
+    assert mixture.region_distance(truth)[0] > mixture.region_d2(0.999)  # the mixture's ellipsoid: outside
     assert abs(post.region_distance(truth)[0] - 9.0) < 0.5 and post.region_d2(0.999) < 25.0
     assert post.contains(T_exp(truth), 0.999)
     fresh, _ = draw(200_000)
     outside = np.mean(post.region_distance(fresh) > post.region_d2(0.999))
     assert 0.0006 < outside < 0.0014
-    region = post.regions()
+    region = post.summary()["credible_regions"]
     assert len(region["modes"]) == 2 and region["99.9%"]["d2"] >= 22.458
-    np.testing.assert_allclose(T_log(np.array(region["modes"][1]["T_camera_lidar"])), centre, atol=1e-12)
+    np.testing.assert_allclose(T_log(np.array(region["modes"][1]["T"])), centre, atol=1e-12)

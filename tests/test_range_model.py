@@ -218,7 +218,7 @@ def test_end_to_end_simulation_with_injected_range_errors_recovers_them(tmp_path
 def test_posterior_with_a_range_offset_has_the_marginal_laplace_covariance():
     """The posterior's likelihood holds the offset at its estimate; its curvature at the MAP plus the offset's
     share (convolved into the samples) is the graph's marginal covariance."""
-    from estimators.solvers.posterior import rig_likelihood
+    from .numeric import rig_likelihood
 
     layout, frames = _frames(800, 0.03)
     ref = _refine(layout, frames, "offset")

@@ -10,7 +10,6 @@ from scipy.stats import chi2
 from estimators.calibration import solve
 from estimators.pipeline.measurement import measure_frames
 from estimators.io.dataset import load_dataset
-from estimators.solvers.posterior import PosteriorOptions
 from estimators.solvers.refinement_options import RefinementOptions
 from geometry.rotations import T_inverse, T_log, rotation_error
 
@@ -112,7 +111,7 @@ def test_recorded_ouster_office_uses_every_frame_and_explains_its_reference(oust
     reference beside them (d2 about 24: the edges move the estimate away from the reference along camera y, as
     the issue that made them the default reports)."""
     ds, camera, frames = ouster
-    result = solve(frames, ds.board, camera, posterior=PosteriorOptions(min_ess=500), name=str(OUSTER))
+    result = solve(frames, ds.board, camera, name=str(OUSTER))
     assert result.frames_used == len(ds.frames) == 11, [f.reason for f in frames if not f.usable]
     for f in frames:
         chosen = f.decision.candidates[f.decision.chosen]
@@ -176,7 +175,7 @@ def test_recorded_2d_set_is_explained_as_degenerate_without_a_hint():
     from estimators.errors import DegenerateLayoutError
 
     with pytest.raises(DegenerateLayoutError) as exc:
-        calibrate_pair(load_dataset(RPG), samples=300)
+        calibrate_pair(load_dataset(RPG))
     assert "unobservable" in exc.value.message
     # its rig (cam0 and lidar0) says the same, naming the pair and the frame it skipped
     from estimators.io.rig_dataset import load_rig

@@ -1075,35 +1075,36 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
 
 
 def test_a_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(tmp_path):
-    # One likelihood: the rig's posterior samples the camera side's noise scale s as the single pair's does (its
-    # corners' covariance and the boards' plane error times s^2, the board poses integrated out). On an 8-pose pair
+    # One likelihood: the rig's posterior samples the camera side's noise scale s as the likelihood of the pair solved
+    # alone (its refinement's views, sampled by the same chain: tests/numeric.sampled) does (its corners' covariance
+    # and the boards' plane error times s^2, the board poses integrated out). On an 8-pose pair
     # whose planes leave s uncertain, both posteriors are wider than the Laplace covariance (by 2-6% per axis; the
     # rig's, at the graph's scales alone, was 0.98-1.00 of it), and they agree: every standard deviation within 4%
     # (each from about 6,000 effective samples: 1.3% apart by chance; measured within 1.8%) and s's 5%, 50% and 95%
     # points within 5%; with --likelihood student-t, 22-31% wider than Laplace, every sd within 5%.
     from estimators.calibration import calibrate_pair
     from estimators.simulation.simulator import simulate_dataset
-    from estimators.solvers.posterior import PosteriorOptions
+
+    from .numeric import sampled
 
     folder = simulate_dataset(tmp_path / "pair", n_poses=8, seed=3)
-    pair = calibrate_pair(folder, samples=4000, options=RefinementOptions(edges=False))
+    pair = calibrate_pair(folder, options=RefinementOptions(edges=False)).refinement
     res = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=4000)
-    laplace = np.sqrt(np.diag(pair.refinement.covariance))
-    sd_pair = np.std(pair.posterior.xi, axis=0)
+    laplace = np.sqrt(np.diag(pair.covariance))
+    xi_pair, _, _, scale_pair = sampled(pair, np.random.default_rng(1), 4000)
+    sd_pair = np.std(xi_pair, axis=0)
     sd_rig = np.std(res.pair("cam0", "lidar0").samples, axis=0)
     assert np.mean(sd_pair / laplace) > 1.02 and np.mean(sd_rig / laplace) > 1.02
     np.testing.assert_allclose(sd_rig, sd_pair, rtol=0.04)
     q = [5, 50, 95]
-    np.testing.assert_allclose(np.percentile(res.posterior.camera_scale, q), np.percentile(pair.posterior.scale, q),
-                               rtol=0.05)
+    np.testing.assert_allclose(np.percentile(res.posterior.camera_scale, q), np.percentile(scale_pair, q), rtol=0.05)
     # --likelihood student-t (4 dof on each frame's planes against its board) alike, as a pair and as a rig
-    t_pair = calibrate_pair(folder, samples=4000, options=RefinementOptions(edges=False),
-                       posterior=PosteriorOptions(likelihood="student-t", min_ess=4000))
+    xi_t, *_ = sampled(pair, np.random.default_rng(2), 4000, likelihood="student-t")
     t_rig = calibrate_rig(load_rig(folder), np.random.default_rng(0), advise=False, edges=False, samples=4000,
                           measurements=res.measurements, likelihood="student-t")
     assert t_rig.posterior.diagnostics()["likelihood"] == "student-t"
     sd_t = np.std(t_rig.pair("cam0", "lidar0").samples, axis=0)
-    np.testing.assert_allclose(sd_t, np.std(t_pair.posterior.xi, axis=0), rtol=0.05)  # measured: within 3.1%
+    np.testing.assert_allclose(sd_t, np.std(xi_t, axis=0), rtol=0.05)  # measured: within 3.1%
     assert np.max(np.abs(sd_t / sd_rig - 1)) > 0.02  # not the Gaussian's
 
 
@@ -1112,14 +1113,14 @@ def test_a_2d_pair_folders_posterior_is_the_same_as_a_pair_and_as_a_rig(sim_2d, 
     # camera side's s (the lines' own residuals in r's likelihood, flat prior on log r): planes alone, 8 parameters
     # for the rig, and every standard deviation within 4% of the pair's (measured within 2% on three sets).
     from estimators.calibration import calibrate_pair
-    from estimators.solvers.posterior import PosteriorOptions
 
-    pair = calibrate_pair(sim_2d, samples=4000, options=RefinementOptions(edges=False),
-                     posterior=PosteriorOptions(min_ess=4000))
+    from .numeric import sampled
+
+    pair = calibrate_pair(sim_2d, options=RefinementOptions(edges=False)).refinement
     res = calibrate_rig(load_rig(sim_2d), np.random.default_rng(0), advise=False, edges=False, samples=4000)
     assert res.posterior.diagnostics()["parameters"] == 8
-    np.testing.assert_allclose(np.std(res.pair("cam0", "lidar0").samples, axis=0), np.std(pair.posterior.xi, axis=0),
-                               rtol=0.04)
+    xi_pair, *_ = sampled(pair, np.random.default_rng(1), 4000, pilot=True)
+    np.testing.assert_allclose(np.std(res.pair("cam0", "lidar0").samples, axis=0), np.std(xi_pair, axis=0), rtol=0.04)
     # Its report, as a single pair's, has the chain's traces: the pose's tangent first and log s last (r between)
     from estimators.analysis.rig_report import write_rig_report
 
@@ -1269,6 +1270,7 @@ def test_a_posterior_the_sampler_refuses_is_said_and_the_graphs_covariance_stand
     res = calibrate_rig(load_rig(sim_2d), np.random.default_rng(0), advise=False, samples=200)
     assert res.posterior is None
     assert any("the rig's posterior was not sampled (the sampler refused the problem" in w for w in res.warnings)
+    assert any(r.startswith("the posterior was not sampled") for r in res.verdict.reasons), res.verdict
     T, C = res.solution.transform("cam0", "lidar0")
     np.testing.assert_allclose(res.pair("cam0", "lidar0").covariance, C)
 

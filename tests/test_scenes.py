@@ -20,7 +20,7 @@ from estimators.lidar.static_scene import build_static_scene
 from estimators.measurements import observe_lidar_board
 from estimators.simulation.simulator import default_rig, default_rig_2d, simulate_dataset, simulate_frames
 from estimators.solvers.association import associate
-from estimators.solvers.posterior import unsampled_reason
+from estimators.solvers.rig_posterior import unsampled_reason
 from geometry.planes import Plane
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, transform_points
 
@@ -276,7 +276,7 @@ def _check_dataset(path, min_hit_share: float = 0.4):
     ds = load_dataset(path)
     truth = np.array(json.loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
     masks = np.load(path / "ground_truth_board_points.npz")
-    result = calibrate_pair(ds, samples=300)
+    result = calibrate_pair(ds)
     full = max(int(masks[n].sum()) for n in masks.files)
     for f, fr in zip(result.frames, ds.frames):
         if ds.lidar == "2d":
@@ -373,14 +373,12 @@ def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(t
     deviations of the truth."""
     path = simulate_dataset(tmp_path / "h2d", n_poses=8, seed=1, lidar="2d", scene="office")
     ds = load_dataset(path)
-    result = calibrate_pair(ds, samples=300)
+    engine = calibrate(ds, samples=300)
     truth = np.array(json.loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
-    assert result.posterior is not None and result.frames_used >= 6
-    xi = T_log(T_inverse(result.T_camera_lidar) @ truth)
-    assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(result.covariance))), xi
-    assert all(f.decision.method.startswith("consensus") for f in result.frames if f.decision is not None)
-    engine = calibrate(ds, samples=0)
-    assert [(f.name, f.usable) for f in engine.frames] == [(f.name, f.usable) for f in result.frames]
+    assert engine.posterior is not None and engine.only_pair().frames >= 6
+    xi = T_log(T_inverse(engine.T_camera_lidar) @ truth)
+    assert np.all(np.abs(xi) < 4 * np.sqrt(np.diag(engine.covariance))), xi
+    assert all(f.decision.method.startswith("consensus") for f in engine.frames if f.decision is not None)
     report = engine.report(tmp_path / "out")
     assert (tmp_path / "out" / "board_choice_lidar0_0000.png").is_file() and "Which LiDAR points" in report.read_text()
 

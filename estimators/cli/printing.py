@@ -1,9 +1,12 @@
-"""What the command line prints of a result: a pair's estimate, noise, range terms, edges and posterior; a rig's,
-each camera-LiDAR pair's intervals as a single pair's (``PairEstimate``)."""
+"""What the command line prints of a result: the pair's own solve's estimate, noise, range terms and edges
+(``--refine none``, the closed form alone); a rig's (every calibration's), with each camera-LiDAR pair's intervals
+(``PairEstimate``)."""
 from __future__ import annotations
 
 
 def print_result(result, truth=None) -> None:
+    """The pair's own solve without its refinement (``--refine none``): the closed form (or a 2D scanner's minimal
+    solution) and each frame, no covariance."""
     import numpy as np
 
     T = result.T_camera_lidar
@@ -18,31 +21,6 @@ def print_result(result, truth=None) -> None:
             _print_frame(f)
         else:
             _print_skipped(f.name, f.reason)
-    if result.covariance is not None:
-        ref = result.refinement
-        kind = "posterior" if result.posterior is not None else "Laplace"
-        print(f"standard deviations ({kind}; GTSAM tangent, about/along the LiDAR's x y z):")
-        print("  rotation    " + "  ".join(f"{v:7.3f}" for v in result.std_rotation_deg) + "  deg")
-        print("  translation " + "  ".join(f"{v:7.2f}" for v in result.std_translation_mm) + "  mm")
-        print("  t in camera " + "  ".join(f"{v:7.2f}" for v in result.std_translation_camera_mm) + "  mm")
-        _print_weakest("  weakest: ", result.pair().weakest_translation())
-        noise = {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
-                 "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m}
-        print("noise: " + noise_words(noise) + f"; plane consistency {ref.variance_factor:.2f} "
-              f"(chi-square/dof, {ref.consistency_dof:g} dof, p = {ref.consistency_p:.2g})")
-        _print_range_model(ref.range_model)
-        _print_edges(ref.edges)
-        _print_intrinsics(result.intrinsics_refinement)
-    if result.posterior is not None:
-        post = result.posterior
-        print(f"posterior ({post.run.words(post.likelihood)}); "
-              f"99.9% region: squared Mahalanobis distance up to {post.region_d2(0.999):.1f} under the covariance "
-              + ("(a Gaussian's 22.5)" if post.mode_index is None else
-                 f"of the nearest of its {len(post.mode_weights)} modes (each its own; a Gaussian's 22.5)"))
-        from ..solvers.posterior import INTERVAL_LEVELS
-
-        for level in INTERVAL_LEVELS:
-            _print_intervals(result.pair(), level)
     if truth is not None:
         print_truth(T, result.covariance, truth)
     for w in result.warnings:
@@ -118,18 +96,6 @@ def _print_intervals(p, level: float, indent: str = "  ", axes: str = "") -> Non
     print(" " * len(head) + "translation " + "  ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in 1000 * iv[3:]) + " mm")
 
 
-def _print_intrinsics(fit) -> None:
-    if fit is None:
-        return
-    verdict = "lowers" if fit.lowers_overdispersion else "does not lower"
-    print(f"intrinsics refined ({'with the given param_std as prior' if fit.prior_sd is not None else 'no prior'}): "
-          f"plane consistency {fit.variance_factor_given:.2f} under the given intrinsics, "
-          f"{fit.variance_factor_refined:.2f} refined ({verdict} the overdispersion, F test p = "
-          f"{fit.overdispersion_p:.2g}); corner residual "
-          f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px")
-    _print_params(fit.given_params, fit.params, fit.std)
-
-
 def _print_params(given, refined, sd, indent: str = "  ") -> None:
     """Intrinsics ``[fx, fy, cx, cy, dist...]`` given and refined, each with its standard deviation and how many
     of them it moved (a single pair's and each camera of a rig's)."""
@@ -165,40 +131,19 @@ def _print_edges(edges, name: str = "", indent: str = "") -> None:
               f"{test['p_value']:.2g})")
 
 
-def _print_range_model(fit) -> None:
-    import numpy as np
-
-    if fit is None:
-        return
-    print(f"LiDAR range model: {fit.chosen} ({fit.reason})")
-    if not fit.names:
-        return
-    rings = [(n, v, s) for n, v, s in zip(fit.names, fit.values_m, fit.std_m) if n.startswith("ring")]
-    for n, v, s in zip(fit.names, fit.values_m, fit.std_m):
-        if not n.startswith("ring"):
-            print(f"  {n:8s} {1000 * v:+7.1f} +- {1000 * s:.1f} mm")
-    if rings:
-        vals = np.array([v for _, v, _ in rings])
-        print(f"  per-ring offsets: {len(rings)} rings, spread (sd) {1000 * vals.std():.1f} mm, range "
-              f"{1000 * vals.min():+.1f} to {1000 * vals.max():+.1f} mm (all in calibration.json)")
-    for n, v in zip(fit.pinned, fit.pinned_values_m):
-        print(f"  {n}: estimated {1000 * v:+.1f} mm, beyond {1000 * fit.range_accuracy_m:.0f} mm x 3: held at 0 with "
-              "its prior variance in the covariance")
-    if fit.offset_translation_correlation:
-        print("  correlation of the offset with the translation along the LiDAR's x y z: "
-              + "  ".join(f"{c:+.2f}" for c in fit.offset_translation_correlation))
-    if fit.confounding:
-        c = fit.confounding
-        print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f})")
-        if c.get("separating_pose"):
-            sp = c["separating_pose"]
-            x, y, z = sp["board_centre_camera_m"]
-            nx, ny, nz = sp["board_normal_camera"]
-            now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
-            print(f"  the pose that best separates them: board centre at camera ({x:+.2f}, {y:+.2f}, {z:.2f}) m, "
-                  f"normal ({nx:+.2f}, {ny:+.2f}, {nz:+.2f}); translation sd along the LiDAR's x y z, predicted from "
-                  "the point and corner noise alone (as lidarcam layout does), "
-                  + " ".join(f"{v:.1f}" for v in now) + " -> " + " ".join(f"{v:.1f}" for v in then) + " mm")
+def _print_confounding(c: dict, whose: str) -> None:
+    """A range term confounded with the extrinsic (``RangeModelFit.confounding``), and the board pose that best
+    separates them where one was found."""
+    print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f}{whose})")
+    if c.get("separating_pose"):
+        sp = c["separating_pose"]
+        x, y, z = sp["board_centre_camera_m"]
+        nx, ny, nz = sp["board_normal_camera"]
+        now, then = (sp["predicted_translation_std_mm_with_offset"][k] for k in ("now", "with_this_pose"))
+        print(f"  the pose that best separates them: board centre at camera ({x:+.2f}, {y:+.2f}, {z:.2f}) m, "
+              f"normal ({nx:+.2f}, {ny:+.2f}, {nz:+.2f}); translation sd along the LiDAR's x y z, predicted from "
+              "the point and corner noise alone (as lidarcam layout does), "
+              + " ".join(f"{v:.1f}" for v in now) + " -> " + " ".join(f"{v:.1f}" for v in then) + " mm")
 
 
 def print_rig(result) -> None:
@@ -296,9 +241,7 @@ def _print_pair_of_two(result) -> None:
     link = (result.pair_results or {}).get((cam, lid))
     fit = link.refinement.range_model if link is not None and link.refinement is not None else None
     if fit is not None and fit.confounding:
-        c = fit.confounding
-        print(f"  confounded: the {c['term']} with {c['direction']} (correlation {c['correlation']:.2f}, the pair "
-              "solved alone)")
+        _print_confounding(fit.confounding, ", the pair solved alone")
 
 
 def source_words(source: str) -> str:

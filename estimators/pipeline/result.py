@@ -10,11 +10,10 @@ import numpy as np
 from geometry.camera import CameraModel
 
 from .. import __version__
-from ..io.output import write_json_atomic, write_npz_atomic
+from ..io.output import write_json_atomic
 from ..measurements import FrameMeasurement
 from ..solvers.closed_form import describe_direction
 from ..solvers.intrinsics_refinement import IntrinsicsFit
-from ..solvers.posterior import Posterior
 from ..solvers.edges_in_graph import conflict_words
 from ..solvers.refinement import Refinement
 from .pair_estimate import PairEstimate
@@ -37,8 +36,9 @@ COVARIANCE_CONVENTION = ("6x6 covariance of xi = [rotation (rad); translation (m
 class CalibrationResult:
     """The estimate and everything a reader needs to judge it; frames keep their measurements.
 
-    ``covariance``, ``samples``, ``std_rotation_deg``, ``std_translation_mm`` and ``diagnostics`` are derived from
-    these; ``report(out)`` writes ``report.html`` and ``to_dict()`` gives ``calibration.json``'s content.
+    ``covariance`` (the factor graph's Laplace one: the pair's own solve draws no posterior, the engine does),
+    ``std_rotation_deg``, ``std_translation_mm`` and ``diagnostics`` are derived from these; ``to_dict()`` gives
+    ``calibration.json``'s content.
 
     Attributes
     ----------
@@ -64,8 +64,6 @@ class CalibrationResult:
         Per frame: the normal angle (rad) and distance (m) between the camera's and the LiDAR's plane.
     refinement : Refinement or None
         The factor graph's solution and Laplace covariance.
-    posterior : Posterior or None
-        The posterior samples and their summary.
     selection : MinimalSelection or None
         2D: how the minimal solutions were chosen.
     modes : tuple
@@ -89,7 +87,6 @@ class CalibrationResult:
     timings_s: dict = field(default_factory=dict)
     plane_residuals: dict = field(default_factory=dict)  # name -> (normal angle rad, distance m)
     refinement: Refinement | None = None
-    posterior: Posterior | None = None
     selection: MinimalSelection | None = None  # 2D LiDAR: how the minimal solutions were chosen
     # 2D LiDAR: the refined minima that hold posterior mass (``solution_selection.Mode``), the chosen one first;
     # more than one means the data do not decide between them.
@@ -105,25 +102,14 @@ class CalibrationResult:
     @property
     def covariance(self) -> np.ndarray | None:
         """6x6 covariance in GTSAM's right tangent (``T_true = T_hat Exp(xi)``, ``xi = [rot; trans]``): the
-        posterior samples' when sampled, else the Laplace one (the factor graph's marginal)."""
-        if self.posterior is not None:
-            return self.posterior.covariance
-        return self.covariance_laplace
-
-    @property
-    def samples(self) -> np.ndarray | None:
-        """Posterior samples (M x 6) of the tangent offset ``xi`` (``T_true = T_hat Exp(xi)``), or None."""
-        return None if self.posterior is None else self.posterior.xi
+        factor graph's Laplace one (its marginal); None without the refinement."""
+        return None if self.refinement is None else self.refinement.covariance
 
     @property
     def diagnostics(self) -> dict:
-        """Noise levels, consistency test, MCMC diagnostics and timings, as written to calibration.json."""
+        """Noise levels, consistency test and timings, as written to calibration.json."""
         d = self.to_dict()
-        return {k: d[k] for k in ("noise", "consistency", "posterior", "timings_s", "warnings") if k in d}
-
-    @property
-    def covariance_laplace(self) -> np.ndarray | None:
-        return None if self.refinement is None else self.refinement.covariance
+        return {k: d[k] for k in ("noise", "consistency", "timings_s", "warnings") if k in d}
 
     @property
     def std_rotation_deg(self) -> np.ndarray | None:
@@ -143,7 +129,7 @@ class CalibrationResult:
     def pair(self, a: str = "cam0", b: str = "lidar0") -> PairEstimate:
         """The pair as a rig's result gives it (``RigResult.pair``): a single pair's sensors are ``cam0`` and
         ``lidar0``, the names its folder takes as a rig; ``pair("lidar0", "cam0")`` gives ``T_lidar_camera``."""
-        est = PairEstimate("cam0", "lidar0", self.T_camera_lidar, self.covariance, self.samples, self.frames_used)
+        est = PairEstimate("cam0", "lidar0", self.T_camera_lidar, self.covariance, None, self.frames_used)
         if (a, b) == ("cam0", "lidar0"):
             return est
         if (a, b) == ("lidar0", "cam0"):
@@ -165,15 +151,10 @@ class CalibrationResult:
         if ref is None:
             return {"covariance": None,
                     "covariance_note": "no covariance without refinement (refine: none)"}
-        post = self.posterior
-        sampled = {"covariance_laplace": ref.covariance.tolist(), "intervals": post.summary(),
-                   "credible_regions": post.regions(),
-                   "posterior": {**post.diagnostics(), "file": "posterior.npz"}} if post is not None else {
-            "covariance_note": "Laplace approximation (no posterior samples were drawn)"}
         return {
             "covariance": self.covariance.tolist(),
             "covariance_convention": COVARIANCE_CONVENTION,
-            **sampled,
+            "covariance_note": "Laplace approximation (the pair's own solve draws no posterior samples)",
             "std": self.pair().camera_lidar_keys()["std"],
             "noise": {"corner_noise_px": ref.corner_noise_px, "corner_residual_px": ref.corner_residual_px,
                       "range_noise_m": ref.range_noise_m, "plane_floor_m": ref.plane_floor_m},
@@ -286,13 +267,6 @@ def frame_dict(f: FrameMeasurement, residual: tuple[float, float] | None = None,
 
 
 def write_calibration(result: CalibrationResult, out_dir: str | Path) -> Path:
-    """The pair's own solve's ``OUT/posterior.npz`` (when sampled) and then ``OUT/calibration.json``, each
-    atomically; returns the latter's path (``estimators.write_calibration`` writes either record)."""
-    out = Path(out_dir)
-    if result.posterior is not None:
-        p = result.posterior
-        extra = {} if p.mode_index is None else {"mode_index": p.mode_index, "mode_centers_xi": p.mode_centers}
-        write_npz_atomic(out / "posterior.npz", {"xi": p.xi, "noise_scale": p.scale, "T_map": p.T_map,
-                                                 "chain": p.run.chain, "convention": np.array(COVARIANCE_CONVENTION),
-                                                 **extra}, compress=False)
-    return write_json_atomic(out / "calibration.json", result.to_dict())
+    """The pair's own solve's ``OUT/calibration.json``, atomically; returns its path (``estimators.write_calibration``
+    writes either record)."""
+    return write_json_atomic(Path(out_dir) / "calibration.json", result.to_dict())

@@ -93,7 +93,7 @@ def _common(warnings, converged: bool | None, sampled: bool) -> list[tuple[str, 
                            "boards?): make sure the sensors did not move between frames"))
     if converged is False:
         out.append((CHECK, "the posterior did not converge: its intervals are rough; sample longer (--samples)"))
-    if not sampled and any(w.startswith("posterior not sampled") for w in warnings):
+    if not sampled and any("posterior was not sampled" in w for w in warnings):
         out.append((CHECK, "the posterior was not sampled (a nearly degenerate layout): the intervals are the "
                            "Laplace approximation's; add boards"))
     return out
@@ -275,9 +275,9 @@ def _intrinsics(name: str, whose: str, check: dict | None) -> list[tuple[str, st
 
 
 def pair_verdict(result) -> Verdict:
-    """A camera-LiDAR pair's verdict (``CalibrationResult``)."""
-    ref, post = result.refinement, result.posterior
-    concerns = _common(result.warnings, None if post is None else bool(post.run.converged), post is not None)
+    """A camera-LiDAR pair's own solve's verdict (``CalibrationResult``: no posterior)."""
+    ref = result.refinement
+    concerns = _common(result.warnings, None, False)
     if result.contradicted:
         concerns += _conflict("", result.contradicted, ref.edges["planes_against_edges"]["difference_tangent"])
     dropped = []
@@ -294,8 +294,7 @@ def pair_verdict(result) -> Verdict:
                         {f.name: angle_limit(f) for f in result.frames if f.usable})
     concerns += _intrinsics("", "the camera's", result.intrinsics_check)
     if result.ambiguous:
-        post = result.posterior
-        concerns += _ambiguous("", result.modes, "the boards", post is not None and post.mode_index is not None)
+        concerns += _ambiguous("", result.modes, "the boards", False)
     return verdict_of(concerns)
 
 

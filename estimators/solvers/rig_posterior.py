@@ -516,11 +516,35 @@ def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[Ca
     return A, -grad
 
 
+# A Laplace covariance beyond these limits does not describe a posterior worth sampling: some direction is
+# not determined by the data (an ensemble started there is degenerate, and emcee refuses it).
+MAX_SAMPLED_ROTATION_SD_RAD = float(np.deg2rad(10.0))
+MAX_SAMPLED_TRANSLATION_SD_M = 0.5
+MAX_SAMPLED_CONDITION = 1e12
+
+
+def unsampled_reason(covariance: np.ndarray) -> str | None:
+    """Why a posterior with this Laplace covariance (GTSAM tangent) should not be sampled, or None."""
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return "the Laplace covariance is not finite"
+    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+    w = np.linalg.eigvalsh(0.5 * (C + C.T))
+    if sd[:3].max() > MAX_SAMPLED_ROTATION_SD_RAD or sd[3:].max() > MAX_SAMPLED_TRANSLATION_SD_M:
+        return (f"the problem is nearly degenerate (Laplace standard deviations up to {np.degrees(sd[:3].max()):.1f} "
+                f"deg and {1000 * sd[3:].max():.0f} mm): the data do not determine every direction")
+    if w[0] <= 0 or w[-1] / w[0] > MAX_SAMPLED_CONDITION:
+        return (f"the Laplace covariance is nearly singular (condition number {w[-1] / max(w[0], 1e-300):.1e}): "
+                "some direction is determined far better than the others can be sampled together")
+    return None
+
+
 def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lidars: list[LidarViews],
                          rng: np.random.Generator, min_ess: int = 1000, max_steps: int = 40000,
                          likelihood: str = "gaussian", nu: float = 4.0, cells: tuple = (),
                          exact_ends: frozenset = frozenset(), ensemble: bool = False) -> RigPosterior:
-    """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements.
+    """Sample the rig's sensor poses (module docstring) from the joint graph's MAP and measurements; a sensor whose
+    Laplace covariance the data barely determine (:func:`unsampled_reason`) raises :class:`PosteriorSkippedError`.
 
     Parameters
     ----------
@@ -575,6 +599,10 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
         _, cov_inner = change_reference(names, solution.T_ref, solution.covariance_joint, like.inner)
         cols = np.concatenate([np.arange(6 * names.index(n), 6 * names.index(n) + 6) for n in like.free])
         cov, S_tt, gain = cov_inner[np.ix_(cols, cols)], np.zeros((0, 0)), np.zeros((n_p, 0))
+    for k, n in enumerate(like.free):  # a sensor the data barely determine: its Laplace covariance stands, said
+        if (reason := unsampled_reason(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6])) is not None:
+            raise PosteriorSkippedError(f"{n}: {reason}", hint="the covariance is the graph's Laplace one; add board "
+                                                                "poses that constrain the weak direction")
     try:
         keep, run = run_chain(like, cov, rng, min_ess, max_steps, label="rig posterior",
                               pilot=bool(cells) or bool(ends), ensemble=ensemble)
