@@ -2,18 +2,19 @@
 [--pattern charuco] [--boards N]`, CONFIG default, varied or mounted, as in bench_2d.py, or footprint: the second 2D
 generator, ``simulation.footprint_2d``, written apart from the simulator; part of make bench.)
 
-Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared one
-by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as ``calibrate`` does (the engine, from
-the measured frames: minimal solutions, multi-start, the segment ends in the graph, the posterior sampled about every
-minimum). The layout's bound is the Cramer-Rao bound with the segment ends (`observation_model.cramer_rao_bound(layout,
-edges=True)`); it is degenerate when a standard deviation reaches 5 degrees or 0.5 m (or it is singular). Printed, per
-group of layouts (bound degenerate or not): the trials, the refusals (an error, or a verdict UNTRUSTED: not an
-answer), the answers whose truth lies inside the reported 99.9% region (``PairEstimate.region_d2``: the samples'
-covariance's ellipsoid about the estimate that holds 99.9% of them, with several minima the union of each one's own
-ellipsoid about it; beside it the graph's Laplace covariance's chi-square ellipsoid), those flagged ambiguous (a second minimum with at least 5% of the mass), those whose verdict
+Each trial is one layout of 3 boards (N with ``--boards``; 1 cm range noise; the board's outline off its declared
+one by an error drawn from the edge model's prior, as in bench_2d.py), calibrated as ``calibrate`` does (the engine,
+from the measured frames: minimal solutions, multi-start, the segment ends in the graph, the posterior sampled about
+every minimum). The layout's bound is the Cramer-Rao bound with the segment ends
+(`observation_model.cramer_rao_bound(layout, edges=True)`); it is degenerate when a standard deviation reaches 5
+degrees or 0.5 m (or it is singular). Printed, per group of layouts (bound degenerate or not): the trials, the
+refusals (an error, or a verdict UNTRUSTED: not an answer), the answers whose truth lies inside the reported 99.9%
+region (``PairEstimate.region_d2``: the samples' covariance's ellipsoid about the estimate that holds 99.9% of them,
+with several minima the union of each one's own ellipsoid about it; beside it the graph's Laplace covariance's chi-
+square ellipsoid), those flagged ambiguous (a second minimum with at least 5% of the mass), those whose verdict
 reads CHECK, those confidently wrong (outside the region with the verdict OK), each listed, and how often the
-posterior's 95% intervals hold the truth. Targets (issue 35): confidently wrong at most 0.2%; refusals only where the bound is
-degenerate; elsewhere the truth inside the region in at least 95%; the 95% intervals cover 93-97%."""
+posterior's 95% intervals hold the truth. Targets (issue 35): confidently wrong at most 0.2%; refusals only where
+the bound is degenerate; elsewhere the truth inside the region in at least 95%; the 95% intervals cover 93-97%."""
 import argparse, sys, os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from pathlib import Path

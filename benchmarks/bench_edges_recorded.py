@@ -1,7 +1,8 @@
 """The recorded sets, planes alone against planes and board edges, side by side
 (make bench; each set skipped when absent from ../shared/realdata; `python benchmarks/bench_edges_recorded.py`).
 
-With the planes alone the board's edges check the estimate; with `--edges` they are in it.
+With the planes alone the board's edges check the estimate; with `--edges` they are in it. Every estimate is the
+engine's (``calibrate``, as ``lidarcam calibrate`` gives it), its halves solved again from its measurements.
 
 Per set and model: the estimate's translation (camera frame, mm) and its distance from the source tool's
 reference, and the reference's squared Mahalanobis distance under the estimate's covariance (``T_ref = T_hat
@@ -26,9 +27,9 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_principal_point import recorded_sets, reference_T  # noqa: E402
+from bench_realdata import solved_again  # noqa: E402
 
-from estimators.calibration import solve  # noqa: E402
-from estimators.pipeline.measurement import measure_frames  # noqa: E402
+from estimators.rig_calibration import calibrate  # noqa: E402
 from estimators.solvers import chi_square as chi2  # noqa: E402
 from estimators.solvers.board_edges import crossings  # noqa: E402
 from estimators.solvers.outline_check import outline_check  # noqa: E402
@@ -41,27 +42,26 @@ def main() -> None:
     print(f"{'set':18s}{'model':16s}{'t (mm, camera)':>26s}{'from ref mm':>13s}{'ref d2':>8s}{'outline shift mm':>18s}"
           f"{'p':>8s}{'planes vs edges':>17s}{'halves d2':>11s}{'99% limit':>11s}")
     for name, path, ds in recorded_sets():
-        camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-        frames = [f for f in frames if f.usable]
         T_ref = reference_T(path)
         ref = None if T_ref is None else 1000 * T_ref[:3, 3]
-        half = len(frames) // 2
+        frames = None
         for label, edges in (("planes (check)", False), ("planes + edges", True)):
-            options = RefinementOptions(edges=edges)
-            res = solve(frames, ds.board, camera, options=options)
+            res = calibrate(path, rng=np.random.default_rng(0), samples=0, options=RefinementOptions(edges=edges))
+            frames = [f for f in res.frames if f.usable]
             t = 1000 * res.T_camera_lidar[:3, 3]
             if ref is None:
                 far = f"{'-':>13s}{'-':>8s}"
             else:
                 xi_ref = T_log(T_inverse(res.T_camera_lidar) @ T_ref)
                 far = f"{np.linalg.norm(t - ref):13.1f}{float(xi_ref @ np.linalg.solve(res.covariance, xi_ref)):8.1f}"
-            e = res.refinement.edges or {}
+            e = (res.edges.get("lidar0") if edges else res.outline_checks.get(("cam0", "lidar0"))) or {}
             shift = (f"{1000 * np.linalg.norm(e['mean_shift_camera_m']):18.1f}{e['mean_shift_p_value']:8.3f}"
                      if "mean_shift_camera_m" in e else f"{'-':>18s}{'-':>8s}")
             test = e.get("planes_against_edges")
             test = f"{test['d2']:9.1f}, p {test['p_value']:.3f}" if test else "-"
-            ra = solve(frames[:half], ds.board, camera, options=options)
-            rb = solve(frames[half:], ds.board, camera, options=options)
+            stems = [f.name for f in frames]
+            half = len(stems) // 2
+            ra, rb = (solved_again(res, stems=s, edges=edges) for s in (stems[:half], stems[half:]))
             xi = T_log(T_inverse(ra.T_camera_lidar) @ rb.T_camera_lidar)
             d2 = float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
             print(f"{name:18s}{label:16s}{'(' + ', '.join(f'{v:.1f}' for v in t) + ')':>26s}{far}{shift}"

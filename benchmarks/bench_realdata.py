@@ -2,13 +2,13 @@
 (make bench; each skipped when absent from ../shared/realdata).
 
 Every estimate is the engine's (``calibrate``, as ``lidarcam calibrate`` gives it), solved again from its
-measurements for subsets of frames. Prints: closed form and factor graph against the source tool's reference extrinsic; the plane-consistency
-statistic; the squared Mahalanobis distance between estimates from two disjoint halves (interleaved, and
-first against last); the consistency statistic with every range shifted by a constant offset; and, on both
-sets, each LiDAR plane's tilt from the camera's about the board's axes against what the points' noise allows;
-on the Ouster set, how far from the reference the estimate lands with each frame left out; and on both, the
-static scene's rig-moved check on the sweeps as recorded, one sweep turned or shifted, and half of them turned;
-both calibrated with board.size left out; and both with the camera's intrinsics refined with the extrinsic.
+measurements for subsets of frames. Prints: closed form and factor graph against the source tool's reference
+extrinsic; the plane-consistency statistic; the squared Mahalanobis distance between estimates from two disjoint
+halves (interleaved, and first against last); the consistency statistic with every range shifted by a constant
+offset; and, on both sets, each LiDAR plane's tilt from the camera's about the board's axes against what the points'
+noise allows; on the Ouster set, how far from the reference the estimate lands with each frame left out; and on
+both, the static scene's rig-moved check on the sweeps as recorded, one sweep turned or shifted, and half of them
+turned; both calibrated with board.size left out; and both with the camera's intrinsics refined with the extrinsic.
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "acfr_vlp16
 OFFICE = DATA.parent / "acfr_ouster64_b"
 
 
-def _again(res, stems=None, frames=None, **kw):
+def solved_again(res, stems=None, frames=None, **kw):
     """The engine (``calibrate_rig``) on ``res``'s pair folder again, from its measurements (no frame measured
     twice): those of the frames ``stems`` only, or the frames ``frames`` (measured, then changed) instead."""
     rig = res.rig
@@ -54,7 +54,7 @@ def _consistency(res) -> tuple[float, float]:
 
 
 def _halves_d2(res, a, b) -> float:
-    ra, rb = _again(res, stems=a), _again(res, stems=b)
+    ra, rb = solved_again(res, stems=a), solved_again(res, stems=b)
     xi = T_log(T_inverse(ra.T_camera_lidar) @ rb.T_camera_lidar)
     return float(xi @ np.linalg.solve(ra.covariance + rb.covariance, xi))
 
@@ -107,7 +107,8 @@ def main() -> None:
     print(f"recorded data: {DATA.name}, {len(used)}/{len(frames)} frames usable; the engine (calibrate)")
     closed = solve_closed_form([f.camera.plane for f in used], [f.lidar.plane for f in used]).T_camera_lidar
     print(f"  {'closed form':24s} against the reference: {_against(closed, ref)}")
-    for label, r in (("graph, no range model", _again(res, range_model="none")), ("graph, range model auto", res)):
+    for label, r in (("graph, no range model", solved_again(res, range_model="none")),
+                     ("graph, range model auto", res)):
         print(f"  {label:24s} against the reference: {_against(r.T_camera_lidar, ref)}")
     print("  the LiDAR planes' tilts from the camera's (range model auto):")
     _tilts(res, frames)
@@ -139,7 +140,7 @@ def main() -> None:
             P = f.lidar.points
             beams = P / np.linalg.norm(P, axis=1, keepdims=True)
             shifted.append(FrameMeasurement(f.name, f.camera, observe_lidar_board(P + offset * beams)))
-        ss, dof = _consistency(_again(res, frames=shifted, range_model="none", options=plain))
+        ss, dof = _consistency(solved_again(res, frames=shifted, range_model="none", options=plain))
         print(f"    {100 * offset:+5.1f} cm: {ss / dof:.2f}")
 
 
@@ -165,7 +166,7 @@ def office() -> None:
     away = []
     kept = [f.name for f in frames if f.usable]
     for leave in kept:
-        T_k = _again(res, stems=[s for s in kept if s != leave]).T_camera_lidar
+        T_k = solved_again(res, stems=[s for s in kept if s != leave]).T_camera_lidar
         away.append((1000 * np.linalg.norm(T_k[:3, 3] - ref[:3, 3]), leave))
     print(f"  leaving one frame out, against the reference: {min(away)[0]:.0f} mm (without {min(away)[1]}) to "
           f"{max(away)[0]:.0f} mm (without {max(away)[1]})")

@@ -3,7 +3,8 @@
 
 The source tool (github.com/acfr/cam_lidar_calibration) takes its rotation from the boards' normals and its
 translation from the boards' centres; it models no range offset. This checks the reference and lidarcam's two
-estimates by those two features, measured here from the same frames:
+estimates (the engine's, ``calibrate``: planes alone, and with the edges) by those two features, measured here from
+the same frames:
 
 - the normals: each frame's LiDAR board normal turned into the camera by the transform, against the camera's
   board normal (their cross product: the turn, in camera axes, that would align them); the mean over frames and
@@ -32,9 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_principal_point import recorded_sets, reference_T  # noqa: E402
 
-from estimators.calibration import solve  # noqa: E402
-from estimators.pipeline.measurement import measure_frames  # noqa: E402
 from estimators.io.pointcloud_io import read_sweep  # noqa: E402
+from estimators.rig_calibration import calibrate  # noqa: E402
 from estimators.solvers.range_model import frame_rings  # noqa: E402
 from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
 from geometry.rotations import T_inverse, transform_points  # noqa: E402
@@ -99,12 +99,12 @@ def main() -> None:
         if ds.board.size is None:
             print(f"{name}: no board size; skipped")
             continue
-        camera, frames, _ = measure_frames(ds, np.random.default_rng(0))
-        frames = [f for f in frames if f.usable]
-        rings = frame_rings([f.lidar for f in frames])
         w, h = ds.board.size
-        results = [(label, solve(frames, ds.board, camera, options=RefinementOptions(edges=edges)))
+        results = [(label, calibrate(path, rng=np.random.default_rng(0), samples=0,
+                                     options=RefinementOptions(edges=edges)))
                    for label, edges in (("planes", False), ("planes + edges", True))]
+        frames = [f for f in results[0][1].frames if f.usable]
+        rings = frame_rings([f.lidar for f in frames])
         transforms = [(label, res.T_camera_lidar) for label, res in results]
         if (T_ref := reference_T(path)) is not None:
             transforms.append(("reference", T_ref))
@@ -118,7 +118,7 @@ def main() -> None:
                       for i in used]
             print(f"{name:18s}{label:16s}{_mean_and_se(turns):>48s}{_mean_and_se(shifts):>50s}"
                   f"{f'{len(used)}/{len(frames)}':>8s}")
-        offset = np.asarray((results[1][1].refinement.edges or {}).get("outline_offset_m", [0.0, 0.0]))[:2]
+        offset = np.asarray(results[1][1].edges.get("lidar0", {}).get("outline_offset_m", [0.0, 0.0]))[:2]
         in_camera = np.mean([f.camera.T_camera_board[:3, :2] @ offset for f in frames], axis=0)
         print(f"{name:18s}planes + edges: the outline's offset from the pattern's middle (its nuisance) "
               f"({', '.join(f'{1000 * x:+.1f}' for x in offset)}) mm along the board's x, y; in camera axes, "
