@@ -4,8 +4,9 @@ equal-angle claim, and the suggested next pose against a random one (make bench;
 Layouts follow the planar method's setup (1024 x 768 camera, 1 m board, 2-5 m): 16 and 8 spread poses,
 4 poses over the image's quadrants with normals in four quadrants, 8 poses all tilted one way (upwards,
 or to the right). Each row: the predicted std (Cramer-Rao bound) and the Monte Carlo RMS error per
-axis over repeated noise draws, their largest ratio, and the re-projection offset (RMS, px) of the
-boards' centres mapped through the estimate, horizontal and vertical. Calibrated with the planes alone
+axis over repeated noise draws (each calibrated by the engine, ``calibrate``, from the frames as measured), their
+largest ratio, and the re-projection offset (RMS, px) of the boards' centres mapped through the estimate, horizontal
+and vertical. Calibrated with the planes alone
 (`--no-edges`), the model of the bound: the default adds the board's edges (bench_board_edges compares those with
 their own bound).
 
@@ -27,7 +28,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.analysis.layout_analysis import analyse, suggest_poses  # noqa: E402
-from estimators.calibration import solve  # noqa: E402
+from estimators.io.measurement_store import Measurements  # noqa: E402
+from estimators.rig_calibration import calibrate  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
 from estimators.simulation.simulator import _pose_fits, board_pose, default_rig, one_way_poses, sample_board_poses  # noqa: E402
 from estimators.solvers.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
@@ -73,7 +75,8 @@ def _trial(args):
     try:
         # the planes alone, the model of the bound each row is compared with (the default adds the board's edges,
         # whose bound `lidarcam layout` prints beside it, bench_board_edges's rows)
-        res = solve(frames, layout.board, layout.camera, options=measurement_model_options(edges=False))
+        res = calibrate(Measurements(layout.camera, layout.board, "3d", tuple(frames)), samples=0,
+                        options=measurement_model_options(edges=False))
     except DegenerateLayoutError:
         return None
     T = res.T_camera_lidar
