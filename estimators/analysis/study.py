@@ -1,5 +1,7 @@
 """Solver-comparison studies: a grid of simulated calibrations, each scored against its ground truth and
-the Cramer-Rao bound of its layout, run on local processes or on a Dask cluster with the same results.
+the Cramer-Rao bound of its layout, run on local processes or on a Dask cluster with the same results. The solvers
+are a single pair's own solve's stages (``calibration.solve``: closed form, 2D minimal solutions, factor graph),
+which start each camera-LiDAR pair of the engine.
 
 A study is given as a mapping (``SPEC.yaml``)::
 
