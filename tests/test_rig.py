@@ -1178,6 +1178,7 @@ def test_a_scanner_pair_whose_boards_leave_two_answers_is_said_and_the_rigs_post
     regions = pe.summary()["credible_regions"]
     assert [m["posterior_mass"] for m in regions["modes"]] == list(post.mode_weights)
     assert regions["99.9%"]["d2"] == pe.region_d2(0.999)
+    assert res.pair_keys("cam0", "lidar0")["credible_regions"] == regions  # a pair folder's calibration.json
 
 
 def test_a_scanners_second_minimum_is_solved_with_its_ends_assigned_under_it(tmp_path):

@@ -59,6 +59,11 @@ class PairEstimate:
             return mahalanobis_d2(self.samples, np.atleast_2d(xi))
         return mode_distance(self.samples, self.mode_index, self.mode_centers, xi)
 
+    def regions(self) -> dict:
+        """The sampled credible regions at 99% and 99.9% (``posterior.regions``; with several minima, each one's
+        transform, mass and covariance) as calibration.json gives them."""
+        return regions(self.samples, self.mode_index, self.mode_centers, self.T, self.mode_weights)
+
     def contains(self, T: np.ndarray, level: float) -> bool:
         """Whether the transform ``T`` lies in the sampled credible region at ``level``."""
         return bool(self.region_distance(T_log(np.linalg.inv(self.T) @ T))[0] <= self.region_d2(level))
@@ -126,7 +131,7 @@ class PairEstimate:
             iv = self.intervals(level)
             out[f"{round(100 * level)}%"] = {"rotation_deg": np.degrees(iv[:3]).tolist(),
                                             "translation_mm": (1000 * iv[3:]).tolist()}
-        out["credible_regions"] = regions(self.samples, self.mode_index, self.mode_centers, self.T, self.mode_weights)
+        out["credible_regions"] = self.regions()
         return out
 
     def inverse(self) -> "PairEstimate":

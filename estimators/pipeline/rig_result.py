@@ -15,7 +15,7 @@ from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
 from ..solvers.edges_in_graph import conflict_words
-from ..solvers.posterior import INTERVAL_LEVELS, regions
+from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
@@ -225,7 +225,7 @@ class RigResult:
                 "rotation_deg_about_lidar_xyz": np.degrees(est.intervals(level)[:3]).tolist(),
                 "translation_mm_along_lidar_xyz": (1000 * est.intervals(level)[3:]).tolist()}
                 for level in INTERVAL_LEVELS}
-            out["credible_regions"] = regions(est.samples)
+            out["credible_regions"] = est.regions()
         else:
             out["covariance_note"] = "Laplace approximation (no posterior samples were drawn)"
         lid_noise = self.noise(lidar)
