@@ -234,9 +234,9 @@ def _print_pair_of_two(result) -> None:
         if f.usable and f.name in result.frames_used.get(lid, ()):
             _print_frame(f)
     if p.samples is not None:
-        regions = p.summary()["credible_regions"]
-        print(f"  posterior 99.9% region: squared Mahalanobis distance up to {regions['99.9%']['d2']:.1f} under its "
-              "covariance (a Gaussian's 22.5)")
+        print(f"  posterior 99.9% region: squared Mahalanobis distance up to {p.region_d2(0.999):.1f} under its "
+              + ("covariance (a Gaussian's 22.5)" if p.mode_index is None else
+                 f"nearest minimum's own covariance, of its {len(p.mode_weights)} (a Gaussian's 22.5)"))
         _print_intervals(p, 0.68, indent="  ", axes=f" (about/along {lid}'s x y z)")
     link = (result.pair_results or {}).get((cam, lid))
     fit = link.refinement.range_model if link is not None and link.refinement is not None else None
