@@ -543,6 +543,22 @@ def test_a_lidars_per_ring_and_black_square_range_errors_are_chosen_and_estimate
     assert rec["model"] == "offset+dark" and list(rec["terms"]) == ["offset", "dark"] and "tests" not in rec
 
 
+def test_a_sensor_the_data_barely_determine_is_not_sampled_and_says_why(rig_result):
+    # The pair's own sampler refused a Laplace covariance of a direction the data do not determine (over 10 degrees
+    # or 0.5 m: a chain started there is degenerate); the engine's does too, before any chain runs, naming the
+    # sensor, so the graph's covariance stands and the verdict says so.
+    from dataclasses import replace
+
+    from estimators.errors import PosteriorSkippedError
+
+    sol = rig_result.solution
+    wide = replace(sol, covariance_inner=None if sol.covariance_inner is None else sol.covariance_inner * 1e6,
+                   covariance_joint=sol.covariance_joint * 1e6)
+    with pytest.raises(PosteriorSkippedError, match="nearly degenerate"):
+        sample_rig_posterior(wide, list(rig_result.camera_views), list(rig_result.lidar_views),
+                             np.random.default_rng(0), min_ess=100)
+
+
 def test_the_rig_posterior_agrees_with_the_graph_and_composes_each_pair_from_one_joint_sample(rig_folder, rig_result):
     # emcee over the five free sensors' poses (30 parameters): every pair's posterior standard deviations within
     # 15% of the graph's (the problem is near-linear: only the LiDAR planes' rotation enters beyond first order),
