@@ -527,7 +527,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges, the black squares' placement and the refined
-        # intrinsics' uncertainty, convolved in as a single pair's posterior does.
+        # intrinsics' uncertainty, convolved in (first order, Gaussian).
         for share in (s for s in (pinned_share, conflict, placement_share, intrinsics_share)
                       if s is not None and posterior is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
@@ -563,8 +563,7 @@ def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lid
     """What a rig's posterior is sampled from when its intrinsics were refined (the intrinsics are not sampled): the
     graph solved again with every camera at its refined intrinsics, held; those views; and the intrinsics' share of
     the sensors' joint covariance, the joint graph's (``shares``, the covariances already added to it, taken out)
-    less the held graph's, which the samples are convolved with, as a single pair's posterior takes its refined
-    intrinsics' uncertainty."""
+    less the held graph's, which the samples are convolved with."""
     views = [replace(c, camera=solution.camera_model(c.name, c.camera)) for c in camera_views]
     held = solve_rig(names, reference, views, lidar_views, solution.T_ref, solution.T_ref_board, False)
     free = solution.covariance_joint - sum(s for s in shares if s is not None)

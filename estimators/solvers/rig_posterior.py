@@ -5,8 +5,7 @@ Parameters: every sensor's pose but the graph's own reference camera's (``rig_gr
 scales, with each frame's board pose integrated out:
 
 - a camera's corners are linear in its pose's and the board's tangents about the MAP (the rig corner factor's
-  Jacobians): hundreds of corners per board at sub-pixel noise, whose second order is far below their first, as
-  the pair's posterior assumes for its camera board fit;
+  Jacobians): hundreds of corners per board at sub-pixel noise, whose second order is far below their first;
 - a LiDAR's board points enter exactly in the LiDAR's pose (the board's plane turned and moved into the LiDAR
   through ``T_ref_l Exp(xi_l)``, through the frame's ``W`` (a scan line divided by ``|n_xy|``) and whitened by its
   plane covariance at the MAP, ``LidarViews.plane_cov``) and linearly in the board's tangent.
@@ -23,25 +22,25 @@ nonlinear in the poses or the noise scale moves. Intrinsics refined with the rig
 reports the graph's covariance then).
 
 The noise: each sensor's at the graph's scale (quasi-likelihood, by its chi-square), and the camera side's scale
-``s`` sampled with the poses (last parameter, log-normal prior of sd ``LOG_SCALE_PRIOR_SD`` on ``log s``), as the
-single pair's posterior samples it: the corners' covariance and the boards' plane error (the per-board error and the
-pattern's scale error, ``LidarViews.plane_cov_parts``) times ``s^2``. The corners enter as a Gaussian measurement of
+``s`` sampled with the poses (last parameter, log-normal prior of sd ``LOG_SCALE_PRIOR_SD`` on ``log s``): the
+corners' covariance and the boards' plane error (the per-board error and the pattern's scale error,
+``LidarViews.plane_cov_parts``) times ``s^2``. The corners enter as a Gaussian measurement of
 each board's pose given the cameras' (each frame's corners about their own best board, 6 directions a frame,
 normalised), so ``s`` is told by how well the LiDARs' planes agree with the cameras' boards, not by the corners' own
 scatter (which the graph's scale already holds); the samples then carry the noise level's uncertainty (1-6% wider
 than the Laplace covariance on 8-board pairs). The cameras' poses relative to each other rest on the corners alone,
 at the graph's scale: ``s`` is how far the boards' planes, which the LiDARs see, are from where the corners put them
 (on a 6-camera rig s's posterior sits near 0.7, which applied to the camera-camera links would narrow them below
-their errors). With one camera and one LiDAR this is the single pair's likelihood (``pair_likelihood``): a 2D
-pair's segment ends then enter by their own likelihood, with the dataset's outline (4 parameters) under its prior,
+their errors). With one camera and one LiDAR this is a pair's likelihood (``pair_likelihood`` builds it from a pair's
+own refinement, for the tests that hold it against that refinement): a 2D pair's segment ends enter by their own
+likelihood, with the dataset's outline (4 parameters) under its prior,
 and with several minima each is sampled within its cell, as a rig's are where a camera-scanner pair's boards leave
 several (``pipeline.rig_modes``: each joint minimum within its cell of that pair's transform, mixed by
-:func:`mix_modes`). With ``student-t``, as the pair's, each frame's share
+:func:`mix_modes`). With ``student-t``, each frame's share
 of the squared residuals beyond its corners' own best board (its planes against its boards, ``k_j`` LiDAR rows) is
 t-distributed with ``nu`` degrees of freedom; the corners' own part stays Gaussian. A 2D scanner's range noise,
 which rests on a few dozen points a board, has its scale ``r`` sampled too (a parameter per scanner before ``log s``,
-flat prior on ``log r`` within +-2), its own lines' residuals (``LidarViews.own_fit``) in its likelihood, as the
-single pair's posterior has it.
+flat prior on ``log r`` within +-2), its own lines' residuals (``LidarViews.own_fit``) in its likelihood.
 
 Samples are carried into the rig's reference frame exactly (``T_ref_s = T_ref_inner^-1 T_inner_s`` per sample) and
 any pair's by composition (:meth:`RigPosterior.pair_samples`), so loops close sample by sample.
@@ -494,13 +493,12 @@ def scan_end_terms(lv: LidarViews, solution: RigSolution) -> EndTerms:
 def edges_quadratic(like: RigLikelihood, solution: RigSolution, cameras: list[CameraViews],
                     lidars: list[LidarViews], exact: set = frozenset(), h: float = 1e-5
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The board edges' share of the log-posterior to second order about the MAP, as the single pair's posterior
-    holds them: the information they add to the free sensors' tangents (the graph's with them less the graph's
-    without them, both at the MAP, each sensor's own outline shifts and outline marginalised; negative
-    directions clipped) and the gradient that makes the MAP stationary (the planes' and corners' gradient at it,
-    which the edges balance, by central differences of ``like``). The LiDARs in ``exact`` (scanners whose ends
-    ``like`` holds by their own likelihood) keep their ends on both sides of the difference. Returns ``(A, b)`` for
-    ``RigLikelihood.quadratic``."""
+    """The board edges' share of the log-posterior to second order about the MAP: the information they add to the
+    free sensors' tangents (the graph's with them less the graph's without them, both at the MAP, each sensor's own
+    outline shifts and outline marginalised; negative directions clipped) and the gradient that makes the MAP
+    stationary (the planes' and corners' gradient at it, which the edges balance, by central differences of
+    ``like``). The LiDARs in ``exact`` (scanners whose ends ``like`` holds by their own likelihood) keep their ends
+    on both sides of the difference. Returns ``(A, b)`` for ``RigLikelihood.quadratic``."""
     from dataclasses import replace
 
     from .rig_graph import inner_covariance
@@ -578,8 +576,8 @@ def sample_rig_posterior(solution: RigSolution, cameras: list[CameraViews], lida
     RigPosterior
         Samples of every sensor's pose in the reference's frame and the chain's diagnostics.
     """
-    # Each LiDAR's range terms held at the MAP, as a single pair's posterior holds them: their share of the poses'
-    # covariance is convolved into the samples below (marginal intervals), with the terms' own samples.
+    # Each LiDAR's range terms held at the MAP: their share of the poses' covariance is convolved into the samples
+    # below (marginal intervals), with the terms' own samples.
     held = [hold_terms(lv, solution.range_terms[lv.name][0]) if lv.has_terms else lv for lv in lidars]
     ends = {lv.name: scan_end_terms(lv, solution) for lv in lidars if lv.name in exact_ends and lv.edges}
     like = RigLikelihood(solution, cameras, held, likelihood=likelihood, nu=nu, cells=cells, ends=ends)
