@@ -285,6 +285,18 @@ def _with_frame(result, cam, lidar, T_camera_board, beams, rng):
     return cams, lids, {**sol.T_ref_board, "new": sol.T_ref[cam] @ T}
 
 
+def test_no_next_pose_where_no_board_pose_is_seen_by_both_is_none_not_an_error():
+    # A 2D varied honesty trial raised RuntimeError ("no feasible board pose") out of calibrate: the advice's
+    # candidate search found no pose both sensors see. A scan plane 10 m below the camera: no advice (None).
+    from estimators.analysis.rig_layout import next_pose_for_pair
+
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]  # the LiDAR's x forward, as mounted
+    T[1, 3] = 10.0
+    assert next_pose_for_pair(default_camera(), default_board(), T, np.eye(6) * 1e-4, 0.2, 0.01, "2d",
+                              np.random.default_rng(0), candidates=5) is None
+
+
 def test_the_next_pose_for_the_weakest_pair_predicts_what_the_graph_gets_with_it(rig_result):
     # The pose advised for the weakest pair (here a camera with the 2D scanner), and one for a 3D pair: the pair's
     # largest translation sd after it, predicted from the pair's covariance and the frame's information alone,

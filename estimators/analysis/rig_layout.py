@@ -45,6 +45,10 @@ def _max_translation_sd(C: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(C[3:, 3:])[-1], 0.0)))
 
 
+# Draws for each candidate pose before the search gives up (no pose both sensors see: no advice, not an error).
+CANDIDATE_TRIES = 2000
+
+
 def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P: np.ndarray, corner_noise_px: float,
                        range_noise_m: float, beams_model: str, rng: np.random.Generator, candidates: int = 60
                        ) -> dict | None:
@@ -78,8 +82,11 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
     if beams.is_2d:  # boards near a 2D scanner's plane, as the 2D simulator places them
         rig = replace(rig, lidar_height_m=0.6, min_distance_m=1.5, max_distance_m=4.0)
     cut_share = 0.3 if board.is_charuco else 0.0
-    pool = [T for T in sample_board_poses(rig, candidates, rng, outside_image_share=cut_share)
-            if _pose_fits(rig, T, min_in_image=min_in_image(board))]
+    try:
+        drawn = sample_board_poses(rig, candidates, rng, max_tries=CANDIDATE_TRIES, outside_image_share=cut_share)
+    except RuntimeError:  # no pose both sensors would see (a scan plane far from the camera's view): no advice
+        return None
+    pool = [T for T in drawn if _pose_fits(rig, T, min_in_image=min_in_image(board))]
     base = Layout(camera, board, beams, T_camera_lidar, (), corner_noise_px, range_noise_m)
     best, best_sd, best_C = None, np.inf, None
     for T in pool:
