@@ -354,6 +354,8 @@ def test_the_engines_record_lists_every_frame_as_measured(tmp_path, monkeypatch)
     again = calibrate(rig_as_pair(engine.measurements, engine.rig.board, "3d"), samples=0)
     assert np.allclose(again.T_camera_lidar, engine.T_camera_lidar, rtol=0, atol=1e-9)
     assert np.allclose(again.covariance, engine.covariance, rtol=1e-6, atol=0)
+    with pytest.raises(DatasetError, match="no image"):  # no image to draw its report on: said, not a crash
+        again.report(tmp_path / "report")
 
 
 def test_open_hall_with_3cm_noise_uses_every_frame(tmp_path):

@@ -1,10 +1,10 @@
 """Coverage of the reported intervals: many simulated calibrations, each scored against its ground truth.
 
 A trial draws a rig (mounting deviation) and board layout, simulates the measurements, calibrates them as
-``calibrate`` does (the engine's joint graph and posterior, the pair a rig of two sensors), and records whether the truth lies inside the 68% and 95% intervals
-of each tangent axis, and jointly: the 6-D squared Mahalanobis distance of the truth under the posterior
-covariance against the same quantile of the posterior samples' own distances (``joint``), and against the
-chi-square 6-dof quantile (``joint_chi2``, exact only for a Gaussian posterior).
+``calibrate`` does (the engine's joint graph and posterior, the pair a rig of two sensors), and records whether the
+truth lies inside the 68% and 95% intervals of each tangent axis, and jointly: the 6-D squared Mahalanobis distance
+of the truth under the posterior covariance against the same quantile of the posterior samples' own distances
+(``joint``), and against the chi-square 6-dof quantile (``joint_chi2``, exact only for a Gaussian posterior).
 
 Modes:
 - ``measurement`` (default, fast): corners and ranges drawn from the Gaussian noise model (independent

@@ -139,9 +139,15 @@ class RigResult:
         return list(rig_as_pair(self.measurements, self.rig.board, self.rig.lidars[0].lidar).frames)
 
     def report(self, out_dir: str | Path) -> Path:
-        """Write ``out_dir/report.html`` and its figures (``analysis.rig_report.write_rig_report``)."""
+        """Write ``out_dir/report.html`` and its figures (``analysis.rig_report.write_rig_report``); a result solved
+        from measurements in memory, without its folder's images, has none to draw on and is refused."""
         from ..analysis.rig_report import write_rig_report
+        from ..errors import DatasetError
 
+        if not any(Path(p).is_file() for c in self.rig.cameras for _, p in c.files):
+            raise DatasetError("no image of this rig's frames is on disk to draw the report on (a result solved from "
+                               "measurements in memory)", path=self.rig.root,
+                               hint="calibrate the dataset folder (or lidarcam calibrate DATASET) for its report")
         return write_rig_report(self, out_dir)
 
     def camera_model(self, name: str):
