@@ -1,6 +1,6 @@
-"""What the command line prints of a result: the pair's own solve's estimate, noise, range terms and edges
-(``--refine none``, the closed form alone); a rig's (every calibration's), with each camera-LiDAR pair's intervals
-(``PairEstimate``)."""
+"""What the command line prints of a result: a rig's (every calibration's), with each camera-LiDAR pair's
+intervals (``PairEstimate``); and the pair's own solve without its refinement (``--refine none``: the closed form
+and each frame)."""
 from __future__ import annotations
 
 
