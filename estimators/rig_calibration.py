@@ -97,6 +97,9 @@ class PairsAlone:
         ``(camera, lidar) -> CalibrationResult``: each pair's own solve (its start, its frames' fits, its range
         model's choice, a scanner's minimal solutions), which a two-sensor rig's calibration.json reports as a
         single pair's file does (``RigResult.pair_keys``).
+    decided : dict
+        ``camera -> {stem: CameraBoardObservation}``: the boards whose tilt the camera left ambiguous and a scanner's
+        pair decided by its laser points, each with the tilt chosen (the camera's board pose in the joint graph).
     """
 
     pairwise: dict
@@ -116,6 +119,7 @@ class PairsAlone:
     failed: dict
     intrinsics_checks: dict
     results: dict
+    decided: dict
 
     def settled(self, before: "PairsAlone") -> bool:
         """Every board's plane error within a tenth of ``before``'s (or 0.1 mm) and the same boards used: the
@@ -151,6 +155,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     first: list[str] = []
     warnings: list[str] = []
     with_ends = set()
+    decided: dict = {}
     for lid in rig.lidars:
         seen = {f.name for (_, d), frames in frames_by_pair.items() if d == lid.name for f in frames if f.usable}
         ends = scanner_ends and lid.lidar == "2d" and len(seen) <= _few_boards()
@@ -160,6 +165,10 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             if lid_name != lid.name:
                 continue
             usable = [f for f in frames if f.usable]
+            # a scanner's boards whose tilt the camera leaves ambiguous: its pair's solve may decide them by the
+            # laser (``solution_selection.select_and_refine``), and the camera's board pose is then that tilt
+            tilts = [f for f in frames if not f.usable and f.camera_alternatives and f.lidar is not None] \
+                if lid.lidar == "2d" else []
             for f in frames:
                 if not f.usable and f.name not in lidar_obs[lid.name]:
                     by = measured_by[(cam_name, lid_name)].get(f.name, cam_name)
@@ -167,7 +176,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             # Two boards link a scanner whose segment ends are measurements, as they solve a single pair
             # (``solution_selection.select_minimal``): their ends hold what two planes leave.
             least = MIN_SCANNER_FRAMES_WITH_ENDS if ends else MIN_PAIR_FRAMES
-            if len(usable) < least:
+            if len(usable) + len(tilts) < least:
                 warnings.append(f"{cam_name}-{lid.name}: only {len(usable)} usable frame(s); not linked")
                 failed[(cam_name, lid.name)] = DegenerateLayoutError(
                     f"only {len(usable)} usable frame(s); a camera-LiDAR pair needs at least {least}",
@@ -176,12 +185,17 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
             chooses = lid.name not in term_choices  # its range terms are the LiDAR's in the joint graph
             try:
                 opts = alone if chooses else replace(alone, range_model=term_choices[lid.name][0].chosen)
-                res = solve(usable, rig.board, cameras[cam_name], init if lid.lidar == "2d" else "closed-form",
+                res = solve(usable + tilts, rig.board, cameras[cam_name],
+                            init if lid.lidar == "2d" else "closed-form",
                             options=replace(opts, edges=True) if ends else opts, use_extent=ends)
             except DegenerateLayoutError as exc:
                 failed[(cam_name, lid.name)] = exc
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
                 continue
+            if tilts:
+                usable = [f for f in res.frames if f.usable]
+                named = {t.name for t in tilts}
+                decided.setdefault(cam_name, {}).update({f.name: f.camera for f in usable if f.name in named})
             # What its boards say of themselves, as a single pair's result says it (the joint graph weighs them
             # as this refinement did): its range terms' choice, plane error, outliers, spread. Said elsewhere:
             # its second minimum (``first``, below) and, where it chose them, terms held at 0 (``rig_terms``).
@@ -227,7 +241,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 pooled_range_noise_m(list(lidar_obs[lid.name].values()))
     return PairsAlone(pairwise, pair_frames, links, lidar_obs, plane_frames, board_scatter, sigma_r, term_choices,
                       ambiguous, frozenset(with_ends), minima, skipped, tuple(first), tuple(warnings), failed,
-                      {k: v for k, v in checks.items() if v is not None}, results)
+                      {k: v for k, v in checks.items() if v is not None}, results, decided)
 
 
 def unlinked_lidar(rig: RigDataset, fit: PairsAlone, skipped: dict) -> None:
@@ -382,6 +396,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             links[(a, b)] = sum(1 for st in poses[a] if st in poses[b])
     names = tuple(s.name for s in rig.sensors)
     unlinked_lidar(rig, alone_fit, skipped)
+    if alone_fit.decided:  # a board's tilt a scanner's laser decided is the camera's board pose from here on
+        poses = {c: {**by, **alone_fit.decided.get(c, {})} for c, by in poses.items()}
+        for c, by in alone_fit.decided.items():
+            for st in by:
+                skipped[c].pop(st, None)
     parent = spanning_tree(names, rig.reference, links)
     flip = pattern_flip(rig.board)
     T_ref = start_poses(names, rig.reference, parent, poses, alone_fit.pairwise, flip)

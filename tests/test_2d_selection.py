@@ -260,10 +260,14 @@ def _tilted(obs, angle_rad: float, board):
 
 
 def test_boards_ambiguous_in_their_tilt_are_decided_by_the_laser_when_the_rest_cannot_be_solved():
-    """Two usable boards and two whose corners fit two tilts alike (the second tilt 35 degrees off): every
-    combination of the tilts is solved before the two alone, and the one the laser lines agree with is used: the
-    true tilts, an answer at the truth's basin. When a board's two tilts are the same plane (nothing to decide
+    """Two usable boards and two whose corners fit two tilts alike (the second tilt 35 degrees off), calibrated
+    as ``calibrate`` does (the engine, from the measured frames): every combination of the tilts is solved before the
+    two alone, and the one the laser lines agree with is used: the true tilts, each the camera's board pose in the
+    joint graph, an answer at the truth's basin (the engine had left such boards out of its start, and refused two
+    3-board layouts its bound says are solvable). When a board's two tilts are the same plane (nothing to decide
     by), the two usable boards alone fit two poses, and the calibration is refused with why."""
+    from estimators.io.measurement_store import Measurements
+    from estimators.rig_calibration import calibrate
     from estimators.solvers.solution_selection import select_and_refine
 
     rig, frames = _frames("default", 4, 5)
@@ -275,10 +279,13 @@ def test_boards_ambiguous_in_their_tilt_are_decided_by_the_laser_when_the_rest_c
                 replace(_tilted(frames[k].camera, np.radians(35), rig.board), orientation_excess_chi2=3.0)]
         amb[k] = replace(frames[k], camera=None, reason="board pose: ambiguous", camera_alternatives=tuple(
             alts if order == 0 else alts[::-1]))
-    used, sel, ref, modes, notes = select_and_refine(amb, rig.board, rig.camera)
+    res = calibrate(Measurements(rig.camera, rig.board, "2d", tuple(amb)), rng=np.random.default_rng(0), samples=0)
+    used = res.pair_results[("cam0", "lidar0")].frames
     assert used[2].camera is amb[2].camera_alternatives[0] and used[3].camera is amb[3].camera_alternatives[1]
-    assert solution_distances(np.array([ref.T_camera_lidar, truth]))[0] < 0.05
-    assert len(notes) == 2 and "the tilt the laser line agrees with is used" in notes[0]
+    assert {"0002", "0003"} <= set(res.frames_used["cam0"]) and not res.skipped.get("cam0")
+    assert solution_distances(np.array([res.only_pair().T, truth]))[0] < 0.05
+    notes = [w for w in res.warnings if "the tilt the laser line agrees with is used" in w]
+    assert len(notes) == 2 and res.verdict.level == "OK"
     same = list(amb)
     same[2] = replace(amb[2], camera_alternatives=(amb[2].camera_alternatives[0],) * 2)
     same[3] = replace(amb[3], camera_alternatives=(amb[3].camera_alternatives[1],) * 2)

@@ -116,19 +116,21 @@ class RigMeasurements:
 def pair_as_rig(m: Measurements, camera: str = "cam0", lidar: str = "lidar0") -> RigMeasurements:
     """A camera-LiDAR pair's measurements (a pair folder's ``measurements.npz``) as its rig's: the rig of ``camera``
     and ``lidar`` that a pair folder loads as, each frame's camera board its pose, each frame without one skipped by
-    the camera with its reason."""
+    the camera with its reason; a frame whose board's tilt the camera leaves ambiguous, with its LiDAR board, is
+    the pair's too (the laser may decide its tilt)."""
     poses = {f.name: f.camera for f in m.frames if f.camera is not None}
     skipped = {f.name: f.reason for f in m.frames if f.camera is None}
-    return RigMeasurements({camera: m.camera}, {camera: poses}, {camera: skipped},
-                           {(camera, lidar): [f for f in m.frames if f.camera is not None]},
-                           {(camera, lidar): {st: camera for st in poses}}, m.warnings, (), m.source)
+    frames = [f for f in m.frames if f.camera is not None or f.camera_alternatives and f.lidar is not None]
+    return RigMeasurements({camera: m.camera}, {camera: poses}, {camera: skipped}, {(camera, lidar): frames},
+                           {(camera, lidar): {f.name: camera for f in frames}}, m.warnings, (), m.source)
 
 
 def rig_as_pair(rm: RigMeasurements, board: BoardModel, lidar_kind: str, dataset: str = "") -> Measurements:
     """A rig of one camera and one LiDAR's measurements as the pair's (:func:`save_measurements` writes them as a
     pair folder's ``measurements.npz``): its pair's frames and, without a camera board, the camera's skipped ones."""
     ((camera, _), frames), = rm.pairs.items()
-    skipped = [FrameMeasurement(st, None, None, why) for st, why in rm.skipped[camera].items()]
+    paired = {f.name for f in frames}
+    skipped = [FrameMeasurement(st, None, None, why) for st, why in rm.skipped[camera].items() if st not in paired]
     every = sorted(list(frames) + skipped, key=lambda f: f.name)
     return Measurements(rm.cameras[camera], board, lidar_kind, tuple(every), tuple(rm.warnings), dataset, rm.source)
 

@@ -15,7 +15,7 @@ from geometry.rotations import T_log, log_batch
 from ..camera.board_pose import estimate_board_pose
 from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
-from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
+from ..errors import AmbiguousOrientationError, DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import FrameFiles
 from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, generator_key,
                                      load_rig_measurements, save_rig_measurements)
@@ -37,10 +37,12 @@ def camera_frames(sensor: Sensor) -> list[FrameFiles]:
     return [FrameFiles(stem, path, path) for stem, path in sensor.files]
 
 
-def measure_camera(sensor: Sensor, board, detections: list) -> tuple[CameraModel, dict, dict, list[str], dict]:
+def measure_camera(sensor: Sensor, board, detections: list
+                   ) -> tuple[CameraModel, dict, dict, list[str], dict, frozenset]:
     """One camera's board poses by stem, the frames skipped with their reasons, its intrinsics (calibrated from
-    its frames when the rig's dataset.yaml gives none) and its images' corners by stem (for the pairs), from each
-    of its frames' ``detect_in_image`` (``detections``, in :func:`camera_frames`' order)."""
+    its frames when the rig's dataset.yaml gives none), its images' corners by stem (for the pairs) and the stems
+    whose board's tilt the corners leave ambiguous (skipped by the camera; a 2D scanner's pair may decide it), from
+    each of its frames' ``detect_in_image`` (``detections``, in :func:`camera_frames`' order)."""
     warnings: list[str] = []
     frames = camera_frames(sensor)
     camera = sensor.camera
@@ -55,7 +57,7 @@ def measure_camera(sensor: Sensor, board, detections: list) -> tuple[CameraModel
         camera, _ = calibrate_intrinsics([d.corners_px for d in found], board, *sizes.pop(),
                                          corner_ids=[d.corner_ids for d in found])
         warnings.append(f"camera {sensor.name}: no intrinsics in dataset.yaml: {camera.source}")
-    poses, skipped = {}, {}
+    poses, skipped, ambiguous = {}, {}, set()
     for f, (size, det) in zip(frames, detections):
         if isinstance(det, str):
             skipped[f.name] = det
@@ -68,7 +70,9 @@ def measure_camera(sensor: Sensor, board, detections: list) -> tuple[CameraModel
                 poses[f.name] = estimate_board_pose(det, board, camera)
             except LidarcamError as exc:
                 skipped[f.name] = f"board pose: {exc.message}"
-    return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}
+                if isinstance(exc, AmbiguousOrientationError):
+                    ambiguous.add(f.name)
+    return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}, frozenset(ambiguous)
 
 
 def camera_views_of(name: str, camera: CameraModel, poses: dict, board,
@@ -200,7 +204,7 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
                            path=rig.yaml_path, hint="give a rig's calibration.json as the guess")
     warnings: list[str] = []
-    cameras, poses, skipped, found = {}, {}, {}, {}
+    cameras, poses, skipped, found, ambiguous = {}, {}, {}, {}, {}
     with ThreadPoolExecutor(max_workers=1) as ahead, ThreadPoolExecutor(max_workers=workers) as pool:
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
@@ -212,7 +216,7 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         pending = {s.name: [pool.submit(detect_in_image, f, rig.board, timings) for f in camera_frames(s)]
                    for s in rig.cameras}
         for s in rig.cameras:
-            cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name] = measure_camera(
+            cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name], ambiguous[s.name] = measure_camera(
                 s, rig.board, [p.result() for p in pending[s.name]])
             warnings.extend(w)
         sweeps = {name: f.result() for name, f in sweeps.items()}
@@ -221,7 +225,10 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
         measured: dict = {}  # stem -> (the camera it was measured with, its frame): the LiDAR side tried once
         for k, cam in enumerate(shared):
-            stems = [st for st in poses[cam.name] if lid.file(st) is not None]
+            # a scanner's frames include those whose board's tilt the camera leaves ambiguous: the laser may decide
+            # it (``solution_selection.select_and_refine``)
+            stems = [st for st in cam.stems if lid.file(st) is not None and (
+                st in poses[cam.name] or lid.lidar == "2d" and st in ambiguous[cam.name])]
             # a LiDAR that shares too few frames with every camera (the first, sharing most, among them) is measured
             # with the first still, so that its solve can say why it is not linked (its frames' reasons, a bad file)
             if len(stems) >= MIN_PAIR_FRAMES or k == 0 and stems:
