@@ -13,7 +13,7 @@ from geometry.rotations import T_log
 
 from ..solvers import chi_square as chi2
 from ..solvers.board_edges import edge_scatter
-from ..solvers.edges_in_graph import (conflict_covariance, edges_gain, edges_left_out, lidar_crossings,
+from ..solvers.edges_in_graph import (EDGE_ROUNDS, conflict_covariance, edges_gain, edges_left_out, lidar_crossings,
                                       outline_statistics)
 from ..solvers.outline_check import outline_check
 from ..solvers.graph_keys import edge_shift_key, outline_key
@@ -66,7 +66,7 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
     if not any(v.edges for v in views):
         return lidar_views, solution, {}, None
     planes = solution
-    for _ in range(4):
+    for round_ in range(EDGE_ROUNDS):
         try:
             solution = solve_rig(names, rig.reference, camera_views, views, T_ref, T_ref_board, refine_intrinsics)
         except LidarcamError:
@@ -84,9 +84,11 @@ def _with_edges(rig: RigDataset, names: tuple, camera_views: list, lidar_views: 
             settled &= (abs(np.log(max(tau, 1e-4) / max(lv.edge_tau_m, 1e-4))) < 0.1
                         and abs(np.log(scale / lv.edge_scale)) < 0.05)
             new.append(replace(lv, edge_tau_m=tau, edge_scale=scale))
-        views = new
-        if settled:
+        # the views the solution was solved with stand (the shifts' test needs their own prior): a scatter
+        # shrinking to its floor may take more rounds than EDGE_ROUNDS, and the last one's is kept
+        if settled or round_ == EDGE_ROUNDS - 1:
             break
+        views = new
     records = {}
     first = {}  # each LiDAR's first pair (its camera sharing the most frames): the ends are the LiDAR's own
     for (c, d), frames in (pair_frames or {}).items():
