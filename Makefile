@@ -44,7 +44,6 @@ bench: $(STAMP)
 	$(RECORD) handheld -- $(PY) benchmarks/bench_handheld.py
 	$(RECORD) stands -- $(PY) benchmarks/bench_stands.py
 	$(RECORD) pair_vs_rig -- $(PY) benchmarks/bench_pair_vs_rig.py
-	$(RECORD) pair_vs_rig_intrinsics -- $(PY) benchmarks/bench_pair_vs_rig.py --refine-intrinsics --rigs 30
 	$(RECORD) pair_vs_rig_scanner -- $(PY) benchmarks/bench_pair_vs_rig.py --scanner --rigs 20 --poses 3 --samples 500
 	$(RECORD) pair_vs_rig_scanner_varied -- $(PY) benchmarks/bench_pair_vs_rig.py --scanner --rigs 20 --poses 3 --samples 500 --config varied
 	$(RECORD) noise_models -- $(PY) benchmarks/bench_noise_models.py

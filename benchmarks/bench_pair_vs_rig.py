@@ -1,13 +1,12 @@
 """One camera and one LiDAR, calibrated as a rig and as a pair: how far apart the two engines land (make bench;
-`python benchmarks/bench_pair_vs_rig.py [--rigs N] [--refine-intrinsics]`).
+`python benchmarks/bench_pair_vs_rig.py [--rigs N]`).
 
 Each simulated rig (`simulate_rig`: one camera, one HDL-64E-like LiDAR, 10 poses) is calibrated by the rig's
 engine (`calibrate_rig`) and, as the same camera-LiDAR pair over the same frames, by the pair's (`calibrate`),
 without posterior. Printed per rig: the rig's estimate against the pair's (degrees, millimetres, and its squared
 Mahalanobis distance under the pair's covariance), the ratio of the rig's standard deviations to the pair's (GTSAM
 tangent, rotation then translation), and each engine's distance from the truth. Two engines that were one would
-print zeros and ratios of 1. `--refine-intrinsics`: the camera is given focal lengths 1% too long and half its k1
-(as in bench_rig_intrinsics.py), and both engines refine the intrinsics.
+print zeros and ratios of 1 (the intrinsics as given: refining them is the engine's alone).
 
 `--scanner --poses N --samples S [--config C]`: a 2D scanner's pair folder of N boards (`simulate_dataset`, lidar
 2d, the simulator's configuration C), the rig's engine with its posterior (S effective samples) as `lidarcam
@@ -36,8 +35,7 @@ from estimators.calibration import calibrate_pair  # noqa: E402
 from estimators.errors import LidarcamError  # noqa: E402
 from estimators.io.rig_dataset import load_rig  # noqa: E402
 from estimators.rig_calibration import calibrate_rig  # noqa: E402
-from estimators.simulation.rig_simulator import miscalibrate_camera, simulate_rig  # noqa: E402
-from estimators.solvers.refinement_options import RefinementOptions  # noqa: E402
+from estimators.simulation.rig_simulator import simulate_rig  # noqa: E402
 from geometry.rotations import T_inverse, T_log  # noqa: E402
 
 
@@ -90,8 +88,6 @@ def scanner_rows(n: int, poses: int, samples: int, config: str = "default") -> N
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rigs", type=int, default=5, help="simulated rigs (seeds 0..N-1)")
-    ap.add_argument("--refine-intrinsics", action="store_true",
-                    help="give the camera wrong intrinsics and refine them in both engines")
     ap.add_argument("--scanner", action="store_true", help="a 2D scanner's pair folders (see the docstring)")
     ap.add_argument("--poses", type=int, default=3, help="boards per scanner folder (default 3)")
     ap.add_argument("--samples", type=int, default=500, help="effective posterior samples per engine (--scanner)")
@@ -101,28 +97,24 @@ def main() -> None:
     if a.scanner:
         scanner_rows(a.rigs, a.poses, a.samples, a.config)
         return
-    options = RefinementOptions(refine_intrinsics=a.refine_intrinsics)
     print(f"One camera and one HDL-64E-like LiDAR, 10 poses, as a rig and as a pair: {a.rigs} rigs "
-          f"(seeds 0-{a.rigs - 1})" + ("; the camera given focal lengths x1.01 and k1 x0.5, refined by both"
-                                       if a.refine_intrinsics else ""))
+          f"(seeds 0-{a.rigs - 1})")
     print("seed  rig-pair deg  rig-pair mm  d2 (pair cov)  sd rig/pair (rot x y z, trans x y z)  truth d2 rig / pair")
     truth_d2: dict = {"rig": [], "pair": []}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(a.rigs):
             folder = simulate_rig(Path(tmp) / f"rig{seed}", n_poses=10, seed=seed, cameras=1, lidars=1)
-            if a.refine_intrinsics:
-                miscalibrate_camera(folder, "cam0")
             truth = json.loads((folder / "ground_truth.json").read_text())
             T_true = np.linalg.inv(np.array(truth["T_cam0_cam0"])) @ np.array(truth["T_cam0_lidar0"])
             rig = load_rig(folder)
             refused = []
             try:
-                T_rig, C_rig = calibrate_rig(rig, np.random.default_rng(0), samples=0,
-                                             refine_intrinsics=a.refine_intrinsics).solution.transform("cam0", "lidar0")
+                T_rig, C_rig = calibrate_rig(rig, np.random.default_rng(0), samples=0).solution.transform("cam0",
+                                                                                                         "lidar0")
             except LidarcamError as exc:
                 refused.append(f"rig refused: {exc.problem[:70]}")
             try:
-                pair = calibrate_pair(rig.pair("cam0", "lidar0"), samples=0, options=options)
+                pair = calibrate_pair(rig.pair("cam0", "lidar0"), samples=0)
             except LidarcamError as exc:
                 refused.append(f"pair refused: {exc.problem[:70]}")
             if refused:

@@ -256,6 +256,11 @@ def intrinsics() -> None:
             print(f"  {label:18s} against the reference: {_against(T, ref)} (reference's d2 {d2:.1f}); plane "
                   f"consistency {ss / dof:.2f}; std of t in camera x/y/z "
                   f"{np.round(r.only_pair().std_translation_camera_mm, 1).tolist()} mm")
+        t = r.intrinsics_test
+        print(f"  the test: chi-square {t['chi_square_given']:.0f} -> {t['chi_square_refined']:.0f} on {t['dof']:.0f} "
+              f"dof, {t['own_corners_drop']:.0f} of the drop on the camera's own corners alone; the rest "
+              f"{'lowers' if t['lowers_disagreement'] else 'does not lower'} the disagreement (F test p = "
+              f"{t['p_value']:.2g})")
         params, sd = r.solution.intrinsics["cam0"]
         given = res.cameras["cam0"].params
         print("  moved (in their sd): " + ", ".join(f"{n} {(v - g) / s:+.1f}" for n, g, v, s in

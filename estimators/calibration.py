@@ -1,7 +1,8 @@
 """A camera-LiDAR pair's own solve: a dataset measured (``pipeline.measurement``), solved (closed form or minimal
-solutions, the factor graph, the posterior) into its result (``pipeline.result``). It starts each camera-LiDAR pair
-of the engine (``rig_calibration``), gives ``--refine none``, and is kept as ``calibrate_pair`` for the studies
-and benchmark pages that measured it; ``estimators.calibrate`` is the engine's."""
+solutions, the factor graph; under the given intrinsics, no posterior) into its result (``pipeline.result``). It
+starts each camera-LiDAR pair of the engine (``rig_calibration``), gives ``--refine none``, and is kept as
+``calibrate_pair`` for the studies and benchmark pages that measured it; ``estimators.calibrate`` is the engine's
+(its posterior, refined intrinsics)."""
 from __future__ import annotations
 
 import time
@@ -13,7 +14,6 @@ from threadpoolctl import threadpool_limits
 
 from geometry.camera import CameraModel
 
-from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError, LidarcamError
 from .io.dataset import Dataset, load_dataset
 from .io.measurement_store import Measurements, cache_dir
@@ -23,7 +23,7 @@ from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
 from .pipeline.result import CalibrationResult
 from .pipeline.verdict import frame_disagrees, plane_residuals
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
-from .solvers.intrinsics_refinement import intrinsics_drop, refine_intrinsics
+from .solvers.intrinsics_refinement import intrinsics_drop
 from .solvers.posterior import PosteriorOptions
 from .solvers.refinement import refine as refine_graph
 from .solvers.refinement_options import RefinementOptions
@@ -60,7 +60,8 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     params : SegmentationParams
         The LiDAR board segmentation's settings.
     options : RefinementOptions
-        The factor graph's noise, robust loss, range model and edges.
+        The factor graph's noise, robust loss, range model and edges (refined intrinsics are the engine's:
+        ``refine_intrinsics`` is refused with a ValueError).
     posterior : None
         The posterior is the engine's (``estimators.calibrate``); a request here is refused (:func:`_no_posterior`).
     use_extent : bool, optional
@@ -93,6 +94,7 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     """
     _check_methods(init, refine)
     _no_posterior(posterior, samples)
+    _no_intrinsics(options)
     if not isinstance(dataset, Dataset):
         dataset = load_dataset(dataset)
     if dataset.lidar == "3d" and init != "closed-form":
@@ -113,19 +115,6 @@ def calibrate_pair(dataset: Dataset | str | Path, init: str = "closed-form", ref
     try:
         result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
                        warnings=warnings, timings=timings, use_extent=use_extent)
-        if result.intrinsics_refinement is not None:
-            # The LiDAR's boards were chosen under the given intrinsics (each frame's board points taken in the
-            # band of the camera's plane): measured again under the refined ones, the camera side observed under
-            # the given ones as before, and solved again. Chosen under intrinsics 1% wrong, the boards' points
-            # made their planes and ring ends disagree (d2 22-164 on simulated rigs; 2-4 measured again).
-            t0 = time.perf_counter()
-            again = measure(replace(dataset, camera=result.intrinsics_refinement.camera), rng, params, hints,
-                            cache=cache)
-            frames = reobserve_frames(list(again.frames), dataset.board, camera)
-            timings["measure_again"] = time.perf_counter() - t0
-            result = solve(frames, dataset.board, camera, init, refine, options, name=str(dataset.root),
-                           warnings=warnings + [w for w in again.warnings if w not in warnings], timings=timings,
-                           use_extent=use_extent)
     except DegenerateLayoutError as exc:
         skipped = [f"{f.name}: {f.reason}" for f in frames if not f.usable]
         detail = f" (skipped: {'; '.join(skipped)})" if skipped else ""
@@ -170,7 +159,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     init, refine : str
         As for :func:`calibrate`.
     options : RefinementOptions
-        The factor graph's settings.
+        The factor graph's settings (``refine_intrinsics`` is the engine's: refused with a ValueError).
     name : str
         The dataset's name in the result.
     warnings : list of str, optional
@@ -209,8 +198,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
     _no_posterior(posterior, samples)
     _check_methods(init, refine)
-    if options.refine_intrinsics and refine == "factor-graph":
-        return _solve_with_intrinsics(frames, board, camera, init, options, name, warnings, timings, use_extent)
+    _no_intrinsics(options)
     warnings = list(warnings or [])
     timings = {} if timings is None else timings
     used = [f for f in frames if f.usable]
@@ -260,55 +248,19 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, intrinsics_check=check)
 
 
-# Joint solves of the intrinsics at most (each followed by a refinement whose plane error weights the next).
-INTRINSICS_ROUNDS = 3
-
-
-def _solve_with_intrinsics(frames, board, camera: CameraModel, init: str, options: RefinementOptions, name: str,
-                           warnings, timings, use_extent) -> CalibrationResult:
-    """:func:`solve` with the intrinsics refined (``solvers.intrinsics_refinement``): solved under the given
-    intrinsics, then with them as variables, then, the boards observed again under the refined intrinsics, solved
-    under those."""
-    plain = replace(options, refine_intrinsics=False)
-    t0 = time.perf_counter()
-    first = solve(frames, board, camera, init, "factor-graph", plain, name, list(warnings or []), use_extent=use_extent)
-    timings = {} if timings is None else timings
-    ref, floor = first.refinement, options.plane_floor_m or 0.0
-    for _ in range(INTRINSICS_ROUNDS):
-        fit = refine_intrinsics(list(first.frames), board, camera, ref, plain, floor)
-        again = reobserve_frames(frames, board, fit.camera)
-        ref = solve(again, board, fit.camera, init, "factor-graph", plain, name, [], use_extent=use_extent).refinement
-        if abs(ref.plane_floor_m - floor) <= max(0.1 * floor, 1e-4):  # the plane error settled (0.1 mm)
-            break
-        floor = ref.plane_floor_m
-    timings["intrinsics_refinement"] = time.perf_counter() - t0
-    result = solve(again, board, fit.camera, init, "factor-graph", plain, name, warnings, timings,
-                   use_extent=use_extent)
-    ref = result.refinement
-    fit = replace(fit, variance_factor_given=float(first.refinement.variance_factor),
-                  corner_residual_given_px=float(first.refinement.corner_residual_px),
-                  variance_factor_refined=float(ref.variance_factor), consistency_dof=float(ref.consistency_dof),
-                  corner_residual_refined_px=float(ref.corner_residual_px))
-    warned = result.warnings
-    if not fit.lowers_overdispersion:
-        # The planes' other errors pull the intrinsics: said first, as the refined camera is then not to be used.
-        moved = float(np.max(np.abs(fit.params - fit.given_params) / fit.std))
-        warned = (f"refining the intrinsics did not lower the boards' plane disagreement beyond what freed "
-                  f"intrinsics fit of its noise (variance factor {fit.variance_factor_given:.2f} under the given "
-                  f"intrinsics, {fit.variance_factor_refined:.2f} refined, F test p = {fit.overdispersion_p:.2g}) "
-                  f"while moving them by up to {moved:.1f} standard deviations (corner residual "
-                  f"{fit.corner_residual_given_px:.3f} -> {fit.corner_residual_refined_px:.3f} px): the camera's "
-                  "calibration is not what the boards disagree about; keep the given intrinsics (calibrate without "
-                  "--refine-intrinsics) unless a calibration made for the camera confirms the refined ones",
-                  ) + tuple(warned)
-    return replace(result, intrinsics_refinement=fit, warnings=warned)
-
-
 def _no_posterior(posterior: PosteriorOptions | None, samples: int | None) -> None:
     """The pair's own solve draws no posterior: a request for one is refused with where it is (the engine's)."""
     if posterior is not None or (samples or 0) > 0:
         raise ValueError("the pair's own solve draws no posterior: the engine samples it (estimators.calibrate("
                          "dataset or measurements, samples=N), as lidarcam calibrate does)")
+
+
+def _no_intrinsics(options: RefinementOptions) -> None:
+    """The pair's own solve refines no intrinsics: a request is refused with where it is (the engine's)."""
+    if options.refine_intrinsics:
+        raise ValueError("the pair's own solve does not refine the intrinsics: the engine does (estimators.calibrate("
+                         "dataset or measurements, options=RefinementOptions(refine_intrinsics=True)), as lidarcam "
+                         "calibrate --refine-intrinsics)")
 
 
 def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: str, refine: str,

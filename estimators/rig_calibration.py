@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .calibration import INTRINSICS_ROUNDS, solve
+from .calibration import solve
 from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
 from .io.measurement_store import RigMeasurements
@@ -38,12 +38,15 @@ from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import PosteriorOptions, heavy_tails
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
-from .solvers.rig_graph import intrinsics_test, solve_rig, spanning_tree
+from .solvers.rig_graph import intrinsics_test, own_corner_drop, solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
 # Fewest boards a camera and a 2D scanner whose segment ends are measurements must share to be linked: a single
 # pair of them is solved from two (``solution_selection.select_minimal``).
 MIN_SCANNER_FRAMES_WITH_ENDS = 2
+# With refined intrinsics, rounds of the pairs solved again under them at most (each round's per-board plane errors
+# weigh the next joint solve; :meth:`PairsAlone.settled` ends them sooner).
+INTRINSICS_ROUNDS = 3
 
 
 def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams) -> RefinementOptions:
@@ -123,7 +126,7 @@ class PairsAlone:
 
     def settled(self, before: "PairsAlone") -> bool:
         """Every board's plane error within a tenth of ``before``'s (or 0.1 mm) and the same boards used: the
-        rounds of a refinement of the intrinsics stop there (``INTRINSICS_ROUNDS``, as a single pair's)."""
+        rounds of a refinement of the intrinsics stop there (``INTRINSICS_ROUNDS``)."""
         now = {(n, st): e for n, frames in self.plane_frames.items() for st, (_, e) in frames.items()}
         then = {(n, st): e for n, frames in before.plane_frames.items() for st, (_, e) in frames.items()}
         return now.keys() == then.keys() and all(abs(now[k] - then[k]) <= max(0.1 * then[k], 1e-4) for k in now)
@@ -515,15 +518,17 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     test = None
     if refine_intrinsics and solution.intrinsics:
+        own = sum(own_corner_drop(cv) for cv in camera_views if cv.name in solution.intrinsics)
         test = intrinsics_test(solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, False),
-                               solution)
+                               solution, own)
         if not test["lowers_disagreement"]:  # said first: the refined intrinsics are then not to be used
             warnings.insert(0, f"refining the intrinsics did not lower the rig's disagreement beyond what "
-                               f"{test['parameters']} freed parameters fit of its noise (chi-square "
+                               f"{test['parameters']} freed parameters fit (chi-square "
                                f"{test['chi_square_given']:.0f} -> {test['chi_square_refined']:.0f} on "
-                               f"{test['dof']:.0f} dof, F test p = {test['p_value']:.2g}): keep the given intrinsics "
-                               "(calibrate without --refine-intrinsics) unless a calibration made for the cameras "
-                               "confirms the refined ones")
+                               f"{test['dof']:.0f} dof, {test['own_corners_drop']:.0f} of the drop on the cameras' "
+                               f"own corners alone; F test of the rest p = {test['p_value']:.2g}): the other sensors "
+                               "do not confirm them; keep the given intrinsics (calibrate without --refine-intrinsics) "
+                               "unless a calibration made for the cameras confirms the refined ones")
     t_joint = time.perf_counter()
     if on_solved is not None:
         on_solved(alone_fit.results)

@@ -273,8 +273,8 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                    help="refine the camera's intrinsics with the extrinsic (camera.param_std in dataset.yaml is their "
                         "prior; without it they are estimated from the frames), then measure the LiDAR's boards "
                         "again under them and solve again: the result gives them, propagates their uncertainty, and "
-                        "says whether they lower the boards' overdispersion (calibration.json "
-                        "'intrinsics_refinement')")
+                        "says whether they lower the sensors' disagreement (calibration.json: a pair's "
+                        "'intrinsics_refinement', every camera's in 'cameras', the test in 'intrinsics_test')")
     p.add_argument("--samples", type=int, default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],

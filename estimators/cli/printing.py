@@ -203,7 +203,8 @@ def print_rig(result) -> None:
     if result.intrinsics_test is not None:
         t = result.intrinsics_test
         print(f"intrinsics refined with the rig ({t['parameters']} parameters): chi-square {t['chi_square_given']:.0f} "
-              f"under the given, {t['chi_square_refined']:.0f} refined, on {t['dof']:.0f} dof ("
+              f"under the given, {t['chi_square_refined']:.0f} refined, on {t['dof']:.0f} dof, "
+              f"{t['own_corners_drop']:.0f} of the drop on the cameras' own corners alone (the rest "
               f"{'lowers' if t['lowers_disagreement'] else 'does not lower'} the disagreement, F test p = "
               f"{t['p_value']:.2g})")
     for n, (p, sd) in (sol.intrinsics or {}).items():

@@ -13,7 +13,6 @@ from .. import __version__
 from ..io.output import write_json_atomic
 from ..measurements import FrameMeasurement
 from ..solvers.closed_form import describe_direction
-from ..solvers.intrinsics_refinement import IntrinsicsFit
 from ..solvers.edges_in_graph import conflict_words
 from ..solvers.refinement import Refinement
 from .pair_estimate import PairEstimate
@@ -70,9 +69,6 @@ class CalibrationResult:
         2D: the refined minima that hold posterior mass, the chosen one first.
     measurements_source : str
         ``measured``, ``cache`` or a measurements file.
-    intrinsics_refinement : IntrinsicsFit or None
-        With ``RefinementOptions.refine_intrinsics``: the intrinsics given and refined, and the boards'
-        overdispersion under each.
     """
 
     T_camera_lidar: np.ndarray
@@ -93,8 +89,6 @@ class CalibrationResult:
     modes: tuple = ()
     # Where the measurements came from: "measured" (images and scans read now), "cache" or a measurements file.
     measurements_source: str = "measured"
-    # The intrinsics refined with the extrinsic (``--refine-intrinsics``; ``camera`` is then the refined model).
-    intrinsics_refinement: IntrinsicsFit | None = None
     # When the planes disagree beyond their noise (3D): whether freeing the intrinsics explains it
     # (``intrinsics_refinement.intrinsics_drop``), else None.
     intrinsics_check: dict | None = None
@@ -229,8 +223,6 @@ class CalibrationResult:
             },
             **self.minimal_dict(),
             "intrinsics": self.camera.as_dict(),
-            **({"intrinsics_refinement": self.intrinsics_refinement.to_dict()}
-               if self.intrinsics_refinement is not None else {}),
             "intrinsics_check": self.intrinsics_check,
             "warnings": list(self.warnings),
             "measurements_source": self.measurements_source,

@@ -15,6 +15,7 @@ from ..io.output import write_json_atomic, write_npz_atomic
 from ..io.rig_dataset import RigDataset
 from ..solvers.closed_form import describe_direction
 from ..solvers.edges_in_graph import conflict_words
+from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
@@ -273,8 +274,29 @@ class RigResult:
                              "weakest_direction_words": f"{axis}: to constrain it further, {advice}"}
             out.update(own.minimal_dict())
         out["intrinsics"] = self.camera_model(camera).as_dict()
+        if camera in (self.solution.intrinsics or {}):
+            out["intrinsics_refinement"] = self._intrinsics_record(camera)
         out["intrinsics_check"] = self.intrinsics_checks.get((camera, lidar))
         return out
+
+    def _intrinsics_record(self, camera: str) -> dict:
+        """A pair's file's ``intrinsics_refinement``: each of the camera's intrinsics given and refined with the
+        rig, its standard deviation, how far it moved in those and its prior's (dataset.yaml's ``param_std``), and
+        the rig's test whether refining them lowered its factors' disagreement (``intrinsics_test``)."""
+        params, sd = self.solution.intrinsics[camera]
+        given = self.cameras[camera]
+        prior = given.param_std
+        test = self.intrinsics_test or {}
+        return {"parameters": [{"name": n, "given": float(g), "refined": float(v), "std": float(e),
+                                "shift_in_std": float((v - g) / e) if e > 0 else None,
+                                "prior_sd": None if prior is None else float(prior[k])}
+                               for k, (n, g, v, e) in enumerate(zip(param_names(len(params)), given.params, params,
+                                                                    sd))],
+                "prior": "given camera.param_std" if prior is not None else
+                         "none: estimated from the frames' corners and planes",
+                **{k: test.get(k) for k in ("chi_square_given", "chi_square_refined", "dof", "p_value")},
+                "lowers_overdispersion": test.get("lowers_disagreement"),
+                "lowers_overdispersion_p": test.get("p_value")}
 
     def to_json(self) -> dict:
         sol, ref = self.solution, self.rig.reference

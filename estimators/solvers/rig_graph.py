@@ -154,21 +154,49 @@ def _chi2(names, cameras, lidars, stems, values, reference, refine_intrinsics, s
     return out
 
 
-def intrinsics_test(given: "RigSolution", refined: "RigSolution") -> dict:
+def own_corner_drop(cv: CameraViews) -> float:
+    """The drop in camera ``cv``'s corners' chi-square (unit scale) when its intrinsics are freed with no other
+    sensor, its board poses free (Zhang's problem on its own views, under the same prior): what refining them gains
+    on its own corners alone. NaN where that graph cannot be solved."""
+    stems = sorted(cv.T_camera_board)
+    ss = []
+    for refine in (False, True):
+        values = gtsam.Values()
+        for j, st in enumerate(stems):
+            values.insert(frame_key(j), gtsam.Pose3(cv.T_camera_board[st]))
+        if refine:
+            values.insert(intrinsics_key(0), np.asarray(cv.camera.params, dtype=float))
+        owners: list = []
+        graph = build_graph((cv.name,), [cv], [], stems, {cv.name: 1.0}, cv.name, refine, owners)
+        try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        except RuntimeError:
+            return float("nan")
+        ss.append(sum(2.0 * graph.at(i).error(values) for i, o in enumerate(owners) if o == cv.name))
+    return ss[0] - ss[1]
+
+
+def intrinsics_test(given: "RigSolution", refined: "RigSolution", own_drop: float = 0.0) -> dict:
     """Whether refining the cameras' intrinsics with the rig (``refined``) lowers its factors' disagreement beyond
-    what freed intrinsics fit of their noise, against the same views under the given ones (``given``): the F test
-    of the drop in the sensors' total chi-square (unit scale) against the intrinsics' count of parameters ``k``,
-    over the refined chi-square per degree of freedom (the single pair's test, ``IntrinsicsFit.overdispersion_p``,
-    on every sensor's factors: a rig's other cameras see a camera's wrong intrinsics in its corners too)."""
+    what freed intrinsics fit, against the same views under the given ones (``given``): the F test of the drop in
+    the sensors' total chi-square (unit scale), less ``own_drop`` (what each camera's freed intrinsics gain on its
+    own corners alone, :func:`own_corner_drop`), against the intrinsics' count of parameters ``k``, over the refined
+    chi-square per degree of freedom. Credited is what the other sensors confirm: the LiDARs' planes and the other
+    cameras' corners of the boards they share. A camera's own views alone (Zhang's problem) are fitted better by
+    freed intrinsics wherever its model is imperfect for them, right for the rig or not: on the recorded VLP-16 set
+    a fisheye's twelve central views gained 248 of the whole graph's drop of 260 on its own corners, and the whole
+    drop alone credited intrinsics whose planes agree no better with the LiDAR's."""
     k = sum(len(p) for p, _ in refined.intrinsics.values())
     ss_g = sum(ss for ss, _ in given.chi2_dof.values())
     ss_r, dof = (sum(v[i] for v in refined.chi2_dof.values()) for i in (0, 1))
-    p = chi2.drop_p(k, ss_g, ss_r, dof)
-    return {"parameters": k, "chi_square_given": ss_g, "chi_square_refined": ss_r, "dof": dof, "p_value": p,
-            "lowers_disagreement": bool(p < 0.05),
+    own = float(own_drop) if np.isfinite(own_drop) else 0.0
+    p = chi2.drop_p(k, ss_r + max(ss_g - ss_r - own, 0.0), ss_r, dof)
+    return {"parameters": k, "chi_square_given": ss_g, "chi_square_refined": ss_r, "own_corners_drop": own,
+            "dof": dof, "p_value": p, "lowers_disagreement": bool(p < 0.05),
             "meaning": "every sensor's chi-square under the given intrinsics and the refined ones (the same views and "
-                       "noise); refined intrinsics are credited when the F test of the drop against their number "
-                       "of parameters has p < 0.05 (freed intrinsics fit part of the noise)"}
+                       "noise), and own_corners_drop: what the freed intrinsics gain on each camera's own corners "
+                       "with no other sensor; refined intrinsics are credited when the F test of the rest of the drop "
+                       "(what the other sensors confirm) against their number of parameters has p < 0.05"}
 
 
 def graph_reference(reference: str, camera_names: list[str]) -> str:
