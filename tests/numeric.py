@@ -1,10 +1,15 @@
 """Finite-difference helpers shared by the tests, and a pair refinement's likelihood and samples of it."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from estimators.errors import LidarcamError
-from estimators.solvers.rig_posterior import pair_likelihood
+from estimators.solvers.board_edges import EndTerms
+from estimators.solvers.factor_graph import CameraViews, LidarViews
+from estimators.solvers.rig_graph import RigSolution
+from estimators.solvers.rig_posterior import RigLikelihood, hold_terms
 
 
 def likelihood_hessian(model, h: float = 1e-5) -> np.ndarray:
@@ -29,7 +34,7 @@ def likelihood_gradient(model, h: float = 1e-7) -> np.ndarray:
 
 def rig_likelihood(ref, likelihood: str = "gaussian", nu: float = 4.0, cells=None, cell: int = 0):
     """A pair refinement's likelihood (``refinement.Refinement``) as the engine samples a pair's: the rig's over the
-    views its graph was built from (``rig_posterior.pair_likelihood``), its range terms held at their estimate, its
+    views its graph was built from (:func:`pair_likelihood`), its range terms held at their estimate, its
     edges' share as a quadratic, a 2D scan's segment ends by their own likelihood; within mode ``cell`` of ``cells``
     when given."""
     rm = ref.range_model
@@ -51,3 +56,28 @@ def sampled(ref, rng: np.random.Generator, min_ess: int, pilot: bool = False, li
     model = rig_likelihood(ref, likelihood)
     keep, run = run_chain(model, ref.covariance, rng, min_ess, 40000, pilot=pilot)
     return keep[:, :6], run, model, np.exp(keep[:, -1])
+
+
+def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera_board: dict,
+                    views: tuple[CameraViews, LidarViews], range_terms: np.ndarray | None = None,
+                    quadratic: tuple[np.ndarray, np.ndarray] | None = None, likelihood: str = "gaussian",
+                    nu: float = 4.0, ends: EndTerms | None = None, cells=None, cell: int = 0) -> RigLikelihood:
+    """A single camera-LiDAR pair's likelihood: the rig of its camera (the reference) and its LiDAR at the
+    refinement's estimate, its covariance and board poses (by stem), from the views its graph was built from
+    (``PlaneProblem.views``); its range terms, when it has them, held at their estimate ``range_terms`` (the pair
+    convolves their share into the samples); ``quadratic``: the board edges' share about the estimate."""
+    camera, lidar = views
+    if range_terms is not None and lidar.ranged is not None and lidar.terms is not None:
+        lidar = hold_terms(lidar, range_terms)
+    elif lidar.terms is not None:
+        lidar = replace(lidar, terms=None, terms_prior_sd=None)
+    joint = np.zeros((12, 12))
+    joint[6:, 6:] = covariance
+    solution = RigSolution((camera.name, lidar.name), camera.name, {camera.name: np.eye(4),
+                                                                     lidar.name: T_camera_lidar},
+                           joint, {st: T_camera_board[st] for st in lidar.W}, {}, {}, 0,
+                           covariance_inner=covariance)
+    # A scan's segment ends enter by their own likelihood, not by the edges' quadratic.
+    return RigLikelihood(solution, [camera], [lidar], None if ends is not None else quadratic, likelihood=likelihood,
+                         nu=nu, ends=None if ends is None else {lidar.name: ends},
+                         cells=() if cells is None else ((cells, camera.name, lidar.name, cell),))

@@ -31,8 +31,8 @@ scatter (which the graph's scale already holds); the samples then carry the nois
 than the Laplace covariance on 8-board pairs). The cameras' poses relative to each other rest on the corners alone,
 at the graph's scale: ``s`` is how far the boards' planes, which the LiDARs see, are from where the corners put them
 (on a 6-camera rig s's posterior sits near 0.7, which applied to the camera-camera links would narrow them below
-their errors). With one camera and one LiDAR this is a pair's likelihood (``pair_likelihood`` builds it from a pair's
-own refinement, for the tests that hold it against that refinement): a 2D pair's segment ends enter by their own
+their errors). With one camera and one LiDAR this is a pair's likelihood (the tests build it from a pair's own
+refinement, ``tests/numeric.py``, to hold it against that refinement): a 2D pair's segment ends enter by their own
 likelihood, with the dataset's outline (4 parameters) under its prior,
 and with several minima each is sampled within its cell, as a rig's are where a camera-scanner pair's boards leave
 several (``pipeline.rig_modes``: each joint minimum within its cell of that pair's transform, mixed by
@@ -723,28 +723,3 @@ def hold_terms(lidar: LidarViews, values: np.ndarray) -> LidarViews:
     beta = np.asarray(values, dtype=float)
     return replace(lidar, terms=None, terms_prior_sd=None,
                    ranged={st: replace(fw, e0=fw.e0 + fw.W_nuisance @ beta) for st, fw in lidar.ranged.items()})
-
-
-def pair_likelihood(T_camera_lidar: np.ndarray, covariance: np.ndarray, T_camera_board: dict,
-                    views: tuple[CameraViews, LidarViews], range_terms: np.ndarray | None = None,
-                    quadratic: tuple[np.ndarray, np.ndarray] | None = None, likelihood: str = "gaussian",
-                    nu: float = 4.0, ends: EndTerms | None = None, cells=None, cell: int = 0) -> RigLikelihood:
-    """A single camera-LiDAR pair's likelihood: the rig of its camera (the reference) and its LiDAR at the
-    refinement's estimate, its covariance and board poses (by stem), from the views its graph was built from
-    (``PlaneProblem.views``); its range terms, when it has them, held at their estimate ``range_terms`` (the pair
-    convolves their share into the samples); ``quadratic``: the board edges' share about the estimate."""
-    camera, lidar = views
-    if range_terms is not None and lidar.ranged is not None and lidar.terms is not None:
-        lidar = hold_terms(lidar, range_terms)
-    elif lidar.terms is not None:
-        lidar = replace(lidar, terms=None, terms_prior_sd=None)
-    joint = np.zeros((12, 12))
-    joint[6:, 6:] = covariance
-    solution = RigSolution((camera.name, lidar.name), camera.name, {camera.name: np.eye(4),
-                                                                     lidar.name: T_camera_lidar},
-                           joint, {st: T_camera_board[st] for st in lidar.W}, {}, {}, 0,
-                           covariance_inner=covariance)
-    # A scan's segment ends enter by their own likelihood, not by the edges' quadratic.
-    return RigLikelihood(solution, [camera], [lidar], None if ends is not None else quadratic, likelihood=likelihood,
-                         nu=nu, ends=None if ends is None else {lidar.name: ends},
-                         cells=() if cells is None else ((cells, camera.name, lidar.name, cell),))
