@@ -342,3 +342,36 @@ def test_two_boards_of_known_size_are_solved_by_their_segment_ends_when_unambigu
         select_and_refine(frames1, rig1.board, rig1.camera)
     with pytest.raises(DegenerateLayoutError, match="needs at least 3 boards .2 with the board's size"):
         select_and_refine(frames, replace(rig.board, size=None), rig.camera)
+
+
+def test_a_folders_board_ambiguous_in_its_tilt_is_measured_for_the_scanners_pair(tmp_path, monkeypatch):
+    """A 2D pair folder whose third board's corners fit two tilts alike (the camera's board pose made ambiguous
+    here): the engine's measurement skips it for the camera, with its reason, yet gives the scanner's pair that
+    frame, its LiDAR segment and both tilts, for the laser to decide (the frame was dropped before it reached the
+    pair; with two boards left a 3-board folder was refused)."""
+    import estimators.pipeline.measurement as pair_measurement
+    import estimators.pipeline.rig_measurement as rig_measurement
+    from estimators.errors import AmbiguousOrientationError
+    from estimators.io.rig_dataset import load_rig
+    from estimators.simulation.simulator import simulate_dataset
+
+    rig = load_rig(simulate_dataset(tmp_path / "ds", n_poses=3, seed=1, lidar="2d"))
+    real = rig_measurement.estimate_board_pose
+    posed: list = []
+
+    def ambiguous_third(det, board, camera):
+        obs = real(det, board, camera)
+        posed.append(obs.T_camera_board[:3, 3])
+        if len(posed) >= 3 and np.allclose(posed[-1], posed[2]):  # the third board, whenever it is posed
+            raise AmbiguousOrientationError("the board's orientation is ambiguous", (
+                replace(obs, orientation_excess_chi2=0.0),
+                replace(_tilted(obs, np.radians(35), board), orientation_excess_chi2=3.0)))
+        return obs
+
+    monkeypatch.setattr(rig_measurement, "estimate_board_pose", ambiguous_third)
+    monkeypatch.setattr(pair_measurement, "estimate_board_pose", ambiguous_third)
+    measured = rig_measurement.measure_rig(rig, np.random.default_rng(0), workers=1)
+    assert list(measured.poses["cam0"]) == ["0000", "0001"] and "ambiguous" in measured.skipped["cam0"]["0002"]
+    third = measured.pairs[("cam0", "lidar0")][2]
+    assert third.name == "0002" and third.camera is None and third.lidar is not None
+    assert len(third.camera_alternatives) == 2
