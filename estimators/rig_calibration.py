@@ -518,7 +518,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     outline_checks = pairs_outline_checks(rig, names, camera_views, lidar_views, solution, pair_frames, warnings)
     test = None
     if refine_intrinsics and solution.intrinsics:
-        own = sum(own_corner_drop(cv) for cv in camera_views if cv.name in solution.intrinsics)
+        own = float(np.nansum([own_corner_drop(cv) for cv in camera_views if cv.name in solution.intrinsics]))
         test = intrinsics_test(solve_rig(names, rig.reference, camera_views, lidar_views, T_ref, T_ref_board, False),
                                solution, own)
         if not test["lowers_disagreement"]:  # said first: the refined intrinsics are then not to be used

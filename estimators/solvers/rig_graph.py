@@ -184,8 +184,9 @@ def intrinsics_test(given: "RigSolution", refined: "RigSolution", own_drop: floa
     chi-square per degree of freedom. Credited is what the other sensors confirm: the LiDARs' planes and the other
     cameras' corners of the boards they share. A camera's own views alone (Zhang's problem) are fitted better by
     freed intrinsics wherever its model is imperfect for them, right for the rig or not: on the recorded VLP-16 set
-    a fisheye's twelve central views gained 248 of the whole graph's drop of 260 on its own corners, and the whole
-    drop alone credited intrinsics whose planes agree no better with the LiDAR's."""
+    a fisheye's twelve central views gained 250 of the whole graph's drop of 260 on its own corners, and the whole
+    drop alone credited intrinsics whose planes agree no better with the LiDAR's. A camera whose views alone cannot
+    be solved so (NaN) has no own share: its intrinsics rest on the other sensors."""
     k = sum(len(p) for p, _ in refined.intrinsics.values())
     ss_g = sum(ss for ss, _ in given.chi2_dof.values())
     ss_r, dof = (sum(v[i] for v in refined.chi2_dof.values()) for i in (0, 1))
