@@ -26,6 +26,22 @@ from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 
 
+def shared_folder(tmp_path_factory, name: str, make) -> Path:
+    """Folder ``name`` made once by ``make(path)`` for the whole run, however many test processes share it
+    (pytest-xdist's workers: the first to take the lock makes it, the others wait and read it)."""
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    target = root / name
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / f"{name}.made").is_file():
+            make(target)
+            (root / f"{name}.made").touch()
+    return target
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _measurement_cache(tmp_path_factory):
     """Every calibration the tests run, the command line's in child processes too, keeps its measurement cache in

@@ -32,7 +32,10 @@ from geometry.rotations import T_exp, T_log
 
 @pytest.fixture(scope="module")
 def rig_folder(tmp_path_factory):
-    return simulate_rig(tmp_path_factory.mktemp("rig") / "rig", n_poses=10, seed=2, cameras=3, lidars=2, scanners=1)
+    from .conftest import shared_folder
+
+    return shared_folder(tmp_path_factory, "rig_3_cameras_2_lidars_1_scanner", lambda path: simulate_rig(
+        path, n_poses=10, seed=2, cameras=3, lidars=2, scanners=1))
 
 
 @pytest.fixture(scope="module")
