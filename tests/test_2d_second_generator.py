@@ -35,15 +35,16 @@ def _inside_the_reported_region(rig, modes) -> tuple[bool, float]:
 
 @pytest.mark.parametrize("boards", [4, 6])
 def test_the_truth_lies_inside_the_reported_region_on_every_layout_of_the_second_generator(boards):
-    """10 layouts of 4 and of 6 boards (seeds 0-9), 1 cm range noise, 0.25 degree steps: the truth inside the
+    """7 layouts of 4 and of 6 boards (seeds 0-6), 1 cm range noise, 0.25 degree steps: the truth inside the
     reported 99.9% region on every one; and the distances together like chi-square's (their sum over the layouts
     whose answer is one mode, below the 99.9% point of chi-square with 6 dof per layout: a covariance 2x too small
-    in variance fails it about 80% of the time). The sweep (100 layouts of each size, coverage and the share
-    answered) is ``make bench``'s: the footprint pages of the 2D honesty benchmark."""
+    in variance fails it about 65% of the time with 7 single-mode layouts, 82% with 10). The sweep (100 layouts of
+    each size, coverage and the share answered) is ``make bench``'s: the footprint pages of the 2D honesty
+    benchmark."""
     from scipy.stats import chi2
 
     total, dof = 0.0, 0
-    for seed in range(10):
+    for seed in range(7):
         rig, poses, frames = layout_trial(seed, boards)
         _, _, ref, modes, _ = select_and_refine(frames, rig.board, rig.camera)
         inside, d2 = _inside_the_reported_region(rig, modes)

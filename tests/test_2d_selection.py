@@ -114,7 +114,7 @@ def test_a_minimums_evidence_does_not_depend_on_the_signs_the_eigen_solver_gives
 
 
 def test_three_boards_choose_the_true_root_and_are_honest_when_they_cannot():
-    """Over 8 three-board layouts (default rig, 1 cm), the most probable mode is the true one in at least 7;
+    """Over 6 three-board layouts (default rig, 1 cm), the most probable mode is the true one in at least 5;
     every run reported unambiguous is a hit, and the modes' masses sum to at most 1. (The sweep, 100 layouts
     of each rig with the share answered and the regions' coverage, is ``make bench``'s 2D honesty pages.)"""
     hits = clear_hits = clear = trials = 0
@@ -133,10 +133,10 @@ def test_three_boards_choose_the_true_root_and_are_honest_when_they_cannot():
         if len(modes) == 1:
             clear += 1
             clear_hits += hit
-        if trials == 8:
+        if trials == 6:
             break
-    assert trials == 8
-    assert hits >= 7 and clear_hits == clear and clear >= 5
+    assert trials == 6
+    assert hits >= 5 and clear_hits == clear and clear >= 4, (hits, clear_hits, clear)
 
 
 def test_nearly_parallel_laser_lines_are_solved_and_reported_as_weak():
