@@ -18,9 +18,9 @@ demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
 # Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
-# tests take 10-30 s each): 8.0 minutes of pytest on a clean clone at fb9384b on a 2-core machine (479 s), at the
-# budget of 8: trim before adding (the same tests took 11.7-13.1 on an earlier machine of the same description;
-# the history of this figure is in the commit messages). The twenty slowest tests are listed at the end of every run.
+# tests take 10-30 s each): 7.9 minutes of pytest on a clean clone at 37f2f6f on a 2-core machine (476 s; 497-510 s
+# before that commit's trims), at the budget of 8: trim before adding (the history of this figure is in the commit
+# messages). The twenty slowest tests are listed at the end of every run.
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal --durations=20
 
