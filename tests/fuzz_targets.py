@@ -31,7 +31,8 @@ from estimators.io.image_io import read_gray
 from estimators.io.input_files import load_yaml
 from estimators.io.measurement_store import load_measurements
 from estimators.io.pointcloud_io import read_scan_2d, read_sweep, write_scan
-from estimators.io.ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud
+from estimators.io.ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud,
+                                       decode_point_times)
 from estimators.simulation.simulator import default_camera
 
 # Values a lying header puts where a count, a size or a dimension belongs.
@@ -298,7 +299,7 @@ def image_messages() -> st.SearchStrategy:
 
 
 def cloud_messages() -> st.SearchStrategy:
-    field = st.builds(SimpleNamespace, name=st.sampled_from(["x", "y", "z", "intensity", "ring", "t"]),
+    field = st.builds(SimpleNamespace, name=st.sampled_from(["x", "y", "z", "intensity", "ring", "t", "timestamp"]),
                       offset=_INTS, datatype=st.integers(-1, 10), count=st.integers(0, 3))
     return st.builds(SimpleNamespace, fields=st.lists(field, max_size=6), is_bigendian=st.booleans(),
                      point_step=_INTS, row_step=_INTS, width=_INTS, height=_INTS, data=_blob())
@@ -318,6 +319,7 @@ def info_messages() -> st.SearchStrategy:
 MESSAGE_TARGETS = (
     ("Image/CompressedImage", image_messages, lambda m: decode_image(m, "/camera/image_raw")),
     ("PointCloud2", cloud_messages, lambda m: decode_point_cloud(m, "/points")),
+    ("PointCloud2 per-return times", cloud_messages, lambda m: decode_point_times(m, "/points", 0.1)),
     ("LaserScan", scan_messages, lambda m: decode_laser_scan(m, "/scan")),
     ("CameraInfo", info_messages, lambda m: camera_from_info(m, "/camera_info")),
 )

@@ -56,6 +56,9 @@ def test_bag_extracts_one_frame_per_still_pose_and_calibrates_like_the_folder(si
     np.testing.assert_allclose(ds.camera.dist, truth.camera.dist)
     record = json.loads((tmp_path / "ds" / "extract.json").read_text())
     assert all(abs(f["dt_ms"] - 13.0) < 1e-6 for f in record["frames"])
+    # these clouds carry no time field: how their returns would be timed is said and recorded
+    assert record["point_times"] == summary.point_times and "no time field" in summary.point_times
+    assert f"per-return LiDAR time: {summary.point_times}" in summary.lines()
     # Streaming: of the bag's 75 scans, never more than the pairing window's few were held at once, and no
     # more images than the 0.6 s gaps between poses (when this recording has no scans) hold: 3 or 4 images,
     # and the first of the next pose's, examined before its scan arrives 13 ms later.

@@ -33,7 +33,8 @@ from .dataset import dataset_spec, write_dataset_yaml
 from .image_io import to_gray8
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
-from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
+from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, decode_point_times,
+                           stamp_ns)
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -94,12 +95,15 @@ class ExtractSummary:
     images: int
     counts: dict = field(default_factory=dict)
     camera_source: str | None = None
+    point_times: str | None = None
 
     def lines(self) -> list[str]:
         out = [f"{self.images} images: {self.frames} frames kept (one per still board pose)"]
         out += [f"  {n:6d}  {REASONS[k]}" for k, n in self.counts.items() if k != "kept" and n]
         out.append(f"intrinsics: {self.camera_source}" if self.camera_source else
                    "intrinsics: none in the bag (calibrate estimates them from the board views)")
+        if self.point_times:
+            out.append(f"per-return LiDAR time: {self.point_times}")
         return out
 
 
@@ -377,6 +381,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
         total = sum(c.msgcount for c in conns)
         with atomic_directory(out, overwrite=overwrite) as tmp:
             records: list[dict] = []
+            scan_gaps: deque = deque(maxlen=64)  # consecutive sweeps' stamp spacing: a sweep's period
+            point_times: list[str] = []  # how the first kept sweep's returns are timed, in words
 
             def emit(c: _Check) -> None:
                 name = f"{len(records):04d}"
@@ -384,6 +390,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 if lidar == "3d":
                     xyz, inten = decode_point_cloud(c.scan, lidar_topic)
                     write_scan(tmp / f"{name}.{scan_format}", xyz, inten)
+                    if not point_times:
+                        point_times.append(_timing_words(c.scan, lidar_topic, scan_gaps))
                 else:
                     write_scan_2d(tmp / f"{name}.{scan_format}", *decode_laser_scan(c.scan))
                 records.append({"name": name, "image_stamp_ns": c.stamp, "scan_stamp_ns": c.scan_stamp,
@@ -418,6 +426,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                         camera = camera_from_info(msg, info_topic)
                     continue
                 if conn.topic == lidar_topic:
+                    if scan_span[1] is not None and stamp > scan_span[1]:
+                        scan_gaps.append(stamp - scan_span[1])
                     span(scan_span, stamp)
                     scans.append((stamp, msg))
                     while pending and stamp > pending[0].stamp + max_dt:
@@ -456,11 +466,24 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
                             "still_px": options.still_px, "check_hz": options.check_hz},
                 "images": n_images, "counts": counts, "peak_buffered_messages": peak,
-                "frames": records}, indent=1) + "\n")
+                "point_times": point_times[0] if point_times else None, "frames": records}, indent=1) + "\n")
     finally:
         reader.close()
     return ExtractSummary(Path(out), lidar, len(records), n_images, counts,
-                          camera.source if camera is not None else None)
+                          camera.source if camera is not None else None, point_times[0] if point_times else None)
+
+
+def _timing_words(msg, topic: str, gaps) -> str:
+    """How a sweep's returns are timed (``ros_messages.decode_point_times``; the sweep's period from the
+    stamps' median spacing ``gaps``, ns), in words: said by ``extract``, not yet used by the calibration, which
+    takes still poses."""
+    period_s = float(np.median(gaps)) * 1e-9 if gaps else None
+    try:
+        times = decode_point_times(msg, topic, period_s)
+    except BagError as exc:
+        return f"unusable ({exc.problem})"
+    return times.source if times is not None else \
+        "unknown (no time field, and the stored order is not the firing order)"
 
 
 def _check_overlap(bag, image_topic, lidar_topic, img_span, scan_span, n_images, options) -> None:

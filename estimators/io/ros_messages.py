@@ -15,6 +15,7 @@ from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import BagError
 from .image_io import decode_image_bytes
+from .point_times import PointTimes, azimuth_times, field_times, time_field
 
 # sensor_msgs/PointField datatypes.
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -118,6 +119,32 @@ def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | N
     Any field layout (offsets, padding, float32 or float64 coordinates, extra fields such as ``ring`` or
     ``t``), organised or not; NaN/inf and (0, 0, 0) no-returns are dropped.
     """
+    fields = {f.name for f in msg.fields}
+    pts, xyz, keep = _cloud_fields(msg, topic, [n for n in _INTENSITY_FIELDS if n in fields][:1])
+    if not keep.size:
+        return np.zeros((0, 3)), None
+    inten = pts[pts.dtype.names[3]].astype(float) if len(pts.dtype.names) > 3 else None
+    return xyz[keep], None if inten is None else inten[keep]
+
+
+@_guarded("PointCloud2")
+def decode_point_times(msg, topic: str = "", period_s: float | None = None) -> PointTimes | None:
+    """The per-return times of the points :func:`decode_point_cloud` returns (in its order), as offsets from the
+    message's header stamp (``point_times.field_times``): from the cloud's time field, else from each return's
+    azimuth where the sweep's ``period_s`` is given (``point_times.azimuth_times``); None where neither tells."""
+    name = time_field(f.name for f in msg.fields)
+    pts, xyz, keep = _cloud_fields(msg, topic, [name] if name else [])
+    times = field_times(pts[name][keep], name, stamp_ns(msg, 0), topic) if name is not None else None
+    if times is not None:
+        return times
+    why = "the cloud has no time field" if name is None else f"its time field {name!r} holds one value throughout"
+    rows = (np.arange(keep.size) // max(int(msg.width), 1))[keep] if int(msg.height) > 1 else None
+    return azimuth_times(xyz[keep], period_s, why, rows) if period_s else None
+
+
+def _cloud_fields(msg, topic: str, extra: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A PointCloud2's x, y, z and ``extra`` fields as a structured array, its points as (N, 3) float64, and
+    which of them are returns (finite, not (0, 0, 0))."""
     fields = {f.name: f for f in msg.fields}
     missing = [c for c in "xyz" if c not in fields]
     if missing:
@@ -125,7 +152,7 @@ def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | N
                        path=topic, hint="give a PointCloud2 topic with x, y, z")
     order = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
-    for name in ("x", "y", "z", *[n for n in _INTENSITY_FIELDS if n in fields][:1]):
+    for name in ("x", "y", "z", *extra):
         f = fields[name]
         if int(f.datatype) not in _POINT_FIELD_TYPES:
             raise BagError(f"field {name!r} has unknown PointField datatype {f.datatype}", path=topic,
@@ -137,7 +164,7 @@ def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | N
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     data = np.asarray(msg.data, dtype=np.uint8)
     if width * height == 0:
-        return np.zeros((0, 3)), None
+        return np.zeros(0, dtype), np.zeros((0, 3)), np.zeros(0, bool)
     if step < dtype.itemsize or row_step < width * step or data.size < row_step * (height - 1) + width * step:
         raise BagError(f"point cloud of {data.size} bytes does not hold {height}x{width} points of "
                        f"{step} bytes (row_step {row_step})", path=topic,
@@ -145,9 +172,8 @@ def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | N
     rows = [data[r * row_step: r * row_step + width * step] for r in range(height)]
     pts = np.frombuffer(np.concatenate(rows).tobytes(), dtype=dtype)
     xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(float)
-    inten = pts[names[3]].astype(float) if len(names) > 3 else None
     keep = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
-    return xyz[keep], None if inten is None else inten[keep]
+    return pts, xyz, keep
 
 
 @_guarded("LaserScan")
