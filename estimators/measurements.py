@@ -209,3 +209,28 @@ class FrameMeasurement:
     @property
     def usable(self) -> bool:
         return self.camera is not None and self.lidar is not None
+
+
+@dataclass(frozen=True, eq=False)
+class TimedBoardView:
+    """The board in one image of a moving board: its pose at the image's stamp (mid-exposure, the camera's
+    clock, seconds)."""
+
+    stamp_s: float
+    camera: CameraBoardObservation
+
+
+@dataclass(frozen=True, eq=False)
+class TimedSweep:
+    """A LiDAR sweep's returns on a moving board, each at its own time: ``stamp_s`` the sweep's header stamp (the
+    LiDAR's clock, seconds), ``points`` (N, 3) in the LiDAR frame and ``offset_s`` (N,) each return's time less the
+    stamp (``io.point_times``)."""
+
+    stamp_s: float
+    points: np.ndarray
+    offset_s: np.ndarray
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """Each return's time in the LiDAR's clock."""
+        return self.stamp_s + self.offset_s

@@ -1,0 +1,165 @@
+"""A board waved by hand in front of a rig, recorded continuously: the camera's images at its own clock, a spinning
+LiDAR's sweeps whose every return is fired at its own time (the board moving meanwhile), and the clocks' offset.
+
+The board's motion is smooth and known in closed form: about a pose both sensors see, a sum of sines per axis
+in translation and in rotation (0.15-0.35 Hz), scaled to a peak speed and a peak turn rate, with pauses optional
+(the motion eased to rest and out again). The camera images at ``camera_hz``; its stamp is the mid-exposure
+instant in its clock, which reads ``time_offset_s`` ahead of the LiDAR's (``t_camera_stamp - t_lidar_stamp`` for
+one instant, the project's convention). The LiDAR turns clockwise seen from above, its sweep cut behind it,
+each beam's return cast against the board where it is when the beam fires.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scipy.spatial.transform import Rotation
+
+from geometry.rotations import T_inverse, transform_points
+
+from ..camera.board_pose import estimate_board_pose
+from ..camera.detection import CornerDetection
+from ..errors import MeasurementError
+from ..measurements import TimedBoardView, TimedSweep
+from .simulator import Rig, sample_board_poses
+
+# The sweep is cut behind the LiDAR (azimuth pi), as drivers cut it by default.
+CUT_AZIMUTH_RAD = np.pi
+
+
+@dataclass(frozen=True)
+class Waving:
+    """A board's motion: ``T_camera_board(t)`` (true time, s): from ``T_base``, turned about the board's point
+    ``centre_b`` (board frame) by rotation vectors ``amp_rad * sin(2 pi rot_freq_hz t + rot_phase)`` (camera axes)
+    and moved by ``amp_m * sin(2 pi freq_hz t + phase)``; ``pauses``: (start, end) intervals (s) in which it
+    rests, the motion eased to rest and out again over ``ease_s`` at either end (a cosine in speed)."""
+
+    T_base: np.ndarray
+    centre_b: np.ndarray
+    amp_m: np.ndarray
+    freq_hz: np.ndarray
+    phase: np.ndarray
+    amp_rad: np.ndarray
+    rot_freq_hz: np.ndarray
+    rot_phase: np.ndarray
+    pauses: tuple = ()
+    ease_s: float = 0.5
+
+    def motion_time(self, t: np.ndarray) -> np.ndarray:
+        """The motion's own clock: true time less the time lost resting (its rate falls to 0 and rises again as
+        a cosine over ``ease_s`` at each pause's ends)."""
+        t = np.asarray(t, dtype=float)
+        lost = np.zeros_like(t)
+        for a, b in self.pauses:
+            e = min(self.ease_s, 0.5 * (b - a))
+            x = np.clip(t - a, 0.0, e)  # the ramp down
+            lost += 0.5 * x - e / (2 * np.pi) * np.sin(np.pi * x / e)
+            lost += np.clip(t - (a + e), 0.0, b - a - 2 * e)  # at rest
+            y = np.clip(t - (b - e), 0.0, e)  # the ramp up
+            lost += 0.5 * y + e / (2 * np.pi) * np.sin(np.pi * y / e)
+        return t - lost
+
+    def __call__(self, t: np.ndarray | float) -> np.ndarray:
+        """``T_camera_board`` at true times ``t``: (n, 4, 4), or 4x4 for a scalar."""
+        scalar = np.ndim(t) == 0
+        tau = self.motion_time(np.atleast_1d(np.asarray(t, dtype=float)))
+        d = self.amp_m * np.sin(2 * np.pi * self.freq_hz * tau[:, None] + self.phase)
+        w = self.amp_rad * np.sin(2 * np.pi * self.rot_freq_hz * tau[:, None] + self.rot_phase)
+        out = np.repeat(self.T_base[None], len(tau), axis=0)
+        out[:, :3, :3] = Rotation.from_rotvec(w).as_matrix() @ self.T_base[:3, :3]
+        centre_c = self.T_base[:3, :3] @ self.centre_b + self.T_base[:3, 3]
+        out[:, :3, 3] = centre_c[None] + d - out[:, :3, :3] @ self.centre_b
+        return out[0] if scalar else out
+
+
+def waving(rig: Rig, rng: np.random.Generator, speed_mps: float = 0.5, turn_dps: float = 45.0,
+           pauses: tuple = ()) -> Waving:
+    """A random waving about a pose both sensors see (``simulator.sample_board_poses``), turned about the board's
+    centre: each axis' peak speed a share of ``speed_mps`` and each axis' peak turn rate a share of ``turn_dps``
+    (shares drawn, their root sum of squares 1: the centre's mean speed is near ``speed_mps``)."""
+    T = sample_board_poses(rig, 1, rng)[0]
+    f, g = rng.uniform(0.15, 0.35, 3), rng.uniform(0.15, 0.35, 3)
+    share, rshare = rng.dirichlet(np.ones(3)) ** 0.5, rng.dirichlet(np.ones(3)) ** 0.5
+    amp = speed_mps * share / np.linalg.norm(share) / (2 * np.pi * f)
+    amp_rad = np.radians(turn_dps) * rshare / np.linalg.norm(rshare) / (2 * np.pi * g)
+    w, h = rig.board.extent
+    return Waving(T, np.array([0.5 * w, 0.5 * h, 0.0]), amp, f, rng.uniform(0, 2 * np.pi, 3), amp_rad, g,
+                  rng.uniform(0, 2 * np.pi, 3), tuple(pauses))
+
+
+@dataclass(frozen=True)
+class WavedRecording:
+    """A simulated continuous recording: the camera's board views (its clock), the LiDAR's sweeps of board returns
+    (its clock, each return at its own time), the truth (``motion`` in true time = the LiDAR's clock)."""
+
+    rig: Rig
+    motion: Waving
+    time_offset_s: float
+    views: tuple[TimedBoardView, ...]
+    sweeps: tuple[TimedSweep, ...]
+
+
+def simulate_waving(rig: Rig, duration_s: float, rng: np.random.Generator, time_offset_s: float = 0.0,
+                    speed_mps: float = 0.5, turn_dps: float = 45.0, camera_hz: float = 20.0,
+                    lidar_hz: float = 10.0, stamp_jitter_s: float = 0.0, pauses: tuple = (),
+                    corner_noise_px: float = 0.2, camera_phase_s: float | None = None) -> WavedRecording:
+    """``duration_s`` of a board waved in front of ``rig`` (see the module). Images whose board is not wholly in
+    the image are not detected; each detection is the corners projected at the true instant with ``corner_noise_px``
+    of Gaussian noise, its pose solved as ``lidarcam`` solves it. ``stamp_jitter_s``: each stamp off its instant by that
+    (Gaussian) spread. ``camera_phase_s``: the first image's instant after the first sweep's start (a camera
+    triggered by the LiDAR: 0); None: drawn within a camera period (free-running sensors)."""
+    motion = waving(rig, rng, speed_mps, turn_dps, pauses)
+    views = []
+    X = rig.board.inner_corners()
+    phase = rng.uniform(0.0, 1.0 / camera_hz) if camera_phase_s is None else camera_phase_s
+    for t in np.arange(phase, duration_s, 1.0 / camera_hz):
+        T_cb = motion(t)
+        uv = rig.camera.project(transform_points(T_cb, X))
+        if not np.all(rig.camera.in_image(uv, margin_px=5.0)):
+            continue
+        uv = uv + rng.normal(0.0, corner_noise_px, uv.shape)
+        try:
+            obs = estimate_board_pose(CornerDetection(uv, "simulated"), rig.board, rig.camera)
+        except MeasurementError:
+            continue
+        jitter = rng.normal(0.0, stamp_jitter_s) if stamp_jitter_s else 0.0
+        views.append(TimedBoardView(float(t + time_offset_s + jitter), obs))
+    sweeps = []
+    period = 1.0 / lidar_hz
+    for stamp in np.arange(0.0, duration_s - period, period):
+        sweep = _sweep(rig, motion, stamp, period, rng)
+        if sweep is not None:
+            jitter = rng.normal(0.0, stamp_jitter_s) if stamp_jitter_s else 0.0
+            sweeps.append(TimedSweep(float(stamp + jitter), sweep[0], sweep[1]))  # its returns' times with it
+    return WavedRecording(rig, motion, float(time_offset_s), tuple(views), tuple(sweeps))
+
+
+def _sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator):
+    """The board's returns of the sweep starting at ``stamp`` (true time): each beam fired at its azimuth's
+    time, cast against the board where it is then. (points (n, 3), offsets from the stamp (n,)) or None."""
+    dirs, _ = rig.beams.directions()
+    az = np.arctan2(dirs[:, 1], dirs[:, 0])
+    fire = np.mod(CUT_AZIMUTH_RAD - az, 2 * np.pi) / (2 * np.pi) * period
+    T_lc = T_inverse(rig.T_camera_lidar)
+    # beams near the board where it is mid-sweep (its motion within a sweep is centimetres: 10 degrees spare)
+    w, h = rig.board.extent
+    centre = transform_points(T_lc @ motion(stamp + 0.5 * period), np.array([[0.5 * w, 0.5 * h, 0.0]]))[0]
+    reach = np.arctan2(0.5 * np.hypot(w, h), np.linalg.norm(centre)) + np.radians(10.0)
+    near = dirs @ (centre / np.linalg.norm(centre)) >= np.cos(reach)
+    if not near.any():
+        return None
+    d, t = dirs[near], fire[near]
+    T_lb = T_lc[None] @ motion(stamp + t)
+    n, o = T_lb[:, :3, 2], T_lb[:, :3, 3]
+    cos = np.einsum("ij,ij->i", n, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.einsum("ij,ij->i", n, o) / cos
+    p = r[:, None] * d
+    local = np.einsum("nji,nj->ni", T_lb[:, :3, :3], p - o)
+    hit = (r > 0.1) & (r < rig.beams.max_range_m) & (np.abs(cos) > 1e-3) & (local[:, 0] >= 0) \
+        & (local[:, 0] <= w) & (local[:, 1] >= 0) & (local[:, 1] <= h)
+    if hit.sum() < 10:
+        return None
+    r = r[hit] + rng.normal(0.0, rig.beams.sigma_range_m, int(hit.sum()))
+    return r[:, None] * d[hit], t[hit]

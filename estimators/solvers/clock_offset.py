@@ -1,0 +1,175 @@
+"""The extrinsic and the sensors' clock offset together, from a board moving through a continuous recording.
+
+The camera's board poses, each at its image's stamp (mid-exposure, the camera's clock), make the board's pose a
+continuous function of time (``geometry.trajectory.PoseSpline``). A LiDAR return fired at ``t`` in the LiDAR's
+clock happened when the camera's clock read ``t + dt``, ``dt = t_camera_stamp - t_lidar_stamp`` (the project's
+convention); mapped by ``T_camera_lidar`` it lies on the board's plane where the board was then. Each return's
+range less the range along its beam to that plane is a residual (along the beam, as the LiDAR errs);
+``T_camera_lidar`` and ``dt`` minimise their sum of squares.
+
+The start: for each ``dt`` of a grid over the offset's prior interval, the closed form of the sweeps' planes (each
+LiDAR sweep's board returns fitted, against the camera's board plane at their mean time plus ``dt``), scored by the
+residuals; the best starts a trust-region refinement of the seven unknowns (scipy's ``least_squares``). The
+covariance is the sandwich clustered by half-second blocks (returns near in time share the camera's poses and a
+sweep's stamp), with the camera's trajectory taken as given: the camera's pose noise enters only through the
+residuals it leaves, and the trajectory's own uncertainty is not propagated (``benchmarks/bench_clock_offset.py``
+measures what that costs in NEES).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from geometry.planes import Plane, fit_plane_pca
+from geometry.rotations import T_retract
+from geometry.trajectory import PoseSpline
+
+from ..errors import DegenerateLayoutError
+from ..measurements import TimedBoardView, TimedSweep
+from .closed_form import solve_closed_form
+
+# The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
+OFFSET_PRIOR_S = 0.2
+# The start's grid over the offset (s): finer than the refinement's basin (the board's motion within it moves
+# the planes by millimetres).
+GRID_STEP_S = 0.005
+# Returns per sweep used at most (spread over the sweep's board returns): the refinement's cost stays bounded.
+MAX_RETURNS_PER_SWEEP = 200
+MIN_SWEEPS = 6
+# The covariance's clusters (s): returns this close in time share the camera's poses and a sweep's stamp.
+CLUSTER_S = 0.5
+# Returns per sweep that score the start's grid.
+GRID_RETURNS = 20
+
+
+@dataclass(frozen=True)
+class ClockOffsetSolution:
+    """``T_camera_lidar`` with the clocks' offset.
+
+    Attributes
+    ----------
+    T_camera_lidar : numpy.ndarray
+        4x4.
+    time_offset_s : float
+        ``t_camera_stamp - t_lidar_stamp`` for one instant.
+    covariance : numpy.ndarray
+        7x7 over ``[rot; trans; offset]`` (the extrinsic's in GTSAM's right tangent; see the module for what it
+        counts). Held offset: its row and column 0.
+    rms_m : float
+        The returns' RMS range residual against the board where it was.
+    sweeps : int
+        Sweeps used (those whose returns fall within the camera's trajectory at every offset of the prior).
+    grid : tuple
+        ``(offsets_s, rms_m)``: the start's profile over the prior interval.
+    """
+
+    T_camera_lidar: np.ndarray
+    time_offset_s: float
+    covariance: np.ndarray
+    rms_m: float
+    sweeps: int
+    grid: tuple
+
+
+def camera_trajectory(views: list[TimedBoardView]) -> PoseSpline:
+    """The board's pose in the camera, continuous in the camera's clock, through its views (in stamp order)."""
+    views = sorted(views, key=lambda v: v.stamp_s)
+    return PoseSpline(np.array([v.stamp_s for v in views]), np.array([v.camera.T_camera_board for v in views]))
+
+
+def _residuals(T: np.ndarray, dt: float, trajectory: PoseSpline, points: np.ndarray, times_s: np.ndarray
+               ) -> np.ndarray:
+    """Each return's range less the range along its beam to the board's plane where the board was at its time
+    plus ``dt`` (m). Along the beam, as the LiDAR errs: a point-to-plane distance would take the noisy point into
+    its own Jacobian, which biases the estimate by a share of the range variance that more data do not shrink."""
+    T_cb = trajectory(times_s + dt)
+    n_c = T_cb[:, :3, 2]
+    ranges = np.linalg.norm(points, axis=1)
+    beams = points / ranges[:, None]
+    along = np.einsum("ni,ni->n", n_c @ T[:3, :3], beams)  # (R^T n_c) . u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        predicted = np.einsum("ni,ni->n", n_c, T_cb[:, :3, 3] - T[:3, 3]) / along
+    return np.where(np.abs(along) > 1e-3, ranges - predicted, 0.0)
+
+
+def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
+                       offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
+                       fixed_offset_s: float | None = None, rng: np.random.Generator | None = None
+                       ) -> ClockOffsetSolution:
+    """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
+    ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
+    keeps where it has more than ``MAX_RETURNS_PER_SWEEP`` (a fixed seed when None). Raises DegenerateLayoutError
+    with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+    trajectory = camera_trajectory(views)
+    lo, hi = trajectory.span_s
+    kept = []
+    for s in sweeps:
+        t = s.times_s
+        if len(t) >= 10 and t.min() - offset_prior_s >= lo and t.max() + offset_prior_s <= hi:
+            pick = rng.choice(len(t), MAX_RETURNS_PER_SWEEP, replace=False) if len(t) > MAX_RETURNS_PER_SWEEP \
+                else np.arange(len(t))
+            kept.append((s.points[pick], t[pick], fit_plane_pca(s.points)))
+    if len(kept) < MIN_SWEEPS:
+        raise DegenerateLayoutError(f"only {len(kept)} LiDAR sweeps see the board within the camera's recording "
+                                    f"(at least {MIN_SWEEPS} needed)")
+    points = np.concatenate([k[0] for k in kept])
+    times = np.concatenate([k[1] for k in kept])
+    mean_times = np.array([k[1].mean() for k in kept])
+
+    offsets = np.arange(-offset_prior_s, offset_prior_s + 0.5 * grid_step_s, grid_step_s) \
+        if fixed_offset_s is None else np.array([float(fixed_offset_s)])
+    few = np.concatenate([np.arange(i, i + min(len(k[1]), GRID_RETURNS)) for i, k in
+                          zip(np.cumsum([0] + [len(k[1]) for k in kept[:-1]]), kept)])
+    rms, starts = [], []
+    for dt in offsets:
+        cam = trajectory(mean_times + dt)
+        planes_c = [Plane(T[:3, 2], T[:3, 2] @ T[:3, 3]).facing_away() for T in cam]
+        try:
+            T0 = solve_closed_form(planes_c, [k[2].facing_away() for k in kept], allow_weak=True).T_camera_lidar
+        except DegenerateLayoutError:
+            rms.append(np.inf)
+            starts.append(None)
+            continue
+        rms.append(float(np.sqrt(np.mean(_residuals(T0, dt, trajectory, points[few], times[few]) ** 2))))
+        starts.append(T0)
+    best = int(np.argmin(rms))
+    if not np.isfinite(rms[best]):
+        raise DegenerateLayoutError("the sweeps' board planes do not determine the extrinsic at any clock offset "
+                                    "(their normals do not span 3D: turn the board more while waving it)")
+    T0, dt0 = starts[best], float(offsets[best])
+
+    free = 7 if fixed_offset_s is None else 6
+
+    def f(x):
+        return _residuals(T_retract(T0, x[:6]), x[6] if free == 7 else dt0, trajectory, points, times)
+
+    x0 = np.r_[np.zeros(6), dt0][:free]
+    bounds = (np.r_[[-np.inf] * 6, -offset_prior_s][:free], np.r_[[np.inf] * 6, offset_prior_s][:free])
+    fit = least_squares(f, x0, method="trf", x_scale=np.r_[[1e-3] * 3, [1e-2] * 3, 1e-3][:free], bounds=bounds,
+                        ftol=1e-12, xtol=1e-12, gtol=1e-12)
+    T, dt = T_retract(T0, fit.x[:6]), float(fit.x[6]) if free == 7 else dt0
+    r = fit.fun
+    # The Jacobian in the tangent at the solution (central differences), as the covariance's convention wants.
+    step = np.r_[[1e-6] * 6, 1e-6]
+    J = np.empty((len(r), free))
+    for k in range(free):
+        e = np.zeros(7)
+        e[k] = step[k]
+        J[:, k] = (_residuals(T_retract(T, e[:6]), dt + e[6], trajectory, points, times)
+                   - _residuals(T_retract(T, -e[:6]), dt - e[6], trajectory, points, times)) / (2 * step[k])
+    # Returns near in time share the camera's board (the poses the spline passes through there, their stamps'
+    # jitter) and a sweep's stamp: their residuals are correlated. The covariance is the sandwich clustered by
+    # blocks of CLUSTER_S (each block's score J_b^T r_b one independent draw).
+    bread = np.linalg.inv(J.T @ J)
+    block = np.unique(np.floor(times / CLUSTER_S), return_inverse=True)[1]
+    scores = np.zeros((block.max() + 1, free))
+    np.add.at(scores, block, J * r[:, None])
+    meat = scores.T @ scores * len(scores) / max(len(scores) - free, 1)
+    sandwich = bread @ meat @ bread
+    cov = np.zeros((7, 7))
+    cov[:free, :free] = sandwich
+    return ClockOffsetSolution(T, dt, cov, float(np.sqrt(np.mean(r ** 2))), len(kept),
+                               (offsets, np.array(rms)))
