@@ -7,8 +7,8 @@ and 20-90 deg/s about one pose, the camera's clock ahead of the LiDAR's by an of
 jittered by 1 ms. Solved by ``solvers.clock_offset`` (offset prior +-0.2 s), and again with the offset held at 0
 (what a tool that assumes synchronised clocks gets). Printed: the offset's RMS error and its error's spread
 against the reported standard deviation, the extrinsic's RMS rotation and translation errors, and the NEES of the
-extrinsic and offset together (7 dof; the covariance takes the camera's trajectory as given, see
-``solvers.clock_offset``). The camera free-running (its first image at a random phase of the sweeps).
+extrinsic and offset together (7 dof). The camera free-running (its first image at a random phase of the
+sweeps).
 """
 from __future__ import annotations
 

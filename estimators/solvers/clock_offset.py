@@ -9,11 +9,9 @@ range less the range along its beam to that plane is a residual (along the beam,
 
 The start: for each ``dt`` of a grid over the offset's prior interval, the closed form of the sweeps' planes (each
 LiDAR sweep's board returns fitted, against the camera's board plane at their mean time plus ``dt``), scored by the
-residuals; the best starts a trust-region refinement of the seven unknowns (scipy's ``least_squares``). The
-covariance is the sandwich clustered by half-second blocks (returns near in time share the camera's poses and a
-sweep's stamp), with the camera's trajectory taken as given: the camera's pose noise enters only through the
-residuals it leaves, and the trajectory's own uncertainty is not propagated (``benchmarks/bench_clock_offset.py``
-measures what that costs in NEES).
+residuals; the best starts a trust-region refinement of the seven unknowns (scipy's ``least_squares``) against the
+camera's trajectory as given. Then every image's board pose joins them as an unknown held by its own measurement
+(``moving_board_graph``): the estimate and its 7x7 covariance carry the camera's pose noise with the LiDAR's.
 """
 from __future__ import annotations
 
@@ -29,6 +27,7 @@ from geometry.trajectory import PoseSpline
 from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
 from .closed_form import solve_closed_form
+from .moving_board_graph import refine_jointly
 
 # The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
 OFFSET_PRIOR_S = 0.2
@@ -38,8 +37,6 @@ GRID_STEP_S = 0.005
 # Returns per sweep used at most (spread over the sweep's board returns): the refinement's cost stays bounded.
 MAX_RETURNS_PER_SWEEP = 200
 MIN_SWEEPS = 6
-# The covariance's clusters (s): returns this close in time share the camera's poses and a sweep's stamp.
-CLUSTER_S = 0.5
 # Returns per sweep that score the start's grid.
 GRID_RETURNS = 20
 
@@ -58,7 +55,7 @@ class ClockOffsetSolution:
         7x7 over ``[rot; trans; offset]`` (the extrinsic's in GTSAM's right tangent; see the module for what it
         counts). Held offset: its row and column 0.
     rms_m : float
-        The returns' RMS range residual against the board where it was.
+        The returns' RMS range residual against the board where it was (on the camera's trajectory as measured).
     sweeps : int
         Sweeps used (those whose returns fall within the camera's trajectory at every offset of the prior).
     grid : tuple
@@ -96,11 +93,11 @@ def _residuals(T: np.ndarray, dt: float, trajectory: PoseSpline, points: np.ndar
 
 def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                        offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
-                       fixed_offset_s: float | None = None, rng: np.random.Generator | None = None
-                       ) -> ClockOffsetSolution:
+                       fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
+                       returns_per_sweep: int = MAX_RETURNS_PER_SWEEP) -> ClockOffsetSolution:
     """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
     ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
-    keeps where it has more than ``MAX_RETURNS_PER_SWEEP`` (a fixed seed when None). Raises DegenerateLayoutError
+    keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less. Raises DegenerateLayoutError
     with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory."""
     rng = rng if rng is not None else np.random.default_rng(0)
     trajectory = camera_trajectory(views)
@@ -109,7 +106,7 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     for s in sweeps:
         t = s.times_s
         if len(t) >= 10 and t.min() - offset_prior_s >= lo and t.max() + offset_prior_s <= hi:
-            pick = rng.choice(len(t), MAX_RETURNS_PER_SWEEP, replace=False) if len(t) > MAX_RETURNS_PER_SWEEP \
+            pick = rng.choice(len(t), returns_per_sweep, replace=False) if len(t) > returns_per_sweep \
                 else np.arange(len(t))
             kept.append((s.points[pick], t[pick], fit_plane_pca(s.points)))
     if len(kept) < MIN_SWEEPS:
@@ -152,24 +149,17 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                         ftol=1e-12, xtol=1e-12, gtol=1e-12)
     T, dt = T_retract(T0, fit.x[:6]), float(fit.x[6]) if free == 7 else dt0
     r = fit.fun
-    # The Jacobian in the tangent at the solution (central differences), as the covariance's convention wants.
-    step = np.r_[[1e-6] * 6, 1e-6]
-    J = np.empty((len(r), free))
-    for k in range(free):
-        e = np.zeros(7)
-        e[k] = step[k]
-        J[:, k] = (_residuals(T_retract(T, e[:6]), dt + e[6], trajectory, points, times)
-                   - _residuals(T_retract(T, -e[:6]), dt - e[6], trajectory, points, times)) / (2 * step[k])
-    # Returns near in time share the camera's board (the poses the spline passes through there, their stamps'
-    # jitter) and a sweep's stamp: their residuals are correlated. The covariance is the sandwich clustered by
-    # blocks of CLUSTER_S (each block's score J_b^T r_b one independent draw).
-    bread = np.linalg.inv(J.T @ J)
-    block = np.unique(np.floor(times / CLUSTER_S), return_inverse=True)[1]
-    scores = np.zeros((block.max() + 1, free))
-    np.add.at(scores, block, J * r[:, None])
-    meat = scores.T @ scores * len(scores) / max(len(scores) - free, 1)
-    sandwich = bread @ meat @ bread
-    cov = np.zeros((7, 7))
-    cov[:free, :free] = sandwich
+    # Then every image's board pose joins the extrinsic and the offset as an unknown (``moving_board_graph``): the
+    # camera's pose noise is in the estimate and its covariance.
+    views = sorted(views, key=lambda v: v.stamp_s)
+    T, dt, cov, _ = refine_jointly(np.array([v.stamp_s for v in views]),
+                                   np.array([v.camera.T_camera_board for v in views]),
+                                   np.array([v.camera.pose_covariance for v in views]), points, times, T, dt,
+                                   float(np.sqrt(np.mean(r ** 2))), free_offset=free == 7)
+    if abs(dt) > offset_prior_s:
+        raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
+                                    f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
+                                    "than assumed, or the board's motion leaves the offset unobservable")
+    r = _residuals(T, dt, trajectory, points, times)
     return ClockOffsetSolution(T, dt, cov, float(np.sqrt(np.mean(r ** 2))), len(kept),
                                (offsets, np.array(rms)))
