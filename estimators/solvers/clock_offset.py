@@ -37,6 +37,8 @@ GRID_STEP_S = 0.005
 # Returns per sweep used at most (spread over the sweep's board returns): the refinement's cost stays bounded.
 MAX_RETURNS_PER_SWEEP = 200
 MIN_SWEEPS = 6
+# The longest gap between the camera's views across which the board's pose is interpolated (s).
+MAX_GAP_S = 0.15
 # Returns per sweep that score the start's grid.
 GRID_RETURNS = 20
 
@@ -151,11 +153,19 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     r = fit.fun
     # Then every image's board pose joins the extrinsic and the offset as an unknown (``moving_board_graph``): the
     # camera's pose noise is in the estimate and its covariance.
+    # Returns in a gap of the camera's views (the board out of view, a frame skipped) longer than MAX_GAP_S are
+    # left out: no cubic through its ends says where the board was.
     views = sorted(views, key=lambda v: v.stamp_s)
-    T, dt, cov, _ = refine_jointly(np.array([v.stamp_s for v in views]),
-                                   np.array([v.camera.T_camera_board for v in views]),
-                                   np.array([v.camera.pose_covariance for v in views]), points, times, T, dt,
-                                   float(np.sqrt(np.mean(r ** 2))), free_offset=free == 7)
+    tau = np.array([v.stamp_s for v in views])
+    gap = np.diff(tau)[np.clip(np.searchsorted(tau, times + dt, side="right") - 1, 0, len(tau) - 2)]
+    inside = gap <= MAX_GAP_S
+    if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
+        raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
+                                    f"at least every {MAX_GAP_S:.2f} s")
+    T, dt, cov, _ = refine_jointly(tau, np.array([v.camera.T_camera_board for v in views]),
+                                   np.array([v.camera.pose_covariance for v in views]), points[inside],
+                                   times[inside], T, dt, float(np.sqrt(np.mean(r[inside] ** 2))),
+                                   free_offset=free == 7)
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
