@@ -138,9 +138,12 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
                            image_hz: float = 10.0, scan_hz: float = 10.0, still_s: float = 1.5,
                            move_s: float = 0.6, scan_offset_s: float = 0.013, camera_info: bool = True,
                            seed: int = 0, image_topic: str = "/camera/image_raw",
-                           lidar_topic: str | None = None, stamp_jitter_s: float = 0.0) -> Path:
+                           lidar_topic: str | None = None, stamp_jitter_s: float = 0.0,
+                           drift_px_per_s: float = 0.0) -> Path:
     """Record the dataset's poses as a bag of ``kind`` ros1 | sqlite3 | mcap; returns the bag's path.
-    ``stamp_jitter_s``: the sd of a Gaussian jitter on every image's stamp (as a camera driver's)."""
+    ``stamp_jitter_s``: the sd of a Gaussian jitter on every image's stamp (as a camera driver's).
+    ``drift_px_per_s``: each pose's image slides sideways at that rate while it is recorded (a board that never
+    stops moving)."""
     ds = load_dataset(dataset)
     rng = np.random.default_rng(seed)
     is2d = ds.lidar == "2d"
@@ -158,7 +161,11 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
                 events.append((t, "info"))
             for s, what in sorted(events):
                 if what == "img":
-                    noisy = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+                    shown = img
+                    if drift_px_per_s:
+                        shift = np.float32([[1, 0, drift_px_per_s * (s - t) * 1e-9], [0, 1, 0]])
+                        shown = cv2.warpAffine(img, shift, img.shape[::-1], borderMode=cv2.BORDER_REPLICATE)
+                    noisy = np.clip(shown + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
                     s = s + int(rng.normal(0.0, stamp_jitter_s) * 1e9) if stamp_jitter_s > 0 else s
                     bag.write(image_topic, image_message(bag, noisy, s, encoding), s)
                 elif what == "scan":

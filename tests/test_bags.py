@@ -243,6 +243,19 @@ def test_a_board_held_still_s_plus_one_camera_period_is_kept_whatever_the_stamp_
                     cloud_topic="/velodyne_points")
 
 
+def test_a_board_that_never_stops_is_said_to_move_throughout(sim5, tmp_path):
+    """Each pose's image sliding 40 px/s (8 px between the 5 Hz images) for 1.4 s: no still pose, and the error
+    says the board moves throughout (continuous recordings from bags are not calibrated yet), not that no pose
+    was held long enough."""
+    bag = write_bag_from_dataset(sim5, tmp_path / "moving.bag", "ros1", image_hz=5, still_s=1.4,
+                                 drift_px_per_s=40.0)
+    with pytest.raises(BagError, match=r"the board moves throughout the recording \(its corners moved beyond "
+                                       r"--still-px between \d+ of the \d+ examined images"):
+        extract_bag(bag, tmp_path / "ds", load_dataset(sim5).board, "/camera/image_raw",
+                    cloud_topic="/velodyne_points")
+    assert not (tmp_path / "ds").exists()
+
+
 def test_bad_bags_are_one_line_errors_with_no_output(sim5, tmp_path, capsys):
     bag = write_bag_from_dataset(sim5, tmp_path / "b.bag", "ros1", image_hz=5, still_s=0.6, move_s=0.4)
     out = tmp_path / "out"

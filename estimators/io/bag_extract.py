@@ -162,6 +162,8 @@ class _StillSegments:
         # camera period is kept whatever the grid's phase).
         self.credit_s = 1.0 / options.check_hz
         self.counts: Counter = Counter()
+        # Examined images with the board, and those whose corners moved beyond still_px since the one before.
+        self.with_board = self.moved = 0
         self.kept_corners: list[np.ndarray] = []
         self._reset()
 
@@ -179,6 +181,8 @@ class _StillSegments:
             self.counts["no_board"] += 1
             return
         motion = corner_motion(self.prev.corners, c.corners) if self.prev is not None else float("inf")
+        self.with_board += 1
+        self.moved += bool(np.isfinite(motion) and motion > self.o.still_px)
         if motion > self.o.still_px:
             self.close()
             self.first, self.n = c, 0
@@ -454,6 +458,14 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
+                if segments.with_board >= 10 and segments.moved >= 0.8 * segments.with_board:
+                    raise BagError(f"the board moves throughout the recording (its corners moved beyond "
+                                   f"--still-px between {segments.moved} of the {segments.with_board} examined "
+                                   f"images that show it): extract keeps still "
+                                   "poses, and calibrating a continuously moving board from a bag is not supported "
+                                   "yet", path=bag, hint="record again holding the board still for a second or two "
+                                                         "per pose (--still-s), or raise --still-px if a hand-held "
+                                                         "board trembles")
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,
                                hint="hold the board still for --still-s seconds per pose, or raise --still-px "
                                     "for a hand-held board")
