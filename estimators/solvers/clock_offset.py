@@ -162,10 +162,9 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
                                     f"at least every {MAX_GAP_S:.2f} s")
-    T, dt, cov, _ = refine_jointly(tau, np.array([v.camera.T_camera_board for v in views]),
-                                   np.array([v.camera.pose_covariance for v in views]), points[inside],
-                                   times[inside], T, dt, float(np.sqrt(np.mean(r[inside] ** 2))),
-                                   free_offset=free == 7)
+    T, dt, cov = refine_jointly(tau, np.array([v.camera.T_camera_board for v in views]),
+                                np.array([v.camera.pose_covariance for v in views]), points[inside], times[inside],
+                                T, dt, float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7)
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "

@@ -94,12 +94,11 @@ def _exp_all(xi: np.ndarray) -> np.ndarray:
 
 def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: np.ndarray, times: np.ndarray,
                    T0: np.ndarray, dt0: float, sigma_r: float, free_offset: bool = True
-                   ) -> tuple[np.ndarray, float, np.ndarray, float]:
+                   ) -> tuple[np.ndarray, float, np.ndarray]:
     """The joint solve (see the module) from knots ``K0`` (n, 4, 4) at ``tau`` with covariances ``K_cov`` (n, 6, 6),
     returns ``points`` (m, 3) at ``times`` (the LiDAR's clock; each within the knots' span less the offset's
     reach), and the start ``T0``, ``dt0``; ``sigma_r`` the returns' range noise (m). Returns ``T_camera_lidar``,
-    the offset, the 7x7 covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held) and the
-    chi-square per degree of freedom of the whitened residuals."""
+    the offset and the 7x7 covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held)."""
     n, m = len(tau), len(points)
     ranges = np.linalg.norm(points, axis=1)
     beams = points / ranges[:, None]
@@ -109,7 +108,6 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
     T, dt = T0, dt0
     n_glob = 7 if free_offset else 6
     cols = 6 * n + n_glob
-    chi2_dof = np.nan
     for _ in range(MAX_STEPS):
         rel = K0_inv @ K
         xi = log_batch(rel[:, :3, :3], rel[:, :3, 3])  # each knot's move from its measured pose
@@ -117,7 +115,6 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
         k = knots.interval(times + dt)
         r0 = _lidar_residuals(T, dt, knots, ranges, beams, times, k) / sigma_r
         prior = np.einsum("nij,nj->ni", W, xi).ravel()
-        chi2_dof = float((r0 @ r0 + prior @ prior) / max(m + 6 * n - cols, 1))
         rows, cidx, vals = [], [], []
         base = r0 * sigma_r
         # the extrinsic's and the offset's columns: every return (forward differences)
@@ -144,7 +141,7 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
         J_l = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))), shape=(m, cols))
         # the knots' priors: W_i xi_i (a knot's perturbation K Exp(e) moves its xi by e, to first order in xi)
         pr = np.repeat(np.arange(6 * n), 6)
-        pc = (6 * np.repeat(np.arange(n), 36) + np.tile(np.repeat(np.arange(6), 1), 6 * n))
+        pc = 6 * np.repeat(np.arange(n), 36) + np.tile(np.arange(6), 6 * n)
         J_p = sp.csr_matrix((W.reshape(-1), (pr, pc)), shape=(6 * n, cols))
         J = sp.vstack([J_l, J_p]).tocsc()
         r = np.concatenate([r0, prior])
@@ -162,4 +159,4 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
             break
     cov = np.zeros((7, 7))
     cov[:n_glob, :n_glob] = glob_cov
-    return T, dt, cov, chi2_dof
+    return T, dt, cov
