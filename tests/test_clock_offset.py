@@ -63,3 +63,14 @@ def test_too_few_sweeps_within_the_cameras_recording_are_refused():
     rec = simulate_waving(default_rig(rng, "vlp16"), 0.6, rng)  # 5 sweeps, none 0.2 s inside the camera's span
     with pytest.raises(DegenerateLayoutError, match="LiDAR sweeps see the board within the camera's recording"):
         solve_clock_offset(list(rec.views), list(rec.sweeps))
+
+
+def test_a_sensors_stamp_jitter_is_read_from_its_stamps_spacing_past_skipped_frames():
+    """20 Hz stamps jittered by 1 ms with every seventh frame missing: the jitter within 10%; none on exact stamps."""
+    from estimators.solvers.moving_board_graph import stamp_jitter_s
+
+    rng = np.random.default_rng(5)
+    t = np.arange(3000) / 20.0
+    keep = np.arange(3000) % 7 != 3
+    assert abs(stamp_jitter_s((t + rng.normal(0.0, 1e-3, t.size))[keep]) - 1e-3) < 1e-4
+    assert stamp_jitter_s(t[keep]) < 1e-9

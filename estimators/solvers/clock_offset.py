@@ -27,7 +27,7 @@ from geometry.trajectory import PoseSpline
 from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
 from .closed_form import solve_closed_form
-from .moving_board_graph import refine_jointly
+from .moving_board_graph import refine_jointly, stamp_jitter_s, with_stamp_jitter
 
 # The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
 OFFSET_PRIOR_S = 0.2
@@ -162,9 +162,14 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
                                     f"at least every {MAX_GAP_S:.2f} s")
-    T, dt, cov = refine_jointly(tau, np.array([v.camera.T_camera_board for v in views]),
-                                np.array([v.camera.pose_covariance for v in views]), points[inside], times[inside],
-                                T, dt, float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7)
+    # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the
+    # LiDAR's is a time nuisance per sweep.
+    K = np.array([v.camera.T_camera_board for v in views])
+    K_cov = with_stamp_jitter(tau, K, np.array([v.camera.pose_covariance for v in views]), stamp_jitter_s(tau))
+    sweep = np.repeat(np.arange(len(kept)), [len(k[1]) for k in kept])
+    T, dt, cov = refine_jointly(tau, K, K_cov, points[inside], times[inside], T, dt,
+                                float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7,
+                                sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "

@@ -4,7 +4,9 @@ Each image's board pose is a knot of the board's trajectory, held by its own mea
 give, with its covariance: ``CameraBoardObservation.pose_covariance``); between knots the pose is a local cubic
 (Hermite, tangents from the neighbouring knots, the rotation in a chart at the interval's first knot), so each
 LiDAR return depends on the four knots about its time. A return's residual is its range less the range along its
-beam to the board's plane at its time plus the offset (``clock_offset``), over the range noise. Solved by
+beam to the board's plane at its time plus the offset (``clock_offset``), over the range noise.
+Each image's stamp jitter (read from the stamps' spacing) grows its pose's covariance by its velocity; each sweep's
+stamp jitter is a time nuisance of its own, shared by its returns, with that jitter as its prior. Solved by
 Gauss-Newton from the two-step estimate (the knots at their measured poses), the Jacobian by forward differences
 (the knots four apart perturbed together: a return sees one of them), the normal equations sparse; the extrinsic
 and offset's covariance is their block of the inverse, so it carries the camera's pose noise with the LiDAR's.
@@ -92,13 +94,40 @@ def _exp_all(xi: np.ndarray) -> np.ndarray:
     return out
 
 
+def stamp_jitter_s(stamps_s: np.ndarray) -> float:
+    """A free-running sensor's stamp jitter (s): the spread of its stamps' spacing about the median period, over
+    the spacings within half a period of it (a skipped frame is no jitter), robustly (MAD), as sqrt(2) stamps'."""
+    d = np.diff(np.sort(np.asarray(stamps_s, dtype=float)))
+    if len(d) < 3:
+        return 0.0
+    period = float(np.median(d))
+    d = d[np.abs(d - period) < 0.5 * period]
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2)) if len(d) >= 3 else 0.0
+
+
+def with_stamp_jitter(tau: np.ndarray, K: np.ndarray, K_cov: np.ndarray, jitter_s: float) -> np.ndarray:
+    """The knots' covariances grown by their stamps' jitter: a pose stamped ``jitter_s`` off its instant is off by
+    its velocity times that (the velocity from the neighbouring knots, in the knot's right tangent)."""
+    if jitter_s <= 0 or len(tau) < 3:
+        return K_cov
+    v = np.zeros((len(tau), 6))
+    i = np.arange(1, len(tau) - 1)
+    rel = np.einsum("nij,njk->nik", np.array([T_inverse(k) for k in K[i - 1]]), K[i + 1])
+    v[i] = log_batch(rel[:, :3, :3], rel[:, :3, 3]) / (tau[i + 1] - tau[i - 1])[:, None]
+    v[0], v[-1] = v[1], v[-2]
+    return K_cov + jitter_s ** 2 * np.einsum("ni,nj->nij", v, v)
+
+
 def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: np.ndarray, times: np.ndarray,
-                   T0: np.ndarray, dt0: float, sigma_r: float, free_offset: bool = True
+                   T0: np.ndarray, dt0: float, sigma_r: float, free_offset: bool = True,
+                   sweep: np.ndarray | None = None, sweep_jitter_s: float = 0.0
                    ) -> tuple[np.ndarray, float, np.ndarray]:
     """The joint solve (see the module) from knots ``K0`` (n, 4, 4) at ``tau`` with covariances ``K_cov`` (n, 6, 6),
     returns ``points`` (m, 3) at ``times`` (the LiDAR's clock; each within the knots' span less the offset's
-    reach), and the start ``T0``, ``dt0``; ``sigma_r`` the returns' range noise (m). Returns ``T_camera_lidar``,
-    the offset and the 7x7 covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held)."""
+    reach), and the start ``T0``, ``dt0``; ``sigma_r`` the returns' range noise (m). ``sweep``: each return's
+    sweep (0 ..), whose stamp is off its instant by a Gaussian of ``sweep_jitter_s`` shared by its returns: one
+    time nuisance per sweep with that prior (none when 0). Returns ``T_camera_lidar``, the offset and the 7x7
+    covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held)."""
     n, m = len(tau), len(points)
     ranges = np.linalg.norm(points, axis=1)
     beams = points / ranges[:, None]
@@ -107,24 +136,38 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
     K0_inv = np.array([T_inverse(k0) for k0 in K0])
     T, dt = T0, dt0
     n_glob = 7 if free_offset else 6
-    cols = 6 * n + n_glob
+    n_s = int(sweep.max()) + 1 if sweep is not None and sweep_jitter_s > 0 else 0
+    cols = 6 * n + n_s + n_glob  # knots, sweeps' time nuisances, extrinsic and offset
+    g0 = 6 * n + n_s
+    shift_s = np.zeros(n_s)  # each sweep's time nuisance (s)
+    shift = np.zeros(m)  # each return's sweep's
     for _ in range(MAX_STEPS):
         rel = K0_inv @ K
         xi = log_batch(rel[:, :3, :3], rel[:, :3, 3])  # each knot's move from its measured pose
         knots = _Knots(tau, K)
-        k = knots.interval(times + dt)
-        r0 = _lidar_residuals(T, dt, knots, ranges, beams, times, k) / sigma_r
+        times_now = times + shift
+        k = knots.interval(times_now + dt)
+        r0 = _lidar_residuals(T, dt, knots, ranges, beams, times_now, k) / sigma_r
         prior = np.einsum("nij,nj->ni", W, xi).ravel()
         rows, cidx, vals = [], [], []
         base = r0 * sigma_r
         # the extrinsic's and the offset's columns: every return (forward differences)
-        for c in range(n_glob):
+        d_time = None
+        for c in range(7):
             e = np.zeros(7)
             e[c] = H
-            plus = _lidar_residuals(T_retract(T, e[:6]), dt + e[6], knots, ranges, beams, times, k)
+            plus = _lidar_residuals(T_retract(T, e[:6]), dt + e[6], knots, ranges, beams, times_now, k)
+            col = (plus - base) / (H * sigma_r)
+            if c == 6:
+                d_time = col  # a return's residual against its time: its sweep's nuisance's column too
+            if c < n_glob:
+                rows.append(np.arange(m))
+                cidx.append(np.full(m, g0 + c))
+                vals.append(col)
+        if n_s:
             rows.append(np.arange(m))
-            cidx.append(np.full(m, 6 * n + c))
-            vals.append((plus - base) / (H * sigma_r))
+            cidx.append(6 * n + sweep)
+            vals.append(d_time)
         # the knots' columns: knots four apart perturbed together, each return's change put on its one knot
         for colour in range(4):
             chosen = np.arange(colour, n, 4)
@@ -134,7 +177,7 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
                 e[d] = H
                 Kp = K.copy()
                 Kp[chosen] = K[chosen] @ T_exp(e)
-                plus = _lidar_residuals(T, dt, _Knots(tau, Kp), ranges, beams, times, k)
+                plus = _lidar_residuals(T, dt, _Knots(tau, Kp), ranges, beams, times_now, k)
                 rows.append(np.arange(m))
                 cidx.append(6 * which + d)
                 vals.append((plus - base) / (H * sigma_r))
@@ -143,19 +186,25 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
         pr = np.repeat(np.arange(6 * n), 6)
         pc = 6 * np.repeat(np.arange(n), 36) + np.tile(np.arange(6), 6 * n)
         J_p = sp.csr_matrix((W.reshape(-1), (pr, pc)), shape=(6 * n, cols))
-        J = sp.vstack([J_l, J_p]).tocsc()
-        r = np.concatenate([r0, prior])
+        nuisance = shift_s / sweep_jitter_s if n_s else np.zeros(0)
+        J_s = sp.csr_matrix((np.full(n_s, 1.0 / sweep_jitter_s) if n_s else np.zeros(0),
+                             (np.arange(n_s), 6 * n + np.arange(n_s))), shape=(n_s, cols))
+        J = sp.vstack([J_l, J_p, J_s]).tocsc()
+        r = np.concatenate([r0, prior, nuisance])
         Hm = (J.T @ J).tocsc()
         lu = splu(Hm)
         step = -lu.solve(J.T @ r)
         K = K @ _exp_all(step[:6 * n].reshape(n, 6))
-        T = T_retract(T, step[6 * n:6 * n + 6])
+        if n_s:
+            shift_s = shift_s + step[6 * n:g0]
+            shift = shift_s[sweep]
+        T = T_retract(T, step[g0:g0 + 6])
         if free_offset:
             dt = dt + float(step[-1])
         E = np.zeros((cols, n_glob))
-        E[6 * n:, :] = np.eye(n_glob)
-        glob_cov = lu.solve(E)[6 * n:, :]
-        if np.all(np.abs(step[6 * n:]) < CONVERGED * np.sqrt(np.diag(glob_cov))):
+        E[g0:, :] = np.eye(n_glob)
+        glob_cov = lu.solve(E)[g0:, :]
+        if np.all(np.abs(step[g0:]) < CONVERGED * np.sqrt(np.diag(glob_cov))):
             break
     cov = np.zeros((7, 7))
     cov[:n_glob, :n_glob] = glob_cov
