@@ -45,10 +45,15 @@ def shared_folder(tmp_path_factory, name: str, make) -> Path:
 @pytest.fixture(scope="session", autouse=True)
 def _measurement_cache(tmp_path_factory):
     """Every calibration the tests run, the command line's in child processes too, keeps its measurement cache in
-    the session's own folder: never the user's (``~/.cache/lidarcam``, which the suite filled with 130 MB of test
-    rigs), and no test reads measurements an earlier run left there."""
+    the run's own folder, one for all its test processes (the cache is keyed by the files' content, the options and
+    the code, and written atomically, so a process reads only what another measured alike): never the user's
+    (``~/.cache/lidarcam``, which the suite filled with 130 MB of test rigs), and no test reads measurements an
+    earlier run left there. A test that checks a first measurement sets its own."""
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "measurement_cache"
+    folder.mkdir(exist_ok=True)
     patch = pytest.MonkeyPatch()
-    patch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path_factory.mktemp("measurement_cache")))
+    patch.setenv("LIDARCAM_CACHE_DIR", str(folder))
     yield
     patch.undo()
 
