@@ -18,8 +18,8 @@ demo: $(STAMP)
 	$(VENV)/bin/lidarcam demo
 
 # Two test processes, one per core (pytest-xdist), an idle one taking tests queued on the other (worksteal: a few
-# tests take 10-30 s each): 7.9 minutes of pytest on a clean clone at 37f2f6f on a 2-core machine (476 s; 497-510 s
-# before that commit's trims), at the budget of 8: trim before adding (the history of this figure is in the commit
+# tests take 10-30 s each): 7.6 minutes of pytest on a clean clone at e40d9ed on a 2-core machine (453 s; 455-484 s
+# in the runs before it), at the budget of 8: trim before adding (the history of this figure is in the commit
 # messages). The twenty slowest tests are listed at the end of every run.
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal --durations=20
