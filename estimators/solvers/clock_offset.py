@@ -99,8 +99,9 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                        returns_per_sweep: int = MAX_RETURNS_PER_SWEEP) -> ClockOffsetSolution:
     """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
     ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
-    keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less. Raises DegenerateLayoutError
-    with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory."""
+    keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less.
+    Raises DegenerateLayoutError with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory, too few
+    returns where the camera saw the board, or an offset outside its prior."""
     rng = rng if rng is not None else np.random.default_rng(0)
     trajectory = camera_trajectory(views)
     lo, hi = trajectory.span_s
