@@ -26,13 +26,18 @@ from estimators.simulation.simulator import simulate_dataset  # noqa: E402
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 
 
+def _run_folder(tmp_path_factory) -> Path:
+    """The temporary folder of the whole run: a test process's own, or, under pytest-xdist, its workers' parent."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
 def shared_folder(tmp_path_factory, name: str, make) -> Path:
     """Folder ``name`` made once by ``make(path)`` for the whole run, however many test processes share it
     (pytest-xdist's workers: the first to take the lock makes it, the others wait and read it)."""
     import fcntl
 
-    base = tmp_path_factory.getbasetemp()
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    root = _run_folder(tmp_path_factory)
     target = root / name
     with open(root / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -49,8 +54,7 @@ def _measurement_cache(tmp_path_factory):
     the code, and written atomically, so a process reads only what another measured alike): never the user's
     (``~/.cache/lidarcam``, which the suite filled with 130 MB of test rigs), and no test reads measurements an
     earlier run left there. A test that checks a first measurement sets its own."""
-    base = tmp_path_factory.getbasetemp()
-    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "measurement_cache"
+    folder = _run_folder(tmp_path_factory) / "measurement_cache"
     folder.mkdir(exist_ok=True)
     patch = pytest.MonkeyPatch()
     patch.setenv("LIDARCAM_CACHE_DIR", str(folder))

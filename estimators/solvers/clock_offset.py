@@ -27,7 +27,7 @@ from geometry.trajectory import PoseSpline
 from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
 from .closed_form import solve_closed_form
-from .moving_board_graph import refine_jointly, stamp_jitter_s, with_stamp_jitter
+from .moving_board_graph import along_beam_residuals, refine_jointly, stamp_jitter_s, with_stamp_jitter
 
 # The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
 OFFSET_PRIOR_S = 0.2
@@ -80,17 +80,11 @@ def camera_trajectory(views: list[TimedBoardView]) -> PoseSpline:
 
 def _residuals(T: np.ndarray, dt: float, trajectory: PoseSpline, points: np.ndarray, times_s: np.ndarray
                ) -> np.ndarray:
-    """Each return's range less the range along its beam to the board's plane where the board was at its time
-    plus ``dt`` (m). Along the beam, as the LiDAR errs: a point-to-plane distance would take the noisy point into
-    its own Jacobian, which biases the estimate by a share of the range variance that more data do not shrink."""
+    """``moving_board_graph.along_beam_residuals`` with the board where the camera's trajectory puts it at each
+    return's time plus ``dt`` (m)."""
     T_cb = trajectory(times_s + dt)
-    n_c = T_cb[:, :3, 2]
     ranges = np.linalg.norm(points, axis=1)
-    beams = points / ranges[:, None]
-    along = np.einsum("ni,ni->n", n_c @ T[:3, :3], beams)  # (R^T n_c) . u
-    with np.errstate(divide="ignore", invalid="ignore"):
-        predicted = np.einsum("ni,ni->n", n_c, T_cb[:, :3, 3] - T[:3, 3]) / along
-    return np.where(np.abs(along) > 1e-3, ranges - predicted, 0.0)
+    return along_beam_residuals(T, T_cb[:, :3, :3], T_cb[:, :3, 3], ranges, points / ranges[:, None])
 
 
 def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
@@ -121,8 +115,8 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
 
     offsets = np.arange(-offset_prior_s, offset_prior_s + 0.5 * grid_step_s, grid_step_s) \
         if fixed_offset_s is None else np.array([float(fixed_offset_s)])
-    few = np.concatenate([np.arange(i, i + min(len(k[1]), GRID_RETURNS)) for i, k in
-                          zip(np.cumsum([0] + [len(k[1]) for k in kept[:-1]]), kept)])
+    few_points = np.concatenate([k[0][:GRID_RETURNS] for k in kept])  # each sweep's first: the grid's score
+    few_times = np.concatenate([k[1][:GRID_RETURNS] for k in kept])
     rms, starts = [], []
     for dt in offsets:
         cam = trajectory(mean_times + dt)
@@ -133,7 +127,7 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
             rms.append(np.inf)
             starts.append(None)
             continue
-        rms.append(float(np.sqrt(np.mean(_residuals(T0, dt, trajectory, points[few], times[few]) ** 2))))
+        rms.append(float(np.sqrt(np.mean(_residuals(T0, dt, trajectory, few_points, few_times) ** 2))))
         starts.append(T0)
     best = int(np.argmin(rms))
     if not np.isfinite(rms[best]):

@@ -75,15 +75,24 @@ class _Knots:
         return Rk @ Rotation.from_rotvec(r).as_matrix(), trans
 
 
+def along_beam_residuals(T: np.ndarray, R_cb: np.ndarray, o_cb: np.ndarray, ranges: np.ndarray,
+                         beams: np.ndarray) -> np.ndarray:
+    """Each return's range less the range along its beam (unit ``beams``, LiDAR frame) to its board's plane, the
+    board at rotations ``R_cb`` (m, 3, 3) and origins ``o_cb`` (m, 3) in the camera, mapped by ``T`` =
+    ``T_camera_lidar`` (m). Along the beam, as the LiDAR errs: a point-to-plane distance would take the noisy
+    point into its own Jacobian, which biases the estimate by a share of the range variance that more data do not
+    shrink."""
+    n_c = R_cb[:, :, 2]
+    along = np.einsum("ni,ni->n", n_c @ T[:3, :3], beams)  # (R^T n_c) . u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        predicted = np.einsum("ni,ni->n", n_c, o_cb - T[:3, 3]) / along
+    return np.where(np.abs(along) > 1e-3, ranges - predicted, 0.0)
+
+
 def _lidar_residuals(T: np.ndarray, dt: float, knots: _Knots, ranges: np.ndarray, beams: np.ndarray,
                      times: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Each return's range less the range along its beam to the board's plane at its time plus ``dt`` (m)."""
-    R, o = knots.poses(times + dt, k)
-    n_c = R[:, :, 2]
-    along = np.einsum("ni,ni->n", n_c @ T[:3, :3], beams)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        predicted = np.einsum("ni,ni->n", n_c, o - T[:3, 3]) / along
-    return np.where(np.abs(along) > 1e-3, ranges - predicted, 0.0)
+    """:func:`along_beam_residuals` with the board where the knots put it at each return's time plus ``dt``."""
+    return along_beam_residuals(T, *knots.poses(times + dt, k), ranges, beams)
 
 
 def _exp_all(xi: np.ndarray) -> np.ndarray:
