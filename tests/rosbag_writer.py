@@ -88,18 +88,31 @@ def bayer_mosaic_rggb(rgb: np.ndarray) -> np.ndarray:
     return m
 
 
-def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int):
-    """x, y, z, intensity float32 and ring uint16 in a padded 32-byte point, as Velodyne drivers publish."""
+# Per-return time fields as drivers write them: Ouster's ``t`` (uint32 ns from the stamp) and Velodyne's ``time``
+# (float32 s from the stamp), by PointField datatype and numpy format.
+TIME_FIELDS = {"t": (6, "<u4", 1e9), "time": (7, "<f4", 1.0)}
+
+
+def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int, times_s: np.ndarray | None = None,
+                  time_field: str = "t"):
+    """x, y, z, intensity float32 and ring uint16 in a padded 32-byte point, as Velodyne drivers publish;
+    ``times_s``: each return's time after the stamp, in ``time_field`` (:data:`TIME_FIELDS`) at offset 24."""
     T = bag.ts.types
     PF = T["sensor_msgs/msg/PointField"]
-    dtype = np.dtype({"names": ["x", "y", "z", "intensity", "ring"], "formats": ["<f4"] * 4 + ["<u2"],
-                      "offsets": [0, 4, 8, 16, 20], "itemsize": 32})
+    names, formats, offsets = ["x", "y", "z", "intensity", "ring"], ["<f4"] * 4 + ["<u2"], [0, 4, 8, 16, 20]
+    if times_s is not None:
+        names, formats, offsets = names + [time_field], formats + [TIME_FIELDS[time_field][1]], offsets + [24]
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": 32})
     pts = np.zeros(len(xyz), dtype)
     pts["x"], pts["y"], pts["z"] = xyz.T
     pts["intensity"] = 100.0
     fields = [PF(name="x", offset=0, datatype=7, count=1), PF(name="y", offset=4, datatype=7, count=1),
               PF(name="z", offset=8, datatype=7, count=1), PF(name="intensity", offset=16, datatype=7, count=1),
               PF(name="ring", offset=20, datatype=4, count=1)]
+    if times_s is not None:
+        datatype, _, unit = TIME_FIELDS[time_field]
+        pts[time_field] = np.round(times_s * unit) if unit != 1.0 else times_s
+        fields.append(PF(name=time_field, offset=24, datatype=datatype, count=1))
     return T["sensor_msgs/msg/PointCloud2"](header=bag.header(t_ns, "lidar"), height=1, width=len(pts),
                                             fields=fields, is_bigendian=False, point_step=32,
                                             row_step=32 * len(pts), data=pts.view(np.uint8).ravel(),
@@ -241,3 +254,36 @@ def write_bag_from_rig(folder: Path, bag_path: Path, kind: str, stems: list[str]
                     bag.write(topics[s.name], image_message(bag, moved, u), u)
             t = end + int(move_s * 1e9)
     return bag_path
+
+
+def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.random.Generator, *,
+                    time_offset_s: float = 0.0, speed_mps: float = 0.5, turn_dps: float = 45.0,
+                    camera_hz: float = 20.0, lidar_hz: float = 10.0, exposure_s: float = 0.004,
+                    time_field: str | None = "t", pauses: tuple = (), image_topic: str = "/camera/image_raw",
+                    lidar_topic: str = "/points"):
+    """A board waved before ``rig`` for ``duration_s`` (``simulation.waved_board``), recorded as a bag: every
+    image (``simulation.board_drawing``, blurred over ``exposure_s``, stamped at mid-exposure in the camera's
+    clock, ``time_offset_s`` ahead of the LiDAR's), every whole sweep in a room (``scene_sweep``) with its returns'
+    times in ``time_field`` (None: no time field, the returns in firing order), CameraInfo once. Returns the
+    motion (the truth)."""
+    from estimators.simulation.board_drawing import draw_board
+    from estimators.simulation.waved_board import scene_sweep, waving
+
+    motion = waving(rig, rng, speed_mps, turn_dps, pauses)
+    period = 1.0 / lidar_hz
+    events = [(t + time_offset_s, "img", t) for t in np.arange(rng.uniform(0, 1 / camera_hz), duration_s,
+                                                                 1.0 / camera_hz)]
+    events += [(t, "scan", t) for t in np.arange(0.0, duration_s - period, period)]
+    events.sort(key=lambda e: e[2])
+    with _Bag(bag_path, kind) as bag:
+        bag.write(image_topic.rsplit("/", 1)[0] + "/camera_info", info_message(bag, rig.camera, T0_NS), T0_NS)
+        for stamp, what, t in events:
+            s = T0_NS + int(round(stamp * 1e9))
+            if what == "img":
+                poses = motion(t + np.linspace(-0.5, 0.5, 5) * exposure_s)
+                bag.write(image_topic, image_message(bag, draw_board(rig.camera, rig.board, poses, rng), s), s)
+            else:
+                xyz, times = scene_sweep(rig, motion, t, period, rng)
+                msg = cloud_message(bag, xyz, s, times if time_field else None, time_field or "t")
+                bag.write(lidar_topic, msg, s + int(period * 1e9))
+    return motion

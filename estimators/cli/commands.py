@@ -12,9 +12,16 @@ from .printing import export_hint, print_result, print_rig, print_truth, source_
 def calibrate_command(args) -> int:
     """A rig folder, or a pair folder (the rig of ``cam0`` and ``lidar0``), through the one engine
     (``rig_calibration``); a pair folder's ``--refine none`` (the closed form alone) through the pair's."""
+    from ..errors import LidarcamError
     from ..io.dataset import load_dataset
+    from ..io.motion_track import is_moving_dataset
     from ..io.rig_dataset import is_rig
 
+    if is_moving_dataset(args.dataset):
+        return _calibrate_moving(args)
+    if args.time_offset is not None:
+        raise LidarcamError("--time-offset is taken by a moving board's recording (motion.npz), and this folder "
+                            "holds still poses", path=args.dataset, hint="calibrate without it")
     if is_rig(args.dataset) or args.refine != "none":
         return _calibrate_rig(args)
     return _closed_form_only(args, load_dataset(args.dataset))
@@ -45,6 +52,41 @@ def _calibrate_rig(args) -> int:
         result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
                                measurements=given, hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
         return _write_rig(args, rig, pair, _with_separating_poses(result), figures)
+
+
+# The calibrate options a moving board's recording takes; the others are refused rather than ignored.
+MOVING_TAKES = {"dataset", "out", "seed", "strict", "no_report", "time_offset", "command", "func", "progress"}
+
+
+def _calibrate_moving(args) -> int:
+    """A moving board's recording (``motion.npz``): the extrinsic and the clocks' offset together
+    (``pipeline.moving_board``); calibration.json written and the result printed."""
+    import numpy as np
+
+    from ..errors import LidarcamError
+    from ..io.output import write_json_atomic
+    from ..pipeline.moving_board import calibrate_moving
+    from .parser import build_parser
+    from .printing import print_moving
+
+    default = vars(build_parser().parse_args(["calibrate", str(args.dataset), "--out", str(args.out)]))
+    given = sorted(f"--{k.replace('_', '-')}" for k, v in vars(args).items()
+                   if k not in MOVING_TAKES and k in default and v != default[k])
+    if given:
+        raise LidarcamError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} not taken by a moving board's "
+                            "recording (motion.npz) and would be ignored", path=args.dataset,
+                            hint="calibrate without it")
+    result = calibrate_moving(args.dataset, np.random.default_rng(args.seed), args.time_offset)
+    path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
+    print_moving(result)
+    print(f"wrote {path}")
+    export_hint(path)
+    if args.strict and result.verdict.untrusted:
+        from ..calibration import EXIT_AMBIGUOUS
+
+        print(f"lidarcam: the answer is untrusted (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
+        return EXIT_AMBIGUOUS
+    return 0
 
 
 def _figures_ahead(report: bool):
@@ -525,7 +567,7 @@ def study_spec_command(argv: list[str]) -> int:
 
 
 def extract_command(args) -> int:
-    from ..io.bag_extract import ExtractOptions, extract_bag
+    from ..io.bag_extract import STILL, ExtractOptions, extract_bag
 
     options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
                              check_hz=args.check_hz, scan_format=args.scan_format)
@@ -548,7 +590,7 @@ def extract_command(args) -> int:
                           camera_info_topic=args.camera_info_topic, use_camera_info=not args.no_camera_info,
                           options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite)
     print("\n".join(summary.lines()))
-    if summary.frames < 4:
+    if summary.recording == STILL and summary.frames < 4:
         print(f"warning: only {summary.frames} frames; a 3D calibration needs 3 or more spread poses, 4+ "
               "are advised", file=sys.stderr)
     print(f"wrote {summary.out} (next: lidarcam calibrate {summary.out} --out OUT)")

@@ -51,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(validation.json): halves, the first and last; interleaved, the even and odd frames")
     c.add_argument("--no-static-scene", action="store_true",
                    help="judge each frame's board alone instead of against the static scene of all frames")
+    c.add_argument("--time-offset", type=float, default=None, metavar="S",
+                   help="a moving board's recording: hold the sensors' clock offset (t_camera_stamp - t_lidar_stamp, "
+                        "s) at S instead of solving it with the extrinsic (0: the clocks taken as synchronised)")
 
     v = sub.add_parser("validate", help="score a dataset's frames under a calibration: plane residuals and outline "
                                         "offsets against what its covariance and the noise predict",

@@ -255,3 +255,25 @@ def source_words(source: str) -> str:
 
 def export_hint(path) -> None:
     print(f"for ROS tf, URDF, KITTI or OpenCV: lidarcam export {path} --format ros-tf|urdf|kitti|opencv-yaml")
+
+
+def print_moving(result) -> None:
+    """A moving board's calibration: the verdict, ``T_camera_lidar`` with its standard deviations, the clocks'
+    offset, and what was used."""
+    p = result.pair
+    print(result.verdict.line)
+    print(f"recording: moving board; {result.views} images and {result.sweeps} of {result.sweeps_recorded} LiDAR "
+          f"sweeps used (returns timed by {result.point_times or 'their sweep'})")
+    print("T_camera_lidar (p_camera = R p_lidar + t):")
+    _print_matrix(p.T)
+    print("  t = (" + ", ".join(f"{1000 * v:.1f}" for v in p.T[:3, 3]) + ") +- ("
+          + ", ".join(f"{v:.1f}" for v in p.std_translation_camera_mm) + ") mm, rotation sd ("
+          + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg (Laplace)")
+    if result.time_offset_std_s is None:
+        print(f"time offset (t_camera_stamp - t_lidar_stamp): held at {1000 * result.time_offset_s:+.2f} ms "
+              "(--time-offset)")
+    else:
+        print(f"time offset (t_camera_stamp - t_lidar_stamp): {1000 * result.time_offset_s:+.2f} +- "
+              f"{1000 * result.time_offset_std_s:.2f} ms")
+    print(f"board returns against the board where the camera saw it: {1000 * result.rms_m:.1f} mm RMS along the "
+          "beams")

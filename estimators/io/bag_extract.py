@@ -11,6 +11,10 @@ frame per pose. A pose already kept is not kept again. Every image not kept is c
 
 Memory stays bounded: at most a few scans (those within the pairing window), the images awaiting their scan,
 and two candidate frames are held; kept frames go to disk as they are found.
+
+A bag whose board moved between most examined images (``MOVING_SHARE``) is a moving board's recording: it is read
+again, every image and sweep (``bag_motion``), into ``motion.npz``, which ``calibrate`` solves with the clocks'
+offset. extract.json's ``recording`` says which kind the bag was read as.
 """
 from __future__ import annotations
 
@@ -30,7 +34,10 @@ from geometry.camera import CameraModel
 from ..camera.charuco import MIN_CHARUCO_CORNERS, detect_charuco
 from ..errors import BagError
 from .dataset import dataset_spec, write_dataset_yaml
+from .bag_motion import REASONS as MOVING_REASONS
+from .bag_motion import MovingBoardReader
 from .image_io import to_gray8
+from .motion_track import save_motion_track
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, decode_point_times,
@@ -43,6 +50,10 @@ INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 # Board detection for the stillness test runs on a copy whose longer side is at most this (pixels).
 DETECT_MAX_SIDE = 960
 MAX_PENDING_IMAGES = 64
+# The recording's kind: still poses (one frame each), or a board that moves (every image and sweep used). A bag is
+# read as moving when the board moved between at least this share of the examined images that show it.
+STILL, MOVING = "still poses", "moving board"
+MOVING_SHARE = 0.6
 
 REASONS = {
     "kept": "kept (one per still pose)",
@@ -96,10 +107,16 @@ class ExtractSummary:
     counts: dict = field(default_factory=dict)
     camera_source: str | None = None
     point_times: str | None = None
+    recording: str = STILL
 
     def lines(self) -> list[str]:
-        out = [f"{self.images} images: {self.frames} frames kept (one per still board pose)"]
-        out += [f"  {n:6d}  {REASONS[k]}" for k, n in self.counts.items() if k != "kept" and n]
+        if self.recording == MOVING:
+            out = [f"recording: {MOVING} ({self.images} images; every image and sweep that shows the board is used; "
+                   "calibrate solves the clocks' offset with the extrinsic)"]
+            out += [f"  {n:6d}  {MOVING_REASONS[k]}" for k, n in self.counts.items() if n]
+        else:
+            out = [f"recording: {STILL} ({self.images} images: {self.frames} frames kept, one per still board pose)"]
+            out += [f"  {n:6d}  {REASONS[k]}" for k, n in self.counts.items() if k != "kept" and n]
         out.append(f"intrinsics: {self.camera_source}" if self.camera_source else
                    "intrinsics: none in the bag (calibrate estimates them from the board views)")
         if self.point_times:
@@ -322,10 +339,11 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 camera_info_topic: str | None = None, use_camera_info: bool = True,
                 options: ExtractOptions = ExtractOptions(), progress: bool = False,
                 overwrite: bool = False) -> ExtractSummary:
-    """Write a dataset folder from a ROS 1 or ROS 2 bag: one frame per still board pose.
+    """Write a dataset folder from a ROS 1 or ROS 2 bag: one frame per still board pose, or a moving board's
+    record (see the module).
 
-    The folder (``dataset.yaml``, ``NNNN.png`` and ``NNNN.pcd|csv``, ``extract.json``) appears complete or not at
-    all.
+    The folder (``dataset.yaml``, ``NNNN.png`` and ``NNNN.pcd|csv`` or ``motion.npz``, ``extract.json``) appears
+    complete or not at all.
 
     Parameters
     ----------
@@ -456,16 +474,12 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             segments.close()
             n_images = grid.n
             _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
+            moving = segments.with_board >= 10 and segments.moved >= MOVING_SHARE * segments.with_board
+            if moving:
+                return _extract_moving(reader, bag, tmp, Path(out), board, camera, img_conns + lidar_conns, image_topic,
+                                       lidar_topic, lidar, segments, n_images, info_topic, progress)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
-                if segments.with_board >= 10 and segments.moved >= 0.8 * segments.with_board:
-                    raise BagError(f"the board moves throughout the recording (its corners moved beyond "
-                                   f"--still-px between {segments.moved} of the {segments.with_board} examined "
-                                   f"images that show it): extract keeps still "
-                                   "poses, and calibrating a continuously moving board from a bag is not supported "
-                                   "yet", path=bag, hint="record again holding the board still for a second or two "
-                                                         "per pose (--still-s), or raise --still-px if a hand-held "
-                                                         "board trembles")
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,
                                hint="hold the board still for --still-s seconds per pose, or raise --still-px "
                                     "for a hand-held board")
@@ -473,7 +487,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                                f"extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}")
             counts = {k: int(segments.counts.get(k, 0)) for k in REASONS}
             (tmp / "extract.json").write_text(json.dumps({
-                "bag": str(bag), "image_topic": image_topic, "lidar_topic": lidar_topic,
+                "bag": str(bag), "recording": STILL, "image_topic": image_topic, "lidar_topic": lidar_topic,
                 "camera_info_topic": info_topic if camera is not None else None,
                 "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
                             "still_px": options.still_px, "check_hz": options.check_hz},
@@ -485,10 +499,45 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                           camera.source if camera is not None else None, point_times[0] if point_times else None)
 
 
+def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, camera: CameraModel | None, conns,
+                    image_topic: str, lidar_topic: str, lidar: str, segments: _StillSegments, n_images: int,
+                    info_topic: str | None, progress: bool) -> ExtractSummary:
+    """A second pass over a bag whose board moves: every image and sweep read into ``motion.npz``
+    (``bag_motion``), with ``dataset.yaml`` and ``extract.json``."""
+    from tqdm.auto import tqdm
+
+    share = f"its corners moved beyond --still-px between {segments.moved} of the {segments.with_board} examined " \
+            "images that show it"
+    if lidar != "3d":
+        raise BagError(f"the board moves ({share}), and a moving board needs a 3D LiDAR's sweeps", path=bag,
+                       hint="with a 2D scanner hold the board still for --still-s seconds per pose")
+    if camera is None:
+        raise BagError(f"the board moves ({share}), and following it needs the camera's intrinsics: the bag has "
+                       "no CameraInfo", path=bag, hint="record the camera's CameraInfo topic (or name it with "
+                                                       "--camera-info-topic), or hold the board still per pose")
+    follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0))
+    bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"following the board in {bag.name}", unit="msg",
+               disable=not progress)
+    for conn, t_bag, msg in _messages(reader, bag, conns):
+        bar.update(1)
+        (follow.sweep if conn.topic == lidar_topic else follow.image)(stamp_ns(msg, t_bag), msg)
+    bar.close()
+    track = follow.track(bag)
+    save_motion_track(tmp, track)
+    write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
+                       f"extracted by lidarcam from {bag.name} (a moving board): {image_topic} + {lidar_topic}")
+    counts = {k: int(follow.counts.get(k, 0)) for k in MOVING_REASONS}
+    (tmp / "extract.json").write_text(json.dumps({
+        "bag": str(bag), "recording": MOVING, "image_topic": image_topic, "lidar_topic": lidar_topic,
+        "camera_info_topic": info_topic, "images": n_images, "counts": counts, "moved_share":
+        round(segments.moved / segments.with_board, 3), "point_times": track.point_times,
+        "origin_ns": track.origin_ns}, indent=1) + "\n")
+    return ExtractSummary(out, lidar, 0, n_images, counts, camera.source, track.point_times, MOVING)
+
+
 def _timing_words(msg, topic: str, gaps) -> str:
     """How a sweep's returns are timed (``ros_messages.decode_point_times``; the sweep's period from the
-    stamps' median spacing ``gaps``, ns), in words: said by ``extract``, not yet used by the calibration, which
-    takes still poses."""
+    stamps' median spacing ``gaps``, ns), in words: said by ``extract`` (still poses do not use them)."""
     period_s = float(np.median(gaps)) * 1e-9 if gaps else None
     try:
         times = decode_point_times(msg, topic, period_s)

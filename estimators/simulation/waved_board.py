@@ -134,31 +134,73 @@ def simulate_waving(rig: Rig, duration_s: float, rng: np.random.Generator, time_
     return WavedRecording(rig, motion, float(time_offset_s), tuple(views), tuple(sweeps))
 
 
-def _sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator):
-    """The board's returns of the sweep starting at ``stamp`` (true time): each beam fired at its azimuth's
-    time, cast against the board where it is then. (points (n, 3), offsets from the stamp (n,)) or None."""
+def _fire_times(rig: Rig, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The sweep's beams (N, 3) and each one's firing time after the sweep's start (clockwise from the cut)."""
     dirs, _ = rig.beams.directions()
     az = np.arctan2(dirs[:, 1], dirs[:, 0])
-    fire = np.mod(CUT_AZIMUTH_RAD - az, 2 * np.pi) / (2 * np.pi) * period
-    T_lc = T_inverse(rig.T_camera_lidar)
-    # beams near the board where it is mid-sweep (its motion within a sweep is centimetres: 10 degrees spare)
-    w, h = rig.board.extent
-    centre = transform_points(T_lc @ motion(stamp + 0.5 * period), np.array([[0.5 * w, 0.5 * h, 0.0]]))[0]
-    reach = np.arctan2(0.5 * np.hypot(w, h), np.linalg.norm(centre)) + np.radians(10.0)
-    near = dirs @ (centre / np.linalg.norm(centre)) >= np.cos(reach)
-    if not near.any():
-        return None
-    d, t = dirs[near], fire[near]
-    T_lb = T_lc[None] @ motion(stamp + t)
+    return dirs, np.mod(CUT_AZIMUTH_RAD - az, 2 * np.pi) / (2 * np.pi) * period
+
+
+def _board_ranges(rig: Rig, motion: Waving, stamp: float, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Each beam's range to the board where it is when the beam fires (``stamp + t``, true time); inf where the beam
+    misses it."""
+    T_lb = T_inverse(rig.T_camera_lidar)[None] @ motion(stamp + t)
     n, o = T_lb[:, :3, 2], T_lb[:, :3, 3]
     cos = np.einsum("ij,ij->i", n, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.einsum("ij,ij->i", n, o) / cos
-    p = r[:, None] * d
-    local = np.einsum("nji,nj->ni", T_lb[:, :3, :3], p - o)
+    local = np.einsum("nji,nj->ni", T_lb[:, :3, :3], r[:, None] * d - o)
+    w, h = rig.board.extent
     hit = (r > 0.1) & (r < rig.beams.max_range_m) & (np.abs(cos) > 1e-3) & (local[:, 0] >= 0) \
         & (local[:, 0] <= w) & (local[:, 1] >= 0) & (local[:, 1] <= h)
+    return np.where(hit, r, np.inf)
+
+
+def _near_board(rig: Rig, motion: Waving, stamp: float, period: float, dirs: np.ndarray) -> np.ndarray:
+    """The beams near the board where it is mid-sweep (its motion within a sweep is centimetres: 10 degrees
+    spare)."""
+    w, h = rig.board.extent
+    T_lc = T_inverse(rig.T_camera_lidar)
+    centre = transform_points(T_lc @ motion(stamp + 0.5 * period), np.array([[0.5 * w, 0.5 * h, 0.0]]))[0]
+    reach = np.arctan2(0.5 * np.hypot(w, h), np.linalg.norm(centre)) + np.radians(10.0)
+    return dirs @ (centre / np.linalg.norm(centre)) >= np.cos(reach)
+
+
+def _sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator):
+    """The board's returns of the sweep starting at ``stamp`` (true time): each beam fired at its azimuth's
+    time, cast against the board where it is then. (points (n, 3), offsets from the stamp (n,)) or None."""
+    dirs, fire = _fire_times(rig, period)
+    near = _near_board(rig, motion, stamp, period, dirs)
+    if not near.any():
+        return None
+    d, t = dirs[near], fire[near]
+    r = _board_ranges(rig, motion, stamp, d, t)
+    hit = np.isfinite(r)
     if hit.sum() < 10:
         return None
     r = r[hit] + rng.normal(0.0, rig.beams.sigma_range_m, int(hit.sum()))
     return r[:, None] * d[hit], t[hit]
+
+
+# A room round the LiDAR for whole-scene sweeps (LiDAR frame, m): x from, to; y from, to; floor and ceiling.
+ROOM = ((-6.0, 12.0), (-5.0, 5.0), (-1.2, 2.2))
+
+
+def scene_sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator,
+                room: tuple = ROOM) -> tuple[np.ndarray, np.ndarray]:
+    """A whole sweep starting at ``stamp`` (true time): every beam's return from the board where it is when the
+    beam fires, or else from the room's walls, floor and ceiling; stored in firing order (a spinning LiDAR's
+    column after column), with each return's time after the stamp. (points (N, 3), offsets (N,))."""
+    dirs, fire = _fire_times(rig, period)
+    order = np.argsort(fire, kind="stable")
+    dirs, fire = dirs[order], fire[order]
+    with np.errstate(divide="ignore"):
+        bounds = np.array(room, dtype=float)  # (3, 2)
+        walls = np.where(dirs > 0, bounds[:, 1] / dirs, bounds[:, 0] / dirs)
+    r = np.min(np.where(walls > 0, walls, np.inf), axis=1)
+    near = _near_board(rig, motion, stamp, period, dirs)
+    if near.any():
+        r[near] = np.minimum(r[near], _board_ranges(rig, motion, stamp, dirs[near], fire[near]))
+    keep = np.isfinite(r) & (r < rig.beams.max_range_m)
+    r = r[keep] + rng.normal(0.0, rig.beams.sigma_range_m, int(keep.sum()))
+    return r[:, None] * dirs[keep], fire[keep]

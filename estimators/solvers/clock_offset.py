@@ -78,6 +78,19 @@ def camera_trajectory(views: list[TimedBoardView]) -> PoseSpline:
     return PoseSpline(np.array([v.stamp_s for v in views]), np.array([v.camera.T_camera_board for v in views]))
 
 
+def deskewed(points: np.ndarray, times_s: np.ndarray, T_camera_lidar: np.ndarray, time_offset_s: float,
+             trajectory: PoseSpline, at_s: float) -> np.ndarray:
+    """A moving board's LiDAR returns (``points``, LiDAR frame, fired at ``times_s`` in the LiDAR's clock) in the
+    camera's frame as they would lie had the board stood where it was at the camera's time ``at_s``: each mapped
+    into the camera, then carried with the board from where the camera's ``trajectory`` puts it at the return's
+    time (plus the offset) to where it puts it at ``at_s``."""
+    p_c = points @ T_camera_lidar[:3, :3].T + T_camera_lidar[:3, 3]
+    then = trajectory(np.asarray(times_s, dtype=float) + time_offset_s)
+    now = trajectory(float(at_s))
+    in_board = np.einsum("nji,nj->ni", then[:, :3, :3], p_c - then[:, :3, 3])  # R^T (p - t), per return
+    return in_board @ now[:3, :3].T + now[:3, 3]
+
+
 def _residuals(T: np.ndarray, dt: float, trajectory: PoseSpline, points: np.ndarray, times_s: np.ndarray
                ) -> np.ndarray:
     """``moving_board_graph.along_beam_residuals`` with the board where the camera's trajectory puts it at each

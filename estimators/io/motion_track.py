@@ -1,0 +1,103 @@
+"""A moving board's record, ``motion.npz`` in a dataset folder: the board's corners in every image that shows it and
+the board's returns of every LiDAR sweep that holds it, each with its own stamp, and each return with its own time.
+
+Written by ``lidarcam extract`` from a bag whose board moves; read by ``lidarcam calibrate``, which then solves the
+extrinsic and the sensors' clock offset together. Times are seconds after ``origin_ns`` (the recording's first
+stamp, ns), the camera's stamps in the camera's clock and the LiDAR's in the LiDAR's. Loaded without pickles.
+"""
+from __future__ import annotations
+
+import io
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..measurements import TimedSweep
+
+FILE = "motion.npz"
+_ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
+
+
+@dataclass(frozen=True, eq=False)
+class MotionTrack:
+    """The board's corners per image and its returns per sweep through a continuous recording.
+
+    Attributes
+    ----------
+    origin_ns : int
+        The stamp (ns) the times count from.
+    view_stamps_s : numpy.ndarray
+        (V,) each image's stamp (camera's clock).
+    corners_px : numpy.ndarray
+        (V, K, 2) the board's inner corners in each image (NaN: a ChArUco corner not seen).
+    sweep_stamps_s : numpy.ndarray
+        (S,) each sweep's header stamp (LiDAR's clock).
+    sweep_sizes : numpy.ndarray
+        (S,) how many of ``points`` each sweep holds, in order.
+    points : numpy.ndarray
+        (M, 3) the board's returns in the LiDAR frame, sweep after sweep.
+    offsets_s : numpy.ndarray
+        (M,) each return's time less its sweep's stamp.
+    point_times : str
+        How the returns' times were read, in words.
+    """
+
+    origin_ns: int
+    view_stamps_s: np.ndarray
+    corners_px: np.ndarray
+    sweep_stamps_s: np.ndarray
+    sweep_sizes: np.ndarray
+    points: np.ndarray
+    offsets_s: np.ndarray
+    point_times: str = ""
+
+    def sweeps(self) -> list[TimedSweep]:
+        """Each sweep's returns with their times."""
+        ends = np.cumsum(self.sweep_sizes)
+        return [TimedSweep(float(s), self.points[e - n:e].astype(float), self.offsets_s[e - n:e].astype(float))
+                for s, n, e in zip(self.sweep_stamps_s, self.sweep_sizes, ends)]
+
+
+def is_moving_dataset(folder: str | os.PathLike) -> bool:
+    """Whether a dataset folder holds a moving board's record."""
+    return (Path(folder) / FILE).is_file()
+
+
+def save_motion_track(folder: str | os.PathLike, track: MotionTrack) -> Path:
+    """``folder/motion.npz`` (the caller makes the folder atomic)."""
+    path = Path(folder) / FILE
+    np.savez_compressed(path, origin_ns=np.int64(track.origin_ns), view_stamps_s=track.view_stamps_s,
+                        corners_px=track.corners_px.astype(np.float32), sweep_stamps_s=track.sweep_stamps_s,
+                        sweep_sizes=track.sweep_sizes.astype(np.int64), points=track.points.astype(np.float32),
+                        offsets_s=track.offsets_s.astype(np.float32), point_times=np.array(track.point_times))
+    return path
+
+
+def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
+    """``folder/motion.npz``, checked, or a one-line :class:`DatasetError`."""
+    path = Path(folder) / FILE
+    hint = "extract the bag again (lidarcam extract ... --overwrite)"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in _ARRAYS if k not in z.files]
+            if missing:
+                raise DatasetError(f"not a moving board's record (no {', '.join(missing)})", path=path, hint=hint)
+            a = {k: np.asarray(z[k]) for k in _ARRAYS}
+            words = str(z["point_times"]) if "point_times" in z.files else ""
+    except (OSError, ValueError, zipfile.BadZipFile, io.UnsupportedOperation, EOFError) as exc:
+        raise DatasetError(f"unreadable moving board's record ({exc})", path=path, hint=hint) from exc
+    V, S = len(a["view_stamps_s"]), len(a["sweep_stamps_s"])
+    ok = (a["corners_px"].ndim == 3 and a["corners_px"].shape[0] == V and a["corners_px"].shape[2] == 2
+          and a["sweep_sizes"].shape == (S,) and np.all(a["sweep_sizes"] >= 0)
+          and a["points"].shape == (int(a["sweep_sizes"].sum()), 3) and a["offsets_s"].shape == (len(a["points"]),)
+          and all(np.all(np.isfinite(a[k])) for k in ("view_stamps_s", "sweep_stamps_s", "points", "offsets_s")))
+    if not ok:
+        raise DatasetError("inconsistent moving board's record (its arrays' sizes disagree or hold NaN)",
+                           path=path, hint=hint)
+    return MotionTrack(int(a["origin_ns"]), a["view_stamps_s"].astype(float), a["corners_px"].astype(float),
+                       a["sweep_stamps_s"].astype(float), a["sweep_sizes"].astype(int), a["points"],
+                       a["offsets_s"], words)

@@ -1,0 +1,148 @@
+"""A moving board's recording calibrated: the extrinsic and the sensors' clock offset together, from a dataset folder
+that ``lidarcam extract`` wrote from a bag whose board moves (``io.motion_track``).
+
+Every image's board pose is solved from its corners (``camera.board_pose``); the LiDAR's board returns, each at its
+own time, are compared with the board where the camera saw it then (``solvers.clock_offset``). The verdict reads
+the solution: the offset against its prior's edge, its own spread, the sweeps used and how far the board turned.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from geometry.camera import CameraModel
+
+from .. import __version__
+from ..camera.board_pose import estimate_board_pose
+from ..camera.detection import CornerDetection
+from ..errors import DatasetError, MeasurementError
+from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
+from ..io.motion_track import MotionTrack, load_motion_track
+from ..measurements import TimedBoardView
+from ..solvers.clock_offset import OFFSET_PRIOR_S, ClockOffsetSolution, solve_clock_offset
+from .pair_estimate import PairEstimate
+from .result import CONVENTION, COVARIANCE_CONVENTION
+from .verdict import CHECK, UNTRUSTED, Verdict, verdict_of
+
+# The verdict's limits: an offset this near its prior's edge (s) may be the edge's, not the data's; an offset's
+# standard deviation beyond this (s) says the board moved too little to time the sensors; fewer sweeps than this
+# leave the estimate to a few seconds of motion; the sweeps' board normals spread less than this (the smallest
+# singular value of their matrix over the largest) leave a direction of the extrinsic weak.
+EDGE_S = 0.01
+OFFSET_SD_S = 0.002
+FEW_SWEEPS = 30
+NORMAL_SPREAD = 0.03
+TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one physical instant (seconds)"
+
+
+@dataclass(frozen=True, eq=False)
+class MovingBoardResult:
+    """A moving board's calibration: ``pair`` (``cam0``, ``lidar0``: ``T_camera_lidar`` and its 6x6 covariance),
+    the clocks' offset and its standard deviation (None when held), the 7x7 covariance over ``[rot; trans;
+    offset]``, and what was used."""
+
+    pair: PairEstimate
+    time_offset_s: float
+    time_offset_std_s: float | None
+    covariance_with_offset: np.ndarray
+    rms_m: float
+    views: int
+    sweeps: int
+    sweeps_recorded: int
+    point_times: str
+    normal_spread: float
+    camera: CameraModel
+    dataset: str
+    seconds: float
+
+    @property
+    def T_camera_lidar(self) -> np.ndarray:
+        return self.pair.T
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.pair.covariance
+
+    @property
+    def verdict(self) -> Verdict:
+        concerns = []
+        if self.time_offset_std_s is not None and OFFSET_PRIOR_S - abs(self.time_offset_s) < EDGE_S:
+            concerns.append((UNTRUSTED, f"the clocks' offset, {1000 * self.time_offset_s:+.1f} ms, lies at the edge "
+                                        f"of its prior (+-{1000 * OFFSET_PRIOR_S:.0f} ms): the data may not hold it"))
+        if self.time_offset_std_s is not None and self.time_offset_std_s > OFFSET_SD_S:
+            concerns.append((CHECK, f"the clocks' offset is known to {1000 * self.time_offset_std_s:.1f} ms only: "
+                                    "wave the board faster or longer"))
+        if self.sweeps < FEW_SWEEPS:
+            concerns.append((CHECK, f"only {self.sweeps} LiDAR sweeps of the board were used: record longer"))
+        if self.normal_spread < NORMAL_SPREAD:
+            concerns.append((CHECK, "the board turned little while waved (its planes' normals span "
+                                    f"{self.normal_spread:.2f} of a full spread): a direction of the extrinsic is "
+                                    "weak; tilt it more"))
+        return verdict_of(concerns)
+
+    def to_dict(self) -> dict:
+        held = self.time_offset_std_s is None
+        return {
+            "verdict": self.verdict.to_dict(), "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
+            "recording": "moving board", "convention": CONVENTION,
+            **{k: v for k, v in self.pair.camera_lidar_keys().items() if k not in ("covariance", "std")},
+            "time_offset_s": self.time_offset_s, "time_offset_std_s": self.time_offset_std_s,
+            "time_offset_held": held, "time_offset_convention": TIME_OFFSET_CONVENTION,
+            "covariance": self.pair.covariance.tolist(), "covariance_convention": COVARIANCE_CONVENTION,
+            "covariance_with_time_offset": self.covariance_with_offset.tolist(),
+            "std": self.pair.camera_lidar_keys()["std"],
+            "covariance_source": "the joint solve's (Laplace): every image's board pose, the extrinsic and the "
+                                 "offset together",
+            "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
+            "range_rms_m": self.rms_m, "point_times": self.point_times, "normal_spread": self.normal_spread,
+            "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds},
+        }
+
+
+def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoardView]:
+    """Each image's board pose at its stamp; images whose corners give no pose are left out."""
+    out = []
+    for stamp, corners in zip(track.view_stamps_s, track.corners_px):
+        seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
+        ids = None if len(seen) == len(corners) else seen
+        try:
+            obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), board, camera)
+        except MeasurementError:
+            continue
+        out.append(TimedBoardView(float(stamp), obs))
+    return out
+
+
+def normal_spread(track: MotionTrack) -> float:
+    """How far the board turned: the smallest singular value of the sweeps' board normals over the largest."""
+    from geometry.planes import fit_plane_pca
+
+    normals = np.array([fit_plane_pca(s.points).facing_away().normal for s in track.sweeps() if len(s.points) >= 3])
+    sv = np.linalg.svd(normals, compute_uv=False)
+    return float(sv[-1] / sv[0]) if len(sv) == 3 and sv[0] > 0 else 0.0
+
+
+def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None
+                     ) -> MovingBoardResult:
+    """The extrinsic and the clocks' offset of a moving board's dataset folder (``motion.npz``); ``time_offset_s``:
+    the offset held at this value (s) instead of solved."""
+    root, ypath, spec = read_dataset_yaml(folder)
+    if not isinstance(spec, dict) or spec.get("camera") is None:
+        raise DatasetError("a moving board's folder needs the camera's intrinsics (camera: in dataset.yaml)",
+                           path=ypath, hint="extract it from a bag with CameraInfo, or add camera: K, dist, width, "
+                                            "height")
+    board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
+    track = load_motion_track(root)
+    views = board_views(track, board, camera)
+    t0 = time.perf_counter()
+    sol: ClockOffsetSolution = solve_clock_offset(views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng)
+    seconds = time.perf_counter() - t0
+    pair = PairEstimate("cam0", "lidar0", sol.T_camera_lidar, sol.covariance[:6, :6], None, sol.sweeps)
+    held = time_offset_s is not None
+    return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
+                             sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
+                             track.point_times, normal_spread(track), camera, str(Path(root)), seconds)
