@@ -132,6 +132,17 @@ def estimate_board_pose(detection: CornerDetection, board: BoardModel, camera: C
     return replace(_observation(poses[0][0], X, camera, corners, method, ids, 0.0), pattern_inverted=inverted)
 
 
+def follow_board_pose(corners: np.ndarray, board: BoardModel, camera: CameraModel, T_start: np.ndarray,
+                      ids: np.ndarray | None = None, iterations: int = 6) -> CameraBoardObservation:
+    """The board's pose from its corners (a checkerboard's in the order of ``inner_corners``, or a ChArUco
+    board's ``ids``), solved from ``T_start``: the pose in an image just before, as a moving board's images follow
+    it. No IPPE start and no test of the other orientation: the pose nearest the one before is the board's."""
+    X = board.inner_corners() if ids is None else board.inner_corners()[ids]
+    corners = np.asarray(corners, dtype=float)
+    T = _gauss_newton(np.asarray(T_start, dtype=float), X, camera, corners, iterations)
+    return _observation(T, X, camera, corners, "followed", ids, 0.0)
+
+
 def reobserve(obs: CameraBoardObservation, board: BoardModel, camera: CameraModel, iterations: int = 10
               ) -> CameraBoardObservation:
     """The same detected corners observed under another camera model (refined intrinsics): the pose solved again

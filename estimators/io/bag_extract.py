@@ -54,6 +54,9 @@ MAX_PENDING_IMAGES = 64
 # read as moving when the board moved between at least this share of the examined images that show it.
 STILL, MOVING = "still poses", "moving board"
 MOVING_SHARE = 0.6
+# The still reading stops early when, before any still pose, the board moved between this share of the first
+# EARLY_IMAGES examined images that show it (5 s at --check-hz 5): the bag is then read as a moving board.
+EARLY_IMAGES, EARLY_SHARE = 25, 0.9
 
 REASONS = {
     "kept": "kept (one per still pose)",
@@ -133,10 +136,10 @@ class _Check:
     scan_stamp: int | None = None
 
 
-def _detect(gray: np.ndarray, board: BoardModel) -> np.ndarray | None:
-    """Inner corners (N, 2) in full-image pixels, found on a reduced copy, or None. A ChArUco board: every
-    inner corner's row, NaN for the ones not seen (None when too few are seen to fix the board)."""
-    scale = min(1.0, DETECT_MAX_SIDE / max(gray.shape))
+def _detect(gray: np.ndarray, board: BoardModel, max_side: int = DETECT_MAX_SIDE) -> np.ndarray | None:
+    """Inner corners (N, 2) in full-image pixels, found on a copy reduced to ``max_side``, or None. A ChArUco board:
+    every inner corner's row, NaN for the ones not seen (None when too few are seen to fix the board)."""
+    scale = min(1.0, max_side / max(gray.shape))
     small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else gray
     if board.is_charuco:
         det = detect_charuco(small, board)
@@ -461,6 +464,9 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                     pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
                     if len(pending) > MAX_PENDING_IMAGES:
                         resolve(pending.popleft())
+                    if not records and segments.with_board >= EARLY_IMAGES and \
+                            segments.moved >= EARLY_SHARE * segments.with_board:
+                        break  # a moving board from the start: read as one (below), not examined to the end
                 # A scan followed by one no later than every image still to come can never be the nearest
                 # again (images still to come: the pending ones, or ones stamped after now less a second's lag).
                 horizon = pending[0].stamp if pending else stamp - 1_000_000_000
@@ -473,11 +479,12 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 resolve(pending.popleft())
             segments.close()
             n_images = grid.n
-            _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             moving = segments.with_board >= 10 and segments.moved >= MOVING_SHARE * segments.with_board
+            if not moving:
+                _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if moving:
                 return _extract_moving(reader, bag, tmp, Path(out), board, camera, img_conns + lidar_conns, image_topic,
-                                       lidar_topic, lidar, segments, n_images, info_topic, progress)
+                                       lidar_topic, lidar, segments, info_topic, progress)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,
@@ -500,7 +507,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
 
 
 def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, camera: CameraModel | None, conns,
-                    image_topic: str, lidar_topic: str, lidar: str, segments: _StillSegments, n_images: int,
+                    image_topic: str, lidar_topic: str, lidar: str, segments: _StillSegments,
                     info_topic: str | None, progress: bool) -> ExtractSummary:
     """A second pass over a bag whose board moves: every image and sweep read into ``motion.npz``
     (``bag_motion``), with ``dataset.yaml`` and ``extract.json``."""
@@ -529,10 +536,10 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
     counts = {k: int(follow.counts.get(k, 0)) for k in MOVING_REASONS}
     (tmp / "extract.json").write_text(json.dumps({
         "bag": str(bag), "recording": MOVING, "image_topic": image_topic, "lidar_topic": lidar_topic,
-        "camera_info_topic": info_topic, "images": n_images, "counts": counts, "moved_share":
+        "camera_info_topic": info_topic, "images": follow.images, "counts": counts, "moved_share":
         round(segments.moved / segments.with_board, 3), "point_times": track.point_times,
         "origin_ns": track.origin_ns}, indent=1) + "\n")
-    return ExtractSummary(out, lidar, 0, n_images, counts, camera.source, track.point_times, MOVING)
+    return ExtractSummary(out, lidar, 0, follow.images, counts, camera.source, track.point_times, MOVING)
 
 
 def _timing_words(msg, topic: str, gaps) -> str:

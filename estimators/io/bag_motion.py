@@ -17,13 +17,13 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
-from ..camera.board_pose import estimate_board_pose
+from ..camera.board_pose import estimate_board_pose, follow_board_pose
 from ..camera.detection import CornerDetection, subpixel_refine
 from ..errors import AmbiguousBoardError, BagError, MeasurementError
 from ..lidar.board_segmentation import find_board
 from .image_io import to_gray8
 from .motion_track import MotionTrack
-from .ros_messages import decode_image, decode_point_cloud, decode_point_times
+from .ros_messages import decode_image, decode_timed_cloud
 
 # A sweep is segmented once the camera's stream has passed its stamp by this (ns): its nearest image is then seen.
 LOOK_AHEAD_NS = 150_000_000
@@ -31,11 +31,20 @@ LOOK_AHEAD_NS = 150_000_000
 KEEP_VIEWS_NS = 1_000_000_000
 # An image this near (s) the one before is ordered like it; after a longer gap, by the image's own axes.
 CONTINUOUS_S = 0.5
+# Corners are followed from image to image across gaps up to this (ns): two periods of a 20 Hz camera, one of 10 Hz.
+TRACK_GAP_NS = 120_000_000
+# While the board is lost the detector looks at most once in this (ns); it is found again within that.
+LOOK_EVERY_NS = 200_000_000
+# The detector looks at a copy at most this wide (px); the corners are then refined at full resolution.
+DETECT_MAX_SIDE = 640
+# A sweep's board is looked for first within this (m) beyond the board's half-diagonal of where it was last.
+NEAR_BOARD_M = 0.6
 
 REASONS = {
     "views": "images with the board (all used)",
+    "tracked": "  of them followed from the images before (the rest found by the detector)",
     "no_board": "images without the board found (out of view, or too blurred to find)",
-    "bad_pose": "images whose corners give no board pose",
+    "not_looked": "images not looked at while the board was lost (the detector looks 5 times a second)",
     "sweeps": "sweeps with the board (all used)",
     "no_board_in_sweep": "sweeps without the board's returns (no board-sized plane where the camera puts it)",
     "ambiguous": "sweeps where two board-sized planes agree with the camera's board",
@@ -50,10 +59,16 @@ class MovingBoardReader:
     def __init__(self, board: BoardModel, camera: CameraModel, detect, topic: str, rng: np.random.Generator):
         self.board, self.camera, self.detect, self.topic, self.rng = board, camera, detect, topic, rng
         self.counts: Counter = Counter()
+        self.images = 0
         self.origin: int | None = None
         self.stamps: list[int] = []
         self.corners: list[np.ndarray] = []
-        self.recent: deque = deque()  # (stamp ns, CameraBoardObservation) of the last second's images
+        self.recent: deque = deque()  # (stamp ns, index in corners) of the last second's images
+        self.poses: dict = {}  # index in corners -> its board pose (or None), solved when a sweep asks
+        self.last_pose: tuple | None = None  # (stamp ns, pose) last solved
+        self.last_board: tuple | None = None  # (stamp ns, the board's centre) in the last sweep that held it
+        self.lost_since: int | None = None  # the stamp since which the board is not found, or None
+        self.last_look = -1  # the stamp the detector last looked at
         self.pending: deque = deque()  # (stamp ns, cloud message) awaiting the camera's stream
         self.gaps: deque = deque(maxlen=64)
         self.last_sweep: int | None = None
@@ -66,26 +81,74 @@ class MovingBoardReader:
     def image(self, stamp: int, msg) -> None:
         self.origin = stamp if self.origin is None else min(self.origin, stamp)
         self.camera_now = max(self.camera_now, stamp)
+        self.images += 1
         gray = to_gray8(decode_image(msg, self.topic))
-        found = self.detect(gray, self.board)
-        if found is None:
-            self.counts["no_board"] += 1
+        corners = self._tracked(gray, stamp)
+        if corners is not None:
+            self.counts["tracked"] += 1
+        elif self.lost_since is not None and stamp - self.last_look < LOOK_EVERY_NS:
+            self.counts["not_looked"] += 1  # the board lost: the detector looks a few times a second
+            return self._after_image(stamp)
         else:
-            corners = self._ordered(self._refined(gray, found), stamp)
-            seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
-            ids = None if len(seen) == len(corners) else seen
-            try:
-                obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), self.board, self.camera)
-            except MeasurementError:
-                self.counts["bad_pose"] += 1
-            else:
-                self.counts["views"] += 1
-                self.stamps.append(stamp)
-                self.corners.append(corners.astype(np.float32))
-                self.recent.append((stamp, obs))
+            self.last_look = stamp
+            found = self.detect(gray, self.board, DETECT_MAX_SIDE)
+            corners = None if found is None else self._ordered(self._refined(gray, found), stamp)
+        if corners is None:
+            self.counts["no_board"] += 1
+            self.lost_since = stamp if self.lost_since is None else self.lost_since
+        else:
+            self.counts["views"] += 1
+            self.stamps.append(stamp)
+            self.corners.append(corners.astype(np.float32))
+            self.recent.append((stamp, len(self.corners) - 1))
+            self.lost_since = None
+        self._after_image(stamp)
+
+    def _after_image(self, stamp: int) -> None:
         while self.recent and self.recent[0][0] < stamp - KEEP_VIEWS_NS:
             self.recent.popleft()
         self._flush(self.camera_now - LOOK_AHEAD_NS)
+
+    def _tracked(self, gray: np.ndarray, stamp: int) -> np.ndarray | None:
+        """A checkerboard's corners followed from the two images before (their motion in the image carried on, then
+        each corner refined to its saddle): a detection costs tens of milliseconds, this one. None where they
+        cannot be followed: not two images within ``TRACK_GAP_NS`` before, a corner predicted near the image's
+        edge, or one the refinement moved by a quarter of a square or more (a wrong saddle; the detector then
+        looks)."""
+        if self.board.is_charuco or len(self.stamps) < 2:
+            return None
+        t0, t1 = self.stamps[-2], self.stamps[-1]
+        if stamp - t1 > TRACK_GAP_NS or t1 - t0 > TRACK_GAP_NS or t1 <= t0:
+            return None
+        c0, c1 = self.corners[-2].astype(float), self.corners[-1].astype(float)
+        predicted = c1 + (c1 - c0) * ((stamp - t1) / (t1 - t0))
+        side = _square_px(predicted)
+        h, w = gray.shape
+        if not np.all((predicted >= side) & (predicted <= np.array([w - 1, h - 1]) - side)):
+            return None
+        refined = subpixel_refine(gray, predicted, side / 3.0)[0]
+        if np.max(np.linalg.norm(refined - predicted, axis=1)) >= side / 4.0:
+            return None
+        return refined
+
+    def _pose(self, index: int):
+        """The board's pose in image ``index`` (solved when a sweep asks for it, from the last pose solved where
+        that is within half a second), or None."""
+        if index not in self.poses:
+            corners = self.corners[index].astype(float)
+            seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
+            ids = None if len(seen) == len(corners) else seen
+            before = self.last_pose
+            try:
+                if before is not None and abs(self.stamps[index] - before[0]) <= KEEP_VIEWS_NS // 2:
+                    obs = follow_board_pose(corners[seen], self.board, self.camera, before[1].T_camera_board, ids)
+                else:
+                    obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), self.board, self.camera)
+                self.last_pose = (self.stamps[index], obs)
+            except MeasurementError:
+                obs = None
+            self.poses[index] = obs
+        return self.poses[index]
 
     def sweep(self, stamp: int, msg) -> None:
         self.origin = stamp if self.origin is None else min(self.origin, stamp)
@@ -100,10 +163,8 @@ class MovingBoardReader:
         seen = np.all(np.isfinite(corners), axis=1)
         if seen.sum() < 2:
             return corners
-        pts = corners[seen]
-        side = np.min(np.linalg.norm(np.diff(pts, axis=0), axis=1)) if len(pts) > 1 else 6.0
         out = corners.copy()
-        out[seen] = subpixel_refine(gray, pts, max(side, 6.0) / 3.0)[0]
+        out[seen] = subpixel_refine(gray, corners[seen], _square_px(corners[seen]) / 3.0)[0]
         return out
 
     def _ordered(self, corners: np.ndarray, stamp: int) -> np.ndarray:
@@ -123,29 +184,40 @@ class MovingBoardReader:
             self._segment(*self.pending.popleft())
 
     def _segment(self, stamp: int, msg) -> None:
-        near = [(abs(s - stamp), obs) for s, obs in self.recent]
-        if not near or min(near, key=lambda x: x[0])[0] > KEEP_VIEWS_NS // 2:
+        near = sorted((abs(s - stamp), i) for s, i in self.recent)
+        obs = next((self._pose(i) for d, i in near if d <= KEEP_VIEWS_NS // 2 and self._pose(i) is not None), None)
+        if obs is None:
             self.counts["no_view"] += 1
             return
-        obs = min(near, key=lambda x: x[0])[1]
         period = float(np.median(self.gaps)) * 1e-9 if self.gaps else None
-        xyz, _ = decode_point_cloud(msg, self.topic)
-        times = decode_point_times(msg, self.topic, period)
+        xyz, times = decode_timed_cloud(msg, self.topic, period)
         if times is None:
             self.counts["no_times"] += 1
             return
         self.sources[times.source] += 1
-        try:
-            found = find_board(xyz, self.board, obs, self.rng)
-        except AmbiguousBoardError:
-            self.counts["ambiguous"] += 1
-            return
-        except MeasurementError:
-            self.counts["no_board_in_sweep"] += 1
+        # Where the board was in the sweep before (within half a second), only the returns about it are searched
+        # first: a 64-beam sweep holds a hundred thousand.
+        near_board = None
+        if self.last_board is not None and (stamp - self.last_board[0]) <= KEEP_VIEWS_NS // 2:
+            reach = 0.5 * float(np.hypot(*self.board.judged_extent)) + NEAR_BOARD_M
+            near_board = np.flatnonzero(np.linalg.norm(xyz - self.last_board[1], axis=1) <= reach)
+        found = None
+        for subset in ([near_board] if near_board is not None and len(near_board) >= 10 else []) + [None]:
+            try:
+                found = find_board(xyz if subset is None else xyz[subset], self.board, obs, self.rng)
+                break
+            except AmbiguousBoardError:
+                why = "ambiguous"
+            except MeasurementError:
+                why = "no_board_in_sweep"
+        if found is None:
+            self.counts[why] += 1
             return
         from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
-        dist, index = cKDTree(xyz).query(found.points)
-        index = index[dist < 1e-9]
+        searched = np.arange(len(xyz)) if subset is None else subset
+        dist, k = cKDTree(xyz[searched]).query(found.points)
+        index = searched[k[dist < 1e-9]]
+        self.last_board = (stamp, xyz[index].mean(axis=0))
         self.counts["sweeps"] += 1
         self.sweep_stamps.append(stamp)
         self.points.append(xyz[index].astype(np.float32))
@@ -168,3 +240,8 @@ class MovingBoardReader:
                            (np.array(self.sweep_stamps, dtype=np.int64) - o) * 1e-9,
                            np.array([len(p) for p in self.points]), np.concatenate(self.points),
                            np.concatenate(self.offsets), source)
+
+
+def _square_px(corners: np.ndarray) -> float:
+    """The smallest distance between consecutive corners (a square's side in the image, px; at least 6)."""
+    return max(float(np.min(np.linalg.norm(np.diff(corners, axis=0), axis=1))) if len(corners) > 1 else 6.0, 6.0)

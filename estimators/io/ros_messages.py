@@ -132,8 +132,21 @@ def decode_point_times(msg, topic: str = "", period_s: float | None = None) -> P
     """The per-return times of the points :func:`decode_point_cloud` returns (in its order), as offsets from the
     message's header stamp (``point_times.field_times``): from the cloud's time field, else from each return's
     azimuth where the sweep's ``period_s`` is given (``point_times.azimuth_times``); None where neither tells."""
+    return decode_timed_cloud(msg, topic, period_s)[1]
+
+
+@_guarded("PointCloud2")
+def decode_timed_cloud(msg, topic: str = "", period_s: float | None = None
+                       ) -> tuple[np.ndarray, PointTimes | None]:
+    """A cloud's returns (N, 3), as :func:`decode_point_cloud` gives them, with their times
+    (:func:`decode_point_times`), from one reading of the message."""
     name = time_field(f.name for f in msg.fields)
     pts, xyz, keep = _cloud_fields(msg, topic, [name] if name else [])
+    return xyz[keep], _times(msg, topic, period_s, name, pts, xyz, keep)
+
+
+def _times(msg, topic, period_s, name, pts, xyz, keep) -> PointTimes | None:
+    """The returns' times from the field ``name`` (or None), else from their azimuth (``period_s``)."""
     times = field_times(pts[name][keep], name, stamp_ns(msg, 0), topic) if name is not None else None
     if times is not None:
         return times

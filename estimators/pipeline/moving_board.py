@@ -17,7 +17,7 @@ import numpy as np
 from geometry.camera import CameraModel
 
 from .. import __version__
-from ..camera.board_pose import estimate_board_pose
+from ..camera.board_pose import estimate_board_pose, follow_board_pose
 from ..camera.detection import CornerDetection
 from ..errors import DatasetError, MeasurementError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
@@ -36,6 +36,8 @@ EDGE_S = 0.01
 OFFSET_SD_S = 0.002
 FEW_SWEEPS = 30
 NORMAL_SPREAD = 0.03
+# An image's board pose is solved from the one before within this (s).
+FOLLOW_S = 0.15
 TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one physical instant (seconds)"
 
 
@@ -104,13 +106,18 @@ class MovingBoardResult:
 
 
 def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoardView]:
-    """Each image's board pose at its stamp; images whose corners give no pose are left out."""
-    out = []
+    """Each image's board pose at its stamp, solved from the pose in the image before where that one is within
+    ``FOLLOW_S`` (``camera.board_pose.follow_board_pose``), else from its corners alone; images whose corners give
+    no pose are left out."""
+    out: list[TimedBoardView] = []
     for stamp, corners in zip(track.view_stamps_s, track.corners_px):
         seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
         ids = None if len(seen) == len(corners) else seen
         try:
-            obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), board, camera)
+            if out and stamp - out[-1].stamp_s <= FOLLOW_S:
+                obs = follow_board_pose(corners[seen], board, camera, out[-1].camera.T_camera_board, ids)
+            else:
+                obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), board, camera)
         except MeasurementError:
             continue
         out.append(TimedBoardView(float(stamp), obs))
