@@ -203,6 +203,25 @@ def _read_study(path: Path):
     return parse_spec(load_yaml(path, "study spec"), str(path))
 
 
+def _motion_npz(tmp: Path) -> bytes:
+    from estimators.io.motion_track import MotionTrack, save_motion_track
+
+    rng = np.random.default_rng(0)
+    track = MotionTrack(1_700_000_000_000_000_000, np.arange(12) * 0.05, rng.uniform(0, 600, (12, 48, 2)),
+                        np.arange(6) * 0.1, np.full(6, 20), rng.normal(0, 1, (120, 3)), rng.uniform(0, 0.1, 120),
+                        "field 't'")
+    folder = tmp / "motion_seed"
+    folder.mkdir(exist_ok=True)
+    return save_motion_track(folder, track).read_bytes()
+
+
+def _read_motion(path: Path):
+    from estimators.io.motion_track import load_motion_track
+
+    (path.parent / "motion.npz").write_bytes(path.read_bytes())
+    return load_motion_track(path.parent).sweeps()
+
+
 def _read_calibration(path: Path):
     data = load_calibration(path)
     return [export_calibration(data, fmt) for fmt in FORMATS]
@@ -244,6 +263,7 @@ FILE_TARGETS = (
     FileTarget("plan_yaml", ".yaml", lambda t: _plan_yaml(), _read_plan),
     FileTarget("study_yaml", ".yaml", lambda t: _study_yaml(), _read_study),
     FileTarget("calibration_json", ".json", lambda t: _calibration_json(), _read_calibration),
+    FileTarget("motion_npz", ".npz", _motion_npz, _read_motion),
     FileTarget("initial_guess_json", ".json", lambda t: _calibration_json(),
                lambda p: parse_initial_guess([str(p)])),
     FileTarget("rig_initial_guess_json", ".json", lambda t: _rig_calibration_json(),

@@ -81,6 +81,14 @@ def test_a_waved_board_is_detected_extracted_and_calibrated_with_the_clocks_offs
         T_log(T_inverse(np.array(cal["T_camera_lidar"])) @ rig.T_camera_lidar)[3:])
 
 
+def test_options_a_moving_board_does_not_take_are_refused_in_one_line(waved, capsys, tmp_path):
+    tmp, _ = waved
+    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp_path / "x"), "--samples", "100"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--samples is not taken by a moving board's recording" in err
+    assert not (tmp_path / "x").exists()
+
+
 def test_a_bag_without_a_time_field_is_timed_by_azimuth_and_its_negative_offset_found(tmp_path, capsys):
     """ROS 1, no time field (returns stored in firing order), the camera's clock 30 ms behind."""
     rig = _small_rig(5)

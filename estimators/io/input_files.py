@@ -12,6 +12,8 @@ import os
 import stat
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import DatasetError, LidarcamError
 
 # Text documents (dataset.yaml, plans, study specs, calibration.json) are small; these bounds are far above
@@ -114,3 +116,25 @@ def load_json(path: str | os.PathLike, what: str = "JSON file", hint: str = "che
         raise error(f"not valid JSON ({exc})", path=path, hint=hint) from None
     except RecursionError:
         raise error("JSON nested too deeply", path=path, hint=hint) from None
+
+
+def load_npz(npz: Path) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` (never pickles), each member's declared shape checked against the member's
+    size before it is read, and the members' total against the archive's length: a lying header allocates
+    nothing."""
+    import zipfile
+
+    size = npz.stat().st_size
+    with zipfile.ZipFile(npz) as zf:
+        infos = zf.infolist()
+        if sum(i.file_size for i in infos) > 100 * max(size, 1):
+            raise ValueError("its members claim far more data than the archive holds")
+        for info in infos:
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                shape, _, dtype = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0) else
+                                   np.lib.format.read_array_header_2_0(fh))
+                if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > info.file_size:
+                    raise ValueError(f"member {info.filename} declares {shape} {dtype}, more than it holds")
+    with np.load(npz, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

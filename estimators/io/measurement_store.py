@@ -24,7 +24,7 @@ from ..errors import DatasetError
 from ..measurements import (BoardDecision, CameraBoardObservation, FrameMeasurement, observe_lidar_board,
                             observe_lidar_line)
 from .dataset import dataset_spec, parse_board
-from .input_files import load_json
+from .input_files import load_json, load_npz
 from .output import write_json_atomic, write_npz_atomic
 
 FORMAT = "lidarcam-measurements-1"
@@ -319,7 +319,7 @@ def load_measurements(path: str | Path) -> Measurements:
                          "give the measurements.npz (and .json) that `lidarcam calibrate` wrote")
         if meta.get("format") != FORMAT:
             raise ValueError(f"format {meta.get('format')!r}, expected {FORMAT!r}")
-        arrays = _load_npz(npz)
+        arrays = load_npz(npz)
         camera = _camera(meta["camera"])
         board = parse_board(meta["board"], meta_path)
         frames = tuple(_frame(k, d, arrays, board) for k, d in enumerate(meta["frames"]))
@@ -331,28 +331,6 @@ def load_measurements(path: str | Path) -> Measurements:
         raise DatasetError(f"not a readable lidarcam measurements file ({type(exc).__name__}: "
                            f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=npz,
                            hint="measure again: `lidarcam calibrate DATASET --out OUT` writes it") from None
-
-
-def _load_npz(npz: Path) -> dict[str, np.ndarray]:
-    """The arrays of an ``.npz`` (never pickles), each member's declared shape checked against the member's
-    size before it is read, and the members' total against the archive's length: a lying header allocates
-    nothing."""
-    import zipfile
-
-    size = npz.stat().st_size
-    with zipfile.ZipFile(npz) as zf:
-        infos = zf.infolist()
-        if sum(i.file_size for i in infos) > 100 * max(size, 1):
-            raise ValueError("its members claim far more data than the archive holds")
-        for info in infos:
-            with zf.open(info) as fh:
-                version = np.lib.format.read_magic(fh)
-                shape, _, dtype = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0) else
-                                   np.lib.format.read_array_header_2_0(fh))
-                if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > info.file_size:
-                    raise ValueError(f"member {info.filename} declares {shape} {dtype}, more than it holds")
-    with np.load(npz, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
 
 
 def _camera(d: dict) -> CameraModel:

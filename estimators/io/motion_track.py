@@ -7,9 +7,7 @@ stamp, ns), the camera's stamps in the camera's clock and the LiDAR's in the LiD
 """
 from __future__ import annotations
 
-import io
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +15,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..measurements import TimedSweep
+from .input_files import load_npz
 
 FILE = "motion.npz"
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
@@ -82,16 +81,22 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
     path = Path(folder) / FILE
     hint = "extract the bag again (lidarcam extract ... --overwrite)"
     try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in _ARRAYS if k not in z.files]
-            if missing:
-                raise DatasetError(f"not a moving board's record (no {', '.join(missing)})", path=path, hint=hint)
-            a = {k: np.asarray(z[k]) for k in _ARRAYS}
-            words = str(z["point_times"]) if "point_times" in z.files else ""
-    except (OSError, ValueError, zipfile.BadZipFile, io.UnsupportedOperation, EOFError) as exc:
-        raise DatasetError(f"unreadable moving board's record ({exc})", path=path, hint=hint) from exc
-    V, S = len(a["view_stamps_s"]), len(a["sweep_stamps_s"])
-    ok = (a["corners_px"].ndim == 3 and a["corners_px"].shape[0] == V and a["corners_px"].shape[2] == 2
+        z = load_npz(path)
+    except Exception as exc:  # a damaged or foreign file: name it
+        raise DatasetError(f"unreadable moving board's record ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=path,
+                           hint=hint) from None
+    missing = [k for k in _ARRAYS if k not in z]
+    if missing:
+        raise DatasetError(f"not a moving board's record (no {', '.join(missing)})", path=path, hint=hint)
+    a = {k: np.asarray(z[k]) for k in _ARRAYS}
+    words = str(z["point_times"]) if "point_times" in z else ""
+    if any(a[k].dtype.kind not in "fiu" for k in _ARRAYS):
+        raise DatasetError("inconsistent moving board's record (an array is not numbers)", path=path, hint=hint)
+    shapes = (a["origin_ns"].shape == () and a["view_stamps_s"].ndim == 1 and a["sweep_stamps_s"].ndim == 1
+              and a["corners_px"].ndim == 3 and a["points"].ndim == 2)
+    V, S = (len(a["view_stamps_s"]), len(a["sweep_stamps_s"])) if shapes else (0, 0)
+    ok = (shapes and a["corners_px"].shape[0] == V and a["corners_px"].shape[2] == 2
           and a["sweep_sizes"].shape == (S,) and np.all(a["sweep_sizes"] >= 0)
           and a["points"].shape == (int(a["sweep_sizes"].sum()), 3) and a["offsets_s"].shape == (len(a["points"]),)
           and all(np.all(np.isfinite(a[k])) for k in ("view_stamps_s", "sweep_stamps_s", "points", "offsets_s")))

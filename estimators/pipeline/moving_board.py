@@ -110,7 +110,10 @@ def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoa
     ``FOLLOW_S`` (``camera.board_pose.follow_board_pose``), else from its corners alone; images whose corners give
     no pose are left out."""
     out: list[TimedBoardView] = []
-    for stamp, corners in zip(track.view_stamps_s, track.corners_px):
+    order = np.argsort(track.view_stamps_s, kind="stable")
+    for stamp, corners in zip(track.view_stamps_s[order], track.corners_px[order]):
+        if out and stamp <= out[-1].stamp_s:
+            continue  # an image stamped as the one before (a driver's repeated stamp): that one holds the instant
         seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
         ids = None if len(seen) == len(corners) else seen
         try:
@@ -144,6 +147,10 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
                                             "height")
     board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
     track = load_motion_track(root)
+    if track.corners_px.shape[1] != len(board.inner_corners()):
+        raise DatasetError(f"motion.npz holds {track.corners_px.shape[1]} corners per image and the board "
+                           f"{len(board.inner_corners())}", path=ypath, hint="give the board the bag was extracted "
+                                                                              "with")
     views = board_views(track, board, camera)
     t0 = time.perf_counter()
     sol: ClockOffsetSolution = solve_clock_offset(views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng)
