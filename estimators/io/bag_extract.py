@@ -85,6 +85,9 @@ class ExtractOptions:
         Examine at most this many images per second.
     scan_format : str or None
         ``pcd``, ``ply``, ``npy`` or ``csv``; default ``pcd`` for a 3D LiDAR, ``csv`` (angle,range) for a 2D one.
+    follow_motion : bool
+        Read a bag whose board moves as a moving board (every image and sweep); False: still poses only, whatever
+        the board does (what extraction did before moving boards were read; the benchmark's comparison).
     """
 
     max_dt_s: float = 0.05
@@ -92,6 +95,7 @@ class ExtractOptions:
     still_px: float = 2.0
     check_hz: float = 5.0
     scan_format: str | None = None  # default: pcd for a 3D LiDAR, csv (angle,range) for a 2D one
+    follow_motion: bool = True
 
     def __post_init__(self):
         for name in ("max_dt_s", "still_s", "still_px", "check_hz"):
@@ -464,7 +468,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                     pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
                     if len(pending) > MAX_PENDING_IMAGES:
                         resolve(pending.popleft())
-                    if not records and segments.with_board >= EARLY_IMAGES and \
+                    if options.follow_motion and not records and segments.with_board >= EARLY_IMAGES and \
                             segments.moved >= EARLY_SHARE * segments.with_board:
                         break  # a moving board from the start: read as one (below), not examined to the end
                 # A scan followed by one no later than every image still to come can never be the nearest
@@ -479,7 +483,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 resolve(pending.popleft())
             segments.close()
             n_images = grid.n
-            moving = segments.with_board >= 10 and segments.moved >= MOVING_SHARE * segments.with_board
+            moving = options.follow_motion and segments.with_board >= 10 and \
+                segments.moved >= MOVING_SHARE * segments.with_board
             if not moving:
                 _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if moving:

@@ -1,0 +1,209 @@
+"""A board waved before the rig, from the bag to calibration.json: the moving board read and solved with the clocks'
+offset, beside the offset held at 0 and beside still-pose extraction of the same bags (make bench;
+`python benchmarks/bench_moving_bag.py [--bags N] [--workers W] [--speed]`).
+
+Each bag (``tests/rosbag_writer.write_waved_bag``, ROS 2 MCAP): the default rig with a 640 x 480 camera at 20 Hz
+(images drawn as polygons, blurred over a 4 ms exposure) and, in turn, a VLP-16-, an OS1-64- or an HDL-64E-like
+LiDAR at 10 Hz (whole sweeps in a room, 20 mm range noise) whose returns carry Ouster's ``t`` field, Velodyne's
+``time`` field or no time field (then timed by their azimuth); 30-90 s of a board waved at 0.2-1.0 m/s and
+20-90 deg/s with three pauses of 2 s; the camera's clock ahead of the LiDAR's by an offset drawn in +-100 ms.
+Read by ``extract_bag`` and solved by ``pipeline.moving_board`` (offset free, and held at 0); the same bag read
+for still poses only (``ExtractOptions(follow_motion=False)``: what extraction kept before) and calibrated by the
+engine where it keeps 3 frames or more. Printed: the errors against the truth, the NEES of the extrinsic and the
+offset together (7 dof), and the extrinsic's RMS error against the continuous model's bound (the joint solve's
+inverse information at its estimate: 1 for an efficient estimate).
+
+``--speed``: a 60 s bag of an OS1-64-like LiDAR (131 072 returns a sweep, 10 Hz) and a 1280 x 720 camera at
+20 Hz, through ``lidarcam extract`` and ``lidarcam calibrate`` as commands: wall time and peak memory of each.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+LIDARS = ("vlp16", "os64", "hdl64e")
+FIELDS = ("t", "time", None)
+BOARD = "9x7:0.1:1.0x1.0"
+
+
+def _rig(rng, lidar: str, width: int, height: int, focal: float):
+    from estimators.simulation.simulator import default_rig
+    from geometry.camera import CameraModel
+
+    rig = default_rig(rng, lidar)
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    return dataclasses.replace(rig, camera=CameraModel(K, np.zeros(5), width, height, source="simulator"))
+
+
+def _errors(T, covariance, truth, offset_hat, offset_true, cov7=None) -> dict:
+    from geometry.rotations import T_inverse, T_log
+
+    xi = T_log(T_inverse(T) @ truth)
+    out = {"rot_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "trans_mm": float(1000 * np.linalg.norm(xi[3:])),
+           "offset_err_ms": 1000 * (offset_hat - offset_true)}
+    if covariance is not None:
+        out["bound_rot_deg2"] = float(np.degrees(1) ** 2 * np.trace(covariance[:3, :3]))
+        out["bound_trans_mm2"] = float(1e6 * np.trace(covariance[3:, 3:]))
+    if cov7 is not None:
+        e = np.r_[xi, offset_true - offset_hat]
+        out["nees"] = float(e @ np.linalg.solve(cov7, e))
+    return out
+
+
+def _trial(seed: int) -> dict:
+    from estimators.errors import LidarcamError
+    from estimators.io.bag_extract import ExtractOptions, extract_bag
+    from estimators.io.dataset import load_dataset
+    from estimators.pipeline.moving_board import calibrate_moving
+    from estimators.rig_calibration import calibrate
+    from estimators.cli.parser import board_argument
+    from tests.rosbag_writer import write_waved_bag
+
+    rng = np.random.default_rng(seed)
+    lidar, field = LIDARS[seed % 3], FIELDS[(seed // 3) % 3]
+    rig = _rig(rng, lidar, 640, 480, 590.0)
+    duration, offset = rng.uniform(30.0, 90.0), rng.uniform(-0.1, 0.1)
+    speed, turn = rng.uniform(0.2, 1.0), rng.uniform(20.0, 90.0)
+    starts = np.sort(rng.choice(np.arange(3.0, duration - 5.0, 5.0), 3, replace=False))
+    pauses = tuple((float(a), float(a + 2.0)) for a in starts)
+    board = board_argument(BOARD)
+    row = {"seed": seed, "lidar": lidar, "field": str(field), "duration_s": duration, "offset_s": offset}
+    with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
+        tmp = Path(tmp)
+        write_waved_bag(tmp / "bag", "mcap", rig, duration, rng, time_offset_s=offset, speed_mps=speed,
+                        turn_dps=turn, time_field=field, pauses=pauses)
+        t0 = time.perf_counter()
+        summary = extract_bag(tmp / "bag", tmp / "ds", board, "/camera/image_raw", cloud_topic="/points")
+        free = calibrate_moving(tmp / "ds", np.random.default_rng(seed))
+        row["seconds"] = time.perf_counter() - t0
+        row["recording"] = summary.recording
+        held = calibrate_moving(tmp / "ds", np.random.default_rng(seed), time_offset_s=0.0)
+        row["sweeps"], row["images"] = free.sweeps, free.views
+        row["free"] = _errors(free.T_camera_lidar, free.covariance, rig.T_camera_lidar, free.time_offset_s, offset,
+                              free.covariance_with_offset)
+        row["held"] = _errors(held.T_camera_lidar, None, rig.T_camera_lidar, 0.0, offset)
+        row["verdict"] = free.verdict.level
+        still = extract_bag(tmp / "bag", tmp / "still", board, "/camera/image_raw", cloud_topic="/points",
+                            options=ExtractOptions(follow_motion=False))
+        row["still_frames"] = still.frames
+        row["still"] = None
+        if still.frames >= 3:
+            try:
+                result = calibrate(load_dataset(tmp / "still"), rng=np.random.default_rng(seed), samples=0)
+                p = result.pair("cam0", "lidar0")
+                row["still"] = _errors(p.T, None, rig.T_camera_lidar, 0.0, offset)
+            except LidarcamError as exc:
+                row["still_refused"] = str(exc)
+        shutil.rmtree(tmp / "bag", ignore_errors=True)
+    return row
+
+
+def _timed(cmd: list[str]) -> tuple[float, float, str]:
+    """Wall seconds, peak resident memory (GB) and the output of a command."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    _, status, usage = os.wait4(proc.pid, 0)
+    out = proc.stdout.read()
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{out}")
+    return time.perf_counter() - t0, usage.ru_maxrss / 1024 ** 2, out
+
+
+def speed(seed: int) -> None:
+    from tests.rosbag_writer import write_waved_bag
+
+    rng = np.random.default_rng(seed)
+    rig = _rig(rng, "os64", 1280, 720, 1000.0)
+    with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
+        tmp = Path(tmp)
+        write_waved_bag(tmp / "bag", "mcap", rig, 60.0, rng, time_offset_s=0.035)
+        size = sum(f.stat().st_size for f in (tmp / "bag").rglob("*") if f.is_file()) / 1024 ** 3
+        exe = [sys.executable, "-m", "estimators"]
+        ex = _timed(exe + ["extract", str(tmp / "bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+                           "/points", "--board", BOARD, "--out", str(tmp / "ds")])
+        ca = _timed(exe + ["calibrate", str(tmp / "ds"), "--out", str(tmp / "cal")])
+    print(f"A 60 s bag ({size:.1f} GB): an OS1-64-like LiDAR (64 x 2048 returns a sweep, 10 Hz, Ouster's t field) and "
+          "a 1280 x 720 camera at 20 Hz, the camera's clock 35 ms ahead:\n")
+    print("| command | wall time | peak memory |")
+    print("|---|---|---|")
+    print(f"| lidarcam extract | {ex[0]:.1f} s | {ex[1]:.2f} GB |")
+    print(f"| lidarcam calibrate | {ca[0]:.1f} s | {ca[1]:.2f} GB |")
+    print(f"| both | {ex[0] + ca[0]:.1f} s | {max(ex[1], ca[1]):.2f} GB |")
+    print("\nThe calibration's printout:\n")
+    print("\n".join("    " + line for line in ca[2].splitlines()[:9]))
+    print()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bags", type=int, default=12)
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--speed", action="store_true", help="also time a 60 s 64-beam bag through the commands")
+    a = ap.parse_args()
+    if a.speed:
+        speed(a.seed)
+    if a.bags <= 0:
+        return
+    t0 = time.time()
+    with ProcessPoolExecutor(a.workers) as pool:
+        rows = list(pool.map(_trial, range(a.seed, a.seed + a.bags)))
+
+    def col(name, key):
+        return np.array([r[name][key] for r in rows if r.get(name) is not None])
+
+    def rms(x):
+        return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
+
+    still_rows = [r for r in rows if r.get("still") is not None]
+    print(f"{a.bags} simulated bags, 30-90 s (mean {np.mean([r['duration_s'] for r in rows]):.0f} s), board at "
+          "0.2-1.0 m/s with three 2-s pauses, clock offsets in +-100 ms; read as: "
+          + ", ".join(f"{k} {sum(r['recording'] == k for r in rows)}" for k in sorted({r['recording'] for r in rows}))
+          + ":\n")
+    print("| | moving board, offset free (prior +-0.2 s) | moving board, offset held at 0 | still poses only |")
+    print("|---|---|---|---|")
+    print(f"| used (mean) | {np.mean([r['images'] for r in rows]):.0f} images, "
+          f"{np.mean([r['sweeps'] for r in rows]):.0f} sweeps | the same | "
+          f"{np.mean([r['still_frames'] for r in rows]):.1f} frames; calibrated {len(still_rows)} of {a.bags} "
+          "(3 frames or more) |")
+    print(f"| offset error, RMS | {rms(col('free', 'offset_err_ms')):.2f} ms | "
+          f"{rms(col('held', 'offset_err_ms')):.1f} ms | - |")
+    print(f"| offset error, largest | {np.abs(col('free', 'offset_err_ms')).max():.2f} ms | - | - |")
+    print(f"| rotation error, RMS | {rms(col('free', 'rot_deg')):.3f} deg | {rms(col('held', 'rot_deg')):.3f} deg | "
+          f"{rms(col('still', 'rot_deg')):.3f} deg |")
+    print(f"| translation error, RMS | {rms(col('free', 'trans_mm')):.1f} mm | {rms(col('held', 'trans_mm')):.1f} mm | "
+          f"{rms(col('still', 'trans_mm')):.1f} mm |")
+    nees = col("free", "nees")
+    print(f"| NEES, extrinsic and offset (7 dof: 7 if honest), mean | {nees.mean():.1f} "
+          f"(sd of the mean {nees.std(ddof=1) / np.sqrt(len(nees)):.1f}) | - | - |")
+    ratio_r = rms(col("free", "rot_deg")) / np.sqrt(np.mean(col("free", "bound_rot_deg2")))
+    ratio_t = rms(col("free", "trans_mm")) / np.sqrt(np.mean(col("free", "bound_trans_mm2")))
+    print(f"| RMS error / the continuous model's bound | rotation {ratio_r:.2f}, translation {ratio_t:.2f} | - | - |")
+    print(f"| verdicts | " + ", ".join(f"{k} {sum(r['verdict'] == k for r in rows)}"
+                                      for k in ("OK", "CHECK", "UNTRUSTED")) + " | - | - |")
+    print(f"| seconds, extract and calibrate (in process), median | {np.median([r['seconds'] for r in rows]):.1f} "
+          "| - | - |")
+    by = {lid: [r for r in rows if r["lidar"] == lid] for lid in LIDARS}
+    print("\nBy LiDAR (offset free): " + "; ".join(
+        f"{lid}: offset RMS {rms([r['free']['offset_err_ms'] for r in rs]):.2f} ms, "
+        f"{rms([r['free']['trans_mm'] for r in rs]):.1f} mm" for lid, rs in by.items() if rs))
+    print(f"\n({a.bags} bags in {time.time() - t0:.0f} s on {a.workers} processes; seeds {a.seed}..{a.seed + a.bags - 1})")
+
+
+if __name__ == "__main__":
+    main()
