@@ -88,9 +88,9 @@ def bayer_mosaic_rggb(rgb: np.ndarray) -> np.ndarray:
     return m
 
 
-# Per-return time fields as drivers write them: Ouster's ``t`` (uint32 ns from the stamp) and Velodyne's ``time``
-# (float32 s from the stamp), by PointField datatype and numpy format.
-TIME_FIELDS = {"t": (6, "<u4", 1e9), "time": (7, "<f4", 1.0)}
+# Per-return time fields as drivers write them: Ouster's ``t`` and Livox's ``offset_time`` (uint32 ns from the
+# stamp) and Velodyne's ``time`` (float32 s from the stamp), by PointField datatype, numpy format and unit.
+TIME_FIELDS = {"t": (6, "<u4", 1e9), "time": (7, "<f4", 1.0), "offset_time": (6, "<u4", 1e9)}
 
 
 def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int, times_s: np.ndarray | None = None,

@@ -33,6 +33,9 @@ KEEP_VIEWS_NS = 1_000_000_000
 CONTINUOUS_S = 0.5
 # Corners are followed from image to image across gaps up to this (ns): two periods of a 20 Hz camera, one of 10 Hz.
 TRACK_GAP_NS = 120_000_000
+# Corners farther than this (px RMS) from the board's grid seen in perspective are not the board's (a tracked
+# corner on a wrong saddle, a detection gone astray); 0.2 px corners fit to about that.
+MAX_GRID_RMS_PX = 1.0
 # While the board is lost the detector looks at most once in this (ns); it is found again within that.
 LOOK_EVERY_NS = 200_000_000
 # The detector looks at a copy at most this wide (px); the corners are then refined at full resolution.
@@ -44,6 +47,7 @@ REASONS = {
     "views": "images with the board (all used)",
     "tracked": "  of them followed from the images before (the rest found by the detector)",
     "no_board": "images without the board found (out of view, or too blurred to find)",
+    "off_grid": "images whose corners fit no board seen in perspective (left out)",
     "not_looked": "images not looked at while the board was lost (the detector looks 5 times a second)",
     "sweeps": "sweeps with the board (all used)",
     "no_board_in_sweep": "sweeps without the board's returns (no board-sized plane where the camera puts it)",
@@ -84,6 +88,8 @@ class MovingBoardReader:
         self.images += 1
         gray = to_gray8(decode_image(msg, self.topic))
         corners = self._tracked(gray, stamp)
+        if corners is not None and self._grid_rms_px(corners) > MAX_GRID_RMS_PX:
+            corners = None  # followed onto a wrong saddle (a corner at the board's edge, blur): the detector looks
         if corners is not None:
             self.counts["tracked"] += 1
         elif self.lost_since is not None and stamp - self.last_look < LOOK_EVERY_NS:
@@ -93,8 +99,10 @@ class MovingBoardReader:
             self.last_look = stamp
             found = self.detect(gray, self.board, DETECT_MAX_SIDE)
             corners = None if found is None else self._ordered(self._refined(gray, found), stamp)
+            off_grid = corners is not None and self._grid_rms_px(corners) > MAX_GRID_RMS_PX
+            corners = None if off_grid else corners
+            self.counts["off_grid" if off_grid else "no_board"] += corners is None
         if corners is None:
-            self.counts["no_board"] += 1
             self.lost_since = stamp if self.lost_since is None else self.lost_since
         else:
             self.counts["views"] += 1
@@ -130,6 +138,23 @@ class MovingBoardReader:
         if np.max(np.linalg.norm(refined - predicted, axis=1)) >= side / 4.0:
             return None
         return refined
+
+    def _grid_rms_px(self, corners: np.ndarray) -> float:
+        """How far the corners lie from the board's grid seen in perspective (px): the RMS residual of the plane's
+        homography onto their undistorted image points, least squares, in pixels of the focal length."""
+        import cv2
+
+        seen = np.all(np.isfinite(corners), axis=1)
+        if seen.sum() < 6:
+            return np.inf
+        X = self.board.inner_corners()[seen, :2]
+        xy = self.camera.normalized_from_pixels(corners[seen])
+        H, _ = cv2.findHomography(X, xy, 0)
+        if H is None:
+            return np.inf
+        p = np.column_stack([X, np.ones(len(X))]) @ H.T
+        r = p[:, :2] / p[:, 2:] - xy
+        return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))) * self.camera.K[0, 0])
 
     def _pose(self, index: int):
         """The board's pose in image ``index`` (solved when a sweep asks for it, from the last pose solved where
@@ -168,8 +193,10 @@ class MovingBoardReader:
         return out
 
     def _ordered(self, corners: np.ndarray, stamp: int) -> np.ndarray:
-        """A checkerboard's corners in the order nearest the previous image's (or, after a gap, the one whose first
-        corner is the upper-left one); a ChArUco board's as found (its markers fix the order)."""
+        """A checkerboard's corners in the order nearest the previous image's; after a gap, the order whose grid
+        points the way the last one seen did (its rows' and columns' directions in the image: a board is not
+        turned half round while out of view), or with none seen, whose first corner is the upper-left one. A
+        board's pose must not flip between its images. A ChArUco board's as found (its markers fix the order)."""
         if self.board.is_charuco:
             return corners
         if self.stamps and (stamp - self.stamps[-1]) * 1e-9 <= CONTINUOUS_S:
@@ -177,6 +204,12 @@ class MovingBoardReader:
             if np.linalg.norm(corners[::-1] - prev, axis=1).max() < np.linalg.norm(corners - prev, axis=1).max():
                 return corners[::-1].copy()
             return corners
+        if self.stamps:
+            cols = self.board.inner_corners_shape[0]
+            prev = self.corners[-1].astype(float)
+            axes = np.array([prev[cols - 1] - prev[0], prev[-cols] - prev[0]])
+            now = np.array([corners[cols - 1] - corners[0], corners[-cols] - corners[0]])
+            return corners if np.sum(axes * now) >= 0 else corners[::-1].copy()
         return corners if corners[0].sum() <= corners[-1].sum() else corners[::-1].copy()
 
     def _flush(self, until: int) -> None:

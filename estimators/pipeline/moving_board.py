@@ -33,6 +33,9 @@ from .verdict import CHECK, UNTRUSTED, Verdict, verdict_of
 # leave the estimate to a few seconds of motion; the sweeps' board normals spread less than this (the smallest
 # singular value of their matrix over the largest) leave a direction of the extrinsic weak.
 EDGE_S = 0.01
+# The returns' RMS against the board where the camera saw it may exceed their scatter about each sweep's own plane
+# by this ratio and this much (m): the camera's poses and the board's motion within a sweep add a little.
+SCATTER_RATIO, SCATTER_SLACK_M = 1.5, 0.005
 OFFSET_SD_S = 0.002
 FEW_SWEEPS = 30
 NORMAL_SPREAD = 0.03
@@ -57,6 +60,7 @@ class MovingBoardResult:
     sweeps_recorded: int
     point_times: str
     normal_spread: float
+    own_scatter_m: float
     camera: CameraModel
     dataset: str
     seconds: float
@@ -72,6 +76,11 @@ class MovingBoardResult:
     @property
     def verdict(self) -> Verdict:
         concerns = []
+        if self.rms_m > SCATTER_RATIO * self.own_scatter_m + SCATTER_SLACK_M:
+            concerns.append((UNTRUSTED, f"the board's returns lie {1000 * self.rms_m:.0f} mm RMS from the board where "
+                                        f"the camera saw it, against {1000 * self.own_scatter_m:.0f} mm about their "
+                                        "own planes: no extrinsic and offset explain them (a wrong board segment, "
+                                        "a clock that jumps, or intrinsics off)"))
         if self.time_offset_std_s is not None and OFFSET_PRIOR_S - abs(self.time_offset_s) < EDGE_S:
             concerns.append((UNTRUSTED, f"the clocks' offset, {1000 * self.time_offset_s:+.1f} ms, lies at the edge "
                                         f"of its prior (+-{1000 * OFFSET_PRIOR_S:.0f} ms): the data may not hold it"))
@@ -100,7 +109,7 @@ class MovingBoardResult:
             "covariance_source": "the joint solve's (Laplace): every image's board pose, the extrinsic and the "
                                  "offset together",
             "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
-            "range_rms_m": self.rms_m, "point_times": self.point_times, "normal_spread": self.normal_spread,
+            "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m, "point_times": self.point_times, "normal_spread": self.normal_spread,
             "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds},
         }
 
@@ -125,6 +134,21 @@ def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoa
             continue
         out.append(TimedBoardView(float(stamp), obs))
     return out
+
+
+def own_scatter(track: MotionTrack) -> float:
+    """The returns' scatter about their own sweep's plane along their beams (m): the median over sweeps of each
+    one's RMS; what the solve's residuals should come to."""
+    from geometry.planes import fit_plane_pca
+
+    rms = []
+    for s in track.sweeps():
+        if len(s.points) >= 10:
+            plane = fit_plane_pca(s.points)
+            beams = s.points / np.linalg.norm(s.points, axis=1, keepdims=True)
+            along = plane.signed_distances(s.points) / np.maximum(np.abs(beams @ plane.normal), 0.1)
+            rms.append(float(np.sqrt(np.mean(along ** 2))))
+    return float(np.median(rms)) if rms else 0.0
 
 
 def normal_spread(track: MotionTrack) -> float:
@@ -159,4 +183,5 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
     held = time_offset_s is not None
     return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
                              sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
-                             track.point_times, normal_spread(track), camera, str(Path(root)), seconds)
+                             track.point_times, normal_spread(track), own_scatter(track), camera, str(Path(root)),
+                             seconds)

@@ -10,7 +10,7 @@ each beam's return cast against the board where it is when the beam fires.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -20,6 +20,7 @@ from geometry.rotations import T_inverse, transform_points
 from ..camera.board_pose import estimate_board_pose
 from ..camera.detection import CornerDetection
 from ..errors import MeasurementError
+from ..lidar.lidar_models import Rosette, vlp16
 from ..measurements import TimedBoardView, TimedSweep
 from .simulator import Rig, sample_board_poses
 
@@ -77,7 +78,8 @@ def waving(rig: Rig, rng: np.random.Generator, speed_mps: float = 0.5, turn_dps:
     """A random waving about a pose both sensors see (``simulator.sample_board_poses``), turned about the board's
     centre: each axis' peak speed a share of ``speed_mps`` and each axis' peak turn rate a share of ``turn_dps``
     (shares drawn, their root sum of squares 1: the centre's mean speed is near ``speed_mps``)."""
-    T = sample_board_poses(rig, 1, rng)[0]
+    # A rosette has no rings to fit the pose to: a VLP-16's vertical view stands in (a rosette's cone is wider).
+    T = sample_board_poses(replace(rig, beams=vlp16()) if isinstance(rig.beams, Rosette) else rig, 1, rng)[0]
     f, g = rng.uniform(0.15, 0.35, 3), rng.uniform(0.15, 0.35, 3)
     share, rshare = rng.dirichlet(np.ones(3)) ** 0.5, rng.dirichlet(np.ones(3)) ** 0.5
     amp = speed_mps * share / np.linalg.norm(share) / (2 * np.pi * f)
@@ -190,10 +192,15 @@ def scene_sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.r
                 room: tuple = ROOM) -> tuple[np.ndarray, np.ndarray]:
     """A whole sweep starting at ``stamp`` (true time): every beam's return from the board where it is when the
     beam fires, or else from the room's walls, floor and ceiling; stored in firing order (a spinning LiDAR's
-    column after column), with each return's time after the stamp. (points (N, 3), offsets (N,))."""
-    dirs, fire = _fire_times(rig, period)
-    order = np.argsort(fire, kind="stable")
-    dirs, fire = dirs[order], fire[order]
+    column after column; a Livox-like rosette's, ``lidar_models.Rosette``, a new stretch of its pattern each
+    sweep), with each return's time after the stamp. (points (N, 3), offsets (N,))."""
+    if isinstance(rig.beams, Rosette):  # a Livox-like rosette: its returns evenly through the sweep, in order
+        dirs = rig.beams.directions(rng)
+        fire = np.arange(len(dirs)) * (period / len(dirs))
+    else:
+        dirs, fire = _fire_times(rig, period)
+        order = np.argsort(fire, kind="stable")
+        dirs, fire = dirs[order], fire[order]
     with np.errstate(divide="ignore"):
         bounds = np.array(room, dtype=float)  # (3, 2)
         walls = np.where(dirs > 0, bounds[:, 1] / dirs, bounds[:, 0] / dirs)

@@ -22,7 +22,7 @@ from scipy.optimize import least_squares
 
 from geometry.planes import Plane, fit_plane_pca
 from geometry.rotations import T_retract
-from geometry.trajectory import PoseSpline
+from geometry.trajectory import PoseSplines
 
 from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
@@ -72,14 +72,16 @@ class ClockOffsetSolution:
     grid: tuple
 
 
-def camera_trajectory(views: list[TimedBoardView]) -> PoseSpline:
-    """The board's pose in the camera, continuous in the camera's clock, through its views (in stamp order)."""
+def camera_trajectory(views: list[TimedBoardView]) -> PoseSplines:
+    """The board's pose in the camera, continuous in the camera's clock through its views (in stamp order), in runs
+    split where the views are more than ``MAX_GAP_S`` apart."""
     views = sorted(views, key=lambda v: v.stamp_s)
-    return PoseSpline(np.array([v.stamp_s for v in views]), np.array([v.camera.T_camera_board for v in views]))
+    return PoseSplines(np.array([v.stamp_s for v in views]), np.array([v.camera.T_camera_board for v in views]),
+                       MAX_GAP_S)
 
 
 def deskewed(points: np.ndarray, times_s: np.ndarray, T_camera_lidar: np.ndarray, time_offset_s: float,
-             trajectory: PoseSpline, at_s: float) -> np.ndarray:
+             trajectory, at_s: float) -> np.ndarray:
     """A moving board's LiDAR returns (``points``, LiDAR frame, fired at ``times_s`` in the LiDAR's clock) in the
     camera's frame as they would lie had the board stood where it was at the camera's time ``at_s``: each mapped
     into the camera, then carried with the board from where the camera's ``trajectory`` puts it at the return's
@@ -91,7 +93,7 @@ def deskewed(points: np.ndarray, times_s: np.ndarray, T_camera_lidar: np.ndarray
     return in_board @ now[:3, :3].T + now[:3, 3]
 
 
-def _residuals(T: np.ndarray, dt: float, trajectory: PoseSpline, points: np.ndarray, times_s: np.ndarray
+def _residuals(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s: np.ndarray
                ) -> np.ndarray:
     """``moving_board_graph.along_beam_residuals`` with the board where the camera's trajectory puts it at each
     return's time plus ``dt`` (m)."""
@@ -110,15 +112,21 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     Raises DegenerateLayoutError with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory, too few
     returns where the camera saw the board, or an offset outside its prior."""
     rng = rng if rng is not None else np.random.default_rng(0)
-    trajectory = camera_trajectory(views)
-    lo, hi = trajectory.span_s
+    try:
+        trajectory = camera_trajectory(views)
+    except ValueError as exc:
+        raise DegenerateLayoutError(f"the camera's views do not follow the board ({exc})") from None
     kept = []
     for s in sweeps:
-        t = s.times_s
-        if len(t) >= 10 and t.min() - offset_prior_s >= lo and t.max() + offset_prior_s <= hi:
+        # A sweep's returns where the camera followed the board at every offset of the prior (no gap of its views
+        # over MAX_GAP_S within reach): elsewhere no spline says where the board was.
+        inside = trajectory.covers(s.times_s + (fixed_offset_s or 0.0), offset_prior_s if fixed_offset_s is None
+                                   else 0.0)
+        points, t = s.points[inside], s.times_s[inside]
+        if len(t) >= 10:
             pick = rng.choice(len(t), returns_per_sweep, replace=False) if len(t) > returns_per_sweep \
                 else np.arange(len(t))
-            kept.append((s.points[pick], t[pick], fit_plane_pca(s.points)))
+            kept.append((points[pick], t[pick], fit_plane_pca(points)))
     if len(kept) < MIN_SWEEPS:
         raise DegenerateLayoutError(f"only {len(kept)} LiDAR sweeps see the board within the camera's recording "
                                     f"(at least {MIN_SWEEPS} needed)")
