@@ -72,8 +72,11 @@ def test_a_waved_board_is_detected_extracted_and_calibrated_with_the_clocks_offs
     assert out.splitlines()[0].split(":")[0] in ("OK", "CHECK") and "time offset" in out
     assert cal["recording"] == "moving board" and not cal["time_offset_held"]
     _check(cal, rig, 0.04)
+    # the report: the images extract kept whole, each with the returns carried to its instant
+    overlays = sorted((tmp / "cal").glob("moving_*.jpg"))
+    assert overlays and all(p.name in (tmp / "cal" / "report.html").read_text() for p in overlays)
     # Held at 0 (clocks taken as synchronised): said, no spread, and the extrinsic pulled away by the 40 ms.
-    held, out = _calibrated(tmp, "held", capsys, "--time-offset", "0")
+    held, out = _calibrated(tmp, "held", capsys, "--time-offset", "0", "--no-report")
     assert held["time_offset_held"] and held["time_offset_s"] == 0.0 and held["time_offset_std_s"] is None
     assert "held at +0.00 ms" in out
     err = T_log(T_inverse(np.array(held["T_camera_lidar"])) @ rig.T_camera_lidar)

@@ -80,6 +80,15 @@ def _calibrate_moving(args) -> int:
     path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
     print_moving(result)
     print(f"wrote {path}")
+    if not args.no_report:
+        from ..analysis.moving_report import write_moving_report
+        from ..io.dataset import parse_board, read_dataset_yaml
+        from ..io.motion_track import load_motion_track
+
+        _, ypath, spec = read_dataset_yaml(args.dataset)
+        report = write_moving_report(result, load_motion_track(args.dataset), parse_board(spec["board"], ypath),
+                                     args.dataset, args.out)
+        print(f"wrote {report}")
     export_hint(path)
     if args.strict and result.verdict.untrusted:
         from ..calibration import EXIT_AMBIGUOUS

@@ -37,7 +37,7 @@ from .dataset import dataset_spec, write_dataset_yaml
 from .bag_motion import REASONS as MOVING_REASONS
 from .bag_motion import MovingBoardReader
 from .image_io import to_gray8
-from .motion_track import save_motion_track
+from .motion_track import EXAMPLES, save_motion_track
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, decode_point_times,
@@ -527,7 +527,7 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
         raise BagError(f"the board moves ({share}), and following it needs the camera's intrinsics: the bag has "
                        "no CameraInfo", path=bag, hint="record the camera's CameraInfo topic (or name it with "
                                                        "--camera-info-topic), or hold the board still per pose")
-    follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0))
+    follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0), tmp / EXAMPLES)
     bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"following the board in {bag.name}", unit="msg",
                disable=not progress)
     for conn, t_bag, msg in _messages(reader, bag, conns):

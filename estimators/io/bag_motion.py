@@ -11,6 +11,7 @@ sweep or image that gives nothing is counted under its reason.
 from __future__ import annotations
 
 from collections import Counter, deque
+from pathlib import Path
 
 import numpy as np
 
@@ -36,6 +37,8 @@ TRACK_GAP_NS = 120_000_000
 # Corners farther than this (px RMS) from the board's grid seen in perspective are not the board's (a tracked
 # corner on a wrong saddle, a detection gone astray); 0.2 px corners fit to about that.
 MAX_GRID_RMS_PX = 1.0
+# Images kept whole for the report: one every this (ns) of the board in view, at most this many.
+EXAMPLE_EVERY_NS, MAX_EXAMPLES = 5_000_000_000, 8
 # While the board is lost the detector looks at most once in this (ns); it is found again within that.
 LOOK_EVERY_NS = 200_000_000
 # The detector looks at a copy at most this wide (px); the corners are then refined at full resolution.
@@ -60,8 +63,10 @@ REASONS = {
 class MovingBoardReader:
     """Feed it a bag's messages in order (:meth:`image`, :meth:`sweep`), then :meth:`track`."""
 
-    def __init__(self, board: BoardModel, camera: CameraModel, detect, topic: str, rng: np.random.Generator):
+    def __init__(self, board: BoardModel, camera: CameraModel, detect, topic: str, rng: np.random.Generator,
+                 examples: Path | None = None):
         self.board, self.camera, self.detect, self.topic, self.rng = board, camera, detect, topic, rng
+        self.examples, self.example_stamps = examples, []  # the folder for the report's images, their stamps
         self.counts: Counter = Counter()
         self.images = 0
         self.origin: int | None = None
@@ -110,7 +115,20 @@ class MovingBoardReader:
             self.corners.append(corners.astype(np.float32))
             self.recent.append((stamp, len(self.corners) - 1))
             self.lost_since = None
+            self._keep_example(stamp, msg)
         self._after_image(stamp)
+
+    def _keep_example(self, stamp: int, msg) -> None:
+        """The image kept whole for the report: one every ``EXAMPLE_EVERY_NS`` of the board in view, at most
+        ``MAX_EXAMPLES``."""
+        if self.examples is None or len(self.example_stamps) >= MAX_EXAMPLES or \
+                (self.example_stamps and stamp - self.example_stamps[-1] < EXAMPLE_EVERY_NS):
+            return
+        import cv2
+
+        self.examples.mkdir(exist_ok=True)
+        cv2.imwrite(str(self.examples / f"{len(self.example_stamps):04d}.png"), decode_image(msg, self.topic))
+        self.example_stamps.append(stamp)
 
     def _after_image(self, stamp: int) -> None:
         while self.recent and self.recent[0][0] < stamp - KEEP_VIEWS_NS:
@@ -272,7 +290,8 @@ class MovingBoardReader:
         return MotionTrack(int(o), (np.array(self.stamps, dtype=np.int64) - o) * 1e-9, np.stack(self.corners),
                            (np.array(self.sweep_stamps, dtype=np.int64) - o) * 1e-9,
                            np.array([len(p) for p in self.points]), np.concatenate(self.points),
-                           np.concatenate(self.offsets), source)
+                           np.concatenate(self.offsets), source,
+                           (np.array(self.example_stamps, dtype=np.int64) - o) * 1e-9)
 
 
 def _square_px(corners: np.ndarray) -> float:

@@ -8,7 +8,7 @@ stamp, ns), the camera's stamps in the camera's clock and the LiDAR's in the LiD
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ from ..measurements import TimedSweep
 from .input_files import load_npz
 
 FILE = "motion.npz"
+EXAMPLES = "examples"  # the folder beside it of the few images kept whole
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
 
 
@@ -43,6 +44,8 @@ class MotionTrack:
         (M,) each return's time less its sweep's stamp.
     point_times : str
         How the returns' times were read, in words.
+    example_stamps_s : numpy.ndarray
+        (E,) the stamps of the few images kept whole for the report (``examples/NNNN.png``, in order).
     """
 
     origin_ns: int
@@ -53,6 +56,7 @@ class MotionTrack:
     points: np.ndarray
     offsets_s: np.ndarray
     point_times: str = ""
+    example_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def sweeps(self) -> list[TimedSweep]:
         """Each sweep's returns with their times."""
@@ -72,7 +76,8 @@ def save_motion_track(folder: str | os.PathLike, track: MotionTrack) -> Path:
     np.savez_compressed(path, origin_ns=np.int64(track.origin_ns), view_stamps_s=track.view_stamps_s,
                         corners_px=track.corners_px.astype(np.float32), sweep_stamps_s=track.sweep_stamps_s,
                         sweep_sizes=track.sweep_sizes.astype(np.int64), points=track.points.astype(np.float32),
-                        offsets_s=track.offsets_s.astype(np.float32), point_times=np.array(track.point_times))
+                        offsets_s=track.offsets_s.astype(np.float32), point_times=np.array(track.point_times),
+                        example_stamps_s=np.asarray(track.example_stamps_s, dtype=float))
     return path
 
 
@@ -91,6 +96,9 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
         raise DatasetError(f"not a moving board's record (no {', '.join(missing)})", path=path, hint=hint)
     a = {k: np.asarray(z[k]) for k in _ARRAYS}
     words = str(z["point_times"]) if "point_times" in z else ""
+    examples = np.asarray(z.get("example_stamps_s", np.zeros(0)))
+    if examples.dtype.kind not in "fiu" or examples.ndim != 1 or not np.all(np.isfinite(examples)):
+        examples = np.zeros(0)  # the report's images only: a damaged list draws none
     if any(a[k].dtype.kind not in "fiu" for k in _ARRAYS):
         raise DatasetError("inconsistent moving board's record (an array is not numbers)", path=path, hint=hint)
     shapes = (a["origin_ns"].shape == () and a["view_stamps_s"].ndim == 1 and a["sweep_stamps_s"].ndim == 1
@@ -105,4 +113,4 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
                            path=path, hint=hint)
     return MotionTrack(int(a["origin_ns"]), a["view_stamps_s"].astype(float), a["corners_px"].astype(float),
                        a["sweep_stamps_s"].astype(float), a["sweep_sizes"].astype(int), a["points"],
-                       a["offsets_s"], words)
+                       a["offsets_s"], words, examples.astype(float))

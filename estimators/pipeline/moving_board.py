@@ -48,7 +48,7 @@ TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one
 class MovingBoardResult:
     """A moving board's calibration: ``pair`` (``cam0``, ``lidar0``: ``T_camera_lidar`` and its 6x6 covariance),
     the clocks' offset and its standard deviation (None when held), the 7x7 covariance over ``[rot; trans;
-    offset]``, and what was used."""
+    offset]``, what was used, and the images' board poses (``board_views``, for the report)."""
 
     pair: PairEstimate
     time_offset_s: float
@@ -64,6 +64,7 @@ class MovingBoardResult:
     camera: CameraModel
     dataset: str
     seconds: float
+    board_views: tuple = ()
 
     @property
     def T_camera_lidar(self) -> np.ndarray:
@@ -184,4 +185,4 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
     return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
                              sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
                              track.point_times, normal_spread(track), own_scatter(track), camera, str(Path(root)),
-                             seconds)
+                             seconds, tuple(views))
