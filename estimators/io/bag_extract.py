@@ -530,11 +530,14 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
     follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0), tmp / EXAMPLES)
     bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"following the board in {bag.name}", unit="msg",
                disable=not progress)
-    for conn, t_bag, msg in _messages(reader, bag, conns):
-        bar.update(1)
-        (follow.sweep if conn.topic == lidar_topic else follow.image)(stamp_ns(msg, t_bag), msg)
-    bar.close()
-    track = follow.track(bag)
+    try:
+        for conn, t_bag, msg in _messages(reader, bag, conns):
+            bar.update(1)
+            (follow.sweep if conn.topic == lidar_topic else follow.image)(stamp_ns(msg, t_bag), msg)
+        track = follow.track(bag)
+    finally:
+        follow.close()
+        bar.close()
     save_motion_track(tmp, track)
     write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
                        f"extracted by lidarcam from {bag.name} (a moving board): {image_topic} + {lidar_topic}")

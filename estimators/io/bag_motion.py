@@ -21,7 +21,7 @@ from geometry.camera import CameraModel
 from ..camera.board_pose import estimate_board_pose, follow_board_pose
 from ..camera.detection import CornerDetection, subpixel_refine
 from ..errors import AmbiguousBoardError, BagError, MeasurementError
-from ..lidar.board_segmentation import find_board
+from ..lidar.board_segmentation import SegmentationParams, find_board, range_gate
 from .image_io import to_gray8
 from .motion_track import MotionTrack
 from .ros_messages import decode_image, decode_timed_cloud
@@ -43,8 +43,8 @@ EXAMPLE_EVERY_NS, MAX_EXAMPLES = 5_000_000_000, 8
 LOOK_EVERY_NS = 200_000_000
 # The detector looks at a copy at most this wide (px); the corners are then refined at full resolution.
 DETECT_MAX_SIDE = 640
-# A sweep's board is looked for first within this (m) beyond the board's half-diagonal of where it was last.
-NEAR_BOARD_M = 0.6
+# Sweeps handed to the worker and not yet taken back, at most (memory: a few sweeps).
+MAX_WAITING = 4
 
 REASONS = {
     "views": "images with the board (all used)",
@@ -65,7 +65,8 @@ class MovingBoardReader:
 
     def __init__(self, board: BoardModel, camera: CameraModel, detect, topic: str, rng: np.random.Generator,
                  examples: Path | None = None):
-        self.board, self.camera, self.detect, self.topic, self.rng = board, camera, detect, topic, rng
+        self.board, self.camera, self.detect, self.topic = board, camera, detect, topic
+        self.seed = int(rng.integers(2 ** 31))  # sweep k's segmentation is seeded seed + k
         self.examples, self.example_stamps = examples, []  # the folder for the report's images, their stamps
         self.counts: Counter = Counter()
         self.images = 0
@@ -75,7 +76,9 @@ class MovingBoardReader:
         self.recent: deque = deque()  # (stamp ns, index in corners) of the last second's images
         self.poses: dict = {}  # index in corners -> its board pose (or None), solved when a sweep asks
         self.last_pose: tuple | None = None  # (stamp ns, pose) last solved
-        self.last_board: tuple | None = None  # (stamp ns, the board's centre) in the last sweep that held it
+        self.pool = None  # the worker that finds the board's returns in each sweep
+        self.waiting: deque = deque()  # (stamp, returns, their times, the worker's future) in order
+        self.segmented = 0
         self.lost_since: int | None = None  # the stamp since which the board is not found, or None
         self.last_look = -1  # the stamp the detector last looked at
         self.pending: deque = deque()  # (stamp ns, cloud message) awaiting the camera's stream
@@ -246,37 +249,44 @@ class MovingBoardReader:
             self.counts["no_times"] += 1
             return
         self.sources[times.source] += 1
-        # Where the board was in the sweep before (within half a second), only the returns about it are searched
-        # first: a 64-beam sweep holds a hundred thousand.
-        near_board = None
-        if self.last_board is not None and (stamp - self.last_board[0]) <= KEEP_VIEWS_NS // 2:
-            reach = 0.5 * float(np.hypot(*self.board.judged_extent)) + NEAR_BOARD_M
-            near_board = np.flatnonzero(np.linalg.norm(xyz - self.last_board[1], axis=1) <= reach)
-        found = None
-        for subset in ([near_board] if near_board is not None and len(near_board) >= 10 else []) + [None]:
-            try:
-                found = find_board(xyz if subset is None else xyz[subset], self.board, obs, self.rng)
-                break
-            except AmbiguousBoardError:
-                why = "ambiguous"
-            except MeasurementError:
-                why = "no_board_in_sweep"
-        if found is None:
+        # The board's returns are found in a worker process while this one reads on (a 64-beam sweep takes tens of
+        # milliseconds); results are taken in order, each sweep with its own seed, so the record does not depend on
+        # the timing.
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        seed = self.seed + len(self.waiting) + self.segmented
+        self.waiting.append((stamp, xyz, times.offset_s, self.pool.submit(board_returns, xyz, self.board, obs, seed)))
+        while len(self.waiting) > MAX_WAITING:
+            self._take()
+
+    def _take(self) -> None:
+        """The oldest sweep's board returns from the worker, kept or counted under the reason they were not."""
+        stamp, xyz, offsets, future = self.waiting.popleft()
+        self.segmented += 1
+        index, why = future.result()
+        if index is None:
             self.counts[why] += 1
             return
-        from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
-        searched = np.arange(len(xyz)) if subset is None else subset
-        dist, k = cKDTree(xyz[searched]).query(found.points)
-        index = searched[k[dist < 1e-9]]
-        self.last_board = (stamp, xyz[index].mean(axis=0))
         self.counts["sweeps"] += 1
         self.sweep_stamps.append(stamp)
         self.points.append(xyz[index].astype(np.float32))
-        self.offsets.append(times.offset_s[index].astype(np.float32))
+        self.offsets.append(offsets[index].astype(np.float32))
+
+    def close(self) -> None:
+        """Stop the worker."""
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+            self.pool = None
 
     def track(self, bag) -> MotionTrack:
         """The record, or a :class:`BagError` saying why the recording gives none."""
         self._flush(np.iinfo(np.int64).max)
+        while self.waiting:
+            self._take()
+        self.close()
         if self.counts["no_times"] and not self.sweep_stamps:
             raise BagError("the board moves, and the sweeps' returns carry no time (no time field, and their stored "
                            "order is not the firing order): a moving board needs each return's time", path=bag,
@@ -297,3 +307,21 @@ class MovingBoardReader:
 def _square_px(corners: np.ndarray) -> float:
     """The smallest distance between consecutive corners (a square's side in the image, px; at least 6)."""
     return max(float(np.min(np.linalg.norm(np.diff(corners, axis=0), axis=1))) if len(corners) > 1 else 6.0, 6.0)
+
+
+def board_returns(xyz: np.ndarray, board: BoardModel, camera_board, seed: int) -> tuple[np.ndarray | None, str]:
+    """The indices of the board's returns in a sweep (``find_board``, gated by the camera's board
+    ``camera_board``; RANSAC seeded by ``seed``), or None and the reason (a key of ``REASONS``)."""
+    from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
+
+    lo, hi = range_gate(board, camera_board, SegmentationParams().max_sensor_separation_m)
+    ranges = np.linalg.norm(xyz, axis=1)
+    gated = np.flatnonzero((ranges >= lo) & (ranges <= hi))
+    try:
+        found = find_board(xyz[gated], board, camera_board, np.random.default_rng(seed))
+    except AmbiguousBoardError:
+        return None, "ambiguous"
+    except MeasurementError:
+        return None, "no_board_in_sweep"
+    dist, k = cKDTree(xyz[gated]).query(found.points)
+    return gated[k[dist < 1e-9]], "sweeps"
