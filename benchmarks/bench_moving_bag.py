@@ -87,7 +87,8 @@ def _trial(seed: int) -> dict:
     starts = np.sort(rng.choice(np.arange(3.0, duration - 5.0, 5.0), 3, replace=False))
     pauses = tuple((float(a), float(a + 2.0)) for a in starts)
     board = board_argument(BOARD)
-    row = {"seed": seed, "lidar": lidar, "field": str(field), "duration_s": duration, "offset_s": offset}
+    row = {"seed": seed, "lidar": lidar, "field": str(field), "duration_s": duration, "offset_s": offset,
+           "speed": speed, "turn": turn}
     with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
         tmp = Path(tmp)
         write_waved_bag(tmp / "bag", "mcap", rig, duration, rng, time_offset_s=offset, speed_mps=speed,
@@ -207,6 +208,15 @@ def main() -> None:
     print("\nBy LiDAR (offset free): " + "; ".join(
         f"{lid}: offset RMS {rms([r['free']['offset_err_ms'] for r in rs]):.2f} ms, "
         f"{rms([r['free']['trans_mm'] for r in rs]):.1f} mm" for lid, rs in by.items() if rs))
+    print("\nEach bag (offset free): seed, LiDAR, time field, length, board speed and turn rate, offset, its error, "
+          "the extrinsic's errors, NEES (7 dof), the verdict:\n")
+    print("| seed | LiDAR | field | s | m/s | deg/s | offset ms | error ms | deg | mm | NEES | verdict |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        f = r["free"]
+        print(f"| {r['seed']} | {r['lidar']} | {r['field']} | {r['duration_s']:.0f} | {r['speed']:.2f} | "
+              f"{r['turn']:.0f} | {1000 * r['offset_s']:+.1f} | {f['offset_err_ms']:+.2f} | {f['rot_deg']:.3f} | "
+              f"{f['trans_mm']:.1f} | {f['nees']:.1f} | {r['verdict']} |")
     print(f"\n({a.bags} bags in {time.time() - t0:.0f} s on {a.workers} processes; "
           f"seeds {a.seed}..{a.seed + a.bags - 1})")
 
