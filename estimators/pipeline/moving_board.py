@@ -111,7 +111,8 @@ class MovingBoardResult:
                                  "offset together; on simulated bags the errors run about 2 times its standard "
                                  "deviations in translation (docs/bench/moving_bag.md)",
             "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
-            "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m, "point_times": self.point_times, "normal_spread": self.normal_spread,
+            "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m,
+            "point_times": self.point_times, "normal_spread": self.normal_spread,
             "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds},
         }
 
