@@ -77,7 +77,8 @@ class MovingBoardReader:
         self.poses: dict = {}  # index in corners -> its board pose (or None), solved when a sweep asks
         self.last_pose: tuple | None = None  # (stamp ns, pose) last solved
         self.pool = None  # the worker that finds the board's returns in each sweep
-        self.waiting: deque = deque()  # (stamp, returns, their times, the worker's future) in order
+        self.waiting: deque = deque()  # (stamp, returns, their times, camera's board, seed, future) in order
+        self.inline = False  # True: no worker; each sweep's board found in this process
         self.segmented = 0
         self.lost_since: int | None = None  # the stamp since which the board is not found, or None
         self.last_look = -1  # the stamp the detector last looked at
@@ -252,21 +253,39 @@ class MovingBoardReader:
         # The board's returns are found in a worker process while this one reads on (a 64-beam sweep takes tens of
         # milliseconds); results are taken in order, each sweep with its own seed, so the record does not depend on
         # the timing.
-        if self.pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
         seed = self.seed + len(self.waiting) + self.segmented
-        self.waiting.append((stamp, xyz, times.offset_s, self.pool.submit(board_returns, xyz, self.board, obs, seed)))
+        self.waiting.append((stamp, xyz, times.offset_s, obs, seed, self._submit(xyz, obs, seed)))
         while len(self.waiting) > MAX_WAITING:
             self._take()
 
+    def _submit(self, xyz: np.ndarray, obs, seed: int):
+        """The sweep handed to the worker (started at the first: forked where the system forks, so that a script
+        without a ``__main__`` guard works), or None where there is none (its board then found when taken)."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        if self.pool is None and not self.inline:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            kind = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context(kind))
+        try:
+            return None if self.inline else self.pool.submit(board_returns, xyz, self.board, obs, seed)
+        except (BrokenProcessPool, RuntimeError, OSError):
+            self.inline = True  # no worker to be had: this process finds the boards itself
+            return None
+
     def _take(self) -> None:
         """The oldest sweep's board returns from the worker, kept or counted under the reason they were not."""
-        stamp, xyz, offsets, future = self.waiting.popleft()
+        from concurrent.futures.process import BrokenProcessPool
+
+        stamp, xyz, offsets, obs, seed, future = self.waiting.popleft()
         self.segmented += 1
-        index, why = future.result()
+        try:
+            index, why = future.result() if future is not None else board_returns(xyz, self.board, obs, seed)
+        except BrokenProcessPool:  # the worker died (killed, or could not start): the same work here
+            self.inline = True
+            index, why = board_returns(xyz, self.board, obs, seed)
         if index is None:
             self.counts[why] += 1
             return
