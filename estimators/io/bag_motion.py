@@ -1,12 +1,14 @@
 """A bag whose board moves, read into a :class:`~estimators.io.motion_track.MotionTrack`: every image's board corners
 and every sweep's board returns with their own times, streaming (memory bounded by a second of messages).
 
-Each image: the board's corners found (``bag_extract``'s detector, then refined at full resolution), listed in the
-order nearest the previous image's (a checkerboard's grid is found from either end; the board's pose must not flip
-between images) and the board's pose solved. Each sweep: its returns' times (``point_times``), then the board
-among its returns (``lidar.board_segmentation``, gated by the camera's board in the image nearest its stamp; the
-board moves centimetres within the clocks' offset, far less than the gate), its returns kept with their times. A
-sweep or image that gives nothing is counted under its reason.
+Each image: the board's corners followed from the two images before (their motion carried on, each refined to its
+saddle: a millisecond) or, where they cannot be, found by ``bag_extract``'s detector (five times a second while
+the board is lost) and refined at full resolution; kept in an order that does not flip the board's pose between
+images, and checked against the board's grid seen in perspective. Each sweep: its returns' times
+(``point_times``), then the board among its returns (``lidar.board_segmentation``, gated by the camera's board in
+the image nearest its stamp; the board moves centimetres within the clocks' offset, far less than the gate), found
+in a worker process while the bag is read on and taken back in order. A sweep or image that gives nothing is
+counted under its reason.
 """
 from __future__ import annotations
 
