@@ -46,9 +46,9 @@ def _overlay(image: np.ndarray, result, board, trajectory, track, at_s: float) -
     return img, drawn
 
 
-def write_moving_report(result, track, board, dataset: str | Path, out: str | Path) -> Path:
+def write_moving_report(result, out: str | Path) -> Path:
     """``out/report.html`` and its overlays (``moving_NNNN.jpg``), each written atomically."""
-    out, dataset = Path(out), Path(dataset)
+    out, dataset, track, board = Path(out), Path(result.dataset), result.track, result.board
     trajectory = camera_trajectory(list(result.board_views))
     offset = ("held at" if result.time_offset_std_s is None else "") + f" {1000 * result.time_offset_s:+.2f} ms" \
         + ("" if result.time_offset_std_s is None else f" +- {1000 * result.time_offset_std_s:.2f} ms")

@@ -143,6 +143,19 @@ def follow_board_pose(corners: np.ndarray, board: BoardModel, camera: CameraMode
     return _observation(T, X, camera, corners, "followed", ids, 0.0)
 
 
+def pose_of_corners(corners: np.ndarray, board: BoardModel, camera: CameraModel,
+                    T_before: np.ndarray | None = None) -> CameraBoardObservation:
+    """The board's pose from one image's stored corners (every inner corner's row, NaN for a ChArUco corner not
+    seen): followed from ``T_before`` (the pose in an image just before, :func:`follow_board_pose`) where given,
+    else solved from the corners alone (:func:`estimate_board_pose`). Raises MeasurementError."""
+    corners = np.asarray(corners, dtype=float)
+    seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
+    ids = None if len(seen) == len(corners) else seen
+    if T_before is not None:
+        return follow_board_pose(corners[seen], board, camera, T_before, ids)
+    return estimate_board_pose(CornerDetection(corners[seen], "moving", ids), board, camera)
+
+
 def reobserve(obs: CameraBoardObservation, board: BoardModel, camera: CameraModel, iterations: int = 10
               ) -> CameraBoardObservation:
     """The same detected corners observed under another camera model (refined intrinsics): the pose solved again

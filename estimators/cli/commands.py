@@ -55,7 +55,7 @@ def _calibrate_rig(args) -> int:
 
 
 # The calibrate options a moving board's recording takes; the others are refused rather than ignored.
-MOVING_TAKES = {"dataset", "out", "seed", "strict", "no_report", "time_offset", "command", "func", "progress"}
+MOVING_TAKES = {"seed", "strict", "no_report", "time_offset"}
 
 
 def _calibrate_moving(args) -> int:
@@ -63,39 +63,22 @@ def _calibrate_moving(args) -> int:
     (``pipeline.moving_board``); calibration.json written and the result printed."""
     import numpy as np
 
-    from ..errors import LidarcamError
     from ..io.output import write_json_atomic
     from ..pipeline.moving_board import calibrate_moving
-    from .parser import build_parser
     from .printing import print_moving
 
-    default = vars(build_parser().parse_args(["calibrate", str(args.dataset), "--out", str(args.out)]))
-    given = sorted(f"--{k.replace('_', '-')}" for k, v in vars(args).items()
-                   if k not in MOVING_TAKES and k in default and v != default[k])
-    if given:
-        raise LidarcamError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} not taken by a moving board's "
-                            "recording (motion.npz) and would be ignored", path=args.dataset,
-                            hint="calibrate without it")
+    _refuse_ignored(args, [f"--{k.replace('_', '-')}" for k in _given_options(args) if k not in MOVING_TAKES],
+                    "a moving board's recording (motion.npz)", "calibrate without it")
     result = calibrate_moving(args.dataset, np.random.default_rng(args.seed), args.time_offset)
     path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
     print_moving(result)
     print(f"wrote {path}")
     if not args.no_report:
         from ..analysis.moving_report import write_moving_report
-        from ..io.dataset import parse_board, read_dataset_yaml
-        from ..io.motion_track import load_motion_track
 
-        _, ypath, spec = read_dataset_yaml(args.dataset)
-        report = write_moving_report(result, load_motion_track(args.dataset), parse_board(spec["board"], ypath),
-                                     args.dataset, args.out)
-        print(f"wrote {report}")
+        print(f"wrote {write_moving_report(result, args.out)}")
     export_hint(path)
-    if args.strict and result.verdict.untrusted:
-        from ..calibration import EXIT_AMBIGUOUS
-
-        print(f"lidarcam: the answer is untrusted (--strict): exit code {EXIT_AMBIGUOUS}", file=sys.stderr)
-        return EXIT_AMBIGUOUS
-    return 0
+    return exit_code(args, result)
 
 
 def _figures_ahead(report: bool):
@@ -208,15 +191,26 @@ RIG_UNSUPPORTED = {"refine": "--refine"}
 
 def _refuse_what_a_rig_ignores(args) -> None:
     """A one-line error naming the options given that a rig folder would ignore."""
-    from ..errors import LidarcamError
+    _refuse_ignored(args, [RIG_UNSUPPORTED[k] for k in _given_options(args) if k in RIG_UNSUPPORTED],
+                    "a rig folder (sensors: in dataset.yaml)",
+                    "calibrate without it, or calibrate the camera-LiDAR pair from a pair folder")
+
+
+def _given_options(args) -> list[str]:
+    """The names of the calibrate options given with another value than their default."""
     from .parser import build_parser
 
-    default = build_parser().parse_args(["calibrate", str(args.dataset), "--out", str(args.out)])
-    given = [flag for name, flag in RIG_UNSUPPORTED.items() if getattr(args, name) != getattr(default, name)]
-    if given:
-        raise LidarcamError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} not taken by a rig folder "
-                            "(sensors: in dataset.yaml) and would be ignored", path=args.dataset,
-                            hint="calibrate without it, or calibrate the camera-LiDAR pair from a pair folder")
+    default = vars(build_parser().parse_args(["calibrate", str(args.dataset), "--out", str(args.out)]))
+    return [k for k, v in vars(args).items() if k in default and v != default[k]]
+
+
+def _refuse_ignored(args, flags: list[str], what: str, hint: str) -> None:
+    """A one-line error naming the options ``flags`` that ``what`` would ignore, if any."""
+    from ..errors import LidarcamError
+
+    if flags:
+        raise LidarcamError(f"{', '.join(sorted(flags))} {'is' if len(flags) == 1 else 'are'} not taken by {what} "
+                            "and would be ignored", path=args.dataset, hint=hint)
 
 
 def _pair_measurements(path, board, lidar: str):

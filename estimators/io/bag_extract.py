@@ -485,11 +485,10 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             n_images = grid.n
             moving = options.follow_motion and segments.with_board >= 10 and \
                 segments.moved >= MOVING_SHARE * segments.with_board
-            if not moving:
-                _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
-            if moving:
-                return _extract_moving(reader, bag, tmp, Path(out), board, camera, img_conns + lidar_conns, image_topic,
-                                       lidar_topic, lidar, segments, info_topic, progress)
+            if moving:  # read again, every image and sweep (this reading may have stopped early: no overlap check)
+                return _extract_moving(reader, bag, tmp, Path(out), board, camera, img_conns + lidar_conns,
+                                       image_topic, lidar_topic, lidar, segments, info_topic, progress)
+            _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
                 raise BagError(f"no still board poses found among {n_images} images ({counts})", path=bag,

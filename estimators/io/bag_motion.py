@@ -20,8 +20,8 @@ import numpy as np
 from geometry.board import BoardModel
 from geometry.camera import CameraModel
 
-from ..camera.board_pose import estimate_board_pose, follow_board_pose
-from ..camera.detection import CornerDetection, subpixel_refine
+from ..camera.board_pose import pose_of_corners
+from ..camera.detection import subpixel_refine
 from ..errors import AmbiguousBoardError, BagError, MeasurementError
 from ..lidar.board_segmentation import SegmentationParams, find_board, range_gate
 from .image_io import to_gray8
@@ -184,15 +184,11 @@ class MovingBoardReader:
         """The board's pose in image ``index`` (solved when a sweep asks for it, from the last pose solved where
         that is within half a second), or None."""
         if index not in self.poses:
-            corners = self.corners[index].astype(float)
-            seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
-            ids = None if len(seen) == len(corners) else seen
             before = self.last_pose
+            near = before is not None and abs(self.stamps[index] - before[0]) <= KEEP_VIEWS_NS // 2
             try:
-                if before is not None and abs(self.stamps[index] - before[0]) <= KEEP_VIEWS_NS // 2:
-                    obs = follow_board_pose(corners[seen], self.board, self.camera, before[1].T_camera_board, ids)
-                else:
-                    obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), self.board, self.camera)
+                obs = pose_of_corners(self.corners[index], self.board, self.camera,
+                                      before[1].T_camera_board if near else None)
                 self.last_pose = (self.stamps[index], obs)
             except MeasurementError:
                 obs = None

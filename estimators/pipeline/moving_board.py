@@ -17,8 +17,7 @@ import numpy as np
 from geometry.camera import CameraModel
 
 from .. import __version__
-from ..camera.board_pose import estimate_board_pose, follow_board_pose
-from ..camera.detection import CornerDetection
+from ..camera.board_pose import pose_of_corners
 from ..errors import DatasetError, MeasurementError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import MotionTrack, load_motion_track
@@ -48,7 +47,8 @@ TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one
 class MovingBoardResult:
     """A moving board's calibration: ``pair`` (``cam0``, ``lidar0``: ``T_camera_lidar`` and its 6x6 covariance),
     the clocks' offset and its standard deviation (None when held), the 7x7 covariance over ``[rot; trans;
-    offset]``, what was used, and the images' board poses (``board_views``, for the report)."""
+    offset]``, what was used, and for the report the images' board poses (``board_views``), the board and the
+    record (``track``)."""
 
     pair: PairEstimate
     time_offset_s: float
@@ -65,6 +65,9 @@ class MovingBoardResult:
     dataset: str
     seconds: float
     board_views: tuple = ()
+    board: object = None
+    track: MotionTrack | None = None
+    ambiguous = False  # one answer (a 2D scanner's few boards may leave two; a moving board does not)
 
     @property
     def T_camera_lidar(self) -> np.ndarray:
@@ -118,21 +121,17 @@ class MovingBoardResult:
 
 
 def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoardView]:
-    """Each image's board pose at its stamp, solved from the pose in the image before where that one is within
-    ``FOLLOW_S`` (``camera.board_pose.follow_board_pose``), else from its corners alone; images whose corners give
-    no pose are left out."""
+    """Each image's board pose at its stamp, followed from the pose in the image before where that one is within
+    ``FOLLOW_S``, else solved from its corners alone (``camera.board_pose.pose_of_corners``); images whose corners
+    give no pose are left out."""
     out: list[TimedBoardView] = []
     order = np.argsort(track.view_stamps_s, kind="stable")
     for stamp, corners in zip(track.view_stamps_s[order], track.corners_px[order]):
         if out and stamp <= out[-1].stamp_s:
             continue  # an image stamped as the one before (a driver's repeated stamp): that one holds the instant
-        seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
-        ids = None if len(seen) == len(corners) else seen
+        follow = out and stamp - out[-1].stamp_s <= FOLLOW_S
         try:
-            if out and stamp - out[-1].stamp_s <= FOLLOW_S:
-                obs = follow_board_pose(corners[seen], board, camera, out[-1].camera.T_camera_board, ids)
-            else:
-                obs = estimate_board_pose(CornerDetection(corners[seen], "moving", ids), board, camera)
+            obs = pose_of_corners(corners, board, camera, out[-1].camera.T_camera_board if follow else None)
         except MeasurementError:
             continue
         out.append(TimedBoardView(float(stamp), obs))
@@ -187,4 +186,4 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
     return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
                              sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
                              track.point_times, normal_spread(track), own_scatter(track), camera, str(Path(root)),
-                             seconds, tuple(views))
+                             seconds, tuple(views), board, track)
