@@ -263,13 +263,14 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
                     lidar_topic: str = "/points"):
     """A board waved before ``rig`` for ``duration_s`` (``simulation.waved_board``), recorded as a bag: every
     image (``simulation.board_drawing``, blurred over ``exposure_s``, stamped at mid-exposure in the camera's
-    clock, ``time_offset_s`` ahead of the LiDAR's), every whole sweep in a room (``scene_sweep``) with its returns'
-    times in ``time_field`` (None: no time field, the returns in firing order), CameraInfo once. Returns the
-    motion (the truth)."""
+    clock, ``time_offset_s`` ahead of the LiDAR's), every whole sweep in a room clear of the board's path
+    (``scene_sweep``, ``room_for``) with its returns' times in ``time_field`` (None: no time field, the returns in
+    firing order), CameraInfo once. Returns the motion (the truth)."""
     from estimators.simulation.board_drawing import draw_board
-    from estimators.simulation.waved_board import scene_sweep, waving
+    from estimators.simulation.waved_board import room_for, scene_sweep, waving
 
     motion = waving(rig, rng, speed_mps, turn_dps, pauses)
+    room = room_for(rig, motion, duration_s)
     period = 1.0 / lidar_hz
     events = [(t + time_offset_s, "img", t) for t in np.arange(rng.uniform(0, 1 / camera_hz), duration_s,
                                                                  1.0 / camera_hz)]
@@ -283,7 +284,7 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
                 poses = motion(t + np.linspace(-0.5, 0.5, 5) * exposure_s)
                 bag.write(image_topic, image_message(bag, draw_board(rig.camera, rig.board, poses, rng), s), s)
             else:
-                xyz, times = scene_sweep(rig, motion, t, period, rng)
+                xyz, times = scene_sweep(rig, motion, t, period, rng, room)
                 msg = cloud_message(bag, xyz, s, times if time_field else None, time_field or "t")
                 bag.write(lidar_topic, msg, s + int(period * 1e9))
     return motion

@@ -186,6 +186,22 @@ def _sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random
 
 # A room round the LiDAR for whole-scene sweeps (LiDAR frame, m): x from, to; y from, to; floor and ceiling.
 ROOM = ((-6.0, 12.0), (-5.0, 5.0), (-1.2, 2.2))
+# The room's walls, floor and ceiling are kept this far (m) from wherever the waved board goes (``room_for``).
+ROOM_CLEARANCE_M = 0.3
+
+
+def room_for(rig: Rig, motion: Waving, duration_s: float, room: tuple = ROOM) -> tuple:
+    """``room`` moved out to leave ``ROOM_CLEARANCE_M`` between its walls, floor and ceiling and the board's
+    outline at every instant of ``[0, duration_s]``. A waving drawn about a low pose reaches below ``ROOM``'s
+    floor; there the floor's returns beside the board's lower edge lie in its plane and pass for the board's, a
+    bias of the simulator no recording has (a board is held above the floor)."""
+    poses = motion(np.arange(0.0, duration_s, 0.02))
+    T_lc = T_inverse(rig.T_camera_lidar)
+    outline = rig.board.outline()
+    corners = np.einsum("tij,kj->tki", poses[:, :3, :3], outline) + poses[:, None, :3, 3]  # camera frame
+    pts = transform_points(T_lc, corners.reshape(-1, 3))
+    lo, hi = pts.min(0) - ROOM_CLEARANCE_M, pts.max(0) + ROOM_CLEARANCE_M
+    return tuple((min(a, float(lo[k])), max(b, float(hi[k]))) for k, (a, b) in enumerate(room))
 
 
 def scene_sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator,
