@@ -76,3 +76,41 @@ def test_a_sensors_stamp_jitter_is_read_from_its_stamps_spacing_past_skipped_fra
     keep = np.arange(3000) % 7 != 3
     assert abs(stamp_jitter_s((t + rng.normal(0.0, 1e-3, t.size))[keep]) - 1e-3) < 1e-4
     assert stamp_jitter_s(t[keep]) < 1e-9
+
+
+def test_a_returns_distance_inside_the_board_is_read_from_its_beam_not_its_noisy_range():
+    """A 1 m board facing the LiDAR 4 m ahead (camera = LiDAR frame): beams aimed 0.1 m and 0.45 m in from its
+    edges read 0.1 and 0.45 m inside whatever their ranges' noise; one aimed past the edge reads negative."""
+    from geometry.trajectory import PoseSpline
+    from estimators.solvers.clock_offset import inside_board_by
+
+    T_cb = np.eye(4)
+    T_cb[:3, 3] = [-0.5, -0.5, 4.0]  # board frame origin at a corner; its normal along z
+    trajectory = PoseSpline(np.arange(4.0), np.repeat(T_cb[None], 4, axis=0))
+    aims = np.array([[-0.4, 0.0, 4.0], [-0.05, 0.05, 4.0], [0.6, 0.0, 4.0]])
+    beams = aims / np.linalg.norm(aims, axis=1, keepdims=True)
+    noisy = beams * (np.linalg.norm(aims, axis=1) + np.array([0.05, -0.05, 0.0]))[:, None]
+    by = inside_board_by(np.eye(4), 0.0, trajectory, noisy, np.array([1.0, 1.5, 2.0]), (1.0, 1.0))
+    np.testing.assert_allclose(by, [0.1, 0.45, -0.1], atol=1e-9)
+
+
+def test_the_simulated_room_stays_clear_of_the_waved_boards_path():
+    """A waving drawn about a low pose (its board reaching below the default room's floor): the room it is swept
+    in leaves 0.3 m between the board's outline and every wall, floor and ceiling throughout."""
+    from estimators.simulation.waved_board import ROOM, ROOM_CLEARANCE_M, room_for, waving
+    from geometry.rotations import transform_points
+
+    floors = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        rig = default_rig(rng, "vlp16")
+        motion = waving(rig, rng, speed_mps=0.8, turn_dps=60.0)
+        room = np.array(room_for(rig, motion, 30.0))
+        poses = motion(np.arange(0.0, 30.0, 0.01))
+        corners = np.einsum("tij,kj->tki", poses[:, :3, :3], rig.board.outline()) + poses[:, None, :3, 3]
+        pts = transform_points(T_inverse(rig.T_camera_lidar), corners.reshape(-1, 3))
+        clear = ROOM_CLEARANCE_M - 0.01  # (the room is sized from the poses 20 ms apart)
+        assert np.all(pts >= room[:, 0] + clear) and np.all(pts <= room[:, 1] - clear)
+        assert np.all(room[:, 0] <= np.array(ROOM)[:, 0]) and np.all(room[:, 1] >= np.array(ROOM)[:, 1])
+        floors.append(room[2, 0])
+    assert min(floors) < ROOM[2][0] - 0.1  # some of these wavings reach below the default floor

@@ -22,7 +22,7 @@ from ..errors import DatasetError, MeasurementError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import MotionTrack, load_motion_track
 from ..measurements import TimedBoardView
-from ..solvers.clock_offset import OFFSET_PRIOR_S, ClockOffsetSolution, solve_clock_offset
+from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, ClockOffsetSolution, solve_clock_offset
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, UNTRUSTED, Verdict, verdict_of
@@ -179,7 +179,9 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
                                                                               "with")
     views = board_views(track, board, camera)
     t0 = time.perf_counter()
-    sol: ClockOffsetSolution = solve_clock_offset(views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng)
+    sol: ClockOffsetSolution = solve_clock_offset(
+        views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
+        pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]))
     seconds = time.perf_counter() - t0
     pair = PairEstimate("cam0", "lidar0", sol.T_camera_lidar, sol.covariance[:6, :6], None, sol.sweeps)
     held = time_offset_s is not None

@@ -21,12 +21,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from geometry.planes import Plane, fit_plane_pca
-from geometry.rotations import T_retract
+from geometry.rotations import T_inverse, T_retract
 from geometry.trajectory import PoseSplines
 
 from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
 from .closed_form import solve_closed_form
+from .factor_graph import adjoint
 from .moving_board_graph import along_beam_residuals, refine_jointly, stamp_jitter_s, with_stamp_jitter
 
 # The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
@@ -41,6 +42,21 @@ MIN_SWEEPS = 6
 MAX_GAP_S = 0.15
 # Returns per sweep that score the start's grid.
 GRID_RETURNS = 20
+# A return is used only where its beam meets the board (where the camera puts it) this far inside the board's
+# edge (m) plus EDGE_SIGMAS of the returns' range noise. Segmentation cuts each sweep's returns to the board's
+# rectangle by the noisy points, so by the edges it keeps the returns whose noise pulled them inwards: a bias
+# shared by every sweep, which the hundreds of thousands of returns of a recording no longer average away (on
+# simulated bags, 2x the variance the noise gives, seen against the true trajectory). The beam's own meeting
+# point carries no range noise: chosen by it, the returns kept are unbiased.
+EDGE_MARGIN_M = 0.015
+EDGE_SIGMAS = 2.5
+# The standard deviation (px) of an image-wide shift of the detected corners: a principal point's error, a
+# detector's bias. It turns every board pose the camera gives about its centre, which no number of images
+# averages away, and no data can tell from the extrinsic's own rotation. On the simulated bags (exact
+# intrinsics; corners detected in drawn, blurred images) the extrinsic's rotation about the camera's x and y was
+# off by more than the corners' noise explains (NEES 11 over 12 bags) and 0.1 px makes it 7. A camera whose
+# principal point is known to less adds its own share to the result (docs: the moving-board how-to).
+POINTING_SD_PX = 0.1
 
 
 @dataclass(frozen=True)
@@ -93,6 +109,23 @@ def deskewed(points: np.ndarray, times_s: np.ndarray, T_camera_lidar: np.ndarray
     return in_board @ now[:3, :3].T + now[:3, 3]
 
 
+def inside_board_by(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s: np.ndarray,
+                    extent: tuple[float, float]) -> np.ndarray:
+    """How far (m) inside the board's ``extent`` (its rectangle from the board frame's origin) each return's beam
+    meets the board's plane, the board where the camera's trajectory puts it at the return's time plus ``dt``, the
+    beam mapped by ``T`` = ``T_camera_lidar``; negative outside, -inf for a beam along the plane."""
+    T_cb = trajectory(np.asarray(times_s, dtype=float) + dt)
+    beams = (points / np.linalg.norm(points, axis=1, keepdims=True)) @ T[:3, :3].T
+    n, o = T_cb[:, :3, 2], T_cb[:, :3, 3]
+    along = np.einsum("ni,ni->n", n, beams)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.einsum("ni,ni->n", n, o - T[:3, 3]) / along
+    hit = np.einsum("nji,nj->ni", T_cb[:, :3, :3], T[:3, 3] + lam[:, None] * beams - o)  # in the board frame
+    w, h = extent
+    by = np.minimum.reduce([hit[:, 0], w - hit[:, 0], hit[:, 1], h - hit[:, 1]])
+    return np.where(np.abs(along) > 1e-3, by, -np.inf)
+
+
 def _residuals(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s: np.ndarray
                ) -> np.ndarray:
     """``moving_board_graph.along_beam_residuals`` with the board where the camera's trajectory puts it at each
@@ -105,10 +138,15 @@ def _residuals(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s
 def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                        offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
                        fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
-                       returns_per_sweep: int = MAX_RETURNS_PER_SWEEP) -> ClockOffsetSolution:
+                       returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
+                       pointing_sd_rad: tuple[float, float] = (0.0, 0.0)) -> ClockOffsetSolution:
     """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
     ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
     keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less.
+    ``extent``: the board's (width, height) (``BoardModel.extent``): the joint solve then keeps the returns whose beams
+    meet it ``EDGE_MARGIN_M`` and ``EDGE_SIGMAS`` of their noise inside its edges (see there); all when None.
+    ``pointing_sd_rad``: the camera's pointing uncertainty about its x and y axes (``POINTING_SD_PX`` over the
+    focal lengths), added to the extrinsic's covariance.
     Raises DegenerateLayoutError with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory, too few
     returns where the camera saw the board, or an offset outside its prior."""
     rng = rng if rng is not None else np.random.default_rng(0)
@@ -175,6 +213,9 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     tau = np.array([v.stamp_s for v in views])
     gap = np.diff(tau)[np.clip(np.searchsorted(tau, times + dt, side="right") - 1, 0, len(tau) - 2)]
     inside = gap <= MAX_GAP_S
+    if extent is not None:
+        margin = EDGE_MARGIN_M + EDGE_SIGMAS * float(np.sqrt(np.mean(r ** 2)))
+        inside &= inside_board_by(T, dt, trajectory, points, times, extent) >= margin
     if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
                                     f"at least every {MAX_GAP_S:.2f} s")
@@ -186,6 +227,10 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     T, dt, cov = refine_jointly(tau, K, K_cov, points[inside], times[inside], T, dt,
                                 float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7,
                                 sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
+    # The camera's pointing: an image-wide shift of its corners turns every board pose about the camera's centre,
+    # which the extrinsic's rotation takes up whole; its variance is added, not estimated.
+    A = adjoint(T_inverse(T))[:, :3]
+    cov[:6, :6] += A @ np.diag([pointing_sd_rad[0] ** 2, pointing_sd_rad[1] ** 2, 0.0]) @ A.T
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
