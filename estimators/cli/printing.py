@@ -268,8 +268,8 @@ def print_moving(result) -> None:
     _print_matrix(p.T)
     print("  t = (" + ", ".join(f"{1000 * v:.1f}" for v in p.T[:3, 3]) + ") +- ("
           + ", ".join(f"{v:.1f}" for v in p.std_translation_camera_mm) + ") mm, rotation sd ("
-          + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg (Laplace; on simulated bags the errors run "
-          "about 2x these: docs/bench/moving_bag.md)")
+          + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg (Laplace, with the camera's pointing: "
+          "docs/bench/moving_bag.md)")
     if result.time_offset_std_s is None:
         print(f"time offset (t_camera_stamp - t_lidar_stamp): held at {1000 * result.time_offset_s:+.2f} ms "
               "(--time-offset)")

@@ -111,8 +111,9 @@ class MovingBoardResult:
             "covariance_with_time_offset": self.covariance_with_offset.tolist(),
             "std": self.pair.camera_lidar_keys()["std"],
             "covariance_source": "the joint solve's (Laplace): every image's board pose, the extrinsic and the "
-                                 "offset together; on simulated bags the errors run about 2 times its standard "
-                                 "deviations in translation (docs/bench/moving_bag.md)",
+                                 "offset together, with the camera's pointing (an image-wide corner shift of "
+                                 f"{POINTING_SD_PX} px) added; its coverage on simulated bags: "
+                                 "docs/bench/moving_bag.md",
             "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
             "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m,
             "point_times": self.point_times, "normal_spread": self.normal_spread,
