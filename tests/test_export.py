@@ -117,6 +117,25 @@ def test_yaml_and_json_carry_covariance_and_intrinsics(tmp_path):
     assert j["covariance"] == cal["covariance"] and j["dataset"] == "rig"
 
 
+def test_a_moving_boards_clock_offset_goes_where_a_format_has_room_for_it(tmp_path):
+    """OpenCV YAML carries ``time_offset_s`` and its deviation, JSON the whole file, ROS tf a comment (a transform has
+    no place for it) that leaves the commands as they were; a non-finite offset is a malformed file."""
+    cal = {"T_camera_lidar": _T(5).tolist(), "time_offset_s": -0.0312, "time_offset_std_s": 0.0002}
+    (tmp_path / "calibration.json").write_text(json.dumps(cal))
+    fs = cv2.FileStorage(str(write_export(tmp_path, "opencv-yaml", tmp_path / "cal.yaml")), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("time_offset_s").real() == -0.0312 and fs.getNode("time_offset_std_s").real() == 0.0002
+    assert json.loads(export_calibration(tmp_path, "json"))["time_offset_s"] == -0.0312
+    tf = export_calibration(tmp_path, "ros-tf")
+    assert "t_lidar_stamp: -0.0312 s +- 0.0002 s" in tf
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "calibration.json").write_text(json.dumps({"T_camera_lidar": cal["T_camera_lidar"]}))
+    assert [ln for ln in tf.splitlines() if "t_lidar_stamp" not in ln] == \
+        export_calibration(tmp_path / "plain", "ros-tf").splitlines()
+    (tmp_path / "calibration.json").write_text(json.dumps(cal | {"time_offset_s": float("nan")}))
+    with pytest.raises(LidarcamError, match="time_offset_s must be a finite number"):
+        export_calibration(tmp_path, "json")
+
+
 def test_export_cli_writes_atomically_and_refuses_bad_input(tmp_path, capsys):
     (tmp_path / "calibration.json").write_text(json.dumps({"T_camera_lidar": _T().tolist()}))
     out = tmp_path / "velo_to_cam.txt"

@@ -86,6 +86,9 @@ def load_calibration(path: str | os.PathLike) -> dict:
             C = np.asarray(data["covariance"], dtype=float)
             if C.shape != (6, 6) or not np.all(np.isfinite(C)):
                 raise ValueError(f"covariance must be a finite 6x6 matrix, got shape {C.shape}")
+        for key in ("time_offset_s", "time_offset_std_s"):
+            if data.get(key) is not None and not np.isfinite(float(data[key])):
+                raise ValueError(f"{key} must be a finite number of seconds")
         intr = data.get("intrinsics")
         if intr:
             from geometry.camera import CameraModel
@@ -265,7 +268,18 @@ def _ros_tf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
         f"ros2 run tf2_ros static_transform_publisher --x {_num(t[0])} --y {_num(t[1])} --z {_num(t[2])} "
         f"--qx {_num(q[0])} --qy {_num(q[1])} --qz {_num(q[2])} --qw {_num(q[3])} "
         f"--frame-id {par} --child-frame-id {child}",
+        *_offset_comment(cal),
         ""])
+
+
+def _offset_comment(cal: dict) -> list[str]:
+    """A comment line with the clocks' offset of a moving board's calibration (a transform has no place for it)."""
+    if cal.get("time_offset_s") is None:
+        return []
+    sd = cal.get("time_offset_std_s")
+    return [f"# The clocks' offset t_camera_stamp - t_lidar_stamp: {_num(float(cal['time_offset_s']))} s"
+            + (f" +- {_num(float(sd))} s" if sd is not None else " (held)")
+            + ": add it to a LiDAR stamp to find the camera's stamp of the same instant (no tf carries it)."]
 
 
 def _urdf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
@@ -311,6 +325,11 @@ def _opencv_yaml(T, cal, camera_frame, lidar_frame, parent, origin) -> str:
     if cal.get("covariance") is not None:
         fs.write("covariance", np.asarray(cal["covariance"], dtype=float))
         fs.write("covariance_convention", str(cal.get("covariance_convention", "")))
+    if cal.get("time_offset_s") is not None:
+        fs.write("time_offset_s", float(cal["time_offset_s"]))
+        if cal.get("time_offset_std_s") is not None:
+            fs.write("time_offset_std_s", float(cal["time_offset_std_s"]))
+        fs.write("time_offset_convention", "t_camera_stamp - t_lidar_stamp for one instant (seconds)")
     intr = cal.get("intrinsics")
     if intr:
         fs.write("camera_model", str(intr["model"]))
