@@ -114,3 +114,25 @@ def test_the_simulated_room_stays_clear_of_the_waved_boards_path():
         assert np.all(room[:, 0] <= np.array(ROOM)[:, 0]) and np.all(room[:, 1] >= np.array(ROOM)[:, 1])
         floors.append(room[2, 0])
     assert min(floors) < ROOM[2][0] - 0.1  # some of these wavings reach below the default floor
+
+
+def test_the_cameras_pointing_is_added_to_the_extrinsics_covariance_about_the_cameras_axes():
+    """``pointing_covariance``: a turn of the camera's frame about its x axis, seen in the extrinsic's right
+    tangent (by finite differences), spreads as the covariance says; and the solve adds exactly it."""
+    from estimators.solvers.clock_offset import pointing_covariance
+    from geometry.rotations import T_exp
+
+    rng = np.random.default_rng(4)
+    rig = default_rig(rng, "vlp16")
+    T = rig.T_camera_lidar
+    for axis, sd in ((0, (1e-3, 0.0)), (1, (0.0, 1e-3))):
+        turn = np.zeros(6)
+        turn[axis] = 1e-6
+        xi = T_log(T_inverse(T) @ T_exp(turn) @ T) / 1e-6  # the right-tangent move per radian of turn
+        np.testing.assert_allclose(pointing_covariance(T, *sd), 1e-6 * np.outer(xi, xi), atol=1e-12)
+    rec = simulate_waving(rig, 4.0, rng, time_offset_s=0.02)
+    plain = solve_clock_offset(list(rec.views), list(rec.sweeps), rng=np.random.default_rng(1))
+    pointed = solve_clock_offset(list(rec.views), list(rec.sweeps), rng=np.random.default_rng(1),
+                                 pointing_sd_rad=(2e-4, 3e-4))
+    np.testing.assert_allclose(pointed.covariance[:6, :6] - plain.covariance[:6, :6],
+                               pointing_covariance(pointed.T_camera_lidar, 2e-4, 3e-4), atol=1e-14)

@@ -126,6 +126,14 @@ def inside_board_by(T: np.ndarray, dt: float, trajectory, points: np.ndarray, ti
     return np.where(np.abs(along) > 1e-3, by, -np.inf)
 
 
+def pointing_covariance(T_camera_lidar: np.ndarray, sd_x_rad: float, sd_y_rad: float) -> np.ndarray:
+    """The camera's pointing as a 6x6 covariance of ``T_camera_lidar`` (its right tangent): the camera's frame
+    turned about its x and y axes by these standard deviations (an image-wide shift of the corners turns every
+    board pose so, and the extrinsic's rotation takes it up whole: added, not estimated)."""
+    A = adjoint(T_inverse(T_camera_lidar))[:, :3]  # Exp(d) T = T Exp(Ad(T^-1) [d; 0])
+    return A @ np.diag([sd_x_rad ** 2, sd_y_rad ** 2, 0.0]) @ A.T
+
+
 def _residuals(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s: np.ndarray
                ) -> np.ndarray:
     """``moving_board_graph.along_beam_residuals`` with the board where the camera's trajectory puts it at each
@@ -227,10 +235,7 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     T, dt, cov = refine_jointly(tau, K, K_cov, points[inside], times[inside], T, dt,
                                 float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7,
                                 sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
-    # The camera's pointing: an image-wide shift of its corners turns every board pose about the camera's centre,
-    # which the extrinsic's rotation takes up whole; its variance is added, not estimated.
-    A = adjoint(T_inverse(T))[:, :3]
-    cov[:6, :6] += A @ np.diag([pointing_sd_rad[0] ** 2, pointing_sd_rad[1] ** 2, 0.0]) @ A.T
+    cov[:6, :6] += pointing_covariance(T, *pointing_sd_rad)
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
