@@ -136,3 +136,12 @@ def test_the_cameras_pointing_is_added_to_the_extrinsics_covariance_about_the_ca
                                  pointing_sd_rad=(2e-4, 3e-4))
     np.testing.assert_allclose(pointed.covariance[:6, :6] - plain.covariance[:6, :6],
                                pointing_covariance(pointed.T_camera_lidar, 2e-4, 3e-4), atol=1e-14)
+
+
+def test_returns_too_near_the_boards_edges_are_refused_with_the_reason():
+    """Told the board is 10 cm wide (it is 1 m), no return's beam meets it far enough inside its edges: refused,
+    naming the margin, not solved from the returns along its edges."""
+    rng = np.random.default_rng(6)
+    rec = simulate_waving(default_rig(rng, "vlp16"), 3.0, rng)
+    with pytest.raises(DegenerateLayoutError, match=r"mm inside its edges \(a larger board helps\)"):
+        solve_clock_offset(list(rec.views), list(rec.sweeps), rng=np.random.default_rng(0), extent=(0.1, 0.1))

@@ -226,7 +226,8 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
         inside &= inside_board_by(T, dt, trajectory, points, times, extent) >= margin
     if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
-                                    f"at least every {MAX_GAP_S:.2f} s")
+                                    f"at least every {MAX_GAP_S:.2f} s" + ("" if extent is None else
+                                    f" and {1000 * margin:.0f} mm inside its edges (a larger board helps)"))
     # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the
     # LiDAR's is a time nuisance per sweep.
     K = np.array([v.camera.T_camera_board for v in views])
