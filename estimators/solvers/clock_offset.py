@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from geometry.planes import Plane, fit_plane_pca
-from geometry.rotations import T_inverse, T_retract
+from geometry.rotations import T_inverse, T_retract, transform_points
 from geometry.trajectory import PoseSplines
 
 from ..errors import DegenerateLayoutError
@@ -115,17 +115,14 @@ def inside_board_by(T: np.ndarray, dt: float, trajectory, points: np.ndarray, ti
                     extent: tuple[float, float]) -> np.ndarray:
     """How far (m) inside the board's ``extent`` (its rectangle from the board frame's origin) each return's beam
     meets the board's plane, the board where the camera's trajectory puts it at the return's time plus ``dt``, the
-    beam mapped by ``T`` = ``T_camera_lidar``; negative outside, -inf for a beam along the plane."""
+    beam mapped by ``T`` = ``T_camera_lidar``; negative outside (a beam along the plane: its return's own point)."""
     T_cb = trajectory(np.asarray(times_s, dtype=float) + dt)
-    beams = (points / np.linalg.norm(points, axis=1, keepdims=True)) @ T[:3, :3].T
-    n, o = T_cb[:, :3, 2], T_cb[:, :3, 3]
-    along = np.einsum("ni,ni->n", n, beams)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.einsum("ni,ni->n", n, o - T[:3, 3]) / along
-    hit = np.einsum("nji,nj->ni", T_cb[:, :3, :3], T[:3, 3] + lam[:, None] * beams - o)  # in the board frame
+    ranges = np.linalg.norm(points, axis=1)
+    reach = ranges - along_beam_residuals(T, T_cb[:, :3, :3], T_cb[:, :3, 3], ranges, points / ranges[:, None])
+    hit = transform_points(T, points * (reach / ranges)[:, None]) - T_cb[:, :3, 3]  # the cut, camera frame
+    local = np.einsum("nji,nj->ni", T_cb[:, :3, :3], hit)  # in the board frame
     w, h = extent
-    by = np.minimum.reduce([hit[:, 0], w - hit[:, 0], hit[:, 1], h - hit[:, 1]])
-    return np.where(np.abs(along) > 1e-3, by, -np.inf)
+    return np.minimum.reduce([local[:, 0], w - local[:, 0], local[:, 1], h - local[:, 1]])
 
 
 def pointing_covariance(T_camera_lidar: np.ndarray, sd_x_rad: float, sd_y_rad: float) -> np.ndarray:
