@@ -576,10 +576,27 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         timings["posterior"] = t_post - t_joint
     if advise:
         timings["next_pose"] = time.perf_counter() - t_post
-    return RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
-                     {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
-                     tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
-                     measured, ambiguous, test, alone_fit.intrinsics_checks, alone_fit.results)
+    result = RigResult(rig, solution, cameras, pairwise, used, skipped, tuple(warnings),
+                       {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
+                       tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
+                       measured, ambiguous, test, alone_fit.intrinsics_checks, alone_fit.results)
+    return _with_time_offset(result, rng)
+
+
+def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:
+    """A pair folder's still poses with the board's motion between them (``motion.npz``): the clocks' offset
+    read at the poses' estimate (``pipeline.offset_between_poses``); the result as it was otherwise."""
+    from .io.motion_track import has_motion
+    from .pipeline.offset_between_poses import offset_between_poses
+
+    rig = result.rig
+    if len(rig.cameras) != 1 or len(rig.lidars) != 1 or rig.lidars[0].lidar != "3d" or not has_motion(rig.root):
+        return result
+    t0 = time.perf_counter()
+    p = result.pair(rig.cameras[0].name, rig.lidars[0].name)
+    offset = offset_between_poses(rig.root, p.T, p.covariance, rng)
+    return replace(result, time_offset=offset,
+                   timings_s={**result.timings_s, "time_offset": round(time.perf_counter() - t0, 3)})
 
 
 def _at_refined_intrinsics(names: tuple, reference: str, camera_views: list, lidar_views: list, solution, shares

@@ -29,6 +29,7 @@ from estimators.io.dataset import load_dataset
 from estimators.io.export import FORMATS, export_calibration, load_calibration
 from estimators.io.image_io import read_gray
 from estimators.io.input_files import load_yaml
+from estimators.io.intrinsics_file import load_intrinsics
 from estimators.io.measurement_store import load_measurements
 from estimators.io.pointcloud_io import read_scan_2d, read_sweep, write_scan
 from estimators.io.ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud,
@@ -227,6 +228,22 @@ def _read_calibration(path: Path):
     return [export_calibration(data, fmt) for fmt in FORMATS]
 
 
+def _ros_intrinsics_yaml() -> bytes:
+    return (b"image_width: 640\nimage_height: 480\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [600.0, 0.0, 320.0, "
+            b"0.0, 600.0, 240.0, 0.0, 0.0, 1.0]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n"
+            b"  cols: 5\n  data: [-0.1, 0.01, 0.0, 0.0, 0.0]\n")
+
+
+def _opencv_intrinsics_yaml() -> bytes:
+    fs = cv2.FileStorage("i.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("camera_model", "pinhole")
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.array([[-0.1, 0.01, 0.0, 0.0, 0.0]]))
+    return fs.releaseAndGetString().encode()
+
+
 def _check_points(out) -> None:
     pts = out.points if hasattr(out, "points") else out
     assert np.all(np.isfinite(pts)), "non-finite points returned"
@@ -268,6 +285,8 @@ FILE_TARGETS = (
                lambda p: parse_initial_guess([str(p)])),
     FileTarget("rig_initial_guess_json", ".json", lambda t: _rig_calibration_json(),
                lambda p: parse_rig_guess([str(p)])),
+    FileTarget("intrinsics_ros_yaml", ".yaml", lambda t: _ros_intrinsics_yaml(), load_intrinsics),
+    FileTarget("intrinsics_opencv_yaml", ".yaml", lambda t: _opencv_intrinsics_yaml(), load_intrinsics),
 )
 
 

@@ -97,3 +97,51 @@ def test_two_scans_for_one_frame(tmp_path):
     np.ones((4, 4), np.float32).tofile(tmp_path / "0000.bin")
     with pytest.raises(DatasetError, match="two files for frame '0000'"):
         load_dataset(tmp_path)
+
+
+ROS_YAML = """image_width: 640
+image_height: 480
+camera_name: cam
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [600.0, 0.0, 321.5, 0.0, 601.0, 239.5, 0.0, 0.0, 1.0]
+distortion_model: {model}
+distortion_coefficients:
+  rows: 1
+  cols: {n}
+  data: {dist}
+"""
+
+
+@pytest.mark.parametrize("model,dist,expect", [("plumb_bob", [-0.1, 0.02, 0.001, -0.002, 0.0], "pinhole"),
+                                               ("equidistant", [0.01, -0.02, 0.003, -0.001], "fisheye")])
+def test_intrinsics_files_of_ros_opencv_and_lidarcam_give_one_camera(tmp_path, model, dist, expect):
+    """ROS camera_calibration's YAML, OpenCV's FileStorage (as lidarcam's opencv-yaml export writes it) and a
+    dataset.yaml's camera block give the same model; a file without intrinsics is one line naming it."""
+    import cv2
+
+    from estimators.io.intrinsics_file import load_intrinsics
+
+    (tmp_path / "ost.yaml").write_text(ROS_YAML.format(model=model, n=len(dist), dist=dist))
+    ros = load_intrinsics(tmp_path / "ost.yaml")
+    assert ros.model == expect and (ros.width, ros.height) == (640, 480) and ros.source == "file ost.yaml"
+    np.testing.assert_array_equal(ros.K, [[600.0, 0, 321.5], [0, 601.0, 239.5], [0, 0, 1]])
+    np.testing.assert_array_equal(ros.dist, dist)
+    fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_model", expect)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", ros.K)
+    fs.write("distortion_coefficients", np.asarray(dist, dtype=float).reshape(1, -1))
+    fs.release()
+    (tmp_path / "dataset.yaml").write_text(f"camera:\n  model: {expect}\n  K: {ros.K.tolist()}\n  dist: {dist}\n"
+                                           "  width: 640\n  height: 480\n")
+    for name in ("cv.yaml", "dataset.yaml"):
+        other = load_intrinsics(tmp_path / name)
+        assert other.model == expect and (other.width, other.height) == (640, 480)
+        np.testing.assert_allclose(other.K, ros.K)
+        np.testing.assert_allclose(other.dist, dist)
+    (tmp_path / "none.yaml").write_text("board: {squares: [9, 7]}\n")
+    with pytest.raises(DatasetError, match=r"none\.yaml: holds no intrinsics"):
+        load_intrinsics(tmp_path / "none.yaml")

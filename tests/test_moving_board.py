@@ -157,3 +157,60 @@ def test_the_cameras_trajectory_is_not_drawn_through_a_gap_of_its_views():
     np.testing.assert_allclose(spline(np.array([0.52, 2.33]))[:, 0, 3], [0.52, 2.33], atol=1e-12)
     with pytest.raises(ValueError):
         spline(1.5)
+
+
+def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_between_poses(tmp_path):
+    """24 s of still poses (3 s each) with the board waved between them, a 10 Hz camera whose clock is 40 ms ahead:
+    extracted as still poses with the motion followed; the extrinsic is the poses' alone (the same as with
+    motion.npz removed, to numerical precision) and the offset within 4 of its standard deviations and 4 ms of the
+    truth."""
+    import shutil
+
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
+
+    rig = _small_rig(3)
+    pauses = tuple((float(a), float(a + 3.0)) for a in np.arange(0.5, 21.0, 4.5))
+    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 24.0, np.random.default_rng(3), time_offset_s=0.04,
+                    speed_mps=0.6, turn_dps=50.0, pauses=pauses, camera_hz=10.0)
+    assert main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+                 "/points", "--board", BOARD, "--out", str(tmp_path / "ds")]) == 0
+    record = json.loads((tmp_path / "ds" / "extract.json").read_text())
+    assert record["recording"] == "still poses" and len(record["frames"]) >= 4
+    assert record["motion_between_poses"].startswith("followed")
+    shutil.copytree(tmp_path / "ds", tmp_path / "poses_only")
+    (tmp_path / "poses_only" / "motion.npz").unlink()
+    result = calibrate_rig(load_rig(tmp_path / "ds"), np.random.default_rng(0))
+    alone = calibrate_rig(load_rig(tmp_path / "poses_only"), np.random.default_rng(0))
+    assert alone.time_offset is None
+    np.testing.assert_allclose(result.pair("cam0", "lidar0").T, alone.pair("cam0", "lidar0").T, atol=1e-12)
+    off = result.time_offset
+    assert off.time_offset_s is not None and not off.disagrees
+    assert abs(off.time_offset_s - 0.04) <= min(SIGMAS * off.time_offset_std_s, OFFSET_MS * 1e-3)
+    keys = result.to_json()
+    assert keys["time_offset_s"] == off.time_offset_s and keys["time_offset_std_s"] == off.time_offset_std_s
+    assert "+- " in off.line() and "between the poses" in off.line()
+
+
+def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(waved, capsys, tmp_path):
+    """``extract --intrinsics`` (here ROS camera_calibration's YAML of the simulated camera) is used instead of the
+    bag's CameraInfo, and a moving board is followed with it; intrinsics of another resolution are refused in one
+    line, with no folder written."""
+    tmp, rig = waved
+    K = rig.camera.K
+
+    def write(name, width, height):
+        (tmp_path / name).write_text(
+            f"image_width: {width}\nimage_height: {height}\ncamera_matrix: {{rows: 3, cols: 3, data: "
+            f"{K.ravel().tolist()}}}\ndistortion_model: plumb_bob\ndistortion_coefficients: "
+            "{rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n")
+        return ["extract", str(tmp / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic", "/points",
+                "--board", BOARD, "--intrinsics", str(tmp_path / name)]
+
+    assert main(write("ost.yaml", 640, 480) + ["--out", str(tmp_path / "ds")]) == 0
+    assert "intrinsics: file ost.yaml" in capsys.readouterr().out
+    assert json.loads((tmp_path / "ds" / "extract.json").read_text())["recording"] == "moving board"
+    assert main(write("wrong.yaml", 1280, 960) + ["--out", str(tmp_path / "no")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "are for 1280 x 960 images" in err and "640 x 480" in err
+    assert not (tmp_path / "no").exists()

@@ -579,19 +579,30 @@ def extract_command(args) -> int:
     if len(args.image_topic) + len(args.cloud_topic) + len(args.scan_topic) > 2:  # a rig folder
         from ..io.rig_bag_extract import extract_rig_bag
 
-        if args.camera_info_topic is not None:
-            raise SystemExit("lidarcam: error: --camera-info-topic is for one camera; a rig's cameras each take "
-                             "the CameraInfo beside their image topic")
+        if args.camera_info_topic is not None or args.intrinsics is not None:
+            raise SystemExit("lidarcam: error: --camera-info-topic and --intrinsics are for one camera; a rig's "
+                             "cameras each take the CameraInfo beside their image topic")
         rig = extract_rig_bag(args.bag, args.out, board_argument(args.board), args.image_topic, args.cloud_topic,
                               args.scan_topic, use_camera_info=not args.no_camera_info, options=options,
                               progress=sys.stderr.isatty(), overwrite=args.overwrite)
         print("\n".join(rig.lines()))
         print(f"wrote {rig.out} (next: lidarcam calibrate {rig.out} --out OUT)")
         return 0
+    intrinsics = None
+    if args.intrinsics is not None:
+        from ..io.intrinsics_file import load_intrinsics
+
+        from ..errors import LidarcamError
+
+        if args.no_camera_info or args.camera_info_topic is not None:
+            raise LidarcamError("--intrinsics replaces the bag's CameraInfo", path=args.intrinsics,
+                                hint="give it without --no-camera-info and --camera-info-topic")
+        intrinsics = load_intrinsics(args.intrinsics)
     summary = extract_bag(args.bag, args.out, board_argument(args.board), args.image_topic[0],
                           cloud_topic=(args.cloud_topic or [None])[0], scan_topic=(args.scan_topic or [None])[0],
                           camera_info_topic=args.camera_info_topic, use_camera_info=not args.no_camera_info,
-                          options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite)
+                          options=options, progress=sys.stderr.isatty(), overwrite=args.overwrite,
+                          intrinsics=intrinsics)
     print("\n".join(summary.lines()))
     if summary.recording == STILL and summary.frames < 4:
         print(f"warning: only {summary.frames} frames; a 3D calibration needs 3 or more spread poses, 4+ "

@@ -182,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "cameras each take the one beside their image topic)")
     x.add_argument("--no-camera-info", action="store_true",
                    help="ignore CameraInfo; calibrate will estimate the intrinsics from the board views")
+    x.add_argument("--intrinsics", default=None, metavar="FILE",
+                   help="the camera's intrinsics, used instead of any CameraInfo: ROS camera_calibration's YAML, an "
+                        "OpenCV FileStorage YAML, a dataset.yaml or a calibration.json (one camera)")
     x.add_argument("--board", required=True, metavar="NXxNY:SQUARE[:WxH]",
                    help="the board: squares across x down, square size (m), optionally the board's outer size "
                         "(m), e.g. 9x7:0.1:1.0x0.8; or a YAML file with a board: mapping (e.g. a dataset.yaml)")

@@ -243,6 +243,8 @@ def _print_pair_of_two(result) -> None:
     fit = link.refinement.range_model if link is not None and link.refinement is not None else None
     if fit is not None and fit.confounding:
         _print_confounding(fit.confounding, ", the pair solved alone")
+    if result.time_offset is not None:
+        print(result.time_offset.line())
 
 
 def source_words(source: str) -> str:

@@ -14,7 +14,9 @@ and two candidate frames are held; kept frames go to disk as they are found.
 
 A bag whose board moved between most examined images (``MOVING_SHARE``) is a moving board's recording: it is read
 again, every image and sweep (``bag_motion``), into ``motion.npz``, which ``calibrate`` solves with the clocks'
-offset. extract.json's ``recording`` says which kind the bag was read as.
+offset. extract.json's ``recording`` says which kind the bag was read as. A still-pose recording whose board was
+seen moving between its poses (``MOVED_TO_TIME`` examined images or more; a 3D LiDAR, the camera's intrinsics
+known) is read that second time too: its frames give the extrinsic as before, its motion the clocks' offset.
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ from .dataset import dataset_spec, write_dataset_yaml
 from .bag_motion import REASONS as MOVING_REASONS
 from .bag_motion import MovingBoardReader
 from .image_io import to_gray8
-from .motion_track import EXAMPLES, save_motion_track
+from .motion_track import EXAMPLES, STILL_POSES, save_motion_track
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, decode_point_times,
@@ -52,11 +54,14 @@ DETECT_MAX_SIDE = 960
 MAX_PENDING_IMAGES = 64
 # The recording's kind: still poses (one frame each), or a board that moves (every image and sweep used). A bag is
 # read as moving when the board moved between at least this share of the examined images that show it.
-STILL, MOVING = "still poses", "moving board"
+STILL, MOVING = STILL_POSES, "moving board"
 MOVING_SHARE = 0.6
 # The still reading stops early when, before any still pose, the board moved between this share of the first
 # EARLY_IMAGES examined images that show it (5 s at --check-hz 5): the bag is then read as a moving board.
 EARLY_IMAGES, EARLY_SHARE = 25, 0.9
+# A still-pose recording is also followed between its poses (to time the clocks) when the board moved between at
+# least this many of its examined images (2 s of motion at --check-hz 5).
+MOVED_TO_TIME = 10
 
 REASONS = {
     "kept": "kept (one per still pose)",
@@ -115,6 +120,9 @@ class ExtractSummary:
     camera_source: str | None = None
     point_times: str | None = None
     recording: str = STILL
+    # A still-pose recording's motion between its poses, in words: followed into motion.npz (to time the clocks),
+    # or why not; None when the board never moved in view.
+    motion: str | None = None
 
     def lines(self) -> list[str]:
         if self.recording == MOVING:
@@ -124,6 +132,8 @@ class ExtractSummary:
         else:
             out = [f"recording: {STILL} ({self.images} images: {self.frames} frames kept, one per still board pose)"]
             out += [f"  {n:6d}  {REASONS[k]}" for k, n in self.counts.items() if k != "kept" and n]
+            if self.motion:
+                out.append(f"between the poses: {self.motion}")
         out.append(f"intrinsics: {self.camera_source}" if self.camera_source else
                    "intrinsics: none in the bag (calibrate estimates them from the board views)")
         if self.point_times:
@@ -345,7 +355,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 cloud_topic: str | None = None, scan_topic: str | None = None,
                 camera_info_topic: str | None = None, use_camera_info: bool = True,
                 options: ExtractOptions = ExtractOptions(), progress: bool = False,
-                overwrite: bool = False) -> ExtractSummary:
+                overwrite: bool = False, intrinsics: CameraModel | None = None) -> ExtractSummary:
     """Write a dataset folder from a ROS 1 or ROS 2 bag: one frame per still board pose, or a moving board's
     record (see the module).
 
@@ -370,6 +380,9 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
         The ``CameraInfo`` topic (default: the one beside the image topic, if any).
     use_camera_info : bool
         False: write no intrinsics; ``calibrate`` then estimates them from the board views.
+    intrinsics : CameraModel, optional
+        The camera's intrinsics (``io.intrinsics_file``, ``lidarcam extract --intrinsics``): used and written
+        instead of any ``CameraInfo`` (a bag recorded without it can then be followed as a moving board).
     options : ExtractOptions
         Pairing and stillness settings.
     progress : bool
@@ -400,6 +413,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
         img_conns = _topic(reader, bag, image_topic, IMAGE_TYPES, "--image-topic")
         lidar_conns = (_topic(reader, bag, cloud_topic, (CLOUD_TYPE,), "--cloud-topic") if cloud_topic else
                        _topic(reader, bag, scan_topic, (SCAN_TYPE,), "--scan-topic"))
+        use_camera_info = use_camera_info and intrinsics is None
         info_topic = camera_info_topic
         if info_topic is None and use_camera_info:
             info_topic = _camera_info_topic(reader, image_topic)
@@ -430,7 +444,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             grid = _ImageGrid(options, segments)
             scans: deque = deque()  # (stamp, msg) in arrival order
             pending: deque = deque()  # examined images awaiting a later scan
-            camera: CameraModel | None = None
+            camera: CameraModel | None = intrinsics
             scan_span = [None, None]
             peak = {"scans": 0, "images_awaiting_a_scan": 0}
             max_dt = int(options.max_dt_s * 1e9)
@@ -465,6 +479,11 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                     if not grid.examine(stamp):
                         continue
                     image = decode_image(msg, image_topic)
+                    if intrinsics is not None and image.shape[:2] != (intrinsics.height, intrinsics.width):
+                        raise BagError(f"the intrinsics given ({intrinsics.source}) are for {intrinsics.width} x "
+                                       f"{intrinsics.height} images and {image_topic}'s are {image.shape[1]} x "
+                                       f"{image.shape[0]}", path=bag, hint="give the intrinsics of this camera "
+                                                                           "at this resolution")
                     pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
                     if len(pending) > MAX_PENDING_IMAGES:
                         resolve(pending.popleft())
@@ -496,18 +515,44 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                                     "for a hand-held board")
             write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
                                f"extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}")
+            motion = _between_poses(reader, bag, tmp, board, camera, img_conns + lidar_conns, image_topic,
+                                    lidar_topic, lidar, segments, options, progress)
             counts = {k: int(segments.counts.get(k, 0)) for k in REASONS}
             (tmp / "extract.json").write_text(json.dumps({
                 "bag": str(bag), "recording": STILL, "image_topic": image_topic, "lidar_topic": lidar_topic,
-                "camera_info_topic": info_topic if camera is not None else None,
+                "camera_info_topic": info_topic if camera is not None and intrinsics is None else None,
                 "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
                             "still_px": options.still_px, "check_hz": options.check_hz},
                 "images": n_images, "counts": counts, "peak_buffered_messages": peak,
-                "point_times": point_times[0] if point_times else None, "frames": records}, indent=1) + "\n")
+                "point_times": point_times[0] if point_times else None, "motion_between_poses": motion,
+                "frames": records}, indent=1) + "\n")
     finally:
         reader.close()
     return ExtractSummary(Path(out), lidar, len(records), n_images, counts,
-                          camera.source if camera is not None else None, point_times[0] if point_times else None)
+                          camera.source if camera is not None else None, point_times[0] if point_times else None,
+                          motion=motion)
+
+
+def _between_poses(reader, bag: Path, tmp: Path, board: BoardModel, camera: CameraModel | None, conns,
+                   image_topic: str, lidar_topic: str, lidar: str, segments: "_StillSegments",
+                   options: ExtractOptions, progress: bool) -> str | None:
+    """A still-pose recording's board followed between its poses into ``motion.npz`` (``calibrate`` times the
+    clocks with it) when it was seen moving (``MOVED_TO_TIME``); what was done, or why not, in words (None: the
+    board never moved in view)."""
+    if segments.moved < MOVED_TO_TIME or not options.follow_motion:
+        return None
+    if lidar != "3d":
+        return "not followed (a 2D scanner's line does not time the clocks)"
+    if camera is None:
+        return "not followed (following the board needs the camera's intrinsics: the bag has no CameraInfo; " \
+               "give them with --intrinsics FILE)"
+    try:
+        track, _, _ = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress)
+    except BagError as exc:
+        return f"not followed ({exc.problem})"
+    save_motion_track(tmp, track)
+    return (f"followed: {len(track.view_stamps_s)} images and {len(track.sweep_stamps_s)} sweeps that show the board "
+            "kept (motion.npz), to time the clocks")
 
 
 def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, camera: CameraModel | None, conns,
@@ -515,8 +560,6 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
                     info_topic: str | None, progress: bool) -> ExtractSummary:
     """A second pass over a bag whose board moves: every image and sweep read into ``motion.npz``
     (``bag_motion``), with ``dataset.yaml`` and ``extract.json``."""
-    from tqdm.auto import tqdm
-
     share = f"its corners moved beyond --still-px between {segments.moved} of the {segments.with_board} examined " \
             "images that show it"
     if lidar != "3d":
@@ -524,8 +567,27 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
                        hint="with a 2D scanner hold the board still for --still-s seconds per pose")
     if camera is None:
         raise BagError(f"the board moves ({share}), and following it needs the camera's intrinsics: the bag has "
-                       "no CameraInfo", path=bag, hint="record the camera's CameraInfo topic (or name it with "
-                                                       "--camera-info-topic), or hold the board still per pose")
+                       "no CameraInfo", path=bag, hint="give them with --intrinsics FILE, record the camera's "
+                                                       "CameraInfo topic (or name it with --camera-info-topic), or "
+                                                       "hold the board still per pose")
+    track, counts, images = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress)
+    save_motion_track(tmp, track)
+    write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
+                       f"extracted by lidarcam from {bag.name} (a moving board): {image_topic} + {lidar_topic}")
+    (tmp / "extract.json").write_text(json.dumps({
+        "bag": str(bag), "recording": MOVING, "image_topic": image_topic, "lidar_topic": lidar_topic,
+        "camera_info_topic": info_topic, "images": images, "counts": counts, "moved_share":
+        round(segments.moved / segments.with_board, 3), "point_times": track.point_times,
+        "origin_ns": track.origin_ns}, indent=1) + "\n")
+    return ExtractSummary(out, lidar, 0, images, counts, camera.source, track.point_times, MOVING)
+
+
+def _follow(reader, bag: Path, tmp: Path, board: BoardModel, camera: CameraModel, conns, image_topic: str,
+            lidar_topic: str, progress: bool):
+    """Every image and sweep of the bag read (``bag_motion.MovingBoardReader``): the record, the images' counts
+    per reason and the images read; a :class:`BagError` when too little of the board was seen."""
+    from tqdm.auto import tqdm
+
     follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0), tmp / EXAMPLES)
     bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"following the board in {bag.name}", unit="msg",
                disable=not progress)
@@ -537,16 +599,7 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
     finally:
         follow.close()
         bar.close()
-    save_motion_track(tmp, track)
-    write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
-                       f"extracted by lidarcam from {bag.name} (a moving board): {image_topic} + {lidar_topic}")
-    counts = {k: int(follow.counts.get(k, 0)) for k in MOVING_REASONS}
-    (tmp / "extract.json").write_text(json.dumps({
-        "bag": str(bag), "recording": MOVING, "image_topic": image_topic, "lidar_topic": lidar_topic,
-        "camera_info_topic": info_topic, "images": follow.images, "counts": counts, "moved_share":
-        round(segments.moved / segments.with_board, 3), "point_times": track.point_times,
-        "origin_ns": track.origin_ns}, indent=1) + "\n")
-    return ExtractSummary(out, lidar, 0, follow.images, counts, camera.source, track.point_times, MOVING)
+    return track, {k: int(follow.counts.get(k, 0)) for k in MOVING_REASONS}, follow.images
 
 
 def _timing_words(msg, topic: str, gaps) -> str:

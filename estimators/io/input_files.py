@@ -87,14 +87,21 @@ def _count_nodes(value, limit: int) -> int:
 
 
 def load_yaml(path: str | os.PathLike, what: str = "YAML file", hint: str = "fix the syntax",
-              error: type[LidarcamError] = DatasetError):
+              error: type[LidarcamError] = DatasetError, opencv: bool = False):
     """``yaml.safe_load`` of a regular file (never another loader: no tags that build Python objects), with
-    its size, nesting and alias expansion bounded."""
+    its size, nesting and alias expansion bounded. ``opencv``: OpenCV ``FileStorage``'s YAML read too (its
+    ``%YAML:1.0`` line dropped, its ``!!opencv-matrix`` mappings read as plain mappings), in Python rather than by
+    OpenCV's parser, which a damaged file can crash."""
     import yaml
 
     text = read_text(path, what, MAX_YAML_BYTES, error)
+    loader = yaml.SafeLoader
+    if opencv:
+        if text.startswith("%YAML"):
+            text = text.split("\n", 1)[1] if "\n" in text else ""
+        loader = _OpenCVSafeLoader.get()
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader, or its subclass with one plain tag)
     except yaml.YAMLError as exc:
         first = str(exc).strip().splitlines()
         raise error(f"invalid YAML ({first[0] if first else type(exc).__name__})", path=path, hint=hint) from None
@@ -104,6 +111,25 @@ def load_yaml(path: str | os.PathLike, what: str = "YAML file", hint: str = "fix
         raise error(f"YAML expands to more than {MAX_YAML_NODES} values (aliases followed)", path=path,
                     hint="write the values out instead of through anchors and aliases") from None
     return data
+
+
+class _OpenCVSafeLoader:
+    """A ``yaml.SafeLoader`` that also reads OpenCV's ``!!opencv-matrix`` as a plain mapping (made on first use)."""
+
+    _loader = None
+
+    @classmethod
+    def get(cls):
+        if cls._loader is None:
+            import yaml
+
+            class Loader(yaml.SafeLoader):
+                pass
+
+            Loader.add_constructor("tag:yaml.org,2002:opencv-matrix",
+                                   lambda loader, node: loader.construct_mapping(node, deep=True))
+            cls._loader = Loader
+        return cls._loader
 
 
 def load_json(path: str | os.PathLike, what: str = "JSON file", hint: str = "check the file",

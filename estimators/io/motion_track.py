@@ -2,11 +2,13 @@
 the board's returns of every LiDAR sweep that holds it, each with its own stamp, and each return with its own time.
 
 Written by ``lidarcam extract`` from a bag whose board moves; read by ``lidarcam calibrate``, which then solves the
-extrinsic and the sensors' clock offset together. Times are seconds after ``origin_ns`` (the recording's first
+extrinsic and the sensors' clock offset together (a still-pose recording's, its board between the poses: the
+offset alone, the poses giving the extrinsic). Times are seconds after ``origin_ns`` (the recording's first
 stamp, ns), the camera's stamps in the camera's clock and the LiDAR's in the LiDAR's. Loaded without pickles.
 """
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +20,7 @@ from ..measurements import TimedSweep
 from .input_files import load_npz
 
 FILE = "motion.npz"
+STILL_POSES = "still poses"  # extract.json's recording of frames held still (bag_extract.STILL)
 EXAMPLES = "examples"  # the folder beside it of the few images kept whole
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
 
@@ -66,8 +69,23 @@ class MotionTrack:
 
 
 def is_moving_dataset(folder: str | os.PathLike) -> bool:
-    """Whether a dataset folder holds a moving board's record."""
+    """Whether a dataset folder is a moving board's record: ``motion.npz``, and not beside still poses' frames (a
+    still-pose recording's motion between its poses, which only times the clocks: :func:`has_motion`)."""
+    return has_motion(folder) and _recording(folder) != STILL_POSES
+
+
+def has_motion(folder: str | os.PathLike) -> bool:
+    """Whether a dataset folder holds a record of the board's motion (``motion.npz``)."""
     return (Path(folder) / FILE).is_file()
+
+
+def _recording(folder: str | os.PathLike) -> str | None:
+    """The recording's kind ``lidarcam extract`` wrote in extract.json (None when unread)."""
+    try:
+        record = json.loads((Path(folder) / "extract.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return record.get("recording") if isinstance(record, dict) else None
 
 
 def save_motion_track(folder: str | os.PathLike, track: MotionTrack) -> Path:

@@ -97,6 +97,9 @@ class RigResult:
     intrinsics_checks: dict = field(default_factory=dict)
     # Each camera-LiDAR pair's own solve (``(camera, lidar) -> CalibrationResult``, ``rig_calibration.PairsAlone``).
     pair_results: dict = field(default_factory=dict)
+    # A still-pose recording's clock offset from its board's motion between the poses
+    # (``offset_between_poses.OffsetBetweenPoses``; a pair folder with ``motion.npz``), else None.
+    time_offset: object = None
 
     def pair(self, a: str, b: str) -> PairEstimate:
         """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
@@ -347,6 +350,8 @@ class RigResult:
         pair = {}
         if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:  # a pair's rig: the pair's keys too
             pair = self.pair_keys(self.rig.cameras[0].name, self.rig.lidars[0].name)
+            if self.time_offset is not None:
+                pair.update(self.time_offset.to_dict())
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}

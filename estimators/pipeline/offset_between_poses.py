@@ -1,0 +1,110 @@
+"""The clocks' offset of a still-pose recording, from its board's motion between the poses.
+
+``lidarcam extract`` keeps one frame per still pose; where it saw the board move between them it also follows it
+into ``motion.npz`` (``io.bag_extract``). The poses give the extrinsic as they always did (a still board does not
+care when either sensor looked); the motion gives the offset. It is solved with the extrinsic as a moving board's
+is (``solvers.clock_offset``), and then read at the poses' extrinsic: the Gaussian conditional of the offset on
+the extrinsic, ``dt + g . log(T_motion^-1 T_poses)`` with ``g`` the 7x7 covariance's regression of the offset on
+the extrinsic, and the poses' covariance carried through ``g``. So the answer is today's, and its offset too.
+
+The offset is given only where the motion's own extrinsic agrees with the poses' (``AGREE_P``), its returns lie on
+the board where the camera saw it, and it keeps clear of its prior's edge; otherwise it is "not determined", with
+the reason. The extrinsic's verdict does not depend on it.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from geometry.rotations import T_inverse, T_log
+
+from ..errors import DegenerateLayoutError
+from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
+from ..io.motion_track import has_motion, load_motion_track
+from ..solvers.clock_offset import OFFSET_PRIOR_S, solve_clock_offset
+from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \
+    own_scatter
+
+# The motion's extrinsic and the poses' must agree to this tail probability (chi-square, 6 dof, their covariances
+# summed: the two share the sweeps of the still intervals, so the test errs towards agreeing); below it one of
+# them is off (a board seen moving where the LiDAR did not sweep it, a clock that jumps, or the poses' own
+# estimate, which the verdict then questions) and the offset is not given.
+AGREE_P = 0.001
+
+
+@dataclass(frozen=True)
+class OffsetBetweenPoses:
+    """A still-pose recording's clock offset (s, ``t_camera_stamp - t_lidar_stamp``) and its standard deviation,
+    None when not determined; ``words`` says how it was found or why not; the images and sweeps of the motion
+    used, and the motion's extrinsic's disagreement with the poses' (chi-square, 6 dof)."""
+
+    time_offset_s: float | None
+    time_offset_std_s: float | None
+    words: str
+    images: int = 0
+    sweeps: int = 0
+    disagreement_chi2: float | None = None
+
+    @property
+    def disagrees(self) -> bool:
+        """The motion's extrinsic and the poses' disagree beyond ``AGREE_P``: one of them is off (the verdict
+        says so)."""
+        return self.disagreement_chi2 is not None and bool(chi2.sf(self.disagreement_chi2, 6) < AGREE_P)
+
+    def to_dict(self) -> dict:
+        """calibration.json's keys (a pair's)."""
+        return {"time_offset_s": self.time_offset_s, "time_offset_std_s": self.time_offset_std_s,
+                "time_offset_held": False, "time_offset_convention": TIME_OFFSET_CONVENTION,
+                "time_offset_source": self.words,
+                "time_offset_motion": {"images": self.images, "sweeps": self.sweeps,
+                                       "extrinsic_disagreement_chi2_6dof": self.disagreement_chi2}}
+
+    def line(self) -> str:
+        """The printout's line."""
+        head = "time offset (t_camera_stamp - t_lidar_stamp): "
+        if self.time_offset_s is None:
+            return head + self.words
+        return head + f"{1000 * self.time_offset_s:+.2f} +- {1000 * self.time_offset_std_s:.2f} ms ({self.words})"
+
+
+def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, covariance: np.ndarray,
+                         rng: np.random.Generator) -> OffsetBetweenPoses | None:
+    """The clocks' offset of a still-pose dataset folder from its ``motion.npz`` (see the module), read at the
+    poses' estimate ``T_camera_lidar`` (6x6 ``covariance``); None when the folder holds no motion."""
+    root, ypath, spec = read_dataset_yaml(folder)
+    if not has_motion(root) or not isinstance(spec, dict) or spec.get("camera") is None:
+        return None
+    board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
+    track = load_motion_track(root)
+    if track.corners_px.shape[1] != len(board.inner_corners()):
+        return OffsetBetweenPoses(None, None, "not determined: motion.npz was read with another board")
+    views = board_views(track, board, camera)
+    try:
+        sol = solve_clock_offset(views, track.sweeps(), rng=rng, extent=board.extent)
+    except DegenerateLayoutError as exc:
+        return OffsetBetweenPoses(None, None, f"not determined: {exc.problem}", len(views))
+    C = sol.covariance
+    g = np.linalg.solve(C[:6, :6], C[:6, 6])
+    d = T_log(T_inverse(sol.T_camera_lidar) @ T_camera_lidar)
+    disagreement = float(d @ np.linalg.solve(C[:6, :6] + covariance, d))
+    dt = float(sol.time_offset_s + g @ d)
+    sd = float(np.sqrt(max(C[6, 6] - C[6, :6] @ g, 0.0) + g @ covariance @ g))
+    used = dict(images=len(views), sweeps=sol.sweeps, disagreement_chi2=disagreement)
+    scatter = own_scatter(track)
+    if sol.rms_m > SCATTER_RATIO * scatter + SCATTER_SLACK_M:
+        why = (f"its returns lie {1000 * sol.rms_m:.0f} mm RMS from the board where the camera saw it, against "
+               f"{1000 * scatter:.0f} mm about their own planes")
+    elif chi2.sf(disagreement, 6) < AGREE_P:
+        why = (f"the motion's own extrinsic disagrees with the poses' (chi-square {disagreement:.0f}, 6 dof): one "
+               "of the two is off")
+    elif OFFSET_PRIOR_S - abs(dt) < EDGE_S:
+        why = f"it lies at the edge of its prior (+-{1000 * OFFSET_PRIOR_S:.0f} ms)"
+    else:
+        words = f"from the board's motion between the poses: {len(views)} images, {sol.sweeps} sweeps"
+        if sd > OFFSET_SD_S:
+            words += "; known to little: move the board faster between poses"
+        return OffsetBetweenPoses(dt, sd, words, **used)
+    return OffsetBetweenPoses(None, None, f"not determined from the board's motion between the poses: {why}", **used)
