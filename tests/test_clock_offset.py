@@ -145,3 +145,14 @@ def test_returns_too_near_the_boards_edges_are_refused_with_the_reason():
     rec = simulate_waving(default_rig(rng, "vlp16"), 3.0, rng)
     with pytest.raises(DegenerateLayoutError, match=r"mm inside its edges \(a larger board helps\)"):
         solve_clock_offset(list(rec.views), list(rec.sweeps), rng=np.random.default_rng(0), extent=(0.1, 0.1))
+
+
+def test_images_of_a_resting_board_count_together_as_one():
+    """``still_runs``: poses 1 mm apart belong to one run (each counted the run's length), a 5 mm move starts a new
+    one; a moving board's poses are runs of 1."""
+    from estimators.solvers.clock_offset import still_runs
+    from geometry.rotations import T_from_Rt
+
+    steps = [0.0, 0.001, 0.001, 0.001, 0.005, 0.005, 0.001, 0.005]  # x moves (m) from each pose to the next
+    K = np.array([T_from_Rt(np.eye(3), np.array([x, 0.0, 2.0])) for x in np.cumsum(steps)])
+    np.testing.assert_array_equal(still_runs(K, (1.0, 0.8)), [4, 4, 4, 4, 1, 2, 2, 1])

@@ -24,14 +24,15 @@ from geometry.rotations import T_inverse, T_log
 from ..errors import DegenerateLayoutError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import has_motion, load_motion_track
-from ..solvers.clock_offset import OFFSET_PRIOR_S, solve_clock_offset
+from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, solve_clock_offset
 from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \
     own_scatter
 
 # The motion's extrinsic and the poses' must agree to this tail probability (chi-square, 6 dof, their covariances
-# summed: the two share the sweeps of the still intervals, so the test errs towards agreeing); below it one of
-# them is off (a board seen moving where the LiDAR did not sweep it, a clock that jumps, or the poses' own
-# estimate, which the verdict then questions) and the offset is not given.
+# summed, the motion's with the camera's pointing as a moving board's; the two share the sweeps of the still
+# intervals, so the test errs towards agreeing); below it one of them is off (a board seen moving where the LiDAR
+# did not sweep it, a clock that jumps, or the poses' own estimate, which the verdict then questions) and the offset
+# is not given.
 AGREE_P = 0.001
 
 
@@ -86,10 +87,11 @@ def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, 
         sol = solve_clock_offset(views, track.sweeps(), rng=rng, extent=board.extent)
     except DegenerateLayoutError as exc:
         return OffsetBetweenPoses(None, None, f"not determined: {exc.problem}", len(views))
-    C = sol.covariance
+    C = sol.covariance  # without the camera's pointing: the offset's regression on the extrinsic is the data's
     g = np.linalg.solve(C[:6, :6], C[:6, 6])
     d = T_log(T_inverse(sol.T_camera_lidar) @ T_camera_lidar)
-    disagreement = float(d @ np.linalg.solve(C[:6, :6] + covariance, d))
+    pointing = pointing_covariance(sol.T_camera_lidar, POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0])
+    disagreement = float(d @ np.linalg.solve(C[:6, :6] + pointing + covariance, d))
     dt = float(sol.time_offset_s + g @ d)
     sd = float(np.sqrt(max(C[6, 6] - C[6, :6] @ g, 0.0) + g @ covariance @ g))
     used = dict(images=len(views), sweeps=sol.sweeps, disagreement_chi2=disagreement)

@@ -59,6 +59,11 @@ EDGE_SIGMAS = 2.5
 # off by more than the corners' noise explains (NEES 11 over 12 bags); 0.1 px makes it 6.9, and 7.1 on 12 bags
 # not used to choose it. A principal point known to less makes the rotation less sure (the moving-board how-to).
 POINTING_SD_PX = 0.1
+# A board that rests shows every image the same corners, and their errors with them (the detector's bias on that
+# view, the pixels' fixed pattern): images of one still board pose count together as one, each image's pose
+# covariance multiplied by the number of images in its run of poses that moved less than this (m) from one to the
+# next (a board moving at 0.1 m/s moves 5 mm between images at 20 Hz).
+STILL_M = 0.002
 
 
 @dataclass(frozen=True)
@@ -125,6 +130,18 @@ def inside_board_by(T: np.ndarray, dt: float, trajectory, points: np.ndarray, ti
     return np.minimum.reduce([local[:, 0], w - local[:, 0], local[:, 1], h - local[:, 1]])
 
 
+def still_runs(K: np.ndarray, extent: tuple[float, float]) -> np.ndarray:
+    """For each of the board poses ``K`` (n, 4, 4, in time order) the number of poses in its run of consecutive ones
+    whose board (its outline's corners, ``extent``) moved less than ``STILL_M`` from the one before: 1 for a
+    moving board."""
+    w, h = extent
+    outline = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], dtype=float)
+    P = np.einsum("nij,kj->nki", K[:, :3, :3], outline) + K[:, None, :3, 3]
+    still = np.linalg.norm(np.diff(P, axis=0), axis=2).max(axis=1) < STILL_M
+    run_id = np.concatenate([[0], np.cumsum(~still)])  # a new run wherever the board moved
+    return np.bincount(run_id)[run_id].astype(float)
+
+
 def pointing_covariance(T_camera_lidar: np.ndarray, sd_x_rad: float, sd_y_rad: float) -> np.ndarray:
     """The camera's pointing as a 6x6 covariance of ``T_camera_lidar`` (its right tangent): the camera's frame
     turned about its x and y axes by these standard deviations (an image-wide shift of the corners turns every
@@ -146,7 +163,8 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                        offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
                        fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
                        returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
-                       pointing_sd_rad: tuple[float, float] = (0.0, 0.0)) -> ClockOffsetSolution:
+                       pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True
+                       ) -> ClockOffsetSolution:
     """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
     ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
     keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less.
@@ -230,7 +248,10 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
     # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the
     # LiDAR's is a time nuisance per sweep.
     K = np.array([v.camera.T_camera_board for v in views])
-    K_cov = with_stamp_jitter(tau, K, np.array([v.camera.pose_covariance for v in views]), stamp_jitter_s(tau))
+    K_cov = np.array([v.camera.pose_covariance for v in views])
+    if still_runs_count_once:
+        K_cov = K_cov * still_runs(K, extent if extent is not None else (1.0, 1.0))[:, None, None]
+    K_cov = with_stamp_jitter(tau, K, K_cov, stamp_jitter_s(tau))
     sweep = np.repeat(np.arange(len(kept)), [len(k[1]) for k in kept])
     T, dt, cov = refine_jointly(tau, K, K_cov, points[inside], times[inside], T, dt,
                                 float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7,
