@@ -164,6 +164,7 @@ def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_
     extracted as still poses with the motion followed; the extrinsic is the poses' alone (the same as with
     motion.npz removed, to numerical precision) and the offset within 4 of its standard deviations and 4 ms of the
     truth."""
+    import html
     import shutil
 
     from estimators.io.rig_dataset import load_rig
@@ -190,6 +191,7 @@ def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_
     keys = result.to_json()
     assert keys["time_offset_s"] == off.time_offset_s and keys["time_offset_std_s"] == off.time_offset_std_s
     assert "+- " in off.line() and "between the poses" in off.line()
+    assert html.escape(off.line()) in result.report(tmp_path / "report").read_text()
 
 
 def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(waved, capsys, tmp_path):
