@@ -74,7 +74,8 @@ def _trial(seed: int) -> dict:
         off = result.time_offset
         if off is not None:
             row.update(offset_hat=off.time_offset_s, offset_sd=off.time_offset_std_s, words=off.words,
-                       disagreement=off.disagreement_chi2, disagrees=off.disagrees)
+                       disagreement=off.disagreement_chi2, disagrees=off.disagrees,
+                       own_hat=off.motion_offset_s, own_sd=off.motion_offset_std_s)
     return row
 
 
@@ -100,10 +101,16 @@ def main() -> None:
     print(f"| still poses kept (mean) | {np.mean([r['frames'] for r in done]):.1f} |")
     print(f"| offset found | {len(found)} of {len(done)} |")
     if len(found):
-        print(f"| offset error, RMS | {np.sqrt(np.mean(err ** 2)):.2f} ms |")
+        print(f"| offset error, RMS, mean | {np.sqrt(np.mean(err ** 2)):.2f} ms, {err.mean():+.2f} ms |")
         print(f"| offset error, largest | {np.abs(err).max():.2f} ms |")
         print(f"| offset standard deviation, median | {1000 * np.median([r['offset_sd'] for r in found]):.2f} ms |")
         print(f"| offset z-score (error / sd), RMS (1 if honest) | {np.sqrt(np.mean(z ** 2)):.2f} |")
+    own = [r for r in done if r.get("own_hat") is not None]
+    if own:
+        e2 = np.array([1000 * (r["own_hat"] - r["offset_s"]) for r in own])
+        z2 = np.array([(r["own_hat"] - r["offset_s"]) / r["own_sd"] for r in own])
+        print(f"| the motion's own offset (its extrinsic free): error RMS, mean; z-score RMS | "
+              f"{np.sqrt(np.mean(e2 ** 2)):.2f} ms, {e2.mean():+.2f} ms; {np.sqrt(np.mean(z2 ** 2)):.2f} |")
     print(f"| the poses' extrinsic: rotation error RMS | "
           f"{np.sqrt(np.mean([r['rot_deg'] ** 2 for r in done])):.3f} deg |")
     print(f"| the poses' extrinsic: translation error RMS | "
@@ -132,7 +139,7 @@ def main() -> None:
             e = 1000 * (r["offset_hat"] - r["offset_s"])
             off = f"{e:+.2f} | {e / (1000 * r['offset_sd']):+.1f}"
         else:
-            off = f"{(r.get('words') or 'no motion followed')[:70]} | "
+            off = f"{(r.get('words') or r.get('motion') or 'no motion followed')[:90]} | "
         chi = f"{r['disagreement']:.1f}" if r.get("disagreement") is not None else "-"
         print(f"| {r['seed']} | {r['lidar']} | {r['duration_s']:.0f} | {r['speed']:.2f} | {r['turn']:.0f} | "
               f"{r['frames']} | {1000 * r['offset_s']:+.1f} | {off} | {r['rot_deg']:.3f} | {r['trans_mm']:.1f} | "

@@ -5,7 +5,9 @@ into ``motion.npz`` (``io.bag_extract``). The poses give the extrinsic as they a
 care when either sensor looked); the motion gives the offset. It is solved with the extrinsic as a moving board's
 is (``solvers.clock_offset``), and then read at the poses' extrinsic: the Gaussian conditional of the offset on
 the extrinsic, ``dt + g . log(T_motion^-1 T_poses)`` with ``g`` the 7x7 covariance's regression of the offset on
-the extrinsic, and the poses' covariance carried through ``g``. So the answer is today's, and its offset too.
+the extrinsic, and the poses' covariance carried through ``g``; or, where the motion's own extrinsic is the surer
+along ``g`` (a few poses, a long motion), the motion's own offset with its marginal variance. So the answer is
+today's, and its offset too.
 
 The offset is given only where the motion's own extrinsic agrees with the poses' (``AGREE_P``), its returns lie on
 the board where the camera saw it, and it keeps clear of its prior's edge; otherwise it is "not determined", with
@@ -48,6 +50,9 @@ class OffsetBetweenPoses:
     images: int = 0
     sweeps: int = 0
     disagreement_chi2: float | None = None
+    # The motion's own offset and its standard deviation (the joint solve's marginal, its extrinsic free).
+    motion_offset_s: float | None = None
+    motion_offset_std_s: float | None = None
 
     @property
     def disagrees(self) -> bool:
@@ -61,7 +66,9 @@ class OffsetBetweenPoses:
                 "time_offset_held": False, "time_offset_convention": TIME_OFFSET_CONVENTION,
                 "time_offset_source": self.words,
                 "time_offset_motion": {"images": self.images, "sweeps": self.sweeps,
-                                       "extrinsic_disagreement_chi2_6dof": self.disagreement_chi2}}
+                                       "extrinsic_disagreement_chi2_6dof": self.disagreement_chi2,
+                                       "own_time_offset_s": self.motion_offset_s,
+                                       "own_time_offset_std_s": self.motion_offset_std_s}}
 
     def line(self) -> str:
         """The printout's line."""
@@ -92,9 +99,14 @@ def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, 
     d = T_log(T_inverse(sol.T_camera_lidar) @ T_camera_lidar)
     pointing = pointing_covariance(sol.T_camera_lidar, POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0])
     disagreement = float(d @ np.linalg.solve(C[:6, :6] + pointing + covariance, d))
-    dt = float(sol.time_offset_s + g @ d)
-    sd = float(np.sqrt(max(C[6, 6] - C[6, :6] @ g, 0.0) + g @ covariance @ g))
-    used = dict(images=len(views), sweeps=sol.sweeps, disagreement_chi2=disagreement)
+    # Read at the poses' extrinsic, or the motion's own where its extrinsic is the surer in the offset's direction
+    # (g . S g against g . C_TT g: both honest, the smaller variance kept; chosen by the covariances, not the values).
+    at_poses = g @ covariance @ g <= g @ C[:6, :6] @ g
+    dt = float(sol.time_offset_s + g @ d) if at_poses else float(sol.time_offset_s)
+    sd = float(np.sqrt(max(C[6, 6] - C[6, :6] @ g, 0.0) + g @ covariance @ g)) if at_poses else \
+        float(np.sqrt(C[6, 6]))
+    used = dict(images=len(views), sweeps=sol.sweeps, disagreement_chi2=disagreement,
+                motion_offset_s=sol.time_offset_s, motion_offset_std_s=float(np.sqrt(C[6, 6])))
     scatter = own_scatter(track)
     if sol.rms_m > SCATTER_RATIO * scatter + SCATTER_SLACK_M:
         why = (f"its returns lie {1000 * sol.rms_m:.0f} mm RMS from the board where the camera saw it, against "
@@ -105,7 +117,8 @@ def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, 
     elif OFFSET_PRIOR_S - abs(dt) < EDGE_S:
         why = f"it lies at the edge of its prior (+-{1000 * OFFSET_PRIOR_S:.0f} ms)"
     else:
-        words = f"from the board's motion between the poses: {len(views)} images, {sol.sweeps} sweeps"
+        words = (f"from the board's motion between the poses: {len(views)} images, {sol.sweeps} sweeps; "
+                 + ("read at the poses' extrinsic" if at_poses else "the motion's own (its extrinsic the surer)"))
         if sd > OFFSET_SD_S:
             words += "; known to little: move the board faster between poses"
         return OffsetBetweenPoses(dt, sd, words, **used)
