@@ -26,7 +26,8 @@ from geometry.rotations import T_inverse, T_log
 from ..errors import DegenerateLayoutError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import has_motion, load_motion_track
-from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, solve_clock_offset
+from ..solvers.clock_offset import MAX_GAP_S, OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, \
+    solve_clock_offset, still_runs
 from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \
     own_scatter
 
@@ -78,6 +79,20 @@ class OffsetBetweenPoses:
         return head + f"{1000 * self.time_offset_s:+.2f} +- {1000 * self.time_offset_std_s:.2f} ms ({self.words})"
 
 
+def moving_sweeps(views: list, sweeps: list, extent: tuple[float, float]) -> list:
+    """The sweeps within reach of the board's motion: those that, at any offset of the prior, fall where the
+    camera saw the board move (an image whose board moved ``STILL_M`` or more since the one before). At rest a
+    sweep says nothing of the clocks, and its images' corners share one detector's bias that their residuals do
+    not show (a sharp image of a still board fits its grid to hundredths of a pixel): the poses weigh those
+    intervals as they should, the motion need not weigh them again."""
+    views = sorted(views, key=lambda v: v.stamp_s)
+    tau = np.array([v.stamp_s for v in views])
+    moved = tau[still_runs(np.array([v.camera.T_camera_board for v in views]), extent) == 1][1:]
+    reach = OFFSET_PRIOR_S + MAX_GAP_S
+    return [s for s in sweeps if len(s.offset_s) and np.any(
+        (moved >= s.times_s.min() - reach) & (moved <= s.times_s.max() + reach))]
+
+
 def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, covariance: np.ndarray,
                          rng: np.random.Generator) -> OffsetBetweenPoses | None:
     """The clocks' offset of a still-pose dataset folder from its ``motion.npz`` (see the module), read at the
@@ -90,8 +105,9 @@ def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, 
     if track.corners_px.shape[1] != len(board.inner_corners()):
         return OffsetBetweenPoses(None, None, "not determined: motion.npz was read with another board")
     views = board_views(track, board, camera)
+    sweeps = moving_sweeps(views, track.sweeps(), board.extent)
     try:
-        sol = solve_clock_offset(views, track.sweeps(), rng=rng, extent=board.extent)
+        sol = solve_clock_offset(views, sweeps, rng=rng, extent=board.extent)
     except DegenerateLayoutError as exc:
         return OffsetBetweenPoses(None, None, f"not determined: {exc.problem}", len(views))
     C = sol.covariance  # without the camera's pointing: the offset's regression on the extrinsic is the data's
