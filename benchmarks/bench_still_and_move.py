@@ -139,11 +139,16 @@ def main() -> None:
             e = 1000 * (r["offset_hat"] - r["offset_s"])
             off = f"{e:+.2f} | {e / (1000 * r['offset_sd']):+.1f}"
         else:
-            off = f"{(r.get('words') or r.get('motion') or 'no motion followed')[:90]} | "
+            off = "not found (below) | "
         chi = f"{r['disagreement']:.1f}" if r.get("disagreement") is not None else "-"
         print(f"| {r['seed']} | {r['lidar']} | {r['duration_s']:.0f} | {r['speed']:.2f} | {r['turn']:.0f} | "
               f"{r['frames']} | {1000 * r['offset_s']:+.1f} | {off} | {r['rot_deg']:.3f} | {r['trans_mm']:.1f} | "
               f"{r['nees']:.1f} | {chi} | {r['verdict']} |")
+    missed = [r for r in done if r.get("offset_hat") is None]
+    if missed:
+        print("\nOffset not found:\n")
+        for r in missed:
+            print(f"- seed {r['seed']}: {r.get('words') or r.get('motion') or 'no motion followed'}")
     print(f"\n({a.bags} bags in {time.time() - t0:.0f} s on {a.workers} processes; "
           f"seeds {a.seed}..{a.seed + a.bags - 1})")
 
