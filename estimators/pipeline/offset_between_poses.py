@@ -3,11 +3,11 @@
 ``lidarcam extract`` keeps one frame per still pose; where it saw the board move between them it also follows it
 into ``motion.npz`` (``io.bag_extract``). The poses give the extrinsic as they always did (a still board does not
 care when either sensor looked); the motion gives the offset. It is solved with the extrinsic as a moving board's
-is (``solvers.clock_offset``), and then read at the poses' extrinsic: the Gaussian conditional of the offset on
-the extrinsic, ``dt + g . log(T_motion^-1 T_poses)`` with ``g`` the 7x7 covariance's regression of the offset on
-the extrinsic, and the poses' covariance carried through ``g``; or, where the motion's own extrinsic is the surer
-along ``g`` (a few poses, a long motion), the motion's own offset with its marginal variance. So the answer is
-today's, and its offset too.
+is (``solvers.clock_offset``), from the sweeps near the motion (``moving_sweeps``), and then read at the poses'
+extrinsic: the Gaussian conditional of the offset on the extrinsic, ``dt + g . log(T_motion^-1 T_poses)`` with
+``g`` the 7x7 covariance's regression of the offset on the extrinsic, and the poses' covariance carried through
+``g``; or, where the motion's own extrinsic is the surer along ``g`` (a few poses, a long motion), the motion's
+own offset with its marginal variance. So the answer is today's, and its offset too.
 
 The offset is given only where the motion's own extrinsic agrees with the poses' (``AGREE_P``), its returns lie on
 the board where the camera saw it, and it keeps clear of its prior's edge; otherwise it is "not determined", with
@@ -32,10 +32,10 @@ from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, T
     own_scatter
 
 # The motion's extrinsic and the poses' must agree to this tail probability (chi-square, 6 dof, their covariances
-# summed, the motion's with the camera's pointing as a moving board's; the two share the sweeps of the still
-# intervals, so the test errs towards agreeing); below it one of them is off (a board seen moving where the LiDAR
-# did not sweep it, a clock that jumps, or the poses' own estimate, which the verdict then questions) and the offset
-# is not given.
+# summed, the motion's with the camera's pointing as a moving board's; the two share only the sweeps at the ends
+# of the still intervals, ``moving_sweeps``); below it one of them is off (a board seen moving where the LiDAR did
+# not sweep it, a clock that jumps, or the poses' own estimate, which the verdict then questions) and the offset is
+# not given.
 AGREE_P = 0.001
 
 
@@ -82,9 +82,9 @@ class OffsetBetweenPoses:
 def moving_sweeps(views: list, sweeps: list, extent: tuple[float, float]) -> list:
     """The sweeps within reach of the board's motion: those that, at any offset of the prior, fall where the
     camera saw the board move (an image whose board moved ``STILL_M`` or more since the one before). At rest a
-    sweep says nothing of the clocks, and its images' corners share one detector's bias that their residuals do
-    not show (a sharp image of a still board fits its grid to hundredths of a pixel): the poses weigh those
-    intervals as they should, the motion need not weigh them again."""
+    sweep says nothing of the clocks, and the poses already weigh those intervals; weighed again in the motion's
+    solve they pulled its extrinsic and, through it, the offset (on a simulated bag of 10 poses the motion's
+    extrinsic's NEES 21 with them and 6.4 without, the offset's error -4.9 and -1.9 ms, its sd 1.0 ms)."""
     views = sorted(views, key=lambda v: v.stamp_s)
     tau = np.array([v.stamp_s for v in views])
     moved = tau[still_runs(np.array([v.camera.T_camera_board for v in views]), extent) == 1][1:]
