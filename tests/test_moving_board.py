@@ -143,6 +143,25 @@ def test_corners_off_the_boards_grid_are_told_from_the_boards():
         assert reader._grid_rms_px(bad) > MAX_GRID_RMS_PX
 
 
+def test_a_board_small_in_the_image_is_found_by_the_follower():
+    """A recorded hard case, in small: a board 5.5 m away in a 1024 x 768 image (squares of 17 px) is lost on the
+    copy the follower's detector looks at first (640 px), and the follower then lost the whole motion of two
+    simulated still-and-move bags whose still poses were found; it looks at the whole image next."""
+    from estimators.io.bag_extract import _detect
+    from estimators.io.bag_motion import DETECT_MAX_SIDE, MovingBoardReader
+    from estimators.simulation.board_drawing import draw_board
+
+    rig = _small_rig(3)
+    camera = CameraModel(np.array([[940.0, 0, 512], [0, 940.0, 384], [0, 0, 1]]), np.zeros(5), 1024, 768)
+    T = T_from_Rt(np.eye(3), [-0.5, -0.5, 5.5])
+    gray = draw_board(camera, rig.board, T[None], np.random.default_rng(1))
+    assert _detect(gray, rig.board, DETECT_MAX_SIDE) is None
+    found = MovingBoardReader(rig.board, camera, _detect, "/camera/image_raw", np.random.default_rng(0))._find(gray)
+    truth = camera.project(transform_points(T, rig.board.inner_corners()))
+    assert found is not None
+    assert min(np.max(np.linalg.norm(f - truth, axis=1)) for f in (found, found[::-1])) < 1.0  # either order
+
+
 def test_the_cameras_trajectory_is_not_drawn_through_a_gap_of_its_views():
     """Views 0-1 s and 2-3 s (the board out of view between): a spline per run, times in the gap not covered, and
     the prior's reach kept from each run's ends."""
