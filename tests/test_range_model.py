@@ -349,7 +349,10 @@ def test_overdispersed_boards_weigh_the_terms_priors_so_terms_held_at_zero_do_no
     truth = np.array(_json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
     res = calibrate_pair(folder, samples=0)
     fit = res.refinement.range_model
-    assert fit.chosen == "per-ring" and set(fit.pinned) == {"ring 30", "ring 51"}
+    # ring 4 (-28.5 mm) lies near the bound too: held or not as its estimate falls (-32 mm with every board return)
+    rings = np.array(_json.loads((folder / "ground_truth.json").read_text())["range_bias"]["ring_offsets_m"])
+    assert fit.chosen == "per-ring" and {"ring 30", "ring 51"} <= set(fit.pinned)
+    assert all(abs(rings[int(r.split()[1])]) > 0.02 for r in fit.pinned), fit.pinned
     xi = T_log(T_inverse(res.T_camera_lidar) @ truth)
     assert np.degrees(np.linalg.norm(xi[:3])) < 0.2 and np.linalg.norm(xi[3:]) < 0.025, xi
     assert np.all(np.abs(xi) < 2 * np.sqrt(np.diag(res.covariance)))
