@@ -584,18 +584,27 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
 
 
 def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:
-    """A pair folder's still poses with the board's motion between them (``motion.npz``): the clocks' offset
-    read at the poses' estimate (``pipeline.offset_between_poses``); the result as it was otherwise."""
-    from .io.motion_track import has_motion
+    """Still poses with the board's motion between them: each 3D LiDAR's clock offset against the camera that
+    followed the board, read at the poses' estimate (``pipeline.offset_between_poses``): a pair folder's from its
+    ``motion.npz``, a rig's from each LiDAR's folder's (``RIG/lidar0/motion.npz``, the first camera's corners:
+    ``io.rig_bag_extract``). The result as it was otherwise."""
+    from .io.motion_track import FOLLOWED_CAMERA, has_motion
     from .pipeline.offset_between_poses import offset_between_poses
 
     rig = result.rig
-    if len(rig.cameras) != 1 or len(rig.lidars) != 1 or rig.lidars[0].lidar != "3d" or not has_motion(rig.root):
+    pair = len(rig.cameras) == 1 and len(rig.lidars) == 1
+    camera = rig.cameras[0] if pair else next((c for c in rig.cameras if c.name == FOLLOWED_CAMERA), None)
+    folders = {lid.name: rig.root if pair else rig.root / lid.name for lid in rig.lidars if lid.lidar == "3d"}
+    folders = {n: f for n, f in folders.items() if has_motion(f)}
+    if not folders or camera is None:
         return result
     t0 = time.perf_counter()
-    p = result.pair(rig.cameras[0].name, rig.lidars[0].name)
-    offset = offset_between_poses(rig.root, p.T, p.covariance, rng)
-    return replace(result, time_offset=offset,
+    offsets = {}
+    for name, folder in folders.items():
+        p = result.pair(camera.name, name)
+        offsets[name] = offset_between_poses(folder, p.T, p.covariance, rng,
+                                             None if pair else (rig.board, camera.camera))
+    return replace(result, time_offsets={n: o for n, o in offsets.items() if o is not None},
                    timings_s={**result.timings_s, "time_offset": round(time.perf_counter() - t0, 3)})
 
 

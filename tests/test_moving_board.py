@@ -219,6 +219,46 @@ def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_
     assert html.escape(off.line()) in result.report(tmp_path / "report").read_text()
 
 
+def test_a_rig_bag_times_each_lidar_against_the_first_camera(tmp_path, capsys):
+    """A rig of one camera and two LiDARs, each LiDAR on its own clock (the camera 40 ms ahead of lidar0's and 25 ms
+    behind lidar1's), 24 s of still poses with the board waved between them: extracted as a rig folder with the
+    motion followed into each LiDAR's folder; calibrated, each LiDAR's offset against cam0 within 4 of its standard
+    deviations and 4 ms of the truth, in calibration.json's ``time_offsets_s`` and in the printout."""
+    from estimators.io.rig_dataset import load_rig
+    from estimators.rig_calibration import calibrate_rig
+
+    rig = _small_rig(3)
+    turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(12.0)]), [0.25, 0.05, -0.1])
+    other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
+    pauses = tuple((float(a), float(a + 3.0)) for a in np.arange(0.5, 21.0, 4.5))
+    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 24.0, np.random.default_rng(3), time_offset_s=0.04,
+                    speed_mps=0.6, turn_dps=50.0, pauses=pauses, camera_hz=10.0,
+                    more_lidars=(("/points1", other, -0.025),))
+    assert main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+                 "/points", "--cloud-topic", "/points1", "--board", BOARD, "--out", str(tmp_path / "rig")]) == 0
+    assert "motion between the poses followed" in capsys.readouterr().out
+    record = json.loads((tmp_path / "rig" / "extract.json").read_text())
+    assert set(record["motion_between_poses"]) == {"camera", "lidar0", "lidar1"}
+    result = calibrate_rig(load_rig(tmp_path / "rig"), np.random.default_rng(0))
+    keys = result.to_json()
+    assert keys["time_offsets_reference"] == "cam0" and result.time_offset is None
+    for name, truth, T in (("lidar0", 0.04, rig.T_camera_lidar), ("lidar1", -0.025, other.T_camera_lidar)):
+        off = result.time_offsets[name]
+        assert off.time_offset_s is not None and not off.disagrees, off.words
+        assert abs(off.time_offset_s - truth) <= min(SIGMAS * off.time_offset_std_s, OFFSET_MS * 1e-3)
+        assert keys["time_offsets_s"][name] == off.time_offset_s
+        assert f"t_cam0_stamp - t_{name}_stamp" in off.line("cam0", name)
+        xi = T_log(T_inverse(result.pair("cam0", name).T) @ T)
+        assert np.degrees(np.linalg.norm(xi[:3])) < ROT_DEG and 1000 * np.linalg.norm(xi[3:]) < TRANS_MM
+    # the exports that have a place for them carry them
+    from estimators.io.export import export_calibration
+    from estimators.pipeline.rig_result import write_rig_calibration
+
+    written = write_rig_calibration(result, tmp_path / "out")
+    assert "# The clocks' offset t_cam0_stamp - t_lidar1_stamp: -0.02" in export_calibration(written, "ros-tf")
+    assert "time_offsets_s:" in export_calibration(written, "opencv-yaml")
+
+
 def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(waved, capsys, tmp_path):
     """``extract --intrinsics`` (here ROS camera_calibration's YAML of the simulated camera) is used instead of the
     bag's CameraInfo, and a moving board is followed with it; intrinsics of another resolution are refused in one

@@ -75,8 +75,12 @@ def write_rig_report(result, out_dir: str | Path, figure_process=None) -> Path:
                                                "pair alone: away", "pair alone: t sd [mm]"]
                           + (["posterior 95%: t [mm]", "99.9% region: d2 (a Gaussian's 22.5)"]
                              if post is not None else [])))
-    if result.time_offset is not None:  # a still-pose recording's clocks, from the board's motion between poses
-        parts.append(f"<h2>The clocks' offset</h2><p>{html.escape(result.time_offset.line())}.</p>")
+    if result.time_offsets:  # a still-pose recording's clocks, from the board's motion between poses
+        from ..io.motion_track import FOLLOWED_CAMERA
+
+        lines = [result.time_offset.line()] if result.time_offset is not None else \
+            [o.line(FOLLOWED_CAMERA, n) for n, o in result.time_offsets.items()]
+        parts.append("<h2>The clocks' offset</h2>" + "".join(f"<p>{html.escape(w)}.</p>" for w in lines))
     kind = "posterior" if post is not None else "Laplace"
     for c in result.rig.cameras:  # each camera-LiDAR pair's spread as a single pair's report gives it
         for lid in result.rig.lidars:

@@ -200,6 +200,11 @@ def print_rig(result) -> None:
               "camera axes:")
         for (a, b), e in result.outline_checks.items():
             print(f"  T_{a}_{b}: {outline_shift_words(e, ends=True)}")
+    if result.time_offset is None:  # a rig's LiDARs' clocks (a pair's is printed with its transform)
+        from ..io.motion_track import FOLLOWED_CAMERA
+
+        for name, offset in result.time_offsets.items():
+            print(offset.line(FOLLOWED_CAMERA, name))
     if result.intrinsics_test is not None:
         t = result.intrinsics_test
         print(f"intrinsics refined with the rig ({t['parameters']} parameters): chi-square {t['chi_square_given']:.0f} "

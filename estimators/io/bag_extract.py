@@ -535,17 +535,17 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
 
 def _between_poses(reader, bag: Path, tmp: Path, board: BoardModel, camera: CameraModel | None, conns,
                    image_topic: str, lidar_topic: str, lidar: str, segments: "_StillSegments",
-                   options: ExtractOptions, progress: bool) -> str | None:
+                   options: ExtractOptions, progress: bool, remedy: str = "give them with --intrinsics FILE"
+                   ) -> str | None:
     """A still-pose recording's board followed between its poses into ``motion.npz`` (``calibrate`` times the
     clocks with it) when it was seen moving (``MOVED_TO_TIME``); what was done, or why not, in words (None: the
-    board never moved in view)."""
+    board never moved in view; ``remedy``: what gives the camera's intrinsics where the bag has none)."""
     if segments.moved < MOVED_TO_TIME or not options.follow_motion:
         return None
     if lidar != "3d":
         return "not followed (a 2D scanner's line does not time the clocks)"
     if camera is None:
-        return "not followed (following the board needs the camera's intrinsics: the bag has no CameraInfo; " \
-               "give them with --intrinsics FILE)"
+        return f"not followed (following the board needs the camera's intrinsics: the bag has no CameraInfo; {remedy})"
     try:
         track, _, _ = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress)
     except BagError as exc:

@@ -221,7 +221,7 @@ def _rig_export(cal: dict, fmt: str) -> str:
             lines.append(f"ros2 run tf2_ros static_transform_publisher --x {_num(t[0])} --y {_num(t[1])} "
                          f"--z {_num(t[2])} --qx {_num(q[0])} --qy {_num(q[1])} --qz {_num(q[2])} --qw {_num(q[3])} "
                          f"--frame-id {ref} --child-frame-id {n}")
-        return "\n".join(lines) + "\n"
+        return "\n".join(lines + _rig_offsets_comment(cal)) + "\n"
     if fmt == "urdf":
         lines = ['<?xml version="1.0"?>', f"<!-- {origin}. Each joint origin is the sensor's pose in '{ref}'; rpy "
                  "are fixed-axis roll, pitch, yaw in radians: R = Rz(yaw) Ry(pitch) Rx(roll). -->",
@@ -246,10 +246,45 @@ def _rig_export(cal: dict, fmt: str) -> str:
                 if key.startswith(f"T_{name}_"):
                     fs.write(key, np.asarray(tr["T"], dtype=float))
             fs.endWriteStruct()
+        offsets = _rig_offsets(cal)
+        if offsets:
+            for key, k in (("time_offsets_s", 0), ("time_offsets_std_s", 1)):
+                fs.startWriteStruct(key, cv2.FileNode_MAP)
+                for n, v in offsets.items():
+                    if v[k] is not None:
+                        fs.write(n, v[k])
+                fs.endWriteStruct()
+            fs.write("time_offsets_convention", str(cal.get("time_offsets_convention", "")))
         return fs.releaseAndGetString()
     out = dict(cal)
     out["direction"] = "T_a_b maps b's points into a's frame: p_a = R p_b + t (metres)"
     return json.dumps(out, indent=1) + "\n"
+
+
+def _rig_offsets(cal: dict) -> dict:
+    """A rig's LiDARs' determined clock offsets: ``name -> (offset s, its sd s or None)``; a malformed entry is a
+    malformed file."""
+    values, sds = cal.get("time_offsets_s") or {}, cal.get("time_offsets_std_s") or {}
+    if not isinstance(values, dict) or not isinstance(sds, dict):
+        raise LidarcamError("malformed time_offsets_s", hint="write the calibration again with lidarcam calibrate")
+    out = {}
+    for n, v in values.items():
+        if v is None:
+            continue
+        sd = sds.get(n)
+        if not isinstance(v, (int, float)) or not np.isfinite(v) or \
+                (sd is not None and (not isinstance(sd, (int, float)) or not np.isfinite(sd))):
+            raise LidarcamError(f"malformed time offset of {n}",
+                                hint="write the calibration again with lidarcam calibrate")
+        out[str(n)] = (float(v), None if sd is None else float(sd))
+    return out
+
+
+def _rig_offsets_comment(cal: dict) -> list[str]:
+    """ros-tf's comment lines for a rig's LiDARs' clock offsets (a transform has no place for them)."""
+    ref = cal.get("time_offsets_reference", "cam0")
+    return [f"# The clocks' offset t_{ref}_stamp - t_{n}_stamp: {_num(v)} s"
+            + ("" if sd is None else f" +- {_num(sd)} s") for n, (v, sd) in _rig_offsets(cal).items()]
 
 
 def _ros_tf(T, cal, camera_frame, lidar_frame, parent, origin) -> str:

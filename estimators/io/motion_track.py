@@ -20,6 +20,9 @@ from ..measurements import TimedSweep
 from .input_files import load_npz
 
 FILE = "motion.npz"
+# A rig's still poses with the board moved between them: the camera whose images ``lidarcam extract`` follows the
+# board in, for every 3D LiDAR's motion.npz (in the LiDAR's folder); their clock offsets are against its clock.
+FOLLOWED_CAMERA = "cam0"
 STILL_POSES = "still poses"  # extract.json's recording of frames held still (bag_extract.STILL)
 EXAMPLES = "examples"  # the folder beside it of the few images kept whole
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")

@@ -1,6 +1,6 @@
 """A rig folder (``io.rig_dataset``) from a ROS 1 or ROS 2 bag with several cameras and LiDARs.
 
-Two streaming passes over the bag:
+Streaming passes over the bag:
 
 1. **Still poses, per camera.** Each image topic is examined on its own grid and grouped into still segments as
    for a single pair (``bag_extract``: its steadiest interior image, one per still pose, a pose already kept not
@@ -10,6 +10,9 @@ Two streaming passes over the bag:
 2. **Scans.** Each LiDAR topic's scan nearest to the frame's moment (the first camera's kept image), within the
    time the board stood still in every camera of the frame (plus ``max_dt_s``), is written for that frame. Only
    the best scan so far of the one frame in reach is held in memory.
+3. **The motion between the poses**, where the first camera saw the board move (``bag_extract.MOVED_TO_TIME``):
+   for each 3D LiDAR, the board followed in that camera's images and the LiDAR's sweeps (``bag_motion``) into the
+   LiDAR's folder (``lidar0/motion.npz``): ``calibrate`` times each LiDAR's clock against the camera's with it.
 
 A camera without a kept image in a frame did not see the board then (it has no file for that stem), and a LiDAR
 without a scan within reach has none either; ``extract.json`` says which sensor has which frame and why not.
@@ -30,10 +33,11 @@ import cv2
 from geometry.board import BoardModel
 
 from ..errors import BagError
-from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, SCAN_TYPE, ExtractOptions, _Check, _detect,
-                          _ImageGrid, _messages, _open_reader, _StillSegments, _camera_info_topic, _topic)
+from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, SCAN_TYPE, ExtractOptions, _between_poses, _Check,
+                          _detect, _ImageGrid, _messages, _open_reader, _StillSegments, _camera_info_topic, _topic)
 from .dataset import dataset_spec, write_dataset_yaml
 from .image_io import to_gray8
+from .motion_track import FOLLOWED_CAMERA
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
@@ -49,6 +53,9 @@ class RigExtractSummary:
     topics: dict
     files: dict
     counts: dict = field(default_factory=dict)
+    # Each LiDAR's board motion between the poses (followed with the first camera, or why not; none where the board
+    # did not move in view).
+    motion: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         out = [f"{self.frames} frames (one per still board pose, seen by any camera)"]
@@ -57,6 +64,8 @@ class RigExtractSummary:
             if name in self.counts:
                 c = self.counts[name]
                 line += f" ({c.get('kept', 0)} still poses of {sum(c.values())} images)"
+            if name in self.motion:
+                line += f"; motion between the poses {self.motion[name]}"
             out.append(line)
         return out
 
@@ -134,8 +143,8 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
             stage.mkdir()
             for name in list(cams) + list(lidars):
                 (tmp / name).mkdir()
-            kept, cameras, counts = _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options,
-                                                 stage, progress, tqdm)
+            kept, cameras, counts, segments = _still_poses(reader, bag, board, cams, img_conns, info, info_conns,
+                                                           options, stage, progress, tqdm)
             frames = _merge(kept)
             if not frames:
                 total = ", ".join(f"{n}: {sum(c.values())} images" for n, c in counts.items())
@@ -164,6 +173,14 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
                     raise BagError(f"topic {topic!r} has no scan while the board stood still in a camera", path=bag,
                                    hint="check that every sensor stamps with the same clock and recorded then")
             stage.rmdir()
+            # The board's motion between the poses, followed in the first camera with each LiDAR's sweeps into
+            # that LiDAR's folder: calibrate times each LiDAR's clock against the camera's with it.
+            motion = {name: _between_poses(reader, bag, tmp / name, board, cameras.get(FOLLOWED_CAMERA),
+                                           img_conns[FOLLOWED_CAMERA] + lidar_conns[name], cams[FOLLOWED_CAMERA],
+                                           topic, kind, segments[FOLLOWED_CAMERA], options, progress,
+                                           f"record CameraInfo beside {cams[FOLLOWED_CAMERA]}")
+                      for name, (topic, kind) in lidars.items()}
+            motion = {n: w for n, w in motion.items() if w is not None}
             spec = dataset_spec("3d", board, None)
             spec.pop("lidar")
             sensors = []
@@ -181,16 +198,18 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
                 "camera_info_topics": {n: t for n, t in info.items() if cameras.get(n) is not None},
                 "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
                             "still_px": options.still_px, "check_hz": options.check_hz},
-                "image_counts": counts, "files": files, "frames": records}, indent=1) + "\n")
+                "image_counts": counts, "files": files, "frames": records,
+                "motion_between_poses": {"camera": FOLLOWED_CAMERA, **motion} if motion else None}, indent=1)
+                + "\n")
     finally:
         reader.close()
     return RigExtractSummary(Path(out), len(frames), {**cams, **{n: t for n, (t, _) in lidars.items()}}, files,
-                             counts)
+                             counts, motion)
 
 
 def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options, stage, progress, tqdm):
     """Pass 1: each camera's kept still poses ``(first stamp, last stamp, kept stamp, staged file)``, its
-    intrinsics from CameraInfo (or None) and its images' counts by reason."""
+    intrinsics from CameraInfo (or None), its images' counts by reason and its still segments' record."""
     kept = {n: [] for n in cams}
     segments, grids = {}, {}
     for n in cams:
@@ -227,7 +246,7 @@ def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options,
         if grids[n].n == 0:
             raise BagError(f"topic {cams[n]!r} has no messages", path=bag, hint="check the recording")
     counts = {n: {k: int(v) for k, v in segments[n].counts.items() if v} for n in cams}
-    return kept, cameras, counts
+    return kept, cameras, counts, segments
 
 
 def _merge(kept: dict) -> list[_Frame]:

@@ -25,7 +25,7 @@ from geometry.rotations import T_inverse, T_log
 
 from ..errors import DegenerateLayoutError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
-from ..io.motion_track import has_motion, load_motion_track
+from ..io.motion_track import FOLLOWED_CAMERA, has_motion, load_motion_track
 from ..solvers.clock_offset import MAX_GAP_S, OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, \
     solve_clock_offset, still_runs
 from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \
@@ -71,12 +71,24 @@ class OffsetBetweenPoses:
                                        "own_time_offset_s": self.motion_offset_s,
                                        "own_time_offset_std_s": self.motion_offset_std_s}}
 
-    def line(self) -> str:
-        """The printout's line."""
-        head = "time offset (t_camera_stamp - t_lidar_stamp): "
+    def line(self, camera: str = "camera", lidar: str = "lidar") -> str:
+        """The printout's line (a rig's: its sensors named)."""
+        head = f"time offset (t_{camera}_stamp - t_{lidar}_stamp): "
         if self.time_offset_s is None:
             return head + self.words
         return head + f"{1000 * self.time_offset_s:+.2f} +- {1000 * self.time_offset_std_s:.2f} ms ({self.words})"
+
+
+def time_offsets_keys(offsets: dict) -> dict:
+    """A rig's calibration.json keys for its LiDARs' clock offsets (``lidar -> OffsetBetweenPoses``): each against
+    the camera that followed the board (``io.motion_track.FOLLOWED_CAMERA``), None where not determined, with how
+    it was found or why not."""
+    return {"time_offsets_s": {n: o.time_offset_s for n, o in offsets.items()},
+            "time_offsets_std_s": {n: o.time_offset_std_s for n, o in offsets.items()},
+            "time_offsets_reference": FOLLOWED_CAMERA,
+            "time_offsets_convention": f"t_{FOLLOWED_CAMERA}_stamp - t_<sensor>_stamp for one instant (seconds)",
+            "time_offsets_source": {n: o.words for n, o in offsets.items()},
+            "time_offsets_motion": {n: o.to_dict()["time_offset_motion"] for n, o in offsets.items()}}
 
 
 def moving_sweeps(views: list, sweeps: list, extent: tuple[float, float]) -> list:
@@ -94,13 +106,21 @@ def moving_sweeps(views: list, sweeps: list, extent: tuple[float, float]) -> lis
 
 
 def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, covariance: np.ndarray,
-                         rng: np.random.Generator) -> OffsetBetweenPoses | None:
+                         rng: np.random.Generator, sensors: tuple | None = None) -> OffsetBetweenPoses | None:
     """The clocks' offset of a still-pose dataset folder from its ``motion.npz`` (see the module), read at the
-    poses' estimate ``T_camera_lidar`` (6x6 ``covariance``); None when the folder holds no motion."""
-    root, ypath, spec = read_dataset_yaml(folder)
-    if not has_motion(root) or not isinstance(spec, dict) or spec.get("camera") is None:
-        return None
-    board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
+    poses' estimate ``T_camera_lidar`` (6x6 ``covariance``); None when the folder holds no motion. A rig's LiDAR
+    keeps the motion it swept in its own folder (``folder``: ``RIG/lidar0``), its camera's corners the first
+    camera's: ``sensors`` then gives the board and that camera's model, which a pair's folder's dataset.yaml
+    gives."""
+    if sensors is None:
+        root, ypath, spec = read_dataset_yaml(folder)
+        if not has_motion(root) or not isinstance(spec, dict) or spec.get("camera") is None:
+            return None
+        board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
+    else:
+        root, (board, camera) = folder, sensors
+        if not has_motion(root) or camera is None:
+            return None
     track = load_motion_track(root)
     if track.corners_px.shape[1] != len(board.inner_corners()):
         return OffsetBetweenPoses(None, None, "not determined: motion.npz was read with another board")

@@ -19,6 +19,7 @@ from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
+from .offset_between_poses import time_offsets_keys
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION, frame_dict
 from .rig_measurement import MIN_PAIR_FRAMES
@@ -97,9 +98,17 @@ class RigResult:
     intrinsics_checks: dict = field(default_factory=dict)
     # Each camera-LiDAR pair's own solve (``(camera, lidar) -> CalibrationResult``, ``rig_calibration.PairsAlone``).
     pair_results: dict = field(default_factory=dict)
-    # A still-pose recording's clock offset from its board's motion between the poses
-    # (``offset_between_poses.OffsetBetweenPoses``; a pair folder with ``motion.npz``), else None.
-    time_offset: object = None
+    # A still-pose recording's clock offsets from its board's motion between the poses: each 3D LiDAR's against the
+    # camera that followed the board (``lidar -> offset_between_poses.OffsetBetweenPoses``; a pair folder's
+    # ``motion.npz``, a rig's ``lidar0/motion.npz``: ``rig_calibration._with_time_offset``).
+    time_offsets: dict = field(default_factory=dict)
+
+    @property
+    def time_offset(self):
+        """A pair folder's clock offset (``OffsetBetweenPoses``), None for a rig of more sensors or without one."""
+        if len(self.rig.cameras) == 1 and len(self.rig.lidars) == 1:
+            return self.time_offsets.get(self.rig.lidars[0].name)
+        return None
 
     def pair(self, a: str, b: str) -> PairEstimate:
         """Sensors ``a`` and ``b``'s :class:`PairEstimate` from the joint solution (``result.pair("cam0",
@@ -352,6 +361,8 @@ class RigResult:
             pair = self.pair_keys(self.rig.cameras[0].name, self.rig.lidars[0].name)
             if self.time_offset is not None:
                 pair.update(self.time_offset.to_dict())
+        elif self.time_offsets:
+            pair.update(time_offsets_keys(self.time_offsets))
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}

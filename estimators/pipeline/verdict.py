@@ -335,8 +335,10 @@ def rig_verdict(result) -> Verdict:
                              result.solution.chi2_dof.get(c.name, (0.0, 0.0)))
     for (c, lid), modes in result.ambiguous_pairs.items():
         concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards", post is not None and (c, lid) in post.mixed)
-    if getattr(result.time_offset, "disagrees", False):
-        concerns.append((CHECK, f"the board's motion between the poses gives another extrinsic (chi-square "
-                                f"{result.time_offset.disagreement_chi2:.0f}, 6 dof): one of the two is off; look at "
-                                "the overlays and record more poses"))
+    pair = len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1
+    for name, offset in result.time_offsets.items():
+        if offset.disagrees:
+            concerns.append((CHECK, ("" if pair else f"{name}: ") + "the board's motion between the poses gives "
+                                    f"another extrinsic (chi-square {offset.disagreement_chi2:.0f}, 6 dof): one of "
+                                    "the two is off; look at the overlays and record more poses"))
     return verdict_of(concerns)
