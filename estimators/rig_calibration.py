@@ -602,8 +602,7 @@ def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:
     offsets = {}
     for name, folder in folders.items():
         p = result.pair(camera.name, name)
-        offsets[name] = offset_between_poses(folder, p.T, p.covariance, rng,
-                                             None if pair else (rig.board, camera.camera))
+        offsets[name] = offset_between_poses(folder, rig.board, camera.camera, p.T, p.covariance, rng)
     return replace(result, time_offsets={n: o for n, o in offsets.items() if o is not None},
                    timings_s={**result.timings_s, "time_offset": round(time.perf_counter() - t0, 3)})
 

@@ -24,7 +24,6 @@ from scipy.stats import chi2
 from geometry.rotations import T_inverse, T_log
 
 from ..errors import DegenerateLayoutError
-from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import FOLLOWED_CAMERA, has_motion, load_motion_track
 from ..solvers.clock_offset import MAX_GAP_S, OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, \
     solve_clock_offset, still_runs
@@ -105,23 +104,15 @@ def moving_sweeps(views: list, sweeps: list, extent: tuple[float, float]) -> lis
         (moved >= s.times_s.min() - reach) & (moved <= s.times_s.max() + reach))]
 
 
-def offset_between_poses(folder: str | os.PathLike, T_camera_lidar: np.ndarray, covariance: np.ndarray,
-                         rng: np.random.Generator, sensors: tuple | None = None) -> OffsetBetweenPoses | None:
-    """The clocks' offset of a still-pose dataset folder from its ``motion.npz`` (see the module), read at the
-    poses' estimate ``T_camera_lidar`` (6x6 ``covariance``); None when the folder holds no motion. A rig's LiDAR
-    keeps the motion it swept in its own folder (``folder``: ``RIG/lidar0``), its camera's corners the first
-    camera's: ``sensors`` then gives the board and that camera's model, which a pair's folder's dataset.yaml
-    gives."""
-    if sensors is None:
-        root, ypath, spec = read_dataset_yaml(folder)
-        if not has_motion(root) or not isinstance(spec, dict) or spec.get("camera") is None:
-            return None
-        board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
-    else:
-        root, (board, camera) = folder, sensors
-        if not has_motion(root) or camera is None:
-            return None
-    track = load_motion_track(root)
+def offset_between_poses(folder: str | os.PathLike, board, camera, T_camera_lidar: np.ndarray,
+                         covariance: np.ndarray, rng: np.random.Generator) -> OffsetBetweenPoses | None:
+    """The clocks' offset of a still-pose recording from the ``motion.npz`` in ``folder`` (see the module; a
+    pair's dataset folder, or a rig's LiDAR's folder, ``RIG/lidar0``), the board followed in ``camera``'s images,
+    read at the poses' estimate ``T_camera_lidar`` (6x6 ``covariance``); None when the folder holds no motion or
+    the camera has no intrinsics."""
+    if not has_motion(folder) or camera is None:
+        return None
+    track = load_motion_track(folder)
     if track.corners_px.shape[1] != len(board.inner_corners()):
         return OffsetBetweenPoses(None, None, "not determined: motion.npz was read with another board")
     views = board_views(track, board, camera)
