@@ -4,6 +4,11 @@ continuous recording; the exposure's motion blur as the mean of the board drawn 
 A second image generator beside ``rendering`` (which casts rays through a whole scene): a grey background, the
 board's white outline and its black squares, each square's sides cut into pieces so that the lens' distortion
 bends them. Checkerboards only (a ChArUco board's markers are ``rendering``'s).
+
+OpenCV's anti-aliased fill smooths an edge only along the image's rows: drawn at the image's own size, every edge's
+height is rounded to a whole row, which moves each corner's ``v`` by up to half a pixel (sd 0.29 px, the same for
+every corner of one row of a level board). The board is therefore drawn on ``ROWS_PER_PIXEL`` rows per pixel and
+the rows averaged (sd 0.07 px left; 0.05 along the rows).
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ from geometry.rotations import transform_points
 # Drawing subpixel precision: coordinates in 1/16 px (cv2's ``shift``).
 _SHIFT = 4
 BACKGROUND, WHITE, BLACK = 110.0, 215.0, 25.0
+ROWS_PER_PIXEL = 4
 
 
 def _outline(x0: float, y0: float, x1: float, y1: float, pieces: int) -> np.ndarray:
@@ -45,16 +51,20 @@ def draw_board(camera: CameraModel, board: BoardModel, poses: np.ndarray, rng: n
     """An 8-bit greyscale image of the board at ``poses`` (``T_camera_board``, (k, 4, 4)): the mean of the board
     drawn at each (k instants across the exposure: its motion blur), with Gaussian pixel noise."""
     outline, squares = _board_polygons(board, pieces)
-    acc = np.zeros((camera.height, camera.width), np.float32)
+    S = ROWS_PER_PIXEL
+    acc = np.zeros((camera.height * S, camera.width), np.float32)
     for T in np.asarray(poses).reshape(-1, 4, 4):
-        img = np.full((camera.height, camera.width), BACKGROUND, np.uint8)
+        img = np.full(acc.shape, BACKGROUND, np.uint8)
         polys = [outline] + squares
         pts = [camera.project(transform_points(T, p)) for p in polys]
         if all(np.all(np.isfinite(p)) for p in pts):
-            fixed = [np.round(np.clip(p, -1e4, 1e4) * (1 << _SHIFT)).astype(np.int32) for p in pts]
+            # Pixel v spans [v - 1/2, v + 1/2): on the fine rows its centre row is (v + 1/2) S - 1/2.
+            pts = [np.column_stack([p[:, 0], (p[:, 1] + 0.5) * S - 0.5]) for p in pts]
+            fixed = [np.round(np.clip(p, -1e5, 1e5) * (1 << _SHIFT)).astype(np.int32) for p in pts]
             cv2.fillPoly(img, fixed[:1], WHITE, cv2.LINE_AA, _SHIFT)
             cv2.fillPoly(img, fixed[1:], BLACK, cv2.LINE_AA, _SHIFT)
         acc += img
+    acc = acc.reshape(camera.height, S, camera.width).mean(axis=1)
     acc /= max(len(np.asarray(poses).reshape(-1, 4, 4)), 1)
     acc = cv2.GaussianBlur(acc, (0, 0), 0.5) + rng.normal(0.0, pixel_noise, acc.shape).astype(np.float32)
     return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
