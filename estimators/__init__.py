@@ -18,8 +18,10 @@ Real rigs: ``extract_bag`` (a dataset folder from a ROS 1 / ROS 2 bag), ``export
 ``write_export`` (ROS tf, URDF, KITTI, OpenCV YAML, JSON), ``load_calibration``.
 Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig`` (``calibrate``'s engine, from a loaded rig),
 ``write_rig_calibration``, ``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and
-LiDARs). ``calibrate`` takes a pair folder as the rig of ``cam0`` and ``lidar0``; the pair's own solve, which starts
-each camera-LiDAR pair of the engine, is ``calibrate_pair`` (or ``solve`` on measured frames: a ``CalibrationResult``).
+LiDARs). A moving board's folder (``motion.npz``, from ``extract_bag``): ``calibrate_moving``, a rig's
+``calibrate_moving_rig`` (the extrinsic and the clocks' offset, each LiDAR against the first camera).
+``calibrate`` takes a pair folder as the rig of ``cam0`` and ``lidar0``; the pair's own solve, which starts each
+camera-LiDAR pair of the engine, is ``calibrate_pair`` (or ``solve`` on measured frames: a ``CalibrationResult``).
 Names are imported on first use, so that ``import estimators`` stays light.
 """
 
@@ -62,6 +64,8 @@ _API = {
     "write_rig_calibration": ("pipeline.rig_result", "write_rig_calibration"),
     "simulate_rig": ("simulation.rig_simulator", "simulate_rig"),
     "extract_rig_bag": ("io.rig_bag_extract", "extract_rig_bag"),
+    "calibrate_moving": ("pipeline.moving_board", "calibrate_moving"),
+    "calibrate_moving_rig": ("pipeline.moving_rig", "calibrate_moving_rig"),
 }
 __all__ = ["__version__", *_API]
 

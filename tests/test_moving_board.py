@@ -261,6 +261,42 @@ def test_a_rig_bag_times_each_lidar_against_the_first_camera(tmp_path, capsys):
     assert "time_offsets_s:" in export_calibration(written, "opencv-yaml")
 
 
+def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(tmp_path, capsys):
+    """One camera and two LiDARs (the camera's clock 30 ms behind lidar0's, 45 ms ahead of lidar1's), 8 s of a board
+    waved throughout: extracted as a moving board's rig (each LiDAR's motion.npz), calibrated by ``calibrate``: each
+    LiDAR's offset against cam0 within 4 of its standard deviations and 4 ms of the truth, each extrinsic within
+    its covariance's 0.999 region (NEES below 22.5, 6 dof); the two LiDARs' transform composed through the camera;
+    the report's pages and the exports' offsets."""
+    rig = _small_rig(7)
+    turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(-15.0)]), [0.2, -0.1, 0.05])
+    other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
+    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 8.0, np.random.default_rng(7), time_offset_s=-0.03,
+                    speed_mps=0.6, turn_dps=50.0, more_lidars=(("/points1", other, 0.045),))
+    topics = ["--image-topic", "/camera/image_raw", "--cloud-topic", "/points", "--cloud-topic", "/points1"]
+    assert main(["extract", str(tmp_path / "bag.bag"), *topics, "--board", BOARD, "--out", str(tmp_path / "rig")]) == 0
+    assert capsys.readouterr().out.startswith("a moving board")
+    assert json.loads((tmp_path / "rig" / "extract.json").read_text())["recording"] == "moving board"
+    assert main(["calibrate", str(tmp_path / "rig"), "--out", str(tmp_path / "cal")]) == 0
+    out = capsys.readouterr().out
+    cal = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    assert cal["rig"] and cal["recording"] == "moving board" and cal["time_offsets_reference"] == "cam0"
+    truth = {"lidar0": (rig.T_camera_lidar, -0.03), "lidar1": (other.T_camera_lidar, 0.045)}
+    for s in cal["sensors"][1:]:
+        T, offset = truth[s["name"]]
+        value, sd = cal["time_offsets_s"][s["name"]], cal["time_offsets_std_s"][s["name"]]
+        assert abs(value - offset) <= min(SIGMAS * sd, OFFSET_MS * 1e-3), (s["name"], value, sd)
+        xi = T_log(T_inverse(np.array(s[f"T_cam0_{s['name']}"])) @ T)
+        assert np.degrees(np.linalg.norm(xi[:3])) < ROT_DEG and xi @ np.linalg.solve(s["covariance"], xi) < 22.5
+        assert f"time offset (t_cam0_stamp - t_{s['name']}_stamp)" in out
+    between = np.array(cal["transforms"]["T_lidar0_lidar1"]["T"])
+    assert np.allclose(between, T_inverse(np.array(cal["sensors"][1]["T_cam0_lidar0"])) @
+                       np.array(cal["sensors"][2]["T_cam0_lidar1"]))
+    assert all((tmp_path / "cal" / p).is_file() for p in ("report.html", "lidar0/report.html", "lidar1/report.html"))
+    from estimators.io.export import export_calibration
+
+    assert "# The clocks' offset t_cam0_stamp - t_lidar1_stamp: 0.04" in export_calibration(tmp_path / "cal", "ros-tf")
+
+
 def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(waved, capsys, tmp_path):
     """``extract --intrinsics`` (here ROS camera_calibration's YAML of the simulated camera) is used instead of the
     bag's CameraInfo, and a moving board is followed with it; intrinsics of another resolution are refused in one

@@ -76,3 +76,21 @@ def write_moving_report(result, out: str | Path) -> Path:
         parts.append(f"<h3>t = {stamp:.2f} s: {drawn} returns</h3><img src='{name}'>")
     page = html_page("lidarcam moving board report", parts)
     return write_atomic(out / "report.html", lambda fh: fh.write(page))
+
+
+def write_moving_rig_report(result, out: str | Path) -> list[Path]:
+    """A moving board's rig (``pipeline.moving_rig``): each LiDAR's report in ``out/<lidar>/``, and
+    ``out/report.html`` with the rig's verdict, each LiDAR's offset and a link to its page."""
+    out = Path(out)
+    pages = [write_moving_report(r, out / name) for name, r in result.lidars.items()]
+    rows = "".join(
+        f"<tr><td><a href='{name}/report.html'>{name}</a></td><td>{html.escape(r.verdict.level)}</td>"
+        f"<td>{1000 * r.time_offset_s:+.2f}" + ("" if r.time_offset_std_s is None else
+                                                 f" +- {1000 * r.time_offset_std_s:.2f}") + " ms</td></tr>"
+        for name, r in result.lidars.items())
+    parts = ["<h1>lidarcam report: a moving board's rig</h1>", verdict_part(result),
+             f"<p>dataset: {html.escape(result.dataset)}; each LiDAR solved against {result.camera}.</p>",
+             f"<table><tr><th>LiDAR</th><th>verdict</th><th>t_{result.camera}_stamp - t_lidar_stamp</th></tr>"
+             f"{rows}</table>"]
+    page = html_page("lidarcam moving board rig report", parts)
+    return [write_atomic(out / "report.html", lambda fh: fh.write(page))] + pages

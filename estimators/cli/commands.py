@@ -64,19 +64,24 @@ def _calibrate_moving(args) -> int:
     import numpy as np
 
     from ..io.output import write_json_atomic
+    from ..io.rig_dataset import is_rig
     from ..pipeline.moving_board import calibrate_moving
+    from ..pipeline.moving_rig import calibrate_moving_rig
     from .printing import print_moving
 
     _refuse_ignored(args, [f"--{k.replace('_', '-')}" for k in _given_options(args) if k not in MOVING_TAKES],
                     "a moving board's recording (motion.npz)", "calibrate without it")
-    result = calibrate_moving(args.dataset, np.random.default_rng(args.seed), args.time_offset)
+    rig = is_rig(args.dataset)
+    result = (calibrate_moving_rig if rig else calibrate_moving)(args.dataset, np.random.default_rng(args.seed),
+                                                                 args.time_offset)
     path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
     print_moving(result)
     print(f"wrote {path}")
     if not args.no_report:
-        from ..analysis.moving_report import write_moving_report
+        from ..analysis.moving_report import write_moving_report, write_moving_rig_report
 
-        print(f"wrote {write_moving_report(result, args.out)}")
+        page = write_moving_rig_report(result, args.out)[0] if rig else write_moving_report(result, args.out)
+        print(f"wrote {page}")
     export_hint(path)
     return exit_code(args, result)
 

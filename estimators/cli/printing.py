@@ -266,22 +266,30 @@ def export_hint(path) -> None:
 
 def print_moving(result) -> None:
     """A moving board's calibration: the verdict, ``T_camera_lidar`` with its standard deviations, the clocks'
-    offset, and what was used."""
-    p = result.pair
+    offset, and what was used; a rig's (``pipeline.moving_rig``): its verdict, then each LiDAR's."""
     print(result.verdict.line)
+    if hasattr(result, "lidars"):
+        for name, r in result.lidars.items():
+            print(f"\n{name} against {result.camera}: {r.verdict.line}")
+            _print_moving_pair(r, result.camera, name)
+        return
+    _print_moving_pair(result, "camera", "lidar")
+
+
+def _print_moving_pair(result, camera: str, lidar: str) -> None:
+    p = result.pair
     print(f"recording: moving board; {result.views} images and {result.sweeps} of {result.sweeps_recorded} LiDAR "
           f"sweeps used (returns timed by {result.point_times or 'their sweep'})")
-    print("T_camera_lidar (p_camera = R p_lidar + t):")
+    print(f"T_{camera}_{lidar} (p_{camera} = R p_{lidar} + t):")
     _print_matrix(p.T)
     print("  t = (" + ", ".join(f"{1000 * v:.1f}" for v in p.T[:3, 3]) + ") +- ("
           + ", ".join(f"{v:.1f}" for v in p.std_translation_camera_mm) + ") mm, rotation sd ("
           + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg (Laplace, with the camera's pointing: "
           "docs/bench/moving_bag.md)")
+    what = f"time offset (t_{camera}_stamp - t_{lidar}_stamp)"
     if result.time_offset_std_s is None:
-        print(f"time offset (t_camera_stamp - t_lidar_stamp): held at {1000 * result.time_offset_s:+.2f} ms "
-              "(--time-offset)")
+        print(f"{what}: held at {1000 * result.time_offset_s:+.2f} ms (--time-offset)")
     else:
-        print(f"time offset (t_camera_stamp - t_lidar_stamp): {1000 * result.time_offset_s:+.2f} +- "
-              f"{1000 * result.time_offset_std_s:.2f} ms")
+        print(f"{what}: {1000 * result.time_offset_s:+.2f} +- {1000 * result.time_offset_std_s:.2f} ms")
     print(f"board returns against the board where the camera saw it: {1000 * result.rms_m:.1f} mm RMS along the "
           "beams")

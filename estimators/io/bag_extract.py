@@ -39,7 +39,7 @@ from .dataset import dataset_spec, write_dataset_yaml
 from .bag_motion import REASONS as MOVING_REASONS
 from .bag_motion import MovingBoardReader
 from .image_io import to_gray8
-from .motion_track import EXAMPLES, STILL_POSES, save_motion_track
+from .motion_track import EXAMPLES, MOVING_BOARD, STILL_POSES, save_motion_track
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import (camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, decode_point_times,
@@ -54,7 +54,7 @@ DETECT_MAX_SIDE = 960
 MAX_PENDING_IMAGES = 64
 # The recording's kind: still poses (one frame each), or a board that moves (every image and sweep used). A bag is
 # read as moving when the board moved between at least this share of the examined images that show it.
-STILL, MOVING = STILL_POSES, "moving board"
+STILL, MOVING = STILL_POSES, MOVING_BOARD
 MOVING_SHARE = 0.6
 # The still reading stops early when, before any still pose, the board moved between this share of the first
 # EARLY_IMAGES examined images that show it (5 s at --check-hz 5): the bag is then read as a moving board.

@@ -24,6 +24,7 @@ FILE = "motion.npz"
 # board in, for every 3D LiDAR's motion.npz (in the LiDAR's folder); their clock offsets are against its clock.
 FOLLOWED_CAMERA = "cam0"
 STILL_POSES = "still poses"  # extract.json's recording of frames held still (bag_extract.STILL)
+MOVING_BOARD = "moving board"  # and of a board that moves throughout (bag_extract.MOVING)
 EXAMPLES = "examples"  # the folder beside it of the few images kept whole
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
 
@@ -73,8 +74,9 @@ class MotionTrack:
 
 def is_moving_dataset(folder: str | os.PathLike) -> bool:
     """Whether a dataset folder is a moving board's record: ``motion.npz``, and not beside still poses' frames (a
-    still-pose recording's motion between its poses, which only times the clocks: :func:`has_motion`)."""
-    return has_motion(folder) and _recording(folder) != STILL_POSES
+    still-pose recording's motion between its poses, which only times the clocks: :func:`has_motion`); or a rig
+    folder extracted from such a recording (each LiDAR's ``motion.npz`` in its own folder)."""
+    return (has_motion(folder) and _recording(folder) != STILL_POSES) or _recording(folder) == MOVING_BOARD
 
 
 def has_motion(folder: str | os.PathLike) -> bool:

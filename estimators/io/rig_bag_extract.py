@@ -14,6 +14,11 @@ Streaming passes over the bag:
    for each 3D LiDAR, the board followed in that camera's images and the LiDAR's sweeps (``bag_motion``) into the
    LiDAR's folder (``lidar0/motion.npz``): ``calibrate`` times each LiDAR's clock against the camera's with it.
 
+A board that moves throughout (between ``bag_extract.MOVING_SHARE`` of the first camera's examined images) makes
+the bag a moving board's rig: no frames; pass 3 follows the whole recording, for each 3D LiDAR, and ``calibrate``
+solves each LiDAR's extrinsic and clock offset against that camera (``pipeline.moving_rig``). It takes one camera
+(the others' poses need still boards) and 3D LiDARs only.
+
 A camera without a kept image in a frame did not see the board then (it has no file for that stem), and a LiDAR
 without a scan within reach has none either; ``extract.json`` says which sensor has which frame and why not.
 Sensors are named ``cam0..``, ``lidar0..`` (clouds) and ``scan0..`` (2D scans) in the order their topics are
@@ -25,6 +30,7 @@ from __future__ import annotations
 import bisect
 import json
 import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,11 +39,12 @@ import cv2
 from geometry.board import BoardModel
 
 from ..errors import BagError
-from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, SCAN_TYPE, ExtractOptions, _between_poses, _Check,
-                          _detect, _ImageGrid, _messages, _open_reader, _StillSegments, _camera_info_topic, _topic)
+from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, MOVING, MOVING_SHARE, SCAN_TYPE, STILL, ExtractOptions,
+                          _between_poses, _Check, _detect, _follow, _ImageGrid, _messages, _open_reader,
+                          _StillSegments, _camera_info_topic, _topic)
 from .dataset import dataset_spec, write_dataset_yaml
 from .image_io import to_gray8
-from .motion_track import FOLLOWED_CAMERA
+from .motion_track import FOLLOWED_CAMERA, save_motion_track
 from .output import atomic_directory
 from .pointcloud_io import write_scan, write_scan_2d
 from .ros_messages import camera_from_info, decode_image, decode_laser_scan, decode_point_cloud, stamp_ns
@@ -54,10 +61,17 @@ class RigExtractSummary:
     files: dict
     counts: dict = field(default_factory=dict)
     # Each LiDAR's board motion between the poses (followed with the first camera, or why not; none where the board
-    # did not move in view).
+    # did not move in view); a moving board's: throughout.
     motion: dict = field(default_factory=dict)
+    recording: str = STILL
 
     def lines(self) -> list[str]:
+        if self.recording == MOVING:
+            out = [f"a moving board (read as one, every image of {FOLLOWED_CAMERA} and every sweep of each LiDAR)"]
+            out += [f"  {name:8s} {topic}: " + (self.motion[name] if name in self.motion else
+                                                 f"{sum(self.counts.get(name, {}).values())} images examined")
+                    for name, topic in self.topics.items()]
+            return out
         out = [f"{self.frames} frames (one per still board pose, seen by any camera)"]
         for name, topic in self.topics.items():
             line = f"  {name:8s} {topic}: {self.files[name]} files"
@@ -145,6 +159,16 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
                 (tmp / name).mkdir()
             kept, cameras, counts, segments = _still_poses(reader, bag, board, cams, img_conns, info, info_conns,
                                                            options, stage, progress, tqdm)
+            seen = segments[FOLLOWED_CAMERA]
+            if options.follow_motion and seen.with_board >= 10 and seen.moved >= MOVING_SHARE * seen.with_board:
+                shutil.rmtree(stage)
+                motion = _moving_rig(reader, bag, tmp, board, cameras, cams, lidars, img_conns, lidar_conns, seen,
+                                     progress)
+                _write_rig_records(tmp, bag, board, cams, cameras, lidars, info, {
+                    "recording": MOVING, "image_counts": counts, "motion": motion})
+                return RigExtractSummary(Path(out), 0, {**cams, **{n: t for n, (t, _) in lidars.items()}},
+                                         {n: 0 for n in list(cams) + list(lidars)}, counts,
+                                         {n: _followed_words(m) for n, m in motion.items()}, MOVING)
             frames = _merge(kept)
             if not frames:
                 total = ", ".join(f"{n}: {sum(c.values())} images" for n, c in counts.items())
@@ -181,30 +205,73 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
                                            f"record CameraInfo beside {cams[FOLLOWED_CAMERA]}")
                       for name, (topic, kind) in lidars.items()}
             motion = {n: w for n, w in motion.items() if w is not None}
-            spec = dataset_spec("3d", board, None)
-            spec.pop("lidar")
-            sensors = []
-            for n in cams:
-                entry = {"name": n, "type": "camera"}
-                if cameras.get(n) is not None:
-                    entry.update(dataset_spec("3d", board, cameras[n])["camera"])
-                sensors.append(entry)
-            sensors += [{"name": n, "type": "lidar", "lidar": kind} for n, (_, kind) in lidars.items()]
-            spec.update({"sensors": sensors, "reference": "cam0"})
-            write_dataset_yaml(tmp, spec, f"extracted by lidarcam from {bag.name}: " + ", ".join(
-                f"{n} {t}" for n, t in list(cams.items()) + [(n, t) for n, (t, _) in lidars.items()]))
-            (tmp / "extract.json").write_text(json.dumps({
-                "bag": str(bag), "topics": {**cams, **{n: t for n, (t, _) in lidars.items()}},
-                "camera_info_topics": {n: t for n, t in info.items() if cameras.get(n) is not None},
-                "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
-                            "still_px": options.still_px, "check_hz": options.check_hz},
+            _write_rig_records(tmp, bag, board, cams, cameras, lidars, info, {
+                "recording": STILL, "options": {"max_dt_s": options.max_dt_s, "still_s": options.still_s,
+                                                "still_px": options.still_px, "check_hz": options.check_hz},
                 "image_counts": counts, "files": files, "frames": records,
-                "motion_between_poses": {"camera": FOLLOWED_CAMERA, **motion} if motion else None}, indent=1)
-                + "\n")
+                "motion_between_poses": {"camera": FOLLOWED_CAMERA, **motion} if motion else None})
     finally:
         reader.close()
     return RigExtractSummary(Path(out), len(frames), {**cams, **{n: t for n, (t, _) in lidars.items()}}, files,
                              counts, motion)
+
+
+def _write_rig_records(tmp: Path, bag: Path, board: BoardModel, cams: dict, cameras: dict, lidars: dict, info: dict,
+                       record: dict) -> None:
+    """The rig folder's dataset.yaml (every sensor, each camera's intrinsics where known) and extract.json (the
+    topics and ``record``)."""
+    spec = dataset_spec("3d", board, None)
+    spec.pop("lidar")
+    sensors = []
+    for n in cams:
+        entry = {"name": n, "type": "camera"}
+        if cameras.get(n) is not None:
+            entry.update(dataset_spec("3d", board, cameras[n])["camera"])
+        sensors.append(entry)
+    sensors += [{"name": n, "type": "lidar", "lidar": kind} for n, (_, kind) in lidars.items()]
+    spec.update({"sensors": sensors, "reference": "cam0"})
+    write_dataset_yaml(tmp, spec, f"extracted by lidarcam from {bag.name}: " + ", ".join(
+        f"{n} {t}" for n, t in list(cams.items()) + [(n, t) for n, (t, _) in lidars.items()]))
+    (tmp / "extract.json").write_text(json.dumps({
+        "bag": str(bag), "topics": {**cams, **{n: t for n, (t, _) in lidars.items()}},
+        "camera_info_topics": {n: t for n, t in info.items() if cameras.get(n) is not None}, **record}, indent=1)
+        + "\n")
+
+
+def _moving_rig(reader, bag: Path, tmp: Path, board: BoardModel, cameras: dict, cams: dict, lidars: dict,
+                img_conns: dict, lidar_conns: dict, seen, progress: bool) -> dict:
+    """A board that moves throughout: for each 3D LiDAR, every image of the first camera and every sweep read into
+    the LiDAR's folder (``motion.npz``); what was read per LiDAR. A :class:`BagError` for a second camera, a 2D
+    scanner or the first camera's intrinsics unknown."""
+    cam = FOLLOWED_CAMERA
+    share = f"it moved between {seen.moved} of the {seen.with_board} examined images of {cams[cam]} that show it"
+    if len(cams) > 1:
+        raise BagError(f"the board moves throughout ({share}), and a moving board's rig is read with one camera",
+                       path=bag, hint="give the first camera's --image-topic alone with the LiDARs' topics (the "
+                                      "other cameras need the board held still per pose)")
+    scanners = [t for t, kind in lidars.values() if kind != "3d"]
+    if scanners:
+        raise BagError(f"the board moves throughout ({share}), and a moving board needs a 3D LiDAR's sweeps: "
+                       f"{', '.join(scanners)} is a 2D scanner", path=bag,
+                       hint="with a 2D scanner hold the board still for --still-s seconds per pose")
+    if cameras.get(cam) is None:
+        raise BagError(f"the board moves throughout ({share}), and following it needs the camera's intrinsics: the "
+                       f"bag has no CameraInfo beside {cams[cam]}", path=bag,
+                       hint="record the camera's CameraInfo, or hold the board still per pose")
+    motion = {}
+    for name, (topic, _) in lidars.items():
+        track, counts, images = _follow(reader, bag, tmp / name, board, cameras[cam], img_conns[cam] +
+                                        lidar_conns[name], cams[cam], topic, progress)
+        save_motion_track(tmp / name, track)
+        motion[name] = {"images": images, "counts": counts, "images_kept": len(track.view_stamps_s),
+                        "sweeps_kept": len(track.sweep_stamps_s), "point_times": track.point_times,
+                        "origin_ns": track.origin_ns}
+    return motion
+
+
+def _followed_words(m: dict) -> str:
+    return (f"{m['sweeps_kept']} sweeps and {m['images_kept']} of {m['images']} images that show the board kept "
+            f"(motion.npz; returns timed by {m['point_times'] or 'their sweep'})")
 
 
 def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options, stage, progress, tqdm):

@@ -142,7 +142,7 @@ def _sensor_files(folder: Path, suffixes: tuple[str, ...], ypath: Path) -> tuple
     return tuple(sorted(found.items()))
 
 
-def load_rig(path: str | os.PathLike) -> RigDataset:
+def load_rig(path: str | os.PathLike, files: bool = True) -> RigDataset:
     """Read a rig folder's ``dataset.yaml`` and list each sensor's files (module docstring).
 
     Parameters
@@ -150,6 +150,8 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
     path : str or os.PathLike
         The rig folder: ``dataset.yaml`` with ``sensors:`` and a folder of files per sensor; or a single
         camera-LiDAR dataset folder, read as the rig of ``cam0`` and ``lidar0`` (:meth:`RigDataset.of_pair`).
+    files : bool
+        False: the sensors alone, their folders not listed (a moving board's rig: each LiDAR's ``motion.npz``).
 
     Returns
     -------
@@ -196,8 +198,8 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
             if camera is None and set(body) - {"model"}:
                 raise DatasetError(f"camera {name!r} has intrinsics without K", path=ypath,
                                    hint="give K, width and height (and dist), or none to calibrate them")
-            files = _sensor_files(root / name, IMAGE_SUFFIXES, ypath)
-            sensors.append(Sensor(name, kind, camera=camera, files=files))
+            listed = _sensor_files(root / name, IMAGE_SUFFIXES, ypath) if files else ()
+            sensors.append(Sensor(name, kind, camera=camera, files=listed))
         else:
             extra = set(entry) - {"name", "type", "lidar", "family", "range_accuracy_m"}
             if extra:
@@ -205,9 +207,10 @@ def load_rig(path: str | os.PathLike) -> RigDataset:
                                    hint="a LiDAR takes lidar (3d or 2d), family, range_accuracy_m")
             lidar, family, accuracy = _parse_lidar({"type": entry.get("lidar", "3d"), "family": entry.get("family"),
                                                     "range_accuracy_m": entry.get("range_accuracy_m")}, ypath)
-            files = _sensor_files(root / name, SCAN_2D_SUFFIXES if lidar == "2d" else SCAN_SUFFIXES, ypath)
+            listed = _sensor_files(root / name, SCAN_2D_SUFFIXES if lidar == "2d" else SCAN_SUFFIXES, ypath) \
+                if files else ()
             sensors.append(Sensor(name, kind, lidar=lidar, lidar_family=family, range_accuracy_m=accuracy,
-                                  files=files))
+                                  files=listed))
     reference = spec.get("reference", sensors[0].name)
     if reference not in names:
         raise DatasetError(f"reference {reference!r} is not a sensor", path=ypath,

@@ -165,26 +165,54 @@ def normal_spread(track: MotionTrack) -> float:
 
 def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None
                      ) -> MovingBoardResult:
-    """The extrinsic and the clocks' offset of a moving board's dataset folder (``motion.npz``); ``time_offset_s``:
-    the offset held at this value (s) instead of solved."""
+    """The extrinsic and the clocks' offset of a moving board's dataset folder.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        A folder ``lidarcam extract`` wrote from a bag whose board moves (``motion.npz``, dataset.yaml with the
+        camera's intrinsics).
+    rng : numpy.random.Generator
+        Drives the solve's random draws.
+    time_offset_s : float, optional
+        Hold the clocks' offset ``t_camera_stamp - t_lidar_stamp`` at this value (s) instead of solving it.
+
+    Returns
+    -------
+    MovingBoardResult
+        ``T_camera_lidar`` with its covariance, the offset and its standard deviation, the 7x7 covariance of both,
+        the verdict (``to_dict`` is calibration.json).
+
+    Raises
+    ------
+    DatasetError
+        No intrinsics, or a record of another board.
+    """
     root, ypath, spec = read_dataset_yaml(folder)
     if not isinstance(spec, dict) or spec.get("camera") is None:
         raise DatasetError("a moving board's folder needs the camera's intrinsics (camera: in dataset.yaml)",
                            path=ypath, hint="extract it from a bag with CameraInfo, or add camera: K, dist, width, "
                                             "height")
     board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
+    return solve_moving(root, board, camera, rng, time_offset_s)
+
+
+def solve_moving(root: Path, board, camera: CameraModel, rng: np.random.Generator, time_offset_s: float | None = None,
+                 names: tuple[str, str] = ("cam0", "lidar0")) -> MovingBoardResult:
+    """The extrinsic and the clocks' offset from the record in ``root`` (``motion.npz``: a pair's folder, or a
+    rig's LiDAR folder followed in its first camera), the ``names`` of that camera and LiDAR."""
     track = load_motion_track(root)
     if track.corners_px.shape[1] != len(board.inner_corners()):
         raise DatasetError(f"motion.npz holds {track.corners_px.shape[1]} corners per image and the board "
-                           f"{len(board.inner_corners())}", path=ypath, hint="give the board the bag was extracted "
-                                                                              "with")
+                           f"{len(board.inner_corners())}", path=Path(root) / "motion.npz",
+                           hint="give the board the bag was extracted with")
     views = board_views(track, board, camera)
     t0 = time.perf_counter()
     sol: ClockOffsetSolution = solve_clock_offset(
         views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
         pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]))
     seconds = time.perf_counter() - t0
-    pair = PairEstimate("cam0", "lidar0", sol.T_camera_lidar, sol.covariance[:6, :6], None, sol.sweeps)
+    pair = PairEstimate(*names, sol.T_camera_lidar, sol.covariance[:6, :6], None, sol.sweeps)
     held = time_offset_s is not None
     return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
                              sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
