@@ -8,8 +8,8 @@ from __future__ import annotations
 import os
 import sys
 
-from .commands import (calibrate_command, demo_command, export_command, extract_command, layout_command,
-                       simulate_command, study_command, study_spec_command, validate_command)
+from .commands import (calibrate_command, check_command, demo_command, export_command, extract_command,
+                       layout_command, simulate_command, study_command, study_spec_command, validate_command)
 from .parser import build_parser
 
 
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
 
     handlers = {"calibrate": calibrate_command, "validate": validate_command, "simulate": simulate_command,
                 "demo": demo_command, "study": study_command, "layout": layout_command, "extract": extract_command,
-                "export": export_command}
+                "export": export_command, "check": check_command}
     try:
         if spec_study:
             return study_spec_command(argv[1:])

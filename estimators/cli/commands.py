@@ -301,6 +301,23 @@ def _with_separating_pose(result, board):
     return replace(result, refinement=replace(ref, range_model=fit))
 
 
+def check_command(args) -> int:
+    """The scene's check of a given extrinsic (``pipeline.scene_check``): printed verdict first, check.json and
+    check.html written; exit 0 consistent, 4 contradicted."""
+    from ..analysis.scene_check_page import write_check_page
+    from ..io.output import write_json_atomic
+    from ..pipeline.measurement import parse_initial_guess
+    from ..pipeline.scene_check import EXIT_CONTRADICTED, check_scene
+    from .printing import print_check
+
+    T = parse_initial_guess([args.calibration])
+    result = check_scene(args.dataset, T, keep_board=args.keep_board)
+    print_check(result)
+    print(f"wrote {write_json_atomic(Path(args.out) / 'check.json', result.to_dict())}")
+    print(f"wrote {write_check_page(result, args.out)}")
+    return EXIT_CONTRADICTED if result.consistent is False else 0
+
+
 def validate_command(args) -> int:
     """Each camera-LiDAR pair's frames scored under the calibration (``analysis.validation``): a pair folder's one
     pair, or every camera-LiDAR pair of a rig folder under a rig's calibration.json."""

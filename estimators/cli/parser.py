@@ -69,6 +69,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="score the measurements an earlier calibrate wrote (OUT/measurements.npz for a pair folder, "
                         "OUT/measurements/ for a rig) instead of measuring the images and scans again")
 
+    k = sub.add_parser("check", help="whether the scene agrees with an extrinsic: the LiDAR's depth contours on the "
+                                     "image's edges (exit 0 consistent, 4 contradicted)",
+                       description="Check any T_camera_lidar against the scene: each frame's LiDAR depth contours "
+                                   "laid on the image's edges, the scene's own estimate near the given one and a "
+                                   "test of their difference (check.json, check.html). Exit 0 when consistent, 4 "
+                                   "when the scene contradicts it, 2 on bad input. Example: lidarcam check DS "
+                                   "--calibration CAL/calibration.json --out CHECK")
+    k.add_argument("dataset", help="a camera-LiDAR folder of synchronised frames (dataset.yaml with camera:; "
+                                   "board: optional)")
+    k.add_argument("--calibration", required=True, metavar="FILE",
+                   help="calibration.json, any JSON with a 4x4 T_camera_lidar, a 4x4 matrix (text or .npy)")
+    k.add_argument("--out", required=True, help="folder for check.json and check.html")
+    k.add_argument("--keep-board", action="store_true",
+                   help="keep the board's edges and contours (by default left out where the camera finds it)")
+
     s = sub.add_parser("simulate", help="write a simulated dataset with ground_truth.json",
                        description="Write a simulated dataset folder (rendered images, ray-cast scans) with its "
                                    "ground truth, for trying lidarcam without data and for studies. Example: "

@@ -264,6 +264,33 @@ def export_hint(path) -> None:
     print(f"for ROS tf, URDF, KITTI or OpenCV: lidarcam export {path} --format ros-tf|urdf|kitti|opencv-yaml")
 
 
+def print_check(result) -> None:
+    """The scene's check: the verdict, whether consistent and the test, the scene's estimate near the given one
+    and what the scene constrains (standard deviations about and along the camera's axes)."""
+    import numpy as np
+
+    from geometry.rotations import T_inverse, T_log
+
+    t = result.test
+    print(result.verdict.line)
+    p = "undetermined" if t["p_value"] is None else f"p = {t['p_value']:.3g}"
+    print(f"consistent: {str(result.consistent).lower() if result.consistent is not None else 'undetermined'} "
+          f"({p}; {t['dof']} constrained directions, {result.fit.frames} frames, {result.fit.points} LiDAR "
+          f"contour returns" + (", the board left out)" if result.board_left_out else ")"))
+    T, T0 = result.fit.T_camera_lidar, result.T_given
+    d = 1000 * (T[:3, 3] - T0[:3, 3])
+    ang = np.degrees(np.linalg.norm(T_log(T_inverse(T0) @ T)[:3]))
+    print(f"the scene's estimate: t = ({', '.join(f'{1000 * v:.1f}' for v in T[:3, 3])}) mm, "
+          f"{ang:.2f} deg and ({', '.join(f'{v:+.1f}' for v in d)}) mm from the given one")
+    rot, trans = result.camera_axes_sd()
+    print(f"  its sd about the camera's x, y, z: ({', '.join(f'{v:.2f}' for v in rot)}) deg; along them: "
+          f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
+    print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
+          "at the scene's (truncated distances)")
+    for name, why in result.skipped.items():
+        print(f"  frame {name} skipped: {why}")
+
+
 def print_moving(result) -> None:
     """A moving board's calibration: the verdict, ``T_camera_lidar`` with its standard deviations, the clocks'
     offset, and what was used; a rig's (``pipeline.moving_rig``): its verdict, then each LiDAR's."""

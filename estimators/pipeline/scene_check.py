@@ -1,0 +1,198 @@
+"""``lidarcam check``: whether the scene agrees with a given extrinsic (``solvers.scene_alignment``).
+
+Per frame: the sweep's contour returns (``lidar.depth_edges``; the sweep needs each return's beam, a ``ring``
+field or an organised cloud), those the camera sees from its own centre under the given extrinsic, and the
+image's edge-distance field (``camera.edge_map``). Where the folder has a board and the camera finds it, the
+board is left out by default (``keep_board`` keeps it): its image edges (within ``BOARD_MARGIN_PX`` of its
+outline) and the contour returns that land there, so that the check is the scene's and not the boards' again.
+The scene's estimate is sought near the given extrinsic; the test reads their difference against the estimate's
+frame-block covariance over the directions the scene constrains.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import transform_points
+
+from .. import __version__
+from ..camera.edge_map import TRUNCATE_PX, edge_distance, field_gradient
+from ..errors import DegenerateLayoutError, LidarcamError
+from ..io.dataset import load_scene_folder
+from ..io.image_io import read_gray
+from ..io.pointcloud_io import read_sweep
+from ..lidar.depth_edges import depth_edges
+from ..solvers.scene_alignment import SceneFit, SceneView, align_scene, consistency, visible_from_camera
+from .result import CONVENTION, COVARIANCE_CONVENTION
+from .verdict import CHECK, OK, Verdict
+
+# The board's outline, widened by this (px), is left out of the image's edges and of the contours.
+BOARD_MARGIN_PX = 15
+# The test's level: below it the scene contradicts the given extrinsic.
+ALPHA = 0.01
+EXIT_CONTRADICTED = 4
+
+
+@dataclass(frozen=True, eq=False)
+class SceneCheck:
+    """The scene's check of ``T_given``: the scene's estimate near it (``fit``), the test (``test``:
+    ``consistency``), the frames used and those skipped with their reasons."""
+
+    dataset: str
+    T_given: np.ndarray
+    fit: SceneFit
+    test: dict
+    frames_used: tuple
+    skipped: dict
+    camera: CameraModel
+    board_left_out: bool
+    seconds: float
+    views: tuple = ()  # the frames' SceneViews, for the page
+
+    @property
+    def consistent(self) -> bool | None:
+        p = self.test.get("p_value")
+        return None if p is None else bool(p >= ALPHA)
+
+    @property
+    def verdict(self) -> Verdict:
+        if self.consistent is None:
+            return Verdict(CHECK, (f"the scene constrains {self.test['dof']} direction(s) with {self.fit.frames} "
+                                   "frames: too little to test the extrinsic; give more frames with objects at "
+                                   "several distances",))
+        if not self.consistent:
+            return Verdict(CHECK, (f"the scene contradicts the given extrinsic (p = {self.test['p_value']:.2g}, "
+                                   f"{self.test['dof']} constrained directions): it lays the LiDAR's contours on the "
+                                   "image's edges elsewhere; the test's false-alarm rate on recorded frames is not "
+                                   "measured yet, so look at check.html before trusting either",))
+        return Verdict(OK)
+
+    def camera_axes_sd(self) -> tuple[np.ndarray, np.ndarray]:
+        """The scene estimate's standard deviations: rotation about the camera's x, y, z (deg) and translation
+        along them (mm)."""
+        R = self.fit.T_camera_lidar[:3, :3]
+        C = self.fit.covariance
+        rot = np.degrees(np.sqrt(np.maximum(np.diag(R @ C[:3, :3] @ R.T), 0.0)))
+        trans = 1000 * np.sqrt(np.maximum(np.diag(R @ C[3:, 3:] @ R.T), 0.0))
+        return rot, trans
+
+    def to_dict(self) -> dict:
+        rot, trans = self.camera_axes_sd()
+        return {
+            "verdict": self.verdict.to_dict(), "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
+            "consistent": self.consistent, "p_value": self.test["p_value"], "alpha": ALPHA,
+            "test": {**self.test, "statistic": "Hotelling's F over the constrained directions of the frame-block "
+                                               "sandwich covariance"},
+            "T_camera_lidar_given": self.T_given.tolist(), "convention": CONVENTION,
+            "scene": {"T_camera_lidar": self.fit.T_camera_lidar.tolist(), "covariance": self.fit.covariance.tolist(),
+                      "covariance_convention": COVARIANCE_CONVENTION,
+                      "std_rotation_deg_about_camera_xyz": rot.tolist(),
+                      "std_translation_mm_along_camera_xyz": trans.tolist(),
+                      "rms_px_at_given": self.fit.rms_start_px, "rms_px": self.fit.rms_px,
+                      "converged": self.fit.converged, "contour_returns": self.fit.points},
+            "frames_used": list(self.frames_used), "skipped": self.skipped, "board_left_out": self.board_left_out,
+            "timings_s": {"check": self.seconds},
+        }
+
+
+def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
+    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board."""
+    from ..camera.board_pose import estimate_board_pose
+    from ..camera.corners import detect_corners
+
+    try:
+        det = detect_corners(gray, board)
+        if det is None:
+            return None
+        obs = estimate_board_pose(det, board, camera)
+    except LidarcamError:
+        return None
+    uv = camera.project(transform_points(obs.T_camera_board, board.outline()))
+    if not np.all(np.isfinite(uv)):
+        return None
+    mask = np.zeros(gray.shape[:2], np.uint8)
+    cv2.fillPoly(mask, [np.round(uv).astype(np.int32)], 1)
+    k = 2 * BOARD_MARGIN_PX + 1
+    return cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0
+
+
+def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: CameraModel,
+               board_mask: np.ndarray | None = None) -> SceneView:
+    """One frame's contour returns the camera sees under ``T_given`` and its edge field, the board's mask left
+    out of both."""
+    if sweep.ring is None:
+        raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
+                            "cannot be found along the beams")
+    edges = depth_edges(sweep.points, sweep.ring)
+    P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera)]
+    if board_mask is not None:
+        gray = gray.copy()
+        blur = cv2.GaussianBlur(gray, (0, 0), 3.0)
+        gray[board_mask] = blur[board_mask].mean() if board_mask.any() else 0  # no edges inside
+        uv = camera.project(transform_points(T_given, P))
+        ok = np.all(np.isfinite(uv), axis=1)
+        on = np.zeros(len(P), bool)
+        u = np.clip(np.round(uv[ok, 0]).astype(int), 0, gray.shape[1] - 1)
+        v = np.clip(np.round(uv[ok, 1]).astype(int), 0, gray.shape[0] - 1)
+        on[ok] = board_mask[v, u]
+        P = P[~on]
+    field = edge_distance(gray, TRUNCATE_PX)
+    if board_mask is not None:
+        field[board_mask] = TRUNCATE_PX
+    gu, gv = field_gradient(field)
+    return SceneView(name, P, field, gu, gv)
+
+
+def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False) -> SceneCheck:
+    """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        A camera-LiDAR folder of synchronised frames (dataset.yaml with ``camera:``; ``board:`` optional).
+    T_given : numpy.ndarray
+        4x4 ``T_camera_lidar`` to check.
+    keep_board : bool
+        Keep the board's edges and contours (by default left out where the camera finds the board).
+
+    Returns
+    -------
+    SceneCheck
+        The verdict, ``consistent`` and the test's p-value, the scene's estimate and covariance.
+
+    Raises
+    ------
+    DatasetError
+        A folder without intrinsics, or not a 3D LiDAR's.
+    DegenerateLayoutError
+        Fewer than two frames with contours in view.
+    """
+    t0 = time.perf_counter()
+    root, camera, board, frames = load_scene_folder(folder)
+    views, skipped = [], {}
+    for f in frames:
+        try:
+            gray = read_gray(f.image)
+            sweep = read_sweep(f.scan)
+            mask = None if keep_board or board is None else _board_mask(gray, board, camera)
+            view = scene_view(f.name, gray, sweep, T_given, camera, mask)
+        except LidarcamError as exc:
+            skipped[f.name] = exc.problem
+            continue
+        if len(view.points) == 0:
+            skipped[f.name] = "no LiDAR contour in the camera's view"
+            continue
+        views.append(view)
+    if len(views) < 2:
+        raise DegenerateLayoutError(f"{len(views)} frame(s) usable for the scene's check"
+                                    + (f" (skipped: {'; '.join(f'{k}: {v}' for k, v in skipped.items())})"
+                                       if skipped else ""), path=root, hint="give two or more frames")
+    fit = align_scene(views, camera, T_given)
+    return SceneCheck(str(root), np.asarray(T_given, float), fit, consistency(fit, T_given),
+                      tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
+                      time.perf_counter() - t0, tuple(views))

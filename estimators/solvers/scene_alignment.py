@@ -1,0 +1,254 @@
+"""The scene as a witness of an extrinsic: the LiDAR's depth contours laid on the camera's image edges.
+
+Each frame (``SceneView``) holds the LiDAR's contour returns (``lidar.depth_edges``) that the camera can see from
+its own centre (``visible_from_camera``: a z-buffer of the whole sweep seen from the camera, under the extrinsic
+given), and the image's truncated distance to its nearest edge (``camera.edge_map``). Under ``T_camera_lidar``
+each contour return's residual is that distance where it projects (the truncation where it leaves the image);
+``align_scene`` minimises their sum of squares over the extrinsic's six tangent directions (``T Exp(xi)``, the
+project's convention) by a trust-region solve with the Jacobian in closed form (the field's gradient times the
+projection's, the projection's by central differences in the camera's frame).
+
+Residuals are neither independent (a contour is many returns, an image edge many of its residuals) nor Gaussian
+(a truncated distance), and the frames of a still rig are not independent either: each one sees the same walls,
+doors and furniture, with the same errors. The independent units are the scene's structures, so the residuals
+are pooled by where they land in the image (``BLOCKS`` cells, every frame's residuals in a cell together): the
+covariance is the block sandwich ``H^-1 (sum_b g_b g_b^T) H^-1 n / (n - 1)`` with ``H = J^T J`` and ``g_b`` block
+b's gradient at the optimum. It needs no noise level and is noisy with few blocks: the test against a given
+extrinsic (``consistency``) reads the squared distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``,
+``F(k, n - k)``, n blocks), over the ``k`` directions the scene constrains (standard deviations within
+``CONSTRAINED``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import f as f_dist
+
+from geometry.camera import CameraModel
+from geometry.rotations import T_inverse, T_log, T_retract, transform_points
+
+from ..errors import DegenerateLayoutError
+
+# A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
+CONSTRAINED = (np.radians(1.0), 0.10)
+# The second solve's truncation of the edge fields (px).
+FINE_PX = 6.0
+# The image cut into this many cells (across, down) for the covariance's blocks.
+BLOCKS = (8, 6)
+# The z-buffer's cell (px) and how far behind the nearest return in its cell a contour return may lie (m).
+ZBUFFER_CELL_PX, ZBUFFER_MARGIN_M = 4, 0.2
+_EPS_M = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class SceneView:
+    """One frame: its name, the contour returns the camera sees (LiDAR frame, (N, 3)), the image's truncated edge
+    distance (px, (H, W)) and that field's derivatives along u and v."""
+
+    name: str
+    points: np.ndarray
+    field: np.ndarray
+    grad_u: np.ndarray
+    grad_v: np.ndarray
+
+    @property
+    def truncate_px(self) -> float:
+        return float(self.field.max()) if self.field.size else 0.0
+
+
+def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: np.ndarray, camera: CameraModel,
+                        cell_px: int = ZBUFFER_CELL_PX, margin_m: float = ZBUFFER_MARGIN_M) -> np.ndarray:
+    """Which of ``points`` (LiDAR frame) the camera sees from its own centre: in front, in the image, and no
+    farther than ``margin_m`` behind the nearest return of the whole ``sweep`` in its z-buffer cell."""
+    def cells(P):
+        pc = transform_points(T_camera_lidar, P)
+        uv = camera.project(pc)
+        ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & \
+            (uv[:, 0] < camera.width) & (uv[:, 1] < camera.height)
+        cu, cv = np.zeros(len(P), np.int64), np.zeros(len(P), np.int64)
+        cu[ok] = (uv[ok, 0] // cell_px).astype(np.int64)
+        cv[ok] = (uv[ok, 1] // cell_px).astype(np.int64)
+        return ok, cu, cv, np.linalg.norm(pc, axis=1)
+
+    nu = camera.width // cell_px + 1
+    zbuf = np.full((camera.height // cell_px + 1) * nu, np.inf)
+    ok, cu, cv, depth = cells(np.asarray(sweep, float).reshape(-1, 3))
+    np.minimum.at(zbuf, cv[ok] * nu + cu[ok], depth[ok])
+    ok, cu, cv, depth = cells(np.asarray(points, float).reshape(-1, 3))
+    seen = np.zeros(len(ok), bool)
+    seen[ok] = depth[ok] <= zbuf[cv[ok] * nu + cu[ok]] + margin_m
+    return seen
+
+
+def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at ``uv`` (inside the image), in double precision (OpenCV's ``remap`` rounds
+    the position to 1/32 px, which makes the sum of squares a staircase)."""
+    h, w = img.shape
+    u, v = uv[:, 0], uv[:, 1]
+    u0 = np.clip(np.floor(u).astype(np.int64), 0, w - 2)
+    v0 = np.clip(np.floor(v).astype(np.int64), 0, h - 2)
+    fu, fv = u - u0, v - v0
+    top = (1 - fu) * img[v0, u0] + fu * img[v0, u0 + 1]
+    bottom = (1 - fu) * img[v0 + 1, u0] + fu * img[v0 + 1, u0 + 1]
+    return (1 - fv) * top + fv * bottom
+
+
+def view_residuals(T: np.ndarray, view: SceneView, camera: CameraModel, jacobian: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """One frame's residuals under ``T`` (each contour return's edge distance, px; the truncation outside the
+    image) and their Jacobian by ``T``'s right tangent (N, 6), or None."""
+    P = view.points
+    pc = transform_points(T, P)
+    uv = camera.project(pc)
+    h, w = view.field.shape
+    ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & \
+        (uv[:, 1] <= h - 1)
+    r = np.full(len(P), view.truncate_px)
+    r[ok] = _sample(view.field, uv[ok])
+    if not jacobian:
+        return r, None
+    J = np.zeros((len(P), 6))
+    if ok.any():
+        g = np.column_stack([_sample(view.grad_u, uv[ok]), _sample(view.grad_v, uv[ok])])  # (n, 2)
+        duv = np.empty((int(ok.sum()), 2, 3))
+        for k in range(3):  # the projection's derivative by the camera-frame point, central differences
+            e = np.zeros(3)
+            e[k] = _EPS_M
+            duv[:, :, k] = (camera.project(pc[ok] + e) - camera.project(pc[ok] - e)) / (2 * _EPS_M)
+        R = T[:3, :3]
+        p = P[ok]
+        # d p_c / d xi for T Exp(xi) p: rotation -R [p]x, translation R.
+        skew = np.zeros((len(p), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+        dp = np.concatenate([-R @ skew, np.broadcast_to(R, (len(p), 3, 3))], axis=2)  # (n, 3, 6)
+        J[ok] = np.einsum("ni,nij,njk->nk", g, np.nan_to_num(duv), dp)
+    return r, J
+
+
+@dataclass(frozen=True, eq=False)
+class SceneFit:
+    """The scene's estimate near a start: ``T_camera_lidar``, its frame-block sandwich covariance (6x6, the
+    project's tangent), the Gauss-Newton information ``hessian`` (J^T J, px^-2 units), the frames and contour
+    returns used, the image blocks of the covariance, the RMS residual (px) at the start and at the end, and the
+    step from the start (tangent)."""
+
+    T_camera_lidar: np.ndarray
+    covariance: np.ndarray
+    hessian: np.ndarray
+    frames: int
+    points: int
+    blocks: int
+    rms_start_px: float
+    rms_px: float
+    moved: np.ndarray
+    converged: bool
+
+
+def _stacked(T, views, camera, jacobian=True):
+    parts = [view_residuals(T, v, camera, jacobian) for v in views]
+    return parts
+
+
+def narrowed(view: SceneView, truncate_px: float) -> SceneView:
+    """The view with its edge field truncated nearer (``truncate_px``)."""
+    from ..camera.edge_map import field_gradient
+
+    field = np.minimum(view.field, truncate_px)
+    return SceneView(view.name, view.points, field, *field_gradient(field))
+
+
+def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60
+                ) -> SceneFit:
+    """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
+    solved with the views' fields as given, then again from there with them truncated at ``FINE_PX`` (a contour
+    that has no edge of its own then stops being pulled by another's a little further away), the fit and its
+    covariance the second's. A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
+    coarse = _align(views, camera, T_start, max_evaluations)
+    fine = _align([narrowed(v, FINE_PX) for v in views], camera, coarse.T_camera_lidar, max_evaluations)
+    return replace(fine, rms_start_px=coarse.rms_start_px, moved=T_log(T_inverse(T_start) @ fine.T_camera_lidar),
+                   converged=coarse.converged and fine.converged)
+
+
+def _align(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int) -> SceneFit:
+    views = [v for v in views if len(v.points)]
+    n_points = sum(len(v.points) for v in views)
+    if len(views) < 2 or n_points == 0:
+        raise DegenerateLayoutError(f"the scene gives {len(views)} frame(s) with LiDAR contours in view",
+                                    hint="give more frames, with objects at several distances in view of both")
+    scale = np.sqrt(n_points)
+
+    def fun(x):
+        return np.concatenate([r for r, _ in _stacked(T_retract(T_start, x), views, camera, False)]) / scale
+
+    def jac(x):
+        return np.concatenate([J for _, J in _stacked(T_retract(T_start, x), views, camera)]) / scale
+
+    sol = least_squares(fun, np.zeros(6), jac=jac, method="trf", x_scale=np.r_[0.01, 0.01, 0.01, 0.05, 0.05, 0.05],
+                        max_nfev=max_evaluations)
+    T = T_retract(T_start, sol.x)
+    parts = _stacked(T, views, camera)
+    H = sum(J.T @ J for _, J in parts)
+    g = _block_gradients(T, views, parts, camera)
+    n = len(g)
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        raise DegenerateLayoutError("the scene's contours constrain no extrinsic (a singular information)",
+                                    hint="give frames with objects at several distances in view of both") from None
+    meat = g.T @ g
+    cov = Hi @ meat @ Hi * n / (n - 1)
+    r0 = fun(np.zeros(6)) * scale
+    r1 = np.concatenate([r for r, _ in parts])
+    return SceneFit(T, 0.5 * (cov + cov.T), H, len(views), n_points, n, float(np.sqrt(np.mean(r0 ** 2))),
+                    float(np.sqrt(np.mean(r1 ** 2))), sol.x.copy(), bool(sol.success))
+
+
+def _block_gradients(T: np.ndarray, views: list[SceneView], parts: list, camera: CameraModel) -> np.ndarray:
+    """Each image block's share of the gradient, every frame's residuals in the block pooled ((blocks, 6), the
+    blocks holding a residual with a slope)."""
+    nu, nv = BLOCKS
+    acc = np.zeros((nu * nv, 6))
+    used = np.zeros(nu * nv, bool)
+    for view, (r, J) in zip(views, parts):
+        uv = camera.project(transform_points(T, view.points))
+        ok = np.all(np.isfinite(uv), axis=1) & np.any(J != 0, axis=1)
+        cu = np.clip((uv[ok, 0] * nu // camera.width).astype(int), 0, nu - 1)
+        cv = np.clip((uv[ok, 1] * nv // camera.height).astype(int), 0, nv - 1)
+        b = cv * nu + cu
+        np.add.at(acc, b, J[ok] * r[ok, None])
+        used[b] = True
+    return acc[used]
+
+
+def constrained_directions(covariance: np.ndarray, limits: tuple[float, float] = CONSTRAINED
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """The covariance's principal directions in units of ``limits`` (rotation rad, translation m): those whose
+    standard deviation stays within one unit are the scene's constrained ones. ``(vectors (6, k), variances (k,))``
+    in those units."""
+    s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
+    C = s[:, None] * covariance * s[None, :]
+    lam, V = np.linalg.eigh(0.5 * (C + C.T))
+    keep = (lam > 0) & (lam <= 1.0)
+    return V[:, keep], lam[keep]
+
+
+def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] = CONSTRAINED) -> dict:
+    """Whether ``T_given`` agrees with the scene's estimate: the squared distance over the constrained directions
+    (``d2``, ``dof`` = k), Hotelling's ``F`` on ``(k, n - k)`` and its tail probability ``p_value``; ``None``
+    values when the scene constrains no direction or has too few blocks (n <= k)."""
+    xi = T_log(T_inverse(fit.T_camera_lidar) @ T_given)
+    V, lam = constrained_directions(fit.covariance, limits)
+    s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
+    k, n = V.shape[1], fit.blocks
+    out = {"difference_tangent": xi.tolist(), "dof": int(k), "blocks": int(n), "d2": None, "F": None,
+           "p_value": None}
+    if k == 0 or n <= k:
+        return out
+    z = V.T @ (s * xi)
+    d2 = float(np.sum(z ** 2 / lam))
+    F = d2 * (n - k) / (k * (n - 1))
+    out.update(d2=d2, F=F, p_value=float(f_dist.sf(F, k, n - k)))
+    return out
