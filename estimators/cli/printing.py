@@ -287,6 +287,10 @@ def print_check(result) -> None:
           f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
     print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
           "at the scene's (truncated distances)")
+    if result.rivals:
+        deg, mm = result.rivals_spread()
+        print(f"  {len(result.rivals)} other minima as low, up to {deg:.2f} deg and {mm:.0f} mm away (rival_minima in "
+              "check.json): their scatter is in the standard deviations above")
     for name, why in result.skipped.items():
         print(f"  frame {name} skipped: {why}")
 

@@ -5,8 +5,10 @@ field or an organised cloud), those the camera sees from its own centre under th
 image's edge-distance field (``camera.edge_map``). Where the folder has a board and the camera finds it, the
 board is left out by default (``keep_board`` keeps it): its image edges (within ``BOARD_MARGIN_PX`` of its
 outline) and the contour returns that land there, so that the check is the scene's and not the boards' again.
-The scene's estimate is sought near the given extrinsic; the test reads their difference against the estimate's
-frame-block covariance over the directions the scene constrains.
+The scene's estimate is sought from the given extrinsic and from starts about it (``scene_minima``), the lowest
+minimum kept; the other minima as low (within 1% of its RMS residual) say how far the scene's cost leaves it
+undecided, and their scatter about it is added to its block covariance (``minima_scatter``). The test reads the
+given extrinsic's difference from the best against that sum over the directions the scene constrains.
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
 from ..lidar.depth_edges import depth_edges
-from ..solvers.scene_alignment import SceneFit, SceneView, align_scene, consistency, visible_from_camera
+from ..solvers.scene_alignment import (SceneFit, SceneView, consistency, minima_scatter, rival_minima, scene_minima,
+                                      visible_from_camera)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -53,11 +56,24 @@ class SceneCheck:
     board_left_out: bool
     seconds: float
     views: tuple = ()  # the frames' SceneViews, for the page
+    # Other minima of the scene's cost as low as the best and beyond its covariance (``rival_minima``), and the
+    # covariance tested against: the best's plus the scatter of the minima as low (``minima_scatter``).
+    rivals: tuple = ()
+    covariance: np.ndarray | None = None
 
     @property
     def consistent(self) -> bool | None:
         p = self.test.get("p_value")
         return None if p is None else bool(p >= ALPHA)
+
+    def rivals_spread(self) -> tuple[float, float]:
+        """How far the rival minima lie from the best: the largest angle (deg) and translation (mm)."""
+        from geometry.rotations import T_inverse, T_log
+
+        xis = [T_log(T_inverse(self.fit.T_camera_lidar) @ f.T_camera_lidar) for f in self.rivals]
+        return (max(float(np.degrees(np.linalg.norm(x[:3]))) for x in xis),
+                max(1000 * float(np.linalg.norm(f.T_camera_lidar[:3, 3] - self.fit.T_camera_lidar[:3, 3]))
+                    for f in self.rivals))
 
     @property
     def verdict(self) -> Verdict:
@@ -76,7 +92,7 @@ class SceneCheck:
         """The scene estimate's standard deviations: rotation about the camera's x, y, z (deg) and translation
         along them (mm)."""
         R = self.fit.T_camera_lidar[:3, :3]
-        C = self.fit.covariance
+        C = self.covariance if self.covariance is not None else self.fit.covariance
         rot = np.degrees(np.sqrt(np.maximum(np.diag(R @ C[:3, :3] @ R.T), 0.0)))
         trans = 1000 * np.sqrt(np.maximum(np.diag(R @ C[3:, 3:] @ R.T), 0.0))
         return rot, trans
@@ -89,12 +105,15 @@ class SceneCheck:
             "test": {**self.test, "statistic": "Hotelling's F over the constrained directions of the frame-block "
                                                "sandwich covariance"},
             "T_camera_lidar_given": self.T_given.tolist(), "convention": CONVENTION,
-            "scene": {"T_camera_lidar": self.fit.T_camera_lidar.tolist(), "covariance": self.fit.covariance.tolist(),
+            "scene": {"T_camera_lidar": self.fit.T_camera_lidar.tolist(),
+                      "covariance": (self.covariance if self.covariance is not None else self.fit.covariance).tolist(),
+                      "covariance_blocks": self.fit.covariance.tolist(),
                       "covariance_convention": COVARIANCE_CONVENTION,
                       "std_rotation_deg_about_camera_xyz": rot.tolist(),
                       "std_translation_mm_along_camera_xyz": trans.tolist(),
                       "rms_px_at_given": self.fit.rms_start_px, "rms_px": self.fit.rms_px,
                       "converged": self.fit.converged, "contour_returns": self.fit.points},
+            "rival_minima": [{"T_camera_lidar": f.T_camera_lidar.tolist(), "rms_px": f.rms_px} for f in self.rivals],
             "frames_used": list(self.frames_used), "skipped": self.skipped, "board_left_out": self.board_left_out,
             "timings_s": {"check": self.seconds},
         }
@@ -192,7 +211,8 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         raise DegenerateLayoutError(f"{len(views)} frame(s) usable for the scene's check"
                                     + (f" (skipped: {'; '.join(f'{k}: {v}' for k, v in skipped.items())})"
                                        if skipped else ""), path=root, hint="give two or more frames")
-    fit = align_scene(views, camera, T_given)
-    return SceneCheck(str(root), np.asarray(T_given, float), fit, consistency(fit, T_given),
+    fits = scene_minima(views, camera, T_given)
+    cov = fits[0].covariance + minima_scatter(fits)
+    return SceneCheck(str(root), np.asarray(T_given, float), fits[0], consistency(fits[0], T_given, covariance=cov),
                       tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
-                      time.perf_counter() - t0, tuple(views))
+                      time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)

@@ -16,7 +16,8 @@ covariance is the block sandwich ``H^-1 (sum_b g_b g_b^T) H^-1 n / (n - 1)`` wit
 b's gradient at the optimum. It needs no noise level and is noisy with few blocks: the test against a given
 extrinsic (``consistency``) reads the squared distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``,
 ``F(k, n - k)``, n blocks), over the ``k`` directions the scene constrains (standard deviations within
-``CONSTRAINED``).
+``CONSTRAINED``). The cost can have several minima about as low (``scene_minima`` seeks them from 13 starts): the
+scatter of those as low as the best (``minima_scatter``) is what the best one's covariance does not see.
 """
 from __future__ import annotations
 
@@ -33,8 +34,12 @@ from ..errors import DegenerateLayoutError
 
 # A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
 CONSTRAINED = (np.radians(1.0), 0.10)
-# The second solve's truncation of the edge fields (px).
-FINE_PX = 6.0
+# The starts of ``scene_minima`` about the given extrinsic (deg about, m along each camera axis); a minimum within
+# this share of the best's RMS residual and beyond its covariance's 0.999 region (chi-square, 6 dof) is a rival.
+START_DEG, START_M = 1.0, 0.05
+RIVAL_RMS, RIVAL_D2 = 0.01, 22.46
+# The later solves' truncations of the edge fields (px), each from the one before.
+STAGES_PX = (6.0,)
 # The image cut into this many cells (across, down) for the covariance's blocks.
 BLOCKS = (8, 6)
 # The z-buffer's cell (px) and how far behind the nearest return in its cell a contour return may lie (m).
@@ -163,13 +168,45 @@ def narrowed(view: SceneView, truncate_px: float) -> SceneView:
 def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60
                 ) -> SceneFit:
     """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
-    solved with the views' fields as given, then again from there with them truncated at ``FINE_PX`` (a contour
+    solved with the views' fields as given, then again from there with them truncated at ``STAGES_PX`` (a contour
     that has no edge of its own then stops being pulled by another's a little further away), the fit and its
     covariance the second's. A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
-    coarse = _align(views, camera, T_start, max_evaluations)
-    fine = _align([narrowed(v, FINE_PX) for v in views], camera, coarse.T_camera_lidar, max_evaluations)
-    return replace(fine, rms_start_px=coarse.rms_start_px, moved=T_log(T_inverse(T_start) @ fine.T_camera_lidar),
-                   converged=coarse.converged and fine.converged)
+    fit = _align(views, camera, T_start, max_evaluations)
+    first, converged = fit, fit.converged
+    for px in STAGES_PX:
+        fit = _align([narrowed(v, px) for v in views], camera, fit.T_camera_lidar, max_evaluations)
+        converged = converged and fit.converged
+    return replace(fit, rms_start_px=first.rms_start_px, moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar),
+                   converged=converged)
+
+
+def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarray) -> list[SceneFit]:
+    """The scene's estimates from ``T_given`` and from it turned by ``START_DEG`` about, and moved by ``START_M``
+    along, each of the camera's axes (13 starts), lowest RMS residual first: a cost with one minimum near the given
+    extrinsic gives them all alike; one that leaves the extrinsic undetermined scatters them."""
+    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    starts = [T_given]
+    for k in range(3):
+        for sign in (1.0, -1.0):
+            e = np.zeros(3)
+            e[k] = sign
+            starts.append(T_from_Rt(R_from_rotvec(np.radians(START_DEG) * e), np.zeros(3)) @ T_given)
+            starts.append(T_from_Rt(np.eye(3), START_M * e) @ T_given)
+    return sorted((align_scene(views, camera, T) for T in starts), key=lambda f: f.rms_px)
+
+
+def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
+    """The minima other than the best (``fits[0]``) that fit within ``RIVAL_RMS`` of its RMS residual and lie
+    beyond its covariance's 0.999 region (6 dof): where there are any, the best one's covariance is not the
+    scene's uncertainty."""
+    best = fits[0]
+    out = []
+    for f in fits[1:]:
+        xi = T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar)
+        if f.rms_px <= best.rms_px * (1 + RIVAL_RMS) and xi @ np.linalg.solve(best.covariance, xi) > RIVAL_D2:
+            out.append(f)
+    return out
 
 
 def _align(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int) -> SceneFit:
@@ -235,12 +272,24 @@ def constrained_directions(covariance: np.ndarray, limits: tuple[float, float] =
     return V[:, keep], lam[keep]
 
 
-def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] = CONSTRAINED) -> dict:
+def minima_scatter(fits: list[SceneFit]) -> np.ndarray:
+    """The second moment (6x6, the best's tangent) of the minima as low as the best (``fits[0]``; within
+    ``RIVAL_RMS`` of its RMS residual) about it: how far the scene's cost leaves its own minimum undecided, which
+    the best's covariance (its curvature and its blocks) does not see."""
+    best = fits[0]
+    xis = [T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar) for f in fits
+           if f.rms_px <= best.rms_px * (1 + RIVAL_RMS)]
+    return sum(np.outer(x, x) for x in xis) / len(xis)
+
+
+def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] = CONSTRAINED,
+                covariance: np.ndarray | None = None) -> dict:
     """Whether ``T_given`` agrees with the scene's estimate: the squared distance over the constrained directions
     (``d2``, ``dof`` = k), Hotelling's ``F`` on ``(k, n - k)`` and its tail probability ``p_value``; ``None``
-    values when the scene constrains no direction or has too few blocks (n <= k)."""
+    values when the scene constrains no direction or has too few blocks (n <= k). ``covariance``: the one to
+    test against (default the fit's)."""
     xi = T_log(T_inverse(fit.T_camera_lidar) @ T_given)
-    V, lam = constrained_directions(fit.covariance, limits)
+    V, lam = constrained_directions(fit.covariance if covariance is None else covariance, limits)
     s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
     k, n = V.shape[1], fit.blocks
     out = {"difference_tangent": xi.tolist(), "dof": int(k), "blocks": int(n), "d2": None, "F": None,
