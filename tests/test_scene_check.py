@@ -54,7 +54,7 @@ def test_the_residuals_jacobian_is_the_numerical_one():
     uvz = np.array([[285.0, 120.0, 4.0], [320.0, 180.0, 6.0], [150.0, 215.0, 3.0], [330.0, 222.0, 8.0]])
     p_c = np.column_stack([(uvz[:, 0] - 320.0) / 500.0, (uvz[:, 1] - 240.0) / 500.0, np.ones(4)]) * uvz[:, 2:]
     p_l = (p_c - T_CL[:3, 3]) @ T_CL[:3, :3]
-    view = SceneView("a", p_l, field, *field_gradient(field))
+    view = SceneView("a", p_l, field, *field_gradient(field), 40.0)
     r, J = view_residuals(T_CL, view, CAMERA)
     assert np.all((r > 2.0) & (r < 38.0))  # inside the field's smooth part
     num = np.zeros_like(J)

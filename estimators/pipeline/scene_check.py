@@ -164,7 +164,7 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
     if board_mask is not None:
         field[board_mask] = TRUNCATE_PX
     gu, gv = field_gradient(field)
-    return SceneView(name, P, field, gu, gv)
+    return SceneView(name, P, field, gu, gv, TRUNCATE_PX)
 
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False) -> SceneCheck:

@@ -5,8 +5,8 @@ its own centre (``visible_from_camera``: a z-buffer of the whole sweep seen from
 given), and the image's truncated distance to its nearest edge (``camera.edge_map``). Under ``T_camera_lidar``
 each contour return's residual is that distance where it projects (the truncation where it leaves the image);
 ``align_scene`` minimises their sum of squares over the extrinsic's six tangent directions (``T Exp(xi)``, the
-project's convention) by a trust-region solve with the Jacobian in closed form (the field's gradient times the
-projection's, the projection's by central differences in the camera's frame).
+project's convention) by Levenberg-Marquardt with the Jacobian in closed form (the field's gradient times the
+projection's, ``CameraModel.project_jacobian``).
 
 Residuals are neither independent (a contour is many returns, an image edge many of its residuals) nor Gaussian
 (a truncated distance), and the frames of a still rig are not independent either: each one sees the same walls,
@@ -44,23 +44,19 @@ STAGES_PX = (6.0,)
 BLOCKS = (8, 6)
 # The z-buffer's cell (px) and how far behind the nearest return in its cell a contour return may lie (m).
 ZBUFFER_CELL_PX, ZBUFFER_MARGIN_M = 4, 0.2
-_EPS_M = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
 class SceneView:
     """One frame: its name, the contour returns the camera sees (LiDAR frame, (N, 3)), the image's truncated edge
-    distance (px, (H, W)) and that field's derivatives along u and v."""
+    distance (px, (H, W)), that field's derivatives along u and v, and its truncation (px)."""
 
     name: str
     points: np.ndarray
     field: np.ndarray
     grad_u: np.ndarray
     grad_v: np.ndarray
-
-    @property
-    def truncate_px(self) -> float:
-        return float(self.field.max()) if self.field.size else 0.0
+    truncate_px: float = 0.0  # the field's truncation: a residual off the image
 
 
 def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: np.ndarray, camera: CameraModel,
@@ -117,11 +113,7 @@ def view_residuals(T: np.ndarray, view: SceneView, camera: CameraModel, jacobian
     J = np.zeros((len(P), 6))
     if ok.any():
         g = np.column_stack([_sample(view.grad_u, uv[ok]), _sample(view.grad_v, uv[ok])])  # (n, 2)
-        duv = np.empty((int(ok.sum()), 2, 3))
-        for k in range(3):  # the projection's derivative by the camera-frame point, central differences
-            e = np.zeros(3)
-            e[k] = _EPS_M
-            duv[:, :, k] = (camera.project(pc[ok] + e) - camera.project(pc[ok] - e)) / (2 * _EPS_M)
+        _, duv = camera.project_jacobian(pc[ok])  # the projection's derivative by the camera-frame point
         R = T[:3, :3]
         p = P[ok]
         # d p_c / d xi for T Exp(xi) p: rotation -R [p]x, translation R.
@@ -162,19 +154,20 @@ def narrowed(view: SceneView, truncate_px: float) -> SceneView:
     from ..camera.edge_map import field_gradient
 
     field = np.minimum(view.field, truncate_px)
-    return SceneView(view.name, view.points, field, *field_gradient(field))
+    return SceneView(view.name, view.points, field, *field_gradient(field), min(truncate_px, view.truncate_px))
 
 
-def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60
-                ) -> SceneFit:
+def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60,
+                stages: list | None = None) -> SceneFit:
     """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
     solved with the views' fields as given, then again from there with them truncated at ``STAGES_PX`` (a contour
     that has no edge of its own then stops being pulled by another's a little further away), the fit and its
-    covariance the second's. A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
+    covariance the second's (``stages``: the views narrowed for each of ``STAGES_PX``, when made already). A
+    :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
     fit = _align(views, camera, T_start, max_evaluations)
     first, converged = fit, fit.converged
-    for px in STAGES_PX:
-        fit = _align([narrowed(v, px) for v in views], camera, fit.T_camera_lidar, max_evaluations)
+    for narrow in stages if stages is not None else ([narrowed(v, px) for v in views] for px in STAGES_PX):
+        fit = _align(narrow, camera, fit.T_camera_lidar, max_evaluations)
         converged = converged and fit.converged
     return replace(fit, rms_start_px=first.rms_start_px, moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar),
                    converged=converged)
@@ -193,7 +186,8 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
             e[k] = sign
             starts.append(T_from_Rt(R_from_rotvec(np.radians(START_DEG) * e), np.zeros(3)) @ T_given)
             starts.append(T_from_Rt(np.eye(3), START_M * e) @ T_given)
-    return sorted((align_scene(views, camera, T) for T in starts), key=lambda f: f.rms_px)
+    stages = [[narrowed(v, px) for v in views] for px in STAGES_PX]
+    return sorted((align_scene(views, camera, T, stages=stages) for T in starts), key=lambda f: f.rms_px)
 
 
 def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
@@ -223,7 +217,7 @@ def _align(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max
     def jac(x):
         return np.concatenate([J for _, J in _stacked(T_retract(T_start, x), views, camera)]) / scale
 
-    sol = least_squares(fun, np.zeros(6), jac=jac, method="trf", x_scale=np.r_[0.01, 0.01, 0.01, 0.05, 0.05, 0.05],
+    sol = least_squares(fun, np.zeros(6), jac=jac, method="lm", x_scale=np.r_[0.01, 0.01, 0.01, 0.05, 0.05, 0.05],
                         max_nfev=max_evaluations)
     T = T_retract(T_start, sol.x)
     parts = _stacked(T, views, camera)
