@@ -260,14 +260,15 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
                     time_offset_s: float = 0.0, speed_mps: float = 0.5, turn_dps: float = 45.0,
                     camera_hz: float = 20.0, lidar_hz: float = 10.0, exposure_s: float = 0.004,
                     time_field: str | None = "t", pauses: tuple = (), image_topic: str = "/camera/image_raw",
-                    lidar_topic: str = "/points", more_lidars: tuple = ()):
+                    lidar_topic: str = "/points", more_lidars: tuple = (), more_image_topics: tuple = ()):
     """A board waved before ``rig`` for ``duration_s`` (``simulation.waved_board``), recorded as a bag: every
     image (``simulation.board_drawing``, blurred over ``exposure_s``, stamped at mid-exposure in the camera's
     clock, ``time_offset_s`` ahead of the LiDAR's), every whole sweep in a room clear of the board's path
     (``scene_sweep``, ``room_for``) with its returns' times in ``time_field`` (None: no time field, the returns in
     firing order), CameraInfo once. ``more_lidars``: further LiDARs ``(topic, rig, offset_s)``, each its own
     ``rig`` (the same camera and board, its own ``T_camera_lidar`` and beams) and its own clock, the camera's
-    ``offset_s`` ahead of it. Returns the motion (the truth)."""
+    ``offset_s`` ahead of it; ``more_image_topics``: the same images on further topics (a second camera's, with
+    its CameraInfo). Returns the motion (the truth)."""
     from estimators.simulation.board_drawing import draw_board
     from estimators.simulation.waved_board import room_for, scene_sweep, waving
 
@@ -281,12 +282,15 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
         events += [(t + time_offset_s - offset, "scan", t, k) for t in np.arange(0.0, duration_s - period, period)]
     events.sort(key=lambda e: e[2])
     with _Bag(bag_path, kind) as bag:
-        bag.write(image_topic.rsplit("/", 1)[0] + "/camera_info", info_message(bag, rig.camera, T0_NS), T0_NS)
+        for topic in (image_topic, *more_image_topics):
+            bag.write(topic.rsplit("/", 1)[0] + "/camera_info", info_message(bag, rig.camera, T0_NS), T0_NS)
         for stamp, what, t, k in events:
             s = T0_NS + int(round(stamp * 1e9))
             if what == "img":
                 poses = motion(t + np.linspace(-0.5, 0.5, 5) * exposure_s)
-                bag.write(image_topic, image_message(bag, draw_board(rig.camera, rig.board, poses, rng), s), s)
+                msg = image_message(bag, draw_board(rig.camera, rig.board, poses, rng), s)
+                for topic in (image_topic, *more_image_topics):
+                    bag.write(topic, msg, s)
             else:
                 topic, r, _ = lidars[k]
                 xyz, times = scene_sweep(r, motion, t, period, rng, rooms[k])

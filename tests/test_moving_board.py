@@ -297,6 +297,19 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     assert "# The clocks' offset t_cam0_stamp - t_lidar1_stamp: 0.04" in export_calibration(tmp_path / "cal", "ros-tf")
 
 
+def test_a_rig_bag_with_the_board_moving_throughout_and_two_cameras_is_refused_in_one_line(tmp_path, capsys):
+    """6 s of a board waved throughout before two cameras and a LiDAR: the second camera's pose would need still
+    boards, so extract refuses in one line naming the bag and what to do, and writes no folder."""
+    rig = _small_rig(5)
+    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 6.0, np.random.default_rng(5), speed_mps=0.6, turn_dps=50.0,
+                    more_image_topics=("/camera2/image_raw",))
+    code = main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--image-topic",
+                 "/camera2/image_raw", "--cloud-topic", "/points", "--board", BOARD, "--out", str(tmp_path / "rig")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0 and "bag.bag" in err and "read with one camera" in err, err
+    assert not (tmp_path / "rig").exists()
+
+
 def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(waved, capsys, tmp_path):
     """``extract --intrinsics`` (here ROS camera_calibration's YAML of the simulated camera) is used instead of the
     bag's CameraInfo, and a moving board is followed with it; intrinsics of another resolution are refused in one
