@@ -26,9 +26,14 @@ def edge_pixels(gray: np.ndarray, blur_px: float = BLUR_PX) -> np.ndarray:
     return cv2.Canny(g, LOW_FRACTION * high, high, L2gradient=True) > 0
 
 
-def edge_distance(gray: np.ndarray, truncate_px: float = TRUNCATE_PX, blur_px: float = BLUR_PX) -> np.ndarray:
-    """Each pixel's distance to the nearest edge (px, float32 (H, W)), at most ``truncate_px``."""
+def edge_distance(gray: np.ndarray, truncate_px: float = TRUNCATE_PX, blur_px: float = BLUR_PX,
+                  ignore: np.ndarray | None = None) -> np.ndarray:
+    """Each pixel's distance to the nearest edge (px, float32 (H, W)), at most ``truncate_px``; ``ignore``: a mask
+    (bool (H, W)) whose edges are dropped (found in the whole image first, so that the mask's own border is
+    none)."""
     edges = edge_pixels(gray, blur_px)
+    if ignore is not None:
+        edges &= ~ignore
     if not edges.any():
         return np.full(gray.shape[:2], truncate_px, np.float32)
     d = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)

@@ -150,9 +150,6 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
     edges = depth_edges(sweep.points, sweep.ring)
     P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera)]
     if board_mask is not None:
-        gray = gray.copy()
-        blur = cv2.GaussianBlur(gray, (0, 0), 3.0)
-        gray[board_mask] = blur[board_mask].mean() if board_mask.any() else 0  # no edges inside
         uv = camera.project(transform_points(T_given, P))
         ok = np.all(np.isfinite(uv), axis=1)
         on = np.zeros(len(P), bool)
@@ -160,9 +157,7 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         v = np.clip(np.round(uv[ok, 1]).astype(int), 0, gray.shape[0] - 1)
         on[ok] = board_mask[v, u]
         P = P[~on]
-    field = edge_distance(gray, TRUNCATE_PX)
-    if board_mask is not None:
-        field[board_mask] = TRUNCATE_PX
+    field = edge_distance(gray, TRUNCATE_PX, ignore=board_mask)
     gu, gv = field_gradient(field)
     return SceneView(name, P, field, gu, gv, TRUNCATE_PX)
 
