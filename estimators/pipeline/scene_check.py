@@ -29,8 +29,8 @@ from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
 from ..lidar.depth_edges import depth_edges
-from ..solvers.scene_alignment import (SceneFit, SceneView, consistency, minima_scatter, rival_minima, scene_minima,
-                                      visible_from_camera)
+from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, consistency, minima_scatter,
+                                      rival_minima, scene_minima, visible_from_camera)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -148,7 +148,8 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
                             "cannot be found along the beams")
     edges = depth_edges(sweep.points, sweep.ring)
-    P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera)]
+    spacing = beam_spacing_px(sweep.points, sweep.ring, camera)
+    P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera, spacing_px=spacing)]
     if board_mask is not None:
         uv = camera.project(transform_points(T_given, P))
         ok = np.all(np.isfinite(uv), axis=1)

@@ -59,10 +59,31 @@ class SceneView:
     truncate_px: float = 0.0  # the field's truncation: a residual off the image
 
 
+def beam_spacing_px(sweep: np.ndarray, ring: np.ndarray, camera: CameraModel) -> tuple[float, float]:
+    """How far apart the sweep's returns lie in the image (px, across and down): the median azimuth step within a
+    ring and the median elevation step between rings, times the camera's focal lengths."""
+    P = np.asarray(sweep, float).reshape(-1, 3)
+    az = np.arctan2(P[:, 1], P[:, 0])
+    el = np.arctan2(P[:, 2], np.hypot(P[:, 0], P[:, 1]))
+    steps, levels = [], []
+    for beam in np.unique(ring):
+        on = ring == beam
+        if on.sum() >= 3:
+            steps.append(np.median(np.diff(np.sort(az[on]))))
+            levels.append(np.median(el[on]))
+    d_az = float(np.median(steps)) if steps else 0.0
+    d_el = float(np.median(np.diff(np.sort(levels)))) if len(levels) > 1 else 0.0
+    return d_az * camera.K[0, 0], d_el * camera.K[1, 1]
+
+
 def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: np.ndarray, camera: CameraModel,
-                        cell_px: int = ZBUFFER_CELL_PX, margin_m: float = ZBUFFER_MARGIN_M) -> np.ndarray:
+                        cell_px: int = ZBUFFER_CELL_PX, margin_m: float = ZBUFFER_MARGIN_M,
+                        spacing_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """Which of ``points`` (LiDAR frame) the camera sees from its own centre: in front, in the image, and no
-    farther than ``margin_m`` behind the nearest return of the whole ``sweep`` in its z-buffer cell."""
+    farther than ``margin_m`` behind the nearest return of the whole ``sweep`` near its z-buffer cell: each return
+    covers the cells within 1.5 times the returns' spacing in the image (``spacing_px``, across and down:
+    :func:`beam_spacing_px`), so that a surface whose sparse returns leave cells between them still hides what
+    lies behind it."""
     def cells(P):
         pc = transform_points(T_camera_lidar, P)
         uv = camera.project(pc)
@@ -73,10 +94,14 @@ def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: n
         cv[ok] = (uv[ok, 1] // cell_px).astype(np.int64)
         return ok, cu, cv, np.linalg.norm(pc, axis=1)
 
+    from scipy.ndimage import minimum_filter
+
     nu = camera.width // cell_px + 1
     zbuf = np.full((camera.height // cell_px + 1) * nu, np.inf)
     ok, cu, cv, depth = cells(np.asarray(sweep, float).reshape(-1, 3))
     np.minimum.at(zbuf, cv[ok] * nu + cu[ok], depth[ok])
+    size = tuple(int(np.clip(2 * np.ceil(1.5 * sp / cell_px / 2) + 1, 1, 31)) for sp in spacing_px[::-1])
+    zbuf = minimum_filter(zbuf.reshape(-1, nu), size=size, mode="nearest").ravel()
     ok, cu, cv, depth = cells(np.asarray(points, float).reshape(-1, 3))
     seen = np.zeros(len(ok), bool)
     seen[ok] = depth[ok] <= zbuf[cv[ok] * nu + cu[ok]] + margin_m
