@@ -43,12 +43,6 @@ class MovingRigResult:
         return verdict_of([(r.verdict.level, f"{n}: {why}") for n, r in self.lidars.items()
                            for why in r.verdict.reasons])
 
-    def _entry(self, pair: PairEstimate) -> dict:
-        return {"T": pair.T.tolist(), "covariance": pair.covariance.tolist(),
-                "std_rotation_deg": pair.std_rotation_deg.tolist(),
-                "std_translation_mm": pair.std_translation_mm.tolist(),
-                "std_translation_of_t_mm": pair.std_translation_camera_mm.tolist()}
-
     def to_dict(self) -> dict:
         """calibration.json of a rig (``rig``, ``reference``, ``sensors``, ``transforms``, ``cameras``) with each
         LiDAR's clock offset (``time_offsets_s``, as a still rig's) and its moving-board record."""
@@ -58,7 +52,7 @@ class MovingRigResult:
         sensors = [{"name": cam, "type": "camera", f"T_{cam}_{cam}": np.eye(4).tolist(), "covariance": zero.tolist()}]
         transforms = {}
         for n, r in self.lidars.items():
-            e = self._entry(r.pair)
+            e = r.pair.transform_keys()
             sensors.append({"name": n, "type": "lidar", f"T_{cam}_{n}": e.pop("T"), **e,
                             "moving_board": {k: v for k, v in r.to_dict().items()
                                              if k in ("verdict", "time_offset_s", "time_offset_std_s",
@@ -66,11 +60,11 @@ class MovingRigResult:
                                                       "sweeps_with_board", "range_rms_m",
                                                       "range_scatter_own_planes_m", "point_times", "normal_spread",
                                                       "timings_s")}})
-            transforms[f"T_{cam}_{n}"] = self._entry(r.pair)
+            transforms[f"T_{cam}_{n}"] = r.pair.transform_keys()
         names = list(self.lidars)
         for i, a in enumerate(names):
             for b in names[i + 1:]:
-                transforms[f"T_{a}_{b}"] = self._entry(self.between(a, b))
+                transforms[f"T_{a}_{b}"] = self.between(a, b).transform_keys()
         held = {n: r.time_offset_std_s is None for n, r in self.lidars.items()}
         return {
             "verdict": self.verdict.to_dict(), "rig": True, "tool": "lidarcam", "version": __version__,

@@ -115,6 +115,13 @@ class PairEstimate:
                           "translation_mm_of_t_camera_xyz": self.std_translation_camera_mm.tolist()}
         return out
 
+    def transform_keys(self) -> dict:
+        """A rig's calibration.json entry of this transform: ``T``, ``covariance``, ``std_rotation_deg``,
+        ``std_translation_mm`` (about and along b's axes) and ``std_translation_of_t_mm`` (in a's frame)."""
+        return {"T": self.T.tolist(), "covariance": self.covariance.tolist(),
+                "std_rotation_deg": self.std_rotation_deg.tolist(),
+                "std_translation_mm": self.std_translation_mm.tolist(), "std_translation_of_t_mm": self.std_translation_camera_mm.tolist()}
+
     def intervals(self, level: float) -> np.ndarray | None:
         """The samples' equal-tailed intervals (6, 2) of each tangent axis at ``level``, or None unsampled."""
         return None if self.samples is None else equal_tailed(self.samples, level)

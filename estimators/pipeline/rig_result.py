@@ -314,10 +314,7 @@ class RigResult:
         sol, ref = self.solution, self.rig.reference
 
         def entry(T, cov) -> dict:  # a pair's spread as PairEstimate gives it
-            p = PairEstimate("", "", T, cov, None, 0)
-            return {"T": T.tolist(), "covariance": cov.tolist(), "std_rotation_deg": p.std_rotation_deg.tolist(),
-                    "std_translation_mm": p.std_translation_mm.tolist(),
-                    "std_translation_of_t_mm": p.std_translation_camera_mm.tolist()}
+            return PairEstimate("", "", T, cov, None, 0).transform_keys()
 
         sensors = []
         for s in self.rig.sensors:
