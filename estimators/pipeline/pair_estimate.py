@@ -120,7 +120,8 @@ class PairEstimate:
         ``std_translation_mm`` (about and along b's axes) and ``std_translation_of_t_mm`` (in a's frame)."""
         return {"T": self.T.tolist(), "covariance": self.covariance.tolist(),
                 "std_rotation_deg": self.std_rotation_deg.tolist(),
-                "std_translation_mm": self.std_translation_mm.tolist(), "std_translation_of_t_mm": self.std_translation_camera_mm.tolist()}
+                "std_translation_mm": self.std_translation_mm.tolist(),
+                "std_translation_of_t_mm": self.std_translation_camera_mm.tolist()}
 
     def intervals(self, level: float) -> np.ndarray | None:
         """The samples' equal-tailed intervals (6, 2) of each tangent axis at ``level``, or None unsampled."""
