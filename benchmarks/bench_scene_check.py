@@ -1,13 +1,19 @@
 """The scene's check against simulated truth (make bench; `python benchmarks/bench_scene_check.py [--scenes N]
-[--workers W] [--seed S]`): how often the true extrinsic is flagged (the false-alarm rate) and how often a
-perturbed one is (the power), and how far the scene's own estimate lies from the truth against its covariance.
+[--workers W] [--seed S] [--generator room|office|both]`): how often the true extrinsic is flagged (the
+false-alarm rate) and how often a perturbed one is (the power), and how far the scene's own estimate lies from
+the truth against its covariance.
 
-Each scene: a simulated office (``simulate_dataset(scene="office")``: walls with doors, pictures, cabinets, a table
-with monitors, a pillar, the board on its holder) of 10 frames, a VLP-16- or a 64-beam LiDAR in turn, checked by
-``pipeline.scene_check.check_scene`` under the truth, the truth turned by 0.2 degrees about a random axis, and
-moved by 2 cm along a random direction, each with the board left out (the default) and kept. Printed per
-configuration: the share flagged at the test's level (0.01), the median p-value, and the scene estimate's error
-and NEES (6 dof) under the truth.
+Two generators, each scene of 10 frames seen by a VLP-16- or a 64-beam LiDAR in turn:
+
+- ``room``: a furnished room without a board (``simulation.furnished_room``: desks, shelves, chairs, sofas,
+  pillars, posters, doors, windows), the rig carried to a new spot and heading for every frame;
+- ``office``: the board scenes' office (``simulate_dataset(scene="office")``: walls with doors, pictures,
+  cabinets, a table with monitors, a pillar, the board on its holder, the space before the camera kept clear
+  for the boards), with the board left out (the default) and kept.
+
+Each is checked by ``pipeline.scene_check.check_scene`` under the truth, the truth turned by 0.2 degrees about
+a random axis, and moved by 2 cm along a random direction. Printed per configuration: the share flagged at the
+test's level (0.01), the median p-value, and the scene estimate's error and NEES (6 dof) under the truth.
 """
 from __future__ import annotations
 
@@ -30,19 +36,24 @@ MODELS = ("vlp16", "os64")
 TURN_DEG, MOVE_M = 0.2, 0.02
 
 
-def _trial(seed: int) -> list[dict]:
+def _trial(job: tuple[str, int]) -> list[dict]:
     import json
 
     from estimators.errors import LidarcamError
     from estimators.pipeline.scene_check import check_scene
+    from estimators.simulation.furnished_room import simulate_scene_dataset
     from estimators.simulation.simulator import simulate_dataset
     from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
 
+    generator, seed = job
     rng = np.random.default_rng(seed)
     model = MODELS[seed % len(MODELS)]
     rows = []
     with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
-        simulate_dataset(Path(tmp) / "ds", n_poses=10, seed=seed, lidar=model, scene="office")
+        if generator == "room":
+            simulate_scene_dataset(Path(tmp) / "ds", n_frames=10, seed=seed, lidar=model)
+        else:
+            simulate_dataset(Path(tmp) / "ds", n_poses=10, seed=seed, lidar=model, scene="office")
         truth = np.array(json.loads((Path(tmp) / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
@@ -51,9 +62,10 @@ def _trial(seed: int) -> list[dict]:
         cases = {"truth": truth,
                  "turned": T_from_Rt(R_from_rotvec(np.radians(TURN_DEG) * axis), np.zeros(3)) @ truth,
                  "moved": T_from_Rt(np.eye(3), MOVE_M * move) @ truth}
-        for keep in (False, True):
+        for keep in ((False, True) if generator == "office" else (False,)):
             for name, T in cases.items():
-                row = {"seed": seed, "model": model, "board": "kept" if keep else "left out", "case": name}
+                board = "none" if generator == "room" else "kept" if keep else "left out"
+                row = {"generator": generator, "seed": seed, "model": model, "board": board, "case": name}
                 try:
                     c = check_scene(Path(tmp) / "ds", T, keep_board=keep)
                 except LidarcamError as exc:
@@ -76,44 +88,48 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=20)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--generator", choices=("room", "office", "both"), default="both")
     a = ap.parse_args()
     t0 = time.time()
+    generators = ("room", "office") if a.generator == "both" else (a.generator,)
+    jobs = [(g, s) for g in generators for s in range(a.seed, a.seed + a.scenes)]
     with ProcessPoolExecutor(a.workers) as pool:
-        rows = [r for rs in pool.map(_trial, range(a.seed, a.seed + a.scenes)) for r in rs]
-    print(f"{a.scenes} simulated offices of 10 frames (VLP-16- and 64-beam LiDARs in turn), each checked under the "
-          f"truth, the truth turned by {TURN_DEG} deg about a random axis and moved by {100 * MOVE_M:.0f} cm along a "
-          "random direction; flagged: p < 0.01\n")
-    print("| LiDAR | board | case | checks | flagged | median p | undetermined | refused | seconds (median) |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for model in MODELS:
-        for board in ("left out", "kept"):
-            for case in ("truth", "turned", "moved"):
-                sel = [r for r in rows if r["model"] == model and r["board"] == board and r["case"] == case]
-                done = [r for r in sel if "refused" not in r]
-                tested = [r for r in done if r["p"] is not None]
-                flagged = sum(r["consistent"] is False for r in done)
-                print(f"| {model} | {board} | {case} | {len(sel)} | {flagged} of {len(tested)} | "
-                      f"{np.median([r['p'] for r in tested]) if tested else float('nan'):.3g} | "
-                      f"{len(done) - len(tested)} | {len(sel) - len(done)} | "
-                      f"{np.median([r['seconds'] for r in done]) if done else float('nan'):.1f} |")
+        rows = [r for rs in pool.map(_trial, jobs) for r in rs]
+    print(f"{a.scenes} simulated scenes per generator of 10 frames (VLP-16- and 64-beam LiDARs in turn), each "
+          f"checked under the truth, the truth turned by {TURN_DEG} deg about a random axis and moved by "
+          f"{100 * MOVE_M:.0f} cm along a random direction; flagged: p < 0.01\n")
+    print("| scenes | LiDAR | board | case | checks | flagged | median p | undetermined | refused | seconds (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    configs = [(g, m, b) for g in generators for m in MODELS
+               for b in (("none",) if g == "room" else ("left out", "kept"))]
+    for g, model, board in configs:
+        for case in ("truth", "turned", "moved"):
+            sel = [r for r in rows if (r["generator"], r["model"], r["board"], r["case"]) == (g, model, board, case)]
+            done = [r for r in sel if "refused" not in r]
+            tested = [r for r in done if r["p"] is not None]
+            flagged = sum(r["consistent"] is False for r in done)
+            print(f"| {g} | {model} | {board} | {case} | {len(sel)} | {flagged} of {len(tested)} | "
+                  f"{np.median([r['p'] for r in tested]) if tested else float('nan'):.3g} | "
+                  f"{len(done) - len(tested)} | {len(sel) - len(done)} | "
+                  f"{np.median([r['seconds'] for r in done]) if done else float('nan'):.1f} |")
     print("\nThe scene's estimate under the truth (from the true extrinsic and its 12 starts about it):\n")
-    print("| LiDAR | board | rotation error RMS | translation error RMS | NEES mean / median (6 if honest) | "
+    print("| scenes | LiDAR | board | rotation error RMS | translation error RMS | NEES mean / median (6 if honest) | "
           "contour returns (median) |")
-    print("|---|---|---|---|---|---|")
-    for model in MODELS:
-        for board in ("left out", "kept"):
-            sel = [r for r in rows if r["model"] == model and r["board"] == board and r["case"] == "truth"
-                   and "nees" in r]
-            if not sel:
-                continue
-            nees = np.array([r["nees"] for r in sel])
-            print(f"| {model} | {board} | {np.sqrt(np.mean([r['rot_deg'] ** 2 for r in sel])):.3f} deg | "
-                  f"{np.sqrt(np.mean([r['trans_mm'] ** 2 for r in sel])):.1f} mm | {nees.mean():.1f} / "
-                  f"{np.median(nees):.1f} | {np.median([r['points'] for r in sel]):.0f} |")
+    print("|---|---|---|---|---|---|---|")
+    for g, model, board in configs:
+        sel = [r for r in rows if (r["generator"], r["model"], r["board"], r["case"]) == (g, model, board, "truth")
+               and "nees" in r]
+        if not sel:
+            continue
+        nees = np.array([r["nees"] for r in sel])
+        print(f"| {g} | {model} | {board} | {np.sqrt(np.mean([r['rot_deg'] ** 2 for r in sel])):.3f} deg | "
+              f"{np.sqrt(np.mean([r['trans_mm'] ** 2 for r in sel])):.1f} mm | {nees.mean():.1f} / "
+              f"{np.median(nees):.1f} | {np.median([r['points'] for r in sel]):.0f} |")
     refused = [r for r in rows if "refused" in r]
     for r in refused[:10]:
-        print(f"- refused, seed {r['seed']} {r['model']} board {r['board']} {r['case']}: {r['refused']}")
-    print(f"\n({a.scenes} scenes in {time.time() - t0:.0f} s on {a.workers} processes; seeds "
+        print(f"- refused, {r['generator']} seed {r['seed']} {r['model']} board {r['board']} {r['case']}: "
+              f"{r['refused']}")
+    print(f"\n({len(jobs)} scenes in {time.time() - t0:.0f} s on {a.workers} processes; seeds "
           f"{a.seed}..{a.seed + a.scenes - 1})")
 
 

@@ -186,14 +186,21 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
                 stages: list | None = None) -> SceneFit:
     """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
     solved with the views' fields as given, then again from there with them truncated at ``STAGES_PX`` (a contour
-    that has no edge of its own then stops being pulled by another's a little further away), the fit and its
-    covariance the second's (``stages``: the views narrowed for each of ``STAGES_PX``, when made already). A
-    :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
+    that has no edge of its own then stops being pulled by another's a little further away); and with the
+    narrowest fields alone from ``T_start`` too (the wide field's minimum can lie beyond the narrow one's near
+    the start: its pull from contours with no edge of their own is a bias). The fit and its covariance are the
+    narrowest stage's lower one (``stages``: the views narrowed for each of ``STAGES_PX``, when made already).
+    A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
+    stages = stages if stages is not None else [[narrowed(v, px) for v in views] for px in STAGES_PX]
     fit = _align(views, camera, T_start, max_evaluations)
     first, converged = fit, fit.converged
-    for narrow in stages if stages is not None else ([narrowed(v, px) for v in views] for px in STAGES_PX):
+    for narrow in stages:
         fit = _align(narrow, camera, fit.T_camera_lidar, max_evaluations)
         converged = converged and fit.converged
+    if stages:
+        near = _align(stages[-1], camera, T_start, max_evaluations)
+        if near.rms_px < fit.rms_px:
+            fit, converged = near, near.converged
     return replace(fit, rms_start_px=first.rms_start_px, moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar),
                    converged=converged)
 

@@ -1,0 +1,314 @@
+"""Furnished rooms seen from a rig carried through them, without a board: the scene's check's own simulator.
+
+The board scenes (``simulator``, ``office``) keep the space in front of the camera clear for the boards, so their
+views hold few occluding contours. Here a room (6-11 x 5-9 m) is filled with what such rooms hold, drawn at
+random per room:
+
+- free-standing furniture: desks with monitors (black screens that return nothing to the LiDAR), shelves and
+  cabinets, chairs, sofas, boxes on the floor, pillars and thin plant stands;
+- on the walls: posters and pictures with printed texture (image edges with no depth step: clutter for the
+  image's edges), doors in proud frames, and windows (bright in the image; the LiDAR's beams pass the glass and
+  return nothing, a gap in the ring);
+- materials from dark (0.04) to bright (0.9); each face of a piece shaded by its turn to a light above the room
+  (the camera sees a box's faces apart even where they share a material).
+
+The rig (``simulator.default_rig``: the camera 15 cm ahead of and 20 cm below the LiDAR) is placed per frame at a
+free spot of the room, 1.0-1.8 m high, turned to any heading and tipped by up to 3 degrees, so that the frames of
+one dataset see different parts of the room. The image is rendered with ``supersample^2`` rays per pixel over
+the whole frame (edges anti-aliased everywhere), the sweep cast from the LiDAR's beams; each return's intensity
+is its material's reflectance times the cosine of its incidence, and a return weaker than ``MIN_ECHO`` is lost.
+
+This is a second, independent generator for the scene's check: its claims are not to rest on the board scenes
+alone.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from geometry.camera import CameraModel
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse
+
+from ..io.output import atomic_directory, check_output_folder
+from ..io.dataset import write_dataset_yaml
+from ..io.pointcloud_io import write_scan
+from .rendering import _in_parts, _interp_subpixels, _normalized_grid, _rays_world, add_pixel_noise
+from .scene import Patch, cast, infinite_plane, rectangle
+from .simulator import default_rig
+
+LIGHT = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])  # the room's light, from above
+MIN_ECHO = 0.03  # reflectance x cos(incidence) below which a return is lost
+GLASS = "glass"
+
+
+def _shade(reflectance, normal: np.ndarray):
+    """A face's appearance: its material darkened by its turn away from the light (0.55-1.0 of the albedo)."""
+    k = 0.55 + 0.45 * abs(float(np.asarray(normal) @ LIGHT))
+    if callable(reflectance):
+        return lambda a, b: k * reflectance(a, b)
+    return k * reflectance
+
+
+def _texture(rng: np.random.Generator):
+    """A printed surface (poster, picture, rug): random blocks, stripes or a plain tint, as a function of the
+    rectangle's coordinates (m)."""
+    kind = rng.integers(3)
+    base, amp = rng.uniform(0.25, 0.7), rng.uniform(0.1, 0.25)
+    if kind == 0:
+        cells = rng.uniform(0.05, 0.2)
+        table = rng.uniform(-1.0, 1.0, (64, 64))
+        return lambda a, b: base + amp * table[(a / cells).astype(int) % 64, (b / cells).astype(int) % 64]
+    if kind == 1:
+        period, angle = rng.uniform(0.04, 0.25), rng.uniform(0, np.pi)
+        c, s = np.cos(angle), np.sin(angle)
+        return lambda a, b: base + amp * np.sign(np.sin(2 * np.pi * (c * a + s * b) / period))
+    return float(base)
+
+
+def _box(centre_xy, size, yaw: float, bottom: float, reflectance, label: str) -> list[Patch]:
+    """The four sides and the top of an upright box (base centre ``centre_xy`` at height ``bottom``)."""
+    sx, sy, sz = size
+    u = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    v = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    z = np.array([0.0, 0.0, 1.0])
+    base = np.array([centre_xy[0], centre_xy[1], bottom]) - 0.5 * sx * u - 0.5 * sy * v
+    faces = [(base, u, z, sx, sz, -v), (base + sy * v, u, z, sx, sz, v), (base, v, z, sy, sz, -u),
+             (base + sx * u, v, z, sy, sz, u), (base + sz * z, u, v, sx, sy, z)]
+    return [rectangle(o, a, b, w, h, _shade(reflectance, n), label) for o, a, b, w, h, n in faces]
+
+
+@dataclass(frozen=True)
+class Room:
+    """A furnished room (world frame: z up, the floor at 0, the room ``[0, length] x [0, width]``), its pieces
+    and the footprints of its furniture (centre x, y and radius) that a rig keeps clear of."""
+
+    length: float
+    width: float
+    patches: tuple
+    footprints: tuple
+
+
+def _material(rng: np.random.Generator) -> float:
+    return float(rng.choice([rng.uniform(0.04, 0.12), rng.uniform(0.2, 0.5), rng.uniform(0.55, 0.9)]))
+
+
+def _on_wall(rng: np.random.Generator, length: float, width: float, item_w: float, bottom: float, height: float,
+             proud: float, reflectance, label: str) -> tuple[Patch, np.ndarray]:
+    """A rectangle on a random wall, ``proud`` metres in front of it (negative: behind the wall's face), and
+    the wall's normal into the room."""
+    wall = rng.integers(4)
+    z = np.array([0.0, 0.0, 1.0])
+    if wall < 2:  # x = 0 (facing +x) or x = length (facing -x)
+        x = proud if wall == 0 else length - proud
+        y = rng.uniform(0.3, width - 0.3 - item_w)
+        o, u = (np.array([x, y, bottom]), np.array([0.0, 1.0, 0.0]))
+        n = np.array([1.0, 0.0, 0.0]) * (1 if wall == 0 else -1)
+    else:
+        y = proud if wall == 2 else width - proud
+        x = rng.uniform(0.3, length - 0.3 - item_w)
+        o, u = (np.array([x, y, bottom]), np.array([1.0, 0.0, 0.0]))
+        n = np.array([0.0, 1.0, 0.0]) * (1 if wall == 2 else -1)
+    return rectangle(o, u, z, item_w, height, _shade(reflectance, n), label), n
+
+
+def furnished_room(rng: np.random.Generator) -> Room:
+    """A room drawn at random (module docstring)."""
+    L, W = rng.uniform(6.0, 11.0), rng.uniform(5.0, 9.0)
+    wall_tint = rng.uniform(0.5, 0.8)
+    patches = [infinite_plane([0, 0, 1], 0.0, _shade(rng.uniform(0.15, 0.4), [0, 0, 1]), "floor"),
+               infinite_plane([0, 0, 1], rng.uniform(2.6, 3.2), 0.85, "ceiling")]
+    for n, d in (([1, 0, 0], 0.0), ([1, 0, 0], L), ([0, 1, 0], 0.0), ([0, 1, 0], W)):
+        patches.append(infinite_plane(n, d, _shade(wall_tint, np.array(n, float)), "wall"))
+    # Windows (glass, bright) in frames; doors in proud frames; posters and pictures.
+    for _ in range(int(rng.integers(1, 4))):
+        w, h = rng.uniform(0.8, 1.8), rng.uniform(0.9, 1.5)
+        glass, n = _on_wall(rng, L, W, w, rng.uniform(0.8, 1.1), h, 0.005, 0.95, GLASS)
+        patches += [glass, *_frame(glass, n, 0.005, 0.06, 0.04, rng.uniform(0.1, 0.9))]
+    for _ in range(int(rng.integers(1, 3))):
+        door, n = _on_wall(rng, L, W, 0.9, 0.0, 2.05, 0.01, _material(rng), "door")
+        patches += [door, *_frame(door, n, 0.01, 0.08, 0.05, _material(rng))]
+    for _ in range(int(rng.integers(3, 8))):
+        w, h = rng.uniform(0.4, 1.4), rng.uniform(0.4, 1.1)
+        patches.append(_on_wall(rng, L, W, w, rng.uniform(0.8, 1.7), h, 0.01, _texture(rng), "poster")[0])
+    # Free-standing furniture, anywhere in the room (the rig keeps clear of its footprints).
+    footprints = []
+
+    def place(size, against_wall: bool) -> tuple[np.ndarray, float]:
+        if against_wall:
+            side = rng.integers(4)
+            along = rng.uniform(0.6, (L if side < 2 else W) - 0.6)
+            off = size[1] / 2 + 0.03
+            xy = {0: (off, along), 1: (L - off, along), 2: (along, off), 3: (along, W - off)}[side]
+            yaw = {0: np.pi / 2, 1: -np.pi / 2, 2: 0.0, 3: np.pi}[side]
+            return np.array(xy), yaw
+        return np.array([rng.uniform(0.8, L - 0.8), rng.uniform(0.8, W - 0.8)]), rng.uniform(0, np.pi)
+
+    kinds = rng.choice(["desk", "shelf", "cabinet", "chair", "sofa", "crate", "pillar", "plant"],
+                       size=int(rng.integers(8, 15)))
+    for kind in kinds:
+        if kind == "desk":
+            xy, yaw = place((1.4, 0.7), rng.uniform() < 0.5)
+            top = _material(rng)
+            patches += _box(xy, (1.4, 0.7, 0.04), yaw, 0.72, top, "desk")
+            for sx in (-0.65, 0.65):  # side panels
+                c = xy + sx * np.array([np.cos(yaw), np.sin(yaw)])
+                patches += _box(c, (0.04, 0.66, 0.72), yaw, 0.0, top, "desk")
+            if rng.uniform() < 0.7:
+                patches += _box(xy, (0.55, 0.05, 0.35), yaw, 0.85, 0.04, "monitor")
+            footprints.append((*xy, 0.8))
+        elif kind in ("shelf", "cabinet"):
+            size = (rng.uniform(0.6, 1.6), rng.uniform(0.35, 0.6),
+                    rng.uniform(1.6, 2.2) if kind == "shelf" else rng.uniform(0.7, 1.3))
+            xy, yaw = place(size, rng.uniform() < 0.7)
+            patches += _box(xy, size, yaw, 0.0, _material(rng), kind)
+            footprints.append((*xy, 0.5 * np.hypot(size[0], size[1])))
+        elif kind == "chair":
+            xy, yaw = place((0.5, 0.5), False)
+            m = _material(rng)
+            patches += _box(xy, (0.48, 0.48, 0.06), yaw, 0.42, m, "chair")
+            back = xy - 0.22 * np.array([-np.sin(yaw), np.cos(yaw)])
+            patches += _box(back, (0.46, 0.05, 0.5), yaw, 0.48, m, "chair")
+            patches += _box(xy, (0.08, 0.08, 0.42), yaw, 0.0, 0.1, "chair")
+            footprints.append((*xy, 0.4))
+        elif kind == "sofa":
+            xy, yaw = place((1.9, 0.9), rng.uniform() < 0.6)
+            m = _material(rng)
+            patches += _box(xy, (1.9, 0.9, 0.45), yaw, 0.0, m, "sofa")
+            back = xy - 0.35 * np.array([-np.sin(yaw), np.cos(yaw)])
+            patches += _box(back, (1.9, 0.2, 0.4), yaw, 0.45, m, "sofa")
+            footprints.append((*xy, 1.05))
+        elif kind == "crate":
+            s = rng.uniform(0.3, 0.8)
+            xy, yaw = place((s, s), False)
+            patches += _box(xy, (s, s, rng.uniform(0.3, 0.9)), yaw, 0.0, _material(rng), "crate")
+            footprints.append((*xy, 0.75 * s))
+        elif kind == "pillar":
+            s = rng.uniform(0.25, 0.5)
+            xy, yaw = place((s, s), False)
+            patches += _box(xy, (s, s, 3.5), yaw, 0.0, _material(rng), "pillar")
+            footprints.append((*xy, 0.75 * s))
+        else:  # a plant on a thin stand
+            xy, yaw = place((0.4, 0.4), False)
+            patches += _box(xy, (0.05, 0.05, 0.9), yaw, 0.0, 0.1, "plant")
+            patches += _box(xy, (0.45, 0.45, 0.6), yaw, 0.9, rng.uniform(0.1, 0.3), "plant")
+            footprints.append((*xy, 0.35))
+    return Room(L, W, tuple(patches), tuple(footprints))
+
+
+def _frame(inner: Patch, into_room: np.ndarray, inner_proud: float, band: float, proud: float,
+           reflectance: float) -> list[Patch]:
+    """A frame of four strips ``band`` wide round a rectangle on a wall (a door's, a window's), ``proud`` metres
+    in front of the wall (the rectangle itself ``inner_proud``)."""
+    o = inner.origin + (proud - inner_proud) * into_room
+    u, v, w, h = inner.u, inner.v, inner.width, inner.height
+    r = _shade(reflectance, into_room)
+    return [rectangle(o - band * u - band * v, u, v, w + 2 * band, band, r, "frame"),
+            rectangle(o - band * u + h * v, u, v, w + 2 * band, band, r, "frame"),
+            rectangle(o - band * u, u, v, band, h, r, "frame"),
+            rectangle(o + w * u, u, v, band, h, r, "frame")]
+
+
+def _in_lidar(patches, T_world_lidar: np.ndarray) -> list[Patch]:
+    """The room's pieces in the LiDAR's frame."""
+    R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
+    out = []
+    for p in patches:
+        n = R.T @ p.normal
+        d = p.distance - p.normal @ t
+        if p.origin is None:
+            out.append(Patch(n, d, p.reflectance, label=p.label))
+        else:
+            out.append(Patch(n, d, p.reflectance, R.T @ (p.origin - t), R.T @ p.u, R.T @ p.v, p.width, p.height,
+                             p.label))
+    return out
+
+
+def rig_poses(room: Room, n: int, rng: np.random.Generator, max_tries: int = 10000) -> list[np.ndarray]:
+    """``n`` LiDAR poses in the room (``T_world_lidar``): 1.0-1.8 m high, 1.2 m from the walls, clear of the
+    furniture by 0.8 m, any heading, tipped by up to 3 degrees."""
+    poses = []
+    for _ in range(max_tries):
+        if len(poses) == n:
+            break
+        xy = np.array([rng.uniform(1.2, room.length - 1.2), rng.uniform(1.2, room.width - 1.2)])
+        if any(np.hypot(*(xy - f[:2])) < f[2] + 0.8 for f in room.footprints):
+            continue
+        tip = np.radians(rng.uniform(-3.0, 3.0, 2))
+        R = R_from_rotvec([0.0, 0.0, rng.uniform(-np.pi, np.pi)]) @ R_from_rotvec([tip[0], tip[1], 0.0])
+        poses.append(T_from_Rt(R, np.array([*xy, rng.uniform(1.0, 1.8)])))
+    if len(poses) < n:
+        raise ValueError(f"found room for {len(poses)} of {n} rig poses in this room")
+    return poses
+
+
+def render_scene(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], supersample: int = 2,
+                 blur_sigma_px: float = 0.5) -> np.ndarray:
+    """The noise-free image (grey levels, float) of a scene: ``supersample^2`` rays in every pixel, averaged,
+    then optical blur."""
+    grid = _normalized_grid(camera)
+    H, W = camera.height, camera.width
+    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    pv, pu = np.divmod(np.arange(H * W), W)
+    origin = T_world_camera[:3, 3]
+
+    def block(rows: np.ndarray) -> np.ndarray:
+        dirs = _rays_world(_interp_subpixels(grid, pu[rows], pv[rows], offs), T_world_camera)
+        refl = cast(origin, dirs, patches)[2]
+        refl = np.where(np.isnan(refl), 0.85, refl)
+        return refl.reshape(-1, supersample * supersample).mean(1)
+
+    refl = np.concatenate([block(r) for r in np.array_split(np.arange(H * W), 16)])
+    img = 20.0 + 210.0 * refl.reshape(H, W)
+    return cv2.GaussianBlur(img, (0, 0), blur_sigma_px) if blur_sigma_px > 0 else img
+
+
+def cast_room_sweep(beams, patches: list[Patch], rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """A sweep of the room (LiDAR frame): points with range noise, intensity (reflectance x cos incidence x
+    100), ring. Beams through glass and echoes weaker than ``MIN_ECHO`` return nothing."""
+    dirs, ring = beams.directions()
+    solid = [p for p in patches if p.label != GLASS]
+    glass = [p for p in patches if p.label == GLASS]
+    r, which, refl = cast(np.zeros(3), dirs, solid, beams.max_range_m)
+    if glass:  # a pane in front of what a beam hits: the echo is lost
+        r_glass = cast(np.zeros(3), dirs, glass, beams.max_range_m)[0]
+        r = np.where(r_glass < r, np.inf, r)
+    normals = np.array([p.normal for p in solid])
+    cos = np.abs(np.einsum("ij,ij->i", dirs, normals[np.clip(which, 0, None)]))
+    echo = np.where(np.isnan(refl), 0.0, refl) * cos
+    hit = np.isfinite(r) & (echo >= MIN_ECHO)
+    rr = r[hit] + rng.normal(0.0, beams.sigma_range_m, hit.sum())
+    return dirs[hit] * rr[:, None], (100 * echo[hit]).astype(np.float32), ring[hit]
+
+
+def simulate_scene_dataset(out: str | Path, n_frames: int = 10, seed: int = 0, lidar: str = "vlp16",
+                           sigma_range_m: float = 0.02, pixel_noise: float = 2.0, supersample: int = 2,
+                           overwrite: bool = False) -> Path:
+    """A folder of ``n_frames`` frames of one furnished room (module docstring) with no board: ``dataset.yaml``
+    (``lidar: 3d`` and the camera's intrinsics), images and PCD sweeps, and ``ground_truth.json``
+    (``T_camera_lidar``, each frame's ``T_world_lidar``, the seed)."""
+    check_output_folder(out, overwrite)
+    rng = np.random.default_rng(seed)
+    rig = default_rig(rng, lidar, sigma_range_m)
+    room = furnished_room(rng)
+    poses = rig_poses(room, n_frames, rng)
+    cam = rig.camera
+    T_lidar_camera = T_inverse(rig.T_camera_lidar)
+    spec = {"lidar": "3d", "camera": {"model": cam.model, "width": cam.width, "height": cam.height,
+                                      "K": cam.K.tolist(), "dist": cam.dist.tolist()}}
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        write_dataset_yaml(tmp, spec, "simulated by lidarcam (a furnished room, no board); ground_truth.json is for "
+                                      "evaluation only")
+        for k, T_wl in enumerate(poses):
+            patches = _in_lidar(room.patches, T_wl)
+            clean = render_scene(cam, T_lidar_camera, patches, supersample)
+            cv2.imwrite(str(tmp / f"{k:04d}.png"), add_pixel_noise(clean, rng, pixel_noise))
+            pts, inten, ring = cast_room_sweep(rig.beams, patches, rng)
+            write_scan(tmp / f"{k:04d}.pcd", pts, inten, ring)
+        truth = {"T_camera_lidar": rig.T_camera_lidar.tolist(), "T_world_lidar": [T.tolist() for T in poses],
+                 "lidar_model": rig.beams.name, "seed": seed, "scene": "furnished room"}
+        (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1))
+    return Path(out)
