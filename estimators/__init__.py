@@ -20,6 +20,9 @@ Rigs of several sensors in one graph: ``load_rig``, ``calibrate_rig`` (``calibra
 ``write_rig_calibration``, ``simulate_rig``, ``extract_rig_bag`` (a rig folder from a bag with several cameras and
 LiDARs). A moving board's folder (``motion.npz``, from ``extract_bag``): ``calibrate_moving``, a rig's
 ``calibrate_moving_rig`` (the extrinsic and the clocks' offset, each LiDAR against the first camera).
+The scene as a witness (no board needed): ``check_scene`` (a given extrinsic against the scene's contours and
+edges), ``calibrate_targetless`` (the extrinsic refined from a guess on the scene alone), ``simulate_scene``
+(a furnished room's frames with their truth).
 ``calibrate`` takes a pair folder as the rig of ``cam0`` and ``lidar0``; the pair's own solve, which starts each
 camera-LiDAR pair of the engine, is ``calibrate_pair`` (or ``solve`` on measured frames: a ``CalibrationResult``).
 Names are imported on first use, so that ``import estimators`` stays light.
@@ -66,6 +69,9 @@ _API = {
     "extract_rig_bag": ("io.rig_bag_extract", "extract_rig_bag"),
     "calibrate_moving": ("pipeline.moving_board", "calibrate_moving"),
     "calibrate_moving_rig": ("pipeline.moving_rig", "calibrate_moving_rig"),
+    "check_scene": ("pipeline.scene_check", "check_scene"),
+    "calibrate_targetless": ("pipeline.targetless", "calibrate_targetless"),
+    "simulate_scene": ("simulation.furnished_room", "simulate_scene_dataset"),
 }
 __all__ = ["__version__", *_API]
 

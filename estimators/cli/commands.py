@@ -17,6 +17,11 @@ def calibrate_command(args) -> int:
     from ..io.motion_track import is_moving_dataset
     from ..io.rig_dataset import is_rig
 
+    if args.targetless:
+        return _calibrate_targetless(args)
+    if args.keep_board:
+        raise LidarcamError("--keep-board is taken by --targetless only", path=args.dataset,
+                            hint="calibrate without it")
     if is_moving_dataset(args.dataset):
         return _calibrate_moving(args)
     if args.time_offset is not None:
@@ -25,6 +30,29 @@ def calibrate_command(args) -> int:
     if is_rig(args.dataset) or args.refine != "none":
         return _calibrate_rig(args)
     return _closed_form_only(args, load_dataset(args.dataset))
+
+
+def _calibrate_targetless(args) -> int:
+    """``--targetless``: the scene's extrinsic refined from ``--initial-guess`` (``pipeline.targetless``), printed
+    verdict first; calibration.json and report.html (the check's page: contours under the guess and the estimate)
+    written into ``--out``."""
+    from ..analysis.scene_check_page import write_check_page
+    from ..errors import LidarcamError
+    from ..io.output import write_json_atomic
+    from ..pipeline.measurement import parse_initial_guess
+    from ..pipeline.targetless import calibrate_targetless
+    from .printing import print_targetless
+
+    if args.initial_guess is None:
+        raise LidarcamError("--targetless refines an initial guess and none is given", path=args.dataset,
+                            hint="add --initial-guess FILE (a calibration.json or a 4x4 T_camera_lidar) or "
+                                 "'x y z roll pitch yaw'")
+    result = calibrate_targetless(args.dataset, parse_initial_guess(args.initial_guess), keep_board=args.keep_board)
+    print_targetless(result)
+    print(f"wrote {write_json_atomic(Path(args.out) / 'calibration.json', result.to_dict())}")
+    if not args.no_report:
+        print(f"wrote {write_check_page(result.scene, args.out, 'report.html', result, 'the initial guess')}")
+    return 0
 
 
 def _calibrate_rig(args) -> int:

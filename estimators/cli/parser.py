@@ -51,6 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "(validation.json): halves, the first and last; interleaved, the even and odd frames")
     c.add_argument("--no-static-scene", action="store_true",
                    help="judge each frame's board alone instead of against the static scene of all frames")
+    c.add_argument("--targetless", action="store_true",
+                   help="no board: refine --initial-guess (within a few degrees and 10-20 cm) on the scene's depth "
+                        "contours and the image's edges (docs/howto/check.md); writes calibration.json and "
+                        "report.html, or refuses a start it cannot pull in")
+    c.add_argument("--keep-board", action="store_true",
+                   help="--targetless: keep a board's edges and contours (by default left out where the camera "
+                        "finds it)")
     c.add_argument("--time-offset", type=float, default=None, metavar="S",
                    help="a moving board's recording: hold the sensors' clock offset (t_camera_stamp - t_lidar_stamp, "
                         "s) at S instead of solving it with the extrinsic (0: the clocks taken as synchronised)")

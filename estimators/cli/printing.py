@@ -295,6 +295,27 @@ def print_check(result) -> None:
         print(f"  frame {name} skipped: {why}")
 
 
+def print_targetless(result) -> None:
+    """A targetless calibration: the verdict, ``T_camera_lidar`` with its standard deviations about and along the
+    camera's axes, how far it moved from the guess, and what the scene gave."""
+    print(result.verdict.line)
+    print("T_camera_lidar (p_camera = R p_lidar + t), from the scene alone:")
+    for row in result.T_camera_lidar:
+        print("  [" + "  ".join(f"{v:+.5f}" for v in row) + "]")
+    rot, trans = result.scene.camera_axes_sd()
+    print(f"  sd about the camera's x, y, z: ({', '.join(f'{v:.2f}' for v in rot)}) deg; along them: "
+          f"({', '.join(f'{v:.1f}' for v in trans)}) mm (Laplace)")
+    angle, shift = result.moved()
+    fit = result.scene.fit
+    print(f"moved {angle:.2f} deg and {shift:.0f} mm from the initial guess; {fit.frames} frames, {fit.points} LiDAR "
+          f"contour returns at {fit.rms_px:.2f} px RMS from the image's edges"
+          + (", the board left out" if result.scene.board_left_out else "")
+          + f"; {sum(1 for _, e, r in result.ends if r <= fit.rms_px * 1.01)} of {len(result.ends)} starts about the "
+          "guess ended there")
+    for name, why in result.scene.skipped.items():
+        print(f"  frame {name} skipped: {why}")
+
+
 def print_moving(result) -> None:
     """A moving board's calibration: the verdict, ``T_camera_lidar`` with its standard deviations, the clocks'
     offset, and what was used; a rig's (``pipeline.moving_rig``): its verdict, then each LiDAR's."""

@@ -142,9 +142,10 @@ def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | No
 
 
 def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: CameraModel,
-               board_mask: np.ndarray | None = None) -> SceneView:
-    """One frame's contour returns the camera sees under ``T_given`` and its edge field, the board's mask left
-    out of both."""
+               board_mask: np.ndarray | None = None, truncate_px: float = TRUNCATE_PX,
+               field: np.ndarray | None = None) -> SceneView:
+    """One frame's contour returns the camera sees under ``T_given`` and its edge field truncated at
+    ``truncate_px`` (``field``: that field, when made already), the board's mask left out of both."""
     if sweep.ring is None:
         raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
                             "cannot be found along the beams")
@@ -159,9 +160,65 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         v = np.clip(np.round(uv[ok, 1]).astype(int), 0, gray.shape[0] - 1)
         on[ok] = board_mask[v, u]
         P = P[~on]
-    field = edge_distance(gray, TRUNCATE_PX, ignore=board_mask)
+    field = edge_distance(gray, truncate_px, ignore=board_mask) if field is None else field
     gu, gv = field_gradient(field)
-    return SceneView(name, P, field, gu, gv, TRUNCATE_PX)
+    return SceneView(name, P, field, gu, gv, truncate_px)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneFrame:
+    """One frame as the scene's measurements read it: its image, its sweep and the board's mask (or None)."""
+
+    name: str
+    gray: np.ndarray
+    sweep: object
+    board_mask: np.ndarray | None
+
+
+def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False
+                      ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
+    """A scene folder's root, camera, board (or None), its frames (images, sweeps with their beams, the board's
+    masks unless ``keep_board``) and the frames skipped with their reasons."""
+    root, camera, board, frames = load_scene_folder(folder)
+    out, skipped = [], {}
+    for f in frames:
+        try:
+            gray = read_gray(f.image)
+            sweep = read_sweep(f.scan)
+            if sweep.ring is None:
+                raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
+                                    "cannot be found along the beams")
+            mask = None if keep_board or board is None else _board_mask(gray, board, camera)
+        except LidarcamError as exc:
+            skipped[f.name] = exc.problem
+            continue
+        out.append(SceneFrame(f.name, gray, sweep, mask))
+    return root, camera, board, out, skipped
+
+
+def scene_views(frames: list[SceneFrame], T: np.ndarray, camera: CameraModel, skipped: dict,
+                truncate_px: float = TRUNCATE_PX) -> list[SceneView]:
+    """Every frame's :func:`scene_view` under ``T``; a frame with no contour in the camera's view is added to
+    ``skipped`` with that reason."""
+    views = []
+    for f in frames:
+        try:
+            view = scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px)
+        except LidarcamError as exc:
+            skipped[f.name] = exc.problem
+            continue
+        if len(view.points) == 0:
+            skipped[f.name] = "no LiDAR contour in the camera's view"
+            continue
+        skipped.pop(f.name, None)
+        views.append(view)
+    return views
+
+
+def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
+    return DegenerateLayoutError(f"{len(views)} frame(s) usable for the scene"
+                                 + (f" (skipped: {'; '.join(f'{k}: {v}' for k, v in skipped.items())})"
+                                    if skipped else ""), path=root, hint="give two or more frames")
 
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False) -> SceneCheck:
@@ -189,25 +246,10 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         Fewer than two frames with contours in view.
     """
     t0 = time.perf_counter()
-    root, camera, board, frames = load_scene_folder(folder)
-    views, skipped = [], {}
-    for f in frames:
-        try:
-            gray = read_gray(f.image)
-            sweep = read_sweep(f.scan)
-            mask = None if keep_board or board is None else _board_mask(gray, board, camera)
-            view = scene_view(f.name, gray, sweep, T_given, camera, mask)
-        except LidarcamError as exc:
-            skipped[f.name] = exc.problem
-            continue
-        if len(view.points) == 0:
-            skipped[f.name] = "no LiDAR contour in the camera's view"
-            continue
-        views.append(view)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
+    views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
-        raise DegenerateLayoutError(f"{len(views)} frame(s) usable for the scene's check"
-                                    + (f" (skipped: {'; '.join(f'{k}: {v}' for k, v in skipped.items())})"
-                                       if skipped else ""), path=root, hint="give two or more frames")
+        raise too_few(views, skipped, root)
     fits = scene_minima(views, camera, T_given)
     cov = fits[0].covariance + minima_scatter(fits)
     return SceneCheck(str(root), np.asarray(T_given, float), fits[0], consistency(fits[0], T_given, covariance=cov),

@@ -287,9 +287,38 @@ def cast_room_sweep(beams, patches: list[Patch], rng: np.random.Generator) -> tu
 def simulate_scene_dataset(out: str | Path, n_frames: int = 10, seed: int = 0, lidar: str = "vlp16",
                            sigma_range_m: float = 0.02, pixel_noise: float = 2.0, supersample: int = 2,
                            overwrite: bool = False) -> Path:
-    """A folder of ``n_frames`` frames of one furnished room (module docstring) with no board: ``dataset.yaml``
-    (``lidar: 3d`` and the camera's intrinsics), images and PCD sweeps, and ``ground_truth.json``
-    (``T_camera_lidar``, each frame's ``T_world_lidar``, the seed)."""
+    """A folder of frames of one furnished room (module docstring) with no board, written atomically.
+
+    Parameters
+    ----------
+    out : str or Path
+        The folder to write: ``dataset.yaml`` (``lidar: 3d`` and the camera's intrinsics), ``NNNN.png`` and
+        ``NNNN.pcd`` (x, y, z, intensity, ring), and ``ground_truth.json`` (``T_camera_lidar``, each frame's
+        ``T_world_lidar``, the seed).
+    n_frames : int
+        Frames, each from another spot and heading of the rig in the room.
+    seed : int
+        Seed of the rig's mounting, the room, the rig's poses and the noise.
+    lidar : str
+        ``vlp16``, ``os64`` or ``hdl64e``.
+    sigma_range_m : float
+        Range noise (m, 1 sd).
+    pixel_noise : float
+        Image noise (grey levels, 1 sd).
+    supersample : int
+        Rays per pixel along each side (anti-aliasing).
+    overwrite : bool
+        Replace an existing folder.
+
+    Returns
+    -------
+    Path
+        The folder.
+
+    Examples
+    --------
+    >>> lc.simulate_scene("/tmp/room", n_frames=10, seed=3, lidar="os64")   # doctest: +SKIP
+    """
     check_output_folder(out, overwrite)
     rng = np.random.default_rng(seed)
     rig = default_rig(rng, lidar, sigma_range_m)

@@ -169,7 +169,8 @@ class SceneFit:
     converged: bool
 
 
-def _stacked(T, views, camera, jacobian=True):
+def stacked_residuals(T, views, camera, jacobian=True):
+    """Every view's :func:`view_residuals` under ``T`` (a list of (residuals, Jacobian or None))."""
     parts = [view_residuals(T, v, camera, jacobian) for v in views]
     return parts
 
@@ -192,13 +193,13 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
     narrowest stage's lower one (``stages``: the views narrowed for each of ``STAGES_PX``, when made already).
     A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
     stages = stages if stages is not None else [[narrowed(v, px) for v in views] for px in STAGES_PX]
-    fit = _align(views, camera, T_start, max_evaluations)
+    fit = align_once(views, camera, T_start, max_evaluations)
     first, converged = fit, fit.converged
     for narrow in stages:
-        fit = _align(narrow, camera, fit.T_camera_lidar, max_evaluations)
+        fit = align_once(narrow, camera, fit.T_camera_lidar, max_evaluations)
         converged = converged and fit.converged
     if stages:
-        near = _align(stages[-1], camera, T_start, max_evaluations)
+        near = align_once(stages[-1], camera, T_start, max_evaluations)
         if near.rms_px < fit.rms_px:
             fit, converged = near, near.converged
     return replace(fit, rms_start_px=first.rms_start_px, moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar),
@@ -235,7 +236,9 @@ def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
     return out
 
 
-def _align(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int) -> SceneFit:
+def align_once(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int) -> SceneFit:
+    """One Levenberg-Marquardt solve on the views' fields as they are, from ``T_start``, with its block
+    covariance."""
     views = [v for v in views if len(v.points)]
     n_points = sum(len(v.points) for v in views)
     if len(views) < 2 or n_points == 0:
@@ -244,15 +247,15 @@ def _align(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max
     scale = np.sqrt(n_points)
 
     def fun(x):
-        return np.concatenate([r for r, _ in _stacked(T_retract(T_start, x), views, camera, False)]) / scale
+        return np.concatenate([r for r, _ in stacked_residuals(T_retract(T_start, x), views, camera, False)]) / scale
 
     def jac(x):
-        return np.concatenate([J for _, J in _stacked(T_retract(T_start, x), views, camera)]) / scale
+        return np.concatenate([J for _, J in stacked_residuals(T_retract(T_start, x), views, camera)]) / scale
 
     sol = least_squares(fun, np.zeros(6), jac=jac, method="lm", x_scale=np.r_[0.01, 0.01, 0.01, 0.05, 0.05, 0.05],
                         max_nfev=max_evaluations)
     T = T_retract(T_start, sol.x)
-    parts = _stacked(T, views, camera)
+    parts = stacked_residuals(T, views, camera)
     H = sum(J.T @ J for _, J in parts)
     g = _block_gradients(T, views, parts, camera)
     n = len(g)

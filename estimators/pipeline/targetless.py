@@ -1,0 +1,219 @@
+"""``lidarcam calibrate DATA --targetless --initial-guess T``: the extrinsic from the scene alone, no board.
+
+The scene's contours are laid on the image's edges (``solvers.scene_alignment``) starting from the guess: first
+on the edge fields truncated at ``COARSE_PX`` (a start a few degrees off lies tens of pixels from its edges), then
+on the check's own fields (``align_scene``: 20 px, then 6 px), the contours the camera sees recomputed under each
+stage's start. The same is done from ``PROBES`` starts about the guess (turned by ``PROBE_DEG`` about, or moved by
+``PROBE_M`` along, the camera's axes); the lowest end is the estimate, and from there the check's 13 starts
+(``scene_minima``) give its covariance (the block sandwich plus the scatter of the minima as low).
+
+Refused (a :class:`DegenerateLayoutError`, nothing written), never returned as converged:
+
+- fewer than ``MIN_LANDED`` of the starts end together at the lowest end (from there the 13 starts may still
+  find a lower minimum nearby: the estimate): a start the scene cannot pull in wanders to a minimum of its own (on a simulated room, from 15 degrees and 80 cm off, the seven ends lay apart, each with
+  most contours off the edges), while the starts about a guess within reach end together;
+- another end as low (within ``RIVAL_RMS`` of its RMS residual) lies beyond the estimate's 0.999 region: the
+  scene's cost has several minima within the start's reach, and which is the extrinsic is not known;
+- the scene constrains fewer than all six directions (standard deviations within 1 degree and 10 cm);
+- fewer than two frames hold contours in the camera's view.
+
+The board, where the folder has one and the camera finds it, is left out as in the check (``keep_board`` keeps
+it). The covariance is the scene's Laplace one (no sampled posterior: the residuals are neither Gaussian nor
+independent, and the blocks' sandwich stands in for their likelihood); on simulated rooms it is smaller than the
+errors it should cover (docs/bench/scene_check.md), which the verdict says.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
+
+from .. import __version__
+from ..camera.edge_map import TRUNCATE_PX, edge_distance
+from ..errors import DegenerateLayoutError
+from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, SceneFit, align_once, align_scene,
+                                      consistency, constrained_directions, minima_scatter, rival_minima, scene_minima,
+                                      stacked_residuals)
+from .result import CONVENTION, COVARIANCE_CONVENTION
+from .scene_check import SceneCheck, read_scene_frames, scene_view, too_few
+from .verdict import CHECK, Verdict
+
+COARSE_PX = (60.0,)
+PROBE_DEG, PROBE_M = 2.0, 0.10
+PROBES = 6  # the guess turned about each camera axis by +-PROBE_DEG alternately, then moved along each
+# Starts that must end together at the lowest end (its 0.999 region, or within SAME_DEG and SAME_M of it).
+MIN_LANDED = 3
+SAME_DEG, SAME_M = 0.05, 0.005
+
+
+@dataclass(frozen=True, eq=False)
+class TargetlessResult:
+    """The scene's extrinsic refined from ``T_guess``: the scene's estimate with its covariance and minima (``scene``:
+    a :class:`~estimators.pipeline.scene_check.SceneCheck` of the guess), every start's end (``ends``: start, end,
+    RMS residual) and the time taken."""
+
+    T_guess: np.ndarray
+    scene: SceneCheck
+    ends: tuple
+    seconds: float
+
+    @property
+    def T_camera_lidar(self) -> np.ndarray:
+        return self.scene.fit.T_camera_lidar
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.scene.covariance
+
+    @property
+    def verdict(self) -> Verdict:
+        return Verdict(CHECK, ("targetless: the scene's covariance is smaller than its errors on simulated rooms "
+                               "(NEES above 6; docs/bench/scene_check.md): read its standard deviations as lower "
+                               "bounds, and check the estimate against a board calibration where one is at hand",))
+
+    def moved(self) -> tuple[float, float]:
+        """How far the estimate lies from the guess: angle (deg) and translation (mm)."""
+        xi = T_log(T_inverse(self.T_guess) @ self.T_camera_lidar)
+        return (float(np.degrees(np.linalg.norm(xi[:3]))),
+                1000 * float(np.linalg.norm(self.T_camera_lidar[:3, 3] - self.T_guess[:3, 3])))
+
+    def to_dict(self) -> dict:
+        rot, trans = self.scene.camera_axes_sd()
+        angle, shift = self.moved()
+        fit = self.scene.fit
+        return {
+            "verdict": self.verdict.to_dict(), "tool": "lidarcam", "version": __version__,
+            "dataset": self.scene.dataset, "method": "targetless: the scene's depth contours on the image's edges",
+            "T_camera_lidar": self.T_camera_lidar.tolist(), "convention": CONVENTION,
+            "covariance": self.covariance.tolist(), "covariance_convention": COVARIANCE_CONVENTION,
+            "posterior": "Laplace (the covariance); no samples",
+            "std_rotation_deg_about_camera_xyz": rot.tolist(), "std_translation_mm_along_camera_xyz": trans.tolist(),
+            "initial_guess": self.T_guess.tolist(),
+            "moved_from_guess": {"rotation_deg": angle, "translation_mm": shift},
+            "scene": {"rms_px": fit.rms_px, "contour_returns": fit.points, "blocks": fit.blocks,
+                      "converged": fit.converged,
+                      "rival_minima": [{"T_camera_lidar": f.T_camera_lidar.tolist(), "rms_px": f.rms_px}
+                                       for f in self.scene.rivals]},
+            "starts": [{"T_start": s.tolist(), "T_end": e.tolist(), "rms_px": r} for s, e, r in self.ends],
+            "frames_used": list(self.scene.frames_used), "frames_skipped": self.scene.skipped,
+            "board_left_out": self.scene.board_left_out, "timings_s": {"targetless": self.seconds},
+        }
+
+
+def _within(T: np.ndarray, T_other: np.ndarray, cov: np.ndarray) -> bool:
+    """Whether ``T_other`` lies within ``T``'s 0.999 region under ``cov``, or within ``SAME_DEG`` and ``SAME_M``."""
+    xi = T_log(T_inverse(T) @ T_other)
+    return bool(xi @ np.linalg.solve(cov, xi) <= RIVAL_D2
+                or (np.linalg.norm(xi[:3]) <= np.radians(SAME_DEG) and np.linalg.norm(xi[3:]) <= SAME_M))
+
+
+def _starts(T_guess: np.ndarray) -> list[np.ndarray]:
+    """The guess and ``PROBES`` starts about it: turned about the camera's x, y, z by +-PROBE_DEG (signs
+    alternating), then moved along them by +-PROBE_M."""
+    starts = [T_guess]
+    for k in range(PROBES):
+        e = np.zeros(3)
+        e[k % 3] = 1.0 if k % 2 == 0 else -1.0
+        if k < 3:
+            starts.append(T_from_Rt(R_from_rotvec(np.radians(PROBE_DEG) * e), np.zeros(3)) @ T_guess)
+        else:
+            starts.append(T_from_Rt(np.eye(3), PROBE_M * e) @ T_guess)
+    return starts
+
+
+def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_board: bool = False
+                         ) -> TargetlessResult:
+    """The extrinsic from the scene of ``folder``, refined from ``T_guess`` (module docstring).
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        A camera-LiDAR folder of synchronised frames (dataset.yaml with ``camera:``; ``board:`` optional); the
+        sweeps need each return's beam (a ``ring`` field or an organised cloud).
+    T_guess : numpy.ndarray
+        4x4 ``T_camera_lidar`` to start from: within a few degrees and 10-20 cm.
+    keep_board : bool
+        Keep the board's edges and contours (by default left out where the camera finds it).
+
+    Returns
+    -------
+    TargetlessResult
+        The estimate, its covariance, every start's end and the verdict.
+
+    Raises
+    ------
+    DegenerateLayoutError
+        Several minima as low within the start's reach, fewer than six constrained directions, or fewer than
+        two frames with contours in view.
+    """
+    t0 = time.perf_counter()
+    T_guess = np.asarray(T_guess, float)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
+    wide = max(COARSE_PX)
+    fields = {f.name: edge_distance(f.gray, wide, ignore=f.board_mask) for f in frames}
+
+    def views_at(T: np.ndarray, truncate_px: float) -> list:
+        out = []
+        for f in frames:
+            v = scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px,
+                           np.minimum(fields[f.name], truncate_px))
+            if len(v.points):
+                out.append(v)
+        if len(out) < 2:
+            raise too_few(out, skipped, root)
+        return out
+
+    def refine(T: np.ndarray) -> SceneFit:
+        for px in sorted(COARSE_PX, reverse=True):
+            T = align_once(views_at(T, px), camera, T, 60).T_camera_lidar
+        return align_scene(views_at(T, TRUNCATE_PX), camera, T)
+
+    ends = []
+    for start in _starts(T_guess):
+        try:
+            fit = refine(start)
+        except DegenerateLayoutError:
+            if start is T_guess:
+                raise
+            continue
+        ends.append((start, fit))
+    ends.sort(key=lambda e: e[1].rms_px)
+    best = ends[0][1]
+    views = views_at(best.T_camera_lidar, TRUNCATE_PX)
+    fits = scene_minima(views, camera, best.T_camera_lidar)
+    cov = fits[0].covariance + minima_scatter(fits)
+    estimate = fits[0]
+    for _, f in ends[1:]:
+        xi = T_log(T_inverse(estimate.T_camera_lidar) @ f.T_camera_lidar)
+        if f.rms_px <= estimate.rms_px * (1 + RIVAL_RMS) and xi @ np.linalg.solve(cov, xi) > RIVAL_D2:
+            angle = np.degrees(np.linalg.norm(xi[:3]))
+            raise DegenerateLayoutError(
+                f"the scene's cost has minima as low {angle:.2f} deg and "
+                f"{1000 * np.linalg.norm(f.T_camera_lidar[:3, 3] - estimate.T_camera_lidar[:3, 3]):.0f} mm apart "
+                "within the start's reach: the scene alone does not tell which is the extrinsic", path=root,
+                hint="give more frames with objects at several distances, or calibrate with a board")
+    landed = sum(_within(best.T_camera_lidar, f.T_camera_lidar, best.covariance) for _, f in ends)
+    if landed < MIN_LANDED:
+        raise DegenerateLayoutError(
+            f"{landed} of the {len(ends)} starts about the guess (within {PROBE_DEG:g} deg and {100 * PROBE_M:g} cm of "
+            f"it) end together at the lowest end: the guess lies outside the scene's basin there", path=root,
+            hint="give a guess within a few degrees and 10-20 cm (a board calibration, the rig's drawings), or "
+                 "calibrate with a board")
+    V, _ = constrained_directions(cov, CONSTRAINED)
+    if V.shape[1] < 6:
+        raise DegenerateLayoutError(f"the scene constrains {V.shape[1]} of the extrinsic's 6 directions (standard "
+                                    "deviations within 1 deg and 10 cm)", path=root,
+                                    hint="give frames with objects at several distances and in every part of the "
+                                         "image, or calibrate with a board")
+    # The page's "RMS at the given extrinsic": the guess's, on the estimate's contours and fields.
+    at_guess = np.concatenate([r for r, _ in stacked_residuals(T_guess, views, camera, False)])
+    estimate = replace(estimate, rms_start_px=float(np.sqrt(np.mean(at_guess ** 2))))
+    check = SceneCheck(str(root), T_guess, estimate, consistency(estimate, T_guess, covariance=cov),
+                       tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
+                       time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)
+    return TargetlessResult(T_guess, check,
+                            tuple((s, f.T_camera_lidar, f.rms_px) for s, f in ends), time.perf_counter() - t0)
