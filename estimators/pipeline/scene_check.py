@@ -84,9 +84,10 @@ class SceneCheck:
         if not self.consistent:
             return Verdict(CHECK, (f"the scene contradicts the given extrinsic (p = {self.test['p_value']:.2g}, "
                                    f"{self.test['dof']} constrained directions): it lays the LiDAR's contours on the "
-                                   "image's edges elsewhere; on simulated offices this test flags the true extrinsic "
-                                   "in half or more of the checks with the board left out and in 15% with it kept "
-                                   "(docs/bench/scene_check.md), so look at check.html before trusting either",))
+                                   "image's edges elsewhere; on simulated scenes this test flags the true extrinsic "
+                                   "in 15% of the checks (furnished rooms) and in half of a board's offices with the "
+                                   "board left out (docs/bench/scene_check.md), so look at check.html before "
+                                   "trusting either",))
         return Verdict(OK)
 
     def camera_axes_sd(self) -> tuple[np.ndarray, np.ndarray]:
