@@ -41,9 +41,11 @@ def edge_distance(gray: np.ndarray, truncate_px: float = TRUNCATE_PX, blur_px: f
 
 
 def field_gradient(field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The field's derivatives along u and v (central differences, float32 (H, W) each)."""
-    gu = np.zeros_like(field)
-    gv = np.zeros_like(field)
-    gu[:, 1:-1] = 0.5 * (field[:, 2:] - field[:, :-2])
-    gv[1:-1, :] = 0.5 * (field[2:, :] - field[:-2, :])
+    """The field's derivatives along u and v (central differences, float32 (H, W) each; zero on the border)."""
+    f = np.asarray(field, np.float32)
+    kernel = np.array([[-0.5, 0.0, 0.5]], np.float32)
+    gu = cv2.filter2D(f, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
+    gv = cv2.filter2D(f, cv2.CV_32F, kernel.T, borderType=cv2.BORDER_CONSTANT)
+    gu[:, [0, -1]] = 0.0
+    gv[[0, -1], :] = 0.0
     return gu, gv

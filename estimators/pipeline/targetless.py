@@ -184,7 +184,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     ends.sort(key=lambda e: e[1].rms_px)
     best = ends[0][1]
     views = views_at(best.T_camera_lidar, TRUNCATE_PX)
-    fits = scene_minima(views, camera, best.T_camera_lidar)
+    fits = scene_minima(views, camera, best.T_camera_lidar, narrow_from_every_start=True)
     cov = fits[0].covariance + minima_scatter(fits)
     estimate = fits[0]
     for _, f in ends[1:]:

@@ -125,29 +125,7 @@ def view_residuals(T: np.ndarray, view: SceneView, camera: CameraModel, jacobian
                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """One frame's residuals under ``T`` (each contour return's edge distance, px; the truncation outside the
     image) and their Jacobian by ``T``'s right tangent (N, 6), or None."""
-    P = view.points
-    pc = transform_points(T, P)
-    uv = camera.project(pc)
-    h, w = view.field.shape
-    ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & \
-        (uv[:, 1] <= h - 1)
-    r = np.full(len(P), view.truncate_px)
-    r[ok] = _sample(view.field, uv[ok])
-    if not jacobian:
-        return r, None
-    J = np.zeros((len(P), 6))
-    if ok.any():
-        g = np.column_stack([_sample(view.grad_u, uv[ok]), _sample(view.grad_v, uv[ok])])  # (n, 2)
-        _, duv = camera.project_jacobian(pc[ok])  # the projection's derivative by the camera-frame point
-        R = T[:3, :3]
-        p = P[ok]
-        # d p_c / d xi for T Exp(xi) p: rotation -R [p]x, translation R.
-        skew = np.zeros((len(p), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
-        dp = np.concatenate([-R @ skew, np.broadcast_to(R, (len(p), 3, 3))], axis=2)  # (n, 3, 6)
-        J[ok] = np.einsum("ni,nij,njk->nk", g, np.nan_to_num(duv), dp)
-    return r, J
+    return stacked_residuals(T, [view], camera, jacobian)[0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,10 +147,43 @@ class SceneFit:
     converged: bool
 
 
-def stacked_residuals(T, views, camera, jacobian=True):
-    """Every view's :func:`view_residuals` under ``T`` (a list of (residuals, Jacobian or None))."""
-    parts = [view_residuals(T, v, camera, jacobian) for v in views]
-    return parts
+def stacked_residuals(T: np.ndarray, views: list[SceneView], camera: CameraModel, jacobian: bool = True
+                      ) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Every view's :func:`view_residuals` under ``T``, as a list of (residuals, Jacobian or None): the frames'
+    returns projected together (one projection, one Jacobian product), each sampled in its own field."""
+    sizes = [len(v.points) for v in views]
+    P = np.concatenate([v.points for v in views]) if views else np.zeros((0, 3))
+    pc = transform_points(T, P)
+    uv = camera.project(pc)
+    r = np.concatenate([np.full(n, v.truncate_px) for n, v in zip(sizes, views)]) if views else np.zeros(0)
+    g = np.zeros((len(P), 2))
+    ok = np.all(np.isfinite(uv), axis=1)
+    start = 0
+    for n, v in zip(sizes, views):
+        h, w = v.field.shape
+        sl = slice(start, start + n)
+        inside = ok[sl] & (uv[sl, 0] >= 0) & (uv[sl, 1] >= 0) & (uv[sl, 0] <= w - 1) & (uv[sl, 1] <= h - 1)
+        ok[sl] = inside
+        at = uv[sl][inside]
+        r[sl][inside] = _sample(v.field, at)
+        if jacobian and len(at):
+            g[sl][inside] = np.column_stack([_sample(v.grad_u, at), _sample(v.grad_v, at)])
+        start += n
+    J = None
+    if jacobian:
+        J = np.zeros((len(P), 6))
+        if ok.any():
+            _, duv = camera.project_jacobian(pc[ok])  # the projection's derivative by the camera-frame point
+            R = T[:3, :3]
+            p = P[ok]
+            # d p_c / d xi for T Exp(xi) p: rotation -R [p]x, translation R.
+            skew = np.zeros((len(p), 3, 3))
+            skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+            skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+            dp = np.concatenate([-R @ skew, np.broadcast_to(R, (len(p), 3, 3))], axis=2)  # (n, 3, 6)
+            J[ok] = np.einsum("ni,nij,njk->nk", g[ok], np.nan_to_num(duv), dp)
+    bounds = np.cumsum([0, *sizes])
+    return [(r[a:b], None if J is None else J[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def narrowed(view: SceneView, truncate_px: float) -> SceneView:
@@ -184,13 +195,14 @@ def narrowed(view: SceneView, truncate_px: float) -> SceneView:
 
 
 def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60,
-                stages: list | None = None) -> SceneFit:
+                stages: list | None = None, narrow_from_start: bool = True) -> SceneFit:
     """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
     solved with the views' fields as given, then again from there with them truncated at ``STAGES_PX`` (a contour
     that has no edge of its own then stops being pulled by another's a little further away); and with the
     narrowest fields alone from ``T_start`` too (the wide field's minimum can lie beyond the narrow one's near
     the start: its pull from contours with no edge of their own is a bias). The fit and its covariance are the
-    narrowest stage's lower one (``stages``: the views narrowed for each of ``STAGES_PX``, when made already).
+    narrowest stage's lower one (``stages``: the views narrowed for each of ``STAGES_PX``, when made already;
+    ``narrow_from_start`` False: the wide field's path alone, for a start meant to explore).
     A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
     stages = stages if stages is not None else [[narrowed(v, px) for v in views] for px in STAGES_PX]
     fit = align_once(views, camera, T_start, max_evaluations)
@@ -198,7 +210,7 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
     for narrow in stages:
         fit = align_once(narrow, camera, fit.T_camera_lidar, max_evaluations)
         converged = converged and fit.converged
-    if stages:
+    if stages and narrow_from_start:
         near = align_once(stages[-1], camera, T_start, max_evaluations)
         if near.rms_px < fit.rms_px:
             fit, converged = near, near.converged
@@ -206,10 +218,14 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
                    converged=converged)
 
 
-def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarray) -> list[SceneFit]:
+def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarray, narrow_from_every_start: bool = False
+                 ) -> list[SceneFit]:
     """The scene's estimates from ``T_given`` and from it turned by ``START_DEG`` about, and moved by ``START_M``
     along, each of the camera's axes (13 starts), lowest RMS residual first: a cost with one minimum near the given
-    extrinsic gives them all alike; one that leaves the extrinsic undetermined scatters them."""
+    extrinsic gives them all alike; one that leaves the extrinsic undetermined scatters them. The narrowest field
+    alone is also solved from ``T_given`` (``align_scene``), and from every start with
+    ``narrow_from_every_start`` (a targetless start's neighbourhood: the wide field's minimum can lie tens of
+    millimetres from the narrow one's, and only a start near the latter finds it)."""
     from geometry.rotations import R_from_rotvec, T_from_Rt
 
     starts = [T_given]
@@ -220,7 +236,8 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
             starts.append(T_from_Rt(R_from_rotvec(np.radians(START_DEG) * e), np.zeros(3)) @ T_given)
             starts.append(T_from_Rt(np.eye(3), START_M * e) @ T_given)
     stages = [[narrowed(v, px) for v in views] for px in STAGES_PX]
-    return sorted((align_scene(views, camera, T, stages=stages) for T in starts), key=lambda f: f.rms_px)
+    return sorted((align_scene(views, camera, T, stages=stages, narrow_from_start=narrow_from_every_start
+                               or T is T_given) for T in starts), key=lambda f: f.rms_px)
 
 
 def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
@@ -246,14 +263,23 @@ def align_once(views: list[SceneView], camera: CameraModel, T_start: np.ndarray,
                                     hint="give more frames, with objects at several distances in view of both")
     scale = np.sqrt(n_points)
 
+    last: dict = {}
+
+    def both(x):  # MINPACK asks for the Jacobian at the point whose residuals it has just had: made once
+        if last.get("x") is None or not np.array_equal(last["x"], x):
+            parts = stacked_residuals(T_retract(T_start, x), views, camera)
+            last.update(x=np.array(x), r=np.concatenate([r for r, _ in parts]) / scale,
+                        J=np.concatenate([J for _, J in parts]) / scale)
+        return last
+
     def fun(x):
-        return np.concatenate([r for r, _ in stacked_residuals(T_retract(T_start, x), views, camera, False)]) / scale
+        return both(x)["r"]
 
     def jac(x):
-        return np.concatenate([J for _, J in stacked_residuals(T_retract(T_start, x), views, camera)]) / scale
+        return both(x)["J"]
 
     sol = least_squares(fun, np.zeros(6), jac=jac, method="lm", x_scale=np.r_[0.01, 0.01, 0.01, 0.05, 0.05, 0.05],
-                        max_nfev=max_evaluations)
+                        xtol=1e-6, max_nfev=max_evaluations)
     T = T_retract(T_start, sol.x)
     parts = stacked_residuals(T, views, camera)
     H = sum(J.T @ J for _, J in parts)
