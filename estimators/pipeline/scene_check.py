@@ -39,6 +39,7 @@ BOARD_MARGIN_PX = 15
 # The test's level: below it the scene contradicts the given extrinsic.
 ALPHA = 0.01
 EXIT_CONTRADICTED = 4
+READ_THREADS = 2
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,9 +181,11 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False
                       ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera, board (or None), its frames (images, sweeps with their beams, the board's
     masks unless ``keep_board``) and the frames skipped with their reasons."""
+    from concurrent.futures import ThreadPoolExecutor
+
     root, camera, board, frames = load_scene_folder(folder)
-    out, skipped = [], {}
-    for f in frames:
+
+    def read(f) -> SceneFrame | str:
         try:
             gray = read_gray(f.image)
             sweep = read_sweep(f.scan)
@@ -191,9 +194,14 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False
                                     "cannot be found along the beams")
             mask = None if keep_board or board is None else _board_mask(gray, board, camera)
         except LidarcamError as exc:
-            skipped[f.name] = exc.problem
-            continue
-        out.append(SceneFrame(f.name, gray, sweep, mask))
+            return exc.problem
+        return SceneFrame(f.name, gray, sweep, mask)
+
+    # Decoding, reading and the board's search release the interpreter: two frames at a time.
+    with ThreadPoolExecutor(max_workers=READ_THREADS) as pool:
+        got = list(pool.map(read, frames))
+    out = [g for g in got if isinstance(g, SceneFrame)]
+    skipped = {f.name: g for f, g in zip(frames, got) if not isinstance(g, SceneFrame)}
     return root, camera, board, out, skipped
 
 
