@@ -17,6 +17,11 @@ Refused (a :class:`DegenerateLayoutError`, nothing written), never returned as c
 - the scene constrains fewer than all six directions (standard deviations within 1 degree and 10 cm);
 - fewer than two frames hold contours in the camera's view.
 
+The verdict is UNTRUSTED where the even and the odd frames, solved apart from the estimate, do not solve or land
+farther apart than ``HALVES_D2`` under the sum of their covariances (a VLP-16's room of 100 contour returns can
+hold a lower minimum a degree from the truth, which every start then reaches; its halves cannot pin it), CHECK
+otherwise.
+
 The board, where the folder has one and the camera finds it, is left out as in the check (``keep_board`` keeps
 it). The covariance is the scene's Laplace one (no sampled posterior: the residuals are neither Gaussian nor
 independent, and the blocks' sandwich stands in for their likelihood); on simulated rooms it is smaller than the
@@ -40,7 +45,7 @@ from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, SceneFi
                                       stacked_residuals)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .scene_check import SceneCheck, read_scene_frames, scene_view, too_few
-from .verdict import CHECK, Verdict
+from .verdict import CHECK, UNTRUSTED, Verdict
 
 COARSE_PX = (60.0,)
 PROBE_DEG, PROBE_M = 2.0, 0.10
@@ -48,6 +53,8 @@ PROBES = 6  # the guess turned about each camera axis by +-PROBE_DEG alternately
 # Starts that must end together at the lowest end (its 0.999 region, or within SAME_DEG and SAME_M of it).
 MIN_LANDED = 3
 SAME_DEG, SAME_M = 0.05, 0.005
+# The even and the odd frames' estimates may differ by up to this squared distance (chi-square, 6 dof, 0.999).
+HALVES_D2 = 22.46
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,6 +67,9 @@ class TargetlessResult:
     scene: SceneCheck
     ends: tuple
     seconds: float
+    # The even and the odd frames solved apart from the estimate: ``d2`` (their difference under the sum of
+    # their covariances, 6 dof), ``apart_deg`` and ``apart_mm``; or ``problem`` where a half does not solve.
+    halves: dict | None = None
 
     @property
     def T_camera_lidar(self) -> np.ndarray:
@@ -71,6 +81,14 @@ class TargetlessResult:
 
     @property
     def verdict(self) -> Verdict:
+        h = self.halves or {}
+        if h.get("problem"):
+            return Verdict(UNTRUSTED, (f"targetless: {h['problem']}: the scene is too thin to trust this estimate "
+                                       "(give more frames, with objects at several distances)",))
+        if h.get("d2") is not None and h["d2"] > HALVES_D2:
+            return Verdict(UNTRUSTED, (f"targetless: the even and the odd frames disagree ({h['apart_deg']:.2f} deg "
+                                       f"and {h['apart_mm']:.0f} mm apart, d2 {h['d2']:.0f} on 6 dof): the scene's "
+                                       "cost leads each half elsewhere",))
         return Verdict(CHECK, ("targetless: the scene's covariance is smaller than its errors on simulated rooms "
                                "(NEES above 6; docs/bench/scene_check.md): read its standard deviations as lower "
                                "bounds, and check the estimate against a board calibration where one is at hand",))
@@ -99,6 +117,7 @@ class TargetlessResult:
                       "rival_minima": [{"T_camera_lidar": f.T_camera_lidar.tolist(), "rms_px": f.rms_px}
                                        for f in self.scene.rivals]},
             "starts": [{"T_start": s.tolist(), "T_end": e.tolist(), "rms_px": r} for s, e, r in self.ends],
+            "halves": self.halves,
             "frames_used": list(self.scene.frames_used), "frames_skipped": self.scene.skipped,
             "board_left_out": self.scene.board_left_out, "timings_s": {"targetless": self.seconds},
         }
@@ -215,5 +234,26 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     check = SceneCheck(str(root), T_guess, estimate, consistency(estimate, T_guess, covariance=cov),
                        tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
                        time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)
-    return TargetlessResult(T_guess, check,
-                            tuple((s, f.T_camera_lidar, f.rms_px) for s, f in ends), time.perf_counter() - t0)
+    halves = _halves(views, camera, estimate.T_camera_lidar)
+    return TargetlessResult(T_guess, check, tuple((s, f.T_camera_lidar, f.rms_px) for s, f in ends),
+                            time.perf_counter() - t0, halves)
+
+
+def _halves(views: list, camera, T: np.ndarray) -> dict:
+    """The even and the odd frames solved apart from ``T`` (each with the check's starts and covariance), and
+    how far apart they land against the sum of their covariances; ``problem`` where a half does not solve."""
+    got = []
+    for name, part in (("the even frames", views[0::2]), ("the odd frames", views[1::2])):
+        try:
+            fits = scene_minima(part, camera, T)
+        except DegenerateLayoutError as exc:
+            return {"problem": f"{name} alone do not solve ({exc.problem})"}
+        got.append((fits[0].T_camera_lidar, fits[0].covariance + minima_scatter(fits)))
+    (Ta, Ca), (Tb, Cb) = got
+    xi = T_log(T_inverse(Ta) @ Tb)
+    try:
+        d2 = float(xi @ np.linalg.solve(Ca + Cb, xi))
+    except np.linalg.LinAlgError:
+        return {"problem": "the halves' covariances are singular"}
+    return {"d2": d2, "apart_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
+            "apart_mm": 1000 * float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))}
