@@ -186,8 +186,9 @@ def test_glass_returns_nothing_and_a_dark_face_fades_at_grazing_incidence():
 
 def test_targetless_pulls_in_a_guess_2_degrees_and_10_cm_off(room, tmp_path, capsys):
     """``calibrate --targetless`` from the truth turned by 2 degrees and moved by 10 cm: the estimate within 0.2
-    degrees and 10 mm of the truth, calibration.json (with its covariance) and report.html written, the verdict
-    (CHECK: the scene's covariance is too small on simulations) first."""
+    degrees and 10 mm of the truth, calibration.json (with its covariance and the halves' test) and report.html
+    written, the verdict (CHECK: the scene's covariance is too small on simulations) first: the even and the odd
+    frames land 0.25 degrees and 7 mm apart, within the covariances' sum with its excess."""
     ds, truth = room
     (tmp_path / "guess.json").write_text(json.dumps({"T_camera_lidar": _off(truth, 2.0, 0.10).tolist()}))
     assert main(["calibrate", str(ds), "--targetless", "--initial-guess", str(tmp_path / "guess.json"), "--out",
@@ -199,6 +200,7 @@ def test_targetless_pulls_in_a_guess_2_degrees_and_10_cm_off(room, tmp_path, cap
     assert np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1, 1))) < 0.2
     assert 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 10.0
     assert np.all(np.linalg.eigvalsh(np.array(got["covariance"])) > 0) and (tmp_path / "cal" / "report.html").is_file()
+    assert got["halves"]["d2"] < 22.46
 
 
 def test_targetless_refuses_a_guess_it_cannot_pull_in(room, tmp_path, capsys):
@@ -213,3 +215,15 @@ def test_targetless_refuses_a_guess_it_cannot_pull_in(room, tmp_path, capsys):
     assert err.count("\n") == 0 and "basin" in err and not (tmp_path / "cal").exists()
     assert main(["calibrate", str(ds), "--targetless", "--out", str(tmp_path / "cal")]) == 2
     assert "initial guess" in capsys.readouterr().err and not (tmp_path / "cal").exists()
+
+
+def test_targetless_is_untrusted_where_the_halves_of_the_frames_disagree():
+    """A result whose even and odd frames land apart (the VLP-16 room where every start reached a minimum a degree
+    from the truth: halves 3.8 degrees apart) opens with UNTRUSTED and says why; one whose half does not solve
+    too."""
+    from estimators.pipeline.targetless import TargetlessResult
+
+    apart = TargetlessResult(np.eye(4), None, (), 1.0, {"d2": 560.0, "apart_deg": 3.77, "apart_mm": 313.0})
+    assert apart.verdict.line.startswith("UNTRUSTED: targetless: the even and the odd frames disagree (3.77 deg")
+    thin = TargetlessResult(np.eye(4), None, (), 1.0, {"problem": "the odd frames alone do not solve (x)"})
+    assert thin.verdict.line.startswith("UNTRUSTED: targetless: the odd frames alone do not solve")
