@@ -52,7 +52,7 @@ def _calibrate_targetless(args) -> int:
     print(f"wrote {write_json_atomic(Path(args.out) / 'calibration.json', result.to_dict())}")
     if not args.no_report:
         print(f"wrote {write_check_page(result.scene, args.out, 'report.html', result, 'the initial guess')}")
-    return 0
+    return 3 if args.strict and result.verdict.level == "UNTRUSTED" else 0
 
 
 def _calibrate_rig(args) -> int:
