@@ -10,9 +10,10 @@ points are projected into every frame's image (the board left out, the camera's 
   placed half way between them.
 
 For each: how many there are, the share that lands within 1.5 px of an image edge (Canny, as the check finds
-them), and the same share with the extrinsic turned by 0.5 degrees about the camera's x and y (four turns, their
-mean): the chance level of that cue in that image. The lift (share under the calibration over the chance share)
-says how much the cue knows about the extrinsic.
+them), the same share with the extrinsic turned by 0.5 degrees about the camera's x and y (four turns, their
+mean): the chance level of that cue in that image, and the share under the scene's own estimate
+(``check_scene`` from the board calibration). The lift (share under the calibration over the chance share) says
+how well the calibration lays the cue on the edges.
 """
 from __future__ import annotations
 
@@ -55,25 +56,27 @@ def main() -> None:
     from estimators.camera.edge_map import edge_distance
     from estimators.io.pointcloud_io import read_sweep
     from estimators.lidar.depth_edges import depth_edges
-    from estimators.pipeline.scene_check import read_scene_frames
+    from estimators.pipeline.scene_check import check_scene, read_scene_frames
     from estimators.solvers.scene_alignment import beam_spacing_px, visible_from_camera
     from geometry.rotations import R_from_rotvec, T_from_Rt, transform_points
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
     a = ap.parse_args()
-    print("| set | cue | points | within 1.5 px of an edge | by chance (turned 0.5 deg) | lift |")
-    print("|---|---|---|---|---|---|")
+    print("| set | cue | points | within 1.5 px of an edge | by chance (turned 0.5 deg) | lift | under the scene's "
+          "estimate |")
+    print("|---|---|---|---|---|---|---|")
     for name in SETS:
         folder = Path(a.data) / name
         if not folder.is_dir():
             print(f"| {name} | not found under {a.data} | | | | |")
             continue
         T = calibrate(folder, samples=0).T_camera_lidar
+        T_scene = check_scene(folder, T).fit.T_camera_lidar
         root, cam, _, frames, _ = read_scene_frames(folder)
         turns = [T_from_Rt(R_from_rotvec(np.radians(TURN_DEG) * np.array(e, float)), np.zeros(3)) @ T
                  for e in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
-        counts = {"depth contours": [0, 0, 0.0], "intensity steps": [0, 0, 0.0]}
+        counts = {"depth contours": [0, 0, 0.0, 0], "intensity steps": [0, 0, 0.0, 0]}
         for f in frames:
             field = edge_distance(f.gray, 20.0, ignore=f.board_mask)
             sweep = read_sweep(Path(root) / f"{f.name}.pcd") if f.sweep.intensity is None else f.sweep
@@ -99,10 +102,11 @@ def main() -> None:
                 c[0] += n
                 c[1] += hit
                 c[2] += chance * n
-        for cue, (n, hit, chance_hits) in counts.items():
+                c[3] += near(T_scene)[1]
+        for cue, (n, hit, chance_hits, scene_hits) in counts.items():
             share, chance = hit / max(n, 1), chance_hits / max(n, 1)
             print(f"| {name} | {cue} | {n} | {100 * share:.0f}% | {100 * chance:.0f}% | "
-                  f"{share / chance if chance > 0 else float('nan'):.2f} |")
+                  f"{share / chance if chance > 0 else float('nan'):.2f} | {100 * scene_hits / max(n, 1):.0f}% |")
 
 
 if __name__ == "__main__":
