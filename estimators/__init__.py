@@ -71,6 +71,8 @@ _API = {
     "calibrate_moving_rig": ("pipeline.moving_rig", "calibrate_moving_rig"),
     "check_scene": ("pipeline.scene_check", "check_scene"),
     "calibrate_targetless": ("pipeline.targetless", "calibrate_targetless"),
+    "with_scene": ("pipeline.scene_witness", "with_scene"),
+    "SceneWitness": ("pipeline.scene_witness", "SceneWitness"),
     "simulate_scene": ("simulation.furnished_room", "simulate_scene_dataset"),
 }
 __all__ = ["__version__", *_API]

@@ -18,7 +18,14 @@ def calibrate_command(args) -> int:
     from ..io.rig_dataset import is_rig
 
     if args.targetless:
+        if args.scene:
+            raise LidarcamError("--scene joins the scene's term to the boards' and --targetless has no boards",
+                                path=args.dataset, hint="give one of the two")
         return _calibrate_targetless(args)
+    if args.scene and (is_rig(args.dataset) or args.refine == "none"):
+        raise LidarcamError("--scene is taken by a camera-LiDAR folder refined in the graph" + (
+            " (a rig's pairs: lidarcam check each pair's folder)" if is_rig(args.dataset) else ", not --refine none"),
+                            path=args.dataset, hint="calibrate without --scene")
     if args.keep_board:
         raise LidarcamError("--keep-board is taken by --targetless only", path=args.dataset,
                             hint="calibrate without it")
@@ -62,6 +69,7 @@ def _calibrate_rig(args) -> int:
     measurements.npz beside the rig's measurements folder)."""
     import numpy as np
 
+    from ..errors import LidarcamError
     from ..io.measurement_store import load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
     from ..rig_calibration import calibrate_rig, pair_guess
@@ -77,8 +85,16 @@ def _calibrate_rig(args) -> int:
         given = load_rig_measurements(args.measurements)
     guide = pair_guess(rig, hints(args, rig=not pair))  # a pair's guess is its one camera-LiDAR pair's
     with _figures_ahead(not args.no_report) as figures:
-        result = calibrate_rig(rig, np.random.default_rng(args.seed), samples=args.samples, cache=not args.no_cache,
-                               measurements=given, hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
+        rng = np.random.default_rng(args.seed)
+        if args.scene and rig.lidars[0].lidar != "3d":
+            raise LidarcamError("--scene takes a 3D LiDAR's sweeps, and this folder's LiDAR is a 2D scanner",
+                                path=args.dataset, hint="calibrate without --scene")
+        result = calibrate_rig(rig, rng, samples=args.samples, cache=not args.no_cache, measurements=given,
+                               hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
+        if args.scene:
+            from ..pipeline.scene_witness import with_scene
+
+            result = with_scene(result, rng, rig.cameras[0].name, rig.lidars[0].name)
         return _write_rig(args, rig, pair, _with_separating_poses(result), figures)
 
 
@@ -155,6 +171,11 @@ def _write_rig(args, rig, pair: bool, result, figures) -> int:
         from ..analysis.rig_report import write_rig_report
 
         print(f"wrote {write_rig_report(result, args.out, figures)}")
+        for w in result.scene.values():
+            if w.check is not None:
+                from ..analysis.scene_check_page import write_check_page
+
+                print(f"wrote {write_check_page(w.check, args.out, 'scene_check.html', given='the boards')}")
     if pair:
         export_hint(path)
     else:

@@ -55,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no board: refine --initial-guess (within a few degrees and 10-20 cm) on the scene's depth "
                         "contours and the image's edges (docs/howto/check.md); writes calibration.json and "
                         "report.html, or refuses a start it cannot pull in")
+    c.add_argument("--scene", action="store_true",
+                   help="a camera and a 3D LiDAR's folder: join the scene's term (its depth contours on the image's "
+                        "edges, the board left out) to the boards' graph where the two agree; printed beside the "
+                        "boards' along their weak direction (docs/howto/check.md)")
     c.add_argument("--keep-board", action="store_true",
                    help="--targetless: keep a board's edges and contours (by default left out where the camera "
                         "finds it)")
@@ -139,10 +143,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "white squares (then some poses are cut by the image's edge)")
     s.add_argument("--outside-image-share", type=float, default=None, metavar="SHARE",
                    help="charuco only: the share of poses cut by the image's edge (default 0.3)")
-    s.add_argument("--scene", default="default", choices=["default", "office", "hall"],
+    s.add_argument("--scene", default="default", choices=["default", "office", "hall", "furnished"],
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
                         "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
-                        "outside the vertical field of view); hall: an open hall")
+                        "outside the vertical field of view); hall: an open hall; furnished: a furnished room "
+                        "(the scene check's rooms), its furniture kept off the lines of sight to the boards")
 
     la = sub.add_parser("layout", help="predicted uncertainty and conditioning of a dataset's or a plan's board "
                                        "poses, and the poses to add",

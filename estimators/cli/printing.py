@@ -200,6 +200,8 @@ def print_rig(result) -> None:
               "camera axes:")
         for (a, b), e in result.outline_checks.items():
             print(f"  T_{a}_{b}: {outline_shift_words(e, ends=True)}")
+    for w in result.scene.values():
+        _print_scene_witness(w)
     if result.time_offset is None:  # a rig's LiDARs' clocks (a pair's is printed with its transform)
         from ..io.motion_track import FOLLOWED_CAMERA
 
@@ -226,6 +228,28 @@ def print_rig(result) -> None:
         print(f"  {link} share {n} frame(s) with the board found in both")
     for w in result.warnings[1 if result.ambiguous else 0:]:  # an ambiguous pair's, first, is the verdict's
         print(f"warning: {w}")
+
+
+def _print_scene_witness(w) -> None:
+    """``calibrate --scene``'s record (``pipeline.scene_witness.SceneWitness``): the boards', the scene's and the
+    joint estimates along the boards' weak direction, their test, and whether the term was joined."""
+    from ..pipeline.scene_check import COVARIANCE_EXCESS
+
+    name = f"T_{w.camera}_{w.lidar}"
+    if w.problem is not None:
+        print(f"the scene's term for {name}: not formed ({w.problem})")
+        return
+    u = w.weak_direction()
+    print(f"the scene's term for {name}: along the boards' weak direction (camera x y z: "
+          + " ".join(f"{v:+.2f}" for v in u) + "), mm:")
+    for which, mm, sd in w.along_weak():
+        label = which if which != "joint" or w.joined else "joint (not joined)"
+        print(f"  {label:19s}{mm:9.1f} +- {sd:.1f}")
+    tests = [f"{t.p_value:.3g} along it" for t in (w.term,) if t is not None]
+    tests += [f"{t.p_value:.3g} over its {t.dof} constrained directions" for t in (w.overall,) if t is not None]
+    if tests:
+        print(f"  boards against scene (the scene's covariance x{COVARIANCE_EXCESS:g}): p = " + ", ".join(tests))
+    print("  joined: the estimates above are the joint one's" if w.joined else f"  not joined: {w.reason}")
 
 
 def _print_pair_of_two(result) -> None:

@@ -121,14 +121,16 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
                    lidar_family=family, range_accuracy_m=accuracy)
 
 
-def load_scene_folder(path: str | os.PathLike) -> tuple[Path, CameraModel, BoardModel | None, tuple[FrameFiles, ...]]:
-    """A folder of synchronised frames for the scene's check: its root, the camera's intrinsics (required), the
-    board if dataset.yaml has one (a folder of scenes alone has none) and its image-scan pairs (3D scans)."""
+def load_scene_folder(path: str | os.PathLike, need_camera: bool = True
+                      ) -> tuple[Path, CameraModel | None, BoardModel | None, tuple[FrameFiles, ...]]:
+    """A folder of synchronised frames for the scene's check: its root, the camera's intrinsics (required unless
+    ``need_camera`` is False: the caller has them; None when absent), the board if dataset.yaml has one (a folder
+    of scenes alone has none) and its image-scan pairs (3D scans)."""
     root, ypath, spec = read_dataset_yaml(path)
     if not isinstance(spec, dict) or "sensors" in spec:
         raise DatasetError("expected a camera-LiDAR folder's dataset.yaml (camera:, and board: if one is in view)",
                            path=ypath, hint="see docs/reference/dataset.md")
-    if spec.get("camera") is None:
+    if spec.get("camera") is None and need_camera:
         raise DatasetError("the scene's check needs the camera's intrinsics (camera: in dataset.yaml)", path=ypath,
                            hint="add camera: K, dist, width, height (or calibrate the intrinsics first)")
     lidar, _, _ = _parse_lidar(spec.get("lidar", "3d"), ypath)
@@ -136,7 +138,8 @@ def load_scene_folder(path: str | os.PathLike) -> tuple[Path, CameraModel, Board
         raise DatasetError("the scene's check takes a 3D LiDAR's sweeps", path=ypath,
                            hint="a 2D scanner's line holds too few contours")
     board = parse_board(spec["board"], ypath) if spec.get("board") is not None else None
-    return root, parse_camera(spec["camera"], ypath), board, _pair_frames(root, SCAN_SUFFIXES)
+    camera = None if spec.get("camera") is None else parse_camera(spec["camera"], ypath)
+    return root, camera, board, _pair_frames(root, SCAN_SUFFIXES)
 
 
 def read_dataset_yaml(path: str | os.PathLike) -> tuple[Path, Path, object]:

@@ -102,6 +102,9 @@ class RigResult:
     # camera that followed the board (``lidar -> offset_between_poses.OffsetBetweenPoses``; a pair folder's
     # ``motion.npz``, a rig's ``lidar0/motion.npz``: ``rig_calibration._with_time_offset``).
     time_offsets: dict = field(default_factory=dict)
+    # With ``calibrate --scene``: the scene's term for a pair folder's pair (``(camera, lidar) ->
+    # scene_witness.SceneWitness``): the boards', the scene's and the joint estimates, and whether it was joined.
+    scene: dict = field(default_factory=dict)
 
     @property
     def time_offset(self):
@@ -360,6 +363,8 @@ class RigResult:
                 pair.update(self.time_offset.to_dict())
         elif self.time_offsets:
             pair.update(time_offsets_keys(self.time_offsets))
+        if self.scene:
+            pair["scene"] = {f"T_{c}_{lid}": w.to_dict() for (c, lid), w in self.scene.items()}
         ambiguous = {f"T_{c}_{lid}": [{"T_camera_lidar": m.T_camera_lidar.tolist(), "posterior_mass": m.mass,
                                        "covariance": m.refinement.covariance.tolist()} for m in modes]
                      for (c, lid), modes in self.ambiguous_pairs.items()}

@@ -39,6 +39,10 @@ BOARD_MARGIN_PX = 15
 # The test's level: below it the scene contradicts the given extrinsic.
 ALPHA = 0.01
 EXIT_CONTRADICTED = 4
+# The scene's covariance is smaller than the errors it should cover: on simulated rooms its NEES has median 12
+# (64 beams) where 6 is honest (docs/bench/scene_check.md). Where it is weighed against another witness
+# (targetless's halves, ``calibrate --scene``) it is scaled by this.
+COVARIANCE_EXCESS = 2.0
 READ_THREADS = 2
 
 
@@ -177,13 +181,15 @@ class SceneFrame:
     board_mask: np.ndarray | None
 
 
-def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False
+def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None
                       ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
-    """A scene folder's root, camera, board (or None), its frames (images, sweeps with their beams, the board's
-    masks unless ``keep_board``) and the frames skipped with their reasons."""
+    """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
+    (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
+    reasons."""
     from concurrent.futures import ThreadPoolExecutor
 
-    root, camera, board, frames = load_scene_folder(folder)
+    root, own, board, frames = load_scene_folder(folder, need_camera=camera is None)
+    camera = own if camera is None else camera
 
     def read(f) -> SceneFrame | str:
         try:
@@ -230,7 +236,8 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
                                     if skipped else ""), path=root, hint="give two or more frames")
 
 
-def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False) -> SceneCheck:
+def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
+                camera: CameraModel | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -241,6 +248,8 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         4x4 ``T_camera_lidar`` to check.
     keep_board : bool
         Keep the board's edges and contours (by default left out where the camera finds the board).
+    camera : CameraModel, optional
+        The camera's model (a calibration's, its intrinsics refined or estimated); default dataset.yaml's.
 
     Returns
     -------
@@ -255,7 +264,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         Fewer than two frames with contours in view.
     """
     t0 = time.perf_counter()
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)

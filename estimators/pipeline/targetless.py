@@ -45,7 +45,7 @@ from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, SceneFi
                                       consistency, constrained_directions, minima_scatter, rival_minima, scene_minima,
                                       stacked_residuals)
 from .result import CONVENTION, COVARIANCE_CONVENTION
-from .scene_check import SceneCheck, read_scene_frames, scene_view, too_few
+from .scene_check import COVARIANCE_EXCESS, SceneCheck, read_scene_frames, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
 
 COARSE_PX = (60.0,)
@@ -55,9 +55,8 @@ PROBES = 6  # the guess turned about each camera axis by +-PROBE_DEG alternately
 MIN_LANDED = 3
 SAME_DEG, SAME_M = 0.05, 0.005
 # The even and the odd frames' estimates may differ by up to this squared distance (chi-square, 6 dof, 0.999),
-# under the sum of their covariances scaled by the excess the scene's covariance shows on simulated rooms (NEES
-# median 12 where 6 is honest: docs/bench/scene_check.md).
-HALVES_D2, COVARIANCE_EXCESS = 22.46, 2.0
+# under the sum of their covariances scaled by the excess the scene's covariance shows (``COVARIANCE_EXCESS``).
+HALVES_D2 = 22.46
 
 
 @dataclass(frozen=True, eq=False)

@@ -336,6 +336,8 @@ def rig_verdict(result) -> Verdict:
     for (c, lid), modes in result.ambiguous_pairs.items():
         concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards", post is not None and (c, lid) in post.mixed)
     pair = len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1
+    for (c, lid), witness in result.scene.items():
+        concerns += witness.concerns("" if pair else f"T_{c}_{lid}: ")
     for name, offset in result.time_offsets.items():
         if offset.disagrees:
             concerns.append((CHECK, ("" if pair else f"{name}: ") + "the board's motion between the poses gives "
