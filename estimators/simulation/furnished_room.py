@@ -90,6 +90,8 @@ class Room:
     width: float
     patches: tuple
     footprints: tuple
+    # Each free-standing piece's footprint and the range of its patches in ``patches`` (``(start, stop)``).
+    pieces: tuple = ()
 
 
 def _material(rng: np.random.Generator) -> float:
@@ -149,7 +151,9 @@ def furnished_room(rng: np.random.Generator) -> Room:
 
     kinds = rng.choice(["desk", "shelf", "cabinet", "chair", "sofa", "crate", "pillar", "plant"],
                        size=int(rng.integers(8, 15)))
+    pieces = []
     for kind in kinds:
+        start = len(patches)
         if kind == "desk":
             xy, yaw = place((1.4, 0.7), rng.uniform() < 0.5)
             top = _material(rng)
@@ -196,7 +200,45 @@ def furnished_room(rng: np.random.Generator) -> Room:
             patches += _box(xy, (0.05, 0.05, 0.9), yaw, 0.0, 0.1, "plant")
             patches += _box(xy, (0.45, 0.45, 0.6), yaw, 0.9, rng.uniform(0.1, 0.3), "plant")
             footprints.append((*xy, 0.35))
-    return Room(L, W, tuple(patches), tuple(footprints))
+        pieces.append((footprints[-1], (start, len(patches))))
+    return Room(L, W, tuple(patches), tuple(footprints), tuple(pieces))
+
+
+# A board scene's room: the LiDAR this far from the wall behind it at most (m), the boards' farthest centre (m,
+# ``simulator`` draws 2-5 m) and the margin the furniture keeps from each line of sight to a board (m).
+BEHIND_M, FARTHEST_BOARD_M, SIGHT_MARGIN_M = 2.0, 5.0, 0.7
+
+
+def room_around_rig(ground_z: float, rng: np.random.Generator, board_centres: np.ndarray) -> list[Patch]:
+    """A furnished room (module docstring) around a still rig, for the board scenes (``simulate_dataset(
+    scene="furnished")``): in the level frame (the LiDAR at the origin, z up, the floor at ``ground_z``), the
+    rig near one end of the room facing along it (turned by up to 20 degrees), the free-standing furniture kept
+    off the lines of sight to the boards (``board_centres``, level frame, k x 3) and away from the rig; what
+    remains in view lies beside and behind the boards."""
+    room = furnished_room(rng)
+    x0 = float(np.clip(rng.uniform(0.8, BEHIND_M), 0.6, max(room.length - FARTHEST_BOARD_M - 0.6, 0.6)))
+    y0 = float(np.clip(room.width / 2 + rng.uniform(-1.0, 1.0), 1.5, room.width - 1.5))
+    T_world_level = T_from_Rt(R_from_rotvec([0.0, 0.0, rng.uniform(-0.35, 0.35)]), np.array([x0, y0, -ground_z]))
+    R, t = T_world_level[:3, :3], T_world_level[:3, 3]
+    ends = np.asarray(board_centres, float)[:, :2]
+
+    def clear(fx: float, fy: float, r: float) -> bool:
+        p = (R.T @ (np.array([fx, fy, 0.0]) - t))[:2]
+        if np.hypot(*p) < r + 0.8:
+            return False
+        for e in ends:
+            reach = np.linalg.norm(e) + 0.6
+            s = np.clip(p @ e / (np.linalg.norm(e) * reach), 0.0, 1.0) * reach  # along the line of sight
+            if np.linalg.norm(p - s * e / np.linalg.norm(e)) < r + SIGHT_MARGIN_M:
+                return False
+        return True
+
+    first = room.pieces[0][1][0] if room.pieces else len(room.patches)
+    kept = list(room.patches[:first])
+    for (fx, fy, r), (a, b) in room.pieces:
+        if clear(fx, fy, r):
+            kept += room.patches[a:b]
+    return _in_lidar(kept, T_world_level)
 
 
 def _frame(inner: Patch, into_room: np.ndarray, inner_proud: float, band: float, proud: float,

@@ -17,7 +17,7 @@ import numpy as np
 
 from .scene import Patch, infinite_plane, rectangle
 
-SCENES = ("default", "office", "hall")
+SCENES = ("default", "office", "hall", "furnished")
 
 
 def _box(centre, size, yaw: float, reflectance: float, label: str) -> list[Patch]:
