@@ -64,6 +64,7 @@ bench: $(STAMP)
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40
 	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24
+	$(RECORD) scene_joint -- $(PY) benchmarks/bench_scene_joint.py --scenes 40
 	$(RECORD) scene_zones -- $(PY) benchmarks/bench_scene_zones.py
 	$(RECORD) scene_cues -- $(PY) benchmarks/bench_scene_cues.py
 	$(RECORD) rig_6_cameras_speed -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 0 --posterior 1000 --timed 10
