@@ -40,11 +40,31 @@ from .verdict import CHECK
 
 @dataclass(frozen=True, eq=False)
 class SceneWitness:
-    """The scene's term for the pair ``camera``-``lidar``: the boards' estimate and covariance, the scene's check
-    from it (None where it could not be made: ``problem``), the term along the boards' weak direction (``term``)
-    and the test over every direction the scene constrains (``overall``; None where it constrains none), the
-    joint estimate and covariance, whether it was adopted (``joined``; ``reason`` if not) and whether the two
-    disagree along the weak direction (``contradicts``: the verdict's CHECK)."""
+    """The scene's term for one camera-LiDAR pair (``calibrate --scene``; ``result.scene[(camera, lidar)]``).
+
+    Attributes
+    ----------
+    camera, lidar : str
+        The pair's sensors.
+    T_boards, C_boards : numpy.ndarray
+        The boards' estimate (4x4 ``T_camera_lidar``) and its 6x6 covariance, before the scene's term.
+    check : SceneCheck or None
+        The scene's check from the boards' estimate (the scene's estimate and covariance); None where it could
+        not be made (``problem`` says why).
+    term, overall : JoinedTerm or None
+        The term along the boards' weak direction (joined, when joined) and the test over every direction the
+        scene constrains (``d2``, ``dof``, ``p_value``).
+    T_joint, C_joint : numpy.ndarray or None
+        The joint estimate and covariance: the result's when joined, what joining would have given otherwise.
+    joined : bool
+        Whether the result's estimate is the joint one.
+    reason : str or None
+        Why not joined.
+    problem : str or None
+        Why the scene's check could not be made.
+    contradicts : bool
+        Whether the scene and the boards disagree along the weak direction (the verdict's CHECK).
+    """
 
     camera: str
     lidar: str

@@ -622,7 +622,7 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
     if scene == "furnished":  # the room's furniture kept off the lines of sight to these boards
-        from .furnished_room import room_around_rig
+        from .rooms import room_around_rig
 
         T_level_camera = T_from_Rt(rig.level, np.zeros(3)) @ T_lidar_camera
         centres = np.array([transform_points(T_level_camera @ T, rig.board.outline()).mean(0) for T in poses])
