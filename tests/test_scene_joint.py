@@ -120,7 +120,8 @@ def test_boards_moved_along_their_weak_direction_are_contradicted_by_the_scene(o
     tmp, _ = office
     result = lc.calibrate(tmp / "ds", rng=np.random.default_rng(3), posterior=None)
     sol = result.solution
-    u = lc.with_scene(result, np.random.default_rng(0)).scene[("cam0", "lidar0")].weak_direction()
+    pair = result.pair("cam0", "lidar0")
+    u = lc.SceneWitness("cam0", "lidar0", pair.T, pair.covariance).weak_direction()
     T = sol.T_ref["lidar0"].copy()
     T[:3, 3] += 0.10 * u
     moved = replace(result, solution=replace(sol, T_ref={**sol.T_ref, "lidar0": T}))
