@@ -47,10 +47,10 @@ def main() -> None:
         if not folder.is_dir():
             print(f"{name}: not found under {a.data}; skipped")
             continue
-        root, given, _, frames, skipped = read_scene_frames(folder)
+        _, _, _, frames, skipped = read_scene_frames(folder)
         for refined in (False, True):
             result = calibrate(folder, samples=0, options=RefinementOptions(refine_intrinsics=refined))
-            cam = result.solution.camera_model("cam0", result.cameras["cam0"]) if refined else given
+            cam = result.camera_model("cam0")
             label = "intrinsics refined with the boards" if refined else "the given intrinsics"
             _zones(name, label, result.T_camera_lidar, cam, scene_views(frames, result.T_camera_lidar, cam, skipped))
 
@@ -83,7 +83,7 @@ def _zones(name: str, label: str, board: np.ndarray, cam, views: list) -> None:
         try:
             fits = scene_minima(zone, cam, board)
         except LidarcamError as exc:
-            print(f"| {zone_name} ({lo:.2f}-{hi:.2f}) | {sum(len(v.points) for v in zone)} | - | refused: "
+            print(f"| {zone_name} ({lo:.2f}-{hi:.2f}) | {n} | - | refused: "
                   f"{exc.problem} | | |")
             continue
         fit = fits[0]

@@ -166,7 +166,7 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     witness = SceneWitness(camera, lidar, pair.T, pair.covariance)
     sol, post = result.solution, result.posterior
     try:
-        check = check_scene(result.rig.root, pair.T, camera=sol.camera_model(camera, result.cameras[camera]))
+        check = check_scene(result.rig.root, pair.T, camera=result.camera_model(camera))
     except LidarcamError as exc:
         return replace(result, scene={(camera, lidar): replace(witness, problem=exc.problem)})
     witness = replace(witness, check=check)
