@@ -139,3 +139,52 @@ def test_scene_is_refused_where_it_has_no_boards_or_no_graph(office, capsys):
         assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "x"), "--scene", *extra]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "--scene" in err and not (tmp / "x").exists()
+
+
+def _as_rig(pair: "Path", out: "Path") -> "Path":
+    """A camera-LiDAR folder written as the rig folder of its ``cam0`` and ``lidar0`` (the same files)."""
+    import shutil
+
+    import yaml
+
+    spec = yaml.safe_load((pair / "dataset.yaml").read_text())
+    sensors = [{"name": "cam0", "type": "camera", **spec["camera"]}, {"name": "lidar0", "type": "lidar", "lidar": "3d"}]
+    (out / "cam0").mkdir(parents=True)
+    (out / "lidar0").mkdir()
+    for f in pair.iterdir():
+        if f.suffix in (".png", ".pcd"):
+            shutil.copy(f, out / ("cam0" if f.suffix == ".png" else "lidar0") / f.name)
+    (out / "dataset.yaml").write_text(yaml.safe_dump({"board": spec["board"], "sensors": sensors}))
+    return out
+
+
+def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, capsys):
+    """Seed 3's office as a rig folder of cam0 and lidar0: ``calibrate --scene`` forms the same scene term as on
+    the pair folder (the same boards' and scene's estimates and tests, to 1e-9), and ``check`` of the rig's
+    calibration.json (its cam0-lidar0 transform, found by the sensors' names) gives the pair's p-value; a sensor
+    the rig has not is refused in one line (exit 2)."""
+    tmp, _ = office
+    rig = _as_rig(tmp / "ds", tmp / "rig")
+    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "pair_out"), "--scene", "--samples", "0",
+                 "--no-report"]) == 0
+    assert main(["calibrate", str(rig), "--out", str(tmp / "rig_out"), "--scene", "--samples", "0",
+                 "--no-report"]) == 0
+    capsys.readouterr()
+    a = json.loads((tmp / "pair_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
+    b = json.loads((tmp / "rig_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
+    np.testing.assert_allclose(a["T_camera_lidar_boards"], b["T_camera_lidar_boards"], atol=1e-9)
+    np.testing.assert_allclose(a["scene"]["T_camera_lidar"], b["scene"]["T_camera_lidar"], atol=1e-9)
+    for key in ("along_weak_direction", "every_direction"):
+        assert a["boards_against_scene"][key]["p_value"] == pytest.approx(b["boards_against_scene"][key]["p_value"])
+    assert a["joined"] == b["joined"] and a["scene"]["check_p_value"] == pytest.approx(b["scene"]["check_p_value"])
+    code = main(["check", str(rig), "--calibration", str(tmp / "rig_out" / "calibration.json"), "--camera", "cam0",
+                 "--out", str(tmp / "rig_check")])
+    out = capsys.readouterr().out
+    got = json.loads((tmp / "rig_check" / "check.json").read_text())
+    assert code == (0 if got["consistent"] else 4) and got["camera"] == "cam0" and got["lidar"] == "lidar0"
+    assert "cam0 and lidar0: p = " in out
+    assert got["p_value"] == pytest.approx(b["scene"]["check_p_value"], rel=1e-9)
+    assert main(["check", str(rig), "--calibration", str(tmp / "rig_out" / "calibration.json"), "--camera", "cam7",
+                 "--out", str(tmp / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "cam7" in err and not (tmp / "x").exists()

@@ -22,9 +22,8 @@ def calibrate_command(args) -> int:
             raise LidarcamError("--scene joins the scene's term to the boards' and --targetless has no boards",
                                 path=args.dataset, hint="give one of the two")
         return _calibrate_targetless(args)
-    if args.scene and (is_rig(args.dataset) or args.refine == "none"):
-        raise LidarcamError("--scene is taken by a camera-LiDAR folder refined in the graph" + (
-            " (a rig's pairs: lidarcam check each pair's folder)" if is_rig(args.dataset) else ", not --refine none"),
+    if args.scene and args.refine == "none":
+        raise LidarcamError("--scene is taken by a calibration refined in the graph, not --refine none",
                             path=args.dataset, hint="calibrate without --scene")
     if args.keep_board:
         raise LidarcamError("--keep-board is taken by --targetless only", path=args.dataset,
@@ -86,15 +85,17 @@ def _calibrate_rig(args) -> int:
     guide = pair_guess(rig, hints(args, rig=not pair))  # a pair's guess is its one camera-LiDAR pair's
     with _figures_ahead(not args.no_report) as figures:
         rng = np.random.default_rng(args.seed)
-        if args.scene and rig.lidars[0].lidar != "3d":
-            raise LidarcamError("--scene takes a 3D LiDAR's sweeps, and this folder's LiDAR is a 2D scanner",
+        scene_pairs = [(c.name, lid.name) for lid in rig.lidars if lid.lidar == "3d" for c in rig.cameras]
+        if args.scene and not scene_pairs:
+            raise LidarcamError("--scene takes a 3D LiDAR's sweeps, and this folder's LiDARs are 2D scanners",
                                 path=args.dataset, hint="calibrate without --scene")
         result = calibrate_rig(rig, rng, samples=args.samples, cache=not args.no_cache, measurements=given,
                                hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
         if args.scene:
             from ..pipeline.scene_witness import with_scene
 
-            result = with_scene(result, rng, rig.cameras[0].name, rig.lidars[0].name)
+            for camera, lidar in scene_pairs:  # each camera with each 3D LiDAR, joined in turn
+                result = with_scene(result, rng, camera, lidar)
         return _write_rig(args, rig, pair, _with_separating_poses(result), figures)
 
 
@@ -171,11 +172,12 @@ def _write_rig(args, rig, pair: bool, result, figures) -> int:
         from ..analysis.rig_report import write_rig_report
 
         print(f"wrote {write_rig_report(result, args.out, figures)}")
-        for w in result.scene.values():
-            if w.check is not None:
+        for (camera, lidar), w in result.scene.items():
+            if w.check is not None:  # a rig's several pairs: a folder each
                 from ..analysis.scene_check_page import write_check_page
 
-                print(f"wrote {write_check_page(w.check, args.out, 'scene_check.html', given='the boards')}")
+                where = Path(args.out) / (f"scene_{camera}_{lidar}" if len(result.scene) > 1 else "")
+                print(f"wrote {write_check_page(w.check, where, 'scene_check.html', given='the boards')}")
     if pair:
         export_hint(path)
     else:
@@ -355,12 +357,23 @@ def check_command(args) -> int:
     check.html written; exit 0 consistent, 4 contradicted."""
     from ..analysis.scene_check_page import write_check_page
     from ..io.output import write_json_atomic
-    from ..pipeline.measurement import parse_initial_guess
+    from ..errors import DatasetError
+    from ..io.rig_dataset import first_pair, is_rig
+    from ..pipeline.measurement import pair_from_calibration, parse_initial_guess
     from ..pipeline.scene_check import EXIT_CONTRADICTED, check_scene
     from .printing import print_check
 
-    T = parse_initial_guess([args.calibration])
-    result = check_scene(args.dataset, T, keep_board=args.keep_board)
+    sensors = None
+    if is_rig(args.dataset):
+        first = first_pair(args.dataset)
+        sensors = (args.camera or first[0], args.lidar or first[1])
+        T = pair_from_calibration(args.calibration, *sensors)
+    elif args.camera or args.lidar:
+        raise DatasetError("--camera and --lidar name a rig folder's sensors; this is a camera-LiDAR folder",
+                           path=args.dataset, hint="leave them out")
+    else:
+        T = parse_initial_guess([args.calibration])
+    result = check_scene(args.dataset, T, keep_board=args.keep_board, sensors=sensors)
     print_check(result)
     print(f"wrote {write_json_atomic(Path(args.out) / 'check.json', result.to_dict())}")
     print(f"wrote {write_check_page(result, args.out)}")
@@ -475,6 +488,9 @@ def simulate_command(args) -> int:
         if args.range_bias_from_priors is not None:
             raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes "
                              "--range-bias, injected into lidar0)")
+        if args.scene != "default":
+            raise SystemExit(f"lidarcam: error: --scene {args.scene} is for a single pair (a rig is simulated in the "
+                             "default room only)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
                            args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias))
         print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "

@@ -88,9 +88,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "when the scene contradicts it, 2 on bad input. Example: lidarcam check DS "
                                    "--calibration CAL/calibration.json --out CHECK")
     k.add_argument("dataset", help="a camera-LiDAR folder of synchronised frames (dataset.yaml with camera:; "
-                                   "board: optional)")
+                                   "board: optional), or a rig folder (--camera, --lidar)")
     k.add_argument("--calibration", required=True, metavar="FILE",
-                   help="calibration.json, any JSON with a 4x4 T_camera_lidar, a 4x4 matrix (text or .npy)")
+                   help="calibration.json (a rig's: the pair's transform), any JSON with a 4x4 T_camera_lidar, a "
+                        "4x4 matrix (text or .npy)")
+    k.add_argument("--camera", metavar="NAME", help="a rig folder's camera to check (default its first)")
+    k.add_argument("--lidar", metavar="NAME", help="a rig folder's 3D LiDAR to check (default its first)")
     k.add_argument("--out", required=True, help="folder for check.json and check.html")
     k.add_argument("--keep-board", action="store_true",
                    help="keep the board's edges and contours (by default left out where the camera finds it)")

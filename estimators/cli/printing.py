@@ -298,8 +298,9 @@ def print_check(result) -> None:
     t = result.test
     print(result.verdict.line)
     p = "undetermined" if t["p_value"] is None else f"p = {t['p_value']:.3g}"
+    pair = f"{result.sensors[0]} and {result.sensors[1]}: " if result.sensors else ""
     print(f"consistent: {str(result.consistent).lower() if result.consistent is not None else 'undetermined'} "
-          f"({p}; {t['dof']} constrained directions, {result.fit.frames} frames, {result.fit.points} LiDAR "
+          f"({pair}{p}; {t['dof']} constrained directions, {result.fit.frames} frames, {result.fit.points} LiDAR "
           f"contour returns" + (", the board left out)" if result.board_left_out else ")"))
     T, T0 = result.fit.T_camera_lidar, result.T_given
     d = 1000 * (T[:3, 3] - T0[:3, 3])

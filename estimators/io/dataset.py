@@ -121,15 +121,19 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
                    lidar_family=family, range_accuracy_m=accuracy)
 
 
-def load_scene_folder(path: str | os.PathLike, need_camera: bool = True
+def load_scene_folder(path: str | os.PathLike, need_camera: bool = True, pair: tuple[str, str] | None = None
                       ) -> tuple[Path, CameraModel | None, BoardModel | None, tuple[FrameFiles, ...]]:
     """A folder of synchronised frames for the scene's check: its root, the camera's intrinsics (required unless
     ``need_camera`` is False: the caller has them; None when absent), the board if dataset.yaml has one (a folder
-    of scenes alone has none) and its image-scan pairs (3D scans)."""
+    of scenes alone has none) and its image-scan pairs (3D scans); ``pair``: None or ``("cam0", "lidar0")``, the
+    names a camera-LiDAR folder's sensors take in a rig."""
     root, ypath, spec = read_dataset_yaml(path)
     if not isinstance(spec, dict) or "sensors" in spec:
         raise DatasetError("expected a camera-LiDAR folder's dataset.yaml (camera:, and board: if one is in view)",
-                           path=ypath, hint="see docs/reference/dataset.md")
+                           path=ypath, hint="see docs/reference/dataset.md; a rig folder: io.rig_dataset.scene_pair")
+    if pair is not None and tuple(pair) != ("cam0", "lidar0"):
+        raise DatasetError(f"a camera-LiDAR folder holds cam0 and lidar0, not {pair[0]} and {pair[1]}", path=ypath,
+                           hint="name the sensors only for a rig folder")
     if spec.get("camera") is None and need_camera:
         raise DatasetError("the scene's check needs the camera's intrinsics (camera: in dataset.yaml)", path=ypath,
                            hint="add camera: K, dist, width, height (or calibrate the intrinsics first)")

@@ -219,3 +219,39 @@ def load_rig(path: str | os.PathLike, files: bool = True) -> RigDataset:
         raise DatasetError("a rig needs at least one camera", path=ypath,
                            hint="the board's pose comes from the cameras' images")
     return RigDataset(root, board, tuple(sensors), reference)
+
+
+def first_pair(path: str | os.PathLike) -> tuple[str | None, str | None]:
+    """A rig folder's first camera and first 3D LiDAR (None where it has none): the pair the scene's check takes
+    unless told."""
+    return _first(load_rig(path, files=False))
+
+
+def _first(rig) -> tuple[str | None, str | None]:
+    cameras = [c.name for c in rig.cameras]
+    lidars = [s.name for s in rig.lidars if s.lidar == "3d"]
+    return (cameras[0] if cameras else None), (lidars[0] if lidars else None)
+
+
+def scene_pair(path: str | os.PathLike, need_camera: bool = True, pair: tuple[str, str] | None = None
+               ) -> tuple[Path, CameraModel | None, BoardModel | None, tuple[FrameFiles, ...]]:
+    """A rig folder for the scene's check (``io.dataset.load_scene_folder``): its root, ``pair``'s camera model
+    (None without intrinsics, an error if ``need_camera``), the board and the frames both sensors of ``pair``
+    (camera, 3D LiDAR; default :func:`first_pair`) saw."""
+    rig = load_rig(path)
+    ypath = rig.yaml_path
+    cameras = [c.name for c in rig.cameras]
+    lidars = [s.name for s in rig.lidars if s.lidar == "3d"]
+    camera, lidar = pair if pair is not None else _first(rig)
+    if camera not in cameras:
+        raise DatasetError(f"the rig has no camera {camera!r} (cameras: {', '.join(cameras) or 'none'})", path=ypath,
+                           hint="name one of its cameras (--camera)")
+    if lidar not in lidars:
+        raise DatasetError(f"the rig has no 3D LiDAR {lidar!r} (3D LiDARs: {', '.join(lidars) or 'none'})",
+                           path=ypath, hint="name one of its 3D LiDARs (--lidar); a 2D scanner's line holds too few "
+                                            "contours")
+    ds = rig.pair(camera, lidar)
+    if ds.camera is None and need_camera:
+        raise DatasetError(f"the scene's check needs {camera}'s intrinsics (K in its sensor entry)", path=ypath,
+                           hint="add K, dist, width, height to it, or check with a calibration that estimated them")
+    return rig.root, ds.camera, rig.board, ds.frames

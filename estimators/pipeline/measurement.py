@@ -125,6 +125,24 @@ def parse_rig_guess(values: list[str]) -> dict:
                            hint="give the calibration.json of an earlier calibration of this rig") from None
 
 
+def pair_from_calibration(value: str, camera: str, lidar: str) -> np.ndarray:
+    """``T_camera_lidar`` of one camera-LiDAR pair of a rig from a file: a rig's ``calibration.json`` (its
+    ``transforms``: ``T_<camera>_<lidar>``, or the inverse of ``T_<lidar>_<camera>``), or any file
+    :func:`parse_initial_guess` reads (one ``T_camera_lidar``, taken as this pair's)."""
+    path = regular_file(value, "calibration file", hint="give a calibration.json or a 4x4 matrix")
+    data = load_json(path, "calibration file") if path.suffix.lower() == ".json" else None
+    if not isinstance(data, dict) or not isinstance(data.get("transforms"), dict):
+        return parse_initial_guess([value])
+    for key, flip in ((f"T_{camera}_{lidar}", False), (f"T_{lidar}_{camera}", True)):
+        entry = data["transforms"].get(key)
+        if isinstance(entry, dict) and "T" in entry:
+            T = _rigid(entry["T"], path, key)
+            return np.linalg.inv(T) if flip else T
+    raise DatasetError(f"the calibration has no transform between {camera} and {lidar} (it has "
+                       f"{', '.join(sorted(data['transforms'])) or 'none'})", path=path,
+                       hint="give the calibration of this rig, or name its sensors with --camera and --lidar")
+
+
 def _rigid(T, path, what: str) -> np.ndarray:
     """``T`` as a finite 4x4 rigid transform, or a one-line error naming ``path`` and ``what``."""
     try:

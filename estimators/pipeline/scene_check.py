@@ -26,6 +26,7 @@ from .. import __version__
 from ..camera.edge_map import TRUNCATE_PX, edge_distance, field_gradient
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
+from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
 from ..lidar.depth_edges import depth_edges
@@ -65,6 +66,7 @@ class SceneCheck:
     # covariance tested against: the best's plus the scatter of the minima as low (``minima_scatter``).
     rivals: tuple = ()
     covariance: np.ndarray | None = None
+    sensors: tuple | None = None  # a rig folder's camera and LiDAR checked (None: a camera-LiDAR folder)
 
     @property
     def consistent(self) -> bool | None:
@@ -121,6 +123,7 @@ class SceneCheck:
                       "rms_px_at_given": self.fit.rms_start_px, "rms_px": self.fit.rms_px,
                       "converged": self.fit.converged, "contour_returns": self.fit.points},
             "rival_minima": [{"T_camera_lidar": f.T_camera_lidar.tolist(), "rms_px": f.rms_px} for f in self.rivals],
+            **({"camera": self.sensors[0], "lidar": self.sensors[1]} if self.sensors else {}),
             "frames_used": list(self.frames_used), "skipped": self.skipped, "board_left_out": self.board_left_out,
             "timings_s": {"check": self.seconds},
         }
@@ -181,14 +184,16 @@ class SceneFrame:
     board_mask: np.ndarray | None
 
 
-def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None
+def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None,
+                      sensors: tuple[str, str] | None = None
                       ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
-    reasons."""
+    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.dataset.load_scene_folder``)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    root, own, board, frames = load_scene_folder(folder, need_camera=camera is None)
+    load = scene_pair if is_rig(folder) else load_scene_folder
+    root, own, board, frames = load(folder, camera is None, sensors)
     camera = own if camera is None else camera
 
     def read(f) -> SceneFrame | str:
@@ -237,19 +242,22 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
 
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
-                camera: CameraModel | None = None) -> SceneCheck:
+                camera: CameraModel | None = None, sensors: tuple[str, str] | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
     ----------
     folder : str or os.PathLike
-        A camera-LiDAR folder of synchronised frames (dataset.yaml with ``camera:``; ``board:`` optional).
+        A camera-LiDAR folder of synchronised frames (dataset.yaml with ``camera:``; ``board:`` optional), or a
+        rig folder (``sensors`` names the pair).
     T_given : numpy.ndarray
-        4x4 ``T_camera_lidar`` to check.
+        4x4 ``T_camera_lidar`` to check (the camera's from the LiDAR's).
     keep_board : bool
         Keep the board's edges and contours (by default left out where the camera finds the board).
     camera : CameraModel, optional
         The camera's model (a calibration's, its intrinsics refined or estimated); default dataset.yaml's.
+    sensors : tuple of str, optional
+        A rig folder's camera and 3D LiDAR (default its first camera and first 3D LiDAR).
 
     Returns
     -------
@@ -264,12 +272,15 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         Fewer than two frames with contours in view.
     """
     t0 = time.perf_counter()
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)
     fits = scene_minima(views, camera, T_given)
     cov = fits[0].covariance + minima_scatter(fits)
+    if sensors is None and is_rig(root):
+        sensors = first_pair(root)
     return SceneCheck(str(root), np.asarray(T_given, float), fits[0], consistency(fits[0], T_given, covariance=cov),
                       tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
-                      time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)
+                      time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov,
+                      tuple(sensors) if sensors else None)

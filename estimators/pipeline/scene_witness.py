@@ -31,6 +31,7 @@ import numpy as np
 from geometry.rotations import T_inverse, T_log, T_retract
 
 from ..errors import LidarcamError
+from ..io.rig_dataset import is_rig
 from ..solvers.rig_graph import pair_transform
 from ..solvers.scene_term import JoinedTerm, join_pair_measurement, join_pair_translation
 from .result import COVARIANCE_CONVENTION
@@ -148,12 +149,13 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     Parameters
     ----------
     result : RigResult
-        A pair folder's calibration (``estimators.calibrate``), its LiDAR a 3D one whose sweeps give each return's
-        beam.
+        A pair or rig folder's calibration (``estimators.calibrate``), ``lidar`` a 3D LiDAR whose sweeps give each
+        return's beam.
     rng : numpy.random.Generator
         Draws the scene's noise that moves the posterior's samples.
     camera, lidar : str
-        The pair's sensors (a pair folder's ``cam0`` and ``lidar0``).
+        The pair's sensors (a pair folder's ``cam0`` and ``lidar0``; a rig folder's camera and 3D LiDAR: called
+        once per pair, each joined on the estimate the ones before it left).
 
     Returns
     -------
@@ -165,10 +167,12 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     pair = result.pair(camera, lidar)
     witness = SceneWitness(camera, lidar, pair.T, pair.covariance)
     sol, post = result.solution, result.posterior
+    others = dict(result.scene or {})  # the rig's other pairs' terms, joined before this one
     try:
-        check = check_scene(result.rig.root, pair.T, camera=result.camera_model(camera))
+        check = check_scene(result.rig.root, pair.T, camera=result.camera_model(camera),
+                            sensors=(camera, lidar) if is_rig(result.rig.root) else None)
     except LidarcamError as exc:
-        return replace(result, scene={(camera, lidar): replace(witness, problem=exc.problem)})
+        return replace(result, scene={**others, (camera, lidar): replace(witness, problem=exc.problem)})
     witness = replace(witness, check=check)
     u = witness.weak_direction()
     P = sol.covariance_joint if post is None else post.covariance_joint
@@ -190,16 +194,16 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
                   "alone, with the boards right, in 1 check of 7: docs/bench/scene_joint.md); look at "
                   "scene_check.html, at the boards' outlines in the report, and at the intrinsics (a camera's error "
                   "away from the boards moves the scene's estimate, not the boards')")
-        return replace(result, scene={(camera, lidar): replace(witness, reason=reason, contradicts=True)})
+        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason, contradicts=True)})
     if overall is None or overall.p_value < ALPHA:
         reason = ("the scene constrains no direction" if overall is None else
                   f"the scene's estimate disagrees with the boards' over every direction (p = {overall.p_value:.2g}, "
                   f"{overall.dof} directions; turned {angle:.2f} deg from them, {where}): not believed, not joined")
-        return replace(result, scene={(camera, lidar): replace(witness, reason=reason)})
+        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason)})
     if check.rivals:
         reason = ("the scene's cost holds other minima as low beyond its covariance: its estimate is undecided, "
                   "not joined")
-        return replace(result, scene={(camera, lidar): replace(witness, reason=reason)})
+        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason)})
     # Joined: the solution's poses and covariance (its own Laplace one moved by its own gain) and the posterior's.
     own = term if post is None else join_pair_translation(sol.names, sol.T_ref, sol.covariance_joint, camera, lidar,
                                                            T_s, C_s, u, blocks=n)
@@ -207,4 +211,4 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     posterior = None if post is None else replace(post, T_ref=joint, xi=term.moved_samples(post.xi, rng), _pairs={},
                                                   _sensor_T={})
     return replace(result, solution=solution, posterior=posterior,
-                   scene={(camera, lidar): replace(witness, joined=True)})
+                   scene={**others, (camera, lidar): replace(witness, joined=True)})
