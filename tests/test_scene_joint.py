@@ -188,3 +188,27 @@ def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, caps
                  "--out", str(tmp / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "cam7" in err and not (tmp / "x").exists()
+
+
+def test_a_two_camera_rig_in_a_furnished_room_checks_each_pair_and_forms_each_pairs_term(tmp_path, capsys):
+    """A rig of two cameras and a 64-beam LiDAR in a furnished room (seed 3, eight frames; the second camera
+    renders the same room): ``check`` of the second camera's true transform is consistent and of it turned by 1
+    degree about that camera's y contradicted (exit 4); ``calibrate --scene`` forms the term of both pairs, the
+    second on the estimate the first left, each with both tests, and writes each pair's page in its folder."""
+    from estimators.simulation.rig_simulator import simulate_rig
+
+    rig = simulate_rig(tmp_path / "rig", n_poses=8, seed=3, cameras=2, scene="furnished")
+    truth = json.loads((rig / "ground_truth.json").read_text())
+    T = T_inverse(np.array(truth["T_cam0_cam1"])) @ np.array(truth["T_cam0_lidar0"])
+    turned = T_from_Rt(R_from_rotvec(np.radians([0.0, 1.0, 0.0])), np.zeros(3)) @ T
+    for name, T_given, code in (("true", T, 0), ("turned", turned, 4)):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"transforms": {"T_cam1_lidar0": {"T": T_given.tolist()}}}))
+        assert main(["check", str(rig), "--camera", "cam1", "--calibration", str(tmp_path / f"{name}.json"),
+                     "--out", str(tmp_path / name)]) == code
+    assert main(["calibrate", str(rig), "--scene", "--samples", "0", "--out", str(tmp_path / "cal")]) == 0
+    out = capsys.readouterr().out
+    assert "the scene's term for T_cam0_lidar0" in out and "the scene's term for T_cam1_lidar0" in out
+    scene = json.loads((tmp_path / "cal" / "calibration.json").read_text())["scene"]
+    assert set(scene) == {"T_cam0_lidar0", "T_cam1_lidar0"}
+    assert all(set(w["boards_against_scene"]) == {"along_weak_direction", "every_direction"} for w in scene.values())
+    assert all((tmp_path / "cal" / f"scene_{c}_lidar0" / "scene_check.html").is_file() for c in ("cam0", "cam1"))

@@ -488,11 +488,9 @@ def simulate_command(args) -> int:
         if args.range_bias_from_priors is not None:
             raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes "
                              "--range-bias, injected into lidar0)")
-        if args.scene != "default":
-            raise SystemExit(f"lidarcam: error: --scene {args.scene} is for a single pair (a rig is simulated in the "
-                             "default room only)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
-                           args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias))
+                           args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias),
+                           scene=args.scene)
         print(f"wrote a rig of {args.cameras} cameras, {args.lidars} 3D LiDAR(s) and {args.scanners} 2D scanner(s) "
               f"({args.poses} frames) to {out}")
         return 0

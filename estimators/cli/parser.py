@@ -150,7 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
                         "monitors, a table and a pillar, the board held by a person (3D: some boards partly "
                         "outside the vertical field of view); hall: an open hall; furnished: a furnished room "
-                        "(the scene check's rooms), its furniture kept off the lines of sight to the boards")
+                        "(the scene check's rooms), its furniture kept off the lines of sight to the boards; a rig "
+                        "(--cameras) sees it with every sensor")
 
     la = sub.add_parser("layout", help="predicted uncertainty and conditioning of a dataset's or a plan's board "
                                        "poses, and the poses to add",

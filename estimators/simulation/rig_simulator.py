@@ -31,8 +31,8 @@ from ..io.pointcloud_io import write_scan
 from .range_bias import RangeBias
 from .rendering import add_pixel_noise, pixel_rays, render_clean
 from .scene import cast, cast_background
-from .simulator import (BEAM_MODELS, default_rig, default_room, iter_frames, rotated_patches, sample_board_poses,
-                        scene_patches, write_sweep_2d)
+from .simulator import (BEAM_MODELS, default_rig, iter_frames, sample_board_poses, scene_patches, static_scene,
+                        write_sweep_2d)
 
 
 def _fisheye(f: float) -> CameraModel:
@@ -102,7 +102,7 @@ def _sees_board(camera: CameraModel, T_camera_board: np.ndarray, board) -> bool:
 
 def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int = 2, lidar: str = "hdl64e",
                  overwrite: bool = False, lidars: int = 1, scanners: int = 0, range_offset_m: float = 0.0,
-                 range_bias: tuple[float, float, float] | None = None) -> Path:
+                 range_bias: tuple[float, float, float] | None = None, scene: str = "default") -> Path:
     """Simulate a rig of pinhole cameras and one 3D LiDAR and write its folder atomically (module docstring).
 
     Parameters
@@ -130,6 +130,9 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
         ``(global offset, sd of the per-ring offsets, black-square offset)`` (m) injected into ``lidar0``'s returns
         as the single pair's simulation does (``range_bias.RangeBias``, the rings' offsets drawn from a generator
         of their own); ground_truth.json records the terms as ``range_bias``.
+    scene : str
+        The scene every sensor sees (``simulator.static_scene``: ``default``, ``office``, ``hall`` or
+        ``furnished``); in all but the default room a person holds the board in 70% of the frames.
 
     Returns
     -------
@@ -151,7 +154,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             own = replace(rig, camera=cam, T_camera_lidar=T_inverse(T_c0_ck) @ rig.T_camera_lidar)
             poses += [T_c0_ck @ T for T in sample_board_poses(own, max(3, n_poses // 2), rng)]
     T_lidar_cam0 = T_inverse(rig.T_camera_lidar)
-    static = rotated_patches(default_room(-rig.lidar_height_m), rig.level.T)
+    static = static_scene(rig, scene, rng, poses)
     T_l0_s = _scanner(rng, T_lidar_cam0, rig.level) if scanners else None
     backgrounds = {}
     for name, cam, T_c0_ck, _ in extra:
@@ -191,7 +194,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
             (tmp / name).mkdir()
         seen = {n: [] for n in ["cam0"] + [n for n, _, _, _ in extra]}
         boards = {}
-        for f in iter_frames(rig, len(poses), rng, poses, bias=bias, workers=1):
+        for f in iter_frames(rig, len(poses), rng, poses, scene, bias=bias, workers=1, static=static):
             boards[f.name] = f.T_camera_board.tolist()
             if _sees_board(rig.camera, f.T_camera_board, rig.board):
                 cv2.imwrite(str(tmp / "cam0" / f"{f.name}.png"), f.image)
@@ -201,7 +204,7 @@ def simulate_rig(out: str | Path, n_poses: int = 10, seed: int = 0, cameras: int
                 points = points * (1.0 + range_offset_m / np.linalg.norm(points, axis=1, keepdims=True))
             write_scan(tmp / "lidar0" / f"{f.name}.pcd", points, f.intensity, f.ring)
             T_lidar_board = T_lidar_cam0 @ f.T_camera_board
-            patches, bi = scene_patches(rig, T_lidar_board, static)
+            patches, bi = scene_patches(rig, T_lidar_board, static, f.held)
             if T_l0_l1 is not None:
                 write_scan(tmp / "lidar1" / f"{f.name}.pcd", *_sweep(beams1, T_l0_l1, patches, background1, rng))
             if T_l0_s is not None:

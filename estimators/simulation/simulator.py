@@ -589,6 +589,7 @@ class SimulatedFrame:
     ring: np.ndarray
     T_camera_board: np.ndarray
     board_mask: np.ndarray | None = None  # which points hit the board (ground truth)
+    held: bool = False  # the board held by a person (else on its stand)
 
 
 def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
@@ -605,28 +606,40 @@ def simulate_frames(rig: Rig, n_poses: int, rng: np.random.Generator,
     return list(iter_frames(rig, n_poses, rng, poses, scene, bias, outside_image_share, workers))
 
 
+def static_scene(rig: Rig, scene: str, rng: np.random.Generator, poses: list[np.ndarray] | None = None
+                 ) -> list[Patch]:
+    """The static part of ``scene`` in the LiDAR's frame: the default room, an office or a hall
+    (``simulation.office``), or a furnished room whose furniture keeps off the lines of sight to the boards of
+    ``poses`` (``simulation.rooms``; camera frame)."""
+    if scene == "office":
+        return rotated_patches(office_layout(-rig.lidar_height_m, rng), rig.level.T)
+    if scene == "hall":
+        return rotated_patches(hall_layout(-rig.lidar_height_m), rig.level.T)
+    if scene == "furnished":
+        from .rooms import room_around_rig
+
+        T_level_camera = T_from_Rt(rig.level, np.zeros(3)) @ T_inverse(rig.T_camera_lidar)
+        centres = np.array([transform_points(T_level_camera @ T, rig.board.outline()).mean(0) for T in poses])
+        return rotated_patches(room_around_rig(-rig.lidar_height_m, rng, centres), rig.level.T)
+    return rotated_patches(default_room(-rig.lidar_height_m), rig.level.T)
+
+
 def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np.ndarray] | None = None,
                 scene: str = "default", bias: RangeBias | None = None, outside_image_share: float = 0.0,
-                workers: int = 2) -> Iterator[SimulatedFrame]:
+                workers: int = 2, static: list[Patch] | None = None) -> Iterator[SimulatedFrame]:
     """:func:`simulate_frames` one frame at a time, each as soon as it is made (later frames are cast
-    meanwhile), so that a caller can write it while the next ones are cast."""
+    meanwhile), so that a caller can write it while the next ones are cast. ``static``: the scene's static part
+    (LiDAR frame) when drawn already (:func:`static_scene`; a rig's further sensors cast the same)."""
     if scene not in SCENES:
         raise ValueError(f"Expected scene in {SCENES}, got {scene!r}")
     T_lidar_camera = T_inverse(rig.T_camera_lidar)
-    static = None
-    if scene == "office":
-        static = rotated_patches(office_layout(-rig.lidar_height_m, rng), rig.level.T)
-    elif scene == "hall":
-        static = rotated_patches(hall_layout(-rig.lidar_height_m), rig.level.T)
+    if static is None and scene in ("office", "hall"):
+        static = static_scene(rig, scene, rng)
     if poses is None:
         partial = 0.25 if scene != "default" and not rig.beams.is_2d else 0.0
         poses = sample_board_poses(rig, n_poses, rng, partial_share=partial, outside_image_share=outside_image_share)
-    if scene == "furnished":  # the room's furniture kept off the lines of sight to these boards
-        from .rooms import room_around_rig
-
-        T_level_camera = T_from_Rt(rig.level, np.zeros(3)) @ T_lidar_camera
-        centres = np.array([transform_points(T_level_camera @ T, rig.board.outline()).mean(0) for T in poses])
-        static = rotated_patches(room_around_rig(-rig.lidar_height_m, rng, centres), rig.level.T)
+    if static is None and scene == "furnished":
+        static = static_scene(rig, scene, rng, poses)
 
     # The default scene draws nothing before a frame is cast: frames are cast in ``workers`` threads (numpy
     # releases the interpreter in its large array operations), ``workers`` of them ahead of the one whose noise
@@ -656,13 +669,14 @@ def iter_frames(rig: Rig, n_poses: int, rng: np.random.Generator, poses: list[np
             if parallel:
                 while len(ahead) <= workers and k + len(ahead) < len(poses):
                     ahead.append(pool.submit(cast_frame, poses[k + len(ahead)], False))
+                held = False
                 bi, clean, sweep = ahead.popleft().result()
             else:
                 held = scene != "default" and bool(rng.uniform() < 0.7)
                 bi, clean, sweep = cast_frame(T_cb, held)
             img = add_pixel_noise(clean, rng, rig.pixel_noise)
             pts, inten, ring_k, on_board = simulate_scan(rig, [], rng, bi, bias, sweep)
-            yield SimulatedFrame(f"{k:04d}", img, pts, inten, ring_k, T_cb, on_board)
+            yield SimulatedFrame(f"{k:04d}", img, pts, inten, ring_k, T_cb, on_board, held)
 
 
 def cropped_to_boards(frames: list[SimulatedFrame], pad_m: float) -> list[SimulatedFrame]:
