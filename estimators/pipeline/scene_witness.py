@@ -83,8 +83,8 @@ class SceneWitness:
 
     @property
     def C_scene(self) -> np.ndarray | None:
-        """The scene's covariance as joined: the check's, scaled by ``COVARIANCE_EXCESS``."""
-        return None if self.check is None else COVARIANCE_EXCESS * self.check.covariance
+        """The scene's covariance as joined: the check's as it believes it (scaled by ``COVARIANCE_EXCESS``)."""
+        return None if self.check is None else self.check.believed_covariance
 
     def weak_direction(self) -> np.ndarray:
         """The boards' least certain translation direction, a unit vector in the camera's frame."""

@@ -79,7 +79,7 @@ class TargetlessResult:
 
     @property
     def covariance(self) -> np.ndarray:
-        return self.scene.covariance
+        return self.scene.believed_covariance
 
     @property
     def verdict(self) -> Verdict:
