@@ -62,8 +62,8 @@ bench: $(STAMP)
 	$(RECORD) moving_bag -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --speed
 	$(RECORD) moving_bag_seed100 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 100
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
-	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40
-	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24
+	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
+	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24 --seed 100
 	$(RECORD) scene_joint -- $(PY) benchmarks/bench_scene_joint.py --scenes 40
 	$(RECORD) scene_zones -- $(PY) benchmarks/bench_scene_zones.py
 	$(RECORD) scene_cues -- $(PY) benchmarks/bench_scene_cues.py
