@@ -26,9 +26,9 @@ from .. import __version__
 from ..camera.edge_map import TRUNCATE_PX, edge_distance, field_gradient
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
-from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
+from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, consistency, minima_scatter,
                                       rival_minima, scene_minima, visible_from_camera)
@@ -197,7 +197,7 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
                       ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
-    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.dataset.load_scene_folder``)."""
+    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``)."""
     from concurrent.futures import ThreadPoolExecutor
 
     load = scene_pair if is_rig(folder) else load_scene_folder
