@@ -61,6 +61,7 @@ bench: $(STAMP)
 	$(RECORD) clock_offset -- $(PY) benchmarks/bench_clock_offset.py --recordings 30
 	$(RECORD) moving_bag -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --speed
 	$(RECORD) moving_bag_seed100 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 100
+	$(RECORD) moving_bag_pool -- $(PY) benchmarks/moving_bag_pool.py
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
 	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24 --seed 100
