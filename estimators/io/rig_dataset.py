@@ -227,9 +227,13 @@ def first_pair(path: str | os.PathLike) -> tuple[str | None, str | None]:
     return _first(load_rig(path, files=False))
 
 
-def _first(rig) -> tuple[str | None, str | None]:
-    cameras = [c.name for c in rig.cameras]
-    lidars = [s.name for s in rig.lidars if s.lidar == "3d"]
+def _scene_sensors(rig: RigDataset) -> tuple[list[str], list[str]]:
+    """The rig's cameras and its 3D LiDARs, by name (the sensors the scene's check pairs)."""
+    return [c.name for c in rig.cameras], [s.name for s in rig.lidars if s.lidar == "3d"]
+
+
+def _first(rig: RigDataset) -> tuple[str | None, str | None]:
+    cameras, lidars = _scene_sensors(rig)
     return (cameras[0] if cameras else None), (lidars[0] if lidars else None)
 
 
@@ -240,8 +244,7 @@ def scene_pair(path: str | os.PathLike, need_camera: bool = True, pair: tuple[st
     (camera, 3D LiDAR; default :func:`first_pair`) saw."""
     rig = load_rig(path)
     ypath = rig.yaml_path
-    cameras = [c.name for c in rig.cameras]
-    lidars = [s.name for s in rig.lidars if s.lidar == "3d"]
+    cameras, lidars = _scene_sensors(rig)
     camera, lidar = pair if pair is not None else _first(rig)
     if camera not in cameras:
         raise DatasetError(f"the rig has no camera {camera!r} (cameras: {', '.join(cameras) or 'none'})", path=ypath,

@@ -168,11 +168,15 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     witness = SceneWitness(camera, lidar, pair.T, pair.covariance)
     sol, post = result.solution, result.posterior
     others = dict(result.scene or {})  # the rig's other pairs' terms, joined before this one
+
+    def ended(w: SceneWitness, **changes):
+        return replace(result, **changes, scene={**others, (camera, lidar): w})
+
     try:
         check = check_scene(result.rig.root, pair.T, camera=result.camera_model(camera),
                             sensors=(camera, lidar) if is_rig(result.rig.root) else None)
     except LidarcamError as exc:
-        return replace(result, scene={**others, (camera, lidar): replace(witness, problem=exc.problem)})
+        return ended(replace(witness, problem=exc.problem))
     witness = replace(witness, check=check)
     u = witness.weak_direction()
     P = sol.covariance_joint if post is None else post.covariance_joint
@@ -194,21 +198,20 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
                   "alone, with the boards right, in 1 check of 7: docs/bench/scene_joint.md); look at "
                   "scene_check.html, at the boards' outlines in the report, and at the intrinsics (a camera's error "
                   "away from the boards moves the scene's estimate, not the boards')")
-        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason, contradicts=True)})
+        return ended(replace(witness, reason=reason, contradicts=True))
     if overall is None or overall.p_value < ALPHA:
         reason = ("the scene constrains no direction" if overall is None else
                   f"the scene's estimate disagrees with the boards' over every direction (p = {overall.p_value:.2g}, "
                   f"{overall.dof} directions; turned {angle:.2f} deg from them, {where}): not believed, not joined")
-        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason)})
+        return ended(replace(witness, reason=reason))
     if check.rivals:
         reason = ("the scene's cost holds other minima as low beyond its covariance: its estimate is undecided, "
                   "not joined")
-        return replace(result, scene={**others, (camera, lidar): replace(witness, reason=reason)})
+        return ended(replace(witness, reason=reason))
     # Joined: the solution's poses and covariance (its own Laplace one moved by its own gain) and the posterior's.
     own = term if post is None else join_pair_translation(sol.names, sol.T_ref, sol.covariance_joint, camera, lidar,
                                                            T_s, C_s, u, blocks=n)
     solution = replace(sol, T_ref=_moved(sol.T_ref, sol.names, own.dx), covariance_joint=own.covariance)
     posterior = None if post is None else replace(post, T_ref=joint, xi=term.moved_samples(post.xi, rng), _pairs={},
                                                   _sensor_T={})
-    return replace(result, solution=solution, posterior=posterior,
-                   scene={**others, (camera, lidar): replace(witness, joined=True)})
+    return ended(replace(witness, joined=True), solution=solution, posterior=posterior)
