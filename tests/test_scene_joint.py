@@ -191,13 +191,13 @@ def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, caps
 
 
 def test_a_two_camera_rig_in_a_furnished_room_checks_each_pair_and_forms_each_pairs_term(tmp_path, capsys):
-    """A rig of two cameras and a 64-beam LiDAR in a furnished room (seed 3, eight frames; the second camera
+    """A rig of two cameras and a 64-beam LiDAR in a furnished room (seed 3, six frames; the second camera
     renders the same room): ``check`` of the second camera's true transform is consistent and of it turned by 1
     degree about that camera's y contradicted (exit 4); ``calibrate --scene`` forms the term of both pairs, the
     second on the estimate the first left, each with both tests, and writes each pair's page in its folder."""
     from estimators.simulation.rig_simulator import simulate_rig
 
-    rig = simulate_rig(tmp_path / "rig", n_poses=8, seed=3, cameras=2, scene="furnished")
+    rig = simulate_rig(tmp_path / "rig", n_poses=6, seed=3, cameras=2, scene="furnished")
     truth = json.loads((rig / "ground_truth.json").read_text())
     T = T_inverse(np.array(truth["T_cam0_cam1"])) @ np.array(truth["T_cam0_lidar0"])
     turned = T_from_Rt(R_from_rotvec(np.radians([0.0, 1.0, 0.0])), np.zeros(3)) @ T
