@@ -88,16 +88,28 @@ def office(tmp_path_factory):
     return tmp, np.array(json.loads((tmp / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
 
 
-def test_a_scene_not_believed_is_not_joined_and_leaves_the_boards_verdict(office, capsys):
+@pytest.fixture(scope="module")
+def office_scene(office):
+    """``calibrate --scene`` of the office (no posterior, no report) into ``out``: its exit code and printout."""
+    import contextlib
+    import io
+
+    tmp, _ = office
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "out"), "--scene", "--samples", "0",
+                     "--no-report"])
+    return code, printed.getvalue()
+
+
+def test_a_scene_not_believed_is_not_joined_and_leaves_the_boards_verdict(office, office_scene):
     """Seed 3's office, the board left out: the scene's estimate lies 0.3 deg from the boards' (which are within
     0.05 deg of the truth) and fails the test over every direction while agreeing along the weak one: not joined,
     the boards' estimate in calibration.json, the verdict the boards' own (OK), both tests in the record, and the
     printout shows the boards' and the scene's along the weak direction with the reason."""
     tmp, truth = office
-    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "out"), "--scene", "--samples", "0",
-                 "--no-report"]) == 0
-    out = capsys.readouterr().out
-    assert out.startswith("OK\n")
+    code, out = office_scene
+    assert code == 0 and out.startswith("OK\n")
     assert "  boards " in out and "  scene " in out and "not joined: the scene's estimate disagrees" in out
     got = json.loads((tmp / "out" / "calibration.json").read_text())
     record = got["scene"]["T_cam0_lidar0"]
@@ -158,19 +170,18 @@ def _as_rig(pair: "Path", out: "Path") -> "Path":
     return out
 
 
-def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, capsys):
+def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, office_scene, capsys):
     """Seed 3's office as a rig folder of cam0 and lidar0: ``calibrate --scene`` forms the same scene term as on
     the pair folder (the same boards' and scene's estimates and tests, to 1e-9), and ``check`` of the rig's
     calibration.json (its cam0-lidar0 transform, found by the sensors' names) gives the pair's p-value; a sensor
     the rig has not is refused in one line (exit 2)."""
     tmp, _ = office
     rig = _as_rig(tmp / "ds", tmp / "rig")
-    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "pair_out"), "--scene", "--samples", "0",
-                 "--no-report"]) == 0
+    assert office_scene[0] == 0
     assert main(["calibrate", str(rig), "--out", str(tmp / "rig_out"), "--scene", "--samples", "0",
                  "--no-report"]) == 0
     capsys.readouterr()
-    a = json.loads((tmp / "pair_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
+    a = json.loads((tmp / "out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
     b = json.loads((tmp / "rig_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
     np.testing.assert_allclose(a["T_camera_lidar_boards"], b["T_camera_lidar_boards"], atol=1e-9)
     np.testing.assert_allclose(a["scene"]["T_camera_lidar"], b["scene"]["T_camera_lidar"], atol=1e-9)
