@@ -73,6 +73,13 @@ def test_a_waved_board_is_detected_extracted_and_calibrated_with_the_clocks_offs
     assert out.splitlines()[0].split(":")[0] in ("OK", "CHECK") and "time offset" in out
     assert cal["recording"] == "moving board" and not cal["time_offset_held"]
     _check(cal, rig, -0.03)
+    # the posterior by default (emcee), its offset's interval in calibration.json, the printout and the report
+    post = cal["posterior"]
+    assert post["converged"] and post["parameters"] == 7 and post["effective_samples"] >= 2000
+    lo, hi = post["time_offset_ms"]["95%"]
+    assert lo < -30.0 < hi and f"[{lo:+.2f}, {hi:+.2f}] ms" in out and "posterior (emcee, 7 parameters" in out
+    assert cal["time_offset_std_s"] == pytest.approx(post["time_offset_ms"]["std"] / 1000)
+    assert "the clocks' offset's intervals" in (tmp / "cal" / "report.html").read_text()
     # the report: the images extract kept whole, each with the returns carried to its instant
     overlays = sorted((tmp / "cal").glob("moving_*.jpg"))
     assert overlays and all(p.name in (tmp / "cal" / "report.html").read_text() for p in overlays)
@@ -87,9 +94,9 @@ def test_a_waved_board_is_detected_extracted_and_calibrated_with_the_clocks_offs
 
 def test_options_a_moving_board_does_not_take_are_refused_in_one_line(waved, capsys, tmp_path):
     tmp, _ = waved
-    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp_path / "x"), "--samples", "100"]) == 2
+    assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp_path / "x"), "--robust", "cauchy"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--samples is not taken by a moving board's recording" in err
+    assert len(err.splitlines()) == 1 and "--robust is not taken by a moving board's recording" in err
     assert not (tmp_path / "x").exists()
 
 

@@ -46,6 +46,18 @@ def _overlay(image: np.ndarray, result, board, trajectory, track, at_s: float) -
     return img, drawn
 
 
+def _posterior_part(result) -> str:
+    """The posterior's run and the offset's intervals (or why it was not sampled), as HTML."""
+    if result.posterior is None:
+        return "" if result.posterior_note is None else f"<p>Posterior: {html.escape(result.posterior_note)}</p>"
+    summary = result.posterior_summary()
+    words = html.escape(result.posterior.run.words("gaussian"))
+    offset = summary.get("time_offset_ms")
+    rows = "" if offset is None else "; the clocks' offset's intervals " + ", ".join(
+        f"{level}: [{offset[level][0]:+.2f}, {offset[level][1]:+.2f}] ms" for level in ("68%", "95%"))
+    return f"<p>Posterior ({words}){rows}.</p>"
+
+
 def write_moving_report(result, out: str | Path) -> Path:
     """``out/report.html`` and its overlays (``moving_NNNN.jpg``), each written atomically."""
     out, dataset, track, board = Path(out), Path(result.dataset), result.track, result.board
@@ -59,7 +71,8 @@ def write_moving_report(result, out: str | Path) -> Path:
              f"<p>t = ({', '.join(f'{1000 * v:.1f}' for v in t)}) mm; clocks' offset t_camera_stamp - "
              f"t_lidar_stamp{html.escape(offset)}; the returns lie {1000 * result.rms_m:.1f} mm RMS along their beams "
              f"from the board where the camera saw it ({1000 * result.own_scatter_m:.1f} mm about their own "
-             "planes).</p>", spread_section(result.pair, "Laplace"),
+             "planes).</p>", spread_section(result.pair, "Laplace" if result.posterior is None else "posterior"),
+             _posterior_part(result),
              "<h2>The board's returns at each image's instant</h2><p>Red: the returns fired within "
              f"{1000 * WINDOW_S:.0f} ms of the image's instant, each carried with the board from where it was when "
              "fired to where it is in the image, mapped by the estimate. Green: the camera's board outline. They "

@@ -100,7 +100,7 @@ def _calibrate_rig(args) -> int:
 
 
 # The calibrate options a moving board's recording takes; the others are refused rather than ignored.
-MOVING_TAKES = {"seed", "strict", "no_report", "time_offset"}
+MOVING_TAKES = {"seed", "strict", "no_report", "time_offset", "samples"}
 
 
 def _calibrate_moving(args) -> int:
@@ -118,7 +118,7 @@ def _calibrate_moving(args) -> int:
                     "a moving board's recording (motion.npz)", "calibrate without it")
     rig = is_rig(args.dataset)
     result = (calibrate_moving_rig if rig else calibrate_moving)(args.dataset, np.random.default_rng(args.seed),
-                                                                 args.time_offset)
+                                                                 args.time_offset, args.samples)
     path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
     print_moving(result)
     print(f"wrote {path}")

@@ -361,12 +361,22 @@ def _print_moving_pair(result, camera: str, lidar: str) -> None:
     _print_matrix(p.T)
     print("  t = (" + ", ".join(f"{1000 * v:.1f}" for v in p.T[:3, 3]) + ") +- ("
           + ", ".join(f"{v:.1f}" for v in p.std_translation_camera_mm) + ") mm, rotation sd ("
-          + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg (Laplace, with the camera's pointing: "
-          "docs/bench/moving_bag.md)")
+          + ", ".join(f"{v:.3f}" for v in p.std_rotation_deg) + ") deg ("
+          + ("the posterior's" if result.posterior is not None else "Laplace")
+          + ", with the camera's pointing: docs/bench/moving_bag.md)")
     what = f"time offset (t_{camera}_stamp - t_{lidar}_stamp)"
     if result.time_offset_std_s is None:
         print(f"{what}: held at {1000 * result.time_offset_s:+.2f} ms (--time-offset)")
     else:
         print(f"{what}: {1000 * result.time_offset_s:+.2f} +- {1000 * result.time_offset_std_s:.2f} ms")
+    if result.posterior is not None:
+        print(f"posterior ({result.posterior.run.words('gaussian')})")
+        _print_intervals(p, 0.95, axes=f" (about/along {lidar}'s x y z)")
+        summary = result.posterior_summary()
+        if "time_offset_ms" in summary:
+            lo, hi = summary["time_offset_ms"]["95%"]
+            print(f"  95% interval of the time offset: [{lo:+.2f}, {hi:+.2f}] ms")
+    if result.posterior_note is not None:
+        print(f"posterior: {result.posterior_note}")
     print(f"board returns against the board where the camera saw it: {1000 * result.rms_m:.1f} mm RMS along the "
           "beams")

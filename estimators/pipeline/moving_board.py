@@ -18,11 +18,13 @@ from geometry.camera import CameraModel
 
 from .. import __version__
 from ..camera.board_pose import pose_of_corners
-from ..errors import DatasetError, MeasurementError
+from ..errors import DatasetError, MeasurementError, PosteriorSkippedError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import MotionTrack, load_motion_track
 from ..measurements import TimedBoardView
 from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, ClockOffsetSolution, solve_clock_offset
+from ..solvers.moving_posterior import MovingPosterior, sample_moving_posterior
+from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, UNTRUSTED, Verdict, verdict_of
@@ -45,10 +47,11 @@ TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one
 
 @dataclass(frozen=True, eq=False)
 class MovingBoardResult:
-    """A moving board's calibration: ``pair`` (``cam0``, ``lidar0``: ``T_camera_lidar`` and its 6x6 covariance),
-    the clocks' offset and its standard deviation (None when held), the 7x7 covariance over ``[rot; trans;
-    offset]``, what was used, and for the report the images' board poses (``board_views``), the board and the
-    record (``track``)."""
+    """A moving board's calibration: ``pair`` (``cam0``, ``lidar0``: ``T_camera_lidar`` and its 6x6 covariance,
+    the posterior's samples when sampled), the clocks' offset and its standard deviation (None when held), the 7x7
+    covariance over ``[rot; trans; offset]``, what was used, the posterior (``solvers.moving_posterior``; None
+    unsampled, ``posterior_note`` saying why where it was asked for), and for the report the images' board poses
+    (``board_views``), the board and the record (``track``). Sampled, the covariances are the samples'."""
 
     pair: PairEstimate
     time_offset_s: float
@@ -67,6 +70,8 @@ class MovingBoardResult:
     board_views: tuple = ()
     board: object = None
     track: MotionTrack | None = None
+    posterior: MovingPosterior | None = None
+    posterior_note: str | None = None
     ambiguous = False  # one answer (a 2D scanner's few boards may leave two; a moving board does not)
 
     @property
@@ -99,8 +104,27 @@ class MovingBoardResult:
                                     "weak; tilt it more"))
         return verdict_of(concerns)
 
+    def posterior_summary(self) -> dict | None:
+        """The posterior as calibration.json gives it (``posterior``): the chain's diagnostics, the extrinsic's
+        standard deviations, intervals and credible regions (``PairEstimate.summary``) and the offset's
+        standard deviation and intervals (ms); None unsampled."""
+        if self.posterior is None:
+            return None
+        offset = 1000 * (self.time_offset_s + self.posterior.xi[:, 6])
+        out = {**self.posterior.run.diagnostics(), "likelihood": "gaussian", **self.pair.summary(),
+               "added": "the camera's board poses, the sweeps' time nuisances and the camera's pointing, as a "
+                        "Gaussian draw per sample (solvers.moving_posterior)"}
+        if self.time_offset_std_s is not None:
+            out["time_offset_ms"] = {"std": float(np.std(offset, ddof=1)), **{
+                f"{round(100 * q)}%": equal_tailed(offset[:, None], q)[0].tolist() for q in INTERVAL_LEVELS}}
+        return out
+
     def to_dict(self) -> dict:
         held = self.time_offset_std_s is None
+        source = ("the posterior's samples (emcee over the extrinsic and the offset given the board's trajectory, "
+                  "the camera's share added; solvers.moving_posterior)" if self.posterior is not None else
+                  "the joint solve's (Laplace): every image's board pose, the extrinsic and the offset together, "
+                  f"with the camera's pointing (an image-wide corner shift of {POINTING_SD_PX} px) added")
         return {
             "verdict": self.verdict.to_dict(), "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
             "recording": "moving board", "convention": CONVENTION,
@@ -110,14 +134,14 @@ class MovingBoardResult:
             "covariance": self.pair.covariance.tolist(), "covariance_convention": COVARIANCE_CONVENTION,
             "covariance_with_time_offset": self.covariance_with_offset.tolist(),
             "std": self.pair.camera_lidar_keys()["std"],
-            "covariance_source": "the joint solve's (Laplace): every image's board pose, the extrinsic and the "
-                                 "offset together, with the camera's pointing (an image-wide corner shift of "
-                                 f"{POINTING_SD_PX} px) added; its coverage on simulated bags: "
-                                 "docs/bench/moving_bag.md",
+            "covariance_source": f"{source}; its coverage on simulated bags: docs/bench/moving_bag.md",
+            **({} if self.posterior is None else {"posterior": self.posterior_summary()}),
+            **({} if self.posterior_note is None else {"posterior_note": self.posterior_note}),
             "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
             "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m,
             "point_times": self.point_times, "normal_spread": self.normal_spread,
-            "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds},
+            "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds, **({} if self.posterior is None else
+                                                                        {"posterior": self.posterior.run.seconds})},
         }
 
 
@@ -163,8 +187,8 @@ def normal_spread(track: MotionTrack) -> float:
     return float(sv[-1] / sv[0]) if len(sv) == 3 and sv[0] > 0 else 0.0
 
 
-def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None
-                     ) -> MovingBoardResult:
+def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None,
+                     samples: int = 0) -> MovingBoardResult:
     """The extrinsic and the clocks' offset of a moving board's dataset folder.
 
     Parameters
@@ -176,12 +200,14 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
         Drives the solve's random draws.
     time_offset_s : float, optional
         Hold the clocks' offset ``t_camera_stamp - t_lidar_stamp`` at this value (s) instead of solving it.
+    samples : int
+        Effective posterior samples to draw (``solvers.moving_posterior``); 0 skips sampling.
 
     Returns
     -------
     MovingBoardResult
         ``T_camera_lidar`` with its covariance, the offset and its standard deviation, the 7x7 covariance of both,
-        the verdict (``to_dict`` is calibration.json).
+        the posterior, the verdict (``to_dict`` is calibration.json).
 
     Raises
     ------
@@ -194,13 +220,14 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
                            path=ypath, hint="extract it from a bag with CameraInfo, or add camera: K, dist, width, "
                                             "height")
     board, camera = parse_board(spec.get("board"), ypath), parse_camera(spec["camera"], ypath)
-    return solve_moving(root, board, camera, rng, time_offset_s)
+    return solve_moving(root, board, camera, rng, time_offset_s, samples=samples)
 
 
 def solve_moving(root: Path, board, camera: CameraModel, rng: np.random.Generator, time_offset_s: float | None = None,
-                 names: tuple[str, str] = ("cam0", "lidar0")) -> MovingBoardResult:
+                 names: tuple[str, str] = ("cam0", "lidar0"), samples: int = 0) -> MovingBoardResult:
     """The extrinsic and the clocks' offset from the record in ``root`` (``motion.npz``: a pair's folder, or a
-    rig's LiDAR folder followed in its first camera), the ``names`` of that camera and LiDAR."""
+    rig's LiDAR folder followed in its first camera), the ``names`` of that camera and LiDAR; with ``samples``,
+    their posterior."""
     track = load_motion_track(root)
     if track.corners_px.shape[1] != len(board.inner_corners()):
         raise DatasetError(f"motion.npz holds {track.corners_px.shape[1]} corners per image and the board "
@@ -212,9 +239,21 @@ def solve_moving(root: Path, board, camera: CameraModel, rng: np.random.Generato
         views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
         pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]))
     seconds = time.perf_counter() - t0
-    pair = PairEstimate(*names, sol.T_camera_lidar, sol.covariance[:6, :6], None, sol.sweeps)
+    cov, posterior, note = sol.covariance, None, None
+    if samples > 0:
+        try:
+            posterior = sample_moving_posterior(sol.fit, rng, min_ess=samples)
+        except PosteriorSkippedError as exc:
+            note = f"not sampled ({exc.message}): the covariance is the joint solve's"
+        else:
+            cov = np.cov(posterior.xi, rowvar=False)
+            if not posterior.run.converged:
+                note = (f"did not converge in {posterior.run.chain.shape[0]} steps ({posterior.run.ess:.0f} effective "
+                        "samples): its intervals are rough")
+    pair = PairEstimate(*names, sol.T_camera_lidar, cov[:6, :6], None if posterior is None else posterior.xi[:, :6],
+                        sol.sweeps)
     held = time_offset_s is not None
-    return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(sol.covariance[6, 6])),
-                             sol.covariance, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
+    return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(cov[6, 6])),
+                             cov, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
                              track.point_times, normal_spread(track), own_scatter(track), camera, str(Path(root)),
-                             seconds, tuple(views), board, track)
+                             seconds, tuple(views), board, track, posterior, note)

@@ -59,7 +59,7 @@ class MovingRigResult:
                                                       "covariance_with_time_offset", "images_used", "sweeps_used",
                                                       "sweeps_with_board", "range_rms_m",
                                                       "range_scatter_own_planes_m", "point_times", "normal_spread",
-                                                      "timings_s")}})
+                                                      "timings_s", "posterior", "posterior_note")}})
             transforms[f"T_{cam}_{n}"] = r.pair.transform_keys()
         names = list(self.lidars)
         for i, a in enumerate(names):
@@ -90,8 +90,8 @@ class MovingRigResult:
         return PairEstimate(a, b, T, cov, None, min(Ta.frames, Tb.frames))
 
 
-def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None
-                         ) -> MovingRigResult:
+def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None,
+                         samples: int = 0) -> MovingRigResult:
     """Each LiDAR of a moving board's rig folder against its first camera.
 
     Parameters
@@ -103,6 +103,8 @@ def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, ti
         Drives the solves' random draws.
     time_offset_s : float, optional
         Hold every LiDAR's offset ``t_cam0_stamp - t_lidarN_stamp`` at this value (s) instead of solving it.
+    samples : int
+        Effective posterior samples of each LiDAR's extrinsic and offset (``solvers.moving_posterior``); 0 skips.
 
     Returns
     -------
@@ -129,7 +131,7 @@ def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, ti
             raise DatasetError(f"{s.name}/{FILE} not found: the LiDAR's record of the moving board",
                                path=root / s.name, hint="extract the bag again with lidarcam extract")
         lidars[s.name] = solve_moving(root / s.name, rig.board, cams[0].camera, rng, time_offset_s,
-                                      (cams[0].name, s.name))
+                                      (cams[0].name, s.name), samples)
     if not lidars:
         raise DatasetError("the rig has no LiDAR", path=root / "dataset.yaml", hint="extract it with --cloud-topic")
     return MovingRigResult(str(root), cams[0].name, lidars)

@@ -69,6 +69,27 @@ POINTING_SD_PX = 0.05
 STILL_M = 0.002
 
 
+@dataclass(frozen=True, eq=False)
+class MovingFit:
+    """The joint solve's problem at its estimate, for the posterior (``moving_posterior``): the board's trajectory
+    where the solve left it (knots ``K`` at ``tau``), the returns it used (``points``, LiDAR frame, at ``times_s``
+    in the LiDAR's clock with their sweep's time nuisance), their range noise ``sigma_r`` (m), the estimate, its
+    7x7 covariance without the camera's pointing and that pointing's 6x6 share, the offset's prior half-width
+    (s) and whether the offset was free. ``sigma_r`` is the noise the joint solve weighed the returns by."""
+
+    tau: np.ndarray
+    K: np.ndarray
+    points: np.ndarray
+    times_s: np.ndarray
+    sigma_r: float
+    T_camera_lidar: np.ndarray
+    time_offset_s: float
+    covariance: np.ndarray
+    pointing: np.ndarray
+    offset_prior_s: float
+    free_offset: bool
+
+
 @dataclass(frozen=True)
 class ClockOffsetSolution:
     """``T_camera_lidar`` with the clocks' offset.
@@ -88,6 +109,8 @@ class ClockOffsetSolution:
         Sweeps used (those whose returns fall within the camera's trajectory at every offset of the prior).
     grid : tuple
         ``(offsets_s, rms_m)``: the start's profile over the prior interval.
+    fit : MovingFit or None
+        The joint solve's problem at the estimate (for the posterior).
     """
 
     T_camera_lidar: np.ndarray
@@ -96,6 +119,7 @@ class ClockOffsetSolution:
     rms_m: float
     sweeps: int
     grid: tuple
+    fit: MovingFit | None = None
 
 
 def camera_trajectory(views: list[TimedBoardView]) -> PoseSplines:
@@ -256,14 +280,18 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
         K_cov = K_cov * still_runs(K, extent if extent is not None else (1.0, 1.0))[:, None, None]
     K_cov = with_stamp_jitter(tau, K, K_cov, stamp_jitter_s(tau))
     sweep = np.repeat(np.arange(len(kept)), [len(k[1]) for k in kept])
-    T, dt, cov = refine_jointly(tau, K, K_cov, points[inside], times[inside], T, dt,
-                                float(np.sqrt(np.mean(r[inside] ** 2))), free_offset=free == 7,
-                                sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
-    cov[:6, :6] += pointing_covariance(T, *pointing_sd_rad)
+    T, dt, cov, K_fit, shift = refine_jointly(
+        tau, K, K_cov, points[inside], times[inside], T, dt, float(np.sqrt(np.mean(r[inside] ** 2))),
+        free_offset=free == 7, sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
+    pointing = pointing_covariance(T, *pointing_sd_rad)
+    fit = MovingFit(tau, K_fit, points[inside], times[inside] + shift, float(np.sqrt(np.mean(r[inside] ** 2))), T,
+                    dt, cov.copy(), pointing, offset_prior_s, free == 7)
+    cov[:6, :6] += pointing
     if abs(dt) > offset_prior_s:
         raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
                                     f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
                                     "than assumed, or the board's motion leaves the offset unobservable")
     r = _residuals(T, dt, trajectory, points, times)
     return ClockOffsetSolution(T, dt, cov, float(np.sqrt(np.mean(r ** 2))), len(kept),
-                               (offsets, np.array(rms)))
+                               (offsets, np.array(rms)), fit)
+

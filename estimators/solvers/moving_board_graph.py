@@ -28,7 +28,7 @@ CONVERGED = 0.05
 H = 1e-6
 
 
-class _Knots:
+class Knots:
     """The board's trajectory through knot poses ``K`` (n, 4, 4) at increasing ``tau`` (s): local cubic between
     knots (see the module)."""
 
@@ -89,7 +89,7 @@ def along_beam_residuals(T: np.ndarray, R_cb: np.ndarray, o_cb: np.ndarray, rang
     return np.where(np.abs(along) > 1e-3, ranges - predicted, 0.0)
 
 
-def _lidar_residuals(T: np.ndarray, dt: float, knots: _Knots, ranges: np.ndarray, beams: np.ndarray,
+def _lidar_residuals(T: np.ndarray, dt: float, knots: Knots, ranges: np.ndarray, beams: np.ndarray,
                      times: np.ndarray, k: np.ndarray) -> np.ndarray:
     """:func:`along_beam_residuals` with the board where the knots put it at each return's time plus ``dt``."""
     return along_beam_residuals(T, *knots.poses(times + dt, k), ranges, beams)
@@ -130,13 +130,14 @@ def with_stamp_jitter(tau: np.ndarray, K: np.ndarray, K_cov: np.ndarray, jitter_
 def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: np.ndarray, times: np.ndarray,
                    T0: np.ndarray, dt0: float, sigma_r: float, free_offset: bool = True,
                    sweep: np.ndarray | None = None, sweep_jitter_s: float = 0.0
-                   ) -> tuple[np.ndarray, float, np.ndarray]:
+                   ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """The joint solve (see the module) from knots ``K0`` (n, 4, 4) at ``tau`` with covariances ``K_cov`` (n, 6, 6),
     returns ``points`` (m, 3) at ``times`` (the LiDAR's clock; each within the knots' span less the offset's
     reach), and the start ``T0``, ``dt0``; ``sigma_r`` the returns' range noise (m). ``sweep``: each return's
     sweep (0 ..), whose stamp is off its instant by a Gaussian of ``sweep_jitter_s`` shared by its returns: one
-    time nuisance per sweep with that prior (none when 0). Returns ``T_camera_lidar``, the offset and the 7x7
-    covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held)."""
+    time nuisance per sweep with that prior (none when 0). Returns ``T_camera_lidar``, the offset, the 7x7
+    covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held), and where the solve left the
+    knots (n, 4, 4) and each return's time nuisance (m,) (s): the board's trajectory at the joint estimate."""
     n, m = len(tau), len(points)
     ranges = np.linalg.norm(points, axis=1)
     beams = points / ranges[:, None]
@@ -153,7 +154,7 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
     for _ in range(MAX_STEPS):
         rel = K0_inv @ K
         xi = log_batch(rel[:, :3, :3], rel[:, :3, 3])  # each knot's move from its measured pose
-        knots = _Knots(tau, K)
+        knots = Knots(tau, K)
         times_now = times + shift
         k = knots.interval(times_now + dt)
         r0 = _lidar_residuals(T, dt, knots, ranges, beams, times_now, k) / sigma_r
@@ -186,7 +187,7 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
                 e[d] = H
                 Kp = K.copy()
                 Kp[chosen] = K[chosen] @ T_exp(e)
-                plus = _lidar_residuals(T, dt, _Knots(tau, Kp), ranges, beams, times_now, k)
+                plus = _lidar_residuals(T, dt, Knots(tau, Kp), ranges, beams, times_now, k)
                 rows.append(np.arange(m))
                 cidx.append(6 * which + d)
                 vals.append((plus - base) / (H * sigma_r))
@@ -217,4 +218,4 @@ def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: n
             break
     cov = np.zeros((7, 7))
     cov[:n_glob, :n_glob] = glob_cov
-    return T, dt, cov
+    return T, dt, cov, K, shift
