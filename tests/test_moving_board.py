@@ -270,10 +270,11 @@ def test_a_rig_bag_times_each_lidar_against_the_first_camera(tmp_path, capsys):
 
 def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(tmp_path, capsys):
     """One camera and two LiDARs (the camera's clock 30 ms behind lidar0's, 45 ms ahead of lidar1's), 8 s of a board
-    waved throughout: extracted as a moving board's rig (each LiDAR's motion.npz), calibrated by ``calibrate``: each
-    LiDAR's offset against cam0 within 4 of its standard deviations and 4 ms of the truth, each extrinsic within
-    its covariance's 0.999 region (NEES below 22.5, 6 dof); the two LiDARs' transform composed through the camera;
-    the report's pages and the exports' offsets."""
+    waved throughout: extracted as a moving board's rig (each LiDAR's motion.npz), calibrated by ``calibrate`` in
+    one joint solve: each LiDAR's offset against cam0 within 4 of its standard deviations and 4 ms of the truth,
+    each extrinsic within its covariance's 0.999 region (NEES below 22.5, 6 dof); the two LiDARs' transform
+    composed through the camera with their correlation, within its own 0.999 region; the report's pages and the
+    exports' offsets."""
     rig = _small_rig(7)
     turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(-15.0)]), [0.2, -0.1, 0.05])
     other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
@@ -298,6 +299,12 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     between = np.array(cal["transforms"]["T_lidar0_lidar1"]["T"])
     assert np.allclose(between, T_inverse(np.array(cal["sensors"][1]["T_cam0_lidar0"])) @
                        np.array(cal["sensors"][2]["T_cam0_lidar1"]))
+    # one joint solve: the LiDARs' estimates correlate (the camera's board poses and pointing), and the transform
+    # between them, composed sample by sample, holds the truth within its 0.999 region
+    joint = np.array(cal["covariance_joint_with_time_offsets"])
+    assert joint.shape == (14, 14) and np.abs(joint[:6, 7:13]).max() > 0
+    xi = T_log(T_inverse(between) @ T_inverse(rig.T_camera_lidar) @ other.T_camera_lidar)
+    assert xi @ np.linalg.solve(np.array(cal["transforms"]["T_lidar0_lidar1"]["covariance"]), xi) < 22.5
     assert all((tmp_path / "cal" / p).is_file() for p in ("report.html", "lidar0/report.html", "lidar1/report.html"))
     from estimators.io.export import export_calibration
 

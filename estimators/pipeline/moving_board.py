@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +22,8 @@ from ..errors import DatasetError, MeasurementError, PosteriorSkippedError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import MotionTrack, load_motion_track
 from ..measurements import TimedBoardView
-from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, ClockOffsetSolution, solve_clock_offset
-from ..solvers.moving_posterior import MovingPosterior, sample_moving_posterior
+from ..solvers.clock_offset import OFFSET_PRIOR_S, POINTING_SD_PX, solve_clock_offsets
+from ..solvers.moving_posterior import MovingPosterior, sample_moving_posteriors
 from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION
@@ -140,8 +140,9 @@ class MovingBoardResult:
             "images_used": self.views, "sweeps_used": self.sweeps, "sweeps_with_board": self.sweeps_recorded,
             "range_rms_m": self.rms_m, "range_scatter_own_planes_m": self.own_scatter_m,
             "point_times": self.point_times, "normal_spread": self.normal_spread,
-            "intrinsics": self.camera.as_dict(), "timings_s": {"solve": self.seconds, **({} if self.posterior is None else
-                                                                        {"posterior": self.posterior.run.seconds})},
+            "intrinsics": self.camera.as_dict(),
+            "timings_s": {"solve": self.seconds, **({} if self.posterior is None else
+                                                    {"posterior": self.posterior.run.seconds})},
         }
 
 
@@ -225,35 +226,56 @@ def calibrate_moving(folder: str | os.PathLike, rng: np.random.Generator, time_o
 
 def solve_moving(root: Path, board, camera: CameraModel, rng: np.random.Generator, time_offset_s: float | None = None,
                  names: tuple[str, str] = ("cam0", "lidar0"), samples: int = 0) -> MovingBoardResult:
-    """The extrinsic and the clocks' offset from the record in ``root`` (``motion.npz``: a pair's folder, or a
-    rig's LiDAR folder followed in its first camera), the ``names`` of that camera and LiDAR; with ``samples``,
-    their posterior."""
+    """The extrinsic and the clocks' offset from the record in ``root`` (``motion.npz``: a pair's folder), the
+    ``names`` of its camera and LiDAR; with ``samples``, their posterior."""
+    return solve_moving_many([root], board, camera, rng, time_offset_s, names[0], [names[1]], samples)[0][0]
+
+
+def _track(root: Path, board) -> MotionTrack:
     track = load_motion_track(root)
     if track.corners_px.shape[1] != len(board.inner_corners()):
         raise DatasetError(f"motion.npz holds {track.corners_px.shape[1]} corners per image and the board "
                            f"{len(board.inner_corners())}", path=Path(root) / "motion.npz",
                            hint="give the board the bag was extracted with")
-    views = board_views(track, board, camera)
+    return track
+
+
+def solve_moving_many(roots: list[Path], board, camera: CameraModel, rng: np.random.Generator,
+                      time_offset_s: float | None, camera_name: str, lidar_names: list[str], samples: int = 0
+                      ) -> tuple[list[MovingBoardResult], np.ndarray]:
+    """Several LiDARs' records of one camera's moving board (each LiDAR's folder's ``motion.npz``, the board
+    followed in that camera's images; the first's views taken for all, each LiDAR's sweeps carried to its time
+    base) in one joint solve (``clock_offset.solve_clock_offsets``): each LiDAR's result and the joint covariance
+    (7 per LiDAR, the posterior samples' when sampled: row ``k`` of each LiDAR's samples is one joint sample)."""
+    tracks = [_track(root, board) for root in roots]
+    views = board_views(tracks[0], board, camera)
+    sweeps = [[replace(s, stamp_s=s.stamp_s + 1e-9 * (t.origin_ns - tracks[0].origin_ns)) for s in t.sweeps()]
+              for t in tracks]
     t0 = time.perf_counter()
-    sol: ClockOffsetSolution = solve_clock_offset(
-        views, track.sweeps(), fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
+    sols, joint = solve_clock_offsets(
+        views, sweeps, fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
         pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]))
     seconds = time.perf_counter() - t0
-    cov, posterior, note = sol.covariance, None, None
+    posteriors, note = [None] * len(sols), None
     if samples > 0:
         try:
-            posterior = sample_moving_posterior(sol.fit, rng, min_ess=samples)
+            posteriors = sample_moving_posteriors([s.fit for s in sols], joint, rng, min_ess=samples)
         except PosteriorSkippedError as exc:
             note = f"not sampled ({exc.message}): the covariance is the joint solve's"
         else:
-            cov = np.cov(posterior.xi, rowvar=False)
-            if not posterior.run.converged:
-                note = (f"did not converge in {posterior.run.chain.shape[0]} steps ({posterior.run.ess:.0f} effective "
+            joint = np.cov(np.hstack([p.xi for p in posteriors]), rowvar=False)
+            slow = [p for p in posteriors if not p.run.converged]
+            if slow:
+                note = (f"did not converge in {slow[0].run.chain.shape[0]} steps ({slow[0].run.ess:.0f} effective "
                         "samples): its intervals are rough")
-    pair = PairEstimate(*names, sol.T_camera_lidar, cov[:6, :6], None if posterior is None else posterior.xi[:, :6],
-                        sol.sweeps)
     held = time_offset_s is not None
-    return MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(cov[6, 6])),
-                             cov, sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s),
-                             track.point_times, normal_spread(track), own_scatter(track), camera, str(Path(root)),
-                             seconds, tuple(views), board, track, posterior, note)
+    out = []
+    for j, (root, track, sol, post, name) in enumerate(zip(roots, tracks, sols, posteriors, lidar_names)):
+        cov = joint[7 * j:7 * j + 7, 7 * j:7 * j + 7]
+        pair = PairEstimate(camera_name, name, sol.T_camera_lidar, cov[:6, :6], None if post is None else
+                            post.xi[:, :6], sol.sweeps)
+        out.append(MovingBoardResult(pair, sol.time_offset_s, None if held else float(np.sqrt(cov[6, 6])), cov,
+                                     sol.rms_m, len(views), sol.sweeps, len(track.sweep_stamps_s), track.point_times,
+                                     normal_spread(track), own_scatter(track), camera, str(Path(root)), seconds,
+                                     tuple(views), board, track, post, note))
+    return out, joint

@@ -1,11 +1,11 @@
 """A rig's moving-board recording calibrated: each LiDAR's extrinsic and clock offset against the first camera.
 
 ``lidarcam extract`` of a rig bag whose board moves throughout writes, for each 3D LiDAR, the board followed in the
-first camera's images with that LiDAR's sweeps (``lidarN/motion.npz``). Each LiDAR is solved against that camera
-as a pair's moving board is (``moving_board.solve_moving``): its ``T_cam0_lidarN``, its offset ``t_cam0_stamp -
-t_lidarN_stamp`` and their 7x7 covariance. The LiDARs share the camera's board poses, so their estimates are
-somewhat correlated; each is given with its own covariance (the joint one is not formed), and a transform between
-two LiDARs is composed through the camera with their covariances added as if independent (said in the file).
+first camera's images with that LiDAR's sweeps (``lidarN/motion.npz``). The LiDARs are solved against that camera
+in one joint solve (``moving_board.solve_moving_many``): each one's ``T_cam0_lidarN`` and offset ``t_cam0_stamp -
+t_lidarN_stamp``, and the joint covariance over them all (the LiDARs share the camera's board poses and its
+pointing, so their estimates correlate); a transform between two LiDARs is composed through the camera with that
+correlation (sample by sample with the posterior).
 """
 from __future__ import annotations
 
@@ -16,12 +16,14 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg import block_diag
 
+from geometry.rotations import local_batch, retract_batch
+
 from .. import __version__
 from ..errors import DatasetError
 from ..io.motion_track import FILE, FOLLOWED_CAMERA
 from ..io.rig_dataset import load_rig
 from ..solvers.rig_graph import pair_transform
-from .moving_board import TIME_OFFSET_CONVENTION, solve_moving
+from .moving_board import TIME_OFFSET_CONVENTION, solve_moving_many
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import Verdict, verdict_of
@@ -35,6 +37,7 @@ class MovingRigResult:
     dataset: str
     camera: str
     lidars: dict  # name -> MovingBoardResult
+    covariance_joint: np.ndarray | None = None  # 7 per LiDAR in the order of ``lidars``: [rot; trans; offset]
     ambiguous = False
 
     @property
@@ -70,9 +73,11 @@ class MovingRigResult:
             "verdict": self.verdict.to_dict(), "rig": True, "tool": "lidarcam", "version": __version__,
             "dataset": self.dataset, "recording": "moving board", "reference": cam, "convention": CONVENTION,
             "covariance_convention": COVARIANCE_CONVENTION,
-            "covariance_source": first.to_dict()["covariance_source"] + "; each LiDAR solved against the camera on "
-                                 "its own, a transform between two LiDARs composed through the camera with their "
-                                 "covariances added as if independent (their shared camera poses correlate them)",
+            "covariance_source": first.to_dict()["covariance_source"] + "; the LiDARs solved against the camera in "
+                                 "one joint solve (they share its board poses and pointing), a transform between "
+                                 "two LiDARs composed through the camera with their correlation",
+            "covariance_joint_with_time_offsets": None if self.covariance_joint is None else
+            self.covariance_joint.tolist(),
             "sensors": sensors, "transforms": transforms,
             "cameras": {cam: first.camera.as_dict()},
             "time_offsets_s": {n: r.time_offset_s for n, r in self.lidars.items()},
@@ -84,10 +89,24 @@ class MovingRigResult:
         }
 
     def between(self, a: str, b: str) -> PairEstimate:
-        """``T_a_b`` of two LiDARs through the camera, their covariances taken as independent."""
+        """``T_a_b`` of two LiDARs through the camera, with their correlation: the joint covariance's blocks of the
+        two (first order), or with the posterior each joint sample's pair composed."""
         Ta, Tb = self.lidars[a].pair, self.lidars[b].pair
-        T, cov = pair_transform(Ta.T, Tb.T, block_diag(Ta.covariance, Tb.covariance))
-        return PairEstimate(a, b, T, cov, None, min(Ta.frames, Tb.frames))
+        names = list(self.lidars)
+        if self.covariance_joint is None:
+            cov12 = block_diag(Ta.covariance, Tb.covariance)
+        else:
+            at = np.r_[7 * names.index(a) + np.arange(6), 7 * names.index(b) + np.arange(6)]
+            cov12 = self.covariance_joint[np.ix_(at, at)]
+        T, cov = pair_transform(Ta.T, Tb.T, cov12)
+        samples = None
+        if Ta.samples is not None and Tb.samples is not None and len(Ta.samples) == len(Tb.samples):
+            Ra, ta = retract_batch(Ta.T, Ta.samples)
+            Rb, tb = retract_batch(Tb.T, Tb.samples)
+            R = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
+            samples = local_batch(T, R, np.einsum("nji,nj->ni", Ra, tb - ta))
+            cov = np.cov(samples, rowvar=False)
+        return PairEstimate(a, b, T, cov, samples, min(Ta.frames, Tb.frames))
 
 
 def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None,
@@ -123,15 +142,13 @@ def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, ti
     if cams[0].name != FOLLOWED_CAMERA or cams[0].camera is None:
         raise DatasetError(f"a moving board's rig follows the board in {FOLLOWED_CAMERA} with its intrinsics",
                            path=root / "dataset.yaml", hint="extract the bag again with lidarcam extract")
-    lidars = {}
-    for s in rig.sensors:
-        if s.is_camera:
-            continue
-        if not (root / s.name / FILE).is_file():
-            raise DatasetError(f"{s.name}/{FILE} not found: the LiDAR's record of the moving board",
-                               path=root / s.name, hint="extract the bag again with lidarcam extract")
-        lidars[s.name] = solve_moving(root / s.name, rig.board, cams[0].camera, rng, time_offset_s,
-                                      (cams[0].name, s.name), samples)
-    if not lidars:
+    names = [s.name for s in rig.sensors if not s.is_camera]
+    for name in names:
+        if not (root / name / FILE).is_file():
+            raise DatasetError(f"{name}/{FILE} not found: the LiDAR's record of the moving board",
+                               path=root / name, hint="extract the bag again with lidarcam extract")
+    if not names:
         raise DatasetError("the rig has no LiDAR", path=root / "dataset.yaml", hint="extract it with --cloud-topic")
-    return MovingRigResult(str(root), cams[0].name, lidars)
+    results, joint = solve_moving_many([root / n for n in names], rig.board, cams[0].camera, rng, time_offset_s,
+                                       cams[0].name, names, samples)
+    return MovingRigResult(str(root), cams[0].name, dict(zip(names, results)), joint)

@@ -136,6 +136,21 @@ def simulate_waving(rig: Rig, duration_s: float, rng: np.random.Generator, time_
     return WavedRecording(rig, motion, float(time_offset_s), tuple(views), tuple(sweeps))
 
 
+def another_lidar(rec: WavedRecording, rig: Rig, duration_s: float, rng: np.random.Generator,
+                  time_offset_s: float = 0.0, lidar_hz: float = 10.0) -> tuple[TimedSweep, ...]:
+    """The sweeps of a second LiDAR of the rig (``rig``: the recording's camera and board, its own extrinsic and
+    beams) seeing the same waving, stamped in its own clock: ``t_camera_stamp - t_its_stamp = time_offset_s``
+    for one instant (its stamps are the true time plus the first LiDAR's offset less its own)."""
+    sweeps = []
+    period = 1.0 / lidar_hz
+    shift = rec.time_offset_s - time_offset_s
+    for stamp in np.arange(0.0, duration_s - period, period):
+        sweep = _sweep(rig, rec.motion, stamp, period, rng)
+        if sweep is not None:
+            sweeps.append(TimedSweep(float(stamp + shift), sweep[0], sweep[1]))
+    return tuple(sweeps)
+
+
 def _fire_times(rig: Rig, period: float) -> tuple[np.ndarray, np.ndarray]:
     """The sweep's beams (N, 3) and each one's firing time after the sweep's start (clockwise from the cut)."""
     dirs, _ = rig.beams.directions()

@@ -30,7 +30,7 @@ from ..errors import DegenerateLayoutError
 from ..measurements import TimedBoardView, TimedSweep
 from .closed_form import solve_closed_form
 from .factor_graph import adjoint
-from .moving_board_graph import along_beam_residuals, refine_jointly, stamp_jitter_s, with_stamp_jitter
+from .moving_board_graph import LidarBlock, along_beam_residuals, refine_many, stamp_jitter_s, with_stamp_jitter
 
 # The clocks' offset is looked for within this (seconds) unless told: driver and transport delays.
 OFFSET_PRIOR_S = 0.2
@@ -173,7 +173,16 @@ def pointing_covariance(T_camera_lidar: np.ndarray, sd_x_rad: float, sd_y_rad: f
     """The camera's pointing as a 6x6 covariance of ``T_camera_lidar`` (its right tangent): the camera's frame
     turned about its x and y axes by these standard deviations (an image-wide shift of the corners turns every
     board pose so, and the extrinsic's rotation takes it up whole: added, not estimated)."""
-    A = adjoint(T_inverse(T_camera_lidar))[:, :3]  # Exp(d) T = T Exp(Ad(T^-1) [d; 0])
+    return joint_pointing([T_camera_lidar], sd_x_rad, sd_y_rad)[:6, :6]
+
+
+def joint_pointing(Ts: list[np.ndarray], sd_x_rad: float, sd_y_rad: float) -> np.ndarray:
+    """:func:`pointing_covariance` of several LiDARs' ``T_camera_lidar`` together, (7L, 7L) over each one's
+    ``[rot; trans; offset]``: one turn of the camera's frame moves every LiDAR's extrinsic (``Exp(d) T = T
+    Exp(Ad(T^-1) [d; 0])``), so their shares correlate fully, and a transform between two LiDARs is free of it."""
+    A = np.zeros((7 * len(Ts), 3))
+    for j, T in enumerate(Ts):
+        A[7 * j:7 * j + 6] = adjoint(T_inverse(T))[:, :3]
     return A @ np.diag([sd_x_rad ** 2, sd_y_rad ** 2, 0.0]) @ A.T
 
 
@@ -186,26 +195,24 @@ def _residuals(T: np.ndarray, dt: float, trajectory, points: np.ndarray, times_s
     return along_beam_residuals(T, T_cb[:, :3, :3], T_cb[:, :3, 3], ranges, points / ranges[:, None])
 
 
-def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
-                       offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
-                       fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
-                       returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
-                       pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True
-                       ) -> ClockOffsetSolution:
-    """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
-    ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
-    keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less.
-    ``extent``: the board's (width, height) (``BoardModel.extent``): the joint solve then keeps the returns whose beams
-    meet it ``EDGE_MARGIN_M`` and ``EDGE_SIGMAS`` of their noise inside its edges (see there); all when None.
-    ``pointing_sd_rad``: the camera's pointing uncertainty about its x and y axes (``POINTING_SD_PX`` over the
-    focal lengths), added to the extrinsic's covariance.
-    Raises DegenerateLayoutError with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory, too few
-    returns where the camera saw the board, or an offset outside its prior."""
-    rng = rng if rng is not None else np.random.default_rng(0)
-    try:
-        trajectory = camera_trajectory(views)
-    except ValueError as exc:
-        raise DegenerateLayoutError(f"the camera's views do not follow the board ({exc})") from None
+@dataclass(frozen=True, eq=False)
+class _Start:
+    """One LiDAR's two-step estimate (``T``, ``dt``) and what the joint solve takes of it: the returns inside the
+    camera's trajectory and the board (``block``), every kept return (``points``, ``times``: the final RMS), the
+    sweeps used and the start's grid."""
+
+    block: LidarBlock
+    points: np.ndarray
+    times: np.ndarray
+    sweeps: int
+    grid: tuple
+
+
+def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], offset_prior_s: float,
+           grid_step_s: float, fixed_offset_s: float | None, rng: np.random.Generator, returns_per_sweep: int,
+           extent: tuple[float, float] | None) -> _Start:
+    """One LiDAR's sweeps against the camera's ``trajectory``: the grid over the offset, the two-step refinement
+    and the returns the joint solve keeps (see :func:`solve_clock_offset`)."""
     kept = []
     for s in sweeps:
         # A sweep's returns where the camera followed the board at every offset of the prior (no gap of its views
@@ -257,12 +264,9 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
                         ftol=1e-12, xtol=1e-12, gtol=1e-12)
     T, dt = T_retract(T0, fit.x[:6]), float(fit.x[6]) if free == 7 else dt0
     r = fit.fun
-    # Then every image's board pose joins the extrinsic and the offset as an unknown (``moving_board_graph``): the
-    # camera's pose noise is in the estimate and its covariance.
     # Returns in a gap of the camera's views (the board out of view, a frame skipped) longer than MAX_GAP_S are
     # left out: no cubic through its ends says where the board was.
-    views = sorted(views, key=lambda v: v.stamp_s)
-    tau = np.array([v.stamp_s for v in views])
+    tau = np.sort([v.stamp_s for v in views])
     gap = np.diff(tau)[np.clip(np.searchsorted(tau, times + dt, side="right") - 1, 0, len(tau) - 2)]
     inside = gap <= MAX_GAP_S
     if extent is not None:
@@ -272,26 +276,74 @@ def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
                                     f"at least every {MAX_GAP_S:.2f} s" + ("" if extent is None else
                                     f" and {1000 * margin:.0f} mm inside its edges (a larger board helps)"))
+    sweep = np.repeat(np.arange(len(kept)), [len(k[1]) for k in kept])
+    block = LidarBlock(points[inside], times[inside], T, dt, float(np.sqrt(np.mean(r[inside] ** 2))), sweep[inside],
+                       stamp_jitter_s([s.stamp_s for s in sweeps]))
+    return _Start(block, points, times, len(kept), (offsets, np.array(rms)))
+
+
+def solve_clock_offset(views: list[TimedBoardView], sweeps: list[TimedSweep],
+                       offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
+                       fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
+                       returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
+                       pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True
+                       ) -> ClockOffsetSolution:
+    """``T_camera_lidar`` and the clocks' offset from a moving board (see the module), the offset within
+    ``+-offset_prior_s``, or held at ``fixed_offset_s`` (its variance then 0). ``rng`` picks the returns a sweep
+    keeps where it has more than ``returns_per_sweep`` (a fixed seed when None): fewer solve faster and see less.
+    ``extent``: the board's (width, height) (``BoardModel.extent``): the joint solve then keeps the returns whose beams
+    meet it ``EDGE_MARGIN_M`` and ``EDGE_SIGMAS`` of their noise inside its edges (see there); all when None.
+    ``pointing_sd_rad``: the camera's pointing uncertainty about its x and y axes (``POINTING_SD_PX`` over the
+    focal lengths), added to the extrinsic's covariance.
+    Raises DegenerateLayoutError with fewer than ``MIN_SWEEPS`` sweeps inside the camera's trajectory, too few
+    returns where the camera saw the board, or an offset outside its prior."""
+    return solve_clock_offsets(views, [sweeps], offset_prior_s, grid_step_s, fixed_offset_s, rng, returns_per_sweep,
+                               extent, pointing_sd_rad, still_runs_count_once)[0][0]
+
+
+def solve_clock_offsets(views: list[TimedBoardView], sweeps: list[list[TimedSweep]],
+                        offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
+                        fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
+                        returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
+                        pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True
+                        ) -> tuple[list[ClockOffsetSolution], np.ndarray]:
+    """:func:`solve_clock_offset` of several LiDARs (each one's sweeps in the views' time base, its own clock's
+    offset) against one camera, in one joint solve: they share the camera's board poses. Each LiDAR's solution
+    (its covariance its block of the joint one) and the joint covariance (7 per LiDAR, with the camera's pointing,
+    which every LiDAR shares: :func:`joint_pointing`)."""
+    rng = rng if rng is not None else np.random.default_rng(0)
+    try:
+        trajectory = camera_trajectory(views)
+    except ValueError as exc:
+        raise DegenerateLayoutError(f"the camera's views do not follow the board ({exc})") from None
+    starts = [_start(views, trajectory, s, offset_prior_s, grid_step_s, fixed_offset_s, rng, returns_per_sweep,
+                     extent) for s in sweeps]
+    # Then every image's board pose joins the extrinsics and the offsets as an unknown (``moving_board_graph``):
+    # the camera's pose noise is in the estimates and their covariance.
     # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the
     # LiDAR's is a time nuisance per sweep.
+    views = sorted(views, key=lambda v: v.stamp_s)
+    tau = np.array([v.stamp_s for v in views])
     K = np.array([v.camera.T_camera_board for v in views])
     K_cov = np.array([v.camera.pose_covariance for v in views])
     if still_runs_count_once:
         K_cov = K_cov * still_runs(K, extent if extent is not None else (1.0, 1.0))[:, None, None]
     K_cov = with_stamp_jitter(tau, K, K_cov, stamp_jitter_s(tau))
-    sweep = np.repeat(np.arange(len(kept)), [len(k[1]) for k in kept])
-    T, dt, cov, K_fit, shift = refine_jointly(
-        tau, K, K_cov, points[inside], times[inside], T, dt, float(np.sqrt(np.mean(r[inside] ** 2))),
-        free_offset=free == 7, sweep=sweep[inside], sweep_jitter_s=stamp_jitter_s([s.stamp_s for s in sweeps]))
-    pointing = pointing_covariance(T, *pointing_sd_rad)
-    fit = MovingFit(tau, K_fit, points[inside], times[inside] + shift, float(np.sqrt(np.mean(r[inside] ** 2))), T,
-                    dt, cov.copy(), pointing, offset_prior_s, free == 7)
-    cov[:6, :6] += pointing
-    if abs(dt) > offset_prior_s:
-        raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside its "
-                                    f"prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are further apart "
-                                    "than assumed, or the board's motion leaves the offset unobservable")
-    r = _residuals(T, dt, trajectory, points, times)
-    return ClockOffsetSolution(T, dt, cov, float(np.sqrt(np.mean(r ** 2))), len(kept),
-                               (offsets, np.array(rms)), fit)
-
+    free = fixed_offset_s is None
+    Ts, dts, cov, K_fit, shifts = refine_many(tau, K, K_cov, [s.block for s in starts], free_offset=free)
+    pointing = joint_pointing(Ts, *pointing_sd_rad)
+    out = []
+    for j, (st, T, dt, shift) in enumerate(zip(starts, Ts, dts, shifts)):
+        b = st.block
+        at = slice(7 * j, 7 * j + 7)
+        fit = MovingFit(tau, K_fit, b.points, b.times + shift, b.sigma_r, T, dt, cov[at, at].copy(),
+                        pointing[at, at][:6, :6].copy(), offset_prior_s, free)
+        if abs(dt) > offset_prior_s:
+            raise DegenerateLayoutError(f"the clocks' offset the recording gives, {1000 * dt:+.0f} ms, lies outside "
+                                        f"its prior of +-{1000 * offset_prior_s:.0f} ms: the sensors' clocks are "
+                                        "further apart than assumed, or the board's motion leaves the offset "
+                                        "unobservable")
+        r = _residuals(T, dt, trajectory, st.points, st.times)
+        out.append(ClockOffsetSolution(T, dt, cov[at, at] + pointing[at, at], float(np.sqrt(np.mean(r ** 2))),
+                                       st.sweeps, st.grid, fit))
+    return out, cov + pointing

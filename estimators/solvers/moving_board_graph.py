@@ -10,8 +10,12 @@ stamp jitter is a time nuisance of its own, shared by its returns, with that jit
 Gauss-Newton from the two-step estimate (the knots at their measured poses), the Jacobian by forward differences
 (the knots four apart perturbed together: a return sees one of them), the normal equations sparse; the extrinsic
 and offset's covariance is their block of the inverse, so it carries the camera's pose noise with the LiDAR's.
+Several LiDARs on one camera are one problem: the knots shared, each LiDAR's extrinsic, offset and sweeps' nuisances
+its own, so the covariance holds what the shared board poses make common to their estimates.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -127,95 +131,124 @@ def with_stamp_jitter(tau: np.ndarray, K: np.ndarray, K_cov: np.ndarray, jitter_
     return K_cov + jitter_s ** 2 * np.einsum("ni,nj->nij", v, v)
 
 
-def refine_jointly(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, points: np.ndarray, times: np.ndarray,
-                   T0: np.ndarray, dt0: float, sigma_r: float, free_offset: bool = True,
-                   sweep: np.ndarray | None = None, sweep_jitter_s: float = 0.0
-                   ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-    """The joint solve (see the module) from knots ``K0`` (n, 4, 4) at ``tau`` with covariances ``K_cov`` (n, 6, 6),
-    returns ``points`` (m, 3) at ``times`` (the LiDAR's clock; each within the knots' span less the offset's
-    reach), and the start ``T0``, ``dt0``; ``sigma_r`` the returns' range noise (m). ``sweep``: each return's
-    sweep (0 ..), whose stamp is off its instant by a Gaussian of ``sweep_jitter_s`` shared by its returns: one
-    time nuisance per sweep with that prior (none when 0). Returns ``T_camera_lidar``, the offset, the 7x7
-    covariance over ``[rot; trans; offset]`` (offset's row and column 0 when held), and where the solve left the
-    knots (n, 4, 4) and each return's time nuisance (m,) (s): the board's trajectory at the joint estimate."""
-    n, m = len(tau), len(points)
-    ranges = np.linalg.norm(points, axis=1)
-    beams = points / ranges[:, None]
+@dataclass(frozen=True, eq=False)
+class LidarBlock:
+    """One LiDAR's part of the joint solve: its returns (``points``, its frame) at ``times`` (its clock, in the
+    knots' time base less its offset), its start ``T0`` (``T_camera_lidar``) and ``dt0``, its range noise
+    ``sigma_r`` (m), each return's ``sweep`` (0 ..; None: no sweep nuisances) and the sweeps' stamp jitter (s)."""
+
+    points: np.ndarray
+    times: np.ndarray
+    T0: np.ndarray
+    dt0: float
+    sigma_r: float
+    sweep: np.ndarray | None = None
+    sweep_jitter_s: float = 0.0
+
+
+def refine_many(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, blocks: list[LidarBlock],
+                free_offset: bool = True) -> tuple[list, list, np.ndarray, np.ndarray, list]:
+    """The joint solve (see the module) of one or several LiDARs on one board trajectory, from knots ``K0`` (n, 4,
+    4) at ``tau`` with covariances ``K_cov`` (n, 6, 6) and each LiDAR's ``blocks`` (its returns within the knots'
+    span less its offset's reach, its start, its range noise; a return's sweep's stamp off its instant by a
+    Gaussian of the sweeps' jitter shared by its returns: one time nuisance per sweep with that prior, none when
+    0): each LiDAR's extrinsic and offset, the knots and the sweeps' time nuisances as unknowns. Returns each LiDAR's ``T_camera_lidar`` and offset, the joint covariance over
+    each LiDAR's ``[rot; trans; offset]`` in turn (7 per LiDAR; an offset's row and column 0 when held: the LiDARs
+    share the camera's board poses, so their estimates correlate), the knots where the solve left them and each
+    LiDAR's returns' time nuisances (s)."""
+    n, L = len(tau), len(blocks)
+    ranges = [np.linalg.norm(b.points, axis=1) for b in blocks]
+    beams = [b.points / r[:, None] for b, r in zip(blocks, ranges)]
+    sizes = [len(b.points) for b in blocks]
+    row0 = np.concatenate([[0], np.cumsum(sizes)])
     W = np.linalg.cholesky(np.linalg.inv(K_cov)).transpose(0, 2, 1)  # W^T W = C^-1: whitened prior W xi
     K = K0.copy()
     K0_inv = np.array([T_inverse(k0) for k0 in K0])
-    T, dt = T0, dt0
+    Ts, dts = [b.T0 for b in blocks], [float(b.dt0) for b in blocks]
     n_glob = 7 if free_offset else 6
-    n_s = int(sweep.max()) + 1 if sweep is not None and sweep_jitter_s > 0 else 0
-    cols = 6 * n + n_s + n_glob  # knots, sweeps' time nuisances, extrinsic and offset
-    g0 = 6 * n + n_s
-    shift_s = np.zeros(n_s)  # each sweep's time nuisance (s)
-    shift = np.zeros(m)  # each return's sweep's
+    n_s = [int(b.sweep.max()) + 1 if b.sweep is not None and b.sweep_jitter_s > 0 else 0 for b in blocks]
+    s0 = 6 * n + np.concatenate([[0], np.cumsum(n_s)])  # each LiDAR's first sweep nuisance's column
+    g0 = int(s0[-1])  # then each LiDAR's extrinsic and offset, n_glob columns each
+    cols = g0 + n_glob * L
+    shift_s = [np.zeros(k) for k in n_s]  # each sweep's time nuisance (s)
+    shift = [np.zeros(m) for m in sizes]  # each return's sweep's
     for _ in range(MAX_STEPS):
         rel = K0_inv @ K
         xi = log_batch(rel[:, :3, :3], rel[:, :3, 3])  # each knot's move from its measured pose
         knots = Knots(tau, K)
-        times_now = times + shift
-        k = knots.interval(times_now + dt)
-        r0 = _lidar_residuals(T, dt, knots, ranges, beams, times_now, k) / sigma_r
-        prior = np.einsum("nij,nj->ni", W, xi).ravel()
-        rows, cidx, vals = [], [], []
-        base = r0 * sigma_r
-        # the extrinsic's and the offset's columns: every return (forward differences)
-        d_time = None
-        for c in range(7):
-            e = np.zeros(7)
-            e[c] = H
-            plus = _lidar_residuals(T_retract(T, e[:6]), dt + e[6], knots, ranges, beams, times_now, k)
-            col = (plus - base) / (H * sigma_r)
-            if c == 6:
-                d_time = col  # a return's residual against its time: its sweep's nuisance's column too
-            if c < n_glob:
-                rows.append(np.arange(m))
-                cidx.append(np.full(m, g0 + c))
-                vals.append(col)
-        if n_s:
-            rows.append(np.arange(m))
-            cidx.append(6 * n + sweep)
-            vals.append(d_time)
+        rows, cidx, vals, r0, base, ks = [], [], [], [], [], []
+        for j, b in enumerate(blocks):
+            times_now = b.times + shift[j]
+            k = knots.interval(times_now + dts[j])
+            res = _lidar_residuals(Ts[j], dts[j], knots, ranges[j], beams[j], times_now, k)
+            r0.append(res / b.sigma_r)
+            base.append(res)
+            ks.append(k)
+            here = row0[j] + np.arange(sizes[j])
+            # the extrinsic's and the offset's columns: every return (forward differences)
+            d_time = None
+            for c in range(7):
+                e = np.zeros(7)
+                e[c] = H
+                plus = _lidar_residuals(T_retract(Ts[j], e[:6]), dts[j] + e[6], knots, ranges[j], beams[j],
+                                        times_now, k)
+                col = (plus - res) / (H * b.sigma_r)
+                if c == 6:
+                    d_time = col  # a return's residual against its time: its sweep's nuisance's column too
+                if c < n_glob:
+                    rows.append(here)
+                    cidx.append(np.full(sizes[j], g0 + n_glob * j + c))
+                    vals.append(col)
+            if n_s[j]:
+                rows.append(here)
+                cidx.append(s0[j] + b.sweep)
+                vals.append(d_time)
         # the knots' columns: knots four apart perturbed together, each return's change put on its one knot
         for colour in range(4):
             chosen = np.arange(colour, n, 4)
-            which = k - 1 + np.mod(colour - (k - 1), 4)  # the return's knot among k-1 .. k+2 of this colour
             for d in range(6):
                 e = np.zeros(6)
                 e[d] = H
                 Kp = K.copy()
                 Kp[chosen] = K[chosen] @ T_exp(e)
-                plus = _lidar_residuals(T, dt, Knots(tau, Kp), ranges, beams, times_now, k)
-                rows.append(np.arange(m))
-                cidx.append(6 * which + d)
-                vals.append((plus - base) / (H * sigma_r))
-        J_l = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))), shape=(m, cols))
+                moved = Knots(tau, Kp)
+                for j, b in enumerate(blocks):
+                    k = ks[j]
+                    which = k - 1 + np.mod(colour - (k - 1), 4)  # the return's knot among k-1 .. k+2 of this colour
+                    plus = _lidar_residuals(Ts[j], dts[j], moved, ranges[j], beams[j], b.times + shift[j], k)
+                    rows.append(row0[j] + np.arange(sizes[j]))
+                    cidx.append(6 * which + d)
+                    vals.append((plus - base[j]) / (H * b.sigma_r))
+        J_l = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))),
+                            shape=(int(row0[-1]), cols))
         # the knots' priors: W_i xi_i (a knot's perturbation K Exp(e) moves its xi by e, to first order in xi)
         pr = np.repeat(np.arange(6 * n), 6)
         pc = 6 * np.repeat(np.arange(n), 36) + np.tile(np.arange(6), 6 * n)
         J_p = sp.csr_matrix((W.reshape(-1), (pr, pc)), shape=(6 * n, cols))
-        nuisance = shift_s / sweep_jitter_s if n_s else np.zeros(0)
-        J_s = sp.csr_matrix((np.full(n_s, 1.0 / sweep_jitter_s) if n_s else np.zeros(0),
-                             (np.arange(n_s), 6 * n + np.arange(n_s))), shape=(n_s, cols))
+        jit = [np.full(k, 1.0 / b.sweep_jitter_s) if k else np.zeros(0) for k, b in zip(n_s, blocks)]
+        nuisance = np.concatenate([sh / b.sweep_jitter_s if len(sh) else sh for sh, b in zip(shift_s, blocks)])
+        J_s = sp.csr_matrix((np.concatenate(jit), (np.arange(g0 - 6 * n), 6 * n + np.arange(g0 - 6 * n))),
+                            shape=(g0 - 6 * n, cols))
         J = sp.vstack([J_l, J_p, J_s]).tocsc()
-        r = np.concatenate([r0, prior, nuisance])
+        r = np.concatenate(r0 + [np.einsum("nij,nj->ni", W, xi).ravel(), nuisance])
         Hm = (J.T @ J).tocsc()
         lu = splu(Hm)
         step = -lu.solve(J.T @ r)
         K = K @ _exp_all(step[:6 * n].reshape(n, 6))
-        if n_s:
-            shift_s = shift_s + step[6 * n:g0]
-            shift = shift_s[sweep]
-        T = T_retract(T, step[g0:g0 + 6])
-        if free_offset:
-            dt = dt + float(step[-1])
-        E = np.zeros((cols, n_glob))
-        E[g0:, :] = np.eye(n_glob)
+        for j, b in enumerate(blocks):
+            if n_s[j]:
+                shift_s[j] = shift_s[j] + step[s0[j]:s0[j + 1]]
+                shift[j] = shift_s[j][b.sweep]
+            g = g0 + n_glob * j
+            Ts[j] = T_retract(Ts[j], step[g:g + 6])
+            if free_offset:
+                dts[j] = dts[j] + float(step[g + 6])
+        E = np.zeros((cols, n_glob * L))
+        E[g0:, :] = np.eye(n_glob * L)
         glob_cov = lu.solve(E)[g0:, :]
         if np.all(np.abs(step[g0:]) < CONVERGED * np.sqrt(np.diag(glob_cov))):
             break
-    cov = np.zeros((7, 7))
-    cov[:n_glob, :n_glob] = glob_cov
-    return T, dt, cov, K, shift
+    cov = np.zeros((7 * L, 7 * L))
+    at = np.concatenate([7 * j + np.arange(n_glob) for j in range(L)])
+    cov[np.ix_(at, at)] = glob_cov
+    return Ts, dts, cov, K, shift

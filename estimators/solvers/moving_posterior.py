@@ -127,24 +127,48 @@ def sample_moving_posterior(fit: MovingFit, rng: np.random.Generator, min_ess: i
     """Sample the posterior of ``fit``'s extrinsic and offset (see the module) until ``min_ess`` effective samples
     or ``max_steps``. Raises :class:`~estimators.errors.PosteriorSkippedError` where the conditional information
     is singular (the covariance is then the Laplace one)."""
-    like = MovingLikelihood(fit)
-    try:
-        C = like.conditional_covariance()
-        np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
-        raise PosteriorSkippedError("the returns leave a direction of the extrinsic or the offset free given the "
-                                    "board's trajectory", hint="the covariance is the Laplace one") from None
-    n = like.ndim
-    joint = fit.covariance[:n, :n]
-    added = _psd(joint - C)
-    added[:6, :6] += fit.pointing
-    start = rng.multivariate_normal(np.zeros(n), 0.25 * C, WALKERS)
-    run = run_with_proposal(like, start, rng, C, min_ess=min_ess, max_steps=max_steps, chunk=CHUNK,
-                            progress=progress, label="posterior (moving board)", centre=np.zeros(n))
-    kept = run.samples[np.linspace(0, len(run.samples) - 1, min(MAX_KEPT, len(run.samples))).astype(int)]
-    kept = kept + rng.multivariate_normal(np.zeros(n), added, len(kept), method="eigh")
-    if like.free:  # the prior holds the offset after the draw too (the share is a factor of the posterior)
-        kept = kept[(kept[:, 6] >= like.lo) & (kept[:, 6] <= like.hi)]
-    xi = np.zeros((len(kept), 7))
-    xi[:, :n] = kept
-    return MovingPosterior(xi, run, C, added)
+    joint = fit.covariance.copy()
+    joint[:6, :6] += fit.pointing
+    return sample_moving_posteriors([fit], joint, rng, min_ess, max_steps, progress)[0]
+
+
+def sample_moving_posteriors(fits: list[MovingFit], joint: np.ndarray, rng: np.random.Generator, min_ess: int = 2000,
+                             max_steps: int = 20000, progress: bool = False) -> list[MovingPosterior]:
+    """:func:`sample_moving_posterior` of several LiDARs solved on one board trajectory, whose joint covariance
+    (7 per LiDAR, with the camera's pointing) is ``joint``: given the trajectory their likelihoods are independent,
+    so each LiDAR's chain runs alone; the camera's share, common to them, is one joint draw per sample (row ``k`` of
+    every LiDAR's samples is one joint sample: a transform between two LiDARs is composed row by row)."""
+    likes = [MovingLikelihood(f) for f in fits]
+    Cs = []
+    for like in likes:
+        try:
+            C = like.conditional_covariance()
+            np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            raise PosteriorSkippedError("the returns leave a direction of the extrinsic or the offset free given "
+                                        "the board's trajectory", hint="the covariance is the Laplace one") from None
+        Cs.append(C)
+    n = likes[0].ndim
+    runs = []
+    for like, C in zip(likes, Cs):
+        start = rng.multivariate_normal(np.zeros(n), 0.25 * C, WALKERS)
+        runs.append(run_with_proposal(like, start, rng, C, min_ess=min_ess, max_steps=max_steps, chunk=CHUNK,
+                                      progress=progress, label="posterior (moving board)", centre=np.zeros(n)))
+    M = min(MAX_KEPT, *(len(r.samples) for r in runs))
+    kept = np.hstack([r.samples[np.linspace(0, len(r.samples) - 1, M).astype(int)] for r in runs])
+    at = np.concatenate([7 * j + np.arange(n) for j in range(len(fits))])
+    conditional = np.zeros((len(at), len(at)))
+    for j, C in enumerate(Cs):
+        conditional[n * j:n * j + n, n * j:n * j + n] = C
+    added = _psd(joint[np.ix_(at, at)] - conditional)
+    kept = kept + rng.multivariate_normal(np.zeros(len(at)), added, M, method="eigh")
+    inside = np.ones(M, bool)
+    for j, like in enumerate(likes):  # the prior holds each offset after the draw too (the share is a factor)
+        if like.free:
+            inside &= (kept[:, n * j + 6] >= like.lo) & (kept[:, n * j + 6] <= like.hi)
+    out = []
+    for j, (run, C) in enumerate(zip(runs, Cs)):
+        xi = np.zeros((int(inside.sum()), 7))
+        xi[:, :n] = kept[inside, n * j:n * j + n]
+        out.append(MovingPosterior(xi, run, C, added[n * j:n * j + n, n * j:n * j + n]))
+    return out
