@@ -172,7 +172,7 @@ def speed(seed: int) -> None:
     print(f"| lidarcam calibrate | {ca[0]:.1f} s | {ca[1]:.2f} GB |")
     print(f"| both | {ex[0] + ca[0]:.1f} s | {max(ex[1], ca[1]):.2f} GB |")
     print("\nThe calibration's printout:\n")
-    print("\n".join("    " + line for line in ca[2].splitlines()[:9]))
+    print("\n".join("    " + line for line in ca[2].splitlines()[:13]))
     print()
 
 

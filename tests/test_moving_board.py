@@ -305,6 +305,8 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     assert joint.shape == (14, 14) and np.abs(joint[:6, 7:13]).max() > 0
     xi = T_log(T_inverse(between) @ T_inverse(rig.T_camera_lidar) @ other.T_camera_lidar)
     assert xi @ np.linalg.solve(np.array(cal["transforms"]["T_lidar0_lidar1"]["covariance"]), xi) < 22.5
+    region = cal["transforms"]["T_lidar0_lidar1"]["posterior"]["credible_regions"]["99.9%"]["d2"]
+    assert region >= 22.45 and all(s["moving_board"]["posterior"]["converged"] for s in cal["sensors"][1:])
     assert all((tmp_path / "cal" / p).is_file() for p in ("report.html", "lidar0/report.html", "lidar1/report.html"))
     from estimators.io.export import export_calibration
 

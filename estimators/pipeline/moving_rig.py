@@ -63,11 +63,11 @@ class MovingRigResult:
                                                       "sweeps_with_board", "range_rms_m",
                                                       "range_scatter_own_planes_m", "point_times", "normal_spread",
                                                       "timings_s", "posterior", "posterior_note")}})
-            transforms[f"T_{cam}_{n}"] = r.pair.transform_keys()
+            transforms[f"T_{cam}_{n}"] = _keys(r.pair)
         names = list(self.lidars)
         for i, a in enumerate(names):
             for b in names[i + 1:]:
-                transforms[f"T_{a}_{b}"] = self.between(a, b).transform_keys()
+                transforms[f"T_{a}_{b}"] = _keys(self.between(a, b))
         held = {n: r.time_offset_std_s is None for n, r in self.lidars.items()}
         return {
             "verdict": self.verdict.to_dict(), "rig": True, "tool": "lidarcam", "version": __version__,
@@ -107,6 +107,12 @@ class MovingRigResult:
             samples = local_batch(T, R, np.einsum("nji,nj->ni", Ra, tb - ta))
             cov = np.cov(samples, rowvar=False)
         return PairEstimate(a, b, T, cov, samples, min(Ta.frames, Tb.frames))
+
+
+def _keys(p: PairEstimate) -> dict:
+    """A transform's entry in calibration.json: as a still rig's, with its posterior's summary when sampled."""
+    summary = p.summary()
+    return p.transform_keys() | ({} if summary is None else {"posterior": summary})
 
 
 def calibrate_moving_rig(folder: str | os.PathLike, rng: np.random.Generator, time_offset_s: float | None = None,
