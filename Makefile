@@ -59,8 +59,10 @@ bench: $(STAMP)
 	$(RECORD) rig -- $(PY) benchmarks/bench_rig.py --cameras 2 --rigs 40 --posterior 1000
 	$(RECORD) rig_6_cameras -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 80 --posterior 1000
 	$(RECORD) clock_offset -- $(PY) benchmarks/bench_clock_offset.py --recordings 30
-	$(RECORD) moving_bag -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --speed
+	$(RECORD) moving_bag -- $(PY) benchmarks/bench_moving_bag.py --bags 12
+	$(RECORD) moving_bag_speed -- $(PY) benchmarks/bench_moving_bag.py --bags 0 --speed
 	$(RECORD) moving_bag_seed100 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 100
+	$(RECORD) moving_bag_seed200 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 200 --workers 1
 	$(RECORD) moving_bag_pool -- $(PY) benchmarks/moving_bag_pool.py
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
