@@ -75,3 +75,14 @@ def test_an_offset_at_its_priors_edge_is_held_inside_it_by_the_samples(fit):
     offsets = fit.time_offset_s + post.xi[:, 6]
     assert offsets.max() <= edge.offset_prior_s + 1e-12
     assert np.quantile(offsets, 0.975) < fit.time_offset_s + 1.5 * sd
+
+
+def test_an_offset_beyond_its_priors_edge_leaves_the_posterior_unsampled_with_the_reason(fit):
+    """The prior narrowed to end three standard deviations below the estimate: no sample can stand there, and
+    the sampler says so (a ``PosteriorSkippedError``: the caller keeps the Laplace covariance), nothing else."""
+    from estimators.errors import PosteriorSkippedError
+
+    sd = float(np.sqrt(fit.covariance[6, 6]))
+    beyond = dataclasses.replace(fit, offset_prior_s=fit.time_offset_s - 3 * sd)
+    with pytest.raises(PosteriorSkippedError):
+        sample_moving_posterior(beyond, np.random.default_rng(0), min_ess=500)

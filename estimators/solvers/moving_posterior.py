@@ -34,6 +34,8 @@ H_S = 1e-3
 # Walkers of the ensemble (at least twice the parameters), and the samples kept (thinned evenly).
 WALKERS = 32
 MAX_KEPT = 20000
+# Fewer samples than this left inside the offset's prior give no intervals worth the name.
+MIN_KEPT = 200
 # Steps between the chain's checks of its length: the proposal's autocorrelation is 2-3 steps, so 2000 effective
 # samples take about 150 (the default chunk of 500 ran three times that on every recording).
 CHUNK = 150
@@ -166,6 +168,9 @@ def sample_moving_posteriors(fits: list[MovingFit], joint: np.ndarray, rng: np.r
     for j, like in enumerate(likes):  # the prior holds each offset after the draw too (the share is a factor)
         if like.free:
             inside &= (kept[:, n * j + 6] >= like.lo) & (kept[:, n * j + 6] <= like.hi)
+    if inside.sum() < MIN_KEPT:
+        raise PosteriorSkippedError(f"only {int(inside.sum())} of {M} samples keep the offset within its prior",
+                                    hint="the covariance is the Laplace one; the offset lies at its prior's edge")
     out = []
     for j, (run, C) in enumerate(zip(runs, Cs)):
         xi = np.zeros((int(inside.sum()), 7))
