@@ -197,3 +197,13 @@ def test_two_lidars_on_one_camera_are_one_solve_whose_covariance_holds_their_cor
     _, C_independent = pair_transform(a.T_camera_lidar, b.T_camera_lidar,
                                       block_diag(a.covariance[:6, :6], b.covariance[:6, :6]))
     assert np.trace(C) < np.trace(C_independent)
+
+
+def test_an_offset_beyond_a_narrow_prior_is_refused_with_the_reason():
+    """The camera's clock 45 ms ahead and the offset's prior +-20 ms: the start's grid is best at the prior's edge
+    (its last step a rounding beyond it, which had reached scipy as a start outside its bounds: a ValueError); the
+    solve now says the offset lies outside its prior (a DegenerateLayoutError), nothing else."""
+    rng = np.random.default_rng(1)
+    rec = simulate_waving(default_rig(rng, "vlp16"), 10.0, rng, time_offset_s=0.045)
+    with pytest.raises(DegenerateLayoutError, match="outside its prior"):
+        solve_clock_offset(list(rec.views), list(rec.sweeps), returns_per_sweep=100, offset_prior_s=0.02)

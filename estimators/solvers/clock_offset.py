@@ -251,7 +251,10 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
     if not np.isfinite(rms[best]):
         raise DegenerateLayoutError("the sweeps' board planes do not determine the extrinsic at any clock offset "
                                     "(their normals do not span 3D: turn the board more while waving it)")
-    T0, dt0 = starts[best], float(offsets[best])
+    # (the grid's last step may overshoot the prior's edge by a rounding: held inside it, the bounds' start; a held
+    # offset stays as given)
+    T0, dt0 = starts[best], float(offsets[best] if fixed_offset_s is not None else
+                                  np.clip(offsets[best], -offset_prior_s, offset_prior_s))
 
     free = 7 if fixed_offset_s is None else 6
 
