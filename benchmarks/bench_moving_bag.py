@@ -115,9 +115,13 @@ def _trial(seed: int) -> dict:
                         turn_dps=turn, time_field=field, pauses=pauses)
         t0 = time.perf_counter()
         summary = extract_bag(tmp / "bag", tmp / "ds", board, "/camera/image_raw", cloud_topic="/points")
-        free = calibrate_moving(tmp / "ds", np.random.default_rng(seed))
-        row["seconds"] = time.perf_counter() - t0
         row["recording"] = summary.recording
+        try:
+            free = calibrate_moving(tmp / "ds", np.random.default_rng(seed))
+        except LidarcamError as exc:  # refused with its reason: counted and listed, not in the error rows
+            row["refused"] = str(exc)
+            return row
+        row["seconds"] = time.perf_counter() - t0
         held = calibrate_moving(tmp / "ds", np.random.default_rng(seed), time_offset_s=0.0)
         row["sweeps"], row["images"] = free.sweeps, free.views
         row["free"] = _errors(free.T_camera_lidar, free.covariance, rig.T_camera_lidar, free.time_offset_s, offset,
@@ -189,7 +193,9 @@ def main() -> None:
         return
     t0 = time.time()
     with ProcessPoolExecutor(a.workers) as pool:
-        rows = list(pool.map(_trial, range(a.seed, a.seed + a.bags)))
+        every = list(pool.map(_trial, range(a.seed, a.seed + a.bags)))
+    rows = [r for r in every if "refused" not in r]
+    refused = [r for r in every if "refused" in r]
 
     def col(name, key):
         return np.array([r[name][key] for r in rows if r.get(name) is not None])
@@ -198,15 +204,15 @@ def main() -> None:
         return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
     still_rows = [r for r in rows if r.get("still") is not None]
-    print(f"{a.bags} simulated bags, 30-90 s (mean {np.mean([r['duration_s'] for r in rows]):.0f} s), board at "
+    print(f"{a.bags} simulated bags, 30-90 s (mean {np.mean([r['duration_s'] for r in every]):.0f} s), board at "
           "0.2-1.0 m/s with three 2-s pauses, clock offsets in +-100 ms; read as: "
-          + ", ".join(f"{k} {sum(r['recording'] == k for r in rows)}" for k in sorted({r['recording'] for r in rows}))
-          + ":\n")
+          + ", ".join(f"{k} {sum(r['recording'] == k for r in every)}" for k in sorted({r['recording'] for r in every}))
+          + (f"; {len(refused)} refused by calibrate (listed at the end)" if refused else "") + ":\n")
     print("| | moving board, offset free (prior +-0.2 s) | moving board, offset held at 0 | still poses only |")
     print("|---|---|---|---|")
     print(f"| used (mean) | {np.mean([r['images'] for r in rows]):.0f} images, "
           f"{np.mean([r['sweeps'] for r in rows]):.0f} sweeps | the same | "
-          f"{np.mean([r['still_frames'] for r in rows]):.1f} frames; calibrated {len(still_rows)} of {a.bags} "
+          f"{np.mean([r['still_frames'] for r in rows]):.1f} frames; calibrated {len(still_rows)} of {len(rows)} "
           "(3 frames or more) |")
     print(f"| offset error, RMS | {rms(col('free', 'offset_err_ms')):.2f} ms | "
           f"{rms(col('held', 'offset_err_ms')):.1f} ms | - |")
@@ -241,6 +247,10 @@ def main() -> None:
         print(f"| {r['seed']} | {r['lidar']} | {r['field']} | {r['duration_s']:.0f} | {r['speed']:.2f} | "
               f"{r['turn']:.0f} | {1000 * r['offset_s']:+.1f} | {f['offset_err_ms']:+.2f} | {f['rot_deg']:.3f} | "
               f"{f['trans_mm']:.1f} | {f['nees']:.1f} | {r['verdict']} |")
+    if refused:
+        print(f"\nRefused by calibrate ({len(refused)} of {a.bags}; not in the rows above): " + "; ".join(
+            f"seed {r['seed']} ({r['lidar']}, offset {1000 * r['offset_s']:+.1f} ms): {r['refused']}"
+            for r in refused))
     print(f"\n({a.bags} bags in {time.time() - t0:.0f} s on {a.workers} processes; "
           f"seeds {a.seed}..{a.seed + a.bags - 1})")
 
