@@ -63,6 +63,7 @@ bench: $(STAMP)
 	$(RECORD) moving_bag_speed -- $(PY) benchmarks/bench_moving_bag.py --bags 0 --speed
 	$(RECORD) moving_bag_seed100 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 100
 	$(RECORD) moving_bag_seed200 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 200 --workers 1
+	$(RECORD) moving_bag_seed212 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 212
 	$(RECORD) moving_bag_pool -- $(PY) benchmarks/moving_bag_pool.py
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
