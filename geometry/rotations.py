@@ -192,6 +192,12 @@ def retract_batch(T_hat: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.nda
     return T_hat[:3, :3] @ dR, T_hat[:3, 3] + dt @ T_hat[:3, :3].T
 
 
+def between_batch(Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T_a^-1 T_b`` for each pair of poses ``(Ra, ta)``, ``(Rb, tb)`` (rotations (n, 3, 3), translations (n, 3)):
+    b's pose in a's frame, stacked."""
+    return np.einsum("nji,njk->nik", Ra, Rb), np.einsum("nji,nj->ni", Ra, tb - ta)
+
+
 def local_batch(T_hat: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The rows ``xi`` with ``T_hat Exp(xi) = (R, t)`` for each pose (rotations (n, 3, 3), translations (n, 3)):
     :func:`T_local` of a stack, the inverse of :func:`retract_batch`."""

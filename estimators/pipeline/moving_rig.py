@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg import block_diag
 
-from geometry.rotations import local_batch, retract_batch
+from geometry.rotations import between_batch, local_batch, retract_batch
 
 from .. import __version__
 from ..errors import DatasetError
@@ -101,10 +101,7 @@ class MovingRigResult:
         T, cov = pair_transform(Ta.T, Tb.T, cov12)
         samples = None
         if Ta.samples is not None and Tb.samples is not None and len(Ta.samples) == len(Tb.samples):
-            Ra, ta = retract_batch(Ta.T, Ta.samples)
-            Rb, tb = retract_batch(Tb.T, Tb.samples)
-            R = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
-            samples = local_batch(T, R, np.einsum("nji,nj->ni", Ra, tb - ta))
+            samples = local_batch(T, *between_batch(*retract_batch(Ta.T, Ta.samples), *retract_batch(Tb.T, Tb.samples)))
             cov = np.cov(samples, rowvar=False)
         return PairEstimate(a, b, T, cov, samples, min(Ta.frames, Tb.frames))
 

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from geometry.differences import central_hessian
-from geometry.rotations import T_log, local_batch, retangent_batch, retract_batch
+from geometry.rotations import T_log, between_batch, local_batch, retangent_batch, retract_batch
 
 from ..errors import LidarcamError, PosteriorSkippedError
 from .board_edges import EndTerms, outline_prior_sd
@@ -114,9 +114,7 @@ class RigPosterior:
     def _compose(self, a: str, b: str) -> np.ndarray:
         Ra, ta = self._sensor_poses(a)
         Rb, tb = self._sensor_poses(b)
-        R_ab = np.einsum("nji,njk->nik", Ra, Rb)  # Ra^T Rb
-        t_ab = np.einsum("nji,nj->ni", Ra, tb - ta)
-        return local_batch(np.linalg.inv(self.T_ref[a]) @ self.T_ref[b], R_ab, t_ab)
+        return local_batch(np.linalg.inv(self.T_ref[a]) @ self.T_ref[b], *between_batch(Ra, ta, Rb, tb))
 
     def mode_centers(self, a: str, b: str) -> np.ndarray | None:
         """Each joint minimum's ``T_a_b`` as a tangent offset (K, 6) of the estimate's, or None for one minimum."""
