@@ -3,6 +3,7 @@ included), so that they hold as the code grows. DEVELOPERS.md states the same ru
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -74,11 +75,13 @@ def existing(module: str) -> bool:
     return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
 
 
-def edges() -> list[tuple[str, str, bool]]:
-    """(importer, imported, at module level) for every import between modules of the project."""
-    return [(module_name(p), target, level) for folder in ("estimators", "geometry") for p in sources(folder)
+@functools.lru_cache(maxsize=1)
+def edges() -> tuple[tuple[str, str, bool], ...]:
+    """(importer, imported, at module level) for every import between modules of the project (read once per test
+    process: the scan takes seconds)."""
+    return tuple((module_name(p), target, level) for folder in ("estimators", "geometry") for p in sources(folder)
             for target, level in imports_of(p)
-            if target.split(".")[0] in ("estimators", "geometry") and existing(target)]
+            if target.split(".")[0] in ("estimators", "geometry") and existing(target))
 
 
 def subpackage(module: str) -> str | None:
