@@ -228,8 +228,8 @@ def _one_line_error(capsys, argv, *needles):
 def test_a_board_held_still_s_plus_one_camera_period_is_kept_whatever_the_stamp_jitter(sim5, tmp_path):
     """Issue 20's regression: 10 Hz images with 0.3 ms stamp jitter, each pose held 1.1 s (--still-s 1 plus one
     camera period), examined at 5 Hz. Examining only when ``stamp - last_checked >= 0.2 s`` skipped about half
-    the cells (the next image lands 0.2 s +- jitter later) and lost poses; the fixed grid keeps all 5 (one seed of the jitter: three
-    had taken 20 s of make test)."""
+    the cells (the next image lands 0.2 s +- jitter later) and lost poses; the fixed grid keeps all 5 (one seed of
+    the jitter: three had taken 20 s of make test)."""
     seed = 0
     bag = write_bag_from_dataset(sim5, tmp_path / "jitter.bag", "ros1", image_hz=10, still_s=1.1, move_s=0.6,
                                  stamp_jitter_s=3e-4, seed=seed)
