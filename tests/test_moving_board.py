@@ -191,22 +191,34 @@ def test_the_cameras_trajectory_is_not_drawn_through_a_gap_of_its_views():
         spline(1.5)
 
 
-def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_between_poses(tmp_path):
-    """17.5 s of still poses (2 s each) with the board waved between them, a 10 Hz camera whose clock is 40 ms ahead:
-    extracted as still poses with the motion followed; the extrinsic is the poses' alone (the same as with
-    motion.npz removed, to numerical precision) and the offset within 4 of its standard deviations and 4 ms of the
-    truth."""
+@pytest.fixture(scope="module")
+def still_poses(tmp_path_factory):
+    """17.5 s of still poses (2 s each) with the board waved between them, a 10 Hz camera whose clock is 40 ms ahead
+    of the first LiDAR's (``/points``) and 25 ms behind the second's (``/points1``, turned 12 degrees and moved
+    from the first): the bag, and the truth of each LiDAR."""
+    tmp = tmp_path_factory.mktemp("still_poses")
+    rig = _small_rig(3)
+    turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(12.0)]), [0.25, 0.05, -0.1])
+    other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
+    pauses = tuple((float(a), float(a + 2.0)) for a in np.arange(0.5, 16.0, 3.5))
+    write_waved_bag(tmp / "bag.bag", "ros1", rig, 17.5, np.random.default_rng(3), time_offset_s=0.04,
+                    speed_mps=0.6, turn_dps=50.0, pauses=pauses, camera_hz=10.0,
+                    more_lidars=(("/points1", other, -0.025),))
+    return tmp / "bag.bag", rig, other
+
+
+def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_between_poses(still_poses, tmp_path):
+    """The still poses' bag read with its first LiDAR: extracted as still poses with the motion followed; the
+    extrinsic is the poses' alone (the same as with motion.npz removed, to numerical precision) and the offset
+    within 4 of its standard deviations and 4 ms of the truth."""
     import html
     import shutil
 
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
 
-    rig = _small_rig(3)
-    pauses = tuple((float(a), float(a + 2.0)) for a in np.arange(0.5, 16.0, 3.5))
-    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 17.5, np.random.default_rng(3), time_offset_s=0.04,
-                    speed_mps=0.6, turn_dps=50.0, pauses=pauses, camera_hz=10.0)
-    assert main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+    bag, rig, _ = still_poses
+    assert main(["extract", str(bag), "--image-topic", "/camera/image_raw", "--cloud-topic",
                  "/points", "--board", BOARD, "--out", str(tmp_path / "ds")]) == 0
     record = json.loads((tmp_path / "ds" / "extract.json").read_text())
     assert record["recording"] == "still poses" and len(record["frames"]) >= 4
@@ -226,23 +238,17 @@ def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_
     assert html.escape(off.line()) in result.report(tmp_path / "report").read_text()
 
 
-def test_a_rig_bag_times_each_lidar_against_the_first_camera(tmp_path, capsys):
-    """A rig of one camera and two LiDARs, each LiDAR on its own clock (the camera 40 ms ahead of lidar0's and 25 ms
-    behind lidar1's), 17.5 s of still poses (2 s each) with the board waved between them: extracted as a rig folder
-    with the motion followed into each LiDAR's folder; calibrated, each LiDAR's offset against cam0 within 4 of its
-    standard deviations and 4 ms of the truth, in calibration.json's ``time_offsets_s`` and in the printout; each
-    extrinsic (five poses) within its covariance's 0.999 region (NEES below 22.5, 6 dof) and ``ROT_DEG``."""
+def test_a_rig_bag_times_each_lidar_against_the_first_camera(still_poses, tmp_path, capsys):
+    """The still poses' bag read as a rig of one camera and two LiDARs, each LiDAR on its own clock: extracted as a
+    rig folder with the motion followed into each LiDAR's folder; calibrated, each LiDAR's offset against cam0
+    within 4 of its standard deviations and 4 ms of the truth, in calibration.json's ``time_offsets_s`` and in the
+    printout; each extrinsic (five poses) within its covariance's 0.999 region (NEES below 22.5, 6 dof) and
+    ``ROT_DEG``."""
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
 
-    rig = _small_rig(3)
-    turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(12.0)]), [0.25, 0.05, -0.1])
-    other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
-    pauses = tuple((float(a), float(a + 2.0)) for a in np.arange(0.5, 16.0, 3.5))
-    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 17.5, np.random.default_rng(3), time_offset_s=0.04,
-                    speed_mps=0.6, turn_dps=50.0, pauses=pauses, camera_hz=10.0,
-                    more_lidars=(("/points1", other, -0.025),))
-    assert main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+    bag, rig, other = still_poses
+    assert main(["extract", str(bag), "--image-topic", "/camera/image_raw", "--cloud-topic",
                  "/points", "--cloud-topic", "/points1", "--board", BOARD, "--out", str(tmp_path / "rig")]) == 0
     assert "motion between the poses followed" in capsys.readouterr().out
     record = json.loads((tmp_path / "rig" / "extract.json").read_text())
