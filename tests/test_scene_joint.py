@@ -78,28 +78,36 @@ def test_samples_moved_by_the_term_have_the_joint_covariance_and_a_free_directio
     assert join_pair_measurement(NAMES, T_ref, P, "cam0", "lidar0", T_TRUE, C).dof == 5
 
 
-@pytest.fixture(scope="module")
-def office(tmp_path_factory):
-    """A simulated office (64-beam LiDAR, ten board poses) and its truth."""
+def _office_with_scene(path: "Path") -> None:
+    """Seed 3's simulated office (64-beam LiDAR, ten board poses) into ``path/ds``, and its ``calibrate --scene``
+    (no posterior, no report) into ``path/out`` with its exit code and printout beside (``printed.json``)."""
+    import contextlib
+    import io
+
     from estimators.simulation.simulator import simulate_dataset
 
-    tmp = tmp_path_factory.mktemp("scene_joint")
-    simulate_dataset(tmp / "ds", n_poses=10, seed=3, lidar="os64", scene="office")
+    simulate_dataset(path / "ds", n_poses=10, seed=3, lidar="os64", scene="office")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["calibrate", str(path / "ds"), "--out", str(path / "out"), "--scene", "--samples", "0",
+                     "--no-report"])
+    (path / "printed.json").write_text(json.dumps([code, printed.getvalue()]))
+
+
+@pytest.fixture(scope="module")
+def office(tmp_path_factory):
+    """The office (``_office_with_scene``: made once for every test process; tests write elsewhere) and its
+    truth."""
+    from .conftest import shared_folder
+
+    tmp = shared_folder(tmp_path_factory, "scene_joint_office", _office_with_scene)
     return tmp, np.array(json.loads((tmp / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
 
 
 @pytest.fixture(scope="module")
 def office_scene(office):
-    """``calibrate --scene`` of the office (no posterior, no report) into ``out``: its exit code and printout."""
-    import contextlib
-    import io
-
-    tmp, _ = office
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        code = main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "out"), "--scene", "--samples", "0",
-                     "--no-report"])
-    return code, printed.getvalue()
+    """``calibrate --scene`` of the office into ``out``: its exit code and printout."""
+    return tuple(json.loads((office[0] / "printed.json").read_text()))
 
 
 def test_a_scene_not_believed_is_not_joined_and_leaves_the_boards_verdict(office, office_scene):
@@ -144,13 +152,13 @@ def test_boards_moved_along_their_weak_direction_are_contradicted_by_the_scene(o
     np.testing.assert_allclose(checked.T_camera_lidar, T)
 
 
-def test_scene_is_refused_where_it_has_no_boards_or_no_graph(office, capsys):
+def test_scene_is_refused_where_it_has_no_boards_or_no_graph(office, capsys, tmp_path):
     """--scene with --targetless, or with --refine none: exit 2, one line, nothing written."""
     tmp, _ = office
     for extra in (["--targetless", "--initial-guess", "0 0 0 0 0 0"], ["--refine", "none"]):
-        assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp / "x"), "--scene", *extra]) == 2
+        assert main(["calibrate", str(tmp / "ds"), "--out", str(tmp_path / "x"), "--scene", *extra]) == 2
         err = capsys.readouterr().err.strip()
-        assert err.count("\n") == 0 and "--scene" in err and not (tmp / "x").exists()
+        assert err.count("\n") == 0 and "--scene" in err and not (tmp_path / "x").exists()
 
 
 def _as_rig(pair: "Path", out: "Path") -> "Path":
@@ -170,35 +178,34 @@ def _as_rig(pair: "Path", out: "Path") -> "Path":
     return out
 
 
-def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, office_scene, capsys):
+def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, office_scene, capsys, tmp_path):
     """Seed 3's office as a rig folder of cam0 and lidar0: ``calibrate --scene`` forms the same scene term as on
     the pair folder (the same boards' and scene's estimates and tests, to 1e-9), and ``check`` of the rig's
     calibration.json (its cam0-lidar0 transform, found by the sensors' names) gives the pair's p-value; a sensor
     the rig has not is refused in one line (exit 2)."""
     tmp, _ = office
-    rig = _as_rig(tmp / "ds", tmp / "rig")
+    rig = _as_rig(tmp / "ds", tmp_path / "rig")
     assert office_scene[0] == 0
-    assert main(["calibrate", str(rig), "--out", str(tmp / "rig_out"), "--scene", "--samples", "0",
+    assert main(["calibrate", str(rig), "--out", str(tmp_path / "rig_out"), "--scene", "--samples", "0",
                  "--no-report"]) == 0
     capsys.readouterr()
     a = json.loads((tmp / "out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
-    b = json.loads((tmp / "rig_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
+    b = json.loads((tmp_path / "rig_out" / "calibration.json").read_text())["scene"]["T_cam0_lidar0"]
     np.testing.assert_allclose(a["T_camera_lidar_boards"], b["T_camera_lidar_boards"], atol=1e-9)
     np.testing.assert_allclose(a["scene"]["T_camera_lidar"], b["scene"]["T_camera_lidar"], atol=1e-9)
     for key in ("along_weak_direction", "every_direction"):
         assert a["boards_against_scene"][key]["p_value"] == pytest.approx(b["boards_against_scene"][key]["p_value"])
     assert a["joined"] == b["joined"] and a["scene"]["check_p_value"] == pytest.approx(b["scene"]["check_p_value"])
-    code = main(["check", str(rig), "--calibration", str(tmp / "rig_out" / "calibration.json"), "--camera", "cam0",
-                 "--out", str(tmp / "rig_check")])
+    given = str(tmp_path / "rig_out" / "calibration.json")
+    code = main(["check", str(rig), "--calibration", given, "--camera", "cam0", "--out", str(tmp_path / "rig_check")])
     out = capsys.readouterr().out
-    got = json.loads((tmp / "rig_check" / "check.json").read_text())
+    got = json.loads((tmp_path / "rig_check" / "check.json").read_text())
     assert code == (0 if got["consistent"] else 4) and got["camera"] == "cam0" and got["lidar"] == "lidar0"
     assert "cam0 and lidar0: p = " in out
     assert got["p_value"] == pytest.approx(b["scene"]["check_p_value"], rel=1e-9)
-    assert main(["check", str(rig), "--calibration", str(tmp / "rig_out" / "calibration.json"), "--camera", "cam7",
-                 "--out", str(tmp / "x")]) == 2
+    assert main(["check", str(rig), "--calibration", given, "--camera", "cam7", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "cam7" in err and not (tmp / "x").exists()
+    assert err.count("\n") == 0 and "cam7" in err and not (tmp_path / "x").exists()
 
 
 def test_a_two_camera_rig_in_a_furnished_room_checks_each_pair_and_forms_each_pairs_term(tmp_path, capsys):
