@@ -174,6 +174,8 @@ def run(cells, trials, workers, seed=0, pattern="checkerboard", keep=None):
             continue
         seeds = np.random.SeedSequence([seed, k]).generate_state(trials)
         args += [(int(s), config, n, noise, pattern) for s in seeds]
+    if workers == 1:  # in this process (a notebook's quick run)
+        return [trial(a) for a in args]
     with ProcessPoolExecutor(workers) as pool:
         rows = list(pool.map(trial, args, chunksize=4))
     return rows

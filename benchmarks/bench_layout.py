@@ -95,8 +95,11 @@ def monte_carlo(layout, trials, workers, seed=0):
     # The beams that hit each board do not change between noise draws: cast them once.
     layout = replace(layout, hits=tuple(board_hits(layout, i) for i in range(layout.n_frames)))
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]
-    with ProcessPoolExecutor(workers) as pool:
-        out = [o for o in pool.map(_trial, [(s, layout) for s in seeds]) if o is not None]
+    if workers == 1:  # in this process (a notebook's quick run)
+        out = [o for o in map(_trial, [(s, layout) for s in seeds]) if o is not None]
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            out = [o for o in pool.map(_trial, [(s, layout) for s in seeds]) if o is not None]
     if not out:
         return None, None, trials
     xi = np.array([o[0] for o in out])

@@ -14,6 +14,8 @@ Modes:
 """
 from __future__ import annotations
 
+import contextlib
+
 import csv
 import io
 import tempfile
@@ -115,7 +117,7 @@ def run_study(trials: int, out: str | Path, mode: str = "measurement", seed: int
     seed : int
         Seed of the first trial.
     workers : int
-        Local processes.
+        Local processes (1: the trials run in this process).
     n_frames : int
         Board poses per trial.
     samples : int
@@ -135,8 +137,9 @@ def run_study(trials: int, out: str | Path, mode: str = "measurement", seed: int
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]
     args = [(s, mode, n_frames, samples, likelihood) for s in seeds]
     rows = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        for row in tqdm(pool.map(_trial, args), total=trials, desc=f"coverage ({mode})", disable=not progress):
+    with contextlib.nullcontext() if workers == 1 else ProcessPoolExecutor(max_workers=workers) as pool:
+        mapped = map(_trial, args) if pool is None else pool.map(_trial, args)  # 1 worker: in this process
+        for row in tqdm(mapped, total=trials, desc=f"coverage ({mode})", disable=not progress):
             rows.append(row)
     summary = summarize(rows)
     summary.update({"mode": mode, "seed": seed, "frames_per_trial": n_frames, "samples_per_trial": samples,

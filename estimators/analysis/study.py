@@ -265,7 +265,7 @@ def run_study(spec: StudySpec, out: str | Path, workers: int | None = None, sche
     out : str or Path
         Folder for ``study.csv``, ``summary.json`` and the summary plots (each written atomically).
     workers : int, optional
-        Local processes (default: every core).
+        Local processes (default: every core; 1 runs the trials in this process).
     scheduler : str or distributed.Client, optional
         A Dask scheduler (``tcp://host:port``) to run the trials on instead.
     progress : bool
@@ -284,7 +284,11 @@ def run_study(spec: StudySpec, out: str | Path, workers: int | None = None, sche
     args = trial_arguments(spec)
     results: list[list[dict]] = []
     bar = tqdm(total=len(args), desc=spec.name, disable=not progress)
-    if scheduler is None:
+    if scheduler is None and workers == 1:  # in this process: no pool to start (a notebook's quick run, a debugger)
+        for a in args:
+            results.append(run_trial(a))
+            bar.update()
+    elif scheduler is None:
         with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
             for rows in pool.map(run_trial, args, chunksize=max(1, len(args) // (8 * (workers or 2)))):
                 results.append(rows)
