@@ -14,6 +14,8 @@ engine where it keeps 3 frames or more. Printed: the errors against the truth, t
 offset together (7 dof), and the extrinsic's RMS error against the continuous model's bound (the joint solve's
 inverse information at its estimate: 1 for an efficient estimate).
 
+``--memory``: the same configuration at 15, 60 and 120 s: each command's peak memory against the bag's length.
+
 ``--speed``: a 60 s bag of an OS1-64-like LiDAR (131 072 returns a sweep, 10 Hz) and a 1280 x 720 camera at
 20 Hz, through ``lidarcam extract`` and ``lidarcam calibrate`` as commands: wall time and peak memory of each.
 """
@@ -144,15 +146,44 @@ def _trial(seed: int) -> dict:
     return row
 
 
-def _timed(cmd: list[str]) -> tuple[float, float, str]:
-    """Wall seconds, peak resident memory (GB) and the output of a command."""
+def _tree_rss_gb(pid: int) -> float:
+    """The resident memory (GB) of a process and every process below it, read from /proc (0 where gone)."""
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            status = Path(f"/proc/{p}/status").read_text()
+            total += int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:")))
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, StopIteration, ValueError):
+            continue
+    return total / 1024 ** 2
+
+
+def _timed(cmd: list[str]) -> tuple[float, float, str, float]:
+    """Wall seconds, peak resident memory (GB) of the command's own process, its output, and the peak of its whole
+    process tree (its worker processes too; sampled every 0.1 s)."""
+    import threading
+
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    _, status, usage = os.wait4(proc.pid, 0)
+    peak, done = [0.0], threading.Event()
+
+    def sample():
+        while not done.is_set():
+            peak[0] = max(peak[0], _tree_rss_gb(proc.pid))
+            done.wait(0.1)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     out = proc.stdout.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    done.set()
+    sampler.join()
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{out}")
-    return time.perf_counter() - t0, usage.ru_maxrss / 1024 ** 2, out
+    return time.perf_counter() - t0, usage.ru_maxrss / 1024 ** 2, out, max(peak[0], usage.ru_maxrss / 1024 ** 2)
 
 
 def speed(seed: int) -> None:
@@ -180,15 +211,46 @@ def speed(seed: int) -> None:
     print()
 
 
+def memory(seed: int, lengths: tuple[float, ...] = (15.0, 60.0, 120.0)) -> None:
+    """The speed bag's configuration at several lengths through ``lidarcam extract`` and ``lidarcam calibrate``:
+    the peak memory of each (the measurement stage streams the bag, so its memory should not grow with the
+    length; the calibration holds every image's corners and the sweeps' board returns, which do)."""
+    from tests.rosbag_writer import write_waved_bag
+
+    print("The speed bag's configuration (an OS1-64-like LiDAR, a 1280 x 720 camera at 20 Hz) at several lengths:\n")
+    print("| length | bag | extract: peak memory (its process / with its worker) | wall time | calibrate: peak memory "
+          "(its process / with its workers) | wall time |")
+    print("|---|---|---|---|---|---|")
+    for length in lengths:
+        rng = np.random.default_rng(seed)
+        rig = _rig(rng, "os64", 1280, 720, 1000.0)
+        with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
+            tmp = Path(tmp)
+            write_waved_bag(tmp / "bag", "mcap", rig, length, rng, time_offset_s=0.035)
+            size = sum(f.stat().st_size for f in (tmp / "bag").rglob("*") if f.is_file()) / 1024 ** 3
+            exe = [sys.executable, "-m", "estimators"]
+            ex = _timed(exe + ["extract", str(tmp / "bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+                               "/points", "--board", BOARD, "--out", str(tmp / "ds")])
+            ca = _timed(exe + ["calibrate", str(tmp / "ds"), "--out", str(tmp / "cal")])
+        print(f"| {length:.0f} s | {size:.1f} GB | {ex[1]:.2f} / {ex[3]:.2f} GB | {ex[0]:.1f} s | "
+              f"{ca[1]:.2f} / {ca[3]:.2f} GB | {ca[0]:.1f} s |")
+    print("\n(with its workers: the resident sizes of the process tree summed, sampled every 0.1 s; pages a forked "
+          "worker shares with its parent count twice. Wall times of this run: the speed page's run, alone on the "
+          "machine, is the timing)\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bags", type=int, default=12)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--speed", action="store_true", help="also time a 60 s 64-beam bag through the commands")
+    ap.add_argument("--memory", action="store_true", help="also the commands' peak memory on 15, 60 and 120 s bags")
     a = ap.parse_args()
     if a.speed:
         speed(a.seed)
+    if a.memory:
+        memory(a.seed)
     if a.bags <= 0:
         return
     t0 = time.time()
