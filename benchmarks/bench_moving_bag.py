@@ -116,7 +116,11 @@ def _trial(seed: int) -> dict:
         write_waved_bag(tmp / "bag", "mcap", rig, duration, rng, time_offset_s=offset, speed_mps=speed,
                         turn_dps=turn, time_field=field, pauses=pauses)
         t0 = time.perf_counter()
-        summary = extract_bag(tmp / "bag", tmp / "ds", board, "/camera/image_raw", cloud_topic="/points")
+        try:
+            summary = extract_bag(tmp / "bag", tmp / "ds", board, "/camera/image_raw", cloud_topic="/points")
+        except LidarcamError as exc:  # refused by extract: counted and listed with its reason too
+            row["refused"] = f"extract: {exc}"
+            return row
         row["recording"] = summary.recording
         try:
             free = calibrate_moving(tmp / "ds", np.random.default_rng(seed))
@@ -268,8 +272,9 @@ def main() -> None:
     still_rows = [r for r in rows if r.get("still") is not None]
     print(f"{a.bags} simulated bags, 30-90 s (mean {np.mean([r['duration_s'] for r in every]):.0f} s), board at "
           "0.2-1.0 m/s with three 2-s pauses, clock offsets in +-100 ms; read as: "
-          + ", ".join(f"{k} {sum(r['recording'] == k for r in every)}" for k in sorted({r['recording'] for r in every}))
-          + (f"; {len(refused)} refused by calibrate (listed at the end)" if refused else "") + ":\n")
+          + ", ".join(f"{k} {sum(r.get('recording') == k for r in every)}"
+                      for k in sorted({r['recording'] for r in every if 'recording' in r}))
+          + (f"; {len(refused)} refused (listed at the end)" if refused else "") + ":\n")
     print("| | moving board, offset free (prior +-0.2 s) | moving board, offset held at 0 | still poses only |")
     print("|---|---|---|---|")
     print(f"| used (mean) | {np.mean([r['images'] for r in rows]):.0f} images, "
@@ -310,7 +315,7 @@ def main() -> None:
               f"{r['turn']:.0f} | {1000 * r['offset_s']:+.1f} | {f['offset_err_ms']:+.2f} | {f['rot_deg']:.3f} | "
               f"{f['trans_mm']:.1f} | {f['nees']:.1f} | {r['verdict']} |")
     if refused:
-        print(f"\nRefused by calibrate ({len(refused)} of {a.bags}; not in the rows above): " + "; ".join(
+        print(f"\nRefused by extract or calibrate ({len(refused)} of {a.bags}; not in the rows above): " + "; ".join(
             f"seed {r['seed']} ({r['lidar']}, offset {1000 * r['offset_s']:+.1f} ms): {r['refused']}"
             for r in refused))
     print(f"\n({a.bags} bags in {time.time() - t0:.0f} s on {a.workers} processes; "
