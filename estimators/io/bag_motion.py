@@ -49,6 +49,10 @@ LOOK_EVERY_NS = 200_000_000
 # whose still poses were found at 960 px; ``MovingBoardReader._find``); the corners are then refined at full
 # resolution.
 DETECT_MAX_SIDE = 640
+# The whole image is searched too where the board's squares were last seen under this many times the detector's
+# smallest (``MIN_SQUARE_PX_REDUCED``) in the reduced copy: at 12 px there it missed a blurred board in every image
+# of a simulated bag (19 px squares in a 1024 px image reduced to 640; the bag was refused), found whole.
+REDUCED_MARGIN = 1.5
 # Sweeps handed to the worker and not yet taken back, at most (memory: a few sweeps).
 MAX_WAITING = 4
 
@@ -131,13 +135,15 @@ class MovingBoardReader:
     def _find(self, gray: np.ndarray) -> np.ndarray | None:
         """The board's corners found by the detector on a copy reduced to ``DETECT_MAX_SIDE``, or None; where that
         finds none and the board was last seen too small for the copy (its squares under the detector's
-        ``MIN_SQUARE_PX_REDUCED`` there), or not yet seen, on the whole image. A board lost while large is lost to
+        ``MIN_SQUARE_PX_REDUCED`` there, with the margin ``REDUCED_MARGIN``), or not yet seen, on the whole image. A
+        board lost while large is lost to
         blur or the image's edge: looked for at full size, the blurred ones were found, and their corners cost
         the moving-board bench's accuracy (errors 0.95 / 0.87 of the bound -> 1.24 / 1.23)."""
         found = self.detect(gray, self.board, DETECT_MAX_SIDE)
         scale = DETECT_MAX_SIDE / max(gray.shape)
         if found is None and scale < 1 and (
-                not self.corners or _square_px(self.corners[-1].astype(float)) * scale < MIN_SQUARE_PX_REDUCED):
+                not self.corners or
+                _square_px(self.corners[-1].astype(float)) * scale < REDUCED_MARGIN * MIN_SQUARE_PX_REDUCED):
             found = self.detect(gray, self.board, max(gray.shape))
         return found
 
