@@ -51,6 +51,13 @@ def page_bound(path: Path) -> tuple[float, float, float, float] | None:
     return float(rot.group(1)), float(trans.group(1)), float(ratio.group(1)), float(ratio.group(2))
 
 
+def page_pointing(path: Path) -> dict[float, float]:
+    """A page's mean NEES were the camera's pointing term another size (px -> mean NEES), or empty."""
+    row = re.search(r"^\| NEES were the camera's pointing term \(px\) another size, mean \| ([^|]+)\|",
+                    path.read_text(), re.M)
+    return {float(a): float(b) for a, b in re.findall(r"([\d.]+): ([\d.]+)", row.group(1))} if row else {}
+
+
 def pooled_ratio(parts: list[tuple[int, float, float]]) -> float:
     """``sqrt(sum n e^2 / sum n (e / q)^2)`` over pages of ``n`` bags, RMS error ``e`` and ratio ``q``: the pooled
     RMS error over the pooled RMS bound."""
@@ -109,6 +116,14 @@ def main() -> None:
               f"(each page's RMS bound read back from its RMS error and its ratio): rotation "
               f"{pooled_ratio([(n, b[0], b[2]) for n, b in bounds]):.2f}, translation "
               f"{pooled_ratio([(n, b[1], b[3]) for n, b in bounds]):.2f} (1 for an efficient estimate; target 1.2)")
+    pointing = [(sum(r["page"] == p.name for r in rows), page_pointing(p)) for p in pages]
+    pointing = [(n, d) for n, d in pointing if n and d]
+    sizes = sorted(set.intersection(*(set(d) for _, d in pointing))) if pointing else []
+    if sizes:
+        covered = sum(n for n, _ in pointing)
+        print(f"\nNEES mean were the camera's pointing term another size, pooled over the {covered} bags whose pages "
+              "give it (the same estimates, only the covariance differs): " + ", ".join(
+                  f"{px:g} px: {sum(n * d[px] for n, d in pointing) / covered:.2f}" for px in sizes))
     print("\nverdicts: " + ", ".join(f"{k} {sum(r['verdict'] == k for r in rows)}" for k in ("OK", "CHECK", "UNTRUSTED")))
 
 
