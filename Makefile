@@ -69,7 +69,7 @@ bench: $(STAMP)
 	$(RECORD) moving_bag_seed236 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 236
 	$(RECORD) moving_bag_seed248 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 248
 	$(RECORD) moving_bag_seed260 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 260
-	$(RECORD) moving_bag_seed272 -- $(PY) benchmarks/bench_moving_bag.py --bags 6 --seed 272
+	$(RECORD) moving_bag_seed272 -- $(PY) benchmarks/bench_moving_bag.py --bags 5 --seed 272
 	$(RECORD) moving_bag_pool -- $(PY) benchmarks/moving_bag_pool.py
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
