@@ -190,19 +190,27 @@ def _timed(cmd: list[str]) -> tuple[float, float, str, float]:
     return time.perf_counter() - t0, usage.ru_maxrss / 1024 ** 2, out, max(peak[0], usage.ru_maxrss / 1024 ** 2)
 
 
-def speed(seed: int) -> None:
+def _through_commands(seed: int, length_s: float) -> tuple[float, tuple, tuple]:
+    """The speed bag's configuration (an OS1-64-like LiDAR, a 1280 x 720 camera at 20 Hz, the camera's clock 35 ms
+    ahead) of ``length_s`` through ``lidarcam extract`` and ``lidarcam calibrate``: the bag's size (GB) and each
+    command's :func:`_timed`."""
     from tests.rosbag_writer import write_waved_bag
 
     rng = np.random.default_rng(seed)
     rig = _rig(rng, "os64", 1280, 720, 1000.0)
     with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
         tmp = Path(tmp)
-        write_waved_bag(tmp / "bag", "mcap", rig, 60.0, rng, time_offset_s=0.035)
+        write_waved_bag(tmp / "bag", "mcap", rig, length_s, rng, time_offset_s=0.035)
         size = sum(f.stat().st_size for f in (tmp / "bag").rglob("*") if f.is_file()) / 1024 ** 3
         exe = [sys.executable, "-m", "estimators"]
         ex = _timed(exe + ["extract", str(tmp / "bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
                            "/points", "--board", BOARD, "--out", str(tmp / "ds")])
         ca = _timed(exe + ["calibrate", str(tmp / "ds"), "--out", str(tmp / "cal")])
+    return size, ex, ca
+
+
+def speed(seed: int) -> None:
+    size, ex, ca = _through_commands(seed, 60.0)
     print(f"A 60 s bag ({size:.1f} GB): an OS1-64-like LiDAR (64 x 2048 returns a sweep, 10 Hz, Ouster's t field) and "
           "a 1280 x 720 camera at 20 Hz, the camera's clock 35 ms ahead:\n")
     print("| command | wall time | peak memory |")
@@ -219,23 +227,12 @@ def memory(seed: int, lengths: tuple[float, ...] = (15.0, 60.0)) -> None:
     """The speed bag's configuration at several lengths through ``lidarcam extract`` and ``lidarcam calibrate``:
     the peak memory of each (the measurement stage streams the bag, so its memory should not grow with the
     length; the calibration holds every image's corners and the sweeps' board returns, which do)."""
-    from tests.rosbag_writer import write_waved_bag
-
     print("The speed bag's configuration (an OS1-64-like LiDAR, a 1280 x 720 camera at 20 Hz) at several lengths:\n")
     print("| length | bag | extract: peak memory (its process / with its worker) | wall time | calibrate: peak memory "
           "(its process / with its workers) | wall time |")
     print("|---|---|---|---|---|---|")
     for length in lengths:
-        rng = np.random.default_rng(seed)
-        rig = _rig(rng, "os64", 1280, 720, 1000.0)
-        with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
-            tmp = Path(tmp)
-            write_waved_bag(tmp / "bag", "mcap", rig, length, rng, time_offset_s=0.035)
-            size = sum(f.stat().st_size for f in (tmp / "bag").rglob("*") if f.is_file()) / 1024 ** 3
-            exe = [sys.executable, "-m", "estimators"]
-            ex = _timed(exe + ["extract", str(tmp / "bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
-                               "/points", "--board", BOARD, "--out", str(tmp / "ds")])
-            ca = _timed(exe + ["calibrate", str(tmp / "ds"), "--out", str(tmp / "cal")])
+        size, ex, ca = _through_commands(seed, length)
         print(f"| {length:.0f} s | {size:.1f} GB | {ex[1]:.2f} / {ex[3]:.2f} GB | {ex[0]:.1f} s | "
               f"{ca[1]:.2f} / {ca[3]:.2f} GB | {ca[0]:.1f} s |")
     print("\n(with its workers: the resident sizes of the process tree summed, sampled every 0.1 s; pages a forked "
