@@ -135,11 +135,14 @@ def _trial(seed: int) -> dict:
         row["free"]["nees_at_pointing"] = _nees_at_pointing(free, rig.T_camera_lidar, offset)
         row["held"] = _errors(held.T_camera_lidar, None, rig.T_camera_lidar, 0.0, offset)
         row["verdict"] = free.verdict.level
-        still = extract_bag(tmp / "bag", tmp / "still", board, "/camera/image_raw", cloud_topic="/points",
-                            options=ExtractOptions(follow_motion=False))
-        row["still_frames"] = still.frames
         row["still"] = None
-        if still.frames >= 3:
+        try:
+            still = extract_bag(tmp / "bag", tmp / "still", board, "/camera/image_raw", cloud_topic="/points",
+                                options=ExtractOptions(follow_motion=False))
+            row["still_frames"] = still.frames
+        except LidarcamError as exc:  # no still pose at all: none kept, and why
+            row["still_frames"], row["still_refused"] = 0, str(exc)
+        if row["still_frames"] >= 3:
             try:
                 result = calibrate(load_dataset(tmp / "still"), rng=np.random.default_rng(seed), samples=0)
                 p = result.pair("cam0", "lidar0")
