@@ -14,8 +14,6 @@ Modes:
 """
 from __future__ import annotations
 
-import contextlib
-
 import csv
 import io
 import tempfile
@@ -137,10 +135,12 @@ def run_study(trials: int, out: str | Path, mode: str = "measurement", seed: int
     seeds = [int(s) for s in np.random.SeedSequence(seed).generate_state(trials)]
     args = [(s, mode, n_frames, samples, likelihood) for s in seeds]
     rows = []
-    with contextlib.nullcontext() if workers == 1 else ProcessPoolExecutor(max_workers=workers) as pool:
-        mapped = map(_trial, args) if pool is None else pool.map(_trial, args)  # 1 worker: in this process
-        for row in tqdm(mapped, total=trials, desc=f"coverage ({mode})", disable=not progress):
-            rows.append(row)
+    if workers == 1:  # in this process: no pool to start (a notebook's quick run, a debugger)
+        rows = [_trial(a) for a in tqdm(args, desc=f"coverage ({mode})", disable=not progress)]
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for row in tqdm(pool.map(_trial, args), total=trials, desc=f"coverage ({mode})", disable=not progress):
+                rows.append(row)
     summary = summarize(rows)
     summary.update({"mode": mode, "seed": seed, "frames_per_trial": n_frames, "samples_per_trial": samples,
                     "likelihood": likelihood})

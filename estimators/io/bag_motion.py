@@ -136,9 +136,9 @@ class MovingBoardReader:
         """The board's corners found by the detector on a copy reduced to ``DETECT_MAX_SIDE``, or None; where that
         finds none and the board was last seen too small for the copy (its squares under the detector's
         ``MIN_SQUARE_PX_REDUCED`` there, with the margin ``REDUCED_MARGIN``), or not yet seen, on the whole image. A
-        board lost while large is lost to
-        blur or the image's edge: looked for at full size, the blurred ones were found, and their corners cost
-        the moving-board bench's accuracy (errors 0.95 / 0.87 of the bound -> 1.24 / 1.23)."""
+        board lost while large is lost to blur or the image's edge: looked for at full size, the blurred ones were
+        found, and their corners cost the moving-board bench's accuracy (errors 0.95 / 0.87 of the bound -> 1.24 /
+        1.23)."""
         found = self.detect(gray, self.board, DETECT_MAX_SIDE)
         scale = DETECT_MAX_SIDE / max(gray.shape)
         if found is None and scale < 1 and (
