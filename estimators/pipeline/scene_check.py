@@ -30,7 +30,7 @@ from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..lidar.depth_edges import depth_edges
-from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, consistency, minima_scatter,
+from ..solvers.scene_alignment import (SceneFit, SceneView, beam_steps, consistency, minima_scatter,
                                       rival_minima, scene_minima, visible_from_camera)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
@@ -167,7 +167,8 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
                             "cannot be found along the beams")
     edges = depth_edges(sweep.points, sweep.ring)
-    spacing = beam_spacing_px(sweep.points, sweep.ring, camera)
+    steps = beam_steps(sweep.points, sweep.ring)
+    spacing = (steps[0] * camera.K[0, 0], steps[1] * camera.K[1, 1])
     P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera, spacing_px=spacing)]
     if board_mask is not None:
         uv = camera.project(transform_points(T_given, P))
@@ -179,7 +180,7 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         P = P[~on]
     field = edge_distance(gray, truncate_px, ignore=board_mask) if field is None else field
     gu, gv = field_gradient(field)
-    return SceneView(name, P, field, gu, gv, truncate_px)
+    return SceneView(name, P, field, gu, gv, truncate_px, steps[0])
 
 
 @dataclass(frozen=True, eq=False)
