@@ -731,12 +731,14 @@ def test_validate_scores_each_camera_lidar_pair_of_a_rig_on_the_frames_its_calib
     assert all(moved[n]["p_value"] == v["p_value"] for n, v in pairs.items() if n != "T_cam0_lidar0")
 
 
-def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path):
+def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path, capsys):
+    from estimators.cli import main
+
     out = tmp_path / "cal"
-    run = subprocess.run([sys.executable, "-m", "estimators", "calibrate", str(rig_folder), "--out", str(out)],
-                         capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr
-    assert "T_cam2_lidar0" in run.stdout
+    code = main(["calibrate", str(rig_folder), "--out", str(out)])
+    run = capsys.readouterr()
+    assert code == 0, run.err
+    assert "T_cam2_lidar0" in run.out
     cal = json.loads((out / "calibration.json").read_text())
     assert cal["rig"] and cal["reference"] == "cam0" and [s["name"] for s in cal["sensors"]][-1] == "scan0"
     assert set(cal["transforms"]) == {f"T_cam{k}_{s}" for k in range(3) for s in ("lidar0", "lidar1", "scan0")} | {
@@ -747,21 +749,21 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
                                                                                                   "scan0"}
     # the posterior by default: each pair's intervals, the joint samples in posterior.npz (5 free sensors' poses, the
     # scanner's range noise scale and the camera side's noise scale, whose samples are there too)
-    assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 32 and "posterior (emcee" in run.stdout
+    assert cal["posterior"]["converged"] and cal["posterior"]["parameters"] == 32 and "posterior (emcee" in run.out
     with np.load(out / "posterior.npz", allow_pickle=False) as npz:
         assert npz["noise_scale"].shape == (npz["xi"].shape[0],) and 0.3 < np.median(npz["noise_scale"]) < 3
     iv = cal["transforms"]["T_cam2_lidar0"]["posterior"]["95%"]["translation_mm"]
     assert all(lo < 0 < hi for lo, hi in iv)
     # printed under each camera-LiDAR pair as a single pair prints its own (PairEstimate.intervals)
-    assert run.stdout.count("    95% intervals (about/along ") == 9
-    assert f"translation [{iv[0][0]:+.2f}, {iv[0][1]:+.2f}]" in run.stdout
+    assert run.out.count("    95% intervals (about/along ") == 9
+    assert f"translation [{iv[0][0]:+.2f}, {iv[0][1]:+.2f}]" in run.out
     assert cal["transforms"]["T_cam2_lidar0"]["posterior"]["credible_regions"]["99.9%"]["d2"] >= 22.45
     with np.load(out / "posterior.npz") as npz:
         assert npz["xi"].shape[1] == 36 and list(npz["names"]) == [s["name"] for s in cal["sensors"]]
     # the weakest camera-LiDAR pair: the one whose translation's largest standard deviation is largest
     sd = {k: np.sqrt(np.linalg.eigvalsh(np.array(v["covariance"])[3:, 3:])[-1]) for k, v in cal["transforms"].items()
           if k.split("_")[1].startswith("cam") and not k.split("_")[2].startswith("cam")}
-    assert cal["layout"]["weakest_pair"] == max(sd, key=sd.get) and "weakest pair: " + max(sd, key=sd.get) in run.stdout
+    assert cal["layout"]["weakest_pair"] == max(sd, key=sd.get) and "weakest pair: " + max(sd, key=sd.get) in run.out
     page = (out / "report.html").read_text()
     assert all(f"T_{a}_lidar0" in page for a in ("cam0", "cam1", "cam2"))
     assert "emcee, 32 parameters" in page and "posterior 95%: t [mm]" in page and "99.9% region: d2" in page
@@ -771,11 +773,11 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     # planes against them)
     # each sensor's noise as calibration.json gives it (at its noise scale), in a single pair's words
     noise = {x["name"]: x["noise"] for x in cal["sensors"]}
-    assert f"noise corners {noise['cam2']['corner_noise_px']:.3f} px" in run.stdout
-    assert f"noise range {1000 * noise['lidar1']['range_noise_m']:.1f} mm" in run.stdout
+    assert f"noise corners {noise['cam2']['corner_noise_px']:.3f} px" in run.out
+    assert f"noise range {1000 * noise['lidar1']['range_noise_m']:.1f} mm" in run.out
     assert "lidar0: Board edges" in page and "ring ends on the boards' outlines, used in the estimate" in page
     assert re.search(r"\n  lidar0 board edges \(used\): \d+ ring ends in \d+ frames; the LiDAR's outlines sit "
-                     r"\(camera axes\) .* growth .*\n    planes alone against planes \+ edges: d2", run.stdout)
+                     r"\(camera axes\) .* growth .*\n    planes alone against planes \+ edges: d2", run.out)
     shown = sorted(p.name for p in out.glob("projection_cam2_lidar0_*.jpg"))
     assert shown and all(name in page for name in shown)
     # what a single pair's report shows of its boards, each pair's or LiDAR's: the residuals of each pair solved
