@@ -93,7 +93,7 @@ class SceneCheck:
             return Verdict(CHECK, (f"the scene contradicts the given extrinsic (p = {self.test['p_value']:.2g}, "
                                    f"{self.test['dof']} constrained directions): it lays the LiDAR's contours on the "
                                    "image's edges elsewhere; on simulated scenes this test flags the true extrinsic "
-                                   "in 5-20% of the checks (furnished rooms) and in 45-70% of a board's offices with "
+                                   "in 0-5% of the checks (furnished rooms) and in 30-70% of a board's offices with "
                                    "the board left out (docs/bench/scene_check.md), so look at check.html before "
                                    "trusting either",))
         return Verdict(OK)
