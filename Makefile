@@ -63,7 +63,7 @@ bench: $(STAMP)
 	$(RECORD) moving_bag_speed -- $(PY) benchmarks/bench_moving_bag.py --bags 0 --speed
 	$(RECORD) moving_bag_memory -- $(PY) benchmarks/bench_moving_bag.py --bags 0 --memory
 	$(RECORD) moving_bag_seed100 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 100
-	$(RECORD) moving_bag_seed200 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 200 --workers 1
+	$(RECORD) moving_bag_seed200 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 200
 	$(RECORD) moving_bag_seed212 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 212
 	$(RECORD) moving_bag_seed224 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 224
 	$(RECORD) moving_bag_seed236 -- $(PY) benchmarks/bench_moving_bag.py --bags 12 --seed 236
