@@ -195,7 +195,7 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
     if term.p_value < ALPHA:
         reason = (f"the scene puts the LiDAR {where} (p = {term.p_value:.2g}; turned {angle:.2f} deg from them): "
                   "not joined, the boards' estimate stands; one of the two is off (on simulated scenes the scene "
-                  "alone, with the boards right, in 1 check of 7: docs/bench/scene_joint.md); look at "
+                  "alone, with the boards right, in 1 check of 10: docs/bench/scene_joint.md); look at "
                   "scene_check.html, at the boards' outlines in the report, and at the intrinsics (a camera's error "
                   "away from the boards moves the scene's estimate, not the boards')")
         return ended(replace(witness, reason=reason, contradicts=True))
