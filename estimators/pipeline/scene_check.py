@@ -30,8 +30,8 @@ from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..lidar.depth_edges import depth_edges
-from ..solvers.scene_alignment import (SceneFit, SceneView, beam_steps, consistency, minima_scatter,
-                                      rival_minima, scene_minima, visible_from_camera)
+from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
+                                      minima_scatter, rival_minima, scene_minima, visible_from_camera)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -168,7 +168,7 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
                             "cannot be found along the beams")
     edges = depth_edges(sweep.points, sweep.ring)
     steps = beam_steps(sweep.points, sweep.ring)
-    spacing = (steps[0] * camera.K[0, 0], steps[1] * camera.K[1, 1])
+    spacing = beam_spacing_px(sweep.points, sweep.ring, camera, steps)
     P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera, spacing_px=spacing)]
     if board_mask is not None:
         uv = camera.project(transform_points(T_given, P))

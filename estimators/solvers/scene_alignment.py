@@ -21,8 +21,9 @@ of a simulated office's 238 and set its estimate). Each structure's draw, a turn
 variance step^2 / 12, is added to the sandwich's meat (``structure_information``). The covariance needs no noise
 level and is noisy with few blocks: the test against a given extrinsic (``consistency``) reads the squared
 distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``, ``F(k, n - k)``, n blocks), over the ``k`` directions
-the scene constrains (standard deviations within ``CONSTRAINED``). The cost can have several minima about as low (``scene_minima`` seeks them from 13 starts): the
-scatter of those as low as the best (``minima_scatter``) is what the best one's covariance does not see.
+the scene constrains (standard deviations within ``CONSTRAINED``). The cost can have several minima about as low
+(``scene_minima`` seeks them from 13 starts): the scatter of those as low as the best (``minima_scatter``) is what
+the best one's covariance does not see.
 """
 from __future__ import annotations
 
@@ -121,10 +122,11 @@ def structure_information(views: list[SceneView], J: np.ndarray) -> np.ndarray:
     return a.T @ a
 
 
-def beam_spacing_px(sweep: np.ndarray, ring: np.ndarray, camera: CameraModel) -> tuple[float, float]:
-    """How far apart the sweep's returns lie in the image (px, across and down): :func:`beam_steps` times the
-    camera's focal lengths."""
-    d_az, d_el = beam_steps(sweep, ring)
+def beam_spacing_px(sweep: np.ndarray, ring: np.ndarray, camera: CameraModel,
+                    steps: tuple[float, float] | None = None) -> tuple[float, float]:
+    """How far apart the sweep's returns lie in the image (px, across and down): :func:`beam_steps` (``steps``,
+    when taken already) times the camera's focal lengths."""
+    d_az, d_el = beam_steps(sweep, ring) if steps is None else steps
     return d_az * camera.K[0, 0], d_el * camera.K[1, 1]
 
 
