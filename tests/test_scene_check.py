@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from estimators.camera.edge_map import edge_distance, field_gradient
+from estimators.camera.edge_map import EdgeMap, edges_with_normals
 from estimators.cli import main
 from estimators.lidar.depth_edges import depth_edges
 from estimators.simulation.simulator import simulate_dataset
-from estimators.solvers.scene_alignment import SceneView, view_residuals, visible_from_camera
+from estimators.solvers.scene_alignment import SceneView, transverse_edges, view_residuals, visible_from_camera
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_retract
 
@@ -58,21 +58,31 @@ def test_a_gap_in_the_ring_gives_no_contour():
     assert np.allclose(got, [az[pole][0] - step / 2], atol=1e-9) and np.allclose(edges.jump_m, 4.0)
 
 
+def _points_at(uvz: np.ndarray) -> np.ndarray:
+    """LiDAR points that project to (u, v) at depth z under ``T_CL``."""
+    p_c = np.column_stack([(uvz[:, 0] - 320.0) / 500.0, (uvz[:, 1] - 240.0) / 500.0, np.ones(len(uvz))]) * uvz[:, 2:]
+    return (p_c - T_CL[:3, 3]) @ T_CL[:3, :3]
+
+
+def _view(img: np.ndarray, p_l: np.ndarray, truncate_px: float = 40.0) -> SceneView:
+    uv, normals = edges_with_normals(img)
+    keep = transverse_edges(uv, normals, T_CL, CAMERA)
+    return SceneView("a", p_l, EdgeMap.of(img.shape, uv[keep], normals[keep]), truncate_px)
+
+
 def test_the_residuals_jacobian_is_the_numerical_one():
-    """Contour points 3-8 m ahead, an edge field drawn from lines in a 640 x 480 image: the closed-form Jacobian
-    by the extrinsic's tangent matches central differences (1e-6 steps) within 2% of its scale, where no point
-    crosses the truncation."""
+    """Contour points 3-8 m ahead, 8-25 px (along their level rings) from a vertical edge and from one slanted
+    20 degrees from it in a 640 x 480 image: the closed-form Jacobian by the extrinsic's tangent matches central
+    differences (1e-6 steps) within 2% of its scale, where no point crosses the truncation; the slanted edge's
+    points move with the extrinsic's up-down directions too."""
     img = np.full((480, 640), 100, np.uint8)
     img[:, 300:] = 180
-    img[200:, :] = 40
-    field = edge_distance(img, 40.0)
-    # points at 3-8 m whose pixels lie 8-25 px from the two edges (u = 300 and v = 200)
-    uvz = np.array([[285.0, 120.0, 4.0], [320.0, 180.0, 6.0], [150.0, 215.0, 3.0], [330.0, 222.0, 8.0]])
-    p_c = np.column_stack([(uvz[:, 0] - 320.0) / 500.0, (uvz[:, 1] - 240.0) / 500.0, np.ones(4)]) * uvz[:, 2:]
-    p_l = (p_c - T_CL[:3, 3]) @ T_CL[:3, :3]
-    view = SceneView("a", p_l, field, *field_gradient(field), 40.0)
+    vv, uu = np.mgrid[0:480, 0:640]
+    img[(uu - 500.0) * np.cos(np.radians(20)) + (vv - 240.0) * np.sin(np.radians(20)) > 0] = 40
+    uvz = np.array([[285.0, 120.0, 4.0], [320.0, 180.0, 6.0], [460.0, 300.0, 3.0], [525.0, 150.0, 8.0]])
+    view = _view(img, _points_at(uvz))
     r, J = view_residuals(T_CL, view, CAMERA)
-    assert np.all((r > 2.0) & (r < 38.0))  # inside the field's smooth part
+    assert np.all((np.abs(r) > 2.0) & (np.abs(r) < 38.0)), r  # inside the residuals' smooth part
     num = np.zeros_like(J)
     for k in range(6):
         e = np.zeros(6)
@@ -80,6 +90,24 @@ def test_the_residuals_jacobian_is_the_numerical_one():
         num[:, k] = (view_residuals(T_retract(T_CL, e), view, CAMERA, False)[0]
                      - view_residuals(T_retract(T_CL, -e), view, CAMERA, False)[0]) / 2e-6
     assert np.abs(J - num).max() <= 0.02 * np.abs(num).max(), (J, num)
+    # the slanted edge's returns depend on the LiDAR's z (camera y) translation; the vertical edge's do not
+    assert np.all(np.abs(J[2:, 5]) > 0.05 * np.abs(J[2:, 4])) and np.all(np.abs(J[:2, 5]) < 1e-9)
+
+
+def test_a_contour_is_measured_along_its_ring_not_towards_an_edge_the_ring_runs_along():
+    """A level ring's contour return 4 px beside a vertical edge and 2 px above a horizontal one meeting it: its
+    residual is its distance along the ring to the vertical edge (4 px), not the 2 px to the horizontal edge (a
+    ring running along an edge finds no range jump there). Where the vertical edge fades out (two surfaces of
+    one grey below it), a return 28 px below its end (v = 344) has no edge (the truncation), instead of being
+    pulled up to the end."""
+    img = np.full((480, 640), 100, np.uint8)
+    img[100:, :300] = 40  # a horizontal edge along v = 100, left of the vertical one along u = 300
+    vv, _ = np.mgrid[0:480, 0:640]
+    # right of it 180 down to v = 200, then fading to the left's 40 by v = 350
+    img[:, 300:] = (40 + 140 * np.clip((350.0 - vv[:, 300:]) / 150.0, 0.0, 1.0)).astype(np.uint8)
+    uvz = np.array([[296.0, 98.0, 4.0], [296.0, 150.0, 4.0], [296.0, 372.0, 4.0]])
+    r, _ = view_residuals(T_CL, _view(img, _points_at(uvz)), CAMERA)
+    assert np.allclose(np.abs(r[:2]), 3.5, atol=1.0) and r[2] == 40.0, r
 
 
 def test_a_contour_the_camera_cannot_see_from_its_own_centre_is_left_out():
@@ -204,11 +232,11 @@ def test_targetless_pulls_in_a_guess_2_degrees_and_10_cm_off(room, tmp_path, cap
 
 
 def test_targetless_refuses_a_guess_it_cannot_pull_in(room, tmp_path, capsys):
-    """From 20 degrees and 1 m off (this room pulls in even 15 degrees and 80 cm) the starts about the guess
-    wander apart, each to a minimum of its own: exit 2, one line, nothing written; and --targetless without a
-    guess is refused too."""
+    """From 30 degrees and 1.5 m off (this room pulls in even 20 degrees and 1 m, to 0.08 degrees and 10 mm of
+    the truth) the starts about the guess wander apart, each to a minimum of its own: exit 2, one line, nothing
+    written; and --targetless without a guess is refused too."""
     ds, truth = room
-    (tmp_path / "far.json").write_text(json.dumps({"T_camera_lidar": _off(truth, 20.0, 1.0).tolist()}))
+    (tmp_path / "far.json").write_text(json.dumps({"T_camera_lidar": _off(truth, 30.0, 1.5).tolist()}))
     assert main(["calibrate", str(ds), "--targetless", "--initial-guess", str(tmp_path / "far.json"), "--out",
                  str(tmp_path / "cal")]) == 2
     err = capsys.readouterr().err.strip()

@@ -12,6 +12,7 @@ import numpy as np
 from geometry.rotations import transform_points
 
 from ..io.output import write_atomic
+from ..solvers.scene_alignment import STAGES_PX
 from .report import html_page, verdict_part
 
 # Frames drawn at most, and the width they are drawn at (px).
@@ -20,7 +21,7 @@ MAX_FRAMES, WIDTH_PX = 6, 960
 
 def _overlay(result, view) -> np.ndarray:
     """A frame's edges with its contour returns under the given and the scene's extrinsic."""
-    field = view.field
+    field = view.edges.distance
     img = np.full(field.shape + (3,), 40, np.uint8)
     img[field == 0] = (60, 200, 60)
     for T, colour in ((result.fit.T_camera_lidar, (230, 120, 40)), (result.T_given, (40, 40, 230))):
@@ -48,10 +49,11 @@ def write_check_page(result, out: str | Path, page_name: str = "check.html", ver
              f"{'' if verdict_of is None else 'the initial guess '}consistent: "
              f"{result.consistent}; p = {p} ({t['dof']} constrained directions, Hotelling's F).</p>",
              f"<p>contours on edges: {result.fit.rms_start_px:.2f} px RMS at {given}, "
-             f"{result.fit.rms_px:.2f} px at the scene's. The scene's estimate's standard deviations about the "
+             f"{result.fit.rms_px:.2f} px at the scene's (along the rings, truncated at {min(STAGES_PX):g} px). The "
+             "scene's estimate's standard deviations about the "
              f"camera's x, y, z: {', '.join(f'{v:.2f}' for v in rot)} deg; along them: "
              f"{', '.join(f'{v:.1f}' for v in trans)} mm.</p>",
-             f"<p>Green: the image's edges; red: the LiDAR's contour returns under {given}; blue: under "
+             f"<p>Green: the image's edges square enough to the LiDAR's rings to meet its contours; red: the LiDAR's contour returns under {given}; blue: under "
              "the scene's estimate.</p>"]
     for view in result.views[:MAX_FRAMES]:
         name = f"check_{view.name}.jpg"

@@ -295,6 +295,8 @@ def print_check(result) -> None:
 
     from geometry.rotations import T_inverse, T_log
 
+    from ..solvers.scene_alignment import STAGES_PX
+
     t = result.test
     print(result.verdict.line)
     p = "undetermined" if t["p_value"] is None else f"p = {t['p_value']:.3g}"
@@ -311,7 +313,7 @@ def print_check(result) -> None:
     print(f"  its sd about the camera's x, y, z: ({', '.join(f'{v:.2f}' for v in rot)}) deg; along them: "
           f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
     print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
-          "at the scene's (truncated distances)")
+          f"at the scene's (along the rings, truncated at {min(STAGES_PX):g} px)")
     if result.rivals:
         deg, mm = result.rivals_spread()
         print(f"  {len(result.rivals)} other minima as low, up to {deg:.2f} deg and {mm:.0f} mm away (rival_minima in "

@@ -23,7 +23,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import transform_points
 
 from .. import __version__
-from ..camera.edge_map import TRUNCATE_PX, edge_distance, field_gradient
+from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
 from ..errors import DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
@@ -31,7 +31,8 @@ from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
-                                      minima_scatter, rival_minima, scene_minima, visible_from_camera)
+                                      minima_scatter, rival_minima, scene_minima, transverse_edges,
+                                      visible_from_camera)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -158,18 +159,27 @@ def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | No
     return cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0
 
 
+def frame_edges(gray: np.ndarray, T: np.ndarray, camera: CameraModel, board_mask: np.ndarray | None = None
+                ) -> EdgeMap:
+    """A frame's image edges square enough to the LiDAR's rings under ``T`` (``transverse_edges``), the board's
+    mask left out."""
+    uv, normals = edges_with_normals(gray, ignore=board_mask)
+    keep = transverse_edges(uv, normals, T, camera)
+    return EdgeMap.of(gray.shape[:2], uv[keep], normals[keep])
+
+
 def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: CameraModel,
                board_mask: np.ndarray | None = None, truncate_px: float = TRUNCATE_PX,
-               field: np.ndarray | None = None) -> SceneView:
-    """One frame's contour returns the camera sees under ``T_given`` and its edge field truncated at
-    ``truncate_px`` (``field``: that field, when made already), the board's mask left out of both."""
+               edges: EdgeMap | None = None) -> SceneView:
+    """One frame's contour returns the camera sees under ``T_given`` and its edges (:func:`frame_edges`, or
+    ``edges`` when made already), the board's mask left out of both; the residuals truncated at ``truncate_px``."""
     if sweep.ring is None:
         raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
                             "cannot be found along the beams")
-    edges = depth_edges(sweep.points, sweep.ring)
+    contours = depth_edges(sweep.points, sweep.ring)
     steps = beam_steps(sweep.points, sweep.ring)
     spacing = beam_spacing_px(sweep.points, sweep.ring, camera, steps)
-    P = edges.points[visible_from_camera(edges.points, sweep.points, T_given, camera, spacing_px=spacing)]
+    P = contours.points[visible_from_camera(contours.points, sweep.points, T_given, camera, spacing_px=spacing)]
     if board_mask is not None:
         uv = camera.project(transform_points(T_given, P))
         ok = np.all(np.isfinite(uv), axis=1)
@@ -178,9 +188,8 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
         v = np.clip(np.round(uv[ok, 1]).astype(int), 0, gray.shape[0] - 1)
         on[ok] = board_mask[v, u]
         P = P[~on]
-    field = edge_distance(gray, truncate_px, ignore=board_mask) if field is None else field
-    gu, gv = field_gradient(field)
-    return SceneView(name, P, field, gu, gv, truncate_px, steps[0])
+    edges = frame_edges(gray, T_given, camera, board_mask) if edges is None else edges
+    return SceneView(name, P, edges, truncate_px, steps[0])
 
 
 @dataclass(frozen=True, eq=False)

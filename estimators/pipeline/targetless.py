@@ -1,9 +1,10 @@
 """``lidarcam calibrate DATA --targetless --initial-guess T``: the extrinsic from the scene alone, no board.
 
 The scene's contours are laid on the image's edges (``solvers.scene_alignment``) starting from the guess: first
-on the edge fields truncated at ``COARSE_PX`` (a start a few degrees off lies tens of pixels from its edges), then
-on the check's own fields (``align_scene``: 20 px, then 6 px), the contours the camera sees recomputed under each
-stage's start. The same is done from ``PROBES`` starts about the guess (turned by ``PROBE_DEG`` about, or moved by
+by their plain distance to the nearest edge truncated at ``COARSE_PX`` (a start a few degrees off lies tens of
+pixels from its edges; that distance, unlike the residual along the ring, pulls from anywhere near an edge),
+then as the check does (``align_scene``: along the rings, truncated at 20 px, then 6 px), the contours the camera
+sees recomputed under each stage's start. The same is done from ``PROBES`` starts about the guess (turned by ``PROBE_DEG`` about, or moved by
 ``PROBE_M`` along, the camera's axes); the lowest end is the estimate, and from there the check's 13 starts
 (``scene_minima``) give its covariance (the block sandwich plus the scatter of the minima as low).
 
@@ -39,13 +40,13 @@ import numpy as np
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
 
 from .. import __version__
-from ..camera.edge_map import TRUNCATE_PX, edge_distance
+from ..camera.edge_map import TRUNCATE_PX
 from ..errors import DegenerateLayoutError
-from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, SceneFit, align_once, align_scene,
-                                      consistency, constrained_directions, minima_scatter, rival_minima, scene_minima,
-                                      stacked_residuals)
+from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_PX, SceneFit, align_once,
+                                      align_scene, consistency, constrained_directions, minima_scatter, narrowed,
+                                      rival_minima, scene_minima, stacked_residuals)
 from .result import CONVENTION, COVARIANCE_CONVENTION
-from .scene_check import COVARIANCE_EXCESS, SceneCheck, read_scene_frames, scene_view, too_few
+from .scene_check import COVARIANCE_EXCESS, SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
 
 COARSE_PX = (60.0,)
@@ -176,14 +177,14 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     t0 = time.perf_counter()
     T_guess = np.asarray(T_guess, float)
     root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
-    wide = max(COARSE_PX)
-    fields = {f.name: edge_distance(f.gray, wide, ignore=f.board_mask) for f in frames}
+    # The edges square to the rings under the guess (a few degrees turn them by a few degrees): made once.
+    edges = {f.name: frame_edges(f.gray, T_guess, camera, f.board_mask) for f in frames}
 
-    def views_at(T: np.ndarray, truncate_px: float) -> list:
+    def views_at(T: np.ndarray, truncate_px: float, chamfer: bool = False) -> list:
         out = []
         for f in frames:
-            v = scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px,
-                           np.minimum(fields[f.name], truncate_px))
+            v = scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px, edges[f.name])
+            v = replace(v, chamfer=chamfer)
             if len(v.points):
                 out.append(v)
         if len(out) < 2:
@@ -192,7 +193,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
 
     def refine(T: np.ndarray) -> SceneFit:
         for px in sorted(COARSE_PX, reverse=True):
-            T = align_once(views_at(T, px), camera, T, 60).T_camera_lidar
+            T = align_once(views_at(T, px, chamfer=True), camera, T, 60).T_camera_lidar
         return align_scene(views_at(T, TRUNCATE_PX), camera, T)
 
     ends = []
@@ -233,7 +234,8 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
                                     hint="give frames with objects at several distances and in every part of the "
                                          "image, or calibrate with a board")
     # The page's "RMS at the given extrinsic": the guess's, on the estimate's contours and fields.
-    at_guess = np.concatenate([r for r, _ in stacked_residuals(T_guess, views, camera, False)])
+    at_guess = np.concatenate([r for r, _ in stacked_residuals(T_guess, [narrowed(v, min(STAGES_PX)) for v in views],
+                                                               camera, False)])
     estimate = replace(estimate, rms_start_px=float(np.sqrt(np.mean(at_guess ** 2))))
     check = SceneCheck(str(root), T_guess, estimate, consistency(estimate, T_guess, covariance=cov),
                        tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,

@@ -2,11 +2,20 @@
 
 Each frame (``SceneView``) holds the LiDAR's contour returns (``lidar.depth_edges``) that the camera can see from
 its own centre (``visible_from_camera``: a z-buffer of the whole sweep seen from the camera, under the extrinsic
-given), and the image's truncated distance to its nearest edge (``camera.edge_map``). Under ``T_camera_lidar``
-each contour return's residual is that distance where it projects (the truncation where it leaves the image);
-``align_scene`` minimises their sum of squares over the extrinsic's six tangent directions (``T Exp(xi)``, the
-project's convention) by Levenberg-Marquardt with the Jacobian in closed form (the field's gradient times the
-projection's, ``CameraModel.project_jacobian``).
+given), and the image's edges (``camera.edge_map``). A contour return is where its ring crosses an object's
+silhouette: it says where along the ring the silhouette lies, not where along the silhouette the ring lies (a
+vertical edge seen by level rings fixes no height). So its residual is its distance along its ring's direction
+in the image to the nearest edge square enough to that direction (``ring_directions``; the edge's normal within
+``MIN_TRANSVERSE`` of it, ``transverse_edges``): the offset across that edge divided by the cosine between the
+edge's normal and the ring, and the truncation where it has no such edge within it (or lies beyond the nearest
+one's end, ``FOOT_PX``) or leaves the image. Measured
+as the distance to the nearest edge pixel in any direction, a silhouette's return was pulled along it towards
+the end of its image edge (a stand's foot, the same grey as the floor, had none) and towards edges the ring runs
+along (a wall meeting the floor): on simulated offices with the board left out, the scene's estimate was turned
+0.5-0.9 degrees about the camera's x axis and 20-45 mm off along its y, the truth flagged in most of them.
+``align_scene`` minimises the residuals' sum of squares over the extrinsic's six tangent directions
+(``T Exp(xi)``, the project's convention) by Levenberg-Marquardt with the Jacobian in closed form (the edge's
+normal over that cosine times the projection's derivative, ``CameraModel.project_jacobian``).
 
 Residuals are neither independent (a contour is many returns, an image edge many of its residuals) nor Gaussian
 (a truncated distance), and the frames of a still rig are not independent either: each one sees the same walls,
@@ -36,6 +45,8 @@ from scipy.stats import f as f_dist
 from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, T_log, T_retract, transform_points
 
+from ..camera.edge_map import EdgeMap
+
 from ..errors import DegenerateLayoutError
 
 # A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
@@ -48,6 +59,17 @@ RIVAL_RMS, RIVAL_D2 = 0.01, 22.46
 STAGES_PX = (6.0,)
 # The image cut into this many cells (across, down) for the covariance's blocks.
 BLOCKS = (8, 6)
+# An edge pixel serves a contour return when its normal lies within this cosine of the return's ring direction
+# in the image (the silhouette within 37 degrees of square to the ring): a range jump along a ring marks a
+# silhouette that crosses it, and an edge the ring runs along is not one.
+MIN_TRANSVERSE = 0.8
+# A contour return's nearest edge pixel measures it only where the return lies across the edge from it: its foot on
+# the edge's tangent line within FOOT_PX plus FOOT_SLOPE of its distance of the pixel (the nearest pixel by
+# OpenCV's 5x5 mask, and its normal, are a little off: 99% within that on straight and slanted edges); beyond an
+# edge's end the return has no edge.
+FOOT_PX, FOOT_SLOPE = 1.5, 0.2
+# Turned this far about the LiDAR's z axis (rad), a return gives its ring's direction in the image.
+RING_STEP_RAD = 1e-3
 # Contour returns of one structure lie within this distance from the spin axis of a neighbour of it (m).
 STRUCTURE_RANGE_M = 0.3
 # The z-buffer's cell (px) and how far behind the nearest return in its cell a contour return may lie (m).
@@ -56,16 +78,43 @@ ZBUFFER_CELL_PX, ZBUFFER_MARGIN_M = 4, 0.2
 
 @dataclass(frozen=True, eq=False)
 class SceneView:
-    """One frame: its name, the contour returns the camera sees (LiDAR frame, (N, 3)), the image's truncated edge
-    distance (px, (H, W)), that field's derivatives along u and v, and its truncation (px)."""
+    """One frame: its name, the contour returns the camera sees (LiDAR frame, (N, 3)), the image's edges square
+    enough to the rings (``camera.edge_map.EdgeMap``: ``transverse_edges``), and the residuals' truncation (px)."""
 
     name: str
     points: np.ndarray
-    field: np.ndarray
-    grad_u: np.ndarray
-    grad_v: np.ndarray
-    truncate_px: float = 0.0  # the field's truncation: a residual off the image
+    edges: EdgeMap
+    truncate_px: float = 0.0  # the residuals' truncation: no edge within it, or off the image
     azimuth_step: float = 0.0  # the sweep's azimuth step (rad; 0: unknown, no structure term)
+    # The plain distance to the nearest edge instead (any direction, up to an edge's end): a broad basin for a
+    # start several degrees off (a targetless calibration's first stage), biased near the answer.
+    chamfer: bool = False
+
+
+def ring_directions(T: np.ndarray, points: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``points`` (LiDAR frame) project under ``T`` and their rings' unit directions there (each point
+    turned by ``RING_STEP_RAD`` about the LiDAR's z axis): ``(uv (N, 2), d (N, 2))``, NaN where a point does not
+    project."""
+    P = np.asarray(points, float).reshape(-1, 3)
+    c, s = np.cos(RING_STEP_RAD), np.sin(RING_STEP_RAD)
+    turned = np.column_stack([c * P[:, 0] - s * P[:, 1], s * P[:, 0] + c * P[:, 1], P[:, 2]])
+    uv = camera.project(transform_points(T, P))
+    d = camera.project(transform_points(T, turned)) - uv
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return uv, d
+
+
+def transverse_edges(edges: np.ndarray, normals: np.ndarray, T: np.ndarray, camera: CameraModel,
+                     depth_m: float = 5.0) -> np.ndarray:
+    """Which edge pixels (``edges`` (M, 2), their unit ``normals``) lie square enough (``MIN_TRANSVERSE``) to the
+    LiDAR's rings under ``T``: the ring's direction at each pixel from the point ``depth_m`` along its viewing
+    ray (the direction barely changes with the depth). A bool per edge pixel."""
+    if len(edges) == 0:
+        return np.zeros(0, bool)
+    P = transform_points(T_inverse(T), camera.rays(edges) * depth_m)
+    _, d = ring_directions(T, P, camera)
+    return np.abs(np.sum(normals * d, axis=1)) >= MIN_TRANSVERSE
 
 
 def beam_steps(sweep: np.ndarray, ring: np.ndarray) -> tuple[float, float]:
@@ -162,23 +211,11 @@ def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: n
     return seen
 
 
-def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` at ``uv`` (inside the image), in double precision (OpenCV's ``remap`` rounds
-    the position to 1/32 px, which makes the sum of squares a staircase)."""
-    h, w = img.shape
-    u, v = uv[:, 0], uv[:, 1]
-    u0 = np.clip(np.floor(u).astype(np.int64), 0, w - 2)
-    v0 = np.clip(np.floor(v).astype(np.int64), 0, h - 2)
-    fu, fv = u - u0, v - v0
-    top = (1 - fu) * img[v0, u0] + fu * img[v0, u0 + 1]
-    bottom = (1 - fu) * img[v0 + 1, u0] + fu * img[v0 + 1, u0 + 1]
-    return (1 - fv) * top + fv * bottom
-
-
 def view_residuals(T: np.ndarray, view: SceneView, camera: CameraModel, jacobian: bool = True
                    ) -> tuple[np.ndarray, np.ndarray | None]:
-    """One frame's residuals under ``T`` (each contour return's edge distance, px; the truncation outside the
-    image) and their Jacobian by ``T``'s right tangent (N, 6), or None."""
+    """One frame's residuals under ``T`` (each contour return's distance along its ring to its edge, px; the
+    truncation where it has none or leaves the image) and their Jacobian by ``T``'s right tangent (N, 6), or
+    None."""
     return stacked_residuals(T, [view], camera, jacobian)[0]
 
 
@@ -204,30 +241,49 @@ class SceneFit:
 def stacked_residuals(T: np.ndarray, views: list[SceneView], camera: CameraModel, jacobian: bool = True
                       ) -> list[tuple[np.ndarray, np.ndarray | None]]:
     """Every view's :func:`view_residuals` under ``T``, as a list of (residuals, Jacobian or None): the frames'
-    returns projected together (one projection, one Jacobian product), each sampled in its own field."""
+    returns projected together (one projection, one Jacobian product), each measured on its own edges."""
     sizes = [len(v.points) for v in views]
     P = np.concatenate([v.points for v in views]) if views else np.zeros((0, 3))
-    pc = transform_points(T, P)
-    uv = camera.project(pc)
+    uv, d = ring_directions(T, P, camera)
     r = np.concatenate([np.full(n, v.truncate_px) for n, v in zip(sizes, views)]) if views else np.zeros(0)
-    g = np.zeros((len(P), 2))
-    ok = np.all(np.isfinite(uv), axis=1)
+    slope = np.zeros((len(P), 2))  # the residual's derivative by the pixel: the normal over its cosine
+    ok = np.zeros(len(P), bool)
     start = 0
     for n, v in zip(sizes, views):
-        h, w = v.field.shape
         sl = slice(start, start + n)
-        inside = ok[sl] & (uv[sl, 0] >= 0) & (uv[sl, 1] >= 0) & (uv[sl, 0] <= w - 1) & (uv[sl, 1] <= h - 1)
-        ok[sl] = inside
-        at = uv[sl][inside]
-        r[sl][inside] = _sample(v.field, at)
-        if jacobian and len(at):
-            g[sl][inside] = np.column_stack([_sample(v.grad_u, at), _sample(v.grad_v, at)])
         start += n
+        h, w = v.edges.nearest.shape
+        at, dd = uv[sl], d[sl]
+        inside = np.all(np.isfinite(at), axis=1) & np.all(np.isfinite(dd), axis=1) & (at[:, 0] >= 0) & \
+            (at[:, 1] >= 0) & (at[:, 0] <= w - 1) & (at[:, 1] <= h - 1)
+        k = np.flatnonzero(inside)
+        pu, pv = np.rint(at[k, 0]).astype(np.int64), np.rint(at[k, 1]).astype(np.int64)
+        e = v.edges.nearest[pv, pu]
+        has = (e >= 0) & (v.edges.distance[pv, pu] <= v.truncate_px)
+        k, e = k[has], e[has]
+        nrm, off = v.edges.normals[e], at[k] - v.edges.edges[e]
+        if v.chamfer:
+            dist = np.hypot(off[:, 0], off[:, 1])
+            r[sl][k] = dist
+            slope[sl][k] = off / np.maximum(dist, 1e-9)[:, None]
+            ok[sl][k] = dist > 0
+            continue
+        cos = np.sum(nrm * dd[k], axis=1)
+        foot = np.abs(nrm[:, 0] * off[:, 1] - nrm[:, 1] * off[:, 0])
+        across = (np.abs(cos) >= MIN_TRANSVERSE) & (foot <= FOOT_PX + FOOT_SLOPE * np.hypot(off[:, 0], off[:, 1]))
+        k, nrm, off, cos = k[across], nrm[across], off[across], cos[across]
+        along = np.sum(nrm * off, axis=1) / cos
+        near = np.abs(along) < v.truncate_px
+        k = k[near]
+        r[sl][k] = along[near]
+        slope[sl][k] = nrm[near] / cos[near, None]
+        ok[sl][k] = True
     J = None
     if jacobian:
         J = np.zeros((len(P), 6))
         if ok.any():
-            _, duv = camera.project_jacobian(pc[ok])  # the projection's derivative by the camera-frame point
+            pc = transform_points(T, P[ok])
+            _, duv = camera.project_jacobian(pc)  # the projection's derivative by the camera-frame point
             R = T[:3, :3]
             p = P[ok]
             # d p_c / d xi for T Exp(xi) p: rotation -R [p]x, translation R.
@@ -235,18 +291,14 @@ def stacked_residuals(T: np.ndarray, views: list[SceneView], camera: CameraModel
             skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
             skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
             dp = np.concatenate([-R @ skew, np.broadcast_to(R, (len(p), 3, 3))], axis=2)  # (n, 3, 6)
-            J[ok] = np.einsum("ni,nij,njk->nk", g[ok], np.nan_to_num(duv), dp)
+            J[ok] = np.einsum("ni,nij,njk->nk", slope[ok], np.nan_to_num(duv), dp)
     bounds = np.cumsum([0, *sizes])
     return [(r[a:b], None if J is None else J[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def narrowed(view: SceneView, truncate_px: float) -> SceneView:
-    """The view with its edge field truncated nearer (``truncate_px``)."""
-    from ..camera.edge_map import field_gradient
-
-    field = np.minimum(view.field, truncate_px)
-    return SceneView(view.name, view.points, field, *field_gradient(field), min(truncate_px, view.truncate_px),
-                     view.azimuth_step)
+    """The view with its residuals truncated nearer (``truncate_px``)."""
+    return replace(view, truncate_px=min(truncate_px, view.truncate_px))
 
 
 def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60,
@@ -261,22 +313,29 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
     A :class:`DegenerateLayoutError` with fewer than two frames or no contour in view."""
     stages = stages if stages is not None else [[narrowed(v, px) for v in views] for px in STAGES_PX]
     fit = align_once(views, camera, T_start, max_evaluations)
-    first, converged = fit, fit.converged
+    converged = fit.converged
     for narrow in stages:
         fit = align_once(narrow, camera, fit.T_camera_lidar, max_evaluations)
         converged = converged and fit.converged
     if stages and narrow_from_start:
-        near = align_once(stages[-1], camera, T_start, max_evaluations)
-        if near.rms_px < fit.rms_px:
+        try:
+            near = align_once(stages[-1], camera, T_start, max_evaluations)
+        except DegenerateLayoutError:  # no contour within the narrowest truncation of its edge from there
+            near = None
+        if near is not None and near.rms_px < fit.rms_px:
             fit, converged = near, near.converged
-    return replace(fit, rms_start_px=first.rms_start_px, moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar),
-                   converged=converged)
+    # at the start on the narrowest truncation too, so that the two compare
+    at_start = np.concatenate([r for r, _ in stacked_residuals(T_start, stages[-1] if stages else views, camera,
+                                                               False)])
+    return replace(fit, rms_start_px=float(np.sqrt(np.mean(at_start ** 2))),
+                   moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar), converged=converged)
 
 
 def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarray, narrow_from_every_start: bool = False
                  ) -> list[SceneFit]:
     """The scene's estimates from ``T_given`` and from it turned by ``START_DEG`` about, and moved by ``START_M``
-    along, each of the camera's axes (13 starts), lowest RMS residual first: a cost with one minimum near the given
+    along, each of the camera's axes (13 starts; one from which too few contours meet their edges to solve is
+    dropped), lowest RMS residual first: a cost with one minimum near the given
     extrinsic gives them all alike; one that leaves the extrinsic undetermined scatters them. The narrowest field
     alone is also solved from ``T_given`` (``align_scene``), and from every start with
     ``narrow_from_every_start`` (a targetless start's neighbourhood: the wide field's minimum can lie tens of
@@ -291,8 +350,16 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
             starts.append(T_from_Rt(R_from_rotvec(np.radians(START_DEG) * e), np.zeros(3)) @ T_given)
             starts.append(T_from_Rt(np.eye(3), START_M * e) @ T_given)
     stages = [[narrowed(v, px) for v in views] for px in STAGES_PX]
-    return sorted((align_scene(views, camera, T, stages=stages, narrow_from_start=narrow_from_every_start
-                               or T is T_given) for T in starts), key=lambda f: f.rms_px)
+    fits = []
+    for T in starts:
+        try:
+            fits.append(align_scene(views, camera, T, stages=stages,
+                                    narrow_from_start=narrow_from_every_start or T is T_given))
+        except DegenerateLayoutError:
+            if T is T_given:
+                raise
+            # a start from which too few contours meet their edges to solve: it finds no minimum
+    return sorted(fits, key=lambda f: f.rms_px)
 
 
 def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
@@ -340,6 +407,9 @@ def align_once(views: list[SceneView], camera: CameraModel, T_start: np.ndarray,
     H = sum(J.T @ J for _, J in parts)
     g = _block_gradients(T, views, parts, camera)
     n = len(g)
+    if n < 2:
+        raise DegenerateLayoutError(f"the scene's contours meet their edges in {n} image block(s): too few to "
+                                    "weigh them", hint="give frames with objects at several distances in view of both")
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
