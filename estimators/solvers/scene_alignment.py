@@ -106,15 +106,19 @@ def ring_directions(T: np.ndarray, points: np.ndarray, camera: CameraModel) -> t
 
 
 def transverse_edges(edges: np.ndarray, normals: np.ndarray, T: np.ndarray, camera: CameraModel,
-                     depth_m: float = 5.0) -> np.ndarray:
+                     depth_m: float = 5.0, cell_px: int = 16) -> np.ndarray:
     """Which edge pixels (``edges`` (M, 2), their unit ``normals``) lie square enough (``MIN_TRANSVERSE``) to the
-    LiDAR's rings under ``T``: the ring's direction at each pixel from the point ``depth_m`` along its viewing
-    ray (the direction barely changes with the depth). A bool per edge pixel."""
+    LiDAR's rings under ``T``: the ring's direction from the point ``depth_m`` along the viewing ray through the
+    centre of the pixel's ``cell_px`` cell (the direction changes slowly across the image and barely with the
+    depth). A bool per edge pixel."""
     if len(edges) == 0:
         return np.zeros(0, bool)
-    P = transform_points(T_inverse(T), camera.rays(edges) * depth_m)
-    _, d = ring_directions(T, P, camera)
-    return np.abs(np.sum(normals * d, axis=1)) >= MIN_TRANSVERSE
+    cells = np.floor(np.asarray(edges, float) / cell_px).astype(np.int64)
+    wide = int(cells[:, 0].max()) + 1
+    unique, which = np.unique(cells[:, 1] * wide + cells[:, 0], return_inverse=True)
+    centres = (np.column_stack([unique % wide, unique // wide]) + 0.5) * cell_px
+    _, d = ring_directions(T, transform_points(T_inverse(T), camera.rays(centres) * depth_m), camera)
+    return np.abs(np.sum(normals * d[which.reshape(-1)], axis=1)) >= MIN_TRANSVERSE
 
 
 def beam_steps(sweep: np.ndarray, ring: np.ndarray) -> tuple[float, float]:
