@@ -107,9 +107,9 @@ def main() -> None:
     print(f"{a.scenes} simulated scenes per generator ({', '.join(generators)}) of 10 board poses (VLP-16- and "
           "64-beam LiDARs in turn), calibrated from the boards (Laplace covariance) and given the scene's term (the "
           "board left out)\n")
-    print("| scenes | LiDAR | count | joined | CHECK: disagree along weak | CHECK: over every direction only | undecided "
-          f"(rivals) | not formed | boards' sd along weak (median) | joint's (median) | boards moved {SHIFT_MM} mm: "
-          "CHECK / joined |")
+    print("| scenes | LiDAR | count | joined | CHECK: disagree along weak | CHECK: over every direction only | "
+          f"undecided (rivals) | not formed | boards' sd along weak (median) | joint's (median) | boards moved "
+          f"{SHIFT_MM} mm: CHECK / joined |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     configs = [(g, m) for g in generators for m in MODELS]
     for g, m in configs:

@@ -49,12 +49,11 @@ def write_check_page(result, out: str | Path, page_name: str = "check.html", ver
              f"{'' if verdict_of is None else 'the initial guess '}consistent: "
              f"{result.consistent}; p = {p} ({t['dof']} constrained directions, Hotelling's F).</p>",
              f"<p>contours on edges: {result.fit.rms_start_px:.2f} px RMS at {given}, "
-             f"{result.fit.rms_px:.2f} px at the scene's (along the rings, truncated at {min(STAGES_PX):g} px). The "
-             "scene's estimate's standard deviations about the "
-             f"camera's x, y, z: {', '.join(f'{v:.2f}' for v in rot)} deg; along them: "
-             f"{', '.join(f'{v:.1f}' for v in trans)} mm.</p>",
-             f"<p>Green: the image's edges square enough to the LiDAR's rings to meet its contours; red: the LiDAR's contour returns under {given}; blue: under "
-             "the scene's estimate.</p>"]
+             f"{result.fit.rms_px:.2f} px at the scene's (along the rings, truncated at {min(STAGES_PX):g} px). "
+             f"The scene's estimate's standard deviations about the camera's x, y, z: "
+             f"{', '.join(f'{v:.2f}' for v in rot)} deg; along them: {', '.join(f'{v:.1f}' for v in trans)} mm.</p>",
+             "<p>Green: the image's edges square enough to the LiDAR's rings to meet its contours; red: the LiDAR's "
+             f"contour returns under {given}; blue: under the scene's estimate.</p>"]
     for view in result.views[:MAX_FRAMES]:
         name = f"check_{view.name}.jpg"
         ok, jpg = cv2.imencode(".jpg", _overlay(result, view), [cv2.IMWRITE_JPEG_QUALITY, 90])

@@ -4,9 +4,10 @@ The scene's contours are laid on the image's edges (``solvers.scene_alignment``)
 by their plain distance to the nearest edge truncated at ``COARSE_PX`` (a start a few degrees off lies tens of
 pixels from its edges; that distance, unlike the residual along the ring, pulls from anywhere near an edge),
 then as the check does (``align_scene``: along the rings, truncated at 20 px, then 6 px), the contours the camera
-sees recomputed under each stage's start. The same is done from ``PROBES`` starts about the guess (turned by ``PROBE_DEG`` about, or moved by
-``PROBE_M`` along, the camera's axes); the lowest end is the estimate, and from there the check's 13 starts
-(``scene_minima``) give its covariance (the block sandwich plus the scatter of the minima as low).
+sees recomputed under each stage's start. The same is done from ``PROBES`` starts about the guess (turned by
+``PROBE_DEG`` about, or moved by ``PROBE_M`` along, the camera's axes); the lowest end is the estimate, and from
+there the check's 13 starts (``scene_minima``) give its covariance (the block sandwich plus the scatter of the
+minima as low).
 
 Refused (a :class:`DegenerateLayoutError`, nothing written), never returned as converged:
 

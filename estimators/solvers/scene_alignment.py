@@ -8,11 +8,10 @@ vertical edge seen by level rings fixes no height). So its residual is its dista
 in the image to the nearest edge square enough to that direction (``ring_directions``; the edge's normal within
 ``MIN_TRANSVERSE`` of it, ``transverse_edges``): the offset across that edge divided by the cosine between the
 edge's normal and the ring, and the truncation where it has no such edge within it (or lies beyond the nearest
-one's end, ``FOOT_PX``) or leaves the image. Measured
-as the distance to the nearest edge pixel in any direction, a silhouette's return was pulled along it towards
-the end of its image edge (a stand's foot, the same grey as the floor, had none) and towards edges the ring runs
-along (a wall meeting the floor): on simulated offices with the board left out, the scene's estimate was turned
-0.5-0.9 degrees about the camera's x axis and 20-45 mm off along its y, the truth flagged in most of them.
+one's end, ``FOOT_PX``) or leaves the image. (Measured to the nearest edge pixel in any direction, returns were
+pulled along silhouettes towards the ends of their image edges, a stand's foot the grey of the floor having
+none, and onto edges the rings run along, a wall meeting the floor: on simulated offices with the board left
+out the scene's estimate leant 0.5-0.9 degrees about the camera's x axis and 20-45 mm along its y.)
 ``align_scene`` minimises the residuals' sum of squares over the extrinsic's six tangent directions
 (``T Exp(xi)``, the project's convention) by Levenberg-Marquardt with the Jacobian in closed form (the edge's
 normal over that cosine times the projection's derivative, ``CameraModel.project_jacobian``).
@@ -46,7 +45,6 @@ from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, T_log, T_retract, transform_points
 
 from ..camera.edge_map import EdgeMap
-
 from ..errors import DegenerateLayoutError
 
 # A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
