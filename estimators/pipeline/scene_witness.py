@@ -9,8 +9,9 @@ The scene's term is its translation along the boards' weak direction (their larg
 deviation, in the camera's axes): the one number the boards leave least decided, as the scene gives it with its
 rotation's share of its variance. It is joined to the graph at its linearisation (``solvers.scene_term``: the
 joint covariance of every sensor's pose, and the posterior's samples, moved with it). Not the scene's whole
-estimate: on simulated offices its rotation is 0.3-1.5 degrees off with a covariance that admits a fifth of
-that, and joined in full it moved the boards' estimate away from the truth (docs/bench/scene_joint.md).
+estimate: on simulated offices its rotation was 0.3-1.5 degrees off with a covariance that admitted a fifth of
+that (before each contour was measured along its ring), and joined in full it moved the boards' estimate away
+from the truth (docs/bench/scene_joint.md).
 
 Two tests, each Hotelling's F on the scene's blocks at ``ALPHA``: along the weak direction (the term's own) and
 over every direction the scene constrains. Where either fails, the scene and the boards disagree, and one of

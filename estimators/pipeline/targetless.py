@@ -95,7 +95,7 @@ class TargetlessResult:
                                        "covariance's excess): the scene's "
                                        "cost leads each half elsewhere",))
         return Verdict(CHECK, ("targetless: the scene's covariance (scaled by its excess on simulated rooms) covers "
-                               "the typical error there but not the tail, a fifth of the rooms beyond its 99% region "
+                               "the typical error there but not the tail, a tenth of the rooms beyond its 99% region "
                                "(docs/bench/scene_check.md): check the estimate against a board calibration where "
                                "one is at hand",))
 
