@@ -46,15 +46,13 @@ def _power(covariance: np.ndarray, blocks: int, xi: np.ndarray, alpha: float = 0
     ``xi' C^-1 xi`` over them."""
     from scipy.stats import f, ncf
 
-    from estimators.solvers.scene_alignment import CONSTRAINED, constrained_directions
+    from estimators.solvers.scene_alignment import constrained_distance
 
-    V, lam = constrained_directions(covariance, CONSTRAINED)
-    k, n = V.shape[1], blocks
+    d2, k = constrained_distance(covariance, xi)
+    n = blocks
     if k == 0 or n <= k:
         return float("nan")
-    s = np.r_[np.full(3, 1.0 / CONSTRAINED[0]), np.full(3, 1.0 / CONSTRAINED[1])]
-    z = V.T @ (s * xi)
-    return float(ncf.sf(f.isf(alpha, k, n - k), k, n - k, float(np.sum(z ** 2 / lam))))
+    return float(ncf.sf(f.isf(alpha, k, n - k), k, n - k, d2))
 
 
 def _trial(job: tuple[str, int]) -> list[dict]:

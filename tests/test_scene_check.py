@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from estimators.camera.edge_map import EdgeMap, edges_with_normals
 from estimators.cli import main
 from estimators.lidar.depth_edges import depth_edges
+from estimators.pipeline.scene_check import frame_edges
 from estimators.simulation.simulator import simulate_dataset
-from estimators.solvers.scene_alignment import SceneView, transverse_edges, view_residuals, visible_from_camera
+from estimators.solvers.scene_alignment import SceneView, view_residuals, visible_from_camera
 from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, T_retract
 
@@ -65,9 +65,7 @@ def _points_at(uvz: np.ndarray) -> np.ndarray:
 
 
 def _view(img: np.ndarray, p_l: np.ndarray, truncate_px: float = 40.0) -> SceneView:
-    uv, normals = edges_with_normals(img)
-    keep = transverse_edges(uv, normals, T_CL, CAMERA)
-    return SceneView("a", p_l, EdgeMap.of(img.shape, uv[keep], normals[keep]), truncate_px)
+    return SceneView("a", p_l, frame_edges(img, T_CL, CAMERA), truncate_px)
 
 
 def test_the_residuals_jacobian_is_the_numerical_one():

@@ -45,7 +45,7 @@ from ..camera.edge_map import TRUNCATE_PX
 from ..errors import DegenerateLayoutError
 from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_PX, SceneFit, align_once,
                                       align_scene, consistency, constrained_directions, minima_scatter, narrowed,
-                                      rival_minima, scene_minima, stacked_residuals)
+                                      rival_minima, rms_px, scene_minima)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .scene_check import COVARIANCE_EXCESS, SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
@@ -235,9 +235,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
                                     hint="give frames with objects at several distances and in every part of the "
                                          "image, or calibrate with a board")
     # The page's "RMS at the given extrinsic": the guess's, on the estimate's contours and fields.
-    at_guess = np.concatenate([r for r, _ in stacked_residuals(T_guess, [narrowed(v, min(STAGES_PX)) for v in views],
-                                                               camera, False)])
-    estimate = replace(estimate, rms_start_px=float(np.sqrt(np.mean(at_guess ** 2))))
+    estimate = replace(estimate, rms_start_px=rms_px(T_guess, [narrowed(v, min(STAGES_PX)) for v in views], camera))
     check = SceneCheck(str(root), T_guess, estimate, consistency(estimate, T_guess, covariance=cov),
                        tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
                        time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)

@@ -298,6 +298,12 @@ def stacked_residuals(T: np.ndarray, views: list[SceneView], camera: CameraModel
     return [(r[a:b], None if J is None else J[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def rms_px(T: np.ndarray, views: list[SceneView], camera: CameraModel) -> float:
+    """The views' RMS residual under ``T`` (px)."""
+    r = np.concatenate([r for r, _ in stacked_residuals(T, views, camera, False)])
+    return float(np.sqrt(np.mean(r ** 2)))
+
+
 def narrowed(view: SceneView, truncate_px: float) -> SceneView:
     """The view with its residuals truncated nearer (``truncate_px``)."""
     return replace(view, truncate_px=min(truncate_px, view.truncate_px))
@@ -327,9 +333,7 @@ def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray
         if near is not None and near.rms_px < fit.rms_px:
             fit, converged = near, near.converged
     # at the start on the narrowest truncation too, so that the two compare
-    at_start = np.concatenate([r for r, _ in stacked_residuals(T_start, stages[-1] if stages else views, camera,
-                                                               False)])
-    return replace(fit, rms_start_px=float(np.sqrt(np.mean(at_start ** 2))),
+    return replace(fit, rms_start_px=rms_px(T_start, stages[-1] if stages else views, camera),
                    moved=T_log(T_inverse(T_start) @ fit.T_camera_lidar), converged=converged)
 
 
@@ -464,6 +468,16 @@ def minima_scatter(fits: list[SceneFit]) -> np.ndarray:
     return sum(np.outer(x, x) for x in xis) / len(xis)
 
 
+def constrained_distance(covariance: np.ndarray, xi: np.ndarray, limits: tuple[float, float] = CONSTRAINED
+                         ) -> tuple[float, int]:
+    """The squared distance of the difference ``xi`` (tangent) under ``covariance`` over the directions it
+    constrains (:func:`constrained_directions`), and how many those are."""
+    V, lam = constrained_directions(covariance, limits)
+    s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
+    z = V.T @ (s * xi)
+    return float(np.sum(z ** 2 / lam)), int(V.shape[1])
+
+
 def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] = CONSTRAINED,
                 covariance: np.ndarray | None = None) -> dict:
     """Whether ``T_given`` agrees with the scene's estimate: the squared distance over the constrained directions
@@ -471,15 +485,12 @@ def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] 
     values when the scene constrains no direction or has too few blocks (n <= k). ``covariance``: the one to
     test against (default the fit's)."""
     xi = T_log(T_inverse(fit.T_camera_lidar) @ T_given)
-    V, lam = constrained_directions(fit.covariance if covariance is None else covariance, limits)
-    s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
-    k, n = V.shape[1], fit.blocks
+    d2, k = constrained_distance(fit.covariance if covariance is None else covariance, xi, limits)
+    n = fit.blocks
     out = {"difference_tangent": xi.tolist(), "dof": int(k), "blocks": int(n), "d2": None, "F": None,
            "p_value": None}
     if k == 0 or n <= k:
         return out
-    z = V.T @ (s * xi)
-    d2 = float(np.sum(z ** 2 / lam))
     F = d2 * (n - k) / (k * (n - 1))
     out.update(d2=d2, F=F, p_value=float(f_dist.sf(F, k, n - k)))
     return out
