@@ -233,8 +233,6 @@ def print_rig(result) -> None:
 def _print_scene_witness(w) -> None:
     """``calibrate --scene``'s record (``pipeline.scene_witness.SceneWitness``): the boards', the scene's and the
     joint estimates along the boards' weak direction, their test, and whether the term was joined."""
-    from ..pipeline.scene_check import COVARIANCE_EXCESS
-
     name = f"T_{w.camera}_{w.lidar}"
     if w.problem is not None:
         print(f"the scene's term for {name}: not formed ({w.problem})")
@@ -248,7 +246,8 @@ def _print_scene_witness(w) -> None:
     tests = [f"{t.p_value:.3g} along it" for t in (w.term,) if t is not None]
     tests += [f"{t.p_value:.3g} over its {t.dof} constrained directions" for t in (w.overall,) if t is not None]
     if tests:
-        print(f"  boards against scene (the scene's covariance x{COVARIANCE_EXCESS:g}): p = " + ", ".join(tests))
+        scale = f" x{w.check.excess:g}" if w.check.excess != 1 else ""
+        print(f"  boards against scene (the scene's covariance{scale}): p = " + ", ".join(tests))
     print("  joined: the estimates above are the joint one's" if w.joined else f"  not joined: {w.reason}")
 
 

@@ -2,8 +2,9 @@
 
 The boards' estimate (planes, edges, range terms: the graph's, or its posterior's) is checked against the scene
 (``scene_check.check_scene``, the board left out so that the scene is a witness independent of the boards): the
-scene's estimate near it, with its covariance (the blocks' sandwich plus the scatter of minima as low) scaled by
-``COVARIANCE_EXCESS``, the excess the scene's covariance shows on simulated rooms.
+scene's estimate near it (the minimum sought from the boards' estimate unless another fits the scene significantly
+better, ``scene_alignment.nearest_decided``), with its covariance (the blocks' sandwich plus the scatter of minima
+as low).
 
 The scene's term is its translation along the boards' weak direction (their largest translation standard
 deviation, in the camera's axes): the one number the boards leave least decided, as the scene gives it with its
@@ -37,7 +38,7 @@ from ..io.rig_dataset import is_rig
 from ..solvers.rig_graph import pair_transform
 from ..solvers.scene_term import JoinedTerm, join_pair_measurement, join_pair_translation
 from .result import COVARIANCE_CONVENTION
-from .scene_check import ALPHA, COVARIANCE_EXCESS, SceneCheck, check_scene
+from .scene_check import ALPHA, SceneCheck, check_scene
 from .verdict import CHECK
 
 
@@ -86,7 +87,7 @@ class SceneWitness:
 
     @property
     def C_scene(self) -> np.ndarray | None:
-        """The scene's covariance as joined: the check's as it believes it (scaled by ``COVARIANCE_EXCESS``)."""
+        """The scene's covariance as joined: the check's as it believes it (``SceneCheck.believed_covariance``)."""
         return None if self.check is None else self.check.believed_covariance
 
     def weak_direction(self) -> np.ndarray:
@@ -119,7 +120,8 @@ class SceneWitness:
     def to_dict(self) -> dict:
         out = {"joined": self.joined, "reason": self.reason, "problem": self.problem,
                "T_camera_lidar_boards": self.T_boards.tolist(), "covariance_boards": self.C_boards.tolist(),
-               "covariance_convention": COVARIANCE_CONVENTION, "covariance_excess": COVARIANCE_EXCESS,
+               "covariance_convention": COVARIANCE_CONVENTION,
+               "covariance_excess": None if self.check is None else self.check.excess,
                "weak_direction_camera": self.weak_direction().tolist(),
                "along_weak_direction_mm": [{"estimate": w, "mm": v, "sd_mm": s} for w, v, s in self.along_weak()]}
         if self.check is not None:

@@ -28,7 +28,7 @@ otherwise.
 The board, where the folder has one and the camera finds it, is left out as in the check (``keep_board`` keeps
 it). The covariance is the scene's Laplace one (no sampled posterior: the residuals are neither Gaussian nor
 independent, and the blocks' sandwich stands in for their likelihood) times ``COVARIANCE_EXCESS``; on simulated
-rooms it then covers the typical error but not the tail (docs/bench/scene_check.md), which the verdict says.
+rooms it then covers the typical error but not the tail (docs/bench/targetless.md), which the verdict says.
 """
 from __future__ import annotations
 
@@ -47,9 +47,15 @@ from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_
                                       align_scene, consistency, constrained_directions, minima_scatter, narrowed,
                                       rival_minima, rms_px, scene_minima)
 from .result import CONVENTION, COVARIANCE_CONVENTION
-from .scene_check import COVARIANCE_EXCESS, SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
+from .scene_check import SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
 
+# A targetless estimate's covariance is smaller than its errors: the lowest of many starts' minima, it can lie
+# at another minimum than the truth's (a check's, the minimum sought from the given extrinsic, needs no excess).
+# On simulated rooms, with the lowest minimum as the estimate, its NEES had median 12 (64 beams) where 6 is honest
+# (seeds 0-39); its covariance is scaled by this, and docs/bench/targetless.md says how it then covers (seeds
+# 100-123).
+COVARIANCE_EXCESS = 2.0
 COARSE_PX = (60.0,)
 PROBE_DEG, PROBE_M = 2.0, 0.10
 PROBES = 6  # the guess turned about each camera axis by +-PROBE_DEG alternately, then moved along each
@@ -238,7 +244,8 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     estimate = replace(estimate, rms_start_px=rms_px(T_guess, [narrowed(v, min(STAGES_PX)) for v in views], camera))
     check = SceneCheck(str(root), T_guess, estimate, consistency(estimate, T_guess, covariance=cov),
                        tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
-                       time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov)
+                       time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov,
+                       excess=COVARIANCE_EXCESS)
     halves = _halves(views, camera, estimate.T_camera_lidar)
     return TargetlessResult(T_guess, check, tuple((s, f.T_camera_lidar, f.rms_px) for s, f in ends),
                             time.perf_counter() - t0, halves)

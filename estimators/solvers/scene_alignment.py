@@ -30,8 +30,10 @@ variance step^2 / 12, is added to the sandwich's meat (``structure_information``
 level and is noisy with few blocks: the test against a given extrinsic (``consistency``) reads the squared
 distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``, ``F(k, n - k)``, n blocks), over the ``k`` directions
 the scene constrains (standard deviations within ``CONSTRAINED``). The cost can have several minima about as low
-(``scene_minima`` seeks them from 13 starts): the scatter of those as low as the best (``minima_scatter``) is what
-the best one's covariance does not see.
+(``scene_minima`` seeks them from 13 starts): the scatter of those as low as the estimate (``minima_scatter``) is
+what its covariance does not see. A check's estimate is the minimum sought from the given extrinsic unless another
+fits the scene significantly better over the blocks (``nearest_decided``, ``better_fit``): the lowest RMS alone
+rewards a minimum that drags contours without an image edge of their own onto the ends of others' edges.
 """
 from __future__ import annotations
 
@@ -53,6 +55,9 @@ CONSTRAINED = (np.radians(1.0), 0.10)
 # this share of the best's RMS residual and beyond its covariance's 0.999 region (chi-square, 6 dof) is a rival.
 START_DEG, START_M = 1.0, 0.05
 RIVAL_RMS, RIVAL_D2 = 0.01, 22.46
+# A check's estimate is the minimum sought from the given extrinsic unless another fits the scene better at this
+# one-sided level (``nearest_decided``).
+BETTER_ALPHA = 0.05
 # The later solves' truncations of the edge fields (px), each from the one before.
 STAGES_PX = (6.0,)
 # The image cut into this many cells (across, down) for the covariance's blocks.
@@ -238,6 +243,7 @@ class SceneFit:
     rms_px: float
     moved: np.ndarray
     converged: bool
+    start: int = 0  # which of ``scene_minima``'s starts it was sought from (0: the given extrinsic)
 
 
 def stacked_residuals(T: np.ndarray, views: list[SceneView], camera: CameraModel, jacobian: bool = True
@@ -357,10 +363,10 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
             starts.append(T_from_Rt(np.eye(3), START_M * e) @ T_given)
     stages = [[narrowed(v, px) for v in views] for px in STAGES_PX]
     fits = []
-    for T in starts:
+    for i, T in enumerate(starts):
         try:
-            fits.append(align_scene(views, camera, T, stages=stages,
-                                    narrow_from_start=narrow_from_every_start or T is T_given))
+            fits.append(replace(align_scene(views, camera, T, stages=stages,
+                                            narrow_from_start=narrow_from_every_start or T is T_given), start=i))
         except DegenerateLayoutError:
             if T is T_given:
                 raise
@@ -368,10 +374,56 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
     return sorted(fits, key=lambda f: f.rms_px)
 
 
+def block_costs(T: np.ndarray, views: list[SceneView], camera: CameraModel, T_blocks: np.ndarray) -> np.ndarray:
+    """Each image block's sum of squared residuals under ``T`` (``BLOCKS`` cells, every frame's together), each
+    return put in the block where it lands under ``T_blocks`` (one assignment for every candidate compared)."""
+    nu, nv = BLOCKS
+    acc = np.zeros(nu * nv)
+    for view, (r, _) in zip(views, stacked_residuals(T, views, camera, False)):
+        uv = np.nan_to_num(camera.project(transform_points(T_blocks, view.points)), nan=-1.0)
+        cu = np.clip((uv[:, 0] * nu // camera.width).astype(int), 0, nu - 1)
+        cv = np.clip((uv[:, 1] * nv // camera.height).astype(int), 0, nv - 1)
+        np.add.at(acc, cv * nu + cu, r ** 2)
+    return acc
+
+
+def better_fit(a: SceneFit, b: SceneFit, views: list[SceneView], camera: CameraModel, T_blocks: np.ndarray
+               ) -> float:
+    """The one-sided p-value that ``b`` fits the scene better than ``a``: Student's paired t over the image
+    blocks (the scene's independent units, as in the covariance) of their summed squared residuals
+    (``block_costs``, ``views`` at the fits' truncation). A lower RMS alone also rewards a minimum that drags
+    contours with no image edge of their own (a silhouette the colour of what lies behind it) onto the end of a
+    neighbour's edge: fewer truncated residuals, a better fit of nothing."""
+    from scipy.stats import ttest_rel
+
+    ca, cb = (block_costs(f.T_camera_lidar, views, camera, T_blocks) for f in (a, b))
+    used = (ca > 0) | (cb > 0)
+    d = ca[used] - cb[used]
+    if len(d) < 2 or np.ptp(d) == 0:  # no spread to weigh the difference by: only a uniform gain decides
+        return 0.0 if len(d) and d[0] > 0 else 1.0
+    return float(ttest_rel(ca[used], cb[used], alternative="greater").pvalue)
+
+
+def nearest_decided(fits: list[SceneFit], views: list[SceneView], camera: CameraModel, T_given: np.ndarray,
+                    alpha: float = BETTER_ALPHA) -> list[SceneFit]:
+    """``fits`` (``scene_minima``'s) reordered so that the first is the scene's estimate for a check of
+    ``T_given``: the minimum sought from it, unless the lowest fits the scene significantly better (``better_fit``
+    below ``alpha``); the others after it, lowest first. Taking the lowest minimum always, the check flagged 6 of
+    159 true extrinsics of simulated scenes at its 1% level (seeds 100-139), 4 of them VLP-16 offices whose
+    estimate a contour without an image edge of its own had led 0.2-0.6 degrees off."""
+    near = next((f for f in fits if f.start == 0), fits[0])
+    if near is fits[0]:
+        return fits
+    stage = [narrowed(v, STAGES_PX[-1]) for v in views] if STAGES_PX else views
+    if better_fit(near, fits[0], stage, camera, T_given) < alpha:
+        return fits
+    return [near] + [f for f in fits if f is not near]
+
+
 def rival_minima(fits: list[SceneFit]) -> list[SceneFit]:
-    """The minima other than the best (``fits[0]``) that fit within ``RIVAL_RMS`` of its RMS residual and lie
-    beyond its covariance's 0.999 region (6 dof): where there are any, the best one's covariance is not the
-    scene's uncertainty."""
+    """The minima other than the estimate (``fits[0]``) that fit as well or better, or within ``RIVAL_RMS`` of its
+    RMS residual, and lie beyond its covariance's 0.999 region (6 dof): where there are any, the estimate's
+    covariance is not the scene's uncertainty."""
     best = fits[0]
     out = []
     for f in fits[1:]:
@@ -459,12 +511,12 @@ def constrained_directions(covariance: np.ndarray, limits: tuple[float, float] =
 
 
 def minima_scatter(fits: list[SceneFit]) -> np.ndarray:
-    """The second moment (6x6, the best's tangent) of the minima as low as the best (``fits[0]``; within
-    ``RIVAL_RMS`` of its RMS residual) about it: how far the scene's cost leaves its own minimum undecided, which
-    the best's covariance (its curvature and its blocks) does not see."""
+    """The second moment (6x6, the estimate's tangent) of the minima as low as the estimate (``fits[0]``; within
+    ``RIVAL_RMS`` of its RMS residual, above or below) about it: how far the scene's cost leaves its own minimum
+    undecided, which the estimate's covariance (its curvature and its blocks) does not see."""
     best = fits[0]
     xis = [T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar) for f in fits
-           if f.rms_px <= best.rms_px * (1 + RIVAL_RMS)]
+           if abs(f.rms_px - best.rms_px) <= best.rms_px * RIVAL_RMS]
     return sum(np.outer(x, x) for x in xis) / len(xis)
 
 
