@@ -409,7 +409,7 @@ def nearest_decided(fits: list[SceneFit], views: list[SceneView], camera: Camera
     """``fits`` (``scene_minima``'s) reordered so that the first is the scene's estimate for a check of
     ``T_given``: the minimum sought from it, unless the lowest fits the scene significantly better (``better_fit``
     below ``alpha``); the others after it, lowest first. Taking the lowest minimum always, the check flagged 6 of
-    159 true extrinsics of simulated scenes at its 1% level (seeds 100-139), 4 of them VLP-16 offices whose
+    119 true extrinsics of simulated scenes at its 1% level (seeds 100-139), 4 of them VLP-16 offices whose
     estimate a contour without an image edge of its own had led 0.2-0.6 degrees off."""
     near = next((f for f in fits if f.start == 0), fits[0])
     if near is fits[0]:
