@@ -377,14 +377,20 @@ def scene_minima(views: list[SceneView], camera: CameraModel, T_given: np.ndarra
 def block_costs(T: np.ndarray, views: list[SceneView], camera: CameraModel, T_blocks: np.ndarray) -> np.ndarray:
     """Each image block's sum of squared residuals under ``T`` (``BLOCKS`` cells, every frame's together), each
     return put in the block where it lands under ``T_blocks`` (one assignment for every candidate compared)."""
-    nu, nv = BLOCKS
-    acc = np.zeros(nu * nv)
+    acc = np.zeros(BLOCKS[0] * BLOCKS[1])
     for view, (r, _) in zip(views, stacked_residuals(T, views, camera, False)):
         uv = np.nan_to_num(camera.project(transform_points(T_blocks, view.points)), nan=-1.0)
-        cu = np.clip((uv[:, 0] * nu // camera.width).astype(int), 0, nu - 1)
-        cv = np.clip((uv[:, 1] * nv // camera.height).astype(int), 0, nv - 1)
-        np.add.at(acc, cv * nu + cu, r ** 2)
+        np.add.at(acc, image_block(uv, camera), r ** 2)
     return acc
+
+
+def image_block(uv: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Which of the ``BLOCKS`` cells each pixel ``uv`` (N, 2; finite) lies in, row by row (those off the image in
+    the nearest)."""
+    nu, nv = BLOCKS
+    cu = np.clip((uv[:, 0] * nu // camera.width).astype(int), 0, nu - 1)
+    cv = np.clip((uv[:, 1] * nv // camera.height).astype(int), 0, nv - 1)
+    return cv * nu + cu
 
 
 def better_fit(a: SceneFit, b: SceneFit, views: list[SceneView], camera: CameraModel, T_blocks: np.ndarray
@@ -394,14 +400,13 @@ def better_fit(a: SceneFit, b: SceneFit, views: list[SceneView], camera: CameraM
     (``block_costs``, ``views`` at the fits' truncation). A lower RMS alone also rewards a minimum that drags
     contours with no image edge of their own (a silhouette the colour of what lies behind it) onto the end of a
     neighbour's edge: fewer truncated residuals, a better fit of nothing."""
-    from scipy.stats import ttest_rel
+    from scipy.stats import ttest_1samp
 
     ca, cb = (block_costs(f.T_camera_lidar, views, camera, T_blocks) for f in (a, b))
-    used = (ca > 0) | (cb > 0)
-    d = ca[used] - cb[used]
+    d = (ca - cb)[(ca > 0) | (cb > 0)]
     if len(d) < 2 or np.ptp(d) == 0:  # no spread to weigh the difference by: only a uniform gain decides
         return 0.0 if len(d) and d[0] > 0 else 1.0
-    return float(ttest_rel(ca[used], cb[used], alternative="greater").pvalue)
+    return float(ttest_1samp(d, 0.0, alternative="greater").pvalue)
 
 
 def nearest_decided(fits: list[SceneFit], views: list[SceneView], camera: CameraModel, T_given: np.ndarray,
@@ -490,9 +495,7 @@ def _block_gradients(T: np.ndarray, views: list[SceneView], parts: list, camera:
     for view, (r, J) in zip(views, parts):
         uv = camera.project(transform_points(T, view.points))
         ok = np.all(np.isfinite(uv), axis=1) & np.any(J != 0, axis=1)
-        cu = np.clip((uv[ok, 0] * nu // camera.width).astype(int), 0, nu - 1)
-        cv = np.clip((uv[ok, 1] * nv // camera.height).astype(int), 0, nv - 1)
-        b = cv * nu + cu
+        b = image_block(uv[ok], camera)
         np.add.at(acc, b, J[ok] * r[ok, None])
         used[b] = True
     return acc[used]
