@@ -293,7 +293,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)
-    fits = nearest_decided(scene_minima(views, camera, T_given), views, camera, T_given)
+    fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)
     cov = fits[0].covariance + minima_scatter(fits)
     if sensors is None and is_rig(root):
         sensors = first_pair(root)
