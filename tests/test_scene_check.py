@@ -165,15 +165,18 @@ def test_an_office_without_its_board_passes_its_truth_where_stands_and_walls_mee
     assert xi @ np.linalg.solve(c.believed_covariance, xi) < 16.81
 
 
-def test_a_minimum_that_drags_contours_onto_edge_ends_does_not_flag_the_truth(tmp_path):
-    """Seed 110's office with a VLP-16, the board left out: some contours have no image edge at the truth (a table
-    leg the grey of the floor below it). Taking the lowest-RMS minimum of the 13 starts, the check chose one that
+@pytest.mark.parametrize("seed", [110, 14])
+def test_a_minimum_that_drags_contours_onto_edge_ends_does_not_flag_the_truth(tmp_path, seed):
+    """VLP-16 offices, the board left out, where some contours have no image edge at the truth (a table leg the
+    grey of the floor below it). Seed 110: taking the lowest-RMS minimum of the 13 starts, the check chose one that
     drags them onto the ends of nearby edges (146 returns matched against the truth's 121, pitched 0.29 degrees)
-    and flagged the truth (p = 0.002). That minimum does not fit the scene significantly better over its blocks,
-    so the estimate is the minimum sought from the truth: consistent, within 0.3 degrees and 20 mm."""
+    and flagged the truth (p = 0.002). Seed 14: from the truth itself, the wide field's path ended at a lower RMS
+    78 mm along the optical axis, and the truth was flagged (NEES 131). Neither fits the scene significantly better
+    over its blocks, so the estimate is the narrow field's minimum from the truth: consistent, within 0.3 degrees
+    and 20 mm."""
     from estimators.pipeline.scene_check import check_scene
 
-    simulate_dataset(tmp_path / "ds", n_poses=10, seed=110, lidar="vlp16", scene="office")
+    simulate_dataset(tmp_path / "ds", n_poses=10, seed=seed, lidar="vlp16", scene="office")
     truth = np.array(json.loads((tmp_path / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
     c = check_scene(tmp_path / "ds", truth)
     assert c.consistent is True and c.fit.start == 0
