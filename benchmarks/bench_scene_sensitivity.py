@@ -15,6 +15,10 @@ Each row gives the scene's estimate as a turn about, and a move along, the camer
 and the standard deviations the check reports. Where the estimates of one set spread across settings by more than
 those standard deviations, the scene's covariance does not hold the error of its own cue model on that recording,
 and its test's p-value against the boards is too small by an unknown amount.
+
+The control (``--simulated N``, 8 by default): N simulated scenes of 10 frames (furnished rooms and offices with the
+board left out, VLP-16- and 64-beam LiDARs in turn, seeds 100 on) checked from the truth under the same 8 settings:
+the same spread over the reported standard deviations, and the NEES of each setting's estimate.
 """
 from __future__ import annotations
 
@@ -35,21 +39,81 @@ sys.path.insert(0, str(ROOT))
 
 SETS = ("acfr_vlp16_a", "acfr_ouster64_b")
 JUMPS_M, QUANTILES, TRUNCATIONS_PX = (0.3, 1.0), (0.85, 0.95), (6.0, 10.0)
+MODELS = ("vlp16", "os64")
 
 
-def main() -> None:
+def settings():
+    """The 8 settings, each as ``(jump m, Canny quantile, truncation px)``."""
+    return list(itertools.product(JUMPS_M, QUANTILES, TRUNCATIONS_PX))
+
+
+def check_under(folder: Path, T: np.ndarray, jump: float, quantile: float, px: float):
+    """``check_scene`` of ``T`` with the cues so set, the module defaults put back after."""
     import estimators.camera.edge_map as edge_map
     import estimators.lidar.depth_edges as depth_edges
     import estimators.pipeline.scene_check as scene_check
     import estimators.solvers.scene_alignment as scene_alignment
+
+    defaults = (edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX)
+    scene_check.depth_edges = partial(depth_edges.depth_edges, min_jump_m=jump)
+    edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX = quantile, (px,)
+    try:
+        return scene_check.check_scene(folder, T)
+    finally:
+        scene_check.depth_edges = depth_edges.depth_edges
+        edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX = defaults
+
+
+def simulated(n: int) -> None:
+    """The control: the spread over the reported standard deviations on simulated scenes, checked from the truth."""
+    import tempfile
+
+    from estimators.errors import LidarcamError
+    from estimators.simulation.furnished_room import simulate_scene_dataset
+    from estimators.simulation.simulator import simulate_dataset
+    from geometry.rotations import T_inverse, T_log
+
+    print()
+    print("| simulated scene | seed | LiDAR | checks | spread / reported sd about camera x y z | spread / reported sd "
+          "along camera x y z | NEES per setting (6 if honest) |")
+    print("|---|---|---|---|---|---|---|")
+    for i in range(n):
+        seed, generator, model = 100 + i // 2, ("room", "office")[i % 2], MODELS[(i // 2) % len(MODELS)]
+        with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
+            ds = Path(tmp) / "ds"
+            if generator == "room":
+                simulate_scene_dataset(ds, n_frames=10, seed=seed, lidar=model)
+            else:
+                simulate_dataset(ds, n_poses=10, seed=seed, lidar=model, scene="office")
+            truth = np.array(json.loads((ds / "ground_truth.json").read_text())["T_camera_lidar"])
+            R = truth[:3, :3]
+            xs, sds, nees = [], [], []
+            for jump, quantile, px in settings():
+                try:
+                    c = check_under(ds, truth, jump, quantile, px)
+                except LidarcamError:
+                    continue
+                xi = T_log(T_inverse(truth) @ c.fit.T_camera_lidar)
+                xs.append(np.r_[np.degrees(R @ xi[:3]), 1000 * (c.fit.T_camera_lidar[:3, 3] - truth[:3, 3])])
+                sds.append(np.r_[c.camera_axes_sd()])
+                nees.append(float(xi @ np.linalg.solve(c.believed_covariance, xi)))
+        if len(xs) < 2:
+            print(f"| {generator} | {seed} | {model} | {len(xs)} | | | |")
+            continue
+        ratio = np.ptp(np.array(xs), axis=0) / np.median(np.array(sds), axis=0)
+        print(f"| {generator} | {seed} | {model} | {len(xs)} | {' '.join(f'{x:.1f}' for x in ratio[:3])} | "
+              f"{' '.join(f'{x:.1f}' for x in ratio[3:])} | {' '.join(f'{x:.1f}' for x in nees)} |", flush=True)
+
+
+def main() -> None:
     from estimators import calibrate
     from estimators.errors import LidarcamError
     from geometry.rotations import T_inverse, T_log
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
+    ap.add_argument("--simulated", type=int, default=8, help="simulated scenes as the control (0: none)")
     a = ap.parse_args()
-    defaults = (depth_edges.MIN_JUMP_M, edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX)
     print("| set | from | jump | Canny quantile | truncation | p | contour returns | turn about camera x y z (deg) | "
           "move along camera x y z (mm) | reported sd about x y z (deg) | reported sd along x y z (mm) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -65,18 +129,13 @@ def main() -> None:
             starts["reference"] = np.array(json.loads((folder / "reference.json").read_text())["T_camera_lidar"])
         R = T_boards[:3, :3]
         got = []
-        for (start, T), jump, quantile, px in itertools.product(starts.items(), JUMPS_M, QUANTILES, TRUNCATIONS_PX):
-            scene_check.depth_edges = partial(depth_edges.depth_edges, min_jump_m=jump)
-            edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX = quantile, (px,)
+        for (start, T), (jump, quantile, px) in itertools.product(starts.items(), settings()):
             try:
-                c = scene_check.check_scene(folder, T)
+                c = check_under(folder, T, jump, quantile, px)
             except LidarcamError as exc:
                 print(f"| {name} | {start} | {jump:g} m | {quantile:g} | {px:g} px | refused: {exc.problem} "
                       "| | | | | |")
                 continue
-            finally:
-                scene_check.depth_edges = depth_edges.depth_edges
-                edge_map.HIGH_QUANTILE, scene_alignment.STAGES_PX = defaults[1:]
             T_s = c.fit.T_camera_lidar
             turn = np.degrees(R @ T_log(T_inverse(T_boards) @ T_s)[:3])
             move = 1000 * (T_s[:3, 3] - T_boards[:3, 3])
@@ -97,6 +156,8 @@ def main() -> None:
     print()
     for line in notes:
         print(line)
+    if a.simulated:
+        simulated(a.simulated)
 
 
 if __name__ == "__main__":
