@@ -292,14 +292,9 @@ def test_targetless_is_untrusted_where_the_halves_of_the_frames_disagree():
     assert thin.verdict.line.startswith("UNTRUSTED: targetless: the odd frames alone do not solve")
 
 
-def test_a_minimum_that_gains_on_one_structure_only_does_not_outweigh_the_given_one():
-    """Six upright edges, one per image block, with 2-7 contour returns on each under the given extrinsic (A), and
-    40 more returns of one structure 3 px beside a seventh edge. Moved 3 px across (B), the 40 land on their edge
-    and the 27 leave theirs: B's sum of squares is lower (a lowest-RMS choice takes it), but it gains in one block
-    and loses in six, so it does not fit the scene significantly better (paired t over the blocks). Without that
-    structure, A fits better in every block, significantly."""
-    from estimators.solvers.scene_alignment import SceneFit, better_fit, block_costs
-
+def _one_structure_case():
+    """Six upright edges, one per image block, with 2-7 contour returns on each under ``T_CL`` (the ``alone``
+    view), and (``view``) 40 more returns of one structure 3 px beside a seventh edge; ``T_b``: moved 3 px across."""
     img = np.full((480, 640), 60, np.uint8)
     columns = [40, 120, 200, 280, 360, 440, 600]
     for k, u in enumerate(columns):
@@ -309,12 +304,66 @@ def test_a_minimum_that_gains_on_one_structure_only_does_not_outweigh_the_given_
     structure = np.array([[columns[6] - 4.0, 162.0 + 1.5 * i, 4.0] for i in range(40)])
     view = _view(img, _points_at(np.vstack([regular, structure])), truncate_px=6.0)
     alone = _view(img, _points_at(regular), truncate_px=6.0)
-    T_b = T_from_Rt(np.eye(3), [3.0 * 4.0 / 500.0, 0.0, 0.0]) @ T_CL  # 3 px at 4 m
+    return view, alone, T_from_Rt(np.eye(3), [3.0 * 4.0 / 500.0, 0.0, 0.0]) @ T_CL  # 3 px at 4 m
 
-    def fit(T):
-        return SceneFit(T, np.eye(6), np.eye(6), 1, 67, 7, 0.0, 0.0, np.zeros(6), True)
 
+def _fit(T, rms_px=0.0):
+    from estimators.solvers.scene_alignment import SceneFit
+
+    return SceneFit(T, np.eye(6), np.eye(6), 1, 67, 7, 0.0, rms_px, np.zeros(6), True)
+
+
+def test_a_minimum_that_gains_on_one_structure_only_does_not_outweigh_the_given_one():
+    """Six upright edges, one per image block, with 2-7 contour returns on each under the given extrinsic (A), and
+    40 more returns of one structure 3 px beside a seventh edge. Moved 3 px across (B), the 40 land on their edge
+    and the 27 leave theirs: B's sum of squares is lower (a lowest-RMS choice takes it), but it gains in one block
+    and loses in six, so it does not fit the scene significantly better (paired t over the blocks). Without that
+    structure, A fits better in every block, significantly."""
+    from estimators.solvers.scene_alignment import better_fit, block_costs
+
+    view, alone, T_b = _one_structure_case()
     costs = [block_costs(T, [view], CAMERA, T_CL).sum() for T in (T_CL, T_b)]
     assert costs[1] < 0.8 * costs[0], costs
-    assert better_fit(fit(T_CL), fit(T_b), [view], CAMERA, T_CL) > 0.2
-    assert better_fit(fit(T_b), fit(T_CL), [alone], CAMERA, T_CL) < 0.01
+    assert better_fit(_fit(T_CL), _fit(T_b), [view], CAMERA, T_CL) > 0.2
+    assert better_fit(_fit(T_b), _fit(T_CL), [alone], CAMERA, T_CL) < 0.01
+
+
+def test_a_calibration_s_own_covariance_joins_the_test(office, capsys):
+    """A calibration.json that says it is unsure by a degree about each axis and 5 cm along each is not contradicted
+    by a degree: the test is of two estimates of one extrinsic, their difference's covariance the sum of theirs
+    (the extrinsic turned by 1 degree, exact, is contradicted in the test above). check.json keeps the given
+    covariance, and the printout says it was used."""
+    tmp, truth = office
+    turned = truth @ T_from_Rt(R_from_rotvec(np.linalg.inv(truth[:3, :3]) @ np.radians([0.0, 1.0, 0.0])), np.zeros(3))
+    C = np.diag([np.radians(1.0) ** 2] * 3 + [0.05 ** 2] * 3)
+    (tmp / "unsure.json").write_text(json.dumps({"T_camera_lidar": turned.tolist(), "covariance": C.tolist()}))
+    assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / "unsure.json"), "--out", str(tmp / "unsure"),
+                 "--keep-board"]) == 0
+    assert "plus the calibration's own" in capsys.readouterr().out
+    got = json.loads((tmp / "unsure" / "check.json").read_text())
+    assert got["consistent"] is True and np.allclose(got["covariance_given"], C)
+
+
+def test_a_rig_calibration_s_covariance_is_read_for_the_pair_either_way_round(tmp_path):
+    """``given_covariance`` of ``T_cam0_lidar0`` from a rig's calibration.json: the entry's own, or that of
+    ``T_lidar0_cam0`` carried to the inverse (first order: the numerical Jacobian of the inverse's tangent)."""
+    from estimators.pipeline.measurement import given_covariance
+
+    rng = np.random.default_rng(3)
+    T = T_retract(T_CL, rng.normal(scale=0.3, size=6))
+    A = rng.normal(size=(6, 6)) * 1e-3
+    C = A @ A.T
+    for key, M in (("T_cam0_lidar0", T), ("T_lidar0_cam0", T_inverse(T))):
+        path = tmp_path / f"{key}.json"
+        path.write_text(json.dumps({"transforms": {key: {"T": M.tolist(), "covariance": C.tolist()}}}))
+        got = given_covariance(str(path), ("cam0", "lidar0"))
+        if key == "T_cam0_lidar0":
+            assert np.allclose(got, C)
+            continue
+        # M Exp(e) is the inverse's: T_cam0_lidar0 = T Exp(f(e)) with f(e) = Log(T^-1 (M Exp(e))^-1)
+        h = 1e-6
+        J = np.column_stack([(T_log(T_inverse(T) @ T_inverse(T_retract(M, h * e)))
+                              - T_log(T_inverse(T) @ T_inverse(T_retract(M, -h * e)))) / (2 * h) for e in np.eye(6)])
+        assert np.allclose(got, J @ C @ J.T, rtol=1e-5, atol=1e-12)
+    (tmp_path / "plain.json").write_text(json.dumps({"T_camera_lidar": T.tolist()}))
+    assert given_covariance(str(tmp_path / "plain.json")) is None

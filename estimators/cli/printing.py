@@ -311,6 +311,8 @@ def print_check(result) -> None:
     rot, trans = result.camera_axes_sd()
     print(f"  its sd about the camera's x, y, z: ({', '.join(f'{v:.2f}' for v in rot)}) deg; along them: "
           f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
+    if result.given_covariance is not None:
+        print("  tested against the scene's covariance plus the calibration's own (two independent estimates)")
     print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
           f"at the scene's (along the rings, truncated at {min(STAGES_PX):g} px)")
     if result.rivals:

@@ -143,6 +143,41 @@ def pair_from_calibration(value: str, camera: str, lidar: str) -> np.ndarray:
                        hint="give the calibration of this rig, or name its sensors with --camera and --lidar")
 
 
+def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.ndarray | None:
+    """The 6x6 covariance (the project's tangent) of the ``T_camera_lidar`` that :func:`parse_initial_guess` or
+    :func:`pair_from_calibration` (``sensors``: a rig's camera and LiDAR) reads from ``value``, where the file holds
+    one: a calibration.json's ``covariance``, or its ``transforms`` entry's (that of ``T_<lidar>_<camera>`` carried
+    to the inverse); None for any other file or a covariance that is not a finite symmetric 6x6."""
+    from ..solvers.factor_graph import adjoint
+
+    path = Path(value)
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return None
+    data = load_json(path, "calibration file")
+    if not isinstance(data, dict):
+        return None
+    C, T_flip = None, None
+    if sensors is not None and isinstance(data.get("transforms"), dict):
+        camera, lidar = sensors
+        for key, flip in ((f"T_{camera}_{lidar}", False), (f"T_{lidar}_{camera}", True)):
+            entry = data["transforms"].get(key)
+            if isinstance(entry, dict) and "T" in entry:
+                C, T_flip = entry.get("covariance"), (entry["T"] if flip else None)
+                break
+    elif "T_camera_lidar" in data:
+        C = data.get("covariance")
+    try:
+        C = np.asarray(C, dtype=float)
+        if T_flip is not None:  # T_true = T Exp(e): its inverse is T^-1 Exp(-Ad(T) e)
+            A = adjoint(np.asarray(T_flip, dtype=float))
+            C = A @ C @ A.T
+    except (ValueError, TypeError, RuntimeError):
+        return None
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-6, atol=1e-15):
+        return None
+    return 0.5 * (C + C.T)
+
+
 def _rigid(T, path, what: str) -> np.ndarray:
     """``T`` as a finite 4x4 rigid transform, or a one-line error naming ``path`` and ``what``."""
     try:

@@ -9,7 +9,8 @@ The scene's estimate is sought from the given extrinsic and from starts about it
 sought from the given one, unless another fits the scene significantly better over the image's blocks
 (``nearest_decided``); the other minima as low (within 1% of its RMS residual) say how far the scene's cost leaves
 it undecided, and their scatter about it is added to its block covariance (``minima_scatter``). The test reads the
-given extrinsic's difference from the estimate against that sum over the directions the scene constrains.
+given extrinsic's difference from the estimate against that sum (plus the given extrinsic's own covariance, when
+it is a calibration's) over the directions the scene constrains.
 """
 from __future__ import annotations
 
@@ -69,6 +70,8 @@ class SceneCheck:
     # (``nearest_decided``); a targetless estimate, the lowest of many starts' minima, more
     # (``targetless.COVARIANCE_EXCESS``).
     excess: float = 1.0
+    # The given extrinsic's own covariance (a calibration's), added to the scene's in the test: None, exact.
+    given_covariance: np.ndarray | None = None
 
     @property
     def consistent(self) -> bool | None:
@@ -120,8 +123,11 @@ class SceneCheck:
             "consistent": self.consistent, "p_value": self.test["p_value"], "alpha": ALPHA,
             "test": {**self.test, "statistic": "Hotelling's F over the constrained directions of the frame-block "
                                                "sandwich covariance with the minima's scatter, times "
-                                               f"{self.excess:g}"},
+                                               f"{self.excess:g}"
+                                               + (", plus the given extrinsic's own covariance"
+                                                  if self.given_covariance is not None else "")},
             "T_camera_lidar_given": self.T_given.tolist(), "convention": CONVENTION,
+            "covariance_given": None if self.given_covariance is None else self.given_covariance.tolist(),
             "scene": {"T_camera_lidar": self.fit.T_camera_lidar.tolist(),
                       "covariance": self.believed_covariance.tolist(), "covariance_excess": self.excess,
                       "covariance_blocks": self.fit.covariance.tolist(),
@@ -259,7 +265,8 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
 
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
-                camera: CameraModel | None = None, sensors: tuple[str, str] | None = None) -> SceneCheck:
+                camera: CameraModel | None = None, sensors: tuple[str, str] | None = None,
+                given_covariance: np.ndarray | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -275,6 +282,10 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         The camera's model (a calibration's, its intrinsics refined or estimated); default dataset.yaml's.
     sensors : tuple of str, optional
         A rig folder's camera and 3D LiDAR (default its first camera and first 3D LiDAR).
+    given_covariance : numpy.ndarray, optional
+        ``T_given``'s own 6x6 covariance (the project's tangent), when it is a calibration's: the test is then of
+        two independent estimates of one extrinsic, their difference's covariance the sum of theirs; without it,
+        ``T_given`` is taken as exact.
 
     Returns
     -------
@@ -297,8 +308,21 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     cov = fits[0].covariance + minima_scatter(fits)
     if sensors is None and is_rig(root):
         sensors = first_pair(root)
-    test = consistency(fits[0], T_given, covariance=cov)
+    test = consistency(fits[0], T_given, covariance=cov if given_covariance is None else
+                       cov + given_in_tangent(given_covariance, T_given, fits[0].T_camera_lidar))
     return SceneCheck(str(root), np.asarray(T_given, float), fits[0], test,
                       tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
                       time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov,
-                      tuple(sensors) if sensors else None)
+                      tuple(sensors) if sensors else None,
+                      given_covariance=None if given_covariance is None else np.asarray(given_covariance, float))
+
+
+def given_in_tangent(C_given: np.ndarray, T_given: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``T_given``'s covariance (its own right tangent) carried to ``T``'s, where the check reads the difference
+    ``Log(T^-1 T_given)``: ``T_given Exp(e) = T D Exp(e) = T Exp(Ad(D) e) D`` with ``D = T^-1 T_given``."""
+    from geometry.rotations import T_inverse
+
+    from ..solvers.factor_graph import adjoint
+
+    A = adjoint(T_inverse(T) @ T_given)
+    return A @ np.asarray(C_given, float) @ A.T
