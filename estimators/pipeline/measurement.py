@@ -133,11 +133,11 @@ def pair_from_calibration(value: str, camera: str, lidar: str) -> np.ndarray:
     data = load_json(path, "calibration file") if path.suffix.lower() == ".json" else None
     if not isinstance(data, dict) or not isinstance(data.get("transforms"), dict):
         return parse_initial_guess([value])
-    for key, flip in ((f"T_{camera}_{lidar}", False), (f"T_{lidar}_{camera}", True)):
-        entry = data["transforms"].get(key)
-        if isinstance(entry, dict) and "T" in entry:
-            T = _rigid(entry["T"], path, key)
-            return np.linalg.inv(T) if flip else T
+    found = _transform_entry(data, camera, lidar)
+    if found is not None:
+        key, entry, flip = found
+        T = _rigid(entry["T"], path, key)
+        return np.linalg.inv(T) if flip else T
     raise DatasetError(f"the calibration has no transform between {camera} and {lidar} (it has "
                        f"{', '.join(sorted(data['transforms'])) or 'none'})", path=path,
                        hint="give the calibration of this rig, or name its sensors with --camera and --lidar")
@@ -158,12 +158,10 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
         return None
     C, T_flip = None, None
     if sensors is not None and isinstance(data.get("transforms"), dict):
-        camera, lidar = sensors
-        for key, flip in ((f"T_{camera}_{lidar}", False), (f"T_{lidar}_{camera}", True)):
-            entry = data["transforms"].get(key)
-            if isinstance(entry, dict) and "T" in entry:
-                C, T_flip = entry.get("covariance"), (entry["T"] if flip else None)
-                break
+        found = _transform_entry(data, *sensors)
+        if found is not None:
+            _, entry, flip = found
+            C, T_flip = entry.get("covariance"), (entry["T"] if flip else None)
     elif "T_camera_lidar" in data:
         C = data.get("covariance")
     try:
@@ -176,6 +174,16 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
     if C.shape != (6, 6) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-6, atol=1e-15):
         return None
     return 0.5 * (C + C.T)
+
+
+def _transform_entry(data: dict, camera: str, lidar: str) -> tuple[str, dict, bool] | None:
+    """A rig calibration's ``transforms`` entry between ``camera`` and ``lidar``: its key, the entry, and whether it
+    is the inverse (``T_<lidar>_<camera>``); None where there is none."""
+    for key, flip in ((f"T_{camera}_{lidar}", False), (f"T_{lidar}_{camera}", True)):
+        entry = data["transforms"].get(key)
+        if isinstance(entry, dict) and "T" in entry:
+            return key, entry, flip
+    return None
 
 
 def _rigid(T, path, what: str) -> np.ndarray:
