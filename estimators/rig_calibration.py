@@ -449,8 +449,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             break
     if refine_intrinsics and solution.intrinsics and measurements is None and remeasure:
         refined = replace(rig, sensors=tuple(
-            replace(s, camera=replace(solution.camera_model(s.name, cameras[s.name]),
-                                      source=f"refined with the rig (given: {cameras[s.name].source})"))
+            replace(s, camera=solution.camera_model(s.name, cameras[s.name]))
             if s.name in solution.intrinsics else s for s in rig.sensors))
         again = measured_rig(refined, rng, workers, cache, params, hints, stages)
         merged = replace(measured, pairs={k: reobserve_frames(frames, rig.board, cameras[k[0]])

@@ -344,6 +344,30 @@ def test_a_calibration_s_own_covariance_joins_the_test(office, capsys):
     assert got["consistent"] is True and np.allclose(got["covariance_given"], C)
 
 
+def test_the_check_is_made_under_the_calibration_s_own_intrinsics(office, capsys):
+    """A calibration.json's extrinsic is checked under the intrinsics it holds (refined with the rig, say), not the
+    folder's: the true extrinsic, given with a principal point 30 px off, is contradicted (under the folder's own it
+    passes, above), and check.json and the printout name the intrinsics used. Intrinsics for another image size are
+    refused in one line, nothing written."""
+    import yaml
+
+    tmp, truth = office
+    cam = yaml.safe_load((tmp / "ds" / "dataset.yaml").read_text())["camera"]
+    off = {**cam, "K": [[cam["K"][0][0], 0.0, cam["K"][0][2] + 30.0], cam["K"][1], cam["K"][2]],
+           "source": "refined with the rig"}
+    (tmp / "own.json").write_text(json.dumps({"T_camera_lidar": truth.tolist(), "cameras": {"cam0": off}}))
+    assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / "own.json"), "--out", str(tmp / "own"),
+                 "--keep-board"]) == 4
+    assert "the camera's intrinsics: own.json: refined with the rig" in capsys.readouterr().out
+    got = json.loads((tmp / "own" / "check.json").read_text())
+    assert np.isclose(got["intrinsics"]["K"][0][2], cam["K"][0][2] + 30.0)
+    (tmp / "small.json").write_text(json.dumps({"T_camera_lidar": truth.tolist(),
+                                                "intrinsics": {**cam, "width": cam["width"] // 2}}))
+    assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / "small.json"), "--out", str(tmp / "small")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "images" in err and not (tmp / "small").exists()
+
+
 def test_a_rig_calibration_s_covariance_is_read_for_the_pair_either_way_round(tmp_path):
     """``given_covariance`` of ``T_cam0_lidar0`` from a rig's calibration.json: the entry's own, or that of
     ``T_lidar0_cam0`` carried to the inverse (first order: the numerical Jacobian of the inverse's tangent)."""

@@ -359,7 +359,7 @@ def check_command(args) -> int:
     from ..io.output import write_json_atomic
     from ..errors import DatasetError
     from ..io.rig_dataset import first_pair, is_rig
-    from ..pipeline.measurement import given_covariance, pair_from_calibration, parse_initial_guess
+    from ..pipeline.measurement import given_camera, given_covariance, pair_from_calibration, parse_initial_guess
     from ..pipeline.scene_check import EXIT_CONTRADICTED, check_scene
     from .printing import print_check
 
@@ -373,7 +373,9 @@ def check_command(args) -> int:
                            path=args.dataset, hint="leave them out")
     else:
         T = parse_initial_guess([args.calibration])
+    # the extrinsic checked under the intrinsics it was estimated with (a calibration's, refined or given)
     result = check_scene(args.dataset, T, keep_board=args.keep_board, sensors=sensors,
+                         camera=given_camera(args.calibration, sensors),
                          given_covariance=given_covariance(args.calibration, sensors))
     print_check(result)
     print(f"wrote {write_json_atomic(Path(args.out) / 'check.json', result.to_dict())}")

@@ -313,6 +313,7 @@ def print_check(result) -> None:
           f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
     if result.given_covariance is not None:
         print("  tested against the scene's covariance plus the calibration's own (two independent estimates)")
+    print(f"  the camera's intrinsics: {result.camera.source}")
     print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
           f"at the scene's (along the rings, truncated at {min(STAGES_PX):g} px)")
     if result.rivals:

@@ -24,7 +24,7 @@ from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
 from ..errors import (AmbiguousBoardError, AmbiguousOrientationError, DatasetError, DegenerateLayoutError,
                       ImageReadError, MeasurementError, NoHypothesisError, ScanReadError)
-from ..io.dataset import Dataset, load_dataset
+from ..io.dataset import Dataset, load_dataset, parse_camera
 from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
 from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
@@ -174,6 +174,27 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
     if C.shape != (6, 6) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-6, atol=1e-15):
         return None
     return 0.5 * (C + C.T)
+
+
+def given_camera(value: str, sensors: tuple[str, str] | None = None) -> CameraModel | None:
+    """The camera model a calibration.json's extrinsic was estimated under: a rig calibration's ``cameras`` entry
+    for ``sensors[0]`` (a pair folder's calibration: its ``intrinsics``, or its one ``cameras`` entry), its
+    intrinsics refined or given; None for any other file (a bare 4x4, a JSON without intrinsics)."""
+    path = Path(value)
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return None
+    data = load_json(path, "calibration file")
+    if not isinstance(data, dict):
+        return None
+    cameras = data.get("cameras") if isinstance(data.get("cameras"), dict) else {}
+    if sensors is not None:
+        entry = cameras.get(sensors[0])
+    else:
+        entry = next(iter(cameras.values())) if len(cameras) == 1 else data.get("intrinsics")
+    if not isinstance(entry, dict):
+        return None
+    camera = parse_camera(entry, path)
+    return replace(camera, source=f"{path.name}: {entry.get('source') or 'given'}")
 
 
 def _transform_entry(data: dict, camera: str, lidar: str) -> tuple[str, dict, bool] | None:

@@ -26,7 +26,7 @@ from geometry.rotations import transform_points
 
 from .. import __version__
 from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
-from ..errors import DegenerateLayoutError, LidarcamError
+from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
@@ -128,6 +128,7 @@ class SceneCheck:
                                                   if self.given_covariance is not None else "")},
             "T_camera_lidar_given": self.T_given.tolist(), "convention": CONVENTION,
             "covariance_given": None if self.given_covariance is None else self.given_covariance.tolist(),
+            "intrinsics": self.camera.as_dict(),
             "scene": {"T_camera_lidar": self.fit.T_camera_lidar.tolist(),
                       "covariance": self.believed_covariance.tolist(), "covariance_excess": self.excess,
                       "covariance_blocks": self.fit.covariance.tolist(),
@@ -217,11 +218,18 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
 
     load = scene_pair if is_rig(folder) else load_scene_folder
     root, own, board, frames = load(folder, camera is None, sensors)
+    if camera is not None and own is not None and (camera.width, camera.height) != (own.width, own.height):
+        raise DatasetError(f"the intrinsics given ({camera.source}) are for {camera.width}x{camera.height} images, the "
+                           f"folder's camera for {own.width}x{own.height}", path=root,
+                           hint="give a calibration of this camera at this resolution")
     camera = own if camera is None else camera
 
     def read(f) -> SceneFrame | str:
         try:
             gray = read_gray(f.image)
+            if gray.shape[:2] != (camera.height, camera.width):
+                return (f"the image is {gray.shape[1]}x{gray.shape[0]}, the camera's intrinsics are for "
+                        f"{camera.width}x{camera.height}")
             sweep = read_sweep(f.scan)
             if sweep.ring is None:
                 raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
@@ -279,7 +287,8 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     keep_board : bool
         Keep the board's edges and contours (by default left out where the camera finds the board).
     camera : CameraModel, optional
-        The camera's model (a calibration's, its intrinsics refined or estimated); default dataset.yaml's.
+        The camera's model (a calibration's, its intrinsics refined or estimated: the extrinsic is checked under the
+        intrinsics it was estimated with); default dataset.yaml's. Its image size must be the folder's camera's.
     sensors : tuple of str, optional
         A rig folder's camera and 3D LiDAR (default its first camera and first 3D LiDAR).
     given_covariance : numpy.ndarray, optional

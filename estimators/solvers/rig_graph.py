@@ -17,7 +17,7 @@ Loops close exactly: every pair's transform is composed of the same sensor poses
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -59,7 +59,9 @@ class RigSolution:
         """Camera ``name``'s model (``given``: its ``CameraModel`` as measured) at the solution's refined intrinsics,
         where they were refined, else ``given``."""
         refined = (self.intrinsics or {}).get(name)
-        return given if refined is None else given.with_params(refined[0])
+        if refined is None:
+            return given
+        return replace(given.with_params(refined[0]), source=f"refined with the rig (given: {given.source})")
 
     def covariance(self, name: str) -> np.ndarray:
         k = self.names.index(name)
