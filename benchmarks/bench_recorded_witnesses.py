@@ -8,8 +8,8 @@ along the camera's axes from the engine's estimate (``estimators.calibrate``, no
 
 - the boards, solved from one measurement (``estimators.measure``; ``estimators.solve``, the pair's own solve) with
   the planes alone, with the planes and the board's edges, and with each board's plane error held at 12, 24 and
-  100 mm: the planes' normals then weigh little, and the edges (the ring ends on the outline), the planes'
-  distances and the corners lead;
+  100 mm: the planes (their normals and their distances) then weigh little, and the edges (the ring ends on
+  the outline) and the corners lead;
 - the engine with the camera's intrinsics refined (``--refine-intrinsics``);
 - the source tool's reference (``reference.json``);
 - the scene: ``check_scene`` of each board estimate, under the intrinsics it was estimated with and with its
