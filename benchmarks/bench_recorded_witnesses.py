@@ -17,6 +17,12 @@ along the camera's axes from the engine's estimate (``estimators.calibrate``, no
   nearer than 8 m, beyond 8 m, or in one third of the image across, or of one side of their silhouette (the LiDAR's
   scan reaching an object or leaving it).
 
+And a test of one explanation, a tilt common to every board's LiDAR plane (a range error growing across every
+board alike): the LiDAR's board points corrected for such a tilt (about the camera's x and y, each board turned
+about its centroid, every point moved along its beam) before the solve, with the planes' consistency (the per-board
+plane error it needs) and their test against the edges. If the planes carried such a tilt, removing it would make
+them more consistent with the camera's boards and with the edges.
+
 Far returns measure the rotation alone (a translation of 40 mm turns a return 10 m away by 0.2 degrees); near ones
 the translation too. A turn with a move that cancel at the boards' distance (2-4 m) is what the boards' positions
 cannot see and their normals must.
@@ -102,6 +108,47 @@ def scene_subsets(folder: Path, T0: np.ndarray) -> list[tuple[str, object]]:
     return out
 
 
+def common_tilt(m, tilt_deg: tuple[float, float], T0: np.ndarray) -> list:
+    """The frames of ``m`` with every board's LiDAR points corrected for a tilt common to the boards, ``tilt_deg``
+    about the camera's x and y (``T0``'s axes): each point moved along its beam by the range the tilt adds at it,
+    turning its board's plane about the points' centroid."""
+    from estimators.measurements import observe_lidar_board
+    from geometry.rotations import R_from_rotvec
+
+    R = R_from_rotvec(T0[:3, :3].T @ np.radians([tilt_deg[0], tilt_deg[1], 0.0]))
+    out = []
+    for f in m.frames:
+        if not f.usable:
+            out.append(f)
+            continue
+        o = f.lidar
+        r = np.linalg.norm(o.points, axis=1)
+        u = o.points / r[:, None]
+        along = (o.points - o.points.mean(axis=0)) @ (R - np.eye(3)).T @ o.plane.normal  # the tilt, along the normal
+        cos = u @ o.plane.normal
+        cos = np.where(np.abs(cos) < 0.1, np.copysign(0.1, cos), cos)
+        seen = replace(observe_lidar_board(u * (r - along / cos)[:, None], o.candidates), rings=o.rings,
+                       intensity=o.intensity)
+        out.append(replace(f, lidar=seen))
+    return out
+
+
+def tilt_rows(m, T0: np.ndarray) -> None:
+    """The boards solved (planes and edges) after a tilt common to every board is removed (:func:`common_tilt`)."""
+    from estimators import solve
+
+    print("\n| common tilt removed, about camera x y (deg) | per-board plane error (mm) | "
+          "planes against edges: d2, p | turn about camera x y z (deg) | move along camera x y z (mm) |")
+    print("|---|---|---|---|---|")
+    for tilt in ((0.0, 0.0), (0.0, 0.5), (0.3, 0.5), (0.5, 0.5), (0.0, -0.5)):
+        res = solve(common_tilt(m, tilt, T0), m.board, m.camera)
+        test = (res.refinement.edges or {}).get("planes_against_edges") or {}
+        turn, move = relative(res.T_camera_lidar, T0)
+        print(f"| {tilt[0]:+.1f} {tilt[1]:+.1f} | {1000 * res.refinement.plane_floor_m:.2f} | "
+              f"{test.get('d2', float('nan')):.1f}, {test.get('p_value', float('nan')):.2g} | "
+              f"{' '.join(f'{x:+.2f}' for x in turn)} | {' '.join(f'{x:+.1f}' for x in move)} |", flush=True)
+
+
 def one_set(folder: Path) -> None:
     from estimators import calibrate, measure, solve
     from estimators.errors import LidarcamError
@@ -140,8 +187,10 @@ def one_set(folder: Path) -> None:
         print(row("the source tool's reference", ref, T0, None,
                   f"p = {c.test['p_value']:.2g} (taken as exact); {' '.join(f'{x:+.2f}' for x in turn)}; "
                   f"{' '.join(f'{x:+.1f}' for x in move)}"), flush=True)
+    tilt_rows(m, T0)
     print(f"\nthe scene's estimate from the engine's, on part of its contour returns ({folder.name}):\n")
-    print("| returns | contour returns | turn about camera x y z (deg) | its sd (deg) | move along camera x y z (mm) | |")
+    print("| returns | contour returns | turn about camera x y z (deg) | its sd (deg) | move along camera x y z (mm) "
+          "| |")
     print("|---|---|---|---|---|---|")
     for which, fit in scene_subsets(folder, T0):
         if isinstance(fit, str):
