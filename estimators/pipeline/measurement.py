@@ -150,11 +150,8 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
     to the inverse); None for any other file or a covariance that is not a finite symmetric 6x6."""
     from ..solvers.factor_graph import adjoint
 
-    path = Path(value)
-    if path.suffix.lower() != ".json" or not path.is_file():
-        return None
-    data = load_json(path, "calibration file")
-    if not isinstance(data, dict):
+    data = _calibration_data(value)
+    if data is None:
         return None
     C, T_flip = None, None
     if sensors is not None and isinstance(data.get("transforms"), dict):
@@ -180,12 +177,10 @@ def given_camera(value: str, sensors: tuple[str, str] | None = None) -> CameraMo
     """The camera model a calibration.json's extrinsic was estimated under: a rig calibration's ``cameras`` entry
     for ``sensors[0]`` (a pair folder's calibration: its ``intrinsics``, or its one ``cameras`` entry), its
     intrinsics refined or given; None for any other file (a bare 4x4, a JSON without intrinsics)."""
+    data = _calibration_data(value)
+    if data is None:
+        return None
     path = Path(value)
-    if path.suffix.lower() != ".json" or not path.is_file():
-        return None
-    data = load_json(path, "calibration file")
-    if not isinstance(data, dict):
-        return None
     cameras = data.get("cameras") if isinstance(data.get("cameras"), dict) else {}
     if sensors is not None:
         entry = cameras.get(sensors[0])
@@ -195,6 +190,16 @@ def given_camera(value: str, sensors: tuple[str, str] | None = None) -> CameraMo
         return None
     camera = parse_camera(entry, path)
     return replace(camera, source=f"{path.name}: {entry.get('source') or 'given'}")
+
+
+def _calibration_data(value: str) -> dict | None:
+    """A calibration JSON's content (a one-line error for a file that does not parse), or None where ``value`` is
+    not a JSON file holding a mapping (a 4x4 matrix given on the command line, another file)."""
+    path = Path(value)
+    if path.suffix.lower() != ".json" or not path.is_file():
+        return None
+    data = load_json(path, "calibration file")
+    return data if isinstance(data, dict) else None
 
 
 def _transform_entry(data: dict, camera: str, lidar: str) -> tuple[str, dict, bool] | None:
