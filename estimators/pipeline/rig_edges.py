@@ -11,10 +11,9 @@ from ..errors import LidarcamError
 from ..io.rig_dataset import RigDataset
 from geometry.rotations import T_log
 
-from ..solvers import chi_square as chi2
 from ..solvers.board_edges import edge_scatter
-from ..solvers.edges_in_graph import (EDGE_ROUNDS, conflict_covariance, edges_gain, edges_left_out, lidar_crossings,
-                                      outline_statistics)
+from ..solvers.edges_in_graph import (EDGE_ROUNDS, conflict_covariance, edges_left_out, hausman,
+                                      lidar_crossings, outline_statistics)
 from ..solvers.outline_check import outline_check
 from ..solvers.graph_keys import edge_shift_key, outline_key
 from ..solvers.rig_graph import RigSolution, outline_covariance, pair_board_covariance, solve_rig
@@ -146,11 +145,8 @@ def planes_against_edges(planes: RigSolution, edged: RigSolution, name: str) -> 
     C = planes.covariance(name) - edged.covariance(name)
     if not np.any(C):
         return None
-    delta = T_log(np.linalg.inv(planes.T_ref[name]) @ edged.T_ref[name])
-    d2, dof = chi2.mahalanobis(delta, C)
-    return {"planes_only_T_ref": planes.T_ref[name].tolist(), "difference_tangent": delta.tolist(), "d2": d2,
-            "dof": dof, "p_value": float(chi2.sf(d2, dof)) if dof else 1.0,
-            "edges_gain": edges_gain(planes.covariance(name), edged.covariance(name))}
+    return {"planes_only_T_ref": planes.T_ref[name].tolist(),
+            **hausman(planes.T_ref[name], edged.T_ref[name], planes.covariance(name), edged.covariance(name))}
 
 
 def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np.ndarray | None:

@@ -198,11 +198,8 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
         planes_check, _ = check_outline(planes, active, T_p, b, marginals_p, quasi_scale, quasi_scale * cov_p)
         if planes_check is not None:
             warnings.extend(outline_warnings(planes_check, used=False, beside_edges=True))
-        delta = T_log(np.linalg.inv(T_p) @ T)
-        h2, h_dof = chi2.mahalanobis(delta, cov_p - cov)
-        h_p = float(chi2.sf(h2, h_dof)) if h_dof else 1.0
-        test = {"planes_only_T_camera_lidar": T_p.tolist(), "difference_tangent": delta.tolist(),
-                "d2": h2, "dof": h_dof, "p_value": h_p, "edges_gain": edges_gain(cov_p, cov)}
+        test = {"planes_only_T_camera_lidar": T_p.tolist(), **hausman(T_p, T, cov_p, cov)}
+        delta, h2, h_dof, h_p = np.array(test["difference_tangent"]), test["d2"], test["dof"], test["p_value"]
         if h_dof and h_p < 0.01:
             warnings.append(f"board edges: the planes alone and the planes with the edges differ by "
                             f"{np.degrees(np.linalg.norm(delta[:3])):.2f} deg and "
@@ -215,6 +212,15 @@ def edges_summary(prob: PlaneProblem, active: list[int], T: np.ndarray, boards: 
               "end_scale": prob.edge_scale, "board_scatter_in_plane_m": prob.edge_tau, "growth_m": g.tolist(),
               "outline_offset_m": o.tolist(), **stats, "planes_against_edges": test, "planes_only_check": planes_check}
     return record, outline_warnings(record, used=True) + warnings
+
+
+def hausman(T_planes: np.ndarray, T_edged: np.ndarray, cov_planes: np.ndarray, cov_edged: np.ndarray) -> dict:
+    """The planes-only estimate against the one with the edges (a Hausman test): their difference (tangent at
+    ``T_planes``) against the difference of their covariances, which is the edges' share; with the edges' gain."""
+    delta = T_log(np.linalg.inv(T_planes) @ T_edged)
+    d2, dof = chi2.mahalanobis(delta, cov_planes - cov_edged)
+    return {"difference_tangent": delta.tolist(), "d2": d2, "dof": dof,
+            "p_value": float(chi2.sf(d2, dof)) if dof else 1.0, "edges_gain": edges_gain(cov_planes, cov_edged)}
 
 
 def outline_statistics(frames: list[tuple[str, int]], boards: list, shifts: list, J: np.ndarray, prior_var: float
