@@ -87,7 +87,7 @@ def _zones(name: str, label: str, board: np.ndarray, cam, views: list) -> None:
                   f"{exc.problem} | | |")
             continue
         fit = fits[0]
-        cov = fit.covariance + minima_scatter(fits)
+        cov = fit.covariance + minima_scatter(fits, zone, cam, board)
         xi = T_log(T_inverse(fit.T_camera_lidar) @ board)
         rot = np.degrees(fit.T_camera_lidar[:3, :3] @ xi[:3])
         trans = 1000 * (board[:3, 3] - fit.T_camera_lidar[:3, 3])

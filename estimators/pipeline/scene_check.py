@@ -7,8 +7,8 @@ board is left out by default (``keep_board`` keeps it): its image edges (within 
 outline) and the contour returns that land there, so that the check is the scene's and not the boards' again.
 The scene's estimate is sought from the given extrinsic and from starts about it (``scene_minima``): the minimum
 sought from the given one, unless another fits the scene significantly better over the image's blocks
-(``nearest_decided``); the other minima as low (within 1% of its RMS residual) say how far the scene's cost leaves
-it undecided, and their scatter about it is added to its block covariance (``minima_scatter``). The test reads the
+(``nearest_decided``); the other minima it does not fit significantly better over the blocks say how far the
+scene's cost leaves it undecided, and their scatter about it is added to its block covariance (``minima_scatter``). The test reads the
 given extrinsic's difference from the estimate against that sum (plus the given extrinsic's own covariance, when
 it is a calibration's) over the directions the scene constrains.
 """
@@ -62,7 +62,8 @@ class SceneCheck:
     seconds: float
     views: tuple = ()  # the frames' SceneViews, for the page
     # Other minima of the scene's cost as low as the estimate and beyond its covariance (``rival_minima``), and the
-    # covariance tested against: the estimate's plus the scatter of the minima as low (``minima_scatter``).
+    # covariance tested against: the estimate's plus the scatter of the minima the blocks cannot tell from it
+    # (``minima_scatter``).
     rivals: tuple = ()
     covariance: np.ndarray | None = None
     sensors: tuple | None = None  # a rig folder's camera and LiDAR checked (None: a camera-LiDAR folder)
@@ -104,7 +105,7 @@ class SceneCheck:
     @property
     def believed_covariance(self) -> np.ndarray:
         """The scene estimate's covariance as tested and reported: its minimum's blocks and the scatter of the
-        minima as low (``covariance``) times ``excess``."""
+        minima the blocks cannot tell from it (``covariance``) times ``excess``."""
         return self.excess * (self.covariance if self.covariance is not None else self.fit.covariance)
 
     def camera_axes_sd(self) -> tuple[np.ndarray, np.ndarray]:
@@ -314,7 +315,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     if len(views) < 2:
         raise too_few(views, skipped, root)
     fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)
-    cov = fits[0].covariance + minima_scatter(fits)
+    cov = fits[0].covariance + minima_scatter(fits, views, camera, T_given)
     if sensors is None and is_rig(root):
         sensors = first_pair(root)
     test = consistency(fits[0], T_given, covariance=cov if given_covariance is None else

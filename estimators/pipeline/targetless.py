@@ -7,7 +7,7 @@ then as the check does (``align_scene``: along the rings, truncated at 20 px, th
 sees recomputed under each stage's start. The same is done from ``PROBES`` starts about the guess (turned by
 ``PROBE_DEG`` about, or moved by ``PROBE_M`` along, the camera's axes); the lowest end is the estimate, and from
 there the check's 13 starts (``scene_minima``) give its covariance (the block sandwich plus the scatter of the
-minima as low).
+minima the blocks cannot tell from it).
 
 Refused (a :class:`DegenerateLayoutError`, nothing written), never returned as converged:
 
@@ -216,7 +216,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     best = ends[0][1]
     views = views_at(best.T_camera_lidar, TRUNCATE_PX)
     fits = scene_minima(views, camera, best.T_camera_lidar, narrow_from_every_start=True)
-    cov = fits[0].covariance + minima_scatter(fits)
+    cov = fits[0].covariance + minima_scatter(fits, views, camera, best.T_camera_lidar)
     estimate = fits[0]
     for _, f in ends[1:]:
         xi = T_log(T_inverse(estimate.T_camera_lidar) @ f.T_camera_lidar)
@@ -261,7 +261,7 @@ def _halves(views: list, camera, T: np.ndarray) -> dict:
             fits = scene_minima(part, camera, T)
         except DegenerateLayoutError as exc:
             return {"problem": f"{name} alone do not solve ({exc.problem})"}
-        got.append((fits[0].T_camera_lidar, fits[0].covariance + minima_scatter(fits)))
+        got.append((fits[0].T_camera_lidar, fits[0].covariance + minima_scatter(fits, part, camera, T)))
     (Ta, Ca), (Tb, Cb) = got
     xi = T_log(T_inverse(Ta) @ Tb)
     try:

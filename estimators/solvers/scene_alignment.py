@@ -30,8 +30,8 @@ variance step^2 / 12, is added to the sandwich's meat (``structure_information``
 level and is noisy with few blocks: the test against a given extrinsic (``consistency``) reads the squared
 distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``, ``F(k, n - k)``, n blocks), over the ``k`` directions
 the scene constrains (standard deviations within ``CONSTRAINED``). The cost can have several minima about as low
-(``scene_minima`` seeks them from 13 starts): the scatter of those as low as the estimate (``minima_scatter``) is
-what its covariance does not see. A check's estimate is the minimum sought from the given extrinsic unless another
+(``scene_minima`` seeks them from 13 starts): the scatter of those the blocks cannot tell from the estimate
+(``minima_scatter``) is what its covariance does not see. A check's estimate is the minimum sought from the given extrinsic unless another
 fits the scene significantly better over the blocks (``nearest_decided``, ``better_fit``): the lowest RMS alone
 rewards a minimum that drags contours without an image edge of their own onto the ends of others' edges.
 """
@@ -522,13 +522,20 @@ def constrained_directions(covariance: np.ndarray, limits: tuple[float, float] =
     return V[:, keep], lam[keep]
 
 
-def minima_scatter(fits: list[SceneFit]) -> np.ndarray:
-    """The second moment (6x6, the estimate's tangent) of the minima as low as the estimate (``fits[0]``; within
-    ``RIVAL_RMS`` of its RMS residual, above or below) about it: how far the scene's cost leaves its own minimum
-    undecided, which the estimate's covariance (its curvature and its blocks) does not see."""
+def minima_scatter(fits: list[SceneFit], views: list[SceneView], camera: CameraModel, T_blocks: np.ndarray
+                   ) -> np.ndarray:
+    """The second moment (6x6, the estimate's tangent) about the estimate (``fits[0]``) of the minima the scene
+    cannot tell from it: those the estimate does not fit significantly better over the image's blocks
+    (``better_fit`` at ``BETTER_ALPHA``, ``views`` narrowed to the last of ``STAGES_PX``, blocks under
+    ``T_blocks``). How far the scene's cost leaves its own minimum undecided, which the estimate's covariance (its
+    curvature and its blocks) does not see. Counting only the minima within ``RIVAL_RMS`` of its RMS residual, as
+    before, the estimates sought 0.2 degrees and 2 cm off the truth of simulated scenes had NEES means up to 12.6
+    and up to 20% beyond the 99% point (seeds 100-139): a minimum 1-5% higher in RMS is often no worse over the
+    blocks."""
     best = fits[0]
-    xis = [T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar) for f in fits
-           if abs(f.rms_px - best.rms_px) <= best.rms_px * RIVAL_RMS]
+    stage = [narrowed(v, STAGES_PX[-1]) for v in views] if STAGES_PX else views
+    xis = [np.zeros(6)] + [T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar) for f in fits[1:]
+                           if better_fit(f, best, stage, camera, T_blocks) >= BETTER_ALPHA]
     return sum(np.outer(x, x) for x in xis) / len(xis)
 
 
