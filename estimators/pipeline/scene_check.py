@@ -8,9 +8,9 @@ outline) and the contour returns that land there, so that the check is the scene
 The scene's estimate is sought from the given extrinsic and from starts about it (``scene_minima``): the minimum
 sought from the given one, unless another fits the scene significantly better over the image's blocks
 (``nearest_decided``); the other minima it does not fit significantly better over the blocks say how far the
-scene's cost leaves it undecided, and their scatter about it is added to its block covariance (``minima_scatter``). The test reads the
-given extrinsic's difference from the estimate against that sum (plus the given extrinsic's own covariance, when
-it is a calibration's) over the directions the scene constrains.
+scene's cost leaves it undecided, and their scatter about it is added to its block covariance
+(``minima_scatter``). The test reads the given extrinsic's difference from the estimate against that sum (plus
+the given extrinsic's own covariance, when it is a calibration's) over the directions the scene constrains.
 """
 from __future__ import annotations
 

@@ -31,9 +31,10 @@ level and is noisy with few blocks: the test against a given extrinsic (``consis
 distance as Hotelling's (``F = d2 (n - k) / (k (n - 1))``, ``F(k, n - k)``, n blocks), over the ``k`` directions
 the scene constrains (standard deviations within ``CONSTRAINED``). The cost can have several minima about as low
 (``scene_minima`` seeks them from 13 starts): the scatter of those the blocks cannot tell from the estimate
-(``minima_scatter``) is what its covariance does not see. A check's estimate is the minimum sought from the given extrinsic unless another
-fits the scene significantly better over the blocks (``nearest_decided``, ``better_fit``): the lowest RMS alone
-rewards a minimum that drags contours without an image edge of their own onto the ends of others' edges.
+(``minima_scatter``) is what its covariance does not see. A check's estimate is the minimum sought from the given
+extrinsic unless another fits the scene significantly better over the blocks (``nearest_decided``,
+``better_fit``): the lowest RMS alone rewards a minimum that drags contours without an image edge of their own onto
+the ends of others' edges.
 """
 from __future__ import annotations
 
