@@ -316,6 +316,11 @@ def narrowed(view: SceneView, truncate_px: float) -> SceneView:
     return replace(view, truncate_px=min(truncate_px, view.truncate_px))
 
 
+def narrowest(views: list[SceneView]) -> list[SceneView]:
+    """The views narrowed to the last of ``STAGES_PX``: the field on which minima are compared over the blocks."""
+    return [narrowed(v, STAGES_PX[-1]) for v in views] if STAGES_PX else views
+
+
 def align_scene(views: list[SceneView], camera: CameraModel, T_start: np.ndarray, max_evaluations: int = 60,
                 stages: list | None = None, narrow_from_start: bool = True, decided: bool = False) -> SceneFit:
     """The extrinsic that lays the contour returns on the image edges best near ``T_start`` (module docstring):
@@ -429,7 +434,7 @@ def nearest_decided(fits: list[SceneFit], views: list[SceneView], camera: Camera
     near = next((f for f in fits if f.start == 0), fits[0])
     if near is fits[0]:
         return fits
-    stage = [narrowed(v, STAGES_PX[-1]) for v in views] if STAGES_PX else views
+    stage = narrowest(views)
     if better_fit(near, fits[0], stage, camera, T_given) < alpha:
         return fits
     return [near] + [f for f in fits if f is not near]
@@ -534,7 +539,7 @@ def minima_scatter(fits: list[SceneFit], views: list[SceneView], camera: CameraM
     and up to 20% beyond the 99% point (seeds 100-139): a minimum 1-5% higher in RMS is often no worse over the
     blocks."""
     best = fits[0]
-    stage = [narrowed(v, STAGES_PX[-1]) for v in views] if STAGES_PX else views
+    stage = narrowest(views)
     xis = [np.zeros(6)] + [T_log(T_inverse(best.T_camera_lidar) @ f.T_camera_lidar) for f in fits[1:]
                            if better_fit(f, best, stage, camera, T_blocks) >= BETTER_ALPHA]
     return sum(np.outer(x, x) for x in xis) / len(xis)
