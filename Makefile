@@ -74,6 +74,8 @@ bench: $(STAMP)
 	$(RECORD) still_and_move -- $(PY) benchmarks/bench_still_and_move.py --bags 12
 	$(RECORD) scene_check -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 100
 	$(RECORD) scene_check_seed0 -- $(PY) benchmarks/bench_scene_check.py --scenes 40 --seed 0
+	$(RECORD) scene_covariance -- $(PY) benchmarks/bench_scene_covariance.py --scenes 40 --seed 100
+	$(RECORD) scene_covariance_seed0 -- $(PY) benchmarks/bench_scene_covariance.py --scenes 40 --seed 0
 	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24 --seed 100
 	$(RECORD) scene_joint -- $(PY) benchmarks/bench_scene_joint.py --scenes 40
 	$(RECORD) scene_zones -- $(PY) benchmarks/bench_scene_zones.py

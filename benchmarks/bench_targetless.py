@@ -81,8 +81,9 @@ def main() -> None:
     print("Errors over the estimates returned with the verdict CHECK (UNTRUSTED: the even and the odd frames "
           "disagree or do not solve; their errors listed below the table)\n")
     print("| LiDAR | guess off by | runs | refused | UNTRUSTED | rotation error RMS (sd RMS) | translation error RMS "
-          "(sd RMS) | error / sd | NEES mean / median (6 if honest) | seconds (median / max) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "(sd RMS) | error / sd | NEES mean / median (6 if honest) | NEES beyond chi2(6) 99% | "
+          "seconds (median / max) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for model in MODELS:
         for name, (deg, m) in STARTS.items():
             sel = [r for r in rows if r["model"] == model and r["start"] == name]
@@ -95,9 +96,10 @@ def main() -> None:
                 nees = np.array([r["nees"] for r in done])
                 cols = (f"{rms['rot_deg']:.3f} deg ({rms['sd_rot_deg']:.3f}) | {rms['trans_mm']:.1f} mm "
                         f"({rms['sd_trans_mm']:.1f}) | {rms['rot_deg'] / rms['sd_rot_deg']:.1f} / "
-                        f"{rms['trans_mm'] / rms['sd_trans_mm']:.1f} | {nees.mean():.1f} / {np.median(nees):.1f}")
+                        f"{rms['trans_mm'] / rms['sd_trans_mm']:.1f} | {nees.mean():.1f} / {np.median(nees):.1f} | "
+                        f"{np.sum(nees > 16.81)} of {len(nees)}")
             else:
-                cols = "- | - | - | -"
+                cols = "- | - | - | - | -"
             print(f"| {model} | {deg:g} deg, {100 * m:g} cm | {len(sel)} | {len(sel) - len(returned)} | "
                   f"{len(returned) - len(done)} | {cols} | "
                   f"{np.median(secs):.1f} / {max(secs):.1f} |")
