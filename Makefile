@@ -77,6 +77,7 @@ bench: $(STAMP)
 	$(RECORD) scene_covariance -- $(PY) benchmarks/bench_scene_covariance.py --scenes 40 --seed 100
 	$(RECORD) scene_covariance_seed0 -- $(PY) benchmarks/bench_scene_covariance.py --scenes 40 --seed 0
 	$(RECORD) targetless -- $(PY) benchmarks/bench_targetless.py --scenes 24 --seed 100
+	$(RECORD) targetless_seed0 -- $(PY) benchmarks/bench_targetless.py --scenes 24 --seed 0
 	$(RECORD) scene_joint -- $(PY) benchmarks/bench_scene_joint.py --scenes 40
 	$(RECORD) scene_zones -- $(PY) benchmarks/bench_scene_zones.py
 	$(RECORD) scene_cues -- $(PY) benchmarks/bench_scene_cues.py

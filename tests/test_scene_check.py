@@ -299,6 +299,26 @@ def test_targetless_refuses_a_guess_it_cannot_pull_in(room, tmp_path, capsys):
     assert "initial guess" in capsys.readouterr().err and not (tmp_path / "cal").exists()
 
 
+def test_targetless_counts_starts_ending_within_its_reported_region_as_together(tmp_path):
+    """Simulated VLP-16 room (seed 114, ten frames) from the bench's guess 2 degrees and 10 cm off: the starts end
+    at minima the scene's blocks cannot tell apart, so within the estimate's own curvature only 1 of 7 ended
+    together and the guess was refused (docs/bench/targetless.md at 60a2393). Judged within the
+    covariance the estimate is reported with (its minima's scatter included), it is returned, and that covariance
+    holds the truth (NEES within chi-square(6)'s 99% point)."""
+    from estimators.pipeline.targetless import calibrate_targetless
+    from estimators.simulation.furnished_room import simulate_scene_dataset
+
+    ds = simulate_scene_dataset(tmp_path / "room", n_frames=10, seed=114, lidar="vlp16")
+    truth = np.array(json.loads((ds / "ground_truth.json").read_text())["T_camera_lidar"])
+    rng = np.random.default_rng([114, 65])  # the bench's guess for this seed
+    axis, move = rng.normal(size=3), rng.normal(size=3)
+    guess = T_from_Rt(R_from_rotvec(np.radians(2.0) * axis / np.linalg.norm(axis)),
+                      0.10 * move / np.linalg.norm(move)) @ truth
+    r = calibrate_targetless(ds, guess)
+    xi = T_log(T_inverse(r.T_camera_lidar) @ truth)
+    assert xi @ np.linalg.solve(r.covariance, xi) < 16.81
+
+
 def test_targetless_is_untrusted_where_the_halves_of_the_frames_disagree():
     """A result whose even and odd frames land apart (the VLP-16 room where every start reached a minimum a degree
     from the truth: halves 3.8 degrees apart) opens with UNTRUSTED and says why; one whose half does not solve
