@@ -57,32 +57,41 @@ def _power(covariance: np.ndarray, blocks: int, xi: np.ndarray, alpha: float = 0
     return float(ncf.sf(f.isf(alpha, k, n - k), k, n - k, d2))
 
 
-def _trial(job: tuple[str, int]) -> list[dict]:
+def simulated_cases(generator: str, seed: int, folder: Path) -> tuple[str, np.ndarray, dict]:
+    """The scene of ``generator`` and ``seed`` simulated into ``folder`` (its LiDAR by the seed, ``MODELS`` in
+    turn), and the extrinsics it is checked under: the truth, the truth turned by ``TURN_DEG`` about a random axis
+    and moved by ``MOVE_M`` along a random direction. ``(model, truth, cases)``."""
     import json
 
-    from estimators.errors import LidarcamError
-    from estimators.pipeline.scene_check import check_scene
     from estimators.simulation.furnished_room import simulate_scene_dataset
     from estimators.simulation.simulator import simulate_dataset
-    from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
+    from geometry.rotations import R_from_rotvec, T_from_Rt
 
-    generator, seed = job
     rng = np.random.default_rng(seed)
     model = MODELS[seed % len(MODELS)]
+    if generator == "room":
+        simulate_scene_dataset(folder, n_frames=10, seed=seed, lidar=model)
+    else:
+        simulate_dataset(folder, n_poses=10, seed=seed, lidar=model, scene="office")
+    truth = np.array(json.loads((folder / "ground_truth.json").read_text())["T_camera_lidar"])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    move = rng.normal(size=3)
+    move /= np.linalg.norm(move)
+    return model, truth, {"truth": truth,
+                          "turned": T_from_Rt(R_from_rotvec(np.radians(TURN_DEG) * axis), np.zeros(3)) @ truth,
+                          "moved": T_from_Rt(np.eye(3), MOVE_M * move) @ truth}
+
+
+def _trial(job: tuple[str, int]) -> list[dict]:
+    from estimators.errors import LidarcamError
+    from estimators.pipeline.scene_check import check_scene
+    from geometry.rotations import T_inverse, T_log
+
+    generator, seed = job
     rows = []
     with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
-        if generator == "room":
-            simulate_scene_dataset(Path(tmp) / "ds", n_frames=10, seed=seed, lidar=model)
-        else:
-            simulate_dataset(Path(tmp) / "ds", n_poses=10, seed=seed, lidar=model, scene="office")
-        truth = np.array(json.loads((Path(tmp) / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        move = rng.normal(size=3)
-        move /= np.linalg.norm(move)
-        cases = {"truth": truth,
-                 "turned": T_from_Rt(R_from_rotvec(np.radians(TURN_DEG) * axis), np.zeros(3)) @ truth,
-                 "moved": T_from_Rt(np.eye(3), MOVE_M * move) @ truth}
+        model, truth, cases = simulated_cases(generator, seed, Path(tmp) / "ds")
         for keep in ((False, True) if generator == "office" else (False,)):
             at_truth = None  # the truth's check: its covariance gives the power expected against the others
             for name, T in cases.items():

@@ -38,8 +38,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-MODELS = ("vlp16", "os64")
-TURN_DEG, MOVE_M = 0.2, 0.02
+from bench_scene_check import MODELS, simulated_cases  # noqa: E402  (the same scenes and cases)
+
 CHI2_6_99 = 16.81
 VARIANTS = ("reported", "no minima", "no draws", "draws by leverage", "minima by likelihood")
 
@@ -104,32 +104,15 @@ def _covariances(fits, views, camera, T_given) -> dict:
 
 
 def _trial(job: tuple[str, int]) -> list[dict]:
-    import json
-
     from estimators.errors import LidarcamError
     from estimators.pipeline.scene_check import read_scene_frames, scene_views
-    from estimators.simulation.furnished_room import simulate_scene_dataset
-    from estimators.simulation.simulator import simulate_dataset
     from estimators.solvers.scene_alignment import nearest_decided, scene_minima
-    from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
+    from geometry.rotations import T_inverse, T_log
 
     generator, seed = job
-    rng = np.random.default_rng(seed)
-    model = MODELS[seed % len(MODELS)]
     rows = []
     with tempfile.TemporaryDirectory(prefix="lidarcam-bench-") as tmp:
-        if generator == "room":
-            simulate_scene_dataset(Path(tmp) / "ds", n_frames=10, seed=seed, lidar=model)
-        else:
-            simulate_dataset(Path(tmp) / "ds", n_poses=10, seed=seed, lidar=model, scene="office")
-        truth = np.array(json.loads((Path(tmp) / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        move = rng.normal(size=3)
-        move /= np.linalg.norm(move)
-        cases = {"truth": truth,
-                 "turned": T_from_Rt(R_from_rotvec(np.radians(TURN_DEG) * axis), np.zeros(3)) @ truth,
-                 "moved": T_from_Rt(np.eye(3), MOVE_M * move) @ truth}
+        model, truth, cases = simulated_cases(generator, seed, Path(tmp) / "ds")
         for keep in ((False, True) if generator == "office" else (False,)):
             board = "none" if generator == "room" else "kept" if keep else "left out"
             for name, T in cases.items():
