@@ -104,8 +104,7 @@ class TargetlessResult:
                                        "(give more frames, with objects at several distances)",))
         if h.get("d2") is not None and h["d2"] > HALVES_D2:
             return Verdict(UNTRUSTED, (f"targetless: the even and the odd frames disagree ({h['apart_deg']:.2f} deg "
-                                       f"and {h['apart_mm']:.0f} mm apart, d2 {h['d2']:.0f} on 6 dof with the "
-                                       "covariance's excess): the scene's "
+                                       f"and {h['apart_mm']:.0f} mm apart, d2 {h['d2']:.0f} on 6 dof): the scene's "
                                        "cost leads each half elsewhere",))
         return Verdict(CHECK, ("targetless: on simulated rooms the scene's covariance holds the truth "
                                "(docs/bench/targetless.md), but on recorded frames the scene's estimate moves with "
