@@ -44,16 +44,6 @@ CHI2_6_99 = 16.81
 VARIANTS = ("reported", "no minima", "no draws", "draws by leverage", "minima by likelihood")
 
 
-def _block_sandwich_meat(J: np.ndarray, r: np.ndarray, blocks: np.ndarray) -> np.ndarray:
-    """The blocks' meat, ``sum_b g_b g_b^T n / (n - 1)`` (as ``align_once``)."""
-    ub, inv = np.unique(blocks, return_inverse=True)
-    g = np.zeros((len(ub), 6))
-    np.add.at(g, inv, J * r[:, None])
-    g = g[np.any(g != 0, axis=1)]
-    n = len(g)
-    return g.T @ g * n / (n - 1)
-
-
 def _draws_by_leverage(J: np.ndarray, labels: np.ndarray, sd: np.ndarray, H_inv: np.ndarray) -> np.ndarray:
     """Each structure's draw (``structure_information``'s) times its leverage ``a' H^-1 a / |v|^2``, ``v`` the
     draw's effect on its residuals (``J[:, 2]`` on its returns) and ``a = J' v``."""
@@ -72,20 +62,17 @@ def _draws_by_leverage(J: np.ndarray, labels: np.ndarray, sd: np.ndarray, H_inv:
 
 def _covariances(fits, views, camera, T_given) -> dict:
     from estimators.solvers import scene_alignment as sa
-    from geometry.rotations import T_inverse, T_log, transform_points
+    from geometry.rotations import T_inverse, T_log
 
     best = fits[0]
     stage = [v for v in sa.narrowest(views) if len(v.points)]
     parts = sa.stacked_residuals(best.T_camera_lidar, stage, camera)
     J = np.concatenate([J for _, J in parts])
-    r = np.concatenate([r for r, _ in parts])
-    blocks = np.concatenate([sa.image_block(np.nan_to_num(camera.project(transform_points(best.T_camera_lidar,
-                                                                                            v.points)), nan=-1.0),
-                                            camera) for v in stage])
     labels = sa.structures(stage)
     sd = np.concatenate([np.full(len(v.points), v.azimuth_step / np.sqrt(12.0)) for v in stage])
     H_inv = np.linalg.inv(J.T @ J)
-    B = H_inv @ _block_sandwich_meat(J, r, blocks) @ H_inv
+    g = sa.block_gradients(best.T_camera_lidar, stage, parts, camera)  # the blocks' meat, as ``align_once``
+    B = H_inv @ (g.T @ g * len(g) / (len(g) - 1)) @ H_inv
     M = sa.minima_scatter(fits, views, camera, T_given)
     # the minima by likelihood: the cost's rise over the estimate's in residual variances, over the overdispersion
     # along the minimum's direction (the information H / s2 against the covariance's)

@@ -483,7 +483,7 @@ def align_once(views: list[SceneView], camera: CameraModel, T_start: np.ndarray,
     T = T_retract(T_start, sol.x)
     parts = stacked_residuals(T, views, camera)
     H = sum(J.T @ J for _, J in parts)
-    g = _block_gradients(T, views, parts, camera)
+    g = block_gradients(T, views, parts, camera)
     n = len(g)
     if n < 2:
         raise DegenerateLayoutError(f"the scene's contours meet their edges in {n} image block(s): too few to "
@@ -501,7 +501,7 @@ def align_once(views: list[SceneView], camera: CameraModel, T_start: np.ndarray,
                     float(np.sqrt(np.mean(r1 ** 2))), sol.x.copy(), bool(sol.success))
 
 
-def _block_gradients(T: np.ndarray, views: list[SceneView], parts: list, camera: CameraModel) -> np.ndarray:
+def block_gradients(T: np.ndarray, views: list[SceneView], parts: list, camera: CameraModel) -> np.ndarray:
     """Each image block's share of the gradient, every frame's residuals in the block pooled ((blocks, 6), the
     blocks holding a residual with a slope)."""
     nu, nv = BLOCKS
