@@ -93,13 +93,46 @@ def detect_chessboard(gray: np.ndarray, board: BoardModel, budget_s: float | Non
     return CornerDetection(found.corners_px, found.method, square_gray=square_gray(gray, found.corners_px, pattern))
 
 
+# The most a corner may leave the line of its neighbours along a row or column, as a share of their distance:
+# a board seen at any angle through any lens bends its grid smoothly (a square 1.7 times the next, the most
+# perspective gives, is 0.5); a grid that jumps is the detector's mistake.
+MAX_GRID_BEND = 0.5
+
+
+def grid_is_smooth(corners: np.ndarray, pattern: tuple[int, int]) -> bool:
+    """Whether each inner corner lies near the middle of its two neighbours along every row and column (within
+    ``MAX_GRID_BEND`` of their half-distance)."""
+    grid = corners.reshape(pattern[1], pattern[0], 2)
+    for g in (grid, grid.transpose(1, 0, 2)):
+        if g.shape[1] < 3:
+            continue
+        bend = np.linalg.norm(g[:, 2:] - 2 * g[:, 1:-1] + g[:, :-2], axis=2)
+        half = 0.5 * np.linalg.norm(g[:, 2:] - g[:, :-2], axis=2)
+        if np.any(bend > MAX_GRID_BEND * half):
+            return False
+    return True
+
+
+def _sector(image: np.ndarray, pattern: tuple[int, int], flags: int) -> np.ndarray | None:
+    """``findChessboardCornersSB``'s whole grid, or None. Its search draws from OpenCV's random generator, whose
+    state every call moves on: seeded here, each image gets the same answer whatever was detected before it (in
+    its thread), so a dataset's measurements do not depend on its frames' order or the workers' count (without
+    it, one image of a 4-board set gave a true grid on its thread's first call and a broken one after)."""
+    cv2.setRNGSeed(0)
+    ok, corners = cv2.findChessboardCornersSB(image, pattern, flags=flags)
+    if not ok or corners is None or len(corners) != pattern[0] * pattern[1]:
+        return None
+    corners = corners.reshape(-1, 2).astype(float)
+    return corners if grid_is_smooth(corners, pattern) else None
+
+
 def _found(level: np.ndarray, pattern: tuple[int, int], flags: int, box: tuple | None) -> np.ndarray | None:
     """The sector detector's corners in ``level`` (in its pixels), searched first within ``box`` (x0, y0, x1,
     y1) when given, then in the whole copy; None when not found."""
     for x0, y0, x1, y1 in ([box] if box is not None else []) + [(0, 0, level.shape[1], level.shape[0])]:
-        ok, corners = cv2.findChessboardCornersSB(level[y0:y1, x0:x1], pattern, flags=flags)
-        if ok and corners is not None and len(corners) == pattern[0] * pattern[1]:
-            return corners.reshape(-1, 2).astype(float) + (x0, y0)
+        corners = _sector(level[y0:y1, x0:x1], pattern, flags)
+        if corners is not None:
+            return corners + (x0, y0)
     return None
 
 
@@ -143,9 +176,9 @@ def _detect_pyramid(gray: np.ndarray, pattern: tuple[int, int]) -> CornerDetecti
 def _detect_full(gray: np.ndarray, pattern: tuple[int, int], budget_s: float | None = None
                  ) -> CornerDetection | None:
     for name, flags in _SB_ATTEMPTS:
-        found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=flags)
-        if found and corners is not None and len(corners) == pattern[0] * pattern[1]:
-            refined, half = _subpixel(gray, corners.reshape(-1, 2), pattern)
+        corners = _sector(gray, pattern, flags)
+        if corners is not None:
+            refined, half = _subpixel(gray, corners, pattern)
             return CornerDetection(refined, f"{name}+subpix{half}")
     corners = _classic_bounded(gray, pattern, budget_s) if budget_s is not None else _classic(gray, pattern)
     if corners is not None:
@@ -159,8 +192,8 @@ def _classic(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
     if not found or corners is None:
         return None
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
-    corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (5, 5), (-1, -1), crit)
-    return corners.reshape(-1, 2).astype(float)
+    corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (5, 5), (-1, -1), crit).reshape(-1, 2)
+    return corners.astype(float) if grid_is_smooth(corners, pattern) else None
 
 
 def _classic_child(gray, pattern, conn) -> None:
