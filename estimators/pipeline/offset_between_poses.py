@@ -19,12 +19,12 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from geometry.rotations import T_inverse, T_log
 
 from ..errors import DegenerateLayoutError
 from ..io.motion_track import FOLLOWED_CAMERA, has_motion, load_motion_track
+from ..solvers import chi_square as chi2
 from ..solvers.clock_offset import MAX_GAP_S, OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, \
     solve_clock_offset, still_runs
 from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \

@@ -1,4 +1,5 @@
-"""The chi-square distribution's tail, quantiles and median, and the F distribution's tail, from scipy.special.
+"""The chi-square distribution's tail, quantiles and median, and the F and Student t distributions' tails, from
+scipy.special.
 
 The tests and gates of the solvers need only these functions. Importing `scipy.stats` for them costs about
 0.7 s at start-up (it builds every distribution's docstring), more than a cached calibration's whole solve, so
@@ -7,7 +8,7 @@ they are computed here from the regularised incomplete gamma function and its in
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtrc, chdtri
+from scipy.special import chdtrc, chdtri, stdtr
 from scipy.special import fdtrc as _fdtrc
 
 
@@ -34,6 +35,11 @@ def median(dof):
 def fdtrc(dfn, dfd, x):
     """P(X > x) for X ~ F(dfn, dfd)."""
     return _fdtrc(dfn, dfd, x)
+
+
+def t_sf(t, dof):
+    """P(T > t) for T ~ Student's t(dof)."""
+    return stdtr(dof, -np.asarray(t, dtype=float))
 
 
 def drop_p(k: int, ss_given: float, ss_freed: float, dof: float) -> float:

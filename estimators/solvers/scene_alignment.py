@@ -42,13 +42,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import f as f_dist
 
 from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, T_log, T_retract, transform_points
 
 from ..camera.edge_map import EdgeMap
 from ..errors import DegenerateLayoutError
+from . import chi_square as chi2
 
 # A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
 CONSTRAINED = (np.radians(1.0), 0.10)
@@ -415,13 +415,12 @@ def better_fit(a: SceneFit, b: SceneFit, views: list[SceneView], camera: CameraM
     (``block_costs``, ``views`` at the fits' truncation). A lower RMS alone also rewards a minimum that drags
     contours with no image edge of their own (a silhouette the colour of what lies behind it) onto the end of a
     neighbour's edge: fewer truncated residuals, a better fit of nothing."""
-    from scipy.stats import ttest_1samp
-
     ca, cb = (block_costs(f.T_camera_lidar, views, camera, T_blocks) for f in (a, b))
     d = (ca - cb)[(ca > 0) | (cb > 0)]
     if len(d) < 2 or np.ptp(d) == 0:  # no spread to weigh the difference by: only a uniform gain decides
         return 0.0 if len(d) and d[0] > 0 else 1.0
-    return float(ttest_1samp(d, 0.0, alternative="greater").pvalue)
+    t = d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))
+    return float(chi2.t_sf(t, len(d) - 1))
 
 
 def nearest_decided(fits: list[SceneFit], views: list[SceneView], camera: CameraModel, T_given: np.ndarray,
@@ -569,5 +568,5 @@ def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] 
     if k == 0 or n <= k:
         return out
     F = d2 * (n - k) / (k * (n - 1))
-    out.update(d2=d2, F=F, p_value=float(f_dist.sf(F, k, n - k)))
+    out.update(d2=d2, F=F, p_value=float(chi2.fdtrc(k, n - k, F)))
     return out
