@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -215,8 +216,6 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
     reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``)."""
-    from concurrent.futures import ThreadPoolExecutor
-
     load = scene_pair if is_rig(folder) else load_scene_folder
     root, own, board, frames = load(folder, camera is None, sensors)
     if camera is not None and own is not None and (camera.width, camera.height) != (own.width, own.height):
@@ -251,13 +250,20 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
 def scene_views(frames: list[SceneFrame], T: np.ndarray, camera: CameraModel, skipped: dict,
                 truncate_px: float = TRUNCATE_PX) -> list[SceneView]:
     """Every frame's :func:`scene_view` under ``T``; a frame with no contour in the camera's view is added to
-    ``skipped`` with that reason."""
-    views = []
-    for f in frames:
+    ``skipped`` with that reason. Two frames at a time: the image's edges and their distance map release the
+    interpreter."""
+    def view_of(f: SceneFrame) -> SceneView | str:
         try:
-            view = scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px)
+            return scene_view(f.name, f.gray, f.sweep, T, camera, f.board_mask, truncate_px)
         except LidarcamError as exc:
-            skipped[f.name] = exc.problem
+            return exc.problem
+
+    with ThreadPoolExecutor(max_workers=READ_THREADS) as pool:
+        got = list(pool.map(view_of, frames))
+    views = []
+    for f, view in zip(frames, got):
+        if isinstance(view, str):
+            skipped[f.name] = view
             continue
         if len(view.points) == 0:
             skipped[f.name] = "no LiDAR contour in the camera's view"
