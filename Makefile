@@ -117,8 +117,8 @@ bench: $(STAMP)
 	$(RECORD) 2d_honesty_footprint_6_boards -- $(PY) benchmarks/bench_2d_honesty.py footprint 100 --boards 6
 	$(RECORD) 2d_honesty_footprint_4_boards_no_edges -- $(PY) benchmarks/bench_2d_honesty.py footprint 100 --boards 4 --no-edges
 	$(RECORD) charuco -- $(PY) benchmarks/bench_charuco.py
-	$(RECORD) study_2d_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
-	$(RECORD) study_2d_varied_end_to_end -- $(VENV)/bin/lidarcam study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
+	$(RECORD) study_2d_end_to_end -- $(PY) -m estimators study benchmarks/study_2d_end_to_end.yaml --out bench-out/study_2d_end_to_end
+	$(RECORD) study_2d_varied_end_to_end -- $(PY) -m estimators study benchmarks/study_2d_varied_end_to_end.yaml --out bench-out/study_2d_varied_end_to_end
 	$(RECORD) study -- $(PY) benchmarks/bench_study.py
 	$(RECORD) bag -- $(PY) benchmarks/bench_bag.py
 	$(RECORD) fuzz -- $(PY) benchmarks/bench_fuzz.py

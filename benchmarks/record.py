@@ -51,8 +51,15 @@ def revision() -> str:
 
 
 def title_of(command: list[str]) -> str:
-    """The benchmark script's docstring's first paragraph up to its first parenthesis, or the command."""
+    """The benchmark script's docstring's first paragraph up to its first parenthesis, a study file's ``name:``,
+    or the command."""
     for arg in command:
+        if arg.endswith(".yaml") and (ROOT / arg).is_file():
+            import yaml
+
+            spec = yaml.safe_load((ROOT / arg).read_text())
+            if isinstance(spec, dict) and isinstance(spec.get("name"), str):
+                return spec["name"]
         if arg.endswith(".py") and (ROOT / arg).is_file():
             text = (ROOT / arg).read_text()
             for quote in ('"""', "'''"):
