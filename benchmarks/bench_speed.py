@@ -92,15 +92,16 @@ def large_frames() -> Path:
     return write_dataset(path, rig, grown, "pcd", overwrite=True)
 
 
-def _run(args: list[str], env: dict) -> tuple[float, float, int]:
-    """Wall seconds, peak resident MB and exit code of one lidarcam process."""
+def _run(args: list[str], env: dict, expected: tuple = (0,)) -> tuple[float, float, int]:
+    """Wall seconds, peak resident MB and exit code of one lidarcam process (its last error line printed when
+    the code is not one of ``expected``)."""
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", _LAUNCH, *args], env=env, stdout=subprocess.DEVNULL,
                           stderr=subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
     lines = proc.stderr.strip().splitlines()
     peak = [float(x.split()[1]) / 1024.0 for x in lines if x.startswith("VmHWM ")]
-    if proc.returncode != 0:
+    if proc.returncode not in expected:
         print([x for x in lines if not x.startswith("VmHWM ")][-1:] or "(no message)")
     return wall, peak[0] if peak else float("nan"), proc.returncode
 
@@ -110,9 +111,9 @@ def _run(args: list[str], env: dict) -> tuple[float, float, int]:
 REPEATS = 3
 
 
-def _median_run(args: list[str], env: dict, n: int) -> tuple[float, float, int, list[float]]:
+def _median_run(args: list[str], env: dict, n: int, expected: tuple = (0,)) -> tuple[float, float, int, list[float]]:
     """The median wall of ``n`` runs, their largest peak MB, their worst exit code, and every wall."""
-    runs = [_run(args, env) for _ in range(n)]
+    runs = [_run(args, env, expected) for _ in range(n)]
     walls = [w for w, _, _ in runs]
     return (float(np.median(walls)), max(p for _, p, _ in runs), max(c for _, _, c in runs), walls)
 
@@ -141,7 +142,7 @@ def scene_rows(tmp: Path, env: dict, spreads: list) -> None:
         return
     ten = first_frames(OUSTER, 10, tmp / "ouster10")
     args = ["check", str(ten), "--calibration", str(cal / "calibration.json"), "--out", str(tmp / "check")]
-    wall, peak, code, walls = _median_run(args, env, REPEATS)
+    wall, peak, code, walls = _median_run(args, env, REPEATS, expected=(0, 4))
     spreads.append("Ouster check: " + ", ".join(f"{w:.2f}" for w in walls))
     print(f"{'recorded Ouster':18s}{'check, first 10 frames':34s}{wall:8.2f}{5.0:9.1f}{peak:9.0f}{code:5d}")
     rng = np.random.default_rng(65)
@@ -151,7 +152,7 @@ def scene_rows(tmp: Path, env: dict, spreads: list) -> None:
                       0.10 * move / np.linalg.norm(move)) @ T
     (tmp / "guess.json").write_text(json.dumps({"T_camera_lidar": guess.tolist()}))
     wall, peak, code = _run(["calibrate", str(OUSTER), "--targetless", "--initial-guess", str(tmp / "guess.json"),
-                             "--out", str(tmp / "targetless")], env)
+                             "--out", str(tmp / "targetless")], env, expected=(0, 2))
     print(f"{'recorded Ouster':18s}{'--targetless, 2 deg 10 cm off':34s}{wall:8.2f}{60.0:9.1f}{peak:9.0f}{code:5d}")
 
 
