@@ -88,19 +88,24 @@ def test_cli_study_runs_a_spec_and_refuses_a_bad_one(tmp_path):
 
 
 def test_layout_families_are_an_axis_and_their_bounds_rank_as_expected(tmp_path):
-    """Measurement level, 8 frames, 3 trials per family: the one-way and frontal families' bounds are far
-    above the spread family's (the planar method's point), errors stay within a few bounds, and the layout
+    """Measurement level, 8 frames, 3 trials per family: the one-way and frontal families' bounds of the planes
+    are far above the spread family's (the planar method's point; the board's edges, which the factor graph adds,
+    narrow the gap, and its errors are read against their bound), errors stay within a few bounds, and the layout
     figure is written."""
-    spec = parse_spec({"lidar": "3d", "solvers": ["factor-graph"], "layouts": ["spread", "upward", "frontal"],
-                       "frames": [8], "trials": 3, "seed": 1})
+    spec = parse_spec({"lidar": "3d", "solvers": ["closed-form", "factor-graph"],
+                       "layouts": ["spread", "upward", "frontal"], "frames": [8], "trials": 3, "seed": 1})
     assert [c[0] for c in spec.cells] == ["spread", "upward", "frontal"]
     rows = run_study(spec, tmp_path, workers=1, progress=False)
-    bound = {f: np.mean([r["bound_trans_mm"] for r in rows if r["layout"] == f]) for f in spec.layouts}
-    rot = {f: np.mean([r["bound_rot_deg"] for r in rows if r["layout"] == f]) for f in spec.layouts}
+    planes = [r for r in rows if r["solver"] == "closed-form"]
+    assert {r["bound"] for r in planes} == {"planes"}
+    assert {r["bound"] for r in rows if r["solver"] == "factor-graph"} == {"edges"}
+    bound = {f: np.mean([r["bound_trans_mm"] for r in planes if r["layout"] == f]) for f in spec.layouts}
+    rot = {f: np.mean([r["bound_rot_deg"] for r in planes if r["layout"] == f]) for f in spec.layouts}
     assert bound["upward"] > 2 * bound["spread"] and bound["frontal"] > 2 * bound["spread"], bound
     assert rot["frontal"] > 3 * rot["spread"], rot
     assert all(r["ok"] and max(r[f"err_over_bound_{a}"] for a in ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y",
-                                                                   "trans_z")) < 5.0 for r in rows)
+                                                                   "trans_z")) < 5.0
+               for r in rows if r["solver"] == "factor-graph")
     assert (tmp_path / "errors_vs_layout.png").stat().st_size > 0
     with pytest.raises(DatasetError, match="unknown layout"):
         parse_spec({"layouts": ["zigzag"]})

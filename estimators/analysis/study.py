@@ -22,8 +22,9 @@ A study is given as a mapping (``SPEC.yaml``)::
 
 Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is
 one (trial, solver): the cell, the rotation and translation errors, the errors per axis over the bound,
-the layout's bound itself (``bound_rot_deg``, ``bound_trans_mm``: the norms of the per-axis Cramer-Rao
-standard deviations), the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D
+the bound itself (``bound_rot_deg``, ``bound_trans_mm``: the norms of the per-axis Cramer-Rao standard
+deviations; ``bound``: of which data, ``planes`` or, where the solver's refinement used the board's edges, ``edges``:
+the planes with every ring or segment end on the board's outline, the simulator's beams exact), the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D
 whether the
 estimate is the minimum that refinement from the truth reaches (``hit``), the time, and a failure reason.
 Trials are seeded from ``(seed, cell, trial)``, so the same spec gives the same rows on any scheduler.
@@ -190,11 +191,24 @@ def run_trial(args: tuple) -> list[dict]:
     rig = rig_2d(spec.rig, rng, noise) if spec.lidar == "2d" else default_rig(rng, spec.model, noise)
     poses = sample_layout(rig, family, n, rng)
     layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar, tuple(poses), corner, noise)
-    bound = np.sqrt(np.diag(cramer_rao_bound(layout)))
+    bounds = {"planes": np.sqrt(np.diag(cramer_rao_bound(layout)))}
+
+    def bound_of(result) -> str:
+        """Which bound a solver's error is read against: the one of the data it used (its refinement's edges)."""
+        edges = result.refinement.edges if result.refinement is not None else None
+        if not (edges or {}).get("used"):
+            return "planes"
+        if "edges" not in bounds:
+            try:  # the simulator's beams are exact: no footprint beyond the azimuth step
+                bounds["edges"] = np.sqrt(np.diag(cramer_rao_bound(layout, edges=True, beam_sd_rad=0.0)))
+            except (ValueError, np.linalg.LinAlgError):
+                bounds["edges"] = None
+        return "planes" if bounds["edges"] is None else "edges"
+
     base = {"cell": cell, "trial": k, "seed": seed, "lidar": spec.lidar, "layout": family, "frames": n,
-            "range_noise_m": noise, "corner_noise_px": corner, "mode": spec.mode,
-            "bound_rot_deg": float(np.degrees(np.linalg.norm(bound[:3]))),
-            "bound_trans_mm": float(1000 * np.linalg.norm(bound[3:]))}
+            "range_noise_m": noise, "corner_noise_px": corner, "mode": spec.mode, "bound": "planes",
+            "bound_rot_deg": float(np.degrees(np.linalg.norm(bounds["planes"][:3]))),
+            "bound_trans_mm": float(1000 * np.linalg.norm(bounds["planes"][3:]))}
     options = measurement_model_options() if spec.mode == "measurement" else RefinementOptions()
     camera = rig.camera
     if spec.mode == "measurement":
@@ -224,9 +238,13 @@ def run_trial(args: tuple) -> list[dict]:
                 result = solve(frames, rig.board, camera, refine=refine_mode, options=options)
             T = result.T_camera_lidar
             xi = T_log(T_inverse(T) @ rig.T_camera_lidar)
+            kind = bound_of(result)
+            bound = bounds[kind]
             row.update({"ok": 1, "reason": "", "frames_used": result.frames_used,
                         "rot_err_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
-                        "trans_err_mm": float(1000 * np.linalg.norm(xi[3:]))})
+                        "trans_err_mm": float(1000 * np.linalg.norm(xi[3:])), "bound": kind,
+                        "bound_rot_deg": float(np.degrees(np.linalg.norm(bound[:3]))),
+                        "bound_trans_mm": float(1000 * np.linalg.norm(bound[3:]))})
             for a, v, b in zip(AXES, xi, bound):
                 row[f"err_{a}"] = float(v)
                 row[f"err_over_bound_{a}"] = float(abs(v) / b)
@@ -246,7 +264,7 @@ def run_trial(args: tuple) -> list[dict]:
 
 
 COLUMNS = ("cell", "trial", "seed", "lidar", "mode", "layout", "frames", "range_noise_m", "corner_noise_px", "solver",
-           "ok", "reason", "frames_used", "rot_err_deg", "trans_err_mm", "bound_rot_deg", "bound_trans_mm",
+           "ok", "reason", "frames_used", "rot_err_deg", "trans_err_mm", "bound", "bound_rot_deg", "bound_trans_mm",
            *[f"err_{a}" for a in AXES],
            *[f"err_over_bound_{a}" for a in AXES], "d2", "hit", "ambiguous", "seconds")
 
