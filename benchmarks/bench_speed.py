@@ -7,14 +7,14 @@ from the kernel's accounting of the finished child. The sets:
   - the recorded VLP-16 set from ../shared/realdata when present;
   - large: 4 frames of 3840x2160 images and 2-million-point scans (resource bounds);
   - `lidarcam demo` (simulate + calibrate + report on 8 frames; the venv exists);
-  - the scene's commands on the recorded Ouster set when present (issue 65): `check` of its board calibration on
+  - the scene's commands on the recorded Ouster set when present: `check` of its board calibration on
     its first 10 frames (a 64-beam LiDAR, a 1920x1208 camera), and `calibrate --targetless` on all its frames
     from that calibration turned by 2 degrees and moved by 10 cm (a fixed direction).
 Rows: measured (--no-cache), from the measurement cache, and with the default posterior and report. The rows
 "from the cache" and the demo are medians of 3 runs (listed under the table): the short runs are the ones this
 machine's varying speed moves most.
 Targets (issue 17): 28 frames at most 10 s measured, 1.5 s cached, 20 s with posterior and report; the demo
-at most 5 s; peak memory at most 1.5 GB. Issue 65: `check` on 10 frames at most 5 s, `--targetless` at most 60 s.
+at most 5 s; peak memory at most 1.5 GB. The scene's: `check` on 10 frames at most 5 s, `--targetless` at most 60 s.
 """
 from __future__ import annotations
 
