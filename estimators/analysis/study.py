@@ -20,13 +20,13 @@ A study is given as a mapping (``SPEC.yaml``)::
     seed: 0
     mode: measurement                        # measurement (noise drawn from the model) | end-to-end
 
-Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is
-one (trial, solver): the cell, the rotation and translation errors, the errors per axis over the bound,
-the bound itself (``bound_rot_deg``, ``bound_trans_mm``: the norms of the per-axis Cramer-Rao standard
-deviations; ``bound``: of which data, ``planes`` or, where the solver's refinement used the board's edges, ``edges``:
-the planes with every ring or segment end on the board's outline, the simulator's beams exact), the squared Mahalanobis distance under the solver's covariance (when it gives one), for 2D
-whether the
-estimate is the minimum that refinement from the truth reaches (``hit``), the time, and a failure reason.
+Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is one (trial,
+solver): the cell, the rotation and translation errors, the errors per axis over the bound, the bound itself
+(``bound_rot_deg``, ``bound_trans_mm``: the norms of the per-axis Cramer-Rao standard deviations; ``bound``: of
+which data, ``planes`` or, where the solver's refinement used the board's edges, ``edges``: the planes with every
+ring or segment end on the board's outline, the simulator's beams exact), the squared Mahalanobis distance under the
+solver's covariance (when it gives one), for 2D whether the estimate is the minimum that refinement from the truth
+reaches (``hit``), the time, and a failure reason.
 Trials are seeded from ``(seed, cell, trial)``, so the same spec gives the same rows on any scheduler.
 """
 from __future__ import annotations
