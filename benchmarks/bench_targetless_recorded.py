@@ -1,0 +1,85 @@
+"""Targetless calibration on the recorded sets, from guesses 2 degrees and 10 cm off their board calibration
+(make bench; `python benchmarks/bench_targetless_recorded.py [--data ../shared/realdata] [--guesses 3]`).
+
+Per recorded 3D set: the engine's board calibration (``estimators.calibrate``, no posterior) and the scene's check
+of it (``check_scene`` with its covariance: the scene's own estimate). Then ``calibrate_targetless`` from guesses
+made by turning the board calibration by 2 degrees about a random axis and moving it by 10 cm along a random
+direction (generator seeded by ``[guess, 65]``). Each row says whether it was refused (and why), its verdict and
+time, and where it landed: how far from the boards' estimate and its d2 under the boards' covariance (their 99%
+region: d2 at most 16.81, chi-square with 6 degrees of freedom), and how far from the scene's estimate in the check
+and its d2 under that estimate's covariance. Sets absent from ``--data`` are skipped.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SETS = ("acfr_vlp16_a", "acfr_ouster64_b")
+OFF_DEG, OFF_M = 2.0, 0.10
+REGION_99 = 16.81  # chi-square, 6 degrees of freedom
+
+
+def apart(T: np.ndarray, T_ref: np.ndarray, C_ref: np.ndarray) -> str:
+    """``T`` from ``T_ref``: degrees, millimetres and d2 under ``C_ref`` (``T_ref``'s right tangent)."""
+    from geometry.rotations import T_inverse, T_log
+
+    xi = T_log(T_inverse(T_ref) @ T)
+    d2 = float(xi @ np.linalg.solve(C_ref, xi))
+    return f"{np.degrees(np.linalg.norm(xi[:3])):.2f} deg, {1000 * np.linalg.norm(xi[3:]):.0f} mm, d2 {d2:.3g}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
+    ap.add_argument("--guesses", type=int, default=3)
+    args = ap.parse_args()
+
+    from estimators import calibrate
+    from estimators.errors import LidarcamError
+    from estimators.pipeline.scene_check import check_scene
+    from estimators.pipeline.targetless import calibrate_targetless
+    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    print(f"guesses: the board calibration turned by {OFF_DEG:g} deg about a random axis and moved by "
+          f"{100 * OFF_M:g} cm along a random direction; d2 under the boards' covariance (their 99% region: d2 at "
+          f"most {REGION_99}) and under the scene's in the check of the board calibration")
+    print()
+    print("| set | guess | outcome | seconds | from the boards | within their 99% | from the scene's estimate |")
+    print("|---|---|---|---|---|---|---|")
+    for name in SETS:
+        folder = Path(args.data) / name
+        if not (folder / "dataset.yaml").is_file():
+            print(f"| {name} | | absent from {args.data}: skipped | | | | |")
+            continue
+        boards = calibrate(folder, samples=0)
+        T_b, C_b = boards.T_camera_lidar, boards.covariance
+        check = check_scene(folder, T_b, camera=boards.camera_model("cam0"), given_covariance=C_b)
+        T_s, C_s = check.fit.T_camera_lidar, check.believed_covariance
+        for k in range(args.guesses):
+            rng = np.random.default_rng([k, 65])
+            axis, move = rng.normal(size=3), rng.normal(size=3)
+            guess = T_from_Rt(R_from_rotvec(np.radians(OFF_DEG) * axis / np.linalg.norm(axis)),
+                              OFF_M * move / np.linalg.norm(move)) @ T_b
+            try:
+                r = calibrate_targetless(folder, guess)
+            except LidarcamError as exc:
+                print(f"| {name} | {k} | refused: {exc.problem} | | | | |", flush=True)
+                continue
+            d2 = float(apart(r.T_camera_lidar, T_b, C_b).split("d2 ")[1])
+            print(f"| {name} | {k} | {r.verdict.level} | {r.seconds:.1f} | {apart(r.T_camera_lidar, T_b, C_b)} | "
+                  f"{'yes' if d2 <= REGION_99 else 'no'} | {apart(r.T_camera_lidar, T_s, C_s)} |", flush=True)
+        print(f"| {name} | check | the scene's estimate, p = {check.test['p_value']:.2g} | | "
+              f"{apart(T_s, T_b, C_b)} | | |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
