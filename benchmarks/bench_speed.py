@@ -133,7 +133,7 @@ def scene_rows(tmp: Path, env: dict, spreads: list) -> None:
     """``check`` and ``--targetless`` on the recorded Ouster set, about its own board calibration."""
     import json
 
-    from geometry.rotations import R_from_rotvec, T_from_Rt
+    from bench_targetless import off_by
 
     cal = tmp / "ouster_cal"
     wall, _, code = _run(["calibrate", str(OUSTER), "--out", str(cal), "--samples", "0", "--no-report"], env)
@@ -145,11 +145,8 @@ def scene_rows(tmp: Path, env: dict, spreads: list) -> None:
     wall, peak, code, walls = _median_run(args, env, REPEATS, expected=(0, 4))
     spreads.append("Ouster check: " + ", ".join(f"{w:.2f}" for w in walls))
     print(f"{'recorded Ouster':18s}{'check, first 10 frames':34s}{wall:8.2f}{5.0:9.1f}{peak:9.0f}{code:5d}")
-    rng = np.random.default_rng(65)
-    axis, move = rng.normal(size=3), rng.normal(size=3)
     T = np.array(json.loads((cal / "calibration.json").read_text())["T_camera_lidar"])
-    guess = T_from_Rt(R_from_rotvec(np.radians(2.0) * axis / np.linalg.norm(axis)),
-                      0.10 * move / np.linalg.norm(move)) @ T
+    guess = off_by(T, 2.0, 0.10, np.random.default_rng(65))
     (tmp / "guess.json").write_text(json.dumps({"T_camera_lidar": guess.tolist()}))
     wall, peak, code = _run(["calibrate", str(OUSTER), "--targetless", "--initial-guess", str(tmp / "guess.json"),
                              "--out", str(tmp / "targetless")], env, expected=(0, 2))

@@ -30,13 +30,22 @@ MODELS = ("vlp16", "os64")
 STARTS = {"near": (2.0, 0.10), "far": (15.0, 0.80)}
 
 
+def off_by(T: np.ndarray, deg: float, m: float, rng: np.random.Generator) -> np.ndarray:
+    """``T`` turned by ``deg`` about a random axis and moved by ``m`` along a random direction (a guess; the
+    axis drawn first, then the direction)."""
+    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    axis, move = rng.normal(size=3), rng.normal(size=3)
+    return T_from_Rt(R_from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)), m * move / np.linalg.norm(move)) @ T
+
+
 def _trial(seed: int) -> list[dict]:
     import json
 
     from estimators.errors import LidarcamError
     from estimators.pipeline.targetless import calibrate_targetless
     from estimators.simulation.furnished_room import simulate_scene_dataset
-    from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
+    from geometry.rotations import T_inverse, T_log
 
     rng = np.random.default_rng([seed, 65])
     model = MODELS[seed % len(MODELS)]
@@ -45,9 +54,7 @@ def _trial(seed: int) -> list[dict]:
         ds = simulate_scene_dataset(Path(tmp) / "ds", n_frames=10, seed=seed, lidar=model)
         truth = np.array(json.loads((ds / "ground_truth.json").read_text())["T_camera_lidar"])
         for name, (deg, m) in STARTS.items():
-            axis, move = rng.normal(size=3), rng.normal(size=3)
-            guess = T_from_Rt(R_from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)),
-                              m * move / np.linalg.norm(move)) @ truth
+            guess = off_by(truth, deg, m, rng)
             row = {"seed": seed, "model": model, "start": name}
             t0 = time.perf_counter()
             try:

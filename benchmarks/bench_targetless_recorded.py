@@ -28,13 +28,13 @@ OFF_DEG, OFF_M = 2.0, 0.10
 REGION_99 = 16.81  # chi-square, 6 degrees of freedom
 
 
-def apart(T: np.ndarray, T_ref: np.ndarray, C_ref: np.ndarray) -> str:
-    """``T`` from ``T_ref``: degrees, millimetres and d2 under ``C_ref`` (``T_ref``'s right tangent)."""
+def apart(T: np.ndarray, T_ref: np.ndarray, C_ref: np.ndarray) -> tuple[str, float]:
+    """``T`` from ``T_ref`` in degrees and millimetres, and its d2 under ``C_ref`` (``T_ref``'s right tangent)."""
     from geometry.rotations import T_inverse, T_log
 
     xi = T_log(T_inverse(T_ref) @ T)
     d2 = float(xi @ np.linalg.solve(C_ref, xi))
-    return f"{np.degrees(np.linalg.norm(xi[:3])):.2f} deg, {1000 * np.linalg.norm(xi[3:]):.0f} mm, d2 {d2:.3g}"
+    return f"{np.degrees(np.linalg.norm(xi[:3])):.2f} deg, {1000 * np.linalg.norm(xi[3:]):.0f} mm, d2 {d2:.3g}", d2
 
 
 def main() -> None:
@@ -47,7 +47,8 @@ def main() -> None:
     from estimators.errors import LidarcamError
     from estimators.pipeline.scene_check import check_scene
     from estimators.pipeline.targetless import calibrate_targetless
-    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    from bench_targetless import off_by
 
     print(f"guesses: the board calibration turned by {OFF_DEG:g} deg about a random axis and moved by "
           f"{100 * OFF_M:g} cm along a random direction; d2 under the boards' covariance (their 99% region: d2 at "
@@ -65,20 +66,17 @@ def main() -> None:
         check = check_scene(folder, T_b, camera=boards.camera_model("cam0"), given_covariance=C_b)
         T_s, C_s = check.fit.T_camera_lidar, check.believed_covariance
         for k in range(args.guesses):
-            rng = np.random.default_rng([k, 65])
-            axis, move = rng.normal(size=3), rng.normal(size=3)
-            guess = T_from_Rt(R_from_rotvec(np.radians(OFF_DEG) * axis / np.linalg.norm(axis)),
-                              OFF_M * move / np.linalg.norm(move)) @ T_b
+            guess = off_by(T_b, OFF_DEG, OFF_M, np.random.default_rng([k, 65]))
             try:
                 r = calibrate_targetless(folder, guess)
             except LidarcamError as exc:
                 print(f"| {name} | {k} | refused: {exc.problem} | | | | |", flush=True)
                 continue
-            d2 = float(apart(r.T_camera_lidar, T_b, C_b).split("d2 ")[1])
-            print(f"| {name} | {k} | {r.verdict.level} | {r.seconds:.1f} | {apart(r.T_camera_lidar, T_b, C_b)} | "
-                  f"{'yes' if d2 <= REGION_99 else 'no'} | {apart(r.T_camera_lidar, T_s, C_s)} |", flush=True)
+            (from_boards, d2), (from_scene, _) = apart(r.T_camera_lidar, T_b, C_b), apart(r.T_camera_lidar, T_s, C_s)
+            print(f"| {name} | {k} | {r.verdict.level} | {r.seconds:.1f} | {from_boards} | "
+                  f"{'yes' if d2 <= REGION_99 else 'no'} | {from_scene} |", flush=True)
         print(f"| {name} | check | the scene's estimate, p = {check.test['p_value']:.2g} | | "
-              f"{apart(T_s, T_b, C_b)} | | |", flush=True)
+              f"{apart(T_s, T_b, C_b)[0]} | | |", flush=True)
 
 
 if __name__ == "__main__":
