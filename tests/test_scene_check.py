@@ -247,6 +247,29 @@ def test_a_furnished_room_passes_its_true_extrinsic_and_flags_it_turned(room):
     assert check_scene(ds, turned).consistent is False
 
 
+def test_sweeps_without_a_ring_field_are_checked_as_with_it(room, tmp_path):
+    """The furnished room's sweeps written as KITTI-style .bin (x, y, z, intensity: no beam index): each return's
+    beam is found from its elevation (``lidar.beam_rings``), and the check gives the same contours, estimate and
+    p-value as from the PCD files' ring field (to 1e-9)."""
+    from estimators.io.pointcloud_io import read_sweep, write_scan
+    from estimators.pipeline.scene_check import check_scene
+
+    ds, truth = room
+    kitti = tmp_path / "kitti"
+    kitti.mkdir()
+    for f in ds.iterdir():
+        if f.suffix == ".pcd":
+            sweep = read_sweep(f)
+            write_scan(kitti / f"{f.stem}.bin", sweep.points, sweep.intensity)
+        else:
+            (kitti / f.name).write_bytes(f.read_bytes())
+    with_rings, without = check_scene(ds, truth), check_scene(kitti, truth)
+    assert without.skipped == with_rings.skipped
+    assert without.fit.points == with_rings.fit.points > 0 and without.fit.frames == with_rings.fit.frames
+    assert np.allclose(without.fit.T_camera_lidar, with_rings.fit.T_camera_lidar, atol=1e-9)
+    assert abs(without.test["p_value"] - with_rings.test["p_value"]) < 1e-9
+
+
 def test_glass_returns_nothing_and_a_dark_face_fades_at_grazing_incidence():
     """The room's LiDAR: a pane before a wall loses the beams through it; a dark face (reflectance 0.05) returns
     where the beam meets it square and loses its echo where it grazes (cos below 0.6)."""

@@ -1,10 +1,11 @@
 """``lidarcam check``: whether the scene agrees with a given extrinsic (``solvers.scene_alignment``).
 
-Per frame: the sweep's contour returns (``lidar.depth_edges``; the sweep needs each return's beam, a ``ring``
-field or an organised cloud), those the camera sees from its own centre under the given extrinsic, and the
-image's edge-distance field (``camera.edge_map``). Where the folder has a board and the camera finds it, the
-board is left out by default (``keep_board`` keeps it): its image edges (within ``BOARD_MARGIN_PX`` of its
-outline) and the contour returns that land there, so that the check is the scene's and not the boards' again.
+Per frame: the sweep's contour returns (``lidar.depth_edges``; each return's beam from its file's ``ring`` field or
+organised rows, else from its elevation, ``lidar.beam_rings``), those the camera sees from its own centre under the
+given extrinsic, and the image's edge-distance field (``camera.edge_map``). Where the folder has a board and the
+camera finds it, the board is left out by default (``keep_board`` keeps it): its image edges (within
+``BOARD_MARGIN_PX`` of its outline) and the contour returns that land there, so that the check is the scene's and
+not the boards' again.
 The scene's estimate is sought from the given extrinsic and from starts about it (``scene_minima``): the minimum
 sought from the given one, unless another fits the scene significantly better over the image's blocks
 (``nearest_decided``); the other minima it does not fit significantly better over the blocks say how far the
@@ -30,8 +31,9 @@ from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
-from ..io.pointcloud_io import read_sweep
+from ..io.pointcloud_io import Sweep, read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
+from ..lidar.beam_rings import beam_rings
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, transverse_edges,
@@ -200,6 +202,16 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
     return SceneView(name, P, edges, truncate_px, steps[0])
 
 
+def with_beams(sweep: Sweep, path=None) -> Sweep:
+    """The sweep with each return's beam: its file's, or else found from the returns' elevations
+    (``lidar.beam_rings``; the returns it gives no beam left out)."""
+    if sweep.ring is not None:
+        return sweep
+    ring = beam_rings(sweep.points, path).ring
+    keep = ring >= 0
+    return Sweep(sweep.points[keep], ring[keep], None if sweep.intensity is None else sweep.intensity[keep])
+
+
 @dataclass(frozen=True, eq=False)
 class SceneFrame:
     """One frame as the scene's measurements read it: its image, its sweep and the board's mask (or None)."""
@@ -230,10 +242,7 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
             if gray.shape[:2] != (camera.height, camera.width):
                 return (f"the image is {gray.shape[1]}x{gray.shape[0]}, the camera's intrinsics are for "
                         f"{camera.width}x{camera.height}")
-            sweep = read_sweep(f.scan)
-            if sweep.ring is None:
-                raise LidarcamError("the sweep has no beam index (a ring field or an organised cloud): its contours "
-                                    "cannot be found along the beams")
+            sweep = with_beams(read_sweep(f.scan), f.scan)
             mask = None if keep_board or board is None else _board_mask(gray, board, camera)
         except LidarcamError as exc:
             return exc.problem
