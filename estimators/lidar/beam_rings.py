@@ -35,7 +35,7 @@ FINE_STEP_M = 0.0005
 # Returns this far from the spin axis (m) or more find the bands; nearer ones drift with the origins' offsets.
 MIN_RHO_M = 2.0
 # Returns used to find the height (every k-th of those beyond MIN_RHO_M).
-HEIGHT_SAMPLE = 20000
+HEIGHT_SAMPLE = 10000
 # Least-squares steps of the beams' origin on the returns given a beam (after the grid's).
 ORIGIN_ITERATIONS = 2
 # A return is its band's within this share of the spacing to the nearest other band.
@@ -133,10 +133,22 @@ def beam_rings(points: np.ndarray, path=None) -> BeamRings:
     for _ in range(ORIGIN_ITERATIONS):
         h, a = _fit_origin(points, ring, h, a)
         el = _elevations(points, h, a)
-        centres = np.array([np.median(el[(ring == k) & (rho >= MIN_RHO_M)]) if np.any((ring == k) & (rho >= MIN_RHO_M))
-                            else centres[k] for k in range(len(centres))])
+        centres = _band_medians(el[rho >= MIN_RHO_M], ring[rho >= MIN_RHO_M], centres)
         ring = _assign(el, centres, spacing)
     return BeamRings(ring, h, a, centres)
+
+
+def _band_medians(el: np.ndarray, ring: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """Each band's median elevation over its returns (``before``'s where it has none)."""
+    out = before.copy()
+    order = np.lexsort((el, ring))
+    el, ring = el[order], ring[order]
+    bounds = np.searchsorted(ring, np.arange(len(before) + 1))
+    for k in range(len(before)):
+        i, j = bounds[k], bounds[k + 1]
+        if j > i:
+            out[k] = 0.5 * (el[i + (j - i - 1) // 2] + el[i + (j - i) // 2])
+    return out
 
 
 def _assign(el: np.ndarray, centres: np.ndarray, spacing: np.ndarray) -> np.ndarray:
