@@ -45,6 +45,8 @@ MAX_BAND_SHARE = 0.5
 # Far returns that must fall in bands, and the fewest returns a sweep must have beyond MIN_RHO_M.
 MIN_IN_BANDS = 0.9
 MIN_RETURNS = 500
+# Returns from all of one LiDAR's sweeps its beams are found from together (:func:`sweeps_beams`).
+JOINT_SAMPLE = 200000
 FIX = "write the sweeps with a ring field (PCD or PLY) or as organised clouds"
 
 
@@ -58,6 +60,22 @@ class BeamRings:
     height_m: float
     radius_m: float
     elevations_deg: np.ndarray
+
+    def rings_of(self, points: np.ndarray) -> np.ndarray:
+        """Other returns of the same LiDAR given these beams (another sweep's: -1 where none)."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        return _assign(_elevations(points, self.height_m, self.radius_m), self.elevations_deg,
+                       _spacing(self.elevations_deg))
+
+
+def sweeps_beams(sweeps: list[np.ndarray], path=None) -> BeamRings:
+    """The beams of one LiDAR's sweeps, found over them all (up to ``JOINT_SAMPLE`` returns, an equal share from
+    each): every sweep's returns then take their beams from one set (:meth:`BeamRings.rings_of`), numbered alike
+    across sweeps (a per-ring range term is one laser's in every frame), even where a sweep holds no far return of
+    some laser."""
+    share = max(1, JOINT_SAMPLE // max(len(sweeps), 1))
+    sample = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3)[:: max(1, len(p) // share)] for p in sweeps])
+    return beam_rings(sample, path)
 
 
 def _elevations(points: np.ndarray, h: float, a: float) -> np.ndarray:
@@ -121,8 +139,7 @@ def beam_rings(points: np.ndarray, path=None) -> BeamRings:
     if len(centres) < 2:
         raise ScanReadError("the sweep has no beam index and its returns' elevations do not fall into beams (a "
                             "LiDAR without rings, or z is not its spin axis)", path=path, hint=FIX)
-    gaps = np.diff(centres)
-    spacing = np.minimum(np.append(gaps, np.inf), np.insert(gaps, 0, np.inf))
+    spacing = _spacing(centres)
     if held < MIN_IN_BANDS * len(el_far) or np.any(spans > MAX_BAND_SHARE * spacing):
         raise ScanReadError(f"the sweep has no beam index and its returns' elevations do not fall into separate beams "
                             f"({held / len(el_far):.0%} in {len(centres)} bands, the widest "
@@ -136,6 +153,12 @@ def beam_rings(points: np.ndarray, path=None) -> BeamRings:
         centres = _band_medians(el[rho >= MIN_RHO_M], ring[rho >= MIN_RHO_M], centres)
         ring = _assign(el, centres, spacing)
     return BeamRings(ring, h, a, centres)
+
+
+def _spacing(centres: np.ndarray) -> np.ndarray:
+    """Each band's distance to its nearest neighbour band."""
+    gaps = np.diff(centres)
+    return np.minimum(np.append(gaps, np.inf), np.insert(gaps, 0, np.inf))
 
 
 def _band_medians(el: np.ndarray, ring: np.ndarray, before: np.ndarray) -> np.ndarray:
