@@ -1,11 +1,11 @@
 """``lidarcam check``: whether the scene agrees with a given extrinsic (``solvers.scene_alignment``).
 
 Per frame: the sweep's contour returns (``lidar.depth_edges``; each return's beam from its file's ``ring`` field or
-organised rows, else from its elevation, ``lidar.beam_rings``), those the camera sees from its own centre under the
-given extrinsic, and the image's edge-distance field (``camera.edge_map``). Where the folder has a board and the
-camera finds it, the board is left out by default (``keep_board`` keeps it): its image edges (within
-``BOARD_MARGIN_PX`` of its outline) and the contour returns that land there, so that the check is the scene's and
-not the boards' again.
+organised rows, else from the elevations of all the sweeps' returns, ``measurement.with_found_beams``), those the
+camera sees from its own centre under the given extrinsic, and the image's edge-distance field
+(``camera.edge_map``). Where the folder has a board and the camera finds it, the board is left out by default
+(``keep_board`` keeps it): its image edges (within ``BOARD_MARGIN_PX`` of its outline) and the contour returns that
+land there, so that the check is the scene's and not the boards' again.
 The scene's estimate is sought from the given extrinsic and from starts about it (``scene_minima``): the minimum
 sought from the given one, unless another fits the scene significantly better over the image's blocks
 (``nearest_decided``); the other minima it does not fit significantly better over the blocks say how far the
@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -31,13 +31,13 @@ from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
-from ..io.pointcloud_io import Sweep, read_sweep
+from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
-from ..lidar.beam_rings import beam_rings
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, transverse_edges,
                                       visible_from_camera)
+from .measurement import with_found_beams
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -202,16 +202,6 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
     return SceneView(name, P, edges, truncate_px, steps[0])
 
 
-def with_beams(sweep: Sweep, path=None) -> Sweep:
-    """The sweep with each return's beam: its file's, or else found from the returns' elevations
-    (``lidar.beam_rings``; the returns it gives no beam left out)."""
-    if sweep.ring is not None:
-        return sweep
-    ring = beam_rings(sweep.points, path).ring
-    keep = ring >= 0
-    return Sweep(sweep.points[keep], ring[keep], None if sweep.intensity is None else sweep.intensity[keep])
-
-
 @dataclass(frozen=True, eq=False)
 class SceneFrame:
     """One frame as the scene's measurements read it: its image, its sweep and the board's mask (or None)."""
@@ -242,7 +232,7 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
             if gray.shape[:2] != (camera.height, camera.width):
                 return (f"the image is {gray.shape[1]}x{gray.shape[0]}, the camera's intrinsics are for "
                         f"{camera.width}x{camera.height}")
-            sweep = with_beams(read_sweep(f.scan), f.scan)
+            sweep = read_sweep(f.scan)
             mask = None if keep_board or board is None else _board_mask(gray, board, camera)
         except LidarcamError as exc:
             return exc.problem
@@ -251,6 +241,10 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
     # Decoding, reading and the board's search release the interpreter: two frames at a time.
     with ThreadPoolExecutor(max_workers=READ_THREADS) as pool:
         got = list(pool.map(read, frames))
+    # sweeps without a beam index: their beams found over all of them (``measurement.with_found_beams``)
+    beams, why = with_found_beams({g.name: g.sweep for g in got if isinstance(g, SceneFrame)})
+    got = [g if not isinstance(g, SceneFrame) else replace(g, sweep=beams[g.name])
+           if beams[g.name].ring is not None else why for g in got]
     out = [g for g in got if isinstance(g, SceneFrame)]
     skipped = {f.name: g for f, g in zip(frames, got) if not isinstance(g, SceneFrame)}
     return root, camera, board, out, skipped
