@@ -82,32 +82,17 @@ def test_recorded_sweeps_beams_are_their_ring_fields(name):
         assert len(got.elevations_deg) == len(np.unique(sweep.ring))
 
 
-def test_a_dataset_without_ring_fields_is_measured_as_with_them(tmp_path):
-    """One simulated 64-beam dataset written with and without its ring field: the ring-less sweeps have their
-    beams found over all of them, so every frame's board has the same returns, partitioned into the same rings,
-    as with the field (until this version the ring-less sweeps' static scene was by direction bins, one frame's
-    board held two more returns, and the boards' points had no rings: the range terms clustered their elevations)."""
-    from estimators import measure, simulate
-
-    with_field = measure(simulate(tmp_path / "rings", n_poses=5, seed=11, lidar="os64"))
-    without = measure(simulate(tmp_path / "none", n_poses=5, seed=11, lidar="os64", ring_field=False))
-    used = [(a, b) for a, b in zip(with_field.frames, without.frames) if a.usable]
-    assert len(used) >= 4 and all(b.usable for _, b in used)
-    for a, b in used:
-        assert np.array_equal(a.lidar.points, b.lidar.points)
-        share, one_to_one = _agreement(np.asarray(b.lidar.rings), np.asarray(a.lidar.rings))
-        assert share == 1.0 and one_to_one
-
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="the recorded sets (../shared/realdata) are absent")
-@pytest.mark.parametrize("name", ["acfr_vlp16_a", "acfr_ouster64_b"])
-def test_recorded_sets_as_kitti_bin_are_measured_as_from_their_pcds(name, tmp_path):
-    """The recorded sets rewritten as KITTI .bin (x, y, z, intensity): every frame's board has the same returns in
-    the same rings as from the PCDs (until this version the VLP-16's .bin calibrated 0.07 deg and 1.3 mm away)."""
-    from estimators import measure
-    from estimators.io.pointcloud_io import read_sweep, write_scan
+def test_the_recorded_vlp16_set_as_kitti_bin_is_checked_as_from_its_pcds(tmp_path):
+    """The recorded VLP-16 set rewritten as KITTI .bin (x, y, z, intensity): the scene's check of its reference
+    extrinsic finds the same contour returns, estimate and p-value as from the PCDs' ring field."""
+    import json
 
-    src, kitti = REALDATA / name, tmp_path / name
+    from estimators.io.pointcloud_io import read_sweep, write_scan
+    from estimators.pipeline.scene_check import check_scene
+
+    src, kitti = REALDATA / "acfr_vlp16_a", tmp_path / "vlp16"
     kitti.mkdir()
     for f in src.iterdir():
         if f.suffix == ".pcd":
@@ -115,10 +100,8 @@ def test_recorded_sets_as_kitti_bin_are_measured_as_from_their_pcds(name, tmp_pa
             write_scan(kitti / f"{f.stem}.bin", sweep.points, sweep.intensity)
         elif f.is_file():
             (kitti / f.name).symlink_to(f.resolve())
-    pcd, bin_ = measure(src), measure(kitti)
-    assert [f.usable for f in pcd.frames] == [f.usable for f in bin_.frames]
-    for a, b in zip(pcd.frames, bin_.frames):
-        if a.usable:
-            assert np.array_equal(a.lidar.points, b.lidar.points)
-            share, one_to_one = _agreement(np.asarray(b.lidar.rings), np.asarray(a.lidar.rings))
-            assert share == 1.0 and one_to_one
+    T = np.array(json.loads((src / "reference.json").read_text())["T_camera_lidar"])
+    pcd, bin_ = check_scene(src, T), check_scene(kitti, T)
+    assert bin_.skipped == pcd.skipped and bin_.fit.points == pcd.fit.points > 0
+    assert np.allclose(bin_.fit.T_camera_lidar, pcd.fit.T_camera_lidar, atol=1e-9)
+    assert abs(bin_.test["p_value"] - pcd.test["p_value"]) <= 1e-9 * max(pcd.test["p_value"], 1e-300) + 1e-15

@@ -30,7 +30,6 @@ from ..io.input_files import load_json, regular_file
 from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
                                      save_measurements)
 from ..io.pointcloud_io import read_scan_2d, read_sweep
-from ..lidar.beam_rings import sweeps_beams
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
                                         choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
 from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
@@ -538,7 +537,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     (``hints``: the region of interest, and whether to build the scene at all)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    sweeps = with_found_beams({f.name: _read_or_reason(read_sweep, f.scan) for f in frames})[0]
+    sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in frames}
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: _cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
@@ -614,26 +613,6 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return [_with_beam_fields(f, sweeps[k]) for k, f in enumerate(frames)]
-
-
-def with_found_beams(sweeps: dict) -> tuple[dict, str | None]:
-    """One LiDAR's sweeps (by frame name; a reason where unread), those read without a beam index (a KITTI .bin, an
-    unorganised PCD) with each return's beam found from the returns' elevations over all of them
-    (``lidar.beam_rings.sweeps_beams``; the returns it gives none left out), so that they are measured as sweeps
-    with a ring field are (the static scene by beams, ring ends, per-ring terms, the scene's contours). Where the
-    elevations do not fall into beams (a rosette LiDAR's), those sweeps as read and why."""
-    ringless = {n: s for n, s in sweeps.items() if not isinstance(s, str) and s.ring is None}
-    if not ringless:
-        return sweeps, None
-    try:
-        beams = sweeps_beams([s.points for s in ringless.values()])
-    except ScanReadError as exc:
-        return sweeps, exc.problem
-    out = dict(sweeps)
-    for n, s in ringless.items():
-        ring = beams.rings_of(s.points)
-        out[n] = _cropped(type(s)(s.points, ring, s.intensity), ring >= 0)
-    return out, None
 
 
 def _read_or_reason(reader, path):
