@@ -32,8 +32,8 @@ from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, ScanRea
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import Sweep, read_sweep
-from ..lidar.beam_rings import sweeps_beams
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
+from ..lidar.beam_rings import sweeps_beams
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, transverse_edges,
