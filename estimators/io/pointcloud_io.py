@@ -35,6 +35,11 @@ class Sweep:
     ring: np.ndarray | None = None
     intensity: np.ndarray | None = None
 
+    def kept(self, keep: np.ndarray) -> "Sweep":
+        """The sweep's returns where ``keep`` (a mask or indices), with their beams and intensities."""
+        return Sweep(self.points[keep], None if self.ring is None else self.ring[keep],
+                     None if self.intensity is None else self.intensity[keep])
+
 
 def read_sweep(path: str | os.PathLike) -> Sweep:
     """Load a scan's valid points (NaN/inf and (0, 0, 0) returns dropped) with their beam index if known."""

@@ -81,9 +81,12 @@ def _elevations(points: np.ndarray, h: float, a: float) -> np.ndarray:
     return np.degrees(np.arctan2(points[:, 2] - h, np.hypot(points[:, 0], points[:, 1]) - a))
 
 
+def _bins(el_deg: np.ndarray) -> np.ndarray:
+    return np.floor((el_deg + 90.0) / BIN_DEG).astype(np.int64)
+
+
 def _sharpness(points: np.ndarray, h: float, a: float) -> float:
-    el = _elevations(points, h, a)
-    counts = np.bincount(np.floor((el + 90.0) / BIN_DEG).astype(np.int64))
+    counts = np.bincount(_bins(_elevations(points, h, a)))
     return float(np.sum(counts.astype(float) ** 2))
 
 
@@ -124,7 +127,7 @@ def beam_rings(points: np.ndarray, path=None) -> BeamRings:
                             "spin axis to find its beams from", path=path, hint=FIX)
     h, a = _origin(far)
     el_far = np.sort(_elevations(far, h, a))
-    bins = np.floor((el_far + 90.0) / BIN_DEG).astype(np.int64)
+    bins = _bins(el_far)
     centres, spans, held = [], [], 0
     for lo, hi in _runs(np.unique(bins)):
         i, j = np.searchsorted(bins, lo, "left"), np.searchsorted(bins, hi, "right")
@@ -135,15 +138,12 @@ def beam_rings(points: np.ndarray, path=None) -> BeamRings:
         spans.append(float(np.percentile(band, 97.5) - np.percentile(band, 2.5)))
         held += j - i
     centres, spans = np.asarray(centres), np.asarray(spans)
-    if len(centres) < 2:
-        raise ScanReadError("the sweep has no beam index and its returns' elevations do not fall into beams (a "
-                            "LiDAR without rings, or z is not its spin axis)", path=path, hint=FIX)
     spacing = _spacing(centres)
-    if held < MIN_IN_BANDS * len(el_far) or np.any(spans > MAX_BAND_SHARE * spacing):
+    if len(centres) < 2 or held < MIN_IN_BANDS * len(el_far) or np.any(spans > MAX_BAND_SHARE * spacing):
+        widest = f", the widest {np.max(spans / spacing):.0%} of its spacing" if len(centres) >= 2 else ""
         raise ScanReadError(f"the sweep has no beam index and its returns' elevations do not fall into separate beams "
-                            f"({held / len(el_far):.0%} in {len(centres)} bands, the widest "
-                            f"{np.max(spans / spacing):.0%} of its spacing: a LiDAR without rings, or z is not its "
-                            "spin axis)", path=path, hint=FIX)
+                            f"({held / len(el_far):.0%} in {len(centres)} bands{widest}: a LiDAR without rings, or z "
+                            "is not its spin axis)", path=path, hint=FIX)
     ring = _assign(_elevations(points, h, a), centres, spacing)
     # The origin's least squares on the returns given a beam (each band's elevation free), then the bands again.
     for _ in range(ORIGIN_ITERATIONS):

@@ -539,7 +539,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     t0 = time.perf_counter()
     sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in frames}
     if hints.roi_min is not None or hints.roi_max is not None:
-        sweeps = {n: _cropped(s, hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
+        sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     t0 = time.perf_counter()
@@ -684,11 +684,6 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
                         "cues")
         return None, {}
     return assoc, dict(zip(ks, assoc.choices))
-
-
-def _cropped(sweep, keep: np.ndarray):
-    return type(sweep)(sweep.points[keep], None if sweep.ring is None else sweep.ring[keep],
-                       None if sweep.intensity is None else sweep.intensity[keep])
 
 
 def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:

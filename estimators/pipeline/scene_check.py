@@ -217,8 +217,7 @@ def _with_found_beams(sweeps: dict) -> tuple[dict, str | None]:
     out = dict(sweeps)
     for n, s in ringless.items():
         ring = beams.rings_of(s.points)
-        keep = ring >= 0
-        out[n] = Sweep(s.points[keep], ring[keep], None if s.intensity is None else s.intensity[keep])
+        out[n] = Sweep(s.points, ring, s.intensity).kept(ring >= 0)
     return out, None
 
 
