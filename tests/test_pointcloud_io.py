@@ -79,3 +79,44 @@ def test_all_invalid_and_missing(tmp_path):
         read_scan(tmp_path / "z.npy")
     with pytest.raises(ScanReadError, match="not found"):
         read_scan(tmp_path / "missing.pcd")
+
+
+def _spinning_sweep(rng: np.random.Generator, beams: int = 16, fov_deg: float = 30.0, height_m: float = 0.0,
+                    near_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """A spinning LiDAR's returns and their beams: ``beams`` lasers over ``fov_deg`` leaving ``height_m`` above the
+    points' origin (an Ouster's 36 mm), every 0.4 degree of azimuth, ranges ``near_m``-25 m."""
+    el = np.radians(np.linspace(-fov_deg / 2, fov_deg / 2, beams))
+    az = np.radians(np.arange(0.0, 360.0, 0.4))
+    ring, a = np.repeat(np.arange(beams), len(az)), np.tile(az, beams)
+    r = rng.uniform(near_m, 25.0, len(a))
+    e = el[ring]
+    P = np.column_stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e) + height_m])
+    return P, ring
+
+
+@pytest.mark.parametrize("height_m", [0.0, 0.036])
+def test_a_ring_field_that_indexes_beams_is_read(tmp_path, height_m):
+    # An Ouster's beams leave 36 mm above its points' origin: from there a near return's elevation drifts by up to
+    # a degree along its ring; its ring field still indexes beams.
+    from estimators.io.pointcloud_io import read_sweep
+
+    P, ring = _spinning_sweep(np.random.default_rng(1), 64, 33.2, height_m)
+    write_scan(tmp_path / "a.pcd", P, ring=ring)
+    got = read_sweep(tmp_path / "a.pcd")
+    assert got.ring_note is None
+    np.testing.assert_array_equal(got.ring, ring)
+
+
+@pytest.mark.parametrize("kind", ["zeros", "columns"])
+def test_a_ring_field_that_does_not_index_beams_is_set_aside(tmp_path, kind):
+    # A converter that writes ring 0 for every return, or an index that counts azimuth columns, not lasers: the
+    # sweep is read as one without a beam index, and says why.
+    from estimators.io.pointcloud_io import read_sweep
+
+    P, ring = _spinning_sweep(np.random.default_rng(2))
+    bad = np.zeros_like(ring) if kind == "zeros" else np.tile(np.arange(900), 16) % 16
+    write_scan(tmp_path / "a.pcd", P, ring=bad)
+    got = read_sweep(tmp_path / "a.pcd")
+    assert got.ring is None and "is not one" in got.ring_note
+    assert "(1 ring value in all)" in got.ring_note if kind == "zeros" else "(16 ring values in all)" in got.ring_note
+    np.testing.assert_allclose(got.points, P, atol=1e-4)

@@ -18,6 +18,13 @@ SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
 SCAN_2D_SUFFIXES = (".csv", ".npy", ".pcd")
 # Returns outside these ranges are invalid in a 2D scan (no-return codes, the sensor's own housing).
 MIN_RANGE_2D_M, MAX_RANGE_2D_M = 0.02, 80.0
+# A beam index (a ring field, an organised cloud's rows) is read only if it indexes beams: the returns this far from
+# the spin axis (m) or more lie, ring by ring, in narrow bands of elevation. Where most of them (``MAX_WIDE_SHARE``)
+# lie in rings whose central half spans more than ``MAX_RING_IQR_DEG`` (a converter that writes 0 for every return,
+# an organised cloud stored by columns), the index is set aside and the sweep read as one without it. A true ring's
+# central half spans under 0.1 degree on the recorded sets (0.9 degree at 2 m for an Ouster, whose beams leave 36 mm
+# above its points' origin); the 16-128 beams' spacing is 0.1-2 degrees, a sweep's whole span 20-45 degrees.
+RING_CHECK_RHO_M, MAX_RING_IQR_DEG, MAX_WIDE_SHARE, MIN_RING_CHECK = 2.0, 2.0, 0.5, 200
 
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
@@ -29,16 +36,38 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
 class Sweep:
     """A 3D scan's valid points and, when the file tells it, each point's beam (laser) index: the ``ring``
     field, or the row of an organised cloud. ``ring`` is None for an unorganised cloud without one;
-    ``intensity`` None for a file without an intensity (reflectivity) field."""
+    ``intensity`` None for a file without an intensity (reflectivity) field. ``ring_note``: why the file's beam
+    index was set aside (it does not index beams, :func:`ring_field_problem`), or None."""
 
     points: np.ndarray
     ring: np.ndarray | None = None
     intensity: np.ndarray | None = None
+    ring_note: str | None = None
 
     def kept(self, keep: np.ndarray) -> "Sweep":
         """The sweep's returns where ``keep`` (a mask or indices), with their beams and intensities."""
         return Sweep(self.points[keep], None if self.ring is None else self.ring[keep],
-                     None if self.intensity is None else self.intensity[keep])
+                     None if self.intensity is None else self.intensity[keep], self.ring_note)
+
+
+def ring_field_problem(points: np.ndarray, ring: np.ndarray) -> str | None:
+    """Why ``ring`` (each return's beam index, as its file gives it) does not index the beams of a spinning LiDAR
+    (the constants above), or None where it does or too few far returns tell."""
+    rho = np.hypot(points[:, 0], points[:, 1])
+    far = rho >= RING_CHECK_RHO_M
+    if np.count_nonzero(far) < MIN_RING_CHECK:
+        return None
+    el = np.degrees(np.arctan2(points[far, 2], rho[far]))
+    values, inverse, counts = np.unique(ring[far], return_inverse=True, return_counts=True)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    wide = sum(c for s, c in zip(starts, counts)
+               if np.subtract(*np.percentile(el[order[s:s + c]], [75, 25])) > MAX_RING_IQR_DEG)
+    if wide <= MAX_WIDE_SHARE * len(el):
+        return None
+    return (f"its beam index (ring field or organised rows) is not one: {wide / len(el):.0%} of the returns beyond "
+            f"{RING_CHECK_RHO_M:g} m lie in rings spanning more than {MAX_RING_IQR_DEG:g} degrees of elevation "
+            f"({len(values)} ring value{'s' if len(values) > 1 else ''} in all)")
 
 
 def read_sweep(path: str | os.PathLike) -> Sweep:
@@ -65,12 +94,15 @@ def read_sweep(path: str | os.PathLike) -> Sweep:
     if ring is not None:
         ring = np.asarray(ring).reshape(-1)
         ring = ring[keep].astype(np.int64) if len(ring) == len(keep) and np.all(np.isfinite(ring)) else None
+    note = None if ring is None else ring_field_problem(xyz, ring)
+    if note is not None:
+        ring = None
     if intensity is not None:
         intensity = np.asarray(intensity, dtype=float).reshape(-1)
         intensity = intensity[keep] if len(intensity) == len(keep) else None
         if intensity is not None and not np.all(np.isfinite(intensity)):
             intensity = None
-    return Sweep(xyz, ring, intensity)
+    return Sweep(xyz, ring, intensity, note)
 
 
 def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,

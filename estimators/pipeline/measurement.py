@@ -41,8 +41,9 @@ from ..solvers.noise_levels import pooled_range_noise_m
 
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation; 4: a scan
-# line cut to the board's outline by the extrinsic's uncertainty too).
-MEASUREMENT_REVISION = 4
+# line cut to the board's outline by the extrinsic's uncertainty too; 5: a ring field that does not index beams set
+# aside).
+MEASUREMENT_REVISION = 5
 
 
 @dataclass(frozen=True, eq=False)
@@ -568,6 +569,10 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
                         "give board.size in dataset.yaml (the backing board's) to trim to the board itself")
     if hints.static_scene and scene.note:
         warnings.append(f"static scene: {scene.note}")
+    noted = [(f.name, s.ring_note) for f, s in zip(dataset.frames, sweeps) if not isinstance(s, str) and s.ring_note]
+    if noted:
+        warnings.append(f"{len(noted)} of {n} sweeps (the first {noted[0][0]}): {noted[0][1]}; read as sweeps "
+                        "without one (returns grouped by direction, the board's beams by elevation)")
 
     def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
         cam_obs = cams[k][0]
