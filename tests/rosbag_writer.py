@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from estimators.io.dataset import load_dataset
-from estimators.io.pointcloud_io import read_scan
+from estimators.io.pointcloud_io import read_sweep
 
 T0_NS = 1_700_000_000 * 1_000_000_000
 
@@ -94,9 +94,10 @@ TIME_FIELDS = {"t": (6, "<u4", 1e9), "time": (7, "<f4", 1.0), "offset_time": (6,
 
 
 def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int, times_s: np.ndarray | None = None,
-                  time_field: str = "t"):
-    """x, y, z, intensity float32 and ring uint16 in a padded 32-byte point, as Velodyne drivers publish;
-    ``times_s``: each return's time after the stamp, in ``time_field`` (:data:`TIME_FIELDS`) at offset 24."""
+                  time_field: str = "t", ring: np.ndarray | None = None):
+    """x, y, z, intensity float32 and ring uint16 in a padded 32-byte point, as Velodyne drivers publish (``ring``:
+    each return's beam; None: no ring field, as a rosette's driver); ``times_s``: each return's time after the
+    stamp, in ``time_field`` (:data:`TIME_FIELDS`) at offset 24."""
     T = bag.ts.types
     PF = T["sensor_msgs/msg/PointField"]
     names, formats, offsets = ["x", "y", "z", "intensity", "ring"], ["<f4"] * 4 + ["<u2"], [0, 4, 8, 16, 20]
@@ -107,8 +108,10 @@ def cloud_message(bag: _Bag, xyz: np.ndarray, t_ns: int, times_s: np.ndarray | N
     pts["x"], pts["y"], pts["z"] = xyz.T
     pts["intensity"] = 100.0
     fields = [PF(name="x", offset=0, datatype=7, count=1), PF(name="y", offset=4, datatype=7, count=1),
-              PF(name="z", offset=8, datatype=7, count=1), PF(name="intensity", offset=16, datatype=7, count=1),
-              PF(name="ring", offset=20, datatype=4, count=1)]
+              PF(name="z", offset=8, datatype=7, count=1), PF(name="intensity", offset=16, datatype=7, count=1)]
+    if ring is not None:
+        pts["ring"] = ring
+        fields.append(PF(name="ring", offset=20, datatype=4, count=1))
     if times_s is not None:
         datatype, _, unit = TIME_FIELDS[time_field]
         pts[time_field] = np.round(times_s * unit) if unit != 1.0 else times_s
@@ -166,7 +169,7 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
     with _Bag(bag_path, kind) as bag:
         for f in ds.frames:
             img = cv2.imread(str(f.image), cv2.IMREAD_GRAYSCALE)
-            scan = _read_scan_2d_raw(f.scan) if is2d else read_scan(f.scan)
+            scan = _read_scan_2d_raw(f.scan) if is2d else read_sweep(f.scan)
             end = t + int(still_s * 1e9)
             events = [(s, "img") for s in range(t, end, dt_img)]
             events += [(s + int(scan_offset_s * 1e9), "scan") for s in range(t, end, dt_scan)]
@@ -182,7 +185,7 @@ def write_bag_from_dataset(dataset: Path, bag_path: Path, kind: str, *, encoding
                     s = s + int(rng.normal(0.0, stamp_jitter_s) * 1e9) if stamp_jitter_s > 0 else s
                     bag.write(image_topic, image_message(bag, noisy, s, encoding), s)
                 elif what == "scan":
-                    msg = scan_message(bag, *scan, s) if is2d else cloud_message(bag, scan, s)
+                    msg = scan_message(bag, *scan, s) if is2d else cloud_message(bag, scan.points, s, ring=scan.ring)
                     bag.write(lidar_topic, msg, s)
                 else:
                     bag.write(image_topic.rsplit("/", 1)[0] + "/camera_info", info_message(bag, ds.camera, s), s)
@@ -229,7 +232,7 @@ def write_bag_from_rig(folder: Path, bag_path: Path, kind: str, stems: list[str]
                     if k == 0:
                         events.append((t, "info", s, None))
                 elif s.file(stem) is not None:
-                    data = read_scan(s.file(stem)) if s.lidar == "3d" else _read_scan_2d_raw(s.file(stem))
+                    data = read_sweep(s.file(stem)) if s.lidar == "3d" else _read_scan_2d_raw(s.file(stem))
                     events += [(u + 11_000_000, "scan", s, data) for u in range(t, end, dt_scan)]
             for u, what, s, data in sorted(events, key=lambda e: e[0]):
                 if what == "img":
@@ -238,7 +241,7 @@ def write_bag_from_rig(folder: Path, bag_path: Path, kind: str, stems: list[str]
                 elif what == "info":
                     bag.write(f"/{s.name}/camera_info", info_message(bag, s.camera, u), u)
                 elif s.lidar == "3d":
-                    bag.write(topics[s.name], cloud_message(bag, data, u), u)
+                    bag.write(topics[s.name], cloud_message(bag, data.points, u, ring=data.ring), u)
                 else:
                     bag.write(topics[s.name], scan_message(bag, *data, u), u)
             # The board moves to the next pose: every camera's image slides, and shows no board once.
@@ -293,7 +296,7 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
                     bag.write(topic, msg, s)
             else:
                 topic, r, _ = lidars[k]
-                xyz, times = scene_sweep(r, motion, t, period, rng, rooms[k])
-                msg = cloud_message(bag, xyz, s, times if time_field else None, time_field or "t")
+                xyz, times, ring = scene_sweep(r, motion, t, period, rng, rooms[k])
+                msg = cloud_message(bag, xyz, s, times if time_field else None, time_field or "t", ring)
                 bag.write(topic, msg, s + int(period * 1e9))
     return motion

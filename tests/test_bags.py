@@ -14,6 +14,7 @@ from estimators.cli import main
 from estimators.errors import BagError
 from estimators.io.bag_extract import ExtractOptions, _Check, _StillSegments, extract_bag
 from estimators.io.dataset import load_dataset
+from estimators.io.pointcloud_io import read_sweep
 from estimators.io.ros_messages import camera_from_info, decode_image, decode_point_cloud
 from estimators.simulation.simulator import simulate_dataset
 from geometry.rotations import rotation_error
@@ -59,6 +60,11 @@ def test_bag_extracts_one_frame_per_still_pose_and_calibrates_like_the_folder(si
     # these clouds carry no time field: how their returns would be timed is said and recorded
     assert record["point_times"] == summary.point_times and "no time field" in summary.point_times
     assert f"per-return LiDAR time: {summary.point_times}" in summary.lines()
+    # each return's beam kept from the clouds' ring field, as the folder's sweeps have it
+    for f, g in zip(ds.frames, truth.frames, strict=True):
+        got, want = read_sweep(f.scan), read_sweep(g.scan)
+        np.testing.assert_allclose(got.points, want.points, atol=1e-5)
+        np.testing.assert_array_equal(got.ring, want.ring)
     # Streaming: of the bag's 75 scans, never more than the pairing window's few were held at once, and no
     # more images than the 0.6 s gaps between poses (when this recording has no scans) hold: 3 or 4 images,
     # and the first of the next pose's, examined before its scan arrives 13 ms later.
@@ -186,6 +192,8 @@ def test_point_cloud_layouts_decode_to_the_same_points():
     pts, inten = decode_point_cloud(msg)
     np.testing.assert_allclose(pts, xyz)
     np.testing.assert_allclose(inten, np.arange(24.0))
+    _, _, ring = decode_point_cloud(msg, rings=True)
+    np.testing.assert_array_equal(ring, np.arange(24) % 8)
     # float32, no intensity and no ring; NaN and (0,0,0) no-returns dropped.
     xyz2 = xyz.copy()
     xyz2[3] = np.nan
@@ -194,6 +202,7 @@ def test_point_cloud_layouts_decode_to_the_same_points():
                                                                      "z": xyz2[:, 2]}, 16)
     pts, inten = decode_point_cloud(msg)
     assert inten is None and len(pts) == 22
+    assert decode_point_cloud(msg, rings=True)[2] is None
     np.testing.assert_allclose(pts, np.delete(xyz, [3, 5], axis=0), rtol=1e-6, atol=1e-5)
     msg = _cloud([("x", 0, "f4"), ("y", 4, "f4")], {"x": xyz[:, 0], "y": xyz[:, 1]}, 8)
     with pytest.raises(BagError, match="no z field"):

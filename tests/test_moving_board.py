@@ -111,7 +111,7 @@ def test_deskewed_returns_lie_on_the_board_where_the_camera_saw_it():
     offset = 0.025
     times = np.arange(0.0, 1.0, 0.05)
     trajectory = PoseSpline(times + offset, motion(times))  # the camera's board poses, exact, in its clock
-    points, fire = scene_sweep(rig, motion, 0.4, 0.1, rng)
+    points, fire, _ = scene_sweep(rig, motion, 0.4, 0.1, rng)
     at = 0.5 + offset
     on = _on_board(rig, motion(0.5), deskewed(points, fire + 0.4, rig.T_camera_lidar, offset, trajectory, at))
     assert on.sum() > 100

@@ -431,8 +431,8 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 name = f"{len(records):04d}"
                 cv2.imwrite(str(tmp / f"{name}.png"), c.image)
                 if lidar == "3d":
-                    xyz, inten = decode_point_cloud(c.scan, lidar_topic)
-                    write_scan(tmp / f"{name}.{scan_format}", xyz, inten)
+                    xyz, inten, ring = decode_point_cloud(c.scan, lidar_topic, rings=True)
+                    write_scan(tmp / f"{name}.{scan_format}", xyz, inten, ring)
                     if not point_times:
                         point_times.append(_timing_words(c.scan, lidar_topic, scan_gaps))
                 else:

@@ -388,7 +388,8 @@ def _read_npy(path: Path, rings: bool = False):
 
 def write_scan(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None,
                ring: np.ndarray | None = None, pcd_encoding: str = "binary") -> None:
-    """Write (N, 3) points in the format named by the suffix (used by the simulator and tests)."""
+    """Write (N, 3) points in the format named by the suffix, with their intensities and beams (``ring``: kept by
+    PCD and PLY) where given (the simulator, the bags' extraction, tests)."""
     path = Path(path)
     P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     inten = np.zeros(len(P), np.float32) if intensity is None else np.asarray(intensity, np.float32)
@@ -407,8 +408,11 @@ def write_scan(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarra
     elif suffix == ".ply":
         from plyfile import PlyData, PlyElement
 
-        v = np.empty(len(P), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4")])
+        v = np.empty(len(P), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4")]
+                     + ([] if ring is None else [("ring", "u2")]))
         v["x"], v["y"], v["z"], v["intensity"] = P[:, 0], P[:, 1], P[:, 2], inten
+        if ring is not None:
+            v["ring"] = ring
         PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
     elif suffix == ".bin":
         np.column_stack([P, inten]).astype("<f4").tofile(path)

@@ -188,7 +188,7 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
                                                   progress, tqdm):
                     path = tmp / name / f"{j:04d}.{scan_format[kind]}"
                     if kind == "3d":
-                        write_scan(path, *decode_point_cloud(msg, topic))
+                        write_scan(path, *decode_point_cloud(msg, topic, rings=True))
                     else:
                         write_scan_2d(path, *decode_laser_scan(msg))
                     records[j]["lidars"][name] = stamp

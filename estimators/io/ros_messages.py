@@ -113,18 +113,23 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
 
 
 @_guarded("PointCloud2")
-def decode_point_cloud(msg, topic: str = "") -> tuple[np.ndarray, np.ndarray | None]:
-    """``sensor_msgs/PointCloud2`` as (N, 3) float64 points and an (N,) intensity (or None).
+def decode_point_cloud(msg, topic: str = "", rings: bool = False) -> tuple:
+    """``sensor_msgs/PointCloud2`` as (N, 3) float64 points and an (N,) intensity (or None); with ``rings``, each
+    return's beam too, from a ``ring`` field (Velodyne's, Ouster's, Hesai's drivers), or None.
 
     Any field layout (offsets, padding, float32 or float64 coordinates, extra fields such as ``ring`` or
     ``t``), organised or not; NaN/inf and (0, 0, 0) no-returns are dropped.
     """
     fields = {f.name for f in msg.fields}
-    pts, xyz, keep = _cloud_fields(msg, topic, [n for n in _INTENSITY_FIELDS if n in fields][:1])
+    inten_name = [n for n in _INTENSITY_FIELDS if n in fields][:1]
+    ring_name = ["ring"] if rings and "ring" in fields else []
+    pts, xyz, keep = _cloud_fields(msg, topic, inten_name + ring_name)
     if not keep.size:
-        return np.zeros((0, 3)), None
-    inten = pts[pts.dtype.names[3]].astype(float) if len(pts.dtype.names) > 3 else None
-    return xyz[keep], None if inten is None else inten[keep]
+        return (np.zeros((0, 3)), None) + ((None,) if rings else ())
+    inten = pts[inten_name[0]][keep].astype(float) if inten_name else None
+    if not rings:
+        return xyz[keep], inten
+    return xyz[keep], inten, pts["ring"][keep].astype(np.int64) if ring_name else None
 
 
 @_guarded("PointCloud2")

@@ -220,18 +220,19 @@ def room_for(rig: Rig, motion: Waving, duration_s: float, room: tuple = ROOM) ->
 
 
 def scene_sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.random.Generator,
-                room: tuple = ROOM) -> tuple[np.ndarray, np.ndarray]:
+                room: tuple = ROOM) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """A whole sweep starting at ``stamp`` (true time): every beam's return from the board where it is when the
     beam fires, or else from the room's walls, floor and ceiling; stored in firing order (a spinning LiDAR's
     column after column; a Livox-like rosette's, ``lidar_models.Rosette``, a new stretch of its pattern each
-    sweep), with each return's time after the stamp. (points (N, 3), offsets (N,))."""
+    sweep), with each return's time after the stamp and its beam (None for a rosette). (points (N, 3), offsets
+    (N,), ring (N,))."""
     if isinstance(rig.beams, Rosette):  # a Livox-like rosette: its returns evenly through the sweep, in order
-        dirs = rig.beams.directions(rng)
+        dirs, ring = rig.beams.directions(rng), None
         fire = np.arange(len(dirs)) * (period / len(dirs))
     else:
         dirs, fire = _fire_times(rig, period)
         order = np.argsort(fire, kind="stable")
-        dirs, fire = dirs[order], fire[order]
+        dirs, fire, ring = dirs[order], fire[order], rig.beams.directions()[1][order]
     with np.errstate(divide="ignore"):
         bounds = np.array(room, dtype=float)  # (3, 2)
         walls = np.where(dirs > 0, bounds[:, 1] / dirs, bounds[:, 0] / dirs)
@@ -241,4 +242,4 @@ def scene_sweep(rig: Rig, motion: Waving, stamp: float, period: float, rng: np.r
         r[near] = np.minimum(r[near], _board_ranges(rig, motion, stamp, dirs[near], fire[near]))
     keep = np.isfinite(r) & (r < rig.beams.max_range_m)
     r = r[keep] + rng.normal(0.0, rig.beams.sigma_range_m, int(keep.sum()))
-    return r[:, None] * dirs[keep], fire[keep]
+    return r[:, None] * dirs[keep], fire[keep], None if ring is None else ring[keep]
