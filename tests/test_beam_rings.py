@@ -105,3 +105,20 @@ def test_the_recorded_vlp16_set_as_kitti_bin_is_checked_as_from_its_pcds(tmp_pat
     assert bin_.skipped == pcd.skipped and bin_.fit.points == pcd.fit.points > 0
     assert np.allclose(bin_.fit.T_camera_lidar, pcd.fit.T_camera_lidar, atol=1e-9)
     assert abs(bin_.test["p_value"] - pcd.test["p_value"]) <= 1e-9 * max(pcd.test["p_value"], 1e-300) + 1e-15
+
+
+def test_a_dataset_without_ring_fields_is_measured_as_with_them(tmp_path):
+    """One simulated 64-beam dataset written with and without its ring field: the ring-less sweeps have their
+    beams found over all of them, so every frame's board has the same returns, partitioned into the same rings,
+    as with the field (measured by direction bins, one frame's board held two more returns, and the boards' points
+    had no rings: the range terms clustered their elevations)."""
+    from estimators import measure, simulate
+
+    with_field = measure(simulate(tmp_path / "rings", n_poses=5, seed=11, lidar="os64"))
+    without = measure(simulate(tmp_path / "none", n_poses=5, seed=11, lidar="os64", ring_field=False))
+    used = [(a, b) for a, b in zip(with_field.frames, without.frames) if a.usable]
+    assert len(used) >= 4 and all(b.usable for _, b in used)
+    for a, b in used:
+        assert np.array_equal(a.lidar.points, b.lidar.points)
+        share, one_to_one = _agreement(np.asarray(b.lidar.rings), np.asarray(a.lidar.rings))
+        assert share == 1.0 and one_to_one

@@ -243,9 +243,10 @@ def test_a_dataset_whose_ring_field_holds_one_value_is_measured_as_one_without(t
     extra = [w for w in b.warnings if w not in a.warnings]
     assert len(extra) == 1 and extra[0].startswith("4 of 4 sweeps (the first 0000): its beam index (ring field or "
                                                    "organised rows) is not one: 100% of the returns beyond 2 m")
-    for fa, fb in zip(a.frames, b.frames, strict=True):
-        assert fa.usable and fb.usable and fb.lidar.rings is None
+    for fa, fb in zip(a.frames, b.frames, strict=True):  # beams found from the elevations, alike
+        assert fa.usable and fb.usable and fb.lidar.rings is not None
         np.testing.assert_array_equal(fa.lidar.points, fb.lidar.points)
+        np.testing.assert_array_equal(fa.lidar.rings, fb.lidar.rings)
 
 
 def test_a_board_resting_about_one_place_keeps_the_returns_of_its_edges(tmp_path):

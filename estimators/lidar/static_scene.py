@@ -5,7 +5,8 @@ The rig stands still during a calibration, so walls, doors, furniture and the gr
 in most frames, while the board is somewhere else in each. A board candidate must be mostly in front of that
 background (foreground). Three forms, by what the recording tells:
 
-- **Range image** (3D sweeps whose points carry a beam index, from a ``ring`` field or an organised cloud's row):
+- **Range image** (3D sweeps whose points carry a beam index, from a ``ring`` field or an organised cloud's row, or
+  found from the returns' elevations, ``lidar.beam_rings``):
   per beam and azimuth column, the background range is the farthest range that a quarter of the frames (at
   least two) return within half the margin of each other (each frame's farthest return within one column
   either side, as returns wander by a column between sweeps). A point nearer than that was seen through by
@@ -13,7 +14,8 @@ background (foreground). Three forms, by what the recording tells:
   cover that cell; boards held at one place in a few frames do not make a surface. Over a window of neighbouring
   cells (rig vibration of a few centimetres, column jitter, depth edges), a point is foreground when it
   matches no background range within ``margin_m`` and lies nearer than some of them (or the window has none).
-- **Direction bins** (unorganised 3D clouds with no beam index, a non-repetitive pattern among them): the same
+- **Direction bins** (3D clouds with no beam index whose elevations do not fall into beams: a non-repetitive
+  pattern's): the same
   range image over bins of elevation and azimuth, their size chosen so that a sweep returns a few points in each
   (:func:`direction_bin`), so that a board standing on a table or held by a wall is still in front of the
   surface behind it.

@@ -29,7 +29,8 @@ from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
 from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
                                      save_measurements)
-from ..io.pointcloud_io import read_scan_2d, read_sweep
+from ..io.pointcloud_io import Sweep, read_scan_2d, read_sweep
+from ..lidar.beam_rings import sweeps_beams
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
                                         choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
 from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
@@ -42,8 +43,8 @@ from ..solvers.noise_levels import pooled_range_noise_m
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation; 4: a scan
 # line cut to the board's outline by the extrinsic's uncertainty too; 5: a ring field that does not index beams set
-# aside).
-MEASUREMENT_REVISION = 5
+# aside; 6: sweeps without one measured along beams found from their elevations).
+MEASUREMENT_REVISION = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -538,7 +539,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     (``hints``: the region of interest, and whether to build the scene at all)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    sweeps = {f.name: _read_or_reason(read_sweep, f.scan) for f in frames}
+    sweeps, _ = with_found_beams({f.name: _read_or_reason(read_sweep, f.scan) for f in frames})
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
@@ -572,7 +573,7 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     noted = [(f.name, s.ring_note) for f, s in zip(dataset.frames, sweeps) if not isinstance(s, str) and s.ring_note]
     if noted:
         warnings.append(f"{len(noted)} of {n} sweeps (the first {noted[0][0]}): {noted[0][1]}; read as sweeps "
-                        "without one (returns grouped by direction, the board's beams by elevation)")
+                        "without one (each return's beam from its elevation where they fall into bands)")
 
     def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
         cam_obs = cams[k][0]
@@ -618,6 +619,27 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     if ambiguous:
         frames = _resolve_ambiguous(frames, ambiguous, warnings, dataset.board, camera)
     return [_with_beam_fields(f, sweeps[k]) for k, f in enumerate(frames)]
+
+
+def with_found_beams(sweeps: dict) -> tuple[dict, str | None]:
+    """The sweeps (by frame name; a string: why one could not be read) read without a beam index (a KITTI .bin, an
+    unorganised PCD, a ring field set aside) with each return's beam found from the returns' elevations over all
+    of them (``lidar.beam_rings.sweeps_beams``: one set of beams, numbered alike in every sweep; the returns it
+    gives none left out), so that they are measured and checked as sweeps with a ring field are (the static scene
+    by beams, ring ends, per-ring terms, the scene's contours); where the elevations do not fall into beams (a
+    rosette LiDAR's), the sweeps as read and why."""
+    ringless = {n: s for n, s in sweeps.items() if not isinstance(s, str) and s.ring is None}
+    if not ringless:
+        return sweeps, None
+    try:
+        beams = sweeps_beams([s.points for s in ringless.values()])
+    except ScanReadError as exc:
+        return sweeps, exc.problem
+    out = dict(sweeps)
+    for n, s in ringless.items():
+        ring = beams.rings_of(s.points)
+        out[n] = Sweep(s.points, ring, s.intensity, s.ring_note).kept(ring >= 0)
+    return out, None
 
 
 def _read_or_reason(reader, path):

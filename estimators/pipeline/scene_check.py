@@ -1,7 +1,7 @@
 """``lidarcam check``: whether the scene agrees with a given extrinsic (``solvers.scene_alignment``).
 
 Per frame: the sweep's contour returns (``lidar.depth_edges``; each return's beam from its file's ``ring`` field or
-organised rows, else from the elevations of all the sweeps' returns, :func:`_with_found_beams`), those the
+organised rows, else from the elevations of all the sweeps' returns, ``measurement.with_found_beams``), those the
 camera sees from its own centre under the given extrinsic, and the image's edge-distance field
 (``camera.edge_map``). Where the folder has a board and the camera finds it, the board is left out by default
 (``keep_board`` keeps it): its image edges (within ``BOARD_MARGIN_PX`` of its outline) and the contour returns that
@@ -31,13 +31,13 @@ from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, ScanReadError
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
-from ..io.pointcloud_io import Sweep, read_sweep
+from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
-from ..lidar.beam_rings import sweeps_beams
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, transverse_edges,
                                       visible_from_camera)
+from .measurement import with_found_beams
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -202,25 +202,6 @@ def scene_view(name: str, gray: np.ndarray, sweep, T_given: np.ndarray, camera: 
     return SceneView(name, P, edges, truncate_px, steps[0])
 
 
-def _with_found_beams(sweeps: dict) -> tuple[dict, str | None]:
-    """The sweeps (by frame name) read without a beam index (a KITTI .bin, an unorganised PCD) with each return's
-    beam found from the returns' elevations over all of them (``lidar.beam_rings.sweeps_beams``; the returns it
-    gives none left out), so that their contours are found along the beams as with a ring field; where the
-    elevations do not fall into beams (a rosette LiDAR's), the sweeps as read and why."""
-    ringless = {n: s for n, s in sweeps.items() if s.ring is None}
-    if not ringless:
-        return sweeps, None
-    try:
-        beams = sweeps_beams([s.points for s in ringless.values()])
-    except ScanReadError as exc:
-        return sweeps, exc.problem
-    out = dict(sweeps)
-    for n, s in ringless.items():
-        ring = beams.rings_of(s.points)
-        out[n] = Sweep(s.points, ring, s.intensity).kept(ring >= 0)
-    return out, None
-
-
 @dataclass(frozen=True, eq=False)
 class SceneFrame:
     """One frame as the scene's measurements read it: its image, its sweep and the board's mask (or None)."""
@@ -260,7 +241,7 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
     # Decoding, reading and the board's search release the interpreter: two frames at a time.
     with ThreadPoolExecutor(max_workers=READ_THREADS) as pool:
         got = list(pool.map(read, frames))
-    beams, why = _with_found_beams({g.name: g.sweep for g in got if isinstance(g, SceneFrame)})
+    beams, why = with_found_beams({g.name: g.sweep for g in got if isinstance(g, SceneFrame)})
     got = [g if not isinstance(g, SceneFrame) else replace(g, sweep=beams[g.name])
            if beams[g.name].ring is not None else why for g in got]
     out = [g for g in got if isinstance(g, SceneFrame)]
