@@ -358,6 +358,7 @@ def info_messages() -> st.SearchStrategy:
 MESSAGE_TARGETS = (
     ("Image/CompressedImage", image_messages, lambda m: decode_image(m, "/camera/image_raw")),
     ("PointCloud2", cloud_messages, lambda m: decode_point_cloud(m, "/points")),
+    ("PointCloud2 with rings", cloud_messages, lambda m: decode_point_cloud(m, "/points", rings=True)),
     ("PointCloud2 per-return times", cloud_messages, lambda m: decode_point_times(m, "/points", 0.1)),
     ("LaserScan", scan_messages, lambda m: decode_laser_scan(m, "/scan")),
     ("CameraInfo", info_messages, lambda m: camera_from_info(m, "/camera_info")),

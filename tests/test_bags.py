@@ -194,6 +194,10 @@ def test_point_cloud_layouts_decode_to_the_same_points():
     np.testing.assert_allclose(inten, np.arange(24.0))
     _, _, ring = decode_point_cloud(msg, rings=True)
     np.testing.assert_array_equal(ring, np.arange(24) % 8)
+    # a float ring field holding NaN is no beam index: read as a cloud without one
+    bad = dict(cols, ring=np.where(np.arange(24) == 3, np.nan, np.arange(24) % 8))
+    msg = _cloud([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("ring", 12, "f4")], bad, 16)
+    assert decode_point_cloud(msg, rings=True)[2] is None
     # float32, no intensity and no ring; NaN and (0,0,0) no-returns dropped.
     xyz2 = xyz.copy()
     xyz2[3] = np.nan

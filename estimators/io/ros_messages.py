@@ -129,7 +129,10 @@ def decode_point_cloud(msg, topic: str = "", rings: bool = False) -> tuple:
     inten = pts[inten_name[0]][keep].astype(float) if inten_name else None
     if not rings:
         return xyz[keep], inten
-    return xyz[keep], inten, pts["ring"][keep].astype(np.int64) if ring_name else None
+    ring = pts["ring"][keep].astype(float) if ring_name else None
+    if ring is not None and not (np.all(np.isfinite(ring)) and np.all(ring >= 0) and np.all(ring < 65536)):
+        ring = None  # not beam numbers: the cloud is read as one without a ring field
+    return xyz[keep], inten, None if ring is None else ring.astype(np.int64)
 
 
 @_guarded("PointCloud2")
