@@ -68,13 +68,13 @@ class BeamRings:
                        _spacing(self.elevations_deg))
 
 
-def sweeps_beams(sweeps: list[np.ndarray], path=None) -> BeamRings:
+def sweeps_beams(sweeps: list[np.ndarray]) -> BeamRings:
     """The beams of one LiDAR's sweeps, found over them all (up to ``JOINT_SAMPLE`` returns, an equal share from
     each): every sweep's returns then take their beams from one set (:meth:`BeamRings.rings_of`), numbered alike
     across sweeps, even where a sweep holds no far return of some laser (a near wall) or too few to find its own."""
     share = max(1, JOINT_SAMPLE // max(len(sweeps), 1))
     sample = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3)[:: max(1, len(p) // share)] for p in sweeps])
-    return beam_rings(sample, path)
+    return beam_rings(sample)
 
 
 def _elevations(points: np.ndarray, h: float, a: float) -> np.ndarray:

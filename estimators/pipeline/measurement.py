@@ -29,7 +29,7 @@ from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
 from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
                                      save_measurements)
-from ..io.pointcloud_io import Sweep, read_scan_2d, read_sweep
+from ..io.pointcloud_io import read_scan_2d, read_sweep
 from ..lidar.beam_rings import sweeps_beams
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
                                         choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
@@ -638,7 +638,7 @@ def with_found_beams(sweeps: dict) -> tuple[dict, str | None]:
     out = dict(sweeps)
     for n, s in ringless.items():
         ring = beams.rings_of(s.points)
-        out[n] = Sweep(s.points, ring, s.intensity, s.ring_note).kept(ring >= 0)
+        out[n] = replace(s, ring=ring).kept(ring >= 0)
     return out, None
 
 
@@ -788,7 +788,7 @@ def _every_return_on(obs, sweep, scene: StaticScene, outline: tuple):
     edge. Where the scene took the board for background along one edge, that edge's returns were cut at the
     outline and the other edges' (foreground) were not: on a simulated OS1-64 bag of still poses about one place
     (its boards' beams from their elevations), the outline shifted 7 mm, the planes and ring ends 39 apart (d2,
-    5 dof), 0.080 degree from the truth and CHECK; with them, 0.041 degree and OK. Returns the scene kept in front
+    5 dof), 0.080 degree from the truth and CHECK; with them, 0.039 degree and OK. Returns the scene kept in front
     of it that the board's segmentation left out stay out: on the recorded VLP-16 set those are returns beside
     the boards, which pulled their edges (d2 against the planes 18 -> 31). Direction bins are a few returns
     wide: a board's own cells reach beyond its edge already."""
