@@ -217,10 +217,10 @@ class PlaneProblem:
         self.edges, self.outline, self.edge_scale = other.edges, other.outline.copy(), other.edge_scale
         self.edge_tau, self.shifts = other.edge_tau, dict(other.shifts)
 
-    def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float
+    def solve(self, active: list[int], T: np.ndarray, boards: list, floor_m: float, robust: bool = True
               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int]:
         values = self.values(active, T, boards, floor_m)
-        graph = self.graph(active, floor_m)
+        graph = self.graph(active, floor_m, robust)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.options.max_iterations)
         params.setRelativeErrorTol(1e-9)

@@ -33,6 +33,26 @@ class _ModelFit:
     dof: int
 
 
+def _gaussian_objective(p: PlaneProblem, graph, result, active: list[int], inliers: list[int], T: np.ndarray,
+                        boards: list, floor: float) -> float:
+    """:func:`plane_graph.objective` under the Gaussian likelihood over the inlier frames, as the likelihood-ratio
+    test needs it. The solve minimised the robust loss, which bends the residuals it reaches (Cauchy's every one,
+    Huber's those beyond its threshold); and a board's within-board structure lies in its floor (unbent) under a
+    model without the terms that read it, in its factor (bent) under one with them, so differences of the robust
+    objective overstate what the terms explain: under Cauchy, per-ring terms passed at p < 1e-6 on boards without
+    ring errors. Where the loss bends nothing and every frame is an inlier the solve's own objective is returned;
+    else the inliers are solved again from it without the loss (the problem's state kept)."""
+    if list(active) == list(inliers):
+        bent = graph.error(result)
+        if abs(p.graph(active, floor, robust=False).error(result) - bent) <= 1e-9 * max(1.0, bent):
+            return objective(p, graph, result, active, floor)
+    state = (p.beta.copy(), p.outline.copy(), dict(p.shifts))
+    plain, solved, _ = p.solve(inliers, T, list(boards), floor, robust=False)
+    cost = objective(p, plain, solved, inliers, floor)
+    p.beta, p.outline, p.shifts = state
+    return cost
+
+
 def _fit_model(prob: PlaneProblem, model: str, labels: FrameLabels, active: list[int], inliers: list[int],
                T: np.ndarray, boards: list, floor: float, options: RefinementOptions) -> _ModelFit:
     terms = terms_for(model, labels, options.range_accuracy_m)
@@ -43,7 +63,8 @@ def _fit_model(prob: PlaneProblem, model: str, labels: FrameLabels, active: list
     b = list(boards)
     graph, result, _ = p.solve(active, T, b, floor)
     p.solved = (graph, result)  # the refinement goes on from this solution
-    return _ModelFit(model, p, result.atPose3(EXTRINSIC).matrix(), b, objective(p, graph, result, active, floor),
+    T_fit = result.atPose3(EXTRINSIC).matrix()
+    return _ModelFit(model, p, T_fit, b, _gaussian_objective(p, graph, result, active, inliers, T_fit, b, floor),
                      p.nuisance_rank(inliers))
 
 
@@ -79,7 +100,9 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
         scale = max(p_l.plane_cost(inliers, T_l, b_l, fl) / cdof, 1.0)
         b_s = list(small.boards)
         graph_s, result_s, _ = p_s.solve(active, small.T, b_s, fl)
-        delta = (objective(p_s, graph_s, result_s, active, fl) - objective(p_l, graph_l, result_l, active, fl))
+        delta = (_gaussian_objective(p_s, graph_s, result_s, active, inliers, result_s.atPose3(EXTRINSIC).matrix(),
+                                     b_s, fl)
+                 - _gaussian_objective(p_l, graph_l, result_l, active, inliers, T_l, b_l, fl))
         scatter = p_l.tau
         for p, beta, solved, tau in saved:
             p.beta, p.solved, p.tau = beta, solved, tau
