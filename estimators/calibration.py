@@ -21,7 +21,7 @@ from .lidar.board_segmentation import SegmentationParams
 from .measurements import FrameMeasurement
 from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
 from .pipeline.result import CalibrationResult
-from .pipeline.verdict import frame_disagrees, plane_residuals
+from .pipeline.verdict import frame_disagrees, plane_residuals, returns_without_terms
 from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import intrinsics_drop
 from .solvers.posterior import PosteriorOptions
@@ -234,7 +234,8 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         tail.append(f"board normals are poorly spread (condition {sol.condition_number:.1f}): "
                     f"translation along {axis} is weakly constrained; {advice}")
     dropped = {f.name for f in ref.frames if f.dropped} if ref else set()
-    residuals = plane_residuals(T, [f for f in used if f.name not in dropped])
+    kept = [f for f in used if f.name not in dropped]
+    residuals = plane_residuals(T, kept, returns_without_terms(kept, ref.range_model, None, board, T) if ref else None)
     for fname, (angle, dist) in residuals.items():
         if frame_disagrees(angle, dist):
             tail.append(f"frame {fname}: its planes disagree with the estimate by {np.degrees(angle):.1f} deg "
@@ -305,7 +306,7 @@ def _solve_2d(frames: list[FrameMeasurement], board, camera: CameraModel, init: 
             warnings.append(f"ambiguous: {len(modes)} distinct solutions fit the boards (posterior mass "
                             f"{', '.join(f'{m.mass:.0%}' for m in modes)}; the first is reported, all are in "
                             "calibration.json); add boards tilted in other directions to decide")
-    residuals = plane_residuals(T, used)
+    residuals = plane_residuals(T, used, returns_without_terms(used, ref.range_model, None, board, T) if ref else None)
     tail = [f"frame {f.name}: {f.reason}" for f in frames if not f.usable]
     return CalibrationResult(T, method, refine, tuple(frames), camera, spread, weak, name, tuple(warnings + tail),
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, sel, tuple(modes))

@@ -459,6 +459,13 @@ def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(off
     T, C = res.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
     assert xi @ np.linalg.solve(C, xi) < 16.8 and 1000 * np.linalg.norm(xi[3:]) < 5.0
+    # The boards are judged (verdict, calibration.json's frames) with the offset taken off their returns.
+    from estimators.pipeline.verdict import plane_residuals
+
+    frames = [f for f in res.pair_frames[("cam0", "lidar0")] if f.usable]
+    off = res.returns_without_terms("cam0", "lidar0", frames)
+    raw, judged = (np.median([d for _, d in plane_residuals(T, frames, t).values()]) for t in (None, off))
+    assert set(off) == {f.name for f in frames} and raw > 0.02 and abs(judged) < 0.01
     # Held at its estimate (as every posterior holds the terms), the likelihood's curvature is the graph's
     # information of the poses given the offset; the offset's share is convolved into the samples.
     lv = next(v for v in res.lidar_views if v.name == "lidar0")

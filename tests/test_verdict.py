@@ -304,3 +304,37 @@ def test_the_rules_on_answers_resting_on_the_edges_read_a_single_pairs_and_a_rig
     assert edges_left_out(record(12.0, used=False)) is None
     (level, why), = _carried("", {"used": False, "left_out": "the ring ends carry the answer"})
     assert level == CHECK and why.startswith("the boards' edges were left out: the ring ends carry")
+
+
+def test_a_lidars_range_offset_is_taken_off_the_boards_before_they_are_judged():
+    """A VLP-16 whose ranges read 7 cm long (2.3 of a Velodyne's prior sds), with ring errors (sd 6 mm) and 3 cm on
+    the black squares: the estimate holds them as range terms, so each board's LiDAR plane is judged with them taken
+    off (``returns_without_terms``). Judged raw every board lay 9-12 cm off the camera's and the answer was called
+    UNTRUSTED (12 of 12 frames); and the intrinsics' check, solved without the terms, read them as planes the
+    intrinsics could move (seed 2: p = 7e-6, a CHECK). Both now judge what the estimate leaves."""
+    from estimators.simulation.range_bias import RangeBias
+    from estimators.simulation.simulator import default_rig, sample_board_poses
+    from estimators.solvers.closed_form import solve_closed_form
+    from estimators.solvers.intrinsics_refinement import intrinsics_drop
+    from estimators.solvers.observation_model import Layout, simulate_measurements
+    from estimators.solvers.refinement import refine
+    from estimators.solvers.refinement_options import measurement_model_options
+    from estimators.pipeline.verdict import frame_disagrees, plane_residuals, returns_without_terms
+
+    for seed in (2,):
+        rng = np.random.default_rng(seed)
+        rig = default_rig(rng, "vlp16", 0.02)
+        layout = Layout(rig.camera, rig.board, rig.beams, rig.T_camera_lidar,
+                        tuple(sample_board_poses(rig, 12, rng)), 0.2, 0.02)
+        bias = RangeBias.drawn(rng, len(rig.beams.elevations_rad), 0.07, 0.006, 0.03)
+        frames = simulate_measurements(layout, np.random.default_rng(seed + 1), bias)
+        T0 = solve_closed_form([f.camera.plane for f in frames], [f.lidar.plane for f in frames]).T_camera_lidar
+        ref = refine(frames, layout.board, layout.camera, T0, measurement_model_options(range_model="auto"))
+        T = ref.T_camera_lidar
+        assert ref.range_model.chosen == "full"
+        assert all(frame_disagrees(*v) for v in plane_residuals(T, frames).values())  # raw: every board off
+        judged = plane_residuals(T, frames, returns_without_terms(frames, ref.range_model, None, layout.board, T))
+        assert set(judged) == {f.name for f in frames} and not any(frame_disagrees(*v) for v in judged.values())
+        assert max(abs(d) for _, d in judged.values()) < 0.03
+        check = intrinsics_drop(frames, layout.board, layout.camera, ref)
+        assert check is not None and not check["explains"] and check["p_value"] > 0.01, seed

@@ -23,7 +23,7 @@ from .offset_between_poses import time_offsets_keys
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION, frame_dict
 from .rig_measurement import MIN_PAIR_FRAMES
-from .verdict import plane_residuals
+from .verdict import plane_residuals, returns_without_terms
 from .verdict import Verdict, rig_verdict
 
 # A sensor's noise is scaled by its chi-square per degree of freedom whenever that is above 1
@@ -228,6 +228,17 @@ class RigResult:
                         "board_scatter_m": float(lv.tau_m)}
         return {}
 
+    def returns_without_terms(self, camera: str, lidar: str, frames: list) -> dict:
+        """Per frame of a camera-LiDAR pair, its board's returns with the LiDAR's range terms taken off, at the joint
+        graph's values (``verdict.returns_without_terms``): what its plane residuals are drawn from. Empty where the
+        joint graph holds no terms for the LiDAR."""
+        joint = {n: t["value_m"] for n, t in (self.range_models.get(lidar, {}).get("terms") or {}).items()}
+        own = (self.pair_results or {}).get((camera, lidar))
+        if not joint or own is None or own.refinement is None:
+            return {}
+        return returns_without_terms(frames, own.refinement.range_model, joint, self.rig.board,
+                                     self.solution.transform(camera, lidar)[0])
+
     def pair_keys(self, camera: str, lidar: str) -> dict:
         """The keys a single pair's calibration.json gives (``CalibrationResult.to_dict``), for the camera-LiDAR
         pair ``(camera, lidar)``: its transform, covariance and posterior intervals from the joint graph; its
@@ -272,7 +283,8 @@ class RigResult:
         measured = getattr(self.measurements, "pairs", {}).get((camera, lidar)) or (self.pair_frames or {}).get(
             (camera, lidar), [])
         used = set(self.frames_used.get(lidar, ())) & set(self.frames_used.get(camera, ()))
-        residuals = plane_residuals(est.T, [f for f in measured if f.usable])
+        usable = [f for f in measured if f.usable]
+        residuals = plane_residuals(est.T, usable, self.returns_without_terms(camera, lidar, usable))
         fits = {f.name: f for f in ref.frames} if ref is not None else {}
         frames = []
         for f in measured:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry.planes import plane_difference
+from geometry.planes import fit_plane_pca, plane_difference
 from geometry.rotations import transform_points
 
 from ..lidar.lidar_models import range_accuracy_for
@@ -38,6 +38,7 @@ from ..solvers.association import DISAGREES_WITH_CONSENSUS
 from ..solvers.board_edges import GROWTH_PRIOR_SD_M
 from ..solvers.closed_form import distance_scale, segment_distance_scale
 from ..solvers.outline_check import CHECK_P as OUTLINE_P
+from ..solvers.range_model import without_terms
 from .measurement import CONSENSUS_FAILED
 
 OK, CHECK, UNTRUSTED = "OK", "CHECK", "UNTRUSTED"
@@ -184,19 +185,39 @@ def _ambiguous(name: str, modes, which: str, covered: bool) -> list[tuple[str, s
                     "in other directions")]
 
 
-def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement]) -> dict:
+def plane_residuals(T_camera_lidar: np.ndarray, frames: list[FrameMeasurement], terms: dict | None = None) -> dict:
     """Per used frame: angle (rad) between the camera normal and the mapped LiDAR normal, and the
-    difference of the plane distances (m), under ``T_camera_lidar``."""
-    out = {}
+    difference of the plane distances (m), under ``T_camera_lidar``; ``terms`` (:func:`returns_without_terms`):
+    per frame, its returns with the estimate's range terms taken off, the plane drawn through them."""
+    out, terms = {}, terms or {}
     for f in frames:
+        points = terms.get(f.name, f.lidar.points)
         if f.usable and f.lidar.is_scan_line:
             # A laser line: the angle by which it leaves the board's plane, and its points' mean distance to it.
             direction = T_camera_lidar[:3, :3] @ np.append(f.lidar.line.direction, 0.0)
-            dist = float(np.mean(f.camera.plane.signed_distances(transform_points(T_camera_lidar, f.lidar.points))))
+            dist = float(np.mean(f.camera.plane.signed_distances(transform_points(T_camera_lidar, points))))
             out[f.name] = (float(np.arcsin(min(abs(direction @ f.camera.plane.normal), 1.0))), dist)
         elif f.usable:
-            out[f.name] = plane_difference(f.lidar.plane.transformed(T_camera_lidar), f.camera.plane)
+            plane = fit_plane_pca(points) if f.name in terms else f.lidar.plane
+            out[f.name] = plane_difference(plane.transformed(T_camera_lidar), f.camera.plane)
     return out
+
+
+def returns_without_terms(frames: list[FrameMeasurement], fit, values: dict | None = None, board=None,
+                          T_camera_lidar: np.ndarray | None = None) -> dict:
+    """Per frame, its board's returns with the range terms of ``fit`` (``range_model.RangeModelFit``) taken off
+    (``range_model.without_terms``), at ``values`` (term -> metres: the joint graph's) where given, else the fit's
+    own; empty without terms. A LiDAR with a 5 cm range offset (within a Velodyne's priors) would otherwise have
+    every board 5 cm off the camera's, and its answer called untrusted."""
+    if fit is None or fit.terms is None or not fit.names or not frames:
+        return {}
+    values = values or {}
+    beta = np.array([values.get(n, v) for n, v in zip(fit.names, fit.values_m)], dtype=float)
+    if len(beta) != fit.terms.size:
+        return {}
+    labels = fit.labels_for(frames, board, T_camera_lidar)
+    return {f.name: without_terms(f.lidar, fit.terms, beta, labels.rings[k], labels.dark[k])
+            for k, f in enumerate(frames)}
 
 
 def frame_disagrees(angle_rad: float, distance_m: float, angle_limit_rad: float = FRAME_ANGLE_RAD) -> bool:
@@ -327,7 +348,8 @@ def rig_verdict(result) -> Verdict:
         aside += [fit.name for fit in own.refinement.frames if fit.dropped] if own is not None and \
             own.refinement is not None else []
         concerns += _scale(f"T_{c}_{lid}: ", T, kept)
-        concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept), aside, {f.name: angle_limit(f) for f in kept})
+        concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept, result.returns_without_terms(c, lid, kept)),
+                            aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), check in result.intrinsics_checks.items():
         concerns += _intrinsics(f"T_{c}_{lid}: ", f"{c}'s", check)
     for c in result.rig.cameras if not result.solution.intrinsics else ():

@@ -3,7 +3,8 @@ of every 3D result (:func:`intrinsics_drop`) whether the boards' planes disagree
 
 With ``--refine-intrinsics`` the intrinsics ``[fx, fy, cx, cy, dist...]`` are variables of the engine's joint graph
 (``rig_graph``, under ``camera.param_std`` from dataset.yaml as a prior where given); the check here frees them in a
-pair's own graph of corners and planes (no range terms or edges) and tests the planes' chi-square drop.
+pair's own graph of corners and planes (with the range terms it chose, no edges) and tests the planes' chi-square
+drop.
 """
 from __future__ import annotations
 
@@ -35,9 +36,17 @@ def _intrinsics_graph(frames: list[FrameMeasurement], board, camera: CameraModel
     dropped = {f.name for f in ref.frames if f.dropped}
     used = [f for f in frames if f.usable and f.name not in dropped and f.name in ref.T_camera_board]
     fits = {f.name: f for f in ref.frames}
-    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options,
+    # The range terms the refinement chose, free in both solves from its values (their priors, those it held at 0
+    # held): without them a LiDAR's range offset or ring errors read as planes the intrinsics could move.
+    fit = ref.range_model
+    labels = fit.labels.select(used) if fit is not None and fit.labels is not None and fit.names else None
+    terms = fit.terms if labels is not None else None
+    prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options, terms, labels,
                         sigma_board=[fits[f.name].corner_noise_px for f in used] if options.corner_noise_px is None
                         else None)
+    if prob.has_beta:
+        prob.beta = np.array(fit.values_m, dtype=float)
+        prob.pinned = tuple(fit.names.index(n) for n in fit.pinned if n in fit.names)
     prob.camera = replace(camera, param_std=prior_sd)  # the prior, where one
     active = list(range(len(used)))
     graph = prob.graph(active, plane_floor_m, robust=False, intrinsics=True)

@@ -586,3 +586,14 @@ def point_residuals(obs: LidarBoardObservation, pi: np.ndarray, terms: RangeTerm
     if terms is not None and beta is not None:
         r = r - regressors(len(P), terms, rings, dark) @ beta
     return r
+
+
+def without_terms(obs: LidarBoardObservation, terms: RangeTerms, beta: np.ndarray, rings: np.ndarray | None = None,
+                  dark: np.ndarray | None = None) -> np.ndarray:
+    """The board's returns with the range terms taken off (``rho - a . beta``): each moved along its beam, so that
+    a board's plane drawn through them is the one the estimate holds it to (a 5 cm range offset would otherwise
+    read as a board 5 cm off the camera's)."""
+    P = np.asarray(obs.points, dtype=float)
+    r = np.linalg.norm(P, axis=1)
+    return P * (1.0 - (regressors(len(P), terms, rings, dark) @ np.asarray(beta, dtype=float))
+                / np.maximum(r, 1e-9))[:, None]
