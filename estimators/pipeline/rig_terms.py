@@ -141,7 +141,7 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
         record.update(requested=range_model, chosen_by=by)
         if range_model == "auto":
             record.setdefault("reason", fit.reason)  # unless its terms could not be formed here
-            record.update(tests=list(fit.tests), test_p=MODEL_TEST_P)
+            record.update(tests=list(fit.tests), test_p=MODEL_TEST_P, left_out=list(fit.left_out))
     for name in pins:
         fit, by = choices[name]
         records[name]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}

@@ -186,6 +186,9 @@ class RangeModelFit:
     confounding: dict | None = None
     # The frames' ring and black-square labels the terms were estimated with.
     labels: FrameLabels | None = None
+    # Under ``auto``, the models whose terms the tests supported but which left the boards' planes more inconsistent
+    # than the offset alone, so the choice fell back past them: structure the estimate does not hold.
+    left_out: tuple[str, ...] = ()
 
     def labels_for(self, frames: list[FrameMeasurement], board=None, T_camera_lidar=None) -> FrameLabels:
         """The labels of ``frames``: the estimate's own where it has them, else placed anew (by geometry when
@@ -211,6 +214,7 @@ class RangeModelFit:
                 "black_squares_from": self.labels_from, "intensity_agreement": self.intensity_agreement,
                 "held_at_prior": [{"term": n, "estimate_mm": 1000 * v}
                                   for n, v in zip(self.pinned, self.pinned_values_m)],
+                "left_out": list(self.left_out),
                 "confounding": self.confounding,
                 "offset_translation_correlation_lidar_xyz": list(self.offset_translation_correlation),
                 "board_terms_consistency": self.term_consistency}

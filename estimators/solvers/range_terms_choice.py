@@ -191,7 +191,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + [base]
     if candidates[0] == "full":
         by_model["full"] = _model_test(fits[base], fits["full"], active, inliers, floor, options)
-    chosen, notes = base, []
+    chosen, notes, left_out = base, [], []
     for model in candidates:
         if model == base:
             break
@@ -200,12 +200,14 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
         if p_rel >= 0.01:
             chosen = model
             break
+        left_out.append(model)
         notes.append(f"the {model} terms left the boards' planes {ratio:.1f}x as inconsistent as the offset alone "
                      f"(p = {p_rel:.1g}): their within-board structure differs from board to board")
     if chosen == "none":
         why = ("no range term is kept: " + "; ".join(notes) + f" (a global offset alone: p = {tests[0]['p_value']:.2g}"
                f", test at {MODEL_TEST_P})")
-        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), left_out=tuple(left_out),
+                                              **record)
     f = fits[chosen]
     why = f"the {chosen} terms are supported (" + "; ".join(
         f"{t['model']} against {t['against']}: p = {t['p_value']:.2g}" for t in tests if t["included"]) + ")"
@@ -213,7 +215,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
         why += "; " + "; ".join(notes) + f"; fell back to {chosen}"
     return f.prob, f.T, f.boards, RangeModelFit(chosen=chosen, reason=why, names=f.prob.terms.names,
                                                 values_m=tuple(f.prob.beta.tolist()), tests=tuple(tests),
-                                                terms=f.prob.terms, **record)
+                                                terms=f.prob.terms, left_out=tuple(left_out), **record)
 
 
 def with_uncertainty(fit: RangeModelFit, prob: PlaneProblem, marginals: gtsam.Marginals) -> RangeModelFit:
