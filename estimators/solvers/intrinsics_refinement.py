@@ -39,8 +39,8 @@ def _intrinsics_graph(frames: list[FrameMeasurement], board, camera: CameraModel
     # The range terms the refinement chose, free in both solves from its values (their priors, those it held at 0
     # held): without them a LiDAR's range offset or ring errors read as planes the intrinsics could move.
     fit = ref.range_model
-    labels = fit.labels.select(used) if fit is not None and fit.labels is not None and fit.names else None
-    terms = fit.terms if labels is not None else None
+    terms = fit.terms if fit is not None and fit.names else None
+    labels = fit.labels_for(used, board, ref.T_camera_lidar) if terms is not None else None
     prob = PlaneProblem(used, board, camera, ref.corner_noise_px, ref.range_noise_m, options, terms, labels,
                         sigma_board=[fits[f.name].corner_noise_px for f in used] if options.corner_noise_px is None
                         else None)

@@ -33,8 +33,8 @@ class _ModelFit:
     dof: int
 
 
-def _gaussian_objective(p: PlaneProblem, graph, result, active: list[int], inliers: list[int], T: np.ndarray,
-                        boards: list, floor: float) -> float:
+def _gaussian_objective(p: PlaneProblem, graph, result, active: list[int], inliers: list[int], boards: list,
+                        floor: float) -> float:
     """:func:`plane_graph.objective` under the Gaussian likelihood over the inlier frames, as the likelihood-ratio
     test needs it. The solve minimised the robust loss, which bends the residuals it reaches (Cauchy's every one,
     Huber's those beyond its threshold); and a board's within-board structure lies in its floor (unbent) under a
@@ -47,7 +47,7 @@ def _gaussian_objective(p: PlaneProblem, graph, result, active: list[int], inlie
         if abs(p.graph(active, floor, robust=False).error(result) - bent) <= 1e-9 * max(1.0, bent):
             return objective(p, graph, result, active, floor)
     state = (p.beta.copy(), p.outline.copy(), dict(p.shifts))
-    plain, solved, _ = p.solve(inliers, T, list(boards), floor, robust=False)
+    plain, solved, _ = p.solve(inliers, result.atPose3(EXTRINSIC).matrix(), list(boards), floor, robust=False)
     cost = objective(p, plain, solved, inliers, floor)
     p.beta, p.outline, p.shifts = state
     return cost
@@ -63,9 +63,8 @@ def _fit_model(prob: PlaneProblem, model: str, labels: FrameLabels, active: list
     b = list(boards)
     graph, result, _ = p.solve(active, T, b, floor)
     p.solved = (graph, result)  # the refinement goes on from this solution
-    T_fit = result.atPose3(EXTRINSIC).matrix()
-    return _ModelFit(model, p, T_fit, b, _gaussian_objective(p, graph, result, active, inliers, T_fit, b, floor),
-                     p.nuisance_rank(inliers))
+    return _ModelFit(model, p, result.atPose3(EXTRINSIC).matrix(), b,
+                     _gaussian_objective(p, graph, result, active, inliers, b, floor), p.nuisance_rank(inliers))
 
 
 def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: list[int], floor: float,
@@ -100,9 +99,8 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
         scale = max(p_l.plane_cost(inliers, T_l, b_l, fl) / cdof, 1.0)
         b_s = list(small.boards)
         graph_s, result_s, _ = p_s.solve(active, small.T, b_s, fl)
-        delta = (_gaussian_objective(p_s, graph_s, result_s, active, inliers, result_s.atPose3(EXTRINSIC).matrix(),
-                                     b_s, fl)
-                 - _gaussian_objective(p_l, graph_l, result_l, active, inliers, T_l, b_l, fl))
+        delta = (_gaussian_objective(p_s, graph_s, result_s, active, inliers, b_s, fl)
+                 - _gaussian_objective(p_l, graph_l, result_l, active, inliers, b_l, fl))
         scatter = p_l.tau
         for p, beta, solved, tau in saved:
             p.beta, p.solved, p.tau = beta, solved, tau
