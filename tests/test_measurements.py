@@ -286,7 +286,7 @@ def test_a_range_offset_keeps_the_boards_edge_returns_and_a_stand_stays_out():
     further off, where the beams spread 3% wider: cut to the board-sized window, 394 of the 2658 returns within
     2 cm of its outline went (its ring ends moved inwards). Grown on the sides whose returns beyond it lie in its
     plane, 20 go (4 without the offset, 32 before), while the post, off the plane, stays out: none of its 387
-    returns without the offset, 9 with it (its returns that the grown board hides)."""
+    returns without the offset, 9 with it (where the window, grown with the board's spread, reaches over it)."""
     from geometry.board import BoardModel
 
     board = BoardModel((9, 7), 0.1, size=(1.0, 0.8))
