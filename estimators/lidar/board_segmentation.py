@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from geometry.board import BoardModel
-from geometry.planes import Plane, fit_plane_pca, on_plane_along_beams, plane_basis, plane_difference
+from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
 
 from ..errors import AmbiguousBoardError, MeasurementError
 from ..measurements import MIN_INCIDENCE_COS, CameraBoardObservation, LidarBoardObservation, observe_lidar_board
@@ -378,55 +378,6 @@ def decide_alone(candidates: list[BoardCandidate], with_camera: bool, params: Se
     return candidates[0].observation
 
 
-# The chosen board's returns are cut to its board-sized window grown by this much (m) on every side...
-RECTANGLE_SLACK_M = 0.015
-# ... and, on a side whose returns beyond that lie in the board's plane, by the growth a range offset of this size
-# (m) gives the board: returns ranged ``delta`` long lie on a plane about ``delta`` further off, where the board's
-# beams spread ``1 + delta / distance`` times as wide. Cut at the slack alone, a simulated HDL-64E ranging 5 cm long
-# lost 2-25 returns a frame at its boards' edges, its ring ends moved inwards, and its edges put the translation
-# along the boards' normals 0.7 standard deviations off on average (12 datasets: NEES 9.2, 5.2 so kept).
-RANGE_OFFSET_ALLOWANCE_M = 0.05
-# A side's returns beyond the slack are the board's when at least this many lie there and their mean distance from
-# the plane along their beams is within 3 of its standard errors: a stand, an upright or a holder's clamp stands
-# centimetres off the board's plane (5-6 cm behind it in the simulator), a board grown by a range offset does not.
-MIN_OVERHANG_POINTS = 3
-
-
-def _window(raw: np.ndarray, placed: np.ndarray, along: np.ndarray, rect: tuple, distance: float,
-            board: BoardModel) -> np.ndarray:
-    """Mask of the returns in the board-sized window ``rect`` grown by ``RECTANGLE_SLACK_M`` on every side, and on
-    a side whose returns beyond that lie in the board's plane as a whole (``MIN_OVERHANG_POINTS``), up to the
-    growth a range offset of ``RANGE_OFFSET_ALLOWANCE_M`` gives at the plane's ``distance``. ``raw``: the returns
-    on the plane's axes; ``placed``: where their beams meet it; ``along``: their distances from it along their
-    beams. A side is judged by the returns placed beyond it (placed, their range noise did not carry them there,
-    so the judgement is not a choice on that noise); a side judged not the board's is cut at either place (a
-    post behind the board, placed along its beams, reaches into the window); a side with nothing placed beyond it
-    keeps the returns whose noise alone carries them across."""
-    theta, lo, size = rect
-    if board.size is None:  # a board of unknown size: its window is the pattern's and a margin's, cut again later
-        return _in_rectangle(raw, rect, RECTANGLE_SLACK_M)
-    grown = RECTANGLE_SLACK_M + RANGE_OFFSET_ALLOWANCE_M * 0.5 * float(np.hypot(*board.extent)) / max(distance, 0.5)
-
-    def beyond(uv: np.ndarray, by: float) -> np.ndarray:  # (4, n): beyond x = 0, x = w, y = 0, y = h by ``by``
-        q = _rotate(uv, theta)
-        return np.array([q[:, 0] < lo[0] - by, q[:, 0] > lo[0] + size[0] + by,
-                         q[:, 1] < lo[1] - by, q[:, 1] > lo[1] + size[1] + by])
-
-    placed_beyond, raw_beyond = beyond(placed, RECTANGLE_SLACK_M), beyond(raw, RECTANGLE_SLACK_M)
-    in_grown = ~np.any(beyond(placed, grown), axis=0)
-    within = in_grown & ~np.any(placed_beyond, axis=0)
-    if within.sum() < 3:
-        return within
-    sigma = 1.4826 * float(np.median(np.abs(along[within] - np.median(along[within]))))
-    out = np.zeros(len(raw), dtype=bool)
-    for k in range(4):
-        m = placed_beyond[k] & in_grown
-        n = int(m.sum())
-        if n and (n < MIN_OVERHANG_POINTS or abs(float(np.mean(along[m]))) > 3.0 * sigma / np.sqrt(n)):
-            out |= placed_beyond[k] | raw_beyond[k]
-    return in_grown & ~out
-
-
 def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: int) -> LidarBoardObservation:
     from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import
     # Gather again every gated point near the chosen piece and its plane (RANSAC's band was centred on a
@@ -438,13 +389,11 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
     if len(Q) >= 3:
         # Cut to the board's rectangle (of unknown size: the pattern's and the margin): the few centimetres of
         # a stand or tripod head just outside the board lie within the noise band of its plane but tilt it (they
-        # sit at one edge, behind it). Each return is placed where its beam meets the plane, so that its range
-        # noise does not carry it across the cut; a side's returns beyond the cut are kept where a range offset
-        # can have put them there (:func:`_window`).
+        # sit at one edge, behind it).
         origin, basis = Q.mean(0), plane_basis(plane.normal)
-        placed = (on_plane_along_beams(Q, plane) if board.size is not None else Q) - origin
-        rect = _board_rectangle(placed @ basis, *board.judged_extent)
-        inside = _window((Q - origin) @ basis, placed @ basis, along_beams(Q, plane), rect, plane.distance, board)
+        uv = (Q - origin) @ basis
+        rect = _board_rectangle(uv, *board.judged_extent)
+        inside = _in_rectangle(uv, rect, 0.015)
         if inside.sum() >= 3:
             plane, keep = robust_plane_fit(Q[inside])
             Q = Q[inside][keep]
@@ -453,11 +402,7 @@ def _finish(points: np.ndarray, P: np.ndarray, board: BoardModel, n_candidates: 
             # that agree with each fit's own error. On simulated VLP-16 boards at 3 cm noise that made planes
             # up to 1.8x as far off as all the board's returns give, a range noise 7% low, and planes that
             # disagreed beyond it (errors 1.3x the Cramer-Rao bound over 40 layouts; now 1.0-1.06).
-            near = np.abs(plane.signed_distances(P)) < 0.3
-            G = P[near]
-            R = G[_window((G - origin) @ basis, ((on_plane_along_beams(G, plane) if board.size is not None else G)
-                                                 - origin) @ basis, along_beams(G, plane), rect, plane.distance,
-                          board)]
+            R = P[_in_rectangle((P - origin) @ basis, rect, 0.015) & (np.abs(plane.signed_distances(P)) < 0.3)]
             band = noise_band(R, plane)
             if band.sum() >= len(Q):  # (never fewer points than the trims left)
                 Q = R[band]
