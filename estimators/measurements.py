@@ -78,6 +78,9 @@ class LidarBoardObservation:
     # model's per-ring and reflectivity terms use them (``solvers.range_model``).
     rings: np.ndarray | None = None
     intensity: np.ndarray | None = None
+    # Per point, where the sweep was at hand: its ring's first or last return on the board whose ring goes on in
+    # the board's plane beyond it (``board_edges.open_ends``): no edge there.
+    open_ends: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:

@@ -46,6 +46,24 @@ def test_saved_measurements_solve_to_the_same_extrinsic(which, request, tmp_path
     np.testing.assert_allclose(b.T_camera_lidar, a.T_camera_lidar, atol=1e-10)
     np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-14)
     assert b.measurements_source.endswith("measurements.npz")
+    for f, g in zip(m.frames, back.frames):
+        if f.usable:
+            for k in ("rings", "open_ends"):
+                a_k, b_k = getattr(f.lidar, k), getattr(g.lidar, k)
+                assert (a_k is None and b_k is None) or np.array_equal(a_k, b_k)
+
+
+def test_a_per_point_array_of_another_length_is_a_damaged_measurements_file(sim_vlp16, tmp_path):
+    from estimators.errors import DatasetError
+
+    m = measure(sim_vlp16, np.random.default_rng(0))
+    save_measurements(tmp_path, m)
+    arrays = dict(np.load(tmp_path / "measurements.npz"))
+    k = next(k for k in arrays if k.endswith("_lidar_open_ends"))
+    arrays[k] = arrays[k][:-1]
+    np.savez(tmp_path / "measurements.npz", **arrays)
+    with pytest.raises(DatasetError, match="open_ends is not one value per point"):
+        load_measurements(tmp_path / "measurements.npz")
 
 
 def test_cache_is_used_for_the_same_files_and_options_and_not_after_a_file_changed(sim_vlp16, tmp_path, cache):

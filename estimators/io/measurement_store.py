@@ -273,6 +273,8 @@ def save_measurements(out_dir: str | Path, m: Measurements) -> Path:
                 arrays[p + "rings"] = np.asarray(o.rings)
             if o.intensity is not None:
                 arrays[p + "intensity"] = np.asarray(o.intensity, dtype=float)
+            if o.open_ends is not None:
+                arrays[p + "open_ends"] = np.asarray(o.open_ends, dtype=bool)
             d["lidar"] = {"scan_line": o.is_scan_line, "candidates": o.candidates}
         if f.decision is not None:
             dd = f.decision
@@ -347,6 +349,18 @@ def _finite(a: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
+def _per_point(arrays: dict, p: str, name: str, n: int, kinds: str) -> np.ndarray | None:
+    """The optional per-point array ``p + name`` (None when absent): ``n`` finite values of a dtype kind in
+    ``kinds``."""
+    a = arrays.get(p + name)
+    if a is None:
+        return None
+    a = np.asarray(a)
+    if a.shape != (n,) or a.dtype.kind not in kinds or (a.dtype.kind == "f" and not np.all(np.isfinite(a))):
+        raise ValueError(f"array {p}{name} is not one value per point ({n})")
+    return a
+
+
 def _corner_ids(arrays: dict, p: str, n_corners: int, board: BoardModel) -> np.ndarray | None:
     ids = arrays.get(p + "corner_ids")
     if ids is None:
@@ -402,7 +416,8 @@ def _frame(k: int, d: dict, arrays: dict, board: BoardModel) -> FrameMeasurement
         points = _finite(arrays[p + "points"], p + "points").astype(float)
         observe = observe_lidar_line if d["lidar"]["scan_line"] else observe_lidar_board
         lid = observe(points, int(d["lidar"]["candidates"]))
-        lid = replace(lid, rings=arrays.get(p + "rings"), intensity=arrays.get(p + "intensity"))
+        lid = replace(lid, **{k: _per_point(arrays, p, k, len(points), kinds)
+                              for k, kinds in (("rings", "iu"), ("intensity", "fiu"), ("open_ends", "b"))})
     if "decision" in d:
         dd = d["decision"]
         pts = tuple(arrays[f"f{k}_decision_points_{j}"] for j in range(int(dd["candidate_points"])))

@@ -37,14 +37,15 @@ from ..lidar.scan_segmentation import ScanSegmentationParams, scan_candidates
 from ..lidar.static_scene import StaticScene, StaticSceneParams, build_static_scene
 from ..measurements import BoardDecision, FrameMeasurement, count_reasons, observe_lidar_board, observe_lidar_line
 from ..solvers.association import Association, AssociationParams, associate, associate_lines, inside_outline
+from ..solvers.board_edges import open_ends
 from ..solvers.closed_form import solve_closed_form
 from ..solvers.noise_levels import pooled_range_noise_m
 
 # Part of the measurement cache's key: raised when what a measurement holds changes within a version, so that no
 # cache entry from before is taken for a new one (2: the tilts of boards ambiguous in their orientation; 4: a scan
 # line cut to the board's outline by the extrinsic's uncertainty too; 5: a ring field that does not index beams set
-# aside; 6: sweeps without one measured along beams found from their elevations).
-MEASUREMENT_REVISION = 6
+# aside; 6: sweeps without one measured along beams found from their elevations; 7: ring ends that are no edges).
+MEASUREMENT_REVISION = 7
 
 
 @dataclass(frozen=True, eq=False)
@@ -674,7 +675,8 @@ def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
     """The frame with its board points' ring and intensity looked up in the sweep they came from (exact
-    coordinates), for the range model's per-ring and reflectivity terms."""
+    coordinates), for the range model's per-ring and reflectivity terms, and the ring ends that are no edges
+    (:func:`_open_ends`)."""
     if not frame.usable or (sweep.ring is None and sweep.intensity is None):
         return frame
     idx, found = _in_sweep(frame.lidar.points, sweep.points)
@@ -682,7 +684,25 @@ def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
         return frame
     lidar = replace(frame.lidar, rings=None if sweep.ring is None else sweep.ring[idx],
                     intensity=None if sweep.intensity is None else sweep.intensity[idx])
+    if lidar.rings is not None and not lidar.is_scan_line:
+        lidar = replace(lidar, open_ends=_open_ends(lidar, idx, sweep))
     return replace(frame, lidar=lidar)
+
+
+def _open_ends(obs, idx: np.ndarray, sweep) -> np.ndarray:
+    """Per board return (``obs``, at ``idx`` in ``sweep``): its ring's first or last on the board, with the ring's
+    next firing beyond it in the board's plane band (``board_segmentation.noise_band``) yet not taken
+    (``board_edges.open_ends``). The board's window is cut on the returns' positions, 1.5 cm beyond a board-sized
+    rectangle: a range offset lays the returns on a plane further off, where the beams spread wider than the board,
+    and the window cut the outermost (2-25 a frame on simulated HDL-64E boards 5 cm long in range), so that their
+    rings seemed to end a step inside the edge (translation along the boards' normals biased, 0.7 of its sd). A
+    hand or a wall in the board's plane goes on from it the same way."""
+    rest = np.ones(len(sweep.points), dtype=bool)
+    rest[idx] = False
+    rest &= np.isin(sweep.ring, np.unique(obs.rings))
+    at = np.flatnonzero(rest)
+    at = at[noise_band(sweep.points[at], obs.plane, obs.points)]
+    return open_ends(obs.points, obs.rings, sweep.points[at], sweep.ring[at])
 
 
 CONSENSUS_FAILED = "the frames' joint choice of their boards failed: no extrinsic that enough frames'"

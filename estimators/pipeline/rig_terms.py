@@ -180,7 +180,8 @@ def banded(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_frames: dic
                 o = obs[st]
                 kept = observe_lidar_board(o.points[keep], o.candidates)
                 cut[st] = (replace(kept, rings=None if o.rings is None else o.rings[keep],
-                                   intensity=None if o.intensity is None else o.intensity[keep]), keep)
+                                   intensity=None if o.intensity is None else o.intensity[keep],
+                                   open_ends=None if o.open_ends is None else o.open_ends[keep]), keep)
         if cut:
             out[lv.name] = cut
     return out

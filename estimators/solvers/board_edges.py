@@ -105,26 +105,54 @@ def _unwrapped(phi: np.ndarray) -> np.ndarray:
     return centre + np.angle(np.exp(1j * (phi - centre)))
 
 
-def ring_ends(points: np.ndarray, rings: np.ndarray) -> list[tuple[int, np.ndarray, float]]:
-    """Each ring's two ends on the board, as ``(ring, mid-beam, step)``: the unit beam half an azimuth step
-    beyond the ring's last return at each end (the step: the median spacing of the ring's returns)."""
-    out = []
+def _ring_extremes(points: np.ndarray, rings: np.ndarray):
+    """Per ring with ``MIN_RING_POINTS`` returns and a positive step: ``(ring, its returns' indices, their unwrapped
+    azimuths, step, [(index of its first return, -1), (of its last, +1)])`` (step: the median azimuth spacing)."""
     for r in np.unique(rings):
-        P = points[rings == r]
-        if len(P) < MIN_RING_POINTS:
+        at = np.flatnonzero(rings == r)
+        if len(at) < MIN_RING_POINTS:
             continue
-        phi = _unwrapped(_azimuth(P))
+        phi = _unwrapped(_azimuth(points[at]))
         order = np.argsort(phi)
-        steps = np.diff(phi[order])
-        step = float(np.median(steps))
-        if not step > 0:
+        step = float(np.median(np.diff(phi[order])))
+        if step > 0:
+            yield int(r), at, phi, step, ((order[0], -1.0), (order[-1], 1.0))
+
+
+def open_ends(points: np.ndarray, rings: np.ndarray, others: np.ndarray, other_rings: np.ndarray) -> np.ndarray:
+    """Per point of a board (``points``, ``rings``): whether it is its ring's first or last return and the ring's
+    next firing beyond it (half to one and a half azimuth steps on) returned among ``others`` (their rings
+    ``other_rings``): the sweep's returns in the board's plane band that were not taken as the board's. Such a ring
+    goes on in the board's plane: its end is where a cut was made (the board's window, where a range offset spreads
+    the returns wider than the board; a trim), or a hand or a wall in the plane goes on from the board, not where
+    the beams leave the board. :func:`ring_ends` leaves these out."""
+    out = np.zeros(len(points), dtype=bool)
+    for r, at, phi, step, extremes in _ring_extremes(points, rings):
+        theirs = others[other_rings == r]
+        if not len(theirs):
             continue
-        for k, sign in ((order[0], -1.0), (order[-1], 1.0)):
-            p = P[k]
+        centre = float(np.median(phi))
+        beyond = centre + np.angle(np.exp(1j * (_azimuth(theirs) - centre)))
+        for k, sign in extremes:
+            gap = sign * (beyond - phi[k]) / step
+            out[at[k]] = bool(np.any((gap > 0.5) & (gap < 1.5)))
+    return out
+
+
+def ring_ends(points: np.ndarray, rings: np.ndarray, open_at: np.ndarray | None = None
+              ) -> list[tuple[int, np.ndarray, float]]:
+    """Each ring's two ends on the board, as ``(ring, mid-beam, step)``: the unit beam half an azimuth step
+    beyond the ring's last return at each end (the step: the median spacing of the ring's returns). Ends at a
+    return that ``open_at`` marks (:func:`open_ends`) are left out: the ring goes on in the board's plane there."""
+    out = []
+    for r, at, phi, step, extremes in _ring_extremes(points, rings):
+        for k, sign in extremes:
+            if open_at is not None and open_at[at[k]]:
+                continue
+            p = points[at[k]]
             el = np.arctan2(p[2], np.hypot(p[0], p[1]))
             a = phi[k] + sign * 0.5 * step
-            out.append((int(r), np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]),
-                        sign * step))
+            out.append((r, np.array([np.cos(el) * np.cos(a), np.cos(el) * np.sin(a), np.sin(el)]), sign * step))
     return out
 
 

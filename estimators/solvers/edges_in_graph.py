@@ -56,7 +56,7 @@ def _rings_and_noise_of(observations: list, noise_from: list[int] | None) -> tup
              for o, r in zip(observations, frame_rings(observations))]
     picked = range(len(observations)) if noise_from is None else noise_from
     noise = end_noise([(observations[i].points, rings[i]) for i in picked if rings[i] is not None])
-    ends = [None if r is None else ring_ends(o.points, r) for o, r in zip(observations, rings)]
+    ends = [None if r is None else ring_ends(o.points, r, o.open_ends) for o, r in zip(observations, rings)]
     return rings, noise, ends
 
 
