@@ -453,3 +453,18 @@ def test_a_rig_calibration_s_covariance_is_read_for_the_pair_either_way_round(tm
         assert np.allclose(got, J @ C @ J.T, rtol=1e-5, atol=1e-12)
     (tmp_path / "plain.json").write_text(json.dumps({"T_camera_lidar": T.tolist()}))
     assert given_covariance(str(tmp_path / "plain.json")) is None
+
+
+def test_contours_that_leave_a_direction_free_are_refused_not_given_a_covariance():
+    """Contour returns along one vertical image edge only, all at one depth: nothing fixes the extrinsic along that
+    edge (its information singular, to rounding); inverted, such an information gave a covariance with negative
+    variances (12 returns of a recorded Ouster scene). It is refused as degenerate."""
+    from estimators.errors import DegenerateLayoutError
+    from estimators.solvers.scene_alignment import align_scene
+
+    img = np.full((480, 640), 100, np.uint8)
+    img[:, 300:] = 180
+    uvz = np.array([[290.0, v, 5.0] for v in (40.0, 120.0, 200.0, 280.0, 360.0, 440.0)])
+    views = [SceneView(name, _points_at(uvz), frame_edges(img, T_CL, CAMERA), 40.0) for name in ("a", "b")]
+    with pytest.raises(DegenerateLayoutError, match="free"):
+        align_scene(views, CAMERA, T_CL)
