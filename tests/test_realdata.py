@@ -145,7 +145,7 @@ def test_recorded_sets_run_the_whole_pipeline_with_posterior_and_report(which, v
     assert (tmp_path / "corner_cam0_lidar0.png").is_file() and (tmp_path / "board_choice_lidar0_0000.png").is_file()
     assert "Which LiDAR points" in report.read_text()
     # Its verdict opens the report and calibration.json, never UNTRUSTED: a CHECK whose reasons say what to look
-    # at. The VLP-16's planes and edges conflict (0.24 deg and 9 mm apart, p = 0.006, its outlines on the camera's
+    # at. The VLP-16's planes and edges conflict (0.22 deg and 9 mm apart, p = 0.003, its outlines on the camera's
     # boards), the covariance holding both answers; the Ouster's agree, and its frame 0004 leaves the camera's
     # board by 69 mm; neither set's planes disagree in a way the intrinsics explain
     assert saved["verdict"]["level"] == "CHECK", saved["verdict"]

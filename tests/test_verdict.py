@@ -226,16 +226,14 @@ def test_a_held_range_term_and_a_shifted_outline_are_checks(good):
 
 
 def test_edges_that_carry_the_answer_and_were_moved_are_left_out_for_the_planes_answer(tmp_path, monkeypatch):
-    """Small boards held up by a person, facing a VLP-16 (bench_handheld's dataset 8004): the planes alone leave the
-    rotation about the LiDAR's x 18 times less certain than the edges make it, and the person's hands at the
-    boards' sides move the ring ends (a side 50 mm longer by its ends). With the edges the estimate was 5 degrees
-    off with a standard deviation of 0.3 (the truth at d2 326) and read OK, while the boards' returns were cut 5 cm
-    outside the camera's outline under a consensus unsure along the boards (real board went, hands stayed); cut by
-    that uncertainty, the hands go into the sides' growth and the edges' answer is 0.03 degrees off (d2 2.9), and
-    still reads CHECK, resting on ends that something moved. By default the edges are left out and the planes'
-    answer given (the truth at d2 7.7), reading CHECK and saying why; the edges' answer stays in the record. A single pair and the rig of the same folder alike (within 1e-2 of the pair's standard deviations;
-    measured 3.5e-3, the optimisers' stopping along a direction 18 times weaker than the edges left it).
-    With --edges they are kept and the answer reads CHECK, naming the edges; with --no-edges it reads OK."""
+    """Small boards held up by a person, facing a VLP-16 (bench_handheld's dataset 8008): the planes alone leave the
+    translation 24 times less certain than the edges make it, and the person's hands at the boards' sides move the
+    ring ends (a side 59 mm longer by its ends). Kept, the edges' answer is 181 mm from the planes' (the truth at d2
+    64) and reads UNTRUSTED, their disagreement beyond any good calibration's. By default the edges are left out and
+    the planes' answer given (the truth at d2 5.9), reading CHECK and saying why; the edges' answer stays in the
+    record. A single pair and the rig of the same folder alike (within 1e-2 of the pair's standard deviations).
+    With --no-edges it reads OK. (Dataset 8004 was this test's until the ring ends that go on in the board's plane
+    were left out: its hands lay in the board's plane, and its edges now hold the truth, 0.36 degree off, OK.)"""
     from estimators.calibration import calibrate_pair
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
@@ -243,7 +241,7 @@ def test_edges_that_carry_the_answer_and_were_moved_are_left_out_for_the_planes_
     from estimators.solvers.refinement_options import RefinementOptions
     from geometry.rotations import T_inverse, T_log
 
-    rng = np.random.default_rng(8004)
+    rng = np.random.default_rng(8008)
     rig = handheld_rig(rng)
     poses = sample_layout(rig, "handheld", 8, rng)
     path = write_dataset(tmp_path / "handheld", rig, simulate_frames(rig, 8, rng, poses=poses, scene="office"))
@@ -255,21 +253,21 @@ def test_edges_that_carry_the_answer_and_were_moved_are_left_out_for_the_planes_
 
     res = {}
     for edges in (None, True, False):
-        res[edges] = calibrate_pair(path, rng=np.random.default_rng(8004), posterior=None, cache=True,
+        res[edges] = calibrate_pair(path, rng=np.random.default_rng(8008), posterior=None, cache=True,
                                options=RefinementOptions(edges=edges))
     default, kept, planes = res[None], res[True], res[False]
-    assert d2(kept.T_camera_lidar, kept.covariance) < 22.5
-    assert kept.verdict.level == CHECK and "rests on the boards' edges" in kept.verdict.line, kept.verdict.line
+    assert d2(kept.T_camera_lidar, kept.covariance) > 22.5
+    assert kept.verdict.level == UNTRUSTED and "disagree beyond their noise" in kept.verdict.line, kept.verdict.line
     assert d2(planes.T_camera_lidar, planes.covariance) < 22.5 and planes.verdict.level == OK, planes.verdict.line
     record = default.refinement.edges
-    assert not record["used"] and "50 mm longer" in record["left_out"]
+    assert not record["used"] and "59 mm longer" in record["left_out"]
     np.testing.assert_allclose(record["with_edges"]["T_camera_lidar"], kept.T_camera_lidar, atol=1e-9)
     np.testing.assert_allclose(default.T_camera_lidar, planes.T_camera_lidar, atol=1e-9)
     assert d2(default.T_camera_lidar, default.covariance) < 22.5
     assert default.verdict.level == CHECK and "edges were left out" in default.verdict.line, default.verdict.line
     assert any(w.startswith("board edges left out") for w in default.warnings)
     # the rig of the same folder leaves them out too, and lands on the pair's answer
-    joint = calibrate_rig(load_rig(path), np.random.default_rng(8004), advise=False, cache=True)
+    joint = calibrate_rig(load_rig(path), np.random.default_rng(8008), advise=False, cache=True)
     p = joint.pair("cam0", "lidar0")
     sd = np.sqrt(np.diag(default.covariance))
     assert np.all(np.abs(T_log(np.linalg.inv(default.T_camera_lidar) @ p.T)) < 1e-2 * sd)
