@@ -697,11 +697,14 @@ def _open_ends(obs, idx: np.ndarray, sweep) -> np.ndarray:
     and the window cut the outermost (2-25 a frame on simulated HDL-64E boards 5 cm long in range), so that their
     rings seemed to end a step inside the edge (translation along the boards' normals biased, 0.7 of its sd). A
     hand or a wall in the board's plane goes on from it the same way."""
-    rest = np.ones(len(sweep.points), dtype=bool)
-    rest[idx] = False
-    rest &= np.isin(sweep.ring, np.unique(obs.rings))
-    at = np.flatnonzero(rest)
-    at = at[noise_band(sweep.points[at], obs.plane, obs.points)]
+    # Only returns near the board can be its rings' next firings (1.5 azimuth steps of under 0.02 rad at its range):
+    # a box grown by 0.05 rad of its farthest range, which spares testing the whole sweep (12 ms a 64-beam frame).
+    grow = 0.05 * float(np.max(np.linalg.norm(obs.points, axis=1))) + 0.1
+    lo, hi = obs.points.min(axis=0) - grow, obs.points.max(axis=0) + grow
+    near = np.flatnonzero((sweep.points[:, 0] >= lo[0]) & (sweep.points[:, 0] <= hi[0]))
+    near = near[np.all((sweep.points[near] >= lo) & (sweep.points[near] <= hi), axis=1)]
+    near = near[np.isin(sweep.ring[near], np.unique(obs.rings)) & ~np.isin(near, idx)]
+    at = near[noise_band(sweep.points[near], obs.plane, obs.points)]
     return open_ends(obs.points, obs.rings, sweep.points[at], sweep.ring[at])
 
 
