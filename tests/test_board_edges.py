@@ -569,8 +569,8 @@ def test_a_range_offset_leaves_out_the_ring_ends_the_boards_window_cut(tmp_path)
     from geometry.planes import cut_with_board
 
     path = simulate_dataset(tmp_path / "d", n_poses=5, seed=52, lidar="hdl64e", range_bias=(0.05, 0.0, 0.0))
-    truth = np.array(__import__("json").loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
     ds = load_dataset(path)
+    truth = ds.ground_truth()
     _, frames, _ = measure_frames(ds, np.random.default_rng(0))
     w, h = ds.board.extent
     offsets = {True: [], False: []}

@@ -661,9 +661,7 @@ def _without_damaged_scans(cams: list[tuple], scans: list) -> tuple[list[tuple],
 def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each of ``points`` (taken from ``sweep``, exact coordinates) as its index in the sweep, and which were found.
     Only the sweep's points in their bounding box can match: a tree over those, not the sweep."""
-    lo, hi = points.min(axis=0) - 1e-6, points.max(axis=0) + 1e-6
-    near = np.flatnonzero((sweep[:, 0] >= lo[0]) & (sweep[:, 0] <= hi[0]))  # x first: one column of the sweep
-    near = near[np.all((sweep[near] >= lo) & (sweep[near] <= hi), axis=1)]
+    near = _near(sweep, points, 1e-6)
     if len(near) == 0:
         return np.zeros(len(points), dtype=np.int64), np.zeros(len(points), dtype=bool)
     from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3 s to import, unused from the cache
@@ -671,6 +669,13 @@ def _in_sweep(points: np.ndarray, sweep: np.ndarray) -> tuple[np.ndarray, np.nda
     dist, found = cKDTree(sweep[near]).query(points, distance_upper_bound=1e-6)
     ok = np.isfinite(dist)
     return near[np.where(ok, found, 0)], ok
+
+
+def _near(sweep: np.ndarray, points: np.ndarray, grow: float) -> np.ndarray:
+    """The indices of the sweep's points in ``points``' bounding box grown by ``grow`` (m)."""
+    lo, hi = points.min(axis=0) - grow, points.max(axis=0) + grow
+    near = np.flatnonzero((sweep[:, 0] >= lo[0]) & (sweep[:, 0] <= hi[0]))  # x first: one column of the sweep
+    return near[np.all((sweep[near] >= lo) & (sweep[near] <= hi), axis=1)]
 
 
 def _with_beam_fields(frame: FrameMeasurement, sweep) -> FrameMeasurement:
@@ -699,10 +704,7 @@ def _open_ends(obs, idx: np.ndarray, sweep) -> np.ndarray:
     hand or a wall in the board's plane goes on from it the same way."""
     # Only returns near the board can be its rings' next firings (1.5 azimuth steps of under 0.02 rad at its range):
     # a box grown by 0.05 rad of its farthest range, which spares testing the whole sweep (12 ms a 64-beam frame).
-    grow = 0.05 * float(np.max(np.linalg.norm(obs.points, axis=1))) + 0.1
-    lo, hi = obs.points.min(axis=0) - grow, obs.points.max(axis=0) + grow
-    near = np.flatnonzero((sweep.points[:, 0] >= lo[0]) & (sweep.points[:, 0] <= hi[0]))
-    near = near[np.all((sweep.points[near] >= lo) & (sweep.points[near] <= hi), axis=1)]
+    near = _near(sweep.points, obs.points, 0.05 * float(np.max(np.linalg.norm(obs.points, axis=1))) + 0.1)
     near = near[np.isin(sweep.ring[near], np.unique(obs.rings)) & ~np.isin(near, idx)]
     at = near[noise_band(sweep.points[near], obs.plane, obs.points)]
     return open_ends(obs.points, obs.rings, sweep.points[at], sweep.ring[at])

@@ -99,9 +99,9 @@ def _azimuth(points: np.ndarray) -> np.ndarray:
     return np.arctan2(points[:, 1], points[:, 0])
 
 
-def _unwrapped(phi: np.ndarray) -> np.ndarray:
-    """Azimuths unwrapped about their median (one board never spans half a turn)."""
-    centre = float(np.median(phi))
+def _unwrapped(phi: np.ndarray, centre: float | None = None) -> np.ndarray:
+    """Azimuths unwrapped about ``centre`` (default: their median; one board never spans half a turn)."""
+    centre = float(np.median(phi)) if centre is None else centre
     return centre + np.angle(np.exp(1j * (phi - centre)))
 
 
@@ -131,8 +131,7 @@ def open_ends(points: np.ndarray, rings: np.ndarray, others: np.ndarray, other_r
         theirs = others[other_rings == r]
         if not len(theirs):
             continue
-        centre = float(np.median(phi))
-        beyond = centre + np.angle(np.exp(1j * (_azimuth(theirs) - centre)))
+        beyond = _unwrapped(_azimuth(theirs), float(np.median(phi)))
         for k, sign in extremes:
             gap = sign * (beyond - phi[k]) / step
             out[at[k]] = bool(np.any((gap > 0.5) & (gap < 1.5)))
