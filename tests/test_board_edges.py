@@ -457,7 +457,40 @@ def test_planes_and_edges_that_conflict_are_both_held_by_the_covariance():
     assert test["p_value"] < 0.01 and ref.conflict_covariance is not None
     xi = T_log(T_inverse(ref.T_camera_lidar) @ np.asarray(test["planes_only_T_camera_lidar"]))
     assert float(xi @ np.linalg.solve(ref.covariance, xi)) <= 1.0 + 1e-6
+    own = np.asarray(test["edges_own_offset_tangent"])
+    assert float(own @ np.linalg.solve(ref.covariance, own)) <= 1.0 + 1e-6
+    # here the planes are the biased witness: the truth, 30 mm off, lay at d2 566 with the planes' answer alone held
+    # and lies at 46 with the edges' own too (seeds 101 and 102 of this layout's kind: 931 -> 6, 1035 -> 14)
+    truth = T_log(T_inverse(ref.T_camera_lidar) @ layout.T_camera_lidar)
+    planes_only_held = ref.covariance - np.outer(own, own)
+    assert float(truth @ np.linalg.solve(ref.covariance, truth)) < \
+        0.1 * float(truth @ np.linalg.solve(planes_only_held, truth))
     assert result.verdict.level == "CHECK" and "the covariance holds both answers" in result.verdict.line
+
+
+def test_the_edges_own_answer_is_read_from_the_two_informations():
+    """Two Gaussian witnesses of a 6-vector (information ``I_p`` and ``I_e``) combined: from the planes' answer,
+    the combined one and the two covariances, ``edges_own_offset`` gives where the edges' own answer lies from the
+    combined one, its part beyond the noise (all of it, 40 standard deviations off), and nothing along directions
+    the edges do not see or where the two agree within their noise."""
+    from estimators.solvers.edges_in_graph import edges_own_offset
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(6, 6))
+    I_p = A @ A.T + 6 * np.eye(6)
+    B = rng.normal(size=(6, 3))
+    I_e = B @ B.T  # the edges see three directions
+    x_p = np.zeros(6)
+    x_e = np.linalg.pinv(I_e) @ (B @ rng.normal(size=3))  # an answer where the edges see
+    d2 = x_e @ np.linalg.solve(np.linalg.inv(I_p) + np.linalg.pinv(I_e), x_e)
+    x_e *= 40.0 / np.sqrt(d2)
+    x_c = np.linalg.solve(I_p + I_e, I_p @ x_p + I_e @ x_e)
+    own = edges_own_offset(x_c - x_p, np.linalg.inv(I_p), np.linalg.inv(I_p + I_e))
+    # along what the edges see, the edges' answer less its noise's share (a few per cent, 40 sd off)
+    gap = I_e @ (x_e - x_c)
+    assert np.linalg.norm(I_e @ own - gap) < 0.03 * np.linalg.norm(gap)
+    close = x_c - x_p
+    assert not np.any(edges_own_offset(1e-3 * close, np.linalg.inv(I_p), np.linalg.inv(I_p + I_e)))
 
 
 def test_a_3d_lidars_range_terms_are_chosen_on_its_planes_as_without_the_edges():

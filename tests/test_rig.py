@@ -440,17 +440,21 @@ def offset_rig(tmp_path_factory):
 
 
 def test_a_lidars_range_offset_is_found_by_its_test_and_estimated_in_the_rig(offset_rig):
-    # lidar0's returns all 3 cm long. Planes alone put the truth far outside the covariance (d2 above 100); under
-    # auto the likelihood-ratio test includes the offset (p < 0.001) and no other term, its estimate is within 3 sd
-    # of 3 cm, and the camera-LiDAR transform is back: the truth's d2 below 16.8 (99% of chi-square 6) and within
-    # 5 mm. The posterior holds the offset at its estimate: its Hessian at the MAP is the graph's information of the
-    # poses given the offset (within 1%), and the offset's draws, convolved in, agree with the graph's.
+    # lidar0's returns all 3 cm long. Without range terms its planes conflict with its ring ends, whose own answer
+    # holds the truth: the covariance that holds both answers puts it within d2 16.8 (99% of chi-square 6), and
+    # with the planes' answer alone held far outside (d2 above 100). Under auto the likelihood-ratio test includes
+    # the offset (p < 0.001) and no other term, its estimate is within 3 sd of 3 cm, and the camera-LiDAR transform
+    # is back: the truth's d2 below 16.8 and within 5 mm. The posterior holds the offset at its estimate: its
+    # Hessian at the MAP is the graph's information of the poses given the offset (within 1%), and the offset's
+    # draws, convolved in, agree with the graph's.
     rig = load_rig(offset_rig)
     truth = _truth(offset_rig, "cam0", "lidar0")
     plain = calibrate_rig(rig, np.random.default_rng(0), range_model="none", advise=False)
     T, C = plain.solution.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
-    assert xi @ np.linalg.solve(C, xi) > 100 and plain.range_models == {}
+    own = np.asarray(plain.edges["lidar0"]["planes_against_edges"]["edges_own_offset_tangent"])
+    assert plain.range_models == {} and plain.contradicted.startswith("lidar0: ")
+    assert xi @ np.linalg.solve(C, xi) < 16.8 < 100 < xi @ np.linalg.solve(C - np.outer(own, own), xi)
     # The planes alone (the likelihood below is the planes'; the edges enter the posterior as a quadratic).
     res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False)
     rec = res.range_models["lidar0"]
@@ -886,6 +890,8 @@ def test_a_lidars_planes_and_edges_in_conflict_are_held_by_the_rigs_covariance(r
     C = (edged.covariance_joint + share)[6 * k:6 * k + 6, 6 * k:6 * k + 6]
     xi = np.asarray(test["difference_tangent"])
     assert float(xi @ np.linalg.solve(C, xi)) <= 1.0 + 1e-6
+    own = np.asarray(test["edges_own_offset_tangent"])  # the edges' own answer, beyond the estimate: held too
+    assert np.linalg.norm(own) > 0 and float(own @ np.linalg.solve(C, own)) <= 1.0 + 1e-6
     held = replace(rig_result, solution=replace(edged, covariance_joint=edged.covariance_joint + share), edges=records)
     assert held.verdict.level == "CHECK" and held.verdict.reasons[0].startswith("lidar0: the boards' planes and their "
                                                                                 "ring ends"), held.verdict

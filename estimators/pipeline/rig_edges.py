@@ -151,12 +151,19 @@ def planes_against_edges(planes: RigSolution, edged: RigSolution, name: str) -> 
 
 def conflict_share(planes: RigSolution, edged: RigSolution, records: dict) -> np.ndarray | None:
     """Where any LiDAR's planes conflict with its edges (``edges_in_graph.conflict_covariance``), the share of the
-    joint covariance (6N x 6N, ``names`` order) that holds both answers, the planes-only and this one: the outer
-    product of the joint difference of every sensor's pose. None when they agree."""
+    joint covariance (6N x 6N, ``names`` order) that holds both answers, the planes-only and the edges' own: the
+    outer product of the joint difference of every sensor's pose, and in each conflicting LiDAR's block that of
+    its edges' own answer's offset (``edges_in_graph.edges_own_offset``). None when they agree."""
     if not any(conflict_covariance(r) is not None for r in records.values()):
         return None
     delta = np.concatenate([T_log(np.linalg.inv(planes.T_ref[n]) @ edged.T_ref[n]) for n in edged.names])
-    return np.outer(delta, delta)
+    share = np.outer(delta, delta)
+    for name, r in records.items():
+        if conflict_covariance(r) is not None:
+            k = edged.names.index(name)
+            own = np.asarray(r["planes_against_edges"].get("edges_own_offset_tangent", np.zeros(6)), dtype=float)
+            share[6 * k:6 * k + 6, 6 * k:6 * k + 6] += np.outer(own, own)
+    return share
 
 
 def pairs_outline_checks(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, solution: RigSolution,
