@@ -53,6 +53,7 @@ bench: $(STAMP)
 	$(RECORD) range_model_beyond_prior -- $(PY) benchmarks/bench_range_model_scenes.py --beyond-prior 20
 	$(RECORD) range_model_dark_bias -- $(PY) benchmarks/bench_range_model_scenes.py --dark-bias 30
 	$(RECORD) range_model_long_offset -- $(PY) benchmarks/bench_range_model_scenes.py --long-offset 12
+	$(RECORD) weak_offset -- $(PY) benchmarks/bench_weak_offset.py
 	$(RECORD) board_edges -- $(PY) benchmarks/bench_board_edges.py --datasets 300 --posterior 40
 	$(RECORD) principal_point -- $(PY) benchmarks/bench_principal_point.py
 	$(RECORD) edges_recorded -- $(PY) benchmarks/bench_edges_recorded.py
