@@ -588,7 +588,6 @@ def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:
     ``motion.npz``, a rig's from each LiDAR's folder's (``RIG/lidar0/motion.npz``, the first camera's corners:
     ``io.rig_bag_extract``). The result as it was otherwise."""
     from .io.motion_track import FOLLOWED_CAMERA, has_motion
-    from .pipeline.offset_between_poses import offset_between_poses
 
     rig = result.rig
     pair = len(rig.cameras) == 1 and len(rig.lidars) == 1
@@ -597,6 +596,8 @@ def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:
     folders = {n: f for n, f in folders.items() if has_motion(f)}
     if not folders or camera is None:
         return result
+    from .pipeline.offset_between_poses import offset_between_poses  # here: it loads scipy's splines and optimizer
+
     t0 = time.perf_counter()
     offsets = {}
     for name, folder in folders.items():

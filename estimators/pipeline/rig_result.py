@@ -19,7 +19,6 @@ from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
-from .offset_between_poses import time_offsets_keys
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION, frame_dict
 from .rig_measurement import MIN_PAIR_FRAMES
@@ -374,6 +373,8 @@ class RigResult:
             if self.time_offset is not None:
                 pair.update(self.time_offset.to_dict())
         elif self.time_offsets:
+            from .offset_between_poses import time_offsets_keys  # here: it loads the moving board's solvers
+
             pair.update(time_offsets_keys(self.time_offsets))
         if self.scene:
             pair["scene"] = {f"T_{c}_{lid}": w.to_dict() for (c, lid), w in self.scene.items()}

@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from geometry.planes import Plane, fit_plane_pca
 from geometry.rotations import T_inverse, T_retract, transform_points
@@ -275,6 +274,9 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
 
     def f(x):
         return _residuals(T_retract(T0, x[:6]), x[6] if free == 7 else dt0, trajectory, points, times)
+
+    from scipy.optimize import least_squares  # here: scipy.optimize takes 0.1 s to import, and every calibration
+    # imports this module (a still-pose recording's offset), few solve a moving board
 
     x0 = np.r_[np.zeros(6), dt0][:free]
     bounds = (np.r_[[-np.inf] * 6, -offset_prior_s][:free], np.r_[[np.inf] * 6, offset_prior_s][:free])
