@@ -49,14 +49,18 @@ MIN_SCANNER_FRAMES_WITH_ENDS = 2
 INTRINSICS_ROUNDS = 3
 
 
-def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams) -> RefinementOptions:
+def pair_options(options: RefinementOptions, range_model: str, params: SegmentationParams,
+                 edges: bool | None = None) -> RefinementOptions:
     """The options each camera-LiDAR pair is solved alone with first, as a single pair is (its robust loss and
     outlier frames, its range terms chosen before its per-board plane error is estimated, which the joint graph then
     weighs the LiDAR's boards with, and the board search's bound on the sensors' separation): its estimate starts
     the joint graph and is reported beside it. No edges, no checks (by the edges, by the intrinsics) and no intrinsics
-    (the joint graph has its own)."""
+    (the joint graph has its own); its range offset is tested with the ring ends unless ``edges`` (the joint
+    graph's) is False."""
     return replace(options, edges=False, checks=False, range_model=range_model, refine_intrinsics=False,
-                   max_sensor_separation_m=params.max_sensor_separation_m)
+                   max_sensor_separation_m=params.max_sensor_separation_m,
+                   offset_with_ends=options.offset_with_ends is not False and edges is not False
+                   and options.edges is not False)
 
 
 
@@ -376,7 +380,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     if init != "closed-form" and not any(s.lidar == "2d" for s in rig.lidars):
         raise DatasetError(f"init {init!r} is for 2D LiDARs, and this rig has none", path=rig.yaml_path,
                            hint="use --init closed-form")
-    alone = pair_options(options, range_model, params)
+    alone = pair_options(options, range_model, params, edges)
     stages: dict = {}  # the measurement's stage times, summed over its threads (as a single pair's)
     measured = measured_rig(rig, rng, workers, cache, params, hints, stages) if measurements is None else \
         given_measurements(rig, measurements, rng)

@@ -403,7 +403,8 @@ class RigResult:
 def range_model_words(record: dict) -> str:
     """A LiDAR's range model in words (its record: ``rig_terms.ranged_views``, the pair's tests)."""
     tests = list(record.get("tests", ()))
-    said = ", ".join(f"{t['model']} p = {t['p_value']:.2g}" for t in tests)
+    said = ", ".join(f"{t['model']}{' with the ring ends' if t.get('with_ring_ends') else ''} p = {t['p_value']:.2g}"
+                     for t in tests)
     how = f"{record.get('chosen_by', 'its pair')}'s tests at {record['test_p']:g}: {said}" if tests else "requested"
     terms = record.get("terms") or {}
     if not terms:

@@ -129,6 +129,21 @@ class Refinement:
     conflict_covariance: np.ndarray | None = None
 
 
+def _offset_ends(prob: PlaneProblem, frames: list[FrameMeasurement], active: list[int], T: np.ndarray, boards: list,
+                 floor: float, options: RefinementOptions, scan_lines: bool) -> tuple | None:
+    """Under ``auto``, for a 3D LiDAR whose board's size is known (``options.offset_with_ends``): the planes'
+    problem with the ring ends on the board's outline assigned under ``T`` and solved with (their scale and the
+    boards' in-plane scatter estimated, ``edges_in_graph.add_edges``), its estimate and board poses, on which
+    ``choose_range_model`` tests a global offset the planes alone do not support; None otherwise or without
+    ends."""
+    wanted = options.offset_with_ends if options.offset_with_ends is not None else options.edges is not False
+    if options.range_model != "auto" or scan_lines or not prob.board.size_known or not wanted:
+        return None
+    ended = prob.variant(edges=False)
+    T_e, b_e = add_edges(ended, frames, active, T, list(boards), floor)
+    return (ended, T_e, b_e) if ended.edges is not None else None
+
+
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
            options: RefinementOptions = RefinementOptions()) -> Refinement:
     """Refine ``T_camera_lidar`` from the usable frames, starting at ``T_init``."""
@@ -212,7 +227,9 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     labels = None
     if options.range_model != "none":
         labels = frame_labels(frames, board, T, boards)
-        prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
+        ends = _offset_ends(prob, frames, active, T, boards, floor, options, scan_lines)
+        prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
+                                                        ends)
         if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
             # The colours were placed under the extrinsic the model was chosen from, as if it were exact. Placed
             # again under the estimate and blurred by its uncertainty (shares placed sharper than they are known
@@ -222,7 +239,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             except RuntimeError:  # a singular graph is refused below, with its reason
                 placement_cov = None
             labels = frame_labels(frames, board, T, boards, placement_cov)
-            prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels)
+            prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
+                                                            ends)
         agreement = labels.agreement()
         if agreement is not None and agreement < MIN_INTENSITY_AGREEMENT:
             warnings.append(f"range model: the board returns' intensities agree with the black squares the camera's "

@@ -100,6 +100,12 @@ class RefinementOptions:
     # size is known. None: used where it is (the default); True: asked for (a warning where they cannot be used);
     # False: the planes alone.
     edges: bool | None = None
+    # Under ``auto``, a 3D LiDAR's global offset not supported by its planes is tested again with the ring ends on
+    # the board's outline in the graph, where the board's size is known (``range_terms_choice``): on boards facing
+    # the rig the planes alone cannot tell an offset from the translation along their normals. None: where
+    # ``edges`` is not False; True: also where the estimate's own edges are off for a later solve to add them (a
+    # rig's pairwise solves); False: never.
+    offset_with_ends: bool | None = None
     # 2D: a minimal solution or refined minimum whose sensors are farther apart than this (m) is not a solution
     # (``solution_selection.physical``); None: no bound. ``calibrate`` uses its segmentation parameters' bound.
     max_sensor_separation_m: float | None = 1.0
