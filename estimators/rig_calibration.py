@@ -502,7 +502,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
             warnings.extend(f"{name}: {w}" for w in edge_warnings(record))
             if (said := conflict_words(record)) is not None:
                 warnings.append(f"{name}: {said}: the covariance holds both answers (the planes' and the "
-                                "edges' own, each added along its offset); the planes-only pose is in calibration.json (board_edges)")
+                                "edges' own, each added along its offset); the planes-only pose is in "
+                                "calibration.json (board_edges)")
         if not edge_records and edges:
             warnings.append("--edges: no LiDAR's board shows ends on the board's outline (or the graph with them "
                             "could not be solved): planes alone")
