@@ -138,8 +138,7 @@ def _relative_consistency(fit: _ModelFit, base: _ModelFit, active: list[int], in
 
 
 def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                       floor: float, options: RefinementOptions, labels: FrameLabels, ends: tuple | None = None
-                       ) -> tuple:
+                       floor: float, options: RefinementOptions, labels: FrameLabels, ends=None) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
     terms the data support (:func:`_model_test`): a global offset against none, then the per-ring and the
     black-square terms each against the offset (against none, with the offset, when the offset alone is not
@@ -147,8 +146,9 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     planes worse than the offset alone (:func:`_relative_consistency`, at 1%) tries the smaller ones before
     the offset alone. Returns the problem (solved at its estimate), the estimate and the record.
 
-    ``ends``: ``(problem, T, boards)`` with the ring ends on the board's outline in the graph
-    (``refinement._offset_ends``). Where the planes alone do not support the offset, it is tested again there,
+    ``ends``: a callable giving ``(problem, T, boards)`` with the ring ends on the board's outline in the graph,
+    or None (``refinement._offset_ends``; called only where needed). Where the planes alone do not support the
+    offset, it is tested again there,
     and taken when it passes: on boards facing the rig an offset is nearly the translation along their normals,
     which the planes cannot tell apart and the ends can (a VLP-16 ranging 2 cm long on such boards went unfound,
     its answers 14-25 mm off and reading ``OK``: bench_weak_offset). The other blocks are tested on the planes,
@@ -176,8 +176,9 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
         return f.prob, f.T, f.boards, RangeModelFit(chosen=got, reason=why, names=f.prob.terms.names,
                                                     values_m=tuple(f.prob.beta.tolist()), terms=f.prob.terms, **record)
     tests = [_model_test(fits["none"], fits["offset"], active, inliers, floor, options)]
-    if not tests[0]["included"] and ends is not None and "offset" in fits:
-        e_prob, T_e, b_e = ends
+    ended = ends() if ends is not None and not tests[0]["included"] and "offset" in fits else None
+    if ended is not None:
+        e_prob, T_e, b_e = ended
         with_ends = [_fit_model(e_prob, m, labels, active, inliers, T_e, b_e, floor, options)
                      for m in ("none", "offset")]
         tests.append({**_model_test(*with_ends, active, inliers, floor, options), "with_ring_ends": True})
@@ -193,8 +194,8 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
             if tests[-1]["included"]:
                 blocks.append(model)
     if not blocks and base == "none":
-        ended = "".join(f", {t['p_value']:.2g} with the ring ends" for t in tests if t.get("with_ring_ends"))
-        why = (f"no range term is supported by the data (p = {tests[0]['p_value']:.2g}{ended} for a global offset, "
+        also = "".join(f", {t['p_value']:.2g} with the ring ends" for t in tests if t.get("with_ring_ends"))
+        why = (f"no range term is supported by the data (p = {tests[0]['p_value']:.2g}{also} for a global offset, "
                f"test at "
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")

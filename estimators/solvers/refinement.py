@@ -227,7 +227,13 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     labels = None
     if options.range_model != "none":
         labels = frame_labels(frames, board, T, boards)
-        ends = _offset_ends(prob, frames, active, T, boards, floor, options, scan_lines)
+        found: list = []  # the ends' problem, made once and only where the planes pass the offset over
+
+        def ends(planes=prob, T_p=T, b_p=boards):
+            if not found:
+                found.append(_offset_ends(planes, frames, active, T_p, b_p, floor, options, scan_lines))
+            return found[0]
+
         prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
                                                         ends)
         if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
