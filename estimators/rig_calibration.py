@@ -434,6 +434,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     # Refined intrinsics, in rounds as a single pair's: each pair solved again with its boards observed under them
     # gives the LiDAR boards' plane errors the next joint solve weighs them with (errors estimated under wrong
     # intrinsics hold their error, and would weaken the planes that reveal it), until those settle.
+    # The rounds keep the first round's answer on an offset its planes passed over (``RefinementOptions.
+    # offset_with_ends``): tested again with the ends only where the ends took it then, so that it stays.
+    ended = any(t.get("with_ring_ends") and t.get("included") for fit, _ in alone_fit.term_choices.values()
+                for t in fit.tests)
+    rounds = replace(alone, offset_with_ends=alone.offset_with_ends and ended)
     for _ in range(INTRINSICS_ROUNDS if refine_intrinsics else 0):
         if not solution.intrinsics:
             break
@@ -441,7 +446,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         try:
             again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
                                             for (c, d), frames in measured.pairs.items()},
-                                      measured.measured_by, seen, alone, init, options, scanner_ends)
+                                      measured.measured_by, seen, rounds, init, options, scanner_ends)
             settled = again.settled(alone_fit)
             views, joint_again = joint(again)
         except LidarcamError as exc:  # the last round that could be solved stands
