@@ -46,6 +46,7 @@ range terms the data support), ``board_scatter`` (the boards' scatter along thei
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -137,7 +138,7 @@ def _offset_ends(prob: PlaneProblem, frames: list[FrameMeasurement], active: lis
     ``choose_range_model`` tests a global offset the planes alone do not support; None otherwise or without
     ends."""
     wanted = options.offset_with_ends if options.offset_with_ends is not None else options.edges is not False
-    if options.range_model != "auto" or scan_lines or not prob.board.size_known or not wanted:
+    if scan_lines or not prob.board.size_known or not wanted:
         return None
     ended = prob.variant(edges=False)
     T_e, b_e = add_edges(ended, frames, active, T, list(boards), floor)
@@ -227,12 +228,9 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     labels = None
     if options.range_model != "none":
         labels = frame_labels(frames, board, T, boards)
-        found: list = []  # the ends' problem, made once and only where the planes pass the offset over
-
-        def ends(planes=prob, T_p=T, b_p=boards):
-            if not found:
-                found.append(_offset_ends(planes, frames, active, T_p, b_p, floor, options, scan_lines))
-            return found[0]
+        # the ends' problem on the planes' state here, made once and only where the planes pass the offset over
+        ends = functools.cache(functools.partial(_offset_ends, prob, frames, active, T, list(boards), floor, options,
+                                                 scan_lines))
 
         prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
                                                         ends)
