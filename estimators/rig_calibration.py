@@ -31,7 +31,8 @@ from .pipeline.rig_measurement import (MIN_PAIR_FRAMES, align_numbering, camera_
                                        given_measurements, measured_rig, pattern_flip, start_poses)
 from .pipeline.rig_modes import minimum_solver, mixable_minima, mixed_posterior
 from .pipeline.rig_result import NOISE_WARNING_P, RigResult
-from .pipeline.rig_terms import range_record, with_held_share, with_placement_share, with_range_terms
+from .pipeline.rig_terms import (range_record, weak_offset_share, with_held_share, with_placement_share,
+                                  with_range_terms)
 from .solvers import chi_square as chi2
 from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
@@ -518,6 +519,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         solution, placement_share = with_placement_share(
             rig, names, camera_views, lidar_views, lidar_obs, pair_frames, solution, placing, options.range_accuracy_m,
             pins)
+    weak_share = weak_offset_share(names, range_models)  # an offset half supported, not taken
+    if weak_share is not None:
+        solution = replace(solution, covariance_joint=solution.covariance_joint + weak_share)
     for lv in lidar_views:
         if lv.has_terms:
             range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
@@ -548,7 +552,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         if refine_intrinsics and solution.intrinsics:
             sampled, views, intrinsics_share = _at_refined_intrinsics(names, rig.reference, camera_views, lidar_views,
                                                                       solution, (pinned_share, conflict,
-                                                                                 placement_share))
+                                                                                 placement_share, weak_share))
         try:
             posterior = mixed_posterior(
                 sampled, mixable_minima(alone_fit.minima, lidar_obs, pair_frames),
@@ -559,9 +563,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                                                              ensemble=sampler == "ensemble"), rng, warnings)
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
-        # The held terms' prior, the planes' conflict with the edges, the black squares' placement and the refined
-        # intrinsics' uncertainty, convolved in (first order, Gaussian).
-        for share in (s for s in (pinned_share, conflict, placement_share, intrinsics_share)
+        # The held terms' prior, the planes' conflict with the edges, the black squares' placement, an offset half
+        # supported and the refined intrinsics' uncertainty, convolved in (first order, Gaussian).
+        for share in (s for s in (pinned_share, conflict, placement_share, weak_share, intrinsics_share)
                       if s is not None and posterior is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(share)), share, len(posterior.xi), method="eigh"))

@@ -141,7 +141,8 @@ def with_range_terms(rig: RigDataset, lidar_views: list, lidar_obs: dict, pair_f
         record.update(requested=range_model, chosen_by=by)
         if range_model == "auto":
             record.setdefault("reason", fit.reason)  # unless its terms could not be formed here
-            record.update(tests=list(fit.tests), test_p=MODEL_TEST_P, left_out=list(fit.left_out))
+            record.update(tests=list(fit.tests), test_p=MODEL_TEST_P, left_out=list(fit.left_out),
+                          weak_offset=fit.weak_offset)
     for name in pins:
         fit, by = choices[name]
         records[name]["held_at_prior"] = [{"term": t, "estimate_mm": 1000 * v}
@@ -200,6 +201,22 @@ def held_views(lidar_views: list, pinned: dict) -> list:
             lv = replace(lv, terms_prior_sd=sd)
         out.append(lv)
     return out
+
+
+def weak_offset_share(names: tuple, records: dict) -> np.ndarray | None:
+    """The share of the sensors' joint covariance (6N x 6N, ``names`` order) that holds, for each LiDAR whose pair
+    passed over a global offset its test still half supported (``RangeModelFit.weak_offset``), the answer with
+    it: the outer product of the pair's shift in that LiDAR's block (a shift of the pair's transform with its
+    camera held is the same shift of the LiDAR's pose, whichever camera is the reference). None where none did."""
+    weak = {n: r["weak_offset"] for n, r in records.items() if r.get("weak_offset")}
+    if not weak:
+        return None
+    share = np.zeros((6 * len(names), 6 * len(names)))
+    for name, w in weak.items():
+        k = names.index(name)
+        d = np.asarray(w["difference_tangent"], dtype=float)
+        share[6 * k:6 * k + 6, 6 * k:6 * k + 6] += np.outer(d, d)
+    return share
 
 
 def with_held_share(names: tuple, reference: str, camera_views: list, lidar_views: list, solution: RigSolution,

@@ -9,15 +9,15 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from geometry.rotations import T_exp
+from geometry.rotations import T_exp, T_log
 
 from . import chi_square as chi2
 from .board_scatter import estimate_board_scatter, estimate_plane_error
 from .chi_square import fdtrc
 from .graph_keys import EXTRINSIC, RANGE
 from .plane_graph import PlaneProblem, hessian, objective
-from .range_model import (CONFOUNDED_CORRELATION, MODEL_TEST_P, FrameLabels, RangeModelFit, RangeTerms, frame_labels,
-                          terms_for)
+from .range_model import (CONFOUNDED_CORRELATION, MODEL_TEST_P, OFFSET_HELD_P, FrameLabels, RangeModelFit, RangeTerms,
+                          frame_labels, terms_for)
 from .refinement_options import RefinementOptions
 
 
@@ -137,6 +137,29 @@ def _relative_consistency(fit: _ModelFit, base: _ModelFit, active: list[int], in
     return float(ratio), float(fdtrc(d1, d0, ratio))
 
 
+def _weak_offset(test: dict, none: _ModelFit, offset: _ModelFit) -> dict | None:
+    """A global offset passed over that its last test (``test``, on the fits ``none`` and ``offset``) still supports
+    at ``OFFSET_HELD_P``: the record the covariance holds it by (``RangeModelFit.weak_offset``), else None. The
+    test at ``MODEL_TEST_P`` keeps a term out of the estimate unless the data ask for it; an offset its test half
+    supports is still a possible answer, which a covariance without it would not hold (on boards facing the rig an
+    offset moves the extrinsic along their normals by about itself)."""
+    if test["p_value"] >= OFFSET_HELD_P:
+        return None
+    values = dict(zip(offset.prob.terms.names, offset.prob.beta)) if offset.prob.terms is not None else {}
+    return {"p_value": float(test["p_value"]), "with_ring_ends": bool(test.get("with_ring_ends")),
+            "offset_mm": 1000 * float(values.get("offset", np.nan)),
+            "difference_tangent": T_log(np.linalg.inv(none.T) @ offset.T).tolist()}
+
+
+def weak_words(weak: dict | None) -> str:
+    """How a record's ``weak_offset`` is said after its reason ("" for None)."""
+    if weak is None:
+        return ""
+    return (f"; a global offset of {weak['offset_mm']:+.1f} mm, half supported (p = {weak['p_value']:.2g}"
+            f"{' with the ring ends' if weak['with_ring_ends'] else ''}, below {OFFSET_HELD_P}), is held in the "
+            "covariance beside the answer without it (--range-model offset takes it)")
+
+
 def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
                        floor: float, options: RefinementOptions, labels: FrameLabels, ends=None) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
@@ -177,11 +200,13 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                                                     values_m=tuple(f.prob.beta.tolist()), terms=f.prob.terms, **record)
     tests = [_model_test(fits["none"], fits["offset"], active, inliers, floor, options)]
     ended = ends() if ends is not None and not tests[0]["included"] and "offset" in fits else None
+    last = (fits["none"], fits["offset"])  # the offset's last test's fits: the planes', or with the ring ends
     if ended is not None:
         e_prob, T_e, b_e = ended
-        with_ends = [_fit_model(e_prob, m, labels, active, inliers, T_e, b_e, floor, options)
-                     for m in ("none", "offset")]
-        tests.append({**_model_test(*with_ends, active, inliers, floor, options), "with_ring_ends": True})
+        last = tuple(_fit_model(e_prob, m, labels, active, inliers, T_e, b_e, floor, options)
+                     for m in ("none", "offset"))
+        tests.append({**_model_test(*last, active, inliers, floor, options), "with_ring_ends": True})
+    offset_test = tests[-1]
     # The per-ring and black-square blocks are tested against the offset when it is supported, else against none
     # (with the offset in the block): a strong within-board structure can hide a global offset that only its own
     # terms make visible.
@@ -199,7 +224,9 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                f"test at "
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
-        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), **record)
+        weak = _weak_offset(offset_test, *last)
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
+                                              weak_offset=weak, **record)
     if len(blocks) == 2:
         fit("full")
     candidates = (["full"] if len(blocks) == 2 and "full" in fits else []) + blocks + [base]
@@ -220,8 +247,9 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     if chosen == "none":
         why = ("no range term is kept: " + "; ".join(notes) + f" (a global offset alone: p = {tests[0]['p_value']:.2g}"
                f", test at {MODEL_TEST_P})")
-        return prob, T, boards, RangeModelFit(chosen="none", reason=why, tests=tuple(tests), left_out=tuple(left_out),
-                                              **record)
+        weak = _weak_offset(offset_test, *last)
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
+                                              left_out=tuple(left_out), weak_offset=weak, **record)
     f = fits[chosen]
     why = f"the {chosen} terms are supported (" + "; ".join(
         f"{t['model']} against {t['against']}{' with the ring ends' if t.get('with_ring_ends') else ''}: "

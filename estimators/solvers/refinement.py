@@ -387,6 +387,10 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             end_terms = EndTerms({frames[i].name: prob.edges[i] for i in active if prob.has_edges(i)},
                                  {frames[i].name: prob.shifts.get(i, np.zeros(2)) for i in active},
                                  np.array(prob.outline, dtype=float), prob.edge_scale * np.sqrt(quasi_scale))
+    if model_fit is not None and model_fit.weak_offset is not None:
+        # an offset its test half supports, not taken: the covariance holds the answer with it too
+        d = np.asarray(model_fit.weak_offset["difference_tangent"])
+        cov = cov + np.outer(d, d)
     cov_intrinsics = None
     if camera.param_std is not None:
         cov_intrinsics = _intrinsics_covariance(prob, active, T, boards, floor, options)
