@@ -8,7 +8,8 @@ level (`observation_model.simulate_measurements`: the board's returns and corner
 calibrated by the engine (`estimators.calibrate`, defaults: range terms `auto`, the edges, no posterior), and again
 with the offset asked for (`--range-model offset`).
 
-Printed per configuration: the share whose range terms took the offset, whose planes and edges conflict (p <
+Printed per configuration: the share whose range terms took the offset, how many held an offset not taken in
+their covariance (its last test at p < 0.05, `weak_offset`), whose planes and edges conflict (p <
 0.01), the truth's mean and median d2 under the reported covariance (6 ideal), how many lie beyond 22.5 (the
 99.9% point) and how many of those read `OK`; and, for the conflicts, the truth's d2 were the covariance to hold
 only the planes' answer (the rule until the edges' own answer was held beside it). Last, with the offset asked
@@ -69,8 +70,9 @@ def _trial(args) -> dict:
         own = np.asarray(test.get("edges_own_offset_tangent", np.zeros(6)))
         before = float(xi @ np.linalg.solve(C - np.outer(own, own), xi))
     model = (res.range_models.get("lidar0") or {}).get("terms") or []
+    weak = (res.range_models.get("lidar0") or {}).get("weak_offset") is not None
     return {"d2": float(xi @ np.linalg.solve(C, xi)), "ok": res.verdict.level == "OK", "conflict": conflict,
-            "before": before, "offset": "offset" in model,
+            "before": before, "offset": "offset" in model, "weak": weak,
             "err_mm": 1000 * float(np.linalg.norm(xi[3:])),
             "asked_d2": float(xo @ np.linalg.solve(np.asarray(asked.covariance), xo)),
             "asked_err_mm": 1000 * float(np.linalg.norm(xo[3:]))}
@@ -87,7 +89,7 @@ def main() -> int:
         out = list(pool.map(_trial, jobs))
     print(f"{N_BOARDS} boards per layout, seeds {args.seed}-{args.seed + args.seeds - 1}, measurement level, engine "
           "defaults (no posterior)\n")
-    print("LiDAR   boards offset  took offset  conflicts  mean d2  median d2  >22.5 (OK)  RMS err mm  "
+    print("LiDAR   boards offset  took offset  held  conflicts  mean d2  median d2  >22.5 (OK)  RMS err mm  "
           "offset asked: mean d2, RMS mm  conflicts' d2: planes' answer held -> both")
     failed = []
     for c in CONFIGS:
@@ -97,7 +99,7 @@ def main() -> int:
         beyond = [r for r in rows if r["d2"] > 22.5]
         held = "; ".join(f"{r['before']:.0f} -> {r['d2']:.0f}" for r in rows if r["conflict"]) or "-"
         print(f"{c[0]:7s} {c[1]:6s} {1000 * c[2]:4.0f} mm  {sum(r['offset'] for r in rows):5d}/{len(rows):<5d}"
-              f" {sum(r['conflict'] for r in rows):5d}   {d2.mean():8.1f}  {np.median(d2):9.1f}  "
+              f" {sum(r['weak'] for r in rows):4d} {sum(r['conflict'] for r in rows):6d}   {d2.mean():8.1f}  {np.median(d2):9.1f}  "
               f"{len(beyond):5d} ({sum(r['ok'] for r in beyond)})  "
               f"{np.sqrt(np.mean([r['err_mm'] ** 2 for r in rows])):10.1f}  "
               f"{np.mean([r['asked_d2'] for r in rows]):18.1f} "
