@@ -102,6 +102,8 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
         delta = (_gaussian_objective(p_s, graph_s, result_s, active, inliers, b_s, fl)
                  - _gaussian_objective(p_l, graph_l, result_l, active, inliers, b_l, fl))
         scatter = p_l.tau
+        shift = T_log(np.linalg.inv(result_s.atPose3(EXTRINSIC).matrix()) @ result_l.atPose3(EXTRINSIC).matrix())
+        added = p_l.beta.copy()
         for p, beta, solved, tau in saved:
             p.beta, p.solved, p.tau = beta, solved, tau
         p_value = float(fdtrc(ddof, cdof, max(delta, 0.0) / ddof / scale))
@@ -110,7 +112,10 @@ def _model_test(small: _ModelFit, large: _ModelFit, active: list[int], inliers: 
     else:
         p_value = float(chi2.sf(max(delta, 0.0), ddof))
         record["reference"] = f"chi-square({ddof})"
-    record.update({"p_value": p_value, "included": bool(p_value < MODEL_TEST_P)})
+        shift, added = T_log(np.linalg.inv(small.T) @ large.T), large.prob.beta
+    # the larger model's terms and the estimate's shift to it, as the test weighed them (``weak_offset``)
+    record.update({"p_value": p_value, "included": bool(p_value < MODEL_TEST_P), "shift_tangent": shift.tolist(),
+                   "values_m": [float(v) for v in added]})
     return record
 
 
@@ -137,18 +142,17 @@ def _relative_consistency(fit: _ModelFit, base: _ModelFit, active: list[int], in
     return float(ratio), float(fdtrc(d1, d0, ratio))
 
 
-def _weak_offset(test: dict, none: _ModelFit, offset: _ModelFit) -> dict | None:
-    """A global offset passed over that its last test (``test``, on the fits ``none`` and ``offset``) still supports
-    at ``OFFSET_HELD_P``: the record the covariance holds it by (``RangeModelFit.weak_offset``), else None. The
-    test at ``MODEL_TEST_P`` keeps a term out of the estimate unless the data ask for it; an offset its test half
-    supports is still a possible answer, which a covariance without it would not hold (on boards facing the rig an
-    offset moves the extrinsic along their normals by about itself)."""
+def _weak_offset(test: dict) -> dict | None:
+    """A global offset passed over that its last test (``test``) still supports at ``OFFSET_HELD_P``: the record the
+    covariance holds it by (``RangeModelFit.weak_offset``: the offset and the estimate's shift with it, as the test
+    weighed them, with the boards' disagreement modelled), else None. The test at ``MODEL_TEST_P`` keeps a term out
+    of the estimate unless the data ask for it; an offset its test half supports is still a possible answer, which
+    a covariance without it would not hold (on boards facing the rig an offset moves the extrinsic along their
+    normals by about itself)."""
     if test["p_value"] >= OFFSET_HELD_P:
         return None
-    values = dict(zip(offset.prob.terms.names, offset.prob.beta)) if offset.prob.terms is not None else {}
     return {"p_value": float(test["p_value"]), "with_ring_ends": bool(test.get("with_ring_ends")),
-            "offset_mm": 1000 * float(values.get("offset", np.nan)),
-            "difference_tangent": T_log(np.linalg.inv(none.T) @ offset.T).tolist()}
+            "offset_mm": 1000 * float(test["values_m"][0]), "difference_tangent": list(test["shift_tangent"])}
 
 
 def weak_words(weak: dict | None) -> str:
@@ -200,12 +204,11 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                                                     values_m=tuple(f.prob.beta.tolist()), terms=f.prob.terms, **record)
     tests = [_model_test(fits["none"], fits["offset"], active, inliers, floor, options)]
     ended = ends() if ends is not None and not tests[0]["included"] and "offset" in fits else None
-    last = (fits["none"], fits["offset"])  # the offset's last test's fits: the planes', or with the ring ends
     if ended is not None:
         e_prob, T_e, b_e = ended
-        last = tuple(_fit_model(e_prob, m, labels, active, inliers, T_e, b_e, floor, options)
-                     for m in ("none", "offset"))
-        tests.append({**_model_test(*last, active, inliers, floor, options), "with_ring_ends": True})
+        with_ends = [_fit_model(e_prob, m, labels, active, inliers, T_e, b_e, floor, options)
+                     for m in ("none", "offset")]
+        tests.append({**_model_test(*with_ends, active, inliers, floor, options), "with_ring_ends": True})
     offset_test = tests[-1]
     # The per-ring and black-square blocks are tested against the offset when it is supported, else against none
     # (with the offset in the block): a strong within-board structure can hide a global offset that only its own
@@ -224,7 +227,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                f"test at "
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
-        weak = _weak_offset(offset_test, *last)
+        weak = _weak_offset(offset_test)
         return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
                                               weak_offset=weak, **record)
     if len(blocks) == 2:
@@ -247,7 +250,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     if chosen == "none":
         why = ("no range term is kept: " + "; ".join(notes) + f" (a global offset alone: p = {tests[0]['p_value']:.2g}"
                f", test at {MODEL_TEST_P})")
-        weak = _weak_offset(offset_test, *last)
+        weak = _weak_offset(offset_test)
         return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
                                               left_out=tuple(left_out), weak_offset=weak, **record)
     f = fits[chosen]
