@@ -657,6 +657,7 @@ def test_an_offset_its_test_half_supports_is_held_in_the_covariance():
     within 16.8 (the 99% point). The estimate is the answer without it."""
     from estimators import calibrate
     from estimators.io.measurement_store import Measurements
+    from estimators.pipeline.rig_result import range_model_words
     from estimators.simulation.range_bias import RangeBias
 
     layout = _layout(3, "vlp16", n=8, weak=True)
@@ -668,6 +669,8 @@ def test_an_offset_its_test_half_supports_is_held_in_the_covariance():
     assert weak["with_ring_ends"] and 0.001 <= weak["p_value"] < 0.05 and "offset" not in (record.get("terms") or {})
     assert 10 < weak["offset_mm"] < 30  # the 2 cm it ranges long, found but not taken
     assert "held in the covariance" in record["reason"]
+    assert f"an offset of {weak['offset_mm']:+.1f} mm (p = {weak['p_value']:.2g} < 0.05) held in the covariance" in \
+        range_model_words(record)
     xi = T_log(T_inverse(res.T_camera_lidar) @ layout.T_camera_lidar)
     d = np.asarray(weak["difference_tangent"])
     C = np.asarray(res.covariance)

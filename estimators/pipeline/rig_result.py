@@ -17,6 +17,7 @@ from ..solvers.closed_form import describe_direction
 from ..solvers.edges_in_graph import conflict_words
 from ..solvers.intrinsics_refinement import param_names
 from ..solvers.posterior import INTERVAL_LEVELS
+from ..solvers.range_model import OFFSET_HELD_P
 from ..solvers.rig_graph import RigSolution
 from ..solvers.rig_posterior import RigPosterior
 from .pair_estimate import PairEstimate
@@ -408,7 +409,10 @@ def range_model_words(record: dict) -> str:
     how = f"{record.get('chosen_by', 'its pair')}'s tests at {record['test_p']:g}: {said}" if tests else "requested"
     terms = record.get("terms") or {}
     if not terms:
-        return f"no range terms ({how})" if tests else "no range terms (--range-model none)"
+        weak = record.get("weak_offset")
+        held = (f"; an offset of {weak['offset_mm']:+.1f} mm (p = {weak['p_value']:.2g} < {OFFSET_HELD_P}) held in the "
+                "covariance" if weak else "")
+        return f"no range terms ({how}{held})" if tests else "no range terms (--range-model none)"
     parts = [f"range offset {1000 * terms['offset']['value_m']:+.1f} +- {1000 * terms['offset']['sd_m']:.1f} mm"]
     rings = [v["value_m"] for n, v in terms.items() if n.startswith("ring ")]
     if rings:
