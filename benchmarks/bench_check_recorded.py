@@ -1,0 +1,78 @@
+"""The scene's check of the recorded sets' board calibrations, and of the same calibrations turned and moved
+(make bench; `python benchmarks/bench_check_recorded.py [--data ../shared/realdata] [--deg 1] [--cm 5]`).
+
+Per recorded 3D set: the engine's board calibration (``estimators.calibrate``, no posterior: its Laplace
+covariance) checked by the scene (``check_scene`` with that covariance, as `lidarcam check --calibration
+calibration.json` does), then the same calibration turned by ``--deg`` about each of the camera's axes, either
+way, and moved by ``--cm`` along each, either way (about and along the camera's axes, through its centre: the
+given covariance kept), each checked the same way. A check passes at p >= 0.01 (``scene_check.ALPHA``); the
+perturbed ones should all be flagged. Sets absent from ``--data`` are skipped.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SETS = ("acfr_vlp16_a", "acfr_ouster64_b")
+AXES = "xyz"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
+    ap.add_argument("--deg", type=float, default=1.0, help="the turn about each camera axis (default 1)")
+    ap.add_argument("--cm", type=float, default=5.0, help="the move along each camera axis (default 5)")
+    args = ap.parse_args()
+
+    from estimators import calibrate
+    from estimators.pipeline.scene_check import ALPHA, check_scene
+    from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    print(f"each set's board calibration (no posterior: its Laplace covariance) checked by its scene, then turned by "
+          f"{args.deg:g} deg about and moved by {args.cm:g} cm along each camera axis (x right, y down, z forward), "
+          f"either way; flagged: p < {ALPHA}")
+    print()
+    print("| set | calibration | p | flagged | the scene's estimate from it: deg, mm |")
+    print("|---|---|---|---|---|")
+    for name in SETS:
+        folder = Path(args.data) / name
+        if not (folder / "dataset.yaml").is_file():
+            print(f"| {name} | absent from {args.data}: skipped | | | |")
+            continue
+        boards = calibrate(folder, samples=0)
+        T_b, C_b, camera = boards.T_camera_lidar, np.asarray(boards.covariance), boards.camera_model("cam0")
+        cases = [("as calibrated", np.eye(4))]
+        for k, axis in enumerate(AXES):
+            for sign in (1, -1):
+                w = np.zeros(3)
+                w[k] = sign * np.radians(args.deg)
+                turn = T_from_Rt(R_from_rotvec(w), np.zeros(3))
+                cases.append((f"turned {sign * args.deg:+g} deg about {axis}", turn))
+        for k, axis in enumerate(AXES):
+            for sign in (1, -1):
+                t = np.zeros(3)
+                t[k] = sign * args.cm / 100
+                cases.append((f"moved {sign * args.cm:+g} cm along {axis}", T_from_Rt(np.eye(3), t)))
+        flagged = 0
+        for label, D in cases:
+            c = check_scene(folder, D @ T_b, camera=camera, given_covariance=C_b)
+            xi = c.test["difference_tangent"]
+            p = c.test["p_value"]
+            flag = p is not None and p < ALPHA
+            flagged += flag and label != "as calibrated"
+            print(f"| {name} | {label} | {p:.3g} | {'yes' if flag else 'no'} | "
+                  f"{np.degrees(np.linalg.norm(xi[:3])):.2f}, {1000 * np.linalg.norm(xi[3:]):.0f} |", flush=True)
+        print(f"| {name} | perturbed: {flagged} of {len(cases) - 1} flagged | | | |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
