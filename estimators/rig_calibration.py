@@ -37,6 +37,7 @@ from .solvers import chi_square as chi2
 from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import PosteriorOptions, heavy_tails
+from .solvers.range_model import OFFSET_HELD_P
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
 from .solvers.rig_graph import intrinsics_test, own_corner_drop, solve_rig, spanning_tree
@@ -436,9 +437,10 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     # gives the LiDAR boards' plane errors the next joint solve weighs them with (errors estimated under wrong
     # intrinsics hold their error, and would weaken the planes that reveal it), until those settle.
     # The rounds keep the first round's answer on an offset its planes passed over (``RefinementOptions.
-    # offset_with_ends``): tested again with the ends only where the ends took it then, so that it stays.
-    ended = any(t.get("with_ring_ends") and t.get("included") for fit, _ in alone_fit.term_choices.values()
-                for t in fit.tests)
+    # offset_with_ends``): tested again with the ends only where the ends took it then, or held it in the covariance
+    # (``RangeModelFit.weak_offset``), so that it stays.
+    ended = any(t.get("with_ring_ends") and (t.get("included") or t["p_value"] < OFFSET_HELD_P)
+                for fit, _ in alone_fit.term_choices.values() for t in fit.tests)
     rounds = replace(alone, offset_with_ends=alone.offset_with_ends and ended)
     for _ in range(INTRINSICS_ROUNDS if refine_intrinsics else 0):
         if not solution.intrinsics:

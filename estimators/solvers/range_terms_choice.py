@@ -155,7 +155,7 @@ def _weak_offset(test: dict) -> dict | None:
             "offset_mm": 1000 * float(test["values_m"][0]), "difference_tangent": list(test["shift_tangent"])}
 
 
-def weak_words(weak: dict | None) -> str:
+def _weak_words(weak: dict | None) -> str:
     """How a record's ``weak_offset`` is said after its reason ("" for None)."""
     if weak is None:
         return ""
@@ -228,7 +228,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
                f"{MODEL_TEST_P}" + (", with the per-board plane error in place" if "plane_error_m" in tests[0] else "")
                + ")")
         weak = _weak_offset(offset_test)
-        return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why + _weak_words(weak), tests=tuple(tests),
                                               weak_offset=weak, **record)
     if len(blocks) == 2:
         fit("full")
@@ -251,7 +251,7 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
         why = ("no range term is kept: " + "; ".join(notes) + f" (a global offset alone: p = {tests[0]['p_value']:.2g}"
                f", test at {MODEL_TEST_P})")
         weak = _weak_offset(offset_test)
-        return prob, T, boards, RangeModelFit(chosen="none", reason=why + weak_words(weak), tests=tuple(tests),
+        return prob, T, boards, RangeModelFit(chosen="none", reason=why + _weak_words(weak), tests=tuple(tests),
                                               left_out=tuple(left_out), weak_offset=weak, **record)
     f = fits[chosen]
     why = f"the {chosen} terms are supported (" + "; ".join(
