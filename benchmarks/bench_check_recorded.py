@@ -22,7 +22,6 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-SETS = ("acfr_vlp16_a", "acfr_ouster64_b")
 AXES = "xyz"
 
 
@@ -33,9 +32,10 @@ def main() -> None:
     ap.add_argument("--cm", type=float, default=5.0, help="the move along each camera axis (default 5)")
     args = ap.parse_args()
 
-    from estimators import calibrate
     from estimators.pipeline.scene_check import ALPHA, check_scene
     from geometry.rotations import R_from_rotvec, T_from_Rt
+
+    from bench_targetless_recorded import recorded_boards
 
     print(f"each set's board calibration (no posterior: its Laplace covariance) checked by its scene, then turned by "
           f"{args.deg:g} deg about and moved by {args.cm:g} cm along each camera axis (x right, y down, z forward), "
@@ -43,12 +43,7 @@ def main() -> None:
     print()
     print("| set | calibration | p | flagged | the scene's estimate from it: deg, mm |")
     print("|---|---|---|---|---|")
-    for name in SETS:
-        folder = Path(args.data) / name
-        if not (folder / "dataset.yaml").is_file():
-            print(f"| {name} | absent from {args.data}: skipped | | | |")
-            continue
-        boards = calibrate(folder, samples=0)
+    for name, folder, boards in recorded_boards(args.data, "| {name} | absent from {data}: skipped | | | |"):
         T_b, C_b, camera = boards.T_camera_lidar, np.asarray(boards.covariance), boards.camera_model("cam0")
         cases = [("as calibrated", np.eye(4))]
         for k, axis in enumerate(AXES):

@@ -37,13 +37,26 @@ def apart(T: np.ndarray, T_ref: np.ndarray, C_ref: np.ndarray) -> tuple[str, flo
     return f"{np.degrees(np.linalg.norm(xi[:3])):.2f} deg, {1000 * np.linalg.norm(xi[3:]):.0f} mm, d2 {d2:.3g}", d2
 
 
+def recorded_boards(data: str, absent_row: str):
+    """Each recorded 3D set (``SETS``) under ``data``: its name, folder and board calibration by the engine (no
+    posterior: its Laplace covariance); for a set absent there, ``absent_row`` (formatted with ``name`` and
+    ``data``) is printed instead."""
+    from estimators import calibrate
+
+    for name in SETS:
+        folder = Path(data) / name
+        if not (folder / "dataset.yaml").is_file():
+            print(absent_row.format(name=name, data=data))
+            continue
+        yield name, folder, calibrate(folder, samples=0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
     ap.add_argument("--guesses", type=int, default=3)
     args = ap.parse_args()
 
-    from estimators import calibrate
     from estimators.errors import LidarcamError
     from estimators.pipeline.scene_check import check_scene
     from estimators.pipeline.targetless import calibrate_targetless
@@ -56,12 +69,7 @@ def main() -> None:
     print()
     print("| set | guess | outcome | seconds | from the boards | within their 99% | from the scene's estimate |")
     print("|---|---|---|---|---|---|---|")
-    for name in SETS:
-        folder = Path(args.data) / name
-        if not (folder / "dataset.yaml").is_file():
-            print(f"| {name} | | absent from {args.data}: skipped | | | | |")
-            continue
-        boards = calibrate(folder, samples=0)
+    for name, folder, boards in recorded_boards(args.data, "| {name} | | absent from {data}: skipped | | | | |"):
         T_b, C_b = boards.T_camera_lidar, boards.covariance
         check = check_scene(folder, T_b, camera=boards.camera_model("cam0"), given_covariance=C_b)
         T_s, C_s = check.fit.T_camera_lidar, check.believed_covariance
