@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from estimators.cli import main
+from estimators.errors import DatasetError, about
 from estimators.lidar.depth_edges import depth_edges
 from estimators.pipeline.scene_check import frame_edges
 from estimators.simulation.simulator import simulate_dataset
@@ -453,6 +454,12 @@ def test_a_rig_calibration_s_covariance_is_read_for_the_pair_either_way_round(tm
         assert np.allclose(got, J @ C @ J.T, rtol=1e-5, atol=1e-12)
     (tmp_path / "plain.json").write_text(json.dumps({"T_camera_lidar": T.tolist()}))
     assert given_covariance(str(tmp_path / "plain.json")) is None
+    # a covariance given but unusable is refused, not taken as absent (the extrinsic would be read as exact)
+    for name, bad in (("nan", np.full((6, 6), np.nan)), ("negative", -np.eye(6)), ("small", np.eye(3)),
+                      ("skew", C + np.triu(np.ones((6, 6)), 1))):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"T_camera_lidar": T.tolist(), "covariance": bad.tolist()}))
+        with pytest.raises(DatasetError, match="covariance is not"):
+            given_covariance(str(tmp_path / f"{name}.json"))
 
 
 def test_contours_that_leave_a_direction_free_are_refused_not_given_a_covariance():
@@ -468,3 +475,7 @@ def test_contours_that_leave_a_direction_free_are_refused_not_given_a_covariance
     views = [SceneView(name, _points_at(uvz), frame_edges(img, T_CL, CAMERA), 40.0) for name in ("a", "b")]
     with pytest.raises(DegenerateLayoutError, match="free"):
         align_scene(views, CAMERA, T_CL)
+    # the commands raise it naming their folder (the solver knows only its arrays)
+    with pytest.raises(DegenerateLayoutError, match=r"^scenes/office: the scene's contours leave"):
+        with about("scenes/office"):
+            align_scene(views, CAMERA, T_CL)

@@ -150,29 +150,42 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
     """The 6x6 covariance (the project's tangent) of the ``T_camera_lidar`` that :func:`parse_initial_guess` or
     :func:`pair_from_calibration` (``sensors``: a rig's camera and LiDAR) reads from ``value``, where the file holds
     one: a calibration.json's ``covariance``, or its ``transforms`` entry's (that of ``T_<lidar>_<camera>`` carried
-    to the inverse); None for any other file or a covariance that is not a finite symmetric 6x6."""
+    to the inverse); None for a file without one. A covariance that is not a finite symmetric positive semi-definite
+    6x6 is a one-line error (``DatasetError``): taken as absent, a check would read its extrinsic as exact, and a
+    negative one made the scene's directions look unconstrained."""
     from ..solvers.factor_graph import adjoint
 
     data = _calibration_data(value)
     if data is None:
         return None
-    C, T_flip = None, None
+    C, T_flip, where = None, None, "covariance"
     if sensors is not None and isinstance(data.get("transforms"), dict):
         found = _transform_entry(data, *sensors)
         if found is not None:
-            _, entry, flip = found
-            C, T_flip = entry.get("covariance"), (entry["T"] if flip else None)
+            key, entry, flip = found
+            C, T_flip, where = entry.get("covariance"), (entry["T"] if flip else None), f"{key}'s covariance"
     elif "T_camera_lidar" in data:
         C = data.get("covariance")
+    if C is None:
+        return None
+    problem = None
     try:
         C = np.asarray(C, dtype=float)
-        if T_flip is not None:  # T_true = T Exp(e): its inverse is T^-1 Exp(-Ad(T) e)
-            A = adjoint(np.asarray(T_flip, dtype=float))
+        if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+            problem = f"not a finite 6x6 matrix (shape {C.shape})"
+        elif not np.allclose(C, C.T, rtol=1e-6, atol=1e-15):
+            problem = "not symmetric"
+        elif np.linalg.eigvalsh(0.5 * (C + C.T))[0] < -1e-9 * max(float(np.abs(C).max()), 1e-300):
+            problem = "not positive semi-definite (a negative variance)"
+        elif T_flip is not None:  # T_true = T Exp(e): its inverse is T^-1 Exp(-Ad(T) e)
+            A = adjoint(_rigid(T_flip, Path(value), where.split("'")[0]))
             C = A @ C @ A.T
-    except (ValueError, TypeError, RuntimeError):
-        return None
-    if C.shape != (6, 6) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-6, atol=1e-15):
-        return None
+    except (ValueError, TypeError) as exc:
+        problem = f"unreadable ({type(exc).__name__}: {exc})"
+    if problem is not None:
+        raise DatasetError(f"the {where} is {problem}", path=Path(value),
+                           hint="give the calibration.json lidarcam wrote, or remove its covariance to take the "
+                                "extrinsic as exact")
     return 0.5 * (C + C.T)
 
 
