@@ -1,6 +1,8 @@
 """lidarcam's exceptions. Each message is one line: the file, the problem, and what to do."""
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 
 class LidarcamError(Exception):
     """Base of every error lidarcam raises on purpose; the CLI prints it as one line and exits 2."""
@@ -15,6 +17,19 @@ class LidarcamError(Exception):
     def message(self) -> str:
         text = f"{self.path}: {self.problem}" if self.path else self.problem
         return f"{text}; {self.hint}" if self.hint else text
+
+
+@contextmanager
+def about(path: object):
+    """Name ``path`` in any :class:`LidarcamError` raised inside that names no file (a solver knows its arrays, not
+    the folder they came from), so that the one-line error says which dataset it is about."""
+    try:
+        yield
+    except LidarcamError as exc:
+        if exc.path is None:
+            exc.path = str(path)
+            exc.args = (exc.message,)
+        raise
 
 
 class DatasetError(LidarcamError):

@@ -3,12 +3,14 @@ command's choice to join or not (``pipeline.scene_witness``)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import gtsam
 import numpy as np
 import pytest
 
 from estimators.cli import main
+from estimators.errors import DegenerateLayoutError
 from estimators.solvers.factor_graph import adjoint
 from estimators.solvers.scene_term import join_pair_measurement
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log, T_retract
@@ -186,11 +188,13 @@ def _as_rig(pair: "Path", out: "Path") -> "Path":
     return out
 
 
-def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, office_scene, capsys, tmp_path):
+def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, office_scene, capsys, tmp_path,
+                                                                    monkeypatch):
     """Seed 3's office as a rig folder of cam0 and lidar0: ``calibrate --scene`` forms the same scene term as on
     the pair folder (the same boards' and scene's estimates and tests, to 1e-9), and ``check`` of the boards'
     transform on the rig folder (cam0 and its LiDAR) gives the pair's p-value; given the rig's calibration.json
-    (its transforms found by the sensors' names), a sensor the rig has not is refused in one line (exit 2)."""
+    (its transforms found by the sensors' names), a sensor the rig has not is refused in one line (exit 2); and
+    ``--targetless`` given that file starts from its first pair's transform."""
     tmp, _ = office
     rig = _as_rig(tmp / "ds", tmp_path / "rig")
     assert office_scene[0] == 0
@@ -217,6 +221,19 @@ def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, offi
     assert main(["check", str(rig), "--calibration", given, "--camera", "cam7", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "cam7" in err and not (tmp_path / "x").exists()
+    # --targetless on the rig folder starts from its first pair's transform in the rig's calibration.json
+    import estimators.pipeline.targetless as targetless
+
+    started = []
+
+    def stop(folder, T_guess, keep_board=False):
+        started.append(T_guess)
+        raise DegenerateLayoutError("stopped here")
+
+    monkeypatch.setattr(targetless, "calibrate_targetless", stop)
+    assert main(["calibrate", str(rig), "--targetless", "--initial-guess", given, "--out", str(tmp_path / "y")]) == 2
+    T_pair = json.loads(Path(given).read_text())["transforms"]["T_cam0_lidar0"]["T"]
+    assert len(started) == 1 and np.allclose(started[0], T_pair) and "stopped here" in capsys.readouterr().err
 
 
 def test_a_two_camera_rig_in_a_furnished_room_checks_each_pair_and_forms_each_pairs_term(tmp_path, capsys):

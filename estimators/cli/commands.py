@@ -45,7 +45,8 @@ def _calibrate_targetless(args) -> int:
     from ..analysis.scene_check_page import write_check_page
     from ..errors import LidarcamError
     from ..io.output import write_json_atomic
-    from ..pipeline.measurement import parse_initial_guess
+    from ..io.rig_dataset import first_pair, is_rig
+    from ..pipeline.measurement import pair_from_calibration, parse_initial_guess
     from ..pipeline.targetless import calibrate_targetless
     from .printing import print_targetless
 
@@ -53,7 +54,11 @@ def _calibrate_targetless(args) -> int:
         raise LidarcamError("--targetless refines an initial guess and none is given", path=args.dataset,
                             hint="add --initial-guess FILE (a calibration.json or a 4x4 T_camera_lidar) or "
                                  "'x y z roll pitch yaw'")
-    result = calibrate_targetless(args.dataset, parse_initial_guess(args.initial_guess), keep_board=args.keep_board)
+    if is_rig(args.dataset) and len(args.initial_guess) == 1:  # a rig's calibration.json: its first pair's
+        T_guess = pair_from_calibration(args.initial_guess[0], *first_pair(args.dataset))
+    else:
+        T_guess = parse_initial_guess(args.initial_guess)
+    result = calibrate_targetless(args.dataset, T_guess, keep_board=args.keep_board)
     print_targetless(result)
     print(f"wrote {write_json_atomic(Path(args.out) / 'calibration.json', result.to_dict())}")
     if not args.no_report:

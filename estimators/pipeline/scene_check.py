@@ -28,7 +28,7 @@ from geometry.rotations import transform_points
 
 from .. import __version__
 from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
-from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, ScanReadError
+from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, ScanReadError, about
 from ..io.dataset import load_scene_folder
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_sweep
@@ -322,7 +322,8 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)
-    fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)
+    with about(root):
+        fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)
     cov = fits[0].covariance + minima_scatter(fits, views, camera, T_given)
     if sensors is None and is_rig(root):
         sensors = first_pair(root)

@@ -48,7 +48,7 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
 
 from .. import __version__
 from ..camera.edge_map import TRUNCATE_PX
-from ..errors import DegenerateLayoutError
+from ..errors import DegenerateLayoutError, about
 from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_PX, SceneFit, align_once,
                                       align_scene, consistency, constrained_directions, minima_scatter, narrowed,
                                       rival_minima, rms_px, scene_minima)
@@ -206,9 +206,10 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
         return out
 
     def refine(T: np.ndarray) -> SceneFit:
-        for px in sorted(COARSE_PX, reverse=True):
-            T = align_once(views_at(T, px, chamfer=True), camera, T, 60).T_camera_lidar
-        return align_scene(views_at(T, TRUNCATE_PX), camera, T)
+        with about(root):
+            for px in sorted(COARSE_PX, reverse=True):
+                T = align_once(views_at(T, px, chamfer=True), camera, T, 60).T_camera_lidar
+            return align_scene(views_at(T, TRUNCATE_PX), camera, T)
 
     ends = []
     for start in _starts(T_guess):
