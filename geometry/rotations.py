@@ -59,9 +59,16 @@ def R_from_quat_xyzw(q: np.ndarray) -> np.ndarray:
 
 def rpy_from_R(R: np.ndarray) -> np.ndarray:
     """``[roll, pitch, yaw]`` (radians) with ``R = Rz(yaw) Ry(pitch) Rx(roll)``: URDF's ``rpy`` and the
-    ``yaw pitch roll`` of ROS's ``static_transform_publisher`` (fixed axes x, y, z in that order)."""
+    ``yaw pitch roll`` of ROS's ``static_transform_publisher`` (fixed axes x, y, z in that order). At pitch +-90
+    degrees (a camera looking along the LiDAR's x axis, the usual mounting, is there to rounding) roll and yaw turn
+    about one axis: the yaw is set to 0 and the roll holds the turn, still exactly ``R`` (scipy's warning of it is
+    not passed on)."""
+    import warnings
+
     from scipy.spatial.transform import Rotation  # here: scipy.spatial takes 0.3 s to import
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock detected")
+        return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
 
 
 def R_from_rpy(rpy: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 degenerate layouts (simulated ground truth; the recorded set when ../shared is present)."""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,12 @@ def test_scan_formats_read_alike_and_drop_invalid_returns(tmp_path):
     np.testing.assert_allclose(read_scan_2d(tmp_path / "s.npy"), expected, atol=1e-9)
     write_scan_2d(tmp_path / "s.pcd", a, r)
     np.testing.assert_allclose(read_scan_2d(tmp_path / "s.pcd"), expected, atol=1e-5)
+    # a driver's "no return" written as an infinite range, at angle 0 too (inf x sin 0): dropped without a warning
+    (tmp_path / "inf.csv").write_text("angle,range\n0.0,inf\n0.1,inf\n" + "\n".join(
+        f"{x},{y}" for x, y in zip(a[good], r[good])) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(read_scan_2d(tmp_path / "inf.csv"), expected, atol=1e-9)
 
 
 def test_bad_2d_scans_name_the_file_and_the_problem(tmp_path):

@@ -100,6 +100,16 @@ def test_every_format_parses_back_to_the_transform(parent):
     assert j["frame_names"] == {"camera": "camera_optical", "lidar": "os_sensor"}
 
 
+def test_the_usual_mounting_exports_to_urdf_exactly_and_without_a_warning(recwarn):
+    """A camera looking along the LiDAR's x axis is at pitch -90 degrees, where roll and yaw turn about one axis
+    (gimbal lock): the rpy written still gives the rotation back, and scipy's warning of it is not passed on."""
+    R = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    T = T_from_Rt(R, [0.1, -0.2, 0.05])
+    T_urdf, _, _ = parse_urdf(export_calibration(T, "urdf", camera_frame="cam", lidar_frame="velo"))
+    np.testing.assert_allclose(T_urdf, T, atol=1e-8)  # the file's 9 significant digits
+    assert not [w for w in recwarn if "Gimbal" in str(w.message)]
+
+
 def test_yaml_and_json_carry_covariance_and_intrinsics(tmp_path):
     cov = np.diag([1e-6, 2e-6, 3e-6, 1e-4, 2e-4, 3e-4])
     cal = {"version": "x", "dataset": "rig", "T_camera_lidar": _T(4).tolist(), "covariance": cov.tolist(),

@@ -160,7 +160,8 @@ def _read_csv_2d(path: Path) -> np.ndarray:
     cols = {name: i for i, name in enumerate(header)}
     if {"angle", "range"} <= cols.keys():
         a, r = data[:, cols["angle"]], data[:, cols["range"]]
-        return np.column_stack([r * np.cos(a), r * np.sin(a)])
+        with np.errstate(invalid="ignore", over="ignore"):  # an infinite range (no return) is dropped, not warned of
+            return np.column_stack([r * np.cos(a), r * np.sin(a)])
     if {"x", "y"} <= cols.keys():
         return data[:, [cols["x"], cols["y"]]]
     raise ScanReadError(f"CSV header {','.join(header)!r} has neither angle,range nor x,y", path=path,
