@@ -64,6 +64,8 @@ def test_camera_is_optional(tmp_path):
     (YAML.replace("lidar: 3d", "lidar: {type: 3d, range_accuracy_m: -0.03}"), "range_accuracy_m must be"),
     (YAML.replace("lidar: 3d", "lidar: {type: 3d, accuracy: 0.03}"), "unknown lidar key"),
     (YAML.replace("lidar: 3d", "lidar: {type: 4d}"), "lidar must be"),
+    (YAML + "range_accuracy_m: 0.03\n", r"unknown key\(s\) \['range_accuracy_m'\].*under lidar:"),
+    (YAML.replace("board:", "borad:"), r"unknown key\(s\) \['borad'\]"),
     (YAML.replace("dist: [0.01, 0.0, 0.0, 0.0]", "dist: [0.01]"), "invalid camera"),
     ("lidar: 3d\nboard: {squares: [9, 7], square_size: 0.1}\ncamera: {width: 10}\n", "camera lacks K, height"),
     ("!!python/object/apply:os.system ['echo hacked']\n", "invalid YAML"),

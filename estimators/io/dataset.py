@@ -146,6 +146,10 @@ def load_scene_folder(path: str | os.PathLike, need_camera: bool = True, pair: t
     return root, camera, board, _pair_frames(root, SCAN_SUFFIXES)
 
 
+# The top-level keys of a camera-LiDAR folder's dataset.yaml.
+PAIR_KEYS = frozenset({"lidar", "board", "camera"})
+
+
 def read_dataset_yaml(path: str | os.PathLike) -> tuple[Path, Path, object]:
     """The folder, its ``dataset.yaml`` and that file's content (``yaml.safe_load``), or a one-line error for a
     missing folder or file."""
@@ -155,7 +159,15 @@ def read_dataset_yaml(path: str | os.PathLike) -> tuple[Path, Path, object]:
     ypath = root / "dataset.yaml"
     if not ypath.exists():
         raise DatasetError("no dataset.yaml", path=root, hint="create one (see docs/reference/dataset.md)")
-    return root, ypath, load_yaml(ypath, "dataset.yaml")
+    spec = load_yaml(ypath, "dataset.yaml")
+    if isinstance(spec, dict) and "sensors" not in spec:  # a pair's folder (a rig's checks its own keys)
+        unknown = sorted(str(k) for k in set(spec) - PAIR_KEYS)
+        if unknown:  # a key misplaced or misspelt would be ignored, and the calibration made without it
+            nested = [k for k in unknown if k in ("family", "range_accuracy_m", "type")]
+            raise DatasetError(f"unknown key(s) {unknown} (a camera-LiDAR folder's are {', '.join(sorted(PAIR_KEYS))})",
+                               path=ypath, hint=f"write {nested[0]} under lidar: {{type: 3d, {nested[0]}: ...}}"
+                               if nested else "fix or remove them (see docs/reference/dataset.md)")
+    return root, ypath, spec
 
 
 def _parse_lidar(value: object, ypath: Path) -> tuple[str, str | None, float | None]:
