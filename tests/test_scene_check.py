@@ -479,3 +479,29 @@ def test_contours_that_leave_a_direction_free_are_refused_not_given_a_covariance
     with pytest.raises(DegenerateLayoutError, match=r"^scenes/office: the scene's contours leave"):
         with about("scenes/office"):
             align_scene(views, CAMERA, T_CL)
+
+
+def test_the_smallest_flagged_change_along_each_camera_axis_sits_at_the_tests_level():
+    """``smallest_flagged``: turned about (moved along) one camera axis by the size it gives, an extrinsic whose
+    scene estimate lies where the given one is reaches the test's level exactly (the difference is linear in the
+    change: ``Ad(T^-1) d``); half that size passes, and an axis the covariance leaves free is never flagged (inf)."""
+    from estimators.solvers.scene_alignment import SceneFit, consistency, smallest_flagged
+
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(6, 6)) * np.r_[np.full(3, 2e-3), np.full(3, 1e-2)]
+    C = A @ A.T + np.diag(np.r_[np.full(3, 1e-6), np.full(3, 1e-5)])
+    fit = SceneFit(T_CL, C, np.eye(6), 10, 1000, 30, 2.0, 2.0, np.zeros(6), True)
+    sizes = smallest_flagged(C, T_CL, fit.blocks, 0.01)
+    assert sizes.shape == (6,) and np.all(np.isfinite(sizes))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = sizes[k]
+        D = T_from_Rt(R_from_rotvec(d[:3]), d[3:])  # Exp(d) for a turn alone or a move alone
+        assert consistency(fit, D @ T_CL, covariance=C)["p_value"] == pytest.approx(0.01, rel=1e-6)
+        D_half = T_from_Rt(R_from_rotvec(d[:3] / 2), d[3:] / 2)
+        assert consistency(fit, D_half @ T_CL, covariance=C)["p_value"] > 0.01
+    # a direction the scene does not constrain (1 m of spread along the camera's z): a move along it is free
+    Rw = T_CL[:3, :3]
+    free = C.copy()
+    free[3:, 3:] += (Rw.T @ np.array([0.0, 0.0, 1.0]))[:, None] * (Rw.T @ np.array([0.0, 0.0, 1.0]))[None, :]
+    assert np.isinf(smallest_flagged(free, T_CL, fit.blocks, 0.01)[5])

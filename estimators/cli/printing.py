@@ -313,6 +313,11 @@ def print_check(result) -> None:
           f"({', '.join(f'{v:.1f}' for v in trans)}) mm")
     if result.given_covariance is not None:
         print("  tested against the scene's covariance plus the calibration's own (two independent estimates)")
+    flagged = result.smallest_flagged()
+    if flagged is not None:
+        fmt = (lambda v, d: ", ".join(f"{x:.{d}f}" if np.isfinite(x) else "free" for x in v))
+        print(f"  flagged from about ({fmt(flagged[0], 2)}) deg about the camera's x, y, z and ({fmt(flagged[1], 0)}) "
+              "mm along them (the given extrinsic changed that much along one axis reaches the test's level)")
     print(f"  the camera's intrinsics: {result.camera.source}")
     print(f"  contours on edges: {result.fit.rms_start_px:.2f} px RMS at the given extrinsic, {result.fit.rms_px:.2f} "
           f"at the scene's (along the rings, truncated at {min(STAGES_PX):g} px)")

@@ -35,8 +35,8 @@ from ..io.pointcloud_io import read_sweep
 from ..io.rig_dataset import first_pair, is_rig, scene_pair
 from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
-                                      minima_scatter, nearest_decided, rival_minima, scene_minima, transverse_edges,
-                                      visible_from_camera)
+                                      minima_scatter, nearest_decided, rival_minima, scene_minima, smallest_flagged,
+                                      transverse_edges, visible_from_camera)
 from .measurement import with_found_beams
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
@@ -111,6 +111,22 @@ class SceneCheck:
         minima the blocks cannot tell from it (``covariance``) times ``excess``."""
         return self.excess * (self.covariance if self.covariance is not None else self.fit.covariance)
 
+    @property
+    def test_covariance(self) -> np.ndarray:
+        """The covariance the test reads the difference against: the scene estimate's (``covariance``), plus the
+        given extrinsic's own carried to the estimate's tangent where it has one (two independent estimates)."""
+        C = self.covariance if self.covariance is not None else self.fit.covariance
+        if self.given_covariance is None:
+            return C
+        return C + given_in_tangent(self.given_covariance, self.T_given, self.fit.T_camera_lidar)
+
+    def smallest_flagged(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """How sensitive this check is: the turn about (deg) and the move along (mm) each of the camera's axes of
+        the given extrinsic that the test would flag at its level, were the scene's estimate where the given one is
+        (``scene_alignment.smallest_flagged``; inf along an axis the scene leaves free); None when undetermined."""
+        x = smallest_flagged(self.test_covariance, self.T_given, self.fit.blocks, ALPHA)
+        return None if x is None else (np.degrees(x[:3]), 1000 * x[3:])
+
     def camera_axes_sd(self) -> tuple[np.ndarray, np.ndarray]:
         """The scene estimate's standard deviations (``believed_covariance``): rotation about the camera's x, y, z
         (deg) and translation along them (mm)."""
@@ -122,6 +138,8 @@ class SceneCheck:
 
     def to_dict(self) -> dict:
         rot, trans = self.camera_axes_sd()
+        flagged = self.smallest_flagged()
+        finite = (lambda v: [float(x) if np.isfinite(x) else None for x in v])  # None: an axis the scene leaves free
         return {
             "verdict": self.verdict.to_dict(), "tool": "lidarcam", "version": __version__, "dataset": self.dataset,
             "consistent": self.consistent, "p_value": self.test["p_value"], "alpha": ALPHA,
@@ -129,7 +147,10 @@ class SceneCheck:
                                                "sandwich covariance with the minima's scatter, times "
                                                f"{self.excess:g}"
                                                + (", plus the given extrinsic's own covariance"
-                                                  if self.given_covariance is not None else "")},
+                                                  if self.given_covariance is not None else ""),
+                     "smallest_flagged": None if flagged is None else {
+                         "rotation_deg_about_camera_xyz": finite(flagged[0]),
+                         "translation_mm_along_camera_xyz": finite(flagged[1])}},
             "T_camera_lidar_given": self.T_given.tolist(), "convention": CONVENTION,
             "covariance_given": None if self.given_covariance is None else self.given_covariance.tolist(),
             "intrinsics": self.camera.as_dict(),
@@ -327,13 +348,11 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     cov = fits[0].covariance + minima_scatter(fits, views, camera, T_given)
     if sensors is None and is_rig(root):
         sensors = first_pair(root)
-    test = consistency(fits[0], T_given, covariance=cov if given_covariance is None else
-                       cov + given_in_tangent(given_covariance, T_given, fits[0].T_camera_lidar))
-    return SceneCheck(str(root), np.asarray(T_given, float), fits[0], test,
-                      tuple(v.name for v in views), skipped, camera, board is not None and not keep_board,
-                      time.perf_counter() - t0, tuple(views), tuple(rival_minima(fits)), cov,
-                      tuple(sensors) if sensors else None,
-                      given_covariance=None if given_covariance is None else np.asarray(given_covariance, float))
+    checked = SceneCheck(str(root), np.asarray(T_given, float), fits[0], {}, tuple(v.name for v in views), skipped,
+                         camera, board is not None and not keep_board, time.perf_counter() - t0, tuple(views),
+                         tuple(rival_minima(fits)), cov, tuple(sensors) if sensors else None,
+                         given_covariance=None if given_covariance is None else np.asarray(given_covariance, float))
+    return replace(checked, test=consistency(fits[0], T_given, covariance=checked.test_covariance))
 
 
 def given_in_tangent(C_given: np.ndarray, T_given: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ they are computed here from the regularised incomplete gamma function and its in
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtrc, chdtri, stdtr
+from scipy.special import chdtrc, chdtri, fdtri, stdtr
 from scipy.special import fdtrc as _fdtrc
 
 
@@ -35,6 +35,11 @@ def median(dof):
 def fdtrc(dfn, dfd, x):
     """P(X > x) for X ~ F(dfn, dfd)."""
     return _fdtrc(dfn, dfd, x)
+
+
+def f_isf(p, dfn, dfd):
+    """The x with P(X > x) = p for X ~ F(dfn, dfd)."""
+    return fdtri(dfn, dfd, 1.0 - p)
 
 
 def t_sf(t, dof):

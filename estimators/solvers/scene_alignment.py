@@ -52,6 +52,9 @@ from . import chi_square as chi2
 
 # A direction counts as constrained by the scene when its standard deviation is within these (rad, m).
 CONSTRAINED = (np.radians(1.0), 0.10)
+# A change along one camera axis that the check flags only beyond this many times ``CONSTRAINED`` is along a
+# direction the scene leaves free (``smallest_flagged``).
+FREE_BEYOND = 10.0
 # The starts of ``scene_minima`` about the given extrinsic (deg about, m along each camera axis); a minimum within
 # this share of the best's RMS residual and beyond its covariance's 0.999 region (chi-square, 6 dof) is a rival.
 START_DEG, START_M = 1.0, 0.05
@@ -558,6 +561,32 @@ def constrained_distance(covariance: np.ndarray, xi: np.ndarray, limits: tuple[f
     s = np.r_[np.full(3, 1.0 / limits[0]), np.full(3, 1.0 / limits[1])]
     z = V.T @ (s * xi)
     return float(np.sum(z ** 2 / lam)), int(V.shape[1])
+
+
+def smallest_flagged(covariance: np.ndarray, T_given: np.ndarray, blocks: int, alpha: float,
+                     limits: tuple[float, float] = CONSTRAINED) -> np.ndarray | None:
+    """How sensitive :func:`consistency`'s test is along each of the camera's axes: the turn about (rad) and the move
+    along (m) each axis of ``T_given`` (``Exp(d) T_given``, ``d`` one axis's turn or move in the camera's frame) at
+    which the test reaches its level ``alpha`` were the scene's estimate where ``T_given`` is, under ``covariance``
+    (the test's) over ``blocks`` blocks; (6,), inf along an axis the scene leaves free (a size beyond
+    ``FREE_BEYOND`` times ``limits``); None where the test is undetermined. The difference such a change makes,
+    ``Log(T_given^-1 Exp(d) T_given) = Ad(T_given^-1) d``, is linear in its size, and its squared distance
+    quadratic: each axis's size is the square root of the critical squared distance over that of a unit change. A
+    larger change is flagged more often than not, a smaller one less; where the scene's estimate lies off the given
+    extrinsic, changes towards it are flagged later. A change along one axis alone: one that turns and moves
+    together along the directions the scene confuses is flagged later still."""
+    from .factor_graph import adjoint
+
+    V, _ = constrained_directions(covariance, limits)
+    k, n = int(V.shape[1]), int(blocks)
+    if k == 0 or n <= k:
+        return None
+    d2_crit = float(chi2.f_isf(alpha, k, n - k)) * k * (n - 1) / (n - k)
+    A = adjoint(T_inverse(T_given))
+    unit = np.array([constrained_distance(covariance, A @ e, limits)[0] for e in np.eye(6)])
+    size = np.sqrt(d2_crit / np.maximum(unit, 1e-300))
+    # beyond ten times the constrained limits a size is the rounding of a free direction into the others
+    return np.where(size <= FREE_BEYOND * np.repeat(limits, 3), size, np.inf)
 
 
 def consistency(fit: SceneFit, T_given: np.ndarray, limits: tuple[float, float] = CONSTRAINED,
