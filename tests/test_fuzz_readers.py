@@ -166,7 +166,10 @@ def test_a_plan_whose_board_is_out_of_reach_is_refused_and_a_far_one_analysed(tm
     plan["poses"][-1]["centre_m"][2] = 2**31
     with pytest.raises(LidarcamError, match="centre_m must be within 1000 m"):
         layout_from_plan(plan, str(tmp_path / "PLAN.yaml"))
-    plan["poses"][-1]["centre_m"][2] = 999.0  # allowed, and it adds almost nothing
+    plan["poses"][-1]["centre_m"][2] = 999.0  # within reach, but its squares span a fraction of a pixel
+    with pytest.raises(LidarcamError, match="px in the image"):
+        layout_from_plan(plan, str(tmp_path / "PLAN.yaml"))
+    plan["poses"][-1]["centre_m"][2] = 10.0  # far, still found: it adds little, and nothing singular
     analysis = analyse(layout_from_plan(plan, "PLAN.yaml")[0])
     assert np.all(np.isfinite(analysis.covariance)) and np.linalg.eigvalsh(analysis.covariance)[0] > 0
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import yaml
 
 from estimators.analysis.layout_analysis import analyse, layout_from_plan, suggest_poses, turned_boards
 from estimators.cli import main
+from estimators.errors import DatasetError
 from estimators.solvers.observation_model import cramer_rao_bound
 from estimators.solvers.refinement_options import RefinementOptions
 from geometry.rotations import R_from_rotvec, T_from_Rt
@@ -46,6 +48,27 @@ def test_degenerate_plan_is_explained_not_crashed_on():
     assert "camera y" in a.weakest_words and "unobservable" in a.weakest_words
     assert not np.all(np.isfinite(a.std_translation_mm))
     assert "unobservable" in a.format()
+
+
+def test_one_pose_planned_three_times_is_unobservable_with_its_edges_too(tmp_path):
+    """The edges' bound of a layout that leaves directions free prints them unobservable, as the planes' does (it
+    printed standard deviations of 14 km), and the JSON says null, not Infinity."""
+    layout, _ = layout_from_plan(dict(PLAN, poses=[PLAN["poses"][0]] * 3))
+    a = analyse(layout)
+    assert not np.all(np.isfinite(a.edges["translation_std_mm"]))
+    assert "unobservable" in a.format().splitlines()[-1] or "unobservable" in a.format().splitlines()[-2]
+    text = json.dumps(a.to_dict())
+    assert "Infinity" not in text and None in json.loads(text)["predicted_std"]["translation_mm_along_lidar_xyz"]
+
+
+def test_planned_poses_the_camera_cannot_find_the_board_in_are_refused():
+    """A pose's board seen edge-on, too far for its squares to resolve, or partly outside the image predicts
+    information no recording holds: the plan is refused naming the pose."""
+    for change, words in (({"tilt_deg": 85}, "from face-on"), ({"centre_m": [0.0, 0.0, 400.0]}, "px in the image"),
+                          ({"centre_m": [3.0, 0.0, 3.0]}, "outside the image")):
+        poses = [dict(PLAN["poses"][0], **change)] + PLAN["poses"][1:]
+        with pytest.raises(DatasetError, match=rf"pose 1: .*{words}"):
+            layout_from_plan(dict(PLAN, poses=poses))
 
 
 def test_suggested_pose_lowers_the_predicted_uncertainty():

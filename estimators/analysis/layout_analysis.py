@@ -73,15 +73,18 @@ class LayoutAnalysis:
 
     def to_dict(self) -> dict:
         return {"frames": list(self.names),
-                "predicted_std": {"rotation_deg_about_lidar_xyz": self.std_rotation_deg.tolist(),
-                                  "translation_mm_along_lidar_xyz": self.std_translation_mm.tolist()},
+                "predicted_std": {"rotation_deg_about_lidar_xyz": _finite(self.std_rotation_deg),
+                                  "translation_mm_along_lidar_xyz": _finite(self.std_translation_mm)},
                 "predicted_covariance": np.where(np.isfinite(self.covariance), self.covariance, None).tolist(),
                 "normal_singular_values": self.normal_singular_values.tolist(),
-                "condition_number": self.condition_number,
+                "condition_number": _finite([self.condition_number])[0],
                 "d_optimality_per_mrad_mm": self.d_optimality, "e_optimality_per_mrad_mm": self.e_optimality,
                 "weakest_direction": self.weakest_words,
                 "leverage": dict(zip(self.names, self.leverage.tolist())),
-                "with_range_offset": self.offset, "with_board_edges": self.edges}
+                "with_range_offset": self.offset,
+                "with_board_edges": None if self.edges is None else {
+                    k: ({kk: _finite(vv) for kk, vv in v.items()} if isinstance(v, dict) else
+                        _finite(v) if isinstance(v, np.ndarray) else v) for k, v in self.edges.items()}}
 
     def format(self) -> str:
         def fmt(v, unit, digits):
@@ -106,14 +109,13 @@ class LayoutAnalysis:
             lines += [("with the segment ends on the boards' edges (used by default): rotation " if e.get("scan_line")
                        else "with the ring ends on the boards' edges (used by default; --no-edges: the planes alone): "
                             "rotation ")
-                      + "  ".join(f"{v:.3f}" for v in e["rotation_std_deg"]) + " deg; translation "
-                      + "  ".join(f"{v:.2f}" for v in e["translation_std_mm"]) + " mm"]
+                      + fmt(e["rotation_std_deg"], "deg", 3) + "; translation " + fmt(e["translation_std_mm"], "mm", 2)]
             if "turned_45_deg" in e:
                 t = e["turned_45_deg"]
                 lines += ["  with every board turned 45 degrees about its normal (the rings then leave each board by "
                           "slanted sides, which fix both directions along it; keep the turned boards in view): "
-                          "rotation " + "  ".join(f"{v:.3f}" for v in t["rotation_std_deg"]) + " deg; translation "
-                          + "  ".join(f"{v:.2f}" for v in t["translation_std_mm"]) + " mm"]
+                          "rotation " + fmt(t["rotation_std_deg"], "deg", 3) + "; translation "
+                          + fmt(t["translation_std_mm"], "mm", 2)]
         return "\n".join(lines)
 
 
@@ -150,12 +152,7 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
     names = tuple(names or [f"{i:04d}" for i in range(layout.n_frames)])
     shares = [frame_contribution(frame_information(layout, i)) for i in range(layout.n_frames)]
     F = np.sum(shares, axis=0) if shares else np.zeros((6, 6))
-    Fs = F / np.outer(_SCALE, _SCALE)
-    vals, vecs = np.linalg.eigh(Fs)
-    tiny = vals <= 1e-9 * max(vals[-1], 1e-300)
-    inv = np.where(tiny, np.inf, 1.0 / np.where(tiny, 1.0, vals))
-    cov_s = (vecs * inv) @ vecs.T if not tiny.any() else _cov_with_inf(vecs, inv)
-    cov = cov_s / np.outer(_SCALE, _SCALE)
+    cov, vals, vecs, tiny = _bound(F)
     normals = np.array([T[:3, 2] for T in layout.T_camera_board]).reshape(-1, 3)
     s, _ = normal_spread(normals) if len(normals) else (np.zeros(3), None)
     D = _d_opt(F)
@@ -166,6 +163,17 @@ def analyse(layout: Layout, names: list[str] | None = None) -> LayoutAnalysis:
         offset = None
     return LayoutAnalysis(names, cov, F, s, D, float(vals[0]), _weakest_words(vecs[:, 0], layout, tiny[0]),
                           leverage, offset, _with_edges(layout))
+
+
+def _bound(F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The covariance bound of information ``F`` (6x6, rad and m), inf along the directions it leaves free (an
+    eigenvalue of the scaled information within 1e-9 of its largest), with the scaled eigenvalues, their vectors
+    and which are free."""
+    vals, vecs = np.linalg.eigh(F / np.outer(_SCALE, _SCALE))
+    tiny = vals <= 1e-9 * max(vals[-1], 1e-300)
+    inv = np.where(tiny, np.inf, 1.0 / np.where(tiny, 1.0, vals))
+    cov_s = (vecs * inv) @ vecs.T if not tiny.any() else _cov_with_inf(vecs, inv)
+    return cov_s / np.outer(_SCALE, _SCALE), vals, vecs, tiny
 
 
 def _with_edges(layout: Layout) -> dict | None:
@@ -192,12 +200,18 @@ def _with_edges(layout: Layout) -> dict | None:
 
 
 def _edges_sd(layout: Layout) -> np.ndarray:
-    """The six standard deviations of the edges' bound (rad, m); ``LinAlgError`` where it is singular."""
-    return np.sqrt(np.maximum(np.diag(np.linalg.inv(edges_information(layout))), 0.0))
+    """The six standard deviations of the edges' bound (rad, m), inf along what they leave free (as
+    :func:`analyse`'s: inverted as it came, a layout of one pose repeated printed 14 km)."""
+    return np.sqrt(np.maximum(np.diag(_bound(edges_information(layout))[0]), 0.0))
 
 
 def _sd_dict(sd: np.ndarray) -> dict:
-    return {"rotation_std_deg": np.degrees(sd[:3]).tolist(), "translation_std_mm": (1000 * sd[3:]).tolist()}
+    return {"rotation_std_deg": np.degrees(sd[:3]), "translation_std_mm": 1000 * sd[3:]}
+
+
+def _finite(v) -> list:
+    """``v`` as a JSON list: an unobservable (infinite) value as null."""
+    return [float(x) if np.isfinite(x) else None for x in v]
 
 
 # The boards turned 45 degrees about their normals are suggested (``lidarcam layout``, with the edges) when that
@@ -333,6 +347,10 @@ def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
             raise ValueError("T_camera_lidar must be a finite 4x4 matrix")
         if not all(np.all(np.isfinite(T)) for T in poses):
             raise ValueError("every pose must be finite")
+        for k, T in enumerate(poses):
+            why = _unseen(camera, board, T)
+            if why:
+                raise ValueError(f"pose {k + 1}: {why}")
         if not (np.isfinite(corner_noise) and corner_noise > 0 and np.isfinite(beams.sigma_range_m)
                 and beams.sigma_range_m > 0):
             raise ValueError("corner_noise_px and range_noise_m must be positive and finite")
@@ -346,6 +364,37 @@ def layout_from_plan(plan: dict, source: str = "plan") -> tuple[Layout, Rig]:
 
 # A planned board further than this from the camera is a typo (no camera resolves a board there).
 MAX_PLAN_DISTANCE_M = 1000.0
+
+
+# A planned board the camera cannot find predicts information no recording holds: its normal this far from the line
+# of sight to its centre (foreshortened 2.9 times), or its squares this small in the image (median side, px).
+MAX_VIEW_DEG, MIN_SQUARE_PX = 70.0, 5.0
+
+
+def _unseen(camera, board, T: np.ndarray) -> str:
+    """Why the camera would not find the board at ``T_camera_board`` ("" where it would): corners behind it or out
+    of the image (a ChArUco board may be cut, ``min_in_image``), the board seen edge-on, or its squares too small."""
+    from geometry.rotations import transform_points
+
+    corners = transform_points(T, board.inner_corners())
+    if np.any(corners[:, 2] <= 0):
+        return "some of the board's corners are behind the camera"
+    inside = float(np.mean(camera.sees(corners, margin_px=15.0)))
+    if inside < min_in_image(board):
+        return f"{1 - inside:.0%} of the board's corners fall outside the image"
+    centre = T[:3, :3] @ board.centre + T[:3, 3]
+    angle = np.degrees(np.arccos(min(abs(float(T[:3, 2] @ centre)) / float(np.linalg.norm(centre)), 1.0)))
+    if angle > MAX_VIEW_DEG:
+        return (f"the board is seen {angle:.0f} degrees from face-on (its corners are not found beyond "
+                f"{MAX_VIEW_DEG:g})")
+    cols, rows = board.inner_corners_shape
+    uv = camera.project(corners).reshape(rows, cols, 2)
+    sides = np.concatenate([np.linalg.norm(np.diff(uv, axis=0), axis=2).ravel(),
+                            np.linalg.norm(np.diff(uv, axis=1), axis=2).ravel()])
+    if float(np.median(sides)) < MIN_SQUARE_PX:
+        return (f"its squares are {np.median(sides):.1f} px in the image (its corners are not found below "
+                f"{MIN_SQUARE_PX:g} px): bring it nearer")
+    return ""
 
 
 def _plan_pose(p: dict, board) -> np.ndarray:
