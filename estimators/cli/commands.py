@@ -533,6 +533,7 @@ def layout_command(args) -> int:
     from ..errors import DatasetError
     from ..io.input_files import load_yaml
     from ..io.output import write_json_atomic
+    from .parser import MAX_SUGGESTED
 
     src = Path(args.source)
     from ..io.rig_dataset import is_rig
@@ -563,7 +564,7 @@ def layout_command(args) -> int:
     if args.suggest > 0 or args.target:
         from ..analysis.layout_analysis import meets
 
-        k_max = args.suggest if not args.target else max(args.suggest, 40)
+        k_max = args.suggest if not args.target else MAX_SUGGESTED
         target = tuple(args.target) if args.target else None
         print(f"suggested poses (greedy, D-optimal among sampled feasible poses, seed {args.seed}):")
         out["suggestions"] = []
@@ -598,6 +599,7 @@ def _layout_rig(args) -> int:
 
     from ..analysis.rig_layout import next_pose_words, suggest_rig_poses
     from ..errors import LidarcamError
+    from .parser import MAX_SUGGESTED
     from ..io.output import write_json_atomic
     from ..io.rig_dataset import load_rig
     from ..rig_calibration import calibrate_rig
@@ -620,7 +622,7 @@ def _layout_rig(args) -> int:
     out = {k: v for k, v in layout.items() if k != "next_pose"}
     if args.suggest > 0 or args.target:
         target = tuple(args.target) if args.target else None
-        found = suggest_rig_poses(result, args.suggest if not target else max(args.suggest, 40),
+        found = suggest_rig_poses(result, args.suggest if not target else MAX_SUGGESTED,
                                   np.random.default_rng(args.seed), target)
         print(f"suggested poses (greedy, each for the pair then weakest, among sampled feasible poses, seed "
               f"{args.seed}):")

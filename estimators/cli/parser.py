@@ -161,9 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--suggest 3")
     la.add_argument("source", help="a dataset folder (measured frames) or a PLAN.yaml (planned poses)")
     la.add_argument("--json", default=None, metavar="FILE", help="also write the analysis as JSON")
-    la.add_argument("--suggest", type=int, default=0, metavar="K", help="suggest K board poses to add, greedily")
+    la.add_argument("--suggest", type=_suggestions, default=0, metavar="K",
+                    help=f"suggest K board poses to add, greedily (at most {MAX_SUGGESTED})")
     la.add_argument("--target", nargs=2, type=_positive, default=None, metavar=("DEG", "MM"),
-                    help="add suggested poses until every axis's predicted std is within DEG and MM (up to 40)")
+                    help=f"add suggested poses until every axis's predicted std is within DEG and MM (up to "
+                         f"{MAX_SUGGESTED})")
     la.add_argument("--lidar-model", default="hdl64e", choices=["hdl64e", "vlp16", "os64"],
                     help="beam model for suggestions on a 3D dataset (a 2D dataset uses the 2D scanner model; a plan "
                          "names its own)")
@@ -258,6 +260,20 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="seed of the simulation and the solve")
     _solver_arguments(d)
     return p
+
+
+# The most poses ``layout`` suggests (each is a greedy search over sampled poses: a few seconds each).
+MAX_SUGGESTED = 40
+
+
+def _suggestions(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 0 <= v <= MAX_SUGGESTED:
+        raise argparse.ArgumentTypeError(f"expected 0 to {MAX_SUGGESTED} poses, got {v}")
+    return v
 
 
 def _positive(text: str) -> float:
