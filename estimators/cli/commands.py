@@ -73,7 +73,7 @@ def _calibrate_rig(args) -> int:
     measurements.npz beside the rig's measurements folder)."""
     import numpy as np
 
-    from ..errors import LidarcamError
+    from ..errors import LidarcamError, about
     from ..io.measurement_store import load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
     from ..rig_calibration import calibrate_rig, pair_guess
@@ -94,8 +94,9 @@ def _calibrate_rig(args) -> int:
         if args.scene and not scene_pairs:
             raise LidarcamError("--scene takes a 3D LiDAR's sweeps, and this folder's LiDARs are 2D scanners",
                                 path=args.dataset, hint="calibrate without --scene")
-        result = calibrate_rig(rig, rng, samples=args.samples, cache=not args.no_cache, measurements=given,
-                               hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
+        with about(args.dataset):  # a solver's error names the folder it is about
+            result = calibrate_rig(rig, rng, samples=args.samples, cache=not args.no_cache, measurements=given,
+                                   hints=guide, on_solved=_draw_ahead(figures), **_rig_settings(args))
         if args.scene:
             from ..pipeline.scene_witness import with_scene
 
