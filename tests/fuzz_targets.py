@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from estimators.analysis.layout_analysis import analyse, layout_from_plan
 from estimators.analysis.study import parse_spec
-from estimators.pipeline.measurement import parse_initial_guess, parse_rig_guess
+from estimators.pipeline.measurement import given_camera, given_covariance, parse_initial_guess, parse_rig_guess
 from estimators.io.dataset import load_dataset
 from estimators.io.export import FORMATS, export_calibration, load_calibration
 from estimators.io.image_io import read_gray
@@ -223,6 +223,19 @@ def _read_motion(path: Path):
     return load_motion_track(path.parent).sweeps()
 
 
+def _checked_calibration_json() -> bytes:
+    """A calibration.json as ``lidarcam check`` reads it: the extrinsic, its covariance and the intrinsics."""
+    data = json.loads(_calibration_json())
+    cam = default_camera()
+    data["intrinsics"] = {"model": cam.model, "width": cam.width, "height": cam.height, "K": cam.K.tolist(),
+                          "dist": cam.dist.tolist()}
+    return json.dumps(data, indent=1).encode()
+
+
+def _read_checked(path: Path):
+    return parse_initial_guess([str(path)]), given_covariance(str(path)), given_camera(str(path))
+
+
 def _read_calibration(path: Path):
     data = load_calibration(path)
     return [export_calibration(data, fmt) for fmt in FORMATS]
@@ -281,6 +294,7 @@ FILE_TARGETS = (
     FileTarget("study_yaml", ".yaml", lambda t: _study_yaml(), _read_study),
     FileTarget("calibration_json", ".json", lambda t: _calibration_json(), _read_calibration),
     FileTarget("motion_npz", ".npz", _motion_npz, _read_motion),
+    FileTarget("check_calibration_json", ".json", lambda t: _checked_calibration_json(), _read_checked),
     FileTarget("initial_guess_json", ".json", lambda t: _calibration_json(),
                lambda p: parse_initial_guess([str(p)])),
     FileTarget("rig_initial_guess_json", ".json", lambda t: _rig_calibration_json(),
