@@ -19,7 +19,9 @@ estimate's error and NEES (6 dof) against the truth under the covariance the che
 it was sought from: from the truth itself the search can stop where it starts, so the turned and moved cases' estimates
 are the fairer measure of the covariance. Beside the flagged counts: how many a test would flag on
 average were the truth's reported covariance the scene estimate's own and the estimate unbiased (the noncentral
-F's power against each difference), which is what the scene's information allows at the test's level.
+F's power against each difference), which is what the scene's information allows at the test's level; and
+beside the truth's: the median over its checks of the smallest change along one camera axis each flags at its
+level (``SceneCheck.smallest_flagged``, the largest over the axes): the size from which a check tells a change.
 """
 from __future__ import annotations
 
@@ -110,6 +112,9 @@ def _trial(job: tuple[str, int]) -> list[dict]:
                                           T_log(T_inverse(truth) @ T))
                 if name == "truth":
                     at_truth = c
+                    flagged_from = c.smallest_flagged()  # the largest over the axes: every one-axis change beyond
+                    if flagged_from is not None:         # it reaches the test's level
+                        row["flagged_from"] = (float(np.max(flagged_from[0])), float(np.max(flagged_from[1])))
                 # the estimate against the truth from every start: from the truth itself the search can stay where
                 # it starts (a local minimum), so the truth's row alone would understate the error
                 xi = T_log(T_inverse(c.fit.T_camera_lidar) @ truth)
@@ -118,6 +123,16 @@ def _trial(job: tuple[str, int]) -> list[dict]:
                            nees=float(xi @ np.linalg.solve(c.believed_covariance, xi)))
                 rows.append(row)
     return rows
+
+
+def _flagged_from(rows: list[dict]) -> str:
+    """The median over the truth's checks of the smallest one-axis change each flags at its level (the largest over
+    the camera's axes: ``SceneCheck.smallest_flagged``), a turn (deg) and a move (mm)."""
+    got = [r["flagged_from"] for r in rows if "flagged_from" in r]
+    if not got:
+        return "-"
+    rot, mm = np.median([g[0] for g in got]), np.median([g[1] for g in got])
+    return f"{rot:.2f} deg, {mm:.0f} mm"
 
 
 def main() -> None:
@@ -136,8 +151,8 @@ def main() -> None:
           f"checked under the truth, the truth turned by {TURN_DEG} deg about a random axis and moved by "
           f"{100 * MOVE_M:.0f} cm along a random direction; flagged: p < 0.01\n")
     print("| scenes | LiDAR | board | case | checks | flagged | median p | undetermined | refused | seconds (median) | "
-          "estimate from the given's start | expected from the scene's covariance |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "estimate from the given's start | expected from the scene's covariance | flagged from (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     configs = [(g, m, b) for g in generators for m in MODELS
                for b in (("none",) if g == "room" else ("left out", "kept"))]
     for g, model, board in configs:
@@ -152,7 +167,8 @@ def main() -> None:
                   f"{np.median([r['seconds'] for r in done]) if done else float('nan'):.1f} | "
                   f"{sum(r['nearest'] for r in done)} of {len(done)} | "
                   + (f"{np.nansum([r['power'] for r in tested if 'power' in r]):.1f} of "
-                     f"{sum('power' in r for r in tested)} |" if case != "truth" else "(1% of them) |"))
+                     f"{sum('power' in r for r in tested)} |" if case != "truth" else "(1% of them) |")
+                  + (f" {_flagged_from(tested)} |" if case == "truth" else " |"))
     print("\nThe scene's estimate against the truth, by the given extrinsic it was sought from (the truth, or the "
           "truth turned or moved as above; each with its 12 starts about it):\n")
     print("| scenes | LiDAR | board | sought from | estimates | rotation error RMS | translation error RMS | "
