@@ -200,6 +200,20 @@ def test_missing_dataset_is_one_line_exit_2(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_out_that_is_a_file_or_the_dataset_itself_is_one_line_exit_2(tmp_path, capsys):
+    """``--out`` a file raised FileExistsError; ``--out`` the dataset folder wrote the report's images into it, and
+    the next run refused the folder (an image without a scan)."""
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "0000.png").write_bytes(b"")
+    for out, words in ((ds / "0000.png", "--out is a file"), (ds, "--out is the dataset folder itself")):
+        for args in (["calibrate", str(ds)], ["check", str(ds), "--calibration", "c.json"]):
+            assert main([*args, "--out", str(out)]) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and words in err
+    assert sorted(p.name for p in ds.iterdir()) == ["0000.png"]
+
+
 def test_too_few_frames_and_corrupt_scan_leave_no_output(sim_hdl64e, tmp_path):
     few = tmp_path / "few"
     few.mkdir()

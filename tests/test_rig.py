@@ -817,6 +817,10 @@ def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_p
     for k, v in cal["transforms"].items():
         np.testing.assert_allclose(cal2["transforms"][k]["T"], v["T"], atol=1e-9)
     rm = load_rig_measurements(out / "measurements")
+    pair_file = tmp_path / "measurements.npz"  # a pair's file where the rig's folder belongs
+    pair_file.write_bytes(b"")
+    with pytest.raises(DatasetError, match="a file, where a rig's measurements folder is expected"):
+        load_rig_measurements(pair_file)
     with pytest.raises(DatasetError, match="sensors this rig does not have"):
         given_measurements(load_rig(rig_folder), replace(rm, cameras={"camX": rm.cameras["cam0"]}),
                            np.random.default_rng(0))

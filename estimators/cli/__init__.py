@@ -32,6 +32,28 @@ def run() -> None:
     os._exit(code)
 
 
+def _check_out(args) -> None:
+    """``--out`` must be a folder (made when missing), and for a command that reads a dataset folder not that folder
+    itself: its report's images (``board_choice_lidar0_0000.png``) would be read as frames the next time, and the
+    folder refused. One-line errors, before anything is read or written."""
+    from pathlib import Path
+
+    from ..errors import LidarcamError
+
+    out = getattr(args, "out", None)
+    if not out:
+        return
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise LidarcamError("--out is a file, where a folder for the results is expected", path=out,
+                            hint="give a folder (made when missing)")
+    dataset = getattr(args, "dataset", None)
+    if dataset and args.command in ("calibrate", "validate", "check") and Path(dataset).is_dir() and out.exists() \
+            and out.resolve() == Path(dataset).resolve():
+        raise LidarcamError("--out is the dataset folder itself: the results' files would be read as its frames "
+                            "next time", path=out, hint="give another folder, e.g. a new one beside it")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     spec_study = len(argv) >= 2 and argv[0] == "study" and argv[1] not in ("coverage", "-h", "--help")
@@ -47,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if spec_study:
             return study_spec_command(argv[1:])
+        _check_out(args)
         return handlers[args.command](args)
     except LidarcamError as exc:
         print(f"lidarcam: error: {exc.message}", file=sys.stderr)

@@ -163,6 +163,10 @@ def load_rig_measurements(folder: str | Path) -> RigMeasurements:
     folder = Path(folder)
     if folder.name == "index.json":
         folder = folder.parent
+    if folder.is_file():  # a pair's measurements.npz or .json given for a rig folder
+        raise DatasetError("a file, where a rig's measurements folder is expected (a pair's measurements.npz is "
+                           "read with its pair's folder)", path=folder,
+                           hint="give the measurements folder `lidarcam calibrate RIG` wrote (it holds index.json)")
     index = load_json(folder / "index.json", "rig measurements index",
                       "give the measurements folder that `lidarcam calibrate RIG` wrote (it holds index.json)")
     try:
