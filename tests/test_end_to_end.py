@@ -200,6 +200,38 @@ def test_missing_dataset_is_one_line_exit_2(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("args, words", [
+    (["calibrate", "DS", "--seed", "-1"], "--seed: expected a whole number of at least 0"),
+    (["calibrate", "DS", "--range-noise-m", "1e-9"], "--range-noise-m: expected a number from 0.0001 to 1 m"),
+    (["calibrate", "DS", "--range-accuracy", "100"], "--range-accuracy: expected a number from 0.0001 to 1 m"),
+    (["calibrate", "DS", "--corner-noise-px", "nan"], "--corner-noise-px: expected a number from 0.001 to 20 px"),
+    (["calibrate", "DS", "--max-sensor-separation", "0"], "--max-sensor-separation: expected a positive number"),
+    (["calibrate", "DS", "--roi", "nan", "0", "0", "1", "1", "1"], "--roi: expected a finite number"),
+    (["calibrate", "DS", "--samples", "-5"], "--samples: expected a whole number of at least 0"),
+    (["simulate", "--range-noise", "-1"], "--range-noise: expected a number from 0 to 1 m"),
+    (["simulate", "--range-bias", "nan", "0", "0"], "--range-bias: expected a number from -1 to 1 m"),
+    (["simulate", "--poses", "0"], "--poses: expected a whole number of at least 1"),
+])
+def test_numbers_outside_their_physics_are_refused_by_the_parser(args, words, tmp_path, capsys):
+    """Each of these ended in a traceback (a negative seed, a range noise of 1e-9 m: LinAlgError), a silent
+    nonsense (a NaN box, a NaN range bias written into a dataset) or exit 1; now the parser's one line, exit 2."""
+    argv = [a.replace("DS", str(tmp_path)) for a in args] + ["--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and words in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_initial_guess_of_six_numbers_must_be_finite():
+    """A NaN angle went on into the board gate's plane normals (a ValueError traceback)."""
+    from estimators.errors import DatasetError
+    from estimators.pipeline.measurement import parse_initial_guess
+
+    for bad in (["0", "0", "0", "nan", "0", "0"], ["0", "0", "0", "0", "0", "inf"]):
+        with pytest.raises(DatasetError, match="is not six finite numbers"):
+            parse_initial_guess(bad)
+
+
 def test_an_out_that_is_a_file_or_the_dataset_itself_is_one_line_exit_2(tmp_path, capsys):
     """``--out`` a file raised FileExistsError; ``--out`` the dataset folder wrote the report's images into it, and
     the next run refused the folder (an image without a scan)."""

@@ -5,6 +5,7 @@ import contextlib
 import sys
 from pathlib import Path
 
+from ..errors import LidarcamError as UsageError  # an option given wrong: one line, exit 2
 from .parser import board_argument, hints, refinement_options, study_spec_parser
 from .printing import export_hint, print_result, print_rig, print_truth, source_words
 
@@ -239,8 +240,6 @@ def _rig_settings(args) -> dict:
     ``--split`` take the same)."""
     from ..lidar.board_segmentation import SegmentationParams
 
-    if args.samples < 0:
-        raise SystemExit("lidarcam: error: --samples must be 0 (skip) or positive")
     return dict(refine_intrinsics=args.refine_intrinsics, range_model=args.range_model, edges=args.edges,
                 likelihood=args.likelihood, options=refinement_options(args), init=getattr(args, "init", "closed-form"),
                 params=SegmentationParams(max_sensor_separation_m=getattr(args, "max_sensor_separation", 1.0)))
@@ -481,21 +480,19 @@ def validate_command(args) -> int:
 def simulate_command(args) -> int:
     from ..simulation.simulator import simulate_dataset
 
-    if args.poses < 1:
-        raise SystemExit("lidarcam: error: --poses must be at least 1")
     if args.cameras == 1 and (args.lidars != 1 or args.scanners != 0):
-        raise SystemExit("lidarcam: error: --lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
+        raise UsageError("--lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
     if args.cameras != 1:
         if args.cameras < 2 or args.lidar == "2d":
-            raise SystemExit("lidarcam: error: --cameras N (2 or more) writes a rig folder with a 3D LiDAR")
+            raise UsageError("--cameras N (2 or more) writes a rig folder with a 3D LiDAR")
         from ..simulation.rig_simulator import simulate_rig
 
         if args.lidars not in (1, 2):
-            raise SystemExit("lidarcam: error: --lidars is 1 or 2")
+            raise UsageError("--lidars is 1 or 2")
         if args.scanners not in (0, 1):
-            raise SystemExit("lidarcam: error: --scanners is 0 or 1")
+            raise UsageError("--scanners is 0 or 1")
         if args.range_bias_from_priors is not None:
-            raise SystemExit("lidarcam: error: --range-bias-from-priors is for a single pair (a rig takes "
+            raise UsageError("--range-bias-from-priors is for a single pair (a rig takes "
                              "--range-bias, injected into lidar0)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
                            args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias),
@@ -507,12 +504,12 @@ def simulate_command(args) -> int:
     fmt = args.scan_format or ("csv" if two_d else "pcd")
     allowed = ("csv", "npy", "pcd") if two_d else ("pcd", "ply", "bin", "npy")
     if fmt not in allowed:
-        raise SystemExit(f"lidarcam: error: --scan-format {fmt} is not a {args.lidar} scan format (use one of "
+        raise UsageError(f"--scan-format {fmt} is not a {args.lidar} scan format (use one of "
                          f"{', '.join(allowed)})")
     if args.rig != "default" and not two_d:
-        raise SystemExit("lidarcam: error: --rig varied is a 2D rig (add --lidar 2d)")
+        raise UsageError("--rig varied is a 2D rig (add --lidar 2d)")
     if args.outside_image_share is not None and (args.pattern != "charuco" or not 0 <= args.outside_image_share <= 1):
-        raise SystemExit("lidarcam: error: --outside-image-share is a share (0 to 1) of the poses of a charuco board "
+        raise UsageError("--outside-image-share is a share (0 to 1) of the poses of a charuco board "
                          "(a checkerboard must be seen whole)")
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
@@ -639,7 +636,7 @@ def study_command(args) -> int:
     from ..analysis.coverage_study import format_summary, run_study
 
     if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
-        raise SystemExit("lidarcam: error: --trials, --samples and --workers must be positive and --frames >= 3")
+        raise UsageError("--trials, --samples and --workers must be positive and --frames >= 3")
     summary = run_study(args.trials, args.out, args.mode, args.seed, args.workers, args.frames, args.samples,
                         progress=sys.stderr.isatty(), likelihood=args.likelihood)
     print(format_summary(summary))
@@ -656,7 +653,7 @@ def study_spec_command(argv: list[str]) -> int:
     raw = load_yaml(path, "study spec", "fix the spec (see docs/howto/studies.md)")
     spec = parse_spec(raw, str(path))
     if args.workers < 1:
-        raise SystemExit("lidarcam: error: --workers must be positive")
+        raise UsageError("--workers must be positive")
     where = args.scheduler or f"{args.workers} local process(es)"
     print(f"{spec.name}: {spec.n_trials} trials x {len(spec.solvers)} solvers on {where}")
     rows = run_study(spec, args.out, args.workers, args.scheduler, progress=sys.stderr.isatty())
@@ -671,12 +668,12 @@ def extract_command(args) -> int:
     options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
                              check_hz=args.check_hz, scan_format=args.scan_format)
     if not args.cloud_topic and not args.scan_topic:
-        raise SystemExit("lidarcam: error: give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
+        raise UsageError("give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
     if len(args.image_topic) + len(args.cloud_topic) + len(args.scan_topic) > 2:  # a rig folder
         from ..io.rig_bag_extract import extract_rig_bag
 
         if args.camera_info_topic is not None or args.intrinsics is not None:
-            raise SystemExit("lidarcam: error: --camera-info-topic and --intrinsics are for one camera; a rig's "
+            raise UsageError("--camera-info-topic and --intrinsics are for one camera; a rig's "
                              "cameras each take the CameraInfo beside their image topic")
         rig = extract_rig_bag(args.bag, args.out, board_argument(args.board), args.image_topic, args.cloud_topic,
                               args.scan_topic, use_camera_info=not args.no_camera_info, options=options,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 
@@ -26,8 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the verdict) or the answer is ambiguous (a 2D LiDAR's second solution holds at least 5%% "
                         "of the posterior mass)")
     _solver_arguments(c)
-    c.add_argument("--seed", type=int, default=0, help="seed of the segmentation's RANSAC")
-    c.add_argument("--max-sensor-separation", type=float, default=1.0, metavar="M",
+    c.add_argument("--seed", type=_SEED, default=0, help="seed of the segmentation's RANSAC")
+    c.add_argument("--max-sensor-separation", type=_positive, default=1.0, metavar="M",
                    help="upper bound on the camera-LiDAR distance, used to gate the board by range (m)")
     c.add_argument("--initial-guess", nargs="+", default=None, metavar="V",
                    help="optional hint for scenes beyond automation: a rough T_camera_lidar as 'x y z roll pitch "
@@ -35,16 +36,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "matrix as .json/.txt/.npy); for a rig folder, a rig's calibration.json (each camera-LiDAR "
                         "pair's transform its guess); LiDAR candidates farther than --guess-tolerance from it are "
                         "rejected (it is never a factor)")
-    c.add_argument("--guess-tolerance", nargs=2, type=float, default=(10.0, 0.30), metavar=("DEG", "M"),
+    c.add_argument("--guess-tolerance", nargs=2, type=_positive, default=(10.0, 0.30), metavar=("DEG", "M"),
                    help="plane angle and distance a candidate may differ by under --initial-guess (10 deg 0.30 m)")
-    c.add_argument("--roi", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+    c.add_argument("--roi", nargs=6, type=_finite, default=None,
+                   metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                    help="optional hint: only LiDAR points inside this box (LiDAR frame, m) are searched")
     c.add_argument("--measurements", default=None, metavar="FILE",
                    help="solve from a measurements.npz that an earlier calibrate wrote (images and scans are not "
                         "read)")
     c.add_argument("--no-cache", action="store_true",
                    help="measure again even when the measurement cache holds this dataset (docs/reference/cli.md)")
-    c.add_argument("--cross-validate", type=int, default=0, metavar="K",
+    c.add_argument("--cross-validate", type=_whole(0), default=0, metavar="K",
                    help="also score K folds of frames, each under the calibration of the others (validation.json)")
     c.add_argument("--split", default=None, choices=["halves", "interleaved"],
                    help="also calibrate two halves apart and test their difference against their covariances "
@@ -62,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--keep-board", action="store_true",
                    help="--targetless: keep a board's edges and contours (by default left out where the camera "
                         "finds it)")
-    c.add_argument("--time-offset", type=float, default=None, metavar="S",
+    c.add_argument("--time-offset", type=_finite, default=None, metavar="S",
                    help="a moving board's recording: hold the sensors' clock offset (t_camera_stamp - t_lidar_stamp, "
                         "s) at S instead of solving it with the extrinsic (0: the clocks taken as synchronised)")
 
@@ -75,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("dataset", help="a dataset folder (frames the calibration did not use are held out)")
     v.add_argument("--calibration", required=True, help="calibration.json (or the folder holding it)")
     v.add_argument("--out", default=None, help="folder for validation.json (default: the calibration's folder)")
-    v.add_argument("--seed", type=int, default=0, help="seed of the board segmentation's RANSAC")
+    v.add_argument("--seed", type=_SEED, default=0, help="seed of the board segmentation's RANSAC")
     v.add_argument("--measurements", default=None, metavar="PATH",
                    help="score the measurements an earlier calibrate wrote (OUT/measurements.npz for a pair folder, "
                         "OUT/measurements/ for a rig) instead of measuring the images and scans again")
@@ -106,17 +108,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="3d: a spinning LiDAR (--model); 2d: a 270-degree single-line scanner, 0.25-degree steps")
     s.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16", "os64"],
                    help="3D LiDAR beam model (os64: Ouster OS1-64-like)")
-    s.add_argument("--poses", type=int, default=8, help="board poses (frames)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the rig, the poses and the noise")
-    s.add_argument("--range-noise", type=float, default=None, metavar="M",
+    s.add_argument("--poses", type=_whole(1), default=8, help="board poses (frames)")
+    s.add_argument("--seed", type=_SEED, default=0, help="seed of the rig, the poses and the noise")
+    s.add_argument("--range-noise", type=_within(0.0, 1.0, " m"), default=None, metavar="M",
                    help="LiDAR range sigma (m; default 0.02 for 3d, 0.01 for 2d)")
-    s.add_argument("--pixel-noise", type=float, default=2.0, metavar="GREY", help="image noise sigma (grey levels)")
+    s.add_argument("--pixel-noise", type=_within(0.0, 255.0), default=2.0, metavar="GREY",
+                   help="image noise sigma (grey levels)")
     s.add_argument("--scan-format", default=None, choices=["pcd", "ply", "bin", "npy", "csv"],
                    help="default pcd (3d) or csv (2d: angle,range)")
     s.add_argument("--no-camera", action="store_true", help="omit intrinsics (to test self-calibration)")
     s.add_argument("--out", required=True, help="the dataset folder to write")
     s.add_argument("--overwrite", action="store_true", help="replace an existing folder")
-    s.add_argument("--range-bias", nargs=3, type=float, default=None, metavar=("OFFSET", "RING_SD", "DARK"),
+    s.add_argument("--range-bias", nargs=3, type=_within(-1.0, 1.0, " m"), default=None,
+                   metavar=("OFFSET", "RING_SD", "DARK"),
                    help="inject LiDAR range errors (metres): a global offset, per-ring offsets drawn with this sd, "
                         "an offset on the board's black squares (a rig's: into lidar0)")
     s.add_argument("--range-bias-from-priors", default=None, metavar="FAMILY",
@@ -144,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--pattern", default="checkerboard", choices=["checkerboard", "charuco"],
                    help="the board's pattern: charuco prints the same board with DICT_5X5_100 markers in its "
                         "white squares (then some poses are cut by the image's edge)")
-    s.add_argument("--outside-image-share", type=float, default=None, metavar="SHARE",
+    s.add_argument("--outside-image-share", type=_within(0.0, 1.0), default=None, metavar="SHARE",
                    help="charuco only: the share of poses cut by the image's edge (default 0.3)")
     s.add_argument("--scene", default="default", choices=["default", "office", "hall", "furnished"],
                    help="default: the board on a stand in an empty room; office: doors, pictures, cabinets, "
@@ -172,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--range-offset", action="store_true",
                     help="suggest poses for the extrinsic with a LiDAR range offset estimated too (they separate the "
                          "offset from the translation)")
-    la.add_argument("--seed", type=int, default=0, help="seed of the candidate poses' draws")
+    la.add_argument("--seed", type=_SEED, default=0, help="seed of the candidate poses' draws")
 
     st = sub.add_parser("study", help="simulation studies: `study SPEC.yaml --out DIR [--scheduler tcp://H:P]` "
                                       "(solver comparison) or `study coverage`",
@@ -184,14 +188,14 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Calibrate simulated datasets and count how often the posterior's 68% and "
                                         "95% intervals hold the truth, per axis (coverage.csv, coverage.json). "
                                         "Example: lidarcam study coverage --trials 200 --out /tmp/cov")
-    cv.add_argument("--trials", type=int, default=200, help="simulated datasets")
+    cv.add_argument("--trials", type=_whole(1), default=200, help="simulated datasets")
     cv.add_argument("--out", required=True, help="folder for coverage.csv and coverage.json")
     cv.add_argument("--mode", default="measurement", choices=["measurement", "end-to-end"],
                     help="measurement: noise drawn from the model (fast); end-to-end: rendered images and sweeps")
-    cv.add_argument("--frames", type=int, default=8, help="board poses per trial")
-    cv.add_argument("--samples", type=int, default=1000, help="effective posterior samples per trial")
-    cv.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
-    cv.add_argument("--seed", type=int, default=0, help="seed of the first trial")
+    cv.add_argument("--frames", type=_whole(3), default=8, help="board poses per trial")
+    cv.add_argument("--samples", type=_whole(0), default=1000, help="effective posterior samples per trial")
+    cv.add_argument("--workers", type=_whole(1), default=os.cpu_count() or 1, help="local processes")
+    cv.add_argument("--seed", type=_SEED, default=0, help="seed of the first trial")
     cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
                     help="the posterior's likelihood")
 
@@ -256,10 +260,53 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder for the dataset, calibration.json, posterior.npz and report.html (default "
                         "lidarcam-demo)")
     d.add_argument("--model", default="hdl64e", choices=["hdl64e", "vlp16"], help="3D LiDAR beam model")
-    d.add_argument("--poses", type=int, default=8, help="board poses (frames)")
-    d.add_argument("--seed", type=int, default=0, help="seed of the simulation and the solve")
+    d.add_argument("--poses", type=_whole(3), default=8, help="board poses (frames)")
+    d.add_argument("--seed", type=_SEED, default=0, help="seed of the simulation and the solve")
     _solver_arguments(d)
     return p
+
+
+def _whole(least: int):
+    """An argument type: a whole number of at least ``least`` (a seed, a count)."""
+    def whole(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if v < least:
+            raise argparse.ArgumentTypeError(f"expected a whole number of at least {least}, got {v}")
+        return v
+    return whole
+
+
+def _within(lo: float, hi: float, unit: str = ""):
+    """An argument type: a number from ``lo`` to ``hi`` (a noise level or an accuracy within its physics)."""
+    def within(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"expected a number from {lo:g} to {hi:g}{unit}, got {text}")
+        return v
+    return within
+
+
+def _finite(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text}")
+    return v
+
+
+# A seed: numpy's generators take whole numbers from 0.
+_SEED = _whole(0)
+# Noise levels and accuracies within what a camera's corners and a LiDAR's ranges can be (px, m).
+_CORNER_PX = _within(1e-3, 20.0, " px")
+_RANGE_M = _within(1e-4, 1.0, " m")
 
 
 # The most poses ``layout`` suggests (each is a greedy search over sampled poses: a few seconds each).
@@ -293,17 +340,17 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                    help="robust loss on each frame's plane residual (default huber)")
     p.add_argument("--outliers", default="drop", choices=["drop", "downweight"],
                    help="what to do with frames whose planes disagree beyond the noise (default drop)")
-    p.add_argument("--corner-noise-px", type=_positive, default=None, metavar="PX",
+    p.add_argument("--corner-noise-px", type=_CORNER_PX, default=None, metavar="PX",
                    help="effective per-corner pixel noise (default: corner residual x the detector's "
                         "error-correlation factor)")
-    p.add_argument("--range-noise-m", type=_positive, default=None, metavar="M",
+    p.add_argument("--range-noise-m", type=_RANGE_M, default=None, metavar="M",
                    help="LiDAR range noise (default: estimated from the board points)")
     p.add_argument("--range-model", default="auto",
                    choices=["none", "offset", "per-ring", "offset+dark", "full", "auto"],
                    help="LiDAR range errors estimated with the extrinsic: a global offset, per-ring offsets, a "
                         "black-square offset (full); auto (default) adds each term the data support (likelihood-"
                         "ratio test at 0.1%%, valid when the boards disagree beyond the noise)")
-    p.add_argument("--range-accuracy", type=_positive, default=None, metavar="M", dest="range_accuracy_m",
+    p.add_argument("--range-accuracy", type=_RANGE_M, default=None, metavar="M", dest="range_accuracy_m",
                    help="the LiDAR's range accuracy (m, 1 sd of a systematic error): the range terms' prior (default: "
                         "dataset.yaml's lidar.range_accuracy_m, else its lidar.family's: velodyne and ouster 0.03, "
                         "hesai and livox 0.02, else 0.05)")
@@ -328,7 +375,7 @@ def _solver_arguments(p: argparse.ArgumentParser) -> None:
                         "again under them and solve again: the result gives them, propagates their uncertainty, and "
                         "says whether they lower the sensors' disagreement (calibration.json: a pair's "
                         "'intrinsics_refinement', every camera's in 'cameras', the test in 'intrinsics_test')")
-    p.add_argument("--samples", type=int, default=2000, metavar="N",
+    p.add_argument("--samples", type=_whole(0), default=2000, metavar="N",
                    help="effective posterior samples to draw with emcee (default 2000; 0 skips sampling)")
     p.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],
                    help="posterior likelihood per frame (student-t: heavy tails)")
@@ -373,7 +420,7 @@ def study_spec_parser() -> argparse.ArgumentParser:
                                 description="run a solver-comparison study (a grid of simulated calibrations)")
     p.add_argument("spec", help="SPEC.yaml: solvers x frames x noise levels x trials (docs/howto/studies.md)")
     p.add_argument("--out", required=True, help="folder for study.csv, summary.json and the summary plots")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local processes")
+    p.add_argument("--workers", type=_whole(1), default=os.cpu_count() or 1, help="local processes")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="run on this Dask distributed scheduler instead of local processes (same results)")
     return p

@@ -86,9 +86,11 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
 
     if len(values) == 6:
         try:
-            x, y, z, roll, pitch, yaw = (float(v) for v in values)
+            x, y, z, roll, pitch, yaw = numbers = [float(v) for v in values]
+            if not np.all(np.isfinite(numbers)):
+                raise ValueError("not finite")
         except ValueError:
-            raise DatasetError(f"--initial-guess {' '.join(values)!r} is not six numbers",
+            raise DatasetError(f"--initial-guess {' '.join(values)!r} is not six finite numbers",
                                hint="give x y z roll pitch yaw (m, degrees) or a file") from None
         R = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
         return T_from_Rt(R, np.array([x, y, z]))
