@@ -146,6 +146,29 @@ def test_a_moving_boards_clock_offset_goes_where_a_format_has_room_for_it(tmp_pa
         export_calibration(tmp_path, "json")
 
 
+def test_an_untrusted_calibration_is_exported_only_when_asked_and_every_export_carries_its_verdict(tmp_path, capsys):
+    """Copied into a robot's files, an UNTRUSTED transform would read as an answer: ``export`` refuses it (exit 2,
+    nothing written) unless ``--allow-untrusted``; a CHECK one is written with a note on stderr; each file's comment
+    carries the verdict (one line, no ``--`` inside an XML comment). And --out may be written again."""
+    reason = "T_cam0_lidar0: 5 of 5 frames' boards disagree (--no-edges: the planes alone)"
+    out = tmp_path / "x.urdf"
+    for level, code in (("UNTRUSTED", 2), ("CHECK", 0), ("OK", 0)):
+        path = tmp_path / f"{level}.json"
+        path.write_text(json.dumps({"T_camera_lidar": _T().tolist(), "verdict": {"level": level, "reasons": [reason]
+                                                                                 if level != "OK" else []}}))
+        assert main(["export", str(path), "--format", "urdf", "--out", str(out)]) == code
+        err = capsys.readouterr().err
+        if level == "UNTRUSTED":
+            assert "verdict is UNTRUSTED" in err and "--allow-untrusted" in err and not out.exists()
+            assert main(["export", str(path), "--format", "urdf", "--out", str(out), "--allow-untrusted"]) == 0
+            err = capsys.readouterr().err
+        assert ("note: exporting" in err) == (level != "OK")
+        text = out.read_text()  # written again over the last one
+        comment = text.splitlines()[1]
+        assert f"verdict {level}" in comment and "--" not in comment[4:-3]
+        np.testing.assert_allclose(parse_urdf(text)[0], _T(), atol=1e-8)
+
+
 def test_export_cli_writes_atomically_and_refuses_bad_input(tmp_path, capsys):
     (tmp_path / "calibration.json").write_text(json.dumps({"T_camera_lidar": _T().tolist()}))
     out = tmp_path / "velo_to_cam.txt"

@@ -33,15 +33,15 @@ def run() -> None:
 
 
 def _check_out(args) -> None:
-    """``--out`` must be a folder (made when missing), and for a command that reads a dataset folder not that folder
-    itself: its report's images (``board_choice_lidar0_0000.png``) would be read as frames the next time, and the
-    folder refused. One-line errors, before anything is read or written."""
+    """``--out`` must be a folder (made when missing; ``export``'s is a file), and for a command that reads a dataset
+    folder not that folder itself: its report's images (``board_choice_lidar0_0000.png``) would be read as frames
+    the next time, and the folder refused. One-line errors, before anything is read or written."""
     from pathlib import Path
 
     from ..errors import LidarcamError
 
     out = getattr(args, "out", None)
-    if not out:
+    if not out or args.command == "export":  # export's --out is the file it writes
         return
     out = Path(out)
     if out.exists() and not out.is_dir():

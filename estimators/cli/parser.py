@@ -252,6 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ros-tf and urdf: which frame is the parent (default camera: the numbers are "
                         "T_camera_lidar's; lidar: its inverse)")
     e.add_argument("--out", default=None, help="write to this file (atomically) instead of printing")
+    e.add_argument("--allow-untrusted", action="store_true",
+                   help="export a calibration whose verdict is UNTRUSTED (refused by default: the file would carry "
+                        "it as an answer; its verdict is written in the file's comment either way)")
 
     d = sub.add_parser("demo", help="simulate the default rig, calibrate it, print the result",
                        description="Simulate the default rig, calibrate it and print the result with its error "

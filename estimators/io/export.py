@@ -121,6 +121,23 @@ def _as_calibration(calibration) -> dict:
     return {"T_camera_lidar": np.asarray(calibration, dtype=float).tolist()}
 
 
+def verdict_words(cal: dict, limit: int = 200) -> str:
+    """The calibration's verdict as an export's comment says it (``; verdict OK``, or the level and its first
+    reason, cut at ``limit`` characters), so that a transform copied into a robot's files carries it; "" for a file
+    without one. Kept to one line, and free of ``--`` (an XML comment may not hold it)."""
+    verdict = cal.get("verdict")
+    if not isinstance(verdict, dict) or not verdict.get("level"):
+        return ""
+    reasons = [str(r) for r in verdict.get("reasons") or []]
+    first = " ".join(reasons[0].split()) if reasons else ""
+    if len(first) > limit:
+        first = first[:limit].rstrip() + "..."
+    text = f"; verdict {verdict['level']}" + (f": {first}" if first else "")
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return text
+
+
 def _tree(T_camera_lidar: np.ndarray, camera_frame: str, lidar_frame: str, parent: str):
     if parent == "camera":
         return (T_camera_lidar, camera_frame, lidar_frame, "T_camera_lidar",
@@ -172,7 +189,8 @@ def export_calibration(calibration, fmt: str, camera_frame: str = "camera", lida
     except (ValueError, TypeError, KeyError) as exc:
         raise LidarcamError(f"T_camera_lidar is not a rigid transform ({exc})",
                             hint="give a 4x4 [R t; 0 0 0 1] with R a rotation") from exc
-    origin = f"lidarcam {cal.get('version', '?')} calibration of {cal.get('dataset', 'an unnamed dataset')}"
+    origin = (f"lidarcam {cal.get('version', '?')} calibration of {cal.get('dataset', 'an unnamed dataset')}"
+              + verdict_words(cal))
     writers = {"ros-tf": _ros_tf, "urdf": _urdf, "kitti": _kitti, "opencv-yaml": _opencv_yaml, "json": _json}
     return writers[fmt](T, cal, camera_frame, lidar_frame, parent, origin)
 
@@ -204,7 +222,7 @@ def _rig_export(cal: dict, fmt: str) -> str:
     (one static transform per sensor), URDF (a fixed joint per sensor), OpenCV YAML (per camera its intrinsics
     and its transform to every LiDAR) or JSON; KITTI holds one camera-LiDAR pair and is refused."""
     ref = cal["reference"]
-    origin = f"lidarcam {cal.get('version', '?')} rig calibration (reference {ref})"
+    origin = f"lidarcam {cal.get('version', '?')} rig calibration (reference {ref})" + verdict_words(cal)
     poses = {s["name"]: _check_rigid(np.asarray(s[f"T_{ref}_{s['name']}"], dtype=float))
              for s in cal["sensors"] if s["name"] != ref}
     if fmt == "kitti":
