@@ -121,7 +121,7 @@ def test_cli_layout_plan_writes_json_and_rejects_bad_plans(tmp_path, capsys):
     assert len(err) == 1 and "bad.yaml" in err[0] and "invalid plan" in err[0]
     with pytest.raises(SystemExit) as exit_:  # each suggestion is a search of its own: a thousand would not end
         main(["layout", str(plan), "--suggest", "1000"])
-    assert exit_.value.code == 2 and "expected 0 to 40 poses" in capsys.readouterr().err
+    assert exit_.value.code == 2 and "expected a whole number from 0 to 40" in capsys.readouterr().err
 
 
 def test_cli_layout_on_a_measured_dataset_predicts_its_refined_covariance(sim_hdl64e, tmp_path):

@@ -165,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--suggest 3")
     la.add_argument("source", help="a dataset folder (measured frames) or a PLAN.yaml (planned poses)")
     la.add_argument("--json", default=None, metavar="FILE", help="also write the analysis as JSON")
-    la.add_argument("--suggest", type=_suggestions, default=0, metavar="K",
+    la.add_argument("--suggest", type=_whole(0, MAX_SUGGESTED), default=0, metavar="K",
                     help=f"suggest K board poses to add, greedily (at most {MAX_SUGGESTED})")
     la.add_argument("--target", nargs=2, type=_positive, default=None, metavar=("DEG", "MM"),
                     help=f"add suggested poses until every axis's predicted std is within DEG and MM (up to "
@@ -269,15 +269,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _whole(least: int):
-    """An argument type: a whole number of at least ``least`` (a seed, a count)."""
+def _number(text: str, kind=float):
+    """``text`` as a ``kind`` (float or int), or argparse's one-line error."""
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, got "
+                                         f"{text!r}") from None
+
+
+def _whole(least: int, most: int | None = None):
+    """An argument type: a whole number of at least ``least`` (and at most ``most``): a seed, a count."""
     def whole(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if v < least:
-            raise argparse.ArgumentTypeError(f"expected a whole number of at least {least}, got {v}")
+        v = _number(text, int)
+        if v < least or (most is not None and v > most):
+            bounds = f"of at least {least}" if most is None else f"from {least} to {most}"
+            raise argparse.ArgumentTypeError(f"expected a whole number {bounds}, got {v}")
         return v
     return whole
 
@@ -285,10 +292,7 @@ def _whole(least: int):
 def _within(lo: float, hi: float, unit: str = ""):
     """An argument type: a number from ``lo`` to ``hi`` (a noise level or an accuracy within its physics)."""
     def within(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        v = _number(text)
         if not lo <= v <= hi:
             raise argparse.ArgumentTypeError(f"expected a number from {lo:g} to {hi:g}{unit}, got {text}")
         return v
@@ -296,12 +300,16 @@ def _within(lo: float, hi: float, unit: str = ""):
 
 
 def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    v = _number(text)
     if not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"expected a finite number, got {text}")
+    return v
+
+
+def _positive(text: str) -> float:
+    v = _number(text)
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
     return v
 
 
@@ -310,30 +318,8 @@ _SEED = _whole(0)
 # Noise levels and accuracies within what a camera's corners and a LiDAR's ranges can be (px, m).
 _CORNER_PX = _within(1e-3, 20.0, " px")
 _RANGE_M = _within(1e-4, 1.0, " m")
-
-
 # The most poses ``layout`` suggests (each is a greedy search over sampled poses: a few seconds each).
 MAX_SUGGESTED = 40
-
-
-def _suggestions(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if not 0 <= v <= MAX_SUGGESTED:
-        raise argparse.ArgumentTypeError(f"expected 0 to {MAX_SUGGESTED} poses, got {v}")
-    return v
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
-    return v
 
 
 def _solver_arguments(p: argparse.ArgumentParser) -> None:
