@@ -363,7 +363,7 @@ def check_command(args) -> int:
     from ..analysis.scene_check_page import write_check_page
     from ..io.output import write_json_atomic
     from ..errors import DatasetError
-    from ..io.rig_dataset import first_pair, is_rig
+    from ..io.rig_dataset import first_pair, is_rig, scene_pair
     from ..pipeline.measurement import given_camera, given_covariance, pair_from_calibration, parse_initial_guess
     from ..pipeline.scene_check import EXIT_CONTRADICTED, check_scene
     from .printing import print_check
@@ -372,6 +372,7 @@ def check_command(args) -> int:
     if is_rig(args.dataset):
         first = first_pair(args.dataset)
         sensors = (args.camera or first[0], args.lidar or first[1])
+        scene_pair(args.dataset, need_camera=False, pair=sensors)  # sensors the rig has, before the file is read
         T = pair_from_calibration(args.calibration, *sensors)
     elif args.camera or args.lidar:
         raise DatasetError("--camera and --lidar name a rig folder's sensors; this is a camera-LiDAR folder",
