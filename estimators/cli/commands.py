@@ -5,7 +5,7 @@ import contextlib
 import sys
 from pathlib import Path
 
-from ..errors import LidarcamError as UsageError  # an option given wrong: one line, exit 2
+from ..errors import DatasetError, LidarcamError, about
 from .parser import board_argument, hints, refinement_options, study_spec_parser
 from .printing import export_hint, print_result, print_rig, print_truth, source_words
 
@@ -13,7 +13,6 @@ from .printing import export_hint, print_result, print_rig, print_truth, source_
 def calibrate_command(args) -> int:
     """A rig folder, or a pair folder (the rig of ``cam0`` and ``lidar0``), through the one engine
     (``rig_calibration``); a pair folder's ``--refine none`` (the closed form alone) through the pair's."""
-    from ..errors import LidarcamError
     from ..io.dataset import load_dataset
     from ..io.motion_track import is_moving_dataset
     from ..io.rig_dataset import is_rig
@@ -44,7 +43,6 @@ def _calibrate_targetless(args) -> int:
     verdict first; calibration.json and report.html (the check's page: contours under the guess and the estimate)
     written into ``--out``."""
     from ..analysis.scene_check_page import write_check_page
-    from ..errors import LidarcamError
     from ..io.output import write_json_atomic
     from ..io.rig_dataset import first_pair, is_rig
     from ..pipeline.measurement import pair_from_calibration, parse_initial_guess
@@ -74,7 +72,6 @@ def _calibrate_rig(args) -> int:
     measurements.npz beside the rig's measurements folder)."""
     import numpy as np
 
-    from ..errors import LidarcamError, about
     from ..io.measurement_store import load_rig_measurements, pair_as_rig
     from ..io.rig_dataset import is_rig, load_rig
     from ..rig_calibration import calibrate_rig, pair_guess
@@ -267,8 +264,6 @@ def _given_options(args) -> list[str]:
 
 def _refuse_ignored(args, flags: list[str], what: str, hint: str) -> None:
     """A one-line error naming the options ``flags`` that ``what`` would ignore, if any."""
-    from ..errors import LidarcamError
-
     if flags:
         raise LidarcamError(f"{', '.join(sorted(flags))} {'is' if len(flags) == 1 else 'are'} not taken by {what} "
                             "and would be ignored", path=args.dataset, hint=hint)
@@ -277,7 +272,6 @@ def _refuse_ignored(args, flags: list[str], what: str, hint: str) -> None:
 def _pair_measurements(path, board, lidar: str):
     """A pair folder's earlier ``measurements.npz``, refused in one line when taken with another board or LiDAR
     than the folder's dataset.yaml."""
-    from ..errors import DatasetError
     from ..io.measurement_store import load_measurements
 
     m = load_measurements(path)
@@ -293,7 +287,6 @@ def _closed_form_only(args, ds) -> int:
     import numpy as np
 
     from ..calibration import calibrate_pair, solve
-    from ..errors import LidarcamError
     from ..io.measurement_store import Measurements, save_measurements
     from ..lidar.board_segmentation import SegmentationParams
     from ..pipeline.result import write_calibration
@@ -345,7 +338,6 @@ def _with_separating_pose(result, board):
     import numpy as np
 
     from ..analysis.layout_analysis import separating_pose
-    from ..errors import LidarcamError
 
     try:
         pose = separating_pose(result, board)
@@ -362,7 +354,6 @@ def check_command(args) -> int:
     check.html written; exit 0 consistent, 4 contradicted."""
     from ..analysis.scene_check_page import write_check_page
     from ..io.output import write_json_atomic
-    from ..errors import DatasetError
     from ..io.rig_dataset import first_pair, is_rig, scene_pair
     from ..pipeline.measurement import given_camera, given_covariance, pair_from_calibration, parse_initial_guess
     from ..pipeline.scene_check import EXIT_CONTRADICTED, check_scene
@@ -395,7 +386,6 @@ def validate_command(args) -> int:
     import numpy as np
 
     from ..analysis.validation import pair_calibration, verdict
-    from ..errors import DatasetError, LidarcamError
     from ..io.input_files import load_json
     from ..io.output import write_json_atomic
     from ..io.rig_dataset import is_rig
@@ -482,18 +472,18 @@ def simulate_command(args) -> int:
     from ..simulation.simulator import simulate_dataset
 
     if args.cameras == 1 and (args.lidars != 1 or args.scanners != 0):
-        raise UsageError("--lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
+        raise LidarcamError("--lidars and --scanners are for a rig folder (add --cameras N, 2 or more)")
     if args.cameras != 1:
         if args.cameras < 2 or args.lidar == "2d":
-            raise UsageError("--cameras N (2 or more) writes a rig folder with a 3D LiDAR")
+            raise LidarcamError("--cameras N (2 or more) writes a rig folder with a 3D LiDAR")
         from ..simulation.rig_simulator import simulate_rig
 
         if args.lidars not in (1, 2):
-            raise UsageError("--lidars is 1 or 2")
+            raise LidarcamError("--lidars is 1 or 2")
         if args.scanners not in (0, 1):
-            raise UsageError("--scanners is 0 or 1")
+            raise LidarcamError("--scanners is 0 or 1")
         if args.range_bias_from_priors is not None:
-            raise UsageError("--range-bias-from-priors is for a single pair (a rig takes "
+            raise LidarcamError("--range-bias-from-priors is for a single pair (a rig takes "
                              "--range-bias, injected into lidar0)")
         out = simulate_rig(args.out, args.poses, args.seed, args.cameras, args.model, args.overwrite, args.lidars,
                            args.scanners, range_bias=None if args.range_bias is None else tuple(args.range_bias),
@@ -505,13 +495,13 @@ def simulate_command(args) -> int:
     fmt = args.scan_format or ("csv" if two_d else "pcd")
     allowed = ("csv", "npy", "pcd") if two_d else ("pcd", "ply", "bin", "npy")
     if fmt not in allowed:
-        raise UsageError(f"--scan-format {fmt} is not a {args.lidar} scan format (use one of "
+        raise LidarcamError(f"--scan-format {fmt} is not a {args.lidar} scan format (use one of "
                          f"{', '.join(allowed)})")
     if args.rig != "default" and not two_d:
-        raise UsageError("--rig varied is a 2D rig (add --lidar 2d)")
-    if args.outside_image_share is not None and (args.pattern != "charuco" or not 0 <= args.outside_image_share <= 1):
-        raise UsageError("--outside-image-share is a share (0 to 1) of the poses of a charuco board "
-                         "(a checkerboard must be seen whole)")
+        raise LidarcamError("--rig varied is a 2D rig (add --lidar 2d)")
+    if args.outside_image_share is not None and args.pattern != "charuco":
+        raise LidarcamError("--outside-image-share is a share of the poses of a charuco board (a checkerboard must "
+                            "be seen whole)")
     noise = args.range_noise if args.range_noise is not None else (0.01 if two_d else 0.02)
     model = "2d" if two_d else args.model
     out = simulate_dataset(args.out, args.poses, args.seed, model, noise, args.pixel_noise,
@@ -529,7 +519,6 @@ def layout_command(args) -> int:
     import numpy as np
 
     from ..analysis.layout_analysis import analyse, layout_from_plan, suggest_poses
-    from ..errors import DatasetError
     from ..io.input_files import load_yaml
     from ..io.output import write_json_atomic
     from .parser import MAX_SUGGESTED
@@ -597,7 +586,6 @@ def _layout_rig(args) -> int:
     import numpy as np
 
     from ..analysis.rig_layout import next_pose_words, suggest_rig_poses
-    from ..errors import LidarcamError
     from .parser import MAX_SUGGESTED
     from ..io.output import write_json_atomic
     from ..io.rig_dataset import load_rig
@@ -636,8 +624,6 @@ def _layout_rig(args) -> int:
 def study_command(args) -> int:
     from ..analysis.coverage_study import format_summary, run_study
 
-    if args.trials < 1 or args.frames < 3 or args.samples < 1 or args.workers < 1:
-        raise UsageError("--trials, --samples and --workers must be positive and --frames >= 3")
     summary = run_study(args.trials, args.out, args.mode, args.seed, args.workers, args.frames, args.samples,
                         progress=sys.stderr.isatty(), likelihood=args.likelihood)
     print(format_summary(summary))
@@ -653,8 +639,6 @@ def study_spec_command(argv: list[str]) -> int:
     path = Path(args.spec)
     raw = load_yaml(path, "study spec", "fix the spec (see docs/howto/studies.md)")
     spec = parse_spec(raw, str(path))
-    if args.workers < 1:
-        raise UsageError("--workers must be positive")
     where = args.scheduler or f"{args.workers} local process(es)"
     print(f"{spec.name}: {spec.n_trials} trials x {len(spec.solvers)} solvers on {where}")
     rows = run_study(spec, args.out, args.workers, args.scheduler, progress=sys.stderr.isatty())
@@ -669,12 +653,12 @@ def extract_command(args) -> int:
     options = ExtractOptions(max_dt_s=args.max_dt, still_s=args.still_s, still_px=args.still_px,
                              check_hz=args.check_hz, scan_format=args.scan_format)
     if not args.cloud_topic and not args.scan_topic:
-        raise UsageError("give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
+        raise LidarcamError("give a LiDAR topic: --cloud-topic (3D) or --scan-topic (2D)")
     if len(args.image_topic) + len(args.cloud_topic) + len(args.scan_topic) > 2:  # a rig folder
         from ..io.rig_bag_extract import extract_rig_bag
 
         if args.camera_info_topic is not None or args.intrinsics is not None:
-            raise UsageError("--camera-info-topic and --intrinsics are for one camera; a rig's "
+            raise LidarcamError("--camera-info-topic and --intrinsics are for one camera; a rig's "
                              "cameras each take the CameraInfo beside their image topic")
         rig = extract_rig_bag(args.bag, args.out, board_argument(args.board), args.image_topic, args.cloud_topic,
                               args.scan_topic, use_camera_info=not args.no_camera_info, options=options,
@@ -686,7 +670,6 @@ def extract_command(args) -> int:
     if args.intrinsics is not None:
         from ..io.intrinsics_file import load_intrinsics
 
-        from ..errors import LidarcamError
 
         if args.no_camera_info or args.camera_info_topic is not None:
             raise LidarcamError("--intrinsics replaces the bag's CameraInfo", path=args.intrinsics,
@@ -712,10 +695,11 @@ def export_command(args) -> int:
     from ..io.export import export_calibration, load_calibration, write_export
 
     frames = {"camera_frame": args.camera_frame, "lidar_frame": args.lidar_frame, "parent": args.parent}
-    verdict = load_calibration(args.calibration).get("verdict")
+    cal = load_calibration(args.calibration)
+    verdict = cal.get("verdict")
     level = verdict.get("level") if isinstance(verdict, dict) else None
     if level == "UNTRUSTED" and not args.allow_untrusted:
-        raise UsageError("the calibration's verdict is UNTRUSTED: not exported as an answer", path=args.calibration,
+        raise LidarcamError("the calibration's verdict is UNTRUSTED: not exported as an answer", path=args.calibration,
                          hint="read its reasons (calibration.json, report.html) and fix the data, or pass "
                               "--allow-untrusted to export it anyway")
     if level in ("CHECK", "UNTRUSTED"):
@@ -723,9 +707,9 @@ def export_command(args) -> int:
         print(f"lidarcam: note: exporting a calibration whose verdict is {level}"
               + (f": {reasons[0]}" if reasons else ""), file=sys.stderr)
     if args.out is None:
-        sys.stdout.write(export_calibration(args.calibration, args.format, **frames))
+        sys.stdout.write(export_calibration(cal, args.format, **frames))
     else:
-        print(f"wrote {write_export(args.calibration, args.format, args.out, **frames)}")
+        print(f"wrote {write_export(cal, args.format, args.out, **frames)}")
     return 0
 
 

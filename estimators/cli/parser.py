@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("--mode", default="measurement", choices=["measurement", "end-to-end"],
                     help="measurement: noise drawn from the model (fast); end-to-end: rendered images and sweeps")
     cv.add_argument("--frames", type=_whole(3), default=8, help="board poses per trial")
-    cv.add_argument("--samples", type=_whole(0), default=1000, help="effective posterior samples per trial")
+    cv.add_argument("--samples", type=_whole(1), default=1000, help="effective posterior samples per trial")
     cv.add_argument("--workers", type=_whole(1), default=os.cpu_count() or 1, help="local processes")
     cv.add_argument("--seed", type=_SEED, default=0, help="seed of the first trial")
     cv.add_argument("--likelihood", default="gaussian", choices=["gaussian", "student-t"],

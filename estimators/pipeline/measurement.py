@@ -160,12 +160,12 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
     data = _calibration_data(value)
     if data is None:
         return None
-    C, T_flip, where = None, None, "covariance"
+    C, T_flip, key = None, None, "T_camera_lidar"
     if sensors is not None and isinstance(data.get("transforms"), dict):
         found = _transform_entry(data, *sensors)
         if found is not None:
             key, entry, flip = found
-            C, T_flip, where = entry.get("covariance"), (entry["T"] if flip else None), f"{key}'s covariance"
+            C, T_flip = entry.get("covariance"), (entry["T"] if flip else None)
     elif "T_camera_lidar" in data:
         C = data.get("covariance")
     if C is None:
@@ -180,12 +180,12 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
         elif np.linalg.eigvalsh(0.5 * (C + C.T))[0] < -1e-9 * max(float(np.abs(C).max()), 1e-300):
             problem = "not positive semi-definite (a negative variance)"
         elif T_flip is not None:  # T_true = T Exp(e): its inverse is T^-1 Exp(-Ad(T) e)
-            A = adjoint(_rigid(T_flip, Path(value), where.split("'")[0]))
+            A = adjoint(_rigid(T_flip, Path(value), key))
             C = A @ C @ A.T
     except (ValueError, TypeError) as exc:
         problem = f"unreadable ({type(exc).__name__}: {exc})"
     if problem is not None:
-        raise DatasetError(f"the {where} is {problem}", path=Path(value),
+        raise DatasetError(f"{key}'s covariance is {problem}", path=Path(value),
                            hint="give the calibration.json lidarcam wrote, or remove its covariance to take the "
                                 "extrinsic as exact")
     return 0.5 * (C + C.T)
