@@ -25,10 +25,20 @@ def _read(path: Path) -> list[dict]:
 def test_spec_errors_name_the_key():
     with pytest.raises(DatasetError, match="unknown solver"):
         parse_spec({"solvers": ["magic"]})
-    with pytest.raises(DatasetError, match="at least 3 frames"):
+    with pytest.raises(DatasetError, match="from 3 to"):
         parse_spec({"frames": [2]})
     with pytest.raises(DatasetError, match="range_noise_m"):
         parse_spec({"range_noise_m": ["loud"]})
+    # values a simulation cannot be drawn at, or that would run the defaults in silence: refused, naming the key
+    # (negative, zero, NaN or infinite noise raised numpy's errors from inside a trial; a typo'd key or 3.7 frames
+    # ran something else than was asked, a trial count of 1e8 filled the memory before the first trial)
+    for bad, key in (({"range_noise_m": -0.01}, "range_noise_m"), ({"range_noise_m": float("nan")}, "range_noise_m"),
+                     ({"corner_noise_px": 0}, "corner_noise_px"), ({"corner_noise_px": 50}, "corner_noise_px"),
+                     ({"seed": -5}, "seed"), ({"frames": [3.7]}, "frames"), ({"trials": 100_000_000}, "trials"),
+                     ({"trails": 5}, "unknown key"), ({"frames": list(range(3, 1000)), "trials": 2000}, "more than")):
+        with pytest.raises(DatasetError, match=key):
+            parse_spec(bad)
+    assert parse_spec({"seed": 2 ** 53 + 1, "frames": 4.0}).seed == 2 ** 53 + 1
     spec = parse_spec({"lidar": "2d", "frames": 5})
     assert spec.solvers == ("minimal-min-residual", "minimal-lower-bound", "minimal-lower-bound-no-extent")
     assert spec.range_noise_m == (0.01,) and spec.frames == (5,)

@@ -19,6 +19,7 @@ A study is given as a mapping (``SPEC.yaml``)::
     trials: 20                               # per cell of layouts x frames x range noise x corner noise
     seed: 0
     mode: measurement                        # measurement (noise drawn from the model) | end-to-end
+    rig: default                             # default | varied (2d: mountings drawn per trial)
 
 Every solver of a trial sees the same simulated data (a paired comparison). Each row of ``study.csv`` is one (trial,
 solver): the cell, the rotation and translation errors, the errors per axis over the bound, the bound itself
@@ -78,26 +79,43 @@ class StudySpec:
         return len(self.cells) * self.trials
 
 
-def _list(v, kind, key, source):
-    values = v if isinstance(v, (list, tuple)) else [v]
+# The spec's keys; any other is a typo that would silently run the defaults.
+SPEC_KEYS = ("name", "lidar", "model", "solvers", "layouts", "frames", "range_noise_m", "corner_noise_px", "trials",
+             "seed", "mode", "rig")
+# The noise levels a simulated calibration may be drawn at: what a camera's corners and a LiDAR's ranges can be
+# (px, m; as the CLI's --corner-noise and --range-noise take them), from which its information stays finite.
+CORNER_NOISE_PX = (1e-3, 20.0)
+RANGE_NOISE_M = (1e-4, 1.0)
+# The most board poses per calibration, and the most trials a study holds (each is a simulated calibration: a
+# larger count is a typo, and its list of trials alone would fill the memory).
+MAX_FRAMES, MAX_TRIALS = 1000, 1_000_000
+_FORMAT = "see the SPEC.yaml format in docs/howto/studies.md"
+
+
+def _number(x, whole: bool, key: str, source: str, lo: float, hi: float):
+    """One value of ``key``: a number (a whole one with ``whole``) from ``lo`` to ``hi``."""
+    kind = "a whole number" if whole else "a number"
     try:
-        out = tuple(kind(x) for x in values)
-    except (TypeError, ValueError):
-        raise DatasetError(f"{key} must be a number or a list of numbers, got {v!r}", path=source,
-                           hint="see the SPEC.yaml format in docs/howto/studies.md") from None
+        if isinstance(x, bool) or not isinstance(x, (int, float, str)):
+            raise TypeError
+        v = x if isinstance(x, int) else float(x)  # a whole number as it is: a seed beyond 2^53 kept exact
+        if whole and not (np.isfinite(v) and v == int(v)):
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{key} must be {kind}, got {x!r}", path=source, hint=_FORMAT) from None
+    if not lo <= v <= hi:
+        bounds = f"of at least {lo:g}" if hi == np.inf else f"from {lo:g} to {hi:g}" if not whole else \
+            f"from {int(lo)} to {int(hi)}"
+        raise DatasetError(f"{key} must be {kind} {bounds}, got {x!r}", path=source, hint=_FORMAT)
+    return int(v) if whole else v
+
+
+def _list(v, whole: bool, key: str, source: str, lo: float, hi: float) -> tuple:
+    values = v if isinstance(v, (list, tuple)) else [v]
+    out = tuple(_number(x, whole, key, source, lo, hi) for x in values)
     if not out:
         raise DatasetError(f"{key} is empty", path=source, hint="give at least one value")
     return out
-
-
-def _scalar(v, kind, key, source):
-    try:
-        if isinstance(v, bool) or not isinstance(v, (int, float, str)):
-            raise TypeError
-        return kind(v)
-    except (TypeError, ValueError, OverflowError):
-        raise DatasetError(f"{key} must be a number, got {v!r}", path=source,
-                           hint="see the SPEC.yaml format in docs/howto/studies.md") from None
 
 
 def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
@@ -120,8 +138,10 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
         A missing or bad key, named with what to write.
     """
     if not isinstance(spec, dict):
-        raise DatasetError("a study spec must be a mapping", path=source,
-                           hint="see the SPEC.yaml format in docs/howto/studies.md")
+        raise DatasetError("a study spec must be a mapping", path=source, hint=_FORMAT)
+    unknown = [str(k) for k in spec if k not in SPEC_KEYS]
+    if unknown:
+        raise DatasetError(f"unknown key(s) {unknown}", path=source, hint=f"use some of {list(SPEC_KEYS)}")
     lidar = str(spec.get("lidar", "3d")).lower()
     if lidar not in ("3d", "2d"):
         raise DatasetError(f"lidar must be 3d or 2d, got {lidar!r}", path=source, hint="set lidar: 3d or lidar: 2d")
@@ -143,23 +163,22 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     bad = [v for v in layouts if v not in LAYOUT_FAMILIES]
     if bad or not layouts:
         raise DatasetError(f"unknown layout(s) {bad}", path=source, hint=f"use some of {list(LAYOUT_FAMILIES)}")
-    frames = _list(spec.get("frames", [8]), int, "frames", source)
-    if min(frames) < 3:
-        raise DatasetError(f"every calibration needs at least 3 frames, got {min(frames)}", path=source,
-                           hint="use frames >= 3")
-    trials = _scalar(spec.get("trials", 10), int, "trials", source)
-    if trials < 1:
-        raise DatasetError(f"trials must be at least 1, got {trials}", path=source, hint="set trials: 10")
+    frames = _list(spec.get("frames", [8]), True, "frames", source, 3, MAX_FRAMES)
+    trials = _number(spec.get("trials", 10), True, "trials", source, 1, MAX_TRIALS)
     rig = str(spec.get("rig", "default"))
     if rig not in ("default", "varied") or (rig == "varied" and lidar != "2d"):
         raise DatasetError(f"rig must be default or varied (varied: 2d only), got {rig!r}", path=source,
                            hint="set rig: default, or rig: varied with lidar: 2d")
     default_noise = 0.01 if lidar == "2d" else 0.02
+    range_noise = _list(spec.get("range_noise_m", [default_noise]), False, "range_noise_m", source, *RANGE_NOISE_M)
+    corner_noise = _list(spec.get("corner_noise_px", [0.2]), False, "corner_noise_px", source, *CORNER_NOISE_PX)
+    if len(layouts) * len(frames) * len(range_noise) * len(corner_noise) * trials > MAX_TRIALS:
+        raise DatasetError(f"the spec holds more than {MAX_TRIALS} trials", path=source,
+                           hint="give fewer values or trials, and run the study in parts with different seeds")
     return StudySpec(name=str(spec.get("name", "study")), lidar=lidar, model="2d" if lidar == "2d" else model,
-                     solvers=solvers, layouts=layouts, frames=frames,
-                     range_noise_m=_list(spec.get("range_noise_m", [default_noise]), float, "range_noise_m", source),
-                     corner_noise_px=_list(spec.get("corner_noise_px", [0.2]), float, "corner_noise_px", source),
-                     trials=trials, seed=_scalar(spec.get("seed", 0), int, "seed", source), mode=mode, rig=rig)
+                     solvers=solvers, layouts=layouts, frames=frames, range_noise_m=range_noise,
+                     corner_noise_px=corner_noise, trials=trials,
+                     seed=_number(spec.get("seed", 0), True, "seed", source, 0, np.inf), mode=mode, rig=rig)
 
 
 def trial_arguments(spec: StudySpec) -> list[tuple]:
