@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -372,3 +373,34 @@ def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(wave
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "are for 1280 x 960 images" in err and "640 x 480" in err
     assert not (tmp_path / "no").exists()
+
+
+def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved, capsys, tmp_path):
+    """motion.npz edited as a damaged recording could leave it: every other image's corners NaN (a pose solved from
+    no corners raised numpy's singular-matrix error; now those images are left out and the rest calibrate), every
+    image's (no pose: said, naming the folder, where the trajectory's error named none) and stamps 1e12 s from
+    the origin (float64 no longer times the returns: GTSAM's singular factor; now refused as the record's fault)."""
+    tmp, _ = waved
+    z = dict(np.load(tmp / "ds" / "motion.npz"))
+
+    def edited(name: str, **arrays) -> Path:
+        folder = tmp_path / name
+        shutil.copytree(tmp / "ds", folder)
+        np.savez_compressed(folder / "motion.npz", **{**z, **arrays})
+        return folder
+
+    half = z["corners_px"].copy()
+    half[::2] = np.nan
+    assert main(["calibrate", str(edited("half", corners_px=half)), "--out", str(tmp_path / "o1"), "--no-report",
+                 "--samples", "0"]) in (0, 3)
+    assert json.loads((tmp_path / "o1" / "calibration.json").read_text())["images_used"] <= len(half) // 2
+    capsys.readouterr()
+    for name, arrays, words in (
+            ("blank", {"corners_px": np.full_like(z["corners_px"], np.nan)}, "0 of the recording's"),
+            ("far", {"view_stamps_s": z["view_stamps_s"] + 1e12, "sweep_stamps_s": z["sweep_stamps_s"] + 1e12},
+             "times beyond")):
+        folder = edited(name, **arrays)
+        assert main(["calibrate", str(folder), "--out", str(tmp_path / name / "out")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and words in err and str(folder) in err, err
+        assert not (tmp_path / name / "out").exists()

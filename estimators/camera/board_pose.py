@@ -150,6 +150,8 @@ def pose_of_corners(corners: np.ndarray, board: BoardModel, camera: CameraModel,
     else solved from the corners alone (:func:`estimate_board_pose`). Raises MeasurementError."""
     corners = np.asarray(corners, dtype=float)
     seen = np.flatnonzero(np.all(np.isfinite(corners), axis=1))
+    if len(seen) < 4:  # a pose needs four points at least; none gave a singular solve
+        raise MeasurementError(f"{len(seen)} of the board's corners stored for this image")
     ids = None if len(seen) == len(corners) else seen
     if T_before is not None:
         return follow_board_pose(corners[seen], board, camera, T_before, ids)
@@ -199,7 +201,10 @@ def _observation(T: np.ndarray, X: np.ndarray, camera: CameraModel, corners: np.
     J = _pose_jacobian(T, X, camera)
     dof = max(r.size - 6, 1)
     var_px = float(r @ r) / dof
-    pose_cov = var_px * np.linalg.inv(J.T @ J)
+    try:
+        pose_cov = var_px * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        raise MeasurementError("the board's corners leave its pose undetermined") from None
     n = T[:3, 2]
     plane = Plane(n, n @ T[:3, 3])
     Jp = plane_jacobian(T)

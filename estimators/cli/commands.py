@@ -121,8 +121,9 @@ def _calibrate_moving(args) -> int:
     _refuse_ignored(args, [f"--{k.replace('_', '-')}" for k in _given_options(args) if k not in MOVING_TAKES],
                     "a moving board's recording (motion.npz)", "calibrate without it")
     rig = is_rig(args.dataset)
-    result = (calibrate_moving_rig if rig else calibrate_moving)(args.dataset, np.random.default_rng(args.seed),
-                                                                 args.time_offset, args.samples)
+    with about(args.dataset):
+        result = (calibrate_moving_rig if rig else calibrate_moving)(args.dataset, np.random.default_rng(args.seed),
+                                                                     args.time_offset, args.samples)
     path = write_json_atomic(Path(args.out) / "calibration.json", result.to_dict())
     print_moving(result)
     print(f"wrote {path}")

@@ -26,6 +26,9 @@ FOLLOWED_CAMERA = "cam0"
 STILL_POSES = "still poses"  # extract.json's recording of frames held still (bag_extract.STILL)
 MOVING_BOARD = "moving board"  # and of a board that moves throughout (bag_extract.MOVING)
 EXAMPLES = "examples"  # the folder beside it of the few images kept whole
+# The stamps lie within this many seconds of the recording's first (11 days): beyond, a damaged record, and times
+# in float64 no longer resolve the microseconds a sweep's returns are timed by.
+MAX_STAMP_S = 1e6
 _ARRAYS = ("origin_ns", "view_stamps_s", "corners_px", "sweep_stamps_s", "sweep_sizes", "points", "offsets_s")
 
 
@@ -130,9 +133,11 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
     ok = (shapes and a["corners_px"].shape[0] == V and a["corners_px"].shape[2] == 2
           and a["sweep_sizes"].shape == (S,) and np.all(a["sweep_sizes"] >= 0)
           and a["points"].shape == (int(a["sweep_sizes"].sum()), 3) and a["offsets_s"].shape == (len(a["points"]),)
-          and all(np.all(np.isfinite(a[k])) for k in ("view_stamps_s", "sweep_stamps_s", "points", "offsets_s")))
+          and all(np.all(np.isfinite(a[k])) for k in ("view_stamps_s", "sweep_stamps_s", "points", "offsets_s"))
+          and all(np.all(np.abs(a[k]) <= MAX_STAMP_S) for k in ("view_stamps_s", "sweep_stamps_s", "offsets_s")))
     if not ok:
-        raise DatasetError("inconsistent moving board's record (its arrays' sizes disagree or hold NaN)",
+        raise DatasetError("inconsistent moving board's record (its arrays' sizes disagree, or hold NaN or times "
+                           f"beyond {MAX_STAMP_S:g} s)",
                            path=path, hint=hint)
     return MotionTrack(int(a["origin_ns"]), a["view_stamps_s"].astype(float), a["corners_px"].astype(float),
                        a["sweep_stamps_s"].astype(float), a["sweep_sizes"].astype(int), a["points"],

@@ -18,7 +18,7 @@ from geometry.camera import CameraModel
 
 from .. import __version__
 from ..camera.board_pose import pose_of_corners
-from ..errors import DatasetError, MeasurementError, PosteriorSkippedError
+from ..errors import DatasetError, DegenerateLayoutError, MeasurementError, PosteriorSkippedError
 from ..io.dataset import parse_board, parse_camera, read_dataset_yaml
 from ..io.motion_track import MotionTrack, load_motion_track
 from ..measurements import TimedBoardView
@@ -249,6 +249,10 @@ def solve_moving_many(roots: list[Path], board, camera: CameraModel, rng: np.ran
     (7 per LiDAR, the posterior samples' when sampled: row ``k`` of each LiDAR's samples is one joint sample)."""
     tracks = [_track(root, board) for root in roots]
     views = board_views(tracks[0], board, camera)
+    if len(views) < 2:
+        raise DegenerateLayoutError(f"{len(views)} of the recording's {len(tracks[0].view_stamps_s)} images give the "
+                                    "board's pose from their stored corners",
+                                    hint="extract the bag again with the board the recording shows")
     sweeps = [[replace(s, stamp_s=s.stamp_s + 1e-9 * (t.origin_ns - tracks[0].origin_ns)) for s in t.sweeps()]
               for t in tracks]
     t0 = time.perf_counter()
