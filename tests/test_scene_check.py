@@ -213,6 +213,15 @@ def test_check_refuses_bad_input_in_one_line_and_writes_nothing(office, capsys):
     assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / "bad.json"), "--out", str(tmp / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "bad.json" in err and not (tmp / "x").exists()
+    # From Python, an extrinsic that is not a finite 4x4 rigid transform: refused naming the folder (a 3x3 raised an
+    # IndexError, a NaN one was checked and said "no LiDAR contour in the camera's view")
+    from estimators import calibrate_targetless, check_scene
+
+    for bad in (np.eye(3), np.full((4, 4), np.nan), "x", np.diag([1.0, 1.0, -1.0, 1.0])):
+        for f in (check_scene, calibrate_targetless):
+            with pytest.raises(DatasetError, match="given extrinsic|initial guess") as info:
+                f(tmp / "ds", bad)
+            assert str(tmp / "ds") in str(info.value)
 
 
 @pytest.fixture(scope="module")

@@ -109,7 +109,7 @@ def parse_initial_guess(values: list[str]) -> np.ndarray:
     except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
                            hint="give a calibration.json or a 4x4 matrix") from None
-    return _rigid(T, path, "initial guess")
+    return rigid(T, path, "initial guess")
 
 
 def parse_rig_guess(values: list[str]) -> dict:
@@ -124,7 +124,7 @@ def parse_rig_guess(values: list[str]) -> dict:
         raise DatasetError("initial guess for a rig has no transforms", path=path,
                            hint="give the calibration.json of an earlier calibration of this rig")
     try:
-        return {name: _rigid(t["T"], path, f"initial guess {name}") for name, t in data["transforms"].items()}
+        return {name: rigid(t["T"], path, f"initial guess {name}") for name, t in data["transforms"].items()}
     except (KeyError, TypeError) as exc:
         raise DatasetError(f"initial guess unreadable ({type(exc).__name__}: {exc})", path=path,
                            hint="give the calibration.json of an earlier calibration of this rig") from None
@@ -141,7 +141,7 @@ def pair_from_calibration(value: str, camera: str, lidar: str) -> np.ndarray:
     found = _transform_entry(data, camera, lidar)
     if found is not None:
         key, entry, flip = found
-        T = _rigid(entry["T"], path, key)
+        T = rigid(entry["T"], path, key)
         return np.linalg.inv(T) if flip else T
     raise DatasetError(f"the calibration has no transform between {camera} and {lidar} (it has "
                        f"{', '.join(sorted(data['transforms'])) or 'none'})", path=path,
@@ -180,7 +180,7 @@ def given_covariance(value: str, sensors: tuple[str, str] | None = None) -> np.n
         elif np.linalg.eigvalsh(0.5 * (C + C.T))[0] < -1e-9 * max(float(np.abs(C).max()), 1e-300):
             problem = "not positive semi-definite (a negative variance)"
         elif T_flip is not None:  # T_true = T Exp(e): its inverse is T^-1 Exp(-Ad(T) e)
-            A = adjoint(_rigid(T_flip, Path(value), key))
+            A = adjoint(rigid(T_flip, Path(value), key))
             C = A @ C @ A.T
     except (ValueError, TypeError) as exc:
         problem = f"unreadable ({type(exc).__name__}: {exc})"
@@ -230,7 +230,7 @@ def _transform_entry(data: dict, camera: str, lidar: str) -> tuple[str, dict, bo
     return None
 
 
-def _rigid(T, path, what: str) -> np.ndarray:
+def rigid(T, path, what: str) -> np.ndarray:
     """``T`` as a finite 4x4 rigid transform, or a one-line error naming ``path`` and ``what``."""
     try:
         T = np.asarray(T, dtype=float)

@@ -37,7 +37,7 @@ from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, smallest_flagged,
                                       transverse_edges, visible_from_camera)
-from .measurement import with_found_beams
+from .measurement import rigid, with_found_beams
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -339,6 +339,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         Fewer than two frames with contours in view.
     """
     t0 = time.perf_counter()
+    T_given = rigid(T_given, folder, "the given extrinsic")
     root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:

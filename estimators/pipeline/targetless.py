@@ -52,6 +52,7 @@ from ..errors import DegenerateLayoutError, about
 from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_PX, SceneFit, align_once,
                                       align_scene, consistency, constrained_directions, minima_scatter, narrowed,
                                       rival_minima, rms_px, scene_minima)
+from .measurement import rigid
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .scene_check import SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
@@ -189,7 +190,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
         two frames with contours in view.
     """
     t0 = time.perf_counter()
-    T_guess = np.asarray(T_guess, float)
+    T_guess = rigid(T_guess, folder, "the initial guess")
     root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
     # The edges square to the rings under the guess (a few degrees turn them by a few degrees): made once.
     edges = {f.name: frame_edges(f.gray, T_guess, camera, f.board_mask) for f in frames}
