@@ -379,7 +379,8 @@ def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved,
     """motion.npz edited as a damaged recording could leave it: every other image's corners NaN (a pose solved from
     no corners raised numpy's singular-matrix error; now those images are left out and the rest calibrate), every
     image's (no pose: said, naming the folder, where the trajectory's error named none) and stamps 1e12 s from
-    the origin (float64 no longer times the returns: GTSAM's singular factor; now refused as the record's fault)."""
+    the origin (float64 no longer times the returns: GTSAM's singular factor; now refused as the record's fault),
+    and returns that lie nowhere near the board the camera saw."""
     tmp, _ = waved
     z = dict(np.load(tmp / "ds" / "motion.npz"))
 
@@ -398,7 +399,10 @@ def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved,
     for name, arrays, words in (
             ("blank", {"corners_px": np.full_like(z["corners_px"], np.nan)}, "0 of the recording's"),
             ("far", {"view_stamps_s": z["view_stamps_s"] + 1e12, "sweep_stamps_s": z["sweep_stamps_s"] + 1e12},
-             "times beyond")):
+             "times beyond"),
+            # returns of no board (scaled tenfold): said as such, not as too few "inside its edges (a larger
+            # board helps)" with a margin of 265 km
+            ("scaled", {"points": z["points"] * 10}, "RMS from the board the camera saw")):
         folder = edited(name, **arrays)
         assert main(["calibrate", str(folder), "--out", str(tmp_path / name / "out")]) == 2
         err = capsys.readouterr().err.strip()

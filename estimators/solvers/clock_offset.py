@@ -51,6 +51,9 @@ GRID_RETURNS = 20
 # noise: chosen by it, the returns kept are unbiased.
 EDGE_MARGIN_M = 0.015
 EDGE_SIGMAS = 2.5
+# Returns this far off the board (RMS, m) at the best fit are not its returns (a spinning LiDAR's range noise is
+# 1-3 cm): refused as such rather than as too few inside its edges.
+FAR_RMS_M = 0.2
 # The standard deviation (px) of an image-wide shift of the detected corners: a principal point's error, a
 # detector's bias. It turns every board pose the camera gives about its centre, which no number of images
 # averages away, and no data can tell from the extrinsic's own rotation. On the simulated bags (exact
@@ -293,6 +296,12 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
         margin = EDGE_MARGIN_M + EDGE_SIGMAS * float(np.sqrt(np.mean(r ** 2)))
         inside &= inside_board_by(T, dt, trajectory, points, times, extent) >= margin
     if inside.sum() < MIN_SWEEPS * GRID_RETURNS:
+        rms = float(np.sqrt(np.mean(r ** 2)))
+        if rms > FAR_RMS_M:  # no board of any size helps: the returns are not where the camera saw the board
+            raise DegenerateLayoutError(f"the LiDAR's board returns lie {1000 * rms:.0f} mm RMS from the board the "
+                                        "camera saw, at the best extrinsic and clocks' offset: they do not follow one "
+                                        "board", hint="check that the camera's and the LiDAR's topics are of one "
+                                                      "recording and the LiDAR's returns are the board's")
         raise DegenerateLayoutError(f"only {int(inside.sum())} LiDAR returns fall where the camera saw the board "
                                     f"at least every {MAX_GAP_S:.2f} s" + ("" if extent is None else
                                     f" and {1000 * margin:.0f} mm inside its edges (a larger board helps)"))
