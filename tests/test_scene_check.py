@@ -121,9 +121,13 @@ def test_a_contour_the_camera_cannot_see_from_its_own_centre_is_left_out():
 
 @pytest.fixture(scope="module")
 def office(tmp_path_factory):
-    """A simulated office (64-beam LiDAR, ten frames) and its truth."""
+    """A simulated office (64-beam LiDAR, ten frames) and its truth: the folder made once for the run (its tests
+    are spread over both test processes), ``ds`` in a folder of each process's own for what the tests write."""
+    from .conftest import shared_folder
+
     tmp = tmp_path_factory.mktemp("office")
-    simulate_dataset(tmp / "ds", n_poses=10, seed=1, lidar="os64", scene="office")
+    (tmp / "ds").symlink_to(shared_folder(tmp_path_factory, "office_os64_1", lambda path: simulate_dataset(
+        path, n_poses=10, seed=1, lidar="os64", scene="office")), target_is_directory=True)
     truth = np.array(json.loads((tmp / "ds" / "ground_truth.json").read_text())["T_camera_lidar"])
     return tmp, truth
 
@@ -230,7 +234,11 @@ def room(tmp_path_factory):
     64-beam LiDAR) and its truth."""
     from estimators.simulation.furnished_room import simulate_scene_dataset
 
-    ds = simulate_scene_dataset(tmp_path_factory.mktemp("room") / "room", n_frames=6, seed=102, lidar="os64")
+    from .conftest import shared_folder
+
+    # made once for the run (15 s): the tests that take it are spread over both test processes
+    ds = shared_folder(tmp_path_factory, "furnished_room_os64_102",
+                       lambda path: simulate_scene_dataset(path, n_frames=6, seed=102, lidar="os64"))
     return ds, np.array(json.loads((ds / "ground_truth.json").read_text())["T_camera_lidar"])
 
 
