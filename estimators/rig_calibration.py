@@ -743,6 +743,16 @@ def calibrate(dataset, init: str = "closed-form", refine: str = "factor-graph", 
     from .io.measurement_store import Measurements, pair_as_rig
     from .io.rig_dataset import load_rig
 
+    import os
+
+    for name, value, kinds in (("dataset", dataset, (Dataset, RigDataset, Measurements, str, os.PathLike)),
+                               ("rng", rng, (np.random.Generator, type(None))), ("params", params, SegmentationParams),
+                               ("options", options, RefinementOptions),
+                               ("posterior", posterior, (PosteriorOptions, type(None))), ("hints", hints, Hints)):
+        if not isinstance(value, kinds):  # a wrong type named here, not as an attribute missing deep inside
+            wanted = " or ".join("None" if k is type(None) else "a folder" if k is os.PathLike else k.__name__
+                                 for k in (kinds if isinstance(kinds, tuple) else (kinds,)) if k is not str)
+            raise TypeError(f"calibrate: {name} must be {wanted}, got {type(value).__name__}")
     if refine != "factor-graph":
         raise ValueError(f"refine {refine!r}: the engine refines in the factor graph; the closed form alone is "
                          "estimators.solve(estimators.measure(dataset, rng), refine='none')")

@@ -421,3 +421,16 @@ def test_a_reader_that_closes_the_output_ends_the_command_quietly(tmp_path):
     proc.stdout.close()
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141 and "Traceback" not in err, err
+
+
+def test_the_apis_calibrate_names_an_argument_of_the_wrong_type(sim_vlp16):
+    """A notebook's slip (a seed for the generator, options as text, no folder) is a TypeError naming the argument,
+    not an AttributeError from deep inside (``'int' object has no attribute 'spawn'``)."""
+    from estimators import calibrate
+
+    for kwargs, name in (({"rng": 5}, "rng must be Generator"), ({"options": "x"}, "options must be RefinementOptions"),
+                         ({"posterior": 100}, "posterior must be PosteriorOptions or None")):
+        with pytest.raises(TypeError, match=name):
+            calibrate(sim_vlp16, **kwargs)
+    with pytest.raises(TypeError, match="dataset must be"):
+        calibrate(None)
