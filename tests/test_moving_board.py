@@ -99,6 +99,13 @@ def test_options_a_moving_board_does_not_take_are_refused_in_one_line(waved, cap
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--robust is not taken by a moving board's recording" in err
     assert not (tmp_path / "x").exists()
+    # the commands that take still poses say what the folder is (they said "no frames: add NNNN.png and NNNN.pcd")
+    (tmp_path / "cal.json").write_text(json.dumps({"T_camera_lidar": np.eye(4).tolist()}))
+    for args in (["layout", str(tmp / "ds")],
+                 ["check", str(tmp / "ds"), "--calibration", str(tmp_path / "cal.json"), "--out", str(tmp_path / "k")]):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "a moving board's recording (motion.npz), without still frames" in err
 
 
 def test_deskewed_returns_lie_on_the_board_where_the_camera_saw_it():
