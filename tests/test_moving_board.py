@@ -318,6 +318,9 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     assert json.loads((tmp_path / "rig" / "extract.json").read_text())["recording"] == "moving board"
     assert main(["calibrate", str(tmp_path / "rig"), "--out", str(tmp_path / "cal")]) == 0
     out = capsys.readouterr().out
+    # a command that takes still poses says what the folder is (it said "no frames in cam0/; add NNNN files")
+    assert main(["layout", str(tmp_path / "rig")]) == 2
+    assert "a moving board's recording (each LiDAR's motion.npz), without still frames" in capsys.readouterr().err
     cal = json.loads((tmp_path / "cal" / "calibration.json").read_text())
     assert cal["rig"] and cal["recording"] == "moving board" and cal["time_offsets_reference"] == "cam0"
     truth = {"lidar0": (rig.T_camera_lidar, -0.03), "lidar1": (other.T_camera_lidar, 0.045)}
