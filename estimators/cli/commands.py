@@ -693,18 +693,16 @@ def export_command(args) -> int:
     """A calibration written for ROS tf, URDF, KITTI, OpenCV YAML or JSON, its verdict in the file's comment. An
     ``UNTRUSTED`` calibration is refused unless ``--allow-untrusted`` (copied into a robot's files it would read as
     an answer); a ``CHECK`` one is written, its verdict repeated on stderr."""
-    from ..io.export import export_calibration, load_calibration, write_export
+    from ..io.export import export_calibration, load_calibration, verdict_of, write_export
 
     frames = {"camera_frame": args.camera_frame, "lidar_frame": args.lidar_frame, "parent": args.parent}
     cal = load_calibration(args.calibration)
-    verdict = cal.get("verdict")
-    level = verdict.get("level") if isinstance(verdict, dict) else None
+    level, reasons = verdict_of(cal)
     if level == "UNTRUSTED" and not args.allow_untrusted:
         raise LidarcamError("the calibration's verdict is UNTRUSTED: not exported as an answer", path=args.calibration,
                          hint="read its reasons (calibration.json, report.html) and fix the data, or pass "
                               "--allow-untrusted to export it anyway")
     if level in ("CHECK", "UNTRUSTED"):
-        reasons = verdict.get("reasons") or []
         print(f"lidarcam: note: exporting a calibration whose verdict is {level}"
               + (f": {reasons[0]}" if reasons else ""), file=sys.stderr)
     if args.out is None:

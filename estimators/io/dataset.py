@@ -16,7 +16,7 @@ from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import DatasetError
 from .input_files import load_json, load_yaml
-from .motion_track import has_motion
+from .motion_track import STILL_POSES_ONLY, has_motion
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -303,8 +303,7 @@ def _pair_frames(root: Path, scan_suffixes: tuple[str, ...] = SCAN_SUFFIXES) -> 
     if not images:
         if has_motion(root):  # a board waved before the rig: its motion, no still frames
             raise DatasetError("a moving board's recording (motion.npz), without still frames (image + scan pairs)",
-                               path=root, hint="this command takes a folder of still poses; lidarcam calibrate "
-                                               "takes the recording")
+                               path=root, hint=STILL_POSES_ONLY)
         raise DatasetError("no frames (image + scan pairs with the same stem)", path=root,
                            hint="add NNNN.png and NNNN.pcd files")
     return tuple(FrameFiles(stem, images[stem], scans[stem]) for stem in sorted(images))

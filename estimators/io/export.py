@@ -121,18 +121,25 @@ def _as_calibration(calibration) -> dict:
     return {"T_camera_lidar": np.asarray(calibration, dtype=float).tolist()}
 
 
+def verdict_of(cal: dict) -> tuple[str | None, list[str]]:
+    """A calibration.json's verdict: its level (None for a file without one) and its reasons."""
+    verdict = cal.get("verdict")
+    if not isinstance(verdict, dict) or not verdict.get("level"):
+        return None, []
+    return str(verdict["level"]), [str(r) for r in verdict.get("reasons") or []]
+
+
 def verdict_words(cal: dict, limit: int = 200) -> str:
     """The calibration's verdict as an export's comment says it (``; verdict OK``, or the level and its first
     reason, cut at ``limit`` characters), so that a transform copied into a robot's files carries it; "" for a file
     without one. Kept to one line, and free of ``--`` (an XML comment may not hold it)."""
-    verdict = cal.get("verdict")
-    if not isinstance(verdict, dict) or not verdict.get("level"):
+    level, reasons = verdict_of(cal)
+    if not level:
         return ""
-    reasons = [str(r) for r in verdict.get("reasons") or []]
     first = " ".join(reasons[0].split()) if reasons else ""
     if len(first) > limit:
         first = first[:limit].rstrip() + "..."
-    text = f"; verdict {verdict['level']}" + (f": {first}" if first else "")
+    text = f"; verdict {level}" + (f": {first}" if first else "")
     while "--" in text:
         text = text.replace("--", "- -")
     return text

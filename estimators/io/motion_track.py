@@ -26,6 +26,8 @@ FOLLOWED_CAMERA = "cam0"
 STILL_POSES = "still poses"  # extract.json's recording of frames held still (bag_extract.STILL)
 MOVING_BOARD = "moving board"  # and of a board that moves throughout (bag_extract.MOVING)
 EXAMPLES = "examples"  # the folder beside it of the few images kept whole
+# What a command that takes still poses says of a moving board's folder (a pair's or a rig's).
+STILL_POSES_ONLY = "this command takes a folder of still poses; lidarcam calibrate takes the recording"
 # The stamps lie within this many seconds of the recording's first (11 days): beyond, a damaged record, and times
 # in float64 no longer resolve the microseconds a sweep's returns are timed by.
 MAX_STAMP_S = 1e6

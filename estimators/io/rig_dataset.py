@@ -27,7 +27,7 @@ from ..errors import DatasetError
 from .dataset import (IMAGE_SUFFIXES, Dataset, FrameFiles, _parse_lidar, load_dataset, parse_board, parse_camera,
                       read_dataset_yaml)
 from .input_files import load_yaml
-from .motion_track import is_moving_dataset
+from .motion_track import STILL_POSES_ONLY, is_moving_dataset
 from .pointcloud_io import SCAN_2D_SUFFIXES, SCAN_SUFFIXES
 
 SENSOR_TYPES = ("camera", "lidar")
@@ -140,8 +140,7 @@ def _sensor_files(folder: Path, suffixes: tuple[str, ...], ypath: Path) -> tuple
     if not found:
         if is_moving_dataset(folder.parent):  # a board waved before the rig: each LiDAR's motion, no still frames
             raise DatasetError("a moving board's recording (each LiDAR's motion.npz), without still frames",
-                               path=folder.parent, hint="this command takes a folder of still poses; lidarcam "
-                                                        "calibrate takes the recording")
+                               path=folder.parent, hint=STILL_POSES_ONLY)
         raise DatasetError(f"no frames in {folder.name}/ (files ending {', '.join(suffixes)})", path=folder,
                            hint="add NNNN files, or remove the sensor from dataset.yaml")
     return tuple(sorted(found.items()))
