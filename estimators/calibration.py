@@ -143,7 +143,8 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
           init: str = "closed-form", refine: str = "factor-graph", options: RefinementOptions = RefinementOptions(),
           name: str = "", warnings: list[str] | None = None, timings: dict | None = None,
           posterior: PosteriorOptions | None = None, rng: np.random.Generator | None = None,
-          use_extent: bool | None = None, samples: int | None = None) -> CalibrationResult:
+          use_extent: bool | None = None, samples: int | None = None, memo: dict | None = None
+          ) -> CalibrationResult:
     """The pair's own solver stage alone, on measured frames: initial solution and factor graph (the posterior is
     the engine's: ``estimators.calibrate`` takes measured frames too).
 
@@ -174,6 +175,9 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
         0 or None (a request for samples is refused, as ``posterior``).
     use_extent : bool, optional
         As for :func:`calibrate_pair`.
+    memo : dict, optional
+        A 3D LiDAR's range-term choices made before (``solvers.choice_memo``): replayed where the refinement's
+        inputs are the same, and filled with the choices made here.
 
     Returns
     -------
@@ -192,7 +196,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     if isinstance(frames, Measurements):
         m = frames
         result = solve(list(m.frames), m.board, m.camera, init, refine, options, name or m.dataset,
-                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples)
+                       list(m.warnings) + list(warnings or []), timings, posterior, rng, use_extent, samples, memo)
         return replace(result, measurements_source=m.source)
     if board is None or camera is None:
         raise ValueError("solve needs board and camera with a list of frames (or a Measurements)")
@@ -224,7 +228,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     T, ref = sol.T_camera_lidar, None
     if refine == "factor-graph":
         t0 = time.perf_counter()
-        ref = refine_graph(used, board, camera, T, options)
+        ref = refine_graph(used, board, camera, T, options, memo)
         timings["refine"] = time.perf_counter() - t0
         T = ref.T_camera_lidar
         warnings += ref.warnings

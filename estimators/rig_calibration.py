@@ -22,7 +22,7 @@ from threadpoolctl import threadpool_limits
 from .calibration import solve
 from .camera.board_pose import reobserve_frames
 from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
-from .io.measurement_store import RigMeasurements
+from .io.measurement_store import RigMeasurements, load_choices, save_choices
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
 from .pipeline.measurement import Hints
@@ -140,7 +140,8 @@ class PairsAlone:
 
 def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, cameras: dict,
                       alone: RefinementOptions, init: str, options: RefinementOptions,
-                      scanner_ends: bool = False, check_intrinsics: bool = False) -> PairsAlone:
+                      scanner_ends: bool = False, check_intrinsics: bool = False, memo: dict | None = None
+                      ) -> PairsAlone:
     """Each camera-LiDAR pair of ``frames_by_pair`` (``(camera, lidar) -> frames``, measured or observed again under
     refined intrinsics, ``cameras`` the models they were observed under) with at least ``MIN_PAIR_FRAMES`` usable
     frames (``MIN_SCANNER_FRAMES_WITH_ENDS`` for a scanner taking its segment ends, below) solved alone with
@@ -155,7 +156,8 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
     among them and the planes alone start it: weighed with the ends, a 6-camera rig's 3- and 4-board scanner
     pairs took 17 s, the whole rig's solve 2.4 s without them. With ``check_intrinsics``, each 3D pair's boards are
     checked for planes that disagree in a way the camera's intrinsics explain (``intrinsics_refinement.
-    intrinsics_drop``, as every single 3D pair's result is; about 10 ms a pair)."""
+    intrinsics_drop``, as every single 3D pair's result is; about 10 ms a pair). ``memo``: the range terms'
+    choices made before on the same inputs (``solvers.choice_memo``), replayed, and filled with those made here."""
     lidar_obs: dict = {s.name: {} for s in rig.lidars}
     plane_frames: dict = {s.name: {} for s in rig.lidars}
     skipped: dict = {s.name: {} for s in rig.lidars}
@@ -196,7 +198,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 opts = alone if chooses else replace(alone, range_model=term_choices[lid.name][0].chosen)
                 res = solve(usable + tilts, rig.board, cameras[cam_name],
                             init if lid.lidar == "2d" else "closed-form",
-                            options=replace(opts, edges=True) if ends else opts, use_extent=ends)
+                            options=replace(opts, edges=True) if ends else opts, use_extent=ends, memo=memo)
             except DegenerateLayoutError as exc:
                 failed[(cam_name, lid.name)] = exc
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")
@@ -395,8 +397,11 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     t_meas = time.perf_counter()
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
     scanner_ends = edges is not False and rig.board.size_known
+    # The range terms' choices kept beside cached measurements: a re-solve replays them (``solvers.choice_memo``).
+    memo = load_choices(measured.cache) if measured.cache is not None else None
+    kept = dict(memo or {})
     alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options,
-                                  scanner_ends, check_intrinsics=not refine_intrinsics)
+                                  scanner_ends, check_intrinsics=not refine_intrinsics, memo=memo)
     t_pairs = time.perf_counter()
     cams = [c.name for c in rig.cameras]
     links = dict(alone_fit.links)
@@ -449,7 +454,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         try:
             again = solve_pairs_alone(rig, {(c, d): reobserve_frames(frames, rig.board, seen[c])
                                             for (c, d), frames in measured.pairs.items()},
-                                      measured.measured_by, seen, rounds, init, options, scanner_ends)
+                                      measured.measured_by, seen, rounds, init, options, scanner_ends, memo=memo)
             settled = again.settled(alone_fit)
             views, joint_again = joint(again)
         except LidarcamError as exc:  # the last round that could be solved stands
@@ -459,6 +464,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         alone_fit, lidar_views, solution = again, views, joint_again
         if settled:
             break
+    if memo is not None and memo != kept:
+        save_choices(measured.cache, memo)
     if refine_intrinsics and solution.intrinsics and measurements is None and remeasure:
         refined = replace(rig, sensors=tuple(
             replace(s, camera=solution.camera_model(s.name, cameras[s.name]))

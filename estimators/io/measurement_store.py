@@ -86,6 +86,9 @@ class RigMeasurements:
         The generators each pair's measurement drew (a cached rig draws as many, so that later draws match).
     source : str
         ``measured``, ``cache`` or the folder they were read from.
+    cache : Path or None
+        The cache folder they are kept in (``pipeline.rig_measurement.measured_rig``), which keeps the range
+        terms' choices made on them too (:func:`load_choices`); None: not kept.
     """
 
     cameras: dict
@@ -96,6 +99,7 @@ class RigMeasurements:
     warnings: tuple = ()
     spawned: tuple = ()
     source: str = "measured"
+    cache: Path | None = None
 
     @property
     def stems(self) -> list[str]:
@@ -190,6 +194,52 @@ def load_rig_measurements(folder: str | Path) -> RigMeasurements:
                            f"{str(exc).splitlines()[0][:160] if str(exc) else 'no detail'})", path=folder,
                            hint="measure the rig again: `lidarcam calibrate RIG --out OUT` writes OUT/measurements"
                            ) from None
+
+
+CHOICES = "choices.json"
+# The models a kept choice may name (``solvers.range_model.RANGE_MODELS`` but ``auto``).
+CHOSEN = ("none", "offset", "per-ring", "offset+dark", "full")
+
+
+def load_choices(folder: Path) -> dict:
+    """The range terms' choices kept beside cached measurements (``solvers.choice_memo``: inputs' digest ->
+    decisions), those of the expected form; {} where there are none or the file is damaged (they are made
+    again)."""
+    try:
+        kept = load_json(folder / CHOICES, "range-term choices")
+    except DatasetError:
+        return {}
+    if not isinstance(kept, dict):
+        return {}
+    return {k: v for k, v in kept.items() if isinstance(v, list) and 1 <= len(v) <= 2 and all(_decision(d) for d in v)}
+
+
+def _decision(d) -> bool:
+    """Whether ``d`` has a decision's form (``choice_memo.decision``): what later steps read of it is there."""
+    def number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    def test(t) -> bool:
+        return isinstance(t, dict) and number(t.get("p_value")) and isinstance(t.get("included"), bool) and \
+            isinstance(t.get("model"), str) and isinstance(t.get("against"), str)
+
+    def weak(w) -> bool:
+        return w is None or isinstance(w, dict) and number(w.get("p_value")) and number(w.get("offset_mm")) and \
+            isinstance(w.get("with_ring_ends"), bool) and isinstance(w.get("difference_tangent"), list) and \
+            len(w["difference_tangent"]) == 6 and all(number(x) for x in w["difference_tangent"])
+
+    return (isinstance(d, dict) and d.get("chosen") in CHOSEN and d.get("requested") == "auto"
+            and isinstance(d.get("reason"), str) and isinstance(d.get("tests"), list) and all(map(test, d["tests"]))
+            and isinstance(d.get("left_out"), list) and all(isinstance(m, str) for m in d["left_out"])
+            and weak(d.get("weak_offset")) and number(d.get("range_accuracy_m")))
+
+
+def save_choices(folder: Path, choices: dict) -> None:
+    """:func:`load_choices`'s file written (atomically); a cache that cannot be written is left as it is."""
+    try:
+        write_json_atomic(folder / CHOICES, choices)
+    except OSError:
+        pass
 
 
 @functools.lru_cache(maxsize=1)

@@ -164,13 +164,15 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
         folder = cache_dir() / f"rig-{dataset_key(rig.root, files, options)}"
         if (folder / "index.json").is_file():
             try:
-                return replace(given_measurements(rig, load_rig_measurements(folder), rng), source="cache")
+                return replace(given_measurements(rig, load_rig_measurements(folder), rng), source="cache",
+                               cache=folder)
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
     rm = measure_rig(rig, rng, workers, params, hints, timings)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
+            rm = replace(rm, cache=folder)
         except OSError as exc:
             rm = replace(rm, warnings=rm.warnings + (f"the measurement cache {folder} is not writable ({exc})",))
     return rm

@@ -14,6 +14,7 @@ from geometry.rotations import T_exp, T_log
 from . import chi_square as chi2
 from .board_scatter import estimate_board_scatter, estimate_plane_error
 from .chi_square import fdtrc
+from .choice_memo import decided_fields
 from .graph_keys import EXTRINSIC, RANGE
 from .plane_graph import PlaneProblem, hessian, objective
 from .range_model import (CONFOUNDED_CORRELATION, MODEL_TEST_P, OFFSET_HELD_P, FrameLabels, RangeModelFit, RangeTerms,
@@ -165,7 +166,8 @@ def _weak_words(weak: dict | None) -> str:
 
 
 def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int], T: np.ndarray, boards: list,
-                       floor: float, options: RefinementOptions, labels: FrameLabels, ends=None) -> tuple:
+                       floor: float, options: RefinementOptions, labels: FrameLabels, ends=None,
+                       decided: dict | None = None) -> tuple:
     """The range model to refine with (``solvers.range_model``): the requested one, or under ``auto`` the
     terms the data support (:func:`_model_test`): a global offset against none, then the per-ring and the
     black-square terms each against the offset (against none, with the offset, when the offset alone is not
@@ -179,8 +181,18 @@ def choose_range_model(prob: PlaneProblem, active: list[int], inliers: list[int]
     and taken when it passes: on boards facing the rig an offset is nearly the translation along their normals,
     which the planes cannot tell apart and the ends can (a VLP-16 ranging 2 cm long on such boards went unfound,
     its answers 14-25 mm off and reading ``OK``: bench_weak_offset). The other blocks are tested on the planes,
-    against the offset, as before."""
+    against the offset, as before.
+
+    ``decided``: under ``auto``, what this choice decided before on the same inputs (``choice_memo.decision``):
+    the chosen model alone is solved, and the record is the tests' (``choice_memo``)."""
     wanted = options.range_model
+    if decided is not None and wanted == "auto":
+        record = decided_fields(decided)
+        if record["chosen"] == "none":
+            return prob, T, boards, RangeModelFit(**record)
+        f = _fit_model(prob, record["chosen"], labels, active, inliers, T, boards, floor, options)
+        return f.prob, f.T, f.boards, RangeModelFit(names=f.prob.terms.names, values_m=tuple(f.prob.beta.tolist()),
+                                                    terms=f.prob.terms, **record)
     fits: dict[str, _ModelFit] = {}
     seen = set()
 

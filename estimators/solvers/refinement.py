@@ -62,6 +62,7 @@ from ..measurements import FrameMeasurement
 from . import chi_square as chi2
 from .board_edges import EndTerms
 from .board_scatter import BOARD_SCATTER_MEANING, estimate_board_scatter, estimate_plane_error
+from .choice_memo import Undigestible, decision, inputs_digest
 from .closed_form import solve_closed_form
 from .edges_in_graph import (add_edges, check_outline, conflict_covariance, edge_crossings, edges_information,
                              edges_left_out, edges_summary, left_out_warning)
@@ -146,10 +147,18 @@ def _offset_ends(prob: PlaneProblem, frames: list[FrameMeasurement], active: lis
 
 
 def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraModel, T_init: np.ndarray,
-           options: RefinementOptions = RefinementOptions()) -> Refinement:
-    """Refine ``T_camera_lidar`` from the usable frames, starting at ``T_init``."""
+           options: RefinementOptions = RefinementOptions(), memo: dict | None = None) -> Refinement:
+    """Refine ``T_camera_lidar`` from the usable frames, starting at ``T_init``. ``memo``: the range terms' choices
+    made before (``choice_memo``), replayed on inputs of the same content and filled with those made here."""
     if options.range_accuracy_m is None:
         options = replace(options, range_accuracy_m=DEFAULT_RANGE_ACCURACY_M)
+    key = None
+    if memo is not None and options.range_model == "auto":
+        try:
+            key = inputs_digest([f for f in frames if f.usable], board, camera, T_init, options)
+        except Undigestible:
+            pass
+    recalled, made = iter(memo.get(key, ()) if key is not None else ()), []
     frames = [f for f in frames if f.usable]
     # Scan lines with their segment ends on a board of known size: two boards can determine the extrinsic.
     least = 2 if (frames and all(f.lidar.is_scan_line for f in frames) and board.size_known
@@ -233,7 +242,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                                                  scan_lines))
 
         prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
-                                                        ends)
+                                                        ends, next(recalled, None))
+        made.append(decision(model_fit))
         if labels.source == "geometry" and prob.terms is not None and "dark" in prob.terms.names:
             # The colours were placed under the extrinsic the model was chosen from, as if it were exact. Placed
             # again under the estimate and blurred by its uncertainty (shares placed sharper than they are known
@@ -244,7 +254,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                 placement_cov = None
             labels = frame_labels(frames, board, T, boards, placement_cov)
             prob, T, boards, model_fit = choose_range_model(prob, active, inliers, T, boards, floor, options, labels,
-                                                            ends)
+                                                            ends, next(recalled, None))
+            made.append(decision(model_fit))
         agreement = labels.agreement()
         if agreement is not None and agreement < MIN_INTENSITY_AGREEMENT:
             warnings.append(f"range model: the board returns' intensities agree with the black squares the camera's "
@@ -255,6 +266,8 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
             model_fit = replace(model_fit, labels_from=labels.source, intensity_agreement=agreement, labels=labels)
             if "fell back" in model_fit.reason:
                 warnings.append(f"range model: {model_fit.reason}")
+        if key is not None:
+            memo[key] = made
     else:
         model_fit = None
     if prob.has_beta and options.range_noise_m is None:
@@ -422,7 +435,7 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
                      iterations, tuple(warnings), cov_intrinsics, options.corner_scale_sd, model_fit, edges_record,
                      edge_share, end_terms, prob.views(active, floor), float(options.range_accuracy_m), conflict)
     if options.edges is None and (why := edges_left_out(edges_record)) is not None:
-        return planes_instead(out, refine(frames, board, camera, T_init, replace(options, edges=False)), why)
+        return planes_instead(out, refine(frames, board, camera, T_init, replace(options, edges=False), memo), why)
     return out
 
 
