@@ -20,6 +20,7 @@ known) is read that second time too: its frames give the extrinsic as before, it
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -170,6 +171,25 @@ def _detect(gray: np.ndarray, board: BoardModel, max_side: int = DETECT_MAX_SIDE
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
     corners = cv2.cornerSubPix(small, corners, (4, 4), (-1, -1), criteria)
     return corners.reshape(-1, 2).astype(float) / scale
+
+
+class Detections:
+    """:func:`_detect`, each image searched once: a camera's images are read by the still poses' pass and again
+    by the board's following for each LiDAR (``_follow``); the detections are kept by the image's content (a
+    16-byte digest, the shape and the size searched at) and given back as copies."""
+
+    def __init__(self, board: BoardModel):
+        self.board, self.found = board, {}
+
+    def __call__(self, gray: np.ndarray, board: BoardModel | None = None, max_side: int = DETECT_MAX_SIDE
+                 ) -> np.ndarray | None:
+        if board is not None and board is not self.board:
+            return _detect(gray, board, max_side)
+        key = (hashlib.blake2b(np.ascontiguousarray(gray).data, digest_size=16).digest(), gray.shape, max_side)
+        if key not in self.found:
+            self.found[key] = _detect(gray, self.board, max_side)
+        found = self.found[key]
+        return None if found is None else found.copy()
 
 
 def corner_motion(a: np.ndarray | None, b: np.ndarray | None) -> float:
@@ -408,6 +428,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                        hint="pass --cloud-topic T or --scan-topic T")
     lidar = "3d" if cloud_topic else "2d"
     scan_format = options.scan_format or ("pcd" if lidar == "3d" else "csv")
+    detect = Detections(board)  # each image searched once, by the still poses' pass and the following
     reader = _open_reader(bag)
     try:
         img_conns = _topic(reader, bag, image_topic, IMAGE_TYPES, "--image-topic")
@@ -484,7 +505,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                                        f"{intrinsics.height} images and {image_topic}'s are {image.shape[1]} x "
                                        f"{image.shape[0]}", path=bag, hint="give the intrinsics of this camera "
                                                                            "at this resolution")
-                    pending.append(_Check(stamp, image, _detect(to_gray8(image), board)))
+                    pending.append(_Check(stamp, image, detect(to_gray8(image))))
                     if len(pending) > MAX_PENDING_IMAGES:
                         resolve(pending.popleft())
                     if options.follow_motion and not records and segments.with_board >= EARLY_IMAGES and \
@@ -506,7 +527,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
                 segments.moved >= MOVING_SHARE * segments.with_board
             if moving:  # read again, every image and sweep (this reading may have stopped early: no overlap check)
                 return _extract_moving(reader, bag, tmp, Path(out), board, camera, img_conns + lidar_conns,
-                                       image_topic, lidar_topic, lidar, segments, info_topic, progress)
+                                       image_topic, lidar_topic, lidar, segments, info_topic, progress, detect)
             _check_overlap(bag, image_topic, lidar_topic, grid.span, scan_span, n_images, options)
             if not records:
                 counts = ", ".join(f"{n} {REASONS[k]}" for k, n in segments.counts.items() if n)
@@ -516,7 +537,7 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
             write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
                                f"extracted by lidarcam from {bag.name}: {image_topic} + {lidar_topic}")
             motion = _between_poses(reader, bag, tmp, board, camera, img_conns + lidar_conns, image_topic,
-                                    lidar_topic, lidar, segments, options, progress)
+                                    lidar_topic, lidar, segments, options, progress, detect=detect)
             counts = {k: int(segments.counts.get(k, 0)) for k in REASONS}
             (tmp / "extract.json").write_text(json.dumps({
                 "bag": str(bag), "recording": STILL, "image_topic": image_topic, "lidar_topic": lidar_topic,
@@ -535,11 +556,12 @@ def extract_bag(bag: str | os.PathLike, out: str | os.PathLike, board: BoardMode
 
 def _between_poses(reader, bag: Path, tmp: Path, board: BoardModel, camera: CameraModel | None, conns,
                    image_topic: str, lidar_topic: str, lidar: str, segments: "_StillSegments",
-                   options: ExtractOptions, progress: bool, remedy: str = "give them with --intrinsics FILE"
-                   ) -> str | None:
+                   options: ExtractOptions, progress: bool, remedy: str = "give them with --intrinsics FILE",
+                   detect: Detections | None = None) -> str | None:
     """A still-pose recording's board followed between its poses into ``motion.npz`` (``calibrate`` times the
     clocks with it) when it was seen moving (``MOVED_TO_TIME``); what was done, or why not, in words (None: the
-    board never moved in view; ``remedy``: what gives the camera's intrinsics where the bag has none)."""
+    board never moved in view; ``remedy``: what gives the camera's intrinsics where the bag has none; ``detect``:
+    the detections of the camera's images so far)."""
     if segments.moved < MOVED_TO_TIME or not options.follow_motion:
         return None
     if lidar != "3d":
@@ -547,7 +569,7 @@ def _between_poses(reader, bag: Path, tmp: Path, board: BoardModel, camera: Came
     if camera is None:
         return f"not followed (following the board needs the camera's intrinsics: the bag has no CameraInfo; {remedy})"
     try:
-        track, _, _ = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress)
+        track, _, _ = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress, detect)
     except BagError as exc:
         return f"not followed ({exc.problem})"
     save_motion_track(tmp, track)
@@ -557,7 +579,7 @@ def _between_poses(reader, bag: Path, tmp: Path, board: BoardModel, camera: Came
 
 def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, camera: CameraModel | None, conns,
                     image_topic: str, lidar_topic: str, lidar: str, segments: _StillSegments,
-                    info_topic: str | None, progress: bool) -> ExtractSummary:
+                    info_topic: str | None, progress: bool, detect: Detections | None = None) -> ExtractSummary:
     """A second pass over a bag whose board moves: every image and sweep read into ``motion.npz``
     (``bag_motion``), with ``dataset.yaml`` and ``extract.json``."""
     share = f"its corners moved beyond --still-px between {segments.moved} of the {segments.with_board} examined " \
@@ -570,7 +592,8 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
                        "no CameraInfo", path=bag, hint="give them with --intrinsics FILE, record the camera's "
                                                        "CameraInfo topic (or name it with --camera-info-topic), or "
                                                        "hold the board still per pose")
-    track, counts, images = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress)
+    track, counts, images = _follow(reader, bag, tmp, board, camera, conns, image_topic, lidar_topic, progress,
+                                    detect)
     save_motion_track(tmp, track)
     write_dataset_yaml(tmp, dataset_spec(lidar, board, camera),
                        f"extracted by lidarcam from {bag.name} (a moving board): {image_topic} + {lidar_topic}")
@@ -583,12 +606,14 @@ def _extract_moving(reader, bag: Path, tmp: Path, out: Path, board: BoardModel, 
 
 
 def _follow(reader, bag: Path, tmp: Path, board: BoardModel, camera: CameraModel, conns, image_topic: str,
-            lidar_topic: str, progress: bool):
+            lidar_topic: str, progress: bool, detect: Detections | None = None):
     """Every image and sweep of the bag read (``bag_motion.MovingBoardReader``): the record, the images' counts
-    per reason and the images read; a :class:`BagError` when too little of the board was seen."""
+    per reason and the images read; a :class:`BagError` when too little of the board was seen. ``detect``: the
+    camera's images searched before (:class:`Detections`)."""
     from tqdm.auto import tqdm
 
-    follow = MovingBoardReader(board, camera, _detect, image_topic, np.random.default_rng(0), tmp / EXAMPLES)
+    follow = MovingBoardReader(board, camera, detect or Detections(board), image_topic, np.random.default_rng(0),
+                               tmp / EXAMPLES)
     bar = tqdm(total=sum(c.msgcount for c in conns), desc=f"following the board in {bag.name}", unit="msg",
                disable=not progress)
     try:

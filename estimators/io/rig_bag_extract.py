@@ -40,7 +40,7 @@ from geometry.board import BoardModel
 
 from ..errors import BagError
 from .bag_extract import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, MOVING, MOVING_SHARE, SCAN_TYPE, STILL, ExtractOptions,
-                          _between_poses, _Check, _detect, _follow, _ImageGrid, _messages, _open_reader,
+                          Detections, _between_poses, _Check, _follow, _ImageGrid, _messages, _open_reader,
                           _StillSegments, _camera_info_topic, _topic)
 from .dataset import dataset_spec, write_dataset_yaml
 from .image_io import to_gray8
@@ -157,13 +157,14 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
             stage.mkdir()
             for name in list(cams) + list(lidars):
                 (tmp / name).mkdir()
+            detect = Detections(board)  # each image searched once, by the still poses' pass and the following
             kept, cameras, counts, segments = _still_poses(reader, bag, board, cams, img_conns, info, info_conns,
-                                                           options, stage, progress, tqdm)
+                                                           options, stage, progress, tqdm, detect)
             seen = segments[FOLLOWED_CAMERA]
             if options.follow_motion and seen.with_board >= 10 and seen.moved >= MOVING_SHARE * seen.with_board:
                 shutil.rmtree(stage)
                 motion = _moving_rig(reader, bag, tmp, board, cameras, cams, lidars, img_conns, lidar_conns, seen,
-                                     progress)
+                                     progress, detect)
                 _write_rig_records(tmp, bag, board, cams, cameras, lidars, info, {
                     "recording": MOVING, "image_counts": counts, "motion": motion})
                 return RigExtractSummary(Path(out), 0, {**cams, **{n: t for n, (t, _) in lidars.items()}},
@@ -202,7 +203,7 @@ def extract_rig_bag(bag: str | os.PathLike, out: str | os.PathLike, board: Board
             motion = {name: _between_poses(reader, bag, tmp / name, board, cameras.get(FOLLOWED_CAMERA),
                                            img_conns[FOLLOWED_CAMERA] + lidar_conns[name], cams[FOLLOWED_CAMERA],
                                            topic, kind, segments[FOLLOWED_CAMERA], options, progress,
-                                           f"record CameraInfo beside {cams[FOLLOWED_CAMERA]}")
+                                           f"record CameraInfo beside {cams[FOLLOWED_CAMERA]}", detect)
                       for name, (topic, kind) in lidars.items()}
             motion = {n: w for n, w in motion.items() if w is not None}
             _write_rig_records(tmp, bag, board, cams, cameras, lidars, info, {
@@ -239,7 +240,7 @@ def _write_rig_records(tmp: Path, bag: Path, board: BoardModel, cams: dict, came
 
 
 def _moving_rig(reader, bag: Path, tmp: Path, board: BoardModel, cameras: dict, cams: dict, lidars: dict,
-                img_conns: dict, lidar_conns: dict, seen, progress: bool) -> dict:
+                img_conns: dict, lidar_conns: dict, seen, progress: bool, detect: Detections) -> dict:
     """A board that moves throughout: for each 3D LiDAR, every image of the first camera and every sweep read into
     the LiDAR's folder (``motion.npz``); what was read per LiDAR. A :class:`BagError` for a second camera, a 2D
     scanner or the first camera's intrinsics unknown."""
@@ -261,7 +262,7 @@ def _moving_rig(reader, bag: Path, tmp: Path, board: BoardModel, cameras: dict, 
     motion = {}
     for name, (topic, _) in lidars.items():
         track, counts, images = _follow(reader, bag, tmp / name, board, cameras[cam], img_conns[cam] +
-                                        lidar_conns[name], cams[cam], topic, progress)
+                                        lidar_conns[name], cams[cam], topic, progress, detect)
         save_motion_track(tmp / name, track)
         motion[name] = {"images": images, "counts": counts, "images_kept": len(track.view_stamps_s),
                         "sweeps_kept": len(track.sweep_stamps_s), "point_times": track.point_times,
@@ -274,9 +275,10 @@ def _followed_words(m: dict) -> str:
             f"(motion.npz; returns timed by {m['point_times'] or 'their sweep'})")
 
 
-def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options, stage, progress, tqdm):
+def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options, stage, progress, tqdm, detect):
     """Pass 1: each camera's kept still poses ``(first stamp, last stamp, kept stamp, staged file)``, its
-    intrinsics from CameraInfo (or None), its images' counts by reason and its still segments' record."""
+    intrinsics from CameraInfo (or None), its images' counts by reason and its still segments' record (the board
+    found by ``detect``, ``bag_extract.Detections``, which keeps what it found for the following)."""
     kept = {n: [] for n in cams}
     segments, grids = {}, {}
     for n in cams:
@@ -306,7 +308,7 @@ def _still_poses(reader, bag, board, cams, img_conns, info, info_conns, options,
             continue
         image = decode_image(msg, conn.topic)
         # Still segments pair nothing here (each LiDAR's scan is taken in the second pass): every image may be kept.
-        segments[n].add(_Check(stamp, image, _detect(to_gray8(image), board), scan=True))
+        segments[n].add(_Check(stamp, image, detect(to_gray8(image)), scan=True))
     bar.close()
     for n in cams:
         segments[n].close()
