@@ -540,5 +540,8 @@ def test_a_choice_kept_in_the_memo_is_replayed_to_the_same_refinement(monkeypatc
         inputs_digest(frames, layout.board, layout.camera, T0, options)
     refine(moved, layout.board, layout.camera, T0, options, memo)
     assert len(memo) == 2
+    # numbers by value, whatever their type (measured planes hold numpy's floats, cached ones Python's)
+    assert inputs_digest([np.float64(1.5), np.int64(2), np.bool_(True)]) == inputs_digest([1.5, 2, True])
+    assert inputs_digest([1.5]) != inputs_digest([1.5 + 1e-15])
     with pytest.raises(Undigestible):
         inputs_digest(object())

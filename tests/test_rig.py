@@ -1044,9 +1044,12 @@ def test_a_pair_folder_is_the_rig_of_cam0_and_lidar0_and_calibrates_as_the_pair(
     monkeypatch.setenv("LIDARCAM_CACHE_DIR", str(tmp_path))
     res = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
     T, C = res.pair("cam0", "lidar0").T_camera_lidar, res.pair("cam0", "lidar0").covariance
-    # a 3D LiDAR's range-term choice is kept beside the cached measurements, and replayed (a scanner's, not kept)
-    assert bool(list(tmp_path.glob("rig-*/choices.json"))) == (data == "sim_vlp16")
+    # a 3D LiDAR's range-term choice is kept beside the cached measurements, and replayed: the measurements read
+    # back are the same inputs (no second entry); a scanner's is not kept
+    kept = list(tmp_path.glob("rig-*/choices.json"))
+    assert bool(kept) == (data == "sim_vlp16")
     again = calibrate_rig(rig, np.random.default_rng(0), advise=False, edges=False, cache=True)
+    assert all(len(json.loads(k.read_text())) == 1 for k in kept)
     assert not any("cache" in w for w in res.warnings) and again.warnings[0].startswith("measurements taken from")
     for got, want in zip(again.solution.transform("cam0", "lidar0"), (T, C)):
         np.testing.assert_array_equal(got, want)

@@ -29,7 +29,7 @@ class Undigestible(TypeError):
 
 def inputs_digest(*parts) -> str:
     """SHA-256 over the content of ``parts``: dataclasses field by field, arrays by dtype, shape and bytes, numbers
-    by their exact ``repr``, containers in order (dicts by sorted keys). :class:`Undigestible` for any other
+    by their exact value (of any type), containers in order (dicts by sorted keys). :class:`Undigestible` for any other
     type, rather than a digest of something the content might not fix."""
     h = hashlib.sha256()
     for part in parts:
@@ -38,8 +38,17 @@ def inputs_digest(*parts) -> str:
 
 
 def _feed(h, x) -> None:
-    if x is None or isinstance(x, (bool, int, float, str, np.generic, PurePath)):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
+    # Numbers by value whatever their type (a measured plane's distance is numpy's float, the cached one Python's).
+    if x is None:
+        h.update(b"None;")
+    elif isinstance(x, (bool, np.bool_)):
+        h.update(f"bool:{bool(x)};".encode())
+    elif isinstance(x, (int, np.integer)):
+        h.update(f"int:{int(x)};".encode())
+    elif isinstance(x, (float, np.floating)):
+        h.update(f"float:{float(x).hex()};".encode())
+    elif isinstance(x, (str, PurePath)):
+        h.update(f"{type(x).__name__}:{x!s};".encode())
     elif isinstance(x, np.ndarray):
         if x.dtype == object:
             raise Undigestible("an array of objects")
