@@ -332,3 +332,28 @@ def test_camera_info_topic_is_found_beside_or_above_the_image_topic():
     assert _camera_info_topic(two, "/cam/image_raw") == "/cam/camera_info"
     assert _camera_info_topic(two, "/x/image") is None  # two candidates, neither beside it: none is guessed
     assert _camera_info_topic(reader("/only/camera_info"), "/x/image") == "/only/camera_info"
+
+
+def test_each_image_is_searched_for_the_board_once_per_extract(monkeypatch):
+    """``bag_extract.Detections``: an image already searched (the same content, at the same size) is not searched
+    again, and what it gives back is a copy (a caller's change does not reach the next); another image is."""
+    from estimators.io import bag_extract
+    from estimators.simulation.board_drawing import draw_board
+    from estimators.simulation.simulator import default_rig, sample_board_poses
+
+    rng = np.random.default_rng(4)
+    rig = default_rig(rng)
+    pose = sample_board_poses(rig, 1, rng)[0]
+    image = draw_board(rig.camera, rig.board, pose[None], rng)
+    other = draw_board(rig.camera, rig.board, pose[None], rng)  # its own pixel noise
+    calls = []
+    detect = bag_extract._detect
+    monkeypatch.setattr(bag_extract, "_detect", lambda *a: calls.append(1) or detect(*a))
+    search = bag_extract.Detections(rig.board)
+    first = search(image)
+    assert first is not None and len(calls) == 1
+    first[:] = 0.0
+    again = search(image.copy(), rig.board)
+    assert len(calls) == 1 and np.array_equal(again, detect(image, rig.board))
+    search(other)
+    assert len(calls) == 2
