@@ -34,6 +34,7 @@ from .pipeline.rig_result import NOISE_WARNING_P, RigResult
 from .pipeline.rig_terms import (range_record, weak_offset_share, with_held_share, with_placement_share,
                                   with_range_terms)
 from .solvers import chi_square as chi2
+from .solvers.choice_memo import recallable
 from .solvers.edges_in_graph import conflict_words, left_out_warning
 from .solvers.noise_levels import pooled_range_noise_m
 from .solvers.posterior import PosteriorOptions, heavy_tails
@@ -398,7 +399,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     # Each camera-LiDAR pair that shares enough frames solved alone, as a single pair is.
     scanner_ends = edges is not False and rig.board.size_known
     # The range terms' choices kept beside cached measurements: a re-solve replays them (``solvers.choice_memo``).
-    memo = load_choices(measured.cache) if measured.cache is not None else None
+    memo = recallable(load_choices(measured.cache)) if measured.cache is not None else None
     kept = dict(memo or {})
     alone_fit = solve_pairs_alone(rig, measured.pairs, measured.measured_by, cameras, alone, init, options,
                                   scanner_ends, check_intrinsics=not refine_intrinsics, memo=memo)

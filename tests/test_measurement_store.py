@@ -131,10 +131,11 @@ def test_a_board_ambiguous_in_its_tilt_keeps_both_tilts_on_disk(sim_2d, tmp_path
 
 
 def test_kept_range_term_choices_of_another_form_are_made_again(tmp_path):
-    """``choices.json`` beside cached measurements (``solvers.choice_memo``): entries of the expected form are read
-    back, any other (not JSON, not a list of decisions, a model that is not one, a test without its p-value, a
+    """``choices.json`` beside cached measurements (``solvers.choice_memo``): entries of the expected form are
+    recalled, any other (not JSON, not a list of decisions, a model that is not one, a test without its p-value, a
     weak offset without its 6-vector) is left out, to be chosen again."""
     from estimators.io.measurement_store import CHOICES, load_choices, save_choices
+    from estimators.solvers.choice_memo import recallable
 
     good = {"requested": "auto", "chosen": "offset", "reason": "r", "left_out": [], "weak_offset": None,
             "range_accuracy_m": 0.03, "tests": [{"model": "offset", "against": "none", "p_value": 1e-5,
@@ -146,4 +147,4 @@ def test_kept_range_term_choices_of_another_form_are_made_again(tmp_path):
            {**good, "weak_offset": {"p_value": 0.01, "offset_mm": 3.0, "with_ring_ends": False,
                                     "difference_tangent": [0.0] * 5}}, "offset"]
     save_choices(tmp_path, {"a": [good], "b": [good, good], "c": [], **{f"bad{k}": [d] for k, d in enumerate(bad)}})
-    assert load_choices(tmp_path) == {"a": [good], "b": [good, good]}
+    assert recallable(load_choices(tmp_path)) == {"a": [good], "b": [good, good]}

@@ -197,41 +197,17 @@ def load_rig_measurements(folder: str | Path) -> RigMeasurements:
 
 
 CHOICES = "choices.json"
-# The models a kept choice may name (``solvers.range_model.RANGE_MODELS`` but ``auto``).
-CHOSEN = ("none", "offset", "per-ring", "offset+dark", "full")
 
 
 def load_choices(folder: Path) -> dict:
     """The range terms' choices kept beside cached measurements (``solvers.choice_memo``: inputs' digest ->
-    decisions), those of the expected form; {} where there are none or the file is damaged (they are made
-    again)."""
+    decisions, as the file holds them: ``choice_memo.recallable`` keeps those of a decision's form); {} where there
+    are none or the file is not JSON (they are made again)."""
     try:
         kept = load_json(folder / CHOICES, "range-term choices")
     except DatasetError:
         return {}
-    if not isinstance(kept, dict):
-        return {}
-    return {k: v for k, v in kept.items() if isinstance(v, list) and 1 <= len(v) <= 2 and all(_decision(d) for d in v)}
-
-
-def _decision(d) -> bool:
-    """Whether ``d`` has a decision's form (``choice_memo.decision``): what later steps read of it is there."""
-    def number(x) -> bool:
-        return isinstance(x, (int, float)) and not isinstance(x, bool)
-
-    def test(t) -> bool:
-        return isinstance(t, dict) and number(t.get("p_value")) and isinstance(t.get("included"), bool) and \
-            isinstance(t.get("model"), str) and isinstance(t.get("against"), str)
-
-    def weak(w) -> bool:
-        return w is None or isinstance(w, dict) and number(w.get("p_value")) and number(w.get("offset_mm")) and \
-            isinstance(w.get("with_ring_ends"), bool) and isinstance(w.get("difference_tangent"), list) and \
-            len(w["difference_tangent"]) == 6 and all(number(x) for x in w["difference_tangent"])
-
-    return (isinstance(d, dict) and d.get("chosen") in CHOSEN and d.get("requested") == "auto"
-            and isinstance(d.get("reason"), str) and isinstance(d.get("tests"), list) and all(map(test, d["tests"]))
-            and isinstance(d.get("left_out"), list) and all(isinstance(m, str) for m in d["left_out"])
-            and weak(d.get("weak_offset")) and number(d.get("range_accuracy_m")))
+    return kept if isinstance(kept, dict) else {}
 
 
 def save_choices(folder: Path, choices: dict) -> None:

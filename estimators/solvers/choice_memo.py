@@ -16,7 +16,7 @@ from pathlib import PurePath
 
 import numpy as np
 
-from .range_model import RangeModelFit
+from .range_model import RANGE_MODELS, RangeModelFit
 
 # What a decision holds: the record's fields the choice itself set (the chosen model's terms and values come
 # from solving it again).
@@ -85,3 +85,30 @@ def decision(fit: RangeModelFit) -> dict:
 def decided_fields(d: dict) -> dict:
     """A :func:`decision` read back as ``RangeModelFit``'s fields."""
     return {**{k: d[k] for k in DECIDED}, "tests": tuple(d["tests"]), "left_out": tuple(d["left_out"])}
+
+
+def recallable(kept: dict) -> dict:
+    """The entries of a memo read back from a file (``io.measurement_store.load_choices``) that hold one or two
+    decisions of :func:`decision`'s form, with what later steps read of them (the tests' models and p-values, a
+    weak offset's shift); a damaged or foreign entry is left out, to be chosen again."""
+    return {k: v for k, v in kept.items() if isinstance(v, list) and 1 <= len(v) <= 2 and all(map(_decision, v))}
+
+
+def _decision(d) -> bool:
+    def number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    def test(t) -> bool:
+        return isinstance(t, dict) and number(t.get("p_value")) and isinstance(t.get("included"), bool) and \
+            isinstance(t.get("model"), str) and isinstance(t.get("against"), str)
+
+    def weak(w) -> bool:
+        return w is None or isinstance(w, dict) and number(w.get("p_value")) and number(w.get("offset_mm")) and \
+            isinstance(w.get("with_ring_ends"), bool) and isinstance(w.get("difference_tangent"), list) and \
+            len(w["difference_tangent"]) == 6 and all(number(x) for x in w["difference_tangent"])
+
+    return (isinstance(d, dict) and d.get("chosen") in RANGE_MODELS and d["chosen"] != "auto"
+            and d.get("requested") == "auto" and isinstance(d.get("reason"), str) and isinstance(d.get("tests"), list)
+            and all(map(test, d["tests"])) and isinstance(d.get("left_out"), list)
+            and all(isinstance(m, str) for m in d["left_out"]) and weak(d.get("weak_offset"))
+            and number(d.get("range_accuracy_m")))

@@ -152,14 +152,14 @@ def refine(frames: list[FrameMeasurement], board: BoardModel, camera: CameraMode
     made before (``choice_memo``), replayed on inputs of the same content and filled with those made here."""
     if options.range_accuracy_m is None:
         options = replace(options, range_accuracy_m=DEFAULT_RANGE_ACCURACY_M)
+    frames = [f for f in frames if f.usable]
     key = None
     if memo is not None and options.range_model == "auto":
         try:
-            key = inputs_digest([f for f in frames if f.usable], board, camera, T_init, options)
+            key = inputs_digest(frames, board, camera, T_init, options)
         except Undigestible:
             pass
     recalled, made = iter(memo.get(key, ()) if key is not None else ()), []
-    frames = [f for f in frames if f.usable]
     # Scan lines with their segment ends on a board of known size: two boards can determine the extrinsic.
     least = 2 if (frames and all(f.lidar.is_scan_line for f in frames) and board.size_known
                   and options.edges is not False) else 3
