@@ -113,7 +113,7 @@ def test_a_param_std_of_the_wrong_length_is_refused_with_the_file_named(sim_hdl6
     assert "dataset.yaml" in str(exc.value)
 
 
-def test_the_lidar_side_is_measured_again_under_the_refined_intrinsics(tmp_path):
+def test_the_lidar_side_is_measured_again_under_the_refined_intrinsics(tmp_path, monkeypatch):
     # A two-camera rig whose first camera (the one the LiDAR's boards are found with) is given focal lengths 1% long
     # and half its k1, refined. Measured once, the LiDAR's board points kept part of the given intrinsics' error:
     # they were cut 5 cm outside the camera's outline under a consensus extrinsic that error had moved, and the
@@ -133,5 +133,12 @@ def test_the_lidar_side_is_measured_again_under_the_refined_intrinsics(tmp_path)
 
     once = calibrate_rig(rig, np.random.default_rng(12), refine_intrinsics=True, advise=False, remeasure=False)
     assert d2(once.edges["lidar0"]) < limit, once.verdict.line
+    # measured again, the images are not searched again: their corners do not depend on the intrinsics
+    from estimators.pipeline import rig_measurement
+
+    searched = []
+    detect = rig_measurement.detect_in_image
+    monkeypatch.setattr(rig_measurement, "detect_in_image", lambda f, *a: searched.append(f.image) or detect(f, *a))
     again = calibrate_rig(rig, np.random.default_rng(12), refine_intrinsics=True, advise=False)
     assert d2(again.edges["lidar0"]) < limit and again.verdict.line == "OK", again.verdict.line
+    assert sorted(searched) == sorted(path for s in rig.cameras for _, path in s.files)

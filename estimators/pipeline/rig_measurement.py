@@ -4,7 +4,7 @@ every pose along the links that share the most frames.
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -148,11 +148,12 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
                  params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                 timings: dict | None = None) -> RigMeasurements:
+                 timings: dict | None = None, detected: dict | None = None) -> RigMeasurements:
     """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
     keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
     would have drawn are drawn, so that later draws (the posterior's) are the same either way. ``timings`` gets
-    the measurement's stage times (:func:`measure_rig`)."""
+    the measurement's stage times, ``detected`` is the images' corners shared between measurements
+    (:func:`measure_rig`)."""
     folder = None
     if cache:
         options = {"format": RIG_FORMAT, "params": params, "hints": hints, **generator_key(rng)}
@@ -168,7 +169,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                                cache=folder)
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
-    rm = measure_rig(rig, rng, workers, params, hints, timings)
+    rm = measure_rig(rig, rng, workers, params, hints, timings, detected)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
@@ -193,14 +194,16 @@ def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Gene
 
 def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                 params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                timings: dict | None = None) -> RigMeasurements:
+                timings: dict | None = None, detected: dict | None = None) -> RigMeasurements:
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
     camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
     the board search's ``params`` and ``hints`` (a region of interest, in each LiDAR's own frame, and whether the
     static scene is used; a rig's initial guesses, ``hints.pair_guesses``, each its camera-LiDAR pair's; one
     ``initial_guess`` is refused, as a rig has several pairs). ``timings`` gets each stage's seconds summed over
     the threads (``load_images``, ``corners``, ``load_scans``, ``segmentation``), as a single pair's measurement
-    gives them."""
+    gives them. ``detected``: image path -> what ``detect_in_image`` found there, read before searching an image
+    and filled after: the corners do not depend on the camera's intrinsics, so a rig measured again under refined
+    ones (``calibrate_rig``) searches no image twice."""
     timings = {} if timings is None else timings
     if hints.initial_guess is not None:
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
@@ -215,11 +218,14 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                   for lid in rig.lidars if lid.lidar != "2d"}
         # Every camera's images searched in one pool: no camera waits on its slowest image with a core idle, and
         # each camera's board poses are solved while the next cameras' images are searched.
-        pending = {s.name: [pool.submit(detect_in_image, f, rig.board, timings) for f in camera_frames(s)]
-                   for s in rig.cameras}
+        detected = {} if detected is None else detected
+        pending = {s.name: [(f.image, detected.get(f.image) or pool.submit(detect_in_image, f, rig.board, timings))
+                            for f in camera_frames(s)] for s in rig.cameras}
         for s in rig.cameras:
+            for image, p in pending[s.name]:
+                detected.setdefault(image, p.result() if isinstance(p, Future) else p)
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name], ambiguous[s.name] = measure_camera(
-                s, rig.board, [p.result() for p in pending[s.name]])
+                s, rig.board, [detected[image] for image, _ in pending[s.name]])
             warnings.extend(w)
         sweeps = {name: f.result() for name, f in sweeps.items()}
     pairs, measured_by, spawned = {}, {}, []
