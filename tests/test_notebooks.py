@@ -23,6 +23,8 @@ def test_notebooks_are_stored_without_outputs():
     for path in NOTEBOOKS:
         nb = json.loads(path.read_text())
         for cell in nb["cells"]:
+            # every cell has its id (nbformat 4.5): a cell without one is a warning today, an error in later nbformat
+            assert cell.get("id"), f"{path.name}: a cell without an id"
             if cell["cell_type"] == "code":
                 assert cell.get("outputs") == [] and cell.get("execution_count") is None, path.name
 
