@@ -387,8 +387,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                            hint="use --init closed-form")
     alone = pair_options(options, range_model, params, edges)
     stages: dict = {}  # the measurement's stage times, summed over its threads (as a single pair's)
-    detected: dict = {}  # the images' corners, shared with a measurement under refined intrinsics (below)
-    measured = measured_rig(rig, rng, workers, cache, params, hints, stages, detected) if measurements is None else \
+    reused: dict = {}  # the images' corners and the sweeps, shared with a measurement under refined intrinsics
+    measured = measured_rig(rig, rng, workers, cache, params, hints, stages, reused) if measurements is None else \
         given_measurements(rig, measurements, rng)
     cameras, poses = measured.cameras, measured.poses
     skipped = {c: dict(v) for c, v in measured.skipped.items()}
@@ -472,7 +472,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         refined = replace(rig, sensors=tuple(
             replace(s, camera=solution.camera_model(s.name, cameras[s.name]))
             if s.name in solution.intrinsics else s for s in rig.sensors))
-        again = measured_rig(refined, rng, workers, cache, params, hints, stages, detected)
+        again = measured_rig(refined, rng, workers, cache, params, hints, stages, reused)
         merged = replace(measured, pairs={k: reobserve_frames(frames, rig.board, cameras[k[0]])
                                           for k, frames in again.pairs.items()},
                          measured_by=again.measured_by, spawned=measured.spawned + again.spawned)

@@ -133,12 +133,15 @@ def test_the_lidar_side_is_measured_again_under_the_refined_intrinsics(tmp_path,
 
     once = calibrate_rig(rig, np.random.default_rng(12), refine_intrinsics=True, advise=False, remeasure=False)
     assert d2(once.edges["lidar0"]) < limit, once.verdict.line
-    # measured again, the images are not searched again: their corners do not depend on the intrinsics
+    # measured again, no image is searched and no sweep read again: neither depends on the intrinsics
     from estimators.pipeline import rig_measurement
 
-    searched = []
-    detect = rig_measurement.detect_in_image
+    searched, read = [], []
+    detect, sweeps = rig_measurement.detect_in_image, rig_measurement.read_sweeps
     monkeypatch.setattr(rig_measurement, "detect_in_image", lambda f, *a: searched.append(f.image) or detect(f, *a))
+    monkeypatch.setattr(rig_measurement, "read_sweeps", lambda frames, *a: read.append(len(frames)) or sweeps(frames,
+                                                                                                            *a))
     again = calibrate_rig(rig, np.random.default_rng(12), refine_intrinsics=True, advise=False)
     assert d2(again.edges["lidar0"]) < limit and again.verdict.line == "OK", again.verdict.line
     assert sorted(searched) == sorted(path for s in rig.cameras for _, path in s.files)
+    assert read == [len(rig.sensor("lidar0").files)]

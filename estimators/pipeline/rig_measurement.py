@@ -148,12 +148,11 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
 
 def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
                  params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                 timings: dict | None = None, detected: dict | None = None) -> RigMeasurements:
+                 timings: dict | None = None, reused: dict | None = None) -> RigMeasurements:
     """:func:`measure_rig`, kept under the user's cache folder (``io.measurement_store.cache_dir``) when ``cache``,
     keyed by the rig's files, the code and the generator's state, and read back from it: the generators measuring
     would have drawn are drawn, so that later draws (the posterior's) are the same either way. ``timings`` gets
-    the measurement's stage times, ``detected`` is the images' corners shared between measurements
-    (:func:`measure_rig`)."""
+    the measurement's stage times, ``reused`` what measurements of the same files share (:func:`measure_rig`)."""
     folder = None
     if cache:
         options = {"format": RIG_FORMAT, "params": params, "hints": hints, **generator_key(rng)}
@@ -169,7 +168,7 @@ def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, ca
                                cache=folder)
             except DatasetError:
                 pass  # a damaged cache entry is measured again (and overwritten)
-    rm = measure_rig(rig, rng, workers, params, hints, timings, detected)
+    rm = measure_rig(rig, rng, workers, params, hints, timings, reused)
     if folder is not None:
         try:
             save_rig_measurements(folder, rm, rig.board, {s.name: s.lidar for s in rig.lidars})
@@ -194,16 +193,17 @@ def given_measurements(rig: RigDataset, rm: RigMeasurements, rng: np.random.Gene
 
 def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
                 params: SegmentationParams = SegmentationParams(), hints: Hints = Hints(),
-                timings: dict | None = None, detected: dict | None = None) -> RigMeasurements:
+                timings: dict | None = None, reused: dict | None = None) -> RigMeasurements:
     """Every sensor of the rig measured once (module docstring): each camera's boards, then each LiDAR's with each
     camera that shares at least ``MIN_PAIR_FRAMES`` of its frames, the cameras in the order of frames shared, under
     the board search's ``params`` and ``hints`` (a region of interest, in each LiDAR's own frame, and whether the
     static scene is used; a rig's initial guesses, ``hints.pair_guesses``, each its camera-LiDAR pair's; one
     ``initial_guess`` is refused, as a rig has several pairs). ``timings`` gets each stage's seconds summed over
     the threads (``load_images``, ``corners``, ``load_scans``, ``segmentation``), as a single pair's measurement
-    gives them. ``detected``: image path -> what ``detect_in_image`` found there, read before searching an image
-    and filled after: the corners do not depend on the camera's intrinsics, so a rig measured again under refined
-    ones (``calibrate_rig``) searches no image twice."""
+    gives them. ``reused``: what no camera's intrinsics change, kept by an earlier measurement of the same files
+    with the same ``hints`` and taken from it (each image's ``detect_in_image`` by its path, each 3D LiDAR's
+    ``read_sweeps`` by its name and files), and filled here: a rig measured again under refined intrinsics
+    (``calibrate_rig``) searches no image and reads no sweep twice."""
     timings = {} if timings is None else timings
     if hints.initial_guess is not None:
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
@@ -213,21 +213,25 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     with ThreadPoolExecutor(max_workers=1) as ahead, ThreadPoolExecutor(max_workers=workers) as pool:
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
-        sweeps = {lid.name: ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints,
-                                             timings)
-                  for lid in rig.lidars if lid.lidar != "2d"}
+        reused = {} if reused is None else reused
+        read = {lid.name: ("sweeps", lid.name, tuple((st, path) for st, path in lid.files))
+                for lid in rig.lidars if lid.lidar != "2d"}
+        sweeps = {name: reused.get(key) or ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in
+                                                                      key[2]], hints, timings)
+                  for name, key in read.items()}
         # Every camera's images searched in one pool: no camera waits on its slowest image with a core idle, and
         # each camera's board poses are solved while the next cameras' images are searched.
-        detected = {} if detected is None else detected
-        pending = {s.name: [(f.image, detected.get(f.image) or pool.submit(detect_in_image, f, rig.board, timings))
+        pending = {s.name: [(f.image, reused.get(f.image) or pool.submit(detect_in_image, f, rig.board, timings))
                             for f in camera_frames(s)] for s in rig.cameras}
         for s in rig.cameras:
             for image, p in pending[s.name]:
-                detected.setdefault(image, p.result() if isinstance(p, Future) else p)
+                reused.setdefault(image, p.result() if isinstance(p, Future) else p)
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name], ambiguous[s.name] = measure_camera(
-                s, rig.board, [detected[image] for image, _ in pending[s.name]])
+                s, rig.board, [reused[image] for image, _ in pending[s.name]])
             warnings.extend(w)
-        sweeps = {name: f.result() for name, f in sweeps.items()}
+        for name, got in sweeps.items():
+            reused.setdefault(read[name], got.result() if isinstance(got, Future) else got)
+        sweeps = {name: reused[key] for name, key in read.items()}
     pairs, measured_by, spawned = {}, {}, []
     for lid in rig.lidars:
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
