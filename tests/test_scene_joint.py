@@ -135,7 +135,7 @@ def test_a_scene_that_agrees_is_joined_and_keeps_the_boards_verdict(office, offi
     assert sds["joint"] <= sds["boards"] + 1e-9
 
 
-def test_boards_moved_or_turned_are_contradicted_by_the_scene(office):
+def test_boards_moved_or_turned_are_contradicted_by_the_scene(office, monkeypatch):
     """The same office's board calibration moved by 10 cm along its weak direction: the scene's check from there
     puts the LiDAR back, the scene and the boards disagree, the verdict is CHECK naming it, and the moved estimate
     is not joined. Turned by 1 degree about the camera's y (its translation kept, so that along the weak direction
@@ -153,6 +153,12 @@ def test_boards_moved_or_turned_are_contradicted_by_the_scene(office):
     moved_T[:3, 3] += 0.10 * u
     turned_T = sol.T_ref["lidar0"].copy()
     turned_T[:3, :3] = R_from_rotvec(np.radians(1.0) * np.array([0.0, 1.0, 0.0])) @ turned_T[:3, :3]
+    # the scene's check leaves the board out where the calibration found it, without searching the images again
+    from estimators.camera import corners
+
+    searched = []
+    detect = corners.detect_corners
+    monkeypatch.setattr(corners, "detect_corners", lambda *a, **k: searched.append(1) or detect(*a, **k))
     for T in (moved_T, turned_T):
         off = replace(result, solution=replace(sol, T_ref={**sol.T_ref, "lidar0": T}))
         checked = lc.with_scene(off, np.random.default_rng(0))
@@ -160,6 +166,7 @@ def test_boards_moved_or_turned_are_contradicted_by_the_scene(office):
         assert w.contradicts and not w.joined and min(w.term.p_value, w.overall.p_value) < 0.01
         assert checked.verdict.level == "CHECK" and "the scene puts the LiDAR" in checked.verdict.line
         np.testing.assert_allclose(checked.T_camera_lidar, T)
+    assert result.corners and not searched
 
 
 def test_scene_is_refused_where_it_has_no_boards_or_no_graph(office, capsys, tmp_path):

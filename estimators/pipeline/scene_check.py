@@ -19,6 +19,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -27,6 +28,7 @@ from geometry.camera import CameraModel
 from geometry.rotations import transform_points
 
 from .. import __version__
+from ..camera.detection import CornerDetection
 from ..camera.edge_map import TRUNCATE_PX, EdgeMap, edges_with_normals
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, ScanReadError, about
 from ..io.dataset import load_scene_folder
@@ -169,14 +171,19 @@ class SceneCheck:
         }
 
 
-def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
-    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board."""
+# A corner search not made yet (``_board_mask``).
+_NOT_SEARCHED = object()
+
+
+def _board_mask(gray: np.ndarray, board, camera: CameraModel, found=_NOT_SEARCHED) -> np.ndarray | None:
+    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board;
+    ``found``: what a search of this image found already (a ``CornerDetection``, None, or why it stopped)."""
     from ..camera.board_pose import estimate_board_pose
     from ..camera.corners import detect_corners
 
     try:
-        det = detect_corners(gray, board)
-        if det is None:
+        det = detect_corners(gray, board) if found is _NOT_SEARCHED else found
+        if not isinstance(det, CornerDetection):
             return None
         obs = estimate_board_pose(det, board, camera)
     except LidarcamError:
@@ -234,11 +241,13 @@ class SceneFrame:
 
 
 def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None,
-                      sensors: tuple[str, str] | None = None
+                      sensors: tuple[str, str] | None = None, corners: dict | None = None
                       ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
-    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``)."""
+    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``); ``corners``: what
+    the corner search found in these images already, by path (``RigResult.corners``), not searched again."""
+    corners = {Path(k).resolve(): v for k, v in (corners or {}).items()}
     load = scene_pair if is_rig(folder) else load_scene_folder
     root, own, board, frames = load(folder, camera is None, sensors)
     if camera is not None and own is not None and (camera.width, camera.height) != (own.width, own.height):
@@ -254,7 +263,8 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
                 return (f"the image is {gray.shape[1]}x{gray.shape[0]}, the camera's intrinsics are for "
                         f"{camera.width}x{camera.height}")
             sweep = read_sweep(f.scan)
-            mask = None if keep_board or board is None else _board_mask(gray, board, camera)
+            mask = None if keep_board or board is None else _board_mask(
+                gray, board, camera, corners.get(Path(f.image).resolve(), _NOT_SEARCHED))
         except LidarcamError as exc:
             return exc.problem
         return SceneFrame(f.name, gray, sweep, mask)
@@ -304,7 +314,7 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
                 camera: CameraModel | None = None, sensors: tuple[str, str] | None = None,
-                given_covariance: np.ndarray | None = None) -> SceneCheck:
+                given_covariance: np.ndarray | None = None, corners: dict | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -325,6 +335,9 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         ``T_given``'s own 6x6 covariance (the project's tangent), when it is a calibration's: the test is then of
         two independent estimates of one extrinsic, their difference's covariance the sum of theirs; without it,
         ``T_given`` is taken as exact.
+    corners : dict, optional
+        What the camera's corner search found in the folder's images already, by path (``RigResult.corners``):
+        the board is left out where it was found, without searching again.
 
     Returns
     -------
@@ -340,7 +353,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     """
     t0 = time.perf_counter()
     T_given = rigid(T_given, folder, "the given extrinsic")
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors, corners)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)
