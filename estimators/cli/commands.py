@@ -412,7 +412,8 @@ def validate_command(args) -> int:
         else:  # the calibration's own measurements, from the cache where it made them
             measured = measured_rig(rig, rng)
         root, board = rig.root, rig.board
-        pairs = [(c, lid, measured.cameras[c], frames) for (c, lid), frames in measured.pairs.items()]
+        pairs = [(c, lid, measured.cameras[c], frames, measured.skipped.get(c, {}))
+                 for (c, lid), frames in measured.pairs.items()]
     else:
         from ..io.dataset import load_dataset
         from ..pipeline.measurement import measure_frames
@@ -422,12 +423,20 @@ def validate_command(args) -> int:
             from ..io.measurement_store import load_measurements
 
             m = load_measurements(args.measurements)
-            camera, frames = m.camera, list(m.frames)
-        else:
-            camera, frames, _ = measure_frames(ds, rng)
-        root, board, pairs = ds.root, ds.board, [(None, None, camera, frames)]
+            camera, frames, unseen = m.camera, list(m.frames), {}
+        else:  # as the calibration measured it (the rig of cam0 and lidar0), from the cache where it made them
+            from ..io.rig_dataset import load_rig
+            from ..pipeline.rig_measurement import measured_rig
+
+            measured = measured_rig(load_rig(args.dataset), np.random.default_rng(args.seed))
+            if ("cam0", "lidar0") in measured.pairs:  # the frames the camera skipped are not in the pair's
+                camera, frames = measured.cameras["cam0"], measured.pairs[("cam0", "lidar0")]
+                unseen = measured.skipped.get("cam0", {})
+            else:  # no frame of the LiDAR's where the camera found the board: each frame with its reason
+                (camera, frames, _), unseen = measure_frames(ds, rng), {}
+        root, board, pairs = ds.root, ds.board, [(None, None, camera, frames, unseen)]
     report = {}
-    for cam, lid, camera, frames in pairs:
+    for cam, lid, camera, frames, unseen in pairs:
         name = "T_camera_lidar" if cam is None else f"T_{cam}_{lid}"
         try:
             pc = pair_calibration(cal, cam, lid)
@@ -456,9 +465,9 @@ def validate_command(args) -> int:
                   f"{s_.outline_offset_px:.1f} px{'  FLAGGED' if s_.flagged else ''}")
         print(f"verdict: {v['verdict']}" + (f" (chi-square {v['chi2']:.1f} on {v['dof']} dof, p = "
                                              f"{v['p_value']:.2g})" if "chi2" in v else ""))
-        for f in frames:
-            if not f.usable:
-                print(f"  {f.name}: skipped: {f.reason}")
+        skipped = {**unseen, **{f.name: f.reason for f in frames if not f.usable}}
+        for stem in sorted(skipped):
+            print(f"  {stem}: skipped: {skipped[stem]}")
         report[name] = {"held_out": note, **v, "frame_scores": [x.to_dict() for x in scores]}
     # A pair folder's validation.json as before; a rig's, one entry per camera-LiDAR pair (their verdicts apart: two
     # pairs share a LiDAR's boards, so their chi-squares are not independent).
