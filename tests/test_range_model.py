@@ -174,9 +174,9 @@ def test_cli_validate_and_split_write_validation_json(sim_hdl64e, tmp_path):
 
 def test_cli_validate_scores_the_calibrations_own_measurements(tmp_path, capsys):
     """A pair folder one of whose images shows no board (the README's simulation, frame 0003 blank): validate
-    scores the frames as the calibration measured them (its measurements.npz gives the same scores; measured
-    apart, as validate did, frame 0005's board differed, its chi-square 4.2 for the calibration's 4.3), and says
-    why the frame without a board is skipped."""
+    scores the frames as the calibration measured them (its measurements.npz or measurements folder gives the same
+    scores; measured apart, as validate did, frame 0005's board differed, its chi-square 4.2 for the calibration's
+    4.3), and says why the frame without a board is skipped."""
     import cv2
 
     from estimators.simulation.simulator import simulate_dataset
@@ -188,11 +188,11 @@ def test_cli_validate_scores_the_calibrations_own_measurements(tmp_path, capsys)
     assert main(["calibrate", str(ds), "--out", str(out), "--samples", "0", "--no-report"]) == 0
     capsys.readouterr()
     scores = []
-    for extra in ([], ["--measurements", str(out / "measurements.npz")]):
+    for extra in ([], ["--measurements", str(out / "measurements.npz")], ["--measurements", str(out / "measurements")]):
         assert main(["validate", str(ds), "--calibration", str(out), "--out", str(tmp_path / "v"), *extra]) == 0
         scores.append(json.loads((tmp_path / "v" / "validation.json").read_text())["frame_scores"])
         assert "  0003: skipped: " in capsys.readouterr().out
-    assert scores[0] == scores[1] and len(scores[0]) == 7
+    assert scores[0] == scores[1] == scores[2] and len(scores[0]) == 7
 
 
 def test_cli_validate_names_a_broken_calibration(sim_hdl64e, tmp_path, capsys):

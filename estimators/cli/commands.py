@@ -419,16 +419,20 @@ def validate_command(args) -> int:
         from ..pipeline.measurement import measure_frames
 
         ds = load_dataset(args.dataset)
-        if args.measurements:
+        if args.measurements and not Path(args.measurements).is_dir():  # a pair's measurements.npz
             from ..io.measurement_store import load_measurements
 
             m = load_measurements(args.measurements)
             camera, frames, unseen = m.camera, list(m.frames), {}
-        else:  # as the calibration measured it (the rig of cam0 and lidar0), from the cache where it made them
+        else:  # the rig of cam0 and lidar0: its measurements folder, or measured as the calibration measured it (from
+            # the cache where it made them)
+            from ..io.measurement_store import load_rig_measurements
             from ..io.rig_dataset import load_rig
-            from ..pipeline.rig_measurement import measured_rig
+            from ..pipeline.rig_measurement import given_measurements, measured_rig
 
-            measured = measured_rig(load_rig(args.dataset), np.random.default_rng(args.seed))
+            rig = load_rig(args.dataset)
+            measured = given_measurements(rig, load_rig_measurements(args.measurements), rng) if args.measurements \
+                else measured_rig(rig, np.random.default_rng(args.seed))
             if ("cam0", "lidar0") in measured.pairs:  # the frames the camera skipped are not in the pair's
                 camera, frames = measured.cameras["cam0"], measured.pairs[("cam0", "lidar0")]
                 unseen = measured.skipped.get("cam0", {})
