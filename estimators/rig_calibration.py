@@ -608,8 +608,8 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
 
 
 def _corners(reused: dict) -> dict:
-    """The images' corner searches among a measurement's ``reused`` work (``measure_rig``), by image path."""
-    return {path: got[1] for path, got in reused.items() if not isinstance(path, tuple)}
+    """Each image's corner search of a measurement's ``reused`` work (``measure_rig``), by its path."""
+    return {path: det for path, (_, det) in reused.get("corners", {}).items()}
 
 
 def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:

@@ -396,49 +396,33 @@ def validate_command(args) -> int:
         cal_path = cal_path / "calibration.json"
     cal = load_json(cal_path, "calibration file", "give the calibration.json that lidarcam calibrate wrote")
     rng = np.random.default_rng(args.seed)
-    if is_rig(args.dataset):
+    rig_folder = is_rig(args.dataset)
+    if rig_folder and (not isinstance(cal, dict) or not cal.get("rig")):
+        raise DatasetError("a rig folder is given with a single pair's calibration", path=cal_path,
+                           hint="give the calibration.json that lidarcam calibrate wrote for this rig")
+    if not rig_folder:
+        from ..io.dataset import load_dataset
+
+        ds = load_dataset(args.dataset)  # a pair folder's dataset.yaml checked as calibrate checks it
+    if args.measurements and not rig_folder and not Path(args.measurements).is_dir():  # a pair's measurements.npz
+        from ..io.measurement_store import load_measurements
+
+        m = load_measurements(args.measurements)
+        root, board, pairs = ds.root, ds.board, [(None, None, m.camera, list(m.frames), {})]
+    else:  # a rig's measurements folder (a pair folder's: the rig of cam0 and lidar0), or the calibration's own
+        # measurements, from the cache where it made them; the frames a camera skipped are not in its pairs'
+        from ..io.measurement_store import load_rig_measurements
         from ..io.rig_dataset import load_rig
-        from ..pipeline.rig_measurement import measured_rig
+        from ..pipeline.rig_measurement import given_measurements, measured_rig
 
-        if not isinstance(cal, dict) or not cal.get("rig"):
-            raise DatasetError("a rig folder is given with a single pair's calibration", path=cal_path,
-                               hint="give the calibration.json that lidarcam calibrate wrote for this rig")
         rig = load_rig(args.dataset)
-        if args.measurements:
-            from ..io.measurement_store import load_rig_measurements
-            from ..pipeline.rig_measurement import given_measurements
-
-            measured = given_measurements(rig, load_rig_measurements(args.measurements), rng)
-        else:  # the calibration's own measurements, from the cache where it made them
-            measured = measured_rig(rig, rng)
+        measured = given_measurements(rig, load_rig_measurements(args.measurements), rng) if args.measurements \
+            else measured_rig(rig, rng)
         root, board = rig.root, rig.board
         pairs = [(c, lid, measured.cameras[c], frames, measured.skipped.get(c, {}))
-                 for (c, lid), frames in measured.pairs.items()]
-    else:
-        from ..io.dataset import load_dataset
-        from ..pipeline.measurement import measure_frames
-
-        ds = load_dataset(args.dataset)
-        if args.measurements and not Path(args.measurements).is_dir():  # a pair's measurements.npz
-            from ..io.measurement_store import load_measurements
-
-            m = load_measurements(args.measurements)
-            camera, frames, unseen = m.camera, list(m.frames), {}
-        else:  # the rig of cam0 and lidar0: its measurements folder, or measured as the calibration measured it (from
-            # the cache where it made them)
-            from ..io.measurement_store import load_rig_measurements
-            from ..io.rig_dataset import load_rig
-            from ..pipeline.rig_measurement import given_measurements, measured_rig
-
-            rig = load_rig(args.dataset)
-            measured = given_measurements(rig, load_rig_measurements(args.measurements), rng) if args.measurements \
-                else measured_rig(rig, np.random.default_rng(args.seed))
-            if ("cam0", "lidar0") in measured.pairs:  # the frames the camera skipped are not in the pair's
-                camera, frames = measured.cameras["cam0"], measured.pairs[("cam0", "lidar0")]
-                unseen = measured.skipped.get("cam0", {})
-            else:  # no frame of the LiDAR's where the camera found the board: each frame with its reason
-                (camera, frames, _), unseen = measure_frames(ds, rng), {}
-        root, board, pairs = ds.root, ds.board, [(None, None, camera, frames, unseen)]
+                 for (c, lid), frames in measured.pairs.items()] if rig_folder else \
+            [(None, None, measured.cameras["cam0"], measured.pairs.get(("cam0", "lidar0"), []),
+              measured.skipped.get("cam0", {}))]
     report = {}
     for cam, lid, camera, frames, unseen in pairs:
         name = "T_camera_lidar" if cam is None else f"T_{cam}_{lid}"

@@ -201,9 +201,9 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
     ``initial_guess`` is refused, as a rig has several pairs). ``timings`` gets each stage's seconds summed over
     the threads (``load_images``, ``corners``, ``load_scans``, ``segmentation``), as a single pair's measurement
     gives them. ``reused``: what no camera's intrinsics change, kept by an earlier measurement of the same files
-    with the same ``hints`` and taken from it (each image's ``detect_in_image`` by its path, each 3D LiDAR's
-    ``read_sweeps`` by its name and files), and filled here: a rig measured again under refined intrinsics
-    (``calibrate_rig``) searches no image and reads no sweep twice."""
+    with the same ``hints`` and taken from it (``corners``: each image's ``detect_in_image`` by its path;
+    ``sweeps``: each 3D LiDAR's ``read_sweeps`` by its name and files), and filled here: a rig measured again
+    under refined intrinsics (``calibrate_rig``) searches no image and reads no sweep twice."""
     timings = {} if timings is None else timings
     if hints.initial_guess is not None:
         raise DatasetError("an initial guess is one camera-LiDAR pair's T_camera_lidar, and a rig has several",
@@ -214,24 +214,22 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         # Each 3D LiDAR's sweeps read and its static scene built once (they need no camera), in a thread of their
         # own while the cameras' images are searched, for every camera it shares frames with.
         reused = {} if reused is None else reused
-        read = {lid.name: ("sweeps", lid.name, tuple((st, path) for st, path in lid.files))
-                for lid in rig.lidars if lid.lidar != "2d"}
-        sweeps = {name: reused.get(key) or ahead.submit(read_sweeps, [FrameFiles(st, None, path) for st, path in
-                                                                      key[2]], hints, timings)
-                  for name, key in read.items()}
+        corners, read = reused.setdefault("corners", {}), reused.setdefault("sweeps", {})
+        sweeps = {lid.name: read.get((lid.name, lid.files)) or ahead.submit(
+            read_sweeps, [FrameFiles(st, None, path) for st, path in lid.files], hints, timings)
+            for lid in rig.lidars if lid.lidar != "2d"}
         # Every camera's images searched in one pool: no camera waits on its slowest image with a core idle, and
         # each camera's board poses are solved while the next cameras' images are searched.
-        pending = {s.name: [(f.image, reused.get(f.image) or pool.submit(detect_in_image, f, rig.board, timings))
+        pending = {s.name: [(f.image, corners.get(f.image) or pool.submit(detect_in_image, f, rig.board, timings))
                             for f in camera_frames(s)] for s in rig.cameras}
         for s in rig.cameras:
             for image, p in pending[s.name]:
-                reused.setdefault(image, p.result() if isinstance(p, Future) else p)
+                corners.setdefault(image, p.result() if isinstance(p, Future) else p)
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name], ambiguous[s.name] = measure_camera(
-                s, rig.board, [reused[image] for image, _ in pending[s.name]])
+                s, rig.board, [corners[image] for image, _ in pending[s.name]])
             warnings.extend(w)
-        for name, got in sweeps.items():
-            reused.setdefault(read[name], got.result() if isinstance(got, Future) else got)
-        sweeps = {name: reused[key] for name, key in read.items()}
+        sweeps = {name: got.result() if isinstance(got, Future) else got for name, got in sweeps.items()}
+        read.update({(lid.name, lid.files): sweeps[lid.name] for lid in rig.lidars if lid.name in sweeps})
     pairs, measured_by, spawned = {}, {}, []
     for lid in rig.lidars:
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
