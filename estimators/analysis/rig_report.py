@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import html
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from .rig_layout import next_pose_words
 # The overlays a pair folder's report shows right after the estimate, before its tables (a larger rig's: each
 # pair's farthest-off one).
 FIRST_OVERLAYS = 3
+FIGURE_THREADS = 2
 
 
 def _pair_rows(result) -> list[list[str]]:
@@ -227,14 +229,21 @@ def range_terms_parts(result) -> list[str]:
 def _board_choices(result, first_pairs: dict) -> list[tuple[str, str, bytes]]:
     """Each LiDAR's frames with a board choice: its sweep's top view with the candidates (``report.board_choice_
     figure``), ``board_choice_<lidar>_<frame>.png``."""
-    out = []
-    for lid, (_, frames) in first_pairs.items():
-        sensor = result.rig.sensor(lid)
-        for f in frames:
-            if f.decision is not None and f.decision.candidate_points:
-                out.append((f"board_choice_{lid}_{f.name}.png", f"{lid}, frame {f.name}: LiDAR board candidates (top "
-                            "view)", board_choice_figure(f, sensor.file(f.name), sensor.lidar == "2d")))
-    return out
+    jobs = [(lid, f) for lid, (_, frames) in first_pairs.items() for f in frames
+            if f.decision is not None and f.decision.candidate_points]
+    pngs = _each(lambda job: board_choice_figure(job[1], result.rig.sensor(job[0]).file(job[1].name),
+                                                 result.rig.sensor(job[0]).lidar == "2d"), jobs)
+    return [(f"board_choice_{lid}_{f.name}.png", f"{lid}, frame {f.name}: LiDAR board candidates (top view)", png)
+            for (lid, f), png in zip(jobs, pngs)]
+
+
+def _each(draw, items: list) -> list:
+    """``draw`` of every item, in order, on ``FIGURE_THREADS`` threads: each figure reads its frame's image or
+    sweep again (decoding and parsing release the interpreter), which one thread did in turn."""
+    if len(items) < 2:
+        return [draw(item) for item in items]
+    with ThreadPoolExecutor(FIGURE_THREADS) as pool:
+        return list(pool.map(draw, items))
 
 
 def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
@@ -248,9 +257,9 @@ def _overlays(result, out: Path) -> tuple[list[str], list[str]]:
         T, _ = sol.transform(cam, lidar)
         c, lid = result.rig.sensor(cam), result.rig.sensor(lidar)
         images, offsets, jpgs = [], [], {}
-        for f in frames:
-            jpg, off = projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
-                                         lid.file(f.name))
+        drawn = _each(lambda f: projection_figure(result.camera_model(cam), T, f, result.rig.board, c.file(f.name),
+                                                  lid.file(f.name)), frames)
+        for f, (jpg, off) in zip(frames, drawn):
             if np.all(np.isfinite(off)):
                 offsets.append((f.name, off))
             name = overlay_name(cam, lidar, f.name)
