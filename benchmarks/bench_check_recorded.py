@@ -34,19 +34,20 @@ def main() -> None:
     ap.add_argument("--cm", type=float, default=5.0, help="the move along each camera axis (default 5)")
     args = ap.parse_args()
 
-    from estimators.pipeline.scene_check import ALPHA, check_scene
+    from estimators.pipeline.scene_check import ALPHA, VOUCHES_WITHIN, check_scene
     from geometry.rotations import R_from_rotvec, T_from_Rt
 
     from bench_targetless_recorded import recorded_boards
 
     print(f"each set's board calibration (no posterior: its Laplace covariance) checked by its scene, then turned by "
           f"{args.deg:g} deg about and moved by {args.cm:g} cm along each camera axis (x right, y down, z forward), "
-          f"either way; flagged: p < {ALPHA}")
+          f"either way; flagged: p < {ALPHA}; verdict: the check's first line (OK only where it agrees and would flag "
+          f"a turn of {VOUCHES_WITHIN[0]:g} deg and a move of {VOUCHES_WITHIN[1]:g} mm along every axis)")
     print()
-    print("| set | calibration | p | flagged | the scene's estimate from it: deg, mm |")
-    print("|---|---|---|---|---|")
+    print("| set | calibration | p | flagged | verdict | the scene's estimate from it: deg, mm |")
+    print("|---|---|---|---|---|---|")
     bounds = []
-    for name, folder, boards in recorded_boards(args.data, "| {name} | absent from {data}: skipped | | | |"):
+    for name, folder, boards in recorded_boards(args.data, "| {name} | absent from {data}: skipped | | | | |"):
         T_b, C_b, camera = boards.T_camera_lidar, np.asarray(boards.covariance), boards.camera_model("cam0")
         cases = [("as calibrated", np.eye(4))]
         for k, axis in enumerate(AXES):
@@ -60,19 +61,20 @@ def main() -> None:
                 t = np.zeros(3)
                 t[k] = sign * args.cm / 100
                 cases.append((f"moved {sign * args.cm:+g} cm along {axis}", T_from_Rt(np.eye(3), t)))
-        flagged, flags = 0, {}
+        flagged, said_ok, flags = 0, 0, {}
         for label, D in cases:
             c = check_scene(folder, D @ T_b, camera=camera, given_covariance=C_b)
             xi = c.test["difference_tangent"]
             p = c.test["p_value"]
             flag = p is not None and p < ALPHA
             flagged += flag and label != "as calibrated"
+            said_ok += c.verdict.level == "OK" and label != "as calibrated"
             flags[label] = flag
             if label == "as calibrated":
                 calibrated = c
-            print(f"| {name} | {label} | {p:.3g} | {'yes' if flag else 'no'} | "
+            print(f"| {name} | {label} | {p:.3g} | {'yes' if flag else 'no'} | {c.verdict.level} | "
                   f"{np.degrees(np.linalg.norm(xi[:3])):.2f}, {1000 * np.linalg.norm(xi[3:]):.0f} |", flush=True)
-        print(f"| {name} | perturbed: {flagged} of {len(cases) - 1} flagged | | | |", flush=True)
+        print(f"| {name} | perturbed: {flagged} of {len(cases) - 1} flagged, {said_ok} said OK | | | | |", flush=True)
         bounds.append((name, calibrated, T_b, flags))
     _bounds(bounds, args)
 

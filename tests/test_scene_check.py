@@ -522,3 +522,35 @@ def test_the_smallest_flagged_change_along_each_camera_axis_sits_at_the_tests_le
     free = C.copy()
     free[3:, 3:] += (Rw.T @ np.array([0.0, 0.0, 1.0]))[:, None] * (Rw.T @ np.array([0.0, 0.0, 1.0]))[None, :]
     assert np.isinf(smallest_flagged(free, T_CL, fit.blocks, 0.01)[5])
+
+
+def test_a_check_that_agrees_but_could_not_flag_two_degrees_or_ten_centimetres_says_check():
+    """The verdict of a check that agrees: OK where it would flag a turn of the given extrinsic within 2 deg and a
+    move within 100 mm along every camera axis (``VOUCHES_WITHIN``), else CHECK naming each change it could not
+    tell (the recorded VLP-16 set turned 1 deg about camera y agreed at p = 1 and read OK while it could flag
+    only 4.1 deg about camera z). A covariance of rotation standard deviation ``s`` on 30 blocks flags a turn
+    about an axis from sqrt(d2_crit) s, about 4.7 s: 0.3 deg passes, 0.6 deg about camera z does not."""
+    from estimators.pipeline.scene_check import VOUCHES_WITHIN, SceneCheck
+    from estimators.solvers.scene_alignment import SceneFit, consistency
+
+    assert VOUCHES_WITHIN == (2.0, 100.0)
+    Rw = T_CL[:3, :3]
+
+    def check(sd_deg_xyz, sd_mm):  # camera-axis standard deviations carried into the LiDAR's tangent
+        C = np.zeros((6, 6))
+        C[:3, :3] = Rw.T @ np.diag(np.radians(sd_deg_xyz) ** 2) @ Rw
+        C[3:, 3:] = Rw.T @ np.diag(np.full(3, (sd_mm / 1000) ** 2)) @ Rw
+        fit = SceneFit(T_CL, C, np.eye(6), 10, 1000, 30, 2.0, 2.0, np.zeros(6), True)
+        return SceneCheck("scene", T_CL, fit, consistency(fit, T_CL, covariance=C), (), {}, CAMERA, True, 0.0)
+
+    sharp = check([0.3, 0.3, 0.3], 10.0)
+    assert sharp.consistent and sharp.verdict.level == "OK" and sharp.weak_axes() == []
+    blunt = check([0.3, 0.3, 0.6], 25.0)
+    flagged = blunt.smallest_flagged()
+    assert blunt.consistent and 2.0 < flagged[0][2] < 3.5 and np.all(flagged[0][:2] < 2.0)
+    assert np.all((100 < flagged[1]) & (flagged[1] < 150))
+    assert blunt.verdict.level == "CHECK"
+    words = blunt.verdict.reasons[0]
+    assert words.startswith("the scene agrees (p = 1) but could not tell the given extrinsic from one turned ")
+    assert f"{flagged[0][2]:.1f} deg about camera z, or moved " in words and "about camera x" not in words
+    assert all(f"{v:.0f} mm along camera {a}" in words for a, v in zip("xyz", flagged[1]))
