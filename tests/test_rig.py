@@ -706,10 +706,11 @@ def test_a_rigs_suggested_poses_each_tighten_the_pair_then_weakest(rig_result):
 
 
 def test_validate_scores_each_camera_lidar_pair_of_a_rig_on_the_frames_its_calibration_did_not_use(
-        rig_folder, rig_result, tmp_path):
+        rig_folder, rig_result, tmp_path, capsys):
     """The rig calibrated on its first 6 frames: `validate` scores every camera-LiDAR pair's other frames under
     that calibration.json (each pair consistent at p > 0.001, as the simulation's noise is the model's), and the
-    same calibration with T_cam0_lidar0 moved 30 mm is caught for that pair (p < 1e-6) and no other."""
+    same calibration with T_cam0_lidar0 moved 30 mm is caught for that pair (p < 1e-6) and no other; without
+    T_cam2_scan0 it is refused before a line is printed."""
     from estimators.cli import main
     from estimators.io.measurement_store import save_rig_measurements
     from estimators.pipeline.rig_result import write_rig_calibration
@@ -740,6 +741,16 @@ def test_validate_scores_each_camera_lidar_pair_of_a_rig_on_the_frames_its_calib
     moved = validate(tmp_path / "moved")
     assert moved["T_cam0_lidar0"]["p_value"] < 1e-6
     assert all(moved[n]["p_value"] == v["p_value"] for n, v in pairs.items() if n != "T_cam0_lidar0")
+    # a calibration without one of the rig's pairs is refused in one line before any pair is scored or printed
+    del cal["transforms"]["T_cam2_scan0"]
+    (tmp_path / "short").mkdir()
+    (tmp_path / "short" / "calibration.json").write_text(json.dumps(cal))
+    capsys.readouterr()
+    assert main(["validate", str(rig_folder), "--calibration", str(tmp_path / "short"), "--measurements", str(meas),
+                 "--out", str(tmp_path / "w")]) == 2
+    said = capsys.readouterr()
+    assert said.out == "" and said.err.count("\n") == 1 and "T_cam2_scan0" in said.err, said
+    assert not (tmp_path / "w").exists()
 
 
 def test_the_cli_calibrates_a_rig_folder_and_writes_every_pair(rig_folder, tmp_path, capsys):

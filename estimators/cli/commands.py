@@ -423,7 +423,9 @@ def validate_command(args) -> int:
                  for (c, lid), frames in measured.pairs.items()] if rig_folder else \
             [(None, None, measured.cameras["cam0"], measured.pairs.get(("cam0", "lidar0"), []),
               measured.skipped.get("cam0", {}))]
-    report = {}
+    # Every pair's transform read before any is scored: a calibration without one of them is refused before a
+    # line is printed, as every bad input is.
+    calibrations = []
     for cam, lid, camera, frames, unseen in pairs:
         name = "T_camera_lidar" if cam is None else f"T_{cam}_{lid}"
         try:
@@ -438,6 +440,9 @@ def validate_command(args) -> int:
         if not (np.all(np.isfinite(pc.T_camera_lidar)) and np.all(np.isfinite(pc.covariance))):
             raise DatasetError(f"the calibration's {name} or its covariance is not finite", path=cal_path,
                                hint="recalibrate")
+        calibrations.append((name, pc))
+    report = {}
+    for (cam, lid, camera, frames, unseen), (name, pc) in zip(pairs, calibrations):
         same = Path(pc.dataset).resolve() == Path(root).resolve()
         held = [f for f in frames if f.usable and not (same and f.name in pc.used)]
         note = "frames the calibration did not use"
