@@ -159,7 +159,13 @@ def test_held_out_frames_of_a_biased_sensor_are_flagged():
     assert sum(s.flagged for s in bad) >= 2 and sum(s.flagged for s in good) <= 1
 
 
-def test_cli_validate_and_split_write_validation_json(sim_hdl64e, tmp_path):
+def test_cli_validate_and_split_write_validation_json(sim_hdl64e, tmp_path, capsys):
+    # more folds than frames: refused in one line before the calibration is written or printed
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(tmp_path / "no"), "--samples", "0", "--no-report",
+                 "--cross-validate", "9"]) == 2
+    said = capsys.readouterr()
+    assert said.out == "" and said.err.count("\n") == 1 and "--cross-validate 9: needs 2 <= K <= the rig's 8" \
+        in said.err and not (tmp_path / "no").exists(), said
     out = tmp_path / "cal"
     assert main(["calibrate", str(sim_hdl64e), "--out", str(out), "--samples", "0", "--no-report",
                  "--split", "halves", "--range-model", "auto"]) == 0

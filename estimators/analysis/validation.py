@@ -179,15 +179,25 @@ def verdict(scores: list[FrameScore]) -> dict:
                         "and the noise (an unmodelled error, or wrong segments)")}
 
 
+def refuse_runs(frames: int, folds: int | None = None, split: str | None = None,
+                what: str = "frames with a board") -> None:
+    """Raises the one-line error of ``--cross-validate K`` (``folds``) or ``--split`` (``split``) that ``frames``
+    frames cannot serve; the command line asks before it writes or prints the calibration they follow."""
+    if folds is not None and (folds < 2 or folds > frames):
+        raise LidarcamError(f"--cross-validate {folds}: needs 2 <= K <= the rig's {frames} frames with a board",
+                            hint="choose a smaller K")
+    if split is not None and frames < 6:
+        raise LidarcamError(f"--split {split} needs at least 6 {what} (3 per half), got {frames}",
+                            hint="record more board poses")
+
+
 def cross_validate_rig(measurements, board, k: int, solve) -> dict:
     """K-fold over a rig's frames (``measurements``: ``RigMeasurements``; its stems in name order, round robin):
     each fold's camera-LiDAR pairs scored on their held-out frames under the rig calibrated from the others
     (``solve(stems)`` -> a ``RigResult``), as ``lidarcam validate`` scores a rig (:func:`pair_calibration` of the
     fold's calibration.json). One verdict per camera-LiDAR pair (two pairs share a LiDAR's boards)."""
     stems = sorted(measurements.stems)
-    if k < 2 or k > len(stems):
-        raise LidarcamError(f"--cross-validate {k}: needs 2 <= K <= the rig's {len(stems)} frames with a board",
-                            hint="choose a smaller K")
+    refuse_runs(len(stems), folds=k)
     folds, scores = [], {}
     for j in range(k):
         held = [st for i, st in enumerate(stems) if i % k == j]
@@ -217,9 +227,7 @@ def _solved_halves(items: list, solve, how: str, what: str) -> tuple[list, list 
     (``interleaved``), and ``solve`` of each; the reason instead of the solutions when a half cannot be solved."""
     if how not in SPLITS:
         raise ValueError(f"Expected how in {SPLITS}, got {how!r}")
-    if len(items) < 6:
-        raise LidarcamError(f"--split {how} needs at least 6 {what} (3 per half), got {len(items)}",
-                            hint="record more board poses")
+    refuse_runs(len(items), split=how, what=what)
     h = len(items) // 2
     halves = [items[:h], items[h:]] if how == "halves" else [items[0::2], items[1::2]]
     try:

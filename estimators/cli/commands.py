@@ -162,6 +162,11 @@ def _write_rig(args, rig, pair: bool, result, figures) -> int:
     from ..io.measurement_store import rig_as_pair, save_measurements, save_rig_measurements
     from ..pipeline.rig_result import write_rig_calibration
 
+    if args.split or args.cross_validate:  # frames too few for them: refused before anything is written or said
+        from ..analysis.validation import refuse_runs
+
+        with about(args.dataset):
+            refuse_runs(len(result.measurements.stems), args.cross_validate or None, args.split or None)
     path = write_rig_calibration(result, args.out)
     print_rig(result)
     stored = save_rig_measurements(Path(args.out) / "measurements", result.measurements, rig.board,
