@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -133,13 +134,14 @@ def test_classic_detector_runs_within_its_time_budget():
     assert detect_corners(np.full((480, 640), 128, np.uint8), board, budget_s=10.0) is None
 
 
-def test_corners_do_not_depend_on_what_was_detected_before(tmp_path):
+def test_corners_do_not_depend_on_what_was_detected_before(tmp_path, monkeypatch):
     """The sector detector draws from OpenCV's random generator, which each call moves on. On this varied 2D
     layout (the end-to-end study's 4-board trial 27) the second board's image gave a true grid on its thread's
     first call and, on every later one, a grid whose last row lay on the board's border: the pair's solve then
     landed 13 degrees off without a word, or right, by the workers' count. Seeded per call, every call finds the
-    true grid (each corner within 1 px of the truth's projection), and a grid that jumps is refused."""
-    from estimators.camera.chessboard import grid_is_smooth
+    true grid (each corner within 1 px of the truth's projection), and a grid that jumps is refused. (The
+    detector itself: ``detect_corners`` keeps each search by the image, below.)"""
+    from estimators.camera.chessboard import detect_chessboard, grid_is_smooth
     from estimators.simulation.simulator import rig_2d, sample_layout, simulate_frames, write_dataset
 
     rng = np.random.default_rng(1953701558)
@@ -151,7 +153,7 @@ def test_corners_do_not_depend_on_what_was_detected_before(tmp_path):
     truth_px = ds.camera.project(transform_points(boards[ds.frames[1].name], ds.board.inner_corners()))
     pattern = ds.board.inner_corners_shape
     for _ in range(3):
-        det = detect_corners(gray, ds.board)
+        det = detect_chessboard(gray, ds.board)
         # the pattern's two corner families read alike: the grid may start at either end
         err = min(np.abs(det.corners_px - truth_px).max(), np.abs(det.corners_px[::-1] - truth_px).max())
         assert err < 1.0
@@ -159,6 +161,20 @@ def test_corners_do_not_depend_on_what_was_detected_before(tmp_path):
     broken = det.corners_px.copy()
     broken[-1] += 3 * (broken[-1] - broken[-2])  # the last corner thrown along its row
     assert not grid_is_smooth(broken, pattern)
+    # detect_corners searches an image once: the same pixels again (another array) give that search's record,
+    # read-only; other pixels, or another board, are searched
+    from estimators.camera import corners
+
+    first = detect_corners(gray, ds.board)
+    assert detect_corners(gray.copy(), ds.board) is first and not first.corners_px.flags.writeable
+    np.testing.assert_allclose(first.corners_px, det.corners_px)
+    searched = []
+    real = corners.detect_chessboard
+    monkeypatch.setattr(corners, "detect_chessboard", lambda *a: searched.append(1) or real(*a))
+    assert detect_corners(np.roll(gray, 1, axis=1), ds.board) is not first and len(searched) == 1
+    assert detect_corners(gray, ds.board) is first and len(searched) == 1
+    detect_corners(gray, replace(ds.board, square_size=0.9 * ds.board.square_size))
+    assert len(searched) == 2
 
 
 def test_ambiguous_board_orientation_is_refused_not_guessed():
