@@ -47,6 +47,7 @@ bench: $(STAMP)
 	$(RECORD) pair_vs_rig_scanner -- $(PY) benchmarks/bench_pair_vs_rig.py --scanner --rigs 20 --poses 3 --samples 500
 	$(RECORD) pair_vs_rig_scanner_varied -- $(PY) benchmarks/bench_pair_vs_rig.py --scanner --rigs 20 --poses 3 --samples 500 --config varied
 	$(RECORD) noise_models -- $(PY) benchmarks/bench_noise_models.py
+	$(RECORD) intrinsics_from_images -- $(PY) benchmarks/bench_intrinsics_from_images.py --trials 40
 	$(RECORD) range_model -- $(PY) benchmarks/bench_range_model.py
 	$(RECORD) range_model_scenes -- $(PY) benchmarks/bench_range_model_scenes.py
 	$(RECORD) range_model_scenes_inject -- $(PY) benchmarks/bench_range_model_scenes.py --inject 100

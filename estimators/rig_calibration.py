@@ -41,7 +41,7 @@ from .solvers.posterior import PosteriorOptions, heavy_tails
 from .solvers.range_model import OFFSET_HELD_P
 from .solvers.refusal import POSTERIOR_REFUSAL_FACTOR, scan_refusal
 from .solvers.refinement_options import RefinementOptions
-from .solvers.rig_graph import intrinsics_test, own_corner_drop, solve_rig, spanning_tree
+from .solvers.rig_graph import held_intrinsics_share, intrinsics_test, own_corner_drop, solve_rig, spanning_tree
 from .solvers.rig_posterior import sample_rig_posterior
 
 # Fewest boards a camera and a 2D scanner whose segment ends are measurements must share to be linked: a single
@@ -533,6 +533,12 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
     weak_share = weak_offset_share(names, range_models)  # an offset half supported, not taken
     if weak_share is not None:
         solution = replace(solution, covariance_joint=solution.covariance_joint + weak_share)
+    stated_share = None  # intrinsics held at uncertain values (dataset.yaml's param_std, or calibrated from the images)
+    if not refine_intrinsics:
+        stated_share = held_intrinsics_share(names, rig.reference, camera_views, lidar_views, solution,
+                                             options.corner_error_correlation, options.corner_noise_px is not None)
+        if stated_share is not None:
+            solution = replace(solution, covariance_joint=solution.covariance_joint + stated_share)
     for lv in lidar_views:
         if lv.has_terms:
             range_record(range_models[lv.name], lv.terms, *solution.range_terms[lv.name], warnings, lv.name)
@@ -575,8 +581,9 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         except PosteriorSkippedError as exc:
             warnings.append(f"the rig's posterior was not sampled ({exc.message}): the covariance is the graph's")
         # The held terms' prior, the planes' conflict with the edges, the black squares' placement, an offset half
-        # supported and the refined intrinsics' uncertainty, convolved in (first order, Gaussian).
-        for share in (s for s in (pinned_share, conflict, placement_share, weak_share, intrinsics_share)
+        # supported and the intrinsics' uncertainty (refined, or held at uncertain values), convolved in (first
+        # order, Gaussian).
+        for share in (s for s in (pinned_share, conflict, placement_share, weak_share, intrinsics_share, stated_share)
                       if s is not None and posterior is not None):
             posterior = replace(posterior, xi=posterior.xi + rng.multivariate_normal(
                 np.zeros(len(share)), share, len(posterior.xi), method="eigh"))

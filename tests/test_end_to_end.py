@@ -146,6 +146,17 @@ def test_intrinsics_calibrated_when_camera_absent(sim_hdl64e, tmp_path):
     assert np.all(np.diag(result.covariance) > np.diag(given.covariance))
     xi = T_log(T_inverse(result.T_camera_lidar) @ ds.ground_truth())
     assert xi @ np.linalg.solve(result.covariance, xi) < 22.5
+    # and in the engine's joint covariance (calibrate, the command line's): the graph holds the intrinsics at their
+    # values, so their share is added (each moved by its sd, the graph stepped once); without it the truth lay at
+    # d2 = 1000 or so (benchmarks/bench_intrinsics_from_images.py)
+    from estimators.rig_calibration import calibrate
+
+    engine = calibrate(ds, rng=np.random.default_rng(0), samples=0)
+    given_engine = calibrate(load_dataset(sim_hdl64e), rng=np.random.default_rng(0), samples=0)
+    C = engine.pair("cam0", "lidar0").covariance
+    assert np.all(np.diag(C) > 2 * np.diag(given_engine.pair("cam0", "lidar0").covariance))
+    xi = T_log(T_inverse(engine.pair("cam0", "lidar0").T) @ ds.ground_truth())
+    assert xi @ np.linalg.solve(C, xi) < 22.5
 
 
 def _run_cli(*args):

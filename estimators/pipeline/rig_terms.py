@@ -17,7 +17,7 @@ from ..measurements import observe_lidar_board
 from ..solvers.range_model import (MAX_PRIOR_SIGMAS, MODEL_TEST_P, FrameLabels, RangeTerms, frame_labels,
                                    frame_rings, frame_whitener, symmetric_band, terms_for)
 from ..solvers.graph_keys import sensor_key, terms_key
-from ..solvers.rig_graph import RigSolution, change_reference, graph_reference, graph_step, inner_covariance
+from ..solvers.rig_graph import RigSolution, graph_reference, graph_step, inner_covariance, sensors_share
 
 # The prior standard deviation (m) that holds a pinned range term at 0 in the graph.
 HELD_SD_M = 1e-7
@@ -242,28 +242,13 @@ def with_held_share(names: tuple, reference: str, camera_views: list, lidar_view
     G = -M[:, p] @ np.linalg.inv(M[np.ix_(p, p)])
     share_inner = G @ np.diag(np.square(prior)) @ G.T
     full = M + G @ M[p, :] + share_inner  # A^-1 (the held terms' rows zero) and the share
-    share = _sensors_share(names, reference, inner, solution, share_inner)
+    share = sensors_share(names, reference, inner, solution, share_inner)
     terms, at = dict(solution.range_terms), 6 * (len(names) - 1)
     for lv in (v for v in free_terms if v.has_terms):
         K = lv.terms.size
         terms[lv.name] = (terms[lv.name][0], np.sqrt(np.maximum(np.diag(full)[at:at + K], 0.0)))
         at += K
     return replace(solution, covariance_joint=solution.covariance_joint + share, range_terms=terms), share
-
-
-def _sensors_share(names: tuple, reference: str, inner: str, solution: RigSolution, share_inner: np.ndarray
-                   ) -> np.ndarray:
-    """A share of the covariance over the free sensors' tangents in the graph's reference camera ``inner``'s frame
-    (``RigSolution.covariance_inner``'s order, range terms after them) as a share of the sensors' joint covariance
-    (6N x 6N, ``names`` order), carried into the rig's reference's frame."""
-    share = np.zeros((6 * len(names), 6 * len(names)))
-    free = [k for k, n in enumerate(names) if n != inner]
-    cols = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in free])
-    share[np.ix_(cols, cols)] = share_inner[:6 * len(free), :6 * len(free)]
-    if inner != reference:
-        T_inner = {n: np.linalg.inv(solution.T_ref[inner]) @ solution.T_ref[n] for n in names}
-        share = change_reference(names, T_inner, share, reference)[1]
-    return 0.5 * (share + share.T)
 
 
 def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lidar_views: list, lidar_obs: dict,
@@ -323,5 +308,5 @@ def with_placement_share(rig: RigDataset, names: tuple, camera_views: list, lida
         K = lv.terms.size
         terms[lv.name] = (terms[lv.name][0], np.sqrt(np.square(terms[lv.name][1]) + np.diag(extra)[at:at + K]))
         at += K
-    share = _sensors_share(names, reference, inner, solution, extra)
+    share = sensors_share(names, reference, inner, solution, extra)
     return replace(solution, covariance_joint=solution.covariance_joint + share, range_terms=terms), share

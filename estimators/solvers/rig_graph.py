@@ -373,6 +373,60 @@ def graph_step(names: tuple[str, ...], reference: str, cameras: list[CameraViews
     return {k: np.asarray(delta.at(k), dtype=float).copy() for k in values.keys() if delta.exists(k)}
 
 
+def sensors_share(names: tuple, reference: str, inner: str, solution: RigSolution, share_inner: np.ndarray
+                  ) -> np.ndarray:
+    """A share of the covariance over the free sensors' tangents in the graph's reference camera ``inner``'s frame
+    (``RigSolution.covariance_inner``'s order, range terms after them) as a share of the sensors' joint covariance
+    (6N x 6N, ``names`` order), carried into the rig's reference's frame."""
+    share = np.zeros((6 * len(names), 6 * len(names)))
+    free = [k for k, n in enumerate(names) if n != inner]
+    cols = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in free])
+    share[np.ix_(cols, cols)] = share_inner[:6 * len(free), :6 * len(free)]
+    if inner != reference:
+        T_inner = {n: np.linalg.inv(solution.T_ref[inner]) @ solution.T_ref[n] for n in names}
+        share = change_reference(names, T_inner, share, reference)[1]
+    return 0.5 * (share + share.T)
+
+
+def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
+                     solution: RigSolution, correlation: float, corner_noise_given: bool) -> np.ndarray | None:
+    """The share of the sensors' joint covariance (6N x 6N, ``names`` order, ``reference``'s frame) that the
+    cameras' uncertain intrinsics, held at their values in the graph, leave: as a single pair's refinement adds it
+    (``refinement._intrinsics_covariance``, first order), each camera with ``param_std`` (dataset.yaml's, or
+    OpenCV's where they were calibrated from the images) moved by one standard deviation along each principal
+    direction of their covariance (each parameter alone where only standard deviations are known), the joint graph
+    stepped once from ``solution`` under it, and the free sensors' shifts summed in outer product. Intrinsics
+    estimated from the images are OpenCV's, whose corners err independently: scaled like the corner noise by
+    ``correlation`` (unless the corner noise is ``corner_noise_given``). None where no camera has them."""
+    uncertain = [k for k, c in enumerate(cameras) if c.camera.param_std is not None]
+    if not uncertain:
+        return None
+    inner = graph_reference(reference, [c.name for c in cameras])
+    order = [sensor_key(k) for k, n in enumerate(names) if n != inner]
+    base = graph_step(names, reference, cameras, lidars, solution)  # the solution's own remaining step
+
+    def shift(views) -> np.ndarray:
+        step = graph_step(names, reference, views, lidars, solution)
+        return np.concatenate([step[k] - base[k] for k in order])
+
+    extra = np.zeros((6 * len(order), 6 * len(order)))
+    for k in uncertain:
+        cam = cameras[k].camera
+        scale = correlation if not corner_noise_given and cam.source != "dataset.yaml" else 1.0
+        if cam.param_covariance is not None:
+            ev, V = np.linalg.eigh(0.5 * (cam.param_covariance + cam.param_covariance.T))
+            steps = [scale * np.sqrt(max(lam, 0.0)) * v for lam, v in zip(ev, V.T)]
+        else:
+            steps = [scale * sd * np.eye(len(cam.param_std))[j] for j, sd in enumerate(cam.param_std)
+                     if np.isfinite(sd) and sd > 0]
+        for step in steps:
+            moved = [replace(c, camera=c.camera.with_params(c.camera.params + step)) if j == k else c
+                     for j, c in enumerate(cameras)]
+            d = shift(moved)
+            extra += np.outer(d, d)
+    return sensors_share(names, reference, inner, solution, extra)
+
+
 def dense_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      linear: gtsam.GaussianFactorGraph | None = None) -> tuple[np.ndarray, dict]:
     """The graph's whole Laplace covariance at ``values`` (its information, dense, inverted: for a rig's few hundred
