@@ -45,7 +45,7 @@ def trial(seed: int) -> dict:
     sol = r.solution
     T, C = sol.transform("cam0", "lidar0")
     share = held_intrinsics_share(sol.names, sol.reference, list(r.camera_views), list(r.lidar_views), sol,
-                                  RefinementOptions().corner_error_correlation, False)
+                                  RefinementOptions())
     without = type(sol)(**{**sol.__dict__, "covariance_joint": sol.covariance_joint - share})
     _, C0 = without.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)

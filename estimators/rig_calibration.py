@@ -535,8 +535,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         solution = replace(solution, covariance_joint=solution.covariance_joint + weak_share)
     stated_share = None  # intrinsics held at uncertain values (dataset.yaml's param_std, or calibrated from the images)
     if not refine_intrinsics:
-        stated_share = held_intrinsics_share(names, rig.reference, camera_views, lidar_views, solution,
-                                             options.corner_error_correlation, options.corner_noise_px is not None)
+        stated_share = held_intrinsics_share(names, rig.reference, camera_views, lidar_views, solution, options)
         if stated_share is not None:
             solution = replace(solution, covariance_joint=solution.covariance_joint + stated_share)
     for lv in lidar_views:

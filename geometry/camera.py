@@ -142,6 +142,18 @@ class CameraModel:
         return CameraModel(K, p[4:], self.width, self.height, self.model, self.source, self.param_std,
                            self.param_covariance)
 
+    def param_steps(self, scale: float = 1.0) -> list[np.ndarray]:
+        """One standard deviation of the parameters (times ``scale``) along each principal direction of their
+        covariance, or along each parameter alone where only their standard deviations are known; none without
+        either. The first-order propagation of uncertain intrinsics moves them by these."""
+        if self.param_covariance is not None:
+            ev, V = np.linalg.eigh(0.5 * (self.param_covariance + self.param_covariance.T))
+            return [scale * np.sqrt(max(lam, 0.0)) * v for lam, v in zip(ev, V.T)]
+        if self.param_std is None:
+            return []
+        return [scale * sd * np.eye(len(self.param_std))[k] for k, sd in enumerate(self.param_std)
+                if np.isfinite(sd) and sd > 0]
+
     def as_dict(self) -> dict:
         d = {"model": self.model, "width": self.width, "height": self.height,
              "K": self.K.tolist(), "dist": self.dist.tolist(), "source": self.source}

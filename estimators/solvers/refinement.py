@@ -72,7 +72,7 @@ from .plane_graph import MIN_INFORMATION_RATIO, PlaneProblem, degenerate, pooled
 from .range_model import (DEFAULT_RANGE_ACCURACY_M, MAX_PRIOR_SIGMAS, MIN_INTENSITY_AGREEMENT, RangeModelFit,
                           frame_labels)
 from .range_terms_choice import choose_range_model, consider_pinned, consider_placement, with_uncertainty
-from .refinement_options import RefinementOptions
+from .refinement_options import RefinementOptions, intrinsics_step_scale
 from .refusal import check_scan_directions, scan_refusal
 
 
@@ -456,16 +456,8 @@ def _intrinsics_covariance(prob: PlaneProblem, active: list[int], T: np.ndarray,
     (OpenCV's, or refined here) are in OpenCV's convention, scaled like the corner noise by the correlation
     factor; stated ones (dataset.yaml) are taken as they are."""
     cam = prob.camera
-    scale = options.corner_error_correlation if options.corner_noise_px is None and cam.source != "dataset.yaml" \
-        else 1.0
-    if cam.param_covariance is not None:
-        ev, V = np.linalg.eigh(0.5 * (cam.param_covariance + cam.param_covariance.T))
-        steps = [scale * np.sqrt(max(lam, 0.0)) * v for lam, v in zip(ev, V.T)]
-    else:
-        steps = [scale * s * np.eye(len(cam.param_std))[k] for k, s in enumerate(cam.param_std)
-                 if np.isfinite(s) and s > 0]
     out = np.zeros((6, 6))
-    for step in steps:
+    for step in cam.param_steps(intrinsics_step_scale(options, cam)):
         moved = prob.variant(camera=cam.with_params(cam.params + step))
         _, result, _ = moved.solve(active, T, list(boards), floor)
         xi = T_log(np.linalg.inv(T) @ result.atPose3(EXTRINSIC).matrix())

@@ -125,6 +125,14 @@ class RefinementOptions:
                 raise ValueError(f"Expected {name} to be positive, got {v}")
 
 
+def intrinsics_step_scale(options: RefinementOptions, camera) -> float:
+    """What the intrinsics' standard deviations are scaled by where they are propagated: intrinsics estimated from
+    the images carry OpenCV's, which take the corners as independent, so they are scaled like the corner noise
+    (``corner_error_correlation``, unless the corner noise is given); stated ones (dataset.yaml) as they are."""
+    return options.corner_error_correlation if options.corner_noise_px is None and camera.source != "dataset.yaml" \
+        else 1.0
+
+
 def measurement_model_options(**changes) -> RefinementOptions:
     """Options for frames simulated at the measurement level (``observation_model.simulate_measurements``):
     corners independent at the given noise, no detector scale error."""

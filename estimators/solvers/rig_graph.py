@@ -29,6 +29,7 @@ from .factor_graph import (CameraViews, LidarViews, adjoint, build_graph, graph_
 from .factors import corner_residuals, lidar_plane
 from .graph_keys import edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
 from .noise_levels import excess_scale
+from .refinement_options import RefinementOptions, intrinsics_step_scale
 
 
 @dataclass(frozen=True, eq=False)
@@ -388,16 +389,17 @@ def sensors_share(names: tuple, reference: str, inner: str, solution: RigSolutio
     return 0.5 * (share + share.T)
 
 
-def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[CameraViews], lidars: list[LidarViews],
-                     solution: RigSolution, correlation: float, corner_noise_given: bool) -> np.ndarray | None:
+def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[CameraViews],
+                          lidars: list[LidarViews], solution: RigSolution, options: RefinementOptions
+                          ) -> np.ndarray | None:
     """The share of the sensors' joint covariance (6N x 6N, ``names`` order, ``reference``'s frame) that the
     cameras' uncertain intrinsics, held at their values in the graph, leave: as a single pair's refinement adds it
     (``refinement._intrinsics_covariance``, first order), each camera with ``param_std`` (dataset.yaml's, or
     OpenCV's where they were calibrated from the images) moved by one standard deviation along each principal
     direction of their covariance (each parameter alone where only standard deviations are known), the joint graph
-    stepped once from ``solution`` under it, and the free sensors' shifts summed in outer product. Intrinsics
-    estimated from the images are OpenCV's, whose corners err independently: scaled like the corner noise by
-    ``correlation`` (unless the corner noise is ``corner_noise_given``). None where no camera has them."""
+    stepped once from ``solution`` under it, and the free sensors' shifts summed in outer product (the standard
+    deviations scaled by ``refinement_options.intrinsics_step_scale`` of ``options``, a ``RefinementOptions``).
+    None where no camera has them."""
     uncertain = [k for k, c in enumerate(cameras) if c.camera.param_std is not None]
     if not uncertain:
         return None
@@ -411,15 +413,7 @@ def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[
 
     extra = np.zeros((6 * len(order), 6 * len(order)))
     for k in uncertain:
-        cam = cameras[k].camera
-        scale = correlation if not corner_noise_given and cam.source != "dataset.yaml" else 1.0
-        if cam.param_covariance is not None:
-            ev, V = np.linalg.eigh(0.5 * (cam.param_covariance + cam.param_covariance.T))
-            steps = [scale * np.sqrt(max(lam, 0.0)) * v for lam, v in zip(ev, V.T)]
-        else:
-            steps = [scale * sd * np.eye(len(cam.param_std))[j] for j, sd in enumerate(cam.param_std)
-                     if np.isfinite(sd) and sd > 0]
-        for step in steps:
+        for step in cameras[k].camera.param_steps(intrinsics_step_scale(options, cameras[k].camera)):
             moved = [replace(c, camera=c.camera.with_params(c.camera.params + step)) if j == k else c
                      for j, c in enumerate(cameras)]
             d = shift(moved)
