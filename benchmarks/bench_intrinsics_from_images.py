@@ -17,6 +17,7 @@ import multiprocessing
 import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ def trial(seed: int) -> dict:
     T, C = sol.transform("cam0", "lidar0")
     share = held_intrinsics_share(sol.names, sol.reference, list(r.camera_views), list(r.lidar_views), sol,
                                   RefinementOptions())
-    without = type(sol)(**{**sol.__dict__, "covariance_joint": sol.covariance_joint - share})
+    without = replace(sol, covariance_joint=sol.covariance_joint - share)
     _, C0 = without.transform("cam0", "lidar0")
     xi = T_log(np.linalg.inv(T) @ truth)
     pair = r.pair_results[("cam0", "lidar0")]

@@ -231,8 +231,13 @@ def _board_choices(result, first_pairs: dict) -> list[tuple[str, str, bytes]]:
     figure``), ``board_choice_<lidar>_<frame>.png``."""
     jobs = [(lid, f) for lid, (_, frames) in first_pairs.items() for f in frames
             if f.decision is not None and f.decision.candidate_points]
-    pngs = _each(lambda job: board_choice_figure(job[1], result.rig.sensor(job[0]).file(job[1].name),
-                                                 result.rig.sensor(job[0]).lidar == "2d"), jobs)
+
+    def draw(job):
+        lid, f = job
+        sensor = result.rig.sensor(lid)
+        return board_choice_figure(f, sensor.file(f.name), sensor.lidar == "2d")
+
+    pngs = _each(draw, jobs)
     return [(f"board_choice_{lid}_{f.name}.png", f"{lid}, frame {f.name}: LiDAR board candidates (top view)", png)
             for (lid, f), png in zip(jobs, pngs)]
 

@@ -400,8 +400,9 @@ def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[
     stepped once from ``solution`` under it, and the free sensors' shifts summed in outer product (the standard
     deviations scaled by ``refinement_options.intrinsics_step_scale`` of ``options``, a ``RefinementOptions``).
     None where no camera has them."""
-    uncertain = [k for k, c in enumerate(cameras) if c.camera.param_std is not None]
-    if not uncertain:
+    moves = [(k, step) for k, c in enumerate(cameras)
+             for step in c.camera.param_steps(intrinsics_step_scale(options, c.camera))]
+    if not moves:
         return None
     inner = graph_reference(reference, [c.name for c in cameras])
     order = [sensor_key(k) for k, n in enumerate(names) if n != inner]
@@ -412,12 +413,10 @@ def held_intrinsics_share(names: tuple[str, ...], reference: str, cameras: list[
         return np.concatenate([step[k] - base[k] for k in order])
 
     extra = np.zeros((6 * len(order), 6 * len(order)))
-    for k in uncertain:
-        for step in cameras[k].camera.param_steps(intrinsics_step_scale(options, cameras[k].camera)):
-            moved = [replace(c, camera=c.camera.with_params(c.camera.params + step)) if j == k else c
-                     for j, c in enumerate(cameras)]
-            d = shift(moved)
-            extra += np.outer(d, d)
+    for k, step in moves:
+        d = shift([replace(c, camera=c.camera.with_params(c.camera.params + step)) if j == k else c
+                   for j, c in enumerate(cameras)])
+        extra += np.outer(d, d)
     return sensors_share(names, reference, inner, solution, extra)
 
 
