@@ -483,7 +483,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
         # the solve given the measurements timed no measuring stage: this call's stages are the measuring's
         timings = dict(result.timings_s, **{k: round(v, 3) for k, v in stages.items()}, measurements=round(
             time.perf_counter() - t0 - sum(v for k, v in result.timings_s.items() if k != "measurements"), 3))
-        return replace(result, timings_s=timings, corners=_corners(reused))
+        return replace(result, timings_s=timings)
     pairwise, pair_frames, lidar_obs = alone_fit.pairwise, alone_fit.pair_frames, alone_fit.lidar_obs
     ambiguous = alone_fit.ambiguous
     skipped.update(alone_fit.skipped)
@@ -610,12 +610,7 @@ def calibrate_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, r
                        {k: round(v, 3) for k, v in timings.items()}, pair_frames, dict(links), posterior,
                        tuple(camera_views), tuple(lidar_views), next_pose, range_models, outline_checks, edge_records,
                        measured, ambiguous, test, alone_fit.intrinsics_checks, alone_fit.results)
-    return _with_time_offset(replace(result, corners=_corners(reused)), rng)
-
-
-def _corners(reused: dict) -> dict:
-    """Each image's corner search of a measurement's ``reused`` work (``measure_rig``), by its path."""
-    return {path: det for path, (_, det) in reused.get("corners", {}).items()}
+    return _with_time_offset(result, rng)
 
 
 def _with_time_offset(result: RigResult, rng: np.random.Generator) -> RigResult:

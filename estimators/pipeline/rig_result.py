@@ -53,10 +53,6 @@ class RigResult:
         Everything that limits trust in the result, most important first.
     timings_s : dict
         Stage times (s).
-    corners : dict
-        Each image's path -> what the corner search found in it (``pipeline.measurement.detect_in_image``'s
-        detection: a ``CornerDetection``, None, or why it stopped), for the scene's check to leave the board out
-        without searching again (``pipeline.scene_witness``); empty where the measurements were given or cached.
     """
 
     rig: RigDataset
@@ -109,7 +105,6 @@ class RigResult:
     # With ``calibrate --scene``: the scene's term for a pair folder's pair (``(camera, lidar) ->
     # scene_witness.SceneWitness``): the boards', the scene's and the joint estimates, and whether it was joined.
     scene: dict = field(default_factory=dict)
-    corners: dict = field(default_factory=dict)
 
     @property
     def time_offset(self):

@@ -19,7 +19,6 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -197,18 +196,14 @@ class SceneCheck:
         }
 
 
-# A corner search not made yet (``_board_mask``).
-_NOT_SEARCHED = object()
-
-
-def _board_mask(gray: np.ndarray, board, camera: CameraModel, found=_NOT_SEARCHED) -> np.ndarray | None:
-    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board;
-    ``found``: what a search of this image found already (a ``CornerDetection``, None, or why it stopped)."""
+def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
+    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board (a
+    calibration of these images searched them already: ``detect_corners`` keeps what it found)."""
     from ..camera.board_pose import estimate_board_pose
     from ..camera.corners import detect_corners
 
     try:
-        det = detect_corners(gray, board) if found is _NOT_SEARCHED else found
+        det = detect_corners(gray, board)
         if not isinstance(det, CornerDetection):
             return None
         obs = estimate_board_pose(det, board, camera)
@@ -267,13 +262,10 @@ class SceneFrame:
 
 
 def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None,
-                      sensors: tuple[str, str] | None = None, corners: dict | None = None
-                      ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
+                      sensors: tuple[str, str] | None = None) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
-    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``); ``corners``: what
-    the corner search found in these images already, by path (``RigResult.corners``), not searched again."""
-    corners = {Path(k).resolve(): v for k, v in (corners or {}).items()}
+    reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``)."""
     load = scene_pair if is_rig(folder) else load_scene_folder
     root, own, board, frames = load(folder, camera is None, sensors)
     if camera is not None and own is not None and (camera.width, camera.height) != (own.width, own.height):
@@ -289,8 +281,7 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
                 return (f"the image is {gray.shape[1]}x{gray.shape[0]}, the camera's intrinsics are for "
                         f"{camera.width}x{camera.height}")
             sweep = read_sweep(f.scan)
-            mask = None if keep_board or board is None else _board_mask(
-                gray, board, camera, corners.get(Path(f.image).resolve(), _NOT_SEARCHED))
+            mask = None if keep_board or board is None else _board_mask(gray, board, camera)
         except LidarcamError as exc:
             return exc.problem
         return SceneFrame(f.name, gray, sweep, mask)
@@ -340,7 +331,7 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
                 camera: CameraModel | None = None, sensors: tuple[str, str] | None = None,
-                given_covariance: np.ndarray | None = None, corners: dict | None = None) -> SceneCheck:
+                given_covariance: np.ndarray | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -361,9 +352,6 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         ``T_given``'s own 6x6 covariance (the project's tangent), when it is a calibration's: the test is then of
         two independent estimates of one extrinsic, their difference's covariance the sum of theirs; without it,
         ``T_given`` is taken as exact.
-    corners : dict, optional
-        What the camera's corner search found in the folder's images already, by path (``RigResult.corners``):
-        the board is left out where it was found, without searching again.
 
     Returns
     -------
@@ -379,7 +367,7 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     """
     t0 = time.perf_counter()
     T_given = rigid(T_given, folder, "the given extrinsic")
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors, corners)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
         raise too_few(views, skipped, root)

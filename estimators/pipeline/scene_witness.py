@@ -179,7 +179,7 @@ def with_scene(result, rng: np.random.Generator, camera: str = "cam0", lidar: st
 
     try:
         check = check_scene(result.rig.root, pair.T, camera=result.camera_model(camera),
-                            sensors=(camera, lidar) if is_rig(result.rig.root) else None, corners=result.corners)
+                            sensors=(camera, lidar) if is_rig(result.rig.root) else None)
     except LidarcamError as exc:
         return ended(replace(witness, problem=exc.problem))
     witness = replace(witness, check=check)
