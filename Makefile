@@ -87,6 +87,7 @@ bench: $(STAMP)
 	$(RECORD) scene_sensitivity -- $(PY) benchmarks/bench_scene_sensitivity.py
 	$(RECORD) recorded_witnesses -- $(PY) benchmarks/bench_recorded_witnesses.py
 	$(RECORD) targetless_recorded -- $(PY) benchmarks/bench_targetless_recorded.py
+	$(RECORD) targetless_recorded_refined_intrinsics -- $(PY) benchmarks/bench_targetless_recorded.py --refine-intrinsics
 	$(RECORD) check_recorded -- $(PY) benchmarks/bench_check_recorded.py
 	$(RECORD) rig_6_cameras_speed -- $(PY) benchmarks/bench_rig.py --cameras 6 --lidars 2 --scanners 1 --poses 16 --rigs 0 --posterior 1000 --timed 10
 	$(RECORD) rig_intrinsics -- $(PY) benchmarks/bench_rig_intrinsics.py --rigs 30

@@ -1,13 +1,16 @@
 """Targetless calibration on the recorded sets, from guesses 2 degrees and 10 cm off their board calibration
-(make bench; `python benchmarks/bench_targetless_recorded.py [--data ../shared/realdata] [--guesses 3]`).
+(make bench; `python benchmarks/bench_targetless_recorded.py [--data ../shared/realdata] [--guesses 3]
+[--refine-intrinsics]`).
 
 Per recorded 3D set: the engine's board calibration (``estimators.calibrate``, no posterior) and the scene's check
 of it (``check_scene`` with its covariance: the scene's own estimate). Then ``calibrate_targetless`` from guesses
 made by turning the board calibration by 2 degrees about a random axis and moving it by 10 cm along a random
-direction (generator seeded by ``[guess, 65]``). Each row says whether it was refused (and why), its verdict and
-time, and where it landed: how far from the boards' estimate and its d2 under the boards' covariance (their 99%
-region: d2 at most 16.81, chi-square with 6 degrees of freedom), and how far from the scene's estimate in the check
-and its d2 under that estimate's covariance. Sets absent from ``--data`` are skipped.
+direction (generator seeded by ``[guess, 65]``), under the board calibration's intrinsics as ``calibrate
+--targetless`` takes a calibration.json's (with ``--refine-intrinsics``, those refined with the boards). Each row
+says whether it was refused (and why), its verdict and time, and where it landed: how far from the boards'
+estimate and its d2 under the boards' covariance (their 99% region: d2 at most 16.81, chi-square with 6 degrees of
+freedom), and how far from the scene's estimate in the check and its d2 under that estimate's covariance. Sets
+absent from ``--data`` are skipped.
 """
 from __future__ import annotations
 
@@ -37,24 +40,27 @@ def apart(T: np.ndarray, T_ref: np.ndarray, C_ref: np.ndarray) -> tuple[str, flo
     return f"{np.degrees(np.linalg.norm(xi[:3])):.2f} deg, {1000 * np.linalg.norm(xi[3:]):.0f} mm, d2 {d2:.3g}", d2
 
 
-def recorded_boards(data: str, absent_row: str):
+def recorded_boards(data: str, absent_row: str, refine_intrinsics: bool = False):
     """Each recorded 3D set (``SETS``) under ``data``: its name, folder and board calibration by the engine (no
-    posterior: its Laplace covariance); for a set absent there, ``absent_row`` (formatted with ``name`` and
-    ``data``) is printed instead."""
+    posterior: its Laplace covariance; the intrinsics refined with the boards where ``refine_intrinsics``); for a
+    set absent there, ``absent_row`` (formatted with ``name`` and ``data``) is printed instead."""
     from estimators import calibrate
+    from estimators.solvers.refinement_options import RefinementOptions
 
     for name in SETS:
         folder = Path(data) / name
         if not (folder / "dataset.yaml").is_file():
             print(absent_row.format(name=name, data=data))
             continue
-        yield name, folder, calibrate(folder, samples=0)
+        yield name, folder, calibrate(folder, samples=0, options=RefinementOptions(refine_intrinsics=refine_intrinsics))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "realdata"))
     ap.add_argument("--guesses", type=int, default=3)
+    ap.add_argument("--refine-intrinsics", action="store_true",
+                    help="the board calibrations with their intrinsics refined, the scene's under those")
     args = ap.parse_args()
 
     from estimators.errors import LidarcamError
@@ -63,20 +69,24 @@ def main() -> None:
 
     from bench_targetless import off_by
 
+    if args.refine_intrinsics:
+        print("the board calibrations' intrinsics refined with the boards; the check and the targetless refinement "
+              "under them")
     print(f"guesses: the board calibration turned by {OFF_DEG:g} deg about a random axis and moved by "
           f"{100 * OFF_M:g} cm along a random direction; d2 under the boards' covariance (their 99% region: d2 at "
           f"most {REGION_99}) and under the scene's in the check of the board calibration")
     print()
     print("| set | guess | outcome | seconds | from the boards | within their 99% | from the scene's estimate |")
     print("|---|---|---|---|---|---|---|")
-    for name, folder, boards in recorded_boards(args.data, "| {name} | | absent from {data}: skipped | | | | |"):
-        T_b, C_b = boards.T_camera_lidar, boards.covariance
-        check = check_scene(folder, T_b, camera=boards.camera_model("cam0"), given_covariance=C_b)
+    for name, folder, boards in recorded_boards(args.data, "| {name} | | absent from {data}: skipped | | | | |",
+                                                args.refine_intrinsics):
+        T_b, C_b, camera = boards.T_camera_lidar, boards.covariance, boards.camera_model("cam0")
+        check = check_scene(folder, T_b, camera=camera, given_covariance=C_b)
         T_s, C_s = check.fit.T_camera_lidar, check.believed_covariance
         for k in range(args.guesses):
             guess = off_by(T_b, OFF_DEG, OFF_M, np.random.default_rng([k, 65]))
             try:
-                r = calibrate_targetless(folder, guess)
+                r = calibrate_targetless(folder, guess, camera=camera)
             except LidarcamError as exc:
                 print(f"| {name} | {k} | refused: {exc.problem} | | | | |", flush=True)
                 continue

@@ -311,9 +311,16 @@ def test_targetless_pulls_in_a_guess_2_degrees_and_10_cm_off(room, tmp_path, cap
     """``calibrate --targetless`` from the truth turned by 2 degrees and moved by 10 cm: the estimate within 0.2
     degrees and 10 mm of the truth, calibration.json (with its covariance and the halves' test) and report.html
     written, the verdict (CHECK: on recorded frames the scene's estimate moves with its own cue settings) first:
-    the even and the odd frames land within the 0.999 point of their covariances' sum."""
+    the even and the odd frames land within the 0.999 point of their covariances' sum. The guess is a calibration
+    whose intrinsics differ from dataset.yaml's (the principal point 0.5 px to the right): it is refined under them,
+    as check checks a calibration, and calibration.json says so."""
+    from estimators.io.dataset import load_scene_folder
+
     ds, truth = room
-    (tmp_path / "guess.json").write_text(json.dumps({"T_camera_lidar": _off(truth, 2.0, 0.10).tolist()}))
+    camera = load_scene_folder(ds)[1].as_dict()
+    camera["K"][0][2] += 0.5
+    (tmp_path / "guess.json").write_text(json.dumps({"T_camera_lidar": _off(truth, 2.0, 0.10).tolist(),
+                                                     "intrinsics": camera}))
     assert main(["calibrate", str(ds), "--targetless", "--initial-guess", str(tmp_path / "guess.json"), "--out",
                  str(tmp_path / "cal")]) == 0
     assert capsys.readouterr().out.startswith("CHECK: targetless")
@@ -324,6 +331,7 @@ def test_targetless_pulls_in_a_guess_2_degrees_and_10_cm_off(room, tmp_path, cap
     assert 1000 * np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 10.0
     assert np.all(np.linalg.eigvalsh(np.array(got["covariance"])) > 0) and (tmp_path / "cal" / "report.html").is_file()
     assert got["halves"]["d2"] < 22.46
+    assert got["intrinsics"]["K"] == camera["K"] and "guess.json" in got["intrinsics"]["source"]
 
 
 def test_targetless_refuses_a_guess_it_cannot_pull_in(room, tmp_path, capsys):

@@ -45,7 +45,7 @@ def _calibrate_targetless(args) -> int:
     from ..analysis.scene_check_page import write_check_page
     from ..io.output import write_json_atomic
     from ..io.rig_dataset import first_pair, is_rig
-    from ..pipeline.measurement import pair_from_calibration, parse_initial_guess
+    from ..pipeline.measurement import given_camera, pair_from_calibration, parse_initial_guess
     from ..pipeline.targetless import calibrate_targetless
     from .printing import print_targetless
 
@@ -53,11 +53,14 @@ def _calibrate_targetless(args) -> int:
         raise LidarcamError("--targetless refines an initial guess and none is given", path=args.dataset,
                             hint="add --initial-guess FILE (a calibration.json or a 4x4 T_camera_lidar) or "
                                  "'x y z roll pitch yaw'")
-    if is_rig(args.dataset) and len(args.initial_guess) == 1:  # a rig's calibration.json: its first pair's
-        T_guess = pair_from_calibration(args.initial_guess[0], *first_pair(args.dataset))
+    sensors = first_pair(args.dataset) if is_rig(args.dataset) else None
+    if sensors is not None and len(args.initial_guess) == 1:  # a rig's calibration.json: its first pair's
+        T_guess = pair_from_calibration(args.initial_guess[0], *sensors)
     else:
         T_guess = parse_initial_guess(args.initial_guess)
-    result = calibrate_targetless(args.dataset, T_guess, keep_board=args.keep_board)
+    # a calibration's extrinsic refined under the intrinsics it was estimated with (refined or given), as check does
+    camera = given_camera(args.initial_guess[0], sensors) if len(args.initial_guess) == 1 else None
+    result = calibrate_targetless(args.dataset, T_guess, keep_board=args.keep_board, camera=camera)
     print_targetless(result)
     print(f"wrote {write_json_atomic(Path(args.out) / 'calibration.json', result.to_dict())}")
     if not args.no_report:

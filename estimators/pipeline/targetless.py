@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from geometry.camera import CameraModel
 from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse, T_log
 
 from .. import __version__
@@ -130,7 +131,7 @@ class TargetlessResult:
             "covariance": self.covariance.tolist(), "covariance_convention": COVARIANCE_CONVENTION,
             "posterior": "Laplace (the covariance); no samples",
             "std_rotation_deg_about_camera_xyz": rot.tolist(), "std_translation_mm_along_camera_xyz": trans.tolist(),
-            "initial_guess": self.T_guess.tolist(),
+            "initial_guess": self.T_guess.tolist(), "intrinsics": self.scene.camera.as_dict(),
             "moved_from_guess": {"rotation_deg": angle, "translation_mm": shift},
             "scene": {"rms_px": fit.rms_px, "contour_returns": fit.points, "blocks": fit.blocks,
                       "converged": fit.converged,
@@ -164,8 +165,8 @@ def _starts(T_guess: np.ndarray) -> list[np.ndarray]:
     return starts
 
 
-def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_board: bool = False
-                         ) -> TargetlessResult:
+def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_board: bool = False,
+                         camera: CameraModel | None = None) -> TargetlessResult:
     """The extrinsic from the scene of ``folder``, refined from ``T_guess`` (module docstring).
 
     Parameters
@@ -177,6 +178,10 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
         4x4 ``T_camera_lidar`` to start from: within a few degrees and 10-20 cm.
     keep_board : bool
         Keep the board's edges and contours (by default left out where the camera finds it).
+    camera : CameraModel, optional
+        The camera's model to refine under (default dataset.yaml's): a guess from a calibration is refined under
+        the intrinsics it was estimated with, refined or given (``measurement.given_camera``), as ``check`` does.
+        Its image size must be the folder's camera's.
 
     Returns
     -------
@@ -191,7 +196,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
     """
     t0 = time.perf_counter()
     T_guess = rigid(T_guess, folder, "the initial guess")
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board)
+    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera)
     # The edges square to the rings under the guess (a few degrees turn them by a few degrees): made once.
     edges = {f.name: frame_edges(f.gray, T_guess, camera, f.board_mask) for f in frames}
 
