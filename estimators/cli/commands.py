@@ -741,7 +741,8 @@ def demo_command(args) -> int:
         from ..calibration import calibrate_pair
         from ..pipeline.result import write_calibration
 
-        result = calibrate_pair(ds, refine="none", rng=np.random.default_rng(args.seed), options=refinement_options(args))
+        result = calibrate_pair(ds, refine="none", rng=np.random.default_rng(args.seed),
+                                options=refinement_options(args))
         print_result(result, ds.ground_truth())
         path = write_calibration(result, base)
         print(f"wrote {path}")

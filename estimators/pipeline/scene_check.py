@@ -262,7 +262,8 @@ class SceneFrame:
 
 
 def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None,
-                      sensors: tuple[str, str] | None = None) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
+                      sensors: tuple[str, str] | None = None
+                      ) -> tuple[os.PathLike, CameraModel, object, list[SceneFrame], dict]:
     """A scene folder's root, camera (``camera`` when given, else dataset.yaml's), board (or None), its frames
     (images, sweeps with their beams, the board's masks unless ``keep_board``) and the frames skipped with their
     reasons; ``sensors``: a rig folder's camera and LiDAR (``io.rig_dataset.scene_pair``)."""
