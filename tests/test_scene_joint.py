@@ -229,19 +229,22 @@ def test_a_rig_folder_takes_check_and_scene_as_its_pair_folder_does(office, offi
     assert main(["check", str(rig), "--calibration", given, "--camera", "cam7", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "the rig has no camera 'cam7'" in err and not (tmp_path / "x").exists()
-    # --targetless on the rig folder starts from its first pair's transform in the rig's calibration.json
+    # --targetless on the rig folder starts from its first pair's transform in the rig's calibration.json, under
+    # that calibration's intrinsics of its first camera
     import estimators.pipeline.targetless as targetless
 
     started = []
 
-    def stop(folder, T_guess, keep_board=False):
-        started.append(T_guess)
+    def stop(folder, T_guess, keep_board=False, camera=None):
+        started.append((T_guess, camera))
         raise DegenerateLayoutError("stopped here")
 
     monkeypatch.setattr(targetless, "calibrate_targetless", stop)
     assert main(["calibrate", str(rig), "--targetless", "--initial-guess", given, "--out", str(tmp_path / "y")]) == 2
-    T_pair = json.loads(Path(given).read_text())["transforms"]["T_cam0_lidar0"]["T"]
-    assert len(started) == 1 and np.allclose(started[0], T_pair) and "stopped here" in capsys.readouterr().err
+    cal = json.loads(Path(given).read_text())
+    assert len(started) == 1 and np.allclose(started[0][0], cal["transforms"]["T_cam0_lidar0"]["T"])
+    assert np.allclose(started[0][1].K, cal["cameras"]["cam0"]["K"]) and "calibration.json" in started[0][1].source
+    assert "stopped here" in capsys.readouterr().err
 
 
 def test_a_two_camera_rig_in_a_furnished_room_checks_each_pair_and_forms_each_pairs_term(tmp_path, capsys):
