@@ -344,8 +344,7 @@ def print_targetless(result) -> None:
     print(f"moved {angle:.2f} deg and {shift:.0f} mm from the initial guess; {fit.frames} frames, {fit.points} LiDAR "
           f"contour returns at {fit.rms_px:.2f} px RMS from the image's edges"
           + (", the board left out" if result.scene.board_left_out else "")
-          + f"; {sum(1 for _, e, r in result.ends if r <= fit.rms_px * 1.01)} of {len(result.ends)} starts about the "
-          "guess ended there")
+          + f"; {result.landed} of {len(result.ends)} starts about the guess ended there (within its 0.999 region)")
     for name, why in result.scene.skipped.items():
         print(f"  frame {name} skipped: {why}")
 

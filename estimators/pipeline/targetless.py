@@ -89,6 +89,9 @@ class TargetlessResult:
     # The even and the odd frames solved apart from the estimate: ``d2`` (their difference under the sum of
     # their covariances, 6 dof), ``apart_deg`` and ``apart_mm``; or ``problem`` where a half does not solve.
     halves: dict | None = None
+    # How many of the starts ended together at the lowest end (``MIN_LANDED``'s count: within the 0.999 region of
+    # the covariance reported, or within ``SAME_DEG`` and ``SAME_M``), the lowest's own start included.
+    landed: int | None = None
 
     @property
     def T_camera_lidar(self) -> np.ndarray:
@@ -138,6 +141,7 @@ class TargetlessResult:
                       "rival_minima": [{"T_camera_lidar": f.T_camera_lidar.tolist(), "rms_px": f.rms_px}
                                        for f in self.scene.rivals]},
             "starts": [{"T_start": s.tolist(), "T_end": e.tolist(), "rms_px": r} for s, e, r in self.ends],
+            "starts_together": self.landed,
             "halves": self.halves,
             "frames_used": list(self.scene.frames_used), "frames_skipped": self.scene.skipped,
             "board_left_out": self.scene.board_left_out, "timings_s": {"targetless": self.seconds},
@@ -262,7 +266,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
                        excess=COVARIANCE_EXCESS)
     halves = _halves(views, camera, estimate.T_camera_lidar)
     return TargetlessResult(T_guess, check, tuple((s, f.T_camera_lidar, f.rms_px) for s, f in ends),
-                            time.perf_counter() - t0, halves)
+                            time.perf_counter() - t0, halves, landed)
 
 
 def _halves(views: list, camera, T: np.ndarray) -> dict:
