@@ -126,7 +126,7 @@ def simulate_scene_dataset(out: str | Path, n_frames: int = 10, seed: int = 0, l
     pixel_noise : float
         Image noise (grey levels, 1 sd).
     supersample : int
-        Rays per pixel along each side (anti-aliasing).
+        Rays per pixel along each side where an edge can pass (anti-aliasing; one ray elsewhere).
     overwrite : bool
         Replace an existing folder.
 
