@@ -31,7 +31,7 @@ from geometry.rotations import R_from_rotvec, T_from_Rt, T_inverse
 from ..io.output import atomic_directory, check_output_folder
 from ..io.dataset import write_dataset_yaml
 from ..io.pointcloud_io import write_scan
-from .rendering import _interp_subpixels, _normalized_grid, _rays_world, add_pixel_noise
+from .rendering import SKY_REFLECTANCE, _interp_subpixels, _normalized_grid, _rays_world, add_pixel_noise, edge_pixels
 from .rooms import GLASS, Room, _in_lidar, furnished_room
 from .scene import Patch, cast
 from .simulator import default_rig
@@ -70,18 +70,14 @@ def render_scene(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
     origin = T_world_camera[:3, 3]
     centre = _rays_world(_interp_subpixels(grid, pu, pv, np.array([0.0])), T_world_camera)
     _, which, refl = cast(origin, centre, patches)
-    refl = np.where(np.isnan(refl), 0.85, refl).reshape(H, W)
-    which = which.reshape(H, W)
-    change = np.zeros((H, W), np.uint8)
-    change[:, 1:] |= (which[:, 1:] != which[:, :-1]) | (np.abs(refl[:, 1:] - refl[:, :-1]) > REFLECTANCE_STEP)
-    change[1:, :] |= (which[1:, :] != which[:-1, :]) | (np.abs(refl[1:, :] - refl[:-1, :]) > REFLECTANCE_STEP)
-    edge = np.flatnonzero(cv2.dilate(change, np.ones((3, 3), np.uint8)).ravel())
+    refl = np.where(np.isnan(refl), SKY_REFLECTANCE, refl).reshape(H, W)
+    edge = np.flatnonzero(edge_pixels(which.reshape(H, W), refl, 1, REFLECTANCE_STEP))
     offs = (np.arange(supersample) + 0.5) / supersample - 0.5
     out = refl.ravel().copy()
     for part in np.array_split(edge, 16):
         dirs = _rays_world(_interp_subpixels(grid, pu[part], pv[part], offs), T_world_camera)
         r = cast(origin, dirs, patches)[2]
-        out[part] = np.where(np.isnan(r), 0.85, r).reshape(-1, supersample * supersample).mean(1)
+        out[part] = np.where(np.isnan(r), SKY_REFLECTANCE, r).reshape(-1, supersample * supersample).mean(1)
     img = 20.0 + 210.0 * out.reshape(H, W)
     return cv2.GaussianBlur(img, (0, 0), blur_sigma_px) if blur_sigma_px > 0 else img
 

@@ -134,6 +134,17 @@ def pixel_rays(camera: CameraModel, T_world_camera: np.ndarray, pool: Executor |
     return _in_parts(lambda xy: _rays_world(xy, T_world_camera), grid, pool)
 
 
+def edge_pixels(which: np.ndarray, refl: np.ndarray, reach: int, step: float = 0.0) -> np.ndarray:
+    """The pixels (H, W bool) within ``reach`` pixels of a change between neighbouring pixel centres: another
+    patch seen (``which``), or a reflectance more than ``step`` apart (``refl``, finite). A pixel's rays all see
+    what its centre sees elsewhere, so only these need supersampling."""
+    change = np.zeros(which.shape, np.uint8)
+    change[:, 1:] |= (which[:, 1:] != which[:, :-1]) | (np.abs(refl[:, 1:] - refl[:, :-1]) > step)
+    change[1:, :] |= (which[1:, :] != which[:-1, :]) | (np.abs(refl[1:, :] - refl[:-1, :]) > step)
+    k = 2 * reach + 1
+    return cv2.dilate(change, np.ones((k, k), np.uint8)) > 0
+
+
 def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[Patch], board_index: int,
                  board_outline_world: np.ndarray, supersample: int = 4, blur_sigma_px: float = 0.5,
                  background: Background | None = None) -> np.ndarray:
@@ -165,11 +176,8 @@ def render_clean(camera: CameraModel, T_world_camera: np.ndarray, patches: list[
         u_lo = v_lo = u_hi = v_hi = 0
     if u_hi > u_lo and v_hi > v_lo:
         box = (slice(v_lo, v_hi + 1), slice(u_lo, u_hi + 1))
-        r_box, w_box = refl[box], which[box]
-        change = np.zeros(r_box.shape, np.uint8)
-        change[:, 1:] |= (r_box[:, 1:] != r_box[:, :-1]) | (w_box[:, 1:] != w_box[:, :-1])
-        change[1:, :] |= (r_box[1:, :] != r_box[:-1, :]) | (w_box[1:, :] != w_box[:-1, :])
-        near = cv2.dilate(change, np.ones((5, 5), np.uint8)) > 0
+        w_box = which[box]
+        near = edge_pixels(w_box, refl[box], 2)
         near &= cv2.dilate((w_box == board_index).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         pv, pu = np.nonzero(near)
         pv, pu = pv + v_lo, pu + u_lo
