@@ -804,19 +804,19 @@ def _two_boards_decided(modes: tuple, unrefined: list, usable: list[FrameMeasure
                 hint="record a third board, tilted in another direction")
 
 
-# A board whose corners fit two tilts alike (``FrameMeasurement.camera_alternatives``) is skipped, unless the
-# other boards alone cannot be solved or are only two (then tried before the two alone): then each combination of the ambiguous boards' tilts (at most
-# ``MAX_AMBIGUOUS_BOARDS`` boards) is solved, and the one whose best minimum fits the laser points (and the
-# segment ends, with a known board size) with a joint cost lower than every other combination's by at least
-# this is used (a likelihood ratio of 90; the corners' own preference is added to each tilt's cost).
+# A board whose corners fit two tilts alike (``FrameMeasurement.camera_alternatives``) is skipped, unless the other
+# boards alone cannot be solved or are only two (then tried before the two alone): then each combination of the
+# ambiguous boards' tilts (at most ``MAX_AMBIGUOUS_BOARDS`` boards) is solved, and the one whose best minimum fits the
+# laser points (and the segment ends, with a known board size) with a joint cost lower than every other combination's
+# by at least this is used (a likelihood ratio of 90; the corners' own preference is added to each tilt's cost).
 TILT_MARGIN_CHI2 = 9.0
 MAX_AMBIGUOUS_BOARDS = 3
 
 
 def select_and_refine(frames: list[FrameMeasurement], board: BoardModel, camera,
                       method: str = "minimal-lower-bound", options: RefinementOptions = RefinementOptions(),
-                      use_extent: bool | None = None
-                      ) -> tuple[list[FrameMeasurement], MinimalSelection, Refinement, tuple[Mode, ...], tuple[str, ...]]:
+                      use_extent: bool | None = None) -> tuple[list[FrameMeasurement], MinimalSelection, Refinement,
+                                                               tuple[Mode, ...], tuple[str, ...]]:
     """:func:`select_minimal` and :func:`refine_candidates` over the usable frames. Where they are degenerate
     and some boards were skipped as ambiguous in their orientation, the tilts of those boards are tried
     (``TILT_MARGIN_CHI2``); with two usable boards the tilts are tried first, and the two alone only where no
