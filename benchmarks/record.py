@@ -1,8 +1,9 @@
 """Run one benchmark and write its output into the documentation as a page (`make bench` runs every benchmark
 through it): `python benchmarks/record.py NAME -- COMMAND ...`.
 
-The page `docs/bench/NAME.md` holds the command, the date, the machine and the printed output, unedited: the
-documented numbers are the ones a rerun of that command prints. The output is also streamed to the terminal.
+The page `docs/bench/NAME.md` holds the command, the date, the machine, the numerical libraries' versions and the
+printed output, unedited: the documented numbers are the ones a rerun of that command prints. The output is also
+streamed to the terminal.
 A command that fails leaves the previous page in place and exits with its status."""
 from __future__ import annotations
 
@@ -36,6 +37,23 @@ def machine() -> str:
         mem_text = ""
     return f"{cpu}, {os.cpu_count()} cores{mem_text}, {platform.system()} {platform.release()}, " \
            f"Python {platform.python_version()}"
+
+
+# The libraries whose versions can move a benchmark's numbers (OpenCV's corner search, GTSAM's solver, ...).
+LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "gtsam", "emcee")
+
+
+def libraries() -> str:
+    """The installed versions of ``LIBRARIES`` (this interpreter's: ``make bench`` runs each benchmark with it)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def one(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "absent"
+
+    return ", ".join(f"{name.removesuffix('-python-headless')} {one(name)}" for name in LIBRARIES)
 
 
 def revision() -> str:
@@ -75,7 +93,8 @@ def page(name: str, command: list[str], output: str, seconds: float, when: datet
         f"# {title_of(command)}", "",
         f"`{shown}`", "",
         f"- run: {when:%Y-%m-%d %H:%M} UTC, {seconds / 60:.1f} min; lidarcam {rev}",
-        f"- machine: {machine()}", "",
+        f"- machine: {machine()}",
+        f"- libraries: {libraries()}", "",
         "```text", output.rstrip("\n"), "```", ""])
 
 

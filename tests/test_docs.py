@@ -120,6 +120,11 @@ def test_a_benchmark_run_becomes_a_docs_page(tmp_path):
     assert ok.returncode == 0 and "default          0.051" in ok.stdout
     page = (tmp_path / "demo_table.md").read_text()
     assert "default          0.051" in page and "- machine: " in page and "cores" in page and "-c" in page
+    # the versions of the libraries that can move the numbers, as installed where it ran
+    from importlib.metadata import version
+
+    assert f"- libraries: numpy {version('numpy')}, " in page and f"gtsam {version('gtsam')}" in page
+    assert f"opencv {version('opencv-python-headless')}" in page
     bad = subprocess.run([sys.executable, "benchmarks/record.py", "demo_table", "--", sys.executable, "-c",
                           "import sys; print('partial'); sys.exit(3)"], capture_output=True, text=True, env=env,
                          cwd=ROOT)
