@@ -16,6 +16,14 @@ _DIST_LENGTHS = {PINHOLE: (4, 5, 8, 12, 14), FISHEYE: (4,)}
 _PROJECT_BLOCK = 1 << 16  # points per OpenCV projection call (bounds the Jacobian it computes alongside)
 
 
+
+def _undistort_points(pts: np.ndarray, K: np.ndarray, dist: np.ndarray, criteria: tuple) -> np.ndarray:
+    """``undistortPoints`` with its iterations' criteria: OpenCV 4 names that form ``undistortPointsIter``, OpenCV 5
+    gives ``undistortPoints`` the argument (and has no ``undistortPointsIter``)."""
+    if hasattr(cv2, "undistortPointsIter"):
+        return cv2.undistortPointsIter(pts, K, dist, None, None, criteria)
+    return cv2.undistortPoints(pts, K, dist, None, None, None, criteria)
+
 @dataclass(frozen=True, eq=False)
 class CameraModel:
     """Intrinsics of one camera. ``dist`` is ``[k1, k2, p1, p2, k3...]`` (pinhole) or ``[k1..k4]`` (fisheye)."""
@@ -93,7 +101,7 @@ class CameraModel:
         if self.model == FISHEYE:
             out = cv2.fisheye.undistortPoints(pts, self.K, self.dist, criteria=crit)
         else:
-            out = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, crit)
+            out = _undistort_points(pts, self.K, self.dist, crit)
         return out.reshape(-1, 2)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
