@@ -16,13 +16,13 @@ _DIST_LENGTHS = {PINHOLE: (4, 5, 8, 12, 14), FISHEYE: (4,)}
 _PROJECT_BLOCK = 1 << 16  # points per OpenCV projection call (bounds the Jacobian it computes alongside)
 
 
-
 def _undistort_points(pts: np.ndarray, K: np.ndarray, dist: np.ndarray, criteria: tuple) -> np.ndarray:
     """``undistortPoints`` with its iterations' criteria: OpenCV 4 names that form ``undistortPointsIter``, OpenCV 5
     gives ``undistortPoints`` the argument (and has no ``undistortPointsIter``)."""
     if hasattr(cv2, "undistortPointsIter"):
         return cv2.undistortPointsIter(pts, K, dist, None, None, criteria)
     return cv2.undistortPoints(pts, K, dist, None, None, None, criteria)
+
 
 @dataclass(frozen=True, eq=False)
 class CameraModel:

@@ -56,8 +56,8 @@ def _sorted_percentiles(values: np.ndarray, starts: np.ndarray, counts: np.ndarr
     v = (counts - 1) * (q / 100)
     lo = np.floor(v)
     t = v - lo
-    a = values[starts + lo.astype(int)]
-    b = values[starts + np.minimum(lo.astype(int) + 1, counts - 1)]
+    i = starts + lo.astype(int)
+    a, b = values[i], values[np.minimum(i + 1, starts + counts - 1)]
     d = b - a
     return np.where(t >= 0.5, b - d * (1 - t), a + d * t)
 
@@ -73,7 +73,7 @@ def ring_field_problem(points: np.ndarray, ring: np.ndarray) -> str | None:
     values, inverse, counts = np.unique(ring[far], return_inverse=True, return_counts=True)
     by_ring = el[np.lexsort((el, inverse))]  # each ring's elevations, ascending
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    iqr = (_sorted_percentiles(by_ring, starts, counts, 75.0) - _sorted_percentiles(by_ring, starts, counts, 25.0))
+    iqr = _sorted_percentiles(by_ring, starts, counts, 75.0) - _sorted_percentiles(by_ring, starts, counts, 25.0)
     wide = int(counts[iqr > MAX_RING_IQR_DEG].sum())
     if wide <= MAX_WIDE_SHARE * len(el):
         return None
