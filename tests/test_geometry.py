@@ -32,6 +32,7 @@ from geometry.rotations import (
     rotation_error,
     transform_points,
 )
+from geometry.vectors import row_norms
 
 seeds = st.integers(min_value=0, max_value=2**32 - 1)
 
@@ -249,3 +250,15 @@ def test_central_differences_give_a_quadratics_gradient_and_hessian_and_refuse_a
     np.testing.assert_allclose(grad, A @ x0 + b, atol=1e-8)
     np.testing.assert_allclose(H, A, atol=1e-6)
     assert central_hessian(lambda X: np.where(X[:, 0] > x0[0], np.inf, 0.0), x0, np.full(4, 1e-3)) is None
+
+
+def test_row_norms_are_numpys_to_the_bit():
+    """The sweeps' norms, summed as ``np.linalg.norm(axis=1)`` sums them: equal bit for bit over widths 1-4,
+    float64 and float32, integers, and no rows."""
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 1000):
+        for d in (1, 2, 3, 4):
+            P = rng.normal(size=(n, d)) * rng.uniform(1e-3, 1e3, size=(n, 1))
+            for A in (P, P.astype(np.float32), np.rint(P).astype(np.int64)):
+                got, want = row_norms(A), np.linalg.norm(A, axis=1)
+                assert got.dtype == want.dtype and np.array_equal(got, want), (n, d, A.dtype)

@@ -13,6 +13,7 @@ import numpy as np
 
 from geometry.camera import CameraModel
 from geometry.rotations import transform_points
+from geometry.vectors import row_norms
 
 from ..io.image_io import read_gray
 from ..io.pointcloud_io import read_scan, read_scan_2d
@@ -147,7 +148,7 @@ def projection_figure(cam: CameraModel, T_camera_lidar: np.ndarray, frame, board
     # Only the points within the camera's field (a degree beyond its border's widest ray) are projected: a sweep
     # holds several times as many outside it, and projecting them was a third of a figure's time.
     cos_field = np.cos(min(cam.field_angle() + np.radians(1.0), 0.5 * np.pi))
-    pc = pc[(pc[:, 2] > 0.3) & (pc[:, 2] >= cos_field * np.linalg.norm(pc, axis=1))]
+    pc = pc[(pc[:, 2] > 0.3) & (pc[:, 2] >= cos_field * row_norms(pc))]
     uv = cam.project(pc)
     inside = cam.in_image(uv)
     uv, depth = uv[inside], pc[inside, 2]

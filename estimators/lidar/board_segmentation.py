@@ -20,6 +20,7 @@ import numpy as np
 
 from geometry.board import BoardModel
 from geometry.planes import Plane, fit_plane_pca, plane_basis, plane_difference
+from geometry.vectors import row_norms
 
 from ..errors import AmbiguousBoardError, MeasurementError
 from ..measurements import MIN_INCIDENCE_COS, CameraBoardObservation, LidarBoardObservation, observe_lidar_board
@@ -269,7 +270,7 @@ def board_candidates(points: np.ndarray, board: BoardModel, camera: CameraBoardO
     ``foreground``: mask of the points in front of the static scene; only those are searched (a board is
     never background), so the board's plane is found even in a room full of larger planes.
     """
-    ranges = np.linalg.norm(points, axis=1)
+    ranges = row_norms(points)
     sep = params.max_sensor_separation_m
     lo, hi = range_gate(board, camera, sep)
     keep = (ranges >= lo) & (ranges <= hi)
@@ -416,7 +417,7 @@ NOISE_BAND_SIGMA = 3.0
 
 def along_beams(P: np.ndarray, plane: Plane) -> np.ndarray:
     """Each point's distance from ``plane`` along its own beam (its range noise, for a point of the plane)."""
-    beams = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-9)
+    beams = P / np.maximum(row_norms(P)[:, None], 1e-9)
     cos = np.maximum(np.abs(beams @ plane.normal), MIN_INCIDENCE_COS)
     return plane.signed_distances(P) / cos
 

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from geometry.vectors import row_norms
+
 # A contour: neighbouring returns this far apart in range (m); returns this many azimuth steps apart: a gap.
 MIN_JUMP_M = 0.3
 GAP_STEPS = 1.5
@@ -48,7 +50,7 @@ def depth_edges(points: np.ndarray, ring: np.ndarray, min_jump_m: float = MIN_JU
     """The near sides of a sweep's range jumps, ring by ring (module docstring); ``ring``: each return's beam."""
     P = np.asarray(points, dtype=float).reshape(-1, 3)
     ring = np.asarray(ring).reshape(-1)
-    r_all = np.linalg.norm(P, axis=1)
+    r_all = row_norms(P)
     keep_idx, jumps, turns = [], [], []
     for beam in np.unique(ring):
         idx = np.flatnonzero((ring == beam) & (r_all >= min_range_m))

@@ -43,6 +43,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from geometry.vectors import row_norms
+
 
 @dataclass(frozen=True)
 class StaticSceneParams:
@@ -167,7 +169,7 @@ def direction_bin(points: np.ndarray, min_returns: float = 3.0) -> float:
 
 
 def _ranges(points: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(points, axis=1)
+    return row_norms(points)
 
 
 def _azimuth(points: np.ndarray) -> np.ndarray:

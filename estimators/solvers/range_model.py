@@ -42,6 +42,7 @@ import numpy as np
 
 from geometry.planes import cut_with_board, plane_basis, sqrt_excess_moment, sqrt_excess_moment_scan
 from geometry.rotations import T_exp
+from geometry.vectors import row_norms
 
 from ..lidar.board_segmentation import along_beams
 from ..lidar.lidar_models import (DEFAULT_RANGE_ACCURACY_M, RANGE_ACCURACY_M, RING_PRIOR_SHARE,  # noqa: F401
@@ -290,7 +291,7 @@ def geometric_dark(points: np.ndarray, T_lidar_board: np.ndarray, reflectance,
     black given what is known of the placement: regressed on it, the black-square term is not shrunk by the
     placement's error (Berkson's error model), where shares placed sharper than they are known would shrink it."""
     P = np.asarray(points, dtype=float)
-    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    beams = P / row_norms(P)[:, None]
     T_board_lidar = np.linalg.inv(T_lidar_board)
     local = cut_with_board(T_board_lidar, beams)[0]
     cxx = np.full(len(P), position_sd_m ** 2)
@@ -452,7 +453,7 @@ def symmetric_band(obs: LidarBoardObservation, terms: RangeTerms, beta: np.ndarr
     P = obs.points
     plane = obs.plane.facing_away()  # its normal away from the LiDAR: longer ranges lie on its positive side
     r = along_beams(P, plane)  # each return's distance from it along its beam
-    cos = np.maximum(P @ plane.normal / np.linalg.norm(P, axis=1), MIN_INCIDENCE_COS)
+    cos = np.maximum(P @ plane.normal / row_norms(P), MIN_INCIDENCE_COS)
     m = A @ (S @ np.asarray(beta, dtype=float))
     # A plane's change moves a return's range by (dd - dn . p) / cos with dn in the plane: [1, u, v] / cos.
     uv = (P - P.mean(0)) @ plane_basis(plane.normal)
@@ -470,7 +471,7 @@ def frame_whitener(obs: LidarBoardObservation, sigma_range_m: float, terms: Rang
     plane and terms from its ranges, and their information (:func:`_range_fit`)."""
     m = obs.plane.normal
     P = obs.points if not obs.is_scan_line else np.column_stack([obs.points[:, :2], np.zeros(obs.n_points)])
-    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    beams = P / row_norms(P)[:, None]
     m_away = m if float(np.mean(beams @ m)) >= 0 else -m
     if terms is None:
         c = np.maximum(np.abs(beams @ m), MIN_INCIDENCE_COS)
@@ -491,7 +492,7 @@ def _terms_whitener(obs: LidarBoardObservation, P: np.ndarray, beams: np.ndarray
                     terms: RangeTerms, rings: np.ndarray | None, dark: np.ndarray | None) -> FrameWhitener:
     """:func:`frame_whitener` with terms, made once per observation, terms and labels (``_WHITENERS``)."""
     A, S = frame_design(len(P), terms, rings, dark)
-    rho = np.linalg.norm(P, axis=1)
+    rho = row_norms(P)
     plane = _PLANE_FITS.get(obs)
     if plane is None:
         plane = _PLANE_FITS[obs] = _plane_fit(rho, beams, m_away, obs.is_scan_line)
@@ -593,7 +594,7 @@ def point_residuals(obs: LidarBoardObservation, pi: np.ndarray, terms: RangeTerm
     """Each board point's range residual (m) under plane ``pi`` (LiDAR frame) and the range terms (the report
     plots them against range, ring and square colour)."""
     P = obs.points if not obs.is_scan_line else np.column_stack([obs.points[:, :2], np.zeros(obs.n_points)])
-    beams = P / np.linalg.norm(P, axis=1, keepdims=True)
+    beams = P / row_norms(P)[:, None]
     mb = beams @ pi[:3]
     mb = np.where(np.abs(mb) < 1e-9, 1e-9, mb)
     r = (P @ pi[:3] + pi[3]) / mb
@@ -608,6 +609,6 @@ def without_terms(obs: LidarBoardObservation, terms: RangeTerms, beta: np.ndarra
     a board's plane drawn through them is the one the estimate holds it to (a 5 cm range offset would otherwise
     read as a board 5 cm off the camera's)."""
     P = np.asarray(obs.points, dtype=float)
-    r = np.linalg.norm(P, axis=1)
+    r = row_norms(P)
     return P * (1.0 - (regressors(len(P), terms, rings, dark) @ np.asarray(beta, dtype=float))
                 / np.maximum(r, 1e-9))[:, None]

@@ -45,6 +45,7 @@ from scipy.optimize import least_squares
 
 from geometry.camera import CameraModel
 from geometry.rotations import T_inverse, T_log, T_retract, transform_points
+from geometry.vectors import row_norms
 
 from ..camera.edge_map import EdgeMap
 from ..errors import DegenerateLayoutError
@@ -211,7 +212,7 @@ def visible_from_camera(points: np.ndarray, sweep: np.ndarray, T_camera_lidar: n
         cu, cv = np.zeros(len(P), np.int64), np.zeros(len(P), np.int64)
         cu[ok] = (uv[ok, 0] // cell_px).astype(np.int64)
         cv[ok] = (uv[ok, 1] // cell_px).astype(np.int64)
-        return ok, cu, cv, np.linalg.norm(pc, axis=1)
+        return ok, cu, cv, row_norms(pc)
 
     from scipy.ndimage import minimum_filter
 
