@@ -149,15 +149,18 @@ def main() -> None:
         laplace = f"{100 * sum(r['d2_laplace'] <= LIMIT for r in answered) / len(group):.1f}%" if group else "-"
         cover = f"{100 * np.mean(covered):.1f}% ({len(covered) // 6})" if covered else "-"
         print(f"{label:12s} {len(group):6d} {len(group) - len(answered):7d} {len(answered):8d} {share:>9s} "
-              f"{laplace:>9s} {sum(flagged):9d} {sum(checked):6d} {len(wrong):8d} ({100 * len(wrong) / max(len(rows), 1):.1f}%) "
+              f"{laplace:>9s} {sum(flagged):9d} {sum(checked):6d} {len(wrong):8d} "
+              f"({100 * len(wrong) / max(len(rows), 1):.1f}%) "
               f"{cover:>19s}")
     print("(in 99.9%: share of the group's trials, refusals counted as outside, in the reported 99.9% region (the "
           "posterior's: its covariance's ellipsoid about the estimate holding 99.9% of the samples, at least the "
-          "chi-square point; with several minima, each one's own ellipsoid, d2 from the nearest), and under the graph's Laplace covariance (chi-square point); confidently wrong: outside "
+          "chi-square point; with several minima, each one's own ellipsoid, d2 from the nearest), and under the "
+          "graph's Laplace covariance (chi-square point); confidently wrong: outside "
           "the region with the verdict OK; 95% intervals: the share of the 6 axes' equal-tailed posterior "
           "intervals holding the truth, over the answers sampled (their count))")
     for r in wrong_all:
-        print(f"confidently wrong: seed {r['seed']} d2 {r['d2']:.1f} (region {r['limit']:.1f}), error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, "
+        print(f"confidently wrong: seed {r['seed']} d2 {r['d2']:.1f} (region {r['limit']:.1f}), "
+              f"error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, "
               f"sd up to {r['sd'][0]:.2f} deg {r['sd'][1]:.0f} mm, bound {r['bound'][0]:.2f} deg "
               f"{r['bound'][1]:.0f} mm, masses {np.round(r['masses'], 3).tolist()}; d2 under each mode's Laplace "
               f"covariance {np.round(r['d2_modes'], 1).tolist()}: the truth "
@@ -165,12 +168,14 @@ def main() -> None:
     for r in rows if a.seeds else ():  # trials asked for by seed: each one's distance against its region
         if not r["refused"]:
             print(f"seed {r['seed']}: d2 {r['d2']:.1f} against the region's {r['limit']:.1f} (Laplace "
-                  f"{r['d2_laplace']:.1f} against {LIMIT:.2f}), error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, sd up "
+                  f"{r['d2_laplace']:.1f} against {LIMIT:.2f}), "
+                  f"error {r['err'][0]:.2f} deg {r['err'][1]:.0f} mm, sd up "
                   f"to {r['sd'][0]:.2f} deg {r['sd'][1]:.0f} mm, bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm, "
                   f"masses {np.round(r['masses'], 3).tolist()}")
     for r in rows:
         if r["refused"] and not r["degenerate"]:
-            print(f"refused with a finite bound: seed {r['seed']}, bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm: "
+            print(f"refused with a finite bound: seed {r['seed']}, "
+                  f"bound {r['bound'][0]:.2f} deg {r['bound'][1]:.0f} mm: "
                   f"{r['why']}")
 
 

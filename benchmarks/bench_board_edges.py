@@ -1,8 +1,9 @@
 """The board's edges as measurements (`--edges`), at the measurement level (make bench;
 `python benchmarks/bench_board_edges.py [--datasets N] [--others N] [--workers W]`).
 
-Per dataset (each calibrated by the engine, ``calibrate``, from the frames as measured): a rig (VLP-16- or OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12
-degrees from the viewing axis (planes leave the translation along the boards weak; normal spreads 0.04-0.17),
+Per dataset (each calibrated by the engine, ``calibrate``, from the frames as measured): a rig (VLP-16- or
+OS1-64-like, 2 cm range noise, 0.2 px corners), 10 boards whose normals lie 3-12 degrees from the viewing axis
+(planes leave the translation along the boards weak; normal spreads 0.04-0.17),
 turned within 20 degrees about their normals; or (`--others` datasets each) the same tilts with every board
 turned 35-55 degrees ("diamond", as the shared recordings hold their boards), or 10 boards whose normals lie
 within 1-4 degrees of the camera's optical axis (`sample_layout`'s "handheld" poses with the rig's board:
@@ -113,7 +114,8 @@ def _accuracy(args) -> dict:
                       "in_plane": 1000 * np.linalg.norm(dt - normal * (normal @ dt)),
                       "d2": float(xi @ np.linalg.solve(cov, xi)),
                       "rejects": bool(test and test["p_value"] < 0.01), "shift_p": shift_p,
-                      "crb_rot": float(np.trace(bounds[edges][:3, :3])), "crb_tr": float(np.trace(bounds[edges][3:, 3:])),
+                      "crb_rot": float(np.trace(bounds[edges][:3, :3])),
+                      "crb_tr": float(np.trace(bounds[edges][3:, 3:])),
                       "crb_in_plane": float(np.trace(across @ R @ bounds[edges][3:, 3:] @ R.T @ across)),
                       "rot_sq": float(xi[:3] @ xi[:3]), "tr_sq": float(xi[3:] @ xi[3:])}
         if sampled and res.samples is not None:
@@ -180,7 +182,8 @@ def main() -> None:
                                        / np.mean([x[True]["in_plane"] ** 2 for x in rows]))))
         print("Planes alone over planes + edges (RMS): the bound's translation, the bound's and the estimate's "
               "in-plane translation")
-        print(f"{'LiDAR, layout':24s}{'normal spread':>15s}{'bound':>8s}{'bound in-plane':>16s}{'measured in-plane':>19s}")
+        print(f"{'LiDAR, layout':24s}{'normal spread':>15s}{'bound':>8s}{'bound in-plane':>16s}"
+              f"{'measured in-plane':>19s}")
         for lidar, which, lo, hi, b_tr, b_ip, m_ip in ratios:
             print(f"{lidar + ', ' + which:24s}{f'{lo:.3f}-{hi:.3f}':>15s}{b_tr:8.2f}{b_ip:16.2f}{m_ip:19.2f}")
         n = max(args.datasets // 2, 1)

@@ -58,7 +58,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
-    print(f"{args.trials} end-to-end datasets per seed (8 poses, HDL-64E-like, the pipeline's defaults); z: the truth's "
+    print(f"{args.trials} end-to-end datasets per seed (8 poses, HDL-64E-like, the pipeline's defaults); "
+          "z: the truth's "
           "offset from the estimate over its Laplace standard deviation (mean 0 without bias; its standard error "
           "about 1/sqrt(trials))")
     print(f"{'seed':>4s} " + " ".join(f"{a:>14s}" for a in AXES) + "   camera plane mm   LiDAR plane mm")

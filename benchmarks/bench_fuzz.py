@@ -25,7 +25,8 @@ import numpy as np  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 
 from estimators.errors import LidarcamError  # noqa: E402
-from tests.fuzz_targets import FILE_TARGETS, MESSAGE_TARGETS, bag_target, measurements_target, mutate, mutations  # noqa: E402,E501
+from tests.fuzz_targets import (  # noqa: E402
+    FILE_TARGETS, MESSAGE_TARGETS, bag_target, measurements_target, mutate, mutations)
 
 
 class Tally:

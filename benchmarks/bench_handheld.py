@@ -112,7 +112,8 @@ def main() -> None:
             return "-" if r["gain"] is None else f"{r['gain']:.1f}"
 
         for r in far:
-            print(f"    dataset {r['seed']}: d2 {r['d2']:.1f}, off {r['err_deg']:.2f} deg / {r['err_mm']:.0f} mm; edges "
+            print(f"    dataset {r['seed']}: d2 {r['d2']:.1f}, off {r['err_deg']:.2f} deg / {r['err_mm']:.0f} mm; "
+                  "edges "
                   f"gain {gain(r)}, board {2 * r['growth_mm'][0]:+.0f} mm wider (ends); {r['verdict'][:110]}")
         held = [r for r in ok if r["d2"] <= 22.46 and r["gain"] is not None]
         if held:

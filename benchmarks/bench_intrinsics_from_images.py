@@ -53,7 +53,8 @@ def trial(seed: int) -> dict:
     pair = r.pair_results[("cam0", "lidar0")]
     xp = T_log(np.linalg.inv(pair.T_camera_lidar) @ truth)
     return {"seed": seed, "lidar": lidar, "frames": len(r.pair_frames[("cam0", "lidar0")]),
-            "rot_err_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "trans_err_mm": float(1000 * np.linalg.norm(xi[3:])),
+            "rot_err_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
+            "trans_err_mm": float(1000 * np.linalg.norm(xi[3:])),
             "sd_rot_deg": float(np.degrees(np.sqrt(np.trace(C[:3, :3])))),
             "sd_rot_deg_without": float(np.degrees(np.sqrt(np.trace(C0[:3, :3])))),
             "nees": float(xi @ np.linalg.solve(C, xi)), "nees_without": float(xi @ np.linalg.solve(C0, xi)),

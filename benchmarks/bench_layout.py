@@ -31,7 +31,8 @@ from estimators.analysis.layout_analysis import analyse, suggest_poses  # noqa: 
 from estimators.io.measurement_store import Measurements  # noqa: E402
 from estimators.rig_calibration import calibrate  # noqa: E402
 from estimators.errors import DegenerateLayoutError  # noqa: E402
-from estimators.simulation.simulator import _pose_fits, board_pose, default_rig, one_way_poses, sample_board_poses  # noqa: E402
+from estimators.simulation.simulator import (  # noqa: E402
+    _pose_fits, board_pose, default_rig, one_way_poses, sample_board_poses)
 from estimators.solvers.observation_model import Layout, board_hits, simulate_measurements  # noqa: E402
 from estimators.solvers.refinement_options import measurement_model_options  # noqa: E402
 from geometry.rotations import T_inverse, T_log, transform_points  # noqa: E402
@@ -118,7 +119,8 @@ def _row(name, layout, trials, workers):
               + f" | refused in every draw (normal spread below the closed form's limit): {a.weakest_words}")
         return
     ratio = np.max(np.abs(rms / pred - 1.0))
-    print(f"  {name:14s}" + "".join(f"{v:8.3f}" for v in pred[:3] * units[:3]) + "".join(f"{v:7.2f}" for v in pred[3:] * units[3:])
+    print(f"  {name:14s}" + "".join(f"{v:8.3f}" for v in pred[:3] * units[:3])
+          + "".join(f"{v:7.2f}" for v in pred[3:] * units[3:])
           + " |" + "".join(f"{v:8.3f}" for v in rms[:3] * units[:3]) + "".join(f"{v:7.2f}" for v in rms[3:] * units[3:])
           + f" |{100 * ratio:6.1f}%{off[0]:7.2f}{off[1]:7.2f}{a.condition_number:7.1f}"
           + (f"  ({failed} degenerate draws)" if failed else ""))

@@ -106,8 +106,8 @@ def _one(task) -> dict:
         for variant in VARIANTS:
             try:
                 if variant == "pair engine":
-                    pair = calibrate_pair(folder if kind == "pair" else load_rig(folder).pair("cam0", "lidar0"), samples=0,
-                                     options=RefinementOptions(edges=False))
+                    pair = calibrate_pair(folder if kind == "pair" else load_rig(folder).pair("cam0", "lidar0"),
+                                          samples=0, options=RefinementOptions(edges=False))
                     T, C = pair.T_camera_lidar, pair.covariance
                 else:
                     T, C = _rig_answer(folder, variant)

@@ -307,7 +307,8 @@ def dark_bias(args) -> None:
                     line += (f"{1000 * e.mean():+{width}.2f}{z.mean():+7.2f}{100 * np.mean(np.abs(z) < 1.96):7.0f}%"
                              if len(e) else f"{'-':>{width}s}{'-':>7s}{'-':>8s}")
                 print(f"{line}{sum('engine' in r for r in rows):7d}")
-    print("err: the term's mean error (estimate - injected); z: its mean in the term's own standard deviations; in 95%: "
+    print("err: the term's mean error (estimate - injected); z: its mean in the term's own standard deviations; "
+          "in 95%: "
           "share of the intervals holding the injected value; band: the board's returns kept within this many robust "
           "standard deviations of its plane (3: the measurement's); terms: datasets whose engine kept the term")
 

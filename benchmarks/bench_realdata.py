@@ -177,8 +177,8 @@ def office() -> None:
 def rig_moved() -> None:
     """The static scene's rig-moved check on both 3D sets: each frame's share of its judged background that it
     matches (with beam indices, and as unorganised clouds: direction bins), and whether a frame contradicts the
-    scene ("moved") or the note says the stillness could not be checked ("unchecked"), then with the third sweep turned about the vertical
-    or shifted forwards, and with the second half of the sweeps turned by 2 degrees."""
+    scene ("moved") or the note says the stillness could not be checked ("unchecked"), then with the third sweep
+    turned about the vertical or shifted forwards, and with the second half of the sweeps turned by 2 degrees."""
     from estimators.io.pointcloud_io import read_sweep
     from estimators.lidar.static_scene import build_static_scene
     from geometry.rotations import R_from_rotvec

@@ -103,8 +103,10 @@ def main() -> None:
               f"{np.median(rows[:, 4]):8.2f}")
     rows = np.concatenate(everyone)
     q99 = 16.81  # chi-square, 6 dof, 99%
-    print(f"all {len(rows)} boards: each its own noise: d2 mean {rows[:, 0].mean():.2f}, median {np.median(rows[:, 0]):.2f} "
-          f"(chi-square 5.35), beyond the 99% point {100 * np.mean(rows[:, 0] > q99):.1f}%; one pooled noise per camera "
+    print(f"all {len(rows)} boards: each its own noise: d2 mean {rows[:, 0].mean():.2f}, "
+          f"median {np.median(rows[:, 0]):.2f} "
+          f"(chi-square 5.35), beyond the 99% point {100 * np.mean(rows[:, 0] > q99):.1f}%; "
+          "one pooled noise per camera "
           f"(x {POOLED_FACTOR}): mean {rows[:, 4].mean():.2f}, median {np.median(rows[:, 4]):.2f}, beyond "
           f"{100 * np.mean(rows[:, 4] > q99):.1f}%")
     print("two cameras' errors on the boards both saw: d2 of their difference (6 if independent)")

@@ -198,7 +198,8 @@ def main() -> None:
     print("under the reported covariance (6 ideal)")
     lidar_side_timing()
     times, hits, total = consensus_timing()
-    print(f"consensus alone, 40 frames x 10 candidates (board + 9 decoys), 5 problems: median {np.median(times):.3f} s, "
+    print(f"consensus alone, 40 frames x 10 candidates (board + 9 decoys), 5 problems: "
+          f"median {np.median(times):.3f} s, "
           f"max {np.max(times):.3f} s; boards chosen {hits}/{total}")
 
 

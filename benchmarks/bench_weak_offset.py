@@ -99,7 +99,8 @@ def main() -> int:
         beyond = [r for r in rows if r["d2"] > 22.5]
         held = "; ".join(f"{r['before']:.0f} -> {r['d2']:.0f}" for r in rows if r["conflict"]) or "-"
         print(f"{c[0]:7s} {c[1]:6s} {1000 * c[2]:4.0f} mm  {sum(r['offset'] for r in rows):5d}/{len(rows):<5d}"
-              f" {sum(r['weak'] for r in rows):4d} {sum(r['conflict'] for r in rows):6d}   {d2.mean():8.1f}  {np.median(d2):9.1f}  "
+              f" {sum(r['weak'] for r in rows):4d} {sum(r['conflict'] for r in rows):6d}"
+              f"   {d2.mean():8.1f}  {np.median(d2):9.1f}  "
               f"{len(beyond):5d} ({sum(r['ok'] for r in beyond)})  "
               f"{np.sqrt(np.mean([r['err_mm'] ** 2 for r in rows])):10.1f}  "
               f"{np.mean([r['asked_d2'] for r in rows]):18.1f} "

@@ -92,7 +92,8 @@ def main() -> None:
             rows.append(r)
     if not rows:
         sys.exit(f"{a.pages}: no moving-bag page with a per-bag table; run bench_moving_bag.py through record.py first")
-    print(f"{len(rows)} simulated bags (offset free), seeds {min(seen)}..{max(seen)} ({len(seen)} distinct), pooled from:\n")
+    print(f"{len(rows)} simulated bags (offset free), seeds {min(seen)}..{max(seen)} ({len(seen)} distinct), "
+          "pooled from:\n")
     for page in pages:
         mine = [r["seed"] for r in rows if r["page"] == page.name]
         if mine:
@@ -124,7 +125,8 @@ def main() -> None:
         print(f"\nNEES mean were the camera's pointing term another size, pooled over the {covered} bags whose pages "
               "give it (the same estimates, only the covariance differs): " + ", ".join(
                   f"{px:g} px: {sum(n * d[px] for n, d in pointing) / covered:.2f}" for px in sizes))
-    print("\nverdicts: " + ", ".join(f"{k} {sum(r['verdict'] == k for r in rows)}" for k in ("OK", "CHECK", "UNTRUSTED")))
+    print("\nverdicts: " + ", ".join(f"{k} {sum(r['verdict'] == k for r in rows)}"
+                                     for k in ("OK", "CHECK", "UNTRUSTED")))
 
 
 if __name__ == "__main__":

@@ -177,8 +177,8 @@ def _calibration_json() -> bytes:
 def _rig_calibration_json() -> bytes:
     """A rig's calibration.json as far as its initial guess reads it: every pair's transform."""
     T = json.loads(_calibration_json())["T_camera_lidar"]
-    return json.dumps({"rig": True, "transforms": {"T_cam0_lidar0": {"T": T}, "T_cam0_cam1": {"T": np.eye(4).tolist()}}},
-                      indent=1).encode()
+    transforms = {"T_cam0_lidar0": {"T": T}, "T_cam0_cam1": {"T": np.eye(4).tolist()}}
+    return json.dumps({"rig": True, "transforms": transforms}, indent=1).encode()
 
 
 # --- readers -------------------------------------------------------------------------------------------------

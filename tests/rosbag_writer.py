@@ -127,8 +127,8 @@ def scan_message(bag: _Bag, angles: np.ndarray, ranges: np.ndarray, t_ns: int):
     r = np.where(ranges > 0, ranges, np.inf).astype(np.float32)
     return T["sensor_msgs/msg/LaserScan"](
         header=bag.header(t_ns, "laser"), angle_min=float(angles[0]), angle_max=float(angles[-1]),
-        angle_increment=float((angles[-1] - angles[0]) / (len(angles) - 1)), time_increment=0.0, scan_time=0.025, range_min=0.02,
-        range_max=80.0, ranges=r, intensities=np.zeros(0, np.float32))
+        angle_increment=float((angles[-1] - angles[0]) / (len(angles) - 1)), time_increment=0.0, scan_time=0.025,
+        range_min=0.02, range_max=80.0, ranges=r, intensities=np.zeros(0, np.float32))
 
 
 def info_message(bag: _Bag, camera, t_ns: int):

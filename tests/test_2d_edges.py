@@ -200,7 +200,8 @@ def test_an_ambiguous_answer_is_said_first_listed_with_covariances_and_strict_ex
     assert result.to_dict()["verdict"]["level"] == "CHECK"
     from estimators.analysis.report import verdict_part  # the report opens with it too
 
-    assert "<b style=\"color:#9a6700\">CHECK</b>: " in verdict_part(result) and "2 solutions fit" in verdict_part(result)
+    verdict = verdict_part(result)
+    assert "<b style=\"color:#9a6700\">CHECK</b>: " in verdict and "2 solutions fit" in verdict
     args = build_parser().parse_args(["calibrate", "data", "--out", "out", "--strict"])
     assert exit_code(args, result) == EXIT_AMBIGUOUS
     assert exit_code(build_parser().parse_args(["calibrate", "data", "--out", "out"]), result) == 0
@@ -233,9 +234,9 @@ def test_the_planes_consistency_with_segment_ends_counts_the_dof_the_ends_leave_
     """Three or four scan lines give their planes 2 rows each, which alone (6 rows, 6 unknowns) would fit the
     extrinsic exactly; with the segment ends fixing much of it, the planes' and corners' cost at the joint
     estimate has more degrees of freedom than ``2 N - 6`` (``plane_graph.PlaneProblem.edge_leverage``). Over 3
-    layouts x 30 noise draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of the mean dof
-    counted (measured 0.72-0.92 per layout, 0.84 pooled), while the count without the ends' leverage is below
-    the mean statistic by more than 1.3 times (measured 1.75); at most 3% of the draws reject at 1% (measured
+    layouts x 30 noise draws (refined from the truth, no plane error estimated): the mean statistic within 0.7-1.2 of
+    the mean dof counted (measured 0.72-0.92 per layout, 0.84 pooled), while the count without the ends' leverage is
+    below the mean statistic by more than 1.3 times (measured 1.75); at most 3% of the draws reject at 1% (measured
     none). That test adds a plane error: counted on 1 dof, bench_2d_honesty's mounted seed 2103088077 was
     rejected by chance, and the plane error estimated on that 1 dof took every weight from its planes."""
     stats, dofs, plain, p = [], [], [], []

@@ -214,3 +214,11 @@ def test_the_module_map_names_every_module_once():
                if p.name != "__main__.py" and (p.name != "__init__.py" or p.parent.name in mapped_packages)}
     assert sorted(modules - set(listed)) == [], "modules missing from DEVELOPERS.md's module map"
     assert sorted(set(listed) - modules) == [], "DEVELOPERS.md's module map names modules that do not exist"
+
+
+def test_every_line_of_code_fits_in_120_columns():
+    """The project's width (its Markdown keeps it too): no line of the package, tests or benchmarks is longer."""
+    long = [f"{p.relative_to(ROOT)}:{k}" for folder in ("estimators", "geometry", "tests", "benchmarks")
+            for p in sorted((ROOT / folder).rglob("*.py"))
+            for k, line in enumerate(p.read_text().splitlines(), 1) if len(line) > 120]
+    assert not long, f"lines over 120 columns: {long}"

@@ -167,7 +167,8 @@ def test_the_console_entry_flushes_its_output_before_it_ends_the_process(tmp_pat
     """``run`` ends the process without the interpreter's teardown: what was printed to a pipe still arrives,
     and the exit code is main's."""
     r = _run_cli("simulate", "--lidar", "2d", "--poses", "3", "--out", str(tmp_path / "s"))
-    assert r.returncode == 0 and r.stdout == f"wrote 3 frames (2D scanner, default scene, checkerboard) to {tmp_path / 's'}\n"
+    said = f"wrote 3 frames (2D scanner, default scene, checkerboard) to {tmp_path / 's'}\n"
+    assert r.returncode == 0 and r.stdout == said
     r = _run_cli("simulate", "--lidar", "2d", "--poses", "3", "--out", str(tmp_path / "s"))  # exists: refused
     assert r.returncode == 2 and r.stderr.startswith("lidarcam: error:") and r.stdout == ""
 

@@ -187,7 +187,8 @@ def test_16_bit_images_are_scaled_to_8_bits_by_their_range_without_a_wide_copy()
 
 def test_ascii_pcd_claiming_more_points_than_it_holds_is_an_error(tmp_path):
     rows = "".join(f"{k}.0 1.0 2.0\n" for k in range(1, 6))
-    head = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA ascii\n"
+    head = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nPOINTS {n}\n"
+            "DATA ascii\n")
     path = tmp_path / "lying.pcd"
     path.write_text(head.format(n=500) + rows)
     with pytest.raises(LidarcamError, match="declares 500 points"):

@@ -206,8 +206,9 @@ def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16)
     pair's refinement) and its ring ends added to that final noise model in both engines, its camera-LiDAR
     estimate lies within 0.05 of the single pair's standard deviations (measured 0.001 until the joint graph cut
     its returns symmetrically about the range terms, ``range_model.symmetric_band``; 0.02 since), its standard
-    deviations within 3% (1% before that cut; 2.2% since), and its planes-against-edges test reads the pair's p within 5% (0.0078 both; they read
-    0.008 and 0.022 when the pair added its ends before its plane error), so both say the same."""
+    deviations within 3% (1% before that cut; 2.2% since), and its planes-against-edges test reads the pair's p
+    within 5% (0.0078 both; they read 0.008 and 0.022 when the pair added its ends before its plane error), so
+    both say the same."""
     from estimators.io.rig_dataset import load_rig
     from estimators.rig_calibration import calibrate_rig
 

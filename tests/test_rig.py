@@ -1483,7 +1483,8 @@ def test_a_frame_its_pair_drops_as_an_outlier_stays_out_of_the_joint_graph_and_t
     print_rig(res)
     out = capsys.readouterr().out
     first = out.splitlines()[0]
-    assert first.startswith("CHECK: ") and "T_cam0_lidar0: 2 solutions fit its boards (posterior mass 70%, 30%)" in first
+    assert first.startswith("CHECK: ")
+    assert "T_cam0_lidar0: 2 solutions fit its boards (posterior mass 70%, 30%)" in first
     # the dropped frame printed with its reason under its sensor, as a single pair prints its own
     stem = sorted(res.skipped["lidar0"])[0]
     assert "\n  lidar0 " in out and f"\n      {stem}: skipped: {res.skipped['lidar0'][stem]}\n" in out

@@ -65,7 +65,8 @@ def test_local_and_dask_runs_give_identical_rows(tmp_path):
     assert np.mean([r["trans_err_mm"] for r in fg]) <= np.mean([r["trans_err_mm"] for r in cf]) * 1.2
 
     # one worker process: the rows travel through the scheduler all the same (a second costs its interpreter)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
         remote = run_study(spec, tmp_path / "dask", scheduler=client, progress=False)
     def strip(rows):  # repr: NaN (no covariance) must compare equal to NaN

@@ -377,11 +377,13 @@ def spread_section(p, kind: str, title: str = "") -> str:
     rows = []
     for level in INTERVAL_LEVELS:
         iv = summary[f"{round(100 * level)}%"]
-        rows.append([f"{round(100 * level)}% rotation [deg]"] + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv["rotation_deg"]])
+        rows.append([f"{round(100 * level)}% rotation [deg]"]
+                    + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv["rotation_deg"]])
         rows.append([f"{round(100 * level)}% translation [mm]"]
                     + [f"[{a:+.4f}, {b:+.4f}]" for a, b in iv["translation_mm"]])
     regions = summary["credible_regions"]
-    return (out + f"<h2>{title}Intervals (offsets from the estimate, GTSAM tangent)</h2>" + _table(rows, ["", "x", "y", "z"])
+    return (out + f"<h2>{title}Intervals (offsets from the estimate, GTSAM tangent)</h2>"
+            + _table(rows, ["", "x", "y", "z"])
             + "<p>Credible regions: the covariance's ellipsoid about the estimate (with several modes: about each "
             "mode, under its own covariance) holding 99% / 99.9% of the samples "
             f"reaches a squared Mahalanobis distance of {regions['99%']['d2']:.1f} / {regions['99.9%']['d2']:.1f} (a "

@@ -109,7 +109,8 @@ def next_pose_for_pair(camera: CameraModel, board, T_camera_lidar: np.ndarray, P
             "board_normal_camera": best[:3, 2].tolist(), "distance_m": float(np.linalg.norm(centre)),
             "board_centre_lidar_m": (T_inverse(T_camera_lidar)[:3, :3] @ centre
                                      + T_inverse(T_camera_lidar)[:3, 3]).tolist(),
-            "max_translation_sd_mm_before": 1000 * _max_translation_sd(P), "max_translation_sd_mm_after": 1000 * best_sd,
+            "max_translation_sd_mm_before": 1000 * _max_translation_sd(P),
+            "max_translation_sd_mm_after": 1000 * best_sd,
             "std_rotation_deg_before": np.degrees(np.sqrt(np.maximum(np.diag(P)[:3], 0.0))).tolist(),
             "std_rotation_deg_after": np.degrees(np.sqrt(np.maximum(np.diag(best_C)[:3], 0.0))).tolist(),
             "covariance_after": best_C.tolist()}

@@ -150,7 +150,8 @@ def parse_spec(spec: dict, source: str = "spec") -> StudySpec:
     solvers = tuple(str(v) for v in (raw_solvers if isinstance(raw_solvers, (list, tuple)) else [raw_solvers]))
     bad = [s for s in solvers if s not in allowed]
     if bad or not solvers:
-        raise DatasetError(f"unknown solver(s) {bad} for lidar {lidar}", path=source, hint=f"use some of {list(allowed)}")
+        raise DatasetError(f"unknown solver(s) {bad} for lidar {lidar}", path=source,
+                           hint=f"use some of {list(allowed)}")
     model = str(spec.get("model", "hdl64e"))
     if lidar == "3d" and model not in ("hdl64e", "vlp16"):
         raise DatasetError(f"unknown model {model!r}", path=source, hint="use hdl64e or vlp16")
@@ -421,9 +422,11 @@ def summary_plots(spec: StudySpec, summary: list[dict]) -> list[tuple[str, bytes
     if len(spec.layouts) > 1:
         figures.append(("errors_vs_layout.png", png_bytes(_layout_figure(spec, summary, frames0, noise0, corner0))))
         summary = [s for s in summary if s["layout"] == layout0]
-    panels = [("errors_vs_frames.png", "frames", lambda s: s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0,
+    panels = [("errors_vs_frames.png", "frames",
+               lambda s: s["range_noise_m"] == noise0 and s["corner_noise_px"] == corner0,
                f"{layout0}, range noise {1000 * noise0:.0f} mm"),
-              ("errors_vs_noise.png", "range_noise_m", lambda s: s["frames"] == frames0 and s["corner_noise_px"] == corner0,
+              ("errors_vs_noise.png", "range_noise_m",
+               lambda s: s["frames"] == frames0 and s["corner_noise_px"] == corner0,
                f"{layout0}, {frames0} frames")]
     for name, xkey, sel, title in panels:
         fig, ax = new_figure(1, 2, figsize=(10, 3.6))

@@ -34,8 +34,8 @@ other frame repeats (the board, its holder) do not count, so a board that fills 
 not make the rig look moved, nor do objects left standing at one place in front of it for several frames
 (surfaces that lie together within a box of ``max_object_m``: a board on its stand, its holder); a frame with fewer
 than ``min_judged`` judged returns is not judged. A frame that contradicts the scene keeps the model, with every
-return it does not explain in its foreground (:func:`_checked`), and the note says so, as it says when the stillness could not be judged or the
-background would not show a turn of the rig.
+return it does not explain in its foreground (:func:`_checked`), and the note says so, as it says when the stillness
+could not be judged or the background would not show a turn of the rig.
 """
 from __future__ import annotations
 
@@ -349,7 +349,8 @@ def _checked(scene: StaticScene, judged: list[tuple[np.ndarray, np.ndarray]], fo
     if moved:
         notes.append(f"frame(s) {_names(moved)} contradict the static scene (as little as "
                      f"{100 * np.nanmin(match):.0f}% of their returns on settled background match it, the rest lie "
-                     "beyond it or on surfaces that other frames repeat, more than an object left at one place): the rig moved, or the "
+                     "beyond it or on surfaces that other frames repeat, more than an object left at one place): "
+                     "the rig moved, or the "
                      "scene changed; the scene is kept, and every return of theirs that it does not explain stays a "
                      "board candidate")
         foreground = tuple(~judged[k][0] if k in moved else f for k, f in enumerate(foreground))

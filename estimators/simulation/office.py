@@ -50,7 +50,8 @@ def _on_wall(wall_x: float | None, wall_y: float | None, along: float, bottom: f
 def office_layout(ground_z: float, rng: np.random.Generator) -> list[Patch]:
     """The static office (LiDAR frame, z up): a room about 13 x 10 m around the rig, with furniture placed at
     random but away from the space in front of the camera where the boards are held."""
-    front, back, left, right = rng.uniform(6.5, 8.5), -rng.uniform(3.5, 5.0), rng.uniform(4.0, 5.5), -rng.uniform(4.0, 5.5)
+    front, back = rng.uniform(6.5, 8.5), -rng.uniform(3.5, 5.0)
+    left, right = rng.uniform(4.0, 5.5), -rng.uniform(4.0, 5.5)
     g = ground_z
     patches = [infinite_plane([0, 0, 1], g, 0.3, "ground"),
                infinite_plane([1, 0, 0], front, 0.55, "wall"), infinite_plane([1, 0, 0], back, 0.55, "wall"),

@@ -777,7 +777,8 @@ def simulate_dataset(out: str | Path, n_poses: int = 8, seed: int = 0, lidar: st
     pixel_noise : float
         Image noise, grey levels (1 sd).
     scan_format : str, optional
-        ``pcd``, ``ply``, ``bin`` or ``npy`` in 3D (default ``pcd``); ``csv``, ``npy`` or ``pcd`` in 2D (default ``csv``).
+        ``pcd``, ``ply``, ``bin`` or ``npy`` in 3D (default ``pcd``); ``csv``, ``npy`` or ``pcd`` in 2D (default
+        ``csv``).
     include_camera : bool
         Write the intrinsics into ``dataset.yaml`` (False: they are calibrated from the images).
     overwrite : bool

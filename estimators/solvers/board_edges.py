@@ -23,7 +23,8 @@ distance outward of the side of the outline it crosses (``sides``: x = 0, x = w,
 nuisances: the dataset's outline (``graph_keys.outline_key``, one per dataset and LiDAR: the growth of the x and
 the y sides, as a beam footprint or mixed returns make the LiDAR's board look larger than the given size, and the
 outline's offset from where the dataset puts it; priors 0 +- ``GROWTH_PRIOR_SD_M`` and ``OFFSET_PRIOR_SD_M``) and
-the frame's outline shift (``graph_keys.edge_shift_key``, 0 +- the boards' in-plane scatter, estimated by the refinement).
+the frame's outline shift (``graph_keys.edge_shift_key``, 0 +- the boards' in-plane scatter, estimated by the
+refinement).
 Its Jacobians by the extrinsic and the board pose (right tangents, ``T Exp(xi)``, ``xi = [rot; trans]``):
 with ``q = R (s b) + t`` the cut in the board frame (``R, t`` of ``T_board_lidar``), ``P`` the projection
 along the ray onto the board's plane and ``w = P^T [a; 0]`` (``a`` the side's outward normal),

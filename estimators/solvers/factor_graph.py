@@ -33,7 +33,8 @@ from .board_edges import deviation_prior, edge_factor, outline_prior, shift_prio
 from .factors import (affine_plane_factor, corner_factor, corner_intrinsics_factor, corner_residuals,
                       corner_residuals_intrinsics, lidar_residual, nuisance_plane_factor, nuisance_residual,
                       plane_factor)
-from .graph_keys import edge_deviation_key, edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key, terms_key
+from .graph_keys import (edge_deviation_key, edge_shift_key, frame_key, intrinsics_key, outline_key, sensor_key,
+                         terms_key)
 from .noise_levels import frame_noise, plane_noise, robust_noise
 from .range_model import RangeTerms
 

@@ -35,7 +35,8 @@ def edge_shift_key(k: int, j: int) -> int:
 
 
 def edge_deviation_key(k: int, j: int) -> int:
-    """Sensor ``k``'s board plane against the camera's in frame ``j``, for its ends (``board_edges.deviation_prior``)."""
+    """Sensor ``k``'s board plane against the camera's in frame ``j``, for its ends
+    (``board_edges.deviation_prior``)."""
     return gtsam.symbol("d", 100000 * k + j)
 
 

@@ -191,7 +191,8 @@ def _trihedron(planes: list[Plane], lines: list[Line2D], triple: tuple[int, int,
         if sin < DEGENERATE_LINE_SIN:
             return f"laser lines {triple[a]} and {triple[b]} parallel"
         if sin < MIN_LINE_SIN:
-            weak.append(f"laser lines {triple[a]} and {triple[b]} nearly parallel (angle {np.degrees(np.arcsin(sin)):.1f} deg)")
+            weak.append(f"laser lines {triple[a]} and {triple[b]} nearly parallel "
+                        f"(angle {np.degrees(np.arcsin(sin)):.1f} deg)")
         q.append(np.append(intersect(lines[a], lines[b]), 0.0))
     q = np.array(q)
     # Points 0, 1, 2 sit on edges 01, 02, 12; distances between them pair the edges as (01,02), (01,12), (02,12).

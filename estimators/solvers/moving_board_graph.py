@@ -152,7 +152,8 @@ def refine_many(tau: np.ndarray, K0: np.ndarray, K_cov: np.ndarray, blocks: list
     4) at ``tau`` with covariances ``K_cov`` (n, 6, 6) and each LiDAR's ``blocks`` (its returns within the knots'
     span less its offset's reach, its start, its range noise; a return's sweep's stamp off its instant by a
     Gaussian of the sweeps' jitter shared by its returns: one time nuisance per sweep with that prior, none when
-    0): each LiDAR's extrinsic and offset, the knots and the sweeps' time nuisances as unknowns. Returns each LiDAR's ``T_camera_lidar`` and offset, the joint covariance over
+    0): each LiDAR's extrinsic and offset, the knots and the sweeps' time nuisances as unknowns. Returns each
+    LiDAR's ``T_camera_lidar`` and offset, the joint covariance over
     each LiDAR's ``[rot; trans; offset]`` in turn (7 per LiDAR; an offset's row and column 0 when held: the LiDARs
     share the camera's board poses, so their estimates correlate), the knots where the solve left them and each
     LiDAR's returns' time nuisances (s)."""
