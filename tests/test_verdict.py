@@ -153,6 +153,25 @@ def test_a_wrong_square_size_is_untrusted_and_strict_exits_non_zero(sim_hdl64e, 
     assert exit_code(build_parser().parse_args(["calibrate", "d", "--out", "o", "--strict"]), good) == 0
 
 
+def test_boards_too_few_to_test_the_scale_whose_planes_disagree_are_a_check(tmp_path):
+    """Four boards with the square size 5% short: the planes disagree (a per-board plane error of 4.7 mm taken up),
+    four planes cannot test the camera's scale against the LiDAR's, and the estimate lands 22 cm off the truth, 18
+    of its standard deviations (it read OK). Said as a CHECK naming the square size; the same boards with the
+    right square size read OK."""
+    import estimators as lc
+    from estimators.simulation.simulator import simulate_dataset
+
+    right = simulate_dataset(tmp_path / "right", n_poses=4, seed=1)
+    assert lc.calibrate(right, samples=0).verdict == Verdict(OK)
+    spec = yaml.safe_load((right / "dataset.yaml").read_text())
+    spec["board"]["square_size"] *= 0.95
+    wrong = shutil.copytree(right, tmp_path / "wrong")
+    (wrong / "dataset.yaml").write_text(yaml.safe_dump(spec))
+    v = lc.calibrate(wrong, samples=0).verdict
+    assert v.level == CHECK and "its 4 boards' planes disagree beyond their noise" in v.line, v
+    assert "too few to test the camera's scale" in v.line and "board.square_size" in v.line
+
+
 def test_two_frames_scans_swapped_are_not_ok(sim_hdl64e, tmp_path):
     """Frames 0001 and 0003 each given the other's scan: a wrong LiDAR board in two of eight frames."""
     from estimators.calibration import calibrate_pair

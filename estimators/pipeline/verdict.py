@@ -17,7 +17,8 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
   their noise (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder
   moved them (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines
-  off the camera's beyond their 99% limit; planes whose disagreement freed intrinsics explain; a rig's camera
+  off the camera's beyond their 99% limit; a 3D LiDAR's boards too few to test that scale whose planes disagree
+  beyond their noise; planes whose disagreement freed intrinsics explain; a rig's camera
   whose corners disagree with the rest of the rig beyond their noise (given intrinsics); a posterior that did not
   converge or was not sampled; the rig's stillness not checked on any frame.
 """
@@ -36,7 +37,7 @@ from ..lidar.static_scene import STILLNESS_NOT_CHECKED
 from ..measurements import FrameMeasurement
 from ..solvers.association import DISAGREES_WITH_CONSENSUS
 from ..solvers.board_edges import GROWTH_PRIOR_SD_M
-from ..solvers.closed_form import distance_scale, segment_distance_scale
+from ..solvers.closed_form import MIN_SCALE_PLANES, distance_scale, segment_distance_scale
 from ..solvers.outline_check import CHECK_P as OUTLINE_P
 from ..solvers.range_model import without_terms
 from .measurement import CONSENSUS_FAILED
@@ -51,6 +52,9 @@ FRAME_DISTANCE_M = 0.05
 # The camera's distances against the LiDAR's (``closed_form.distance_scale``): beyond this share, and this many of
 # its standard deviations, a wrong square size or focal length.
 SCALE_LIMIT, SCALE_SIGMAS = 0.01, 5.0
+# A per-board plane error the graph took up (m) above which boards too few to test that scale are a CHECK: the
+# moment estimate's floor is 1e-5 m where the planes turn out consistent.
+UNTESTED_SCALE_FLOOR_M = 1e-4
 
 
 @dataclass(frozen=True)
@@ -281,14 +285,23 @@ def segment_ends(frame: FrameMeasurement) -> np.ndarray:
     return np.column_stack([ends, np.zeros(2)])
 
 
-def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement]) -> list[tuple[str, str]]:
+def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: float = 0.0
+           ) -> list[tuple[str, str]]:
     """The camera's board distances scaled against the LiDAR's beyond ``SCALE_LIMIT`` (``frames``: the used
-    ones; a 3D LiDAR's planes or a 2D scanner's segments)."""
+    ones; a 3D LiDAR's planes or a 2D scanner's segments). A 3D LiDAR's boards too few to test it
+    (``MIN_SCALE_PLANES``) whose planes disagree beyond their noise (``floor_m``, the per-board plane error the
+    graph took up, above ``UNTESTED_SCALE_FLOOR_M``): a CHECK, since a wrong square size would pass unseen there
+    (4 simulated boards with a square size 5% short read OK 22 cm off the truth, 18 of its standard deviations)."""
     planes = [f.camera.plane for f in frames]
     if frames and frames[0].lidar.is_scan_line:
         fit = segment_distance_scale(T, planes, [segment_ends(f) for f in frames])
     else:
         fit = distance_scale(T, planes, [f.lidar.plane for f in frames])
+        if fit is None and 0 < len(frames) < MIN_SCALE_PLANES and floor_m > UNTESTED_SCALE_FLOOR_M:
+            return [(CHECK, f"{name}its {len(frames)} boards' planes disagree beyond their noise (a per-board plane "
+                            f"error of {1000 * floor_m:.1f} mm taken up) and are too few to test the camera's scale "
+                            f"against the LiDAR's ({MIN_SCALE_PLANES} or more do): a wrong board.square_size or focal "
+                            "length would move the estimate beyond its covariance unseen; check them, or add boards")]
     if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_SIGMAS * fit[1]:
         return []
     return [(UNTRUSTED, f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off "
@@ -322,7 +335,8 @@ def pair_verdict(result) -> Verdict:
         concerns += _left_out("", fit.left_out if fit is not None else ())
         concerns += _outline("", ref.edges) + _carried("", ref.edges)
         dropped = [f.name for f in ref.frames if f.dropped]
-        concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped])
+        concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped],
+                           ref.plane_floor_m)
     aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
     concerns += _frames("", result.plane_residuals, aside + dropped,
                         {f.name: angle_limit(f) for f in result.frames if f.usable})
@@ -352,16 +366,21 @@ def rig_verdict(result) -> Verdict:
         concerns += _carried(f"{name}: ", record)
     for (a, b), record in result.outline_checks.items():
         concerns += _outline(f"T_{a}_{b}: ", record)
+    kept_by = {}
     for (c, lid), frames in (result.pair_frames or {}).items():
-        T = result.solution.transform(c, lid)[0]
         used = set(result.frames_used.get(lid, ())) & set(result.frames_used.get(c, ()))
-        kept = [f for f in frames if f.usable and f.name in used]
+        kept_by[(c, lid)] = [f for f in frames if f.usable and f.name in used]
+    # a camera whose scale one of its pairs with a 3D LiDAR tests: its other pairs' few boards leave nothing untested
+    tested = {c for (c, _), kept in kept_by.items() if len(kept) >= MIN_SCALE_PLANES and not kept[0].lidar.is_scan_line}
+    for (c, lid), kept in kept_by.items():
+        T = result.solution.transform(c, lid)[0]
         aside = [stem for stem, why in result.skipped.get(lid, {}).items()
                  if f"with {c}:" in why and DISAGREES_WITH_CONSENSUS in why]
         own = (result.pair_results or {}).get((c, lid))  # the frames its own solve dropped, as a single pair's count
         aside += [fit.name for fit in own.refinement.frames if fit.dropped] if own is not None and \
             own.refinement is not None else []
-        concerns += _scale(f"T_{c}_{lid}: ", T, kept)
+        concerns += _scale(f"T_{c}_{lid}: ", T, kept,
+                           0.0 if c in tested else result.noise(lid).get("plane_floor_m") or 0.0)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept, result.returns_without_terms(c, lid, kept)),
                             aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), check in result.intrinsics_checks.items():

@@ -90,15 +90,20 @@ def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane], all
     return ClosedFormSolution(T_from_Rt(R, t), s, weak)
 
 
+# The boards :func:`distance_scale` needs: a scale and a translation correction (4 unknowns), with 2 dof to spare.
+MIN_SCALE_PLANES = 6
+
+
 def distance_scale(T_camera_lidar: np.ndarray, camera_planes: list[Plane], lidar_planes: list[Plane]
                    ) -> tuple[float, float] | None:
     """How far the camera's board distances scale against the LiDAR's under ``T_camera_lidar``: ``(s, sd)`` with
     the camera's distance ``d_c = (1 + s) d_l`` (``d_l`` the LiDAR plane's distance in the camera), a translation
-    correction fitted with it by least squares, ``sd`` from the residuals' scatter; None with fewer than 6 planes.
+    correction fitted with it by least squares, ``sd`` from the residuals' scatter; None with fewer than
+    ``MIN_SCALE_PLANES`` planes.
 
     A LiDAR times its ranges to a few parts per million, so a percent-level ``s`` is the camera's: a wrong
     ``board.square_size`` or focal length scales every board's distance by that share (``pipeline.verdict``)."""
-    if len(camera_planes) < 6:
+    if len(camera_planes) < MIN_SCALE_PLANES:
         return None
     R, t = T_camera_lidar[:3, :3], T_camera_lidar[:3, 3]
     rows, rhs = [], []
