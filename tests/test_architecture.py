@@ -217,7 +217,7 @@ def test_the_module_map_names_every_module_once():
 
 
 def test_every_line_of_code_fits_in_120_columns():
-    """The project's width (its Markdown keeps it too): no line of the package, tests or benchmarks is longer."""
+    """The code's width: no line of the package, tests or benchmarks is longer."""
     long = [f"{p.relative_to(ROOT)}:{k}" for folder in ("estimators", "geometry", "tests", "benchmarks")
             for p in sorted((ROOT / folder).rglob("*.py"))
             for k, line in enumerate(p.read_text().splitlines(), 1) if len(line) > 120]

@@ -17,8 +17,9 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
   their noise (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder
   moved them (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines
-  off the camera's beyond their 99% limit; a 3D LiDAR's boards too few to test that scale whose planes disagree
-  beyond their noise; planes whose disagreement freed intrinsics explain; a rig's camera
+  off the camera's beyond their 99% limit; that scale beyond 3 of its standard deviations, or a 3D LiDAR's boards
+  too few to test it, where the planes disagree beyond their noise; planes whose disagreement freed intrinsics
+  explain; a rig's camera
   whose corners disagree with the rest of the rig beyond their noise (given intrinsics); a posterior that did not
   converge or was not sampled; the rig's stillness not checked on any frame.
 """
@@ -52,6 +53,8 @@ FRAME_DISTANCE_M = 0.05
 # The camera's distances against the LiDAR's (``closed_form.distance_scale``): beyond this share, and this many of
 # its standard deviations, a wrong square size or focal length.
 SCALE_LIMIT, SCALE_SIGMAS = 0.01, 5.0
+# Beyond the limit and this many standard deviations, with the planes disagreeing beyond their noise: a CHECK.
+SCALE_CHECK_SIGMAS = 3.0
 # A per-board plane error the graph took up (m) above which boards too few to test that scale are a CHECK: the
 # moment estimate's floor is 1e-5 m where the planes turn out consistent.
 UNTESTED_SCALE_FLOOR_M = 1e-4
@@ -285,28 +288,36 @@ def segment_ends(frame: FrameMeasurement) -> np.ndarray:
     return np.column_stack([ends, np.zeros(2)])
 
 
-def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: float = 0.0
+def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: float = 0.0, alone: bool = True
            ) -> list[tuple[str, str]]:
     """The camera's board distances scaled against the LiDAR's beyond ``SCALE_LIMIT`` (``frames``: the used
-    ones; a 3D LiDAR's planes or a 2D scanner's segments). A 3D LiDAR's boards too few to test it
-    (``MIN_SCALE_PLANES``) whose planes disagree beyond their noise (``floor_m``, the per-board plane error the
-    graph took up, above ``UNTESTED_SCALE_FLOOR_M``): a CHECK, since a wrong square size would pass unseen there
-    (4 simulated boards with a square size 5% short read OK 22 cm off the truth, 18 of its standard deviations)."""
+    ones; a 3D LiDAR's planes or a 2D scanner's segments): ``UNTRUSTED`` beyond ``SCALE_SIGMAS`` of its standard
+    deviation; a ``CHECK`` beyond ``SCALE_CHECK_SIGMAS`` where the planes disagree beyond their noise too
+    (``floor_m``, the per-board plane error the graph took up, above ``UNTESTED_SCALE_FLOOR_M``: the two read one
+    error; a simulated scanner's five boards with the square size 5% long read 4.7% +- 0.9% and OK, d2 1683). A 3D
+    LiDAR's boards too few to test it (``MIN_SCALE_PLANES``) whose planes disagree so: a CHECK, where no other pair
+    tests the camera's scale (``alone``), since a wrong square size would pass unseen there (4 simulated boards
+    with a square size 5% short read OK 22 cm off the truth, 18 of its standard deviations)."""
+    disagree = floor_m > UNTESTED_SCALE_FLOOR_M
     planes = [f.camera.plane for f in frames]
     if frames and frames[0].lidar.is_scan_line:
         fit = segment_distance_scale(T, planes, [segment_ends(f) for f in frames])
     else:
         fit = distance_scale(T, planes, [f.lidar.plane for f in frames])
-        if fit is None and 0 < len(frames) < MIN_SCALE_PLANES and floor_m > UNTESTED_SCALE_FLOOR_M:
+        if fit is None and 0 < len(frames) < MIN_SCALE_PLANES and disagree and alone:
             return [(CHECK, f"{name}its {len(frames)} boards' planes disagree beyond their noise (a per-board plane "
                             f"error of {1000 * floor_m:.1f} mm taken up) and are too few to test the camera's scale "
                             f"against the LiDAR's ({MIN_SCALE_PLANES} or more do): a wrong board.square_size or focal "
                             "length would move the estimate beyond its covariance unseen; check them, or add boards")]
-    if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_SIGMAS * fit[1]:
+    if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_CHECK_SIGMAS * fit[1]:
         return []
-    return [(UNTRUSTED, f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off "
-                        "the LiDAR's ranges, which no LiDAR errs by: check board.square_size and the camera's focal "
-                        "length")]
+    said = f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off the LiDAR's ranges"
+    if abs(fit[0]) > SCALE_SIGMAS * fit[1]:
+        return [(UNTRUSTED, f"{said}, which no LiDAR errs by: check board.square_size and the camera's focal length")]
+    if not disagree:
+        return []
+    return [(CHECK, f"{said} and the boards' planes disagree beyond their noise (a per-board plane error of "
+                    f"{1000 * floor_m:.1f} mm taken up): check board.square_size and the camera's focal length")]
 
 
 def _intrinsics(name: str, whose: str, check: dict | None) -> list[tuple[str, str]]:
@@ -379,8 +390,7 @@ def rig_verdict(result) -> Verdict:
         own = (result.pair_results or {}).get((c, lid))  # the frames its own solve dropped, as a single pair's count
         aside += [fit.name for fit in own.refinement.frames if fit.dropped] if own is not None and \
             own.refinement is not None else []
-        concerns += _scale(f"T_{c}_{lid}: ", T, kept,
-                           0.0 if c in tested else result.noise(lid).get("plane_floor_m") or 0.0)
+        concerns += _scale(f"T_{c}_{lid}: ", T, kept, result.noise(lid).get("plane_floor_m") or 0.0, c not in tested)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept, result.returns_without_terms(c, lid, kept)),
                             aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), check in result.intrinsics_checks.items():
