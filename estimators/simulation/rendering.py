@@ -9,6 +9,7 @@ import numpy as np
 
 from geometry.camera import CameraModel
 from geometry.rotations import transform_points
+from geometry.vectors import row_norms
 
 from .scene import Background, Patch, cast
 
@@ -98,15 +99,9 @@ def _interp_subpixels(grid: np.ndarray, pu: np.ndarray, pv: np.ndarray, offs: np
 
 
 def _rays_world(xy: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
-    """Unit rays in the world frame through normalized coordinates ``xy`` (N, 2). The norm is summed as
-    ``np.linalg.norm`` sums it (x^2 + y^2 + 1, in that order): the same bits, in half the time."""
-    d = np.empty((len(xy), 3))
-    d[:, :2] = xy
-    d[:, 2] = 1.0
-    norm = xy[:, 0] * xy[:, 0]
-    norm += xy[:, 1] * xy[:, 1]
-    norm += 1.0
-    d /= np.sqrt(norm, out=norm)[:, None]
+    """Unit rays in the world frame through normalized coordinates ``xy`` (N, 2)."""
+    d = np.column_stack([xy, np.ones(len(xy))])
+    d /= row_norms(d)[:, None]
     return d @ T_world_camera[:3, :3].T
 
 
