@@ -188,6 +188,24 @@ def test_a_scale_the_planes_disagreement_corroborates_is_a_check_below_untrusted
     assert "off the LiDAR's ranges and the boards' planes disagree beyond their noise" in v.line
 
 
+def test_a_scanners_segment_ends_off_the_outlines_after_the_fit_are_a_check(tmp_path):
+    """A mounted scanner's six boards with the square size 5% long (bench_verdict's 2D mounted, seed 100): its
+    planes agree (p = 0.45) and its scale reads 2.1% +- 1.1%, so neither scale rule sees it; it read OK with the
+    truth at d2 44049, 36 px off in the image. Its segment ends, in the estimate, sit off the boards' outlines
+    beyond their 99% limit (p = 0.0087): a CHECK naming the square size. The right square size reads OK."""
+    import estimators as lc
+    from estimators.simulation.simulator import simulate_dataset
+
+    folder = simulate_dataset(tmp_path / "d", n_poses=6, seed=100, lidar="2d", rig_config="mounted")
+    assert lc.calibrate(folder, rng=np.random.default_rng(100), samples=0).verdict == Verdict(OK)
+    spec = yaml.safe_load((folder / "dataset.yaml").read_text())
+    spec["board"]["square_size"] *= 1.05
+    (folder / "dataset.yaml").write_text(yaml.safe_dump(spec))
+    v = lc.calibrate(folder, rng=np.random.default_rng(100), samples=0).verdict
+    assert v.level == CHECK and "lidar0: the scan's segment ends sit off the boards' outlines" in v.line, v
+    assert "board.square_size" in v.line
+
+
 def test_two_frames_scans_swapped_are_not_ok(sim_hdl64e, tmp_path):
     """Frames 0001 and 0003 each given the other's scan: a wrong LiDAR board in two of eight frames."""
     from estimators.calibration import calibrate_pair
