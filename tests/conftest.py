@@ -1,4 +1,5 @@
-"""Shared fixtures: small simulated datasets, made once per test session with fixed seeds."""
+"""Shared fixtures: small simulated datasets, made once per run with fixed seeds (one folder for all the test
+processes: the tests read them and never write into them)."""
 from __future__ import annotations
 
 import os
@@ -65,21 +66,21 @@ def _measurement_cache(tmp_path_factory):
 @pytest.fixture(scope="session")
 def sim_hdl64e(tmp_path_factory) -> Path:
     """8 poses, HDL-64E-like, 2 cm range noise (the issue's acceptance setting)."""
-    return simulate_dataset(tmp_path_factory.mktemp("sim") / "hdl64e", n_poses=8, seed=11, lidar="hdl64e",
-                            sigma_range_m=0.02)
+    return shared_folder(tmp_path_factory, "sim_hdl64e", lambda path: simulate_dataset(
+        path, n_poses=8, seed=11, lidar="hdl64e", sigma_range_m=0.02))
 
 
 @pytest.fixture(scope="session")
 def sim_vlp16(tmp_path_factory) -> Path:
-    return simulate_dataset(tmp_path_factory.mktemp("sim") / "vlp16", n_poses=8, seed=12, lidar="vlp16",
-                            sigma_range_m=0.02)
+    return shared_folder(tmp_path_factory, "sim_vlp16", lambda path: simulate_dataset(
+        path, n_poses=8, seed=12, lidar="vlp16", sigma_range_m=0.02))
 
 
 @pytest.fixture(scope="session")
 def sim_2d(tmp_path_factory) -> Path:
     """6 poses, 270-degree single-line scanner, 1 cm range noise, CSV scans (invalid returns as 0)."""
-    return simulate_dataset(tmp_path_factory.mktemp("sim") / "scan2d", n_poses=6, seed=5, lidar="2d",
-                            sigma_range_m=0.01, scan_format="csv")
+    return shared_folder(tmp_path_factory, "sim_2d", lambda path: simulate_dataset(
+        path, n_poses=6, seed=5, lidar="2d", sigma_range_m=0.01, scan_format="csv"))
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
