@@ -180,10 +180,7 @@ def test_a_scale_the_planes_disagreement_corroborates_is_a_check_below_untrusted
     from estimators.simulation.simulator import simulate_dataset
 
     folder = simulate_dataset(tmp_path / "d", n_poses=6, seed=102, lidar="2d")
-    spec = yaml.safe_load((folder / "dataset.yaml").read_text())
-    spec["board"]["square_size"] *= 1.05
-    (folder / "dataset.yaml").write_text(yaml.safe_dump(spec))
-    v = lc.calibrate(folder, rng=np.random.default_rng(102), samples=0).verdict
+    v = lc.calibrate(_wrong(folder, tmp_path / "wrong", "scale"), rng=np.random.default_rng(102), samples=0).verdict
     assert v.level == CHECK and "the camera's board distances are +4." in v.line, v
     assert "off the LiDAR's ranges and the boards' planes disagree beyond their noise" in v.line
 
@@ -198,10 +195,7 @@ def test_a_scanners_segment_ends_off_the_outlines_after_the_fit_are_a_check(tmp_
 
     folder = simulate_dataset(tmp_path / "d", n_poses=6, seed=100, lidar="2d", rig_config="mounted")
     assert lc.calibrate(folder, rng=np.random.default_rng(100), samples=0).verdict == Verdict(OK)
-    spec = yaml.safe_load((folder / "dataset.yaml").read_text())
-    spec["board"]["square_size"] *= 1.05
-    (folder / "dataset.yaml").write_text(yaml.safe_dump(spec))
-    v = lc.calibrate(folder, rng=np.random.default_rng(100), samples=0).verdict
+    v = lc.calibrate(_wrong(folder, tmp_path / "wrong", "scale"), rng=np.random.default_rng(100), samples=0).verdict
     assert v.level == CHECK and "lidar0: the scan's segment ends sit off the boards' outlines" in v.line, v
     assert "board.square_size" in v.line
 
