@@ -13,15 +13,15 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   times its ranges to parts per million, so a wrong square size or focal length); the boards' planes and their
   edges conflict by more than a frame may disagree (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``).
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
-  a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range
-  term estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond
-  their noise (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder
-  moved them (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines
-  off the camera's beyond their 99% limit (a 2D scanner's segment ends also in the estimate); that scale beyond 3 of its standard deviations, or a 3D LiDAR's boards
-  too few to test it, where the planes disagree beyond their noise; planes whose disagreement freed intrinsics
-  explain; a rig's camera
-  whose corners disagree with the rest of the rig beyond their noise (given intrinsics); a posterior that did not
-  converge or was not sampled; the rig's stillness not checked on any frame.
+  a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range term
+  estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond their noise
+  (the covariance holds both answers); the boards' edges carrying the answer while a hand or a holder moved them
+  (left out by default, the planes' answer given; kept with ``--edges``); the LiDAR's board outlines off the
+  camera's beyond their 99% limit (a 2D scanner's segment ends also in the estimate); that scale beyond 3 of its
+  standard deviations, or a 3D LiDAR's boards too few to test it, where the planes disagree beyond their noise;
+  planes whose disagreement freed intrinsics explain; a rig's camera whose corners disagree with the rest of the rig
+  beyond their noise (given intrinsics); a posterior that did not converge or was not sampled; the rig's stillness
+  not checked on any frame.
 """
 from __future__ import annotations
 
