@@ -22,7 +22,7 @@ from .measurements import FrameMeasurement
 from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
 from .pipeline.result import CalibrationResult
 from .pipeline.verdict import frame_disagrees, plane_residuals, returns_without_terms
-from .solvers.closed_form import describe_direction, normal_spread, solve_closed_form
+from .solvers.closed_form import describe_direction, mirrored, normal_spread, solve_closed_form
 from .solvers.intrinsics_refinement import intrinsics_drop
 from .solvers.posterior import PosteriorOptions
 from .solvers.refinement import refine as refine_graph
@@ -213,6 +213,7 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     if scan_lines or init.startswith("minimal"):
         return _solve_2d(frames, board, camera, init, refine, options, name, warnings, timings, use_extent)
     t0 = time.perf_counter()
+    _not_mirrored(used)
     # A weak layout is refused by the closed form alone, but only starts the factor graph, which judges
     # what the full model determines (and names what it does not).
     try:
@@ -251,6 +252,17 @@ def solve(frames: list[FrameMeasurement] | Measurements, board=None, camera: Cam
     return CalibrationResult(T, init, refine, tuple(frames), camera, sol.normal_singular_values,
                              sol.weakest_direction_camera, name, tuple(warnings + tail),
                              {k: round(v, 4) for k, v in timings.items()}, residuals, ref, intrinsics_check=check)
+
+
+def _not_mirrored(used: list[FrameMeasurement]) -> None:
+    """Refuse a 3D LiDAR whose boards fit the camera's through a mirror (``closed_form.mirrored``): no rotation,
+    and so no extrinsic, can be right for its points."""
+    fit = mirrored([f.camera.plane for f in used], [f.lidar.plane for f in used])
+    if fit is not None:
+        raise DatasetError(f"the LiDAR's boards match the camera's through a mirror, not a rotation (their normals "
+                           f"{fit[1]:.1f} deg apart reflected, {fit[0]:.1f} deg turned): its points are in a "
+                           "left-handed frame, one axis negated or two swapped",
+                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up)")
 
 
 def _no_posterior(posterior: PosteriorOptions | None, samples: int | None) -> None:

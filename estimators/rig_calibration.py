@@ -200,6 +200,9 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                 res = solve(usable + tilts, rig.board, cameras[cam_name],
                             init if lid.lidar == "2d" else "closed-form",
                             options=replace(opts, edges=True) if ends else opts, use_extent=ends, memo=memo)
+            except DatasetError as exc:  # its data cannot be right (a mirrored LiDAR): the rig is refused
+                raise DatasetError(f"{cam_name}-{lid.name}: {exc.problem}", path=exc.path or rig.root,
+                                   hint=exc.hint) from exc
             except DegenerateLayoutError as exc:
                 failed[(cam_name, lid.name)] = exc
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from estimators.errors import ScanReadError
-from estimators.io.pointcloud_io import read_scan, write_scan
+from estimators.io.pointcloud_io import read_scan, read_scan_2d, write_scan, write_scan_2d
 
 
 @pytest.fixture
@@ -135,3 +135,22 @@ def test_each_rings_elevation_spread_is_numpys_percentile_of_its_returns():
     for q in (25.0, 75.0, 50.0, 10.0):
         np.testing.assert_array_equal(_sorted_percentiles(values, starts, counts, q),
                                       [np.percentile(g, q) for g in groups])
+
+
+def test_a_scan_in_millimetres_is_refused_with_its_units_named(tmp_path):
+    # An office's returns written in millimetres lie thousands of "metres" away: refused, the units named, where a
+    # sweep whose median return lies 100 m off (an open road's) is read.
+    rng = np.random.default_rng(3)
+    P, _ = _spinning_sweep(rng)
+    np.save(tmp_path / "mm.npy", 1000.0 * P)
+    with pytest.raises(ScanReadError, match="millimetres") as info:
+        read_scan(tmp_path / "mm.npy")
+    assert "mm.npy" in info.value.message and "\n" not in info.value.message
+    np.save(tmp_path / "far.npy", P * (100.0 / np.median(np.linalg.norm(P, axis=1))))
+    assert len(read_scan(tmp_path / "far.npy")) == len(P)
+    a = np.linspace(-2.0, 2.0, 500)
+    write_scan_2d(tmp_path / "mm.csv", a, np.full(len(a), 4000.0))
+    with pytest.raises(ScanReadError, match="millimetres"):
+        read_scan_2d(tmp_path / "mm.csv")
+    write_scan_2d(tmp_path / "m.csv", a, np.full(len(a), 4.0))
+    assert len(read_scan_2d(tmp_path / "m.csv")) == len(a)

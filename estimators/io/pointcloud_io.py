@@ -25,6 +25,10 @@ MIN_RANGE_2D_M, MAX_RANGE_2D_M = 0.02, 80.0
 # central half spans under 0.1 degree on the recorded sets (0.9 degree at 2 m for an Ouster, whose beams leave 36 mm
 # above its points' origin); the 16-128 beams' spacing is 0.1-2 degrees, a sweep's whole span 20-45 degrees.
 RING_CHECK_RHO_M, MAX_RING_IQR_DEG, MAX_WIDE_SHARE, MIN_RING_CHECK = 2.0, 2.0, 0.5, 200
+# A sweep whose median return lies farther than this (m) is not in metres in its LiDAR's frame: the longest-reaching
+# LiDARs range to 200-500 m, and a sweep's median return lies far nearer (2-30 m on the recorded sets). Millimetres
+# (or centimetres) put an office's returns thousands of metres away, and so does a map's frame.
+MAX_MEDIAN_RANGE_M = 300.0
 
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
@@ -107,6 +111,8 @@ def read_sweep(path: str | os.PathLike) -> Sweep:
     if len(xyz) == 0:
         raise ScanReadError("scan holds no valid points (all NaN, inf or zero)", path=path,
                             hint="check the recording")
+    with np.errstate(over="ignore"):  # a corrupt file's 1e308 is infinitely far, and refused as far
+        _in_metres(np.linalg.norm(xyz, axis=1), MAX_MEDIAN_RANGE_M, path)
     if ring is not None:
         ring = np.asarray(ring).reshape(-1)
         ring = ring[keep].astype(np.int64) if len(ring) == len(keep) and np.all(np.isfinite(ring)) else None
@@ -152,10 +158,20 @@ def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
                             f"{_first_line(exc)})", path=path, hint="re-export the scan") from exc
     r = np.linalg.norm(xy, axis=1)
     keep = np.all(np.isfinite(xy), axis=1) & (r >= min_range_m) & (r <= max_range_m)
+    if np.count_nonzero(keep) < 0.05 * len(r):  # hardly a return within reach: are they in metres?
+        _in_metres(r[np.isfinite(r) & (r > 0)], max_range_m, path)
     if not keep.any():
         raise ScanReadError("scan holds no valid returns (all NaN, zero or out of range)", path=path,
                             hint="check the recording")
     return xy[keep]
+
+
+def _in_metres(ranges: np.ndarray, farthest_m: float, path: Path) -> None:
+    """Refuse a scan whose returns' median range lies beyond ``farthest_m``: not metres in the LiDAR's frame."""
+    if ranges.size and float(np.median(ranges)) > farthest_m:
+        raise ScanReadError(f"its returns lie a median {float(np.median(ranges)):,.0f} m from the LiDAR, where a "
+                            f"scan's lie within {farthest_m:g} m: points in millimetres, or in another frame than "
+                            "the LiDAR's", path=path, hint="write the points in metres in the LiDAR's own frame")
 
 
 def _planar(xyz: np.ndarray, path: Path) -> np.ndarray:

@@ -384,7 +384,7 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     alternatives = alternatives or {}
 
     t0 = time.perf_counter()
-    read = [_read_or_reason(read_scan_2d, f.scan) for f in dataset.frames]
+    read = _read_every(read_scan_2d, [f.scan for f in dataset.frames])
     cams, good = _without_damaged_scans(cams, read)
     scans_2d = [xy if not isinstance(xy, str) else np.zeros((0, 2)) for xy in read]
     _add_time(timings, "load_scans", time.perf_counter() - t0)
@@ -555,7 +555,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     (``hints``: the region of interest, and whether to build the scene at all)."""
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
-    sweeps, _ = with_found_beams({f.name: _read_or_reason(read_sweep, f.scan) for f in frames})
+    sweeps, _ = with_found_beams(dict(zip([f.name for f in frames], _read_every(read_sweep, [f.scan for f in frames]))))
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
@@ -664,6 +664,15 @@ def _read_or_reason(reader, path):
         return reader(path)
     except ScanReadError as exc:
         return f"scan: {exc.message}"
+
+
+def _read_every(reader, paths: list) -> list:
+    """:func:`_read_or_reason` of each path; where none of several can be read, their one reason said once (points
+    in millimetres, say), not frame by frame."""
+    read = [_read_or_reason(reader, p) for p in paths]
+    if len(read) > 1 and all(isinstance(r, str) for r in read):
+        raise ScanReadError(f"none of the {len(read)} scans can be read; the first: {read[0]}")
+    return read
 
 
 def _without_damaged_scans(cams: list[tuple], scans: list) -> tuple[list[tuple], list[int]]:

@@ -90,6 +90,35 @@ def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane], all
     return ClosedFormSolution(T_from_Rt(R, t), s, weak)
 
 
+# A LiDAR whose points are mirrored (a left-handed frame: one axis negated, or two swapped, by a driver or a
+# converter) has boards that no rotation lays on the camera's, yet a reflection does. Said only where both are
+# plain: the reflection leaves its median board's normal within MIRROR_FIT_DEG, and the best rotation its median
+# one beyond MIRROR_MISFIT_DEG (on simulated HDL-64E and VLP-16 sets mirrored or with x and y swapped: 0.1-0.2
+# against 11-38 deg; correct sets the other way round). The median lets a wrong board or two through.
+MIRROR_FIT_DEG, MIRROR_MISFIT_DEG = 2.0, 5.0
+
+
+def mirrored(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[float, float] | None:
+    """``(rotation_deg, reflection_deg)``, the median angle left between the boards' camera normals and their LiDAR
+    normals under the best rotation and under the best reflection, where the LiDAR's boards fit the camera's
+    through a reflection and not a rotation (its points are in a left-handed frame); None otherwise, or with
+    fewer than 3 boards."""
+    if len(camera_planes) < 3:
+        return None
+    Nc = np.array([p.normal for p in camera_planes])
+    Nl = np.array([p.normal for p in lidar_planes])
+    U, _, Vt = np.linalg.svd(Nc.T @ Nl)
+    flip = np.diag([1.0, 1.0, -1.0])
+    rotation = U @ Vt if np.linalg.det(U @ Vt) > 0 else U @ flip @ Vt
+    reflection = U @ flip @ Vt if np.linalg.det(U @ Vt) > 0 else U @ Vt
+
+    def median_deg(M: np.ndarray) -> float:
+        return float(np.degrees(np.median(np.arccos(np.clip(np.sum(Nc * (Nl @ M.T), axis=1), -1.0, 1.0)))))
+
+    turned, mirror = median_deg(rotation), median_deg(reflection)
+    return (turned, mirror) if mirror <= MIRROR_FIT_DEG and turned >= MIRROR_MISFIT_DEG else None
+
+
 # The boards :func:`distance_scale` needs: a scale and a translation correction (4 unknowns), with 2 dof to spare.
 MIN_SCALE_PLANES = 6
 
