@@ -137,7 +137,7 @@ def test_each_rings_elevation_spread_is_numpys_percentile_of_its_returns():
                                       [np.percentile(g, q) for g in groups])
 
 
-def test_a_scan_in_millimetres_is_refused_with_its_units_named(tmp_path):
+def test_a_scan_in_millimetres_or_degrees_is_refused_with_its_units_named(tmp_path):
     # An office's returns written in millimetres lie thousands of "metres" away: refused, the units named, where a
     # sweep whose median return lies 100 m off (an open road's) is read.
     rng = np.random.default_rng(3)
@@ -154,3 +154,10 @@ def test_a_scan_in_millimetres_is_refused_with_its_units_named(tmp_path):
         read_scan_2d(tmp_path / "mm.csv")
     write_scan_2d(tmp_path / "m.csv", a, np.full(len(a), 4.0))
     assert len(read_scan_2d(tmp_path / "m.csv")) == len(a)
+    # a 270-degree scanner's angles written in degrees span 270 "radians": refused as such, where a whole turn in
+    # radians is read
+    write_scan_2d(tmp_path / "deg.csv", np.degrees(a), np.full(len(a), 4.0))
+    with pytest.raises(ScanReadError, match="angles in degrees"):
+        read_scan_2d(tmp_path / "deg.csv")
+    write_scan_2d(tmp_path / "turn.csv", np.linspace(-np.pi, np.pi, 500), np.full(500, 4.0))
+    assert len(read_scan_2d(tmp_path / "turn.csv")) == 500

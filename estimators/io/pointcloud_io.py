@@ -192,6 +192,10 @@ def _read_csv_2d(path: Path) -> np.ndarray:
     cols = {name: i for i, name in enumerate(header)}
     if {"angle", "range"} <= cols.keys():
         a, r = data[:, cols["angle"]], data[:, cols["range"]]
+        span = np.ptp(a[np.isfinite(a)]) if np.isfinite(a).any() else 0.0
+        if span > 2 * np.pi + 0.01:  # a turn at most in radians: a 270-degree scanner's in degrees spans 270
+            raise ScanReadError(f"its angles span {span:.4g}, more than a turn in radians: angles in degrees?",
+                                path=path, hint="write the angle column in radians")
         with np.errstate(invalid="ignore", over="ignore"):  # an infinite range (no return) is dropped, not warned of
             return np.column_stack([r * np.cos(a), r * np.sin(a)])
     if {"x", "y"} <= cols.keys():
