@@ -46,6 +46,10 @@ class CameraModel:
             raise ValueError(f"Expected camera model 'pinhole' or 'fisheye', got {self.model!r}")
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"Expected K to be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
+        if np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-9 or abs(K[1, 0]) > 1e-9:
+            transposed = np.abs(K[:, 2] - [0.0, 0.0, 1.0]).max() <= 1e-9 and K[2, 0] > 0
+            raise ValueError(f"Expected K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+                             + (" (transposed?)" if transposed else ""))
         if not np.all(np.isfinite(dist)):
             raise ValueError(f"Expected finite distortion coefficients, got {dist.tolist()}")
         if dist.size == 0:

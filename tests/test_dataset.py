@@ -67,6 +67,8 @@ def test_camera_is_optional(tmp_path):
     (YAML + "range_accuracy_m: 0.03\n", r"unknown key\(s\) \['range_accuracy_m'\].*under lidar:"),
     (YAML.replace("board:", "borad:"), r"unknown key\(s\) \['borad'\]"),
     (YAML.replace("dist: [0.01, 0.0, 0.0, 0.0]", "dist: [0.01]"), "invalid camera"),
+    (YAML.replace("[[400, 0, 320], [0, 400, 240], [0, 0, 1]]", "[[400, 0, 0], [0, 400, 0], [320, 240, 1]]"),
+     r"invalid camera .*\(transposed\?\)"),
     ("lidar: 3d\nboard: {squares: [9, 7], square_size: 0.1}\ncamera: {width: 10}\n", "camera lacks K, height"),
     ("!!python/object/apply:os.system ['echo hacked']\n", "invalid YAML"),
 ])
