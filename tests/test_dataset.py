@@ -84,6 +84,10 @@ def test_unpaired_and_missing(tmp_path):
     (tmp_path / "0002.png").write_bytes(b"")
     with pytest.raises(DatasetError, match="0002.png: image has no scan"):
         load_dataset(tmp_path)
+    (tmp_path / "0002.csv").write_text("angle,range\n0.0,1.0\n")  # a 2D scanner's scan in a 3D dataset: named
+    with pytest.raises(DatasetError, match="0002.csv is a 2D LiDAR's scan: set lidar in dataset.yaml"):
+        load_dataset(tmp_path)
+    (tmp_path / "0002.csv").unlink()
     (tmp_path / "0002.png").unlink()
     np.save(tmp_path / "0003.npy", np.ones((4, 3)))
     with pytest.raises(DatasetError, match="0003.npy: scan has no image"):

@@ -294,8 +294,12 @@ def _pair_frames(root: Path, scan_suffixes: tuple[str, ...] = SCAN_SUFFIXES) -> 
         table[p.stem] = p
     for stem, img in images.items():
         if stem not in scans:
+            other = [p.name for p in sorted(root.glob(f"{stem}.*")) if p.suffix.lower() in
+                     set(SCAN_SUFFIXES + SCAN_2D_SUFFIXES) - set(scan_suffixes)]
             raise DatasetError(f"image has no scan {stem}{{{','.join(scan_suffixes)}}}", path=img,
-                               hint="add the scan or remove the image")
+                               hint=f"{other[0]} is a {'2D' if scan_suffixes == SCAN_SUFFIXES else '3D'} LiDAR's "
+                                    "scan: set lidar in dataset.yaml to match" if other else
+                               "add the scan or remove the image")
     for stem, scan in scans.items():
         if stem not in images:
             raise DatasetError(f"scan has no image {stem}{{{','.join(IMAGE_SUFFIXES)}}}", path=scan,
