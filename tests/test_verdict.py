@@ -172,6 +172,26 @@ def test_boards_too_few_to_test_the_scale_whose_planes_disagree_are_a_check(tmp_
     assert "too few to test the camera's scale" in v.line and "board.square_size" in v.line
 
 
+def test_boards_too_few_to_test_the_scale_whose_planes_disagree_with_the_edges_too_are_untrusted(tmp_path):
+    """Four HDL-64E boards (seed 100) with the focal length 3% long: the planes disagree among themselves (a
+    per-board plane error of 3.6 mm) and with the LiDAR's ring ends on the boards' edges, and four planes cannot
+    test the camera's scale. The estimate lands 11 cm off the truth, d2 1046; it read CHECK. Both inconsistencies
+    together: UNTRUSTED, naming the focal length. The right focal length reads OK."""
+    import estimators as lc
+    from estimators.simulation.simulator import simulate_dataset
+
+    right = simulate_dataset(tmp_path / "right", n_poses=4, seed=100)
+    assert lc.calibrate(right, rng=np.random.default_rng(100), samples=0).verdict == Verdict(OK)
+    spec = yaml.safe_load((right / "dataset.yaml").read_text())
+    spec["camera"]["K"][0][0] *= 1.03
+    spec["camera"]["K"][1][1] *= 1.03
+    wrong = shutil.copytree(right, tmp_path / "wrong")
+    (wrong / "dataset.yaml").write_text(yaml.safe_dump(spec))
+    v = lc.calibrate(wrong, rng=np.random.default_rng(100), samples=0).verdict
+    assert v.level == UNTRUSTED and "disagree beyond their noise" in v.line, v
+    assert "and with the LiDAR's edges and are too few to test the camera's scale" in v.line and "focal" in v.line
+
+
 def test_a_scale_the_planes_disagreement_corroborates_is_a_check_below_untrusted(tmp_path):
     """A scanner's six boards (five used) with the square size 5% long (bench_verdict's 2D room, seed 102): the
     camera's distances read 4.7% +- 0.9% off the LiDAR's, under the 5 standard deviations that make it UNTRUSTED,

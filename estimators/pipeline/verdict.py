@@ -11,7 +11,8 @@ posterior's run, the static scene's note), never the wording of a warning alone;
   (``FRAME_ANGLE_RAD`` or a short scan segment's own noise, ``FRAME_DISTANCE_M``; skipped or dropped for it, or
   kept); the camera's board distances scale against the LiDAR's by a percent or more (``SCALE_LIMIT``: a LiDAR
   times its ranges to parts per million, so a wrong square size or focal length); the boards' planes and their
-  edges conflict by more than a frame may disagree (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``).
+  edges conflict by more than a frame may disagree (``FRAME_ANGLE_RAD``, ``FRAME_DISTANCE_M``); a 3D LiDAR's
+  boards too few to test that scale whose planes disagree beyond their noise and with its edges.
 - ``CHECK`` (the answer holds as stated, but something deserves a look before it is used):
   a frame that disagrees with the estimate; a second solution holds at least 5% of the posterior mass; a range term
   estimated beyond its physical prior (held at 0); the boards' planes and their edges in conflict beyond their noise
@@ -299,8 +300,8 @@ def segment_ends(frame: FrameMeasurement) -> np.ndarray:
     return np.column_stack([ends, np.zeros(2)])
 
 
-def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: float = 0.0, alone: bool = True
-           ) -> list[tuple[str, str]]:
+def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: float = 0.0, alone: bool = True,
+           edges_conflict: bool = False) -> list[tuple[str, str]]:
     """The camera's board distances scaled against the LiDAR's beyond ``SCALE_LIMIT`` (``frames``: the used
     ones; a 3D LiDAR's planes or a 2D scanner's segments): ``UNTRUSTED`` beyond ``SCALE_SIGMAS`` of its standard
     deviation; a ``CHECK`` beyond ``SCALE_CHECK_SIGMAS`` where the planes disagree beyond their noise too
@@ -308,7 +309,11 @@ def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: fl
     error; a simulated scanner's five boards with the square size 5% long read 4.7% +- 0.9% and OK, d2 1683). A 3D
     LiDAR's boards too few to test it (``MIN_SCALE_PLANES``) whose planes disagree so: a CHECK, where no other pair
     tests the camera's scale (``alone``), since a wrong square size would pass unseen there (4 simulated boards
-    with a square size 5% short read OK 22 cm off the truth, 18 of its standard deviations)."""
+    with a square size 5% short read OK 22 cm off the truth, 18 of its standard deviations). Where the planes
+    conflict with the LiDAR's edges too (``edges_conflict``), the two inconsistencies read one error of the camera's
+    scale: UNTRUSTED (4 simulated HDL-64E boards with the focal length 3% long read CHECK 10-11 cm off the truth,
+    d2 600-11,854; 5-board subsets of the recorded VLP-16 and Ouster sets take up a plane error, but their planes
+    and edges agree)."""
     disagree = floor_m > UNTESTED_SCALE_FLOOR_M
     planes = [f.camera.plane for f in frames]
     if frames and frames[0].lidar.is_scan_line:
@@ -316,10 +321,13 @@ def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: fl
     else:
         fit = distance_scale(T, planes, [f.lidar.plane for f in frames])
         if fit is None and 0 < len(frames) < MIN_SCALE_PLANES and disagree and alone:
-            return [(CHECK, f"{name}its {len(frames)} boards' planes disagree beyond their noise (a per-board plane "
-                            f"error of {1000 * floor_m:.1f} mm taken up) and are too few to test the camera's scale "
-                            f"against the LiDAR's ({MIN_SCALE_PLANES} or more do): a wrong board.square_size or focal "
-                            "length would move the estimate beyond its covariance unseen; check them, or add boards")]
+            also = " and with the LiDAR's edges" if edges_conflict else ""
+            return [(UNTRUSTED if edges_conflict else CHECK,
+                     f"{name}its {len(frames)} boards' planes disagree beyond their noise (a per-board plane error of "
+                     f"{1000 * floor_m:.1f} mm taken up){also} and are too few to test the camera's scale against the "
+                     f"LiDAR's ({MIN_SCALE_PLANES} or more do): a wrong board.square_size or focal length "
+                     f"{'moves' if edges_conflict else 'would move'} the estimate beyond its covariance unseen; check "
+                     "them, or add boards")]
     if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_CHECK_SIGMAS * fit[1]:
         return []
     said = f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off the LiDAR's ranges"
@@ -359,7 +367,7 @@ def pair_verdict(result) -> Verdict:
         concerns += _outline("", ref.edges, scan_line) + _carried("", ref.edges)
         dropped = [f.name for f in ref.frames if f.dropped]
         concerns += _scale("", result.T_camera_lidar, [f for f in result.frames if f.usable and f.name not in dropped],
-                           ref.plane_floor_m)
+                           ref.plane_floor_m, edges_conflict=bool(result.contradicted))
     aside = [f.name for f in result.frames if not f.usable and DISAGREES_WITH_CONSENSUS in (f.reason or "")]
     concerns += _frames("", result.plane_residuals, aside + dropped,
                         {f.name: angle_limit(f) for f in result.frames if f.usable})
@@ -404,7 +412,8 @@ def rig_verdict(result) -> Verdict:
         own = (result.pair_results or {}).get((c, lid))  # the frames its own solve dropped, as a single pair's count
         aside += [fit.name for fit in own.refinement.frames if fit.dropped] if own is not None and \
             own.refinement is not None else []
-        concerns += _scale(f"T_{c}_{lid}: ", T, kept, result.noise(lid).get("plane_floor_m") or 0.0, c not in tested)
+        concerns += _scale(f"T_{c}_{lid}: ", T, kept, result.noise(lid).get("plane_floor_m") or 0.0, c not in tested,
+                           conflict_words(result.edges.get(lid) or {}) is not None)
         concerns += _frames(f"T_{c}_{lid}: ", plane_residuals(T, kept, result.returns_without_terms(c, lid, kept)),
                             aside, {f.name: angle_limit(f) for f in kept})
     for (c, lid), check in result.intrinsics_checks.items():
