@@ -420,7 +420,7 @@ def test_top_view_draws_points_where_they_lie():
     assert 150 < np.all(plot == 170, axis=2).sum() < 260  # the sweep in view: about 5000 * (8/40)^2 = 200 returns
 
 
-def test_a_pair_folder_through_the_one_engine_keeps_the_pairs_options(sim_hdl64e, tmp_path):
+def test_a_pair_folder_through_the_one_engine_keeps_the_pairs_options(sim_hdl64e, tmp_path, capsys):
     """A pair folder on the command line is calibrated as the rig of cam0 and lidar0, and still takes its pair's
     options: an initial guess of six numbers (its one camera-LiDAR pair's), its measurements.npz or the rig's
     measurements folder back (the same estimate, bit for bit), and --refine none (the closed form alone, without
@@ -435,6 +435,11 @@ def test_a_pair_folder_through_the_one_engine_keeps_the_pairs_options(sim_hdl64e
     cal = json.loads((out / "calibration.json").read_text())
     T = np.array(cal["T_camera_lidar"])
     assert cal["rig"] and cal["frames_used"] == 8 and np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01
+    # the guess given the other way round (T_lidar_camera): refused as such, not as boards out of every frame
+    (tmp_path / "inverted.json").write_text(json.dumps({"T_camera_lidar": np.linalg.inv(truth).tolist()}))
+    assert main(["calibrate", str(sim_hdl64e), "--out", str(tmp_path / "inv"), "--samples", "0", "--no-report",
+                 "--initial-guess", str(tmp_path / "inverted.json")]) == 2
+    assert "but 8 lie within its inverse's: the guess is T_lidar_camera" in capsys.readouterr().err
     for k, given in enumerate((out / "measurements.npz", out / "measurements")):
         again = tmp_path / f"again{k}"
         assert main(["calibrate", str(sim_hdl64e), "--out", str(again), "--samples", "0", "--no-report",

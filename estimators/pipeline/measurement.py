@@ -611,6 +611,8 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         found = list(pool.map(search, range(n)))
+    if hints.initial_guess is not None:
+        _not_inverted(found)
     t0 = time.perf_counter()
     assoc, choice = _consensus(
         cams, [[c.observation for c in f[0]] for f in found], warnings, "board candidates",
@@ -766,13 +768,37 @@ def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[
     """The candidates whose planes, mapped through the initial guess, lie within its tolerance of the camera's
     board plane; the others with their reason."""
     kept, off = [], []
+
+    def within(T: np.ndarray, c: BoardCandidate) -> tuple[bool, float, float]:
+        angle, dist = plane_difference(c.observation.plane.transformed(T), cam_obs.plane)
+        return angle <= hints.guess_angle_rad and abs(dist) <= hints.guess_distance_m, angle, dist
+
     for c in cands:
-        angle, dist = plane_difference(c.observation.plane.transformed(hints.initial_guess), cam_obs.plane)
-        if angle <= hints.guess_angle_rad and abs(dist) <= hints.guess_distance_m:
+        ok, angle, dist = within(hints.initial_guess, c)
+        if ok:
             kept.append(c)
         else:
-            off.append(f"outside the initial guess's tolerance ({np.degrees(angle):.1f} deg, {1000 * dist:+.0f} mm)")
+            inverse = within(np.linalg.inv(hints.initial_guess), c)[0]
+            off.append(f"outside the initial guess's tolerance ({np.degrees(angle):.1f} deg, {1000 * dist:+.0f} mm)"
+                       + (f"{INVERSE_GUESS}" if inverse else ""))
     return kept, off
+
+
+# A candidate off the initial guess yet within its inverse's tolerance says so; where no frame keeps a candidate and
+# several say this, the guess is T_lidar_camera (:func:`_not_inverted`).
+INVERSE_GUESS = ", within its inverse's"
+
+
+def _not_inverted(found: list[tuple]) -> None:
+    """Refuse an initial guess that no frame's LiDAR board lies within, where three or more lie within its
+    inverse's (``found``: each frame's kept candidates, rejections and error)."""
+    if any(cands for cands, _, _ in found):
+        return
+    inverted = sum(any(r.endswith(INVERSE_GUESS) for r in rejected) for _, rejected, _ in found)
+    if inverted >= 3:
+        raise DatasetError(f"no frame's LiDAR board lies within the initial guess's tolerance, but {inverted} lie "
+                           "within its inverse's: the guess is T_lidar_camera",
+                           hint="give T_camera_lidar, which maps LiDAR points into the camera: the guess inverted")
 
 
 def _no_candidate_reason(board, rejected: list[str], error: str | None) -> str:
