@@ -212,11 +212,25 @@ def test_the_covariance_holds_the_minima_the_blocks_cannot_tell_apart(tmp_path):
 def test_check_refuses_bad_input_in_one_line_and_writes_nothing(office, capsys):
     """A calibration file without a transform, and a folder without the camera's intrinsics: exit 2, one line
     naming the file, no output folder."""
-    tmp, _ = office
+    tmp, truth = office
     (tmp / "bad.json").write_text(json.dumps({"something": 1}))
     assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / "bad.json"), "--out", str(tmp / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "bad.json" in err and not (tmp / "x").exists()
+    # The truth given the other way round (T_lidar_camera), under which no contour falls in view: refused as such
+    # (it read "0 frame(s) usable"), by check and by --targetless, where the truth turned to face backwards is
+    # refused for its frames alone.
+    for name, T, words in (("inverted", np.linalg.inv(truth), "under its inverse the scene agrees with it: it is "
+                                                               "T_lidar_camera"),
+                           ("backwards", np.diag([-1.0, 1.0, -1.0, 1.0]) @ truth, "0 frame(s) usable for the scene")):
+        (tmp / f"{name}.json").write_text(json.dumps({"T_camera_lidar": T.tolist()}))
+        assert main(["check", str(tmp / "ds"), "--calibration", str(tmp / f"{name}.json"), "--out",
+                     str(tmp / name)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and words in err and not (tmp / name).exists(), err
+    assert main(["calibrate", str(tmp / "ds"), "--targetless", "--initial-guess", str(tmp / "inverted.json"),
+                 "--out", str(tmp / "targetless")]) == 2  # the same guess to refine from
+    assert "under the initial guess too few" in capsys.readouterr().err and not (tmp / "targetless").exists()
     # From Python, an extrinsic that is not a finite 4x4 rigid transform: refused naming the folder (a 3x3 raised an
     # IndexError, a NaN one was checked and said "no LiDAR contour in the camera's view")
     from estimators import calibrate_targetless, check_scene

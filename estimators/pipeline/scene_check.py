@@ -330,9 +330,24 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
                                     if skipped else ""), path=root, hint="give two or more frames")
 
 
+def refuse_inverted(folder, T_given: np.ndarray, keep_board: bool, camera: CameraModel | None,
+                    sensors: tuple[str, str] | None, root, what: str) -> None:
+    """Refuse ``T_given`` (``what``: the given extrinsic, an initial guess), under which too few frames' contours
+    fall in the camera's view, as ``T_lidar_camera`` where the scene agrees with its inverse (checked as
+    :func:`check_scene` checks an extrinsic)."""
+    try:
+        agrees = check_scene(folder, np.linalg.inv(T_given), keep_board, camera, sensors, inverted=True).consistent
+    except LidarcamError:
+        return
+    if agrees:
+        raise DatasetError(f"under {what} too few frames' LiDAR contours fall in the camera's view, but under its "
+                           "inverse the scene agrees with it: it is T_lidar_camera", path=root,
+                           hint="give T_camera_lidar, which maps LiDAR points into the camera: inverted")
+
+
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
                 camera: CameraModel | None = None, sensors: tuple[str, str] | None = None,
-                given_covariance: np.ndarray | None = None) -> SceneCheck:
+                given_covariance: np.ndarray | None = None, inverted: bool = False) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -353,6 +368,9 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         ``T_given``'s own 6x6 covariance (the project's tangent), when it is a calibration's: the test is then of
         two independent estimates of one extrinsic, their difference's covariance the sum of theirs; without it,
         ``T_given`` is taken as exact.
+    inverted : bool
+        ``T_given`` is a given extrinsic inverted, checked because too few frames' contours fell in view under it
+        (:func:`refuse_inverted`): not tried inverted again.
 
     Returns
     -------
@@ -371,6 +389,8 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
+        if not inverted:
+            refuse_inverted(folder, T_given, keep_board, camera, sensors, root, "the given extrinsic")
         raise too_few(views, skipped, root)
     with about(root):
         fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)

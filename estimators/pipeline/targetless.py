@@ -55,7 +55,7 @@ from ..solvers.scene_alignment import (CONSTRAINED, RIVAL_D2, RIVAL_RMS, STAGES_
                                       rival_minima, rms_px, scene_minima)
 from .measurement import rigid
 from .result import CONVENTION, COVARIANCE_CONVENTION
-from .scene_check import SceneCheck, frame_edges, read_scene_frames, scene_view, too_few
+from .scene_check import SceneCheck, frame_edges, read_scene_frames, refuse_inverted, scene_view, too_few
 from .verdict import CHECK, UNTRUSTED, Verdict
 
 # The factor on a targetless estimate's covariance. The lowest of many starts' minima, it can lie at another
@@ -227,6 +227,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
             fit = refine(start)
         except DegenerateLayoutError:
             if start is T_guess:
+                refuse_inverted(folder, T_guess, keep_board, camera, None, root, "the initial guess")
                 raise
             continue
         ends.append((start, fit))
