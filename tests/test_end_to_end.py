@@ -273,11 +273,13 @@ def test_too_few_frames_and_corrupt_scan_leave_no_output(sim_hdl64e, tmp_path):
     assert not (out / "calibration.json").exists()
 
 
-def test_a_mirrored_lidar_and_scans_in_millimetres_are_refused_by_their_cause(sim_vlp16, sim_2d, tmp_path, capsys):
+def test_a_mirrored_lidar_scans_in_millimetres_and_scan_lines_as_sweeps_are_refused_by_their_cause(sim_vlp16, sim_2d,
+                                                                                                    tmp_path, capsys):
     # A LiDAR whose points have y negated (a left-handed frame) has boards that only a reflection lays on the
     # camera's: refused as such, where it read UNTRUSTED with its boards' choice blamed. A scanner's ranges in
-    # millimetres are refused once for all its scans, where each frame was skipped with the same reason.
-    from estimators.io.pointcloud_io import read_sweep, write_scan
+    # millimetres are refused once for all its scans, where each frame was skipped with the same reason; its lines
+    # saved as z = 0 PCDs under lidar: 3d are named as a scanner's, where every frame was skipped.
+    from estimators.io.pointcloud_io import read_sweep, write_scan, write_scan_2d
 
     mirrored = tmp_path / "mirrored"
     shutil.copytree(sim_vlp16, mirrored)
@@ -289,12 +291,20 @@ def test_a_mirrored_lidar_and_scans_in_millimetres_are_refused_by_their_cause(si
     for f in load_dataset(mm).frames:
         rows = [line.split(",") for line in f.scan.read_text().splitlines()[1:]]
         f.scan.write_text("angle,range\n" + "".join(f"{a},{1000 * float(r)}\n" for a, r in rows))
-    for folder, words in ((mirrored, "through a mirror, not a rotation"), (mm, "none of the 6 scans can be read")):
+    flat = tmp_path / "flat"  # the scanner's lines as z = 0 PCDs under lidar: 3d
+    shutil.copytree(sim_2d, flat)
+    for f in load_dataset(flat).frames:
+        a, r = np.loadtxt(f.scan, delimiter=",", skiprows=1, unpack=True)
+        write_scan_2d(f.scan.with_suffix(".pcd"), a, r)
+        f.scan.unlink()
+    (flat / "dataset.yaml").write_text((flat / "dataset.yaml").read_text().replace("lidar: 2d", "lidar: 3d"))
+    for folder, words in ((mirrored, "through a mirror, not a rotation"), (mm, "none of the 6 scans can be read"),
+                          (flat, "they are a 2D scanner's scan lines")):
         out = tmp_path / f"out_{folder.name}"
         assert main(["calibrate", str(folder), "--out", str(out), "--samples", "0", "--no-report"]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and words in err and not out.exists(), err
-    assert "millimetres" in err
+        assert folder != mm or "millimetres" in err
 
 
 def test_frame_without_board_is_skipped_with_reason(sim_hdl64e, tmp_path):

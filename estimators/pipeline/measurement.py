@@ -550,6 +550,11 @@ class LidarSweeps:
     scene_index: dict
 
 
+# A 3D LiDAR's sweeps whose every return lies within this of z = 0 are a 2D scanner's (``pointcloud_io._planar``
+# reads a 2D scan's PCD so).
+FLAT_SCAN_M = 1e-3
+
+
 def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweeps:
     """The 3D sweeps of ``frames`` (``FrameFiles``: their ``name`` and ``scan``) and the static scene of those read
     (``hints``: the region of interest, and whether to build the scene at all)."""
@@ -559,6 +564,9 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
+    if good and all(np.abs(sweeps[n].points[:, 2]).max() <= FLAT_SCAN_M for n in good):
+        raise DatasetError(f"every return of the {len(good)} scans lies at z = 0: they are a 2D scanner's scan "
+                           "lines, read as a 3D LiDAR's sweeps", hint="set lidar: 2d in dataset.yaml")
     _add_time(timings, "load_scans", time.perf_counter() - t0)
     t0 = time.perf_counter()
     if hints.static_scene:
