@@ -330,24 +330,24 @@ def too_few(views: list, skipped: dict, root) -> DegenerateLayoutError:
                                     if skipped else ""), path=root, hint="give two or more frames")
 
 
-def refuse_inverted(folder, T_given: np.ndarray, keep_board: bool, camera: CameraModel | None,
-                    sensors: tuple[str, str] | None, root, what: str) -> None:
+def refuse_inverted(read: tuple, T_given: np.ndarray, keep_board: bool, sensors: tuple[str, str] | None,
+                    what: str) -> None:
     """Refuse ``T_given`` (``what``: the given extrinsic, an initial guess), under which too few frames' contours
-    fall in the camera's view, as ``T_lidar_camera`` where the scene agrees with its inverse (checked as
-    :func:`check_scene` checks an extrinsic)."""
+    fall in the camera's view, as ``T_lidar_camera`` where the scene agrees with its inverse, checked as
+    :func:`check_scene` checks an extrinsic on the frames ``read`` (:func:`read_scene_frames`'s)."""
     try:
-        agrees = check_scene(folder, np.linalg.inv(T_given), keep_board, camera, sensors, inverted=True).consistent
+        agrees = _checked(read, np.linalg.inv(T_given), keep_board, sensors, None, time.perf_counter()).consistent
     except LidarcamError:
         return
     if agrees:
         raise DatasetError(f"under {what} too few frames' LiDAR contours fall in the camera's view, but under its "
-                           "inverse the scene agrees with it: it is T_lidar_camera", path=root,
+                           "inverse the scene agrees with it: it is T_lidar_camera", path=read[0],
                            hint="give T_camera_lidar, which maps LiDAR points into the camera: inverted")
 
 
 def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool = False,
                 camera: CameraModel | None = None, sensors: tuple[str, str] | None = None,
-                given_covariance: np.ndarray | None = None, inverted: bool = False) -> SceneCheck:
+                given_covariance: np.ndarray | None = None) -> SceneCheck:
     """Check ``T_given`` (``T_camera_lidar``) against the scene of a dataset folder (module docstring).
 
     Parameters
@@ -368,9 +368,6 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
         ``T_given``'s own 6x6 covariance (the project's tangent), when it is a calibration's: the test is then of
         two independent estimates of one extrinsic, their difference's covariance the sum of theirs; without it,
         ``T_given`` is taken as exact.
-    inverted : bool
-        ``T_given`` is a given extrinsic inverted, checked because too few frames' contours fell in view under it
-        (:func:`refuse_inverted`): not tried inverted again.
 
     Returns
     -------
@@ -386,11 +383,20 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     """
     t0 = time.perf_counter()
     T_given = rigid(T_given, folder, "the given extrinsic")
-    root, camera, board, frames, skipped = read_scene_frames(folder, keep_board, camera, sensors)
+    read = read_scene_frames(folder, keep_board, camera, sensors)
+    return _checked(read, T_given, keep_board, sensors, given_covariance, t0, try_inverse=True)
+
+
+def _checked(read: tuple, T_given: np.ndarray, keep_board: bool, sensors: tuple[str, str] | None,
+             given_covariance: np.ndarray | None, t0: float, try_inverse: bool = False) -> SceneCheck:
+    """:func:`check_scene` on the frames ``read`` (:func:`read_scene_frames`'s); with ``try_inverse``, a
+    ``T_given`` under which too few contours fall in view is tried inverted (:func:`refuse_inverted`)."""
+    root, camera, board, frames, skipped = read
+    skipped = dict(skipped)
     views = scene_views(frames, T_given, camera, skipped)
     if len(views) < 2:
-        if not inverted:
-            refuse_inverted(folder, T_given, keep_board, camera, sensors, root, "the given extrinsic")
+        if try_inverse:
+            refuse_inverted(read, T_given, keep_board, sensors, "the given extrinsic")
         raise too_few(views, skipped, root)
     with about(root):
         fits = nearest_decided(scene_minima(views, camera, T_given, decided=True), views, camera, T_given)

@@ -227,7 +227,7 @@ def calibrate_targetless(folder: str | os.PathLike, T_guess: np.ndarray, keep_bo
             fit = refine(start)
         except DegenerateLayoutError:
             if start is T_guess:
-                refuse_inverted(folder, T_guess, keep_board, camera, None, root, "the initial guess")
+                refuse_inverted((root, camera, board, frames, skipped), T_guess, keep_board, None, "the initial guess")
                 raise
             continue
         ends.append((start, fit))
