@@ -16,6 +16,8 @@ import numpy as np
 
 # A checkerboard has at most this many squares along a side (far more than any printable board).
 MAX_SQUARES = 100
+# A square or a board larger than these (m) is no calibration board's: its size given in millimetres or centimetres.
+MAX_SQUARE_M, MAX_BOARD_M = 0.5, 5.0
 CHECKERBOARD, CHARUCO = "checkerboard", "charuco"
 PATTERNS = (CHECKERBOARD, CHARUCO)
 
@@ -62,12 +64,18 @@ class BoardModel:
             raise ValueError(f"Expected 3 to {MAX_SQUARES} squares along each side, got {nx} x {ny}")
         if not (self.square_size > 0 and np.isfinite(self.square_size)):
             raise ValueError(f"Expected a positive square_size in metres, got {self.square_size}")
+        if self.square_size > MAX_SQUARE_M:
+            raise ValueError(f"Expected square_size in metres, at most {MAX_SQUARE_M:g}, got {self.square_size:g} "
+                             "(millimetres?)")
         object.__setattr__(self, "squares", (nx, ny))
         object.__setattr__(self, "square_size", float(self.square_size))
         if self.size is not None:
             w, h = (float(s) for s in self.size)
             if not (np.isfinite(w) and np.isfinite(h)):
                 raise ValueError(f"Expected a finite board size, got {w} x {h}")
+            if max(w, h) > MAX_BOARD_M:
+                raise ValueError(f"Expected the board size in metres, at most {MAX_BOARD_M:g} a side, got {w:g} x "
+                                 f"{h:g} (millimetres?)")
             if w + 1e-9 < nx * self.square_size or h + 1e-9 < ny * self.square_size:
                 raise ValueError(
                     f"Expected the board size {w} x {h} m to hold the {nx * self.square_size:.3f} x "

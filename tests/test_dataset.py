@@ -69,6 +69,8 @@ def test_camera_is_optional(tmp_path):
     (YAML.replace("dist: [0.01, 0.0, 0.0, 0.0]", "dist: [0.01]"), "invalid camera"),
     (YAML.replace("[[400, 0, 320], [0, 400, 240], [0, 0, 1]]", "[[400, 0, 0], [0, 400, 0], [320, 240, 1]]"),
      r"invalid camera .*\(transposed\?\)"),
+    (YAML.replace("square_size: 0.1, size: [1.0, 1.0]", "square_size: 100"), r"square_size in metres.*millimetres"),
+    (YAML.replace("size: [1.0, 1.0]", "size: [1000, 1000]"), r"board size in metres.*millimetres"),
     ("lidar: 3d\nboard: {squares: [9, 7], square_size: 0.1}\ncamera: {width: 10}\n", "camera lacks K, height"),
     ("!!python/object/apply:os.system ['echo hacked']\n", "invalid YAML"),
 ])
