@@ -387,7 +387,7 @@ def test_hand_held_2d_scan_with_the_person_in_it_calibrates_with_its_posterior(t
 
 def test_initial_guess_gates_candidates_and_roi_crops(tmp_path):
     """A guess 90 degrees off rejects every candidate (the reason names the guess); the true extrinsic as a
-    guess changes nothing; an ROI that excludes the boards leaves no board."""
+    guess changes nothing; an ROI that excludes the boards, or every return, leaves no board."""
     path = simulate_dataset(tmp_path / "d", n_poses=5, seed=0, lidar="vlp16")
     ds = load_dataset(path)
     truth = np.array(json.loads((path / "ground_truth.json").read_text())["T_camera_lidar"])
@@ -400,6 +400,9 @@ def test_initial_guess_gates_candidates_and_roi_crops(tmp_path):
     _, cropped, _ = measure_frames(ds, np.random.default_rng(0),
                                    hints=Hints(roi_min=np.array([-9, -9, -9]), roi_max=np.array([-1, 9, 9])))
     assert not any(f.usable for f in cropped)
+    _, empty, _ = measure_frames(ds, np.random.default_rng(0),  # a box with no return in it: no board, no error
+                                 hints=Hints(roi_min=np.array([90, 90, 90]), roi_max=np.array([91, 91, 91])))
+    assert not any(f.usable for f in empty)
 
 
 def test_initial_guess_parsing(tmp_path):

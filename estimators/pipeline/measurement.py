@@ -564,7 +564,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
-    if good and all(np.abs(sweeps[n].points[:, 2]).max() <= FLAT_SCAN_M for n in good):
+    if good and all(len(sweeps[n].points) and np.abs(sweeps[n].points[:, 2]).max() <= FLAT_SCAN_M for n in good):
         raise DatasetError(f"every return of the {len(good)} scans lies at z = 0: they are a 2D scanner's scan "
                            "lines, read as a 3D LiDAR's sweeps", hint="set lidar: 2d in dataset.yaml")
     _add_time(timings, "load_scans", time.perf_counter() - t0)
