@@ -29,6 +29,8 @@ RING_CHECK_RHO_M, MAX_RING_IQR_DEG, MAX_WIDE_SHARE, MIN_RING_CHECK = 2.0, 2.0, 0
 # LiDARs range to 200-500 m, and a sweep's median return lies far nearer (2-30 m on the recorded sets). Millimetres
 # (or centimetres) put an office's returns thousands of metres away, and so does a map's frame.
 MAX_MEDIAN_RANGE_M = 300.0
+# A scan whose every return lies within this (m) of z = 0 is a 2D scanner's line (a z = 0 PCD as ROS tools save it).
+SCAN_LINE_Z_M = 1e-3
 
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
@@ -168,8 +170,9 @@ def read_scan_2d(path: str | os.PathLike, min_range_m: float = MIN_RANGE_2D_M,
 
 def _in_metres(ranges: np.ndarray, farthest_m: float, path: Path) -> None:
     """Refuse a scan whose returns' median range lies beyond ``farthest_m``: not metres in the LiDAR's frame."""
-    if ranges.size and float(np.median(ranges)) > farthest_m:
-        raise ScanReadError(f"its returns lie a median {float(np.median(ranges)):,.0f} m from the LiDAR, where a "
+    median = float(np.median(ranges)) if ranges.size else 0.0
+    if median > farthest_m:
+        raise ScanReadError(f"its returns lie a median {median:,.0f} m from the LiDAR, where a "
                             f"scan's lie within {farthest_m:g} m: points in millimetres, or in another frame than "
                             "the LiDAR's", path=path, hint="write the points in metres in the LiDAR's own frame")
 
@@ -177,7 +180,7 @@ def _in_metres(ranges: np.ndarray, farthest_m: float, path: Path) -> None:
 def _planar(xyz: np.ndarray, path: Path) -> np.ndarray:
     if xyz.shape[1] == 3:
         z = np.abs(xyz[:, 2][np.isfinite(xyz[:, 2])])
-        if z.size and z.max() > 1e-3:
+        if z.size and z.max() > SCAN_LINE_Z_M:
             raise ScanReadError(f"not a 2D scan: z reaches {z.max():.3f} m", path=path,
                                 hint="use lidar: 3d for a 3D LiDAR, or save the scan plane's x, y")
     return xyz[:, :2]

@@ -29,7 +29,7 @@ from ..io.image_io import read_gray
 from ..io.input_files import load_json, regular_file
 from ..io.measurement_store import (Measurements, cache_dir, dataset_key, generator_key, load_measurements,
                                      save_measurements)
-from ..io.pointcloud_io import read_scan_2d, read_sweep
+from ..io.pointcloud_io import SCAN_LINE_Z_M, read_scan_2d, read_sweep
 from ..lidar.beam_rings import sweeps_beams
 from ..lidar.board_segmentation import (BoardCandidate, SegmentationParams, board_candidates, border_trim,
                                         choose_by_prediction, decide_alone, noise_band, robust_plane_fit)
@@ -550,11 +550,6 @@ class LidarSweeps:
     scene_index: dict
 
 
-# A 3D LiDAR's sweeps whose every return lies within this of z = 0 are a 2D scanner's (``pointcloud_io._planar``
-# reads a 2D scan's PCD so).
-FLAT_SCAN_M = 1e-3
-
-
 def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweeps:
     """The 3D sweeps of ``frames`` (``FrameFiles``: their ``name`` and ``scan``) and the static scene of those read
     (``hints``: the region of interest, and whether to build the scene at all)."""
@@ -564,7 +559,7 @@ def read_sweeps(frames, hints: Hints, timings: dict | None = None) -> LidarSweep
     if hints.roi_min is not None or hints.roi_max is not None:
         sweeps = {n: s.kept(hints.in_roi(s.points)) if not isinstance(s, str) else s for n, s in sweeps.items()}
     good = [n for n, s in sweeps.items() if not isinstance(s, str)]
-    if good and all(len(sweeps[n].points) and np.abs(sweeps[n].points[:, 2]).max() <= FLAT_SCAN_M for n in good):
+    if good and all(len(sweeps[n].points) and np.abs(sweeps[n].points[:, 2]).max() <= SCAN_LINE_Z_M for n in good):
         raise DatasetError(f"every return of the {len(good)} scans lies at z = 0: they are a 2D scanner's scan "
                            "lines, read as a 3D LiDAR's sweeps", hint="set lidar: 2d in dataset.yaml")
     _add_time(timings, "load_scans", time.perf_counter() - t0)

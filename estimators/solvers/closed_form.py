@@ -107,10 +107,9 @@ def mirrored(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[flo
         return None
     Nc = np.array([p.normal for p in camera_planes])
     Nl = np.array([p.normal for p in lidar_planes])
-    U, _, Vt = np.linalg.svd(Nc.T @ Nl)
-    flip = np.diag([1.0, 1.0, -1.0])
-    rotation = U @ Vt if np.linalg.det(U @ Vt) > 0 else U @ flip @ Vt
-    reflection = U @ flip @ Vt if np.linalg.det(U @ Vt) > 0 else U @ Vt
+    K, flip = Nc.T @ Nl, np.diag([1.0, 1.0, -1.0])
+    rotation = nearest_rotation(K)
+    reflection = nearest_rotation(K @ flip) @ flip  # the nearest orthogonal matrix of determinant -1
 
     def median_deg(M: np.ndarray) -> float:
         return float(np.degrees(np.median(np.arccos(np.clip(np.sum(Nc * (Nl @ M.T), axis=1), -1.0, 1.0)))))
