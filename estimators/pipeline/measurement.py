@@ -394,7 +394,9 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         warnings.append(f"static scene: {scene.note}")
     seg_params = ScanSegmentationParams(max_sensor_separation_m=params.max_sensor_separation_m)
 
-    def search(k: int) -> tuple[list, str | None, list]:
+    def search(k: int, j: int | None = None) -> tuple[list, str | None, list]:
+        """Frame ``k``'s segments: the camera's board of image ``k`` looked for in scan ``j`` (``k``)."""
+        j = k if j is None else j
         # an ambiguous board's tilts put it at one place: either finds its segments (outside the consensus)
         cam_obs = alternatives[k][0] if k in alternatives and k in good else cams[k][0]
         if cam_obs is None:
@@ -402,9 +404,9 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
         t1 = time.perf_counter()
         static: list = []
         try:
-            return scan_candidates(scans_2d[k], dataset.board, cam_obs, seg_params,
-                                   [t for j, t in trees.items() if j != k],
-                                   scene.frame_foreground(good.index(k)), static), None, static
+            return scan_candidates(scans_2d[j], dataset.board, cam_obs, seg_params,
+                                   [t for i, t in trees.items() if i != j],
+                                   scene.frame_foreground(good.index(j)), static), None, static
         except MeasurementError as exc:
             return [], exc.message, []
         finally:
@@ -415,11 +417,17 @@ def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, 
     t0 = time.perf_counter()
     # The consensus also sees the segments judged static (boards held at one place in several frames look
     # static); without a consensus each frame decides from its moving segments alone.
-    joint = [cands + sorted(static, key=lambda c: c[0]) for cands, _, static in searched]
-    assoc, choice = _consensus(cams, [[obs for _, obs in c] for c in joint], warnings, "scan segments",
-                               lambda planes, poses, cands, _: associate_lines(planes, poses, cands, dataset.board,
-                                                                                rng))
+    def consensus(cams_: list[tuple], searched_: list[tuple], warned: list[str], rng_: np.random.Generator) -> tuple:
+        joint_ = [cands + sorted(static, key=lambda c: c[0]) for cands, _, static in searched_]
+        return joint_, _consensus(cams_, [[obs for _, obs in c] for c in joint_], warned, "scan segments",
+                                  lambda planes, poses, cands, _: associate_lines(planes, poses, cands, dataset.board,
+                                                                                   rng_))
+
+    joint, (assoc, choice) = consensus(cams, searched, warnings, rng)
     _add_time(timings, "association", time.perf_counter() - t0)
+    if _unsettled(assoc):
+        _not_shifted(dataset, cams, lambda j: j in good, lambda pairs, r: consensus(
+            [cams[k] for k, _ in pairs], [search(k, j) for k, j in pairs], [], r)[1][0], rng)
     found = [(joint[k], error) if assoc is not None else (cands, error)
              for k, (cands, error, _) in enumerate(searched)]
     found = [(c, e if c else (e or "no straight scan segment of the board's length that moves between frames"))
@@ -594,15 +602,19 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
         warnings.append(f"{len(noted)} of {n} sweeps (the first {noted[0][0]}): {noted[0][1]}; read as sweeps "
                         "without one (each return's beam from its elevation where they fall into bands)")
 
-    def search(k: int) -> tuple[list[BoardCandidate], list[str], str | None]:
+    def search(k: int, j: int | None = None, rng: np.random.Generator | None = None
+               ) -> tuple[list[BoardCandidate], list[str], str | None]:
+        """Frame ``k``'s board candidates: the camera's board of image ``k`` looked for in sweep ``j`` (``k``)."""
+        j = k if j is None else j
         cam_obs = cams[k][0]
         if cam_obs is None:
             return [], [], None
         t1 = time.perf_counter()
-        s = sweeps[k]
-        fg = scene.frame_foreground(read.scene_index[dataset.frames[k].name])
+        s = sweeps[j]
+        fg = scene.frame_foreground(read.scene_index[dataset.frames[j].name])
         try:
-            cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k], params, fg)
+            cands, rejected = board_candidates(s.points, dataset.board, cam_obs, rngs[k] if rng is None else rng,
+                                               params, fg)
         except MeasurementError as exc:
             return [], [], exc.message
         finally:
@@ -617,11 +629,22 @@ def _measure_sweeps_3d(dataset: Dataset, cams: list[tuple], camera: CameraModel,
     if hints.initial_guess is not None:
         _not_inverted(found)
     t0 = time.perf_counter()
-    assoc, choice = _consensus(
-        cams, [[c.observation for c in f[0]] for f in found], warnings, "board candidates",
-        lambda planes, poses, cands, ks: associate(planes, poses, cands, dataset.board, rngs[-1], AssociationParams(),
-                                                   [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found[k][0]] for k in ks]))
+
+    def consensus(cams_: list[tuple], found_: list[tuple], warned: list[str], rng: np.random.Generator) -> tuple:
+        return _consensus(cams_, [[c.observation for c in f[0]] for f in found_], warned, "board candidates",
+                          lambda planes, poses, cands, ks: associate(
+                              planes, poses, cands, dataset.board, rng, AssociationParams(),
+                              [[1.0 / (1.0 + c.cue_cost) ** 2 for c in found_[k][0]] for k in ks]))
+
+    assoc, choice = consensus(cams, found, warnings, rngs[-1])
     _add_time(timings, "association", time.perf_counter() - t0)
+    if _unsettled(assoc):
+        def shifted(pairs: list[tuple[int, int]], rng: np.random.Generator) -> Association | None:
+            rs = rng.spawn(len(pairs) + 1)
+            return consensus([cams[k] for k, _ in pairs], [search(k, j, r) for (k, j), r in zip(pairs, rs)], [],
+                             rs[-1])[0]
+
+        _not_shifted(dataset, cams, lambda j: not isinstance(sweeps[j], str), shifted, rngs[-1])
     frames, ambiguous = [], {}
     for k, frame in enumerate(dataset.frames):
         cam_obs, why = cams[k]
@@ -765,6 +788,52 @@ def _consensus(cams: list[tuple], candidates: list[list], warnings: list[str], w
                         "cues")
         return None, {}
     return assoc, dict(zip(ks, assoc.choices))
+
+
+def _unsettled(assoc: Association | None) -> bool:
+    """Whether the frames' boards were chosen by no joint choice (it failed, or too few frames had a candidate to
+    make one), or by one that kept only the three frames whose closed form (a scanner's minimal solution) any three
+    boards fit."""
+    return assoc is None or assoc.agreeing <= AssociationParams.min_frames
+
+
+def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.random.Generator) -> None:
+    """Where the frames' boards agree on no extrinsic (:func:`_unsettled`), refuse a folder whose scans are numbered
+    a frame off their images: each image's board looked for in the next frame's scan and in the previous one's and
+    the joint choice made again (``choose(pairs, rng)``, the association of image ``k``'s board with scan ``j`` for
+    each ``(k, j)``, or None); a shift that ``SHIFT_AGREEING`` of its pairs, and 4 or more, agree on is the
+    folder's, not a failed choice (8 simulated VLP-16 frames, their scans renumbered by one, read UNTRUSTED with 5
+    frames 58-161 deg off and the choice blamed; a scanner's, refused as a layout that leaves the translation
+    unobservable). ``readable(j)``: scan ``j`` was read."""
+    names = [f.name for f in dataset.frames]
+    for shift in (1, -1):
+        pairs = [(k, k + shift) for k in range(len(names)) if 0 <= k + shift < len(names)
+                 and cams[k][0] is not None and readable(k + shift)]
+        if len(pairs) < 4:
+            continue
+        assoc = choose(pairs, rng.spawn(1)[0])
+        if assoc is None or assoc.agreeing < max(AssociationParams.min_frames + 1, SHIFT_AGREEING * len(pairs)):
+            continue
+        (k, j), later = pairs[0], "later" if shift > 0 else "earlier"
+        image, scan = _relative(dataset.frames[k].image, dataset.root), _relative(dataset.frames[j].scan, dataset.root)
+        raise DatasetError(
+            f"the frames' LiDAR boards agree on no one extrinsic as the files are paired, but {assoc.agreeing} of "
+            f"{len(pairs)} do with each image paired with the scan a frame {later} ({image}'s board is in {scan}): "
+            "the scans are numbered a frame off their images", path=dataset.root,
+            hint="renumber the scans (or the images) so that each NNNN pair was captured at one instant; "
+                 "lidarcam extract pairs a bag's by their stamps")
+
+
+def _relative(path, root) -> str:
+    """``path`` as from ``root`` where it lies inside it (a rig's ``cam0/0001.png``), else its name."""
+    try:
+        return str(Path(path).relative_to(root))
+    except ValueError:
+        return Path(path).name
+
+
+# The share of a shift's pairs whose boards must agree for the scans to be read as numbered a frame off their images.
+SHIFT_AGREEING = 2 / 3
 
 
 def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:
