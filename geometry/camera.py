@@ -114,6 +114,12 @@ class CameraModel:
         r = np.column_stack([xy, np.ones(len(xy))])
         return r / np.linalg.norm(r, axis=1, keepdims=True)
 
+    def principal_point_offset(self) -> np.ndarray:
+        """How far the principal point lies from the image's centre, as shares of its width and height (2,): a few
+        hundredths for a camera's own intrinsics, a half or a quarter for a K of twice or half the images' size."""
+        size = np.array([self.width, self.height], float)
+        return np.abs(self.K[:2, 2] - (size - 1) / 2) / size
+
     def in_image(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         with np.errstate(invalid="ignore"):

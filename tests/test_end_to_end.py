@@ -505,3 +505,28 @@ def test_scans_numbered_a_frame_off_their_images_are_refused_naming_the_shift(si
         assert err.count("\n") == 1 and not out.exists(), err
         assert f"{n} of {n} do with each image paired with the scan a frame earlier" in err, err
         assert f"({scans[1].with_suffix('.png').name}'s board is in {scans[0].name})" in err, err
+
+
+def test_intrinsics_for_another_resolution_are_refused_naming_the_principal_point(sim_vlp16, tmp_path, capsys):
+    # K for twice the images' size puts every board twice as far as its returns: each frame was skipped with "only
+    # 0 points ... where the camera puts the board" and the pair refused for too few frames. With the principal
+    # point at the image's corner, the intrinsics are named instead. K for half their size finds 3 boards by chance
+    # in this set: calibrated, and UNTRUSTED (its planes 205 mm apart).
+    import yaml
+
+    spec = yaml.safe_load((sim_vlp16 / "dataset.yaml").read_text())
+    for scale in (2.0, 0.5):
+        folder = tmp_path / f"K_{scale}"
+        shutil.copytree(sim_vlp16, folder)
+        K = np.array(spec["camera"]["K"], float)
+        K[:2] *= scale
+        (folder / "dataset.yaml").write_text(yaml.safe_dump({**spec, "camera": {**spec["camera"], "K": K.tolist()}}))
+        out = tmp_path / f"out_{scale}"
+        code = main(["calibrate", str(folder), "--out", str(out), "--samples", "0", "--no-report"])
+        run = capsys.readouterr()
+        if scale == 0.5:
+            assert code == 0 and run.out.startswith("UNTRUSTED: "), run.out[:300]
+            continue
+        assert code == 2 and run.err.count("\n") == 1 and not out.exists(), run.err
+        assert "principal point (1024, 768) lies 50% of the width and 50% of the height from the centre of the " \
+               "1024 x 768 images: intrinsics for another resolution" in run.err and "dataset.yaml" in run.err, run.err

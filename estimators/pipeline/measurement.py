@@ -367,7 +367,38 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
     else:
         frames = _measure_sweeps_3d(dataset, cams, camera, frame_rngs, params, hints, timings, warnings, workers,
                                     sweeps_ahead())
+    _in_the_images_scale(dataset, camera, frames)
     return camera, frames, warnings
+
+
+# How far from the image's centre (a share of its width or height) a principal point lies before a camera whose
+# boards no LiDAR board matches is read as given intrinsics for another resolution.
+CENTRE_SHARE = 0.2
+
+
+def _in_the_images_scale(dataset: Dataset, camera: CameraModel, frames: list[FrameMeasurement]) -> None:
+    """Refuse intrinsics for another resolution: where three or more frames have the camera's board and fewer than
+    three the LiDAR's (too few to calibrate), and the principal point lies more than ``CENTRE_SHARE`` of the image's
+    size from its centre (K for twice or half the images' size put every simulated board twice or half as far as
+    its returns: the frames were skipped with "only 0 points ... where the camera puts the board", and the pair
+    refused for too few frames)."""
+    seen = [f for f in frames if f.camera is not None]
+    if len(seen) < 3 or sum(f.lidar is not None for f in seen) >= 3:
+        return
+    if camera.principal_point_offset().max() <= CENTRE_SHARE:
+        return
+    raise DatasetError(
+        f"{sum(f.lidar is not None for f in seen)} of {len(seen)} frames have a LiDAR board where the camera puts "
+        f"theirs, and {off_centre_words(camera)}", path=dataset.yaml_path,
+        hint="give camera.K for the images' own size (fx, fy, cx and cy scaled by it)")
+
+
+def off_centre_words(camera: CameraModel) -> str:
+    """Where a principal point lies, far from its image's centre (``CENTRE_SHARE``), and what that suggests."""
+    share = camera.principal_point_offset()
+    return (f"camera.K's principal point ({camera.K[0, 2]:.0f}, {camera.K[1, 2]:.0f}) lies {100 * share[0]:.0f}% of "
+            f"the width and {100 * share[1]:.0f}% of the height from the centre of the {camera.width} x "
+            f"{camera.height} images: intrinsics for another resolution?")
 
 
 def _measure_scans_2d(dataset: Dataset, cams: list[tuple], camera: CameraModel, rng: np.random.Generator,

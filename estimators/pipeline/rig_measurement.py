@@ -269,8 +269,13 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         keep = set(new) if len(new) >= MIN_PAIR_FRAMES else set(stems)
         subset = replace(ds, frames=tuple(f for f in ds.frames if f.name in keep))
         spawned.append(len(subset.frames) + 1)
-        _, frames, w = measure_frames(subset, rng, params, timings, workers=workers, hints=hints, detections=found,
-                                      board_poses=poses, sweeps=sweeps)
+        try:
+            _, frames, w = measure_frames(subset, rng, params, timings, workers=workers, hints=hints, detections=found,
+                                          board_poses=poses, sweeps=sweeps)
+        except DatasetError as exc:  # the pair's data cannot be right (its scans numbered off, its K mis-scaled)
+            if type(exc) is not DatasetError:
+                raise
+            raise DatasetError(f"{camera_name}-{lidar_name}: {exc.problem}", path=exc.path, hint=exc.hint) from None
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:

@@ -42,7 +42,7 @@ from ..solvers.board_edges import GROWTH_PRIOR_SD_M
 from ..solvers.closed_form import MIN_SCALE_PLANES, distance_scale, segment_distance_scale
 from ..solvers.outline_check import CHECK_P as OUTLINE_P
 from ..solvers.range_model import without_terms
-from .measurement import CONSENSUS_FAILED
+from .measurement import CENTRE_SHARE, CONSENSUS_FAILED, off_centre_words
 
 OK, CHECK, UNTRUSTED = "OK", "CHECK", "UNTRUSTED"
 _RANK = {OK: 0, CHECK: 1, UNTRUSTED: 2}
@@ -118,14 +118,18 @@ def _plane_error(name: str, floor_m: float, accuracy_m: float) -> list[tuple[str
                         "pattern")]
 
 
-def _corners(name: str, scale: float, chi2_dof: tuple[float, float]) -> list[tuple[str, str]]:
+def _corners(name: str, scale: float, chi2_dof: tuple[float, float], camera=None) -> list[tuple[str, str]]:
     """A rig's camera whose corners disagree with the rest of the rig beyond their noise (its noise scaled,
-    ``rig_graph.solve_rig``): the other sensors see its boards elsewhere than its intrinsics place them."""
+    ``rig_graph.solve_rig``): the other sensors see its boards elsewhere than its intrinsics place them; where its
+    principal point lies far from the image's centre (``camera``), that is said too."""
     if scale <= 1.0:
         return []
+    off = f" ({off_centre_words(camera)})" if camera is not None and \
+        camera.principal_point_offset().max() > CENTRE_SHARE else ""
     return [(CHECK, f"{name}: its corners disagree with the rest of the rig beyond their noise (chi-square "
                     f"{chi2_dof[0]:.0f} on {chi2_dof[1]:.0f} dof, its noise scaled by {scale:.2f}): its intrinsics "
-                    "may be wrong, and every pair with it then off; --refine-intrinsics estimates them with the rig")]
+                    f"may be wrong{off}, and every pair with it then off; --refine-intrinsics estimates them with the "
+                    "rig")]
 
 
 def _outline(name: str, record: dict | None, scan_line: bool = False) -> list[tuple[str, str]]:
@@ -420,7 +424,7 @@ def rig_verdict(result) -> Verdict:
         concerns += _intrinsics(f"T_{c}_{lid}: ", f"{c}'s", check)
     for c in result.rig.cameras if not result.solution.intrinsics else ():
         concerns += _corners(c.name, result.solution.noise_scale.get(c.name, 1.0),
-                             result.solution.chi2_dof.get(c.name, (0.0, 0.0)))
+                             result.solution.chi2_dof.get(c.name, (0.0, 0.0)), c.camera)
     for (c, lid), modes in result.ambiguous_pairs.items():
         concerns += _ambiguous(f"T_{c}_{lid}: ", modes, "its boards", post is not None and (c, lid) in post.mixed)
     pair = len(result.rig.cameras) == 1 and len(result.rig.lidars) == 1
