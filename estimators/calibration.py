@@ -261,8 +261,9 @@ def _not_mirrored(used: list[FrameMeasurement]) -> None:
     if fit is not None:
         raise DatasetError(f"the LiDAR's boards match the camera's through a mirror, not a rotation (their normals "
                            f"{fit[1]:.1f} deg apart reflected, {fit[0]:.1f} deg turned): its points are in a "
-                           "left-handed frame, one axis negated or two swapped",
-                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up)")
+                           "left-handed frame, one axis negated or two swapped, or the images are mirrored",
+                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up), "
+                                "and the images as the camera sees them (no driver's flip)")
 
 
 def _no_posterior(posterior: PosteriorOptions | None, samples: int | None) -> None:

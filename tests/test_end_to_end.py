@@ -298,8 +298,12 @@ def test_a_mirrored_lidar_scans_in_millimetres_and_scan_lines_as_sweeps_are_refu
         write_scan_2d(f.scan.with_suffix(".pcd"), a, r)
         f.scan.unlink()
     (flat / "dataset.yaml").write_text((flat / "dataset.yaml").read_text().replace("lidar: 2d", "lidar: 3d"))
+    flipped = tmp_path / "flipped"  # the images mirrored (a driver's flip): the boards read alike
+    shutil.copytree(sim_vlp16, flipped)
+    for f in load_dataset(flipped).frames:
+        cv2.imwrite(str(f.image), cv2.flip(cv2.imread(str(f.image), cv2.IMREAD_UNCHANGED), 1))
     for folder, words in ((mirrored, "through a mirror, not a rotation"), (mm, "none of the 6 scans can be read"),
-                          (flat, "they are a 2D scanner's scan lines")):
+                          (flat, "they are a 2D scanner's scan lines"), (flipped, "or the images are mirrored")):
         out = tmp_path / f"out_{folder.name}"
         assert main(["calibrate", str(folder), "--out", str(out), "--samples", "0", "--no-report"]) == 2
         err = capsys.readouterr().err
