@@ -79,6 +79,31 @@ def test_a_bad_rig_entry_is_a_one_line_error_naming_it(rig_folder, tmp_path, edi
         load_rig(folder)
 
 
+def test_a_cameras_images_numbered_a_frame_off_the_others_are_refused_naming_the_shift(rig_folder, tmp_path, capsys):
+    # cam1's image of each frame written as the frame before's: its boards and cam0's agree on no relative pose
+    # (it read UNTRUSTED, blaming cam1's scale and intrinsics); paired a frame apart, they agree: refused naming one
+    # such pair.
+    import shutil
+
+    from estimators.cli import main
+
+    folder = tmp_path / "shifted"
+    shutil.copytree(rig_folder, folder)
+    images = sorted((rig_folder / "cam1").glob("*.png"))
+    for p in (folder / "cam1").glob("*.png"):
+        p.unlink()
+    stems = sorted(p.stem for p in (rig_folder / "cam0").glob("*.png"))
+    for k, stem in enumerate(stems[:-1]):
+        source = rig_folder / "cam1" / f"{stems[k + 1]}.png"
+        if source in images:
+            shutil.copy(source, folder / "cam1" / f"{stem}.png")
+    assert main(["calibrate", str(folder), "--out", str(tmp_path / "out"), "--samples", "0", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists(), err
+    assert "cam0's and cam1's boards agree on no one relative pose as the images are numbered" in err, err
+    assert "with cam1's a frame earlier (cam0/" in err and "one camera's images are numbered a frame off" in err, err
+
+
 def test_the_rig_corner_factors_jacobians_match_finite_differences():
     cam, board = default_camera(), default_board()
     X = board.inner_corners()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -132,7 +133,12 @@ def align_numbering(cams: list[str], poses: dict, T_ref: dict, flip: np.ndarray)
 
 def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
     """The relative pose most frames agree with (within 2 degrees and 5 cm), each frame giving its candidates
-    (one per numbering of the board), and its candidate nearest that: every candidate against every other in one
+    (one per numbering of the board), and its candidate nearest that (:func:`_agreed_relative`)."""
+    return _agreed_relative(rels)[0]
+
+
+def _agreed_relative(rels: list[list[np.ndarray]]) -> tuple[np.ndarray, int]:
+    """:func:`_consensus_relative` and how many frames agree with it: every candidate against every other in one
     batch of logarithms (40 frames of two numberings each: 7 ms, against 2.2 s one by one)."""
     hyps = np.array([T for cands in rels for T in cands])
     frame = np.array([i for i, cands in enumerate(rels) for _ in cands])
@@ -143,7 +149,40 @@ def _consensus_relative(rels: list[list[np.ndarray]]) -> np.ndarray:
     dist = np.linalg.norm(xi, axis=-1)
     agree = sum(close[:, frame == i].any(axis=1).astype(int) for i in range(len(rels)))
     spread = sum(dist[:, frame == i].min(axis=1) for i in range(len(rels)))
-    return hyps[max(range(len(hyps)), key=lambda h: (agree[h], -spread[h]))]
+    best = max(range(len(hyps)), key=lambda h: (agree[h], -spread[h]))
+    return hyps[best], int(agree[best])
+
+
+def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
+    """Refuse two cameras whose images are numbered a frame apart: where no more than three of the boards both saw
+    agree on one relative pose as numbered (:func:`_agreed_relative`), but 4 or more, and two thirds, do with one
+    camera's image paired with the other's a frame later (both numberings of a board that looks the same turned)."""
+    flip = pattern_flip(rig.board)
+    flips = [np.eye(4)] if flip is None else [np.eye(4), flip]
+    stems = sorted({st for c in rig.cameras for st in poses[c.name]})
+
+    def agreeing(a: str, b: str, pairs: list[tuple[str, str]]) -> int:
+        return _agreed_relative([[poses[a][i].T_camera_board @ np.linalg.inv(poses[b][j].T_camera_board @ F)
+                                  for F in flips] for i, j in pairs])[1] if pairs else 0
+
+    for ia, a in enumerate(rig.cameras):
+        for b in rig.cameras[ia + 1:]:
+            shared = [(st, st) for st in stems if st in poses[a.name] and st in poses[b.name]]
+            if len(shared) < 4 or agreeing(a.name, b.name, shared) > 3:
+                continue
+            for shift in (1, -1):
+                pairs = [(st, stems[k + shift]) for k, st in enumerate(stems) if 0 <= k + shift < len(stems)
+                         and st in poses[a.name] and stems[k + shift] in poses[b.name]]
+                n = agreeing(a.name, b.name, pairs)
+                if len(pairs) >= 4 and n >= max(4, 2 * len(pairs) / 3):
+                    i, j = (str(Path(c.file(st)).relative_to(rig.root)) for c, st in zip((a, b), pairs[0]))
+                    raise DatasetError(
+                        f"{a.name}'s and {b.name}'s boards agree on no one relative pose as the images are numbered, "
+                        f"but {n} of {len(pairs)} do with {a.name}'s image paired with {b.name}'s a frame "
+                        f"{'later' if shift > 0 else 'earlier'} ({i} with {j}): one camera's "
+                        "images are numbered a frame off", path=rig.root,
+                        hint="renumber the camera's images whose boards its LiDARs' scans do not match, so that each "
+                             "NNNN was captured at one instant")
 
 
 def measured_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2, cache: bool = True,
@@ -230,6 +269,7 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
             warnings.extend(w)
         sweeps = {name: got.result() if isinstance(got, Future) else got for name, got in sweeps.items()}
         read.update({(lid.name, lid.files): sweeps[lid.name] for lid in rig.lidars if lid.name in sweeps})
+    _cameras_not_shifted(rig, poses)
     pairs, measured_by, spawned = {}, {}, []
     for lid in rig.lidars:
         shared = sorted(rig.cameras, key=lambda c: -sum(1 for st in poses[c.name] if lid.file(st) is not None))
