@@ -843,7 +843,7 @@ def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.
         if len(pairs) < 4:
             continue
         assoc = choose(pairs, rng.spawn(1)[0])
-        if assoc is None or assoc.agreeing < max(AssociationParams.min_frames + 1, SHIFT_AGREEING * len(pairs)):
+        if assoc is None or not shift_agrees(assoc.agreeing, len(pairs)):
             continue
         (k, j), later = pairs[0], "later" if shift > 0 else "earlier"
         image, scan = _relative(dataset.frames[k].image, dataset.root), _relative(dataset.frames[j].scan, dataset.root)
@@ -865,6 +865,12 @@ def _relative(path, root) -> str:
 
 # The share of a shift's pairs whose boards must agree for the scans to be read as numbered a frame off their images.
 SHIFT_AGREEING = 2 / 3
+
+
+def shift_agrees(agreeing: int, pairs: int) -> bool:
+    """Whether ``agreeing`` of a shifted numbering's ``pairs`` read it as the files' own: more than the three any
+    closed form fits, and ``SHIFT_AGREEING`` of them (a camera's and the LiDAR's boards, or two cameras')."""
+    return agreeing > AssociationParams.min_frames and agreeing >= SHIFT_AGREEING * pairs
 
 
 def _gate_by_guess(cands: list[BoardCandidate], cam_obs, hints: Hints) -> tuple[list[BoardCandidate], list[str]]:

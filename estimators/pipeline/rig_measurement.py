@@ -23,7 +23,8 @@ from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, data
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps
+from ..pipeline.measurement import Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps, shift_agrees
+from ..solvers.association import AssociationParams
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
 from ..solvers.range_model import frame_whitener
@@ -155,8 +156,9 @@ def _agreed_relative(rels: list[list[np.ndarray]]) -> tuple[np.ndarray, int]:
 
 def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
     """Refuse two cameras whose images are numbered a frame apart: where no more than three of the boards both saw
-    agree on one relative pose as numbered (:func:`_agreed_relative`), but 4 or more, and two thirds, do with one
-    camera's image paired with the other's a frame later (both numberings of a board that looks the same turned)."""
+    agree on one relative pose as numbered (:func:`_agreed_relative`), but a shifted numbering's do
+    (``measurement.shift_agrees``) with one camera's image paired with the other's a frame later (both numberings
+    of a board that looks the same turned)."""
     flip = pattern_flip(rig.board)
     flips = [np.eye(4)] if flip is None else [np.eye(4), flip]
     stems = sorted({st for c in rig.cameras for st in poses[c.name]})
@@ -168,13 +170,14 @@ def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
     for ia, a in enumerate(rig.cameras):
         for b in rig.cameras[ia + 1:]:
             shared = [(st, st) for st in stems if st in poses[a.name] and st in poses[b.name]]
-            if len(shared) < 4 or agreeing(a.name, b.name, shared) > 3:
+            if len(shared) <= AssociationParams.min_frames or \
+                    agreeing(a.name, b.name, shared) > AssociationParams.min_frames:
                 continue
             for shift in (1, -1):
                 pairs = [(st, stems[k + shift]) for k, st in enumerate(stems) if 0 <= k + shift < len(stems)
                          and st in poses[a.name] and stems[k + shift] in poses[b.name]]
                 n = agreeing(a.name, b.name, pairs)
-                if len(pairs) >= 4 and n >= max(4, 2 * len(pairs) / 3):
+                if shift_agrees(n, len(pairs)):
                     i, j = (str(Path(c.file(st)).relative_to(rig.root)) for c, st in zip((a, b), pairs[0]))
                     raise DatasetError(
                         f"{a.name}'s and {b.name}'s boards agree on no one relative pose as the images are numbered, "
