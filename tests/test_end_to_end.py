@@ -515,7 +515,7 @@ def test_intrinsics_for_another_resolution_are_refused_naming_the_principal_poin
     # K for twice the images' size puts every board twice as far as its returns: each frame was skipped with "only
     # 0 points ... where the camera puts the board" and the pair refused for too few frames. With the principal
     # point at the image's corner, the intrinsics are named instead. K for half their size finds 3 boards by chance
-    # in this set: calibrated, and UNTRUSTED (its planes 205 mm apart).
+    # in this set: calibrated, and UNTRUSTED (its planes 205 mm apart), naming the principal point too.
     import yaml
 
     spec = yaml.safe_load((sim_vlp16 / "dataset.yaml").read_text())
@@ -529,7 +529,9 @@ def test_intrinsics_for_another_resolution_are_refused_naming_the_principal_poin
         code = main(["calibrate", str(folder), "--out", str(out), "--samples", "0", "--no-report"])
         run = capsys.readouterr()
         if scale == 0.5:
-            assert code == 0 and run.out.startswith("UNTRUSTED: "), run.out[:300]
+            verdict = run.out.splitlines()[0]
+            assert code == 0 and verdict.startswith("UNTRUSTED: "), verdict
+            assert "principal point (256, 192) lies 25% of the width" in verdict, verdict
             continue
         assert code == 2 and run.err.count("\n") == 1 and not out.exists(), run.err
         assert "principal point (1024, 768) lies 50% of the width and 50% of the height from the centre of the " \

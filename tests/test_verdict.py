@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from estimators.pipeline.verdict import (CHECK, OK, UNTRUSTED, Verdict, _common, _corners, _frames, _plane_error,
-                                         verdict_of)
+from estimators.pipeline.verdict import (CHECK, OK, UNTRUSTED, Verdict, _common, _frames, _plane_error, verdict_of)
 from estimators.solvers.closed_form import distance_scale, segment_distance_scale
 from geometry.planes import Plane
 from geometry.rotations import T_exp
@@ -428,16 +427,18 @@ def test_range_terms_the_data_support_but_the_choice_left_out_make_a_check(tmp_p
     assert result.verdict.level == CHECK and "range terms the data support were left out" in result.verdict.line
 
 
-def test_a_rig_cameras_disagreeing_corners_name_a_principal_point_far_off_the_images_centre():
-    # A camera whose K is for twice the images' size: its corners disagree with the rest of the rig, and its
-    # principal point at the image's corner is named as intrinsics for another resolution; its own K's is not.
+def test_a_principal_point_far_off_the_images_centre_is_a_check_naming_it():
+    # A K for twice the images' size puts the principal point at their corner: a CHECK naming it (a K for half their
+    # size found 3 simulated boards by chance, and its answer read UNTRUSTED without naming K); a camera's own K is
+    # not one.
+    from estimators.pipeline.verdict import _off_centre
     from geometry.camera import CameraModel
 
     own = CameraModel(np.array([[940.0, 0, 512], [0, 940, 384], [0, 0, 1]]), np.zeros(5), 1024, 768)
     twice = CameraModel(np.array([[1880.0, 0, 1024], [0, 1880, 768], [0, 0, 1]]), np.zeros(5), 1024, 768)
     np.testing.assert_allclose(own.principal_point_offset(), [0.5 / 1024, 0.5 / 768])
     np.testing.assert_allclose(twice.principal_point_offset(), [512.5 / 1024, 384.5 / 768])
-    [(kind, words)] = _corners("cam1", 48.5, (27625.0, 570.0), twice)
-    assert kind == CHECK and "principal point (1024, 768) lies 50% of the width" in words, words
-    assert "another resolution" not in _corners("cam1", 48.5, (27625.0, 570.0), own)[0][1]
-    assert _corners("cam1", 1.0, (500.0, 570.0), twice) == []
+    [(kind, words)] = _off_centre("cam1: ", twice)
+    assert kind == CHECK and words.startswith("cam1: camera.K's principal point (1024, 768) lies 50% of the width")
+    assert "intrinsics for another resolution" in words
+    assert _off_centre("", own) == [] and _off_centre("", None) == []
