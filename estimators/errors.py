@@ -19,6 +19,12 @@ class LidarcamError(Exception):
         return f"{text}; {self.hint}" if self.hint else text
 
 
+def in_pair(exc: LidarcamError, pair: str, path: object | None = None) -> LidarcamError:
+    """``exc`` said of one camera-LiDAR pair of a rig (``pair``, "cam0-lidar0"): the same kind, its problem prefixed
+    with the pair, its file (else ``path``) and hint kept."""
+    return type(exc)(f"{pair}: {exc.problem}", path=exc.path or path, hint=exc.hint)
+
+
 @contextmanager
 def about(path: object):
     """Name ``path`` in any :class:`LidarcamError` raised inside that names no file (a solver knows its arrays, not

@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from .calibration import solve
 from .camera.board_pose import reobserve_frames
-from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError
+from .errors import DatasetError, DegenerateLayoutError, LidarcamError, PosteriorSkippedError, in_pair
 from .io.measurement_store import RigMeasurements, load_choices, save_choices
 from .io.rig_dataset import RigDataset
 from .lidar.board_segmentation import SegmentationParams
@@ -201,8 +201,7 @@ def solve_pairs_alone(rig: RigDataset, frames_by_pair: dict, measured_by: dict, 
                             init if lid.lidar == "2d" else "closed-form",
                             options=replace(opts, edges=True) if ends else opts, use_extent=ends, memo=memo)
             except DatasetError as exc:  # its data cannot be right (a mirrored LiDAR): the rig is refused
-                raise DatasetError(f"{cam_name}-{lid.name}: {exc.problem}", path=exc.path or rig.root,
-                                   hint=exc.hint) from exc
+                raise in_pair(exc, f"{cam_name}-{lid.name}", rig.root) from exc
             except DegenerateLayoutError as exc:
                 failed[(cam_name, lid.name)] = exc
                 warnings.append(f"{cam_name}-{lid.name}: not solved as a pair ({exc.message})")

@@ -383,14 +383,17 @@ def _in_the_images_scale(dataset: Dataset, camera: CameraModel, frames: list[Fra
     its returns: the frames were skipped with "only 0 points ... where the camera puts the board", and the pair
     refused for too few frames)."""
     seen = [f for f in frames if f.camera is not None]
-    if len(seen) < 3 or sum(f.lidar is not None for f in seen) >= 3:
+    found = sum(f.lidar is not None for f in seen)
+    if len(seen) < 3 or found >= 3 or not off_centre(camera):
         return
-    if camera.principal_point_offset().max() <= CENTRE_SHARE:
-        return
-    raise DatasetError(
-        f"{sum(f.lidar is not None for f in seen)} of {len(seen)} frames have a LiDAR board where the camera puts "
-        f"theirs, and {off_centre_words(camera)}", path=dataset.yaml_path,
-        hint="give camera.K for the images' own size (fx, fy, cx and cy scaled by it)")
+    raise DatasetError(f"{found} of {len(seen)} frames have a LiDAR board where the camera puts theirs, and "
+                       f"{off_centre_words(camera)}", path=dataset.yaml_path,
+                       hint="give camera.K for the images' own size (fx, fy, cx and cy scaled by it)")
+
+
+def off_centre(camera: CameraModel | None) -> bool:
+    """Whether ``camera``'s principal point lies more than ``CENTRE_SHARE`` of its image's size from the centre."""
+    return camera is not None and camera.principal_point_offset().max() > CENTRE_SHARE
 
 
 def off_centre_words(camera: CameraModel) -> str:
@@ -846,7 +849,8 @@ def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.
         if assoc is None or not shift_agrees(assoc.agreeing, len(pairs)):
             continue
         (k, j), later = pairs[0], "later" if shift > 0 else "earlier"
-        image, scan = _relative(dataset.frames[k].image, dataset.root), _relative(dataset.frames[j].scan, dataset.root)
+        image = relative_name(dataset.frames[k].image, dataset.root)
+        scan = relative_name(dataset.frames[j].scan, dataset.root)
         raise DatasetError(
             f"the frames' LiDAR boards agree on no one extrinsic as the files are paired, but {assoc.agreeing} of "
             f"{len(pairs)} do with each image paired with the scan a frame {later} ({image}'s board is in {scan}): "
@@ -855,7 +859,7 @@ def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.
                  "lidarcam extract pairs a bag's by their stamps")
 
 
-def _relative(path, root) -> str:
+def relative_name(path, root) -> str:
     """``path`` as from ``root`` where it lies inside it (a rig's ``cam0/0001.png``), else its name."""
     try:
         return str(Path(path).relative_to(root))

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
@@ -16,14 +15,15 @@ from geometry.rotations import T_log, log_batch
 from ..camera.board_pose import estimate_board_pose
 from ..camera.detection import CornerDetection
 from ..camera.intrinsics import calibrate_intrinsics
-from ..errors import AmbiguousOrientationError, DatasetError, DegenerateLayoutError, LidarcamError
+from ..errors import AmbiguousOrientationError, DatasetError, DegenerateLayoutError, LidarcamError, in_pair
 from ..io.dataset import FrameFiles
 from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, dataset_key, generator_key,
                                      load_rig_measurements, save_rig_measurements)
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps, shift_agrees
+from ..pipeline.measurement import (Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps, relative_name,
+                                    shift_agrees)
 from ..solvers.association import AssociationParams
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
@@ -178,7 +178,7 @@ def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
                          and st in poses[a.name] and stems[k + shift] in poses[b.name]]
                 n = agreeing(a.name, b.name, pairs)
                 if shift_agrees(n, len(pairs)):
-                    i, j = (str(Path(c.file(st)).relative_to(rig.root)) for c, st in zip((a, b), pairs[0]))
+                    i, j = (relative_name(c.file(st), rig.root) for c, st in zip((a, b), pairs[0]))
                     raise DatasetError(
                         f"{a.name}'s and {b.name}'s boards agree on no one relative pose as the images are numbered, "
                         f"but {n} of {len(pairs)} do with {a.name}'s image paired with {b.name}'s a frame "
@@ -318,7 +318,7 @@ def measure_pair_frames(ds, camera_name: str, lidar_name: str, stems: list[str],
         except DatasetError as exc:  # the pair's data cannot be right (its scans numbered off, its K mis-scaled)
             if type(exc) is not DatasetError:
                 raise
-            raise DatasetError(f"{camera_name}-{lidar_name}: {exc.problem}", path=exc.path, hint=exc.hint) from None
+            raise in_pair(exc, f"{camera_name}-{lidar_name}") from None
         warnings.extend(f"{camera_name}-{lidar_name}: {x}" for x in w)
         now = {f.name: f for f in frames}
         for f in frames:

@@ -42,7 +42,7 @@ from ..solvers.board_edges import GROWTH_PRIOR_SD_M
 from ..solvers.closed_form import MIN_SCALE_PLANES, distance_scale, segment_distance_scale
 from ..solvers.outline_check import CHECK_P as OUTLINE_P
 from ..solvers.range_model import without_terms
-from .measurement import CENTRE_SHARE, CONSENSUS_FAILED, off_centre_words
+from .measurement import CONSENSUS_FAILED, off_centre, off_centre_words
 
 OK, CHECK, UNTRUSTED = "OK", "CHECK", "UNTRUSTED"
 _RANK = {OK: 0, CHECK: 1, UNTRUSTED: 2}
@@ -132,7 +132,7 @@ def _off_centre(name: str, camera) -> list[tuple[str, str]]:
     """A camera whose principal point lies more than ``CENTRE_SHARE`` of its image's size from the centre (the
     recorded sets' lie within 6%): a CHECK, as a K for another resolution (a K for half the images' size found 3
     simulated boards by chance, and its answer read UNTRUSTED without naming K)."""
-    if camera is None or camera.principal_point_offset().max() <= CENTRE_SHARE:
+    if not off_centre(camera):
         return []
     return [(CHECK, f"{name}{off_centre_words(camera)}; give camera.K for the images' own size")]
 
