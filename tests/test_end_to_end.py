@@ -491,24 +491,26 @@ def test_the_apis_calibrate_names_an_argument_of_the_wrong_type(sim_vlp16):
         calibrate(None)
 
 
-def test_scans_numbered_a_frame_off_their_images_are_refused_naming_the_shift(sim_vlp16, sim_2d, tmp_path, capsys):
-    # Each scan renamed to the frame before its own (the last one's to the first): the boards agree on no extrinsic
-    # as paired, and the folder read UNTRUSTED with its boards' choice blamed (a 3D LiDAR's) or was refused as a
-    # layout that leaves the translation unobservable (a scanner's). Paired with the scan a frame earlier, every
-    # image's board is found: refused as a numbering a frame off, naming one pair.
-    for source in (sim_vlp16, sim_2d):
+def test_scans_numbered_frames_off_their_images_are_refused_naming_the_shift(sim_vlp16, sim_2d, tmp_path, capsys):
+    # Each scan renamed to the frame before its own (a scanner's), or two before (a 3D LiDAR's; the first ones' to
+    # the last): the boards agree on no extrinsic as paired, and the folder read UNTRUSTED with its boards' choice
+    # blamed (a 3D LiDAR's) or was refused as a layout that leaves the translation unobservable (a scanner's).
+    # Paired with the scan that many frames earlier, every image's board is found: refused as a numbering that
+    # many frames off, naming one pair. Two frames off was read UNTRUSTED while one frame off was refused.
+    for source, shift, words in ((sim_vlp16, 2, "2 frames"), (sim_2d, 1, "a frame")):
         shifted = tmp_path / f"shifted_{source.name}"
         shutil.copytree(source, shifted)
         scans = [f.scan for f in load_dataset(source).frames]
         for k, scan in enumerate(scans):
-            shutil.copy(scans[(k + 1) % len(scans)], shifted / scan.name)
+            shutil.copy(scans[(k + shift) % len(scans)], shifted / scan.name)
         out = tmp_path / f"out_{source.name}"
         assert main(["calibrate", str(shifted), "--out", str(out), "--samples", "0", "--no-report"]) == 2
         err = capsys.readouterr().err
-        n = len(scans) - 1
+        n = len(scans) - shift
         assert err.count("\n") == 1 and not out.exists(), err
-        assert f"{n} of {n} do with each image paired with the scan a frame earlier" in err, err
-        assert f"({scans[1].with_suffix('.png').name}'s board is in {scans[0].name})" in err, err
+        assert f"{n} of {n} do with each image paired with the scan {words} earlier" in err, err
+        assert f"({scans[shift].with_suffix('.png').name}'s board is in {scans[0].name})" in err, err
+        assert f"numbered {words} off their images" in err, err
 
 
 def test_intrinsics_for_another_resolution_are_refused_naming_the_principal_point(sim_vlp16, tmp_path, capsys):

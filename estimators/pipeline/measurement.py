@@ -833,14 +833,14 @@ def _unsettled(assoc: Association | None) -> bool:
 
 def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.random.Generator) -> None:
     """Where the frames' boards agree on no extrinsic (:func:`_unsettled`), refuse a folder whose scans are numbered
-    a frame off their images: each image's board looked for in the next frame's scan and in the previous one's and
-    the joint choice made again (``choose(pairs, rng)``, the association of image ``k``'s board with scan ``j`` for
-    each ``(k, j)``, or None); a shift that ``SHIFT_AGREEING`` of its pairs, and 4 or more, agree on is the
-    folder's, not a failed choice (8 simulated VLP-16 frames, their scans renumbered by one, read UNTRUSTED with 5
-    frames 58-161 deg off and the choice blamed; a scanner's, refused as a layout that leaves the translation
-    unobservable). ``readable(j)``: scan ``j`` was read."""
+    a few frames off their images: each image's board looked for in the scan a frame later and a frame earlier
+    (then two and three: ``SHIFTS``) and the joint choice made again (``choose(pairs, rng)``, the association of
+    image ``k``'s board with scan ``j`` for each ``(k, j)``, or None); a shift that ``SHIFT_AGREEING`` of its
+    pairs, and 4 or more, agree on is the folder's, not a failed choice (8 simulated VLP-16 frames, their scans
+    renumbered by one, read UNTRUSTED with 5 frames 58-161 deg off and the choice blamed; a scanner's, refused as
+    a layout that leaves the translation unobservable). ``readable(j)``: scan ``j`` was read."""
     names = [f.name for f in dataset.frames]
-    for shift in (1, -1):
+    for shift in SHIFTS:
         pairs = [(k, k + shift) for k in range(len(names)) if 0 <= k + shift < len(names)
                  and cams[k][0] is not None and readable(k + shift)]
         if len(pairs) < 4:
@@ -848,13 +848,13 @@ def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.
         assoc = choose(pairs, rng.spawn(1)[0])
         if assoc is None or not shift_agrees(assoc.agreeing, len(pairs)):
             continue
-        (k, j), later = pairs[0], "later" if shift > 0 else "earlier"
+        (k, j), (frames, later) = pairs[0], shift_words(shift)
         image = relative_name(dataset.frames[k].image, dataset.root)
         scan = relative_name(dataset.frames[j].scan, dataset.root)
         raise DatasetError(
             f"the frames' LiDAR boards agree on no one extrinsic as the files are paired, but {assoc.agreeing} of "
-            f"{len(pairs)} do with each image paired with the scan a frame {later} ({image}'s board is in {scan}): "
-            "the scans are numbered a frame off their images", path=dataset.root,
+            f"{len(pairs)} do with each image paired with the scan {frames} {later} ({image}'s board is in {scan}): "
+            f"the scans are numbered {frames} off their images", path=dataset.root,
             hint="renumber the scans (or the images) so that each NNNN pair was captured at one instant; "
                  "lidarcam extract pairs a bag's by their stamps")
 
@@ -869,6 +869,15 @@ def relative_name(path, root) -> str:
 
 # The share of a shift's pairs whose boards must agree for the scans to be read as numbered a frame off their images.
 SHIFT_AGREEING = 2 / 3
+# The numberings tried, nearest first: a frame off either way (a first frame dropped), then two and three (a
+# folder whose scans began 2 frames after its images read UNTRUSTED, its boards' choice blamed).
+SHIFTS = (1, -1, 2, -2, 3, -3)
+
+
+def shift_words(shift: int) -> tuple[str, str]:
+    """How far and which way a numbering is shifted, in words: ``("a frame", "later")``, ``("2 frames",
+    "earlier")``."""
+    return "a frame" if abs(shift) == 1 else f"{abs(shift)} frames", "later" if shift > 0 else "earlier"
 
 
 def shift_agrees(agreeing: int, pairs: int) -> bool:

@@ -22,8 +22,8 @@ from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, data
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import (Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps, relative_name,
-                                    shift_agrees)
+from ..pipeline.measurement import (SHIFTS, Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps,
+                                    relative_name, shift_agrees, shift_words)
 from ..solvers.association import AssociationParams
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
@@ -155,10 +155,10 @@ def _agreed_relative(rels: list[list[np.ndarray]]) -> tuple[np.ndarray, int]:
 
 
 def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
-    """Refuse two cameras whose images are numbered a frame apart: where no more than three of the boards both saw
-    agree on one relative pose as numbered (:func:`_agreed_relative`), but a shifted numbering's do
-    (``measurement.shift_agrees``) with one camera's image paired with the other's a frame later (both numberings
-    of a board that looks the same turned)."""
+    """Refuse two cameras whose images are numbered a few frames apart: where no more than three of the boards both
+    saw agree on one relative pose as numbered (:func:`_agreed_relative`), but a shifted numbering's do
+    (``measurement.shift_agrees``) with one camera's image paired with the other's up to three frames later or
+    earlier (``measurement.SHIFTS``, nearest first; both numberings of a board that looks the same turned)."""
     flip = pattern_flip(rig.board)
     flips = [np.eye(4)] if flip is None else [np.eye(4), flip]
     stems = sorted({st for c in rig.cameras for st in poses[c.name]})
@@ -173,17 +173,17 @@ def _cameras_not_shifted(rig: RigDataset, poses: dict) -> None:
             if len(shared) <= AssociationParams.min_frames or \
                     agreeing(a.name, b.name, shared) > AssociationParams.min_frames:
                 continue
-            for shift in (1, -1):
+            for shift in SHIFTS:
                 pairs = [(st, stems[k + shift]) for k, st in enumerate(stems) if 0 <= k + shift < len(stems)
                          and st in poses[a.name] and stems[k + shift] in poses[b.name]]
                 n = agreeing(a.name, b.name, pairs)
                 if shift_agrees(n, len(pairs)):
                     i, j = (relative_name(c.file(st), rig.root) for c, st in zip((a, b), pairs[0]))
+                    frames, later = shift_words(shift)
                     raise DatasetError(
                         f"{a.name}'s and {b.name}'s boards agree on no one relative pose as the images are numbered, "
-                        f"but {n} of {len(pairs)} do with {a.name}'s image paired with {b.name}'s a frame "
-                        f"{'later' if shift > 0 else 'earlier'} ({i} with {j}): one camera's "
-                        "images are numbered a frame off", path=rig.root,
+                        f"but {n} of {len(pairs)} do with {a.name}'s image paired with {b.name}'s {frames} {later} "
+                        f"({i} with {j}): one camera's images are numbered {frames} off", path=rig.root,
                         hint="renumber the camera's images whose boards its LiDARs' scans do not match, so that each "
                              "NNNN was captured at one instant")
 
