@@ -306,7 +306,7 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     one joint solve: each LiDAR's offset against cam0 within 4 of its standard deviations and 4 ms of the truth,
     each extrinsic within its covariance's 0.999 region (NEES below 22.5, 6 dof); the two LiDARs' transform
     composed through the camera with their correlation, within its own 0.999 region; the report's pages and the
-    exports' offsets."""
+    exports' offsets; one LiDAR's returns mirrored refused naming it."""
     rig = _small_rig(7)
     turn = T_from_Rt(R_from_rotvec([0.0, 0.0, np.radians(-15.0)]), [0.2, -0.1, 0.05])
     other = dataclasses.replace(rig, T_camera_lidar=rig.T_camera_lidar @ turn)
@@ -346,6 +346,15 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     from estimators.io.export import export_calibration
 
     assert "# The clocks' offset t_cam0_stamp - t_lidar1_stamp: 0.04" in export_calibration(tmp_path / "cal", "ros-tf")
+    # lidar1's returns in a left-handed frame (y negated): refused in one line naming its pair and the mirror (it
+    # read UNTRUSTED as returns off the board), no folder written
+    shutil.copytree(tmp_path / "rig", tmp_path / "mirrored")
+    z = dict(np.load(tmp_path / "rig" / "lidar1" / "motion.npz"))
+    np.savez_compressed(tmp_path / "mirrored" / "lidar1" / "motion.npz", **{**z, "points": z["points"] * [1, -1, 1]})
+    assert main(["calibrate", str(tmp_path / "mirrored"), "--out", str(tmp_path / "no"), "--samples", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cam0-lidar1: the LiDAR's sweeps of the board match the camera's board " \
+        "through a mirror" in err and not (tmp_path / "no").exists(), err
 
 
 def test_a_rig_bag_with_the_board_moving_throughout_and_two_cameras_is_refused_in_one_line(tmp_path, capsys):
@@ -390,7 +399,7 @@ def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved,
     no corners raised numpy's singular-matrix error; now those images are left out and the rest calibrate), every
     image's (no pose: said, naming the folder, where the trajectory's error named none) and stamps 1e12 s from
     the origin (float64 no longer times the returns: GTSAM's singular factor; now refused as the record's fault),
-    and returns that lie nowhere near the board the camera saw."""
+    returns that lie nowhere near the board the camera saw, and returns in a left-handed frame."""
     tmp, _ = waved
     z = dict(np.load(tmp / "ds" / "motion.npz"))
 
@@ -412,7 +421,11 @@ def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved,
              "times beyond"),
             # returns of no board (scaled tenfold): said as such, not as too few "inside its edges (a larger
             # board helps)" with a margin of 265 km
-            ("scaled", {"points": z["points"] * 10}, "RMS from the board the camera saw")):
+            ("scaled", {"points": z["points"] * 10}, "RMS from the board the camera saw"),
+            # a left-handed cloud (y negated, or x and y swapped): read UNTRUSTED as returns 141 mm off the board,
+            # a segment, clock or intrinsics blamed; the still poses' refusal names the mirror, and so does this
+            ("mirrored", {"points": z["points"] * np.float32([1, -1, 1])}, "through a mirror, and at no clocks'"),
+            ("swapped", {"points": z["points"][:, [1, 0, 2]]}, "left-handed frame, one axis negated or two swapped")):
         folder = edited(name, **arrays)
         assert main(["calibrate", str(folder), "--out", str(tmp_path / name / "out")]) == 2
         err = capsys.readouterr().err.strip()

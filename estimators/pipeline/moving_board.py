@@ -258,7 +258,8 @@ def solve_moving_many(roots: list[Path], board, camera: CameraModel, rng: np.ran
     t0 = time.perf_counter()
     sols, joint = solve_clock_offsets(
         views, sweeps, fixed_offset_s=time_offset_s, rng=rng, extent=board.extent,
-        pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]))
+        pointing_sd_rad=(POINTING_SD_PX / camera.K[1, 1], POINTING_SD_PX / camera.K[0, 0]),
+        names=tuple(f"{camera_name}-{n}" for n in lidar_names) if len(lidar_names) > 1 else None)
     seconds = time.perf_counter() - t0
     posteriors, note = [None] * len(sols), None
     if samples > 0:

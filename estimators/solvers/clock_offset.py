@@ -25,9 +25,9 @@ from geometry.planes import Plane, fit_plane_pca
 from geometry.rotations import T_inverse, T_retract, transform_points
 from geometry.trajectory import PoseSplines
 
-from ..errors import DegenerateLayoutError
+from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, in_pair
 from ..measurements import TimedBoardView, TimedSweep
-from .closed_form import solve_closed_form
+from .closed_form import is_mirror_fit, solve_closed_form, turned_and_reflected_deg
 from .factor_graph import adjoint
 from .moving_board_graph import LidarBlock, along_beam_residuals, refine_many, stamp_jitter_s, with_stamp_jitter
 
@@ -247,12 +247,14 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
         if fixed_offset_s is None else np.array([float(fixed_offset_s)])
     few_points = np.concatenate([k[0][:GRID_RETURNS] for k in kept])  # each sweep's first: the grid's score
     few_times = np.concatenate([k[1][:GRID_RETURNS] for k in kept])
-    rms, starts = [], []
+    rms, starts, fits = [], [], []
+    planes_l = [k[2].facing_away() for k in kept]
     for dt in offsets:
         cam = trajectory(mean_times + dt)
         planes_c = [Plane(T[:3, 2], T[:3, 2] @ T[:3, 3]).facing_away() for T in cam]
+        fits.append(turned_and_reflected_deg(planes_c, planes_l))
         try:
-            T0 = solve_closed_form(planes_c, [k[2].facing_away() for k in kept], allow_weak=True).T_camera_lidar
+            T0 = solve_closed_form(planes_c, planes_l, allow_weak=True).T_camera_lidar
         except DegenerateLayoutError:
             rms.append(np.inf)
             starts.append(None)
@@ -260,6 +262,7 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
         r = np.minimum(np.abs(_residuals(T0, dt, trajectory, few_points, few_times)), OUTLIER_M)
         rms.append(float(np.sqrt(np.mean(r ** 2))))
         starts.append(T0)
+    _not_mirrored(np.array(fits))
     best = int(np.argmin(rms))
     if not np.isfinite(rms[best]):
         raise DegenerateLayoutError("the sweeps' board planes do not determine the extrinsic at any clock offset "
@@ -311,6 +314,23 @@ def _start(views: list[TimedBoardView], trajectory, sweeps: list[TimedSweep], of
     return _Start(block, points, times, len(kept), (offsets, np.array(rms)))
 
 
+def _not_mirrored(fits: np.ndarray) -> None:
+    """Refuse a LiDAR whose sweeps' boards fit the camera's through a mirror at some clock offset of the grid and
+    through no rotation at any (``closed_form.is_mirror_fit``; ``fits``: per offset, the median angle left under the
+    best rotation and under the best reflection): its points are in a left-handed frame. A simulated waved board's
+    56 sweeps, y negated or x and y swapped, leave 0.2 deg reflected and 14 deg turned at best (the set as
+    recorded the other way round); it read UNTRUSTED as returns 141 mm from the board, blaming the board's segment,
+    the clock or the intrinsics."""
+    turned, reflected = float(fits[:, 0].min()), float(fits[:, 1].min())
+    if is_mirror_fit(turned, reflected):
+        raise DatasetError(f"the LiDAR's sweeps of the board match the camera's board through a mirror, and at no "
+                           f"clocks' offset through a rotation (their normals {reflected:.1f} deg apart reflected, "
+                           f"{turned:.1f} deg turned at best): its points are in a left-handed frame, one axis "
+                           "negated or two swapped, or the images are mirrored",
+                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up), "
+                                "and the images as the camera sees them (no driver's flip)")
+
+
 def _on_the_board(kept: list, T: np.ndarray, dt: float, trajectory) -> list:
     """The sweeps (``(points, times, plane)``) whose returns' median distance from the board's plane at the start
     (``T``, ``dt``) is within ``OUTLIER_M`` or ``OUTLIER_FACTOR`` times the sweeps' median (see there);
@@ -351,19 +371,25 @@ def solve_clock_offsets(views: list[TimedBoardView], sweeps: list[list[TimedSwee
                         offset_prior_s: float = OFFSET_PRIOR_S, grid_step_s: float = GRID_STEP_S,
                         fixed_offset_s: float | None = None, rng: np.random.Generator | None = None,
                         returns_per_sweep: int = MAX_RETURNS_PER_SWEEP, extent: tuple[float, float] | None = None,
-                        pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True
-                        ) -> tuple[list[ClockOffsetSolution], np.ndarray]:
+                        pointing_sd_rad: tuple[float, float] = (0.0, 0.0), still_runs_count_once: bool = True,
+                        names: tuple[str, ...] | None = None) -> tuple[list[ClockOffsetSolution], np.ndarray]:
     """:func:`solve_clock_offset` of several LiDARs (each one's sweeps in the views' time base, its own clock's
     offset) against one camera, in one joint solve: they share the camera's board poses. Each LiDAR's solution
     (its covariance its block of the joint one) and the joint covariance (7 per LiDAR, with the camera's pointing,
-    which every LiDAR shares: :func:`joint_pointing`)."""
+    which every LiDAR shares: :func:`joint_pointing`). ``names``: each LiDAR's pair ("cam0-lidar1"), which prefixes
+    the error one LiDAR's sweeps raise."""
     rng = rng if rng is not None else np.random.default_rng(0)
     try:
         trajectory = camera_trajectory(views)
     except ValueError as exc:
         raise DegenerateLayoutError(f"the camera's views do not follow the board ({exc})") from None
-    starts = [_start(views, trajectory, s, offset_prior_s, grid_step_s, fixed_offset_s, rng, returns_per_sweep,
-                     extent) for s in sweeps]
+    starts = []
+    for k, s in enumerate(sweeps):
+        try:
+            starts.append(_start(views, trajectory, s, offset_prior_s, grid_step_s, fixed_offset_s, rng,
+                                 returns_per_sweep, extent))
+        except LidarcamError as exc:
+            raise exc if names is None else in_pair(exc, names[k]) from None
     # Then every image's board pose joins the extrinsics and the offsets as an unknown (``moving_board_graph``):
     # the camera's pose noise is in the estimates and their covariance.
     # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the

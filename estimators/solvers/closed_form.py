@@ -101,21 +101,32 @@ MIRROR_FIT_DEG, MIRROR_MISFIT_DEG = 2.0, 5.0
 def mirrored(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[float, float] | None:
     """``(rotation_deg, reflection_deg)``, the median angle left between the boards' camera normals and their LiDAR
     normals under the best rotation and under the best reflection, where the LiDAR's boards fit the camera's
-    through a reflection and not a rotation (its points are in a left-handed frame); None otherwise, or with
-    fewer than 3 boards."""
+    through a reflection and not a rotation (its points are in a left-handed frame, :func:`is_mirror_fit`); None
+    otherwise, or with fewer than 3 boards."""
     if len(camera_planes) < 3:
         return None
+    fit = turned_and_reflected_deg(camera_planes, lidar_planes)
+    return fit if is_mirror_fit(*fit) else None
+
+
+def is_mirror_fit(rotation_deg: float, reflection_deg: float) -> bool:
+    """Whether boards whose normals a rotation leaves ``rotation_deg`` apart (the median) and a reflection
+    ``reflection_deg`` fit through a mirror: the reflection within ``MIRROR_FIT_DEG``, the rotation beyond
+    ``MIRROR_MISFIT_DEG``."""
+    return reflection_deg <= MIRROR_FIT_DEG and rotation_deg >= MIRROR_MISFIT_DEG
+
+
+def turned_and_reflected_deg(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[float, float]:
+    """The median angle (deg) left between the boards' camera normals and their LiDAR normals under the best
+    rotation, and under the best reflection (the nearest orthogonal matrix of determinant -1)."""
     Nc = np.array([p.normal for p in camera_planes])
     Nl = np.array([p.normal for p in lidar_planes])
     K, flip = Nc.T @ Nl, np.diag([1.0, 1.0, -1.0])
-    rotation = nearest_rotation(K)
-    reflection = nearest_rotation(K @ flip) @ flip  # the nearest orthogonal matrix of determinant -1
 
     def median_deg(M: np.ndarray) -> float:
         return float(np.degrees(np.median(np.arccos(np.clip(np.sum(Nc * (Nl @ M.T), axis=1), -1.0, 1.0)))))
 
-    turned, mirror = median_deg(rotation), median_deg(reflection)
-    return (turned, mirror) if mirror <= MIRROR_FIT_DEG and turned >= MIRROR_MISFIT_DEG else None
+    return median_deg(nearest_rotation(K)), median_deg(nearest_rotation(K @ flip) @ flip)
 
 
 # The boards :func:`distance_scale` needs: a scale and a translation correction (4 unknowns), with 2 dof to spare.
