@@ -109,11 +109,11 @@ def mirrored(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[flo
     return fit if is_mirror_fit(*fit) else None
 
 
-def is_mirror_fit(rotation_deg: float, reflection_deg: float) -> bool:
+def is_mirror_fit(rotation_deg: float, reflection_deg: float, misfit_deg: float = MIRROR_MISFIT_DEG) -> bool:
     """Whether boards whose normals a rotation leaves ``rotation_deg`` apart (the median) and a reflection
     ``reflection_deg`` fit through a mirror: the reflection within ``MIRROR_FIT_DEG``, the rotation beyond
-    ``MIRROR_MISFIT_DEG``."""
-    return reflection_deg <= MIRROR_FIT_DEG and rotation_deg >= MIRROR_MISFIT_DEG
+    ``misfit_deg``."""
+    return reflection_deg <= MIRROR_FIT_DEG and rotation_deg >= misfit_deg
 
 
 def turned_and_reflected_deg(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[float, float]:
