@@ -513,6 +513,30 @@ def test_scans_numbered_frames_off_their_images_are_refused_naming_the_shift(sim
         assert f"numbered {words} off their images" in err, err
 
 
+def test_a_pinhole_camera_declared_a_fisheye_is_refused_naming_the_model(sim_vlp16, tmp_path, capsys):
+    # The simulated pinhole's k1 k2 p1 p2 (its k3 is 0) declared as a fisheye's k1..k4: its boards fit at a median
+    # 0.70 px (0.06 as the pinhole it is), and the set read UNTRUSTED with 7 of 8 boards off the estimate. Refused
+    # in one line naming the model, by the command line and by the API's measurement (naming dataset.yaml).
+    import yaml
+
+    from estimators import measure
+    from estimators.errors import DatasetError
+
+    spec = yaml.safe_load((sim_vlp16 / "dataset.yaml").read_text())
+    folder = tmp_path / "declared_fisheye"
+    shutil.copytree(sim_vlp16, folder)
+    camera = {**spec["camera"], "model": "fisheye", "dist": spec["camera"]["dist"][:4]}
+    (folder / "dataset.yaml").write_text(yaml.safe_dump({**spec, "camera": camera}))
+    assert main(["calibrate", str(folder), "--out", str(tmp_path / "out"), "--samples", "0", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists(), err
+    assert "camera cam0's boards fit the intrinsics as a fisheye camera" in err, err
+    assert "camera.model is pinhole, not fisheye" in err, err
+    with pytest.raises(DatasetError, match="the camera's boards fit .* camera.model is pinhole") as raised:
+        measure(folder, np.random.default_rng(0))
+    assert raised.value.path.endswith("dataset.yaml")
+
+
 def test_intrinsics_for_another_resolution_are_refused_naming_the_principal_point(sim_vlp16, tmp_path, capsys):
     # K for twice the images' size puts every board twice as far as its returns: each frame was skipped with "only
     # 0 points ... where the camera puts the board" and the pair refused for too few frames. With the principal

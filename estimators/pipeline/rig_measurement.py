@@ -22,8 +22,8 @@ from ..io.measurement_store import (RIG_FORMAT, RigMeasurements, cache_dir, data
 from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
-from ..pipeline.measurement import (SHIFTS, Hints, LidarSweeps, detect_in_image, measure_frames, read_sweeps,
-                                    relative_name, shift_agrees, shift_words)
+from ..pipeline.measurement import (SHIFTS, Hints, LidarSweeps, detect_in_image, measure_frames, model_as_given,
+                                    read_sweeps, relative_name, shift_agrees, shift_words)
 from ..solvers.association import AssociationParams
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
@@ -74,6 +74,9 @@ def measure_camera(sensor: Sensor, board, detections: list
                 skipped[f.name] = f"board pose: {exc.message}"
                 if isinstance(exc, AmbiguousOrientationError):
                     ambiguous.add(f.name)
+    if sensor.camera is not None and not camera.source.startswith("refined"):
+        model_as_given(camera, board, {f.name: det for f, (_, det) in zip(frames, detections) if f.name in poses},
+                       poses, f"camera {sensor.name}")
     return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}, frozenset(ambiguous)
 
 
