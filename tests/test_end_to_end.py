@@ -513,6 +513,27 @@ def test_scans_numbered_frames_off_their_images_are_refused_naming_the_shift(sim
         assert f"numbered {words} off their images" in err, err
 
 
+def test_a_board_declared_by_its_inner_corners_is_refused_naming_the_squares(sim_vlp16, tmp_path, capsys):
+    # The simulated 9 x 7-square board declared 8 x 6 (its inner corners, as OpenCV counts them): on its 8 frames it
+    # was found in 1 image and the pair refused as "only 1 usable frame(s) ... record more board poses". Here on 3
+    # of them (each image searched in vain costs the classic detector's time budget), found in none; a board of a
+    # square more along each side is found in each: refused naming board.squares and the count that fits.
+    import yaml
+
+    spec = yaml.safe_load((sim_vlp16 / "dataset.yaml").read_text())
+    folder = tmp_path / "inner_corners"
+    folder.mkdir()
+    for f in load_dataset(sim_vlp16).frames[:3]:
+        shutil.copy(f.image, folder / f.image.name)
+        shutil.copy(f.scan, folder / f.scan.name)
+    (folder / "dataset.yaml").write_text(yaml.safe_dump({**spec, "board": {**spec["board"], "squares": [8, 6]}}))
+    assert main(["calibrate", str(folder), "--out", str(tmp_path / "out"), "--samples", "0", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists(), err
+    assert "found the 8 x 6-square board in 0 of 3 images, and a 9 x 7-square one in each of" in err, err
+    assert "board.squares counts the squares" in err and "set board.squares: [9, 7]" in err, err
+
+
 def test_a_pinhole_camera_declared_a_fisheye_is_refused_naming_the_model(sim_vlp16, tmp_path, capsys):
     # The simulated pinhole's k1 k2 p1 p2 (its k3 is 0) declared as a fisheye's k1..k4: its boards fit at a median
     # 0.70 px (0.06 as the pinhole it is), and the set read UNTRUSTED with 7 of 8 boards off the estimate. Refused

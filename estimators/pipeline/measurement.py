@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from geometry.board import BoardModel
 from geometry.camera import CameraModel
 from geometry.planes import on_plane_along_beams, plane_difference
 from geometry.rotations import T_inverse, skew, transform_points
@@ -319,6 +320,9 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
                                        detect_in_image(f, dataset.board, timings), dataset.frames))
     finally:
         cv2.setNumThreads(cv_threads)
+    if not board_poses:  # a rig's cameras were checked when their boards were found
+        with about(dataset.yaml_path):
+            squares_as_given(dataset.board, [f.image for f in dataset.frames], [d for _, d in detections])
     camera = dataset.camera
     sizes = {s for s, _ in detections if s is not None}
     if camera is None:
@@ -374,6 +378,45 @@ def _measure_frames_with(dataset: Dataset, rng: np.random.Generator, params: Seg
                                     sweeps_ahead())
     _in_the_images_scale(dataset, camera, frames)
     return camera, frames, warnings
+
+
+# Images in which a checkerboard found in at most one frame is looked for with one square more and one fewer
+# along each side (:func:`squares_as_given`).
+SQUARES_TRIED_IMAGES = 3
+
+
+def squares_as_given(board, images: list, detections: list, who: str = "the camera") -> None:
+    """Refuse ``board.squares`` counted as inner corners (or one too many): where a checkerboard was found in at
+    most one of 3 or more ``images`` (``detections`` their ``detect_in_image`` corners: None where not found), and
+    one of a square more (or fewer) along each side is found in every one of up to ``SQUARES_TRIED_IMAGES`` images
+    where it was not (no pair calibrates from one board: it would be refused for too few frames, blaming the
+    layout). A simulated 9 x 7-square board
+    declared 8 x 6 was found in 1 of 8 images and refused as "only 1 usable frame(s) ... record more board poses";
+    declared 10 x 8, in none, each frame skipped as "board not found in the image"."""
+    if board.is_charuco or len(images) < 3:
+        return
+    found = sum(isinstance(d, CornerDetection) for d in detections)
+    missed = [img for img, d in zip(images, detections) if d is None][:SQUARES_TRIED_IMAGES]
+    if found >= 2 or len(missed) < 2:  # two boards calibrate a scanner whose board's size is given
+        return
+    nx, ny = board.squares
+    for ax, ay in ((nx + 1, ny + 1), (nx - 1, ny - 1)):
+        try:
+            other = BoardModel((ax, ay), board.square_size)
+        except ValueError:  # fewer than 3 squares along a side
+            continue
+        seen = []
+        for img in missed:
+            try:
+                seen.append(detect_corners(read_gray(img), other) is not None)
+            except (ImageReadError, MeasurementError):
+                seen.append(False)
+        if all(seen):
+            names = ", ".join(Path(img).name for img in missed)
+            raise DatasetError(f"{who} found the {nx} x {ny}-square board in {found} of {len(images)} images, and a "
+                               f"{ax} x {ay}-square one in each of {names}, where it did not: board.squares counts "
+                               f"the squares (a {ax} x {ay}-square board has {ax - 1} x {ay - 1} inner corners)",
+                               hint=f"set board.squares: [{ax}, {ay}] if that is the board's count of squares")
 
 
 # A camera's boards fitting its given intrinsics with a median reprojection RMS above this (px) are fitted again

@@ -23,7 +23,7 @@ from ..io.rig_dataset import RigDataset, Sensor
 from ..lidar.board_segmentation import SegmentationParams
 from ..measurements import FrameMeasurement
 from ..pipeline.measurement import (SHIFTS, Hints, LidarSweeps, detect_in_image, measure_frames, model_as_given,
-                                    read_sweeps, relative_name, shift_agrees, shift_words)
+                                    read_sweeps, relative_name, shift_agrees, shift_words, squares_as_given)
 from ..solvers.association import AssociationParams
 from ..solvers.factor_graph import CameraViews, LidarViews, PlaneError
 from ..solvers.noise_levels import corner_noise_levels, own_fit_residuals
@@ -78,6 +78,15 @@ def measure_camera(sensor: Sensor, board, detections: list
         model_as_given(camera, board, {f.name: det for f, (_, det) in zip(frames, detections) if f.name in poses},
                        poses, f"camera {sensor.name}")
     return camera, poses, skipped, warnings, {f.name: d for f, d in zip(frames, detections)}, frozenset(ambiguous)
+
+
+def _squares_as_given(rig: RigDataset, sensor: Sensor, corners: dict) -> None:
+    """``measurement.squares_as_given`` for one camera of ``rig`` (its images' corners in ``corners`` by path): in a
+    rig of several cameras, called only where no camera found the board in 2 frames, so that a camera that sees it
+    seldom (partly out of view, where a smaller pattern may be found) is not read as the board's count."""
+    frames = camera_frames(sensor)
+    squares_as_given(rig.board, [f.image for f in frames], [corners[f.image][1] for f in frames],
+                     f"camera {sensor.name}")
 
 
 def camera_views_of(name: str, camera: CameraModel, poses: dict, board,
@@ -270,9 +279,13 @@ def measure_rig(rig: RigDataset, rng: np.random.Generator, workers: int = 2,
         for s in rig.cameras:
             for image, p in pending[s.name]:
                 corners.setdefault(image, p.result() if isinstance(p, Future) else p)
+            if len(rig.cameras) == 1:  # before its intrinsics are calibrated from the boards found, if it has none
+                _squares_as_given(rig, s, corners)
             cameras[s.name], poses[s.name], skipped[s.name], w, found[s.name], ambiguous[s.name] = measure_camera(
                 s, rig.board, [corners[image] for image, _ in pending[s.name]])
             warnings.extend(w)
+        if len(rig.cameras) > 1 and all(len(poses[c.name]) < 2 for c in rig.cameras):
+            _squares_as_given(rig, max(rig.cameras, key=lambda c: len(c.files)), corners)
         sweeps = {name: got.result() if isinstance(got, Future) else got for name, got in sweeps.items()}
         read.update({(lid.name, lid.files): sweeps[lid.name] for lid in rig.lidars if lid.name in sweeps})
     _cameras_not_shifted(rig, poses)
