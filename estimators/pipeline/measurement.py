@@ -390,9 +390,9 @@ def squares_as_given(board, images: list, detections: list, who: str = "the came
     most one of 3 or more ``images`` (``detections`` their ``detect_in_image`` corners: None where not found), and
     one of a square more (or fewer) along each side is found in every one of up to ``SQUARES_TRIED_IMAGES`` images
     where it was not (no pair calibrates from one board: it would be refused for too few frames, blaming the
-    layout). A simulated 9 x 7-square board
-    declared 8 x 6 was found in 1 of 8 images and refused as "only 1 usable frame(s) ... record more board poses";
-    declared 10 x 8, in none, each frame skipped as "board not found in the image"."""
+    layout). A simulated 9 x 7-square board declared 8 x 6 was found in 1 of 8 images and refused as "only 1 usable
+    frame(s) ... record more board poses"; declared 10 x 8, in none, each frame skipped as "board not found in the
+    image"."""
     if board.is_charuco or len(images) < 3:
         return
     found = sum(isinstance(d, CornerDetection) for d in detections)

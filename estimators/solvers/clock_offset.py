@@ -397,7 +397,9 @@ def solve_clock_offsets(views: list[TimedBoardView], sweeps: list[list[TimedSwee
             starts.append(_start(views, trajectory, s, offset_prior_s, grid_step_s, fixed_offset_s, rng,
                                  returns_per_sweep, extent))
         except LidarcamError as exc:
-            raise exc if names is None else in_pair(exc, names[k]) from None
+            if names is None:
+                raise
+            raise in_pair(exc, names[k]) from exc
     # Then every image's board pose joins the extrinsics and the offsets as an unknown (``moving_board_graph``):
     # the camera's pose noise is in the estimates and their covariance.
     # Both sensors' stamps jitter (read from their spacing): the camera's grows each image's pose covariance, the
