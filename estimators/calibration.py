@@ -22,7 +22,8 @@ from .measurements import FrameMeasurement
 from .pipeline.measurement import CONSENSUS_FAILED, Hints, measure
 from .pipeline.result import CalibrationResult
 from .pipeline.verdict import frame_disagrees, plane_residuals, returns_without_terms
-from .solvers.closed_form import describe_direction, mirrored, normal_spread, solve_closed_form
+from .solvers.closed_form import (MIRROR_CAUSE, MIRROR_HINT, describe_direction, mirrored, normal_spread,
+                                  solve_closed_form)
 from .solvers.intrinsics_refinement import intrinsics_drop
 from .solvers.posterior import PosteriorOptions
 from .solvers.refinement import refine as refine_graph
@@ -260,10 +261,8 @@ def _not_mirrored(used: list[FrameMeasurement]) -> None:
     fit = mirrored([f.camera.plane for f in used], [f.lidar.plane for f in used])
     if fit is not None:
         raise DatasetError(f"the LiDAR's boards match the camera's through a mirror, not a rotation (their normals "
-                           f"{fit[1]:.1f} deg apart reflected, {fit[0]:.1f} deg turned): its points are in a "
-                           "left-handed frame, one axis negated or two swapped, or the images are mirrored",
-                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up), "
-                                "and the images as the camera sees them (no driver's flip)")
+                           f"{fit[1]:.1f} deg apart reflected, {fit[0]:.1f} deg turned): {MIRROR_CAUSE}",
+                           hint=MIRROR_HINT)
 
 
 def _no_posterior(posterior: PosteriorOptions | None, samples: int | None) -> None:

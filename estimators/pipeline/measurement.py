@@ -13,7 +13,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from geometry.board import BoardModel
-from geometry.camera import CameraModel
+from geometry.camera import FISHEYE, PINHOLE, CameraModel
 from geometry.planes import on_plane_along_beams, plane_difference
 from geometry.rotations import T_inverse, skew, transform_points
 
@@ -431,10 +431,10 @@ def other_model(camera: CameraModel) -> CameraModel | None:
     """``camera`` as the other lens model with the same K and coefficients: a fisheye's k1..k4 as a pinhole's k1 k2
     p1 p2, and back (a pinhole's fifth, k3, must be 0); None where the coefficients do not fit the other model."""
     dist = camera.dist
-    if camera.model == "fisheye":
-        return replace(camera, model="pinhole")
+    if camera.model == FISHEYE:
+        return replace(camera, model=PINHOLE)
     if len(dist) == 4 or len(dist) == 5 and dist[4] == 0.0:
-        return replace(camera, model="fisheye", dist=dist[:4].copy())
+        return replace(camera, model=FISHEYE, dist=dist[:4].copy())
     return None
 
 

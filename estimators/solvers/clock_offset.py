@@ -27,7 +27,8 @@ from geometry.trajectory import PoseSplines
 
 from ..errors import DatasetError, DegenerateLayoutError, LidarcamError, in_pair
 from ..measurements import TimedBoardView, TimedSweep
-from .closed_form import is_mirror_fit, solve_closed_form, turned_and_reflected_deg
+from .closed_form import (MIRROR_CAUSE, MIRROR_HINT, is_mirror_fit, solve_closed_form,
+                          turned_and_reflected_deg)
 from .factor_graph import adjoint
 from .moving_board_graph import LidarBlock, along_beam_residuals, refine_many, stamp_jitter_s, with_stamp_jitter
 
@@ -333,10 +334,7 @@ def _not_mirrored(fits: np.ndarray) -> None:
     if is_mirror_fit(turned, reflected, MOVING_MIRROR_MISFIT_DEG):
         raise DatasetError(f"the LiDAR's sweeps of the board match the camera's board through a mirror, and at no "
                            f"clocks' offset through a rotation (their normals {reflected:.1f} deg apart reflected, "
-                           f"{turned:.1f} deg turned at best): its points are in a left-handed frame, one axis "
-                           "negated or two swapped, or the images are mirrored",
-                           hint="write the points in the LiDAR's own right-handed frame (x forward, y left, z up), "
-                                "and the images as the camera sees them (no driver's flip)")
+                           f"{turned:.1f} deg turned at best): {MIRROR_CAUSE}", hint=MIRROR_HINT)
 
 
 def _on_the_board(kept: list, T: np.ndarray, dt: float, trajectory) -> list:

@@ -96,6 +96,10 @@ def solve_closed_form(camera_planes: list[Plane], lidar_planes: list[Plane], all
 # one beyond MIRROR_MISFIT_DEG (on simulated HDL-64E and VLP-16 sets mirrored or with x and y swapped: 0.1-0.2
 # against 11-38 deg; correct sets the other way round). The median lets a wrong board or two through.
 MIRROR_FIT_DEG, MIRROR_MISFIT_DEG = 2.0, 5.0
+# What a mirror fit means and what to do, in every refusal of one (still poses, a moving board).
+MIRROR_CAUSE = "its points are in a left-handed frame, one axis negated or two swapped, or the images are mirrored"
+MIRROR_HINT = ("write the points in the LiDAR's own right-handed frame (x forward, y left, z up), and the images as "
+               "the camera sees them (no driver's flip)")
 
 
 def mirrored(camera_planes: list[Plane], lidar_planes: list[Plane]) -> tuple[float, float] | None:
