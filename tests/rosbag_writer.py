@@ -263,7 +263,8 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
                     time_offset_s: float = 0.0, speed_mps: float = 0.5, turn_dps: float = 45.0,
                     camera_hz: float = 20.0, lidar_hz: float = 10.0, exposure_s: float = 0.004,
                     time_field: str | None = "t", pauses: tuple = (), image_topic: str = "/camera/image_raw",
-                    lidar_topic: str = "/points", more_lidars: tuple = (), more_image_topics: tuple = ()):
+                    lidar_topic: str = "/points", more_lidars: tuple = (), more_image_topics: tuple = (),
+                    times_reversed: bool = False):
     """A board waved before ``rig`` for ``duration_s`` (``simulation.waved_board``), recorded as a bag: every
     image (``simulation.board_drawing``, blurred over ``exposure_s``, stamped at mid-exposure in the camera's
     clock, ``time_offset_s`` ahead of the LiDAR's), every whole sweep in a room clear of the board's path
@@ -271,7 +272,8 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
     firing order), CameraInfo once. ``more_lidars``: further LiDARs ``(topic, rig, offset_s)``, each its own
     ``rig`` (the same camera and board, its own ``T_camera_lidar`` and beams) and its own clock, the camera's
     ``offset_s`` ahead of it; ``more_image_topics``: the same images on further topics (a second camera's, with
-    its CameraInfo). Returns the motion (the truth)."""
+    its CameraInfo); ``times_reversed``: each return's time written as the sweep's period less it (a field that
+    counts down through the firing order). Returns the motion (the truth)."""
     from estimators.simulation.board_drawing import draw_board
     from estimators.simulation.waved_board import room_for, scene_sweep, waving
 
@@ -297,6 +299,7 @@ def write_waved_bag(bag_path: Path, kind: str, rig, duration_s: float, rng: np.r
             else:
                 topic, r, _ = lidars[k]
                 xyz, times, ring = scene_sweep(r, motion, t, period, rng, rooms[k])
+                times = period - times if times_reversed else times
                 msg = cloud_message(bag, xyz, s, times if time_field else None, time_field or "t", ring)
                 bag.write(topic, msg, s + int(period * 1e9))
     return motion

@@ -262,6 +262,17 @@ def test_a_still_pose_bag_keeps_its_answer_and_finds_the_offset_from_the_motion_
     assert keys["time_offset_s"] == off.time_offset_s and keys["time_offset_std_s"] == off.time_offset_std_s
     assert "+- " in off.line() and "between the poses" in off.line()
     assert html.escape(off.line()) in result.report(tmp_path / "report").read_text()
+    # its time field read as running against the returns' stored order: the offset's words say what it rests on
+    from estimators.pipeline.offset_between_poses import offset_between_poses
+
+    z = dict(np.load(tmp_path / "ds" / "motion.npz"))
+    assert not z["times_against_order"]
+    np.savez_compressed(tmp_path / "poses_only" / "motion.npz", **{**z, "times_against_order": np.bool_(True)})
+    pair = result.pair("cam0", "lidar0")
+    flagged = offset_between_poses(tmp_path / "poses_only", load_rig(tmp_path / "ds").board, result.cameras["cam0"],
+                                   pair.T, pair.covariance, np.random.default_rng(0))
+    assert abs(flagged.time_offset_s - off.time_offset_s) < 0.5 * off.time_offset_std_s
+    assert "runs backwards against the order" in flagged.words and "backwards" not in off.words
 
 
 def test_a_rig_bag_times_each_lidar_against_the_first_camera(still_poses, tmp_path, capsys):
@@ -316,6 +327,7 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     assert main(["extract", str(tmp_path / "bag.bag"), *topics, "--board", BOARD, "--out", str(tmp_path / "rig")]) == 0
     assert capsys.readouterr().out.startswith("a moving board")
     assert json.loads((tmp_path / "rig" / "extract.json").read_text())["recording"] == "moving board"
+    assert not any(load_motion_track(tmp_path / "rig" / n).times_against_order for n in ("lidar0", "lidar1"))
     assert main(["calibrate", str(tmp_path / "rig"), "--out", str(tmp_path / "cal")]) == 0
     out = capsys.readouterr().out
     # a command that takes still poses says what the folder is (it said "no frames in cam0/; add NNNN files")
@@ -355,6 +367,26 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "cam0-lidar1: the LiDAR's sweeps of the board match the camera's board " \
         "through a mirror" in err and not (tmp_path / "no").exists(), err
+
+
+def test_a_time_field_counting_down_against_the_firing_order_makes_the_offset_a_check(tmp_path, capsys):
+    """3 s of waving whose LiDAR time field counts down through each sweep (the period less each return's time):
+    extract says so, and the calibration's verdict is CHECK naming it, for its offset lies 8 ms from the truth (11
+    standard deviations) with the fit as good as the true field's; the extrinsic does not depend on it. It read
+    OK."""
+    rig = _small_rig(5)
+    write_waved_bag(tmp_path / "bag.bag", "ros1", rig, 3.0, np.random.default_rng(5), time_offset_s=-0.03,
+                    speed_mps=0.6, turn_dps=50.0, times_reversed=True)
+    assert main(["extract", str(tmp_path / "bag.bag"), "--image-topic", "/camera/image_raw", "--cloud-topic",
+                 "/points", "--board", BOARD, "--out", str(tmp_path / "ds")]) == 0
+    assert "it runs backwards against the returns' stored order" in capsys.readouterr().out
+    assert load_motion_track(tmp_path / "ds").times_against_order
+    cal, out = _calibrated(tmp_path, "cal", capsys, "--samples", "0", "--no-report")
+    assert abs(cal["time_offset_s"] + 0.03) > 4 * cal["time_offset_std_s"]
+    assert cal["verdict"]["level"] == "CHECK" and out.startswith("CHECK: the LiDAR's time field runs backwards "
+                                                                 "against the order its returns are stored in")
+    xi = T_log(T_inverse(np.array(cal["T_camera_lidar"])) @ rig.T_camera_lidar)
+    assert np.all(np.abs(xi) <= SIGMAS * np.sqrt(np.diag(np.array(cal["covariance"]))))
 
 
 def test_a_rig_bag_with_the_board_moving_throughout_and_two_cameras_is_refused_in_one_line(tmp_path, capsys):

@@ -126,3 +126,22 @@ def test_time_fields_that_cannot_be_times_are_one_line_errors():
     # a field whose spread no unit makes a sweep's (picoseconds)
     with pytest.raises(BagError, match=r"time field 't' \(float64\) spans .* no unit makes the returns span a sweep"):
         decode_point_times(_message(points, {"t": (1e12 * t, "f8")}), "/points")
+
+
+@pytest.mark.parametrize("ring_major", [False, True], ids=["column-major", "ring-major"])
+def test_a_time_field_counting_down_against_the_stored_order_is_marked(ring_major):
+    """A field that counts down through the returns' stored order (the period less each time, as a driver's time to
+    the sweep's end) is marked and said (a board spans too little of a turn to tell it, and it moved a waved
+    board's clocks' offset by 8 ms, 11 standard deviations); fields that count up are not, whether from the
+    stamp or before it (a Velodyne stamped at its last packet), nor is a shuffled cloud (no order to check)."""
+    rng = np.random.default_rng(8)
+    points, t = _sweep(rng, ring_major=ring_major)
+    height = 16 if ring_major else 1
+    down = decode_point_times(_message(points, {"t": (np.round(1e9 * (PERIOD_S - t)), "u4")}, height=height), "/p")
+    assert down.against_order and down.source.endswith("runs backwards against the returns' stored order")
+    for field in ({"t": (np.round(1e9 * t), "u4")}, {"time": (t - PERIOD_S, "f4")}):
+        up = decode_point_times(_message(points, field, height=height), "/p")
+        assert not up.against_order and "backwards" not in up.source
+    shuffled = rng.permutation(len(t))
+    assert not decode_point_times(_message(points[shuffled], {"t": (np.round(1e9 * (PERIOD_S - t[shuffled])), "u4")}),
+                                  "/p").against_order

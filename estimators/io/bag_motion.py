@@ -100,6 +100,7 @@ class MovingBoardReader:
         self.points: list[np.ndarray] = []
         self.offsets: list[np.ndarray] = []
         self.sources: Counter = Counter()
+        self.against = 0  # sweeps whose time field ran against their stored order
 
     def image(self, stamp: int, msg) -> None:
         self.origin = stamp if self.origin is None else min(self.origin, stamp)
@@ -271,6 +272,7 @@ class MovingBoardReader:
             self.counts["no_times"] += 1
             return
         self.sources[times.source] += 1
+        self.against += times.against_order
         # The board's returns are found in a worker process while this one reads on (a 64-beam sweep takes tens of
         # milliseconds); results are taken in order, each sweep with its own seed, so the record does not depend on
         # the timing.
@@ -341,7 +343,8 @@ class MovingBoardReader:
                            (np.array(self.sweep_stamps, dtype=np.int64) - o) * 1e-9,
                            np.array([len(p) for p in self.points]), np.concatenate(self.points),
                            np.concatenate(self.offsets), source,
-                           (np.array(self.example_stamps, dtype=np.int64) - o) * 1e-9)
+                           (np.array(self.example_stamps, dtype=np.int64) - o) * 1e-9,
+                           2 * self.against > sum(self.sources.values()))
 
 
 def _square_px(corners: np.ndarray) -> float:

@@ -58,6 +58,10 @@ class MotionTrack:
         How the returns' times were read, in words.
     example_stamps_s : numpy.ndarray
         (E,) the stamps of the few images kept whole for the report (``examples/NNNN.png``, in order).
+    times_against_order : bool
+        Whether most sweeps' time field ran backwards against their returns' stored order
+        (``io.point_times.against_stored_order``): one of the two is not the firing order, and the clocks' offset
+        rests on which.
     """
 
     origin_ns: int
@@ -69,6 +73,7 @@ class MotionTrack:
     offsets_s: np.ndarray
     point_times: str = ""
     example_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    times_against_order: bool = False
 
     def sweeps(self) -> list[TimedSweep]:
         """Each sweep's returns with their times."""
@@ -105,7 +110,8 @@ def save_motion_track(folder: str | os.PathLike, track: MotionTrack) -> Path:
                         corners_px=track.corners_px.astype(np.float32), sweep_stamps_s=track.sweep_stamps_s,
                         sweep_sizes=track.sweep_sizes.astype(np.int64), points=track.points.astype(np.float32),
                         offsets_s=track.offsets_s.astype(np.float32), point_times=np.array(track.point_times),
-                        example_stamps_s=np.asarray(track.example_stamps_s, dtype=float))
+                        example_stamps_s=np.asarray(track.example_stamps_s, dtype=float),
+                        times_against_order=np.bool_(track.times_against_order))
     return path
 
 
@@ -124,6 +130,8 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
         raise DatasetError(f"not a moving board's record (no {', '.join(missing)})", path=path, hint=hint)
     a = {k: np.asarray(z[k]) for k in _ARRAYS}
     words = str(z["point_times"]) if "point_times" in z else ""
+    flag = np.asarray(z.get("times_against_order", False))  # a record from before the check: not checked
+    against = flag.shape == () and flag.dtype.kind in "biu" and bool(flag)
     examples = np.asarray(z.get("example_stamps_s", np.zeros(0)))
     if examples.dtype.kind not in "fiu" or examples.ndim != 1 or not np.all(np.isfinite(examples)):
         examples = np.zeros(0)  # the report's images only: a damaged list draws none
@@ -143,4 +151,4 @@ def load_motion_track(folder: str | os.PathLike) -> MotionTrack:
                            path=path, hint=hint)
     return MotionTrack(int(a["origin_ns"]), a["view_stamps_s"].astype(float), a["corners_px"].astype(float),
                        a["sweep_stamps_s"].astype(float), a["sweep_sizes"].astype(int), a["points"],
-                       a["offsets_s"], words, examples.astype(float))
+                       a["offsets_s"], words, examples.astype(float), against)

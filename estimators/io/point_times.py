@@ -8,6 +8,12 @@ the sweep's last packet), Ouster's ``t`` (uint32 nanoseconds from the stamp), He
 under which the sweep's returns span a sweep's duration, and the reference the stamp when the values are small
 (relative), the stamp's clock when they lie near it (absolute), else another clock (a sensor's own, unsynchronised:
 the offsets are kept and the sweep's first return placed at its stamp, a constant the clock offset takes up).
+
+A field is also checked against the order the returns are stored in, where that order turns once through the sweep
+as a spinning LiDAR fires (:func:`against_stored_order`): a field that counts down through it (a driver's time to
+the sweep's end, or a reversed field) and a cloud stored against its firing order cannot be told apart by a board,
+which spans too little of a turn, yet either moves the clocks' offset by up to a sweep. The moving board's verdict
+says so.
 """
 from __future__ import annotations
 
@@ -31,6 +37,11 @@ RELATIVE_S = 1.0
 SAME_CLOCK_S = 10.0
 # A time field coarser than this (float32 absolute seconds: 128 s steps) tells nothing within a sweep.
 FINEST_STEP_S = 1e-5
+# A time field whose rank correlation with the stored order's turn through the sweep is below this runs against it
+# (a field and its order agree to about +1, whatever the row layout; a reversed one to about -1).
+AGAINST_ORDER = -0.5
+AGAINST_WORDS = "; it runs backwards against the returns' stored order"
+ORDER_SAMPLE = 4096  # returns (every k-th) the check reads: 1 ms a sweep
 
 
 @dataclass(frozen=True)
@@ -47,6 +58,7 @@ class PointTimes:
 
     offset_s: np.ndarray
     source: str
+    against_order: bool = False
 
 
 def time_field(names) -> str | None:
@@ -130,6 +142,26 @@ def azimuth_times(points: np.ndarray, period_s: float, why: str = "the cloud has
     turn = "counter-clockwise" if direction > 0 else "clockwise"
     return PointTimes(offset, f"azimuth ({turn} seen from above, from the first stored return at the stamp, "
                               f"{1 / period_s:.3g} Hz): {why}")
+
+
+def against_stored_order(times: PointTimes, points: np.ndarray, rows: np.ndarray | None = None) -> PointTimes:
+    """``times`` read from a field, marked (``against_order``, and its words) where they run backwards against the
+    order the returns are stored in: their rank correlation with that order's turn through the sweep
+    (:func:`azimuth_times`: where the stored order turns once, whole or row by row) below ``AGAINST_ORDER``.
+    Unchanged where the stored order does not turn once (a cropped, shuffled or non-repetitive cloud): there is
+    nothing to check against."""
+    if len(times.offset_s) != len(points):
+        return times
+    every = max(1, len(points) // ORDER_SAMPLE)  # a stride keeps the stored order's turn (5.6 deg steps at 64 x 1024)
+    order = azimuth_times(points[::every], 1.0, rows=None if rows is None else rows[::every])
+    if order is None:
+        return times
+    ranks = [np.argsort(np.argsort(a, kind="stable")).astype(float) for a in (times.offset_s[::every], order.offset_s)]
+    if np.ptp(ranks[0]) == 0 or np.ptp(ranks[1]) == 0:
+        return times
+    if float(np.corrcoef(*ranks)[0, 1]) >= AGAINST_ORDER:
+        return times
+    return PointTimes(times.offset_s, times.source + AGAINST_WORDS, True)
 
 
 def _one_turn(turned_rad: float) -> bool:

@@ -15,7 +15,7 @@ from geometry.camera import FISHEYE, PINHOLE, CameraModel
 
 from ..errors import BagError
 from .image_io import decode_image_bytes
-from .point_times import PointTimes, azimuth_times, field_times, time_field
+from .point_times import PointTimes, against_stored_order, azimuth_times, field_times, time_field
 
 # sensor_msgs/PointField datatypes.
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -156,10 +156,10 @@ def decode_timed_cloud(msg, topic: str = "", period_s: float | None = None
 def _times(msg, topic, period_s, name, pts, xyz, keep) -> PointTimes | None:
     """The returns' times from the field ``name`` (or None), else from their azimuth (``period_s``)."""
     times = field_times(pts[name][keep], name, stamp_ns(msg, 0), topic) if name is not None else None
-    if times is not None:
-        return times
-    why = "the cloud has no time field" if name is None else f"its time field {name!r} holds one value throughout"
     rows = (np.arange(keep.size) // max(int(msg.width), 1))[keep] if int(msg.height) > 1 else None
+    if times is not None:
+        return against_stored_order(times, xyz[keep], rows)
+    why = "the cloud has no time field" if name is None else f"its time field {name!r} holds one value throughout"
     return azimuth_times(xyz[keep], period_s, why, rows) if period_s else None
 
 

@@ -42,6 +42,10 @@ FEW_SWEEPS = 30
 NORMAL_SPREAD = 0.03
 # An image's board pose is solved from the one before within this (s).
 FOLLOW_S = 0.15
+# A time field that runs against its returns' stored order (``io.motion_track.MotionTrack.times_against_order``).
+AGAINST_ORDER_WORDS = ("the LiDAR's time field runs backwards against the order its returns are stored in: the "
+                       "clocks' offset holds only if the field, not the order, is the firing time (reversed, it "
+                       "moves by up to a sweep; the extrinsic does not depend on it)")
 TIME_OFFSET_CONVENTION = "time_offset_s = t_camera_stamp - t_lidar_stamp for one physical instant (seconds)"
 
 
@@ -96,6 +100,8 @@ class MovingBoardResult:
         if self.time_offset_std_s is not None and self.time_offset_std_s > OFFSET_SD_S:
             concerns.append((CHECK, f"the clocks' offset is known to {1000 * self.time_offset_std_s:.1f} ms only: "
                                     "wave the board faster or longer"))
+        if self.time_offset_std_s is not None and self.track is not None and self.track.times_against_order:
+            concerns.append((CHECK, AGAINST_ORDER_WORDS))
         if self.sweeps < FEW_SWEEPS:
             concerns.append((CHECK, f"only {self.sweeps} LiDAR sweeps of the board were used: record longer"))
         if self.normal_spread < NORMAL_SPREAD:

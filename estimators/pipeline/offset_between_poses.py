@@ -27,8 +27,8 @@ from ..io.motion_track import FOLLOWED_CAMERA, has_motion, load_motion_track
 from ..solvers import chi_square as chi2
 from ..solvers.clock_offset import MAX_GAP_S, OFFSET_PRIOR_S, POINTING_SD_PX, pointing_covariance, \
     solve_clock_offset, still_runs
-from .moving_board import EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, TIME_OFFSET_CONVENTION, board_views, \
-    own_scatter
+from .moving_board import AGAINST_ORDER_WORDS, EDGE_S, OFFSET_SD_S, SCATTER_RATIO, SCATTER_SLACK_M, \
+    TIME_OFFSET_CONVENTION, board_views, own_scatter
 
 # The motion's extrinsic and the poses' must agree to this tail probability (chi-square, 6 dof, their covariances
 # summed, the motion's with the camera's pointing as a moving board's; the two share only the sweeps at the ends
@@ -148,5 +148,7 @@ def offset_between_poses(folder: str | os.PathLike, board, camera, T_camera_lida
                  + ("read at the poses' extrinsic" if at_poses else "the motion's own (its extrinsic the surer)"))
         if sd > OFFSET_SD_S:
             words += "; known to little: move the board faster between poses"
+        if track.times_against_order:
+            words += f"; {AGAINST_ORDER_WORDS}"
         return OffsetBetweenPoses(dt, sd, words, **used)
     return OffsetBetweenPoses(None, None, f"not determined from the board's motion between the poses: {why}", **used)
