@@ -251,11 +251,13 @@ def test_recorded_vlp16_as_a_rig_keeps_the_pairs_range_model_and_estimate(vlp16)
     assert (pair.contradicted is None) == (res.contradicted is None)
 
 
-def test_the_vlp16_check_of_a_turned_calibration_that_it_cannot_tell_says_so(vlp16):
+def test_the_vlp16_check_of_a_turned_calibration_that_it_cannot_tell_says_so(vlp16, tmp_path):
     """The VLP-16 set's board calibration turned by 1 deg about the camera's y: the scene settles in a minimum of its
     own beside it and agrees (p = 1), but its check could flag only about 2.3 deg about y and 4.1 deg about z, so its
-    verdict is CHECK, naming what it could not tell (docs/bench/check_recorded.md), not OK."""
+    verdict is CHECK, naming what it could not tell (docs/bench/check_recorded.md), not OK. Its scans numbered a
+    frame off are refused naming that."""
     from estimators import calibrate
+    from estimators.errors import DatasetError
     from estimators.pipeline.scene_check import check_scene
     from geometry.rotations import R_from_rotvec, T_from_Rt
 
@@ -265,3 +267,16 @@ def test_the_vlp16_check_of_a_turned_calibration_that_it_cannot_tell_says_so(vlp
     assert c.consistent and c.verdict.level == "CHECK", (c.test["p_value"], c.verdict)
     words = c.verdict.reasons[0]
     assert words.startswith("the scene agrees (p = ") and "deg about camera z" in words, words
+    # Each scan renamed to the frame before its own: the scene contradicted the calibration (p = 1e-8), the next
+    # frame's board among the contours the camera's board mask leaves; refused naming the numbering, as calibrate
+    # refuses it from the boards.
+    shifted = tmp_path / "shifted"
+    shifted.mkdir()
+    for f in VLP16.iterdir():
+        name = f"{(int(f.stem) - 1) % 12:04d}.pcd" if f.suffix == ".pcd" else f.name
+        (shifted / name).symlink_to(f)
+    with pytest.raises(DatasetError, match=r"returns lie on the camera's board in \d+ of 12 frames as the files are "
+                       r"paired, but in 11 of 11 with each image paired with the scan a frame earlier \(0001.png's "
+                       r"board is in 0000.pcd\): the scans are numbered a frame off their images"):
+        check_scene(shifted, result.T_camera_lidar, camera=result.camera_model("cam0"),
+                    given_covariance=np.asarray(result.covariance))

@@ -153,6 +153,26 @@ def test_check_finds_the_truth_consistent_and_a_turned_extrinsic_contradicted(of
         assert 1000 * np.linalg.norm(T_scene[:3, 3] - truth[:3, 3]) < 10.0
 
 
+def test_scans_numbered_off_their_images_are_named_where_the_scene_contradicts(office):
+    """The office's frames read once and paired with the scans 2 frames earlier (in memory): under the true
+    extrinsic each image's board holds the returns of its own scan, not of the ones paired with it, and the
+    numbering is refused naming the shift and a pair; as the files are paired, nothing is said."""
+    from dataclasses import replace
+
+    from estimators.errors import DatasetError
+    from estimators.pipeline.scene_check import not_numbered_off, read_scene_frames
+
+    tmp, truth = office
+    read = read_scene_frames(tmp / "ds")
+    frames = read[3]
+    assert len(frames) == 10 and not_numbered_off(read, truth) is None
+    shifted = [replace(f, sweep=frames[(k - 2) % 10].sweep) for k, f in enumerate(frames)]
+    with pytest.raises(DatasetError, match=r"in 0 of 9 frames as the files are paired, but in 7 of 7 with each image "
+                                           r"paired with the scan 2 frames later \(0000.png's board is in 0002.pcd\): "
+                                           r"the scans are numbered 2 frames off"):
+        not_numbered_off(read[:3] + (shifted, read[4]), truth)
+
+
 def test_an_office_without_its_board_passes_its_truth_where_stands_and_walls_meet_the_floor(tmp_path):
     """Seed 100's office with a VLP-16, the board left out: the contours left are mostly its stands' (the grey of
     the floor below the floor's line, so their image edges end where the LiDAR's do not) and a wall's upright

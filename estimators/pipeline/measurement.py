@@ -951,9 +951,7 @@ def _not_shifted(dataset: Dataset, cams: list[tuple], readable, choose, rng: np.
         raise DatasetError(
             f"the frames' LiDAR boards agree on no one extrinsic as the files are paired, but {assoc.agreeing} of "
             f"{len(pairs)} do with each image paired with the scan {frames} {later} ({image}'s board is in {scan}): "
-            f"the scans are numbered {frames} off their images", path=dataset.root,
-            hint="renumber the scans (or the images) so that each NNNN pair was captured at one instant; "
-                 "lidarcam extract pairs a bag's by their stamps")
+            f"the scans are numbered {frames} off their images", path=dataset.root, hint=NUMBERING_HINT)
 
 
 def relative_name(path, root) -> str:
@@ -964,6 +962,8 @@ def relative_name(path, root) -> str:
         return Path(path).name
 
 
+NUMBERING_HINT = ("renumber the scans (or the images) so that each NNNN pair was captured at one instant; lidarcam "
+                  "extract pairs a bag's by their stamps")
 # The share of a shift's pairs whose boards must agree for the scans to be read as numbered a frame off their images.
 SHIFT_AGREEING = 2 / 3
 # The numberings tried, nearest first: a frame off either way (a first frame dropped), then two and three (a

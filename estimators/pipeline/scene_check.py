@@ -38,7 +38,8 @@ from ..lidar.depth_edges import depth_edges
 from ..solvers.scene_alignment import (SceneFit, SceneView, beam_spacing_px, beam_steps, consistency,
                                       minima_scatter, nearest_decided, rival_minima, scene_minima, smallest_flagged,
                                       transverse_edges, visible_from_camera)
-from .measurement import rigid, with_found_beams
+from .measurement import (NUMBERING_HINT, SHIFT_AGREEING, SHIFTS, relative_name, rigid, shift_agrees, shift_words,
+                          with_found_beams)
 from .result import CONVENTION, COVARIANCE_CONVENTION
 from .verdict import CHECK, OK, Verdict
 
@@ -54,6 +55,11 @@ EXIT_CONTRADICTED = 4
 # agrees (p = 1) while it could flag only (2.0, 2.3, 4.1) deg and (66, 121, 108) mm.
 VOUCHES_WITHIN = (2.0, 100.0)
 READ_THREADS = 2
+# A return lies on the board within this (m) of its plane and its outline; a scan holds a camera's board with at
+# least this many returns there (a recorded VLP-16's own scan puts 640-1250 on its board, the scans a frame off up
+# to 460; a simulated 64-beam office's 1460-2450, the others up to 300).
+ON_BOARD_M = 0.05
+MIN_ON_BOARD = 20
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,9 +202,9 @@ class SceneCheck:
         }
 
 
-def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
-    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board (a
-    calibration of these images searched them already: ``detect_corners`` keeps what it found)."""
+def _board_pose(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
+    """``T_camera_board`` where the camera finds the board, else None (a calibration of these images searched them
+    already, and so did the board's mask: ``detect_corners`` keeps what it found)."""
     from ..camera.board_pose import estimate_board_pose
     from ..camera.corners import detect_corners
 
@@ -206,10 +212,17 @@ def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | No
         det = detect_corners(gray, board)
         if not isinstance(det, CornerDetection):
             return None
-        obs = estimate_board_pose(det, board, camera)
+        return estimate_board_pose(det, board, camera).T_camera_board
     except LidarcamError:
         return None
-    uv = camera.project(transform_points(obs.T_camera_board, board.outline()))
+
+
+def _board_mask(gray: np.ndarray, board, camera: CameraModel) -> np.ndarray | None:
+    """The board's outline (widened by ``BOARD_MARGIN_PX``) as a mask, where the camera finds the board."""
+    T_camera_board = _board_pose(gray, board, camera)
+    if T_camera_board is None:
+        return None
+    uv = camera.project(transform_points(T_camera_board, board.outline()))
     if not np.all(np.isfinite(uv)):
         return None
     mask = np.zeros(gray.shape[:2], np.uint8)
@@ -259,6 +272,8 @@ class SceneFrame:
     gray: np.ndarray
     sweep: object
     board_mask: np.ndarray | None
+    index: int = 0  # its place in the folder's numbering
+    files: tuple = ()  # its image's and scan's names, for the words
 
 
 def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camera: CameraModel | None = None,
@@ -275,7 +290,8 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
                            hint="give a calibration of this camera at this resolution")
     camera = own if camera is None else camera
 
-    def read(f) -> SceneFrame | str:
+    def read(index_f) -> SceneFrame | str:
+        index, f = index_f
         try:
             gray = read_gray(f.image)
             if gray.shape[:2] != (camera.height, camera.width):
@@ -285,11 +301,11 @@ def read_scene_frames(folder: str | os.PathLike, keep_board: bool = False, camer
             mask = None if keep_board or board is None else _board_mask(gray, board, camera)
         except LidarcamError as exc:
             return exc.problem
-        return SceneFrame(f.name, gray, sweep, mask)
+        return SceneFrame(f.name, gray, sweep, mask, index, (relative_name(f.image, root), relative_name(f.scan, root)))
 
     # Decoding, reading and the board's search release the interpreter: two frames at a time.
     with ThreadPoolExecutor(max_workers=READ_THREADS) as pool:
-        got = list(pool.map(read, frames))
+        got = list(pool.map(read, enumerate(frames)))
     beams, why = with_found_beams({g.name: g.sweep for g in got if isinstance(g, SceneFrame)})
     got = [g if not isinstance(g, SceneFrame) else replace(g, sweep=beams[g.name])
            if beams[g.name].ring is not None else why for g in got]
@@ -384,7 +400,56 @@ def check_scene(folder: str | os.PathLike, T_given: np.ndarray, keep_board: bool
     t0 = time.perf_counter()
     T_given = rigid(T_given, folder, "the given extrinsic")
     read = read_scene_frames(folder, keep_board, camera, sensors)
-    return _checked(read, T_given, keep_board, sensors, given_covariance, t0, try_inverse=True)
+    checked = _checked(read, T_given, keep_board, sensors, given_covariance, t0, try_inverse=True)
+    if checked.consistent is False and read[2] is not None:
+        not_numbered_off(read, T_given)
+    return checked
+
+
+def on_board(T_board_lidar: np.ndarray, points: np.ndarray, board) -> int:
+    """How many of a sweep's ``points`` lie on the board at ``T_board_lidar``: within ``ON_BOARD_M`` of its plane
+    and of its outline."""
+    b = transform_points(T_board_lidar, points)
+    xy = board.outline()[:, :2]
+    inside = np.all((b[:, :2] > xy.min(axis=0) - ON_BOARD_M) & (b[:, :2] < xy.max(axis=0) + ON_BOARD_M), axis=1)
+    return int(np.sum(inside & (np.abs(b[:, 2]) < ON_BOARD_M)))
+
+
+def not_numbered_off(read: tuple, T_given: np.ndarray) -> None:
+    """Where the scene contradicted ``T_given``, refuse a folder whose scans are numbered a few frames off its
+    images, as ``calibrate`` refuses it from the boards (``measurement.SHIFTS``): under ``T_given``, each image's
+    board (where the camera finds it) holds the returns of the scan paired with it (:func:`on_board`, at least
+    ``MIN_ON_BOARD`` and half of the most any scan of the shifts puts there) in too few of the frames
+    (``SHIFT_AGREEING``), and a shift's scans hold them in ``measurement.shift_agrees`` of its pairs. The scene
+    alone cannot name it: a still rig's scene is the same in every frame (the recorded VLP-16 set, each scan a
+    frame off, read p = 1e-8 with the next frame's board among the contours, and its own calibration's frames
+    paired a frame off agree)."""
+    from geometry.rotations import T_inverse
+
+    root, camera, board, frames, _ = read
+    by_index = {f.index: f for f in frames}
+    poses = {f.index: T for f in frames if (T := _board_pose(f.gray, board, camera)) is not None}
+    counts = {(i, j): on_board(T_inverse(T) @ T_given, by_index[j].sweep.points, board)
+              for i, T in poses.items() for j in (i + s for s in (0,) + SHIFTS) if j in by_index}
+    most = {i: max(n for (k, _), n in counts.items() if k == i) for i in poses}
+
+    def held(shift: int) -> tuple[list, int]:
+        pairs = [(i, i + shift) for i in poses if (i, i + shift) in counts]
+        return pairs, sum(counts[p] >= max(MIN_ON_BOARD, 0.5 * most[p[0]]) for p in pairs)
+
+    pairs, own = held(0)
+    if own >= SHIFT_AGREEING * len(pairs) and own > 0:
+        return
+    for shift in SHIFTS:
+        shifted, agreeing = held(shift)
+        if len(shifted) < 4 or not shift_agrees(agreeing, len(shifted)):
+            continue
+        (i, j), (many, later) = shifted[0], shift_words(shift)
+        raise DatasetError(
+            f"the scene contradicts the given extrinsic, and under it the LiDAR's returns lie on the camera's board "
+            f"in {own} of {len(pairs)} frames as the files are paired, but in {agreeing} of {len(shifted)} with each "
+            f"image paired with the scan {many} {later} ({by_index[i].files[0]}'s board is in "
+            f"{by_index[j].files[1]}): the scans are numbered {many} off their images", path=root, hint=NUMBERING_HINT)
 
 
 def _checked(read: tuple, T_given: np.ndarray, keep_board: bool, sensors: tuple[str, str] | None,
