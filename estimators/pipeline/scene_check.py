@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from geometry.camera import CameraModel
-from geometry.rotations import transform_points
+from geometry.rotations import T_inverse, T_log, transform_points
 
 from .. import __version__
 from ..camera.detection import CornerDetection
@@ -97,8 +97,6 @@ class SceneCheck:
 
     def rivals_spread(self) -> tuple[float, float]:
         """How far the rival minima lie from the best: the largest angle (deg) and translation (mm)."""
-        from geometry.rotations import T_inverse, T_log
-
         xis = [T_log(T_inverse(self.fit.T_camera_lidar) @ f.T_camera_lidar) for f in self.rivals]
         return (max(float(np.degrees(np.linalg.norm(x[:3]))) for x in xis),
                 max(1000 * float(np.linalg.norm(f.T_camera_lidar[:3, 3] - self.fit.T_camera_lidar[:3, 3]))
@@ -424,8 +422,6 @@ def not_numbered_off(read: tuple, T_given: np.ndarray) -> None:
     alone cannot name it: a still rig's scene is the same in every frame (the recorded VLP-16 set, each scan a
     frame off, read p = 1e-8 with the next frame's board among the contours, and its own calibration's frames
     paired a frame off agree)."""
-    from geometry.rotations import T_inverse
-
     root, camera, board, frames, _ = read
     by_index = {f.index: f for f in frames}
     poses = {f.index: T for f in frames if (T := _board_pose(f.gray, board, camera)) is not None}
@@ -478,8 +474,6 @@ def _checked(read: tuple, T_given: np.ndarray, keep_board: bool, sensors: tuple[
 def given_in_tangent(C_given: np.ndarray, T_given: np.ndarray, T: np.ndarray) -> np.ndarray:
     """``T_given``'s covariance (its own right tangent) carried to ``T``'s, where the check reads the difference
     ``Log(T^-1 T_given)``: ``T_given Exp(e) = T D Exp(e) = T Exp(Ad(D) e) D`` with ``D = T^-1 T_given``."""
-    from geometry.rotations import T_inverse
-
     from ..solvers.factor_graph import adjoint
 
     A = adjoint(T_inverse(T) @ T_given)
