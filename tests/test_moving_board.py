@@ -426,6 +426,26 @@ def test_intrinsics_from_a_file_replace_camera_info_and_must_fit_the_images(wave
     assert not (tmp_path / "no").exists()
 
 
+def test_a_wrong_square_size_scales_the_cameras_distances_and_is_untrusted(waved, capsys, tmp_path):
+    """The waved record read with its squares declared 5% long: every image's board 5% farther, which the
+    extrinsic's translation took up (158 mm off, the offset 7 ms) and read OK. The sweeps' board distances
+    against the camera's scale by 3.6% +- 0.1% (the translation takes up the rest): UNTRUSTED naming the square
+    size; as recorded, the scale is within its limit."""
+    tmp, rig = waved
+    shutil.copytree(tmp / "ds", tmp_path / "ds")
+    yaml = tmp_path / "ds" / "dataset.yaml"
+    assert "square_size: 0.1\n" in yaml.read_text()
+    yaml.write_text(yaml.read_text().replace("square_size: 0.1\n", "square_size: 0.105\n"))
+    cal, out = _calibrated(tmp_path, "cal", capsys, "--samples", "0", "--no-report")
+    assert cal["verdict"]["level"] == "UNTRUSTED" and "board distances are +" in cal["verdict"]["reasons"][0]
+    assert "check board.square_size and the camera's intrinsics" in out.splitlines()[0]
+    assert cal["distance_scale"]["scale"] > 0.02
+    shutil.rmtree(tmp_path / "ds")
+    shutil.copytree(tmp / "ds", tmp_path / "ds")
+    cal, _ = _calibrated(tmp_path, "as_recorded", capsys, "--samples", "0", "--no-report")
+    assert abs(cal["distance_scale"]["scale"]) < 0.01 and "board distances" not in str(cal["verdict"]["reasons"])
+
+
 def test_a_damaged_moving_record_is_refused_in_one_line_naming_its_folder(waved, capsys, tmp_path):
     """motion.npz edited as a damaged recording could leave it: every other image's corners NaN (a pose solved from
     no corners raised numpy's singular-matrix error; now those images are left out and the rest calibrate), every

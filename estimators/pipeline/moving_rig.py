@@ -62,7 +62,7 @@ class MovingRigResult:
                                                       "covariance_with_time_offset", "images_used", "sweeps_used",
                                                       "sweeps_with_board", "range_rms_m",
                                                       "range_scatter_own_planes_m", "point_times", "normal_spread",
-                                                      "timings_s", "posterior", "posterior_note")}})
+                                                      "distance_scale", "timings_s", "posterior", "posterior_note")}})
             transforms[f"T_{cam}_{n}"] = _keys(r.pair)
         names = list(self.lidars)
         for i, a in enumerate(names):
