@@ -84,10 +84,13 @@ def test_a_waved_board_is_detected_extracted_and_calibrated_with_the_clocks_offs
     # the report: the images extract kept whole, each with the returns carried to its instant
     overlays = sorted((tmp / "cal").glob("moving_*.jpg"))
     assert overlays and all(p.name in (tmp / "cal" / "report.html").read_text() for p in overlays)
-    # Held at 0 (clocks taken as synchronised): said, no spread, and the extrinsic pulled away by the 30 ms.
+    # Held at 0 (clocks taken as synchronised): said, no spread, and the extrinsic pulled away by the 30 ms; the
+    # board's distances then scale against the LiDAR's (+3.0% +- 0.6%: a board moving towards the camera compared
+    # at the wrong instants), UNTRUSTED naming the held offset among the causes (it read OK)
     held, out = _calibrated(tmp, "held", capsys, "--time-offset", "0", "--no-report")
     assert held["time_offset_held"] and held["time_offset_s"] == 0.0 and held["time_offset_std_s"] is None
     assert "held at +0.00 ms" in out
+    assert out.startswith("UNTRUSTED") and "or the clocks' offset held at +0.0 ms" in out.splitlines()[0]
     err = T_log(T_inverse(np.array(held["T_camera_lidar"])) @ rig.T_camera_lidar)
     assert 1000 * np.linalg.norm(err[3:]) > 1000 * np.linalg.norm(
         T_log(T_inverse(np.array(cal["T_camera_lidar"])) @ rig.T_camera_lidar)[3:])

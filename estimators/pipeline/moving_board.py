@@ -109,9 +109,12 @@ class MovingBoardResult:
                                     "wave the board faster or longer"))
         if self.distance_scale is not None and abs(self.distance_scale[0]) > SCALE_LIMIT:
             scale, sd = self.distance_scale
+            held = "" if self.time_offset_std_s is not None else (
+                f", or the clocks' offset held at {1000 * self.time_offset_s:+.1f} ms (a board moving towards the "
+                "camera at the wrong instants: solve it, without --time-offset)")
             words = (f"the camera's board distances are {100 * scale:+.1f}% (+-{100 * sd:.1f}%) off the LiDAR's "
                      "ranges, which no LiDAR errs by: check board.square_size and the camera's intrinsics (its focal "
-                     "length and distortion); the extrinsic and the offset move with them")
+                     f"length and distortion){held}; the extrinsic and the offset move with them")
             if abs(scale) > SCALE_SIGMAS * sd:
                 concerns.append((UNTRUSTED, words))
             elif abs(scale) > SCALE_CHECK_SIGMAS * sd:
