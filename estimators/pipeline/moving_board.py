@@ -209,9 +209,11 @@ def moving_distance_scale(views: list[TimedBoardView], sweeps: list, T_camera_li
     camera_planes, lidar_planes = [], []
     for sweep in sweeps:
         times = sweep.stamp_s + sweep.offset_s
-        if len(times) < MIN_SCALE_RETURNS or not np.all(trajectory.covers(times + time_offset_s)):
+        if len(times) < MIN_SCALE_RETURNS:
             continue
         at = float(np.mean(times)) + time_offset_s
+        if not np.all(trajectory.covers(np.append(times + time_offset_s, at))):
+            continue  # its mean time too within a run (a slow LiDAR's sweep about a gap in the images)
         T_cb = trajectory(at)
         normal = T_cb[:3, 2]
         points = deskewed(sweep.points, times, T_camera_lidar, time_offset_s, trajectory, at)
