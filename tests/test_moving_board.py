@@ -346,6 +346,8 @@ def test_a_rig_bag_with_the_board_moving_throughout_times_and_places_each_lidar(
         xi = T_log(T_inverse(np.array(s[f"T_cam0_{s['name']}"])) @ T)
         assert np.degrees(np.linalg.norm(xi[:3])) < ROT_DEG and xi @ np.linalg.solve(s["covariance"], xi) < 22.5
         assert f"time offset (t_cam0_stamp - t_{s['name']}_stamp)" in out
+        # each LiDAR's sweeps on its own clock carried to the camera's: their board distances are the camera's
+        assert abs(s["moving_board"]["distance_scale"]["scale"]) < 0.01, s["moving_board"]["distance_scale"]
     between = np.array(cal["transforms"]["T_lidar0_lidar1"]["T"])
     assert np.allclose(between, T_inverse(np.array(cal["sensors"][1]["T_cam0_lidar0"])) @
                        np.array(cal["sensors"][2]["T_cam0_lidar1"]))
