@@ -30,7 +30,7 @@ from ..solvers.moving_posterior import MovingPosterior, sample_moving_posteriors
 from ..solvers.posterior import INTERVAL_LEVELS, equal_tailed
 from .pair_estimate import PairEstimate
 from .result import CONVENTION, COVARIANCE_CONVENTION
-from .verdict import CHECK, SCALE_CHECK_SIGMAS, SCALE_LIMIT, SCALE_SIGMAS, UNTRUSTED, Verdict, verdict_of
+from .verdict import CHECK, UNTRUSTED, Verdict, scale_level, scale_said, verdict_of
 
 # The verdict's limits: an offset this near its prior's edge (s) may be the edge's, not the data's; an offset's
 # standard deviation beyond this (s) says the board moved too little to time the sensors; fewer sweeps than this
@@ -107,18 +107,14 @@ class MovingBoardResult:
         if self.time_offset_std_s is not None and self.time_offset_std_s > OFFSET_SD_S:
             concerns.append((CHECK, f"the clocks' offset is known to {1000 * self.time_offset_std_s:.1f} ms only: "
                                     "wave the board faster or longer"))
-        if self.distance_scale is not None and abs(self.distance_scale[0]) > SCALE_LIMIT:
-            scale, sd = self.distance_scale
+        level = scale_level(self.distance_scale)
+        if level is not None:
             held = "" if self.time_offset_std_s is not None else (
                 f", or the clocks' offset held at {1000 * self.time_offset_s:+.1f} ms (a board moving towards the "
                 "camera at the wrong instants: solve it, without --time-offset)")
-            words = (f"the camera's board distances are {100 * scale:+.1f}% (+-{100 * sd:.1f}%) off the LiDAR's "
-                     "ranges, which no LiDAR errs by: check board.square_size and the camera's intrinsics (its focal "
-                     f"length and distortion){held}; the extrinsic and the offset move with them")
-            if abs(scale) > SCALE_SIGMAS * sd:
-                concerns.append((UNTRUSTED, words))
-            elif abs(scale) > SCALE_CHECK_SIGMAS * sd:
-                concerns.append((CHECK, words))
+            concerns.append((level, f"{scale_said(self.distance_scale)}, which no LiDAR errs by: check "
+                                    "board.square_size and the camera's intrinsics (its focal length and "
+                                    f"distortion){held}; the extrinsic and the offset move with them"))
         if self.time_offset_std_s is not None and self.track is not None and self.track.times_against_order:
             concerns.append((CHECK, AGAINST_ORDER_WORDS))
         if self.sweeps < FEW_SWEEPS:
@@ -168,7 +164,7 @@ class MovingBoardResult:
             "distance_scale": None if self.distance_scale is None else {
                 "scale": self.distance_scale[0], "std": self.distance_scale[1],
                 "meaning": "the camera's board distances against the LiDAR's, d_camera = (1 + scale) d_lidar, each "
-                           "sweep's deskewed board plane against the camera's at its time"},
+                           "sweep's returns carried to one instant, along the camera's board normal then"},
             "intrinsics": self.camera.as_dict(),
             "timings_s": {"solve": self.seconds, **({} if self.posterior is None else
                                                     {"posterior": self.posterior.run.seconds})},
@@ -196,8 +192,9 @@ def board_views(track: MotionTrack, board, camera: CameraModel) -> list[TimedBoa
 def moving_distance_scale(views: list[TimedBoardView], sweeps: list, T_camera_lidar: np.ndarray,
                           time_offset_s: float) -> tuple[float, float] | None:
     """How the camera's board distances scale against the LiDAR's (``closed_form.distance_scale``): each sweep's
-    board returns carried to the instant of their mean time (``clock_offset.deskewed``) and fitted with a plane,
-    against the board where the camera's trajectory puts it then; the sweeps within the trajectory only. A LiDAR
+    board returns carried to the instant of their mean time (``clock_offset.deskewed``), their median distance along
+    the normal of the board where the camera's trajectory puts it then against that board's; the sweeps within the
+    trajectory only. A LiDAR
     times its ranges to parts per million, so a percent is the camera's: a wrong square size, focal length or
     distortion. A moving board stands at much the same distance throughout, so the translation takes up most of
     such an error, and what is left is this scale: squares declared 5% long read OK 158 mm off, and scale by

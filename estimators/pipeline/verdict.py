@@ -337,15 +337,30 @@ def _scale(name: str, T: np.ndarray, frames: list[FrameMeasurement], floor_m: fl
                      f"LiDAR's ({MIN_SCALE_PLANES} or more do): a wrong board.square_size or focal length "
                      f"{'moves' if edges_conflict else 'would move'} the estimate beyond its covariance unseen; check "
                      "them, or add boards")]
-    if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_CHECK_SIGMAS * fit[1]:
+    level = scale_level(fit)
+    if level is None:
         return []
-    said = f"{name}the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off the LiDAR's ranges"
-    if abs(fit[0]) > SCALE_SIGMAS * fit[1]:
+    said = f"{name}{scale_said(fit)}"
+    if level == UNTRUSTED:
         return [(UNTRUSTED, f"{said}, which no LiDAR errs by: check board.square_size and the camera's focal length")]
     if not disagree:
         return []
     return [(CHECK, f"{said} and the boards' planes disagree beyond their noise (a per-board plane error of "
                     f"{1000 * floor_m:.1f} mm taken up): check board.square_size and the camera's focal length")]
+
+
+def scale_level(fit: tuple[float, float] | None) -> str | None:
+    """How far a distances' scale ``(s, sd)`` (``closed_form.distance_scale``) lies out: ``UNTRUSTED`` beyond
+    ``SCALE_LIMIT`` and ``SCALE_SIGMAS`` standard deviations, ``CHECK`` beyond the limit and ``SCALE_CHECK_SIGMAS``,
+    else None (still poses and a moving board read it alike)."""
+    if fit is None or abs(fit[0]) <= SCALE_LIMIT or abs(fit[0]) <= SCALE_CHECK_SIGMAS * fit[1]:
+        return None
+    return UNTRUSTED if abs(fit[0]) > SCALE_SIGMAS * fit[1] else CHECK
+
+
+def scale_said(fit: tuple[float, float]) -> str:
+    """A distances' scale ``(s, sd)`` in words."""
+    return f"the camera's board distances are {100 * fit[0]:+.1f}% (+-{100 * fit[1]:.1f}%) off the LiDAR's ranges"
 
 
 def _intrinsics(name: str, whose: str, check: dict | None) -> list[tuple[str, str]]:
